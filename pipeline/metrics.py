@@ -1,0 +1,298 @@
+"""Per-tree measurements.
+
+Metrics are computed from *partials* that can be merged: a tile computes partials for
+the points in its core, the merge maps tile-local tree ids to global ones and combines
+them (counts add, maxima take the max, and the convex hull of a union is the hull of
+the union of the hulls' vertices). A single-block run is the one-tile case, so both
+paths share this code.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+from scipy.spatial import ConvexHull, QhullError
+
+from pipeline.params import MetricsParams
+
+TREE_COLUMNS = (
+    "tree_id",
+    "trunk_x",
+    "trunk_y",
+    "trunk_z",
+    "height_m",
+    "crown_diameter_m",
+    "crown_area_m2",
+    "crown_volume_m3",
+    "trunk_diameter_m",
+    "n_points",
+    "wood_fraction",
+)
+
+
+@dataclass(frozen=True)
+class TreePartials:
+    """Mergeable per-tree aggregates.
+
+    Attributes
+    ----------
+    tree_id : (m,) int64, sorted, unique, >= 1
+    n_points, n_wood : (m,) int64
+    z_max : (m,) float64
+        Highest point of the tree [m], in the frame of the points.
+    crown_xy : list of (h, 2) float64
+        Convex-hull vertices of the crown points in plan view (may be empty arrays).
+    crown_xyz : list of (g, 3) float64
+        Convex-hull vertices of the crown points in 3D (may be empty arrays).
+    """
+
+    tree_id: np.ndarray
+    n_points: np.ndarray
+    n_wood: np.ndarray
+    z_max: np.ndarray
+    crown_xy: list
+    crown_xyz: list
+
+    def shifted(self, offset: np.ndarray) -> "TreePartials":
+        """The same partials with coordinates moved by ``offset`` (3,)."""
+        off = np.asarray(offset, dtype=np.float64)
+        return TreePartials(
+            self.tree_id,
+            self.n_points,
+            self.n_wood,
+            self.z_max + off[2],
+            [v + off[:2] for v in self.crown_xy],
+            [v + off for v in self.crown_xyz],
+        )
+
+
+def _hull_vertices(pts: np.ndarray) -> np.ndarray:
+    """Vertices of the convex hull of ``pts`` (all points if degenerate or tiny)."""
+    d = pts.shape[1]
+    if pts.shape[0] <= d + 1:
+        return pts.copy()
+    try:
+        return pts[ConvexHull(pts).vertices]
+    except QhullError:  # flat or collinear: every point may matter, keep the extremes
+        keep = np.unique(np.concatenate([np.argmin(pts, axis=0), np.argmax(pts, axis=0)]))
+        return pts[keep]
+
+
+def tree_partials(
+    xyz: np.ndarray,
+    tree_id: np.ndarray,
+    is_wood: np.ndarray,
+    trunk_z: np.ndarray,
+    *,
+    params: MetricsParams,
+) -> TreePartials:
+    """Aggregate the points of every tree.
+
+    Parameters
+    ----------
+    xyz : (n, 3) float64 [m]
+    tree_id : (n,) int64, 0 = not a tree, k = tree whose trunk base height is ``trunk_z[k-1]``
+    is_wood : (n,) bool
+    trunk_z : (k,) float64
+        Trunk base height of each tree [m], same frame as ``xyz``.
+    params : MetricsParams
+        ``crown_base`` decides which points are crown.
+
+    Returns
+    -------
+    TreePartials for the trees that have at least one point.
+    """
+    # Strategy: sort the tree points by id once, then reduce each contiguous run.
+    mask = tree_id > 0
+    ids = tree_id[mask]
+    pts = xyz[mask]
+    wood = is_wood[mask]
+    order = np.argsort(ids, kind="stable")
+    ids, pts, wood = ids[order], pts[order], wood[order]
+    uniq, start, counts = np.unique(ids, return_index=True, return_counts=True)
+    n_wood = np.add.reduceat(wood.astype(np.int64), start) if uniq.size else np.zeros(0, np.int64)
+    z_max = np.maximum.reduceat(pts[:, 2], start) if uniq.size else np.zeros(0)
+    crown_xy, crown_xyz = [], []
+    for t, s, c in zip(uniq, start, counts):
+        p = pts[s : s + c]
+        crown = p[p[:, 2] - trunk_z[t - 1] >= params.crown_base]
+        crown_xy.append(_hull_vertices(crown[:, :2]) if len(crown) else np.zeros((0, 2)))
+        crown_xyz.append(_hull_vertices(crown) if len(crown) else np.zeros((0, 3)))
+    return TreePartials(uniq.astype(np.int64), counts.astype(np.int64), n_wood.astype(np.int64), z_max, crown_xy, crown_xyz)
+
+
+def combine_partials(parts: list[TreePartials], id_maps: list[np.ndarray]) -> TreePartials:
+    """Merge partials from several tiles into partials over global tree ids.
+
+    Parameters
+    ----------
+    parts : list of TreePartials, tile-local ids
+    id_maps : list of (k_t + 1,) int64
+        ``id_maps[t][local_id]`` is the global id (0 drops the tree's points).
+    """
+    rows = []
+    for part, mp in zip(parts, id_maps):
+        g = mp[part.tree_id]
+        for i in np.flatnonzero(g > 0):
+            rows.append((int(g[i]), part, i))
+    rows.sort(key=lambda r: r[0])
+    out_id, n, nw, zm, cxy, cxyz = [], [], [], [], [], []
+    j = 0
+    while j < len(rows):
+        gid = rows[j][0]
+        k = j
+        while k < len(rows) and rows[k][0] == gid:
+            k += 1
+        group = rows[j:k]
+        out_id.append(gid)
+        n.append(sum(int(p.n_points[i]) for _, p, i in group))
+        nw.append(sum(int(p.n_wood[i]) for _, p, i in group))
+        zm.append(max(float(p.z_max[i]) for _, p, i in group))
+        cxy.append(_hull_vertices(np.concatenate([p.crown_xy[i] for _, p, i in group])))
+        cxyz.append(_hull_vertices(np.concatenate([p.crown_xyz[i] for _, p, i in group])))
+        j = k
+    return TreePartials(
+        np.asarray(out_id, dtype=np.int64),
+        np.asarray(n, dtype=np.int64),
+        np.asarray(nw, dtype=np.int64),
+        np.asarray(zm, dtype=np.float64),
+        cxy,
+        cxyz,
+    )
+
+
+def _area_and_diameter(v: np.ndarray) -> tuple[float, float]:
+    if len(v) < 2:
+        return 0.0, 0.0
+    diff = v[:, None, :] - v[None, :, :]
+    diameter = float(np.sqrt((diff**2).sum(-1)).max())
+    if len(v) < 3:
+        return 0.0, diameter
+    try:
+        return float(ConvexHull(v).volume), diameter  # in 2D, "volume" is the area
+    except QhullError:
+        return 0.0, diameter
+
+
+def _volume(v: np.ndarray) -> float:
+    if len(v) < 4:
+        return 0.0
+    try:
+        return float(ConvexHull(v).volume)
+    except QhullError:
+        return 0.0
+
+
+def finalize_metrics(
+    partials: TreePartials,
+    trunks: np.ndarray,
+    trunk_diameter: np.ndarray,
+) -> dict[str, np.ndarray]:
+    """Per-tree table from merged partials.
+
+    Parameters
+    ----------
+    partials : TreePartials over ids 1..k (ids with no points get zero counts)
+    trunks : (k, 3) float64
+        Trunk bases, in the same frame as the partials; tree k is ``trunks[k-1]``.
+    trunk_diameter : (k,) float64 [m]
+
+    Returns
+    -------
+    dict of column name → (k,) array, columns in ``TREE_COLUMNS`` order.
+    """
+    k = trunks.shape[0]
+    ids = np.arange(1, k + 1, dtype=np.int64)
+    n = np.zeros(k, np.int64)
+    nw = np.zeros(k, np.int64)
+    height = np.zeros(k)
+    area = np.zeros(k)
+    diam = np.zeros(k)
+    vol = np.zeros(k)
+    for j, t in enumerate(partials.tree_id):
+        i = t - 1
+        n[i] = partials.n_points[j]
+        nw[i] = partials.n_wood[j]
+        height[i] = max(0.0, partials.z_max[j] - trunks[i, 2])
+        area[i], diam[i] = _area_and_diameter(partials.crown_xy[j])
+        vol[i] = _volume(partials.crown_xyz[j])
+    with np.errstate(invalid="ignore", divide="ignore"):
+        wood_fraction = np.where(n > 0, nw / np.maximum(n, 1), 0.0)
+    return {
+        "tree_id": ids,
+        "trunk_x": trunks[:, 0].astype(np.float64),
+        "trunk_y": trunks[:, 1].astype(np.float64),
+        "trunk_z": trunks[:, 2].astype(np.float64),
+        "height_m": height,
+        "crown_diameter_m": diam,
+        "crown_area_m2": area,
+        "crown_volume_m3": vol,
+        "trunk_diameter_m": np.asarray(trunk_diameter, dtype=np.float64),
+        "n_points": n,
+        "wood_fraction": wood_fraction.astype(np.float64),
+    }
+
+
+def fit_circle(xy: np.ndarray) -> tuple[np.ndarray, float]:
+    """Least-squares circle through 2D points (algebraic fit, then trimmed refit).
+
+    Returns centre (2,) and radius [m]; radius NaN when fewer than 5 points.
+    """
+    if len(xy) < 5:
+        return np.full(2, np.nan), float("nan")
+    keep = np.ones(len(xy), dtype=bool)
+    centre, r = np.full(2, np.nan), float("nan")
+    for _ in range(3):
+        p = xy[keep]
+        if len(p) < 5:
+            break
+        mu = p.mean(axis=0)
+        q = p - mu
+        a = np.column_stack([2 * q, np.ones(len(q))])
+        b = (q**2).sum(1)
+        sol, *_ = np.linalg.lstsq(a, b, rcond=None)
+        centre = sol[:2] + mu
+        r = float(np.sqrt(max(sol[2] + (sol[:2] ** 2).sum(), 0.0)))
+        resid = np.abs(np.sqrt(((xy - centre) ** 2).sum(1)) - r)
+        mad = np.median(resid[keep]) + 1e-6
+        keep = resid < 3.0 * 1.4826 * mad + 0.01
+    return centre, r
+
+
+def trunk_diameters(
+    xyz: np.ndarray,
+    tree_id: np.ndarray,
+    trunks: np.ndarray,
+    *,
+    params: MetricsParams,
+    max_radius: float = 0.5,
+) -> np.ndarray:
+    """Trunk diameter of each tree at ``params.trunk_height`` above its base.
+
+    Fits a circle to the tree's points in a horizontal slice of thickness
+    ``params.trunk_slice`` within ``max_radius`` of the trunk.
+
+    Returns
+    -------
+    (k,) float64 diameters [m], NaN where fewer than 5 points or the fit is implausible.
+    """
+    k = trunks.shape[0]
+    out = np.full(k, np.nan)
+    if k == 0:
+        return out
+    mask = tree_id > 0
+    pts, ids = xyz[mask], tree_id[mask]
+    dz = pts[:, 2] - trunks[ids - 1, 2]
+    in_slice = np.abs(dz - params.trunk_height) <= params.trunk_slice / 2
+    d2 = ((pts[:, :2] - trunks[ids - 1, :2]) ** 2).sum(1)
+    sel = in_slice & (d2 <= max_radius**2)
+    pts, ids = pts[sel], ids[sel]
+    order = np.argsort(ids, kind="stable")
+    pts, ids = pts[order], ids[order]
+    uniq, start, counts = np.unique(ids, return_index=True, return_counts=True)
+    for t, s, c in zip(uniq, start, counts):
+        _, r = fit_circle(pts[s : s + c, :2])
+        if np.isfinite(r) and 0.005 < r <= max_radius:
+            out[t - 1] = 2 * r
+    return out

@@ -1,0 +1,115 @@
+"""Parameter models for every algorithm of the per-block pipeline.
+
+One pydantic model per algorithm, with units and bounds. The same `PipelineParams`
+object is stored with a job, shipped to a dask worker and used by the command line
+(each field becomes an option ``--<group>-<field>``, with its description as help).
+All lengths are metres.
+"""
+
+from __future__ import annotations
+
+from typing import Literal
+
+from pydantic import BaseModel, ConfigDict, Field, model_validator
+
+
+class _Model(BaseModel):
+    model_config = ConfigDict(extra="forbid", frozen=True)
+
+
+class GroundParams(_Model):
+    """Ground removal by local z-minimum (paper: lateral radius R_g = 1 m)."""
+
+    cell_size: float = Field(0.25, gt=0.01, le=5.0, description="grid cell for ground minima [m]")
+    search_radius: float = Field(1.0, gt=0.05, le=20.0, description="lateral radius of the local z-minimum (R_g) [m]")
+    tolerance: float = Field(0.12, ge=0.0, le=2.0, description="points this close above the ground surface are ground [m]")
+    outlier_depth: float = Field(0.3, gt=0.0, le=10.0, description="cell minima this far below their neighbours' median are noise, not ground [m]")
+
+
+class GraphParams(_Model):
+    """Voxel graph: nodes are voxel centroids, edges join nodes within a radius."""
+
+    voxel_size: float = Field(0.1, ge=0.02, le=1.0, description="voxel edge length (v_s) [m]")
+    edge_radius: float = Field(0.15, gt=0.0, le=2.0, description="nodes closer than this are joined by an edge (R_e) [m]")
+    weighting: Literal["distance", "enriched"] = Field(
+        "distance", description="edge weight: Euclidean distance, or distance scaled by the cosine distance of enrichment features"
+    )
+
+    @model_validator(mode="after")
+    def _radius_covers_voxel(self) -> "GraphParams":
+        if self.edge_radius < self.voxel_size:
+            raise ValueError(
+                f"edge_radius ({self.edge_radius} m) must be at least voxel_size ({self.voxel_size} m), "
+                "or neighbouring voxels are never joined"
+            )
+        if self.edge_radius > 6 * self.voxel_size:
+            raise ValueError(
+                f"edge_radius ({self.edge_radius} m) above 6 x voxel_size ({self.voxel_size} m) makes the graph too dense"
+            )
+        return self
+
+
+class TrunkParams(_Model):
+    """Trunk detection without priors: where the canopy's shortest paths reach the ground."""
+
+    contact_height: float = Field(0.35, gt=0.0, le=3.0, description="graph nodes this low above ground can be a tree's ground contact [m]")
+    cluster_radius: float = Field(0.8, gt=0.0, le=5.0, description="ground contacts closer than this are one trunk [m]")
+    min_tree_height: float = Field(1.5, gt=0.0, le=50.0, description="a tree's material must reach this high above ground [m]")
+    min_canopy_voxels: int = Field(150, ge=1, le=10_000_000, description="least number of voxels whose shortest path ends in a trunk [voxels]")
+    max_trunk_width: float = Field(1.0, gt=0.0, le=5.0, description="widest trunk cross-section accepted near the ground [m]")
+    max_planar_fraction: float = Field(0.45, ge=0.0, le=1.0, description="objects with more planar (box-like) material than this are not trees [fraction]")
+
+
+class SegmentParams(_Model):
+    """Segmentation by shortest path from all trunks at once."""
+
+    max_crown_radius: float = Field(3.5, gt=0.1, le=30.0, description="farthest a tree's material reaches from its trunk, horizontally [m]")
+    unreached_radius: float = Field(0.6, ge=0.0, le=10.0, description="points the graph does not reach go to the nearest trunk if a tree node lies this close [m]")
+
+
+class MatterParams(_Model):
+    """Wood/leaf classification from shortest-path counts."""
+
+    method: Literal["combined", "paper"] = Field(
+        "combined", description="'paper': S = log(p)/log(p_max) with a fixed threshold; 'combined': per-tree score, smoothing and shape features"
+    )
+    threshold: float = Field(0.5, ge=0.0, le=1.0, description="score at or above which a voxel is wood [0-1]")
+    smoothing_radius: float = Field(0.2, ge=0.0, le=2.0, description="scores are averaged over this neighbourhood before thresholding [m]")
+
+
+class MetricsParams(_Model):
+    """Per-tree measurements."""
+
+    trunk_height: float = Field(0.3, gt=0.0, le=5.0, description="height above the trunk base where the trunk diameter is measured [m]")
+    trunk_slice: float = Field(0.1, gt=0.0, le=1.0, description="thickness of the slice used for the trunk diameter [m]")
+    crown_base: float = Field(0.5, ge=0.0, le=20.0, description="tree material above this height counts as crown [m]")
+
+
+class PipelineParams(_Model):
+    """Everything the per-block pipeline needs; stored with each job."""
+
+    ground: GroundParams = GroundParams()
+    graph: GraphParams = GraphParams()
+    trunks: TrunkParams = TrunkParams()
+    segment: SegmentParams = SegmentParams()
+    matter: MatterParams = MatterParams()
+    metrics: MetricsParams = MetricsParams()
+
+    def reach(self) -> float:
+        """Horizontal distance [m] beyond which a point cannot influence a label.
+
+        A tile's buffer must be at least this wide for tiled results to equal
+        untiled ones: a tree with material in the core has its trunk within
+        ``max_crown_radius`` of it and its whole crown within twice that.
+        """
+        return 2.0 * self.segment.max_crown_radius + self.graph.edge_radius
+
+
+GROUPS: dict[str, type[_Model]] = {
+    "ground": GroundParams,
+    "graph": GraphParams,
+    "trunks": TrunkParams,
+    "segment": SegmentParams,
+    "matter": MatterParams,
+    "metrics": MetricsParams,
+}

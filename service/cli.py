@@ -1,0 +1,79 @@
+"""The ``orchard`` console script.
+
+Every domain error becomes a one-line message on stderr and exit code 2 (bad input
+or parameters) or 3 (no trees / not found); an unexpected error becomes a one-line
+message and exit code 1. No traceback reaches the user unless ORCHARD_DEBUG=1 is set
+by the caller for a debugging session.
+"""
+
+from __future__ import annotations
+
+import argparse
+import importlib
+import os
+import sys
+
+from pydantic import ValidationError
+
+from pipeline.errors import NoTreesError, NotFoundError, OrchardError
+from service.commands import COMMANDS
+
+
+def _validation_message(err: ValidationError) -> str:
+    parts = []
+    for e in err.errors():
+        loc = ".".join(str(p) for p in e.get("loc", ()) if p != "__root__")
+        msg = e.get("msg", "invalid value")
+        parts.append(f"{loc}: {msg}" if loc else msg)
+    return "invalid parameters: " + "; ".join(parts)
+
+
+def build_parser() -> tuple[argparse.ArgumentParser, dict]:
+    parser = argparse.ArgumentParser(
+        prog="orchard",
+        description="Turn LiDAR captures of orchards into per-tree data.",
+    )
+    sub = parser.add_subparsers(dest="command", metavar="COMMAND")
+    modules = {}
+    for name in COMMANDS:
+        try:
+            mod = importlib.import_module(f"service.commands.{name}")
+        except ModuleNotFoundError as exc:  # a command whose module is not written yet
+            if exc.name == f"service.commands.{name}":
+                continue
+            raise
+        p = sub.add_parser(mod.NAME, help=mod.HELP, description=mod.HELP)
+        mod.add_arguments(p)
+        modules[mod.NAME] = mod
+    return parser, modules
+
+
+def main(argv: list[str] | None = None) -> int:
+    parser, modules = build_parser()
+    args = parser.parse_args(argv)
+    if not args.command:
+        parser.print_help()
+        return 2
+    try:
+        return int(modules[args.command].run(args) or 0)
+    except KeyboardInterrupt:
+        print("orchard: interrupted", file=sys.stderr)
+        return 130
+    except ValidationError as exc:
+        print(f"orchard {args.command}: {_validation_message(exc)}", file=sys.stderr)
+        return 2
+    except (NoTreesError, NotFoundError) as exc:
+        print(f"orchard {args.command}: {exc}", file=sys.stderr)
+        return 3
+    except OrchardError as exc:
+        print(f"orchard {args.command}: {exc}", file=sys.stderr)
+        return 2
+    except Exception as exc:  # noqa: BLE001 - last line of defence: no tracebacks
+        if os.environ.get("ORCHARD_DEBUG") == "1":
+            raise
+        print(f"orchard {args.command}: internal error: {type(exc).__name__}: {exc}", file=sys.stderr)
+        return 1
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -1,0 +1,5 @@
+"""One module per ``orchard`` sub-command. Each defines ``NAME``, ``HELP``,
+``add_arguments(parser)`` and ``run(args) -> int``; :mod:`service.cli` registers
+every module listed in ``COMMANDS``."""
+
+COMMANDS = ["demo", "process", "simulate", "evaluate", "serve", "tokens", "schedules"]

@@ -1,0 +1,36 @@
+"""Command-line options generated from the pipeline's parameter models, so that
+``orchard process --help`` documents every parameter with its unit and default."""
+
+from __future__ import annotations
+
+import argparse
+import typing
+
+from pipeline.params import GROUPS, PipelineParams
+
+
+def add_pipeline_options(parser: argparse.ArgumentParser) -> None:
+    for group, model in GROUPS.items():
+        g = parser.add_argument_group(f"{group} parameters")
+        for field_name, field in model.model_fields.items():
+            flag = f"--{group}-{field_name}".replace("_", "-")
+            ann = field.annotation
+            kwargs: dict = {"dest": f"p__{group}__{field_name}", "default": None}
+            if typing.get_origin(ann) is typing.Literal:
+                kwargs["choices"] = list(typing.get_args(ann))
+            elif ann is int:
+                kwargs["type"] = int
+            elif ann is float:
+                kwargs["type"] = float
+            kwargs["help"] = f"{field.description} (default {field.default})"
+            g.add_argument(flag, **kwargs)
+
+
+def pipeline_params_from_args(args: argparse.Namespace, base: PipelineParams | None = None) -> PipelineParams:
+    """Build validated parameters from the options given (unset options keep defaults)."""
+    data = (base or PipelineParams()).model_dump()
+    for key, value in vars(args).items():
+        if key.startswith("p__") and value is not None:
+            _, group, field_name = key.split("__")
+            data[group][field_name] = value
+    return PipelineParams.model_validate(data)
