@@ -234,30 +234,44 @@ def finalize_metrics(
     }
 
 
-def fit_circle(xy: np.ndarray) -> tuple[np.ndarray, float]:
-    """Least-squares circle through 2D points (algebraic fit, then trimmed refit).
+def fit_circle(xy: np.ndarray, *, inlier: float = 0.02, trials: int = 256) -> tuple[np.ndarray, float]:
+    """Robust circle through 2D points: RANSAC over point triples, then least squares.
 
-    Returns centre (2,) and radius [m]; radius NaN when fewer than 5 points.
+    Parameters
+    ----------
+    xy : (n, 2) float64 [m]
+    inlier : float — residual [m] under which a point supports a circle
+    trials : int — random triples tried (fixed seed: the result is deterministic)
+
+    Returns
+    -------
+    centre (2,), radius [m]; radius NaN when fewer than 5 points.
     """
-    if len(xy) < 5:
+    n = len(xy)
+    if n < 5:
         return np.full(2, np.nan), float("nan")
-    keep = np.ones(len(xy), dtype=bool)
-    centre, r = np.full(2, np.nan), float("nan")
-    for _ in range(3):
-        p = xy[keep]
-        if len(p) < 5:
-            break
-        mu = p.mean(axis=0)
-        q = p - mu
-        a = np.column_stack([2 * q, np.ones(len(q))])
-        b = (q**2).sum(1)
-        sol, *_ = np.linalg.lstsq(a, b, rcond=None)
-        centre = sol[:2] + mu
-        r = float(np.sqrt(max(sol[2] + (sol[:2] ** 2).sum(), 0.0)))
-        resid = np.abs(np.sqrt(((xy - centre) ** 2).sum(1)) - r)
-        mad = np.median(resid[keep]) + 1e-6
-        keep = resid < 3.0 * 1.4826 * mad + 0.01
-    return centre, r
+    rng = np.random.default_rng(0)
+    tri = np.array([rng.choice(n, 3, replace=False) for _ in range(trials)])
+    a, b, c = xy[tri[:, 0]], xy[tri[:, 1]], xy[tri[:, 2]]
+    d = 2 * (a[:, 0] * (b[:, 1] - c[:, 1]) + b[:, 0] * (c[:, 1] - a[:, 1]) + c[:, 0] * (a[:, 1] - b[:, 1]))
+    ok = np.abs(d) > 1e-12
+    a2, b2, c2 = (a**2).sum(1), (b**2).sum(1), (c**2).sum(1)
+    ux = (a2 * (b[:, 1] - c[:, 1]) + b2 * (c[:, 1] - a[:, 1]) + c2 * (a[:, 1] - b[:, 1])) / np.where(ok, d, 1)
+    uy = (a2 * (c[:, 0] - b[:, 0]) + b2 * (a[:, 0] - c[:, 0]) + c2 * (b[:, 0] - a[:, 0])) / np.where(ok, d, 1)
+    r = np.hypot(a[:, 0] - ux, a[:, 1] - uy)
+    resid = np.abs(np.hypot(xy[None, :, 0] - ux[:, None], xy[None, :, 1] - uy[:, None]) - r[:, None])
+    support = np.where(ok, (resid < inlier).sum(1), -1)
+    best = int(np.argmax(support))
+    keep = resid[best] < inlier
+    if keep.sum() < 5:
+        return np.full(2, np.nan), float("nan")
+    # algebraic least squares on the inliers
+    p = xy[keep]
+    mu = p.mean(axis=0)
+    q = p - mu
+    sol, *_ = np.linalg.lstsq(np.column_stack([2 * q, np.ones(len(q))]), (q**2).sum(1), rcond=None)
+    centre = sol[:2] + mu
+    return centre, float(np.sqrt(max(sol[2] + (sol[:2] ** 2).sum(), 0.0)))
 
 
 def trunk_diameters(

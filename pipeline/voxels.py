@@ -1,0 +1,77 @@
+"""Voxelisation: points → voxel nodes (centroids), with index maps both ways."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+
+@dataclass(frozen=True)
+class Voxels:
+    """Occupied voxels of a point set.
+
+    Attributes
+    ----------
+    point_voxel : (n,) int64
+        Voxel of each input point (index into the arrays below).
+    keys : (m, 3) int64
+        Integer voxel coordinates, ``floor((xyz - grid_origin) / voxel_size)``.
+    centroids : (m, 3) float64
+        Mean position of the points in each voxel [m] (the graph nodes).
+    counts : (m,) int64
+        Points per voxel.
+    """
+
+    point_voxel: np.ndarray
+    keys: np.ndarray
+    centroids: np.ndarray
+    counts: np.ndarray
+
+    @property
+    def n(self) -> int:
+        return int(self.counts.shape[0])
+
+
+def voxelize(
+    xyz: np.ndarray,
+    *,
+    voxel_size: float,
+    grid_origin: tuple[float, float, float] = (0.0, 0.0, 0.0),
+) -> Voxels:
+    """Group points into cubic voxels of side ``voxel_size`` [m].
+
+    Parameters
+    ----------
+    xyz : (n, 3) float64 [m]
+    voxel_size : float [m]
+    grid_origin : (3,) float
+        Voxel (0, 0, 0) has its corner here; tiles of one block share it.
+
+    Returns
+    -------
+    Voxels, whose voxels are ordered by key (x, then y, then z).
+    """
+    # Strategy: pack the three integer keys into one int64 and let np.unique group them.
+    xyz = np.asarray(xyz, dtype=np.float64)
+    if xyz.shape[0] == 0:
+        return Voxels(np.zeros(0, np.int64), np.zeros((0, 3), np.int64), np.zeros((0, 3)), np.zeros(0, np.int64))
+    keys = np.floor((xyz - np.asarray(grid_origin, dtype=np.float64)) / voxel_size).astype(np.int64)
+    lo = keys.min(axis=0)
+    rel = keys - lo
+    span = rel.max(axis=0) + 1
+    if float(span[0]) * float(span[1]) * float(span[2]) >= 2**62:
+        raise ValueError("block extent too large for the voxel size; tile it")
+    packed = (rel[:, 0] * span[1] + rel[:, 1]) * span[2] + rel[:, 2]
+    uniq, inverse, counts = np.unique(packed, return_inverse=True, return_counts=True)
+    inverse = inverse.reshape(-1)
+    m = uniq.shape[0]
+    cent = np.empty((m, 3))
+    for d in range(3):
+        cent[:, d] = np.bincount(inverse, weights=xyz[:, d], minlength=m) / counts
+    uk = np.empty((m, 3), np.int64)
+    uk[:, 2] = uniq % span[2]
+    rest = uniq // span[2]
+    uk[:, 1] = rest % span[1]
+    uk[:, 0] = rest // span[1]
+    return Voxels(inverse.astype(np.int64), uk + lo, cent, counts.astype(np.int64))

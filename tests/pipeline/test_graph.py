@@ -1,0 +1,110 @@
+"""Hand-checkable graph kernels: path lengths on a voxel block, subtree counts on small forests."""
+
+import numpy as np
+import pytest
+from hypothesis import given, settings
+from hypothesis import strategies as st
+
+from pipeline.graph import build_graph, check_graph_size, depths, shortest_paths, subtree_sizes
+from pipeline.voxels import voxelize
+
+
+def test_3x3x3_block_path_lengths_are_1_sqrt2_sqrt3():
+    # 27 voxels of 1 m, one point at each centre; edges reach the cube diagonal
+    ii = np.stack(np.meshgrid(range(3), range(3), range(3), indexing="ij"), -1).reshape(-1, 3)
+    xyz = ii + 0.5
+    vox = voxelize(xyz, voxel_size=1.0)
+    g = build_graph(vox.centroids, radius=1.75)
+    corner = int(np.flatnonzero((vox.keys == 0).all(1))[0])
+    sp = shortest_paths(g, np.array([corner]))
+    d = dict(zip(map(tuple, vox.keys.tolist()), sp.dist))
+    assert d[(0, 0, 0)] == 0
+    assert d[(1, 0, 0)] == pytest.approx(1.0)
+    assert d[(1, 1, 0)] == pytest.approx(np.sqrt(2))
+    assert d[(1, 1, 1)] == pytest.approx(np.sqrt(3))
+    assert d[(2, 2, 2)] == pytest.approx(2 * np.sqrt(3))
+    assert d[(2, 1, 0)] == pytest.approx(1 + np.sqrt(2))
+    assert (sp.source == corner).all()
+
+
+def test_multi_source_assigns_nearest_source():
+    # a path graph 0-1-2-3-4-5-6 with sources at both ends: middle goes to the nearer end
+    xyz = np.column_stack([np.arange(7.0), np.zeros(7), np.zeros(7)])
+    g = build_graph(xyz, radius=1.01)
+    sp = shortest_paths(g, np.array([0, 6]))
+    assert sp.source.tolist() == [0, 0, 0, 0, 6, 6, 6] or sp.source.tolist() == [0, 0, 0, 6, 6, 6, 6]
+    assert sp.dist.tolist() == [0, 1, 2, 3, 2, 1, 0]
+    assert sp.pred[0] == -1 and sp.pred[6] == -1
+
+
+def test_subtree_counts_on_path_graph():
+    # 0 <- 1 <- 2 <- 3 <- 4 : node i has 5 - i paths through it
+    pred = np.array([-1, 0, 1, 2, 3])
+    assert subtree_sizes(pred).tolist() == [5, 4, 3, 2, 1]
+    assert depths(pred).tolist() == [0, 1, 2, 3, 4]
+
+
+def test_subtree_counts_on_branching_forest():
+    #       0            5
+    #      / \           |
+    #     1   4          6
+    #    / \
+    #   2   3
+    pred = np.array([-1, 0, 1, 1, 0, -1, 5])
+    assert subtree_sizes(pred).tolist() == [5, 3, 1, 1, 1, 2, 1]
+    w = np.array([1, 1, 2, 3, 1, 1, 10.0])
+    assert subtree_sizes(pred, w).tolist() == [8, 6, 2, 3, 1, 11, 10]
+
+
+def test_subtree_counts_from_dijkstra_match_brute_force():
+    rng = np.random.default_rng(3)
+    xyz = rng.uniform(0, 1, (300, 3))
+    g = build_graph(xyz, radius=0.2)
+    sp = shortest_paths(g, np.array([0, 1]))
+    size = subtree_sizes(sp.pred)
+    # brute force: walk every node to its root, counting visits
+    brute = np.zeros(len(xyz))
+    for i in range(len(xyz)):
+        if sp.source[i] < 0:
+            continue
+        j = i
+        while j >= 0:
+            brute[j] += 1
+            j = sp.pred[j]
+    reached = sp.source >= 0
+    assert np.array_equal(size[reached], brute[reached])
+
+
+@settings(max_examples=30, deadline=None)
+@given(st.lists(st.integers(min_value=-1, max_value=30), min_size=1, max_size=40))
+def test_subtree_sizes_sum_to_depths_plus_nodes(parents):
+    # build a valid forest: parent index must be smaller than the child's
+    pred = np.array([p if 0 <= p < i else -1 for i, p in enumerate(parents)])
+    size = subtree_sizes(pred)
+    # each node is counted once in its own subtree and once per ancestor
+    assert size.sum() == pytest.approx(len(pred) + depths(pred).sum())
+    assert (size >= 1).all()
+
+
+def test_edges_are_symmetric_and_positive():
+    rng = np.random.default_rng(0)
+    xyz = rng.uniform(0, 1, (200, 3))
+    g = build_graph(xyz, radius=0.25)
+    assert (g != g.T).nnz == 0
+    assert (g.data > 0).all()
+    assert g.data.max() <= 0.25 + 1e-12
+
+
+def test_enriched_weights_never_shorter_than_distance():
+    rng = np.random.default_rng(1)
+    xyz = rng.uniform(0, 1, (200, 3))
+    plain = build_graph(xyz, radius=0.25)
+    feats = rng.uniform(0, 1, (200, 4))
+    rich = build_graph(xyz, radius=0.25, edge_scale=feats)
+    assert rich.nnz == plain.nnz
+    assert (rich.data >= plain.data - 1e-12).all()
+
+
+def test_int32_limit_is_checked_up_front():
+    with pytest.raises(ValueError, match="int32"):
+        check_graph_size(2**31, 10)

@@ -1,0 +1,78 @@
+"""Per-tree metrics: circle fits, hulls, and merging partials equals computing at once."""
+
+import numpy as np
+import pytest
+from hypothesis import given, settings
+from hypothesis import strategies as st
+
+from pipeline.metrics import TREE_COLUMNS, combine_partials, finalize_metrics, fit_circle, tree_partials, trunk_diameters
+from pipeline.params import MetricsParams
+
+
+def test_circle_fit_recovers_radius_from_a_half_arc_with_outliers():
+    rng = np.random.default_rng(0)
+    th = rng.uniform(0, np.pi, 200)
+    xy = np.column_stack([3 + 0.15 * np.cos(th), -2 + 0.15 * np.sin(th)]) + rng.normal(0, 0.003, (200, 2))
+    xy = np.concatenate([xy, rng.uniform(2.5, 3.5, (10, 2))])
+    c, r = fit_circle(xy)
+    assert r == pytest.approx(0.15, abs=0.01)
+    assert np.allclose(c, [3, -2], atol=0.01)
+
+
+def _cone_tree(rng, x0, y0, n=3000, h=4.0, r=2.0):
+    z = rng.uniform(0, h, n)
+    rad = r * (1 - z / h) * np.sqrt(rng.uniform(0, 1, n))
+    a = rng.uniform(0, 2 * np.pi, n)
+    return np.column_stack([x0 + rad * np.cos(a), y0 + rad * np.sin(a), z])
+
+
+def test_metrics_of_a_known_shape():
+    # a cylinder trunk of diameter 0.3 m and a square crown 2 x 2 m from 1 to 3 m high
+    rng = np.random.default_rng(1)
+    th = rng.uniform(0, 2 * np.pi, 2000)
+    trunk = np.column_stack([0.15 * np.cos(th), 0.15 * np.sin(th), rng.uniform(0, 1, 2000)])
+    crown = rng.uniform([-1, -1, 1], [1, 1, 3], (20000, 3))
+    corners = np.array([[x, y, z] for x in (-1, 1) for y in (-1, 1) for z in (1, 3)], float)
+    xyz = np.concatenate([trunk, crown, corners])
+    tid = np.ones(len(xyz), np.int64)
+    wood = np.zeros(len(xyz), bool)
+    wood[:2000] = True
+    trunks = np.array([[0.0, 0.0, 0.0]])
+    p = MetricsParams(trunk_height=0.3, crown_base=1.0)
+    parts = tree_partials(xyz, tid, wood, trunks[:, 2], params=p)
+    cols = finalize_metrics(parts, trunks, trunk_diameters(xyz, tid, trunks, params=p))
+    assert list(cols) == list(TREE_COLUMNS)
+    assert cols["height_m"][0] == pytest.approx(3.0)
+    assert cols["crown_area_m2"][0] == pytest.approx(4.0, rel=1e-6)
+    assert cols["crown_diameter_m"][0] == pytest.approx(2 * np.sqrt(2), rel=1e-6)
+    # crown points are those above 1 m: exactly the box
+    assert cols["crown_volume_m3"][0] == pytest.approx(8.0, rel=0.02)
+    assert cols["trunk_diameter_m"][0] == pytest.approx(0.3, abs=0.01)
+    assert cols["n_points"][0] == len(xyz)
+    assert cols["wood_fraction"][0] == pytest.approx(2000 / len(xyz))
+
+
+@settings(max_examples=15, deadline=None)
+@given(st.integers(1, 6), st.integers(0, 2**16))
+def test_partials_merged_across_a_split_equal_partials_at_once(n_split, seed):
+    rng = np.random.default_rng(seed)
+    xyz = np.concatenate([_cone_tree(rng, 0, 0), _cone_tree(rng, 3, 0.5)])
+    tid = np.repeat([1, 2], 3000)
+    wood = rng.uniform(size=len(xyz)) < 0.2
+    trunk_z = np.zeros(2)
+    p = MetricsParams()
+    whole = tree_partials(xyz, tid, wood, trunk_z, params=p)
+    # split the points into arbitrary "tiles"; each tile numbers the trees its own way
+    part = rng.integers(0, n_split, len(xyz))
+    parts, maps = [], []
+    for t in range(n_split):
+        sel = part == t
+        local = np.where(tid[sel] == 1, 2, 1)  # swap the numbering
+        parts.append(tree_partials(xyz[sel], local, wood[sel], trunk_z, params=p))
+        maps.append(np.array([0, 2, 1]))
+    merged = combine_partials(parts, maps)
+    trunks = np.array([[0, 0, 0], [3, 0.5, 0]], float)
+    a = finalize_metrics(whole, trunks, np.full(2, np.nan))
+    b = finalize_metrics(merged, trunks, np.full(2, np.nan))
+    for col in TREE_COLUMNS:
+        assert np.allclose(a[col], b[col], equal_nan=True), col

@@ -1,0 +1,40 @@
+"""Voxel index maps round-trip and every point belongs to exactly one voxel."""
+
+import numpy as np
+from hypothesis import given, settings
+from hypothesis import strategies as st
+from hypothesis.extra.numpy import arrays
+
+from pipeline.voxels import voxelize
+
+coords = arrays(np.float64, st.tuples(st.integers(1, 300), st.just(3)), elements=st.floats(-50, 50, allow_nan=False))
+
+
+@settings(max_examples=40, deadline=None)
+@given(coords, st.sampled_from([0.05, 0.1, 0.5]))
+def test_index_maps_round_trip(xyz, size):
+    vox = voxelize(xyz, voxel_size=size, grid_origin=(0.3, -1.0, 2.0))
+    # every point maps to the voxel whose key contains it
+    keys = np.floor((xyz - np.array([0.3, -1.0, 2.0])) / size).astype(np.int64)
+    assert np.array_equal(vox.keys[vox.point_voxel], keys)
+    # counts and centroids agree with the map
+    assert vox.counts.sum() == len(xyz)
+    assert np.array_equal(np.bincount(vox.point_voxel, minlength=vox.n), vox.counts)
+    for d in range(3):
+        mean = np.bincount(vox.point_voxel, weights=xyz[:, d], minlength=vox.n) / vox.counts
+        assert np.allclose(mean, vox.centroids[:, d])
+    # keys are unique
+    assert len({tuple(k) for k in vox.keys.tolist()}) == vox.n
+
+
+def test_shared_grid_origin_gives_same_voxels_for_subsets():
+    rng = np.random.default_rng(0)
+    xyz = rng.uniform(0, 10, (5000, 3))
+    full = voxelize(xyz, voxel_size=0.1)
+    part = voxelize(xyz[xyz[:, 0] < 5], voxel_size=0.1)
+    assert np.array_equal(full.keys[full.point_voxel][xyz[:, 0] < 5], part.keys[part.point_voxel])
+
+
+def test_empty_input():
+    vox = voxelize(np.zeros((0, 3)), voxel_size=0.1)
+    assert vox.n == 0 and vox.point_voxel.shape == (0,)
