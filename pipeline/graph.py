@@ -39,9 +39,10 @@ def build_graph(
     ----------
     nodes : (m, 3) float64 [m]
     radius : float [m]
-    edge_scale : callable-free (m, f) float64, optional
+    edge_scale : (m, f) float64, optional
         Per-node feature vectors; when given, each edge's length is multiplied by
         ``1 + (1 - cos_sim(f_a, f_b))`` (the paper's cosine-similarity enrichment).
+
 
     Returns
     -------
@@ -61,6 +62,23 @@ def build_graph(
     w = np.maximum(w, 1e-6)  # csgraph treats explicit zeros as missing edges
     g = sparse.coo_matrix((np.concatenate([w, w]), (np.concatenate([a, b]), np.concatenate([b, a]))), shape=(m, m))
     return g.tocsr()
+
+
+def reweight(graph: sparse.csr_matrix, node_cost: np.ndarray) -> sparse.csr_matrix:
+    """The same edges with each length multiplied by the mean cost factor of its two nodes.
+
+    Parameters
+    ----------
+    graph : (m, m) csr_matrix
+    node_cost : (m,) float64, >= 1
+
+    Returns
+    -------
+    (m, m) csr_matrix with the same sparsity structure.
+    """
+    g = graph.tocoo()
+    w = g.data * 0.5 * (node_cost[g.row] + node_cost[g.col])
+    return sparse.csr_matrix((w, (g.row, g.col)), shape=graph.shape)
 
 
 @dataclass(frozen=True)

@@ -23,11 +23,24 @@ from pipeline.params import MatterParams
 
 PAPER_THRESHOLD = 0.216  # the threshold the paper selected on its real data
 
-# Logistic model of the "combined" score: weights for
-# [1, S_tree_smoothed, linearity, scattering, log1p(points per voxel), height_fraction].
-# Fitted by `python -m bench.fit_matter` on generated orchards (seeds 1000-1005), never on
-# the blocks used for evaluation.
-COMBINED_WEIGHTS = np.array([-4.0, 6.0, 2.0, -2.0, 0.5, -1.0])
+#: names of the columns of :func:`wood_features`
+FEATURES = (
+    "bias",
+    "s_tree",
+    "s_tree_mean",
+    "s_tree_max",
+    "linearity",
+    "scattering",
+    "verticality",
+    "rel_density",
+    "height_frac",
+    "radial_frac",
+)
+
+# Logistic model of the "combined" score, one weight per FEATURES column. Fitted by
+# `python -m bench.fit_matter` on generated orchards with seeds 1000+ (never on the
+# blocks used for evaluation); refit and paste when the features change.
+COMBINED_WEIGHTS = np.array([-3.0, 2.0, 2.0, 2.0, 1.0, -1.0, 0.5, 0.5, -1.0, -2.0])
 
 
 def path_counts(pred: np.ndarray) -> np.ndarray:
@@ -63,40 +76,81 @@ def smooth(values: np.ndarray, adjacency: sparse.csr_matrix) -> np.ndarray:
     return (adjacency @ values) / np.maximum(deg, 1.0)
 
 
-def combined_score(
-    s_tree: np.ndarray,
-    features: ShapeFeatures,
-    counts_per_voxel: np.ndarray,
-    height_fraction: np.ndarray,
+def neighbourhood_max(values: np.ndarray, adjacency: sparse.csr_matrix) -> np.ndarray:
+    """Maximum of non-negative ``values`` over each node's neighbourhood."""
+    a = adjacency.tocsr(copy=True)
+    a.data = values[a.indices].astype(np.float64)
+    return np.asarray(a.max(axis=1).todense()).ravel()
+
+
+def _per_group(values: np.ndarray, group: np.ndarray, fn) -> np.ndarray:
+    order = np.argsort(group, kind="stable")
+    g = group[order]
+    uniq, start = np.unique(g, return_index=True)
+    out = np.zeros(int(group.max()) + 1 if group.size else 1)
+    for u, a, b in zip(uniq, start, np.r_[start[1:], g.size]):
+        out[u] = fn(values[order[a:b]])
+    return out
+
+
+def wood_features(
+    counts: np.ndarray,
+    node_tree: np.ndarray,
+    trunk_xy: np.ndarray,
+    nodes: np.ndarray,
+    node_height: np.ndarray,
+    points_per_node: np.ndarray,
+    shape: ShapeFeatures,
     adjacency: sparse.csr_matrix,
-    *,
-    weights: np.ndarray = COMBINED_WEIGHTS,
 ) -> np.ndarray:
-    """Wood probability per node from path counts and shape.
+    """Feature matrix of the combined wood score, columns named in ``FEATURES``.
 
     Parameters
     ----------
-    s_tree : (m,) float64 — per-tree log path-count score
-    features : ShapeFeatures
-    counts_per_voxel : (m,) int64
-    height_fraction : (m,) float64 — node height / height of its tree, in [0, 1]
-    adjacency : (m, m) neighbourhood matrix used for smoothing
+    counts : (m,) float64 — shortest-path counts (subtree sizes)
+    node_tree : (m,) int64 — 0 = no tree
+    trunk_xy : (k, 2) float64 [m]
+    nodes : (m, 3) float64 [m]
+    node_height : (m,) float64 — height above ground [m]
+    points_per_node : (m,) int64
+    shape : ShapeFeatures
+    adjacency : (m, m) neighbourhood matrix with diagonal
 
     Returns
     -------
-    (m,) float64 in [0, 1]
+    (m, len(FEATURES)) float64
     """
-    x = np.column_stack(
+    m = counts.shape[0]
+    s_tree = log_score(counts, node_tree)
+    t = np.maximum(node_tree - 1, 0)
+    has_tree = node_tree > 0
+    radial = np.zeros(m)
+    if trunk_xy.shape[0]:
+        radial = np.where(has_tree, np.hypot(*(nodes[:, :2] - trunk_xy[t]).T), 0.0)
+    top_h = np.zeros(int(node_tree.max()) + 1 if m else 1)
+    np.maximum.at(top_h, node_tree, node_height)
+    top_r = np.zeros_like(top_h)
+    np.maximum.at(top_r, node_tree, radial)
+    med_c = _per_group(points_per_node.astype(np.float64), node_tree, np.median) if m else np.ones(1)
+    return np.column_stack(
         [
-            np.ones_like(s_tree),
+            np.ones(m),
+            s_tree,
             smooth(s_tree, adjacency),
-            smooth(features.linearity, adjacency),
-            smooth(features.scattering, adjacency),
-            np.log1p(counts_per_voxel),
-            height_fraction,
+            neighbourhood_max(s_tree, adjacency),
+            smooth(shape.linearity, adjacency),
+            smooth(shape.scattering, adjacency),
+            shape.verticality,
+            np.log(np.maximum(points_per_node, 1) / np.maximum(med_c[node_tree], 1.0)),
+            np.clip(node_height / np.maximum(top_h[node_tree], 1e-9), 0.0, 1.0),
+            np.clip(radial / np.maximum(top_r[node_tree], 1e-9), 0.0, 1.0),
         ]
     )
-    return 1.0 / (1.0 + np.exp(-(x @ weights)))
+
+
+def combined_score(features: np.ndarray, *, weights: np.ndarray = COMBINED_WEIGHTS) -> np.ndarray:
+    """Wood probability per node from :func:`wood_features`, (m,) float64 in [0, 1]."""
+    return 1.0 / (1.0 + np.exp(-np.clip(features @ weights, -50, 50)))
 
 
 def classify(

@@ -32,7 +32,8 @@ class GraphParams(_Model):
     voxel_size: float = Field(0.1, ge=0.02, le=1.0, description="voxel edge length (v_s) [m]")
     edge_radius: float = Field(0.15, gt=0.0, le=2.0, description="nodes closer than this are joined by an edge (R_e) [m]")
     weighting: Literal["distance", "enriched"] = Field(
-        "distance", description="edge weight: Euclidean distance, or distance scaled by the cosine distance of enrichment features"
+        "distance",
+        description="segmentation edge weight: 'distance' (paper, plain) or 'enriched' (paper: distance x cosine distance of enrichment features)",
     )
 
     @model_validator(mode="after")
@@ -52,12 +53,15 @@ class GraphParams(_Model):
 class TrunkParams(_Model):
     """Trunk detection without priors: where the canopy's shortest paths reach the ground."""
 
-    contact_height: float = Field(0.35, gt=0.0, le=3.0, description="graph nodes this low above ground can be a tree's ground contact [m]")
+    contact_height: float = Field(0.2, gt=0.0, le=3.0, description="graph nodes this low above ground can be a tree's ground contact [m]")
     cluster_radius: float = Field(0.8, gt=0.0, le=5.0, description="ground contacts closer than this are one trunk [m]")
     min_tree_height: float = Field(1.5, gt=0.0, le=50.0, description="a tree's material must reach this high above ground [m]")
     min_canopy_voxels: int = Field(150, ge=1, le=10_000_000, description="least number of voxels whose shortest path ends in a trunk [voxels]")
+    leaf_cost: float = Field(4.0, ge=0.0, le=100.0, description="drainage paths through fully scattered (leafy) nodes cost this much more, so canopies drain down their branches [x]")
+    satellite_radius: float = Field(2.2, ge=0.0, le=10.0, description="a contact this close to a much stronger trunk is that tree's branch or foliage touching the ground [m]")
+    satellite_ratio: float = Field(1.5, ge=1.0, le=100.0, description="... when the stronger trunk drains at least this many times more material [x]")
     max_trunk_width: float = Field(1.0, gt=0.0, le=5.0, description="widest trunk cross-section accepted near the ground [m]")
-    max_planar_fraction: float = Field(0.45, ge=0.0, le=1.0, description="objects with more planar (box-like) material than this are not trees [fraction]")
+    max_planar_fraction: float = Field(0.15, ge=0.0, le=1.0, description="objects whose material below min_tree_height is more planar (box-like) than this are not trees [fraction]")
 
 
 class SegmentParams(_Model):

@@ -9,16 +9,17 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 import numpy as np
+from scipy import sparse
 
 from pipeline import matter
-from pipeline.enrichment import neighbourhood_matrix, shape_features
-from pipeline.graph import build_graph
-from pipeline.ground import classify_ground, ground_model
+from pipeline.enrichment import ShapeFeatures, neighbourhood_matrix, shape_features
+from pipeline.graph import build_graph, reweight
+from pipeline.ground import GroundModel, classify_ground, ground_model
 from pipeline.metrics import trunk_diameters
 from pipeline.params import PipelineParams
-from pipeline.segment import segment_nodes
-from pipeline.trunks import detect_trunks
-from pipeline.voxels import voxelize
+from pipeline.segment import Segmentation, segment_nodes
+from pipeline.trunks import TrunkDetection, box_like_trees, detect_trunks, drop_trunks
+from pipeline.voxels import Voxels, voxelize
 
 #: neighbourhood radius of the shape features, in voxels
 FEATURE_RADIUS_VOXELS = 2.5
@@ -26,6 +27,8 @@ FEATURE_RADIUS_VOXELS = 2.5
 PLANAR_MIN = 0.55
 #: ... and below this scattering
 PLANAR_MAX_SCATTER = 0.06
+#: scattering (λ3/λ1) of fully leafy material; woody nodes measure about 0.05-0.1
+LEAFY_SCATTERING = 0.3
 
 
 @dataclass(frozen=True)
@@ -66,6 +69,104 @@ class BlockResult:
         return int(self.trunks.shape[0])
 
 
+@dataclass(frozen=True)
+class NodeAnalysis:
+    """Intermediate graph-level results of one run (for baselines, fitting and debugging).
+
+    ``veg_idx`` are the input points in the graph; ``vox.point_voxel`` maps them to nodes.
+    """
+
+    ground: GroundModel
+    height: np.ndarray
+    is_ground: np.ndarray
+    veg_idx: np.ndarray
+    vox: Voxels
+    node_height: np.ndarray
+    adjacency: sparse.csr_matrix
+    features: ShapeFeatures
+    graph: sparse.csr_matrix
+    trunks: TrunkDetection
+    segmentation: Segmentation
+
+
+def analyse_nodes(
+    xyz: np.ndarray,
+    *,
+    params: PipelineParams,
+    grid_origin: tuple[float, float, float] = (0.0, 0.0, 0.0),
+) -> NodeAnalysis:
+    """Ground, voxel graph, trunks and segmentation at the node level.
+
+    Parameters
+    ----------
+    xyz : (n, 3) float64 [m], local frame
+    params : PipelineParams
+    grid_origin : (3,) float
+
+    Returns
+    -------
+    NodeAnalysis
+    """
+    # Strategy: ground model → vegetation voxels → one graph → trunks from one
+    # multi-source search to the ground → segmentation from one multi-source search
+    # from the trunks.
+    xyz = np.asarray(xyz, dtype=np.float64)
+    if xyz.ndim != 2 or xyz.shape[1] != 3:
+        raise ValueError("xyz must have shape (n, 3)")
+    gm = ground_model(xyz, params=params.ground, grid_origin=grid_origin)
+    height, is_ground = classify_ground(xyz, gm, params=params.ground)
+    veg_idx = np.flatnonzero(~is_ground & (height > 0))
+    vox = voxelize(xyz[veg_idx], voxel_size=params.graph.voxel_size, grid_origin=grid_origin)
+    nodes = vox.centroids
+    node_height = np.bincount(vox.point_voxel, weights=height[veg_idx], minlength=vox.n) / np.maximum(vox.counts, 1)
+    radius = FEATURE_RADIUS_VOXELS * params.graph.voxel_size
+    adjacency = neighbourhood_matrix(nodes, radius=radius)
+    feats = shape_features(nodes, radius=radius, adjacency=adjacency)
+    edge_scale = feats.matrix() if params.graph.weighting == "enriched" else None
+    graph = build_graph(nodes, radius=params.graph.edge_radius, edge_scale=edge_scale)
+    # drainage to the ground prefers woody paths: leafy (scattered) nodes cost more
+    leafiness = np.clip(matter.smooth(feats.scattering, adjacency) / LEAFY_SCATTERING, 0.0, 1.0)
+    drainage = reweight(graph, 1.0 + params.trunks.leaf_cost * leafiness)
+    planar = (feats.planarity >= PLANAR_MIN) & (feats.scattering <= PLANAR_MAX_SCATTER)
+    det = detect_trunks(nodes, node_height, drainage, planar=planar, scattering=feats.scattering, params=params.trunks)
+    def segment(det: TrunkDetection) -> Segmentation:
+        return segment_nodes(
+            nodes,
+            graph,
+            source_nodes=det.source_nodes,
+            source_trunk=det.source_trunk,
+            trunk_xy=det.xy,
+            params=params.segment,
+        )
+
+    seg = segment(det)
+    for _ in range(3):  # dropping a box-like "tree" (a vehicle) re-segments its material
+        drop = box_like_trees(seg.node_tree, node_height, nodes=nodes, trunk_xy=det.xy, planar=planar, params=params.trunks)
+        if drop.size == 0:
+            break
+        det = drop_trunks(det, drop)
+        seg = segment(det)
+    return NodeAnalysis(gm, height, is_ground, veg_idx, vox, node_height, adjacency, feats, graph, det, seg)
+
+
+def node_wood_score(a: NodeAnalysis, *, params: PipelineParams) -> np.ndarray:
+    """Wood score per node, (m,) float64 in [0, 1], by ``params.matter.method``."""
+    p = matter.path_counts(a.segmentation.paths.pred)
+    if params.matter.method == "paper":
+        return matter.log_score(p)
+    x = matter.wood_features(
+        p,
+        a.segmentation.node_tree,
+        a.trunks.xy,
+        a.vox.centroids,
+        a.node_height,
+        a.vox.counts,
+        a.features,
+        a.adjacency,
+    )
+    return matter.combined_score(x)
+
+
 def process_points(
     xyz: np.ndarray,
     *,
@@ -87,72 +188,31 @@ def process_points(
     -------
     BlockResult
     """
-    # Strategy: ground model → vegetation voxels → one graph → trunks from one
-    # multi-source search to the ground → segmentation from one multi-source search from
-    # the trunks → wood score from the subtree sizes of that search's forest.
-    xyz = np.asarray(xyz, dtype=np.float64)
-    if xyz.ndim != 2 or xyz.shape[1] != 3:
-        raise ValueError("xyz must have shape (n, 3)")
-    n = xyz.shape[0]
-    gm = ground_model(xyz, params=params.ground, grid_origin=grid_origin)
-    height, is_ground = classify_ground(xyz, gm, params=params.ground)
-    veg = ~is_ground & (height > 0)
-    veg_idx = np.flatnonzero(veg)
-
-    vox = voxelize(xyz[veg_idx], voxel_size=params.graph.voxel_size, grid_origin=grid_origin)
-    nodes = vox.centroids
-    m = vox.n
-    node_height = np.bincount(vox.point_voxel, weights=height[veg_idx], minlength=m) / np.maximum(vox.counts, 1)
-    adjacency = neighbourhood_matrix(nodes, radius=FEATURE_RADIUS_VOXELS * params.graph.voxel_size)
-    feats = shape_features(nodes, radius=FEATURE_RADIUS_VOXELS * params.graph.voxel_size, adjacency=adjacency)
-    edge_scale = feats.matrix() if params.graph.weighting == "enriched" else None
-    graph = build_graph(nodes, radius=params.graph.edge_radius, edge_scale=edge_scale)
-    planar = (feats.planarity >= PLANAR_MIN) & (feats.scattering <= PLANAR_MAX_SCATTER)
-
-    det = detect_trunks(nodes, node_height, graph, planar=planar, params=params.trunks)
-    seg = segment_nodes(
-        nodes,
-        graph,
-        source_nodes=det.source_nodes,
-        source_trunk=det.source_trunk,
-        trunk_xy=det.xy,
-        params=params.segment,
-    )
-    node_tree = seg.node_tree
-    score = node_wood_score(seg, node_tree, feats, vox.counts, node_height, adjacency, params=params)
+    a = analyse_nodes(xyz, params=params, grid_origin=grid_origin)
+    node_tree = a.segmentation.node_tree
+    score = np.where(node_tree > 0, node_wood_score(a, params=params), 0.0)
     node_wood = matter.classify(score, node_tree, params=params.matter)
 
+    n = xyz.shape[0]
+    pv = a.vox.point_voxel
     tree_id = np.zeros(n, np.int64)
     is_wood = np.zeros(n, bool)
     wood_score = np.zeros(n, np.float32)
-    tree_id[veg_idx] = node_tree[vox.point_voxel]
-    is_wood[veg_idx] = node_wood[vox.point_voxel]
-    wood_score[veg_idx] = np.where(node_tree > 0, score, 0.0)[vox.point_voxel]
+    tree_id[a.veg_idx] = node_tree[pv]
+    is_wood[a.veg_idx] = node_wood[pv]
+    wood_score[a.veg_idx] = score[pv]
 
-    k = det.k
+    k = a.trunks.k
     trunks = np.zeros((k, 3))
-    trunks[:, :2] = det.xy
-    trunks[:, 2] = gm.height_at(det.xy) if k else np.zeros(0)
-    diam = trunk_diameters(xyz, tree_id, trunks, params=params.metrics)
+    trunks[:, :2] = a.trunks.xy
+    trunks[:, 2] = a.ground.height_at(a.trunks.xy) if k else np.zeros(0)
     return BlockResult(
         tree_id=tree_id,
-        is_ground=is_ground,
+        is_ground=a.is_ground,
         is_wood=is_wood,
         wood_score=wood_score,
-        height=height.astype(np.float32),
+        height=a.height.astype(np.float32),
         trunks=trunks,
-        trunk_support=det.support.astype(np.float64),
-        trunk_diameter=diam,
+        trunk_support=a.trunks.support.astype(np.float64),
+        trunk_diameter=trunk_diameters(xyz, tree_id, trunks, params=params.metrics),
     )
-
-
-def node_wood_score(seg, node_tree, feats, counts, node_height, adjacency, *, params: PipelineParams) -> np.ndarray:
-    """Wood score per node, (m,) float64 in [0, 1], by ``params.matter.method``."""
-    p = matter.path_counts(seg.paths.pred)
-    if params.matter.method == "paper":
-        return matter.log_score(p)
-    s_tree = matter.log_score(p, node_tree)
-    top = np.zeros(int(node_tree.max()) + 1 if node_tree.size else 1)
-    np.maximum.at(top, node_tree, node_height)
-    hfrac = np.where(top[node_tree] > 0, node_height / np.maximum(top[node_tree], 1e-9), 0.0)
-    return matter.combined_score(s_tree, feats, counts, np.clip(hfrac, 0, 1), adjacency)

@@ -42,6 +42,7 @@ class TrunkDetection:
     width: np.ndarray
     source_nodes: np.ndarray
     source_trunk: np.ndarray
+    candidates: dict | None = None
 
     @property
     def k(self) -> int:
@@ -65,12 +66,31 @@ def _suppress(xy: np.ndarray, score: np.ndarray, radius: float) -> np.ndarray:
     return leader
 
 
+def _satellites(xy: np.ndarray, support: np.ndarray, ok: np.ndarray, radius: float, ratio: float) -> np.ndarray:
+    """Groups within ``radius`` of an accepted group with ``ratio`` times their support."""
+    sat = np.zeros(xy.shape[0], bool)
+    idx = np.flatnonzero(ok)
+    if idx.size < 2 or radius <= 0:
+        return sat
+    tree = cKDTree(xy[idx])
+    for j in np.argsort(-support[idx], kind="stable"):
+        i = idx[j]
+        if sat[i]:
+            continue
+        for q in tree.query_ball_point(xy[i], radius):
+            other = idx[q]
+            if other != i and not sat[other] and support[i] >= ratio * support[other]:
+                sat[other] = True
+    return sat
+
+
 def detect_trunks(
     nodes: np.ndarray,
     node_height: np.ndarray,
     graph: sparse.csr_matrix,
     *,
     planar: np.ndarray,
+    scattering: np.ndarray | None = None,
     params: TrunkParams,
 ) -> TrunkDetection:
     """Find one trunk per tree.
@@ -81,11 +101,12 @@ def detect_trunks(
     node_height : (m,) float64 — height of each node above the ground [m]
     graph : (m, m) csr_matrix — the voxel graph over ``nodes``
     planar : (m,) bool — nodes on planar (box-like) surfaces
+    scattering : (m,) float64, optional — shape scattering of each node (diagnostics)
     params : TrunkParams
 
     Returns
     -------
-    TrunkDetection
+    TrunkDetection, with ``candidates`` holding every contact group's measurements.
     """
     m = nodes.shape[0]
     empty = TrunkDetection(np.zeros((0, 2)), np.zeros(0), np.zeros(0), np.zeros(0, np.int64), np.zeros(0, np.int64))
@@ -100,7 +121,11 @@ def detect_trunks(
     catch = size[contact]
     top = np.full(m, -np.inf)
     np.maximum.at(top, sp.source[reached], node_height[reached])
-    n_planar = np.bincount(sp.source[reached], weights=planar[reached].astype(np.float64), minlength=m)
+    # box-like objects: the planar share of the low part of the catchment (below tree
+    # height, where a vehicle's body is and overhanging foliage mostly is not)
+    low = reached & (node_height < params.min_tree_height)
+    n_planar = np.bincount(sp.source[low], weights=planar[low].astype(np.float64), minlength=m)
+    n_low = np.bincount(sp.source[low], minlength=m).astype(np.float64)
 
     cand = contact[catch >= 3]
     if cand.size == 0:
@@ -110,7 +135,7 @@ def detect_trunks(
     g_support = np.bincount(gidx, weights=size[cand])
     g_top = np.full(groups.size, -np.inf)
     np.maximum.at(g_top, gidx, top[cand])
-    g_planar = np.bincount(gidx, weights=n_planar[cand]) / np.maximum(g_support, 1)
+    g_planar = np.bincount(gidx, weights=n_planar[cand]) / np.maximum(np.bincount(gidx, weights=n_low[cand]), 1)
     ok = (g_support >= params.min_canopy_voxels) & (g_top >= params.min_tree_height) & (g_planar <= params.max_planar_fraction)
 
     # cross-section of the flow just above the contact band: nodes whose path ends in the
@@ -138,7 +163,19 @@ def detect_trunks(
     cy = np.where(has_band, cy, ly)
     width = np.where(has_band, width, 0.1)
     ok &= width <= params.max_trunk_width
+    sc = scattering if scattering is not None else np.zeros(m)
+    band_scatter = np.bincount(bg, weights=wgt * sc[bn], minlength=groups.size) / np.maximum(wsum, 1e-12)
+    band_max = np.zeros(groups.size)
+    np.maximum.at(band_max, bg, wgt)
+    candidates = {
+        "x": cx, "y": cy, "support": g_support, "top": g_top, "planar": g_planar, "width": width,
+        "band_flow": wsum, "band_scatter": band_scatter,
+        "band_nodes": np.bincount(bg, minlength=groups.size), "band_max": band_max, "accepted": ok.copy(),
+    }
 
+    # satellites: strongest first, a group near an accepted, much stronger one is not a tree
+    ok &= ~_satellites(np.column_stack([cx, cy]), g_support, ok, params.satellite_radius, params.satellite_ratio)
+    candidates["accepted"] = ok.copy()
     sel = np.flatnonzero(ok)
     xy = np.column_stack([cx[sel], cy[sel]])
     # sources for segmentation: the contact nodes of each accepted group near its centre
@@ -156,4 +193,52 @@ def detect_trunks(
     src_t = np.concatenate([src_t, np.arange(sel.size)])
     src, first = np.unique(src, return_index=True)
     src_t = src_t[first]
-    return TrunkDetection(xy, g_support[sel], width[sel], src, src_t)
+    return TrunkDetection(xy, g_support[sel], width[sel], src, src_t, candidates)
+
+
+def box_like_trees(
+    node_tree: np.ndarray,
+    node_height: np.ndarray,
+    *,
+    nodes: np.ndarray,
+    trunk_xy: np.ndarray,
+    planar: np.ndarray,
+    params: TrunkParams,
+    radius: float = 1.0,
+) -> np.ndarray:
+    """Trees (0-based) whose segmented material near the trunk and low down is too planar.
+
+    The object-level twin of the catchment test in :func:`detect_trunks`: a vehicle
+    wheel may drain little by itself, but once segmented its "tree" is the vehicle's
+    body. Only material below ``min_tree_height`` and within ``radius`` [m] of the
+    trunk counts, so a real tree whose crown overhangs a vehicle is kept.
+
+    Returns
+    -------
+    (j,) int64 indices of trunks to drop.
+    """
+    k = trunk_xy.shape[0]
+    low = (node_tree > 0) & (node_height < params.min_tree_height)
+    idx = np.flatnonzero(low)
+    t = node_tree[idx] - 1
+    near = ((nodes[idx, :2] - trunk_xy[t]) ** 2).sum(1) <= radius**2
+    idx, t = idx[near], t[near]
+    n_low = np.bincount(t, minlength=k).astype(np.float64)
+    n_pl = np.bincount(t, weights=planar[idx].astype(np.float64), minlength=k)
+    return np.flatnonzero(n_pl > params.max_planar_fraction * np.maximum(n_low, 1))
+
+
+def drop_trunks(det: TrunkDetection, drop: np.ndarray) -> TrunkDetection:
+    """The detection without the trunks in ``drop`` (0-based), renumbered."""
+    keep = np.ones(det.k, bool)
+    keep[drop] = False
+    remap = np.cumsum(keep) - 1
+    src_keep = keep[det.source_trunk]
+    return TrunkDetection(
+        det.xy[keep],
+        det.support[keep],
+        det.width[keep],
+        det.source_nodes[src_keep],
+        remap[det.source_trunk[src_keep]],
+        det.candidates,
+    )
