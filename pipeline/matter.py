@@ -38,9 +38,10 @@ FEATURES = (
 )
 
 # Logistic model of the "combined" score, one weight per FEATURES column. Fitted by
-# `python -m bench.fit_matter` on generated orchards with seeds 1000+ (never on the
-# blocks used for evaluation); refit and paste when the features change.
-COMBINED_WEIGHTS = np.array([-3.0, 2.0, 2.0, 2.0, 1.0, -1.0, 0.5, 0.5, -1.0, -2.0])
+# `python -m bench.fit_matter --seeds 2` on generated orchards with seeds 1000+ (never on
+# the blocks used for evaluation; training wood F1 0.745); refit and paste when the
+# features change. The matching threshold is MatterParams.threshold.
+COMBINED_WEIGHTS = np.array([-3.574, 1.509, 2.99, 4.796, 1.178, -1.393, 0.112, 0.021, -0.798, -3.876])
 
 
 def path_counts(pred: np.ndarray) -> np.ndarray:
@@ -160,4 +161,4 @@ def classify(
     params: MatterParams,
 ) -> np.ndarray:
     """Wood mask per node: score at or above the threshold, and in a tree."""
-    return (score >= params.threshold) & (node_tree > 0)
+    return (score >= params.effective_threshold()) & (node_tree > 0)

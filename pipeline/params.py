@@ -58,8 +58,8 @@ class TrunkParams(_Model):
     min_tree_height: float = Field(1.5, gt=0.0, le=50.0, description="a tree's material must reach this high above ground [m]")
     min_canopy_voxels: int = Field(150, ge=1, le=10_000_000, description="least number of voxels whose shortest path ends in a trunk [voxels]")
     leaf_cost: float = Field(4.0, ge=0.0, le=100.0, description="drainage paths through fully scattered (leafy) nodes cost this much more, so canopies drain down their branches [x]")
-    satellite_radius: float = Field(2.2, ge=0.0, le=10.0, description="a contact this close to a much stronger trunk is that tree's branch or foliage touching the ground [m]")
-    satellite_ratio: float = Field(1.5, ge=1.0, le=100.0, description="... when the stronger trunk drains at least this many times more material [x]")
+    satellite_radius: float = Field(2.0, ge=0.0, le=10.0, description="a contact this close to a stronger trunk is that tree's branch or foliage touching the ground; up to twice as far when the trunk is much stronger (see satellite_ratio) [m]")
+    satellite_ratio: float = Field(1.5, ge=1.0, le=100.0, description="... when the trunk drains this many times more material, times (distance/satellite_radius)^2 beyond satellite_radius [x]")
     max_trunk_width: float = Field(1.0, gt=0.0, le=5.0, description="widest trunk cross-section accepted near the ground [m]")
     max_planar_fraction: float = Field(0.15, ge=0.0, le=1.0, description="objects whose material below min_tree_height is more planar (box-like) than this are not trees [fraction]")
 
@@ -68,6 +68,7 @@ class SegmentParams(_Model):
     """Segmentation by shortest path from all trunks at once."""
 
     max_crown_radius: float = Field(3.5, gt=0.1, le=30.0, description="farthest a tree's material reaches from its trunk, horizontally [m]")
+    leaf_cost: float = Field(0.0, ge=0.0, le=100.0, description="segmentation paths through fully scattered (leafy) nodes cost this much more (0 = plain distance) [x]")
     unreached_radius: float = Field(0.6, ge=0.0, le=10.0, description="points the graph does not reach go to the nearest trunk if a tree node lies this close [m]")
 
 
@@ -77,8 +78,17 @@ class MatterParams(_Model):
     method: Literal["combined", "paper"] = Field(
         "combined", description="'paper': S = log(p)/log(p_max) with a fixed threshold; 'combined': per-tree score, smoothing and shape features"
     )
-    threshold: float = Field(0.5, ge=0.0, le=1.0, description="score at or above which a voxel is wood [0-1]")
-    smoothing_radius: float = Field(0.2, ge=0.0, le=2.0, description="scores are averaged over this neighbourhood before thresholding [m]")
+    threshold: float | None = Field(
+        None, ge=0.0, le=1.0,
+        description="score at or above which a voxel is wood; default per method: 0.29 for 'combined' (best wood F1 on the "
+        "training orchards), 0.216 for 'paper' (the paper's value) [0-1]",
+    )
+    smoothing_radius: float = Field(0.25, ge=0.05, le=2.0, description="neighbourhood over which scores and shape features are averaged [m]")
+
+    def effective_threshold(self) -> float:
+        if self.threshold is not None:
+            return self.threshold
+        return 0.216 if self.method == "paper" else 0.29
 
 
 class MetricsParams(_Model):

@@ -21,8 +21,6 @@ from pipeline.segment import Segmentation, segment_nodes
 from pipeline.trunks import TrunkDetection, box_like_trees, detect_trunks, drop_trunks
 from pipeline.voxels import Voxels, voxelize
 
-#: neighbourhood radius of the shape features, in voxels
-FEATURE_RADIUS_VOXELS = 2.5
 #: a node is on a planar surface (box, vehicle, wall) above this planarity ...
 PLANAR_MIN = 0.55
 #: ... and below this scattering
@@ -119,7 +117,7 @@ def analyse_nodes(
     vox = voxelize(xyz[veg_idx], voxel_size=params.graph.voxel_size, grid_origin=grid_origin)
     nodes = vox.centroids
     node_height = np.bincount(vox.point_voxel, weights=height[veg_idx], minlength=vox.n) / np.maximum(vox.counts, 1)
-    radius = FEATURE_RADIUS_VOXELS * params.graph.voxel_size
+    radius = params.matter.smoothing_radius
     adjacency = neighbourhood_matrix(nodes, radius=radius)
     feats = shape_features(nodes, radius=radius, adjacency=adjacency)
     edge_scale = feats.matrix() if params.graph.weighting == "enriched" else None
@@ -129,10 +127,14 @@ def analyse_nodes(
     drainage = reweight(graph, 1.0 + params.trunks.leaf_cost * leafiness)
     planar = (feats.planarity >= PLANAR_MIN) & (feats.scattering <= PLANAR_MAX_SCATTER)
     det = detect_trunks(nodes, node_height, drainage, planar=planar, scattering=feats.scattering, params=params.trunks)
+    seg_graph = graph
+    if params.segment.leaf_cost > 0:
+        seg_graph = reweight(graph, 1.0 + params.segment.leaf_cost * leafiness)
+
     def segment(det: TrunkDetection) -> Segmentation:
         return segment_nodes(
             nodes,
-            graph,
+            seg_graph,
             source_nodes=det.source_nodes,
             source_trunk=det.source_trunk,
             trunk_xy=det.xy,
@@ -153,7 +155,7 @@ def node_wood_score(a: NodeAnalysis, *, params: PipelineParams) -> np.ndarray:
     """Wood score per node, (m,) float64 in [0, 1], by ``params.matter.method``."""
     p = matter.path_counts(a.segmentation.paths.pred)
     if params.matter.method == "paper":
-        return matter.log_score(p)
+        return matter.smooth(matter.log_score(p), a.adjacency)
     x = matter.wood_features(
         p,
         a.segmentation.node_tree,

@@ -67,7 +67,12 @@ def _suppress(xy: np.ndarray, score: np.ndarray, radius: float) -> np.ndarray:
 
 
 def _satellites(xy: np.ndarray, support: np.ndarray, ok: np.ndarray, radius: float, ratio: float) -> np.ndarray:
-    """Groups within ``radius`` of an accepted group with ``ratio`` times their support."""
+    """Groups dominated by a stronger accepted group nearby.
+
+    Strongest first: a group at distance d from an accepted group is its satellite when
+    that group drains ``ratio * max(1, d / radius)**2`` times more material, up to
+    ``2 * radius`` away (the farther, the weaker a satellite must be).
+    """
     sat = np.zeros(xy.shape[0], bool)
     idx = np.flatnonzero(ok)
     if idx.size < 2 or radius <= 0:
@@ -77,9 +82,12 @@ def _satellites(xy: np.ndarray, support: np.ndarray, ok: np.ndarray, radius: flo
         i = idx[j]
         if sat[i]:
             continue
-        for q in tree.query_ball_point(xy[i], radius):
+        for q in tree.query_ball_point(xy[i], 2.0 * radius):
             other = idx[q]
-            if other != i and not sat[other] and support[i] >= ratio * support[other]:
+            if other == i or sat[other]:
+                continue
+            d = float(np.hypot(*(xy[other] - xy[i])))
+            if support[i] >= ratio * max(1.0, d / radius) ** 2 * support[other]:
                 sat[other] = True
     return sat
 

@@ -1,0 +1,96 @@
+"""Fit the "combined" wood/leaf model on generated orchards (training seeds only).
+
+    python -m bench.fit_matter [--seeds 4]
+
+Generates orchards with seeds 1000, 1001, ... (never used for evaluation, which uses
+seeds below 1000), runs the pipeline to the node level, and fits a logistic model of
+node wood fraction on :data:`pipeline.matter.FEATURES` (L2-regularised, points as
+weights). Prints the weights and the threshold that maximises point-level wood F1 on
+the training blocks, to paste into ``pipeline/matter.py`` / ``pipeline/params.py``.
+"""
+
+from __future__ import annotations
+
+import argparse
+
+import numpy as np
+from scipy.optimize import minimize
+
+from pipeline import matter
+from pipeline.params import PipelineParams
+from pipeline.process import analyse_nodes
+from pipeline.simulate import SimulationParams, simulate_orchard
+
+TRAINING = [
+    dict(rows=2, trees_per_row=4),
+    dict(rows=2, trees_per_row=4, noise=0.05),
+    dict(rows=2, trees_per_row=4, spacing=3.5, row_spacing=5.0),
+    dict(rows=2, trees_per_row=5, spacing=2.5, row_spacing=4.5, low_foliage=True),
+]
+
+
+def node_table(seed: int, sim: dict, params: PipelineParams):
+    o = simulate_orchard(SimulationParams(seed=seed, **sim))
+    xyz = o.xyz - np.floor(o.xyz.min(axis=0))
+    a = analyse_nodes(xyz, params=params)
+    pv = a.vox.point_voxel
+    wood = o.is_wood[a.veg_idx].astype(float)
+    tree = (o.tree_id[a.veg_idx] > 0).astype(float)
+    n_wood = np.bincount(pv, weights=wood, minlength=a.vox.n)
+    n_tree = np.bincount(pv, weights=tree, minlength=a.vox.n)
+    p = matter.path_counts(a.segmentation.paths.pred)
+    x = matter.wood_features(
+        p, a.segmentation.node_tree, a.trunks.xy, a.vox.centroids, a.node_height, a.vox.counts, a.features, a.adjacency
+    )
+    keep = (a.segmentation.node_tree > 0) & (n_tree > 0)
+    return x[keep], n_wood[keep], n_tree[keep]
+
+
+def fit(x: np.ndarray, n_wood: np.ndarray, n_all: np.ndarray, l2: float = 1e-3) -> np.ndarray:
+    y = n_wood / n_all
+    w = n_all / n_all.sum()
+
+    def loss(beta):
+        z = x @ beta
+        p = 1 / (1 + np.exp(-np.clip(z, -50, 50)))
+        eps = 1e-9
+        ll = -(w * (y * np.log(p + eps) + (1 - y) * np.log(1 - p + eps))).sum()
+        grad = x.T @ (w * (p - y)) + l2 * np.r_[0, beta[1:]]
+        return ll + 0.5 * l2 * (beta[1:] ** 2).sum(), grad
+
+    res = minimize(loss, np.zeros(x.shape[1]), jac=True, method="L-BFGS-B")
+    return res.x
+
+
+def best_threshold(score: np.ndarray, n_wood: np.ndarray, n_all: np.ndarray) -> tuple[float, float]:
+    best = (0.5, 0.0)
+    for t in np.linspace(0.05, 0.95, 91):
+        pred = score >= t
+        tp = n_wood[pred].sum()
+        fp = (n_all - n_wood)[pred].sum()
+        fn = n_wood[~pred].sum()
+        f1 = 2 * tp / max(2 * tp + fp + fn, 1e-9)
+        if f1 > best[1]:
+            best = (float(t), float(f1))
+    return best
+
+
+def main(argv: list[str] | None = None) -> int:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--seeds", type=int, default=2, help="training blocks per configuration")
+    args = ap.parse_args(argv)
+    params = PipelineParams()
+    rows = [node_table(1000 + s, sim, params) for s in range(args.seeds) for sim in TRAINING]
+    x = np.concatenate([r[0] for r in rows])
+    nw = np.concatenate([r[1] for r in rows])
+    na = np.concatenate([r[2] for r in rows])
+    beta = fit(x, nw, na)
+    thr, f1 = best_threshold(matter.combined_score(x, weights=beta), nw, na)
+    print("features :", ", ".join(matter.FEATURES))
+    print("weights  :", np.array2string(beta, precision=3, separator=", "))
+    print(f"threshold: {thr:.2f}  (training point-level wood F1 {f1:.3f}, {len(x)} nodes)")
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())
