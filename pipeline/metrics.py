@@ -281,11 +281,13 @@ def trunk_diameters(
     *,
     params: MetricsParams,
     max_radius: float = 0.5,
+    height: np.ndarray | None = None,
 ) -> np.ndarray:
     """Trunk diameter of each tree at ``params.trunk_height`` above its base.
 
     Fits a circle to the tree's points in a horizontal slice of thickness
-    ``params.trunk_slice`` within ``max_radius`` of the trunk.
+    ``params.trunk_slice`` within ``max_radius`` of the trunk. ``height`` (n,), the
+    points' height above ground [m], only speeds up the selection.
 
     Returns
     -------
@@ -295,7 +297,10 @@ def trunk_diameters(
     out = np.full(k, np.nan)
     if k == 0:
         return out
-    mask = tree_id > 0
+    if height is not None:  # pre-select the slice by height above ground (cheap)
+        mask = (np.abs(height - params.trunk_height) <= params.trunk_slice / 2 + 0.1) & (tree_id > 0)
+    else:
+        mask = tree_id > 0
     pts, ids = xyz[mask], tree_id[mask]
     dz = pts[:, 2] - trunks[ids - 1, 2]
     in_slice = np.abs(dz - params.trunk_height) <= params.trunk_slice / 2

@@ -138,6 +138,7 @@ def analyse_nodes(
             source_nodes=det.source_nodes,
             source_trunk=det.source_trunk,
             trunk_xy=det.xy,
+            node_height=node_height,
             params=params.segment,
         )
 
@@ -216,5 +217,5 @@ def process_points(
         height=a.height.astype(np.float32),
         trunks=trunks,
         trunk_support=a.trunks.support.astype(np.float64),
-        trunk_diameter=trunk_diameters(xyz, tree_id, trunks, params=params.metrics),
+        trunk_diameter=trunk_diameters(xyz, tree_id, trunks, params=params.metrics, height=a.height),
     )

@@ -6,6 +6,7 @@ from dataclasses import dataclass
 
 import numpy as np
 from scipy import sparse
+from scipy.sparse import csgraph
 from scipy.spatial import cKDTree
 
 from pipeline.graph import ShortestPaths, shortest_paths
@@ -35,6 +36,7 @@ def segment_nodes(
     source_nodes: np.ndarray,
     source_trunk: np.ndarray,
     trunk_xy: np.ndarray,
+    node_height: np.ndarray,
     params: SegmentParams,
 ) -> Segmentation:
     """Give every node to the trunk it reaches by the shortest path.
@@ -42,9 +44,12 @@ def segment_nodes(
     One multi-source Dijkstra from every trunk's source nodes: each node goes to the
     trunk whose path to it is shortest (the paper's rule, without a search per trunk).
     Nodes farther than ``max_crown_radius`` horizontally from their trunk are dropped
-    (paths that leak into other objects). Nodes the search does not reach take the tree
-    of the nearest labelled node within ``unreached_radius`` (the paper's proposed fix
-    for isolated noise, bounded so that separate objects such as fence posts stay 0).
+    (paths that leak into other objects). Nodes the search does not reach are labelled
+    by distance, the paper's proposed fix, per connected fragment: a fragment floating
+    above ``floating_height`` is canopy the graph could not bridge (sparse scans) and
+    takes the tree of the nearest labelled node; a fragment standing on the ground is a
+    separate object (fence post, vehicle, grass) and only its nodes within
+    ``unreached_radius`` of a tree join it. Either way within ``max_crown_radius``.
 
     Parameters
     ----------
@@ -53,6 +58,7 @@ def segment_nodes(
     source_nodes : (s,) int64 — seed nodes
     source_trunk : (s,) int64 — 0-based trunk of each seed
     trunk_xy : (k, 2) float64 [m]
+    node_height : (m,) float64 — height above ground [m]
     params : SegmentParams
 
     Returns
@@ -74,10 +80,15 @@ def segment_nodes(
         reached[idx] = False
     labelled = node_tree > 0
     todo = np.flatnonzero(~labelled)
-    if todo.size and labelled.any() and params.unreached_radius > 0:
+    if todo.size and labelled.any():
+        _, comp = csgraph.connected_components(graph[todo][:, todo], directed=False)
+        low = np.full(comp.max() + 1, np.inf)
+        np.minimum.at(low, comp, node_height[todo])
+        floating = low[comp] > params.floating_height
+        bound = np.where(floating, params.max_crown_radius, params.unreached_radius)
         lab = np.flatnonzero(labelled)
-        d, j = cKDTree(nodes[lab]).query(nodes[todo], distance_upper_bound=params.unreached_radius)
-        hit = np.isfinite(d)
+        d, j = cKDTree(nodes[lab]).query(nodes[todo], distance_upper_bound=max(params.max_crown_radius, params.unreached_radius))
+        hit = np.isfinite(d) & (d <= bound)
         cand_tree = node_tree[lab[j[hit]]]
         # the fallback must also respect the crown reach
         ok = ((nodes[todo[hit], :2] - trunk_xy[cand_tree - 1]) ** 2).sum(1) <= params.max_crown_radius**2
