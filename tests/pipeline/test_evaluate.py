@@ -1,0 +1,274 @@
+"""Accuracy metrics: hand-checkable V-measure, trunk matching and wood F1 cases, and the
+file-based evaluation of a result folder."""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pytest
+
+from pipeline.errors import InputError
+from pipeline.evaluate import (
+    evaluate_result,
+    homogeneity_completeness_v_measure,
+    score_labels,
+    score_result,
+    trunk_scores,
+    v_measure,
+    wood_f1,
+    wood_scores,
+)
+
+
+def _h(*p):
+    """Entropy (nats) of a distribution given by probabilities."""
+    return -sum(q * math.log(q) for q in p if q > 0)
+
+
+# ---------------------------------------------------------------- V-measure
+
+
+def test_perfect_clustering_scores_one():
+    assert v_measure([1, 1, 2, 2, 3], [1, 1, 2, 2, 3]) == pytest.approx(1.0)
+
+
+def test_permuted_labels_score_one():
+    assert homogeneity_completeness_v_measure([1, 1, 2, 2, 3, 3], [9, 9, 0, 0, 4, 4]) == pytest.approx((1.0, 1.0, 1.0))
+
+
+def test_all_in_one_cluster_against_a_true_split():
+    # one cluster: complete but not homogeneous at all
+    assert homogeneity_completeness_v_measure([0, 0, 1, 1], [7, 7, 7, 7]) == pytest.approx((0.0, 1.0, 0.0))
+
+
+def test_every_point_its_own_cluster_against_one_class():
+    assert homogeneity_completeness_v_measure([3, 3, 3, 3], [0, 1, 2, 3]) == pytest.approx((1.0, 0.0, 0.0))
+
+
+def test_hand_computed_case():
+    # classes {a,a,b,b}; clusters {a,a,b} and {b}
+    # H(C) = ln 2, H(C|K) = 3/4 H(2/3, 1/3);  H(K) = H(3/4, 1/4), H(K|C) = 1/2 H(1/2, 1/2)
+    h = 1 - 0.75 * _h(2 / 3, 1 / 3) / math.log(2)
+    c = 1 - 0.5 * _h(0.5, 0.5) / _h(0.75, 0.25)
+    v = 2 * h * c / (h + c)
+    got = homogeneity_completeness_v_measure([0, 0, 1, 1], [0, 0, 0, 1])
+    assert got == pytest.approx((h, c, v), abs=1e-12)
+    assert got == pytest.approx((0.311278, 0.383689, 0.343711), abs=1e-6)
+
+
+def test_single_class_single_cluster_and_empty_input_score_one():
+    assert homogeneity_completeness_v_measure([5, 5, 5], [2, 2, 2]) == (1.0, 1.0, 1.0)
+    assert homogeneity_completeness_v_measure([], []) == (1.0, 1.0, 1.0)
+
+
+def test_v_measure_matches_the_definition_on_random_labels():
+    rng = np.random.default_rng(0)
+    for _ in range(20):
+        n = int(rng.integers(2, 60))
+        a = rng.integers(0, 4, n)
+        b = rng.integers(0, 5, n)
+        # definition via conditional entropies, computed naively
+        pairs = {}
+        for x, y in zip(a, b):
+            pairs[(x, y)] = pairs.get((x, y), 0) + 1
+        ca = {x: np.sum(a == x) for x in set(a)}
+        kb = {y: np.sum(b == y) for y in set(b)}
+        h_c = _h(*(v / n for v in ca.values()))
+        h_k = _h(*(v / n for v in kb.values()))
+        h_c_k = -sum(v / n * math.log(v / kb[y]) for (x, y), v in pairs.items())
+        h_k_c = -sum(v / n * math.log(v / ca[x]) for (x, y), v in pairs.items())
+        hom = 1.0 if h_c == 0 else 1 - h_c_k / h_c
+        com = 1.0 if h_k == 0 else 1 - h_k_c / h_k
+        v = 0.0 if hom + com == 0 else 2 * hom * com / (hom + com)
+        assert homogeneity_completeness_v_measure(a, b) == pytest.approx((hom, com, v), abs=1e-9)
+
+
+def test_label_lengths_must_agree():
+    with pytest.raises(ValueError):
+        v_measure([1, 2], [1])
+
+
+# ---------------------------------------------------------------- trunks
+
+
+def test_two_detections_at_one_trunk_are_one_tp_and_one_fp():
+    s = trunk_scores(np.array([[0.0, 0.0], [5.0, 0.0]]), np.array([[0.1, 0.0], [-0.2, 0.1], [5.0, 0.3]]))
+    assert (s["tp"], s["fp"], s["fn"]) == (2, 1, 0)
+    assert s["precision"] == pytest.approx(2 / 3)
+    assert s["recall"] == pytest.approx(1.0)
+    assert s["f1"] == pytest.approx(0.8)
+    assert s["mean_distance"] == pytest.approx((0.1 + 0.3) / 2)
+
+
+def test_matches_are_within_the_match_distance():
+    s = trunk_scores(np.array([[0.0, 0.0]]), np.array([[1.2, 0.0]]))
+    assert (s["tp"], s["fp"], s["fn"]) == (0, 1, 1)
+    assert s["f1"] == 0.0 and math.isnan(s["mean_distance"])
+    s = trunk_scores(np.array([[0.0, 0.0]]), np.array([[1.2, 0.0]]), match_distance=1.5)
+    assert s["tp"] == 1
+
+
+def test_matching_is_optimal_not_greedy():
+    # greedy nearest-first would pair found 0.9 with true 1.5 and leave 2 unmatched pairs
+    true = np.array([[0.0, 0.0], [1.5, 0.0]])
+    found = np.array([[0.9, 0.0], [2.4, 0.0]])
+    s = trunk_scores(true, found)
+    assert s["tp"] == 2 and s["f1"] == pytest.approx(1.0)
+    assert s["mean_distance"] == pytest.approx(0.9)
+    assert sorted(map(tuple, s["pairs"])) == [(0, 0), (1, 1)]
+
+
+def test_trunk_scores_ignore_z_and_handle_empty_sets():
+    s = trunk_scores(np.array([[0.0, 0.0, 100.0]]), np.array([[0.0, 0.0, 0.0]]))
+    assert s["tp"] == 1 and s["mean_distance"] == 0.0
+    s = trunk_scores(np.zeros((3, 2)) + [[0, 0], [5, 0], [10, 0]], np.empty((0, 2)))
+    assert (s["precision"], s["recall"], s["f1"], s["fn"]) == (0.0, 0.0, 0.0, 3)
+    s = trunk_scores(np.empty((0, 2)), np.array([[1.0, 1.0]]))
+    assert (s["tp"], s["fp"], s["f1"]) == (0, 1, 0.0)
+
+
+# ---------------------------------------------------------------- wood
+
+
+def test_wood_f1_hand_cases():
+    assert wood_f1([1, 1, 0, 0], [1, 1, 0, 0]) == 1.0
+    assert wood_f1([1, 1, 0, 0], [1, 0, 1, 0]) == pytest.approx(0.5)  # TP 1, FP 1, FN 1
+    assert wood_f1([1, 1, 1, 0], [1, 0, 0, 0]) == pytest.approx(0.5)  # P 1, R 1/3
+    assert wood_f1([1, 0], [0, 1]) == 0.0
+    assert wood_f1([0, 0], [0, 0]) == 0.0  # undefined -> 0, as scikit-learn
+    s = wood_scores([1, 1, 1, 0], [1, 1, 0, 1])
+    assert (s["precision"], s["recall"]) == pytest.approx((2 / 3, 2 / 3))
+
+
+# ---------------------------------------------------------------- whole blocks
+
+
+def test_scores_use_only_true_tree_points():
+    true_tree = np.array([0, 0, 1, 1, 2, 2])
+    true_wood = np.array([0, 0, 1, 0, 1, 0], bool)
+    # prediction is wrong on the non-tree points only
+    pred_tree = np.array([1, 2, 1, 1, 2, 2])
+    pred_wood = np.array([1, 1, 1, 0, 1, 0], bool)
+    m = score_labels(
+        true_tree_id=true_tree, true_is_wood=true_wood, true_trunks=np.array([[0.0, 0.0], [5.0, 0.0]]),
+        pred_tree_id=pred_tree, pred_is_wood=pred_wood, found_trunks=np.array([[0.1, 0.0], [5.0, 0.1]]),
+    )
+    assert m["v_measure"] == pytest.approx(1.0)
+    assert m["wood_f1"] == pytest.approx(1.0)
+    assert m["trunk_f1"] == pytest.approx(1.0)
+    assert (m["n_points"], m["n_tree_points"], m["n_true_trees"], m["n_found_trees"]) == (6, 4, 2, 2)
+
+
+def test_score_result_takes_a_local_frame_result():
+    from types import SimpleNamespace
+
+    from pipeline.simulate import Orchard
+
+    origin = np.array([500000.0, 6950000.0, 100.0])
+    truth = Orchard(
+        xyz=origin + np.arange(12.0).reshape(4, 3),
+        tree_id=np.array([0, 1, 1, 2]),
+        is_wood=np.array([0, 1, 0, 1], bool),
+        kind=np.array([0, 2, 3, 2], np.uint8),
+        trunks=origin + np.array([[0.0, 0.0, 0.0], [5.0, 0.0, 0.0]]),
+        trunk_radius=np.array([0.1, 0.1]),
+    )
+    result = SimpleNamespace(tree_id=np.array([0, 4, 4, 9]), is_wood=np.array([0, 1, 0, 1], bool),
+                             trunks=np.array([[0.3, 0.0, 0.0], [5.0, 0.4, 0.0]]))
+    m = score_result(truth, result, origin=origin)
+    assert (m["trunk_f1"], m["v_measure"], m["wood_f1"]) == pytest.approx((1.0, 1.0, 1.0))
+    assert m["trunk_mean_distance"] == pytest.approx(0.35)
+    assert score_result(truth, result)["trunk_tp"] == 0  # frames must agree
+
+
+def _write_result(folder, trunks_xy, point_index, tree_id, is_wood):
+    from pipeline.io import PointsParquetWriter, write_trees_parquet
+    from pipeline.metrics import TREE_COLUMNS
+
+    folder.mkdir()
+    k = len(trunks_xy)
+    cols = {c: np.zeros(k) for c in TREE_COLUMNS}
+    cols["tree_id"] = np.arange(1, k + 1, dtype=np.int64)
+    cols["n_points"] = np.zeros(k, dtype=np.int64)
+    cols["trunk_x"], cols["trunk_y"] = trunks_xy[:, 0].astype(float), trunks_xy[:, 1].astype(float)
+    write_trees_parquet(str(folder / "trees.parquet"), cols, crs_wkt=None)
+    with PointsParquetWriter(str(folder / "points.parquet")) as w:
+        w.write(point_index, tree_id, np.zeros(len(point_index), bool), is_wood, np.zeros(len(point_index), np.float32))
+
+
+@pytest.fixture(scope="module")
+def truth_file(tmp_path_factory):
+    """A hand-made 'block' of 8 points, 2 trees, written with the simulator's writer."""
+    from pipeline.simulate import Orchard, write_simulation
+
+    folder = tmp_path_factory.mktemp("truth")
+    xyz = np.array([[500000.0 + i, 6950000.0, 100.0] for i in range(8)])
+    orchard = Orchard(
+        xyz=xyz,
+        tree_id=np.array([0, 1, 1, 1, 2, 2, 2, 0], dtype=np.int64),
+        is_wood=np.array([0, 1, 0, 0, 1, 1, 0, 0], dtype=bool),
+        kind=np.array([0, 2, 3, 3, 2, 2, 3, 6], dtype=np.uint8),
+        trunks=np.array([[500001.0, 6950000.0, 100.0], [500005.0, 6950000.0, 100.0]]),
+        trunk_radius=np.array([0.1, 0.1]),
+    )
+    write_simulation(orchard, str(folder / "block.las"), str(folder / "truth.parquet"))
+    return folder / "truth.parquet"
+
+
+def test_evaluate_result_reads_a_result_folder(tmp_path, truth_file):
+    # trees found at both trunks plus a false one; point 6 mislabelled as tree 1; point 7 missing;
+    # rows in shuffled order (alignment is by point_index)
+    idx = np.array([6, 0, 1, 2, 3, 4, 5], dtype=np.uint64)
+    tree = np.array([1, 0, 1, 1, 1, 2, 2])
+    wood = np.array([0, 0, 1, 0, 1, 1, 1], bool)
+    _write_result(tmp_path / "res", np.array([[500001.2, 6950000.0], [500004.9, 6950000.1], [500020.0, 6950000.0]]), idx, tree, wood)
+    m = evaluate_result(str(truth_file), str(tmp_path / "res"))
+    assert (m["trunk_tp"], m["trunk_fp"], m["trunk_fn"]) == (2, 1, 0)
+    assert m["trunk_mean_distance"] == pytest.approx((0.2 + math.hypot(0.1, 0.1)) / 2)
+    assert m["v_measure"] == pytest.approx(v_measure([1, 1, 1, 2, 2, 2], [1, 1, 1, 2, 2, 1]))
+    assert m["wood_f1"] == pytest.approx(wood_f1([1, 0, 0, 1, 1, 0], [1, 0, 1, 1, 1, 0]))
+    assert m["n_missing_points"] == 1
+    assert m["n_tree_points"] == 6
+
+
+def test_evaluate_result_rejects_foreign_results(tmp_path, truth_file):
+    _write_result(tmp_path / "res", np.array([[0.0, 0.0]]), np.array([0, 99], dtype=np.uint64), np.array([1, 1]), np.array([0, 0], bool))
+    with pytest.raises(InputError, match="point_index"):
+        evaluate_result(str(truth_file), str(tmp_path / "res"))
+    with pytest.raises(InputError, match="does not exist"):
+        evaluate_result(str(truth_file), str(tmp_path / "nowhere"))
+
+
+def test_cli_simulate_then_evaluate_a_perfect_result(tmp_path, capsys):
+    """`orchard simulate` and `orchard evaluate` through the console script's main()."""
+    from pipeline.simulate import read_truth
+    from service.cli import main
+
+    block, truth = tmp_path / "b.laz", tmp_path / "t.parquet"
+    rc = main(["simulate", "--out", str(block), "--truth", str(truth), "--rows", "1", "--trees-per-row", "2",
+               "--density", "0.05", "--seed", "3", "--no-vehicle"])
+    assert rc == 0
+    out = capsys.readouterr().out
+    assert "2 trees" in out and out.count("\n") == 1
+    cols, trunks = read_truth(str(truth))
+    _write_result(tmp_path / "res", trunks[:, :2], cols["point_index"], cols["tree_id"], cols["is_wood"])
+    assert main(["evaluate", "--truth", str(truth), "--result", str(tmp_path / "res"), "--json"]) == 0
+    import json
+
+    m = json.loads(capsys.readouterr().out)
+    assert m["trunk_f1"] == 1.0 and m["v_measure"] == pytest.approx(1.0) and m["wood_f1"] == 1.0
+    assert main(["evaluate", "--truth", str(truth), "--result", str(tmp_path / "res")]) == 0
+    assert "trunk F1" in capsys.readouterr().out
+
+
+def test_cli_rejects_nonsense_with_one_line(tmp_path, capsys):
+    from service.cli import main
+
+    rc = main(["simulate", "--out", str(tmp_path / "b.laz"), "--truth", str(tmp_path / "t.parquet"), "--noise", "0.5"])
+    err = capsys.readouterr().err
+    assert rc == 2 and err.count("\n") == 1 and "noise" in err
+    rc = main(["evaluate", "--truth", str(tmp_path / "none.parquet"), "--result", str(tmp_path)])
+    err = capsys.readouterr().err
+    assert rc == 2 and err.count("\n") == 1
+    assert list(tmp_path.iterdir()) == []
