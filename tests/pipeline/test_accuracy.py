@@ -1,0 +1,84 @@
+"""End to end on generated orchards with known truth: the accuracy the README reports.
+
+Blocks use evaluation seeds (< 1000); the wood model was fitted on seeds >= 1000.
+Thresholds: trunk F1 and wood F1 are the issue's targets. v-measure is asserted at the
+level the method reaches on this simulator (the issue's 0.96 / 0.90 targets are not met
+yet; see README "Accuracy"), so a regression still fails the test.
+"""
+
+import numpy as np
+import pytest
+
+from pipeline.baselines import closest_trunk
+from pipeline.evaluate import score_labels
+from pipeline.params import PipelineParams
+from pipeline.process import process_points
+from pipeline.simulate import SimulationParams, simulate_orchard
+
+PAPER_SETTING = dict(rows=2, trees_per_row=4, noise=0.02, spacing=5.0, row_spacing=6.0)
+HIGH_DENSITY = dict(rows=2, trees_per_row=5, spacing=2.5, row_spacing=4.5, low_foliage=True)
+
+
+def _score(sim: dict, seed: int, fn=process_points) -> dict:
+    o = simulate_orchard(SimulationParams(seed=seed, **sim))
+    origin = np.floor(o.xyz.min(axis=0))
+    r = fn(o.xyz - origin, params=PipelineParams())
+    return score_labels(
+        true_tree_id=o.tree_id,
+        true_is_wood=o.is_wood,
+        true_trunks=o.trunks[:, :2] - origin[:2],
+        pred_tree_id=r.tree_id,
+        pred_is_wood=r.is_wood,
+        found_trunks=r.trunks[:, :2],
+    )
+
+
+@pytest.fixture(scope="module")
+def paper_setting():
+    return [_score(PAPER_SETTING, seed) for seed in (0, 1)]
+
+
+@pytest.fixture(scope="module")
+def high_density():
+    return [_score(HIGH_DENSITY, seed) for seed in (0, 1)]
+
+
+def test_paper_setting_trunks_found_without_priors(paper_setting):
+    for s in paper_setting:
+        assert s["trunk_f1"] >= 0.97, s
+        assert s["trunk_mean_distance"] < 0.15, s
+
+
+def test_paper_setting_segmentation(paper_setting):
+    vm = np.mean([s["v_measure"] for s in paper_setting])
+    assert vm >= 0.93, vm
+
+
+def test_paper_setting_wood_beats_target(paper_setting):
+    for s in paper_setting:
+        assert s["wood_f1"] >= 0.70, s
+
+
+def test_high_density_trunks(high_density):
+    f1 = np.mean([s["trunk_f1"] for s in high_density])
+    assert f1 >= 0.95, high_density
+
+
+def test_high_density_segmentation(high_density):
+    vm = np.mean([s["v_measure"] for s in high_density])
+    assert vm >= 0.83, vm
+
+
+def test_graph_segmentation_beats_closest_trunk(paper_setting):
+    base = _score(PAPER_SETTING, 0, fn=closest_trunk)
+    assert paper_setting[0]["v_measure"] > base["v_measure"]
+
+
+def test_distractors_are_not_trees():
+    # fence posts, a vehicle and a bin, but no trees: nothing may be found
+    o = simulate_orchard(SimulationParams(rows=1, trees_per_row=1, seed=7))
+    keep = o.tree_id == 0
+    xyz = o.xyz[keep] - np.floor(o.xyz[keep].min(axis=0))
+    r = process_points(xyz, params=PipelineParams())
+    assert r.n_trees == 0, r.trunks
+    assert (r.tree_id == 0).all()
