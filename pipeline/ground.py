@@ -99,7 +99,8 @@ def ground_model(
     local_min = ndimage.minimum_filter(big, footprint=foot, mode="nearest")
     # slope allowance: up to 30 % slope across the search radius counts as ground
     allowance = params.tolerance + 0.3 * params.search_radius
-    is_ground_cell = occupied & (zmin - local_min <= allowance)
+    with np.errstate(invalid="ignore"):  # empty cells: inf - inf
+        is_ground_cell = occupied & (zmin - local_min <= allowance)
     # second pass: compare to the smoothed ground surface so that canopy cells next to
     # ground cells on a slope are not taken as ground
     dtm0 = _fill_nearest(np.where(is_ground_cell, zmin, np.nan), is_ground_cell)

@@ -79,6 +79,8 @@ def smooth(values: np.ndarray, adjacency: sparse.csr_matrix) -> np.ndarray:
 
 def neighbourhood_max(values: np.ndarray, adjacency: sparse.csr_matrix) -> np.ndarray:
     """Maximum of non-negative ``values`` over each node's neighbourhood."""
+    if values.shape[0] == 0:
+        return np.zeros(0)
     a = adjacency.tocsr(copy=True)
     a.data = values[a.indices].astype(np.float64)
     return np.asarray(a.max(axis=1).todense()).ravel()

@@ -154,6 +154,9 @@ def analyse_nodes(
 
 def node_wood_score(a: NodeAnalysis, *, params: PipelineParams) -> np.ndarray:
     """Wood score per node, (m,) float64 in [0, 1], by ``params.matter.method``."""
+    node_tree = a.segmentation.node_tree
+    if not (node_tree > 0).any():  # no trees, no wood
+        return np.zeros(node_tree.shape[0])
     p = matter.path_counts(a.segmentation.paths.pred)
     if params.matter.method == "paper":
         return matter.smooth(matter.log_score(p), a.adjacency)
