@@ -30,6 +30,11 @@ class GroundModel:
     cell_size: float
     noise: float
 
+    def tolerance(self, params: GroundParams) -> float:
+        """Height [m] up to which points are ground: the parameter, widened to three
+        times the estimated ground noise on noisy scans."""
+        return max(params.tolerance, 3.0 * self.noise)
+
     def height_at(self, xy: np.ndarray) -> np.ndarray:
         """Ground height [m] under each (x, y) (bilinear between cell centres), shape (n,)."""
         g = (np.asarray(xy, dtype=np.float64)[:, :2] - self.origin) / self.cell_size - 0.5
@@ -155,6 +160,6 @@ def classify_ground(
         the tolerance grows to three times the estimated ground noise on noisy scans.
     """
     height = xyz[:, 2] - model.height_at(xyz)
-    tol = max(params.tolerance, 3.0 * model.noise)
+    tol = model.tolerance(params)
     is_ground = (height <= tol) & (height >= -max(params.outlier_depth, 3.0 * model.noise))
     return height, is_ground

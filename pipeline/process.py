@@ -126,7 +126,15 @@ def analyse_nodes(
     leafiness = np.clip(matter.smooth(feats.scattering, adjacency) / LEAFY_SCATTERING, 0.0, 1.0)
     drainage = reweight(graph, 1.0 + params.trunks.leaf_cost * leafiness)
     planar = (feats.planarity >= PLANAR_MIN) & (feats.scattering <= PLANAR_MAX_SCATTER)
-    det = detect_trunks(nodes, node_height, drainage, planar=planar, scattering=feats.scattering, params=params.trunks)
+    det = detect_trunks(
+        nodes,
+        node_height,
+        drainage,
+        planar=planar,
+        scattering=feats.scattering,
+        ground_top=gm.tolerance(params.ground),
+        params=params.trunks,
+    )
     seg_graph = graph
     if params.segment.leaf_cost > 0:
         seg_graph = reweight(graph, 1.0 + params.segment.leaf_cost * leafiness)

@@ -66,6 +66,21 @@ def _suppress(xy: np.ndarray, score: np.ndarray, radius: float) -> np.ndarray:
     return leader
 
 
+def _group_percentile(values: np.ndarray, group: np.ndarray, n_groups: int, q: float) -> np.ndarray:
+    """q-th percentile (nearest rank) of ``values`` per group id in [0, n_groups); -inf if empty."""
+    keep = group >= 0
+    v, g = values[keep], group[keep]
+    order = np.lexsort((v, g))
+    v, g = v[order], g[order]
+    start = np.searchsorted(g, np.arange(n_groups))
+    end = np.searchsorted(g, np.arange(n_groups), side="right")
+    out = np.full(n_groups, -np.inf)
+    has = end > start
+    idx = start + np.floor((end - start - 1) * q / 100.0).astype(np.int64)
+    out[has] = v[idx[has]]
+    return out
+
+
 def _satellites(xy: np.ndarray, support: np.ndarray, ok: np.ndarray, radius: float, ratio: float) -> np.ndarray:
     """Groups dominated by a stronger accepted group nearby.
 
@@ -99,6 +114,7 @@ def detect_trunks(
     *,
     planar: np.ndarray,
     scattering: np.ndarray | None = None,
+    ground_top: float = 0.0,
     params: TrunkParams,
 ) -> TrunkDetection:
     """Find one trunk per tree.
@@ -110,6 +126,8 @@ def detect_trunks(
     graph : (m, m) csr_matrix — the voxel graph over ``nodes``
     planar : (m,) bool — nodes on planar (box-like) surfaces
     scattering : (m,) float64, optional — shape scattering of each node (diagnostics)
+    ground_top : float — height [m] up to which points were classified ground; contacts
+        lie within ``params.contact_height`` above it
     params : TrunkParams
 
     Returns
@@ -118,17 +136,16 @@ def detect_trunks(
     """
     m = nodes.shape[0]
     empty = TrunkDetection(np.zeros((0, 2)), np.zeros(0), np.zeros(0), np.zeros(0, np.int64), np.zeros(0, np.int64))
-    contact = np.flatnonzero(node_height < params.contact_height)
+    contact_top = ground_top + params.contact_height
+    contact = np.flatnonzero(node_height < contact_top)
     if m == 0 or contact.size == 0:
         return empty
     sp = shortest_paths(graph, contact)
     size = subtree_sizes(sp.pred)
     reached = sp.source >= 0
 
-    # per contact: catchment, tallest node draining into it, planar nodes draining into it
+    # per contact: catchment, and planar nodes draining into it
     catch = size[contact]
-    top = np.full(m, -np.inf)
-    np.maximum.at(top, sp.source[reached], node_height[reached])
     # box-like objects: the planar share of the low part of the catchment (below tree
     # height, where a vehicle's body is and overhanging foliage mostly is not)
     low = reached & (node_height < params.min_tree_height)
@@ -141,17 +158,19 @@ def detect_trunks(
     leader = _suppress(nodes[cand, :2], size[cand], params.cluster_radius)
     groups, gidx = np.unique(leader, return_inverse=True)
     g_support = np.bincount(gidx, weights=size[cand])
-    g_top = np.full(groups.size, -np.inf)
-    np.maximum.at(g_top, gidx, top[cand])
+    # robust height of each group's material: 95th percentile of its nodes' heights
+    # (the maximum would follow single noisy points above a fence post)
+    group_of_contact = np.full(m, -1, np.int64)
+    group_of_contact[cand] = gidx
+    node_group = np.where(reached, group_of_contact[np.maximum(sp.source, 0)], -1)
+    g_top = _group_percentile(node_height, node_group, groups.size, 95.0)
     g_planar = np.bincount(gidx, weights=n_planar[cand]) / np.maximum(np.bincount(gidx, weights=n_low[cand]), 1)
     ok = (g_support >= params.min_canopy_voxels) & (g_top >= params.min_tree_height) & (g_planar <= params.max_planar_fraction)
 
     # cross-section of the flow just above the contact band: nodes whose path ends in the
-    # group, in the band [contact_height, contact_height + 0.4 m], weighted by the flow
+    # group, in the band [contact_top, contact_top + 0.4 m], weighted by the flow
     # (subtree size) they carry
-    group_of_contact = np.full(m, -1, np.int64)
-    group_of_contact[cand] = gidx
-    band = reached & (node_height >= params.contact_height) & (node_height < params.contact_height + 0.4)
+    band = reached & (node_height >= contact_top) & (node_height < contact_top + 0.4)
     bn = np.flatnonzero(band)
     bg = group_of_contact[sp.source[bn]]
     keep = bg >= 0
