@@ -70,6 +70,7 @@ class SegmentParams(_Model):
     max_crown_radius: float = Field(3.5, gt=0.1, le=30.0, description="farthest a tree's material reaches from its trunk, horizontally [m]")
     leaf_cost: float = Field(0.0, ge=0.0, le=100.0, description="segmentation paths through fully scattered (leafy) nodes cost this much more (0 = plain distance) [x]")
     floating_height: float = Field(0.5, ge=0.0, le=20.0, description="unreached fragments whose lowest point is above this height are canopy and join the nearest tree; lower ones are separate objects [m]")
+    min_fragment: int = Field(3, ge=1, le=10_000, description="unreached fragments of fewer graph nodes than this are noise (outliers) and stay unlabelled [nodes]")
     unreached_radius: float = Field(0.6, ge=0.0, le=10.0, description="points the graph does not reach go to the nearest trunk if a tree node lies this close [m]")
 
 

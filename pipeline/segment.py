@@ -49,7 +49,8 @@ def segment_nodes(
     above ``floating_height`` is canopy the graph could not bridge (sparse scans) and
     takes the tree of the nearest labelled node; a fragment standing on the ground is a
     separate object (fence post, vehicle, grass) and only its nodes within
-    ``unreached_radius`` of a tree join it. Either way within ``max_crown_radius``.
+    ``unreached_radius`` of a tree join it. Either way within ``max_crown_radius``, and
+    fragments smaller than ``min_fragment`` nodes are noise and stay unlabelled.
 
     Parameters
     ----------
@@ -86,9 +87,10 @@ def segment_nodes(
         np.minimum.at(low, comp, node_height[todo])
         floating = low[comp] > params.floating_height
         bound = np.where(floating, params.max_crown_radius, params.unreached_radius)
+        big = np.bincount(comp)[comp] >= params.min_fragment  # lone outliers stay 0
         lab = np.flatnonzero(labelled)
         d, j = cKDTree(nodes[lab]).query(nodes[todo], distance_upper_bound=max(params.max_crown_radius, params.unreached_radius))
-        hit = np.isfinite(d) & (d <= bound)
+        hit = np.isfinite(d) & (d <= bound) & big
         cand_tree = node_tree[lab[j[hit]]]
         # the fallback must also respect the crown reach
         ok = ((nodes[todo[hit], :2] - trunk_xy[cand_tree - 1]) ** 2).sum(1) <= params.max_crown_radius**2
