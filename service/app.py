@@ -1,0 +1,779 @@
+"""The HTTP API (FastAPI): blocks, jobs, results, reports and schedules under ``/v1``.
+
+`create_app(settings)` wires the store, the job runner and the schedule clock into a
+FastAPI app; the app package holds wiring only (the work is in `service.store`,
+`service.runner`, `service.schedules`, `service.report`). OpenAPI docs are at
+``/docs``. Every ``/v1`` request needs ``Authorization: Bearer <token>``; a tenant sees
+only its own resources (anything else is 404). Errors are JSON ``{"detail": ...}``
+(see `service.errors`).
+"""
+
+from __future__ import annotations
+
+import contextlib
+import hashlib
+import logging
+import threading
+import unicodedata
+import uuid
+from datetime import datetime, timezone
+from pathlib import Path
+from typing import Annotated, Any, Literal
+
+from fastapi import APIRouter, Depends, FastAPI, Query, Request, Response
+from fastapi.concurrency import run_in_threadpool
+from fastapi.responses import FileResponse, HTMLResponse, JSONResponse, RedirectResponse
+from fastapi.security import HTTPAuthorizationCredentials, HTTPBearer
+from pydantic import BaseModel, ConfigDict, Field
+from python_multipart.multipart import MultipartParser, parse_options_header
+from starlette.requests import ClientDisconnect
+
+from pipeline.errors import ConflictError, InputError, NotFoundError, ParameterError
+from pipeline.params import PipelineParams
+from service import report as reports
+from service.auth import authenticate
+from service.errors import TooLargeError, install_error_handlers
+from service.runner import Runner, job_dir
+from service.schedules import DEFAULT_CRON, ScheduleClock, next_run_time, run_schedule, validate_cron, validate_inbox
+from service.settings import Settings
+from service.store import Store, accept_block
+
+log = logging.getLogger("orchard.service")
+
+API_VERSION = "0.1.0"
+_UPLOAD_SLACK = 1 << 20  # multipart overhead allowed on top of the file size limit
+_DRAIN_LIMIT = 64 << 20  # after a too-large upload, read at most this much more before answering
+
+
+# -- models --------------------------------------------------------------------------------
+
+
+class ErrorBody(BaseModel):
+    detail: str = Field(description="what was wrong and what to do")
+    errors: list[dict[str, Any]] | None = Field(None, description="validation errors per field (422 only)")
+
+
+class Tiling(BaseModel):
+    """Split the block into square tiles processed on the dask workers."""
+
+    model_config = ConfigDict(extra="forbid")
+    tile_size: float = Field(ge=1.0, le=100_000.0, description="tile edge length [m]")
+    buffer: float | None = Field(None, ge=0.0, le=1_000.0, description="overlap on every side [m]; default = the parameters' reach")
+
+
+class JobCreate(BaseModel):
+    model_config = ConfigDict(extra="forbid")
+    block_id: str = Field(max_length=200, description="id of an uploaded block")
+    params: PipelineParams = Field(default_factory=PipelineParams, description="pipeline parameters (defaults if omitted)")
+    tiling: Tiling | None = Field(None, description="tiled processing on the dask workers; omit for one tile")
+
+
+class Block(BaseModel):
+    id: str
+    sha256: str
+    filename: str | None
+    size_bytes: int
+    n_points: int | None = None
+    version: str | None = None
+    point_format: int | None = None
+    compressed: bool | None = None
+    mins: list[float] | None = None
+    maxs: list[float] | None = None
+    scales: list[float] | None = None
+    offsets: list[float] | None = None
+    crs_wkt: str | None = None
+    created_at: str | None
+
+
+class Job(BaseModel):
+    id: str
+    block_id: str
+    schedule_id: str | None
+    state: Literal["queued", "running", "done", "failed", "cancelled"]
+    tiles_done: int
+    tiles_total: int
+    timings: dict[str, Any]
+    error: str | None
+    cancel_requested: bool
+    params: dict[str, Any]
+    tiling: dict[str, Any] | None
+    n_points: int | None = None
+    n_trees: int | None = None
+    partial: bool | None = None
+    failed_tiles: list[int] = []
+    created_at: str | None
+    started_at: str | None
+    finished_at: str | None
+    links: dict[str, str]
+
+
+class TreesPage(BaseModel):
+    items: list[dict[str, Any]]
+    total: int
+    limit: int
+    offset: int
+
+
+class ScheduleCreate(BaseModel):
+    model_config = ConfigDict(extra="forbid")
+    inbox: str = Field(max_length=4096, description="absolute path of the folder on the server where captures land")
+    cron: str = Field(DEFAULT_CRON, max_length=200, description="cron expression, local time (default 01:00 every night)")
+    params: PipelineParams = Field(default_factory=PipelineParams)
+    tiling: Tiling | None = None
+
+
+class Schedule(BaseModel):
+    id: str
+    inbox: str
+    cron: str
+    params: dict[str, Any]
+    tiling: dict[str, Any] | None
+    created_at: str | None
+    last_run_at: str | None
+    next_run_at: str | None
+
+
+class RejectedFile(BaseModel):
+    file: str
+    error: str
+
+
+class ScheduleRun(BaseModel):
+    schedule_id: str
+    jobs: list[str]
+    skipped: int
+    rejected: list[RejectedFile]
+
+
+class Health(BaseModel):
+    status: str
+    version: str
+    runner: str
+    schedules: str
+
+
+# -- conversions ---------------------------------------------------------------------------
+
+
+def _iso(ts: float | None, local: bool = False) -> str | None:
+    if ts is None:
+        return None
+    if local:
+        return datetime.fromtimestamp(ts).astimezone().isoformat()
+    return datetime.fromtimestamp(ts, timezone.utc).isoformat()
+
+
+def block_out(rec: dict) -> Block:
+    info = rec.get("info") or {}
+    return Block(
+        id=rec["id"],
+        sha256=rec["sha256"],
+        filename=rec.get("filename"),
+        size_bytes=rec["size_bytes"],
+        n_points=info.get("n_points"),
+        version=info.get("version"),
+        point_format=info.get("point_format"),
+        compressed=info.get("compressed"),
+        mins=info.get("mins"),
+        maxs=info.get("maxs"),
+        scales=info.get("scales"),
+        offsets=info.get("offsets"),
+        crs_wkt=info.get("crs_wkt"),
+        created_at=_iso(rec.get("created_at")),
+    )
+
+
+def job_out(rec: dict) -> Job:
+    outcome = rec.get("outcome") or {}
+    base = f"/v1/jobs/{rec['id']}"
+    links = {"self": base}
+    if rec["state"] == "done":
+        for name in ("trees", "trees.parquet", "trees.csv", "points.parquet", "report"):
+            links[name] = f"{base}/{name}"
+    return Job(
+        id=rec["id"],
+        block_id=rec["block_id"],
+        schedule_id=rec.get("schedule_id"),
+        state=rec["state"],
+        tiles_done=rec["tiles_done"],
+        tiles_total=rec["tiles_total"],
+        timings=rec.get("timings") or {},
+        error=rec.get("error"),
+        cancel_requested=bool(rec.get("cancel_requested")),
+        params=rec.get("params") or {},
+        tiling=rec.get("tiling"),
+        n_points=outcome.get("n_points"),
+        n_trees=outcome.get("n_trees"),
+        partial=outcome.get("partial"),
+        failed_tiles=outcome.get("failed_tiles") or [],
+        created_at=_iso(rec.get("created_at")),
+        started_at=_iso(rec.get("started_at")),
+        finished_at=_iso(rec.get("finished_at")),
+        links=links,
+    )
+
+
+def schedule_out(rec: dict) -> Schedule:
+    return Schedule(
+        id=rec["id"],
+        inbox=rec["inbox"],
+        cron=rec["cron"],
+        params=rec.get("params") or {},
+        tiling=rec.get("tiling"),
+        created_at=_iso(rec.get("created_at")),
+        last_run_at=_iso(rec.get("last_run_at"), local=True),
+        next_run_at=_iso(rec.get("next_run_at"), local=True),
+    )
+
+
+def display_filename(name: str | None) -> str | None:
+    """A client file name reduced to something safe to show (never used as a path)."""
+    if not name:
+        return None
+    base = name.replace("\\", "/").rsplit("/", 1)[-1]
+    base = "".join(c for c in base if unicodedata.category(c)[0] != "C").strip()
+    return base[:200] or None
+
+
+# -- request body limits -------------------------------------------------------------------
+
+
+class BodyLimit:
+    """ASGI middleware: 413 for request bodies above the limit (uploads get their own, larger one)."""
+
+    def __init__(self, app, *, default: int, upload: int, upload_mb: float, upload_path: str = "/v1/blocks") -> None:
+        self.app = app
+        self.upload_mb = upload_mb
+        self.default = default
+        self.upload = upload
+        self.upload_path = upload_path
+
+    async def __call__(self, scope, receive, send) -> None:
+        if scope["type"] != "http":
+            await self.app(scope, receive, send)
+            return
+        is_upload = scope.get("method") == "POST" and scope.get("path", "").rstrip("/") == self.upload_path
+        limit = self.upload if is_upload else self.default
+        length = None
+        for key, value in scope.get("headers", ()):
+            if key == b"content-length":
+                with contextlib.suppress(ValueError):
+                    length = int(value)
+        if length is not None and length > limit:
+            if is_upload:
+                detail = f"upload of {length} bytes is above the upload limit of {self.upload_mb:g} MB (ORCHARD_MAX_UPLOAD_MB)"
+            else:
+                detail = f"request body of {length} bytes is above the limit of {limit} bytes"
+            resp = JSONResponse(
+                {"detail": detail},
+                status_code=413,
+                headers={"Connection": "close"},
+            )
+            await resp(scope, receive, send)
+            return
+        total = 0
+
+        async def limited_receive():
+            nonlocal total
+            message = await receive()
+            if message["type"] == "http.request":
+                total += len(message.get("body", b""))
+                if total > limit:
+                    raise TooLargeError(f"request body is above the limit of {limit} bytes")
+            return message
+
+        await self.app(scope, limited_receive, send)
+
+
+# -- dependencies --------------------------------------------------------------------------
+
+
+def get_store(request: Request) -> Store:
+    return request.app.state.store
+
+
+def get_settings(request: Request) -> Settings:
+    return request.app.state.settings
+
+
+_bearer = HTTPBearer(auto_error=False, description="a token from `orchard tokens create --tenant NAME`")
+
+
+def get_tenant(
+    request: Request,
+    store: Annotated[Store, Depends(get_store)],
+    _creds: Annotated[HTTPAuthorizationCredentials | None, Depends(_bearer)],
+) -> dict:
+    return authenticate(store, request.headers.get("authorization"))
+
+
+StoreDep = Annotated[Store, Depends(get_store)]
+SettingsDep = Annotated[Settings, Depends(get_settings)]
+TenantDep = Annotated[dict, Depends(get_tenant)]
+
+
+# -- upload --------------------------------------------------------------------------------
+
+
+class _FilePart:
+    """Receives the multipart callbacks; writes the ``file`` field to a temporary file, hashing it."""
+
+    def __init__(self, tmp_path: Path, limit: int) -> None:
+        self.tmp_path = tmp_path
+        self.limit = limit
+        self.fh = None
+        self.sha = hashlib.sha256()
+        self.size = 0
+        self.filename: str | None = None
+        self.found = False
+        self.too_large = False
+        self._in_file = False
+        self._field = bytearray()
+        self._value = bytearray()
+        self._headers: dict[bytes, bytes] = {}
+
+    def callbacks(self) -> dict:
+        return {
+            "on_part_begin": self._part_begin,
+            "on_header_field": lambda d, s, e: self._field.extend(d[s:e]),
+            "on_header_value": lambda d, s, e: self._value.extend(d[s:e]),
+            "on_header_end": self._header_end,
+            "on_headers_finished": self._headers_finished,
+            "on_part_data": self._data,
+            "on_part_end": self._part_end,
+        }
+
+    def _part_begin(self) -> None:
+        self._headers = {}
+        self._in_file = False
+
+    def _header_end(self) -> None:
+        self._headers[bytes(self._field).lower()] = bytes(self._value)
+        self._field.clear()
+        self._value.clear()
+
+    def _headers_finished(self) -> None:
+        _, opts = parse_options_header(self._headers.get(b"content-disposition", b""))
+        if opts.get(b"name") == b"file" and not self.found:
+            self.found = True
+            self._in_file = True
+            raw = opts.get(b"filename")
+            self.filename = display_filename(raw.decode("utf-8", "replace")) if raw else None
+            self.fh = open(self.tmp_path, "wb")
+
+    def _data(self, data: bytes, start: int, end: int) -> None:
+        if not self._in_file or self.too_large:
+            return
+        n = end - start
+        self.size += n
+        if self.size > self.limit:
+            self.too_large = True
+            return
+        chunk = data[start:end]
+        self.sha.update(chunk)
+        self.fh.write(chunk)
+
+    def _part_end(self) -> None:
+        if self._in_file and self.fh is not None:
+            self.fh.close()
+        self._in_file = False
+
+    def close(self) -> None:
+        if self.fh is not None and not self.fh.closed:
+            self.fh.close()
+
+
+async def _receive_upload(request: Request, settings: Settings) -> _FilePart:
+    ctype, opts = parse_options_header(request.headers.get("content-type", "").encode("latin-1", "replace"))
+    boundary = opts.get(b"boundary")
+    if ctype != b"multipart/form-data" or not boundary:
+        raise InputError("send the block as multipart/form-data with the file in the field 'file' (curl -F file=@block.laz)")
+    settings.tmp_dir.mkdir(parents=True, exist_ok=True)
+    part = _FilePart(settings.tmp_dir / f"upload-{uuid.uuid4().hex}.part", settings.max_upload_bytes)
+    try:
+        parser = MultipartParser(boundary, part.callbacks())
+    except Exception:
+        raise InputError("the multipart boundary is invalid") from None
+    stream = request.stream()
+    try:
+        async for chunk in stream:
+            try:
+                parser.write(chunk)
+            except Exception:
+                raise InputError("the multipart body is malformed; send the file as field 'file'") from None
+            if part.too_large:
+                break
+        if part.too_large:
+            drained = 0
+            with contextlib.suppress(TooLargeError, ClientDisconnect):
+                async for chunk in stream:
+                    drained += len(chunk)
+                    if drained > _DRAIN_LIMIT:
+                        break
+            raise TooLargeError(
+                f"the file is larger than the upload limit of {settings.max_upload_mb:g} MB (ORCHARD_MAX_UPLOAD_MB)"
+            )
+        try:
+            parser.finalize()
+        except Exception:
+            raise InputError("the multipart body is incomplete") from None
+    except BaseException:
+        part.close()
+        part.tmp_path.unlink(missing_ok=True)
+        raise
+    part.close()
+    if not part.found:
+        part.tmp_path.unlink(missing_ok=True)
+        raise InputError("no field 'file' in the upload; send the block as multipart field 'file' (curl -F file=@block.laz)")
+    return part
+
+
+_UPLOAD_BODY = {
+    "requestBody": {
+        "required": True,
+        "content": {
+            "multipart/form-data": {
+                "schema": {
+                    "type": "object",
+                    "required": ["file"],
+                    "properties": {"file": {"type": "string", "format": "binary", "description": "a LAS or LAZ file"}},
+                }
+            }
+        },
+    }
+}
+
+
+# -- the app -------------------------------------------------------------------------------
+
+
+def _results(store: Store, settings: Settings, tenant: dict, job_id: str, name: str) -> tuple[dict, Path]:
+    job = store.get_job(tenant["id"], job_id)
+    if job["state"] != "done":
+        raise ConflictError(f"job {job_id} is {job['state']}; results are available once it is done (GET /v1/jobs/{job_id})")
+    path = job_dir(settings, job_id) / name
+    outputs = (job.get("outcome") or {}).get("outputs") or {}
+    if not path.exists():
+        for value in outputs.values():
+            if isinstance(value, str) and Path(value).name == name and Path(value).exists():
+                path = Path(value)
+                break
+    return job, path
+
+
+def _require(path: Path, what: str) -> Path:
+    if not path.exists():
+        raise NotFoundError(f"the {what} of this job is missing on the server")
+    return path
+
+
+def ensure_report(store: Store, settings: Settings, job: dict) -> Path:
+    """``report.html`` of a finished job, written if missing."""
+    out = job_dir(settings, job["id"])
+    html_path = out / "report.html"
+    if html_path.exists():
+        return html_path
+    block = store.get_block(None, job["block_id"])
+    _, trees = _results(store, settings, {"id": job["tenant_id"]}, job["id"], "trees.parquet")
+    _, points = _results(store, settings, {"id": job["tenant_id"]}, job["id"], "points.parquet")
+    rows_total = (job.get("outcome") or {}).get("n_trees")
+    summary = {
+        "Block": block.get("filename") or block["id"],
+        "Job": job["id"],
+        "Finished": _iso(job.get("finished_at")) or "",
+        "Points": str((block.get("info") or {}).get("n_points", "")),
+        "Trees": str(rows_total if rows_total is not None else ""),
+    }
+    return reports.write_report(
+        block_path=block["path"],
+        trees_parquet=_require(trees, "trees.parquet"),
+        points_parquet=_require(points, "points.parquet"),
+        out_dir=out,
+        title=f"Orchard report — {block.get('filename') or block['id']}",
+        summary=summary,
+    )
+
+
+def create_app(settings: Settings) -> FastAPI:
+    """The API app. Starting it (lifespan) re-queues interrupted jobs and starts the runner and the schedule clock."""
+    settings.data_dir.mkdir(parents=True, exist_ok=True)
+    store = Store(settings.store_path)
+    report_lock = threading.Lock()
+
+    def after_done(job: dict) -> None:
+        with report_lock:
+            ensure_report(store, settings, job)
+
+    @contextlib.asynccontextmanager
+    async def lifespan(app: FastAPI):
+        for d in (settings.blocks_dir, settings.jobs_dir, settings.tmp_dir):
+            d.mkdir(parents=True, exist_ok=True)
+        for pattern in ("upload-*", "inbox-*"):  # temporary files of uploads a crash interrupted
+            for stale in settings.tmp_dir.glob(pattern):
+                stale.unlink(missing_ok=True)
+        n = store.requeue_running()
+        if n:
+            log.info("re-queued %d job(s) interrupted by the last shutdown", n)
+        if settings.runner:
+            app.state.runner = Runner(store, settings, after_done=after_done)
+            app.state.runner.start()
+        if settings.scheduling:
+            app.state.clock = ScheduleClock(store, settings, on_jobs=lambda: _wake_runner(app))
+            app.state.clock.start()
+        try:
+            yield
+        finally:
+            if app.state.clock is not None:
+                await run_in_threadpool(app.state.clock.stop)
+            if app.state.runner is not None:
+                await run_in_threadpool(app.state.runner.stop)
+            store.close()
+
+    app = FastAPI(
+        title="Orchard service",
+        version=API_VERSION,
+        description="Upload LiDAR blocks of orchards, run per-tree jobs on dask workers, "
+        "schedule overnight processing of capture inboxes, download per-tree results and reports.",
+        lifespan=lifespan,
+        docs_url="/docs",
+    )
+    app.state.settings = settings
+    app.state.store = store
+    app.state.runner = None
+    app.state.clock = None
+    install_error_handlers(app)
+    app.add_middleware(
+        BodyLimit,
+        default=settings.max_request_kb * 1024,
+        upload=settings.max_upload_bytes + _UPLOAD_SLACK,
+        upload_mb=settings.max_upload_mb,
+    )
+
+    errors = {
+        401: {"model": ErrorBody, "description": "missing or unknown bearer token"},
+        404: {"model": ErrorBody, "description": "no such resource for this tenant"},
+        413: {"model": ErrorBody, "description": "request body too large"},
+        422: {"model": ErrorBody, "description": "invalid request"},
+    }
+    v1 = APIRouter(prefix="/v1", responses=errors)
+
+    @app.get("/", include_in_schema=False)
+    def root() -> RedirectResponse:
+        return RedirectResponse("/docs")
+
+    @app.get("/healthz", response_model=Health, tags=["service"])
+    def healthz(request: Request) -> Health:
+        runner, clock = request.app.state.runner, request.app.state.clock
+        return Health(
+            status="ok",
+            version=API_VERSION,
+            runner="disabled" if runner is None else ("alive" if runner.is_alive() else "stopped"),
+            schedules="disabled" if clock is None else ("alive" if clock.is_alive() else "stopped"),
+        )
+
+    # blocks ------------------------------------------------------------------------------
+
+    @v1.post(
+        "/blocks",
+        response_model=Block,
+        status_code=201,
+        tags=["blocks"],
+        openapi_extra=_UPLOAD_BODY,
+        responses={200: {"model": Block, "description": "this file was uploaded before: the existing block"}},
+        summary="Upload a LAS/LAZ block (multipart field 'file')",
+    )
+    async def upload_block(request: Request, response: Response, tenant: TenantDep, store: StoreDep, settings: SettingsDep):
+        part = await _receive_upload(request, settings)
+        block, created = await run_in_threadpool(
+            accept_block,
+            store,
+            blocks_dir=settings.blocks_dir,
+            tenant_id=tenant["id"],
+            tmp_path=part.tmp_path,
+            sha256=part.sha.hexdigest(),
+            size_bytes=part.size,
+            filename=part.filename,
+        )
+        response.status_code = 201 if created else 200
+        response.headers["Location"] = f"/v1/blocks/{block['id']}"
+        return block_out(block)
+
+    @v1.get("/blocks", response_model=list[Block], tags=["blocks"])
+    def list_blocks(
+        tenant: TenantDep,
+        store: StoreDep,
+        limit: Annotated[int, Query(ge=1, le=1000)] = 100,
+        offset: Annotated[int, Query(ge=0, le=1_000_000_000)] = 0,
+    ):
+        return [block_out(b) for b in store.list_blocks(tenant["id"], limit=limit, offset=offset)]
+
+    @v1.get("/blocks/{block_id}", response_model=Block, tags=["blocks"])
+    def get_block(block_id: str, tenant: TenantDep, store: StoreDep):
+        return block_out(store.get_block(tenant["id"], block_id))
+
+    # jobs --------------------------------------------------------------------------------
+
+    @v1.post("/jobs", response_model=Job, status_code=201, tags=["jobs"], summary="Submit a job for a block")
+    def create_job(body: JobCreate, request: Request, response: Response, tenant: TenantDep, store: StoreDep):
+        block = store.get_block(tenant["id"], body.block_id)
+        tiling = body.tiling.model_dump() if body.tiling else None
+        if body.tiling and body.tiling.buffer is not None and body.tiling.buffer < body.params.reach():
+            raise ParameterError(
+                f"tiling.buffer ({body.tiling.buffer} m) is smaller than the parameters' reach "
+                f"({body.params.reach():.2f} m): trees near tile edges would be cut; omit buffer to use the reach"
+            )
+        job = store.create_job(tenant_id=tenant["id"], block_id=block["id"], params=body.params.model_dump(), tiling=tiling)
+        _wake_runner(request.app)
+        response.headers["Location"] = f"/v1/jobs/{job['id']}"
+        return job_out(job)
+
+    @v1.get("/jobs", response_model=list[Job], tags=["jobs"])
+    def list_jobs(
+        tenant: TenantDep,
+        store: StoreDep,
+        state: Annotated[Literal["queued", "running", "done", "failed", "cancelled"] | None, Query()] = None,
+        block_id: Annotated[str | None, Query(max_length=200)] = None,
+        schedule_id: Annotated[str | None, Query(max_length=200)] = None,
+        limit: Annotated[int, Query(ge=1, le=1000)] = 100,
+        offset: Annotated[int, Query(ge=0, le=1_000_000_000)] = 0,
+    ):
+        rows = store.list_jobs(tenant["id"], state=state, block_id=block_id, schedule_id=schedule_id, limit=limit, offset=offset)
+        return [job_out(j) for j in rows]
+
+    @v1.get("/jobs/{job_id}", response_model=Job, tags=["jobs"])
+    def get_job(job_id: str, tenant: TenantDep, store: StoreDep):
+        return job_out(store.get_job(tenant["id"], job_id))
+
+    @v1.delete(
+        "/jobs/{job_id}",
+        response_model=Job,
+        status_code=202,
+        tags=["jobs"],
+        summary="Cancel a queued or running job",
+        responses={409: {"model": ErrorBody, "description": "the job has already finished"}},
+    )
+    def cancel_job(job_id: str, request: Request, tenant: TenantDep, store: StoreDep):
+        job = store.request_cancel(tenant["id"], job_id)
+        runner = request.app.state.runner
+        if runner is not None:
+            runner.cancel(job_id)
+        return job_out(job)
+
+    # results -----------------------------------------------------------------------------
+
+    unfinished = {409: {"model": ErrorBody, "description": "the job is not done (yet)"}}
+
+    @v1.get("/jobs/{job_id}/trees", response_model=TreesPage, tags=["results"], responses=unfinished)
+    def job_trees(
+        job_id: str,
+        tenant: TenantDep,
+        store: StoreDep,
+        settings: SettingsDep,
+        limit: Annotated[int, Query(ge=1, le=1000)] = 100,
+        offset: Annotated[int, Query(ge=0, le=1_000_000_000)] = 0,
+    ):
+        _, path = _results(store, settings, tenant, job_id, "trees.parquet")
+        rows = reports.trees_records(_require(path, "trees.parquet"))
+        return TreesPage(items=rows[offset : offset + limit], total=len(rows), limit=limit, offset=offset)
+
+    def _file(path: Path, media_type: str, filename: str) -> FileResponse:
+        return FileResponse(path, media_type=media_type, filename=filename)
+
+    parquet = {200: {"content": {"application/vnd.apache.parquet": {}}, "description": "GeoParquet / Parquet file"}}
+
+    @v1.get("/jobs/{job_id}/trees.parquet", tags=["results"], responses={**parquet, **unfinished}, response_class=FileResponse)
+    def job_trees_parquet(job_id: str, tenant: TenantDep, store: StoreDep, settings: SettingsDep):
+        _, path = _results(store, settings, tenant, job_id, "trees.parquet")
+        return _file(_require(path, "trees.parquet"), "application/vnd.apache.parquet", f"trees-{job_id}.parquet")
+
+    @v1.get("/jobs/{job_id}/points.parquet", tags=["results"], responses={**parquet, **unfinished}, response_class=FileResponse)
+    def job_points_parquet(job_id: str, tenant: TenantDep, store: StoreDep, settings: SettingsDep):
+        _, path = _results(store, settings, tenant, job_id, "points.parquet")
+        return _file(_require(path, "points.parquet"), "application/vnd.apache.parquet", f"points-{job_id}.parquet")
+
+    @v1.get(
+        "/jobs/{job_id}/trees.csv",
+        tags=["results"],
+        responses={200: {"content": {"text/csv": {}}, "description": "one row per tree"}, **unfinished},
+        response_class=FileResponse,
+    )
+    def job_trees_csv(job_id: str, tenant: TenantDep, store: StoreDep, settings: SettingsDep):
+        _, trees = _results(store, settings, tenant, job_id, "trees.parquet")
+        csv_path = job_dir(settings, job_id) / "trees.csv"
+        if not csv_path.exists():
+            reports.write_trees_csv(_require(trees, "trees.parquet"), csv_path)
+        return _file(csv_path, "text/csv", f"trees-{job_id}.csv")
+
+    @v1.get(
+        "/jobs/{job_id}/report",
+        tags=["results"],
+        response_class=HTMLResponse,
+        responses={200: {"content": {"text/html": {}}, "description": "per-tree report with a map"}, **unfinished},
+    )
+    def job_report(job_id: str, tenant: TenantDep, store: StoreDep, settings: SettingsDep):
+        job, _ = _results(store, settings, tenant, job_id, "trees.parquet")
+        with report_lock:
+            path = ensure_report(store, settings, job)
+        return HTMLResponse(path.read_text(encoding="utf-8"))
+
+    @v1.get(
+        "/jobs/{job_id}/map.png",
+        tags=["results"],
+        response_class=FileResponse,
+        responses={200: {"content": {"image/png": {}}, "description": "map of the block with numbered trees"}, **unfinished},
+    )
+    def job_map(job_id: str, tenant: TenantDep, store: StoreDep, settings: SettingsDep):
+        job, _ = _results(store, settings, tenant, job_id, "trees.parquet")
+        with report_lock:
+            ensure_report(store, settings, job)
+        return _file(job_dir(settings, job_id) / "map.png", "image/png", f"map-{job_id}.png")
+
+    # schedules ---------------------------------------------------------------------------
+
+    @v1.post("/schedules", response_model=Schedule, status_code=201, tags=["schedules"], summary="Register an inbox and a cron schedule")
+    def create_schedule(body: ScheduleCreate, request: Request, response: Response, tenant: TenantDep, store: StoreDep, settings: SettingsDep):
+        cron = validate_cron(body.cron)
+        inbox = validate_inbox(body.inbox, root=settings.inbox_root)
+        rec = store.create_schedule(
+            tenant_id=tenant["id"],
+            inbox=str(inbox),
+            cron=cron,
+            params=body.params.model_dump(),
+            tiling=body.tiling.model_dump() if body.tiling else None,
+            next_run_at=next_run_time(cron, datetime.now().astimezone()).timestamp(),
+        )
+        clock = request.app.state.clock
+        if clock is not None:
+            clock.wake()
+        response.headers["Location"] = f"/v1/schedules/{rec['id']}"
+        return schedule_out(rec)
+
+    @v1.get("/schedules", response_model=list[Schedule], tags=["schedules"])
+    def list_schedules(tenant: TenantDep, store: StoreDep):
+        return [schedule_out(s) for s in store.list_schedules(tenant["id"])]
+
+    @v1.get("/schedules/{schedule_id}", response_model=Schedule, tags=["schedules"])
+    def get_schedule(schedule_id: str, tenant: TenantDep, store: StoreDep):
+        return schedule_out(store.get_schedule(tenant["id"], schedule_id))
+
+    @v1.delete("/schedules/{schedule_id}", status_code=204, tags=["schedules"], response_class=Response)
+    def delete_schedule(schedule_id: str, tenant: TenantDep, store: StoreDep):
+        store.delete_schedule(tenant["id"], schedule_id)
+        return Response(status_code=204)
+
+    @v1.post("/schedules/{schedule_id}/run", response_model=ScheduleRun, tags=["schedules"], summary="Scan the inbox now")
+    def run_schedule_now(schedule_id: str, request: Request, tenant: TenantDep, store: StoreDep, settings: SettingsDep):
+        sched = store.get_schedule(tenant["id"], schedule_id)
+        result = run_schedule(store, settings, sched)
+        if result["jobs"]:
+            _wake_runner(request.app)
+        return ScheduleRun(**result)
+
+    app.include_router(v1)
+    return app
+
+
+def _wake_runner(app: FastAPI) -> None:
+    runner = getattr(app.state, "runner", None)
+    if runner is not None:
+        runner.wake()

@@ -1,0 +1,97 @@
+"""``orchard schedules``: list, create, run and delete overnight inbox schedules."""
+
+from __future__ import annotations
+
+import argparse
+import json
+from datetime import datetime
+from pathlib import Path
+
+from service.commands.options import add_pipeline_options, pipeline_params_from_args
+
+NAME = "schedules"
+HELP = "List, create, run or delete overnight schedules (an inbox folder scanned on a cron schedule)."
+
+
+def _data_dir(p: argparse.ArgumentParser) -> None:
+    p.add_argument("--data-dir", default=argparse.SUPPRESS, help="the service's data folder (env ORCHARD_DATA_DIR)")
+
+
+def add_arguments(parser: argparse.ArgumentParser) -> None:
+    parser.add_argument("--data-dir", default=None, help="the service's data folder (env ORCHARD_DATA_DIR)")
+    sub = parser.add_subparsers(dest="action", metavar="ACTION", required=True)
+    ls = sub.add_parser("list", help="list schedules (all tenants, or one)")
+    ls.add_argument("--tenant", default=None, help="only this tenant's schedules")
+    ls.add_argument("--json", action="store_true", help="print JSON")
+    _data_dir(ls)
+    c = sub.add_parser("create", help="register an inbox folder and a schedule for a tenant")
+    c.add_argument("--tenant", required=True, help="tenant (farm) name; created if new")
+    c.add_argument("--inbox", required=True, help="folder where the mobile captures (LAS/LAZ) land")
+    c.add_argument("--cron", default="0 1 * * *", help="cron expression in local time (default '0 1 * * *' = 01:00 nightly)")
+    c.add_argument("--tile-size", type=float, default=None, help="process in square tiles of this size [m] on the dask workers")
+    c.add_argument("--buffer", type=float, default=None, help="tile overlap [m] (default: the parameters' reach)")
+    _data_dir(c)
+    add_pipeline_options(c)
+    r = sub.add_parser("run", help="scan a schedule's inbox now and queue jobs for new captures")
+    r.add_argument("schedule_id")
+    _data_dir(r)
+    d = sub.add_parser("delete", help="delete a schedule")
+    d.add_argument("schedule_id")
+    _data_dir(d)
+
+
+def _when(ts: float | None) -> str:
+    return datetime.fromtimestamp(ts).astimezone().isoformat(timespec="minutes") if ts else "-"
+
+
+def run(args: argparse.Namespace) -> int:
+    from pipeline.errors import ParameterError
+    from service.schedules import next_run_time, run_schedule, validate_cron, validate_inbox
+    from service.settings import build_settings
+    from service.store import Store
+
+    settings = build_settings(data_dir=args.data_dir)
+    store = Store(settings.store_path)
+    try:
+        if args.action == "list":
+            tenants = {t["id"]: t["name"] for t in store.list_tenants()}
+            tenant_id = store.tenant_by_name(args.tenant)["id"] if args.tenant else None
+            rows = store.list_schedules(tenant_id)
+            if args.json:
+                print(json.dumps([{**s, "tenant": tenants.get(s["tenant_id"])} for s in rows], indent=2))
+            else:
+                print("id\ttenant\tcron\tnext run\tinbox")
+                for s in rows:
+                    print(f"{s['id']}\t{tenants.get(s['tenant_id'])}\t{s['cron']}\t{_when(s['next_run_at'])}\t{s['inbox']}")
+        elif args.action == "create":
+            cron = validate_cron(args.cron)
+            inbox = validate_inbox(args.inbox, root=settings.inbox_root, base=Path.cwd())
+            params = pipeline_params_from_args(args)
+            tiling = None
+            if args.tile_size is not None:
+                if args.buffer is not None and args.buffer < params.reach():
+                    raise ParameterError(f"--buffer {args.buffer} m is smaller than the parameters' reach ({params.reach():.2f} m)")
+                tiling = {"tile_size": args.tile_size, "buffer": args.buffer}
+            elif args.buffer is not None:
+                raise ParameterError("--buffer needs --tile-size")
+            tenant = store.ensure_tenant(args.tenant)
+            rec = store.create_schedule(
+                tenant_id=tenant["id"],
+                inbox=str(inbox),
+                cron=cron,
+                params=params.model_dump(),
+                tiling=tiling,
+                next_run_at=next_run_time(cron, datetime.now().astimezone()).timestamp(),
+            )
+            print(rec["id"])
+        elif args.action == "run":
+            sched = store.get_schedule(None, args.schedule_id)
+            res = run_schedule(store, settings, sched)
+            print(json.dumps(res, indent=2))
+        elif args.action == "delete":
+            sched = store.get_schedule(None, args.schedule_id)
+            store.delete_schedule(sched["tenant_id"], sched["id"])
+            print("deleted")
+    finally:
+        store.close()
+    return 0

@@ -1,0 +1,106 @@
+"""The one place where errors become HTTP responses.
+
+Domain errors (`pipeline.errors`) carry no status code; `STATUS` maps them here. Every
+error response is JSON ``{"detail": "<one line saying what was wrong and what to do>"}``
+(validation errors add ``errors``, the list of fields). An unexpected exception becomes
+a 500 with a short message: clients never see a traceback (it goes to the server log).
+"""
+
+from __future__ import annotations
+
+import logging
+
+from fastapi import FastAPI, Request
+from fastapi.exceptions import RequestValidationError
+from fastapi.responses import JSONResponse
+from pydantic import ValidationError
+from starlette.exceptions import HTTPException as StarletteHTTPException
+
+from pipeline.errors import ConflictError, InputError, NoTreesError, NotFoundError, OrchardError, ParameterError
+
+log = logging.getLogger("orchard.service")
+
+
+class UnauthorizedError(OrchardError):
+    """No bearer token, or one the store does not know."""
+
+
+class TooLargeError(StarletteHTTPException):
+    """A request body above the configured limit (413)."""
+
+    def __init__(self, detail: str) -> None:
+        super().__init__(status_code=413, detail=detail)
+
+
+STATUS: dict[type[Exception], int] = {
+    UnauthorizedError: 401,
+    NotFoundError: 404,
+    ConflictError: 409,
+    InputError: 422,
+    ParameterError: 422,
+    NoTreesError: 422,
+    OrchardError: 400,
+}
+
+
+def status_for(exc: Exception) -> int:
+    """HTTP status of a domain error (most specific class wins)."""
+    for cls in type(exc).__mro__:
+        if cls in STATUS:
+            return STATUS[cls]
+    return 500
+
+
+def validation_message(errors: list[dict]) -> str:
+    """One readable line from pydantic/FastAPI validation errors."""
+    parts = []
+    for e in errors[:10]:
+        loc = ".".join(str(p) for p in e.get("loc", ()) if p not in ("__root__",))
+        msg = str(e.get("msg", "invalid value"))
+        parts.append(f"{loc}: {msg}" if loc else msg)
+    if len(errors) > 10:
+        parts.append(f"... and {len(errors) - 10} more")
+    return "invalid request: " + "; ".join(parts)
+
+
+def _json_safe_errors(errors) -> list[dict]:
+    out = []
+    for e in list(errors)[:50]:
+        out.append({"loc": [str(p) for p in e.get("loc", ())], "msg": str(e.get("msg", "")), "type": str(e.get("type", ""))})
+    return out
+
+
+def error_response(status: int, detail: str, **extra) -> JSONResponse:
+    headers = {"WWW-Authenticate": "Bearer"} if status == 401 else None
+    return JSONResponse({"detail": detail, **extra}, status_code=status, headers=headers)
+
+
+def install_error_handlers(app: FastAPI) -> None:
+    """Register the mapping on ``app``."""
+
+    @app.exception_handler(OrchardError)
+    async def _domain(request: Request, exc: OrchardError) -> JSONResponse:
+        return error_response(status_for(exc), str(exc) or type(exc).__name__)
+
+    @app.exception_handler(RequestValidationError)
+    async def _request_validation(request: Request, exc: RequestValidationError) -> JSONResponse:
+        errors = list(exc.errors())
+        return error_response(422, validation_message(errors), errors=_json_safe_errors(errors))
+
+    @app.exception_handler(ValidationError)
+    async def _model_validation(request: Request, exc: ValidationError) -> JSONResponse:
+        errors = exc.errors()
+        return error_response(422, validation_message(errors), errors=_json_safe_errors(errors))
+
+    @app.exception_handler(StarletteHTTPException)
+    async def _http(request: Request, exc: StarletteHTTPException) -> JSONResponse:
+        detail = exc.detail if isinstance(exc.detail, str) else str(exc.detail)
+        resp = error_response(exc.status_code, detail)
+        if exc.headers:
+            resp.headers.update(exc.headers)
+        return resp
+
+    @app.exception_handler(Exception)
+    async def _unexpected(request: Request, exc: Exception) -> JSONResponse:
+        log.error("unexpected error on %s %s", request.method, request.url.path, exc_info=exc)
+        return error_response(500, f"internal error ({type(exc).__name__}); the server log has the details")

@@ -1,0 +1,234 @@
+"""The per-tree report a grower reads: one HTML page with a map of the block and a table.
+
+The map (PNG, matplotlib's Agg backend, embedded in the page as base64 and also saved
+as ``map.png``) shows a subsample of the block's points seen from above, tree points
+coloured by tree id, other points grey, and each trunk as a marker with its number. The
+table has one row per tree from ``trees.parquet``. Memory stays bounded: the block and
+``points.parquet`` are read in chunks and only every ``stride``-th point is kept.
+"""
+
+from __future__ import annotations
+
+import base64
+import html
+import io
+import os
+import uuid
+from pathlib import Path
+
+import numpy as np
+import pyarrow.csv as pacsv
+import pyarrow.parquet as pq
+
+TABLE_COLUMNS = [
+    ("tree_id", "Tree", "{:d}"),
+    ("trunk_x", "Trunk x", "{:.2f}"),
+    ("trunk_y", "Trunk y", "{:.2f}"),
+    ("height_m", "Height [m]", "{:.2f}"),
+    ("crown_diameter_m", "Crown diameter [m]", "{:.2f}"),
+    ("crown_area_m2", "Crown area [m²]", "{:.2f}"),
+    ("crown_volume_m3", "Crown volume [m³]", "{:.2f}"),
+    ("trunk_diameter_m", "Trunk diameter [m]", "{:.3f}"),
+    ("n_points", "Points", "{:d}"),
+    ("wood_fraction", "Wood fraction", "{:.2f}"),
+]
+
+
+def _atomic_write(path: Path, data: bytes) -> None:
+    tmp = path.with_name(f".{path.name}.{uuid.uuid4().hex}.tmp")
+    try:
+        tmp.write_bytes(data)
+        os.replace(tmp, path)
+    finally:
+        tmp.unlink(missing_ok=True)
+
+
+def trees_table(trees_parquet: str | os.PathLike) -> dict[str, np.ndarray]:
+    """Columns of ``trees.parquet`` without the geometry."""
+    table = pq.read_table(str(trees_parquet))
+    return {n: table.column(n).to_numpy(zero_copy_only=False) for n in table.column_names if n != "geometry"}
+
+
+def trees_records(trees_parquet: str | os.PathLike) -> list[dict]:
+    """One JSON-able dict per tree (NaN → None)."""
+    cols = trees_table(trees_parquet)
+    names = list(cols)
+    n = len(cols[names[0]]) if names else 0
+    out = []
+    for i in range(n):
+        rec = {}
+        for name in names:
+            v = cols[name][i]
+            v = v.item() if hasattr(v, "item") else v
+            if isinstance(v, float) and not np.isfinite(v):
+                v = None
+            rec[name] = v
+        out.append(rec)
+    return out
+
+
+def write_trees_csv(trees_parquet: str | os.PathLike, csv_path: str | os.PathLike) -> Path:
+    """``trees.csv``: the columns of ``trees.parquet`` without the geometry (atomic)."""
+    table = pq.read_table(str(trees_parquet))
+    if "geometry" in table.column_names:
+        table = table.drop(["geometry"])
+    buf = io.BytesIO()
+    pacsv.write_csv(table, buf)
+    path = Path(csv_path)
+    _atomic_write(path, buf.getvalue())
+    return path
+
+
+def sample_points(
+    block_path: str, points_parquet: str | os.PathLike, *, max_points: int = 150_000
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Every ``stride``-th point of the block with its tree id.
+
+    Returns
+    -------
+    xy : (m, 2) float64
+        Local coordinates [m] (block coordinates minus ``origin``).
+    tree_id : (m,) int64
+    origin : (3,) float64
+    """
+    from pipeline.io import iter_points, read_info
+
+    info = read_info(block_path)
+    stride = max(1, -(-int(info.n_points) // max_points))
+    xy_parts, idx_parts = [], []
+    for start, xyz in iter_points(block_path, info=info):
+        first = (-start) % stride
+        xy_parts.append(xyz[first::stride, :2].copy())
+        idx_parts.append(np.arange(start + first, start + xyz.shape[0], stride, dtype=np.int64))
+    xy = np.concatenate(xy_parts) if xy_parts else np.zeros((0, 2))
+    idx = np.concatenate(idx_parts) if idx_parts else np.zeros(0, np.int64)
+
+    pidx_parts, tid_parts = [], []
+    pf = pq.ParquetFile(str(points_parquet))
+    for batch in pf.iter_batches(columns=["point_index", "tree_id"], batch_size=1_000_000):
+        p = batch.column(0).to_numpy().astype(np.int64)
+        keep = p % stride == 0
+        pidx_parts.append(p[keep])
+        tid_parts.append(batch.column(1).to_numpy()[keep].astype(np.int64))
+    pidx = np.concatenate(pidx_parts) if pidx_parts else np.zeros(0, np.int64)
+    tids = np.concatenate(tid_parts) if tid_parts else np.zeros(0, np.int64)
+    order = np.argsort(pidx, kind="stable")
+    pidx, tids = pidx[order], tids[order]
+    pos = np.clip(np.searchsorted(pidx, idx), 0, max(len(pidx) - 1, 0))
+    tree_id = np.zeros(idx.shape[0], np.int64)
+    if len(pidx):
+        hit = pidx[pos] == idx
+        tree_id[hit] = tids[pos[hit]]
+    return xy, tree_id, np.asarray(info.origin, dtype=np.float64)
+
+
+def render_map(xy: np.ndarray, tree_id: np.ndarray, trunks_xy: np.ndarray, trunk_ids: np.ndarray, *, title: str) -> bytes:
+    """PNG of the block from above: tree points coloured by id, trunk markers with numbers.
+
+    ``xy`` and ``trunks_xy`` are in the same local frame [m].
+    """
+    import matplotlib
+
+    matplotlib.use("Agg", force=False)
+    from matplotlib.backends.backend_agg import FigureCanvasAgg
+    from matplotlib.figure import Figure
+
+    pts = np.vstack([xy, trunks_xy]) if len(trunks_xy) else xy
+    if len(pts):
+        lo, hi = pts.min(axis=0), pts.max(axis=0)
+    else:
+        lo, hi = np.zeros(2), np.ones(2)
+    span = np.maximum(hi - lo, 1.0)
+    width = 10.0
+    height = float(np.clip(width * span[1] / span[0], 3.0, 14.0))
+    fig = Figure(figsize=(width, height + 0.8), dpi=100)
+    FigureCanvasAgg(fig)
+    ax = fig.add_subplot(1, 1, 1)
+    other = tree_id <= 0
+    ax.scatter(xy[other, 0], xy[other, 1], s=0.3, c="#c8c8c8", linewidths=0, rasterized=True)
+    tab20 = matplotlib.colormaps["tab20"]
+    palette = np.array([tab20(i) for i in range(20) if i not in (14, 15)])  # no greys: grey is "not a tree"
+    trees = ~other
+    if trees.any():
+        colours = palette[(tree_id[trees] * 7) % len(palette)]
+        ax.scatter(xy[trees, 0], xy[trees, 1], s=0.6, c=colours, linewidths=0, rasterized=True)
+    if len(trunks_xy):
+        ax.scatter(trunks_xy[:, 0], trunks_xy[:, 1], s=40, marker="o", facecolors="white", edgecolors="black", linewidths=1.2, zorder=3)
+        for (x, y), k in zip(trunks_xy, trunk_ids):
+            ax.annotate(str(int(k)), (x, y), xytext=(4, 4), textcoords="offset points", fontsize=9, fontweight="bold", zorder=4)
+    ax.set_aspect("equal")
+    ax.set_xlabel("x [m] (local)")
+    ax.set_ylabel("y [m] (local)")
+    ax.set_title(title)
+    fig.tight_layout()
+    buf = io.BytesIO()
+    fig.savefig(buf, format="png")
+    return buf.getvalue()
+
+
+def _cell(value, fmt: str) -> str:
+    if value is None:
+        return "–"
+    try:
+        if isinstance(value, float) and not np.isfinite(value):
+            return "–"
+        if fmt == "{:d}":
+            return str(int(value))
+        return fmt.format(float(value))
+    except (TypeError, ValueError):
+        return html.escape(str(value))
+
+
+def render_html(*, title: str, png: bytes, rows: list[dict], origin: np.ndarray, summary: dict[str, str]) -> str:
+    head = "".join(f"<th>{html.escape(label)}</th>" for _, label, _ in TABLE_COLUMNS)
+    body = "\n".join(
+        "<tr>" + "".join(f"<td>{_cell(r.get(key), fmt)}</td>" for key, _, fmt in TABLE_COLUMNS) + "</tr>" for r in rows
+    )
+    facts = "".join(f"<li>{html.escape(k)}: {html.escape(v)}</li>" for k, v in summary.items())
+    img = base64.b64encode(png).decode("ascii")
+    return f"""<!doctype html>
+<html lang="en"><head><meta charset="utf-8"><title>{html.escape(title)}</title>
+<style>
+body {{ font-family: system-ui, sans-serif; margin: 2em; color: #222; }}
+table {{ border-collapse: collapse; }} th, td {{ padding: 4px 10px; border-bottom: 1px solid #ddd; text-align: right; }}
+th {{ background: #f3f3f3; }} img {{ max-width: 100%; border: 1px solid #ddd; }}
+</style></head>
+<body>
+<h1>{html.escape(title)}</h1>
+<ul>{facts}</ul>
+<p>Map: the block from above; tree points coloured by tree, trunks numbered. Local frame: x − {origin[0]:.0f}, y − {origin[1]:.0f} (input CRS).</p>
+<img alt="map of the block with numbered trees" src="data:image/png;base64,{img}">
+<h2>Trees ({len(rows)})</h2>
+<p>Trunk x/y in the input CRS.</p>
+<table><thead><tr>{head}</tr></thead><tbody>
+{body}
+</tbody></table>
+</body></html>
+"""
+
+
+def write_report(
+    *,
+    block_path: str,
+    trees_parquet: str | os.PathLike,
+    points_parquet: str | os.PathLike,
+    out_dir: str | os.PathLike,
+    title: str,
+    summary: dict[str, str] | None = None,
+    max_points: int = 150_000,
+) -> Path:
+    """Write ``report.html`` (with the map embedded) and ``map.png`` into ``out_dir``; returns the HTML path."""
+    out = Path(out_dir)
+    xy, tree_id, origin = sample_points(block_path, points_parquet, max_points=max_points)
+    rows = trees_records(trees_parquet)
+    if rows:
+        trunks_xy = np.array([[r["trunk_x"], r["trunk_y"]] for r in rows], dtype=np.float64) - origin[:2]
+        ids = np.array([r["tree_id"] for r in rows])
+    else:
+        trunks_xy, ids = np.zeros((0, 2)), np.zeros(0, np.int64)
+    png = render_map(xy, tree_id, trunks_xy, ids, title=title)
+    _atomic_write(out / "map.png", png)
+    page = render_html(title=title, png=png, rows=rows, origin=origin, summary=summary or {})
+    path = out / "report.html"
+    _atomic_write(path, page.encode("utf-8"))
+    return path

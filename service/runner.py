@@ -1,0 +1,252 @@
+"""The background job runner of ``orchard serve``.
+
+One thread takes queued jobs from the store, oldest first, one at a time, and runs
+each with `workers.job.run_job` on a dask client it owns (an embedded `LocalCluster`,
+or the cluster at ``settings.scheduler``; created when the first job arrives). Tiles
+done / total go to the store through the progress callback; a cancel request sets the
+job's `threading.Event`. The outcome of every job is one store transaction: ``done``
+with its outcome and timings, ``failed`` with a one-line error (a domain error's own
+message; for anything unexpected a short message, the traceback only in the log), or
+``cancelled``. A job left ``running`` when the process dies is re-queued by
+`Store.requeue_running` at the next start.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import logging
+import shutil
+import threading
+import time
+from pathlib import Path
+from typing import Any, Callable
+
+import numpy as np
+
+from pipeline.errors import OrchardError
+from pipeline.params import PipelineParams
+from service.settings import Settings
+from service.store import Store
+
+log = logging.getLogger("orchard.runner")
+
+
+class ClusterUnavailable(RuntimeError):
+    """The dask cluster could not be started or reached (the job fails; the next one tries again)."""
+
+
+def job_dir(settings: Settings, job_id: str) -> Path:
+    """Where a job's results live: ``data_dir/jobs/<job id>/``."""
+    return settings.jobs_dir / job_id
+
+
+def _is_cancel(exc: BaseException) -> bool:
+    return type(exc).__name__ in ("JobCancelled", "CancelledError")
+
+
+def _short(exc: BaseException, limit: int = 300) -> str:
+    text = " ".join(str(exc).split())
+    return text if len(text) <= limit else text[: limit - 3] + "..."
+
+
+def _jsonable(value: Any) -> Any:
+    if dataclasses.is_dataclass(value) and not isinstance(value, type):
+        value = dataclasses.asdict(value)
+    if isinstance(value, dict):
+        return {str(k): _jsonable(v) for k, v in value.items()}
+    if isinstance(value, (list, tuple)):
+        return [_jsonable(v) for v in value]
+    if isinstance(value, Path):
+        return str(value)
+    if isinstance(value, np.ndarray):
+        return value.tolist()
+    if isinstance(value, np.generic):
+        return value.item()
+    return value
+
+
+class Runner(threading.Thread):
+    """Runs queued jobs one at a time on a dask client owned by this thread."""
+
+    def __init__(
+        self,
+        store: Store,
+        settings: Settings,
+        *,
+        client_factory: Callable[[], Any] | None = None,
+        after_done: Callable[[dict], None] | None = None,
+    ) -> None:
+        super().__init__(name="orchard-runner", daemon=True)
+        self.store = store
+        self.settings = settings
+        self._client_factory = client_factory or self._default_client
+        self._after_done = after_done
+        self._client = None
+        self._stopping = threading.Event()
+        self._wake = threading.Event()
+        self._lock = threading.Lock()
+        self._current: str | None = None
+        self._cancel: threading.Event | None = None
+        self.dashboard_link: str | None = None
+
+    # -- control, from other threads ----------------------------------------------
+
+    def wake(self) -> None:
+        """A job was queued: look at the queue now."""
+        self._wake.set()
+
+    def cancel(self, job_id: str) -> None:
+        """Ask the job ``job_id`` to stop if it is the one running."""
+        with self._lock:
+            if self._current == job_id and self._cancel is not None:
+                self._cancel.set()
+
+    def stop(self, timeout: float | None = 30.0) -> None:
+        """Stop taking jobs; interrupt the running one (it stays ``running`` and is re-queued at the next start)."""
+        self._stopping.set()
+        self._wake.set()
+        with self._lock:
+            if self._cancel is not None:
+                self._cancel.set()
+        if self.is_alive():
+            self.join(timeout)
+
+    @property
+    def current_job(self) -> str | None:
+        return self._current
+
+    # -- the thread ------------------------------------------------------------------
+
+    def _default_client(self):
+        from workers.cluster import make_client
+
+        return make_client(
+            self.settings.scheduler,
+            n_workers=self.settings.n_workers,
+            threads_per_worker=self.settings.threads_per_worker,
+            dashboard=self.settings.dashboard,
+        )
+
+    def _get_client(self):
+        client = self._client
+        if client is not None and getattr(client, "status", "running") not in ("running", "connecting"):
+            self._close_client()
+            client = None
+        if client is None:
+            where = self.settings.scheduler or f"an embedded LocalCluster of {self.settings.n_workers} worker(s)"
+            log.info("starting the dask client (%s)", where)
+            try:
+                client = self._client_factory()
+            except Exception as exc:  # noqa: BLE001 - becomes the job's error; the next job tries again
+                raise ClusterUnavailable(f"cannot start or reach the dask cluster ({where}): {_short(exc, 200)}") from exc
+            self._client = client
+            if self.settings.dashboard:
+                self.dashboard_link = getattr(client, "dashboard_link", None)
+                log.info("dask dashboard: %s", self.dashboard_link)
+        return client
+
+    def _close_client(self) -> None:
+        client, self._client = self._client, None
+        if client is None:
+            return
+        try:
+            if self.settings.scheduler is None:
+                from workers.cluster import close_client
+
+                close_client(client)  # the embedded LocalCluster goes too
+            else:
+                client.close()
+        except Exception as exc:  # noqa: BLE001 - shutting down anyway
+            log.debug("closing dask client: %s", exc)
+
+    def run(self) -> None:
+        try:
+            while not self._stopping.is_set():
+                try:
+                    job = self.store.claim_next_job()
+                except Exception as exc:  # noqa: BLE001 - e.g. the store briefly locked; try again
+                    log.warning("runner: cannot read the queue: %s", exc)
+                    job = None
+                if job is None:
+                    self._wake.wait(self.settings.runner_poll_s)
+                    self._wake.clear()
+                    continue
+                try:
+                    self.run_job(job)
+                except Exception as exc:  # noqa: BLE001 - e.g. the store failed while recording; keep running
+                    log.error("runner: job %s could not be recorded: %s", job["id"], exc)
+        finally:
+            self._close_client()
+
+    def _work_dir(self, job_id: str, out_dir: Path) -> str:
+        if self.settings.work_dir:
+            return f"{self.settings.work_dir.rstrip('/')}/{job_id}"
+        return str(out_dir / "_work")
+
+    def run_job(self, job: dict[str, Any]) -> dict[str, Any]:
+        """Run one claimed (``running``) job to a final state; returns the stored job."""
+        cancel = threading.Event()
+        with self._lock:
+            self._current, self._cancel = job["id"], cancel
+        if self.store.cancel_requested(job["id"]):
+            cancel.set()
+        last_check = [0.0]
+
+        def progress(done: int, total: int) -> None:
+            self.store.set_progress(job["id"], int(done), int(total))
+            now = time.monotonic()
+            if now - last_check[0] > 0.5:
+                last_check[0] = now
+                if self.store.cancel_requested(job["id"]):
+                    cancel.set()
+
+        out_dir = job_dir(self.settings, job["id"])
+        t0 = time.perf_counter()
+        try:
+            from workers.job import JobSpec, run_job
+
+            block = self.store.get_block(None, job["block_id"])
+            tiling = job.get("tiling") or {}
+            spec = JobSpec(
+                input_path=block["path"],
+                out_dir=str(out_dir),
+                params=PipelineParams.model_validate(job["params"]),
+                tile_size=tiling.get("tile_size"),
+                buffer=tiling.get("buffer"),
+                work_dir=self._work_dir(job["id"], out_dir),
+            )
+            out_dir.mkdir(parents=True, exist_ok=True)
+            client = self._get_client()
+            outcome = run_job(spec, client=client, progress=progress, cancel=cancel)
+            record = _jsonable(outcome)
+            record.pop("trees", None)  # the per-tree table is in trees.parquet
+            timings = dict(record.get("timings") or {})
+            timings.setdefault("total", round(time.perf_counter() - t0, 3))
+            if self.settings.work_dir is None:
+                shutil.rmtree(out_dir / "_work", ignore_errors=True)  # tiles of a finished job are not needed again
+            done = self.store.finish_job(job["id"], "done", outcome=record, timings=timings)
+            if self._after_done is not None:
+                try:
+                    self._after_done(done)
+                except Exception as exc:  # noqa: BLE001 - a report problem does not fail the job
+                    log.warning("job %s: post-processing failed: %s", job["id"], exc)
+            return done
+        except BaseException as exc:  # noqa: BLE001 - every outcome is recorded
+            if _is_cancel(exc) or (cancel.is_set() and not isinstance(exc, OrchardError)):
+                if self._stopping.is_set():
+                    log.info("job %s interrupted by shutdown; it is re-queued at the next start", job["id"])
+                    return self.store.get_job(None, job["id"])
+                return self.store.finish_job(job["id"], "cancelled", error="cancelled on request")
+            if isinstance(exc, OrchardError):
+                message = str(exc) or type(exc).__name__
+            elif isinstance(exc, (KeyboardInterrupt, SystemExit)):
+                raise
+            elif isinstance(exc, ClusterUnavailable):
+                message = str(exc)
+            else:
+                log.error("job %s failed unexpectedly", job["id"], exc_info=exc)
+                message = f"internal error ({type(exc).__name__}): {_short(exc)}"
+            return self.store.finish_job(job["id"], "failed", error=message)
+        finally:
+            with self._lock:
+                self._current, self._cancel = None, None

@@ -1,0 +1,244 @@
+"""Overnight processing: a farm's inbox folder scanned on a cron schedule.
+
+A schedule is ``{inbox, cron, params, tiling}`` owned by a tenant. The
+`ScheduleClock` thread sleeps until the earliest ``next_run_at`` (a local-time cron
+expression, default ``0 1 * * *`` = 01:00 every night), then `run_schedule` submits one
+job per new capture in the inbox: every ``*.las`` / ``*.laz`` file whose sha256 this
+schedule has not handled before. Handled files (accepted, or rejected as unusable) are
+recorded in the store, so a capture is never processed twice. A run the service missed
+while it was down happens once at the next start.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import logging
+import os
+import threading
+import time
+import uuid
+from datetime import datetime
+from pathlib import Path
+from typing import Any
+
+from croniter import croniter
+
+from pipeline.errors import InputError, ParameterError
+from service.settings import Settings
+from service.store import Store, accept_block
+
+log = logging.getLogger("orchard.schedules")
+
+DEFAULT_CRON = "0 1 * * *"
+CAPTURE_SUFFIXES = (".las", ".laz")
+_CHUNK = 1 << 20
+_run_lock = threading.Lock()
+
+
+def validate_cron(expr: str) -> str:
+    """The expression, stripped, if it is a valid 5-field cron expression; ParameterError otherwise."""
+    expr = " ".join(str(expr).split())
+    if len(expr.split(" ")) != 5 or not croniter.is_valid(expr):
+        raise ParameterError(
+            f"invalid cron expression {expr!r}: use 5 fields 'minute hour day month weekday', e.g. '0 1 * * *' for 01:00"
+        )
+    return expr
+
+
+def next_run_time(cron: str, after: datetime | float) -> datetime:
+    """First time strictly after ``after`` that ``cron`` matches, in local time (timezone-aware).
+
+    ``after`` is a datetime (naive = local time) or a POSIX timestamp.
+    """
+    if isinstance(after, (int, float)):
+        start = datetime.fromtimestamp(after).astimezone()
+    elif after.tzinfo is None:
+        start = after.astimezone()
+    else:
+        start = after
+    return croniter(validate_cron(cron), start).get_next(datetime)
+
+
+def validate_inbox(inbox: str, *, root: Path | None = None, base: Path | None = None) -> Path:
+    """The resolved inbox folder; ParameterError if it does not exist, is not a folder or lies outside ``root``.
+
+    Relative paths are resolved against ``base`` (the command line's working folder);
+    without ``base`` they are refused (the server's working folder means nothing to a client).
+    """
+    raw = str(inbox)
+    if not raw or "\x00" in raw:
+        raise ParameterError("inbox must be a folder path")
+    path = Path(raw)
+    if base is not None and raw.startswith("~"):  # the command line expands ~ like a shell; the API does not
+        try:
+            path = path.expanduser()
+        except RuntimeError:
+            raise ParameterError(f"inbox {raw!r}: cannot expand '~'") from None
+    if not path.is_absolute():
+        if base is None:
+            raise ParameterError(f"inbox {raw!r} must be an absolute path to a folder on the server")
+        path = base / path
+    try:
+        path = path.resolve()
+        exists, is_dir = path.exists(), path.is_dir()
+    except (OSError, RuntimeError, ValueError):
+        raise ParameterError(f"inbox {raw!r} cannot be resolved to a folder") from None
+    if not exists:
+        raise ParameterError(f"inbox {str(path)!r} does not exist; create the folder where the captures land first")
+    if not is_dir:
+        raise ParameterError(f"inbox {str(path)!r} is not a folder")
+    if not os.access(path, os.R_OK | os.X_OK):
+        raise ParameterError(f"inbox {str(path)!r} is not readable by the service")
+    if root is not None:
+        root = Path(root).resolve()
+        if path != root and root not in path.parents:
+            raise ParameterError(f"inbox {str(path)!r} is outside the allowed inbox root {str(root)!r}")
+    return path
+
+
+def captures(inbox: Path) -> list[Path]:
+    """LAS/LAZ files directly in ``inbox`` (not in sub-folders), sorted by name."""
+    out = []
+    try:
+        entries = sorted(inbox.iterdir())
+    except OSError as exc:
+        raise InputError(f"cannot read inbox {str(inbox)!r}: {exc.strerror}") from None
+    for p in entries:
+        if p.suffix.lower() in CAPTURE_SUFFIXES and not p.name.startswith(".") and p.is_file():
+            out.append(p)
+    return out
+
+
+def file_sha256(path: Path) -> str:
+    h = hashlib.sha256()
+    with open(path, "rb") as fh:
+        while chunk := fh.read(_CHUNK):
+            h.update(chunk)
+    return h.hexdigest()
+
+
+def _copy_hashed(src: Path, dst: Path) -> tuple[str, int]:
+    h = hashlib.sha256()
+    n = 0
+    with open(src, "rb") as fin, open(dst, "wb") as fout:
+        while chunk := fin.read(_CHUNK):
+            h.update(chunk)
+            fout.write(chunk)
+            n += len(chunk)
+    return h.hexdigest(), n
+
+
+def run_schedule(store: Store, settings: Settings, schedule: dict[str, Any]) -> dict[str, Any]:
+    """Submit a job for every new capture in the schedule's inbox; returns what was done.
+
+    Returns ``{"schedule_id", "jobs": [job ids], "skipped": n already handled,
+    "rejected": [{"file", "error"}]}``. Unusable files are recorded as handled (with
+    their error) so they are not retried every night.
+    """
+    result: dict[str, Any] = {"schedule_id": schedule["id"], "jobs": [], "skipped": 0, "rejected": []}
+    inbox = Path(schedule["inbox"])
+    if not inbox.is_dir():
+        raise InputError(f"inbox {str(inbox)!r} of schedule {schedule['id']} no longer exists")
+    settings.tmp_dir.mkdir(parents=True, exist_ok=True)
+    with _run_lock:
+        for path in captures(inbox):
+            try:
+                sha = file_sha256(path)
+            except OSError as exc:
+                result["rejected"].append({"file": path.name, "error": f"cannot read: {exc.strerror}"})
+                continue
+            if store.schedule_file_seen(schedule["id"], sha):
+                result["skipped"] += 1
+                continue
+            tmp = settings.tmp_dir / f"inbox-{uuid.uuid4().hex}.part"
+            try:
+                copied_sha, size = _copy_hashed(path, tmp)
+                if copied_sha != sha:  # the capture is still being written; take it next time
+                    tmp.unlink(missing_ok=True)
+                    continue
+                block, _ = accept_block(
+                    store,
+                    blocks_dir=settings.blocks_dir,
+                    tenant_id=schedule["tenant_id"],
+                    tmp_path=tmp,
+                    sha256=sha,
+                    size_bytes=size,
+                    filename=path.name,
+                )
+            except InputError as exc:
+                store.record_schedule_file(schedule_id=schedule["id"], sha256=sha, path=str(path), job_id=None, error=str(exc))
+                result["rejected"].append({"file": path.name, "error": str(exc)})
+                continue
+            finally:
+                tmp.unlink(missing_ok=True)
+            job = store.create_job(
+                tenant_id=schedule["tenant_id"],
+                block_id=block["id"],
+                params=schedule["params"],
+                tiling=schedule["tiling"],
+                schedule_id=schedule["id"],
+            )
+            store.record_schedule_file(schedule_id=schedule["id"], sha256=sha, path=str(path), job_id=job["id"], error=None)
+            result["jobs"].append(job["id"])
+    return result
+
+
+class ScheduleClock(threading.Thread):
+    """Background thread that runs every schedule at its cron times.
+
+    ``on_jobs`` is called after a run that queued jobs (the runner's wake-up).
+    """
+
+    def __init__(self, store: Store, settings: Settings, *, on_jobs=None) -> None:
+        super().__init__(name="orchard-schedules", daemon=True)
+        self.store = store
+        self.settings = settings
+        self.on_jobs = on_jobs
+        self._stopping = threading.Event()
+        self._wake = threading.Event()
+
+    def wake(self) -> None:
+        """Look at the schedules again now (one was created or changed)."""
+        self._wake.set()
+
+    def stop(self, timeout: float | None = 10.0) -> None:
+        self._stopping.set()
+        self._wake.set()
+        if self.is_alive():
+            self.join(timeout)
+
+    def tick(self, now: float | None = None) -> float:
+        """Run the schedules that are due; return the earliest next run time (POSIX seconds)."""
+        now = time.time() if now is None else now
+        earliest = now + self.settings.schedule_poll_s
+        for sched in self.store.list_schedules():
+            nxt = sched["next_run_at"]
+            try:
+                if nxt is None:
+                    nxt = next_run_time(sched["cron"], now).timestamp()
+                    self.store.set_schedule_times(sched["id"], last_run_at=None, next_run_at=nxt)
+                elif nxt <= now:
+                    try:
+                        res = run_schedule(self.store, self.settings, sched)
+                        log.info("schedule %s: %d new jobs, %d already handled", sched["id"], len(res["jobs"]), res["skipped"])
+                        if res["jobs"] and self.on_jobs:
+                            self.on_jobs()
+                    except Exception as exc:  # noqa: BLE001 - one farm's broken inbox must not stop the others
+                        log.warning("schedule %s failed: %s", sched["id"], exc)
+                    nxt = next_run_time(sched["cron"], now).timestamp()
+                    self.store.set_schedule_times(sched["id"], last_run_at=now, next_run_at=nxt)
+            except ParameterError as exc:
+                log.warning("schedule %s has an invalid cron expression: %s", sched["id"], exc)
+                continue
+            earliest = min(earliest, nxt)
+        return earliest
+
+    def run(self) -> None:
+        while not self._stopping.is_set():
+            try:
+                earliest = self.tick()
+            except Exception as exc:  # noqa: BLE001 - keep the clock alive (e.g. store briefly locked)
+                log.warning("schedule clock: %s", exc)
+                earliest = time.time() + self.settings.schedule_poll_s
+            self._wake.wait(max(0.0, min(earliest - time.time(), self.settings.schedule_poll_s)))
+            self._wake.clear()

@@ -1,0 +1,67 @@
+"""Service settings: one typed object, built by an entry point and passed down.
+
+Every field can be set with an environment variable ``ORCHARD_<FIELD>`` (for example
+``ORCHARD_DATA_DIR=/srv/orchard``) or, for the command line, with an option that
+overrides it. Nothing reads the environment at import time: `Settings()` is called
+by `orchard serve`, `orchard tokens`, `orchard schedules` and `orchard demo`.
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+from pydantic import Field
+from pydantic_settings import BaseSettings, SettingsConfigDict
+
+
+class Settings(BaseSettings):
+    """Settings of the orchard service (environment prefix ``ORCHARD_``)."""
+
+    model_config = SettingsConfigDict(env_prefix="ORCHARD_", extra="ignore")
+
+    data_dir: Path = Field(Path("orchard-data"), description="folder of the job store (SQLite), uploaded blocks and job results")
+    host: str = Field("127.0.0.1", description="address the HTTP server binds")
+    port: int = Field(8000, ge=0, le=65535, description="port the HTTP server binds (0 = any free port)")
+    scheduler: str | None = Field(None, description="dask scheduler address (tcp://HOST:PORT); unset = embedded LocalCluster")
+    n_workers: int = Field(2, ge=1, le=256, description="workers of the embedded LocalCluster")
+    threads_per_worker: int = Field(1, ge=1, le=64, description="threads per worker of the embedded LocalCluster")
+    dashboard: bool = Field(False, description="start the dask dashboard of the embedded LocalCluster")
+    work_dir: str | None = Field(
+        None, description="work store for tiles (folder or fsspec URL such as s3://bucket/orchard); a job uses <work_dir>/<job id>; unset = data_dir/jobs/<id>/_work"
+    )
+    max_upload_mb: float = Field(4096.0, gt=0, description="largest accepted block upload [MB]")
+    max_request_kb: int = Field(1024, ge=1, description="largest accepted request body other than an upload [kB]")
+    runner: bool = Field(True, description="run queued jobs in this process (background runner thread)")
+    scheduling: bool = Field(True, description="run overnight schedules in this process (schedule clock thread)")
+    inbox_root: Path | None = Field(None, description="if set, schedule inbox folders must lie inside this folder")
+    schedule_poll_s: float = Field(30.0, gt=0, le=3600, description="longest sleep of the schedule clock between checks [s]")
+    runner_poll_s: float = Field(1.0, gt=0, le=60, description="longest sleep of the runner between looks at the queue [s]")
+
+    @property
+    def store_path(self) -> Path:
+        return self.data_dir / "orchard.sqlite"
+
+    @property
+    def blocks_dir(self) -> Path:
+        return self.data_dir / "blocks"
+
+    @property
+    def jobs_dir(self) -> Path:
+        return self.data_dir / "jobs"
+
+    @property
+    def tmp_dir(self) -> Path:
+        return self.data_dir / "tmp"
+
+    @property
+    def max_upload_bytes(self) -> int:
+        return int(self.max_upload_mb * 1024 * 1024)
+
+
+def build_settings(**fields) -> Settings:
+    """Settings from the environment, overridden by the command-line values given.
+
+    ``fields`` maps Settings field names to values; ``None`` values are ignored, so an
+    option the user did not give keeps the environment's (or the default) value.
+    """
+    return Settings(**{k: v for k, v in fields.items() if v is not None})

@@ -1,0 +1,513 @@
+"""The job store: tenants, tokens, blocks, jobs and schedules in SQLite (WAL mode).
+
+One connection per thread, every state change in one ``BEGIN IMMEDIATE`` transaction,
+so the HTTP threads, the job runner and the schedule clock (and a second process such
+as ``orchard tokens create``) can share the file. Uploaded blocks are content-addressed
+files under ``data_dir/blocks/<sha256>.las|laz``, landed by :func:`accept_block` with a
+temporary name, fsync and rename, so an accepted upload is never lost; job results live
+under ``data_dir/jobs/<job id>/``.
+
+Records are returned as plain dicts with JSON columns decoded. Lookups that take a
+tenant never return another tenant's record: they raise `NotFoundError` instead.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import dataclasses
+import json
+import os
+import sqlite3
+import threading
+import time
+import uuid
+from pathlib import Path
+from typing import Any, Iterator
+
+from pipeline.errors import ConflictError, InputError, NotFoundError
+
+JOB_STATES = ("queued", "running", "done", "failed", "cancelled")
+FINAL_STATES = ("done", "failed", "cancelled")
+
+_SCHEMA = """
+CREATE TABLE IF NOT EXISTS tenants (
+    id TEXT PRIMARY KEY,
+    name TEXT NOT NULL UNIQUE,
+    created_at REAL NOT NULL
+);
+CREATE TABLE IF NOT EXISTS tokens (
+    hash TEXT PRIMARY KEY,
+    tenant_id TEXT NOT NULL REFERENCES tenants(id),
+    created_at REAL NOT NULL
+);
+CREATE TABLE IF NOT EXISTS blocks (
+    id TEXT PRIMARY KEY,
+    tenant_id TEXT NOT NULL REFERENCES tenants(id),
+    sha256 TEXT NOT NULL,
+    path TEXT NOT NULL,
+    filename TEXT,
+    size_bytes INTEGER NOT NULL,
+    info TEXT NOT NULL,
+    created_at REAL NOT NULL,
+    UNIQUE (tenant_id, sha256)
+);
+CREATE TABLE IF NOT EXISTS jobs (
+    id TEXT PRIMARY KEY,
+    tenant_id TEXT NOT NULL REFERENCES tenants(id),
+    block_id TEXT NOT NULL REFERENCES blocks(id),
+    schedule_id TEXT,
+    params TEXT NOT NULL,
+    tiling TEXT,
+    state TEXT NOT NULL,
+    tiles_done INTEGER NOT NULL DEFAULT 0,
+    tiles_total INTEGER NOT NULL DEFAULT 0,
+    timings TEXT NOT NULL DEFAULT '{}',
+    outcome TEXT,
+    error TEXT,
+    cancel_requested INTEGER NOT NULL DEFAULT 0,
+    attempts INTEGER NOT NULL DEFAULT 0,
+    created_at REAL NOT NULL,
+    started_at REAL,
+    finished_at REAL
+);
+CREATE INDEX IF NOT EXISTS jobs_by_state ON jobs(state, created_at);
+CREATE INDEX IF NOT EXISTS jobs_by_tenant ON jobs(tenant_id, created_at);
+CREATE TABLE IF NOT EXISTS schedules (
+    id TEXT PRIMARY KEY,
+    tenant_id TEXT NOT NULL REFERENCES tenants(id),
+    inbox TEXT NOT NULL,
+    cron TEXT NOT NULL,
+    params TEXT NOT NULL,
+    tiling TEXT,
+    created_at REAL NOT NULL,
+    last_run_at REAL,
+    next_run_at REAL
+);
+CREATE TABLE IF NOT EXISTS schedule_files (
+    schedule_id TEXT NOT NULL,
+    sha256 TEXT NOT NULL,
+    path TEXT NOT NULL,
+    job_id TEXT,
+    error TEXT,
+    seen_at REAL NOT NULL,
+    PRIMARY KEY (schedule_id, sha256)
+);
+"""
+
+_JSON_COLUMNS = ("info", "params", "tiling", "timings", "outcome")
+
+
+def new_id() -> str:
+    """A random, unguessable resource id (32 hex digits)."""
+    return uuid.uuid4().hex
+
+
+def _record(row: sqlite3.Row | None) -> dict[str, Any] | None:
+    if row is None:
+        return None
+    rec = dict(row)
+    for key in _JSON_COLUMNS:
+        if key in rec and rec[key] is not None:
+            rec[key] = json.loads(rec[key])
+    return rec
+
+
+class Store:
+    """SQLite job store under ``path`` (created if missing)."""
+
+    def __init__(self, path: str | os.PathLike) -> None:
+        self.path = Path(path)
+        self.path.parent.mkdir(parents=True, exist_ok=True)
+        self._local = threading.local()
+        self._all: list[sqlite3.Connection] = []
+        self._all_lock = threading.Lock()
+        self._con().executescript(_SCHEMA)
+
+    # -- connections and transactions ------------------------------------------------
+
+    def _con(self) -> sqlite3.Connection:
+        con = getattr(self._local, "con", None)
+        if con is None:
+            con = sqlite3.connect(self.path, timeout=30.0, isolation_level=None, check_same_thread=False)
+            con.row_factory = sqlite3.Row
+            con.execute("PRAGMA journal_mode=WAL")
+            con.execute("PRAGMA synchronous=FULL")
+            con.execute("PRAGMA foreign_keys=ON")
+            con.execute("PRAGMA busy_timeout=30000")
+            self._local.con = con
+            with self._all_lock:
+                self._all.append(con)
+        return con
+
+    @contextlib.contextmanager
+    def _tx(self) -> Iterator[sqlite3.Connection]:
+        """One write transaction (``BEGIN IMMEDIATE`` … ``COMMIT``, rolled back on error)."""
+        con = self._con()
+        con.execute("BEGIN IMMEDIATE")
+        try:
+            yield con
+        except BaseException:
+            con.execute("ROLLBACK")
+            raise
+        con.execute("COMMIT")
+
+    def _one(self, sql: str, params: tuple = ()) -> dict[str, Any] | None:
+        return _record(self._con().execute(sql, params).fetchone())
+
+    def _all_rows(self, sql: str, params: tuple = ()) -> list[dict[str, Any]]:
+        return [_record(r) for r in self._con().execute(sql, params).fetchall()]
+
+    def close(self) -> None:
+        with self._all_lock:
+            for con in self._all:
+                with contextlib.suppress(sqlite3.Error):
+                    con.close()
+            self._all.clear()
+        self._local = threading.local()
+
+    # -- tenants and tokens -----------------------------------------------------------
+
+    def ensure_tenant(self, name: str) -> dict[str, Any]:
+        """The tenant called ``name``, created if it does not exist."""
+        with self._tx() as con:
+            row = con.execute("SELECT * FROM tenants WHERE name = ?", (name,)).fetchone()
+            if row is None:
+                con.execute("INSERT INTO tenants (id, name, created_at) VALUES (?, ?, ?)", (new_id(), name, time.time()))
+                row = con.execute("SELECT * FROM tenants WHERE name = ?", (name,)).fetchone()
+        return _record(row)
+
+    def tenant_by_name(self, name: str) -> dict[str, Any]:
+        rec = self._one("SELECT * FROM tenants WHERE name = ?", (name,))
+        if rec is None:
+            raise NotFoundError(f"no tenant called {name!r}; create one with `orchard tokens create --tenant {name}`")
+        return rec
+
+    def list_tenants(self) -> list[dict[str, Any]]:
+        return self._all_rows(
+            "SELECT t.*, (SELECT COUNT(*) FROM tokens k WHERE k.tenant_id = t.id) AS n_tokens FROM tenants t ORDER BY name"
+        )
+
+    def add_token(self, tenant_id: str, token_hash: str) -> None:
+        with self._tx() as con:
+            con.execute("INSERT INTO tokens (hash, tenant_id, created_at) VALUES (?, ?, ?)", (token_hash, tenant_id, time.time()))
+
+    def revoke_token(self, token_hash: str) -> bool:
+        with self._tx() as con:
+            return con.execute("DELETE FROM tokens WHERE hash = ?", (token_hash,)).rowcount > 0
+
+    def tenant_for_token(self, token_hash: str) -> dict[str, Any] | None:
+        return self._one(
+            "SELECT t.* FROM tokens k JOIN tenants t ON t.id = k.tenant_id WHERE k.hash = ?", (token_hash,)
+        )
+
+    # -- blocks -----------------------------------------------------------------------
+
+    def block_by_sha(self, tenant_id: str, sha256: str) -> dict[str, Any] | None:
+        return self._one("SELECT * FROM blocks WHERE tenant_id = ? AND sha256 = ?", (tenant_id, sha256))
+
+    def insert_block(
+        self, *, tenant_id: str, sha256: str, path: str, filename: str | None, size_bytes: int, info: dict
+    ) -> tuple[dict[str, Any], bool]:
+        """Insert a block; if the tenant already has this file (same sha256), return that one.
+
+        Returns ``(block, created)``.
+        """
+        with self._tx() as con:
+            row = con.execute("SELECT * FROM blocks WHERE tenant_id = ? AND sha256 = ?", (tenant_id, sha256)).fetchone()
+            if row is not None:
+                return _record(row), False
+            bid = new_id()
+            con.execute(
+                "INSERT INTO blocks (id, tenant_id, sha256, path, filename, size_bytes, info, created_at) "
+                "VALUES (?, ?, ?, ?, ?, ?, ?, ?)",
+                (bid, tenant_id, sha256, path, filename, size_bytes, json.dumps(info), time.time()),
+            )
+            row = con.execute("SELECT * FROM blocks WHERE id = ?", (bid,)).fetchone()
+        return _record(row), True
+
+    def get_block(self, tenant_id: str | None, block_id: str) -> dict[str, Any]:
+        if tenant_id is None:
+            rec = self._one("SELECT * FROM blocks WHERE id = ?", (block_id,))
+        else:
+            rec = self._one("SELECT * FROM blocks WHERE id = ? AND tenant_id = ?", (block_id, tenant_id))
+        if rec is None:
+            raise NotFoundError(f"no block {block_id!r}; list yours with GET /v1/blocks")
+        return rec
+
+    def list_blocks(self, tenant_id: str, *, limit: int = 100, offset: int = 0) -> list[dict[str, Any]]:
+        return self._all_rows(
+            "SELECT * FROM blocks WHERE tenant_id = ? ORDER BY created_at, id LIMIT ? OFFSET ?", (tenant_id, limit, offset)
+        )
+
+    # -- jobs -------------------------------------------------------------------------
+
+    def create_job(
+        self, *, tenant_id: str, block_id: str, params: dict, tiling: dict | None, schedule_id: str | None = None
+    ) -> dict[str, Any]:
+        jid = new_id()
+        with self._tx() as con:
+            con.execute(
+                "INSERT INTO jobs (id, tenant_id, block_id, schedule_id, params, tiling, state, created_at) "
+                "VALUES (?, ?, ?, ?, ?, ?, 'queued', ?)",
+                (jid, tenant_id, block_id, schedule_id, json.dumps(params), json.dumps(tiling) if tiling else None, time.time()),
+            )
+        return self.get_job(None, jid)
+
+    def get_job(self, tenant_id: str | None, job_id: str) -> dict[str, Any]:
+        if tenant_id is None:
+            rec = self._one("SELECT * FROM jobs WHERE id = ?", (job_id,))
+        else:
+            rec = self._one("SELECT * FROM jobs WHERE id = ? AND tenant_id = ?", (job_id, tenant_id))
+        if rec is None:
+            raise NotFoundError(f"no job {job_id!r}; list yours with GET /v1/jobs")
+        return rec
+
+    def list_jobs(
+        self,
+        tenant_id: str,
+        *,
+        state: str | None = None,
+        block_id: str | None = None,
+        schedule_id: str | None = None,
+        limit: int = 100,
+        offset: int = 0,
+    ) -> list[dict[str, Any]]:
+        sql = "SELECT * FROM jobs WHERE tenant_id = ?"
+        params: list[Any] = [tenant_id]
+        for column, value in (("state", state), ("block_id", block_id), ("schedule_id", schedule_id)):
+            if value is not None:
+                sql += f" AND {column} = ?"
+                params.append(value)
+        sql += " ORDER BY created_at, id LIMIT ? OFFSET ?"
+        params += [limit, offset]
+        return self._all_rows(sql, tuple(params))
+
+    def claim_next_job(self) -> dict[str, Any] | None:
+        """Move the oldest queued job to ``running`` and return it (None if the queue is empty)."""
+        with self._tx() as con:
+            row = con.execute("SELECT id FROM jobs WHERE state = 'queued' ORDER BY created_at, id LIMIT 1").fetchone()
+            if row is None:
+                return None
+            con.execute(
+                "UPDATE jobs SET state = 'running', started_at = ?, attempts = attempts + 1, error = NULL WHERE id = ?",
+                (time.time(), row["id"]),
+            )
+            job = con.execute("SELECT * FROM jobs WHERE id = ?", (row["id"],)).fetchone()
+        return _record(job)
+
+    def set_progress(self, job_id: str, done: int, total: int) -> None:
+        with self._tx() as con:
+            con.execute(
+                "UPDATE jobs SET tiles_done = ?, tiles_total = ? WHERE id = ? AND state = 'running'", (done, total, job_id)
+            )
+
+    def finish_job(
+        self,
+        job_id: str,
+        state: str,
+        *,
+        error: str | None = None,
+        outcome: dict | None = None,
+        timings: dict | None = None,
+    ) -> dict[str, Any]:
+        """Move a running job to a final state (``done``, ``failed`` or ``cancelled``)."""
+        if state not in FINAL_STATES:
+            raise ValueError(f"not a final state: {state}")
+        with self._tx() as con:
+            sets = "state = ?, error = ?, finished_at = ?"
+            params: list[Any] = [state, error, time.time()]
+            if outcome is not None:
+                sets += ", outcome = ?"
+                params.append(json.dumps(outcome))
+            if timings is not None:
+                sets += ", timings = ?"
+                params.append(json.dumps(timings))
+            if state == "done":
+                sets += ", tiles_done = tiles_total"
+            con.execute(f"UPDATE jobs SET {sets} WHERE id = ? AND state = 'running'", (*params, job_id))
+        return self.get_job(None, job_id)
+
+    def request_cancel(self, tenant_id: str, job_id: str) -> dict[str, Any]:
+        """Cancel a job: a queued one at once, a running one as soon as the runner sees the request."""
+        with self._tx() as con:
+            row = con.execute("SELECT state FROM jobs WHERE id = ? AND tenant_id = ?", (job_id, tenant_id)).fetchone()
+            if row is None:
+                raise NotFoundError(f"no job {job_id!r}; list yours with GET /v1/jobs")
+            if row["state"] == "queued":
+                con.execute(
+                    "UPDATE jobs SET state = 'cancelled', cancel_requested = 1, finished_at = ?, error = ? WHERE id = ?",
+                    (time.time(), "cancelled before it started", job_id),
+                )
+            elif row["state"] == "running":
+                con.execute("UPDATE jobs SET cancel_requested = 1 WHERE id = ?", (job_id,))
+            else:
+                raise ConflictError(f"job {job_id} is already {row['state']}; only queued or running jobs can be cancelled")
+        return self.get_job(None, job_id)
+
+    def cancel_requested(self, job_id: str) -> bool:
+        rec = self._one("SELECT cancel_requested FROM jobs WHERE id = ?", (job_id,))
+        return bool(rec and rec["cancel_requested"])
+
+    def requeue_running(self) -> int:
+        """Put jobs left ``running`` by a dead service back in the queue (cancel those asked to stop).
+
+        Called once at start-up, before the runner takes jobs. Returns the number re-queued.
+        """
+        with self._tx() as con:
+            con.execute(
+                "UPDATE jobs SET state = 'cancelled', finished_at = ?, error = 'cancelled' "
+                "WHERE state = 'running' AND cancel_requested = 1",
+                (time.time(),),
+            )
+            return con.execute(
+                "UPDATE jobs SET state = 'queued', tiles_done = 0 WHERE state = 'running'"
+            ).rowcount
+
+    # -- schedules --------------------------------------------------------------------
+
+    def create_schedule(
+        self, *, tenant_id: str, inbox: str, cron: str, params: dict, tiling: dict | None, next_run_at: float | None
+    ) -> dict[str, Any]:
+        sid = new_id()
+        with self._tx() as con:
+            con.execute(
+                "INSERT INTO schedules (id, tenant_id, inbox, cron, params, tiling, created_at, next_run_at) "
+                "VALUES (?, ?, ?, ?, ?, ?, ?, ?)",
+                (sid, tenant_id, inbox, cron, json.dumps(params), json.dumps(tiling) if tiling else None, time.time(), next_run_at),
+            )
+        return self.get_schedule(None, sid)
+
+    def get_schedule(self, tenant_id: str | None, schedule_id: str) -> dict[str, Any]:
+        if tenant_id is None:
+            rec = self._one("SELECT * FROM schedules WHERE id = ?", (schedule_id,))
+        else:
+            rec = self._one("SELECT * FROM schedules WHERE id = ? AND tenant_id = ?", (schedule_id, tenant_id))
+        if rec is None:
+            raise NotFoundError(f"no schedule {schedule_id!r}; list yours with GET /v1/schedules")
+        return rec
+
+    def list_schedules(self, tenant_id: str | None = None) -> list[dict[str, Any]]:
+        if tenant_id is None:
+            return self._all_rows("SELECT * FROM schedules ORDER BY created_at, id")
+        return self._all_rows("SELECT * FROM schedules WHERE tenant_id = ? ORDER BY created_at, id", (tenant_id,))
+
+    def delete_schedule(self, tenant_id: str, schedule_id: str) -> None:
+        with self._tx() as con:
+            n = con.execute("DELETE FROM schedules WHERE id = ? AND tenant_id = ?", (schedule_id, tenant_id)).rowcount
+            if n == 0:
+                raise NotFoundError(f"no schedule {schedule_id!r}; list yours with GET /v1/schedules")
+            con.execute("DELETE FROM schedule_files WHERE schedule_id = ?", (schedule_id,))
+
+    def set_schedule_times(self, schedule_id: str, *, last_run_at: float | None, next_run_at: float | None) -> None:
+        with self._tx() as con:
+            if last_run_at is None:
+                con.execute("UPDATE schedules SET next_run_at = ? WHERE id = ?", (next_run_at, schedule_id))
+            else:
+                con.execute(
+                    "UPDATE schedules SET last_run_at = ?, next_run_at = ? WHERE id = ?", (last_run_at, next_run_at, schedule_id)
+                )
+
+    def schedule_file_seen(self, schedule_id: str, sha256: str) -> bool:
+        return self._one(
+            "SELECT 1 AS seen FROM schedule_files WHERE schedule_id = ? AND sha256 = ?", (schedule_id, sha256)
+        ) is not None
+
+    def record_schedule_file(
+        self, *, schedule_id: str, sha256: str, path: str, job_id: str | None, error: str | None
+    ) -> bool:
+        """Record that a capture was handled; False if it already was (another scan got there first)."""
+        with self._tx() as con:
+            try:
+                con.execute(
+                    "INSERT INTO schedule_files (schedule_id, sha256, path, job_id, error, seen_at) VALUES (?, ?, ?, ?, ?, ?)",
+                    (schedule_id, sha256, path, job_id, error, time.time()),
+                )
+            except sqlite3.IntegrityError:
+                return False
+        return True
+
+    def schedule_files(self, schedule_id: str) -> list[dict[str, Any]]:
+        return self._all_rows("SELECT * FROM schedule_files WHERE schedule_id = ? ORDER BY seen_at", (schedule_id,))
+
+
+# -- block files ----------------------------------------------------------------------------
+
+
+def _sniff_suffix(path: Path) -> str:
+    """``.laz`` if the LAS header says the points are compressed, else ``.las``."""
+    with open(path, "rb") as fh:
+        head = fh.read(105)
+    if len(head) > 104 and head[:4] == b"LASF" and head[104] & 0x80:
+        return ".laz"
+    return ".las"
+
+
+def _fsync_dir(path: Path) -> None:
+    with contextlib.suppress(OSError):
+        fd = os.open(path, os.O_RDONLY)
+        try:
+            os.fsync(fd)
+        finally:
+            os.close(fd)
+
+
+def info_record(info: Any) -> dict[str, Any]:
+    """A BlockInfo as JSON-able dict (without the server-side path)."""
+    rec = dataclasses.asdict(info) if dataclasses.is_dataclass(info) else dict(info)
+    rec.pop("path", None)
+    return {k: (list(v) if isinstance(v, tuple) else v) for k, v in rec.items()}
+
+
+def accept_block(
+    store: Store,
+    *,
+    blocks_dir: Path,
+    tenant_id: str,
+    tmp_path: Path,
+    sha256: str,
+    size_bytes: int,
+    filename: str | None,
+) -> tuple[dict[str, Any], bool]:
+    """Validate a fully written temporary file and land it as a block of ``tenant_id``.
+
+    The header is checked with `pipeline.io.read_info` (InputError if not a usable
+    LAS/LAZ file). The file is stored under its checksum, fsynced, renamed into place,
+    and only then recorded. The temporary file is always gone afterwards. Returns
+    ``(block, created)``; the same file twice gives the same block.
+    """
+    from pipeline.io import read_info
+
+    tmp_path = Path(tmp_path)
+    try:
+        existing = store.block_by_sha(tenant_id, sha256)
+        if existing is not None and Path(existing["path"]).exists():
+            return existing, False
+        if size_bytes == 0:
+            raise InputError("the file is empty (0 bytes); upload a LAS or LAZ file")
+        suffix = _sniff_suffix(tmp_path)
+        typed = tmp_path.with_suffix(suffix)
+        os.replace(tmp_path, typed)
+        tmp_path = typed
+        try:
+            info = read_info(str(tmp_path))
+        except InputError as exc:
+            text = str(exc).replace(tmp_path.name, filename or "the upload")
+            raise InputError(text) from None
+        blocks_dir.mkdir(parents=True, exist_ok=True)
+        final = blocks_dir / f"{sha256}{'.laz' if getattr(info, 'compressed', suffix == '.laz') else '.las'}"
+        if not final.exists():
+            with open(tmp_path, "rb+") as fh:
+                os.fsync(fh.fileno())
+            os.replace(tmp_path, final)
+            _fsync_dir(blocks_dir)
+        return store.insert_block(
+            tenant_id=tenant_id,
+            sha256=sha256,
+            path=str(final),
+            filename=filename,
+            size_bytes=size_bytes,
+            info=info_record(info),
+        )
+    finally:
+        with contextlib.suppress(FileNotFoundError):
+            tmp_path.unlink()

@@ -1,0 +1,127 @@
+"""Helpers of the service tests: a real `orchard serve` on loopback, tokens, small blocks."""
+
+from __future__ import annotations
+
+import os
+import signal
+import socket
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import httpx
+import numpy as np
+import pytest
+
+from service.auth import create_token
+from service.store import Store
+
+
+def free_port() -> int:
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        return s.getsockname()[1]
+
+
+class ServerProcess:
+    """`orchard serve` in its own process group, on a free loopback port."""
+
+    def __init__(self, data_dir: Path, **env: str) -> None:
+        self.data_dir = Path(data_dir)
+        self.env = {k: str(v) for k, v in env.items()}
+        self.port = free_port()
+        self.url = f"http://127.0.0.1:{self.port}"
+        self.proc: subprocess.Popen | None = None
+        self.log_path = self.data_dir.parent / f"serve-{self.port}.log"
+
+    def start(self, timeout: float = 60.0) -> "ServerProcess":
+        self.data_dir.mkdir(parents=True, exist_ok=True)
+        env = {**os.environ, "ORCHARD_RUNNER_POLL_S": "0.2", "ORCHARD_N_WORKERS": "2", **self.env}
+        cmd = [sys.executable, "-m", "service.cli", "serve", "--data-dir", str(self.data_dir),
+               "--host", "127.0.0.1", "--port", str(self.port), "--log-level", "warning"]
+        self._log = open(self.log_path, "ab")
+        self.proc = subprocess.Popen(cmd, env=env, stdout=self._log, stderr=subprocess.STDOUT, start_new_session=True)
+        deadline = time.monotonic() + timeout
+        while time.monotonic() < deadline:
+            if self.proc.poll() is not None:
+                raise RuntimeError(f"orchard serve exited early:\n{self.log()}")
+            try:
+                if httpx.get(self.url + "/healthz", timeout=1.0).status_code == 200:
+                    return self
+            except httpx.HTTPError:
+                pass
+            time.sleep(0.1)
+        self.kill()
+        raise RuntimeError(f"orchard serve did not come up:\n{self.log()}")
+
+    def log(self) -> str:
+        return self.log_path.read_text(errors="replace")[-4000:] if self.log_path.exists() else ""
+
+    def kill(self) -> None:
+        """SIGKILL the server and everything it started (its process group): a crash."""
+        if self.proc is not None and self.proc.poll() is None:
+            os.killpg(self.proc.pid, signal.SIGKILL)
+            self.proc.wait(10)
+        self._reap_group()
+
+    def stop(self) -> None:
+        """A graceful stop (SIGTERM), then SIGKILL for whatever is left of the group."""
+        if self.proc is not None and self.proc.poll() is None:
+            os.killpg(self.proc.pid, signal.SIGTERM)
+            try:
+                self.proc.wait(30)
+            except subprocess.TimeoutExpired:
+                pass
+        self.kill()
+
+    def _reap_group(self) -> None:
+        if self.proc is None:
+            return
+        try:
+            os.killpg(self.proc.pid, signal.SIGKILL)
+        except (ProcessLookupError, PermissionError):
+            pass
+
+
+def make_token(data_dir: Path, tenant: str) -> str:
+    store = Store(Path(data_dir) / "orchard.sqlite")
+    try:
+        return create_token(store, tenant)
+    finally:
+        store.close()
+
+
+def write_las(path: Path, n: int = 2000, *, seed: int = 0, compressed: bool | None = None) -> Path:
+    """A small valid LAS/LAZ file of random points (enough for upload tests, not for trees)."""
+    import laspy
+
+    rng = np.random.default_rng(seed)
+    header = laspy.LasHeader(point_format=6, version="1.4")
+    header.scales = np.array([0.001, 0.001, 0.001])
+    header.offsets = np.array([500000.0, 6000000.0, 0.0])
+    las = laspy.LasData(header)
+    las.x = 500000.0 + rng.uniform(0, 10, n)
+    las.y = 6000000.0 + rng.uniform(0, 10, n)
+    las.z = rng.uniform(0, 3, n)
+    las.write(str(path))
+    return Path(path)
+
+
+def simulated_block(path: Path, *, rows: int = 2, trees_per_row: int = 4, seed: int = 7, **kwargs) -> Path:
+    """A generated orchard block (skips the test if the simulator has not landed)."""
+    simulate = pytest.importorskip("pipeline.simulate")
+    params = simulate.SimulationParams(rows=rows, trees_per_row=trees_per_row, seed=seed, **kwargs)
+    orchard = simulate.simulate_orchard(params)
+    simulate.write_simulation(orchard, str(path), str(path.with_suffix(".truth.parquet")))
+    return path
+
+
+def wait_for_job(client: httpx.Client, job_id: str, *, states=("done", "failed", "cancelled"), timeout: float = 150.0) -> dict:
+    deadline = time.monotonic() + timeout
+    while time.monotonic() < deadline:
+        job = client.get(f"/v1/jobs/{job_id}").json()
+        if job["state"] in states:
+            return job
+        time.sleep(0.2)
+    raise AssertionError(f"job {job_id} still {job['state']} after {timeout} s")

@@ -1,0 +1,236 @@
+"""API tests against a real `orchard serve` on loopback (runner off: jobs stay queued)."""
+
+from __future__ import annotations
+
+import hashlib
+
+import httpx
+import pytest
+
+from service_fixtures import write_las
+
+
+def upload(client: httpx.Client, path, name: str | None = None) -> httpx.Response:
+    with open(path, "rb") as fh:
+        return client.post("/v1/blocks", files={"file": (name or path.name, fh, "application/octet-stream")})
+
+
+# -- health, docs, auth -------------------------------------------------------------------
+
+
+def test_healthz_needs_no_token(api_server):
+    r = httpx.get(api_server.url + "/healthz")
+    assert r.status_code == 200
+    assert r.json()["status"] == "ok"
+
+
+def test_openapi_and_docs(api_server):
+    spec = httpx.get(api_server.url + "/openapi.json").json()
+    for path in ("/v1/blocks", "/v1/jobs", "/v1/jobs/{job_id}/report", "/v1/schedules/{schedule_id}/run"):
+        assert path in spec["paths"]
+    assert "multipart/form-data" in spec["paths"]["/v1/blocks"]["post"]["requestBody"]["content"]
+    assert httpx.get(api_server.url + "/docs").status_code == 200
+
+
+@pytest.mark.parametrize(
+    "headers",
+    [{}, {"Authorization": "Bearer nope"}, {"Authorization": "Basic Zm9vOmJhcg=="}, {"Authorization": "Bearer"}],
+    ids=["missing", "unknown", "basic", "empty"],
+)
+@pytest.mark.parametrize("path", ["/v1/blocks", "/v1/jobs", "/v1/schedules", "/v1/jobs/x/report"])
+def test_missing_or_bad_token_is_401(api_server, headers, path):
+    r = httpx.get(api_server.url + path, headers=headers)
+    assert r.status_code == 401
+    assert r.headers["www-authenticate"] == "Bearer"
+    assert "token" in r.json()["detail"]
+
+
+def test_upload_without_token_is_401(api_server, small_las):
+    with open(small_las, "rb") as fh:
+        r = httpx.post(api_server.url + "/v1/blocks", files={"file": ("a.laz", fh)})
+    assert r.status_code == 401
+
+
+# -- uploads ------------------------------------------------------------------------------
+
+
+def test_upload_block_and_same_file_twice(client_a, small_las):
+    r1 = upload(client_a, small_las)
+    assert r1.status_code in (200, 201), r1.text
+    block = r1.json()
+    assert block["sha256"] == hashlib.sha256(small_las.read_bytes()).hexdigest()
+    assert block["n_points"] == 3000
+    assert block["compressed"] is True
+    assert block["mins"][0] >= 500000.0 and block["maxs"][0] <= 500010.0
+    r2 = upload(client_a, small_las, name="renamed.laz")
+    assert r2.status_code == 200
+    assert r2.json()["id"] == block["id"]
+    assert client_a.get(f"/v1/blocks/{block['id']}").json()["id"] == block["id"]
+    assert block["id"] in [b["id"] for b in client_a.get("/v1/blocks").json()]
+
+
+def test_uploaded_file_lands_under_its_checksum(api_server, client_a, tmp_path):
+    path = write_las(tmp_path / "evil.las", 500, seed=11)
+    r = upload(client_a, path, name="../../../etc/passwd.las")
+    assert r.status_code == 201, r.text
+    block = r.json()
+    assert block["filename"] == "passwd.las"
+    stored = api_server.data_dir / "blocks" / f"{block['sha256']}.las"
+    assert stored.read_bytes() == path.read_bytes()
+    assert not list((api_server.data_dir / "tmp").glob("*"))
+
+
+@pytest.mark.parametrize(
+    "content, message",
+    [
+        (b"this is not a point cloud\n" * 20, "LAS"),
+        (b"", "empty"),
+        (b"LASF", ""),
+    ],
+    ids=["not-las", "empty", "header-only"],
+)
+def test_bad_upload_is_422(client_a, content, message):
+    r = client_a.post("/v1/blocks", files={"file": ("x.laz", content)})
+    assert r.status_code == 422, r.text
+    assert message.lower() in r.json()["detail"].lower()
+
+
+def test_truncated_upload_is_422(client_a, tmp_path):
+    path = write_las(tmp_path / "t.las", 2000, seed=3)
+    data = path.read_bytes()
+    r = client_a.post("/v1/blocks", files={"file": ("t.las", data[: len(data) // 2])})
+    assert r.status_code == 422
+    assert "truncated" in r.json()["detail"]
+
+
+def test_zero_point_las_is_422(client_a, tmp_path):
+    path = write_las(tmp_path / "z.las", 0)
+    r = upload(client_a, path)
+    assert r.status_code == 422
+    assert "t.las" not in r.json()["detail"]
+
+
+def test_upload_without_file_field_is_422(client_a):
+    r = client_a.post("/v1/blocks", files={"other": ("x.las", b"abc")})
+    assert r.status_code == 422
+    assert "'file'" in r.json()["detail"]
+
+
+def test_upload_not_multipart_is_422(client_a):
+    r = client_a.post("/v1/blocks", content=b"LASF", headers={"content-type": "application/octet-stream"})
+    assert r.status_code == 422
+    assert "multipart" in r.json()["detail"]
+
+
+def test_too_big_upload_is_413(api_server, client_a, tmp_path):
+    # the test server's limit is 1 MB: a 1.3 MB file passes the Content-Length check
+    # (1 MB multipart slack), is streamed, counted and refused
+    path = write_las(tmp_path / "big.las", 45_000, seed=5)
+    assert 1.1e6 < path.stat().st_size < 1.9e6
+    r = upload(client_a, path)
+    assert r.status_code == 413, r.text
+    assert "limit" in r.json()["detail"]
+    assert not list((api_server.data_dir / "tmp").glob("*"))
+
+
+def test_far_too_big_upload_is_413_before_reading(client_a):
+    # Content-Length far above the limit: refused at once, without reading the body
+    r = client_a.post("/v1/blocks", files={"file": ("huge.laz", b"LASF" + bytes(8_000_000))})
+    assert r.status_code == 413
+    assert "1 MB" in r.json()["detail"]
+
+
+def test_json_body_too_big_is_413(client_a):
+    r = client_a.post("/v1/jobs", content=b"{" + b" " * (2 << 20) + b"}", headers={"content-type": "application/json"})
+    assert r.status_code == 413
+
+
+# -- jobs ---------------------------------------------------------------------------------
+
+
+@pytest.fixture()
+def block_a(client_a, small_las):
+    return upload(client_a, small_las).json()
+
+
+def test_job_lifecycle_without_runner(client_a, block_a):
+    r = client_a.post("/v1/jobs", json={"block_id": block_a["id"], "tiling": {"tile_size": 20}})
+    assert r.status_code == 201, r.text
+    job = r.json()
+    assert job["state"] == "queued" and job["id"] and job["tiling"]["tile_size"] == 20
+    assert r.headers["location"] == f"/v1/jobs/{job['id']}"
+    assert client_a.get(f"/v1/jobs/{job['id']}").json()["state"] == "queued"
+    listed = client_a.get("/v1/jobs", params={"state": "queued", "block_id": block_a["id"]}).json()
+    assert job["id"] in [j["id"] for j in listed]
+    assert job["id"] not in [j["id"] for j in client_a.get("/v1/jobs", params={"state": "done"}).json()]
+    for suffix in ("trees", "trees.parquet", "trees.csv", "points.parquet", "report", "map.png"):
+        res = client_a.get(f"/v1/jobs/{job['id']}/{suffix}")
+        assert res.status_code == 409, suffix
+        assert "queued" in res.json()["detail"]
+    r = client_a.delete(f"/v1/jobs/{job['id']}")
+    assert r.status_code == 202
+    assert r.json()["state"] == "cancelled"
+    assert client_a.delete(f"/v1/jobs/{job['id']}").status_code == 409
+
+
+@pytest.mark.parametrize(
+    "body, fragment",
+    [
+        ({"params": {"graph": {"voxel_size": -1}}}, "voxel_size"),
+        ({"params": {"graph": {"edge_radius": 0.05}}}, "edge_radius"),
+        ({"params": {"nonsense": 1}}, "nonsense"),
+        ({"params": {"matter": {"method": "magic"}}}, "method"),
+        ({"tiling": {"tile_size": 0}}, "tile_size"),
+        ({"tiling": {"tile_size": 20, "buffer": 0.5}}, "reach"),
+    ],
+)
+def test_bad_job_params_are_422(client_a, block_a, body, fragment):
+    r = client_a.post("/v1/jobs", json={"block_id": block_a["id"], **body})
+    assert r.status_code == 422
+    assert fragment in r.json()["detail"]
+
+
+def test_job_for_unknown_block_is_404(client_a):
+    assert client_a.post("/v1/jobs", json={"block_id": "0" * 32}).status_code == 404
+
+
+@pytest.mark.parametrize(
+    "path",
+    ["/v1/blocks/{x}", "/v1/jobs/{x}", "/v1/jobs/{x}/trees", "/v1/jobs/{x}/trees.csv", "/v1/jobs/{x}/report",
+     "/v1/schedules/{x}"],
+)
+def test_unknown_ids_are_404(client_a, path):
+    r = client_a.get(path.format(x="f" * 32))
+    assert r.status_code == 404
+    assert "detail" in r.json()
+
+
+def test_cross_tenant_access_is_404(client_a, client_b, block_a, tmp_path):
+    job = client_a.post("/v1/jobs", json={"block_id": block_a["id"]}).json()
+    assert client_b.get(f"/v1/blocks/{block_a['id']}").status_code == 404
+    assert client_b.get(f"/v1/jobs/{job['id']}").status_code == 404
+    assert client_b.get(f"/v1/jobs/{job['id']}/report").status_code == 404
+    assert client_b.get(f"/v1/jobs/{job['id']}/trees").status_code == 404
+    assert client_b.delete(f"/v1/jobs/{job['id']}").status_code == 404
+    assert client_b.post("/v1/jobs", json={"block_id": block_a["id"]}).status_code == 404
+    assert block_a["id"] not in [b["id"] for b in client_b.get("/v1/blocks").json()]
+    assert job["id"] not in [j["id"] for j in client_b.get("/v1/jobs").json()]
+    inbox = tmp_path / "inbox"
+    inbox.mkdir()
+    sched = client_a.post("/v1/schedules", json={"inbox": str(inbox)}).json()
+    assert client_b.get(f"/v1/schedules/{sched['id']}").status_code == 404
+    assert client_b.post(f"/v1/schedules/{sched['id']}/run").status_code == 404
+    assert client_b.delete(f"/v1/schedules/{sched['id']}").status_code == 404
+    assert client_a.delete(f"/v1/schedules/{sched['id']}").status_code == 204
+    client_a.delete(f"/v1/jobs/{job['id']}")
+
+
+def test_same_file_for_two_tenants_gives_two_blocks(client_a, client_b, block_a, small_las):
+    b = upload(client_b, small_las).json()
+    assert b["sha256"] == block_a["sha256"] and b["id"] != block_a["id"]
+
+
+def test_errors_are_json_without_traceback(client_a):
+    r = client_a.post("/v1/jobs", content=b"{not json", headers={"content-type": "application/json"})
+    assert r.status_code == 422
+    assert "Traceback" not in r.text and isinstance(r.json()["detail"], str)

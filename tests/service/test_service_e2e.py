@@ -1,0 +1,161 @@
+"""End to end against a real `orchard serve` with its runner and an embedded LocalCluster:
+upload a generated block, run a tiled job on the dask workers, download every result;
+and the restart test (the server dies in the middle of a job; the job completes after a restart)."""
+
+from __future__ import annotations
+
+import io
+import re
+import sqlite3
+import time
+
+import httpx
+import numpy as np
+import pyarrow.csv as pacsv
+import pyarrow.parquet as pq
+import pytest
+
+from service_fixtures import ServerProcess, make_token, simulated_block, wait_for_job
+
+pytestmark = pytest.mark.slow
+
+TREE_COLUMNS = ["tree_id", "trunk_x", "trunk_y", "trunk_z", "height_m", "crown_diameter_m", "crown_area_m2",
+                "crown_volume_m3", "trunk_diameter_m", "n_points", "wood_fraction"]
+
+
+@pytest.fixture(scope="module")
+def block_file(tmp_path_factory):
+    pytest.importorskip("workers.job")
+    path = tmp_path_factory.mktemp("e2e") / "orchard.laz"
+    return simulated_block(path, rows=2, trees_per_row=4, seed=7, density=0.3)
+
+
+@pytest.fixture(scope="module")
+def runner_server(tmp_path_factory):
+    pytest.importorskip("workers.job")
+    srv = ServerProcess(tmp_path_factory.mktemp("e2e-server") / "data", ORCHARD_SCHEDULING="false")
+    srv.start()
+    try:
+        yield srv
+    finally:
+        srv.stop()
+
+
+def _client(srv: ServerProcess, tenant: str) -> httpx.Client:
+    token = make_token(srv.data_dir, tenant)
+    return httpx.Client(base_url=srv.url, headers={"Authorization": f"Bearer {token}"}, timeout=60)
+
+
+def test_upload_job_results(runner_server, block_file):
+    with _client(runner_server, "farm-e2e") as c, _client(runner_server, "farm-other") as other:
+        with open(block_file, "rb") as fh:
+            block = c.post("/v1/blocks", files={"file": ("orchard.laz", fh)}).json()
+        assert block["n_points"] > 100_000 and block["crs_wkt"]
+        job = c.post("/v1/jobs", json={"block_id": block["id"], "tiling": {"tile_size": 20}}).json()
+        deadline = time.monotonic() + 150
+        while time.monotonic() < deadline:
+            cur = c.get(f"/v1/jobs/{job['id']}").json()
+            if cur["state"] in ("done", "failed", "cancelled"):
+                break
+            time.sleep(0.2)
+        assert cur["state"] == "done", cur["error"]
+        assert cur["tiles_total"] > 1 and cur["tiles_done"] == cur["tiles_total"]
+        assert cur["timings"] and cur["n_trees"] >= 6 and cur["n_points"] == block["n_points"]
+
+        page = c.get(f"/v1/jobs/{job['id']}/trees", params={"limit": 3, "offset": 1}).json()
+        assert page["total"] == cur["n_trees"] and len(page["items"]) == min(3, page["total"] - 1)
+        assert page["items"][0]["tree_id"] == 2 and set(TREE_COLUMNS) <= set(page["items"][0])
+
+        r = c.get(f"/v1/jobs/{job['id']}/trees.parquet")
+        assert r.status_code == 200 and r.headers["content-type"] == "application/vnd.apache.parquet"
+        trees = pq.read_table(io.BytesIO(r.content))
+        assert trees.num_rows == cur["n_trees"] and set(TREE_COLUMNS) <= set(trees.column_names)
+        assert b"geo" in trees.schema.metadata
+
+        r = c.get(f"/v1/jobs/{job['id']}/trees.csv")
+        assert r.status_code == 200 and r.headers["content-type"].startswith("text/csv")
+        csv = pacsv.read_csv(io.BytesIO(r.content))
+        assert csv.num_rows == cur["n_trees"] and csv.column_names == TREE_COLUMNS
+        np.testing.assert_allclose(csv.column("height_m").to_numpy(), trees.column("height_m").to_numpy())
+
+        r = c.get(f"/v1/jobs/{job['id']}/points.parquet")
+        points = pq.read_table(io.BytesIO(r.content))
+        assert points.num_rows == block["n_points"]
+        assert np.array_equal(np.sort(points.column("point_index").to_numpy()), np.arange(block["n_points"]))
+        assert set(np.unique(points.column("tree_id").to_numpy())) <= set(range(cur["n_trees"] + 1))
+
+        r = c.get(f"/v1/jobs/{job['id']}/report")
+        assert r.status_code == 200 and r.headers["content-type"].startswith("text/html")
+        assert re.search(r'<img [^>]*src="data:image/png;base64,[A-Za-z0-9+/=]{1000,}"', r.text)
+        assert r.text.count("<tr>") == cur["n_trees"] + 1
+        png = c.get(f"/v1/jobs/{job['id']}/map.png")
+        assert png.content[:8] == b"\x89PNG\r\n\x1a\n"
+
+        for suffix in ("", "/trees", "/trees.csv", "/points.parquet", "/report"):
+            assert other.get(f"/v1/jobs/{job['id']}{suffix}").status_code == 404
+        assert c.delete(f"/v1/jobs/{job['id']}").status_code == 409
+
+
+def test_cancel_a_running_job(runner_server, block_file):
+    with _client(runner_server, "farm-e2e") as c:
+        with open(block_file, "rb") as fh:
+            block = c.post("/v1/blocks", files={"file": ("orchard.laz", fh)}).json()
+        job = c.post("/v1/jobs", json={"block_id": block["id"], "tiling": {"tile_size": 20}}).json()
+        assert wait_for_job(c, job["id"], states=("running", "done", "failed"))["state"] == "running"
+        r = c.delete(f"/v1/jobs/{job['id']}")
+        assert r.status_code == 202 and r.json()["cancel_requested"] is True
+        final = wait_for_job(c, job["id"])
+        assert final["state"] == "cancelled", final
+        assert c.get(f"/v1/jobs/{job['id']}/trees").status_code == 409
+
+
+def test_job_that_finds_no_trees_fails_with_its_message(runner_server, tmp_path):
+    from service_fixtures import write_las
+
+    flat = write_las(tmp_path / "flat.laz", 20_000, seed=9)
+    with _client(runner_server, "farm-e2e") as c:
+        with open(flat, "rb") as fh:
+            block = c.post("/v1/blocks", files={"file": ("flat.laz", fh)}).json()
+        job = c.post("/v1/jobs", json={"block_id": block["id"]}).json()
+        done = wait_for_job(c, job["id"])
+        assert done["state"] == "failed"
+        assert "tree" in done["error"] and "Traceback" not in done["error"]
+        assert c.get(f"/v1/jobs/{job['id']}/trees").status_code == 409
+
+
+@pytest.fixture(scope="module")
+def tiny_block(tmp_path_factory):
+    pytest.importorskip("workers.job")
+    path = tmp_path_factory.mktemp("e2e") / "tiny.laz"
+    return simulated_block(path, rows=1, trees_per_row=3, seed=7, density=0.3)
+
+
+def test_restart_in_the_middle_of_a_job(tmp_path, tiny_block):
+    block_file = tiny_block
+    data = tmp_path / "data"
+    srv = ServerProcess(data, ORCHARD_SCHEDULING="false").start()
+    try:
+        token = make_token(data, "farm-restart")
+        c = httpx.Client(base_url=srv.url, headers={"Authorization": f"Bearer {token}"}, timeout=60)
+        with open(block_file, "rb") as fh:
+            block = c.post("/v1/blocks", files={"file": ("orchard.laz", fh)}).json()
+        job = c.post("/v1/jobs", json={"block_id": block["id"]}).json()
+        wait_for_job(c, job["id"], states=("running", "done", "failed"), timeout=60)
+        srv.kill()  # the server and its dask workers die with the job running
+        c.close()
+        con = sqlite3.connect(data / "orchard.sqlite")
+        state = con.execute("SELECT state FROM jobs WHERE id = ?", (job["id"],)).fetchone()[0]
+        con.close()
+        assert state == "running"
+    finally:
+        srv.kill()
+    srv2 = ServerProcess(data, ORCHARD_SCHEDULING="false").start()
+    try:
+        with httpx.Client(base_url=srv2.url, headers={"Authorization": f"Bearer {token}"}, timeout=60) as c2:
+            assert c2.get(f"/v1/blocks/{block['id']}").json()["sha256"] == block["sha256"]  # the upload survived
+            done = wait_for_job(c2, job["id"])
+            assert done["state"] == "done", done["error"]
+            assert done["n_trees"] >= 2
+            assert c2.get(f"/v1/jobs/{job['id']}/trees").json()["total"] == done["n_trees"]
+    finally:
+        srv2.stop()

@@ -1,0 +1,117 @@
+"""The job runner's bookkeeping, with `run_job` replaced by fakes (no dask, no pipeline)."""
+
+from __future__ import annotations
+
+import threading
+import time
+
+import pytest
+
+from pipeline.errors import InputError, NoTreesError
+from service.runner import Runner
+from service.settings import Settings
+from service.store import Store
+
+workers_job = pytest.importorskip("workers.job")
+
+
+@pytest.fixture()
+def env(tmp_path):
+    settings = Settings(data_dir=tmp_path / "data", runner_poll_s=0.05)
+    store = Store(settings.store_path)
+    tenant = store.ensure_tenant("farm")
+    block, _ = store.insert_block(tenant_id=tenant["id"], sha256="ab" * 32, path=str(tmp_path / "b.laz"),
+                                  filename="b.laz", size_bytes=1, info={})
+    yield settings, store, tenant, block
+    store.close()
+
+
+def _queue(store, tenant, block, tiling=None):
+    store.create_job(tenant_id=tenant["id"], block_id=block["id"], params={}, tiling=tiling)
+    return store.claim_next_job()
+
+
+def test_done_records_outcome_and_progress(env, monkeypatch):
+    settings, store, tenant, block = env
+    seen = []
+
+    def fake(spec, *, client, progress, cancel):
+        assert spec.tile_size == 20.0 and spec.input_path == block["path"]
+        for i in range(4):
+            progress(i, 3)
+            seen.append(store.get_job(None, job["id"])["tiles_done"])
+        return workers_job.JobOutcome(100, 3, 3, [], False, {"process": 1.0}, {"trees": "t"}, trees={"x": [1]})
+
+    monkeypatch.setattr(workers_job, "run_job", fake)
+    job = _queue(store, tenant, block, {"tile_size": 20.0, "buffer": None})
+    after = []
+    done = Runner(store, settings, client_factory=lambda: None, after_done=after.append).run_job(job)
+    assert done["state"] == "done" and done["tiles_done"] == 3 and done["tiles_total"] == 3
+    assert seen == [0, 1, 2, 3]
+    assert done["outcome"]["n_trees"] == 3 and "trees" not in done["outcome"]
+    assert done["timings"]["process"] == 1.0 and after and after[0]["id"] == job["id"]
+
+
+@pytest.mark.parametrize(
+    "exc, expected",
+    [
+        (InputError("b.laz: truncated"), "b.laz: truncated"),
+        (NoTreesError("no trees found"), "no trees found"),
+        (ZeroDivisionError("division by zero"), "internal error (ZeroDivisionError): division by zero"),
+    ],
+)
+def test_failures_keep_a_one_line_message(env, monkeypatch, exc, expected):
+    settings, store, tenant, block = env
+
+    def fake(spec, **kw):
+        raise exc
+
+    monkeypatch.setattr(workers_job, "run_job", fake)
+    failed = Runner(store, settings, client_factory=lambda: None).run_job(_queue(store, tenant, block))
+    assert failed["state"] == "failed" and failed["error"] == expected
+    assert "Traceback" not in failed["error"]
+
+
+def test_cluster_that_cannot_start_fails_the_job_clearly(env, monkeypatch):
+    settings, store, tenant, block = env
+
+    def broken():
+        raise OSError("Timed out trying to connect to tcp://10.0.0.1:8786")
+
+    monkeypatch.setattr(workers_job, "run_job", lambda *a, **k: pytest.fail("must not run"))
+    failed = Runner(store, settings, client_factory=broken).run_job(_queue(store, tenant, block))
+    assert failed["state"] == "failed" and failed["error"].startswith("cannot start or reach the dask cluster")
+
+
+def test_cancel_a_running_job_and_stop(env, monkeypatch):
+    settings, store, tenant, block = env
+    started = threading.Event()
+
+    def slow(spec, *, client, progress, cancel):
+        started.set()
+        while not cancel.wait(0.01):
+            pass
+        raise workers_job.JobCancelled("job cancelled")
+
+    monkeypatch.setattr(workers_job, "run_job", slow)
+    store.create_job(tenant_id=tenant["id"], block_id=block["id"], params={}, tiling=None)
+    runner = Runner(store, settings, client_factory=lambda: None)
+    runner.start()
+    assert started.wait(10)
+    job_id = runner.current_job
+    store.request_cancel(tenant["id"], job_id)
+    runner.cancel(job_id)
+    deadline = time.monotonic() + 10
+    while store.get_job(None, job_id)["state"] == "running" and time.monotonic() < deadline:
+        time.sleep(0.02)
+    assert store.get_job(None, job_id)["state"] == "cancelled"
+    # a job interrupted by shutdown stays running, for the next start to re-queue
+    started.clear()
+    store.create_job(tenant_id=tenant["id"], block_id=block["id"], params={}, tiling=None)
+    runner.wake()
+    assert started.wait(10)
+    second = runner.current_job
+    runner.stop()
+    assert not runner.is_alive()
+    assert store.get_job(None, second)["state"] == "running"
+    assert store.requeue_running() == 1

@@ -1,0 +1,146 @@
+"""The SQLite job store: state changes, re-queue on restart, tenant isolation, hashed tokens."""
+
+from __future__ import annotations
+
+import sqlite3
+import threading
+
+import pytest
+
+from pipeline.errors import ConflictError, InputError, NotFoundError
+from service.auth import authenticate, create_token, hash_token
+from service.errors import UnauthorizedError
+from service.store import Store, accept_block
+from service_fixtures import write_las
+
+
+@pytest.fixture()
+def store(tmp_path):
+    s = Store(tmp_path / "orchard.sqlite")
+    yield s
+    s.close()
+
+
+def _block(store, tenant_id, sha="ab" * 32):
+    block, _ = store.insert_block(tenant_id=tenant_id, sha256=sha, path=f"/x/{sha}.las", filename="b.las", size_bytes=10, info={"n_points": 1})
+    return block
+
+
+def test_wal_mode(store):
+    con = sqlite3.connect(store.path)
+    assert con.execute("PRAGMA journal_mode").fetchone()[0] == "wal"
+    con.close()
+
+
+def test_job_states(store):
+    t = store.ensure_tenant("farm")
+    b = _block(store, t["id"])
+    job = store.create_job(tenant_id=t["id"], block_id=b["id"], params={}, tiling=None)
+    assert job["state"] == "queued"
+    claimed = store.claim_next_job()
+    assert claimed["id"] == job["id"] and claimed["state"] == "running" and claimed["attempts"] == 1
+    assert store.claim_next_job() is None
+    store.set_progress(job["id"], 2, 5)
+    assert (store.get_job(t["id"], job["id"])["tiles_done"], store.get_job(t["id"], job["id"])["tiles_total"]) == (2, 5)
+    done = store.finish_job(job["id"], "done", outcome={"n_trees": 3}, timings={"total": 1.5})
+    assert done["state"] == "done" and done["tiles_done"] == 5 and done["outcome"]["n_trees"] == 3
+    with pytest.raises(ConflictError):
+        store.request_cancel(t["id"], job["id"])
+
+
+def test_cancel_queued_and_running(store):
+    t = store.ensure_tenant("farm")
+    b = _block(store, t["id"])
+    j1 = store.create_job(tenant_id=t["id"], block_id=b["id"], params={}, tiling=None)
+    j2 = store.create_job(tenant_id=t["id"], block_id=b["id"], params={}, tiling=None)
+    running = store.claim_next_job()
+    assert running["id"] == j1["id"]
+    assert store.request_cancel(t["id"], j2["id"])["state"] == "cancelled"
+    r = store.request_cancel(t["id"], j1["id"])
+    assert r["state"] == "running" and r["cancel_requested"] == 1
+    assert store.cancel_requested(j1["id"])
+    assert store.claim_next_job() is None  # the cancelled one is never picked up
+
+
+def test_requeue_running_after_a_crash(tmp_path):
+    s1 = Store(tmp_path / "o.sqlite")
+    t = s1.ensure_tenant("farm")
+    b = _block(s1, t["id"])
+    j = s1.create_job(tenant_id=t["id"], block_id=b["id"], params={"a": 1}, tiling={"tile_size": 20.0, "buffer": None})
+    s1.claim_next_job()
+    s1.close()  # the process dies with the job running
+    s2 = Store(tmp_path / "o.sqlite")
+    assert s2.get_job(None, j["id"])["state"] == "running"
+    assert s2.requeue_running() == 1
+    again = s2.claim_next_job()
+    assert again["id"] == j["id"] and again["attempts"] == 2 and again["tiling"]["tile_size"] == 20.0
+    s2.close()
+
+
+def test_claim_is_atomic_across_threads(store):
+    t = store.ensure_tenant("farm")
+    b = _block(store, t["id"])
+    ids = {store.create_job(tenant_id=t["id"], block_id=b["id"], params={}, tiling=None)["id"] for _ in range(20)}
+    got, lock = [], threading.Lock()
+
+    def worker():
+        while (job := store.claim_next_job()) is not None:
+            with lock:
+                got.append(job["id"])
+
+    threads = [threading.Thread(target=worker) for _ in range(4)]
+    for th in threads:
+        th.start()
+    for th in threads:
+        th.join()
+    assert sorted(got) == sorted(ids)
+
+
+def test_tenant_isolation(store):
+    a, b = store.ensure_tenant("a"), store.ensure_tenant("b")
+    blk = _block(store, a["id"])
+    job = store.create_job(tenant_id=a["id"], block_id=blk["id"], params={}, tiling=None)
+    with pytest.raises(NotFoundError):
+        store.get_block(b["id"], blk["id"])
+    with pytest.raises(NotFoundError):
+        store.get_job(b["id"], job["id"])
+    with pytest.raises(NotFoundError):
+        store.request_cancel(b["id"], job["id"])
+    assert store.list_jobs(b["id"]) == [] and store.list_blocks(b["id"]) == []
+
+
+def test_tokens_are_stored_hashed(store):
+    token = create_token(store, "farm")
+    assert authenticate(store, f"Bearer {token}")["name"] == "farm"
+    assert store.tenant_for_token(hash_token(token)) is not None
+    rows = store._con().execute("SELECT hash FROM tokens").fetchall()
+    assert [r[0] for r in rows] == [hash_token(token)]
+    assert token.encode() not in store.path.read_bytes()
+    for header in (None, "", "Bearer", "Token " + token, "Bearer x" + token):
+        with pytest.raises(UnauthorizedError):
+            authenticate(store, header)
+    assert store.revoke_token(hash_token(token))
+    with pytest.raises(UnauthorizedError):
+        authenticate(store, f"Bearer {token}")
+
+
+def test_accept_block_lands_file_and_dedupes(store, tmp_path):
+    t = store.ensure_tenant("farm")
+    src = write_las(tmp_path / "in.laz", 300, seed=4)
+    import hashlib
+
+    sha = hashlib.sha256(src.read_bytes()).hexdigest()
+    blocks = tmp_path / "blocks"
+    for i in range(2):
+        tmp = tmp_path / f"up{i}.part"
+        tmp.write_bytes(src.read_bytes())
+        block, created = accept_block(store, blocks_dir=blocks, tenant_id=t["id"], tmp_path=tmp, sha256=sha, size_bytes=tmp.stat().st_size, filename="in.laz")
+        assert created is (i == 0)
+        assert not tmp.exists()
+    assert (blocks / f"{sha}.laz").read_bytes() == src.read_bytes()
+    assert block["info"]["n_points"] == 300
+    bad = tmp_path / "bad.part"
+    bad.write_bytes(b"nope" * 100)
+    with pytest.raises(InputError, match="capture.las"):
+        accept_block(store, blocks_dir=blocks, tenant_id=t["id"], tmp_path=bad, sha256="0" * 64, size_bytes=400, filename="capture.las")
+    assert not bad.exists() and not list(tmp_path.glob("bad*"))
