@@ -9,7 +9,10 @@
   S = log(p)/log(p_max) over the whole graph, thresholded at the median; points the
   graph does not reach stay unlabelled.
 
-Both return a :class:`pipeline.process.BlockResult` so they are evaluated like our method.
+- ``paper_with_our_trunks``: the paper's segmentation and wood/leaf steps from our
+  trunks, so the comparison of those steps does not depend on trunk finding.
+
+All return a :class:`pipeline.process.BlockResult` so they are evaluated like our method.
 """
 
 from __future__ import annotations
@@ -106,11 +109,24 @@ def _paper_trunks(nodes: np.ndarray, is_ground_node: np.ndarray, graph, grid_ori
     return out
 
 
+def paper_with_our_trunks(
+    xyz: np.ndarray,
+    *,
+    params: PipelineParams,
+    grid_origin: tuple[float, float, float] = (0.0, 0.0, 0.0),
+) -> BlockResult:
+    """The paper's segmentation and wood/leaf steps (one search per trunk, median
+    threshold) started from our trunks: isolates those two steps from trunk finding."""
+    ours = process_points(xyz, params=params, grid_origin=grid_origin)
+    return paper_as_published(xyz, params=params, grid_origin=grid_origin, trunks=ours.trunks)
+
+
 def paper_as_published(
     xyz: np.ndarray,
     *,
     params: PipelineParams,
     grid_origin: tuple[float, float, float] = (0.0, 0.0, 0.0),
+    trunks: np.ndarray | None = None,
 ) -> BlockResult:
     """The paper's method as written (see module docstring).
 
@@ -119,6 +135,8 @@ def paper_as_published(
     xyz : (n, 3) float64 [m]
     params : PipelineParams — voxel size, edge radius and ground parameters are used
     grid_origin : (3,) float
+    trunks : (k, 3) float64, optional — start from these trunks instead of the paper's
+        trunk finding
 
     Returns
     -------
@@ -135,7 +153,7 @@ def paper_as_published(
     ground_frac = np.bincount(vox.point_voxel, weights=is_ground[idx].astype(float), minlength=m) / vox.counts
     is_ground_node = ground_frac > 0.5
     graph_all = build_graph(nodes, radius=params.graph.edge_radius)
-    trunk_nodes = _paper_trunks(nodes, is_ground_node, graph_all, grid_origin)
+    trunk_nodes = _paper_trunks(nodes, is_ground_node, graph_all, grid_origin) if trunks is None else np.asarray(trunks)
     k = trunk_nodes.shape[0]
 
     # segmentation and path counts: one search per trunk over the tree graph (ground removed)
