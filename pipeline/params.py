@@ -36,6 +36,8 @@ class GraphParams(_Model):
         description="segmentation edge weight: 'distance' (paper, plain) or 'enriched' (paper: distance x cosine distance of enrichment features)",
     )
 
+    max_gap: float = Field(1.0, ge=0.0, le=10.0, description="a graph component floating above the ground is joined to its nearest neighbour component across a gap up to this long (sparse scans) [m]")
+
     @model_validator(mode="after")
     def _radius_covers_voxel(self) -> "GraphParams":
         if self.edge_radius < self.voxel_size:

@@ -13,7 +13,7 @@ from scipy import sparse
 
 from pipeline import matter
 from pipeline.enrichment import ShapeFeatures, neighbourhood_matrix, shape_features
-from pipeline.graph import build_graph, reweight
+from pipeline.graph import bridge_floating, build_graph, reweight
 from pipeline.ground import GroundModel, classify_ground, ground_model
 from pipeline.metrics import trunk_diameters
 from pipeline.params import PipelineParams
@@ -122,6 +122,9 @@ def analyse_nodes(
     feats = shape_features(nodes, radius=radius, adjacency=adjacency)
     edge_scale = feats.matrix() if params.graph.weighting == "enriched" else None
     graph = build_graph(nodes, radius=params.graph.edge_radius, edge_scale=edge_scale)
+    graph = bridge_floating(
+        graph, nodes, node_height, floating_height=params.segment.floating_height, max_gap=params.graph.max_gap
+    )
     # drainage to the ground prefers woody paths: leafy (scattered) nodes cost more
     leafiness = np.clip(matter.smooth(feats.scattering, adjacency) / LEAFY_SCATTERING, 0.0, 1.0)
     drainage = reweight(graph, 1.0 + params.trunks.leaf_cost * leafiness)

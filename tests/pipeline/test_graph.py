@@ -108,3 +108,25 @@ def test_enriched_weights_never_shorter_than_distance():
 def test_int32_limit_is_checked_up_front():
     with pytest.raises(ValueError, match="int32"):
         check_graph_size(2**31, 10)
+
+
+def test_floating_fragment_is_bridged_but_grounded_objects_are_not():
+    from scipy.sparse import csgraph
+
+    from pipeline.graph import bridge_floating
+
+    # a trunk column 0..1 m, a crown fragment 1.4..2 m above it (gap 0.4 m), and a post
+    # standing on the ground 0.5 m away from the trunk
+    trunk = np.column_stack([np.zeros(11), np.zeros(11), np.linspace(0, 1, 11)])
+    crown = np.column_stack([np.zeros(7), np.zeros(7), np.linspace(1.4, 2.0, 7)])
+    post = np.column_stack([np.full(8, 0.5), np.zeros(8), np.linspace(0, 0.7, 8)])
+    nodes = np.concatenate([trunk, crown, post])
+    height = nodes[:, 2]
+    g = build_graph(nodes, radius=0.15)
+    assert csgraph.connected_components(g, directed=False)[0] == 3
+    b = bridge_floating(g, nodes, height, floating_height=0.5, max_gap=1.0)
+    n, comp = csgraph.connected_components(b, directed=False)
+    assert n == 2
+    assert comp[11] == comp[0]  # the crown joined the trunk (nearest), not the post
+    assert comp[18] != comp[0]  # the grounded post stays separate
+    assert b.nnz == g.nnz + 2  # one symmetric edge
