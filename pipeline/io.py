@@ -1,0 +1,658 @@
+"""Reading LAS/LAZ blocks and writing the pipeline's outputs.
+
+The only module of ``pipeline`` that touches files (laspy/lazrs, pyarrow, pyproj).
+Blocks are read in bounded-memory chunks and returned in float64 relative to a local
+origin (``floor`` of the header minimum), so UTM-sized coordinates lose nothing:
+``local = X * scale + (offset - origin)`` where ``X`` is the stored integer.
+
+Every problem with an input file becomes an :class:`~pipeline.errors.InputError` whose
+message is one line naming the file and what is wrong. Every output is written to a
+temporary name in the destination folder and renamed when complete, so a failed run
+leaves no partial file behind.
+"""
+
+from __future__ import annotations
+
+import json
+import math
+import os
+import struct
+import uuid
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Callable, Iterator
+
+import laspy
+import numpy as np
+import pyarrow as pa
+import pyarrow.parquet as pq
+
+from pipeline.errors import InputError
+
+#: Largest absolute coordinate accepted [m] (UTM northings are < 1e7).
+MAX_ABS_COORD = 1e8
+#: Largest extent of a block accepted along any axis [m].
+MAX_EXTENT = 1e5
+SUPPORTED_VERSIONS = ("1.0", "1.1", "1.2", "1.3", "1.4")
+SUPPORTED_FORMATS = tuple(range(11))
+
+_XYZ_ONLY = laspy.DecompressionSelection.XY_RETURNS_CHANNEL | laspy.DecompressionSelection.Z
+
+
+@dataclass(frozen=True)
+class BlockInfo:
+    """What the header of a LAS/LAZ block says, checked.
+
+    Attributes
+    ----------
+    path : str
+    n_points : int
+    version : str
+        ``"1.2"``, ``"1.3"`` or ``"1.4"`` (``"1.0"``/``"1.1"`` are read too).
+    point_format : int
+        0–10.
+    compressed : bool
+        True for LAZ.
+    scales, offsets : (3,) float
+        The header's scale factors and offsets.
+    mins, maxs : (3,) float
+        The header's bounds [m], input CRS.
+    crs_wkt : str or None
+        From the WKT VLR or the GeoTIFF keys; None when absent or not understood.
+    origin : (3,) float
+        Local origin = ``floor(mins)``; local coordinates are ``xyz - origin``.
+    """
+
+    path: str
+    n_points: int
+    version: str
+    point_format: int
+    compressed: bool
+    scales: tuple[float, float, float]
+    offsets: tuple[float, float, float]
+    mins: tuple[float, float, float]
+    maxs: tuple[float, float, float]
+    crs_wkt: str | None
+    origin: tuple[float, float, float]
+
+
+def _fail(path, what: str) -> InputError:
+    return InputError(f"{Path(str(path)).name}: {what}")
+
+
+def _one_line(exc: BaseException) -> str:
+    text = " ".join(str(exc).split())
+    return (text[:200] + "...") if len(text) > 200 else (text or type(exc).__name__)
+
+
+def read_info(path) -> BlockInfo:
+    """Read and check the header of a LAS/LAZ file.
+
+    Parameters
+    ----------
+    path : str or Path
+
+    Returns
+    -------
+    BlockInfo
+
+    Raises
+    ------
+    InputError
+        Not a LAS/LAZ file, truncated, no points, NaN/infinite/zero scales or offsets,
+        absurd bounds (``|coord| > 1e8 m`` or extent ``> 1e5 m``), unsupported version
+        or point format.
+    """
+    p = Path(str(path))
+    if not p.is_file():
+        raise _fail(p, "no such file")
+    size = p.stat().st_size
+    with open(p, "rb") as f:
+        magic = f.read(4)
+        if magic != b"LASF":
+            raise _fail(p, "not a LAS/LAZ file (it does not start with 'LASF'); give a .las or .laz point cloud")
+        f.seek(24)
+        raw_version = f.read(2)
+    if len(raw_version) < 2:
+        raise _fail(p, "truncated: the file ends inside the LAS header")
+    version = f"{raw_version[0]}.{raw_version[1]}"
+    if version not in SUPPORTED_VERSIONS:
+        raise _fail(p, f"unsupported LAS version {version}; versions 1.0 to 1.4 are read")
+    try:
+        with laspy.open(str(p), read_evlrs=False) as reader:
+            header = reader.header
+    except Exception as exc:  # laspy raises many types for a broken header
+        raise _fail(p, f"not a readable LAS/LAZ file ({_one_line(exc)})") from None
+    fmt = int(header.point_format.id)
+    if fmt not in SUPPORTED_FORMATS:
+        raise _fail(p, f"unsupported point format {fmt}; formats 0 to 10 are read")
+    n = int(header.point_count)
+    if n == 0:
+        raise _fail(p, "empty: the header says it holds no points")
+    compressed = bool(header.are_points_compressed)
+    start = int(header.offset_to_point_data)
+    if not compressed:
+        need = start + n * int(header.point_format.size)
+        if size < need:
+            have = max(0, (size - start) // int(header.point_format.size))
+            raise _fail(p, f"truncated: the header announces {n} points but the file holds only {have}")
+    else:
+        with open(p, "rb") as f:
+            f.seek(start)
+            raw = f.read(8)
+        if len(raw) < 8:
+            raise _fail(p, "truncated: the file ends before the compressed points")
+        (table,) = struct.unpack("<q", raw)
+        if table != -1 and not (start < table <= size - 8):
+            raise _fail(p, "truncated: the LAZ chunk table lies beyond the end of the file")
+    scales = tuple(float(s) for s in header.scales)
+    offsets = tuple(float(o) for o in header.offsets)
+    if not all(math.isfinite(s) and s > 0 for s in scales):
+        raise _fail(p, f"invalid scale factors {scales}: they must be finite and positive")
+    if not all(math.isfinite(o) and abs(o) <= MAX_ABS_COORD for o in offsets):
+        raise _fail(p, f"absurd offsets {offsets}: coordinates must be finite and within 1e8 m")
+    mins = tuple(float(v) for v in header.mins)
+    maxs = tuple(float(v) for v in header.maxs)
+    if not all(math.isfinite(v) for v in mins + maxs):
+        raise _fail(p, "the header's bounds are NaN or infinite")
+    if any(abs(v) > MAX_ABS_COORD for v in mins + maxs):
+        raise _fail(p, f"absurd coordinates (bounds {mins} to {maxs}): |coordinate| above 1e8 m")
+    if any(hi - lo > MAX_EXTENT or hi < lo for lo, hi in zip(mins, maxs)):
+        raise _fail(p, f"absurd bounds {mins} to {maxs}: a block must span at most 1e5 m; split the file")
+    crs_wkt = None
+    try:
+        crs = header.parse_crs()
+        if crs is not None:
+            crs_wkt = crs.to_wkt()
+    except Exception:  # an unreadable CRS is not fatal: outputs say "unknown CRS"
+        crs_wkt = None
+    origin = tuple(float(math.floor(v)) for v in mins)
+    return BlockInfo(
+        path=str(p),
+        n_points=n,
+        version=version,
+        point_format=fmt,
+        compressed=compressed,
+        scales=scales,
+        offsets=offsets,
+        mins=mins,
+        maxs=maxs,
+        crs_wkt=crs_wkt,
+        origin=origin,
+    )
+
+
+def iter_raw(path, *, chunk_points: int = 2_000_000, info: BlockInfo | None = None) -> Iterator[tuple[int, np.ndarray]]:
+    """Stream the stored integer coordinates of a block in chunks.
+
+    Yields
+    ------
+    start : int
+        Index of the chunk's first point in the file.
+    ints : (m, 3) int32
+        The stored X, Y, Z; coordinates are ``ints * scales + offsets``.
+
+    Raises
+    ------
+    InputError
+        The point data is truncated or corrupt.
+    """
+    info = info or read_info(path)
+    start = 0
+    try:
+        with laspy.open(info.path, read_evlrs=False, decompression_selection=_XYZ_ONLY) as reader:
+            for chunk in reader.chunk_iterator(int(chunk_points)):
+                arr = chunk.array
+                m = len(arr)
+                if m == 0:
+                    break
+                ints = np.empty((m, 3), dtype=np.int32)
+                ints[:, 0] = arr["X"]
+                ints[:, 1] = arr["Y"]
+                ints[:, 2] = arr["Z"]
+                yield start, ints
+                start += m
+    except InputError:
+        raise
+    except Exception as exc:
+        raise _fail(info.path, f"corrupt or truncated point data after point {start} ({_one_line(exc)})") from None
+    if start < info.n_points:
+        raise _fail(info.path, f"truncated: the header announces {info.n_points} points but only {start} could be read")
+
+
+def to_local(ints: np.ndarray, info: BlockInfo, origin=None) -> np.ndarray:
+    """Local float64 coordinates (m, 3) [m] of stored integers: ``X * scale + (offset - origin)``."""
+    org = np.asarray(info.origin if origin is None else origin, dtype=np.float64)
+    scale = np.asarray(info.scales, dtype=np.float64)
+    shift = np.asarray(info.offsets, dtype=np.float64) - org
+    xyz = np.empty(ints.shape, dtype=np.float64)
+    for j in range(3):
+        np.multiply(ints[:, j], scale[j], out=xyz[:, j], casting="unsafe")
+        xyz[:, j] += shift[j]
+    return xyz
+
+
+def check_bounds(xyz: np.ndarray, info: BlockInfo, *, start: int = 0, origin=None) -> None:
+    """Raise InputError if local points (m, 3) lie more than 1 m outside the header's bounds."""
+    org = np.asarray(info.origin if origin is None else origin, dtype=np.float64)
+    lo = np.asarray(info.mins) - org - 1.0
+    hi = np.asarray(info.maxs) - org + 1.0
+    bad = (xyz < lo) | (xyz > hi)
+    if bad.any():
+        i = int(np.flatnonzero(bad.any(axis=1))[0])
+        raise _fail(
+            info.path,
+            f"point {start + i} lies outside the header's bounds ({(xyz[i] + org).tolist()}); the file is corrupt",
+        )
+
+
+def iter_points(path, *, chunk_points: int = 2_000_000, origin=None, info: BlockInfo | None = None) -> Iterator[tuple[int, np.ndarray]]:
+    """Stream the points of a block in chunks.
+
+    Parameters
+    ----------
+    path : str or Path
+    chunk_points : int
+        Points per chunk; memory is bounded by this, not by the file size.
+    origin : (3,) float, optional
+        Local origin [m]; default ``read_info(path).origin``.
+    info : BlockInfo, optional
+        Already-read header information (skips a second header check).
+
+    Yields
+    ------
+    start : int
+        Index of the chunk's first point in the file.
+    xyz : (m, 3) float64
+        Local coordinates [m]: ``X * scale + (offset - origin)``.
+
+    Raises
+    ------
+    InputError
+        The file is broken, the point data is truncated or corrupt, or points lie at
+        absurd coordinates (outside the header's bounds).
+    """
+    info = info or read_info(path)
+    for start, ints in iter_raw(path, chunk_points=chunk_points, info=info):
+        xyz = to_local(ints, info, origin)
+        check_bounds(xyz, info, start=start, origin=origin)
+        yield start, xyz
+
+
+def read_points(path, *, origin=None, chunk_points: int = 2_000_000) -> tuple[np.ndarray, BlockInfo]:
+    """Read a whole block.
+
+    Returns
+    -------
+    xyz : (n, 3) float64
+        Local coordinates [m] (``xyz + info.origin`` when ``origin`` is None).
+    info : BlockInfo
+    """
+    info = read_info(path)
+    out = np.empty((info.n_points, 3), dtype=np.float64)
+    for start, xyz in iter_points(path, chunk_points=chunk_points, origin=origin, info=info):
+        out[start : start + len(xyz)] = xyz
+    return out, info
+
+
+# ---------------------------------------------------------------------------- writing
+
+
+def _temp_name(path: Path) -> Path:
+    return path.with_name(f".{path.name}.{uuid.uuid4().hex[:8]}.tmp")
+
+
+def _crs_object(crs_wkt: str | None, crs_epsg: int | None):
+    import pyproj
+
+    if crs_wkt:
+        return pyproj.CRS.from_wkt(crs_wkt)
+    if crs_epsg:
+        return pyproj.CRS.from_epsg(int(crs_epsg))
+    return None
+
+
+def _add_crs(header: "laspy.LasHeader", crs) -> None:
+    """Store a CRS: a WKT VLR for LAS 1.4 or point formats >= 6, GeoTIFF keys otherwise
+    (falling back to a WKT VLR when the CRS has no GeoTIFF encoding)."""
+    modern = header.version.minor >= 4 or header.point_format.id >= 6
+    try:
+        header.add_crs(crs, keep_compatibility=not modern)
+    except Exception:
+        header.vlrs.append(laspy.vlrs.known.WktCoordinateSystemVlr(crs.to_wkt()))
+        if modern:
+            header.global_encoding.wkt = True
+
+
+def _extra_type(dtype) -> np.dtype:
+    dt = np.dtype(dtype)
+    return np.dtype(np.uint8) if dt == np.bool_ else dt
+
+
+class LasBlockWriter:
+    """Streaming LAS/LAZ writer (LAZ when the path ends in ``.laz``).
+
+    Points are appended with :meth:`write`; the file appears under its name only when
+    :meth:`close` succeeds (it is written to a temporary name in the same folder). Used
+    as a context manager, an exception deletes the temporary file.
+
+    Parameters
+    ----------
+    path : str or Path
+    crs_wkt, crs_epsg : optional
+        CRS stored as a WKT VLR (LAS 1.4, or point formats >= 6) or as GeoTIFF keys
+        (LAS 1.2/1.3 with formats 0–5).
+    scales, offsets : (3,) float
+        Stored integer = round((coordinate - offset) / scale). ``offsets=None`` takes
+        the first written point's coordinates rounded down to 1 km.
+    point_format : int
+        0–10.
+    version : str
+        ``"1.2"``, ``"1.3"`` or ``"1.4"`` (formats >= 6 need 1.4).
+    extra_dims : dict name → numpy dtype, optional
+        Extra-bytes dimensions (bool is stored as uint8).
+    """
+
+    def __init__(
+        self,
+        path,
+        *,
+        crs_wkt: str | None = None,
+        crs_epsg: int | None = None,
+        scales=(0.001, 0.001, 0.001),
+        offsets=None,
+        point_format: int = 6,
+        version: str | None = None,
+        extra_dims: dict | None = None,
+    ):
+        self.path = Path(str(path))
+        if version is None:
+            version = "1.4" if point_format >= 6 else "1.2"
+        header = laspy.LasHeader(version=version, point_format=int(point_format))
+        header.scales = np.asarray(scales, dtype=np.float64)
+        if offsets is not None:
+            header.offsets = np.asarray(offsets, dtype=np.float64)
+        self._extra = {k: _extra_type(v) for k, v in (extra_dims or {}).items()}
+        if self._extra:
+            header.add_extra_dims([laspy.ExtraBytesParams(name=k, type=v) for k, v in self._extra.items()])
+        crs = _crs_object(crs_wkt, crs_epsg)
+        if crs is not None:
+            _add_crs(header, crs)
+        self.header = header
+        self._auto_offsets = offsets is None
+        self._tmp = _temp_name(self.path)
+        self._writer = None if self._auto_offsets else self._open()
+        self.n_points = 0
+        self._closed = False
+
+    def _open(self):
+        return laspy.open(str(self._tmp), mode="w", header=self.header, do_compress=self.path.suffix.lower() == ".laz")
+
+    def write(self, xyz_abs: np.ndarray, **extra: np.ndarray) -> None:
+        """Append points.
+
+        Parameters
+        ----------
+        xyz_abs : (m, 3) float64
+            Absolute coordinates [m], input CRS.
+        **extra : (m,) arrays
+            Values of the extra dimensions named at construction (missing ones are 0).
+        """
+        xyz_abs = np.asarray(xyz_abs, dtype=np.float64)
+        m = len(xyz_abs)
+        if m == 0:
+            return
+        if self._writer is None:
+            self.header.offsets = np.floor(xyz_abs[0] / 1000.0) * 1000.0
+            self._writer = self._open()
+        rec = laspy.ScaleAwarePointRecord.zeros(m, header=self.header)
+        ints = np.round((xyz_abs - self.header.offsets) / self.header.scales)
+        if not np.isfinite(ints).all() or np.abs(ints).max() > np.iinfo(np.int32).max:
+            raise ValueError("coordinates do not fit the LAS integer range with these scales/offsets")
+        rec.array["X"] = ints[:, 0].astype(np.int32)
+        rec.array["Y"] = ints[:, 1].astype(np.int32)
+        rec.array["Z"] = ints[:, 2].astype(np.int32)
+        for name, values in extra.items():
+            if name not in self._extra:
+                raise ValueError(f"unknown extra dimension {name!r}")
+            rec[name] = np.asarray(values).astype(self._extra[name])
+        self._writer.write_points(rec)
+        self.n_points += m
+
+    def close(self) -> None:
+        """Finish the file and move it to its final name."""
+        if self._closed:
+            return
+        self._closed = True
+        if self._writer is None:
+            self._writer = self._open()
+        self._writer.close()
+        os.replace(self._tmp, self.path)
+
+    def abort(self) -> None:
+        """Stop and delete the temporary file; nothing is left behind."""
+        if self._closed:
+            return
+        self._closed = True
+        try:
+            if self._writer is not None:
+                self._writer.close()
+        except Exception:
+            pass
+        self._tmp.unlink(missing_ok=True)
+
+    def __enter__(self) -> "LasBlockWriter":
+        return self
+
+    def __exit__(self, exc_type, exc, tb) -> None:
+        if exc_type is None:
+            self.close()
+        else:
+            self.abort()
+
+
+def write_labelled_las(
+    src_path,
+    dst_path,
+    *,
+    labels: Callable[[int, int], dict[str, np.ndarray]] | dict[str, np.ndarray],
+    chunk_points: int = 2_000_000,
+) -> None:
+    """Copy a block with extra dimensions ``tree_id``, ``is_wood``, ``wood_score``.
+
+    Parameters
+    ----------
+    src_path : input LAS/LAZ
+    dst_path : output; LAZ when it ends in ``.laz``
+    labels : dict of (n,) arrays (may be memory-mapped) or callable ``(start, stop) -> dict``
+        Per-point values for the points ``start:stop`` of the input; keys among
+        ``tree_id`` (int64 → stored int32), ``is_wood`` (bool → uint8), ``wood_score`` (float32).
+    chunk_points : int
+        Points per chunk (bounded memory).
+    """
+    info = read_info(src_path)
+    dst = Path(str(dst_path))
+    types = {"tree_id": np.dtype(np.int32), "is_wood": np.dtype(np.uint8), "wood_score": np.dtype(np.float32)}
+    get = labels if callable(labels) else (lambda a, b: {k: v[a:b] for k, v in labels.items()})
+    tmp = _temp_name(dst)
+    try:
+        with laspy.open(info.path, read_evlrs=True) as reader:
+            src_header = reader.header
+            header = laspy.LasHeader(version=src_header.version, point_format=src_header.point_format.id)
+            header.scales = src_header.scales
+            header.offsets = src_header.offsets
+            header.vlrs = [v for v in src_header.vlrs if not isinstance(v, laspy.vlrs.known.ExtraBytesVlr)]
+            header.global_encoding = src_header.global_encoding
+            src_extra = list(src_header.point_format.extra_dimension_names)
+            keep_extra = [n for n in src_extra if n not in types]
+            params = []
+            for d in src_header.point_format.extra_dimensions:
+                if d.name in keep_extra:
+                    params.append(laspy.ExtraBytesParams(name=d.name, type=d.dtype, description=d.description))
+            params += [laspy.ExtraBytesParams(name=k, type=v) for k, v in types.items()]
+            header.add_extra_dims(params)
+            with laspy.open(str(tmp), mode="w", header=header, do_compress=dst.suffix.lower() == ".laz") as writer:
+                start = 0
+                for chunk in reader.chunk_iterator(int(chunk_points)):
+                    m = len(chunk)
+                    rec = laspy.ScaleAwarePointRecord.zeros(m, header=header)
+                    for name in chunk.point_format.dimension_names:
+                        if name in types:
+                            continue
+                        rec[name] = chunk[name]
+                    for k, v in get(start, start + m).items():
+                        rec[k] = np.asarray(v).astype(types[k])
+                    writer.write_points(rec)
+                    start += m
+                if src_header.evlrs and header.version.minor >= 4:
+                    writer.write_evlrs(src_header.evlrs)
+        os.replace(tmp, dst)
+    except BaseException:
+        tmp.unlink(missing_ok=True)
+        raise
+
+
+# ----------------------------------------------------------------------------- parquet
+
+POINT_SCHEMA = pa.schema(
+    [
+        ("point_index", pa.uint64()),
+        ("tree_id", pa.int64()),
+        ("is_ground", pa.bool_()),
+        ("is_wood", pa.bool_()),
+        ("wood_score", pa.float32()),
+    ]
+)
+
+_WKB_POINT = np.dtype([("order", "u1"), ("kind", "<u4"), ("x", "<f8"), ("y", "<f8")])  # packed: 21 bytes
+
+
+def wkb_points(x: np.ndarray, y: np.ndarray) -> pa.Array:
+    """WKB (little-endian, ISO) 2D points as an Arrow binary array.
+
+    Parameters
+    ----------
+    x, y : (k,) float64 [m]
+    """
+    k = len(x)
+    rec = np.empty(k, dtype=_WKB_POINT)
+    rec["order"] = 1
+    rec["kind"] = 1
+    rec["x"] = x
+    rec["y"] = y
+    offsets = (np.arange(k + 1, dtype=np.int32) * _WKB_POINT.itemsize).astype(np.int32)
+    return pa.BinaryArray.from_buffers(
+        pa.binary(), k, [None, pa.py_buffer(offsets.tobytes()), pa.py_buffer(rec.tobytes())]
+    )
+
+
+def geo_metadata(crs_wkt: str | None, bbox: list[float] | None) -> dict:
+    """GeoParquet 1.1 ``geo`` metadata for a WKB point column named ``geometry``."""
+    crs = None
+    if crs_wkt:
+        import pyproj
+
+        crs = pyproj.CRS.from_wkt(crs_wkt).to_json_dict()
+    column = {"encoding": "WKB", "geometry_types": ["Point"], "crs": crs}
+    if bbox is not None:
+        column["bbox"] = bbox
+    return {"version": "1.1.0", "primary_column": "geometry", "columns": {"geometry": column}}
+
+
+def write_trees_parquet(path, columns: dict[str, np.ndarray], *, crs_wkt: str | None) -> None:
+    """Write the per-tree table as GeoParquet (atomic).
+
+    Parameters
+    ----------
+    path : str or Path
+    columns : dict name → (k,) array
+        ``metrics.TREE_COLUMNS`` (coordinates in the input CRS); other columns are kept.
+    crs_wkt : str or None
+        The block's CRS, stored as PROJJSON in the ``geo`` metadata (``null`` = unknown).
+    """
+    dst = Path(str(path))
+    x = np.asarray(columns["trunk_x"], dtype=np.float64)
+    y = np.asarray(columns["trunk_y"], dtype=np.float64)
+    arrays = {}
+    for name, values in columns.items():
+        arrays[name] = pa.array(np.asarray(values))
+    arrays["geometry"] = wkb_points(x, y)
+    bbox = [float(x.min()), float(y.min()), float(x.max()), float(y.max())] if len(x) else None
+    table = pa.table(arrays)
+    meta = dict(table.schema.metadata or {})
+    meta[b"geo"] = json.dumps(geo_metadata(crs_wkt, bbox)).encode()
+    table = table.replace_schema_metadata(meta)
+    tmp = _temp_name(dst)
+    try:
+        pq.write_table(table, str(tmp))
+        os.replace(tmp, dst)
+    except BaseException:
+        tmp.unlink(missing_ok=True)
+        raise
+
+
+class PointsParquetWriter:
+    """Streaming writer of ``points.parquet`` (atomic: temp name, renamed on close).
+
+    Each :meth:`write` call appends one or more row groups.
+    """
+
+    def __init__(self, path, *, metadata: dict[str, str] | None = None, row_group_size: int = 1_000_000):
+        self.path = Path(str(path))
+        self._tmp = _temp_name(self.path)
+        schema = POINT_SCHEMA
+        if metadata:
+            schema = schema.with_metadata({k.encode(): v.encode() for k, v in metadata.items()})
+        self._writer = pq.ParquetWriter(str(self._tmp), schema)
+        self._row_group_size = int(row_group_size)
+        self.n_rows = 0
+        self._closed = False
+
+    def write(self, point_index, tree_id, is_ground, is_wood, wood_score) -> None:
+        """Append rows; all arrays (m,)."""
+        table = pa.table(
+            [
+                pa.array(np.asarray(point_index, dtype=np.uint64)),
+                pa.array(np.asarray(tree_id, dtype=np.int64)),
+                pa.array(np.asarray(is_ground, dtype=np.bool_)),
+                pa.array(np.asarray(is_wood, dtype=np.bool_)),
+                pa.array(np.asarray(wood_score, dtype=np.float32)),
+            ],
+            schema=POINT_SCHEMA,
+        )
+        self._writer.write_table(table, row_group_size=self._row_group_size)
+        self.n_rows += table.num_rows
+
+    def close(self) -> None:
+        if self._closed:
+            return
+        self._closed = True
+        self._writer.close()
+        os.replace(self._tmp, self.path)
+
+    def abort(self) -> None:
+        if self._closed:
+            return
+        self._closed = True
+        try:
+            self._writer.close()
+        except Exception:
+            pass
+        self._tmp.unlink(missing_ok=True)
+
+    def __enter__(self) -> "PointsParquetWriter":
+        return self
+
+    def __exit__(self, exc_type, exc, tb) -> None:
+        if exc_type is None:
+            self.close()
+        else:
+            self.abort()
+
+
+def read_trees_parquet(path) -> tuple[dict[str, np.ndarray], dict]:
+    """Read ``trees.parquet``: columns (without geometry) and the parsed ``geo`` metadata."""
+    table = pq.read_table(str(path))
+    meta = json.loads((table.schema.metadata or {}).get(b"geo", b"null"))
+    cols = {n: table.column(n).to_numpy() for n in table.column_names if n != "geometry"}
+    return cols, meta

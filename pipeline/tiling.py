@@ -1,0 +1,271 @@
+"""Square tiles with a buffer: the pure geometry of splitting a block.
+
+A grid of square tiles of side ``tile_size`` starts at an explicit ``origin``. Tile
+``(col, row)`` has the half-open *core* ``[x0, x0 + s) x [y0, y0 + s)`` with
+``x0 = origin_x + col * s`` (so every point lies in exactly one core), and the open
+*buffered* box ``(x0 - b, x0 + s + b) x (y0 - b, y0 + s + b)`` (as PDAL's
+``filters.splitter``), which always also holds the tile's own core points (with no
+buffer, the buffered set is just the core, as in PDAL). Tiles are
+numbered row-major over the planned grid. Coordinates may be in any frame, as long as
+points and origin share it.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import numpy as np
+
+from pipeline.errors import ParameterError
+
+
+@dataclass(frozen=True)
+class Tile:
+    """One tile of a grid.
+
+    Attributes
+    ----------
+    id : int
+        Row-major number within the planned grid.
+    col, row : int
+        Grid column and row counted from the grid origin.
+    core : (xmin, ymin, xmax, ymax)
+        Half-open core bounds [m].
+    buffered : (xmin, ymin, xmax, ymax)
+        Open bounds of the core plus the buffer [m].
+    """
+
+    id: int
+    col: int
+    row: int
+    core: tuple[float, float, float, float]
+    buffered: tuple[float, float, float, float]
+
+
+@dataclass(frozen=True)
+class TileGrid:
+    """A planned grid: ``ncols x nrows`` tiles starting at column ``col0``, row ``row0``."""
+
+    origin: tuple[float, float]
+    tile_size: float
+    buffer: float
+    col0: int
+    row0: int
+    ncols: int
+    nrows: int
+
+    @property
+    def n_tiles(self) -> int:
+        return self.ncols * self.nrows
+
+    def tile(self, tile_id: int) -> Tile:
+        """The tile numbered ``tile_id``."""
+        if not 0 <= tile_id < self.n_tiles:
+            raise IndexError(f"tile {tile_id} is not in this grid of {self.n_tiles} tiles")
+        col = self.col0 + tile_id % self.ncols
+        row = self.row0 + tile_id // self.ncols
+        s, b = self.tile_size, self.buffer
+        x0 = self.origin[0] + col * s
+        y0 = self.origin[1] + row * s
+        bx0 = self.origin[0] + col * s - b
+        by0 = self.origin[1] + row * s - b
+        return Tile(
+            id=int(tile_id),
+            col=int(col),
+            row=int(row),
+            core=(x0, y0, self.origin[0] + (col + 1) * s, self.origin[1] + (row + 1) * s),
+            buffered=(bx0, by0, bx0 + s + 2 * b, by0 + s + 2 * b),
+        )
+
+    def tiles(self) -> list[Tile]:
+        return [self.tile(i) for i in range(self.n_tiles)]
+
+    def to_dict(self) -> dict:
+        return {
+            "origin": list(self.origin),
+            "tile_size": self.tile_size,
+            "buffer": self.buffer,
+            "col0": self.col0,
+            "row0": self.row0,
+            "ncols": self.ncols,
+            "nrows": self.nrows,
+        }
+
+    @classmethod
+    def from_dict(cls, d: dict) -> "TileGrid":
+        return cls(
+            origin=(float(d["origin"][0]), float(d["origin"][1])),
+            tile_size=float(d["tile_size"]),
+            buffer=float(d["buffer"]),
+            col0=int(d["col0"]),
+            row0=int(d["row0"]),
+            ncols=int(d["ncols"]),
+            nrows=int(d["nrows"]),
+        )
+
+
+def check_buffer(buffer: float, reach: float) -> None:
+    """Raise ParameterError when a tile buffer [m] is narrower than the parameters' reach [m]."""
+    if buffer < reach:
+        raise ParameterError(
+            f"tile buffer {buffer:g} m is smaller than the reach of the parameters ({reach:g} m = "
+            "2 x segment.max_crown_radius + graph.edge_radius): tiles would cut crowns; "
+            f"use --buffer {math.ceil(reach * 100) / 100:g} or more, or a smaller --segment-max-crown-radius"
+        )
+
+
+def plan_grid(
+    mins,
+    maxs,
+    *,
+    tile_size: float,
+    buffer: float,
+    grid_origin=(0.0, 0.0),
+    reach: float | None = None,
+    max_tiles: int = 1_000_000,
+) -> TileGrid:
+    """Plan the tiles that cover a block.
+
+    Parameters
+    ----------
+    mins, maxs : (2,) or (3,) float
+        Block bounds [m] (only x and y are used).
+    tile_size : float
+        Side of a tile core [m], > 0.
+    buffer : float
+        Width added on every side of a core [m], >= 0.
+    grid_origin : (2,) float
+        A corner of the grid [m]; tile edges lie at ``origin + k * tile_size``.
+    reach : float, optional
+        The parameters' reach (``PipelineParams.reach()``); the buffer must cover it.
+    max_tiles : int
+        Refuse grids with more tiles than this.
+
+    Returns
+    -------
+    TileGrid
+
+    Raises
+    ------
+    ParameterError
+        Non-positive or non-finite sizes, a buffer below the reach, too many tiles.
+    """
+    s, b = float(tile_size), float(buffer)
+    if not (math.isfinite(s) and s > 0):
+        raise ParameterError(f"tile size must be a positive number of metres, not {tile_size}")
+    if not (math.isfinite(b) and b >= 0):
+        raise ParameterError(f"tile buffer must be a non-negative number of metres, not {buffer}")
+    gx, gy = (float(v) for v in grid_origin)
+    if not (math.isfinite(gx) and math.isfinite(gy)):
+        raise ParameterError(f"grid origin must be finite, not {tuple(grid_origin)}")
+    if reach is not None:
+        check_buffer(b, reach)
+    (c0, c1), (r0, r1) = (
+        (_cell(np.asarray([mins[0]]), gx, s)[0], _cell(np.asarray([maxs[0]]), gx, s)[0]),
+        (_cell(np.asarray([mins[1]]), gy, s)[0], _cell(np.asarray([maxs[1]]), gy, s)[0]),
+    )
+    ncols, nrows = int(c1 - c0 + 1), int(r1 - r0 + 1)
+    if ncols * nrows > max_tiles:
+        raise ParameterError(
+            f"tile size {s:g} m gives {ncols * nrows} tiles (more than {max_tiles}); use a larger --tile-size"
+        )
+    return TileGrid(origin=(gx, gy), tile_size=s, buffer=b, col0=int(c0), row0=int(r0), ncols=ncols, nrows=nrows)
+
+
+def _cell(v: np.ndarray, origin: float, size: float) -> np.ndarray:
+    """Cell number k with ``origin + k*size <= v < origin + (k+1)*size``, exactly as the bounds are computed."""
+    k = np.floor((v - origin) / size)
+    # the division may round across an edge: settle it with the same formula the bounds use
+    k = np.where(v < origin + k * size, k - 1, k)
+    k = np.where(v >= origin + (k + 1) * size, k + 1, k)
+    return k.astype(np.int64)
+
+
+def core_tile(xy: np.ndarray, grid: TileGrid) -> np.ndarray:
+    """Tile whose core holds each point.
+
+    Parameters
+    ----------
+    xy : (n, 2) or (n, 3) float64 [m]
+    grid : TileGrid
+
+    Returns
+    -------
+    (n,) int64 tile ids. Points outside the planned grid go to the nearest edge tile,
+    so every point has exactly one core tile.
+    """
+    col = np.clip(_cell(xy[:, 0], grid.origin[0], grid.tile_size) - grid.col0, 0, grid.ncols - 1)
+    row = np.clip(_cell(xy[:, 1], grid.origin[1], grid.tile_size) - grid.row0, 0, grid.nrows - 1)
+    return row * grid.ncols + col
+
+
+def buffered_tiles(xy: np.ndarray, grid: TileGrid, *, core: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
+    """Every (point, tile) pair where the tile's buffered box holds the point.
+
+    A point always belongs to its core tile's buffered set, and to every other tile of
+    the grid whose open buffered box contains it.
+
+    Parameters
+    ----------
+    xy : (n, 2) or (n, 3) float64 [m]
+    grid : TileGrid
+    core : (n,) int64, optional
+        ``core_tile(xy, grid)`` if already computed.
+
+    Returns
+    -------
+    point : (m,) int64
+        Indices into ``xy``.
+    tile : (m,) int64
+        Tile ids; pairs sorted by tile, then point.
+    """
+    # Strategy: a buffer of b reaches at most floor(b/s) + 1 cells away. Only points within
+    # b (plus a rounding margin) of their core's edges can be in another tile's buffer;
+    # for those, test each neighbour offset with the buffered-box formula.
+    if core is None:
+        core = core_tile(xy, grid)
+    n = len(xy)
+    s, b = grid.tile_size, grid.buffer
+    gx, gy = grid.origin
+    pts = [np.arange(n, dtype=np.int64)]
+    tiles = [core.astype(np.int64)]
+    if b > 0 and n:
+        col = core % grid.ncols + grid.col0
+        row = core // grid.ncols + grid.row0
+        tol = 1e-9 * (s + b + abs(gx) + abs(gy))
+        fx = xy[:, 0] - (gx + col * s)
+        fy = xy[:, 1] - (gy + row * s)
+        near = (fx < b + tol) | (fx > s - b - tol) | (fy < b + tol) | (fy > s - b - tol)
+        near |= (fx < 0) | (fx >= s) | (fy < 0) | (fy >= s)  # outside the grid (clipped)
+        sub = np.flatnonzero(near)
+        x, y = xy[sub, 0], xy[sub, 1]
+        col, row = col[sub], row[sub]
+        reach = int(math.floor(b / s)) + 1  # ceil(b/s), plus one where b/s is whole (rounding)
+        offsets = range(-reach, reach + 1)
+        # column/row tests once per offset, then combine them per neighbour
+        xin, yin = {}, {}
+        for d in offsets:
+            c = col + d
+            minx = gx + c * s - b
+            xin[d] = (minx < x) & (x < minx + s + 2 * b) & (c >= grid.col0) & (c < grid.col0 + grid.ncols)
+            r = row + d
+            miny = gy + r * s - b
+            yin[d] = (miny < y) & (y < miny + s + 2 * b) & (r >= grid.row0) & (r < grid.row0 + grid.nrows)
+        for dc in offsets:
+            if not xin[dc].any():
+                continue
+            for dr in offsets:
+                if dc == 0 and dr == 0:
+                    continue
+                idx = np.flatnonzero(xin[dc] & yin[dr])
+                if idx.size:
+                    pts.append(sub[idx])
+                    tiles.append((row[idx] + dr - grid.row0) * grid.ncols + (col[idx] + dc - grid.col0))
+    p = np.concatenate(pts)
+    t = np.concatenate(tiles)
+    if len(tiles) == 1:  # no point in any neighbour's buffer: already sorted by point
+        order = np.argsort(t, kind="stable")
+    else:
+        order = np.argsort(t * np.int64(max(n, 1)) + p)  # keys are unique
+    return p[order], t[order]

@@ -1,0 +1,173 @@
+"""``orchard process``: a LAS/LAZ block in, trees.parquet and points.parquet out."""
+
+from __future__ import annotations
+
+import argparse
+import sys
+import time
+from pathlib import Path
+
+from pipeline.errors import ParameterError
+from service.commands.options import add_pipeline_options, pipeline_params_from_args
+
+NAME = "process"
+HELP = (
+    "Process a LAS/LAZ block into trees.parquet (one row per tree, GeoParquet) and points.parquet "
+    "(one row per input point). Without --tile-size the block is processed in one piece in this "
+    "process; with it, the block is split into buffered tiles processed by dask workers and merged. "
+    "Exit codes: 0 done, 1 a tile failed or internal error, 2 bad input or parameters, "
+    "3 no trees, 4 finished without some tiles (partial result; re-run them with --rerun-tile)."
+)
+
+
+def _origin(text: str) -> tuple[float, float]:
+    try:
+        x, y = (float(v) for v in text.split(","))
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"expected X,Y in metres, not {text!r}") from None
+    return x, y
+
+
+def add_arguments(parser: argparse.ArgumentParser) -> None:
+    parser.add_argument("input", metavar="INPUT", help="LAS or LAZ block (LAS 1.2-1.4, point formats 0-10)")
+    parser.add_argument("--out", required=True, metavar="DIR", help="output folder for trees.parquet and points.parquet")
+    g = parser.add_argument_group("tiling and workers")
+    g.add_argument("--tile-size", type=float, default=None, metavar="M", help="side of a square tile core [m]; default: one tile")
+    g.add_argument(
+        "--buffer", type=float, default=None, metavar="M",
+        help="tile buffer on every side [m]; default and minimum: the parameters' reach (2 x max crown radius + edge radius)",
+    )
+    g.add_argument("--grid-origin", type=_origin, default=None, metavar="X,Y", help="a corner of the tile grid, input CRS [m]; default: the block's minimum, rounded down")
+    g.add_argument("--workers", type=int, default=2, metavar="N", help="workers of the embedded dask cluster (default 2)")
+    g.add_argument("--scheduler", default=None, metavar="tcp://HOST:PORT", help="use a running dask cluster instead of an embedded one")
+    g.add_argument("--work", default=None, metavar="DIR_OR_URL", help="work store for tiles (folder or fsspec URL); default OUT/_work")
+    g.add_argument("--engine", choices=["laspy", "pdal"], default="laspy", help="tiler engine (pdal needs PDAL's Python bindings)")
+    g.add_argument("--rerun-tile", type=int, action="append", default=None, metavar="ID", help="re-run this failed tile of the job in --work alone, then merge again (repeatable)")
+    g.add_argument("--resume", action="store_true", help="process the tiles of the job in --work that have no result yet, then merge")
+    g.add_argument("--labelled-laz", action="store_true", help="also write labelled.laz: the input with extra dimensions tree_id, is_wood, wood_score")
+    g.add_argument("--inject-failure", type=int, action="append", default=None, help=argparse.SUPPRESS)
+    add_pipeline_options(parser)
+
+
+class _Bar:
+    """A plain-text progress bar over tiles on stderr."""
+
+    def __init__(self, stream=None):
+        self.stream = stream
+        self.start = time.perf_counter()
+
+    def __call__(self, done: int, total: int) -> None:
+        width = 30
+        fill = int(width * done / total) if total else width
+        elapsed = time.perf_counter() - self.start
+        stream = self.stream or sys.stderr
+        stream.write(f"tiles [{'#' * fill}{'.' * (width - fill)}] {done}/{total}  {elapsed:6.1f} s\n")
+        stream.flush()
+
+
+def _print_trees(trees: dict, stream=None) -> None:
+    stream = stream or sys.stdout
+    cols = [
+        ("tree_id", "tree", "{:d}"),
+        ("trunk_x", "trunk_x", "{:.2f}"),
+        ("trunk_y", "trunk_y", "{:.2f}"),
+        ("height_m", "height_m", "{:.2f}"),
+        ("crown_diameter_m", "crown_d_m", "{:.2f}"),
+        ("crown_area_m2", "crown_m2", "{:.1f}"),
+        ("trunk_diameter_m", "trunk_d_m", "{:.3f}"),
+        ("n_points", "points", "{:d}"),
+        ("wood_fraction", "wood", "{:.2f}"),
+    ]
+    rows = [[h for _, h, _ in cols]]
+    for i in range(len(trees["tree_id"])):
+        row = []
+        for name, _, fmt in cols:
+            v = trees[name][i]
+            row.append("nan" if isinstance(v, float) and v != v else fmt.format(v.item() if hasattr(v, "item") else v))
+        rows.append(row)
+    widths = [max(len(r[j]) for r in rows) for j in range(len(cols))]
+    for r in rows:
+        stream.write("  ".join(c.rjust(w) for c, w in zip(r, widths)) + "\n")
+
+
+def run(args: argparse.Namespace) -> int:
+    from workers.job import JobSpec, TileFailed, check_job, finish_job, resume_job, run_job, run_tile
+
+    params = pipeline_params_from_args(args)
+    if args.workers < 1:
+        raise ParameterError(f"--workers must be at least 1, not {args.workers}")
+    if args.rerun_tile or args.resume:
+        if not args.work:
+            raise ParameterError("--rerun-tile and --resume need --work: the work folder of the tiled run that failed")
+        for tid in args.rerun_tile or ():
+            print(f"re-running tile {tid} from {args.work}", file=sys.stderr)
+            run_tile(args.work, tid)
+        if not args.resume:
+            return _report(finish_job(args.work, out_dir=args.out), args)
+        client = None
+        try:
+            if args.scheduler:
+                from workers.cluster import close_client, make_client
+
+                client = make_client(args.scheduler)
+            try:
+                outcome = resume_job(args.work, out_dir=args.out, client=client, progress=_Bar())
+            except TileFailed as exc:
+                print(f"orchard process: {exc}", file=sys.stderr)
+                return 1
+        finally:
+            if client is not None:
+                close_client(client)
+        return _report(outcome, args)
+
+    spec = JobSpec(
+        input_path=args.input,
+        out_dir=args.out,
+        params=params,
+        tile_size=args.tile_size,
+        buffer=args.buffer,
+        grid_origin=args.grid_origin,
+        work_dir=args.work,
+        labelled_laz=args.labelled_laz,
+        engine=args.engine,
+        inject_failure=tuple(args.inject_failure or ()),
+    )
+    tiled = args.tile_size is not None or args.scheduler is not None
+    client = None
+    try:
+        check_job(spec, tiled=tiled)  # bad input or parameters fail before a cluster starts
+        if tiled:
+            from workers.cluster import close_client, dashboard_address, make_client
+
+            client = make_client(args.scheduler, n_workers=args.workers)
+            link = dashboard_address(client)
+            print(f"dask dashboard: {link or 'none'}", file=sys.stderr)
+        try:
+            outcome = run_job(spec, client=client, progress=_Bar() if tiled else None)
+        except TileFailed as exc:
+            print(f"orchard process: {exc}", file=sys.stderr)
+            return 1
+    finally:
+        if client is not None:
+            close_client(client)
+    return _report(outcome, args)
+
+
+def _report(outcome, args) -> int:
+    if outcome.trees is not None:
+        _print_trees(outcome.trees)
+    out = Path(args.out)
+    print(
+        f"{outcome.n_trees} trees, {outcome.n_points} points, {outcome.n_tiles} tile(s) "
+        f"in {outcome.timings.get('total', 0.0):.1f} s -> {out}",
+        file=sys.stderr,
+    )
+    if outcome.partial:
+        tiles = " ".join(f"--rerun-tile {t}" for t in outcome.failed_tiles)
+        print(
+            f"orchard process: partial result: tiles {outcome.failed_tiles} failed and are missing; "
+            f"re-run them with: orchard process {args.input} --out {args.out} --work {args.work or out / '_work'} {tiles}",
+            file=sys.stderr,
+        )
+        return 4
+    return 0

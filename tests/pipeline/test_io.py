@@ -1,0 +1,361 @@
+"""Reading blocks and writing outputs: round trips, CRS, precision and every bad input."""
+
+from __future__ import annotations
+
+import json
+import struct
+
+import laspy
+import numpy as np
+import pyarrow.parquet as pq
+import pyproj
+import pytest
+from hypothesis import given, settings
+from hypothesis import strategies as st
+from hypothesis.extra import numpy as hnp
+
+from pipeline import io
+from pipeline.errors import InputError
+
+EASTING, NORTHING = 512_345.0, 6_234_567.0
+
+
+def _cloud(n=5000, seed=0):
+    rng = np.random.default_rng(seed)
+    return rng.uniform(0, 40, (n, 3)) + [EASTING, NORTHING, 100.0]
+
+
+def _write(path, xyz, **kw):
+    kw.setdefault("offsets", (EASTING, NORTHING, 0.0))
+    with io.LasBlockWriter(path, **kw) as w:
+        half = len(xyz) // 2
+        w.write(xyz[:half])
+        w.write(xyz[half:])
+    return path
+
+
+@pytest.mark.parametrize(
+    "version,fmt,suffix",
+    [
+        ("1.2", 0, ".las"),
+        ("1.2", 1, ".laz"),
+        ("1.2", 3, ".las"),
+        ("1.3", 2, ".laz"),
+        ("1.4", 1, ".las"),
+        ("1.4", 6, ".laz"),
+        ("1.4", 7, ".las"),
+        ("1.4", 8, ".laz"),
+        ("1.4", 10, ".laz"),
+    ],
+)
+def test_round_trip_versions_and_formats(tmp_path, version, fmt, suffix):
+    xyz = _cloud()
+    path = _write(tmp_path / f"b{suffix}", xyz, version=version, point_format=fmt, crs_epsg=28356)
+    info = io.read_info(path)
+    assert (info.version, info.point_format, info.compressed) == (version, fmt, suffix == ".laz")
+    assert info.n_points == len(xyz)
+    assert info.origin == tuple(np.floor(xyz.min(axis=0)))
+    pts, info2 = io.read_points(path)
+    assert info2 == info
+    assert np.abs(pts + info.origin - xyz).max() <= 0.0005 + 1e-9  # half the 1 mm scale
+    assert pyproj.CRS.from_wkt(info.crs_wkt).to_epsg() == 28356
+
+
+@pytest.mark.parametrize("version,fmt,wkt", [("1.2", 3, False), ("1.4", 1, True), ("1.4", 6, True)])
+def test_crs_is_kept(tmp_path, version, fmt, wkt):
+    """GeoTIFF keys for LAS 1.2 formats 0-5, a WKT VLR otherwise; both read back."""
+    path = _write(tmp_path / "b.las", _cloud(100), version=version, point_format=fmt, crs_epsg=32755)
+    with laspy.open(path) as r:
+        kinds = {type(v).__name__ for v in r.header.vlrs}
+    assert ("WktCoordinateSystemVlr" in kinds) == wkt
+    assert ("GeoKeyDirectoryVlr" in kinds) == (not wkt)
+    assert pyproj.CRS.from_wkt(io.read_info(path).crs_wkt).to_epsg() == 32755
+
+
+def test_custom_crs_without_geotiff_encoding(tmp_path):
+    custom = pyproj.CRS.from_proj4("+proj=tmerc +lat_0=0 +lon_0=151.1 +k=1 +x_0=50000 +y_0=0 +ellps=GRS80 +units=m")
+    path = _write(tmp_path / "b.las", _cloud(100), version="1.2", point_format=3, crs_wkt=custom.to_wkt())
+    assert pyproj.CRS.from_wkt(io.read_info(path).crs_wkt).equals(custom)
+
+
+def test_no_crs_is_none(tmp_path):
+    assert io.read_info(_write(tmp_path / "b.las", _cloud(10))).crs_wkt is None
+
+
+def test_utm_coordinates_lose_nothing(tmp_path):
+    """Local float64 coordinates equal the stored integers times the scale exactly (to 1e-9 m)."""
+    xyz = _cloud(20_000) + [0.0, 3_000_000.0, 0.0]  # a northing near 9.2e6 m
+    path = _write(tmp_path / "b.laz", xyz, offsets=(EASTING, NORTHING + 3e6, 0.0), scales=(0.0001, 0.0001, 0.0001))
+    info = io.read_info(path)
+    las = laspy.read(path)
+    exact = np.column_stack([las.X * 0.0001 + info.offsets[0], las.Y * 0.0001 + info.offsets[1], las.Z * 0.0001])
+    pts, _ = io.read_points(path)
+    assert np.abs(pts + info.origin - exact).max() < 1e-6
+    assert np.abs(pts + info.origin - xyz).max() < 1e-3
+
+
+def test_iter_points_chunks_cover_the_file_in_order(tmp_path):
+    xyz = _cloud(10_001)
+    path = _write(tmp_path / "b.laz", xyz)
+    starts, total = [], 0
+    whole, info = io.read_points(path)
+    for start, chunk in io.iter_points(path, chunk_points=3000):
+        assert chunk.shape[1] == 3 and chunk.dtype == np.float64 and len(chunk) <= 3000
+        assert np.array_equal(chunk, whole[start : start + len(chunk)])
+        starts.append(start)
+        total += len(chunk)
+    assert total == len(xyz) and starts[0] == 0 and starts == sorted(starts)
+
+
+def test_custom_origin(tmp_path):
+    path = _write(tmp_path / "b.las", _cloud(100))
+    pts, info = io.read_points(path, origin=(EASTING, NORTHING, 0.0))
+    pts2, _ = io.read_points(path)
+    assert np.allclose(pts + [EASTING, NORTHING, 0.0], pts2 + info.origin, atol=1e-9)
+
+
+# ------------------------------------------------------------------------- bad input
+
+
+def _one_line(err: pytest.ExceptionInfo) -> str:
+    msg = str(err.value)
+    assert "\n" not in msg and len(msg) < 300
+    return msg
+
+
+def test_not_las(tmp_path):
+    p = tmp_path / "notes.laz"
+    p.write_text("hello, this is a text file\n")
+    with pytest.raises(InputError) as e:
+        io.read_info(p)
+    assert "not a LAS/LAZ file" in _one_line(e)
+
+
+def test_garbage_after_magic(tmp_path):
+    p = tmp_path / "g.las"
+    p.write_bytes(b"LASF" + np.random.default_rng(1).bytes(400))
+    with pytest.raises(InputError) as e:
+        io.read_info(p)
+    _one_line(e)
+
+
+def test_tiny_file(tmp_path):
+    p = tmp_path / "t.las"
+    p.write_bytes(b"LASF\x00")
+    with pytest.raises(InputError) as e:
+        io.read_info(p)
+    assert "truncated" in _one_line(e)
+
+
+def test_missing_file(tmp_path):
+    with pytest.raises(InputError, match="no such file"):
+        io.read_info(tmp_path / "nope.las")
+
+
+@pytest.mark.parametrize("suffix", [".las", ".laz"])
+def test_truncated(tmp_path, suffix):
+    path = _write(tmp_path / f"b{suffix}", _cloud(50_000))
+    data = path.read_bytes()
+    cut = tmp_path / f"cut{suffix}"
+    cut.write_bytes(data[: len(data) // 2])
+    with pytest.raises(InputError) as e:
+        io.read_points(cut)
+    assert "truncated" in _one_line(e)
+
+
+def test_empty_header_only(tmp_path):
+    header = laspy.LasHeader(version="1.4", point_format=6)
+    with laspy.open(tmp_path / "e.las", mode="w", header=header):
+        pass
+    with pytest.raises(InputError) as e:
+        io.read_info(tmp_path / "e.las")
+    assert "empty" in _one_line(e)
+
+
+def _patch(path, offset, fmt, *values):
+    data = bytearray(path.read_bytes())
+    struct.pack_into(fmt, data, offset, *values)
+    path.write_bytes(bytes(data))
+
+
+@pytest.mark.parametrize("value", [float("nan"), float("inf"), 0.0])
+def test_bad_scale(tmp_path, value):
+    path = _write(tmp_path / "b.las", _cloud(100))
+    _patch(path, 131, "<d", value)  # x scale factor
+    with pytest.raises(InputError) as e:
+        io.read_info(path)
+    assert "scale" in _one_line(e)
+
+
+def test_absurd_offsets(tmp_path):
+    path = _write(tmp_path / "b.las", _cloud(100))
+    _patch(path, 155, "<d", 1e12)  # x offset
+    with pytest.raises(InputError) as e:
+        io.read_info(path)
+    assert "absurd" in _one_line(e)
+
+
+def test_nan_bounds(tmp_path):
+    path = _write(tmp_path / "b.las", _cloud(100))
+    _patch(path, 179, "<d", float("nan"))  # max x
+    with pytest.raises(InputError) as e:
+        io.read_info(path)
+    assert "NaN" in _one_line(e)
+
+
+def test_absurd_extent(tmp_path):
+    xyz = _cloud(100)
+    xyz[0, 0] += 150_000.0
+    path = _write(tmp_path / "b.las", xyz)
+    with pytest.raises(InputError) as e:
+        io.read_info(path)
+    assert "absurd" in _one_line(e)
+
+
+def test_points_outside_header_bounds(tmp_path):
+    path = _write(tmp_path / "b.las", _cloud(100))
+    _patch(path, 187, "<d", EASTING + 30.0)  # min x: many points now lie outside
+    with pytest.raises(InputError) as e:
+        io.read_points(path)
+    assert "outside" in _one_line(e)
+
+
+def test_unsupported_version(tmp_path):
+    path = _write(tmp_path / "b.las", _cloud(100))
+    _patch(path, 24, "<BB", 2, 0)
+    with pytest.raises(InputError) as e:
+        io.read_info(path)
+    assert "version 2.0" in _one_line(e)
+
+
+# --------------------------------------------------------------------------- writers
+
+
+def test_writer_leaves_nothing_on_error(tmp_path):
+    with pytest.raises(RuntimeError):
+        with io.LasBlockWriter(tmp_path / "x.laz") as w:
+            w.write(_cloud(10))
+            raise RuntimeError("boom")
+    assert list(tmp_path.iterdir()) == []
+
+
+def test_writer_extra_dims(tmp_path):
+    xyz = _cloud(1000)
+    with io.LasBlockWriter(tmp_path / "x.laz", offsets=(EASTING, NORTHING, 0), extra_dims={"tree_id": np.int32, "flag": bool}) as w:
+        w.write(xyz, tree_id=np.arange(1000), flag=np.arange(1000) % 2 == 0)
+    las = laspy.read(tmp_path / "x.laz")
+    assert np.array_equal(las.tree_id, np.arange(1000))
+    assert np.array_equal(las.flag, (np.arange(1000) % 2 == 0).astype(np.uint8))
+
+
+def test_labelled_las(tmp_path):
+    xyz = _cloud(3000)
+    src = _write(tmp_path / "b.las", xyz, point_format=3, crs_epsg=28356)
+    n = len(xyz)
+    labels = {"tree_id": np.arange(n) % 7, "is_wood": np.arange(n) % 3 == 0, "wood_score": np.linspace(0, 1, n, dtype=np.float32)}
+    io.write_labelled_las(src, tmp_path / "out.laz", labels=labels, chunk_points=1000)
+    las = laspy.read(tmp_path / "out.laz")
+    assert np.array_equal(las.tree_id, labels["tree_id"])
+    assert np.array_equal(las.is_wood.astype(bool), labels["is_wood"])
+    assert np.array_equal(las.wood_score, labels["wood_score"])
+    orig = laspy.read(src)
+    assert np.array_equal(las.X, orig.X) and np.array_equal(las.Z, orig.Z)
+    assert las.header.parse_crs().to_epsg() == 28356
+
+
+def _tree_columns(k, rng):
+    cols = {
+        "tree_id": np.arange(1, k + 1, dtype=np.int64),
+        "trunk_x": rng.uniform(0, 100, k) + EASTING,
+        "trunk_y": rng.uniform(0, 100, k) + NORTHING,
+        "trunk_z": rng.uniform(50, 60, k),
+    }
+    for name in ("height_m", "crown_diameter_m", "crown_area_m2", "crown_volume_m3", "trunk_diameter_m", "wood_fraction"):
+        cols[name] = rng.uniform(0, 10, k)
+    cols["n_points"] = rng.integers(0, 10_000, k).astype(np.int64)
+    return cols
+
+
+@pytest.mark.parametrize("epsg", [28356, None])
+def test_trees_geoparquet(tmp_path, epsg):
+    cols = _tree_columns(12, np.random.default_rng(3))
+    wkt = pyproj.CRS.from_epsg(epsg).to_wkt() if epsg else None
+    io.write_trees_parquet(tmp_path / "trees.parquet", cols, crs_wkt=wkt)
+    table = pq.read_table(tmp_path / "trees.parquet")
+    geo = json.loads(table.schema.metadata[b"geo"])
+    assert geo["version"] == "1.1.0" and geo["primary_column"] == "geometry"
+    col = geo["columns"]["geometry"]
+    assert col["encoding"] == "WKB" and col["geometry_types"] == ["Point"]
+    if epsg:
+        assert pyproj.CRS.from_json_dict(col["crs"]).to_epsg() == epsg
+    else:
+        assert col["crs"] is None
+    assert col["bbox"] == [cols["trunk_x"].min(), cols["trunk_y"].min(), cols["trunk_x"].max(), cols["trunk_y"].max()]
+    for wkb, x, y in zip(table.column("geometry").to_pylist(), cols["trunk_x"], cols["trunk_y"]):
+        assert struct.unpack("<BIdd", wkb) == (1, 1, x, y)
+    back, _ = io.read_trees_parquet(tmp_path / "trees.parquet")
+    for name, values in cols.items():
+        assert back[name].dtype == values.dtype and np.array_equal(back[name], values)
+
+
+def test_trees_geoparquet_empty(tmp_path):
+    io.write_trees_parquet(tmp_path / "t.parquet", _tree_columns(0, np.random.default_rng(0)), crs_wkt=None)
+    assert pq.read_table(tmp_path / "t.parquet").num_rows == 0
+
+
+_float = st.floats(allow_nan=False, allow_infinity=False, width=64, min_value=-1e7, max_value=1e7)
+
+
+@settings(max_examples=25, deadline=None)
+@given(
+    k=st.integers(0, 30),
+    seed=st.integers(0, 2**32 - 1),
+    xs=hnp.arrays(np.float64, 30, elements=_float),
+)
+def test_trees_parquet_round_trip_property(tmp_path_factory, k, seed, xs):
+    path = tmp_path_factory.mktemp("trees") / "trees.parquet"
+    cols = _tree_columns(k, np.random.default_rng(seed))
+    cols["trunk_x"] = xs[:k]
+    io.write_trees_parquet(path, cols, crs_wkt=None)
+    back, geo = io.read_trees_parquet(path)
+    for name, values in cols.items():
+        assert np.array_equal(back[name], values)
+    wkb = pq.read_table(path).column("geometry").to_pylist()
+    assert [struct.unpack("<BIdd", w)[2:] for w in wkb] == list(zip(cols["trunk_x"], cols["trunk_y"]))
+
+
+@settings(max_examples=25, deadline=None)
+@given(
+    sizes=st.lists(st.integers(0, 200), min_size=1, max_size=5),
+    seed=st.integers(0, 2**32 - 1),
+    scores=st.lists(st.floats(width=32, allow_nan=False), min_size=1, max_size=5),
+)
+def test_points_parquet_round_trip_property(tmp_path_factory, sizes, seed, scores):
+    path = tmp_path_factory.mktemp("points") / "points.parquet"
+    rng = np.random.default_rng(seed)
+    parts = []
+    with io.PointsParquetWriter(path, row_group_size=64) as w:
+        for i, m in enumerate(sizes):
+            part = (
+                rng.integers(0, 2**64 - 1, m, dtype=np.uint64, endpoint=True),
+                rng.integers(-(2**63), 2**63 - 1, m, dtype=np.int64),
+                rng.random(m) < 0.5,
+                rng.random(m) < 0.5,
+                np.full(m, scores[i % len(scores)], dtype=np.float32),
+            )
+            w.write(*part)
+            parts.append(part)
+    table = pq.read_table(path)
+    assert table.schema.names == ["point_index", "tree_id", "is_ground", "is_wood", "wood_score"]
+    for j, name in enumerate(table.schema.names):
+        expect = np.concatenate([p[j] for p in parts])
+        got = table.column(name).to_numpy()
+        assert got.dtype == expect.dtype and np.array_equal(got, expect)
+
+
+def test_points_writer_aborts_cleanly(tmp_path):
+    with pytest.raises(ValueError):
+        with io.PointsParquetWriter(tmp_path / "points.parquet") as w:
+            w.write([1], [1], [True], [False], [0.5])
+            raise ValueError("stop")
+    assert list(tmp_path.iterdir()) == []

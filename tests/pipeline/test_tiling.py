@@ -1,0 +1,111 @@
+"""Tile geometry: every point in exactly one core; buffered sets are exactly the points in the buffered box."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+from hypothesis import given, settings
+from hypothesis import strategies as st
+
+from pipeline.errors import ParameterError
+from pipeline.params import PipelineParams, SegmentParams
+from pipeline.tiling import buffered_tiles, check_buffer, core_tile, plan_grid
+
+
+def _brute_force(xy, grid):
+    """(point, tile) pairs by testing every tile's bounds directly."""
+    pairs = set()
+    for t in grid.tiles():
+        x0, y0, x1, y1 = t.core
+        in_core = (x0 <= xy[:, 0]) & (xy[:, 0] < x1) & (y0 <= xy[:, 1]) & (xy[:, 1] < y1)
+        bx0, by0, bx1, by1 = t.buffered
+        in_buf = (bx0 < xy[:, 0]) & (xy[:, 0] < bx1) & (by0 < xy[:, 1]) & (xy[:, 1] < by1)
+        in_buf &= grid.buffer > 0  # no buffer: the buffered set is the core (as PDAL)
+        pairs |= {(int(i), t.id) for i in np.flatnonzero(in_core | in_buf)}
+    return pairs
+
+
+coord = st.floats(min_value=0.0, max_value=6.0, allow_nan=False, allow_infinity=False)  # in tile sizes
+
+
+@settings(max_examples=200, deadline=None)
+@given(
+    pts=st.lists(st.tuples(coord, coord), min_size=1, max_size=60),
+    size=st.sampled_from([0.1, 0.3, 1.0, 2.5, 7.0, 10.0, 33.3]),
+    buffer_frac=st.floats(min_value=0.0, max_value=2.5),
+    ox=st.floats(min_value=-3.0, max_value=0.0),
+    oy=st.floats(min_value=-3.0, max_value=0.0),
+    shift=st.sampled_from([0.0, 512_345.0, 6_950_000.0]),
+    snap=st.booleans(),
+)
+def test_every_point_in_exactly_one_core_and_buffers_exact(pts, size, buffer_frac, ox, oy, shift, snap):
+    xy = np.asarray(pts, dtype=np.float64) * size + shift
+    ox, oy = ox * size + shift, oy * size + shift
+    if snap:  # put points exactly on tile edges
+        xy = ox + np.round((xy - ox) / size) * size
+    grid = plan_grid(xy.min(0), xy.max(0), tile_size=size, buffer=buffer_frac * size, grid_origin=(ox, oy))
+    core = core_tile(xy, grid)
+    # exactly one core per point, and the point is inside that core's half-open bounds
+    for i, t in enumerate(core):
+        x0, y0, x1, y1 = grid.tile(int(t)).core
+        assert x0 <= xy[i, 0] < x1 and y0 <= xy[i, 1] < y1
+        cores_holding = [
+            tt.id for tt in grid.tiles()
+            if tt.core[0] <= xy[i, 0] < tt.core[2] and tt.core[1] <= xy[i, 1] < tt.core[3]
+        ]
+        assert cores_holding == [int(t)]
+    p, tiles = buffered_tiles(xy, grid, core=core)
+    got = set(zip(p.tolist(), tiles.tolist()))
+    assert len(got) == len(p)  # no duplicate pairs
+    assert got == _brute_force(xy, grid)
+    assert np.all(np.diff(tiles) >= 0)
+
+
+def test_hand_checked_grid():
+    grid = plan_grid((0.0, 0.0), (19.9, 9.9), tile_size=10.0, buffer=1.0, grid_origin=(0.0, 0.0))
+    assert (grid.ncols, grid.nrows) == (2, 1)
+    assert grid.tile(1).core == (10.0, 0.0, 20.0, 10.0)
+    assert grid.tile(1).buffered == (9.0, -1.0, 21.0, 11.0)
+    xy = np.array([[10.0, 5.0], [9.5, 5.0], [5.0, 5.0], [9.0, 5.0], [10.9, 5.0]])
+    assert core_tile(xy, grid).tolist() == [1, 0, 0, 0, 1]
+    p, t = buffered_tiles(xy, grid)
+    assert sorted(zip(p.tolist(), t.tolist())) == [(0, 0), (0, 1), (1, 0), (1, 1), (2, 0), (3, 0), (4, 0), (4, 1)]
+
+
+def test_grid_origin_shifts_edges():
+    grid = plan_grid((500_003.0, 6_000_001.0), (500_041.0, 6_000_019.0), tile_size=10.0, buffer=0.0, grid_origin=(500_000.0, 6_000_000.0))
+    assert (grid.col0, grid.row0, grid.ncols, grid.nrows) == (0, 0, 5, 2)
+    assert grid.tile(0).core[:2] == (500_000.0, 6_000_000.0)
+
+
+def test_points_outside_the_plan_go_to_edge_tiles():
+    grid = plan_grid((0.0, 0.0), (20.0, 20.0), tile_size=10.0, buffer=0.0)
+    assert core_tile(np.array([[-5.0, -5.0], [100.0, 100.0]]), grid).tolist() == [0, grid.n_tiles - 1]
+
+
+def test_buffer_must_cover_reach():
+    params = PipelineParams(segment=SegmentParams(max_crown_radius=3.0))
+    reach = params.reach()
+    plan_grid((0, 0), (50, 50), tile_size=10.0, buffer=reach, reach=reach)
+    with pytest.raises(ParameterError) as e:
+        plan_grid((0, 0), (50, 50), tile_size=10.0, buffer=2.0, reach=reach)
+    msg = str(e.value)
+    assert "2 m" in msg and f"{reach:g} m" in msg and "--buffer" in msg
+    with pytest.raises(ParameterError):
+        check_buffer(1.0, 1.5)
+
+
+@pytest.mark.parametrize("size", [0.0, -1.0, float("nan"), float("inf")])
+def test_bad_tile_size(size):
+    with pytest.raises(ParameterError, match="tile size"):
+        plan_grid((0, 0), (10, 10), tile_size=size, buffer=0.0)
+
+
+def test_too_many_tiles():
+    with pytest.raises(ParameterError, match="larger --tile-size"):
+        plan_grid((0, 0), (10_000, 10_000), tile_size=0.5, buffer=0.0)
+
+
+def test_grid_round_trips_through_dict():
+    grid = plan_grid((3.0, 4.0), (45.0, 20.0), tile_size=7.5, buffer=2.0, grid_origin=(1.0, 2.0))
+    assert type(grid).from_dict(grid.to_dict()) == grid

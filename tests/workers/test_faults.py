@@ -1,0 +1,125 @@
+"""Faults on a real cluster: ``dask scheduler`` + two ``dask worker`` processes on loopback.
+
+A worker killed with SIGKILL mid-job → identical output; a tile that raises is retried,
+then the job stops with an error naming it (never hangs); the failed tile re-runs alone.
+"""
+
+from __future__ import annotations
+
+import os
+import signal
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import pyarrow.parquet as pq
+import pytest
+
+from workers.job import JobSpec, run_job
+from workers.store import WorkStore
+
+pytestmark = pytest.mark.slow
+TIMEOUT = 240
+
+
+def _orchard(*args) -> list[str]:
+    return [sys.executable, "-m", "service.cli", "process", *map(str, args)]
+
+
+@pytest.fixture(scope="module")
+def reference(small_block, tmp_path_factory) -> Path:
+    out = tmp_path_factory.mktemp("reference")
+    run_job(JobSpec(str(small_block), str(out), tile_size=6.0))
+    return out
+
+
+def _same_outputs(a: Path, b: Path) -> None:
+    assert pq.read_table(a / "points.parquet").to_pydict() == pq.read_table(b / "points.parquet").to_pydict()
+    assert pq.read_table(a / "trees.parquet").equals(pq.read_table(b / "trees.parquet"))
+
+
+def test_worker_killed_mid_job(small_block, reference, loopback_cluster, tmp_path):
+    out, work = tmp_path / "out", tmp_path / "work"
+    proc = subprocess.Popen(
+        _orchard(small_block, "--out", out, "--tile-size", 6, "--scheduler", loopback_cluster.address, "--work", work),
+        stdout=subprocess.PIPE,
+        stderr=subprocess.PIPE,
+    )
+    loopback_cluster.ensure_workers(2)
+    victim = loopback_cluster.workers[0]
+    deadline = time.monotonic() + TIMEOUT
+    done_at_kill = None
+    while time.monotonic() < deadline and proc.poll() is None:
+        results = list((work / "results").glob("*/summary.pkl")) if (work / "results").exists() else []
+        if results:
+            os.kill(victim.pid, signal.SIGKILL)
+            done_at_kill = len(results)
+            break
+        time.sleep(0.02)
+    try:
+        _, err = proc.communicate(timeout=TIMEOUT)
+    except subprocess.TimeoutExpired:
+        proc.kill()
+        pytest.fail("the job hung after a worker was killed")
+    assert done_at_kill is not None, "the job ended before a worker could be killed"
+    assert victim.wait(timeout=10) == -signal.SIGKILL
+    assert proc.returncode == 0, err.decode()
+    assert "dask dashboard:" in err.decode()
+    total = int(err.decode().split("tile(s)")[0].split()[-1])
+    assert done_at_kill < total, "every tile was done before the kill: the test proved nothing"
+    _same_outputs(out, reference)
+
+
+def test_first_tile_failing_stops_the_job_naming_it_then_resume(small_block, reference, loopback_cluster, tmp_path):
+    loopback_cluster.ensure_workers(2)
+    out, work = tmp_path / "out", tmp_path / "work"
+    run = subprocess.run(
+        _orchard(
+            small_block, "--out", out, "--tile-size", 6, "--scheduler", loopback_cluster.address,
+            "--work", work, "--inject-failure", 0,
+        ),
+        capture_output=True,
+        timeout=TIMEOUT,
+    )
+    err = run.stderr.decode()
+    assert run.returncode == 1, err
+    last = err.strip().splitlines()[-1]
+    assert last.startswith("orchard process: tile 0 (core x") and "after 3 attempts" in last
+    assert "Traceback" not in err
+    assert len(WorkStore(str(work)).list("attempts/000000")) == 3  # first try + 2 retries
+    assert not (out / "trees.parquet").exists() and not (out / "points.parquet").exists()
+
+    resume = subprocess.run(
+        _orchard(small_block, "--out", out, "--work", work, "--resume", "--scheduler", loopback_cluster.address),
+        capture_output=True,
+        timeout=TIMEOUT,
+    )
+    assert resume.returncode == 0, resume.stderr.decode()
+    _same_outputs(out, reference)
+    assert not work.exists()
+
+
+def test_later_tile_failing_gives_partial_result_then_rerun_alone(small_block, reference, loopback_cluster, tmp_path):
+    loopback_cluster.ensure_workers(2)
+    out, work = tmp_path / "out", tmp_path / "work"
+    run = subprocess.run(
+        _orchard(
+            small_block, "--out", out, "--tile-size", 6, "--scheduler", loopback_cluster.address,
+            "--work", work, "--inject-failure", 5,
+        ),
+        capture_output=True,
+        timeout=TIMEOUT,
+    )
+    err = run.stderr.decode()
+    assert run.returncode == 4, err
+    assert "partial result: tiles [5] failed" in err and "--rerun-tile 5" in err
+    assert len(WorkStore(str(work)).list("attempts/000005")) == 3
+    assert (out / "points.parquet").exists()
+
+    rerun = subprocess.run(
+        _orchard(small_block, "--out", out, "--work", work, "--rerun-tile", 5), capture_output=True, timeout=TIMEOUT
+    )
+    assert rerun.returncode == 0, rerun.stderr.decode()
+    _same_outputs(out, reference)
+    assert not work.exists()

@@ -1,0 +1,159 @@
+"""Jobs: tiled equals untiled, deterministic ids, failure policy, replay of a failed tile."""
+
+from __future__ import annotations
+
+import json
+
+import laspy
+import numpy as np
+import pyarrow.parquet as pq
+import pyproj
+import pytest
+
+from pipeline.errors import InputError, NoTreesError, ParameterError
+from pipeline.evaluate import v_measure
+from pipeline.params import PipelineParams
+from workers.cluster import close_client, make_client
+from workers.job import JobSpec, TileFailed, finish_job, run_job, run_tile
+from workers.store import WorkStore
+
+
+def _points(out):
+    return pq.read_table(out / "points.parquet").to_pydict()
+
+
+def _trees(out):
+    return pq.read_table(out / "trees.parquet")
+
+
+@pytest.mark.slow
+def test_tiling_invariance_on_a_40_tree_block(orchard_block, tmp_path):
+    """10 m tiles (tasks run in this process; the dask paths are tested on the small block)."""
+    single = run_job(JobSpec(str(orchard_block), str(tmp_path / "single")))
+    tiled = run_job(JobSpec(str(orchard_block), str(tmp_path / "tiled"), tile_size=10.0))
+    assert single.n_trees >= 38 and tiled.n_trees == single.n_trees
+    assert tiled.n_tiles > 10 and not tiled.partial
+    a, b = single.trees, tiled.trees
+    assert np.array_equal(a["tree_id"], b["tree_id"])
+    dist = np.hypot(a["trunk_x"] - b["trunk_x"], a["trunk_y"] - b["trunk_y"])
+    assert dist.max() <= 0.05
+    assert np.abs(a["height_m"] - b["height_m"]).max() <= 0.1
+    pa, pb = _points(tmp_path / "single"), _points(tmp_path / "tiled")
+    assert np.array_equal(pa["point_index"], np.arange(single.n_points))
+    assert np.array_equal(pb["point_index"], pa["point_index"])
+    assert v_measure(np.asarray(pa["tree_id"]), np.asarray(pb["tree_id"])) >= 0.99
+    assert not (tmp_path / "tiled" / "_work").exists()  # work store removed after success
+
+
+def test_ids_do_not_depend_on_tiling(small_block, tmp_path):
+    runs = [
+        run_job(JobSpec(str(small_block), str(tmp_path / "a"))),
+        run_job(JobSpec(str(small_block), str(tmp_path / "b"), tile_size=9.0, grid_origin=(499_990.5, 6_949_990.25))),
+        run_job(JobSpec(str(small_block), str(tmp_path / "c"), tile_size=14.0, buffer=8.0)),
+    ]
+    ref = runs[0].trees
+    assert ref["tree_id"].tolist() == list(range(1, 9))
+    for r in runs[1:]:
+        assert r.n_trees == 8
+        assert np.hypot(r.trees["trunk_x"] - ref["trunk_x"], r.trees["trunk_y"] - ref["trunk_y"]).max() < 0.05
+    pa, pc = _points(tmp_path / "a"), _points(tmp_path / "c")
+    assert v_measure(np.asarray(pa["tree_id"]), np.asarray(pc["tree_id"])) >= 0.99
+
+
+def test_outputs_contract(small_block, tmp_path):
+    out = tmp_path / "out"
+    outcome = run_job(JobSpec(str(small_block), str(out), labelled_laz=True))
+    assert sorted(p.name for p in out.iterdir()) == ["labelled.laz", "points.parquet", "trees.parquet"]
+    trees = _trees(out)
+    assert trees.schema.field("tree_id").type == "int64" and trees.schema.field("n_points").type == "int64"
+    geo = json.loads(trees.schema.metadata[b"geo"])
+    assert pyproj.CRS.from_json_dict(geo["columns"]["geometry"]["crs"]).to_epsg() == 28356
+    points = pq.read_table(out / "points.parquet")
+    assert [str(points.schema.field(n).type) for n in points.schema.names] == ["uint64", "int64", "bool", "bool", "float"]
+    las = laspy.read(out / "labelled.laz")
+    assert np.array_equal(las.tree_id, points.column("tree_id").to_numpy())
+    assert len(las.points) == outcome.n_points
+    # trunk coordinates are in the input CRS
+    src = laspy.open(small_block).header
+    assert np.all((trees.column("trunk_x").to_numpy() >= src.mins[0] - 1) & (trees.column("trunk_x").to_numpy() <= src.maxs[0] + 1))
+
+
+def test_in_process_dask_with_memory_store(small_block, tmp_path):
+    run_job(JobSpec(str(small_block), str(tmp_path / "ref"), tile_size=10.0))
+    client = make_client(n_workers=2, dashboard=False, processes=False)
+    try:
+        seen = []
+        out = run_job(
+            JobSpec(str(small_block), str(tmp_path / "mem"), tile_size=10.0, work_dir=f"memory://job-{tmp_path.name}"),
+            client=client,
+            progress=lambda d, t: seen.append((d, t)),
+        )
+    finally:
+        close_client(client)
+    assert seen[0] == (0, out.n_tiles) and seen[-1] == (out.n_tiles, out.n_tiles)
+    assert _points(tmp_path / "ref") == _points(tmp_path / "mem")
+    assert _trees(tmp_path / "ref").equals(_trees(tmp_path / "mem"))
+
+
+def test_buffer_below_reach_is_refused_before_any_output(small_block, tmp_path):
+    with pytest.raises(ParameterError, match="reach"):
+        run_job(JobSpec(str(small_block), str(tmp_path / "out"), tile_size=10.0, buffer=2.0))
+    assert not (tmp_path / "out").exists()
+
+
+def test_bad_input_leaves_nothing(tmp_path):
+    bad = tmp_path / "bad.laz"
+    bad.write_bytes(b"not a point cloud")
+    with pytest.raises(InputError):
+        run_job(JobSpec(str(bad), str(tmp_path / "out"), tile_size=10.0))
+    assert not (tmp_path / "out").exists()
+
+
+def test_no_trees(ground_block, tmp_path):
+    with pytest.raises(NoTreesError, match="no trees"):
+        run_job(JobSpec(str(ground_block), str(tmp_path / "out")))
+    assert not (tmp_path / "out").exists() or not any((tmp_path / "out").iterdir())
+
+
+def test_first_tile_failure_stops_and_names_the_tile(small_block, tmp_path):
+    work = tmp_path / "work"
+    with pytest.raises(TileFailed) as e:
+        run_job(JobSpec(str(small_block), str(tmp_path / "out"), tile_size=10.0, work_dir=str(work), inject_failure=(0,)))
+    assert e.value.tile_id == 0
+    msg = str(e.value)
+    assert msg.startswith("tile 0 (core x") and "after 3 attempts" and "--rerun-tile 0" in msg and "\n" not in msg
+    assert len(WorkStore(str(work)).list("attempts/000000")) == 3
+    assert not (tmp_path / "out" / "trees.parquet").exists()
+
+
+def test_later_tile_failure_gives_partial_result_then_replay(small_block, tmp_path):
+    ref = run_job(JobSpec(str(small_block), str(tmp_path / "ref"), tile_size=10.0))
+    work = tmp_path / "work"
+    out = tmp_path / "out"
+    # the tile ids with points: take the third one
+    victim = 3
+    outcome = run_job(JobSpec(str(small_block), str(out), tile_size=10.0, work_dir=str(work), inject_failure=(victim,)))
+    assert outcome.partial and outcome.failed_tiles == [victim]
+    meta = pq.read_table(out / "points.parquet").schema.metadata
+    assert json.loads(meta[b"orchard:failed_tiles"]) == [victim]
+    assert len(_points(out)["point_index"]) < ref.n_points
+    assert len(WorkStore(str(work)).list(f"attempts/{victim:06d}")) == 3
+    # re-run the failed tile alone, merge again: identical to an undisturbed run
+    run_tile(str(work), victim)
+    again = finish_job(str(work))
+    assert not again.partial
+    assert _points(out) == _points(tmp_path / "ref")
+    assert _trees(out).equals(_trees(tmp_path / "ref"))
+    assert not work.exists()
+
+
+def test_run_tile_needs_a_job(tmp_path):
+    with pytest.raises(ParameterError, match="holds no job"):
+        run_tile(str(tmp_path), 0)
+
+
+def test_params_reach_the_tiles(small_block, tmp_path):
+    # a huge minimum canopy removes every tree, tiled or not
+    params = PipelineParams.model_validate({"trunks": {"min_canopy_voxels": 10_000_000}})
+    with pytest.raises(NoTreesError):
+        run_job(JobSpec(str(small_block), str(tmp_path / "o"), params=params, tile_size=10.0))

@@ -1,0 +1,136 @@
+"""``orchard process``: outputs, and every bad input → one line, exit code 2, nothing left behind."""
+
+from __future__ import annotations
+
+import struct
+import subprocess
+import sys
+
+import laspy
+import numpy as np
+import pyarrow.parquet as pq
+import pytest
+
+from service.cli import main
+
+
+def _run(capsys, *argv):
+    code = main(["process", *map(str, argv)])
+    captured = capsys.readouterr()
+    return code, captured.out, captured.err
+
+
+def _assert_clean_failure(code, err, out_dir, expect_code=2):
+    assert code == expect_code, err
+    lines = err.strip().splitlines()
+    assert len(lines) == 1, err
+    assert lines[0].startswith("orchard process: ")
+    assert "Traceback" not in err
+    assert not out_dir.exists() or not any(out_dir.rglob("*"))
+
+
+def test_process_prints_the_tree_table(small_block, tmp_path, capsys):
+    code, out, err = _run(capsys, small_block, "--out", tmp_path / "o")
+    assert code == 0, err
+    assert out.splitlines()[0].split()[:3] == ["tree", "trunk_x", "trunk_y"]
+    assert len(out.splitlines()) == 1 + 8
+    assert "8 trees" in err
+    assert pq.read_table(tmp_path / "o" / "trees.parquet").num_rows == 8
+
+
+def test_process_tiled_with_embedded_cluster(small_block, tmp_path, capsys):
+    code, out, err = _run(capsys, small_block, "--out", tmp_path / "o", "--tile-size", 10, "--workers", 2, "--labelled-laz")
+    assert code == 0, err
+    assert "dask dashboard: http" in err
+    assert "tiles [" in err and "] 0/" in err
+    assert sorted(p.name for p in (tmp_path / "o").iterdir()) == ["labelled.laz", "points.parquet", "trees.parquet"]
+
+
+def _las(path, n=1000, **kw):
+    from pipeline.io import LasBlockWriter
+
+    rng = np.random.default_rng(0)
+    with LasBlockWriter(path, offsets=(500_000.0, 6_950_000.0, 0.0), **kw) as w:
+        w.write(rng.uniform(0, 10, (n, 3)) + [500_000.0, 6_950_000.0, 100.0])
+    return path
+
+
+def _patch(path, offset, fmt, *values):
+    data = bytearray(path.read_bytes())
+    struct.pack_into(fmt, data, offset, *values)
+    path.write_bytes(bytes(data))
+    return path
+
+
+def _bad_inputs(tmp_path):
+    text = tmp_path / "notes.laz"
+    text.write_text("this is not a point cloud\n")
+    trunc = _las(tmp_path / "trunc.las", n=5000)
+    trunc.write_bytes(trunc.read_bytes()[:2000])
+    trunc_laz = _las(tmp_path / "trunc.laz", n=50_000)
+    trunc_laz.write_bytes(trunc_laz.read_bytes()[: trunc_laz.stat().st_size // 2])
+    empty = tmp_path / "empty.las"
+    with laspy.open(empty, mode="w", header=laspy.LasHeader(version="1.4", point_format=6)):
+        pass
+    nan = _patch(_las(tmp_path / "nan.las"), 131, "<d", float("nan"))
+    absurd = _patch(_las(tmp_path / "absurd.las"), 155, "<d", 1e13)
+    return {
+        "not-las": (text, "not a LAS/LAZ file"),
+        "truncated": (trunc, "truncated"),
+        "truncated-laz": (trunc_laz, "truncated"),
+        "empty": (empty, "empty"),
+        "nan-scale": (nan, "scale"),
+        "absurd-offset": (absurd, "absurd"),
+        "missing": (tmp_path / "nope.laz", "no such file"),
+    }
+
+
+@pytest.mark.parametrize("case", ["not-las", "truncated", "truncated-laz", "empty", "nan-scale", "absurd-offset", "missing"])
+@pytest.mark.parametrize("tiled", [False, True])
+def test_bad_input(tmp_path, capsys, case, tiled):
+    path, words = _bad_inputs(tmp_path)[case]
+    out_dir = tmp_path / "out"
+    extra = ["--tile-size", 10] if tiled else []
+    code, _, err = _run(capsys, path, "--out", out_dir, *extra)
+    _assert_clean_failure(code, err, out_dir)
+    assert words in err
+
+
+@pytest.mark.parametrize(
+    "argv,words",
+    [
+        (["--graph-voxel-size", "-1"], "voxel_size"),
+        (["--graph-edge-radius", "5", "--graph-voxel-size", "0.1"], "edge_radius"),
+        (["--tile-size", "0"], "tile size"),
+        (["--tile-size", "10", "--buffer", "1"], "reach"),
+        (["--tile-size", "-5"], "tile size"),
+        (["--workers", "0"], "--workers"),
+        (["--rerun-tile", "3"], "--work"),
+        (["--tile-size", "20", "--engine", "pdal"], "pdal"),
+    ],
+)
+def test_nonsense_parameters(small_block, tmp_path, capsys, argv, words):
+    out_dir = tmp_path / "out"
+    code, _, err = _run(capsys, small_block, "--out", out_dir, *argv)
+    _assert_clean_failure(code, err, out_dir)
+    assert words in err
+
+
+def test_no_trees_exit_code(ground_block, tmp_path, capsys):
+    out_dir = tmp_path / "out"
+    code, _, err = _run(capsys, ground_block, "--out", out_dir)
+    _assert_clean_failure(code, err, out_dir, expect_code=3)
+    assert "no trees" in err
+
+
+def test_console_script_bad_input(tmp_path):
+    bad = tmp_path / "x.las"
+    bad.write_bytes(b"LASF" + bytes(50))
+    run = subprocess.run(
+        [sys.executable, "-m", "service.cli", "process", str(bad), "--out", str(tmp_path / "out")],
+        capture_output=True,
+        timeout=120,
+    )
+    assert run.returncode == 2
+    assert len(run.stderr.decode().strip().splitlines()) == 1
+    assert not (tmp_path / "out").exists()

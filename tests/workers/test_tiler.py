@@ -1,0 +1,108 @@
+"""The tiler: exact tiles in the work store, bounded memory, both engines agree."""
+
+from __future__ import annotations
+
+import tracemalloc
+
+import laspy
+import numpy as np
+import pytest
+
+from pipeline import io as blockio
+from pipeline.errors import ParameterError
+from pipeline.io import LasBlockWriter, read_info, read_points
+from pipeline.tiling import plan_grid
+from workers.store import WorkStore
+from workers.tiler import INDEX_KEY, pdal_available, read_tile, tile_block
+
+
+def _tile(path, store, tile_size=10.0, buffer=3.0, origin=None, chunk_points=50_000, engine="laspy"):
+    info = read_info(path)
+    grid = plan_grid(info.mins, info.maxs, tile_size=tile_size, buffer=buffer, grid_origin=origin or info.origin[:2])
+    return info, grid, tile_block(info, grid, store, chunk_points=chunk_points, engine=engine)
+
+
+@pytest.mark.parametrize("url", ["memory://tiler-test", "folder"])
+def test_tiles_are_exact(small_block, tmp_path, url):
+    store = WorkStore(str(tmp_path / "work") if url == "folder" else f"{url}-{tmp_path.name}")
+    info, grid, index = _tile(small_block, store, chunk_points=30_000)
+    assert store.get_json(INDEX_KEY) == index
+    xyz, _ = read_points(small_block)
+    n = info.n_points
+    seen_core = np.zeros(n, dtype=np.int64)
+    # absolute x, y as the tiler computes them, from the stored integers
+    las = laspy.read(small_block)
+    ax = las.X * info.scales[0] + info.offsets[0]
+    ay = las.Y * info.scales[1] + info.offsets[1]
+    for t in index["tiles"]:
+        rec = read_tile(store, t["id"])
+        assert len(rec) == t["n_buffered"] and int(rec["core"].sum()) == t["n_core"]
+        idx = rec["index"].astype(np.int64)
+        assert np.all(np.diff(idx) > 0)
+        # the stored integers give exactly the coordinates of an untiled read
+        local = blockio.to_local(np.column_stack([rec["X"], rec["Y"], rec["Z"]]), info)
+        assert np.array_equal(local, xyz[idx])
+        # core flags: half-open core bounds
+        x0, y0, x1, y1 = t["core"]
+        in_core = (x0 <= ax) & (ax < x1) & (y0 <= ay) & (ay < y1)
+        assert np.array_equal(np.sort(idx[rec["core"].astype(bool)]), np.flatnonzero(in_core))
+        seen_core[idx[rec["core"].astype(bool)]] += 1
+        # buffered set: exactly the points in the open buffered box, plus the core
+        bx0, by0, bx1, by1 = t["buffered"]
+        in_buf = ((bx0 < ax) & (ax < bx1) & (by0 < ay) & (ay < by1)) | in_core
+        assert np.array_equal(idx, np.flatnonzero(in_buf))
+    assert np.all(seen_core == 1)  # every point in exactly one core
+    assert sum(t["n_core"] for t in index["tiles"]) == n
+
+
+def _flat_block(path, n, seed=0):
+    rng = np.random.default_rng(seed)
+    with LasBlockWriter(path, offsets=(500_000.0, 6_950_000.0, 0.0)) as w:
+        for _ in range(n // 100_000):
+            xy = rng.uniform(0, 60, (100_000, 2))
+            w.write(np.column_stack([xy + [500_000.0, 6_950_000.0], rng.uniform(100, 105, 100_000)]))
+    return path
+
+
+def test_peak_memory_does_not_grow_with_block_size(tmp_path):
+    """Python-side peak allocation while tiling 0.3 M and 1.2 M points with 50 k-point chunks."""
+    peaks = []
+    for n in (300_000, 1_200_000):
+        path = _flat_block(tmp_path / f"b{n}.laz", n)
+        store = WorkStore(str(tmp_path / f"work{n}"))
+        tracemalloc.start()
+        _tile(path, store, tile_size=20.0, buffer=2.0, chunk_points=50_000)
+        peaks.append(tracemalloc.get_traced_memory()[1])
+        tracemalloc.stop()
+    assert peaks[1] < 1.3 * peaks[0] + 2_000_000
+    assert peaks[1] < 1_200_000 * 12  # less than half of the block's xyz as float64
+
+
+def test_pdal_engine_gives_the_same_tiles(small_block, tmp_path):
+    if not pdal_available():
+        pytest.skip("PDAL's Python bindings are not installed")
+    a = WorkStore(str(tmp_path / "laspy"))
+    b = WorkStore(str(tmp_path / "pdal"))
+    _, _, ia = _tile(small_block, a, tile_size=10.0, buffer=3.0)
+    _, _, ib = _tile(small_block, b, tile_size=10.0, buffer=3.0, engine="pdal")
+    assert ia["tiles"] == ib["tiles"]
+    for t in ia["tiles"]:
+        ra, rb = read_tile(a, t["id"]), read_tile(b, t["id"])
+        assert np.array_equal(ra, rb)
+
+
+def test_pdal_engine_refuses_wide_buffers(small_block, tmp_path):
+    with pytest.raises(ParameterError, match="half the tile size"):
+        _tile(small_block, WorkStore(str(tmp_path / "w")), tile_size=10.0, buffer=6.0, engine="pdal")
+
+
+def test_pdal_engine_missing_is_a_clear_error(small_block, tmp_path):
+    if pdal_available():
+        pytest.skip("PDAL is installed")
+    with pytest.raises(ParameterError, match="import pdal failed"):
+        _tile(small_block, WorkStore(str(tmp_path / "w")), tile_size=10.0, buffer=3.0, engine="pdal")
+
+
+def test_unknown_engine(small_block, tmp_path):
+    with pytest.raises(ParameterError, match="unknown tiling engine"):
+        _tile(small_block, WorkStore(str(tmp_path / "w")), engine="gdal")

@@ -1,0 +1,648 @@
+"""A processing job: one block in, ``trees.parquet`` and ``points.parquet`` out.
+
+Two paths share the same per-tile summary, merge and output code:
+
+- **single block** (no client, no tile size): read the whole block, run the pipeline
+  in this process, write the outputs — the fast path;
+- **tiled**: the tiler writes buffered tiles to the work store; one task per tile
+  (a dask task when a client is given, else in this process) reads its tile from the
+  work store, runs the pipeline on the buffered tile, crops to the core, writes its
+  per-point labels to the work store and returns a small summary (trunks, partial
+  metrics); the merge reconciles trunks and the outputs are streamed tile by tile.
+
+Failure policy (lidR's): the first tile of the plan is the canary (it is scheduled
+first); if it fails after its retries the job stops, naming it. A later tile that
+fails after its retries is recorded in ``JobOutcome.failed_tiles``; the job finishes
+without it, the outcome is partial, and the work store keeps everything needed to
+re-run that tile alone (:func:`run_tile`) and merge again (:func:`finish_job`).
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import json
+import threading
+import time
+import uuid
+from dataclasses import dataclass, field
+from pathlib import Path
+from types import SimpleNamespace
+from typing import Callable
+
+import numpy as np
+
+from pipeline import io as blockio
+from pipeline.errors import NoTreesError, OrchardError, ParameterError
+from pipeline.io import BlockInfo
+from pipeline.merge import GlobalTrunks, TileTrunks, reconcile_trunks
+from pipeline.metrics import combine_partials, finalize_metrics, tree_partials
+from pipeline.params import PipelineParams
+from pipeline.process import process_points
+from pipeline.tiling import TileGrid, core_tile, plan_grid
+from workers.store import WorkStore, default_work_dir
+from workers.tiler import INDEX_KEY, check_engine, read_tile, tile_block
+
+JOB_KEY = "job.json"
+#: Attempts after the first for a failing tile.
+TILE_RETRIES = 2
+#: Points per output window when streaming labels (bounded memory).
+WINDOW_POINTS = 2_000_000
+
+
+class TileFailed(OrchardError):
+    """A tile's processing failed after its retries (the message names the tile)."""
+
+    def __init__(self, message: str, tile_id: int):
+        super().__init__(message)
+        self.tile_id = tile_id
+
+
+class JobCancelled(OrchardError):
+    """The job was cancelled before it finished."""
+
+
+class ClusterLost(OrchardError):
+    """The dask cluster had no workers for too long; the job stopped (it can be resumed)."""
+
+
+#: Seconds without any dask worker before a job gives up instead of waiting forever.
+NO_WORKER_TIMEOUT = 120.0
+
+
+@dataclass
+class JobSpec:
+    """What to process and how.
+
+    ``tile_size`` None processes the block as one tile; ``buffer`` None uses
+    ``params.reach()``; ``grid_origin`` None uses the block origin (floor of the header
+    minimum), in the input CRS; ``work_dir`` None uses ``out_dir/_work``.
+    ``inject_failure`` lists tiles whose task raises (testing the failure policy only).
+    """
+
+    input_path: str
+    out_dir: str
+    params: PipelineParams = field(default_factory=PipelineParams)
+    tile_size: float | None = None
+    buffer: float | None = None
+    grid_origin: tuple[float, float] | None = None
+    work_dir: str | None = None
+    labelled_laz: bool = False
+    engine: str = "laspy"
+    chunk_points: int = 2_000_000
+    inject_failure: tuple[int, ...] = ()
+
+
+@dataclass
+class JobOutcome:
+    n_points: int
+    n_trees: int
+    n_tiles: int
+    failed_tiles: list[int]
+    partial: bool
+    timings: dict[str, float]
+    outputs: dict[str, str]
+    trees: dict | None = None  # the per-tree table (column → array), for summaries
+
+
+# ------------------------------------------------------------------------- per tile
+
+
+def _frame(index: dict) -> SimpleNamespace:
+    return SimpleNamespace(scales=tuple(index["scales"]), offsets=tuple(index["offsets"]), origin=tuple(index["origin"]))
+
+
+def _summarise(tile_id, xyz, core, result, grid: TileGrid | None, origin, params: PipelineParams) -> dict:
+    """Small per-tile summary: trunks, ownership and partial metrics of the core points."""
+    trunks = np.asarray(result.trunks, dtype=np.float64).reshape(-1, 3)
+    if grid is None:
+        owned = np.ones(len(trunks), dtype=bool)
+    else:
+        owned = core_tile(trunks[:, :2] + np.asarray(origin[:2]), grid) == tile_id
+    partials = tree_partials(
+        xyz[core], result.tree_id[core], result.is_wood[core], trunks[:, 2], params=params.metrics
+    )
+    return {
+        "tile_id": int(tile_id),
+        "trunks": trunks,
+        "support": np.asarray(result.trunk_support, dtype=np.float64),
+        "diameter": np.asarray(result.trunk_diameter, dtype=np.float64),
+        "owned": owned,
+        "partials": partials,
+        "n_core": int(core.sum()),
+    }
+
+
+def result_key(tile_id: int) -> str:
+    return f"results/{tile_id:06d}"
+
+
+def process_tile(work_url: str, tile_id: int, params_json: str, fail: bool = False) -> dict:
+    """Task body: process one buffered tile from the work store.
+
+    Writes the core points' labels (``index`` sorted, ``tree_id`` local, ``is_ground``,
+    ``is_wood``, ``wood_score``) and the summary under ``results/<tile>/``, and returns
+    the summary (trunks, support, diameter, owned, partials).
+    """
+    store = WorkStore(work_url)
+    if fail:  # testing the failure policy: leave a trace of each attempt, then fail
+        store.put_json(f"attempts/{tile_id:06d}/{uuid.uuid4().hex}.json", {"tile": tile_id, "time": time.time()})
+        raise RuntimeError(f"injected failure in tile {tile_id} (testing)")
+    index = store.get_json(INDEX_KEY)
+    params = PipelineParams.model_validate_json(params_json)
+    grid = TileGrid.from_dict(index["grid"])
+    rec = read_tile(store, tile_id)
+    ints = np.column_stack([rec["X"], rec["Y"], rec["Z"]])
+    xyz = blockio.to_local(ints, _frame(index))
+    core = rec["core"].astype(bool)
+    result = process_points(xyz, params=params, grid_origin=(0.0, 0.0, 0.0))
+    key = result_key(tile_id)
+    store.put_array(f"{key}/index.npy", rec["index"][core])
+    store.put_array(f"{key}/tree_id.npy", np.asarray(result.tree_id[core], dtype=np.int64))
+    store.put_array(f"{key}/is_ground.npy", np.asarray(result.is_ground[core], dtype=bool))
+    store.put_array(f"{key}/is_wood.npy", np.asarray(result.is_wood[core], dtype=bool))
+    store.put_array(f"{key}/wood_score.npy", np.asarray(result.wood_score[core], dtype=np.float32))
+    summary = _summarise(tile_id, xyz, core, result, grid, index["origin"], params)
+    store.put_object(f"{key}/summary.pkl", summary)
+    return summary
+
+
+# ------------------------------------------------------------------------- labels
+
+
+class _Labels:
+    """Per-point labels of the block assembled from per-tile core results (bounded memory)."""
+
+    FIELDS = ("tree_id", "is_ground", "is_wood", "wood_score")
+
+    def __init__(self, parts: list[dict], n_points: int):
+        self.parts = parts  # each: index (sorted), tree_id (global), is_ground, is_wood, wood_score
+        self.n_points = n_points
+
+    @classmethod
+    def single(cls, result, id_map: np.ndarray) -> "_Labels":
+        n = len(result.tree_id)
+        part = {
+            "index": np.arange(n, dtype=np.uint64),
+            "tree_id": id_map[result.tree_id],
+            "is_ground": result.is_ground,
+            "is_wood": result.is_wood,
+            "wood_score": result.wood_score,
+            "map": None,
+        }
+        return cls([part], n)
+
+    def window(self, a: int, b: int) -> tuple[np.ndarray, dict[str, np.ndarray]]:
+        """Labels of points a..b-1: (filled mask, dict of arrays)."""
+        m = b - a
+        out = {
+            "tree_id": np.zeros(m, np.int64),
+            "is_ground": np.zeros(m, bool),
+            "is_wood": np.zeros(m, bool),
+            "wood_score": np.zeros(m, np.float32),
+        }
+        filled = np.zeros(m, bool)
+        for p in self.parts:
+            idx = p["index"]
+            lo, hi = np.searchsorted(idx, np.array([a, b], dtype=np.uint64))
+            if hi <= lo:
+                continue
+            pos = (np.asarray(idx[lo:hi]) - np.uint64(a)).astype(np.int64)
+            tree = np.asarray(p["tree_id"][lo:hi])
+            out["tree_id"][pos] = tree if p.get("map") is None else p["map"][tree]
+            out["is_ground"][pos] = p["is_ground"][lo:hi]
+            out["is_wood"][pos] = p["is_wood"][lo:hi]
+            out["wood_score"][pos] = p["wood_score"][lo:hi]
+            filled[pos] = True
+        out["is_wood"] &= out["tree_id"] > 0
+        return filled, out
+
+
+# ------------------------------------------------------------------------- outputs
+
+
+def _trees_table(summaries: list[dict], merged: GlobalTrunks, origin) -> dict:
+    parts = [s["partials"] for s in summaries]
+    maps = [merged.id_maps[s["tile_id"]] for s in summaries]
+    partials = combine_partials(parts, maps)
+    cols = finalize_metrics(partials, merged.trunks, merged.diameter)
+    org = np.asarray(origin, dtype=np.float64)
+    cols["trunk_x"] = cols["trunk_x"] + org[0]
+    cols["trunk_y"] = cols["trunk_y"] + org[1]
+    cols["trunk_z"] = cols["trunk_z"] + org[2]
+    return cols
+
+
+def _write_outputs(out_dir: Path, info: BlockInfo, labels: _Labels, trees: dict, *, labelled_laz: bool, failed: list[int]) -> dict:
+    out_dir.mkdir(parents=True, exist_ok=True)
+    done: list[Path] = []
+    outputs = {}
+    meta = {"orchard:input": info.path}
+    if failed:
+        meta["orchard:failed_tiles"] = json.dumps(failed)
+    try:
+        path = out_dir / "points.parquet"
+        with blockio.PointsParquetWriter(path, metadata=meta) as w:
+            for a in range(0, labels.n_points, WINDOW_POINTS):
+                b = min(labels.n_points, a + WINDOW_POINTS)
+                filled, lab = labels.window(a, b)
+                idx = np.arange(a, b, dtype=np.uint64)
+                if not filled.all():
+                    idx = idx[filled]
+                    lab = {k: v[filled] for k, v in lab.items()}
+                w.write(idx, lab["tree_id"], lab["is_ground"], lab["is_wood"], lab["wood_score"])
+        done.append(path)
+        outputs["points"] = str(path)
+        if labelled_laz:
+            path = out_dir / "labelled.laz"
+            blockio.write_labelled_las(
+                info.path,
+                path,
+                labels=lambda a, b: {k: v for k, v in labels.window(a, b)[1].items() if k != "is_ground"},
+            )
+            done.append(path)
+            outputs["labelled"] = str(path)
+        path = out_dir / "trees.parquet"
+        blockio.write_trees_parquet(path, trees, crs_wkt=info.crs_wkt)
+        done.append(path)
+        outputs["trees"] = str(path)
+    except BaseException:
+        for p in done:
+            p.unlink(missing_ok=True)
+        raise
+    return outputs
+
+
+# ------------------------------------------------------------------------- the job
+
+
+def _check_cancel(cancel: threading.Event | None) -> None:
+    if cancel is not None and cancel.is_set():
+        raise JobCancelled("job cancelled")
+
+
+def _no_trees(info: BlockInfo) -> NoTreesError:
+    return NoTreesError(
+        f"{Path(info.path).name}: no trees found in {info.n_points} points "
+        "(only ground or clutter?); check the block, or lower --trunks-min-tree-height / --trunks-min-canopy-voxels"
+    )
+
+
+def run_job(
+    spec: JobSpec,
+    *,
+    client=None,
+    progress: Callable[[int, int], None] | None = None,
+    cancel: threading.Event | None = None,
+) -> JobOutcome:
+    """Process one block.
+
+    Parameters
+    ----------
+    spec : JobSpec
+    client : distributed.Client, optional
+        Run one task per tile on this cluster. None with ``tile_size`` None runs the
+        single-block path in this process; None with a tile size runs the tiles here.
+    progress : callable (tiles done, tiles total), optional
+    cancel : threading.Event, optional
+        Set it to stop the job (raises JobCancelled).
+
+    Raises
+    ------
+    InputError, ParameterError, NoTreesError, TileFailed, JobCancelled
+    """
+    t0 = time.perf_counter()
+    info = blockio.read_info(spec.input_path)
+    if spec.tile_size is None and client is None:
+        return _run_single(spec, info, t0, progress, cancel)
+    return _run_tiled(spec, info, client, t0, progress, cancel)
+
+
+def _run_single(spec, info, t0, progress, cancel) -> JobOutcome:
+    timings = {}
+    params = spec.params
+    if progress:
+        progress(0, 1)
+    xyz, _ = blockio.read_points(info.path, chunk_points=spec.chunk_points)
+    timings["read"] = time.perf_counter() - t0
+    _check_cancel(cancel)
+    t = time.perf_counter()
+    result = process_points(xyz, params=params, grid_origin=(0.0, 0.0, 0.0))
+    timings["process"] = time.perf_counter() - t
+    _check_cancel(cancel)
+    t = time.perf_counter()
+    core = np.ones(len(xyz), dtype=bool)
+    summary = _summarise(0, xyz, core, result, None, info.origin, params)
+    merged = reconcile_trunks(
+        [_tile_trunks(summary)],
+        cluster_radius=params.trunks.cluster_radius,
+        fallback_radius=params.segment.max_crown_radius,
+    )
+    if merged.n_trees == 0:
+        raise _no_trees(info)
+    trees = _trees_table([summary], merged, info.origin)
+    labels = _Labels.single(result, merged.id_maps[0])
+    outputs = _write_outputs(Path(spec.out_dir), info, labels, trees, labelled_laz=spec.labelled_laz, failed=[])
+    timings["merge_write"] = time.perf_counter() - t
+    timings["total"] = time.perf_counter() - t0
+    if progress:
+        progress(1, 1)
+    return JobOutcome(info.n_points, merged.n_trees, 1, [], False, timings, outputs, trees)
+
+
+def _tile_trunks(summary: dict) -> TileTrunks:
+    return TileTrunks(summary["tile_id"], summary["trunks"], summary["support"], summary["diameter"], summary["owned"])
+
+
+def check_job(spec: JobSpec, *, tiled: bool | None = None) -> tuple[BlockInfo, TileGrid | None]:
+    """Check the input and the tiling parameters of a job without writing anything.
+
+    Returns the block's header information and, for a tiled job, the planned grid.
+    Raises InputError or ParameterError.
+    """
+    info = blockio.read_info(spec.input_path)
+    if tiled is None:
+        tiled = spec.tile_size is not None
+    if not tiled:
+        return info, None
+    grid = _plan(spec, info)
+    check_engine(spec.engine, grid)
+    return info, grid
+
+
+def _plan(spec: JobSpec, info: BlockInfo) -> TileGrid:
+    reach = spec.params.reach()
+    buffer = reach if spec.buffer is None else float(spec.buffer)
+    origin = spec.grid_origin if spec.grid_origin is not None else info.origin[:2]
+    if spec.tile_size is None:  # one tile holding the whole block
+        size = max(info.maxs[0] - origin[0], info.maxs[1] - origin[1]) + 1.0
+        if origin[0] > info.mins[0] or origin[1] > info.mins[1]:
+            raise ParameterError("with no --tile-size the grid origin must lie below the block's minimum x and y")
+        return plan_grid(info.mins, info.maxs, tile_size=size, buffer=buffer, grid_origin=origin, reach=reach)
+    return plan_grid(info.mins, info.maxs, tile_size=spec.tile_size, buffer=buffer, grid_origin=origin, reach=reach)
+
+
+def _job_record(spec: JobSpec, info: BlockInfo, grid: TileGrid, work: str) -> dict:
+    return {
+        "input_path": spec.input_path,
+        "out_dir": spec.out_dir,
+        "params": spec.params.model_dump(mode="json"),
+        "tile_size": spec.tile_size,
+        "buffer": grid.buffer,
+        "grid": grid.to_dict(),
+        "work_dir": work,
+        "labelled_laz": spec.labelled_laz,
+        "info": dataclasses.asdict(info),
+        "failed_tiles": [],
+    }
+
+
+def _run_tiled(spec, info, client, t0, progress, cancel) -> JobOutcome:
+    timings = {}
+    grid = _plan(spec, info)
+    check_engine(spec.engine, grid)
+    out_dir = Path(spec.out_dir)
+    out_existed = out_dir.exists()
+    work = spec.work_dir or default_work_dir(spec.out_dir)
+    store = WorkStore(work)
+    record = _job_record(spec, info, grid, work)
+    keep_work = False
+    try:
+        store.put_json(JOB_KEY, record)
+        _check_cancel(cancel)
+        index = tile_block(info, grid, store, chunk_points=spec.chunk_points, engine=spec.engine)
+        timings["tile"] = time.perf_counter() - t0
+        tiles = [t for t in index["tiles"] if t["n_core"] > 0]
+        t = time.perf_counter()
+        try:
+            summaries, failed = _run_tiles(store, tiles, spec, client, progress, cancel)
+        except (TileFailed, JobCancelled, ClusterLost):
+            keep_work = True  # everything needed to re-run or resume stays in the work store
+            raise
+        timings["process"] = time.perf_counter() - t
+        if failed:
+            keep_work = True
+            record["failed_tiles"] = sorted(failed)
+            store.put_json(JOB_KEY, record)
+        t = time.perf_counter()
+        outcome = _finish(store, record, index, summaries, sorted(failed))
+        timings["merge_write"] = time.perf_counter() - t
+        timings["total"] = time.perf_counter() - t0
+        outcome.timings = timings
+        return outcome
+    finally:
+        if not keep_work:
+            store.remove()
+            if not out_existed and out_dir.exists() and not any(out_dir.iterdir()):
+                out_dir.rmdir()
+
+
+def _describe(tile: dict) -> str:
+    x0, y0, x1, y1 = tile["core"]
+    return f"tile {tile['id']} (core x {x0:.2f}..{x1:.2f}, y {y0:.2f}..{y1:.2f}, {tile['n_buffered']} points)"
+
+
+def _error_line(exc: BaseException) -> str:
+    text = " ".join(str(exc).split())
+    return f"{type(exc).__name__}: {text[:300]}"
+
+
+def _run_tiles(store, tiles, spec, client, progress, cancel) -> tuple[list[dict], dict[int, str]]:
+    params_json = spec.params.model_dump_json()
+    inject = set(spec.inject_failure)
+    total = len(tiles)
+    by_id = {t["id"]: t for t in tiles}
+    canary = tiles[0]["id"] if tiles else None
+    summaries: list[dict] = []
+    failed: dict[int, str] = {}
+    if progress:
+        progress(0, total)
+
+    def fail_canary(tid: int, exc: BaseException):
+        return TileFailed(
+            f"{_describe(by_id[tid])} failed after {TILE_RETRIES + 1} attempts: {_error_line(exc)}; "
+            f"its data is kept in {store.url} (re-run it alone with --work {store.url} --rerun-tile {tid})",
+            tid,
+        )
+
+    if client is None:
+        for i, t in enumerate(tiles):
+            _check_cancel(cancel)
+            err = None
+            for _ in range(TILE_RETRIES + 1):
+                try:
+                    summaries.append(process_tile(store.url, t["id"], params_json, t["id"] in inject))
+                    err = None
+                    break
+                except OrchardError:
+                    raise
+                except Exception as exc:  # noqa: BLE001 - recorded per tile, as on dask
+                    err = exc
+            if err is not None:
+                if t["id"] == canary:
+                    raise fail_canary(t["id"], err)
+                failed[t["id"]] = _error_line(err)
+            if progress:
+                progress(i + 1, total)
+        return summaries, failed
+
+    from distributed import wait
+
+    token = uuid.uuid4().hex[:8]
+    futures = {}
+    for t in tiles:
+        fut = client.submit(
+            process_tile,
+            store.url,
+            t["id"],
+            params_json,
+            t["id"] in inject,
+            key=f"orchard-tile-{t['id']}-{token}",
+            retries=TILE_RETRIES,
+            pure=False,
+            priority=1 if t["id"] == canary else 0,
+        )
+        futures[fut] = t["id"]
+    pending = set(futures)
+    done_count = 0
+    last_worker_seen = time.monotonic()
+    last_check = 0.0
+    try:
+        while pending:
+            _check_cancel(cancel)
+            try:
+                res = wait(pending, timeout=0.5, return_when="FIRST_COMPLETED")
+            except TimeoutError:
+                now = time.monotonic()
+                if now - last_check > 5.0:
+                    last_check = now
+                    if client.scheduler_info().get("workers"):
+                        last_worker_seen = now
+                    elif now - last_worker_seen > NO_WORKER_TIMEOUT:
+                        raise ClusterLost(
+                            f"no dask worker for {NO_WORKER_TIMEOUT:.0f} s with {len(pending)} tiles to go; "
+                            f"start workers and resume with --work {store.url} --resume"
+                        ) from None
+                continue
+            for fut in res.done:
+                pending.discard(fut)
+                tid = futures[fut]
+                if fut.status == "finished":
+                    summaries.append(fut.result())
+                else:
+                    exc = fut.exception()
+                    if isinstance(exc, OrchardError):
+                        raise exc
+                    if tid == canary:
+                        raise fail_canary(tid, exc)
+                    failed[tid] = _error_line(exc)
+                done_count += 1
+                if progress:
+                    progress(done_count, total)
+    finally:
+        if pending:
+            client.cancel(list(pending))
+    summaries.sort(key=lambda s: s["tile_id"])
+    return summaries, failed
+
+
+def _finish(store: WorkStore, record: dict, index: dict, summaries: list[dict], failed: list[int]) -> JobOutcome:
+    info = BlockInfo(**{k: tuple(v) if isinstance(v, list) else v for k, v in record["info"].items()})
+    params = PipelineParams.model_validate(record["params"])
+    summaries = sorted(summaries, key=lambda s: s["tile_id"])
+    merged = reconcile_trunks(
+        [_tile_trunks(s) for s in summaries],
+        cluster_radius=params.trunks.cluster_radius,
+        fallback_radius=params.segment.max_crown_radius,
+    )
+    if merged.n_trees == 0:
+        raise _no_trees(info)
+    trees = _trees_table(summaries, merged, info.origin)
+    parts = []
+    for s in summaries:
+        key = result_key(s["tile_id"])
+        part = {f: store.get_array(f"{key}/{f}.npy", mmap=True) for f in ("index",) + _Labels.FIELDS}
+        part["map"] = merged.id_maps[s["tile_id"]]
+        parts.append(part)
+    labels = _Labels(parts, info.n_points)
+    outputs = _write_outputs(
+        Path(record["out_dir"]), info, labels, trees, labelled_laz=record["labelled_laz"], failed=failed
+    )
+    n_tiles = len([t for t in index["tiles"] if t["n_core"] > 0])
+    return JobOutcome(info.n_points, merged.n_trees, n_tiles, list(failed), bool(failed), {}, outputs, trees)
+
+
+# ------------------------------------------------------------------------- replay
+
+
+def run_tile(work_dir: str, tile_id: int) -> dict:
+    """Re-run one tile alone, in this process, from the work store of an earlier job."""
+    store = WorkStore(work_dir)
+    if not store.exists(JOB_KEY):
+        raise ParameterError(f"{work_dir} holds no job (no {JOB_KEY}); give the --work folder of a tiled run")
+    record = store.get_json(JOB_KEY)
+    index = store.get_json(INDEX_KEY)
+    if tile_id not in {t["id"] for t in index["tiles"] if t["n_core"] > 0}:
+        raise ParameterError(f"tile {tile_id} is not a tile of the job in {work_dir}")
+    params = PipelineParams.model_validate(record["params"])
+    return process_tile(store.url, tile_id, params.model_dump_json())
+
+
+def resume_job(
+    work_dir: str,
+    *,
+    out_dir: str | None = None,
+    client=None,
+    progress: Callable[[int, int], None] | None = None,
+    cancel: threading.Event | None = None,
+) -> JobOutcome:
+    """Process every tile of an earlier job that has no result yet, then merge.
+
+    Used after the job stopped (first tile failed, cancelled, client lost): the tiles
+    in the work store are reused, nothing is read from the input again but the outputs.
+    """
+    store = WorkStore(work_dir)
+    if not store.exists(JOB_KEY):
+        raise ParameterError(f"{work_dir} holds no job (no {JOB_KEY}); give the --work folder of a tiled run")
+    record = store.get_json(JOB_KEY)
+    index = store.get_json(INDEX_KEY)
+    todo = [
+        t for t in index["tiles"]
+        if t["n_core"] > 0 and not store.exists(f"{result_key(t['id'])}/summary.pkl")
+    ]
+    spec = JobSpec(record["input_path"], out_dir or record["out_dir"], params=PipelineParams.model_validate(record["params"]))
+    if todo:
+        _run_tiles(store, todo, spec, client, progress, cancel)
+    return finish_job(work_dir, out_dir=out_dir)
+
+
+def finish_job(work_dir: str, *, out_dir: str | None = None) -> JobOutcome:
+    """Merge the stored tile results of a job again and write its outputs.
+
+    Tiles still without results stay missing (the outcome is then partial). The work
+    store is removed when nothing is missing.
+    """
+    t0 = time.perf_counter()
+    store = WorkStore(work_dir)
+    if not store.exists(JOB_KEY):
+        raise ParameterError(f"{work_dir} holds no job (no {JOB_KEY}); give the --work folder of a tiled run")
+    record = store.get_json(JOB_KEY)
+    if out_dir is not None:
+        record["out_dir"] = out_dir
+    index = store.get_json(INDEX_KEY)
+    summaries, missing = [], []
+    for t in index["tiles"]:
+        if t["n_core"] == 0:
+            continue
+        key = f"{result_key(t['id'])}/summary.pkl"
+        if store.exists(key):
+            summaries.append(store.get_object(key))
+        else:
+            missing.append(t["id"])
+    outcome = _finish(store, record, index, summaries, missing)
+    record["failed_tiles"] = missing
+    if missing:
+        store.put_json(JOB_KEY, record)
+    else:
+        store.remove()
+    outcome.timings = {"total": time.perf_counter() - t0}
+    return outcome

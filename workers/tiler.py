@@ -1,0 +1,236 @@
+"""The tiler: read a block once, streamed in chunks, and write every tile's buffered
+points to the work store, with a tile index.
+
+Peak memory is one chunk (plus its tile assignment), whatever the block size: each
+chunk's points are spilled to one part file per tile they fall in, so no per-tile
+array of the whole block is ever held. A tile stores, per point, the file's integer
+X, Y, Z (exact; workers turn them into the same float64 local coordinates as an
+untiled read), the point's index in the input file and whether it lies in the core.
+
+Two engines produce the same tiles: ``laspy`` (default, streamed) and ``pdal``
+(``readers.las`` -> ``filters.splitter`` with length, buffer and origin), used when
+PDAL's Python bindings import.
+"""
+
+from __future__ import annotations
+
+import json
+
+import numpy as np
+
+from pipeline import io as blockio
+from pipeline.errors import ParameterError
+from pipeline.io import BlockInfo
+from pipeline.tiling import TileGrid, buffered_tiles, core_tile
+from workers.store import WorkStore
+
+#: One record per (point, tile): stored integers, source index, core flag.
+TILE_DTYPE = np.dtype([("X", "<i4"), ("Y", "<i4"), ("Z", "<i4"), ("index", "<u8"), ("core", "u1")])
+INDEX_KEY = "tiles/index.json"
+
+
+def tile_key(tile_id: int) -> str:
+    return f"tiles/{tile_id:06d}"
+
+
+def _absolute_xy(ints: np.ndarray, info: BlockInfo) -> np.ndarray:
+    """Absolute x, y [m] computed as PDAL and laspy do: ``X * scale + offset``."""
+    return ints[:, :2] * np.asarray(info.scales[:2]) + np.asarray(info.offsets[:2])
+
+
+def _write_parts(store: WorkStore, part: str, ints, index, xy, grid, counts_core, counts_all) -> None:
+    core = core_tile(xy, grid)
+    p, t = buffered_tiles(xy, grid, core=core)
+    if p.size == 0:
+        return
+    cuts = np.flatnonzero(np.diff(t)) + 1
+    for lo, hi in zip(np.r_[0, cuts], np.r_[cuts, p.size]):
+        tid = int(t[lo])
+        sel = p[lo:hi]
+        rec = np.empty(sel.size, dtype=TILE_DTYPE)
+        rec["X"] = ints[sel, 0]
+        rec["Y"] = ints[sel, 1]
+        rec["Z"] = ints[sel, 2]
+        rec["index"] = index[sel]
+        rec["core"] = core[sel] == tid
+        store.put_array(f"{tile_key(tid)}/{part}.npy", rec)
+        counts_all[tid] += sel.size
+        counts_core[tid] += int(rec["core"].sum())
+
+
+def _index(info: BlockInfo, grid: TileGrid, counts_core: np.ndarray, counts_all: np.ndarray, engine: str) -> dict:
+    tiles = []
+    for tid in np.flatnonzero(counts_all):
+        t = grid.tile(int(tid))
+        tiles.append(
+            {
+                "id": t.id,
+                "col": t.col,
+                "row": t.row,
+                "core": list(t.core),
+                "buffered": list(t.buffered),
+                "n_core": int(counts_core[tid]),
+                "n_buffered": int(counts_all[tid]),
+            }
+        )
+    return {
+        "version": 1,
+        "engine": engine,
+        "input": info.path,
+        "n_points": info.n_points,
+        "scales": list(info.scales),
+        "offsets": list(info.offsets),
+        "origin": list(info.origin),
+        "grid": grid.to_dict(),
+        "tiles": tiles,
+    }
+
+
+def tile_block(
+    info: BlockInfo,
+    grid: TileGrid,
+    store: WorkStore,
+    *,
+    chunk_points: int = 2_000_000,
+    engine: str = "laspy",
+) -> dict:
+    """Split a block into buffered tiles in the work store.
+
+    Parameters
+    ----------
+    info : BlockInfo
+        The checked header of the input.
+    grid : TileGrid
+        Planned in absolute coordinates (input CRS).
+    store : WorkStore
+    chunk_points : int
+        Points read per chunk (bounds memory).
+    engine : "laspy" or "pdal"
+
+    Returns
+    -------
+    The tile index (also stored as ``tiles/index.json``): per tile its id, core and
+    buffered bounds, and point counts (core and buffered). Only tiles holding points
+    are listed.
+    """
+    check_engine(engine, grid)
+    if engine == "pdal":
+        return tile_block_pdal(info, grid, store)
+    store.remove("tiles")
+    counts_core = np.zeros(grid.n_tiles, dtype=np.int64)
+    counts_all = np.zeros(grid.n_tiles, dtype=np.int64)
+    for start, ints in blockio.iter_raw(info.path, chunk_points=chunk_points, info=info):
+        blockio.check_bounds(blockio.to_local(ints, info), info, start=start)
+        index = np.arange(start, start + len(ints), dtype=np.uint64)
+        _write_parts(store, f"part-{start:012d}", ints, index, _absolute_xy(ints, info), grid, counts_core, counts_all)
+    idx = _index(info, grid, counts_core, counts_all, "laspy")
+    store.put_json(INDEX_KEY, idx)
+    return idx
+
+
+def pdal_available() -> bool:
+    try:
+        import pdal  # noqa: F401  (only whether it imports)
+    except Exception:
+        return False
+    return True
+
+
+def check_engine(engine: str, grid: TileGrid) -> None:
+    """Raise ParameterError unless ``engine`` can make the tiles of ``grid`` here."""
+    if engine == "laspy":
+        return
+    if engine != "pdal":
+        raise ParameterError(f"unknown tiling engine {engine!r}; use 'laspy' or 'pdal'")
+    if grid.buffer >= grid.tile_size / 2:
+        raise ParameterError(
+            f"the PDAL engine needs a buffer ({grid.buffer:g} m) below half the tile size ({grid.tile_size:g} m); "
+            "use a larger --tile-size or the laspy engine"
+        )
+    if not pdal_available():
+        raise ParameterError("the PDAL engine needs PDAL's Python bindings (import pdal failed); use --engine laspy")
+
+
+def tile_block_pdal(info: BlockInfo, grid: TileGrid, store: WorkStore) -> dict:
+    """The same tiles as :func:`tile_block`, made by a PDAL pipeline.
+
+    ``readers.las`` reads the block; a dimension ``OriginIndex`` (the point's position in
+    the file) is added; ``filters.splitter`` (``length`` = tile size, ``buffer``,
+    ``origin_x``/``origin_y`` = grid origin) makes one view per tile; each view is written
+    to the work store. PDAL holds the whole block in memory and needs a buffer smaller
+    than half the tile size.
+    """
+    check_engine("pdal", grid)
+    import pdal
+    from numpy.lib import recfunctions as rfn
+
+    s, b = grid.tile_size, grid.buffer
+    reader = pdal.Pipeline(json.dumps({"pipeline": [{"type": "readers.las", "filename": info.path}]}))
+    reader.execute()
+    arr = reader.arrays[0]
+    arr = rfn.append_fields(arr, "OriginIndex", np.arange(len(arr), dtype=np.uint64), usemask=False)
+    splitter = pdal.Pipeline(
+        json.dumps(
+            {
+                "pipeline": [
+                    {
+                        "type": "filters.splitter",
+                        "length": s,
+                        "buffer": b,
+                        "origin_x": grid.origin[0],
+                        "origin_y": grid.origin[1],
+                    }
+                ]
+            }
+        ),
+        arrays=[arr],
+    )
+    splitter.execute()
+    store.remove("tiles")
+    counts_core = np.zeros(grid.n_tiles, dtype=np.int64)
+    counts_all = np.zeros(grid.n_tiles, dtype=np.int64)
+    scales = np.asarray(info.scales)
+    offsets = np.asarray(info.offsets)
+    for view in splitter.arrays:
+        if len(view) == 0:
+            continue
+        order = np.argsort(view["OriginIndex"], kind="stable")
+        view = view[order]
+        xyz = np.column_stack([view["X"], view["Y"], view["Z"]]).astype(np.float64)
+        ints = np.round((xyz - offsets) / scales).astype(np.int32)
+        xy = _absolute_xy(ints, info)
+        core = core_tile(xy, grid)
+        tid = _view_tile(xy, core, grid)
+        rec = np.empty(len(view), dtype=TILE_DTYPE)
+        rec["X"], rec["Y"], rec["Z"] = ints[:, 0], ints[:, 1], ints[:, 2]
+        rec["index"] = view["OriginIndex"].astype(np.uint64)
+        rec["core"] = core == tid
+        store.put_array(f"{tile_key(tid)}/part-pdal.npy", rec)
+        counts_all[tid] += len(rec)
+        counts_core[tid] += int(rec["core"].sum())
+    idx = _index(info, grid, counts_core, counts_all, "pdal")
+    store.put_json(INDEX_KEY, idx)
+    return idx
+
+
+def _view_tile(xy: np.ndarray, core: np.ndarray, grid: TileGrid) -> int:
+    """Which tile a PDAL view is: the core tile of its points whose buffered box holds them all."""
+    cands, counts = np.unique(core, return_counts=True)
+    for tid in cands[np.argsort(-counts, kind="stable")]:
+        t = grid.tile(int(tid))
+        x0, y0, x1, y1 = t.buffered
+        inside = ((x0 < xy[:, 0]) & (xy[:, 0] < x1) & (y0 < xy[:, 1]) & (xy[:, 1] < y1)) | (core == tid)
+        if inside.all():
+            return int(tid)
+    raise RuntimeError("a PDAL view matches no tile of the grid")
+
+
+def read_tile(store: WorkStore, tile_id: int) -> np.ndarray:
+    """All records of one tile (TILE_DTYPE), ordered by source index."""
+    parts = [store.get_array(k) for k in store.list(tile_key(tile_id)) if k.endswith(".npy")]
+    if not parts:
+        return np.zeros(0, dtype=TILE_DTYPE)
+    rec = np.concatenate(parts)
+    if len(parts) > 1 and np.any(np.diff(rec["index"].astype(np.int64)) < 0):
+        rec = rec[np.argsort(rec["index"], kind="stable")]
+    return rec
