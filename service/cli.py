@@ -1,8 +1,8 @@
 """The ``orchard`` console script.
 
 Every domain error becomes a one-line message on stderr and exit code 2 (bad input
-or parameters) or 3 (no trees / not found); an unexpected error becomes a one-line
-message and exit code 1. No traceback reaches the user unless ORCHARD_DEBUG=1 is set
+or parameters) or 3 (no trees / not found); a failed run (a tile that kept failing, a
+lost cluster, a cancel) and an unexpected error become a one-line message and exit code 1. No traceback reaches the user unless ORCHARD_DEBUG=1 is set
 by the caller for a debugging session.
 """
 
@@ -17,6 +17,7 @@ from pydantic import ValidationError
 
 from pipeline.errors import NoTreesError, NotFoundError, OrchardError
 from service.commands import COMMANDS
+from workers.job import ClusterLost, JobCancelled, TileFailed
 
 
 def _validation_message(err: ValidationError) -> str:
@@ -65,6 +66,9 @@ def main(argv: list[str] | None = None) -> int:
     except (NoTreesError, NotFoundError) as exc:
         print(f"orchard {args.command}: {exc}", file=sys.stderr)
         return 3
+    except (TileFailed, ClusterLost, JobCancelled) as exc:  # the run failed, not the input
+        print(f"orchard {args.command}: {exc}", file=sys.stderr)
+        return 1
     except OrchardError as exc:
         print(f"orchard {args.command}: {exc}", file=sys.stderr)
         return 2

@@ -22,7 +22,8 @@ def add_pipeline_options(parser: argparse.ArgumentParser) -> None:
                 kwargs["type"] = int
             elif ann is float:
                 kwargs["type"] = float
-            kwargs["help"] = f"{field.description} (default {field.default})"
+            # argparse formats help with %: a literal % in a description must be doubled
+            kwargs["help"] = f"{field.description} (default {field.default})".replace("%", "%%")
             g.add_argument(flag, **kwargs)
 
 
