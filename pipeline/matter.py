@@ -39,9 +39,9 @@ FEATURES = (
 
 # Logistic model of the "combined" score, one weight per FEATURES column. Fitted by
 # `python -m bench.fit_matter --seeds 2` on generated orchards with seeds 1000+ (never on
-# the blocks used for evaluation; training wood F1 0.745); refit and paste when the
+# the blocks used for evaluation; training wood F1 0.780); refit and paste when the
 # features change. The matching threshold is MatterParams.threshold.
-COMBINED_WEIGHTS = np.array([-3.574, 1.509, 2.99, 4.796, 1.178, -1.393, 0.112, 0.021, -0.798, -3.876])
+COMBINED_WEIGHTS = np.array([-5.001, 1.452, 3.255, 6.04, 1.142, -1.55, 0.369, 0.05, -0.722, -3.553])
 
 
 def path_counts(pred: np.ndarray) -> np.ndarray:

@@ -1,0 +1,62 @@
+#!/usr/bin/env bash
+# Entry point of the orchard image: one image, three roles.
+#
+#   api        orchard serve (settings from ORCHARD_* variables, see docker/README.md)
+#   scheduler  dask scheduler on DASK_SCHEDULER_PORT (8786), dashboard on DASK_DASHBOARD_PORT (8787)
+#   worker     dask worker joined to ORCHARD_SCHEDULER, one process of ORCHARD_WORKER_THREADS threads
+#   health R   exit 0 when role R answers its health endpoint (used by compose health checks)
+#   anything else is run as a command, e.g. `orchard tokens create --tenant farm`.
+#
+# Extra arguments after the role are passed to the underlying command.
+set -euo pipefail
+
+role="${1:-api}"
+if [[ $# -gt 0 ]]; then shift; fi
+
+scheduler_port="${DASK_SCHEDULER_PORT:-8786}"
+dashboard_port="${DASK_DASHBOARD_PORT:-8787}"
+worker_health_port="${DASK_WORKER_DASHBOARD_PORT:-8788}"
+
+probe() {  # probe URL: exit 0 if it answers 200 within 5 s
+    python - "$1" <<'PY'
+import sys, urllib.request
+try:
+    with urllib.request.urlopen(sys.argv[1], timeout=5) as r:
+        sys.exit(0 if r.status == 200 else 1)
+except Exception as exc:  # noqa: BLE001
+    print(f"unhealthy: {sys.argv[1]}: {exc}", file=sys.stderr)
+    sys.exit(1)
+PY
+}
+
+case "$role" in
+    api)
+        mkdir -p "${ORCHARD_DATA_DIR:-/data}"
+        exec orchard serve "$@"
+        ;;
+    scheduler)
+        exec dask scheduler \
+            --host 0.0.0.0 --port "$scheduler_port" \
+            --dashboard-address ":${dashboard_port}" "$@"
+        ;;
+    worker)
+        : "${ORCHARD_SCHEDULER:?set ORCHARD_SCHEDULER=tcp://HOST:PORT for a worker}"
+        exec dask worker "$ORCHARD_SCHEDULER" \
+            --nworkers 1 \
+            --nthreads "${ORCHARD_WORKER_THREADS:-1}" \
+            --memory-limit "${ORCHARD_WORKER_MEMORY:-2GiB}" \
+            --local-directory "${ORCHARD_WORKER_SCRATCH:-/tmp/dask-worker}" \
+            --dashboard-address ":${worker_health_port}" "$@"
+        ;;
+    health)
+        case "${1:-api}" in
+            api) probe "http://127.0.0.1:${ORCHARD_PORT:-8000}/healthz" ;;
+            scheduler) probe "http://127.0.0.1:${dashboard_port}/health" ;;
+            worker) probe "http://127.0.0.1:${worker_health_port}/health" ;;
+            *) echo "health: unknown role '$1' (api, scheduler, worker)" >&2; exit 2 ;;
+        esac
+        ;;
+    *)
+        exec "$role" "$@"
+        ;;
+esac

@@ -1,0 +1,166 @@
+#!/usr/bin/env bash
+# The docker/compose.yaml topology without Docker: a `dask scheduler`, N `dask worker`
+# processes and `orchard serve`, each a separate process on 127.0.0.1 (free ports).
+#
+# Usage:
+#   docker/local-topology.sh [--data-dir DIR] [--workers N] [--ready-file FILE] [-- COMMAND ...]
+#
+# Without COMMAND it runs until Ctrl-C / SIGTERM, then stops everything it started.
+# With COMMAND it runs the command once the topology is up (with ORCHARD_URL,
+# ORCHARD_SCHEDULER and ORCHARD_DATA_DIR exported), stops everything and exits with
+# the command's status. When everything is up it writes FILE (shell `KEY=VALUE`
+# lines: addresses, log folder and process ids), the signal a caller can wait for.
+#
+# Environment: ORCHARD_TOPOLOGY_TIMEOUT (seconds to wait for each role, default 90),
+# ORCHARD_WORKER_MEMORY (per-worker memory limit, default 2GiB),
+# ORCHARD_WORKER_THREADS (threads per worker, default 1).
+set -euo pipefail
+
+data_dir=""
+n_workers=2
+ready_file=""
+command=()
+while [[ $# -gt 0 ]]; do
+    case "$1" in
+        --data-dir) data_dir="$2"; shift 2 ;;
+        --workers) n_workers="$2"; shift 2 ;;
+        --ready-file) ready_file="$2"; shift 2 ;;
+        --) shift; command=("$@"); break ;;
+        -h|--help) sed -n '2,16p' "$0" | sed 's/^# \{0,1\}//'; exit 0 ;;
+        *) echo "local-topology: unknown argument '$1' (see --help)" >&2; exit 2 ;;
+    esac
+done
+if ! [[ "$n_workers" =~ ^[1-9][0-9]*$ ]]; then
+    echo "local-topology: --workers must be a positive integer, got '$n_workers'" >&2; exit 2
+fi
+if [[ -z "$data_dir" ]]; then data_dir="$(mktemp -d -t orchard-topology.XXXXXX)"; fi
+mkdir -p "$data_dir"
+data_dir="$(cd "$data_dir" && pwd)"
+log_dir="$data_dir/logs"
+mkdir -p "$log_dir"
+timeout_s="${ORCHARD_TOPOLOGY_TIMEOUT:-90}"
+python_bin="${PYTHON:-python3}"
+
+free_port() {
+    "$python_bin" -c 'import socket; s = socket.socket(); s.bind(("127.0.0.1", 0)); print(s.getsockname()[1]); s.close()'
+}
+
+pids=()
+stopping=0
+stop_all() {
+    # Stop in reverse order of start: the API first, then workers, then the scheduler.
+    [[ $stopping -eq 1 ]] && return
+    stopping=1
+    local i pid deadline
+    for (( i=${#pids[@]}-1; i>=0; i-- )); do
+        pid="${pids[$i]}"
+        kill -TERM -- "-$pid" 2>/dev/null || kill -TERM "$pid" 2>/dev/null || true
+    done
+    deadline=$(( SECONDS + 20 ))
+    for pid in "${pids[@]}"; do
+        while kill -0 -- "-$pid" 2>/dev/null && (( SECONDS < deadline )); do sleep 0.2; done
+        kill -KILL -- "-$pid" 2>/dev/null || true
+        wait "$pid" 2>/dev/null || true
+    done
+    [[ -n "$ready_file" ]] && rm -f "$ready_file"
+    echo "local-topology: stopped (logs in $log_dir)" >&2
+}
+trap 'stop_all' EXIT
+trap 'exit 143' TERM
+trap 'exit 130' INT
+
+start() {  # start NAME CMD...: run CMD in its own process group, log to logs/NAME.log
+    local name="$1"; shift
+    setsid "$@" >"$log_dir/$name.log" 2>&1 < /dev/null &
+    pids+=("$!")
+    echo "local-topology: started $name (pid $!): $*" >&2
+}
+
+wait_http() {  # wait_http NAME URL PID
+    "$python_bin" - "$1" "$2" "$3" "$timeout_s" <<'PY' || { echo "local-topology: $1 did not come up; see $log_dir/$1.log" >&2; tail -n 20 "$log_dir/$1.log" >&2 || true; exit 1; }
+import os, sys, time, urllib.request
+name, url, pid, timeout = sys.argv[1], sys.argv[2], int(sys.argv[3]), float(sys.argv[4])
+deadline = time.monotonic() + timeout
+while time.monotonic() < deadline:
+    try:
+        os.kill(pid, 0)
+    except ProcessLookupError:
+        sys.exit(f"local-topology: {name} exited during start-up")
+    try:
+        with urllib.request.urlopen(url, timeout=2) as r:
+            if r.status == 200:
+                sys.exit(0)
+    except Exception:
+        pass
+    time.sleep(0.25)
+sys.exit(f"local-topology: {name} not healthy at {url} after {timeout:.0f} s")
+PY
+}
+
+host=127.0.0.1
+scheduler_port="$(free_port)"
+dashboard_port="$(free_port)"
+api_port="$(free_port)"
+scheduler="tcp://$host:$scheduler_port"
+
+start scheduler dask scheduler --host "$host" --port "$scheduler_port" \
+    --dashboard-address "$host:$dashboard_port"
+wait_http scheduler "http://$host:$dashboard_port/health" "${pids[0]}"
+
+worker_ports=()
+for (( i=1; i<=n_workers; i++ )); do
+    port="$(free_port)"
+    worker_ports+=("$port")
+    start "worker-$i" dask worker "$scheduler" --host "$host" --name "local-worker-$i" \
+        --nworkers 1 --nthreads "${ORCHARD_WORKER_THREADS:-1}" \
+        --memory-limit "${ORCHARD_WORKER_MEMORY:-2GiB}" \
+        --dashboard-address "$host:$port" --local-directory "$data_dir/dask-worker-$i"
+done
+for (( i=1; i<=n_workers; i++ )); do
+    wait_http "worker-$i" "http://$host:${worker_ports[$((i-1))]}/health" "${pids[$i]}"
+done
+"$python_bin" - "$scheduler" "$n_workers" "$timeout_s" <<'PY' || { echo "local-topology: workers did not register with the scheduler" >&2; exit 1; }
+import sys
+from distributed import Client
+with Client(sys.argv[1], timeout=float(sys.argv[3])) as client:
+    client.wait_for_workers(int(sys.argv[2]), timeout=float(sys.argv[3]))
+PY
+
+start api orchard serve --host "$host" --port "$api_port" --data-dir "$data_dir" --scheduler "$scheduler"
+wait_http api "http://$host:$api_port/healthz" "${pids[-1]}"
+
+export ORCHARD_URL="http://$host:$api_port"
+export ORCHARD_SCHEDULER="$scheduler"
+export ORCHARD_DATA_DIR="$data_dir"
+if [[ -n "$ready_file" ]]; then
+    tmp="$ready_file.tmp"
+    {
+        echo "ORCHARD_URL=$ORCHARD_URL"
+        echo "ORCHARD_SCHEDULER=$ORCHARD_SCHEDULER"
+        echo "ORCHARD_DATA_DIR=$ORCHARD_DATA_DIR"
+        echo "DASHBOARD_URL=http://$host:$dashboard_port"
+        echo "LOG_DIR=$log_dir"
+        echo "PIDS=${pids[*]}"
+        echo "TOPOLOGY_PID=$$"
+    } > "$tmp"
+    mv "$tmp" "$ready_file"
+fi
+echo "local-topology: up. API $ORCHARD_URL, scheduler $ORCHARD_SCHEDULER, dashboard http://$host:$dashboard_port/status, data $data_dir" >&2
+
+if [[ ${#command[@]} -gt 0 ]]; then
+    status=0
+    "${command[@]}" || status=$?
+    exit "$status"
+fi
+echo "local-topology: Ctrl-C to stop" >&2
+while true; do
+    # Exit (and stop everything) if any role dies.
+    for pid in "${pids[@]}"; do
+        if ! kill -0 "$pid" 2>/dev/null; then
+            echo "local-topology: process $pid exited; stopping" >&2
+            exit 1
+        fi
+    done
+    sleep 1 &
+    wait $! || true
+done
