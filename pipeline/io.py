@@ -329,7 +329,41 @@ def _extra_type(dtype) -> np.dtype:
     return np.dtype(np.uint8) if dt == np.bool_ else dt
 
 
-class LasBlockWriter:
+class _AtomicWriter:
+    """Shared ending of the streaming writers: the file is written under ``self._tmp``
+    by ``self._writer`` (which may not exist yet) and renamed by ``close``; ``abort``
+    (and an exception inside ``with``) deletes it, leaving nothing behind."""
+
+    _tmp: Path
+    _writer = None
+    _closed = False
+
+    def close(self) -> None:  # pragma: no cover - defined by subclasses
+        raise NotImplementedError
+
+    def abort(self) -> None:
+        """Stop and delete the temporary file; nothing is left behind."""
+        if self._closed:
+            return
+        self._closed = True
+        try:
+            if self._writer is not None:
+                self._writer.close()
+        except Exception:
+            pass
+        self._tmp.unlink(missing_ok=True)
+
+    def __enter__(self):
+        return self
+
+    def __exit__(self, exc_type, exc, tb) -> None:
+        if exc_type is None:
+            self.close()
+        else:
+            self.abort()
+
+
+class LasBlockWriter(_AtomicWriter):
     """Streaming LAS/LAZ writer (LAZ when the path ends in ``.laz``).
 
     Points are appended with :meth:`write`; the file appears under its name only when
@@ -428,27 +462,6 @@ class LasBlockWriter:
             self._writer = self._open()
         self._writer.close()
         os.replace(self._tmp, self.path)
-
-    def abort(self) -> None:
-        """Stop and delete the temporary file; nothing is left behind."""
-        if self._closed:
-            return
-        self._closed = True
-        try:
-            if self._writer is not None:
-                self._writer.close()
-        except Exception:
-            pass
-        self._tmp.unlink(missing_ok=True)
-
-    def __enter__(self) -> "LasBlockWriter":
-        return self
-
-    def __exit__(self, exc_type, exc, tb) -> None:
-        if exc_type is None:
-            self.close()
-        else:
-            self.abort()
 
 
 def write_labelled_las(
@@ -591,7 +604,7 @@ def write_trees_parquet(path, columns: dict[str, np.ndarray], *, crs_wkt: str | 
         raise
 
 
-class PointsParquetWriter:
+class PointsParquetWriter(_AtomicWriter):
     """Streaming writer of ``points.parquet`` (atomic: temp name, renamed on close).
 
     Each :meth:`write` call appends one or more row groups.
@@ -629,25 +642,6 @@ class PointsParquetWriter:
         self._closed = True
         self._writer.close()
         os.replace(self._tmp, self.path)
-
-    def abort(self) -> None:
-        if self._closed:
-            return
-        self._closed = True
-        try:
-            self._writer.close()
-        except Exception:
-            pass
-        self._tmp.unlink(missing_ok=True)
-
-    def __enter__(self) -> "PointsParquetWriter":
-        return self
-
-    def __exit__(self, exc_type, exc, tb) -> None:
-        if exc_type is None:
-            self.close()
-        else:
-            self.abort()
 
 
 def read_trees_parquet(path) -> tuple[dict[str, np.ndarray], dict]:

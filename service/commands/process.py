@@ -91,7 +91,7 @@ def _print_trees(trees: dict, stream=None) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
-    from workers.job import JobSpec, TileFailed, check_job, finish_job, resume_job, run_job, run_tile
+    from workers.job import JobSpec, check_job, finish_job, resume_job, run_job, run_tile
 
     params = pipeline_params_from_args(args)
     if args.workers < 1:
@@ -110,11 +110,7 @@ def run(args: argparse.Namespace) -> int:
                 from workers.cluster import close_client, make_client
 
                 client = make_client(args.scheduler)
-            try:
-                outcome = resume_job(args.work, out_dir=args.out, client=client, progress=_Bar())
-            except TileFailed as exc:
-                print(f"orchard process: {exc}", file=sys.stderr)
-                return 1
+            outcome = resume_job(args.work, out_dir=args.out, client=client, progress=_Bar())
         finally:
             if client is not None:
                 close_client(client)
@@ -142,11 +138,7 @@ def run(args: argparse.Namespace) -> int:
             client = make_client(args.scheduler, n_workers=args.workers)
             link = dashboard_address(client)
             print(f"dask dashboard: {link or 'none'}", file=sys.stderr)
-        try:
-            outcome = run_job(spec, client=client, progress=_Bar() if tiled else None)
-        except TileFailed as exc:
-            print(f"orchard process: {exc}", file=sys.stderr)
-            return 1
+        outcome = run_job(spec, client=client, progress=_Bar() if tiled else None)  # TileFailed: exit 1 (service.cli)
     finally:
         if client is not None:
             close_client(client)
