@@ -206,11 +206,7 @@ def iter_raw(path, *, chunk_points: int = 2_000_000, info: BlockInfo | None = No
                 m = len(arr)
                 if m == 0:
                     break
-                ints = np.empty((m, 3), dtype=np.int32)
-                ints[:, 0] = arr["X"]
-                ints[:, 1] = arr["Y"]
-                ints[:, 2] = arr["Z"]
-                yield start, ints
+                yield start, _stored_xyz(arr)
                 start += m
     except InputError:
         raise
@@ -218,6 +214,38 @@ def iter_raw(path, *, chunk_points: int = 2_000_000, info: BlockInfo | None = No
         raise _fail(info.path, f"corrupt or truncated point data after point {start} ({_one_line(exc)})") from None
     if start < info.n_points:
         raise _fail(info.path, f"truncated: the header announces {info.n_points} points but only {start} could be read")
+
+
+def _stored_xyz(arr) -> np.ndarray:
+    ints = np.empty((len(arr), 3), dtype=np.int32)
+    ints[:, 0] = arr["X"]
+    ints[:, 1] = arr["Y"]
+    ints[:, 2] = arr["Z"]
+    return ints
+
+
+def read_raw_range(path, start: int, count: int, *, info: BlockInfo | None = None) -> np.ndarray:
+    """The stored integer X, Y, Z of points ``[start, start + count)``, shape (m, 3) int32.
+
+    Seeks in the file (LAZ chunk table), so workers can each read their own range of one
+    block in parallel.
+
+    Raises
+    ------
+    InputError
+        The range lies beyond the points the file holds, or its data is corrupt.
+    """
+    info = info or read_info(path)
+    count = max(0, min(int(count), info.n_points - int(start)))
+    try:
+        with laspy.open(info.path, read_evlrs=False, decompression_selection=_XYZ_ONLY) as reader:
+            reader.seek(int(start))
+            arr = reader.read_points(count).array
+    except Exception as exc:
+        raise _fail(info.path, f"corrupt or truncated point data after point {start} ({_one_line(exc)})") from None
+    if len(arr) < count:
+        raise _fail(info.path, f"truncated: the header announces {info.n_points} points but only {start + len(arr)} could be read")
+    return _stored_xyz(arr)
 
 
 def to_local(ints: np.ndarray, info: BlockInfo, origin=None) -> np.ndarray:

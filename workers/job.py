@@ -409,7 +409,7 @@ def _run_tiled(spec, info, client, t0, progress, cancel) -> JobOutcome:
     try:
         store.put_json(JOB_KEY, record)
         _check_cancel(cancel)
-        index = tile_block(info, grid, store, chunk_points=spec.chunk_points, engine=spec.engine)
+        index = tile_block(info, grid, store, chunk_points=spec.chunk_points, engine=spec.engine, client=client)
         timings["tile"] = time.perf_counter() - t0
         tiles = [t for t in index["tiles"] if t["n_core"] > 0]
         t = time.perf_counter()

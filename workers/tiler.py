@@ -86,6 +86,24 @@ def _index(info: BlockInfo, grid: TileGrid, counts_core: np.ndarray, counts_all:
     }
 
 
+def _split_chunk(info, grid, store, start, ints, counts_core, counts_all) -> None:
+    blockio.check_bounds(blockio.to_local(ints, info), info, start=start)
+    index = np.arange(start, start + len(ints), dtype=np.uint64)
+    _write_parts(store, f"part-{start:012d}", ints, index, _absolute_xy(ints, info), grid, counts_core, counts_all)
+
+
+def tile_range(info: BlockInfo, grid: TileGrid, store: WorkStore, start: int, count: int) -> tuple[np.ndarray, np.ndarray]:
+    """Split points ``[start, start + count)`` of the block into tile parts (a dask task).
+
+    Returns the per-tile point counts (core, buffered) this range contributed.
+    """
+    counts_core = np.zeros(grid.n_tiles, dtype=np.int64)
+    counts_all = np.zeros(grid.n_tiles, dtype=np.int64)
+    ints = blockio.read_raw_range(info.path, start, count, info=info)
+    _split_chunk(info, grid, store, start, ints, counts_core, counts_all)
+    return counts_core, counts_all
+
+
 def tile_block(
     info: BlockInfo,
     grid: TileGrid,
@@ -93,6 +111,7 @@ def tile_block(
     *,
     chunk_points: int = 2_000_000,
     engine: str = "laspy",
+    client=None,
 ) -> dict:
     """Split a block into buffered tiles in the work store.
 
@@ -106,6 +125,9 @@ def tile_block(
     chunk_points : int
         Points read per chunk (bounds memory).
     engine : "laspy" or "pdal"
+    client : distributed.Client, optional
+        With a client (and more than one chunk), every chunk is split by a dask task
+        that reads its own range of the file; the workers must see the input path.
 
     Returns
     -------
@@ -119,10 +141,19 @@ def tile_block(
     store.remove("tiles")
     counts_core = np.zeros(grid.n_tiles, dtype=np.int64)
     counts_all = np.zeros(grid.n_tiles, dtype=np.int64)
-    for start, ints in blockio.iter_raw(info.path, chunk_points=chunk_points, info=info):
-        blockio.check_bounds(blockio.to_local(ints, info), info, start=start)
-        index = np.arange(start, start + len(ints), dtype=np.uint64)
-        _write_parts(store, f"part-{start:012d}", ints, index, _absolute_xy(ints, info), grid, counts_core, counts_all)
+    if client is not None and info.n_points > chunk_points:
+        # each worker reads and splits its own range of the file: tiling runs in parallel
+        starts = list(range(0, info.n_points, int(chunk_points)))
+        futures = [
+            client.submit(tile_range, info, grid, store, start, int(chunk_points), key=f"tile-range-{start}-{store.url}", pure=False)
+            for start in starts
+        ]
+        for core, every in client.gather(futures):
+            counts_core += core
+            counts_all += every
+    else:
+        for start, ints in blockio.iter_raw(info.path, chunk_points=chunk_points, info=info):
+            _split_chunk(info, grid, store, start, ints, counts_core, counts_all)
     idx = _index(info, grid, counts_core, counts_all, "laspy")
     store.put_json(INDEX_KEY, idx)
     return idx

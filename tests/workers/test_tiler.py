@@ -106,3 +106,30 @@ def test_pdal_engine_missing_is_a_clear_error(small_block, tmp_path):
 def test_unknown_engine(small_block, tmp_path):
     with pytest.raises(ParameterError, match="unknown tiling engine"):
         _tile(small_block, WorkStore(str(tmp_path / "w")), engine="gdal")
+
+
+def test_parallel_tiling_on_dask_gives_the_same_tiles(tmp_path):
+    """Chunks split by dask tasks (each seeking its own range) equal the sequential tiler."""
+    from distributed import Client, LocalCluster
+
+    from pipeline import io as blockio
+    from pipeline.tiling import plan_grid
+    from workers.store import WorkStore
+    from workers.tiler import read_tile, tile_block
+
+    rng = np.random.default_rng(4)
+    xyz = np.column_stack([rng.uniform(0, 30, 50_000), rng.uniform(0, 20, 50_000), rng.uniform(0, 3, 50_000)]) + [500000, 6950000, 100]
+    path = tmp_path / "b.laz"
+    with blockio.LasBlockWriter(path, crs_epsg=28356) as w:
+        w.write(xyz)
+    info = blockio.read_info(path)
+    grid = plan_grid(info.mins, info.maxs, tile_size=10.0, buffer=2.0, grid_origin=(500000.0, 6950000.0), reach=1.0)
+    seq = WorkStore(str(tmp_path / "seq"))
+    par = WorkStore(str(tmp_path / "par"))
+    a = tile_block(info, grid, seq, chunk_points=7_000)
+    with LocalCluster(n_workers=2, threads_per_worker=1, processes=True, dashboard_address=None) as cluster, Client(cluster) as client:
+        b = tile_block(info, grid, par, chunk_points=7_000, client=client)
+    assert a["tiles"] == b["tiles"]
+    for t in a["tiles"]:
+        ra, rb = read_tile(seq, t["id"]), read_tile(par, t["id"])
+        assert np.array_equal(np.sort(ra, order="index"), np.sort(rb, order="index"))
