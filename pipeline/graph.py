@@ -88,6 +88,7 @@ def bridge_floating(
     *,
     floating_height: float,
     max_gap: float,
+    min_nodes: int = 1,
 ) -> sparse.csr_matrix:
     """Join every floating component to its nearest other component by one edge.
 
@@ -104,15 +105,16 @@ def bridge_floating(
     nodes : (m, 3) float64 [m]
     node_height : (m,) float64 — height above ground [m]
     floating_height, max_gap : float [m]
+    min_nodes : int — smaller floating components are noise (outliers) and stay apart
 
     Returns
     -------
     (m, m) csr_matrix with the bridging edges added (symmetric).
     """
-    return _bridge_once(graph, nodes, node_height, floating_height, max_gap)
+    return _bridge_once(graph, nodes, node_height, floating_height, max_gap, min_nodes)
 
 
-def _bridge_once(graph, nodes, node_height, floating_height, max_gap):
+def _bridge_once(graph, nodes, node_height, floating_height, max_gap, min_nodes):
     m = graph.shape[0]
     if m == 0:
         return graph
@@ -121,7 +123,7 @@ def _bridge_once(graph, nodes, node_height, floating_height, max_gap):
         return graph
     low = np.full(n_comp, np.inf)
     np.minimum.at(low, comp, node_height)
-    floating = low > floating_height
+    floating = (low > floating_height) & (np.bincount(comp, minlength=n_comp) >= min_nodes)
     cand = np.flatnonzero(floating[comp])
     if cand.size == 0:
         return graph

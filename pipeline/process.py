@@ -123,7 +123,12 @@ def analyse_nodes(
     edge_scale = feats.matrix() if params.graph.weighting == "enriched" else None
     graph = build_graph(nodes, radius=params.graph.edge_radius, edge_scale=edge_scale)
     graph = bridge_floating(
-        graph, nodes, node_height, floating_height=params.segment.floating_height, max_gap=params.graph.max_gap
+        graph,
+        nodes,
+        node_height,
+        floating_height=params.segment.floating_height,
+        max_gap=params.graph.max_gap,
+        min_nodes=params.segment.min_fragment,
     )
     # drainage to the ground prefers woody paths: leafy (scattered) nodes cost more
     leafiness = np.clip(matter.smooth(feats.scattering, adjacency) / LEAFY_SCATTERING, 0.0, 1.0)

@@ -95,3 +95,24 @@ def test_baselines_run_and_ours_beats_the_paper_steps():
     assert ours["v_measure"] >= paper["v_measure"]
     assert ours["wood_f1"] > paper["wood_f1"]
     assert 0.0 <= literal["trunk_f1"] <= 1.0
+
+
+def test_tree_heights_match_truth_despite_outliers():
+    # random outliers float around the crowns; they must not become tree tops
+    from scipy.optimize import linear_sum_assignment
+
+    o = simulate_orchard(SimulationParams(rows=2, trees_per_row=5, density=0.5, seed=1, outliers=0.004))
+    origin = np.floor(o.xyz.min(axis=0))
+    xyz = o.xyz - origin
+    r = process_points(xyz, params=PipelineParams())
+    true = o.trunks - origin
+    d = np.hypot(*(true[:, None, :2] - r.trunks[None, :, :2]).transpose(2, 0, 1))
+    ti, pi = linear_sum_assignment(d)
+    err = []
+    for a, b in zip(ti, pi):
+        ours = xyz[r.tree_id == b + 1, 2].max() - r.trunks[b, 2]
+        truth = xyz[o.tree_id == a + 1, 2].max() - true[a, 2]
+        err.append(ours - truth)
+    err = np.abs(err)
+    assert np.median(err) < 0.15, err
+    assert err.max() < 1.0, err
