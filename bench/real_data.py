@@ -77,6 +77,13 @@ def _cylinder_distance(xyz: np.ndarray, start: np.ndarray, axis: np.ndarray, len
     return best
 
 
+def _timed(xyz: np.ndarray, params: PipelineParams):
+    """process_points on ``xyz`` and its wall time [s]."""
+    t0 = time.perf_counter()
+    r = process_points(xyz, params=params)
+    return r, time.perf_counter() - t0
+
+
 def run() -> str:
     params = PipelineParams()
     lines = [
@@ -90,9 +97,7 @@ def run() -> str:
     ]
 
     xyz, tid, bases = adtree_row()
-    t0 = time.perf_counter()
-    r = process_points(_local(xyz), params=params)
-    dt = time.perf_counter() - t0
+    r, dt = _timed(_local(xyz), params)
     org = np.floor(xyz.min(axis=0))
     s = score_labels(
         true_tree_id=tid, true_is_wood=np.zeros(len(tid), bool), true_trunks=bases[:, :2] - org[:2],
@@ -105,9 +110,7 @@ def run() -> str:
     )
 
     pts, info = io.read_points(REAL / "TreeLS" / "pine_plot.laz")
-    t0 = time.perf_counter()
-    r = process_points(pts, params=params)
-    dt = time.perf_counter() - t0
+    r, dt = _timed(pts, params)
     d = r.trunk_diameter[np.isfinite(r.trunk_diameter)]
     lines.append(
         f"| TreeLS pine_plot (10 x 10 m pine plot, about 10 stems) | {len(pts):,} | {dt:.2f} | stems found, trunk diameter at 0.3 m "
@@ -115,9 +118,7 @@ def run() -> str:
     )
 
     pts, info = io.read_points(REAL / "aRchi" / "Tree_1_point_cloud.las")
-    t0 = time.perf_counter()
-    r = process_points(pts, params=params)
-    dt = time.perf_counter() - t0
+    r, dt = _timed(pts, params)
     tree = r.tree_id > 0
     lines.append(
         f"| aRchi Tree_1 (leafless: every point is wood) | {len(pts):,} | {dt:.2f} | share of tree points classified wood "
@@ -127,9 +128,7 @@ def run() -> str:
     pts = np.loadtxt(REAL / "ITSMe" / "tree_1_pc.txt")[:, :3]
     q = loadmat(REAL / "ITSMe" / "tree_1_qsm.mat", squeeze_me=True, struct_as_record=False)["QSM"].cylinder
     ref_wood = _cylinder_distance(pts, q.start, q.axis, q.length, q.radius) <= 0.03
-    t0 = time.perf_counter()
-    r = process_points(_local(pts), params=params)
-    dt = time.perf_counter() - t0
+    r, dt = _timed(_local(pts), params)
     tree = r.tree_id > 0
     ws = wood_scores(ref_wood[tree], r.is_wood[tree])
     lines.append(
