@@ -282,19 +282,16 @@ def score_result(orchard, result, *, origin=(0.0, 0.0, 0.0), match_distance: flo
 def _read_points_labels(path: str, n: int) -> tuple[np.ndarray, np.ndarray, int]:
     """tree_id and is_wood of points.parquet scattered to (n,) arrays by point_index;
     points absent from the file are tree 0, not wood. Also returns how many are absent."""
-    import pyarrow.parquet as pq
+    from pipeline.io import read_parquet_columns
 
-    try:
-        table = pq.read_table(path, columns=["point_index", "tree_id", "is_wood"])
-    except Exception as exc:  # noqa: BLE001 - any unreadable file is bad input
-        raise InputError(f"{path} is not a readable points.parquet ({str(exc).splitlines()[0]})") from None
-    idx = table.column("point_index").to_numpy().astype(np.int64)
+    table, _ = read_parquet_columns(path, ["point_index", "tree_id", "is_wood"], what="points.parquet")
+    idx = table["point_index"].astype(np.int64)
     if len(idx) and (idx.min() < 0 or idx.max() >= n):
         raise InputError(f"{path} has point_index values outside the truth's 0..{n - 1}: is it the result of another block?")
     tree_id = np.zeros(n, dtype=np.int64)
     is_wood = np.zeros(n, dtype=bool)
-    tree_id[idx] = table.column("tree_id").to_numpy()
-    is_wood[idx] = table.column("is_wood").to_numpy()
+    tree_id[idx] = table["tree_id"]
+    is_wood[idx] = table["is_wood"]
     seen = np.zeros(n, dtype=bool)
     seen[idx] = True
     return tree_id, is_wood, int(n - np.count_nonzero(seen))

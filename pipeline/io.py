@@ -672,6 +672,68 @@ class PointsParquetWriter(_AtomicWriter):
         os.replace(self._tmp, self.path)
 
 
+class TruthParquetWriter(_AtomicWriter):
+    """Streamed per-point truth of a generated block (the simulator's ``truth.parquet``).
+
+    Columns ``point_index`` (uint64), ``tree_id`` (int64), ``is_wood`` (bool), ``kind``
+    (uint8); ``metadata`` goes into the file's key-value metadata. Atomic like the other
+    writers.
+    """
+
+    def __init__(self, path, *, metadata: dict[str, str]):
+        self.path = Path(path)
+        self._tmp = _temp_name(self.path)
+        self._schema = pa.schema(
+            [("point_index", pa.uint64()), ("tree_id", pa.int64()), ("is_wood", pa.bool_()), ("kind", pa.uint8())],
+            metadata=metadata,
+        )
+        self._writer = pq.ParquetWriter(
+            str(self._tmp),
+            self._schema,
+            compression="zstd",
+            use_dictionary=["tree_id", "is_wood", "kind"],
+            column_encoding={"point_index": "DELTA_BINARY_PACKED"},
+        )
+        self._closed = False
+
+    def write(self, point_index, tree_id, is_wood, kind) -> None:
+        self._writer.write_table(
+            pa.table(
+                {
+                    "point_index": np.asarray(point_index, dtype=np.uint64),
+                    "tree_id": np.asarray(tree_id, dtype=np.int64),
+                    "is_wood": np.asarray(is_wood, dtype=bool),
+                    "kind": np.asarray(kind, dtype=np.uint8),
+                },
+                schema=self._schema,
+            )
+        )
+
+    def close(self) -> None:
+        if self._closed:
+            return
+        self._closed = True
+        self._writer.close()
+        os.replace(self._tmp, self.path)
+
+
+def read_parquet_columns(path, columns: list[str] | None = None, *, what: str = "Parquet file") -> tuple[dict[str, np.ndarray], dict]:
+    """Columns of a Parquet file as numpy arrays, and its key-value metadata (bytes keys).
+
+    Raises
+    ------
+    InputError
+        The file does not exist or is not readable as Parquet (``what`` names it).
+    """
+    try:
+        table = pq.read_table(str(path), columns=columns)
+    except FileNotFoundError:
+        raise InputError(f"{what} {path} does not exist") from None
+    except Exception as exc:  # noqa: BLE001 - any unreadable file is bad input
+        raise InputError(f"{what} {path} is not readable as Parquet ({_one_line(exc)})") from None
+    return {c: table.column(c).to_numpy() for c in table.column_names}, dict(table.schema.metadata or {})
+
+
 def read_trees_parquet(path) -> tuple[dict[str, np.ndarray], dict]:
     """Read ``trees.parquet``: columns (without geometry) and the parsed ``geo`` metadata."""
     table = pq.read_table(str(path))

@@ -28,7 +28,6 @@ origin; absolute coordinates add ``(easting, northing, elevation)``.
 from __future__ import annotations
 
 import json
-import os
 from dataclasses import dataclass, field
 from typing import Iterable, Iterator
 
@@ -946,10 +945,7 @@ def write_simulation(source: Orchard | SimulationParams | Iterable[Orchard], las
     [x, y, z] trunk bases, tree ``k`` at position ``k-1``), ``orchard:trunk_radius``,
     ``orchard:kinds`` and ``orchard:crs_epsg``.
     """
-    import pyarrow as pa
-    import pyarrow.parquet as pq
-
-    from pipeline.io import LasBlockWriter
+    from pipeline.io import LasBlockWriter, TruthParquetWriter
 
     if isinstance(source, Orchard):
         chunks: Iterable[Orchard] = [source]
@@ -957,8 +953,7 @@ def write_simulation(source: Orchard | SimulationParams | Iterable[Orchard], las
         chunks = iter_simulation(source)
     else:
         chunks = source
-    tmp_truth = f"{truth_path}.tmp-{os.getpid()}"
-    writer = None
+    truth = None
     n = 0
     n_trees = 0
     epsg = None
@@ -970,48 +965,29 @@ def write_simulation(source: Orchard | SimulationParams | Iterable[Orchard], las
                 n_trees = len(ch.trunks)
                 offsets = tuple(float(np.floor(v)) for v in ch.trunks.min(axis=0)) if n_trees else (0.0, 0.0, 0.0)
                 las = LasBlockWriter(las_path, crs_epsg=ch.crs_epsg, offsets=offsets)
-                meta = {
-                    "orchard:trunks": json.dumps(np.round(ch.trunks, 6).tolist()),
-                    "orchard:trunk_radius": json.dumps(np.round(ch.trunk_radius, 6).tolist()),
-                    "orchard:kinds": json.dumps(list(KIND)),
-                    "orchard:crs_epsg": str(ch.crs_epsg),
-                }
-                schema = pa.schema(
-                    [("point_index", pa.uint64()), ("tree_id", pa.int64()), ("is_wood", pa.bool_()), ("kind", pa.uint8())],
-                    metadata=meta,
-                )
-                writer = pq.ParquetWriter(
-                    tmp_truth, schema, compression="zstd", use_dictionary=["tree_id", "is_wood", "kind"],
-                    column_encoding={"point_index": "DELTA_BINARY_PACKED"},
+                truth = TruthParquetWriter(
+                    truth_path,
+                    metadata={
+                        "orchard:trunks": json.dumps(np.round(ch.trunks, 6).tolist()),
+                        "orchard:trunk_radius": json.dumps(np.round(ch.trunk_radius, 6).tolist()),
+                        "orchard:kinds": json.dumps(list(KIND)),
+                        "orchard:crs_epsg": str(ch.crs_epsg),
+                    },
                 )
             m = ch.n_points
             if m == 0:
                 continue
             las.write(ch.xyz)
-            writer.write_table(pa.table(
-                {
-                    "point_index": np.arange(n, n + m, dtype=np.uint64),
-                    "tree_id": ch.tree_id.astype(np.int64),
-                    "is_wood": ch.is_wood.astype(bool),
-                    "kind": ch.kind.astype(np.uint8),
-                },
-                schema=schema,
-            ))
+            truth.write(np.arange(n, n + m, dtype=np.uint64), ch.tree_id, ch.is_wood, ch.kind)
             n += m
         if las is None:
             raise ValueError("nothing to write: the simulation produced no chunks")
-        writer.close()
-        writer = None
+        truth.close()
         las.close()
-        las = None
-        os.replace(tmp_truth, truth_path)
     except BaseException:
-        if writer is not None:
-            writer.close()
-        if las is not None:
-            las.abort()
-        if os.path.exists(tmp_truth):
-            os.remove(tmp_truth)
+        for w in (truth, las):
+            if w is not None:
+                w.abort()
         raise
     return {"n_points": n, "n_trees": n_trees, "crs_epsg": epsg}
 
@@ -1027,20 +1003,13 @@ def read_truth(path: str) -> tuple[dict[str, np.ndarray], np.ndarray]:
     trunks : (k, 3) float64
         Absolute trunk base centres [m]; tree ``k`` is ``trunks[k-1]``.
     """
-    import pyarrow.parquet as pq
-
     from pipeline.errors import InputError
+    from pipeline.io import read_parquet_columns
 
-    try:
-        table = pq.read_table(path)
-    except FileNotFoundError:
-        raise InputError(f"truth file {path} does not exist") from None
-    except Exception as exc:  # noqa: BLE001 - any unreadable file is bad input
-        raise InputError(f"truth file {path} is not a readable Parquet file ({exc})") from None
-    meta = table.schema.metadata or {}
-    if b"orchard:trunks" not in meta or any(c not in table.column_names for c in TRUTH_COLUMNS):
+    table, meta = read_parquet_columns(path, what="truth file")
+    if b"orchard:trunks" not in meta or any(c not in table for c in TRUTH_COLUMNS):
         raise InputError(f"{path} is not an orchard truth file (run `orchard simulate --truth ...`)")
-    cols = {c: table.column(c).to_numpy() for c in TRUTH_COLUMNS}
+    cols = {c: table[c] for c in TRUTH_COLUMNS}
     if len(cols["point_index"]) and np.any(np.diff(cols["point_index"].astype(np.int64)) < 0):
         order = np.argsort(cols["point_index"], kind="stable")
         cols = {c: v[order] for c, v in cols.items()}
