@@ -359,15 +359,25 @@ def _extra_type(dtype) -> np.dtype:
 
 class _AtomicWriter:
     """Shared ending of the streaming writers: the file is written under ``self._tmp``
-    by ``self._writer`` (which may not exist yet) and renamed by ``close``; ``abort``
+    by ``self._writer`` (opened by ``_open`` if not yet) and renamed by ``close``; ``abort``
     (and an exception inside ``with``) deletes it, leaving nothing behind."""
 
     _tmp: Path
     _writer = None
     _closed = False
 
-    def close(self) -> None:  # pragma: no cover - defined by subclasses
-        raise NotImplementedError
+    def close(self) -> None:
+        """Finish the file and move it to its final name."""
+        if self._closed:
+            return
+        self._closed = True
+        if self._writer is None:
+            self._writer = self._open()
+        self._writer.close()
+        os.replace(self._tmp, self.path)
+
+    def _open(self):  # writers that open lazily (LasBlockWriter) override this
+        raise RuntimeError("the writer was never opened")
 
     def abort(self) -> None:
         """Stop and delete the temporary file; nothing is left behind."""
@@ -480,16 +490,6 @@ class LasBlockWriter(_AtomicWriter):
             rec[name] = np.asarray(values).astype(self._extra[name])
         self._writer.write_points(rec)
         self.n_points += m
-
-    def close(self) -> None:
-        """Finish the file and move it to its final name."""
-        if self._closed:
-            return
-        self._closed = True
-        if self._writer is None:
-            self._writer = self._open()
-        self._writer.close()
-        os.replace(self._tmp, self.path)
 
 
 def write_labelled_las(
@@ -664,13 +664,6 @@ class PointsParquetWriter(_AtomicWriter):
         self._writer.write_table(table, row_group_size=self._row_group_size)
         self.n_rows += table.num_rows
 
-    def close(self) -> None:
-        if self._closed:
-            return
-        self._closed = True
-        self._writer.close()
-        os.replace(self._tmp, self.path)
-
 
 class TruthParquetWriter(_AtomicWriter):
     """Streamed per-point truth of a generated block (the simulator's ``truth.parquet``).
@@ -708,13 +701,6 @@ class TruthParquetWriter(_AtomicWriter):
                 schema=self._schema,
             )
         )
-
-    def close(self) -> None:
-        if self._closed:
-            return
-        self._closed = True
-        self._writer.close()
-        os.replace(self._tmp, self.path)
 
 
 def read_parquet_columns(path, columns: list[str] | None = None, *, what: str = "Parquet file") -> tuple[dict[str, np.ndarray], dict]:
