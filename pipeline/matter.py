@@ -21,8 +21,6 @@ from pipeline.enrichment import ShapeFeatures
 from pipeline.graph import subtree_sizes
 from pipeline.params import MatterParams
 
-PAPER_THRESHOLD = 0.216  # the threshold the paper selected on its real data
-
 #: names of the columns of :func:`wood_features`
 FEATURES = (
     "bias",
@@ -40,7 +38,7 @@ FEATURES = (
 # Logistic model of the "combined" score, one weight per FEATURES column. Fitted by
 # `python -m bench.fit_matter --seeds 2` on generated orchards with seeds 1000+ (never on
 # the blocks used for evaluation; training wood F1 0.780); refit and paste when the
-# features change. The matching threshold is MatterParams.threshold.
+# features change. The matching threshold is params.COMBINED_THRESHOLD.
 COMBINED_WEIGHTS = np.array([-5.001, 1.452, 3.255, 6.04, 1.142, -1.55, 0.369, 0.05, -0.722, -3.553])
 
 

@@ -76,6 +76,13 @@ class SegmentParams(_Model):
     unreached_radius: float = Field(0.6, ge=0.0, le=10.0, description="points the graph does not reach go to the nearest trunk if a tree node lies this close [m]")
 
 
+#: the wood threshold the paper selected on its real data
+PAPER_THRESHOLD = 0.216
+#: the combined score's threshold that maximises wood F1 on the training orchards
+#: (printed by ``python -m bench.fit_matter`` with the weights in pipeline.matter)
+COMBINED_THRESHOLD = 0.33
+
+
 class MatterParams(_Model):
     """Wood/leaf classification from shortest-path counts."""
 
@@ -92,7 +99,7 @@ class MatterParams(_Model):
     def effective_threshold(self) -> float:
         if self.threshold is not None:
             return self.threshold
-        return 0.216 if self.method == "paper" else 0.33
+        return PAPER_THRESHOLD if self.method == "paper" else COMBINED_THRESHOLD
 
 
 class MetricsParams(_Model):
