@@ -74,6 +74,8 @@ class SegmentParams(_Model):
     floating_height: float = Field(0.5, ge=0.0, le=20.0, description="unreached fragments whose lowest point is above this height are canopy and join the nearest tree; lower ones are separate objects [m]")
     min_fragment: int = Field(3, ge=1, le=10_000, description="unreached fragments of fewer graph nodes than this are noise (outliers) and stay unlabelled [nodes]")
     unreached_radius: float = Field(0.6, ge=0.0, le=10.0, description="points the graph does not reach go to the nearest trunk if a tree node lies this close [m]")
+    surface_area: float = Field(0.4, ge=0.0, le=1000.0, description="a connected planar surface this large standing above floating_height (a vehicle's or a bin's side, a wall) is never tree material, nor is anything within surface_margin of it; 0 = off [m^2]")
+    surface_margin: float = Field(0.3, ge=0.0, le=5.0, description="material this close to such a surface belongs to the object (its edges, wheels) [m]")
 
 
 #: the wood threshold the paper selected on its real data

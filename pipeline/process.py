@@ -17,7 +17,7 @@ from pipeline.graph import bridge_floating, build_graph, reweight
 from pipeline.ground import GroundModel, classify_ground, ground_model
 from pipeline.metrics import trunk_diameters
 from pipeline.params import PipelineParams
-from pipeline.segment import Segmentation, segment_nodes
+from pipeline.segment import Segmentation, hard_surfaces, segment_nodes
 from pipeline.trunks import TrunkDetection, box_like_trees, detect_trunks, drop_trunks
 from pipeline.voxels import Voxels, voxelize
 
@@ -143,6 +143,15 @@ def analyse_nodes(
         ground_top=gm.tolerance(params.ground),
         params=params.trunks,
     )
+    surfaces = hard_surfaces(
+        nodes,
+        graph,
+        planar,
+        node_height,
+        min_nodes=int(round(params.segment.surface_area / params.graph.voxel_size**2)),
+        margin=params.segment.surface_margin,
+        min_top=params.segment.floating_height,
+    )
     seg_graph = graph
     if params.segment.leaf_cost > 0:
         seg_graph = reweight(graph, 1.0 + params.segment.leaf_cost * leafiness)
@@ -156,6 +165,7 @@ def analyse_nodes(
             trunk_xy=det.xy,
             node_height=node_height,
             params=params.segment,
+            exclude=surfaces,
         )
 
     seg = segment(det)

@@ -38,6 +38,7 @@ def segment_nodes(
     trunk_xy: np.ndarray,
     node_height: np.ndarray,
     params: SegmentParams,
+    exclude: np.ndarray | None = None,
 ) -> Segmentation:
     """Give every node to the trunk it reaches by the shortest path.
 
@@ -61,12 +62,20 @@ def segment_nodes(
     trunk_xy : (k, 2) float64 [m]
     node_height : (m,) float64 — height above ground [m]
     params : SegmentParams
+    exclude : (m,) bool, optional — nodes that are never tree material (see
+        ``hard_surfaces``): no path passes through them and they stay 0
 
     Returns
     -------
     Segmentation
     """
     m = nodes.shape[0]
+    if exclude is not None and exclude.any():
+        exclude = exclude.copy()
+        exclude[source_nodes] = False  # a trunk's seeds stay, whatever stands beside it
+        keep = sparse.diags((~exclude).astype(np.float64))
+        graph = (keep @ graph @ keep).tocsr()
+        graph.eliminate_zeros()
     sp = shortest_paths(graph, source_nodes)
     trunk_of_node = np.full(m, -1, np.int64)
     trunk_of_node[source_nodes] = source_trunk
@@ -80,7 +89,7 @@ def segment_nodes(
         node_tree[idx] = 0
         reached[idx] = False
     labelled = node_tree > 0
-    todo = np.flatnonzero(~labelled)
+    todo = np.flatnonzero(~labelled if exclude is None else ~labelled & ~exclude)
     if todo.size and labelled.any():
         _, comp = csgraph.connected_components(graph[todo][:, todo], directed=False)
         low = np.full(comp.max() + 1, np.inf)
@@ -96,3 +105,51 @@ def segment_nodes(
         ok = ((nodes[todo[hit], :2] - trunk_xy[cand_tree - 1]) ** 2).sum(1) <= params.max_crown_radius**2
         node_tree[todo[hit][ok]] = cand_tree[ok]
     return Segmentation(node_tree, sp, reached)
+
+
+def hard_surfaces(
+    nodes: np.ndarray,
+    graph: sparse.csr_matrix,
+    planar: np.ndarray,
+    node_height: np.ndarray,
+    *,
+    min_nodes: int,
+    margin: float,
+    min_top: float,
+) -> np.ndarray:
+    """Nodes of large planar surfaces standing above the grass, and those next to them.
+
+    A vehicle parked under a crown, a bin or a wall touches the foliage, so shortest
+    paths from the trunk run over it. Trees have no large flat parts: on generated
+    orchards no connected set of planar tree nodes exceeds 13 voxels, while a vehicle's
+    or a bin's faces form sets of 90-670. Grass patches are planar too but stay below
+    ``min_top``.
+
+    Parameters
+    ----------
+    nodes : (m, 3) float64 [m]
+    graph : (m, m) csr_matrix
+    planar : (m,) bool — nodes whose neighbourhood is a surface
+    node_height : (m,) float64 — height above ground [m]
+    min_nodes : int — least size of a surface [nodes]; 0 = no surfaces
+    margin : float — nodes this close to a surface are part of the object [m]
+    min_top : float — a surface's highest node must stand above this [m]
+
+    Returns
+    -------
+    (m,) bool
+    """
+    m = nodes.shape[0]
+    out = np.zeros(m, bool)
+    idx = np.flatnonzero(planar)
+    if min_nodes <= 0 or idx.size < min_nodes:
+        return out
+    _, comp = csgraph.connected_components(graph[idx][:, idx], directed=False)
+    size = np.bincount(comp)
+    top = np.full(size.shape[0], -np.inf)
+    np.maximum.at(top, comp, node_height[idx])
+    surface = idx[(size[comp] >= min_nodes) & (top[comp] > min_top)]
+    if surface.size == 0:
+        return out
+    d, _ = cKDTree(nodes[surface]).query(nodes, distance_upper_bound=margin + 1e-9)
+    return np.isfinite(d)
