@@ -82,7 +82,7 @@ class SegmentParams(_Model):
 PAPER_THRESHOLD = 0.216
 #: the combined score's threshold that maximises wood F1 on the training orchards
 #: (printed by ``python -m bench.fit_matter`` with the weights in pipeline.matter)
-COMBINED_THRESHOLD = 0.33
+COMBINED_THRESHOLD = 0.34
 
 
 class MatterParams(_Model):
@@ -93,7 +93,7 @@ class MatterParams(_Model):
     )
     threshold: float | None = Field(
         None, ge=0.0, le=1.0,
-        description="score at or above which a voxel is wood; default per method: 0.33 for 'combined' (best wood F1 on the "
+        description="score at or above which a voxel is wood; default per method: 0.34 for 'combined' (best wood F1 on the "
         "training orchards), 0.216 for 'paper' (the paper's value) [0-1]",
     )
     smoothing_radius: float = Field(0.25, ge=0.05, le=2.0, description="neighbourhood over which scores and shape features are averaged [m]")
