@@ -53,11 +53,26 @@ def _mpts(x) -> str:
 # ----------------------------------------------------------------------------- plots
 
 
-def plot_accuracy(results: list[dict], path: Path) -> None:
+def _pyplot():
+    """matplotlib.pyplot on the headless Agg backend (imported only when plotting)."""
     import matplotlib
 
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
+
+    return plt
+
+
+def _save(fig, path: Path) -> None:
+    import matplotlib.pyplot as plt
+
+    fig.tight_layout()
+    fig.savefig(path, dpi=110)
+    plt.close(fig)
+
+
+def plot_accuracy(results: list[dict], path: Path) -> None:
+    plt = _pyplot()
     import numpy as np
 
     metrics = (("trunk_f1", "trunk F1"), ("v_measure", "v-measure"), ("wood_f1", "wood F1"))
@@ -81,16 +96,11 @@ def plot_accuracy(results: list[dict], path: Path) -> None:
             ax.grid(alpha=0.3)
     axes[0, 0].legend(fontsize=8, loc="lower left")
     fig.suptitle("Accuracy on generated blocks (mean over the other parameter)")
-    fig.tight_layout()
-    fig.savefig(path, dpi=110)
-    plt.close(fig)
+    _save(fig, path)
 
 
 def plot_stages(stand: dict, path: Path) -> None:
-    import matplotlib
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
+    plt = _pyplot()
 
     stages = stand["stages"]
     names = list(stages)
@@ -104,16 +114,11 @@ def plot_stages(stand: dict, path: Path) -> None:
     ax.set_xlabel("seconds (one core)")
     ax.set_title(f"3-tree stand, {stand['block']['n_points']:,} points: {stand['median_s']:.2f} s (paper: {stand['paper_s']:.0f} s)")
     ax.legend(ncol=4, fontsize=8, loc="upper center", bbox_to_anchor=(0.5, -0.25))
-    fig.tight_layout()
-    fig.savefig(path, dpi=110)
-    plt.close(fig)
+    _save(fig, path)
 
 
 def plot_scaling(scaling: dict, path: Path) -> None:
-    import matplotlib
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
+    plt = _pyplot()
     import numpy as np
 
     rows = scaling["rows"]
@@ -137,9 +142,7 @@ def plot_scaling(scaling: dict, path: Path) -> None:
     a2.set_title("peak memory")
     a2.grid(alpha=0.3)
     a2.legend(fontsize=8)
-    fig.tight_layout()
-    fig.savefig(path, dpi=110)
-    plt.close(fig)
+    _save(fig, path)
 
 
 # ----------------------------------------------------------------------------- text
