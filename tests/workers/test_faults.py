@@ -71,17 +71,22 @@ def test_worker_killed_mid_job(small_block, reference, loopback_cluster, tmp_pat
     _same_outputs(out, reference)
 
 
-def test_first_tile_failing_stops_the_job_naming_it_then_resume(small_block, reference, loopback_cluster, tmp_path):
-    loopback_cluster.ensure_workers(2)
-    out, work = tmp_path / "out", tmp_path / "work"
-    run = subprocess.run(
+def _run_failing_tile(small_block, out: Path, work: Path, cluster, tile: int) -> subprocess.CompletedProcess:
+    """``orchard process`` on the loopback cluster, 6 m tiles, with ``tile`` made to fail."""
+    cluster.ensure_workers(2)
+    return subprocess.run(
         _orchard(
-            small_block, "--out", out, "--tile-size", 6, "--scheduler", loopback_cluster.address,
-            "--work", work, "--inject-failure", 0,
+            small_block, "--out", out, "--tile-size", 6, "--scheduler", cluster.address,
+            "--work", work, "--inject-failure", tile,
         ),
         capture_output=True,
         timeout=TIMEOUT,
     )
+
+
+def test_first_tile_failing_stops_the_job_naming_it_then_resume(small_block, reference, loopback_cluster, tmp_path):
+    out, work = tmp_path / "out", tmp_path / "work"
+    run = _run_failing_tile(small_block, out, work, loopback_cluster, 0)
     err = run.stderr.decode()
     assert run.returncode == 1, err
     last = err.strip().splitlines()[-1]
@@ -101,16 +106,8 @@ def test_first_tile_failing_stops_the_job_naming_it_then_resume(small_block, ref
 
 
 def test_later_tile_failing_gives_partial_result_then_rerun_alone(small_block, reference, loopback_cluster, tmp_path):
-    loopback_cluster.ensure_workers(2)
     out, work = tmp_path / "out", tmp_path / "work"
-    run = subprocess.run(
-        _orchard(
-            small_block, "--out", out, "--tile-size", 6, "--scheduler", loopback_cluster.address,
-            "--work", work, "--inject-failure", 5,
-        ),
-        capture_output=True,
-        timeout=TIMEOUT,
-    )
+    run = _run_failing_tile(small_block, out, work, loopback_cluster, 5)
     err = run.stderr.decode()
     assert run.returncode == 4, err
     assert "partial result: tiles [5] failed" in err and "--rerun-tile 5" in err
