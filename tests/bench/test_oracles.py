@@ -1,0 +1,40 @@
+"""bench.oracles.direction_paths on graphs small enough to check by hand."""
+
+import numpy as np
+from scipy import sparse
+
+from bench.oracles import direction_paths
+from pipeline.graph import shortest_paths
+
+
+def _graph(nodes, edges):
+    i, j = np.array(edges).T
+    w = np.linalg.norm(nodes[i] - nodes[j], axis=1)
+    g = sparse.coo_matrix((w, (i, j)), shape=(len(nodes),) * 2)
+    return (g + g.T).tocsr()
+
+
+def test_a_straight_path_beats_a_shorter_sharp_turn():
+    # trunk A: a vertical chain 0..4 from z=0 to z=0.4; node 4 is the target.
+    # trunk B's seed (node 5) sits 0.1 m beside the target, at the same height.
+    # Plain shortest paths give the target to B (0.1 m against 0.4 m); a path from B
+    # would have to turn 90 degrees off its upward start, so direction paths give it to A.
+    nodes = np.array([[0, 0, z] for z in (0.0, 0.1, 0.2, 0.3, 0.4)] + [[0.1, 0, 0.4]], float)
+    g = _graph(nodes, [(0, 1), (1, 2), (2, 3), (3, 4), (4, 5)])
+    seeds, seed_trunk = np.array([0, 5]), np.array([0, 1])
+    plain = shortest_paths(g, seeds).source
+    assert plain[4] == 5
+    trunk = direction_paths(g, nodes, seeds, seed_trunk, np.array([[0.0, 0.0], [0.1, 0.0]]))
+    assert trunk.tolist() == [0, 0, 0, 0, 0, 1]
+
+
+def test_a_symmetric_bridge_splits_in_the_middle_and_unreached_nodes_stay_minus_one():
+    # two trunks at the ends of a horizontal bridge of 21 nodes, and one isolated node
+    xs = np.arange(0.0, 2.01, 0.1)
+    nodes = np.c_[xs, np.zeros_like(xs), np.full_like(xs, 1.0)]
+    nodes = np.vstack([nodes, [[5.0, 5.0, 5.0]]])  # an isolated node
+    n = len(xs)
+    g = _graph(nodes, [(k, k + 1) for k in range(n - 1)])
+    trunk = direction_paths(g, nodes, np.array([0, n - 1]), np.array([0, 1]), np.array([[0.0, 0.0], [2.0, 0.0]]))
+    assert trunk[-1] == -1
+    assert (trunk[: n // 2] == 0).all() and (trunk[n // 2 + 1 : n] == 1).all()
