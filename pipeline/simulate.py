@@ -35,10 +35,11 @@ import numpy as np
 from pydantic import BaseModel, ConfigDict, Field, model_validator
 from scipy.special import ndtri
 
-KIND = ("ground", "grass", "wood", "leaf", "post", "vehicle", "outlier")
-"""Names of the per-point ``kind`` codes (index = code). ``leaf`` is all non-wood tree
-material (leaves and thin twigs); ``vehicle`` covers the vehicle and the bin."""
-GROUND, GRASS, WOOD, LEAF, POST, VEHICLE, OUTLIER = range(len(KIND))
+KIND = ("ground", "grass", "wood", "leaf", "post", "vehicle", "outlier", "twig")
+"""Names of the per-point ``kind`` codes (index = code). Non-wood tree material is
+``leaf`` (leaf discs) or ``twig`` (branches thinner than ``WOOD_RADIUS``); ``vehicle``
+covers the vehicle and the bin."""
+GROUND, GRASS, WOOD, LEAF, POST, VEHICLE, OUTLIER, TWIG = range(len(KIND))
 
 WOOD_RADIUS = 0.015
 """Branches at least this thick [m] are wood; thinner twigs and leaves are not."""
@@ -717,7 +718,7 @@ def _tree_chunk(plan: _Plan, i: int) -> Orchard:
         above = h >= 0.0  # the trunk starts below the ground
         pts, rad, h = pts[above], rad[above], h[above]
         wood = rad >= WOOD_RADIUS
-        ch.add(plan, rng, k, pts, i + 1, wood, np.where(wood, WOOD, LEAF), h=h)
+        ch.add(plan, rng, k, pts, i + 1, wood, np.where(wood, WOOD, TWIG), h=h)
         pts, _ = _sample_discs(rng, plan, k, tree.leaf_c, tree.leaf_n, tree.leaf_r)
         ch.add(plan, rng, k, pts, i + 1, False, LEAF)
     return ch.finish(plan, rng)

@@ -12,6 +12,7 @@ from pipeline.simulate import (
     LEAF,
     OUTLIER,
     POST,
+    TWIG,
     VEHICLE,
     WOOD,
     SimulationParams,
@@ -86,8 +87,9 @@ def test_points_at_each_trunk_base_belong_to_that_tree(small):
 
 def test_kinds_and_labels_agree(small):
     tree = small.tree_id > 0
-    assert np.all(np.isin(small.kind[tree], [WOOD, LEAF]))
-    assert np.all(~np.isin(small.kind[~tree], [WOOD, LEAF]))
+    assert np.all(np.isin(small.kind[tree], [WOOD, LEAF, TWIG]))
+    assert np.all(~np.isin(small.kind[~tree], [WOOD, LEAF, TWIG]))
+    assert (small.kind == TWIG).any() and (small.kind == LEAF).any()
     assert np.array_equal(small.is_wood, small.kind == WOOD)
     assert not small.is_wood[~tree].any()
 
