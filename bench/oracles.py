@@ -37,7 +37,6 @@ import math
 
 import numpy as np
 from scipy import sparse
-
 from scipy.spatial import cKDTree
 
 from pipeline.baselines import closest_trunk
