@@ -26,6 +26,10 @@ density: 2.5 m x 4.5 m with low foliage) it prints the v-measure on true tree po
 - ``twig oracle``: every tree point takes the true tree of its nearest true wood or twig
   point: what knowing each twig's tree would give.
 
+A second table says what the contested material is: the share of each kind of tree
+point (all, wood, twig, leaf) lying beyond the midpoint towards another trunk (closer,
+horizontally, to another tree's trunk base than to its own; see ``midpoint_ratio``).
+
 Evaluation seeds (< 1000) only. Prints a Markdown table.
 """
 
@@ -44,7 +48,7 @@ from pipeline.evaluate import v_measure
 from pipeline.graph import build_graph, shortest_paths
 from pipeline.params import PipelineParams
 from pipeline.process import analyse_nodes, process_points
-from pipeline.simulate import TWIG, SimulationParams, simulate_orchard
+from pipeline.simulate import LEAF, TWIG, SimulationParams, simulate_orchard
 
 SKELETON_RADIUS = 0.08
 """Edge length of the point-scale skeleton graph [m]."""
@@ -115,6 +119,36 @@ def direction_paths(
     return np.array(trunk, np.int64)
 
 
+def midpoint_ratio(xy: np.ndarray, tree_id: np.ndarray, trunk_xy: np.ndarray) -> np.ndarray:
+    """Where each tree point lies between its own trunk and the nearest other one.
+
+    d_own / (d_own + d_other) with horizontal distances to its own tree's trunk base
+    (``tree_id`` k is ``trunk_xy[k-1]``) and to the nearest other trunk: below 0.5 the
+    point is nearer its own trunk, above 0.5 it reaches into a neighbour's side. NaN for
+    points of no tree, 0 when there is only one trunk.
+    """
+    out = np.full(tree_id.shape[0], np.nan)
+    idx = np.flatnonzero(tree_id > 0)
+    if trunk_xy.shape[0] < 2 or idx.size == 0:
+        out[idx] = 0.0
+        return out
+    own = tree_id[idx] - 1
+    d = np.linalg.norm(xy[idx, None, :] - trunk_xy[None], axis=2)
+    d_own = d[np.arange(idx.size), own].copy()
+    d[np.arange(idx.size), own] = np.inf
+    out[idx] = d_own / np.maximum(d_own + d.min(axis=1), 1e-12)
+    return out
+
+
+def overlap_shares(sim: dict, seed: int) -> dict[str, float]:
+    """Share of all, wood, twig and leaf tree points beyond the midpoint (ratio > 0.5)."""
+    o = simulate_orchard(SimulationParams(seed=seed, **sim))
+    r = midpoint_ratio(o.xyz[:, :2], o.tree_id, o.trunks[:, :2])
+    tree = o.tree_id > 0
+    kinds = {"all": tree, "wood": tree & o.is_wood, "twig": tree & (o.kind == TWIG), "leaf": tree & (o.kind == LEAF)}
+    return {k: float((r[m] > 0.5).mean()) if m.any() else 0.0 for k, m in kinds.items()}
+
+
 def oracle_scores(sim: dict, seed: int, params: PipelineParams) -> dict[str, float]:
     o = simulate_orchard(SimulationParams(seed=seed, **sim))
     xyz = o.xyz - np.floor(o.xyz.min(axis=0))
@@ -173,6 +207,14 @@ def main(argv: list[str] | None = None) -> None:
         for seed in range(args.seeds):
             s = oracle_scores(sim, seed, params)
             print(f"| {label} | {seed} | " + " | ".join(f"{s[c]:.3f}" for c in cols) + " |", flush=True)
+    kinds = ("all", "wood", "twig", "leaf")
+    print("\nShare of tree points beyond the midpoint towards another trunk:\n")
+    print("| setting | seed | " + " | ".join(kinds) + " |")
+    print("|---|---|" + "---|" * len(kinds))
+    for label, sim in SETTINGS.items():
+        for seed in range(args.seeds):
+            s = overlap_shares(sim, seed)
+            print(f"| {label} | {seed} | " + " | ".join(f"{100 * s[k]:.1f} %" for k in kinds) + " |", flush=True)
 
 
 if __name__ == "__main__":

@@ -1,9 +1,10 @@
-"""bench.oracles.direction_paths on graphs small enough to check by hand."""
+"""bench.oracles helpers (direction_paths, midpoint_ratio) on inputs small enough to check by hand."""
 
 import numpy as np
+import pytest
 from scipy import sparse
 
-from bench.oracles import direction_paths
+from bench.oracles import direction_paths, midpoint_ratio
 from pipeline.graph import shortest_paths
 
 
@@ -38,3 +39,20 @@ def test_a_symmetric_bridge_splits_in_the_middle_and_unreached_nodes_stay_minus_
     trunk = direction_paths(g, nodes, np.array([0, n - 1]), np.array([0, 1]), np.array([[0.0, 0.0], [2.0, 0.0]]))
     assert trunk[-1] == -1
     assert (trunk[: n // 2] == 0).all() and (trunk[n // 2 + 1 : n] == 1).all()
+
+
+def test_midpoint_ratio_by_hand():
+    # trunks at x=0 and x=4; tree 1's points at x=1 and x=3 lie at 1/4 and 3/4 of the way
+    # to tree 2's trunk; a tree-2 point at x=2 is on the midpoint; a non-tree point is NaN
+    xy = np.array([[1.0, 0.0], [3.0, 0.0], [2.0, 0.0], [9.0, 9.0]])
+    r = midpoint_ratio(xy, np.array([1, 1, 2, 0]), np.array([[0.0, 0.0], [4.0, 0.0]]))
+    assert r[:3] == pytest.approx([0.25, 0.75, 0.5])
+    assert np.isnan(r[3])
+
+
+def test_midpoint_ratio_nearest_other_trunk_and_single_tree():
+    # the nearer of two other trunks counts; with one trunk every tree point is at 0
+    xy = np.array([[0.0, 1.0]])
+    r = midpoint_ratio(xy, np.array([1]), np.array([[0.0, 0.0], [0.0, 3.0], [0.0, -9.0]]))
+    assert r == pytest.approx([1.0 / 3.0])
+    assert midpoint_ratio(xy, np.array([1]), np.array([[5.0, 5.0]])).tolist() == [0.0]
