@@ -48,7 +48,7 @@ from pipeline.evaluate import v_measure
 from pipeline.graph import build_graph, shortest_paths
 from pipeline.params import PipelineParams
 from pipeline.process import analyse_nodes, process_points
-from pipeline.simulate import LEAF, TWIG, SimulationParams, simulate_orchard
+from pipeline.simulate import LEAF, TWIG, Orchard, SimulationParams, simulate_orchard
 
 SKELETON_RADIUS = 0.08
 """Edge length of the point-scale skeleton graph [m]."""
@@ -133,24 +133,23 @@ def midpoint_ratio(xy: np.ndarray, tree_id: np.ndarray, trunk_xy: np.ndarray) ->
         out[idx] = 0.0
         return out
     own = tree_id[idx] - 1
-    d = np.linalg.norm(xy[idx, None, :] - trunk_xy[None], axis=2)
-    d_own = d[np.arange(idx.size), own].copy()
-    d[np.arange(idx.size), own] = np.inf
-    out[idx] = d_own / np.maximum(d_own + d.min(axis=1), 1e-12)
+    d_own = np.linalg.norm(xy[idx] - trunk_xy[own], axis=1)
+    # of the two nearest trunks, the first that is not the point's own
+    d2, j2 = cKDTree(trunk_xy).query(xy[idx], k=2)
+    d_other = np.where(j2[:, 0] == own, d2[:, 1], d2[:, 0])
+    out[idx] = d_own / np.maximum(d_own + d_other, 1e-12)
     return out
 
 
-def overlap_shares(sim: dict, seed: int) -> dict[str, float]:
+def overlap_shares(o: Orchard) -> dict[str, float]:
     """Share of all, wood, twig and leaf tree points beyond the midpoint (ratio > 0.5)."""
-    o = simulate_orchard(SimulationParams(seed=seed, **sim))
     r = midpoint_ratio(o.xyz[:, :2], o.tree_id, o.trunks[:, :2])
     tree = o.tree_id > 0
     kinds = {"all": tree, "wood": tree & o.is_wood, "twig": tree & (o.kind == TWIG), "leaf": tree & (o.kind == LEAF)}
     return {k: float((r[m] > 0.5).mean()) if m.any() else 0.0 for k, m in kinds.items()}
 
 
-def oracle_scores(sim: dict, seed: int, params: PipelineParams) -> dict[str, float]:
-    o = simulate_orchard(SimulationParams(seed=seed, **sim))
+def oracle_scores(o: Orchard, params: PipelineParams) -> dict[str, float]:
     xyz = o.xyz - np.floor(o.xyz.min(axis=0))
     tree = o.tree_id > 0
     out = {}
@@ -201,20 +200,24 @@ def main(argv: list[str] | None = None) -> None:
     args = ap.parse_args(argv)
     params = PipelineParams()
     cols = ("ours", "closest trunk", "direction paths", "wood oracle", "skeleton paths", "twig oracle", "voxel oracle")
+    kinds = ("all", "wood", "twig", "leaf")
+    _header(cols)
+    shares = []
+    for label, sim in SETTINGS.items():
+        for seed in range(args.seeds):
+            o = simulate_orchard(SimulationParams(seed=seed, **sim))
+            s = oracle_scores(o, params)
+            print(f"| {label} | {seed} | " + " | ".join(f"{s[c]:.3f}" for c in cols) + " |", flush=True)
+            s = overlap_shares(o)
+            shares.append(f"| {label} | {seed} | " + " | ".join(f"{100 * s[k]:.1f} %" for k in kinds) + " |")
+    print("\nShare of tree points beyond the midpoint towards another trunk:\n")
+    _header(kinds)
+    print("\n".join(shares))
+
+
+def _header(cols: tuple[str, ...]) -> None:
     print("| setting | seed | " + " | ".join(cols) + " |")
     print("|---|---|" + "---|" * len(cols))
-    for label, sim in SETTINGS.items():
-        for seed in range(args.seeds):
-            s = oracle_scores(sim, seed, params)
-            print(f"| {label} | {seed} | " + " | ".join(f"{s[c]:.3f}" for c in cols) + " |", flush=True)
-    kinds = ("all", "wood", "twig", "leaf")
-    print("\nShare of tree points beyond the midpoint towards another trunk:\n")
-    print("| setting | seed | " + " | ".join(kinds) + " |")
-    print("|---|---|" + "---|" * len(kinds))
-    for label, sim in SETTINGS.items():
-        for seed in range(args.seeds):
-            s = overlap_shares(sim, seed)
-            print(f"| {label} | {seed} | " + " | ".join(f"{100 * s[k]:.1f} %" for k in kinds) + " |", flush=True)
 
 
 if __name__ == "__main__":
