@@ -17,7 +17,7 @@ from pipeline.graph import bridge_floating, build_graph, reweight
 from pipeline.ground import GroundModel, classify_ground, ground_model
 from pipeline.metrics import trunk_diameters
 from pipeline.params import PipelineParams
-from pipeline.segment import Segmentation, hard_surfaces, segment_nodes
+from pipeline.segment import Segmentation, hard_surfaces, segment_nodes, trunk_feet
 from pipeline.trunks import TrunkDetection, box_like_trees, detect_trunks, drop_trunks
 from pipeline.voxels import Voxels, voxelize
 
@@ -233,6 +233,21 @@ def process_points(
     tree_id[a.veg_idx] = node_tree[pv]
     is_wood[a.veg_idx] = node_wood[pv]
     wood_score[a.veg_idx] = score[pv]
+    # the bottom of each trunk fell below the ground tolerance: it takes its tree's labels back
+    is_ground = a.is_ground.copy()
+    foot, src = trunk_feet(
+        xyz,
+        tree_id,
+        is_ground,
+        a.height,
+        a.trunks.xy,
+        ground_top=a.ground.tolerance(params.ground),
+        margin=params.segment.foot_margin,
+    )
+    tree_id[foot] = tree_id[src]
+    is_wood[foot] = is_wood[src]
+    wood_score[foot] = wood_score[src]
+    is_ground[foot] = False
 
     k = a.trunks.k
     trunks = np.zeros((k, 3))
@@ -240,7 +255,7 @@ def process_points(
     trunks[:, 2] = a.ground.height_at(a.trunks.xy) if k else np.zeros(0)
     return BlockResult(
         tree_id=tree_id,
-        is_ground=a.is_ground,
+        is_ground=is_ground,
         is_wood=is_wood,
         wood_score=wood_score,
         height=a.height.astype(np.float32),

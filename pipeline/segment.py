@@ -10,6 +10,7 @@ from scipy.sparse import csgraph
 from scipy.spatial import cKDTree
 
 from pipeline.graph import ShortestPaths, shortest_paths
+from pipeline.metrics import fit_circle
 from pipeline.params import SegmentParams
 
 
@@ -50,8 +51,10 @@ def segment_nodes(
     above ``floating_height`` is canopy the graph could not bridge (sparse scans) and
     takes the tree of the nearest labelled node; a fragment standing on the ground is a
     separate object (fence post, vehicle, grass) and only its nodes within
-    ``unreached_radius`` of a tree join it. Either way within ``max_crown_radius``, and
-    fragments smaller than ``min_fragment`` nodes are noise and stay unlabelled.
+    ``unreached_radius`` of a tree join it. Either way within ``max_crown_radius``.
+    Fragments smaller than ``min_fragment`` nodes are outliers and stay unlabelled,
+    unless they float within ``fragment_reach`` of a labelled node (sparse leaves at the
+    crown's rim, which the scanner saw only once).
 
     Parameters
     ----------
@@ -96,10 +99,12 @@ def segment_nodes(
         np.minimum.at(low, comp, node_height[todo])
         floating = low[comp] > params.floating_height
         bound = np.where(floating, params.max_crown_radius, params.unreached_radius)
-        big = np.bincount(comp)[comp] >= params.min_fragment  # lone outliers stay 0
+        big = np.bincount(comp)[comp] >= params.min_fragment
+        # a small fragment is an outlier unless it floats right beside a tree (a lone leaf at the rim)
+        bound = np.where(big, bound, np.where(floating, params.fragment_reach, -1.0))
         lab = np.flatnonzero(labelled)
         d, j = cKDTree(nodes[lab]).query(nodes[todo], distance_upper_bound=max(params.max_crown_radius, params.unreached_radius))
-        hit = np.isfinite(d) & (d <= bound) & big
+        hit = np.isfinite(d) & (d <= bound)
         cand_tree = node_tree[lab[j[hit]]]
         # the fallback must also respect the crown reach
         ok = ((nodes[todo[hit], :2] - trunk_xy[cand_tree - 1]) ** 2).sum(1) <= params.max_crown_radius**2
@@ -153,3 +158,70 @@ def hard_surfaces(
         return out
     d, _ = cKDTree(nodes[surface]).query(nodes, distance_upper_bound=margin + 1e-9)
     return np.isfinite(d)
+
+
+def trunk_feet(
+    xyz: np.ndarray,
+    tree_id: np.ndarray,
+    is_ground: np.ndarray,
+    height: np.ndarray,
+    trunk_xy: np.ndarray,
+    *,
+    ground_top: float,
+    margin: float,
+    slice_height: float = 0.25,
+    max_radius: float = 0.5,
+) -> tuple[np.ndarray, np.ndarray]:
+    """Ground points that are the foot of a trunk.
+
+    Ground removal takes everything within ``ground_top`` of the ground surface,
+    including the bottom of every trunk. Nothing but the trunk stands inside the trunk's
+    cross-section, so the ground points within its circle (fitted to the tree's points
+    in a slice just above ``ground_top``) plus ``margin`` belong to the tree.
+
+    Parameters
+    ----------
+    xyz : (n, 3) float64 [m]
+    tree_id : (n,) int64 — 0 = no tree, k = trunk k-1
+    is_ground : (n,) bool
+    height : (n,) float — height above ground [m]
+    trunk_xy : (k, 2) float64 [m]
+    ground_top : float — ground points lie below this height [m]
+    margin : float — widening of the fitted circle (noise, the flare at the base) [m]
+    slice_height : float — thickness of the slice the circle is fitted to [m]
+    max_radius : float — a fitted circle larger than this, or centred farther than this
+        from the trunk, is not a trunk's and is ignored [m]
+
+    Returns
+    -------
+    idx : (f,) int64 — the foot points (ground points to relabel)
+    src : (f,) int64 — for each, the nearest slice point of its tree, whose labels it takes
+    """
+    k = trunk_xy.shape[0]
+    empty = np.zeros(0, np.int64), np.zeros(0, np.int64)
+    gidx = np.flatnonzero(is_ground)
+    if k == 0 or gidx.size == 0:
+        return empty
+    cand = np.flatnonzero((tree_id > 0) & (height >= ground_top) & (height < ground_top + slice_height))
+    own = trunk_xy[tree_id[cand] - 1]
+    cand = cand[((xyz[cand, :2] - own) ** 2).sum(1) <= max_radius**2]
+    if cand.size == 0:
+        return empty
+    ground_kd = cKDTree(xyz[gidx, :2])
+    idx, src = [], []
+    order = np.argsort(tree_id[cand], kind="stable")
+    cand = cand[order]
+    trees, start = np.unique(tree_id[cand], return_index=True)
+    for t, pts in zip(trees, np.split(cand, start[1:])):
+        c, r = fit_circle(xyz[pts, :2])
+        if not (np.isfinite(r) and r <= max_radius and np.hypot(*(c - trunk_xy[t - 1])) <= max_radius):
+            continue
+        foot = gidx[ground_kd.query_ball_point(c, r + margin)]
+        if foot.size == 0:
+            continue
+        _, j = cKDTree(xyz[pts]).query(xyz[foot])
+        idx.append(foot)
+        src.append(pts[j])
+    if not idx:
+        return empty
+    return np.concatenate(idx).astype(np.int64), np.concatenate(src).astype(np.int64)

@@ -2,8 +2,9 @@
 
 Blocks use evaluation seeds (< 1000); the wood model was fitted on seeds >= 1000.
 Thresholds: trunk F1 and wood F1 are the issue's targets. v-measure is asserted at the
-level the method reaches on this simulator (the issue's 0.96 / 0.90 targets are not met
-yet; see README "Accuracy"), so a regression still fails the test.
+level the method reaches on this simulator, just below the measured means (the issue's
+0.96 / 0.90 targets are not met yet; see README "Accuracy"), so a regression still fails
+the test.
 """
 
 import numpy as np
@@ -24,7 +25,10 @@ def _score(sim: dict, seed: int, fn=process_points) -> dict:
     origin = np.floor(o.xyz.min(axis=0))
     r = fn(o.xyz - origin, params=PipelineParams())
     objects = np.isin(o.kind, [KIND.index("post"), KIND.index("vehicle")])
-    return {"objects_as_tree": float((r.tree_id[objects] > 0).mean())} | score_labels(
+    # tree points below the ground tolerance: the bottom of each trunk
+    foot = (o.tree_id > 0) & (r.height < 0.1)
+    feet = {"foot_in_tree": float(((r.tree_id[foot] > 0) & ~r.is_ground[foot]).mean()) if foot.any() else 1.0}
+    return feet | {"objects_as_tree": float((r.tree_id[objects] > 0).mean())} | score_labels(
         true_tree_id=o.tree_id,
         true_is_wood=o.is_wood,
         true_trunks=o.trunks[:, :2] - origin[:2],
@@ -52,7 +56,7 @@ def test_paper_setting_trunks_found_without_priors(paper_setting):
 
 def test_paper_setting_segmentation(paper_setting):
     vm = np.mean([s["v_measure"] for s in paper_setting])
-    assert vm >= 0.93, vm
+    assert vm >= 0.94, vm
 
 
 def test_paper_setting_wood_beats_target(paper_setting):
@@ -67,7 +71,7 @@ def test_high_density_trunks(high_density):
 
 def test_high_density_segmentation(high_density):
     vm = np.mean([s["v_measure"] for s in high_density])
-    assert vm >= 0.83, vm
+    assert vm >= 0.86, vm
 
 
 def test_graph_segmentation_beats_closest_trunk(paper_setting):
@@ -80,6 +84,13 @@ def test_vehicle_under_a_crown_is_not_absorbed(paper_setting, high_density):
     # hard surfaces were cut out of the graph, 55-78 % of its points became crown
     for s in paper_setting + high_density:
         assert s["objects_as_tree"] < 0.08, s
+
+
+def test_the_bottom_of_each_trunk_belongs_to_its_tree(paper_setting, high_density):
+    # ground removal takes the lowest 0.12 m of every trunk; the trunk's circle takes it back
+    # (before: 0 %, about 570-1300 trunk points per block labelled ground)
+    for s in paper_setting + high_density:
+        assert s["foot_in_tree"] >= 0.6, s
 
 
 def test_distractors_are_not_trees():

@@ -4,7 +4,7 @@ import numpy as np
 
 from pipeline.graph import build_graph
 from pipeline.params import SegmentParams
-from pipeline.segment import hard_surfaces, segment_nodes
+from pipeline.segment import hard_surfaces, segment_nodes, trunk_feet
 
 
 def _grid(x0, y0, z, n, step=0.1):
@@ -56,3 +56,73 @@ def test_excluded_nodes_carry_no_paths_and_stay_unlabelled():
     also_seed = exclude.copy()
     also_seed[0] = True
     assert segment_nodes(nodes, graph, exclude=also_seed, **kw).node_tree[0] == 1
+
+
+def test_lone_fragments_join_a_tree_only_when_they_float_right_beside_it():
+    trunk = np.column_stack([np.zeros(20), np.zeros(20), np.arange(20) * 0.1])  # 0-1.9 m
+    rim = [0.25, 0.0, 1.9]  # a lone leaf 0.25 m from the crown (no edge: radius 0.15)
+    far = [1.5, 0.0, 1.9]  # an outlier in the air
+    low = [0.25, 0.0, 0.2]  # a lone grass tuft beside the trunk
+    pair = [[0.0, 0.6, 1.0], [0.0, 0.7, 1.0]]  # a two-node floating fragment 0.6 m away
+    nodes = np.vstack([trunk, rim, far, low, pair])
+    graph = build_graph(nodes, radius=0.15)
+    kw = dict(source_nodes=np.array([0]), source_trunk=np.array([0]), trunk_xy=np.zeros((1, 2)), node_height=nodes[:, 2])
+    tree = segment_nodes(nodes, graph, params=SegmentParams(fragment_reach=0.3), **kw).node_tree
+    assert (tree[:20] == 1).all()
+    assert tree[20] == 1  # the rim leaf joins
+    assert tree[21] == 0 and tree[22] == 0  # the outlier and the low tuft stay unlabelled
+    assert (tree[23:] == 0).all()  # small fragments beyond fragment_reach are outliers
+    tree = segment_nodes(nodes, graph, params=SegmentParams(fragment_reach=0.0), **kw).node_tree
+    assert tree[20] == 0  # 0 switches the rule off
+    tree = segment_nodes(nodes, graph, params=SegmentParams(min_fragment=2, fragment_reach=0.0), **kw).node_tree
+    assert (tree[23:] == 1).all()  # a fragment of min_fragment nodes is canopy, labelled by distance
+
+
+def _trunk_on_ground(radius=0.1, noise=0.0, seed=0):
+    """A vertical trunk (circle of ``radius`` at the origin, 0-0.6 m) standing on a flat ground grid."""
+    rng = np.random.default_rng(seed)
+    a = rng.uniform(0, 2 * np.pi, 3000)
+    z = rng.uniform(0.0, 0.6, 3000)
+    trunk = np.column_stack([radius * np.cos(a), radius * np.sin(a), z])
+    g = np.arange(-1.0, 1.0001, 0.02)
+    xx, yy = np.meshgrid(g, g, indexing="ij")
+    ground = np.column_stack([xx.ravel(), yy.ravel(), np.zeros(xx.size)])
+    xyz = np.vstack([trunk, ground])
+    xyz += rng.normal(0.0, noise, xyz.shape)
+    is_trunk = np.r_[np.ones(len(trunk), bool), np.zeros(len(ground), bool)]
+    height = xyz[:, 2]
+    is_ground = height < 0.12
+    tree_id = np.where(is_trunk & ~is_ground, 1, 0)
+    return xyz, is_trunk, is_ground, height, tree_id
+
+
+def test_trunk_feet_are_the_ground_points_inside_the_trunk_circle():
+    xyz, is_trunk, is_ground, height, tree_id = _trunk_on_ground()
+    idx, src = trunk_feet(xyz, tree_id, is_ground, height, np.array([[0.02, -0.01]]), ground_top=0.12, margin=0.03)
+    got = np.zeros(len(xyz), bool)
+    got[idx] = True
+    assert got[is_trunk & is_ground].all()  # the whole bottom of the trunk comes back
+    r = np.hypot(xyz[:, 0], xyz[:, 1])
+    assert (r[got] <= 0.13 + 1e-6).all()  # nothing beyond circle + margin
+    assert got[~is_trunk & (r < 0.1)].all()  # ground points inside the trunk are the trunk
+    assert not got[~is_trunk & (r > 0.131)].any()
+    assert (tree_id[src] == 1).all() and (height[src] >= 0.12).all()
+    # the source is the nearest slice point: on the bark, right above a foot point of the bark
+    bark = is_trunk[idx]
+    assert np.percentile(np.hypot(*(xyz[idx[bark], :2] - xyz[src[bark], :2]).T), 90) < 0.03
+
+
+def test_trunk_feet_need_a_plausible_trunk():
+    xyz, _, is_ground, height, tree_id = _trunk_on_ground()
+    empty = np.zeros(0, np.int64)
+    kw = dict(ground_top=0.12, margin=0.03)
+    assert trunk_feet(xyz, tree_id, is_ground, height, np.zeros((0, 2)), **kw)[0].size == 0  # no trunks
+    assert trunk_feet(xyz, np.zeros_like(tree_id), is_ground, height, np.zeros((1, 2)), **kw)[0].size == 0
+    # the trunk is 2 m from where its tree's trunk was detected: not its foot
+    assert trunk_feet(xyz, tree_id, is_ground, height, np.array([[2.0, 0.0]]), **kw)[0].size == 0
+    # a wide ring (a 1.5 m hedge skirt) is no trunk: radius above max_radius
+    wide = xyz.copy()
+    wide[tree_id == 1, :2] *= 15.0
+    far_ok = trunk_feet(wide, tree_id, is_ground, height, np.zeros((1, 2)), max_radius=2.0, **kw)[0]
+    assert far_ok.size > 0  # allowed when max_radius allows it
+    assert np.array_equal(trunk_feet(wide, tree_id, is_ground, height, np.zeros((1, 2)), **kw)[0], empty)
