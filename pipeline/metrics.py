@@ -251,7 +251,7 @@ def fit_circle(xy: np.ndarray, *, inlier: float = 0.02, trials: int = 256) -> tu
     if n < 5:
         return np.full(2, np.nan), float("nan")
     rng = np.random.default_rng(0)
-    tri = np.array([rng.choice(n, 3, replace=False) for _ in range(trials)])
+    tri = rng.integers(0, n, (trials, 3))  # a triple repeating a point is degenerate: d = 0 below
     a, b, c = xy[tri[:, 0]], xy[tri[:, 1]], xy[tri[:, 2]]
     d = 2 * (a[:, 0] * (b[:, 1] - c[:, 1]) + b[:, 0] * (c[:, 1] - a[:, 1]) + c[:, 0] * (a[:, 1] - b[:, 1]))
     ok = np.abs(d) > 1e-12

@@ -207,7 +207,9 @@ def trunk_feet(
     cand = cand[((xyz[cand, :2] - own) ** 2).sum(1) <= max_radius**2]
     if cand.size == 0:
         return empty
-    ground_kd = cKDTree(xyz[gidx, :2])
+    # ground points sorted by x: each trunk looks only at its own narrow window
+    gidx = gidx[np.argsort(xyz[gidx, 0], kind="stable")]
+    gx = xyz[gidx, 0]
     idx, src = [], []
     order = np.argsort(tree_id[cand], kind="stable")
     cand = cand[order]
@@ -216,7 +218,10 @@ def trunk_feet(
         c, r = fit_circle(xyz[pts, :2])
         if not (np.isfinite(r) and r <= max_radius and np.hypot(*(c - trunk_xy[t - 1])) <= max_radius):
             continue
-        foot = gidx[ground_kd.query_ball_point(c, r + margin)]
+        reach = r + margin
+        lo, hi = np.searchsorted(gx, [c[0] - reach, c[0] + reach])
+        win = gidx[lo:hi]
+        foot = win[((xyz[win, :2] - c) ** 2).sum(1) <= reach**2]
         if foot.size == 0:
             continue
         _, j = cKDTree(xyz[pts]).query(xyz[foot])
