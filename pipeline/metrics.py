@@ -306,12 +306,30 @@ def trunk_diameters(
     in_slice = np.abs(dz - params.trunk_height) <= params.trunk_slice / 2
     d2 = ((pts[:, :2] - trunks[ids - 1, :2]) ** 2).sum(1)
     sel = in_slice & (d2 <= max_radius**2)
-    pts, ids = pts[sel], ids[sel]
-    order = np.argsort(ids, kind="stable")
-    pts, ids = pts[order], ids[order]
-    uniq, start, counts = np.unique(ids, return_index=True, return_counts=True)
-    for t, s, c in zip(uniq, start, counts):
-        _, r = fit_circle(pts[s : s + c, :2])
-        if np.isfinite(r) and 0.005 < r <= max_radius:
-            out[t - 1] = 2 * r
+    _, r = tree_circles(pts[sel, :2], ids[sel], k)
+    ok = np.isfinite(r) & (r > 0.005) & (r <= max_radius)
+    out[ok] = 2 * r[ok]
     return out
+
+
+def tree_circles(xy: np.ndarray, tree_id: np.ndarray, k: int) -> tuple[np.ndarray, np.ndarray]:
+    """A circle (:func:`fit_circle`) through each tree's points.
+
+    Parameters
+    ----------
+    xy : (n, 2) float64 [m]
+    tree_id : (n,) int64 — tree of each point, 1..k
+    k : int — number of trees
+
+    Returns
+    -------
+    centres (k, 2) and radii (k,) [m]; NaN for trees with no fit (fewer than 5 points).
+    """
+    centres = np.full((k, 2), np.nan)
+    radii = np.full(k, np.nan)
+    order = np.argsort(tree_id, kind="stable")
+    xy, tree_id = xy[order], tree_id[order]
+    uniq, start, counts = np.unique(tree_id, return_index=True, return_counts=True)
+    for t, s, c in zip(uniq, start, counts):
+        centres[t - 1], radii[t - 1] = fit_circle(xy[s : s + c])
+    return centres, radii

@@ -10,7 +10,7 @@ from scipy.sparse import csgraph
 from scipy.spatial import cKDTree
 
 from pipeline.graph import ShortestPaths, shortest_paths
-from pipeline.metrics import fit_circle
+from pipeline.metrics import tree_circles
 from pipeline.params import SegmentParams
 
 
@@ -210,15 +210,13 @@ def trunk_feet(
     # ground points sorted by x: each trunk looks only at its own narrow window
     gidx = gidx[np.argsort(xyz[gidx, 0], kind="stable")]
     gx = xyz[gidx, 0]
+    centres, radii = tree_circles(xyz[cand, :2], tree_id[cand], k)
+    off = np.hypot(*(centres - trunk_xy).T)
+    trunk_like = np.isfinite(radii) & (radii <= max_radius) & (off <= max_radius)
     idx, src = [], []
-    order = np.argsort(tree_id[cand], kind="stable")
-    cand = cand[order]
-    trees, start = np.unique(tree_id[cand], return_index=True)
-    for t, pts in zip(trees, np.split(cand, start[1:])):
-        c, r = fit_circle(xyz[pts, :2])
-        if not (np.isfinite(r) and r <= max_radius and np.hypot(*(c - trunk_xy[t - 1])) <= max_radius):
-            continue
-        reach = r + margin
+    for t in np.flatnonzero(trunk_like):
+        c, reach = centres[t], radii[t] + margin
+        pts = cand[tree_id[cand] == t + 1]
         lo, hi = np.searchsorted(gx, [c[0] - reach, c[0] + reach])
         win = gidx[lo:hi]
         foot = win[((xyz[win, :2] - c) ** 2).sum(1) <= reach**2]
