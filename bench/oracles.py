@@ -26,6 +26,10 @@ density: 2.5 m x 4.5 m with low foliage) it prints the v-measure on true tree po
 - ``twig oracle``: every tree point takes the true tree of its nearest true wood or twig
   point: what knowing each twig's tree would give.
 
+A third table says whether twigs could be found at all: how well the linearity of each
+tree point's neighbourhood (``TWIG_RADIUS``) tells twig and wood points from leaf points,
+as the area under the ROC curve (``twig_visibility``; 0.5 = no better than chance).
+
 A second table says what the contested material is: the share of each kind of tree
 point (all, wood, twig, leaf) lying beyond the midpoint towards another trunk (closer,
 horizontally, to another tree's trunk base than to its own; see ``midpoint_ratio``).
@@ -42,8 +46,10 @@ import math
 import numpy as np
 from scipy import sparse
 from scipy.spatial import cKDTree
+from scipy.stats import mannwhitneyu
 
 from pipeline.baselines import closest_trunk
+from pipeline.enrichment import shape_features
 from pipeline.evaluate import v_measure
 from pipeline.graph import build_graph, shortest_paths
 from pipeline.params import PipelineParams
@@ -52,6 +58,9 @@ from pipeline.simulate import LEAF, TWIG, Orchard, SimulationParams, simulate_or
 
 SKELETON_RADIUS = 0.08
 """Edge length of the point-scale skeleton graph [m]."""
+
+TWIG_RADIUS = 0.08
+"""Neighbourhood radius of the twig-visibility test [m]."""
 
 SETTINGS = {
     "paper setting (σ 0.02 m, 5 m × 6 m)": dict(rows=2, trees_per_row=4, noise=0.02, spacing=5.0, row_spacing=6.0),
@@ -149,6 +158,20 @@ def overlap_shares(o: Orchard) -> dict[str, float]:
     return {k: float((r[m] > 0.5).mean()) if m.any() else 0.0 for k, m in kinds.items()}
 
 
+def twig_visibility(xyz: np.ndarray, is_twig: np.ndarray, is_leaf: np.ndarray, radius: float = TWIG_RADIUS) -> float:
+    """ROC AUC of neighbourhood linearity for twig (or wood) against leaf points.
+
+    Linearity (λ1-λ2)/λ1 of each point's neighbours within ``radius`` [m] among ``xyz``;
+    the AUC is the probability that a random twig point is more linear than a random
+    leaf point (ties count half): 1 = twigs stand out, 0.5 = they do not.
+    """
+    lin = shape_features(xyz, radius=radius).linearity
+    x, y = lin[is_twig], lin[is_leaf]
+    if x.size == 0 or y.size == 0:
+        return float("nan")
+    return float(mannwhitneyu(x, y).statistic) / (x.size * y.size)
+
+
 def oracle_scores(o: Orchard, params: PipelineParams) -> dict[str, float]:
     xyz = o.xyz - np.floor(o.xyz.min(axis=0))
     tree = o.tree_id > 0
@@ -199,6 +222,7 @@ def main(argv: list[str] | None = None) -> None:
     ap.add_argument("--seeds", type=int, default=2, help="evaluation seeds 0..N-1 per setting")
     args = ap.parse_args(argv)
     params = PipelineParams()
+    visible = []
     cols = ("ours", "closest trunk", "direction paths", "wood oracle", "skeleton paths", "twig oracle", "voxel oracle")
     kinds = ("all", "wood", "twig", "leaf")
     _header(cols)
@@ -209,10 +233,16 @@ def main(argv: list[str] | None = None) -> None:
             s = oracle_scores(o, params)
             print(f"| {label} | {seed} | " + " | ".join(f"{s[c]:.3f}" for c in cols) + " |", flush=True)
             s = overlap_shares(o)
+            tree = o.tree_id > 0
+            auc = twig_visibility(o.xyz[tree], (o.is_wood | (o.kind == TWIG))[tree], (o.kind == LEAF)[tree])
+            visible.append(f"| {label} | {seed} | {auc:.3f} |")
             shares.append(f"| {label} | {seed} | " + " | ".join(f"{100 * s[k]:.1f} %" for k in kinds) + " |")
     print("\nShare of tree points beyond the midpoint towards another trunk:\n")
     _header(kinds)
     print("\n".join(shares))
+    print(f"\nTwig and wood points against leaf points by neighbourhood linearity ({TWIG_RADIUS} m), ROC AUC:\n")
+    _header(("AUC",))
+    print("\n".join(visible))
 
 
 def _header(cols: tuple[str, ...]) -> None:

@@ -4,7 +4,7 @@ import numpy as np
 import pytest
 from scipy import sparse
 
-from bench.oracles import direction_paths, midpoint_ratio
+from bench.oracles import direction_paths, midpoint_ratio, twig_visibility
 from pipeline.graph import shortest_paths
 
 
@@ -56,3 +56,21 @@ def test_midpoint_ratio_nearest_other_trunk_and_single_tree():
     r = midpoint_ratio(xy, np.array([1]), np.array([[0.0, 0.0], [0.0, 3.0], [0.0, -9.0]]))
     assert r == pytest.approx([1.0 / 3.0])
     assert midpoint_ratio(xy, np.array([1]), np.array([[5.0, 5.0]])).tolist() == [0.0]
+
+
+def test_twig_visibility_separates_a_line_from_discs_and_not_from_itself():
+    # a twig: points along a straight 1 m line; leaves: flat discs of 5 cm radius away
+    # from it. Linearity tells them apart (AUC near 1); with the leaf points relabelled as
+    # twig points of the same shape, the AUC is 0.5 (no separation).
+    rng = np.random.default_rng(0)
+    line = np.c_[np.linspace(0, 1, 200), np.zeros(200), np.zeros(200)] + rng.normal(0, 0.002, (200, 3))
+    centres = np.c_[np.linspace(0, 1, 10), np.full(10, 0.5), np.zeros(10)]
+    ang, rad = rng.uniform(0, 2 * np.pi, (10, 40)), 0.05 * np.sqrt(rng.uniform(0, 1, (10, 40)))
+    discs = (centres[:, None, :] + np.stack([rad * np.cos(ang), rad * np.sin(ang), np.zeros_like(ang)], axis=2)).reshape(-1, 3)
+    xyz = np.vstack([line, discs])
+    twig = np.r_[np.ones(200, bool), np.zeros(400, bool)]
+    assert twig_visibility(xyz, twig, ~twig) > 0.95
+    half = np.arange(400) % 2 == 0
+    leaf_a, leaf_b = np.r_[np.zeros(200, bool), half], np.r_[np.zeros(200, bool), ~half]
+    assert abs(twig_visibility(xyz, leaf_a, leaf_b) - 0.5) < 0.1
+    assert np.isnan(twig_visibility(xyz, twig, np.zeros(600, bool)))
