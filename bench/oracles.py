@@ -26,15 +26,15 @@ density: 2.5 m x 4.5 m with low foliage) it prints the v-measure on true tree po
 - ``twig oracle``: every tree point takes the true tree of its nearest true wood or twig
   point: what knowing each twig's tree would give.
 
-A third table says whether twigs could be found at all: how well the linearity of each
-tree point's neighbourhood (``TWIG_RADIUS``) tells twig and wood points from leaf points,
-as the area under the ROC curve (``twig_visibility``; 0.5 = no better than chance).
-
 A second table says what the contested material is: the share of each kind of tree
 point (all, wood, twig, leaf) lying beyond the midpoint towards another trunk (closer,
 horizontally, to another tree's trunk base than to its own; see ``midpoint_ratio``).
 
-Evaluation seeds (< 1000) only. Prints a Markdown table.
+A third table says whether twigs could be found at all: how well the linearity of each
+tree point's neighbourhood (``TWIG_RADIUS``) tells twig and wood points from leaf points,
+as the area under the ROC curve (``twig_visibility``; 0.5 = no better than chance).
+
+Evaluation seeds (< 1000) only. Prints Markdown tables.
 """
 
 from __future__ import annotations
