@@ -27,7 +27,9 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from bench.oracles import SETTINGS, midpoint_ratio
+from pydantic import ValidationError
+
+from bench.oracles import SETTINGS, overlap_shares
 from pipeline.baselines import closest_trunk
 from pipeline.evaluate import score_labels
 from pipeline.params import PipelineParams
@@ -50,6 +52,12 @@ class BlockScore:
     v_measure_closest: float
 
 
+def sim_params(sim: dict, ratio: float, seed: int) -> SimulationParams:
+    """The setting ``sim`` with crown radius ``ratio`` x its in-row spacing."""
+    spacing = sim.get("spacing", SimulationParams.model_fields["spacing"].default)
+    return SimulationParams(seed=seed, crown_radius=ratio * spacing, **sim)
+
+
 def score_block(sim: dict, ratio: float, seed: int, params: PipelineParams) -> BlockScore:
     """Generate one block with crown radius ``ratio`` x spacing and score both methods.
 
@@ -60,20 +68,17 @@ def score_block(sim: dict, ratio: float, seed: int, params: PipelineParams) -> B
     seed : int
     params : PipelineParams
     """
-    spacing = sim.get("spacing", SimulationParams.model_fields["spacing"].default)
-    o = simulate_orchard(SimulationParams(seed=seed, crown_radius=ratio * spacing, **sim))
+    o = simulate_orchard(sim_params(sim, ratio, seed))
     origin = np.floor(o.xyz.min(axis=0))
     xyz = o.xyz - origin
     trunks = o.trunks - origin
-    tree = o.tree_id > 0
-    beyond = float((midpoint_ratio(xyz[:, :2], o.tree_id, trunks[:, :2])[tree] > 0.5).mean())
     scores = []
     for fn in (process_points, closest_trunk):
         r = fn(xyz, params=params)
         scores.append(score_labels(true_tree_id=o.tree_id, true_is_wood=o.is_wood, true_trunks=trunks,
                                    pred_tree_id=r.tree_id, pred_is_wood=r.is_wood, found_trunks=r.trunks))
     ours, closest = scores
-    return BlockScore(ratio, seed, beyond, ours["trunk_f1"], ours["v_measure"], closest["v_measure"])
+    return BlockScore(ratio, seed, overlap_shares(o)["all"], ours["trunk_f1"], ours["v_measure"], closest["v_measure"])
 
 
 def table_rows(label: str, blocks: list[BlockScore]) -> list[str]:
@@ -109,8 +114,14 @@ def main(argv: list[str] | None = None) -> None:
         ratios = [float(x) for x in args.ratios.split(",") if x.strip()]
     except ValueError:
         ap.error(f"--ratios must be comma-separated numbers, got {args.ratios!r}")
-    if args.seeds < 1 or not ratios or min(ratios) <= 0:
-        ap.error("--seeds must be at least 1 and --ratios positive")
+    if args.seeds < 1 or not ratios:
+        ap.error("--seeds must be at least 1 and --ratios name at least one radius")
+    for sim in SETTINGS.values():
+        for r in ratios:
+            try:
+                sim_params(sim, r, 0)
+            except ValidationError as e:
+                ap.error(f"--ratios {r}: not a crown radius the simulator accepts ({e.errors()[0]['msg']})")
     params = PipelineParams()
     print(HEADER, flush=True)
     for label, sim in SETTINGS.items():
