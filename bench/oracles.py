@@ -48,7 +48,7 @@ from scipy import sparse
 from scipy.spatial import cKDTree
 from scipy.stats import mannwhitneyu
 
-from pipeline.baselines import closest_trunk
+from pipeline.baselines import nearest_trunk_labels
 from pipeline.enrichment import shape_features
 from pipeline.evaluate import v_measure
 from pipeline.graph import build_graph, shortest_paths
@@ -176,8 +176,9 @@ def oracle_scores(o: Orchard, params: PipelineParams) -> dict[str, float]:
     xyz = o.xyz - np.floor(o.xyz.min(axis=0))
     tree = o.tree_id > 0
     out = {}
-    for name, fn in (("ours", process_points), ("closest trunk", closest_trunk)):
-        out[name] = v_measure(o.tree_id[tree], fn(xyz, params=params).tree_id[tree])
+    result = process_points(xyz, params=params)
+    for name, r in (("ours", result), ("closest trunk", nearest_trunk_labels(xyz, result))):
+        out[name] = v_measure(o.tree_id[tree], r.tree_id[tree])
     a = analyse_nodes(xyz, params=params)
     pv = a.vox.point_voxel
     t = o.tree_id[a.veg_idx]

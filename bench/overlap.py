@@ -26,11 +26,10 @@ import argparse
 from dataclasses import dataclass
 
 import numpy as np
-
 from pydantic import ValidationError
 
 from bench.oracles import SETTINGS, overlap_shares
-from pipeline.baselines import closest_trunk
+from pipeline.baselines import nearest_trunk_labels
 from pipeline.evaluate import score_labels
 from pipeline.params import PipelineParams
 from pipeline.process import process_points
@@ -72,12 +71,12 @@ def score_block(sim: dict, ratio: float, seed: int, params: PipelineParams) -> B
     origin = np.floor(o.xyz.min(axis=0))
     xyz = o.xyz - origin
     trunks = o.trunks - origin
-    scores = []
-    for fn in (process_points, closest_trunk):
-        r = fn(xyz, params=params)
-        scores.append(score_labels(true_tree_id=o.tree_id, true_is_wood=o.is_wood, true_trunks=trunks,
-                                   pred_tree_id=r.tree_id, pred_is_wood=r.is_wood, found_trunks=r.trunks))
-    ours, closest = scores
+    result = process_points(xyz, params=params)
+    ours, closest = (
+        score_labels(true_tree_id=o.tree_id, true_is_wood=o.is_wood, true_trunks=trunks,
+                     pred_tree_id=r.tree_id, pred_is_wood=r.is_wood, found_trunks=r.trunks)
+        for r in (result, nearest_trunk_labels(xyz, result))
+    )
     return BlockScore(ratio, seed, overlap_shares(o)["all"], ours["trunk_f1"], ours["v_measure"], closest["v_measure"])
 
 

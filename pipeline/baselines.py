@@ -52,7 +52,15 @@ def closest_trunk(
     -------
     BlockResult
     """
-    ours = process_points(xyz, params=params, grid_origin=grid_origin)
+    return nearest_trunk_labels(xyz, process_points(xyz, params=params, grid_origin=grid_origin))
+
+
+def nearest_trunk_labels(xyz: np.ndarray, ours: BlockResult) -> BlockResult:
+    """``ours`` with every non-ground point relabelled to the nearest trunk in plan view.
+
+    The closest-trunk baseline from a result already computed on the same ``xyz``
+    (so a caller scoring both does not run the pipeline twice).
+    """
     tree_id = np.zeros(xyz.shape[0], np.int64)
     veg = ~ours.is_ground & (ours.height > 0)
     if ours.n_trees:
