@@ -53,7 +53,7 @@ from pipeline.enrichment import shape_features
 from pipeline.evaluate import v_measure
 from pipeline.graph import build_graph, shortest_paths
 from pipeline.params import PipelineParams
-from pipeline.process import analyse_nodes, process_points
+from pipeline.process import analyse_nodes, block_result
 from pipeline.simulate import LEAF, TWIG, Orchard, SimulationParams, simulate_orchard
 
 SKELETON_RADIUS = 0.08
@@ -176,10 +176,10 @@ def oracle_scores(o: Orchard, params: PipelineParams) -> dict[str, float]:
     xyz = o.xyz - np.floor(o.xyz.min(axis=0))
     tree = o.tree_id > 0
     out = {}
-    result = process_points(xyz, params=params)
+    a = analyse_nodes(xyz, params=params)
+    result = block_result(xyz, a, params=params)
     for name, r in (("ours", result), ("closest trunk", nearest_trunk_labels(xyz, result))):
         out[name] = v_measure(o.tree_id[tree], r.tree_id[tree])
-    a = analyse_nodes(xyz, params=params)
     pv = a.vox.point_voxel
     t = o.tree_id[a.veg_idx]
     counts = np.zeros((a.vox.n, int(o.tree_id.max()) + 1))

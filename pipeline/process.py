@@ -220,7 +220,25 @@ def process_points(
     -------
     BlockResult
     """
-    a = analyse_nodes(xyz, params=params, grid_origin=grid_origin)
+    return block_result(xyz, analyse_nodes(xyz, params=params, grid_origin=grid_origin), params=params)
+
+
+def block_result(xyz: np.ndarray, a: NodeAnalysis, *, params: PipelineParams) -> BlockResult:
+    """Per-point labels, wood and trunk measurements from a node-level analysis of ``xyz``.
+
+    :func:`process_points` is ``analyse_nodes`` followed by this; callers that also need
+    the :class:`NodeAnalysis` (``bench.oracles``) run the analysis once and call both.
+
+    Parameters
+    ----------
+    xyz : (n, 3) float64 [m] — the points ``a`` was computed from
+    a : NodeAnalysis
+    params : PipelineParams — the same parameters ``a`` was computed with
+
+    Returns
+    -------
+    BlockResult
+    """
     node_tree = a.segmentation.node_tree
     score = np.where(node_tree > 0, node_wood_score(a, params=params), 0.0)
     node_wood = matter.classify(score, node_tree, params=params.matter)
