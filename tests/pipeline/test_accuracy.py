@@ -20,6 +20,18 @@ PAPER_SETTING = dict(rows=2, trees_per_row=4, noise=0.02, spacing=5.0, row_spaci
 HIGH_DENSITY = dict(rows=2, trees_per_row=5, spacing=2.5, row_spacing=4.5, low_foliage=True)
 
 
+def _truth_scores(o, origin: np.ndarray, r) -> dict:
+    """The paper's metrics of result ``r`` against the simulation ``o`` (shifted by ``origin``)."""
+    return score_labels(
+        true_tree_id=o.tree_id,
+        true_is_wood=o.is_wood,
+        true_trunks=o.trunks[:, :2] - origin[:2],
+        pred_tree_id=r.tree_id,
+        pred_is_wood=r.is_wood,
+        found_trunks=r.trunks[:, :2],
+    )
+
+
 def _score(sim: dict, seed: int, fn=process_points) -> dict:
     o = simulate_orchard(SimulationParams(seed=seed, **sim))
     origin = np.floor(o.xyz.min(axis=0))
@@ -28,14 +40,7 @@ def _score(sim: dict, seed: int, fn=process_points) -> dict:
     # tree points below the ground tolerance: the bottom of each trunk
     foot = (o.tree_id > 0) & (r.height < 0.1)
     feet = {"foot_in_tree": float(((r.tree_id[foot] > 0) & ~r.is_ground[foot]).mean()) if foot.any() else 1.0}
-    return feet | {"objects_as_tree": float((r.tree_id[objects] > 0).mean())} | score_labels(
-        true_tree_id=o.tree_id,
-        true_is_wood=o.is_wood,
-        true_trunks=o.trunks[:, :2] - origin[:2],
-        pred_tree_id=r.tree_id,
-        pred_is_wood=r.is_wood,
-        found_trunks=r.trunks[:, :2],
-    )
+    return feet | {"objects_as_tree": float((r.tree_id[objects] > 0).mean())} | _truth_scores(o, origin, r)
 
 
 @pytest.fixture(scope="module")
@@ -114,15 +119,7 @@ def test_vehicle_on_a_noisy_scan_is_not_a_tree():
     vehicle = xyz[o.kind == KIND.index("vehicle"), :2]
     d = np.sqrt(((r.trunks[:, None, :2] - vehicle[None]) ** 2).sum(axis=2)).min(axis=1)
     assert (d > 0.3).all(), r.trunks[d <= 0.3]
-    s = score_labels(
-        true_tree_id=o.tree_id,
-        true_is_wood=o.is_wood,
-        true_trunks=o.trunks[:, :2] - origin[:2],
-        pred_tree_id=r.tree_id,
-        pred_is_wood=r.is_wood,
-        found_trunks=r.trunks[:, :2],
-    )
-    assert s["trunk_recall"] == 1.0
+    assert _truth_scores(o, origin, r)["trunk_recall"] == 1.0
 
 
 def test_baselines_run_and_ours_beats_the_paper_steps():
