@@ -31,8 +31,9 @@ PLANAR_MAX_SCATTER = 0.06
 #: is spread in two directions (λ2/λ1 at least NOISY_PLANAR_MIN_SPREAD) and thin enough
 #: in the third (λ3/λ1 at most NOISY_PLANAR_MAX_SCATTER). Measured on generated blocks:
 #: σ = 0.05 m, seeds 0-7, false trunks on the vehicle or bin 10 → 3 at 8 m spacing and
-#: 1 → 0 at 5 m, no trunk lost. Above the range no such test separated faces from foliage (σ = 0.07 m:
-#: 8 → 8; σ = 0.1 m: face and foliage scattering both 0.5), so it is not applied there.
+#: 1 → 0 at 5 m, no trunk lost. Above the range no such test separated faces from
+#: foliage (σ = 0.07 m: 8 → 8; σ = 0.1 m: face and foliage scattering both 0.5), so it
+#: is not applied there.
 NOISY_BOX_NOISE = (0.055, 0.085)
 NOISY_PLANAR_MIN_SPREAD = 0.7
 NOISY_PLANAR_MAX_SCATTER = 0.35
