@@ -32,10 +32,22 @@ class ShapeFeatures:
         return np.column_stack([self.linearity, self.planarity, self.scattering, self.verticality, np.log1p(self.neighbours)])
 
 
-def neighbourhood_matrix(nodes: np.ndarray, *, radius: float) -> sparse.csr_matrix:
-    """(m, m) 0/1 matrix of node pairs within ``radius`` [m], diagonal included."""
+def neighbourhood_matrix(
+    nodes: np.ndarray,
+    *,
+    radius: float,
+    candidates: tuple[np.ndarray, np.ndarray] | None = None,
+) -> sparse.csr_matrix:
+    """(m, m) 0/1 matrix of node pairs within ``radius`` [m], diagonal included.
+
+    ``candidates``: optional ``graph.node_pairs(nodes, r)`` with ``r >= radius``.
+    """
     m = nodes.shape[0]
-    pairs = cKDTree(nodes).query_pairs(radius, output_type="ndarray") if m else np.zeros((0, 2), np.int64)
+    if candidates is not None:
+        pairs, length = candidates
+        pairs = pairs[length <= radius]
+    else:
+        pairs = cKDTree(nodes).query_pairs(radius, output_type="ndarray") if m else np.zeros((0, 2), np.int64)
     rows = np.concatenate([pairs[:, 0], pairs[:, 1], np.arange(m)])
     cols = np.concatenate([pairs[:, 1], pairs[:, 0], np.arange(m)])
     return sparse.csr_matrix((np.ones(rows.shape[0]), (rows, cols)), shape=(m, m))

@@ -27,11 +27,26 @@ def check_graph_size(n_nodes: int, n_edges: int) -> None:
         )
 
 
+def node_pairs(nodes: np.ndarray, radius: float) -> tuple[np.ndarray, np.ndarray]:
+    """Every pair of nodes at most ``radius`` [m] apart, and its length.
+
+    Returns
+    -------
+    pairs : (p, 2) int64, i < j
+    length : (p,) float64 [m]
+    """
+    if nodes.shape[0] == 0:
+        return np.zeros((0, 2), np.int64), np.zeros(0)
+    pairs = cKDTree(nodes).query_pairs(radius, output_type="ndarray")
+    return pairs, np.sqrt(((nodes[pairs[:, 0]] - nodes[pairs[:, 1]]) ** 2).sum(1))
+
+
 def build_graph(
     nodes: np.ndarray,
     *,
     radius: float,
     edge_scale: np.ndarray | None = None,
+    candidates: tuple[np.ndarray, np.ndarray] | None = None,
 ) -> sparse.csr_matrix:
     """Undirected graph joining nodes closer than ``radius``.
 
@@ -42,7 +57,8 @@ def build_graph(
     edge_scale : (m, f) float64, optional
         Per-node feature vectors; when given, each edge's length is multiplied by
         ``1 + (1 - cos_sim(f_a, f_b))`` (the paper's cosine-similarity enrichment).
-
+    candidates : optional ``node_pairs(nodes, r)`` with ``r >= radius``, to reuse one
+        neighbour search for several radii
 
     Returns
     -------
@@ -51,10 +67,12 @@ def build_graph(
     m = nodes.shape[0]
     if m == 0:
         return sparse.csr_matrix((0, 0))
-    pairs = cKDTree(nodes).query_pairs(radius, output_type="ndarray")
+    pairs, w = candidates if candidates is not None else node_pairs(nodes, radius)
+    if candidates is not None:
+        near = w <= radius
+        pairs, w = pairs[near], w[near]
     check_graph_size(m, pairs.shape[0])
     a, b = pairs[:, 0], pairs[:, 1]
-    w = np.sqrt(((nodes[a] - nodes[b]) ** 2).sum(1))
     if edge_scale is not None:
         f = edge_scale / (np.linalg.norm(edge_scale, axis=1, keepdims=True) + 1e-12)
         cos = (f[a] * f[b]).sum(1)

@@ -79,6 +79,21 @@ def _hull_vertices(pts: np.ndarray) -> np.ndarray:
         return pts[keep]
 
 
+def _crown_hulls(crown: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Plan-view and 3D hull vertices of a crown's points, (h, 2) and (g, 3).
+
+    The plan-view hull's vertices are among the projected 3D hull's vertices, so when
+    the 3D hull exists the plan-view hull is taken over its vertices only.
+    """
+    if crown.shape[0] <= 4:
+        return crown[:, :2].copy(), crown.copy()
+    try:
+        xyz = crown[ConvexHull(crown).vertices]
+    except QhullError:  # flat or collinear
+        return _hull_vertices(crown[:, :2]), _hull_vertices(crown)
+    return _hull_vertices(xyz[:, :2]), xyz
+
+
 def tree_partials(
     xyz: np.ndarray,
     tree_id: np.ndarray,
@@ -117,8 +132,9 @@ def tree_partials(
     for t, s, c in zip(uniq, start, counts):
         p = pts[s : s + c]
         crown = p[p[:, 2] - trunk_z[t - 1] >= params.crown_base]
-        crown_xy.append(_hull_vertices(crown[:, :2]) if len(crown) else np.zeros((0, 2)))
-        crown_xyz.append(_hull_vertices(crown) if len(crown) else np.zeros((0, 3)))
+        xy, xyz = _crown_hulls(crown)
+        crown_xy.append(xy)
+        crown_xyz.append(xyz)
     return TreePartials(uniq.astype(np.int64), counts.astype(np.int64), n_wood.astype(np.int64), z_max, crown_xy, crown_xyz)
 
 

@@ -13,7 +13,7 @@ from scipy import sparse
 
 from pipeline import matter
 from pipeline.enrichment import ShapeFeatures, neighbourhood_matrix, shape_features
-from pipeline.graph import bridge_floating, build_graph, reweight
+from pipeline.graph import bridge_floating, build_graph, node_pairs, reweight
 from pipeline.ground import GroundModel, classify_ground, ground_model
 from pipeline.metrics import trunk_diameters
 from pipeline.params import PipelineParams
@@ -140,10 +140,13 @@ def analyse_nodes(
     nodes = vox.centroids
     node_height = np.bincount(vox.point_voxel, weights=height[veg_idx], minlength=vox.n) / np.maximum(vox.counts, 1)
     radius = params.matter.smoothing_radius
-    adjacency = neighbourhood_matrix(nodes, radius=radius)
+    # one neighbour search serves both radii
+    pairs = node_pairs(nodes, max(radius, params.graph.edge_radius))
+    adjacency = neighbourhood_matrix(nodes, radius=radius, candidates=pairs)
     feats = shape_features(nodes, radius=radius, adjacency=adjacency)
     edge_scale = feats.matrix() if params.graph.weighting == "enriched" else None
-    graph = build_graph(nodes, radius=params.graph.edge_radius, edge_scale=edge_scale)
+    graph = build_graph(nodes, radius=params.graph.edge_radius, edge_scale=edge_scale, candidates=pairs)
+    del pairs
     graph = bridge_floating(
         graph,
         nodes,

@@ -5,7 +5,8 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from pipeline.graph import build_graph, check_graph_size, depths, shortest_paths, subtree_sizes
+from pipeline.enrichment import neighbourhood_matrix
+from pipeline.graph import build_graph, check_graph_size, depths, node_pairs, shortest_paths, subtree_sizes
 from pipeline.voxels import voxelize
 
 
@@ -130,3 +131,17 @@ def test_floating_fragment_is_bridged_but_grounded_objects_are_not():
     assert comp[11] == comp[0]  # the crown joined the trunk (nearest), not the post
     assert comp[18] != comp[0]  # the grounded post stays separate
     assert b.nnz == g.nnz + 2  # one symmetric edge
+
+
+def test_one_neighbour_search_serves_both_radii():
+    # the graph and the neighbourhood matrix built from one search at the larger
+    # radius equal those built from their own searches
+    rng = np.random.default_rng(5)
+    nodes = rng.uniform(0, 1.0, (3000, 3))
+    pairs = node_pairs(nodes, 0.25)
+    own = build_graph(nodes, radius=0.15)
+    shared = build_graph(nodes, radius=0.15, candidates=pairs)
+    assert own.nnz == shared.nnz > 0
+    assert abs(own - shared).max() == 0
+    assert abs(neighbourhood_matrix(nodes, radius=0.25) - neighbourhood_matrix(nodes, radius=0.25, candidates=pairs)).max() == 0
+    assert shared.max() <= 0.15

@@ -76,3 +76,29 @@ def test_partials_merged_across_a_split_equal_partials_at_once(n_split, seed):
     b = finalize_metrics(merged, trunks, np.full(2, np.nan))
     for col in TREE_COLUMNS:
         assert np.allclose(a[col], b[col], equal_nan=True), col
+
+
+@pytest.mark.parametrize("shape", ["cone", "flat", "line", "tiny"])
+def test_crown_hulls_match_hulls_of_all_points(shape):
+    # the plan-view hull is taken over the 3D hull's vertices only; it must be the
+    # hull of all the crown's points, also when the crown is flat or a line
+    from scipy.spatial import ConvexHull
+
+    from pipeline.metrics import _crown_hulls
+
+    rng = np.random.default_rng(3)
+    pts = _cone_tree(rng, 5.0, -3.0, n=5000)
+    if shape == "flat":
+        pts[:, 2] = 2.0
+    elif shape == "line":
+        pts = np.column_stack([np.linspace(0, 3, 50), np.linspace(1, 2, 50), np.full(50, 2.0)])
+    elif shape == "tiny":
+        pts = pts[:4]
+    xy, xyz = _crown_hulls(pts)
+    if shape in ("line", "tiny"):
+        assert {tuple(p) for p in xy} >= {tuple(p) for p in pts[[0, -1], :2]}
+        return
+    assert ConvexHull(xy).volume == pytest.approx(ConvexHull(pts[:, :2]).volume, rel=1e-12)
+    assert {tuple(p) for p in xy} == {tuple(p) for p in pts[ConvexHull(pts[:, :2]).vertices, :2]}
+    if shape == "cone":
+        assert ConvexHull(xyz).volume == pytest.approx(ConvexHull(pts).volume, rel=1e-12)
