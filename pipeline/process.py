@@ -168,6 +168,7 @@ def analyse_nodes(
         planar=box_planar,
         scattering=feats.scattering,
         ground_top=gm.tolerance(params.ground),
+        foot_xy=xyz[is_ground & (height > 0.5 * gm.tolerance(params.ground)), :2] if params.trunks.min_foot_ratio > 0 else None,
         params=params.trunks,
     )
     surfaces = hard_surfaces(

@@ -107,6 +107,23 @@ def _satellites(xy: np.ndarray, support: np.ndarray, ok: np.ndarray, radius: flo
     return sat
 
 
+FOOT_RADIUS = 0.2
+FOOT_ANNULUS = 0.8
+
+
+def foot_ratio(xy: np.ndarray, foot_xy: np.ndarray | None) -> np.ndarray:
+    """Density of ``foot_xy`` points within FOOT_RADIUS of each ``xy`` over the density
+    FOOT_RADIUS-FOOT_ANNULUS around it, (k,) float64 (1 where there are no points)."""
+    if foot_xy is None or foot_xy.shape[0] == 0 or xy.shape[0] == 0:
+        return np.ones(xy.shape[0])
+    tree = cKDTree(foot_xy)
+    inner = tree.query_ball_point(xy, FOOT_RADIUS, return_length=True).astype(np.float64)
+    outer = tree.query_ball_point(xy, FOOT_ANNULUS, return_length=True) - inner
+    d_in = inner / (np.pi * FOOT_RADIUS**2)
+    d_out = outer / (np.pi * (FOOT_ANNULUS**2 - FOOT_RADIUS**2))
+    return (d_in + 1.0) / (d_out + 1.0)
+
+
 def detect_trunks(
     nodes: np.ndarray,
     node_height: np.ndarray,
@@ -115,6 +132,7 @@ def detect_trunks(
     planar: np.ndarray,
     scattering: np.ndarray | None = None,
     ground_top: float = 0.0,
+    foot_xy: np.ndarray | None = None,
     params: TrunkParams,
 ) -> TrunkDetection:
     """Find one trunk per tree.
@@ -200,6 +218,9 @@ def detect_trunks(
         "band_nodes": np.bincount(bg, minlength=groups.size), "band_max": band_max, "accepted": ok.copy(),
     }
 
+    foot = foot_ratio(np.column_stack([cx, cy]), foot_xy)
+    candidates["foot"] = foot
+    ok &= foot >= params.min_foot_ratio
     # satellites: strongest first, a group near an accepted, much stronger one is not a tree
     ok &= ~_satellites(np.column_stack([cx, cy]), g_support, ok, params.satellite_radius, params.satellite_ratio)
     candidates["accepted"] = ok.copy()
