@@ -10,7 +10,8 @@ from dataclasses import dataclass
 
 import numpy as np
 from scipy import sparse
-from scipy.spatial import cKDTree
+
+from pipeline.graph import node_pairs, pairs_within
 
 
 @dataclass(frozen=True)
@@ -40,14 +41,10 @@ def neighbourhood_matrix(
 ) -> sparse.csr_matrix:
     """(m, m) 0/1 matrix of node pairs within ``radius`` [m], diagonal included.
 
-    ``candidates``: optional ``graph.node_pairs(nodes, r)`` with ``r >= radius``.
+    ``candidates``: optional ``node_pairs(nodes, r)`` with ``r >= radius``.
     """
     m = nodes.shape[0]
-    if candidates is not None:
-        pairs, length = candidates
-        pairs = pairs[length <= radius]
-    else:
-        pairs = cKDTree(nodes).query_pairs(radius, output_type="ndarray") if m else np.zeros((0, 2), np.int64)
+    pairs, _ = node_pairs(nodes, radius) if candidates is None else pairs_within(candidates, radius)
     rows = np.concatenate([pairs[:, 0], pairs[:, 1], np.arange(m)])
     cols = np.concatenate([pairs[:, 1], pairs[:, 0], np.arange(m)])
     return sparse.csr_matrix((np.ones(rows.shape[0]), (rows, cols)), shape=(m, m))

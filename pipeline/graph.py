@@ -41,6 +41,13 @@ def node_pairs(nodes: np.ndarray, radius: float) -> tuple[np.ndarray, np.ndarray
     return pairs, np.sqrt(((nodes[pairs[:, 0]] - nodes[pairs[:, 1]]) ** 2).sum(1))
 
 
+def pairs_within(candidates: tuple[np.ndarray, np.ndarray], radius: float) -> tuple[np.ndarray, np.ndarray]:
+    """The pairs of a :func:`node_pairs` result at most ``radius`` [m] long, and their lengths."""
+    pairs, length = candidates
+    near = length <= radius
+    return pairs[near], length[near]
+
+
 def build_graph(
     nodes: np.ndarray,
     *,
@@ -67,10 +74,7 @@ def build_graph(
     m = nodes.shape[0]
     if m == 0:
         return sparse.csr_matrix((0, 0))
-    pairs, w = candidates if candidates is not None else node_pairs(nodes, radius)
-    if candidates is not None:
-        near = w <= radius
-        pairs, w = pairs[near], w[near]
+    pairs, w = node_pairs(nodes, radius) if candidates is None else pairs_within(candidates, radius)
     check_graph_size(m, pairs.shape[0])
     a, b = pairs[:, 0], pairs[:, 1]
     if edge_scale is not None:
