@@ -161,14 +161,15 @@ def analyse_nodes(
     planar = (feats.planarity >= PLANAR_MIN) & (feats.scattering <= PLANAR_MAX_SCATTER)
     # the catchment's box test only: cutting surfaces out of the graph needs the strict test
     box_planar = planar | noisy_planar(feats, noise=gm.noise)
+    ground_top = gm.tolerance(params.ground)
     det = detect_trunks(
         nodes,
         node_height,
         drainage,
         planar=box_planar,
         scattering=feats.scattering,
-        ground_top=gm.tolerance(params.ground),
-        foot_xy=xyz[is_ground & (height > 0.5 * gm.tolerance(params.ground)), :2] if params.trunks.min_foot_ratio > 0 else None,
+        ground_top=ground_top,
+        foot_xy=xyz[is_ground & (height > 0.5 * ground_top), :2] if params.trunks.min_foot_ratio > 0 else None,
         params=params.trunks,
     )
     surfaces = hard_surfaces(

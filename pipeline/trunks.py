@@ -218,11 +218,12 @@ def detect_trunks(
         "band_nodes": np.bincount(bg, minlength=groups.size), "band_max": band_max, "accepted": ok.copy(),
     }
 
-    foot = foot_ratio(np.column_stack([cx, cy]), foot_xy)
+    centre = np.column_stack([cx, cy])
+    foot = foot_ratio(centre, foot_xy)
     candidates["foot"] = foot
     ok &= foot >= params.min_foot_ratio
     # satellites: strongest first, a group near an accepted, much stronger one is not a tree
-    ok &= ~_satellites(np.column_stack([cx, cy]), g_support, ok, params.satellite_radius, params.satellite_ratio)
+    ok &= ~_satellites(centre, g_support, ok, params.satellite_radius, params.satellite_ratio)
     candidates["accepted"] = ok.copy()
     sel = np.flatnonzero(ok)
     xy = np.column_stack([cx[sel], cy[sel]])
@@ -231,7 +232,7 @@ def detect_trunks(
     remap[sel] = np.arange(sel.size)
     t_of_cand = remap[gidx]
     near = t_of_cand >= 0
-    d2 = ((nodes[cand, :2] - np.column_stack([cx, cy])[gidx]) ** 2).sum(1)
+    d2 = ((nodes[cand, :2] - centre[gidx]) ** 2).sum(1)
     near &= d2 <= (np.maximum(width[gidx] / 2, 0.15) + 0.1) ** 2
     src = cand[near]
     src_t = t_of_cand[near]
