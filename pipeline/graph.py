@@ -112,14 +112,18 @@ def bridge_floating(
     max_gap: float,
     min_nodes: int = 1,
 ) -> sparse.csr_matrix:
-    """Join every floating component to its nearest other component by one edge.
+    """Hang every floating component from something below it, by one edge.
 
     Sparse scans break a crown off its trunk: with edges of 0.15 m a gap of a few
     decimetres leaves the crown as a component that never touches the ground. Each
     component whose lowest node is above ``floating_height`` [m] gets one edge, of its
-    length, to the nearest node of another component within ``max_gap`` [m]. Components
-    standing on the ground (posts, vehicles) are never bridged. One round only: repeating
-    it chains fragments of neighbouring crowns together (measured on the AdTree row).
+    length, to the nearest node within ``max_gap`` [m] of a component standing on the
+    ground; failing that, to the nearest node of a floating component whose lowest node
+    is lower than its own. Every edge leads down, so chains of fragments end on the
+    ground or stop, and never pair two fragments into a floating island. Components
+    standing on the ground (posts, vehicles) are never bridged. One round only:
+    repeating it chains fragments of neighbouring crowns together (measured on the
+    AdTree row).
 
     Parameters
     ----------
@@ -133,10 +137,6 @@ def bridge_floating(
     -------
     (m, m) csr_matrix with the bridging edges added (symmetric).
     """
-    return _bridge_once(graph, nodes, node_height, floating_height, max_gap, min_nodes)
-
-
-def _bridge_once(graph, nodes, node_height, floating_height, max_gap, min_nodes):
     m = graph.shape[0]
     if m == 0:
         return graph
@@ -145,22 +145,31 @@ def _bridge_once(graph, nodes, node_height, floating_height, max_gap, min_nodes)
         return graph
     low = np.full(n_comp, np.inf)
     np.minimum.at(low, comp, node_height)
-    floating = (low > floating_height) & (np.bincount(comp, minlength=n_comp) >= min_nodes)
+    grounded = low <= floating_height
+    floating = ~grounded & (np.bincount(comp, minlength=n_comp) >= min_nodes)
     cand = np.flatnonzero(floating[comp])
     if cand.size == 0:
         return graph
-    tree = cKDTree(nodes)
-    k = min(16, m)
-    d, j = tree.query(nodes[cand], k=k, distance_upper_bound=max_gap)
-    d = np.atleast_2d(d)
-    j = np.atleast_2d(j)
-    valid = np.isfinite(d)
-    jj = np.where(valid, j, 0)
-    other = valid & (comp[jj] != comp[cand][:, None])
-    d = np.where(other, d, np.inf)
-    best_k = np.argmin(d, axis=1)
-    best_d = d[np.arange(len(cand)), best_k]
-    best_j = jj[np.arange(len(cand)), best_k]
+    best_d = np.full(cand.size, np.inf)
+    best_j = np.zeros(cand.size, np.int64)
+    on_ground = np.flatnonzero(grounded[comp])
+    if on_ground.size:
+        d, j = cKDTree(nodes[on_ground]).query(nodes[cand], distance_upper_bound=max_gap)
+        hit = np.isfinite(d)
+        best_d[hit], best_j[hit] = d[hit], on_ground[j[hit]]
+    # no ground component within reach: the nearest lower fragment among the 16 nearest
+    rest = np.flatnonzero(~np.isfinite(best_d))
+    aloft = np.flatnonzero(~grounded[comp])
+    if rest.size and aloft.size > 1:
+        k = min(16, aloft.size)
+        d, j = cKDTree(nodes[aloft]).query(nodes[cand[rest]], k=k, distance_upper_bound=max_gap)
+        d, j = np.atleast_2d(d), np.atleast_2d(j)
+        valid = np.isfinite(d)
+        jj = aloft[np.where(valid, j, 0)]
+        d = np.where(valid & (low[comp[jj]] < low[comp[cand[rest]]][:, None]), d, np.inf)
+        bk = np.argmin(d, axis=1)
+        r = np.arange(rest.size)
+        best_d[rest], best_j[rest] = d[r, bk], jj[r, bk]
     ok = np.isfinite(best_d)
     if not ok.any():
         return graph

@@ -4,6 +4,7 @@ import numpy as np
 import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
+from scipy import sparse
 
 from pipeline.enrichment import neighbourhood_matrix
 from pipeline.graph import build_graph, check_graph_size, depths, node_pairs, shortest_paths, subtree_sizes
@@ -131,6 +132,54 @@ def test_floating_fragment_is_bridged_but_grounded_objects_are_not():
     assert comp[11] == comp[0]  # the crown joined the trunk (nearest), not the post
     assert comp[18] != comp[0]  # the grounded post stays separate
     assert b.nnz == g.nnz + 2  # one symmetric edge
+
+def _trunk_and_two_fragments():
+    # a trunk column 0..1 m; fragment A at 1.5 m (0.5 m above the trunk's top) and
+    # fragment B 0.35 m above A: A and B are each other's nearest component
+    trunk = np.column_stack([np.zeros(11), np.zeros(11), np.linspace(0, 1, 11)])
+    a = np.column_stack([np.linspace(0, 0.3, 4), np.zeros(4), np.full(4, 1.5)])
+    b = np.column_stack([np.linspace(0, 0.3, 4), np.zeros(4), np.full(4, 1.85)])
+    nodes = np.concatenate([trunk, a, b])
+    return nodes, build_graph(nodes, radius=0.15)
+
+
+def test_two_fragments_hang_from_the_ground_not_from_each_other():
+    from scipy.sparse import csgraph
+
+    from pipeline.graph import bridge_floating
+
+    # linking each fragment to its nearest component would pair A and B into an
+    # island that never reaches the ground (a crown whose trunk is never found)
+    nodes, g = _trunk_and_two_fragments()
+    assert csgraph.connected_components(g, directed=False)[0] == 3
+    b = bridge_floating(g, nodes, nodes[:, 2], floating_height=0.5, max_gap=1.0)
+    assert csgraph.connected_components(b, directed=False)[0] == 1
+    added = sparse.triu(b - g).tocoo()
+    # each fragment has one edge, to the trunk's top node (index 10): 0.5 m and 0.85 m
+    assert sorted(zip(added.row.tolist(), added.col.tolist())) == [(10, 11), (10, 15)]
+    assert np.allclose(sorted(added.data), [0.5, 0.85])
+
+
+def test_a_fragment_out_of_reach_of_the_ground_hangs_from_a_lower_fragment():
+    from scipy.sparse import csgraph
+
+    from pipeline.graph import bridge_floating
+
+    # with a 0.6 m reach B cannot reach the trunk (0.85 m) but reaches A (0.35 m), which
+    # is lower; A hangs from the trunk
+    nodes, g = _trunk_and_two_fragments()
+    b = bridge_floating(g, nodes, nodes[:, 2], floating_height=0.5, max_gap=0.6)
+    assert csgraph.connected_components(b, directed=False)[0] == 1
+    added = sparse.triu(b - g).tocoo()
+    assert sorted(zip(added.row.tolist(), added.col.tolist())) == [(10, 11), (11, 15)]
+    # a fragment never hangs from a higher one: without the trunk's reach, A stays
+    # apart and B still hangs from A
+    b = bridge_floating(g, nodes, nodes[:, 2], floating_height=0.5, max_gap=0.4)
+    n, comp = csgraph.connected_components(b, directed=False)
+    assert n == 2 and comp[11] == comp[15] != comp[0]
+    added = sparse.triu(b - g).tocoo()
+    assert list(zip(added.row.tolist(), added.col.tolist())) == [(11, 15)]
+
 
 
 def test_one_neighbour_search_serves_both_radii():
