@@ -121,9 +121,9 @@ def bridge_floating(
     ground; failing that, to the nearest node of a floating component whose lowest node
     is lower than its own. Every edge leads down, so chains of fragments end on the
     ground or stop, and never pair two fragments into a floating island. Components
-    standing on the ground (posts, vehicles) are never bridged. One round only:
-    repeating it chains fragments of neighbouring crowns together (measured on the
-    AdTree row).
+    standing on the ground (posts, vehicles) are never bridged. One round only (with
+    the earlier nearest-component rule, repeated rounds chained fragments of
+    neighbouring crowns together on the AdTree row; not measured with this rule).
 
     Parameters
     ----------
