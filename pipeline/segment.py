@@ -112,6 +112,35 @@ def segment_nodes(
     return Segmentation(node_tree, sp, reached)
 
 
+def planar_patches(graph: sparse.csr_matrix, planar: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Connected sets of planar nodes over ``graph``.
+
+    Returns
+    -------
+    patch : (m,) int64 — patch of each node, -1 for nodes that are not planar
+    size : (c,) int64 — nodes per patch
+    """
+    patch = np.full(planar.shape[0], -1, np.int64)
+    idx = np.flatnonzero(planar)
+    if idx.size == 0:
+        return patch, np.zeros(0, np.int64)
+    _, comp = csgraph.connected_components(graph[idx][:, idx], directed=False)
+    patch[idx] = comp
+    return patch, np.bincount(comp)
+
+
+def faces(graph: sparse.csr_matrix, planar: np.ndarray, min_nodes: int) -> np.ndarray:
+    """Planar nodes in connected planar patches of at least ``min_nodes`` nodes, (m,) bool.
+
+    A box's face is one large patch; the curved bark of a thick or sparsely scanned
+    trunk looks planar only in small patches (at most 9 nodes on the AdTree trees).
+    """
+    patch, size = planar_patches(graph, planar)
+    if size.size == 0:
+        return np.zeros(planar.shape[0], bool)
+    return (patch >= 0) & (size[np.maximum(patch, 0)] >= min_nodes)
+
+
 def hard_surfaces(
     nodes: np.ndarray,
     graph: sparse.csr_matrix,
@@ -146,11 +175,11 @@ def hard_surfaces(
     """
     m = nodes.shape[0]
     out = np.zeros(m, bool)
-    idx = np.flatnonzero(planar)
-    if min_nodes <= 0 or idx.size < min_nodes:
+    if min_nodes <= 0 or np.count_nonzero(planar) < min_nodes:
         return out
-    _, comp = csgraph.connected_components(graph[idx][:, idx], directed=False)
-    size = np.bincount(comp)
+    patch, size = planar_patches(graph, planar)
+    idx = np.flatnonzero(patch >= 0)
+    comp = patch[idx]
     top = np.full(size.shape[0], -np.inf)
     np.maximum.at(top, comp, node_height[idx])
     surface = idx[(size[comp] >= min_nodes) & (top[comp] > min_top)]

@@ -4,7 +4,7 @@ import numpy as np
 
 from pipeline.graph import build_graph
 from pipeline.params import SegmentParams
-from pipeline.segment import hard_surfaces, segment_nodes, trunk_feet
+from pipeline.segment import faces, hard_surfaces, segment_nodes, trunk_feet
 
 
 def _grid(x0, y0, z, n, step=0.1):
@@ -38,6 +38,17 @@ def test_large_raised_surfaces_and_their_margin_are_found():
     near = (parts == 1) & (nodes[:, 0] >= 0.8 - 1e-9)
     assert s[near].all() and not s[(parts == 1) & (nodes[:, 0] < 0.65)].any()
     assert not hard_surfaces(nodes, graph, planar, nodes[:, 2], min_nodes=0, margin=0.15, min_top=0.5).any()
+
+
+def test_faces_are_large_connected_planar_patches_only():
+    nodes, parts, planar = _scene()
+    graph = build_graph(nodes, radius=0.15)
+    f = faces(graph, planar, 10)
+    assert f[parts == 2].all() and f[parts == 4].all()  # roof and grass: 121 nodes each
+    assert not f[parts == 3].any()  # 9 connected planar nodes are no face
+    assert not f[~planar].any()
+    assert faces(graph, planar, 9)[parts == 3].all()
+    assert not faces(graph, np.zeros(len(nodes), bool), 10).any()
 
 
 def test_excluded_nodes_carry_no_paths_and_stay_unlabelled():
