@@ -215,7 +215,7 @@ def detect_trunks(
     candidates = {
         "x": cx, "y": cy, "support": g_support, "top": g_top, "planar": g_planar, "width": width,
         "band_flow": wsum, "band_scatter": band_scatter,
-        "band_nodes": np.bincount(bg, minlength=groups.size), "band_max": band_max, "accepted": ok.copy(),
+        "band_nodes": np.bincount(bg, minlength=groups.size), "band_max": band_max,
     }
 
     centre = np.column_stack([cx, cy])
