@@ -132,8 +132,8 @@ def planar_patches(graph: sparse.csr_matrix, planar: np.ndarray) -> tuple[np.nda
 def faces(graph: sparse.csr_matrix, planar: np.ndarray, min_nodes: int) -> np.ndarray:
     """Planar nodes in connected planar patches of at least ``min_nodes`` nodes, (m,) bool.
 
-    A box's face is one large patch; the curved bark of a thick or sparsely scanned
-    trunk looks planar only in small patches (at most 9 nodes on the AdTree trees).
+    A box's face is one large patch; the bark of a sparsely scanned trunk looks planar
+    only in small patches (at most 9 nodes on the AdTree trees).
     """
     patch, size = planar_patches(graph, planar)
     if size.size == 0:
