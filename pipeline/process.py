@@ -42,8 +42,9 @@ NOISY_PLANAR_MAX_SCATTER = 0.35
 #: nodes; the sparsely scanned bark of AdTree's tree13 shows patches of at most 7, which
 #: made up 21 % of its low material and failed the tree. Measured on 48 generated blocks
 #: (σ 0-0.1 m, 2.5-8 m spacing, sparse scans, vehicles and bins): trunks found, false
-#: trunks and v-measure all unchanged. The noisy test below stays unfiltered: at
-#: σ 0.05 m its faces break into small patches (filtering them added 2 false trunks).
+#: trunks and v-measure all unchanged. The noise-aware test (:func:`noisy_planar`) stays
+#: unfiltered: at σ 0.05 m its faces break into small patches (filtering them added 2
+#: false trunks).
 MIN_FACE_NODES = 10
 #: scattering (λ3/λ1) of fully leafy material; woody nodes measure about 0.05-0.1
 LEAFY_SCATTERING = 0.3
@@ -167,7 +168,9 @@ def analyse_nodes(
     leafiness = np.clip(matter.smooth(feats.scattering, adjacency) / LEAFY_SCATTERING, 0.0, 1.0)
     drainage = reweight(graph, 1.0 + params.trunks.leaf_cost * leafiness)
     planar = (feats.planarity >= PLANAR_MIN) & (feats.scattering <= PLANAR_MAX_SCATTER)
-    # the catchment's box test only: cutting surfaces out of the graph needs the strict test
+    # box tests: planar nodes in patches of MIN_FACE_NODES or more; the catchment's test
+    # also counts blurred faces on noisy scans (cutting surfaces out of the graph needs
+    # the strict test)
     face = faces(graph, planar, MIN_FACE_NODES)
     box_planar = face | noisy_planar(feats, noise=gm.noise)
     ground_top = gm.tolerance(params.ground)
