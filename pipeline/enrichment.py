@@ -19,7 +19,8 @@ class ShapeFeatures:
     """Per-node features, all (m,) float64.
 
     linearity (λ1-λ2)/λ1, planarity (λ2-λ3)/λ1, scattering λ3/λ1, verticality
-    |z of the principal axis|, neighbours (count within the radius).
+    |z of the principal axis|, neighbours (count within the radius); and ``normal``,
+    (m, 3) the unit axis of least spread (a surface's normal, sign arbitrary).
     """
 
     linearity: np.ndarray
@@ -27,6 +28,7 @@ class ShapeFeatures:
     scattering: np.ndarray
     verticality: np.ndarray
     neighbours: np.ndarray
+    normal: np.ndarray
 
     def matrix(self) -> np.ndarray:
         """(m, 5) feature matrix, columns in field order."""
@@ -89,4 +91,5 @@ def shape_features(nodes: np.ndarray, *, radius: float, adjacency: sparse.csr_ma
     pla = np.where(few, 0.0, (l2 - l3) / safe)
     sca = np.where(few, 1.0, l3 / safe)
     vert = np.abs(v[:, 2, 2]) if m else np.zeros(0)
-    return ShapeFeatures(lin, pla, sca, vert, n)
+    normal = v[:, :, 0] if m else np.zeros((0, 3))
+    return ShapeFeatures(lin, pla, sca, vert, n, normal)

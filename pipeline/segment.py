@@ -129,22 +129,86 @@ def planar_patches(graph: sparse.csr_matrix, planar: np.ndarray) -> tuple[np.nda
     return patch, np.bincount(comp)
 
 
-def faces(graph: sparse.csr_matrix, planar: np.ndarray, min_nodes: int) -> np.ndarray:
-    """Planar nodes in connected planar patches of at least ``min_nodes`` nodes, (m,) bool.
+def curved_patches(
+    nodes: np.ndarray,
+    normals: np.ndarray,
+    patch: np.ndarray,
+    size: np.ndarray,
+    *,
+    min_nodes: int,
+    min_spread: float,
+    max_radius: float,
+    max_residual: float,
+) -> np.ndarray:
+    """Patches that are part of a cylinder (the bark of a thick trunk), (c,) bool.
 
-    A box's face is one large patch; the bark of a sparsely scanned trunk looks planar
-    only in small patches (at most 9 nodes on the AdTree trees).
+    A thick trunk's bark is locally flat, so it passes the planarity test, and its
+    patches are as large as a box's face. A face's normals are all parallel; a
+    cylinder's turn around its axis and, seen along the axis, all point away from it.
+    A patch is curved when its normals spread around an axis (the middle eigenvalue of
+    their mean outer product is at least ``min_spread``) and, in the cross-section
+    across that axis, the lines along its normals pass within ``max_residual`` times the
+    radius of one centre, at most ``max_radius`` away. Two faces meeting at a corner
+    spread their normals too, but their normal lines are parallel within each face and
+    meet no common centre.
+
+    Parameters
+    ----------
+    nodes : (m, 3) float64 [m]
+    normals : (m, 3) float64 — unit normal of each node (sign arbitrary)
+    patch, size : from :func:`planar_patches`
+    min_nodes : int — smaller patches are not tested (False)
+    min_spread : float — least middle eigenvalue of the normals' mean outer product
+    max_radius : float — widest cylinder [m]
+    max_residual : float — largest RMS distance of the normal lines from the centre,
+        as a fraction of the radius
+
+    Returns
+    -------
+    (c,) bool
     """
-    patch, size = planar_patches(graph, planar)
+    out = np.zeros(size.shape[0], bool)
     if size.size == 0:
-        return np.zeros(planar.shape[0], bool)
+        return out
+    idx = np.flatnonzero((patch >= 0) & (size[np.maximum(patch, 0)] >= min_nodes))
+    if idx.size == 0:
+        return out
+    idx = idx[np.argsort(patch[idx], kind="stable")]
+    ids, start = np.unique(patch[idx], return_index=True)
+    for pid, part in zip(ids, np.split(idx, start[1:])):
+        n = normals[part]
+        w, v = np.linalg.eigh(n.T @ n / part.size)
+        if w[1] < min_spread:
+            continue  # one direction: a flat face
+        across = v[:, 1:]  # the cross-section plane, normal to the axis v[:, 0]
+        q = (nodes[part] - nodes[part].mean(axis=0)) @ across
+        n2 = n @ across
+        n2 /= np.maximum(np.linalg.norm(n2, axis=1, keepdims=True), 1e-12)
+        off_line = np.eye(2)[None] - n2[:, :, None] * n2[:, None, :]  # projects off each normal line
+        centre = np.linalg.lstsq(off_line.sum(axis=0), np.einsum("kij,kj->i", off_line, q), rcond=None)[0]
+        d = q - centre
+        residual = np.sqrt((np.einsum("kij,kj->ki", off_line, d) ** 2).sum(axis=1).mean())
+        radius = np.linalg.norm(d, axis=1).mean()
+        out[pid] = radius <= max_radius and residual <= max_residual * radius
+    return out
+
+
+def faces(patch: np.ndarray, size: np.ndarray, min_nodes: int) -> np.ndarray:
+    """Nodes in patches of at least ``min_nodes`` nodes, (m,) bool.
+
+    ``patch``, ``size`` from :func:`planar_patches`. A box's face is one large patch; the
+    bark of a sparsely scanned trunk looks planar only in small patches (at most 9 nodes
+    on the AdTree trees).
+    """
+    if size.size == 0:
+        return np.zeros(patch.shape[0], bool)
     return (patch >= 0) & (size[np.maximum(patch, 0)] >= min_nodes)
 
 
 def hard_surfaces(
     nodes: np.ndarray,
-    graph: sparse.csr_matrix,
-    planar: np.ndarray,
+    patch: np.ndarray,
+    size: np.ndarray,
     node_height: np.ndarray,
     *,
     min_nodes: int,
@@ -156,14 +220,15 @@ def hard_surfaces(
     A vehicle parked under a crown, a bin or a wall touches the foliage, so shortest
     paths from the trunk run over it. Trees have no large flat parts: on generated
     orchards no connected set of planar tree nodes exceeds 13 voxels, while a vehicle's
-    or a bin's faces form sets of 90-670. Grass patches are planar too but stay below
-    ``min_top``.
+    or a bin's faces form sets of 90-670 (a thick trunk's bark does, but it is curved:
+    leave it out of ``patch``, see :func:`curved_patches`). Grass patches are planar too
+    but stay below ``min_top``.
 
     Parameters
     ----------
     nodes : (m, 3) float64 [m]
-    graph : (m, m) csr_matrix
-    planar : (m,) bool — nodes whose neighbourhood is a surface
+    patch : (m,) int64 — planar patch of each node, -1 = none (:func:`planar_patches`)
+    size : (c,) int64 — nodes per patch
     node_height : (m,) float64 — height above ground [m]
     min_nodes : int — least size of a surface [nodes]; 0 = no surfaces
     margin : float — nodes this close to a surface are part of the object [m]
@@ -175,10 +240,9 @@ def hard_surfaces(
     """
     m = nodes.shape[0]
     out = np.zeros(m, bool)
-    if min_nodes <= 0 or np.count_nonzero(planar) < min_nodes:
-        return out
-    patch, size = planar_patches(graph, planar)
     idx = np.flatnonzero(patch >= 0)
+    if min_nodes <= 0 or idx.size < min_nodes:
+        return out
     comp = patch[idx]
     top = np.full(size.shape[0], -np.inf)
     np.maximum.at(top, comp, node_height[idx])

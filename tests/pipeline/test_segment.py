@@ -4,7 +4,7 @@ import numpy as np
 
 from pipeline.graph import build_graph
 from pipeline.params import SegmentParams
-from pipeline.segment import faces, hard_surfaces, segment_nodes, trunk_feet
+from pipeline.segment import curved_patches, faces, hard_surfaces, planar_patches, segment_nodes, trunk_feet
 
 
 def _grid(x0, y0, z, n, step=0.1):
@@ -29,7 +29,8 @@ def _scene():
 def test_large_raised_surfaces_and_their_margin_are_found():
     nodes, parts, planar = _scene()
     graph = build_graph(nodes, radius=0.15)
-    s = hard_surfaces(nodes, graph, planar, nodes[:, 2], min_nodes=40, margin=0.15, min_top=0.5)
+    patch, size = planar_patches(graph, planar)
+    s = hard_surfaces(nodes, patch, size, nodes[:, 2], min_nodes=40, margin=0.15, min_top=0.5)
     assert s[parts == 2].all()  # the roof
     assert not s[parts == 3].any()  # a small flat patch is foliage
     assert not s[parts == 4].any()  # grass is flat but low
@@ -37,18 +38,79 @@ def test_large_raised_surfaces_and_their_margin_are_found():
     # the branch passes 0.1 m above the roof: inside the margin where it crosses it
     near = (parts == 1) & (nodes[:, 0] >= 0.8 - 1e-9)
     assert s[near].all() and not s[(parts == 1) & (nodes[:, 0] < 0.65)].any()
-    assert not hard_surfaces(nodes, graph, planar, nodes[:, 2], min_nodes=0, margin=0.15, min_top=0.5).any()
+    assert not hard_surfaces(nodes, patch, size, nodes[:, 2], min_nodes=0, margin=0.15, min_top=0.5).any()
+    none = planar_patches(graph, np.zeros(len(nodes), bool))
+    assert not hard_surfaces(nodes, *none, nodes[:, 2], min_nodes=40, margin=0.15, min_top=0.5).any()
 
 
 def test_faces_are_large_connected_planar_patches_only():
     nodes, parts, planar = _scene()
     graph = build_graph(nodes, radius=0.15)
-    f = faces(graph, planar, 10)
+    patch, size = planar_patches(graph, planar)
+    f = faces(patch, size, 10)
     assert f[parts == 2].all() and f[parts == 4].all()  # roof and grass: 121 nodes each
     assert not f[parts == 3].any()  # 9 connected planar nodes are no face
     assert not f[~planar].any()
-    assert faces(graph, planar, 9)[parts == 3].all()
-    assert not faces(graph, np.zeros(len(nodes), bool), 10).any()
+    assert faces(patch, size, 9)[parts == 3].all()
+    assert not faces(*planar_patches(graph, np.zeros(len(nodes), bool)), 10).any()
+
+
+def _arc(radius, degrees, centre=(0.0, 0.0), heights=np.arange(0.2, 0.8, 0.1), step=0.1):
+    """Nodes on an upright cylinder's arc (about one per ``step`` of bark) and their normals."""
+    t = np.linspace(-np.radians(degrees) / 2, np.radians(degrees) / 2, max(3, int(np.radians(degrees) * radius / step)))
+    tt, zz = np.meshgrid(t, heights, indexing="ij")
+    n = np.column_stack([np.cos(tt.ravel()), np.sin(tt.ravel()), np.zeros(tt.size)])
+    return np.column_stack([centre[0] + radius * n[:, 0], centre[1] + radius * n[:, 1], zz.ravel()]), n
+
+
+def _plate(corner, u, v, nu, nv, step=0.1):
+    """Nodes on a flat rectangle from ``corner`` along unit vectors u, v, and its normals."""
+    a, b = np.meshgrid(np.arange(nu) * step, np.arange(nv) * step, indexing="ij")
+    p = np.asarray(corner) + a.ravel()[:, None] * np.asarray(u) + b.ravel()[:, None] * np.asarray(v)
+    return p, np.tile(np.cross(u, v), (len(p), 1)).astype(float)
+
+
+def test_curved_patches_are_bark_not_faces():
+    rng = np.random.default_rng(0)
+    kw = dict(min_nodes=10, min_spread=0.05, max_radius=0.75, max_residual=0.25)
+    parts = {
+        "thick trunk, r 0.4 m, half seen": _arc(0.4, 180),
+        "thick trunk, r 0.3 m, a third seen": _arc(0.3, 120, centre=(3.0, 0.0)),
+        "leaning trunk": None,
+        "box face": _plate((6.0, 0.0, 0.2), (1.0, 0.0, 0.0), (0.0, 0.0, 1.0), 12, 8),
+        "box corner": None,
+        "tank, r 2 m": _arc(2.0, 90, centre=(20.0, 0.0)),
+        "small arc": _arc(0.4, 40, centre=(30.0, 0.0), heights=np.array([0.3, 0.4])),
+    }
+    # a trunk leaning 20 degrees: the arc rotated about the x axis
+    p, n = _arc(0.4, 180, centre=(0.0, 0.0))
+    c, s = np.cos(np.radians(20)), np.sin(np.radians(20))
+    rot = np.array([[1, 0, 0], [0, c, -s], [0, s, c]])
+    parts["leaning trunk"] = (p @ rot.T + [10.0, 0.0, 0.0], n @ rot.T)
+    # two faces of a 1.2 m bin meeting at an edge
+    a = _plate((14.0, 0.0, 0.2), (1.0, 0.0, 0.0), (0.0, 0.0, 1.0), 12, 8)
+    b = _plate((14.0, 0.1, 0.2), (0.0, 1.0, 0.0), (0.0, 0.0, 1.0), 12, 8)
+    parts["box corner"] = (np.vstack([a[0], b[0]]), np.vstack([a[1], b[1]]))
+    names = list(parts)
+    nodes = np.vstack([parts[k][0] for k in names])
+    normals = np.vstack([parts[k][1] for k in names])
+    normals *= rng.choice([-1.0, 1.0], size=(len(normals), 1))  # a normal's sign is arbitrary
+    nodes += rng.normal(0, 0.01, nodes.shape)
+    patch = np.repeat(np.arange(len(names)), [len(parts[k][0]) for k in names])
+    size = np.bincount(patch)
+    curved = dict(zip(names, curved_patches(nodes, normals, patch, size, **kw)))
+    assert curved == {
+        "thick trunk, r 0.4 m, half seen": True,
+        "thick trunk, r 0.3 m, a third seen": True,
+        "leaning trunk": True,
+        "box face": False,  # one normal direction
+        "box corner": False,  # two directions, but the normal lines meet in no centre
+        "tank, r 2 m": False,  # wider than max_radius
+        "small arc": False,  # below min_nodes, not tested
+    }, curved
+    small = names.index("small arc")
+    assert size[small] < 10 and (np.delete(size, small) >= 10).all()
+    assert not curved_patches(nodes, normals, np.full(len(nodes), -1), np.zeros(0, np.int64), **kw).any()
 
 
 def test_excluded_nodes_carry_no_paths_and_stay_unlabelled():
