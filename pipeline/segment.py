@@ -168,9 +168,7 @@ def curved_patches(
     (c,) bool
     """
     out = np.zeros(size.shape[0], bool)
-    if size.size == 0:
-        return out
-    idx = np.flatnonzero((patch >= 0) & (size[np.maximum(patch, 0)] >= min_nodes))
+    idx = np.flatnonzero(faces(patch, size, min_nodes))
     if idx.size == 0:
         return out
     idx = idx[np.argsort(patch[idx], kind="stable")]
