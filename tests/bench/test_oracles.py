@@ -15,7 +15,8 @@ def _graph(nodes, edges):
     return (g + g.T).tocsr()
 
 
-def test_a_straight_path_beats_a_shorter_sharp_turn():
+@pytest.mark.parametrize("smoothing", [None, 0.85])
+def test_a_straight_path_beats_a_shorter_sharp_turn(smoothing):
     # trunk A: a vertical chain 0..4 from z=0 to z=0.4; node 4 is the target.
     # trunk B's seed (node 5) sits 0.1 m beside the target, at the same height.
     # Plain shortest paths give the target to B (0.1 m against 0.4 m); a path from B
@@ -25,18 +26,21 @@ def test_a_straight_path_beats_a_shorter_sharp_turn():
     seeds, seed_trunk = np.array([0, 5]), np.array([0, 1])
     plain = shortest_paths(g, seeds).source
     assert plain[4] == 5
-    trunk = direction_paths(g, nodes, seeds, seed_trunk, np.array([[0.0, 0.0], [0.1, 0.0]]))
+    trunk = direction_paths(g, nodes, seeds, seed_trunk, np.array([[0.0, 0.0], [0.1, 0.0]]), smoothing=smoothing)
     assert trunk.tolist() == [0, 0, 0, 0, 0, 1]
 
 
-def test_a_symmetric_bridge_splits_in_the_middle_and_unreached_nodes_stay_minus_one():
+@pytest.mark.parametrize("smoothing", [None, 0.85])
+def test_a_symmetric_bridge_splits_in_the_middle_and_unreached_nodes_stay_minus_one(smoothing):
     # two trunks at the ends of a horizontal bridge of 21 nodes, and one isolated node
     xs = np.arange(0.0, 2.01, 0.1)
     nodes = np.c_[xs, np.zeros_like(xs), np.full_like(xs, 1.0)]
     nodes = np.vstack([nodes, [[5.0, 5.0, 5.0]]])  # an isolated node
     n = len(xs)
     g = _graph(nodes, [(k, k + 1) for k in range(n - 1)])
-    trunk = direction_paths(g, nodes, np.array([0, n - 1]), np.array([0, 1]), np.array([[0.0, 0.0], [2.0, 0.0]]))
+    trunk = direction_paths(
+        g, nodes, np.array([0, n - 1]), np.array([0, 1]), np.array([[0.0, 0.0], [2.0, 0.0]]), smoothing=smoothing
+    )
     assert trunk[-1] == -1
     assert (trunk[: n // 2] == 0).all() and (trunk[n // 2 + 1 : n] == 1).all()
 
