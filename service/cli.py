@@ -29,8 +29,16 @@ def _validation_message(err: ValidationError) -> str:
     return "invalid parameters: " + "; ".join(parts)
 
 
+class _Parser(argparse.ArgumentParser):
+    """Usage errors as one line naming the problem and the help option (exit 2), not
+    the whole usage text."""
+
+    def error(self, message: str):
+        self.exit(2, f"{self.prog}: {message} (see {self.prog} --help)\n")
+
+
 def build_parser() -> tuple[argparse.ArgumentParser, dict]:
-    parser = argparse.ArgumentParser(
+    parser = _Parser(
         prog="orchard",
         description="Turn LiDAR captures of orchards into per-tree data.",
     )

@@ -9,19 +9,29 @@ import typing
 from pipeline.params import GROUPS, PipelineParams
 
 
+def base_type(annotation):
+    """``float`` for ``float | None``; other annotations unchanged."""
+    args = [a for a in typing.get_args(annotation) if a is not type(None)]
+    return args[0] if args and typing.get_origin(annotation) is not typing.Literal else annotation
+
+
+def metavar(kind, description: str | None) -> str:
+    """Placeholder of a numeric option in --help: N (a count), M (metres) or X."""
+    return "N" if kind is int else ("M" if "[m]" in (description or "") else "X")
+
+
 def add_pipeline_options(parser: argparse.ArgumentParser) -> None:
     for group, model in GROUPS.items():
         g = parser.add_argument_group(f"{group} parameters")
         for field_name, field in model.model_fields.items():
             flag = f"--{group}-{field_name}".replace("_", "-")
-            ann = field.annotation
+            ann = base_type(field.annotation)
             kwargs: dict = {"dest": f"p__{group}__{field_name}", "default": None}
             if typing.get_origin(ann) is typing.Literal:
                 kwargs["choices"] = list(typing.get_args(ann))
-            elif ann is int:
-                kwargs["type"] = int
-            elif ann is float:
-                kwargs["type"] = float
+            elif ann in (int, float):
+                kwargs["type"] = ann
+                kwargs["metavar"] = metavar(ann, field.description)
             # argparse formats help with %: a literal % in a description must be doubled
             kwargs["help"] = f"{field.description} (default {field.default})".replace("%", "%%")
             g.add_argument(flag, **kwargs)

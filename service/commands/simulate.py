@@ -4,10 +4,10 @@ from __future__ import annotations
 
 import argparse
 import os
-import typing
 
 from pipeline.errors import InputError
 from pipeline.simulate import SimulationParams, write_simulation
+from service.commands.options import base_type, metavar
 
 NAME = "simulate"
 HELP = (
@@ -17,25 +17,19 @@ HELP = (
     "trunk base per tree. Deterministic for a seed; large blocks are streamed to disk."
 )
 
-def _base_type(annotation):
-    args = [a for a in typing.get_args(annotation) if a is not type(None)]
-    return args[0] if args else annotation
-
-
 def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--out", required=True, metavar="BLOCK.laz", help="output point cloud (.laz compressed, .las plain)")
     parser.add_argument("--truth", required=True, metavar="TRUTH.parquet", help="output ground truth (one row per point; trunks in the metadata)")
     g = parser.add_argument_group("orchard parameters (lengths in metres)")
     for name, field in SimulationParams.model_fields.items():
         flag = "--" + name.replace("_", "-")
-        kind = _base_type(field.annotation)
+        kind = base_type(field.annotation)
         default = "random per tree" if field.default is None else field.default
         help_text = f"{field.description} (default: {default})"
         if kind is bool:
             g.add_argument(flag, dest=f"s__{name}", action=argparse.BooleanOptionalAction, default=None, help=help_text)
         else:
-            metavar = "N" if kind is int else ("M" if "[m]" in (field.description or "") else "X")
-            g.add_argument(flag, dest=f"s__{name}", type=kind, default=None, metavar=metavar, help=help_text)
+            g.add_argument(flag, dest=f"s__{name}", type=kind, default=None, metavar=metavar(kind, field.description), help=help_text)
 
 
 def params_from_args(args: argparse.Namespace) -> SimulationParams:

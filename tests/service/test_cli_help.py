@@ -35,3 +35,32 @@ def test_nonsense_parameter_is_one_line_exit_2(tmp_path):
     )
     assert p.returncode == 2
     assert "Traceback" not in p.stderr and len(p.stderr.strip().splitlines()) == 1
+
+
+def test_process_help_shows_what_kind_of_value_each_option_takes():
+    # metres as M, counts as N, other numbers as X (not argparse's P__GROUP__FIELD)
+    p = subprocess.run([sys.executable, "-m", "service.cli", "process", "--help"], capture_output=True, text=True)
+    text = " ".join(p.stdout.split())
+    assert "P__" not in text
+    assert "--trunks-cluster-radius M" in text
+    assert "--trunks-min-canopy-voxels N" in text
+    assert "--trunks-satellite-ratio X" in text
+    assert "--matter-threshold X" in text  # float | None is a float option too
+
+
+def test_a_word_for_a_number_is_one_line_exit_2(tmp_path):
+    p = subprocess.run(
+        [sys.executable, "-m", "service.cli", "process", "x.laz", "--out", str(tmp_path / "o"), "--matter-threshold", "high"],
+        capture_output=True,
+        text=True,
+    )
+    assert p.returncode == 2
+    assert p.stderr.strip().splitlines() == [
+        "orchard process: argument --matter-threshold: invalid float value: 'high' (see orchard process --help)"
+    ]
+
+
+def test_a_missing_argument_is_one_line_exit_2():
+    p = subprocess.run([sys.executable, "-m", "service.cli", "process"], capture_output=True, text=True)
+    assert p.returncode == 2
+    assert len(p.stderr.strip().splitlines()) == 1 and "INPUT" in p.stderr, p.stderr
