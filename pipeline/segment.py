@@ -244,7 +244,7 @@ def hard_surfaces(
     comp = patch[idx]
     top = np.full(size.shape[0], -np.inf)
     np.maximum.at(top, comp, node_height[idx])
-    surface = idx[(size[comp] >= min_nodes) & (top[comp] > min_top)]
+    surface = idx[faces(patch, size, min_nodes)[idx] & (top[comp] > min_top)]
     if surface.size == 0:
         return out
     d, _ = cKDTree(nodes[surface]).query(nodes, distance_upper_bound=margin + 1e-9)
