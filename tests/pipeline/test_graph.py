@@ -5,9 +5,10 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 from scipy import sparse
+from scipy.sparse import csgraph
 
 from pipeline.enrichment import neighbourhood_matrix
-from pipeline.graph import build_graph, check_graph_size, depths, node_pairs, shortest_paths, subtree_sizes
+from pipeline.graph import bridge_floating, build_graph, check_graph_size, depths, node_pairs, shortest_paths, subtree_sizes
 from pipeline.voxels import voxelize
 
 
@@ -113,10 +114,6 @@ def test_int32_limit_is_checked_up_front():
 
 
 def test_floating_fragment_is_bridged_but_grounded_objects_are_not():
-    from scipy.sparse import csgraph
-
-    from pipeline.graph import bridge_floating
-
     # a trunk column 0..1 m, a crown fragment 1.4..2 m above it (gap 0.4 m), and a post
     # standing on the ground 0.5 m away from the trunk
     trunk = np.column_stack([np.zeros(11), np.zeros(11), np.linspace(0, 1, 11)])
@@ -133,6 +130,7 @@ def test_floating_fragment_is_bridged_but_grounded_objects_are_not():
     assert comp[18] != comp[0]  # the grounded post stays separate
     assert b.nnz == g.nnz + 2  # one symmetric edge
 
+
 def _trunk_and_two_fragments():
     # a trunk column 0..1 m; fragment A at 1.5 m (0.5 m above the trunk's top) and
     # fragment B 0.35 m above A: A and B are each other's nearest component
@@ -144,10 +142,6 @@ def _trunk_and_two_fragments():
 
 
 def test_two_fragments_hang_from_the_ground_not_from_each_other():
-    from scipy.sparse import csgraph
-
-    from pipeline.graph import bridge_floating
-
     # linking each fragment to its nearest component would pair A and B into an
     # island that never reaches the ground (a crown whose trunk is never found)
     nodes, g = _trunk_and_two_fragments()
@@ -161,10 +155,6 @@ def test_two_fragments_hang_from_the_ground_not_from_each_other():
 
 
 def test_a_fragment_out_of_reach_of_the_ground_hangs_from_a_lower_fragment():
-    from scipy.sparse import csgraph
-
-    from pipeline.graph import bridge_floating
-
     # with a 0.6 m reach B cannot reach the trunk (0.85 m) but reaches A (0.35 m), which
     # is lower; A hangs from the trunk
     nodes, g = _trunk_and_two_fragments()
@@ -179,7 +169,6 @@ def test_a_fragment_out_of_reach_of_the_ground_hangs_from_a_lower_fragment():
     assert n == 2 and comp[11] == comp[15] != comp[0]
     added = sparse.triu(b - g).tocoo()
     assert list(zip(added.row.tolist(), added.col.tolist())) == [(11, 15)]
-
 
 
 def test_one_neighbour_search_serves_both_radii():
