@@ -918,6 +918,19 @@ def simulate_orchard(params: SimulationParams | None = None) -> Orchard:
     return concatenate(iter_simulation(params or SimulationParams()))
 
 
+def ground_height(params: SimulationParams, x: np.ndarray, y: np.ndarray) -> np.ndarray:
+    """The simulated ground's true height [m] at (x, y), in the block's absolute
+    coordinates (those of :func:`simulate_orchard`'s points).
+
+    For benchmarks that hand a peer the true terrain, e.g. a ground mesh for
+    raycloudtools' ``rayextract trees``. The ground is the first thing the block's plan
+    draws, so it is rebuilt here from the seed without growing the trees.
+    """
+    ground = _Ground.make(params, np.random.default_rng([params.seed, 0]))
+    off = np.array([params.easting, params.northing, params.elevation])
+    return ground.z(np.asarray(x, dtype=np.float64) - off[0], np.asarray(y, dtype=np.float64) - off[1]) + off[2]
+
+
 # --------------------------------------------------------------------------- files
 
 TRUTH_COLUMNS = ("point_index", "tree_id", "is_wood", "kind")

@@ -14,8 +14,10 @@ from pipeline.simulate import (
     POST,
     TWIG,
     VEHICLE,
+    GROUND,
     WOOD,
     SimulationParams,
+    ground_height,
     iter_simulation,
     read_truth,
     simulate_orchard,
@@ -169,6 +171,18 @@ def test_noise_parameter_sets_the_spread():
     noisy = _ground_roughness(simulate_orchard(p.model_copy(update={"noise": 0.05})))
     assert quiet < 0.01
     assert 0.035 < noisy < 0.065
+
+
+def test_ground_height_is_the_surface_the_ground_points_lie_on():
+    p = SimulationParams(rows=2, trees_per_row=2, density=0.05, grass=0.0, noise=0.0, ghosting=0.0, outliers=0.0,
+                         slope=0.1, seed=7)
+    o = simulate_orchard(p)
+    g = o.xyz[o.kind == GROUND]
+    assert len(g) > 1000
+    np.testing.assert_allclose(ground_height(p, g[:, 0], g[:, 1]), g[:, 2], atol=1e-6)
+    # another seed draws another surface
+    other = ground_height(p.model_copy(update={"seed": 8}), g[:, 0], g[:, 1])
+    assert np.abs(other - g[:, 2]).max() > 0.05
 
 
 def test_ghosting_shifts_each_pass_rigidly():
