@@ -1,0 +1,206 @@
+"""Ours against raycloudtools' ``rayextract trees`` on the same generated blocks.
+
+    python -m bench.rayextract --rayextract PATH [--seeds 0,1] [--work-dir DIR]
+
+raycloudtools (CSIRO, C++) is the reference the project measures itself against: its
+``rayextract trees cloud.ply ground_mesh.ply`` finds trunks without priors and segments
+every point by shortest paths from the ground. It is not on PyPI or in Debian, so this
+module does not install it: give the path of a ``rayextract`` binary built from its
+sources (github.com/csiro-robotics/raycloudtools; it needs Eigen and libnabo).
+
+For each block of the issue's two accuracy settings (the same ``SETTINGS`` as
+:mod:`bench.oracles`) and each seed:
+
+- **ours**: the block's LAZ through :func:`workers.job.run_job` (LAZ in, Parquet out),
+  scored by :func:`pipeline.evaluate.evaluate_result`;
+- **rayextract trees**, defaults: the same points, in the same order, written as a ray
+  cloud (``cloud.ply``: float x, y, z relative to the block's local origin, a time per
+  point, and a 1 m vertical ray per point in the normal field, as
+  ``rayimport cloud.laz ray 0,0,-1`` makes for a cloud without a trajectory; the tool's
+  tree segmentation does not use the ray starts), and the simulator's *true* ground as
+  the mesh (``mesh.ply``, 0.25 m triangles; the tool's own ``rayextract terrain``
+  would have to estimate it). Its ``cloud_segmented.ply`` gives one colour per tree
+  (black: no tree) in the input order; its ``cloud_trees.txt`` gives each tree's base.
+
+Both are scored by :func:`pipeline.evaluate.score_labels` on the same truth: trunk F1
+with one-to-one matching within 1 m, v-measure on true tree points. ``rayextract`` has no
+per-point wood flag, so wood F1 is left out. Seconds are wall-clock for the whole run of
+each (reading, processing, writing), one thread (``OMP_NUM_THREADS=1``). Prints a
+Markdown table.
+"""
+
+from __future__ import annotations
+
+import argparse
+import os
+import shutil
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+
+from bench.blocks import make_block
+from bench.oracles import SETTINGS
+from bench.runner import SINGLE_THREAD_ENV
+from pipeline import evaluate
+from pipeline import io as blockio
+from pipeline.simulate import SimulationParams, ground_height, read_truth
+
+MESH_CELL = 0.25
+"""Edge of the ground mesh's grid cells [m]."""
+
+RAY_LENGTH = 1.0
+"""Length of the vertical ray written for each point [m]."""
+
+
+def write_ray_cloud(path: Path, xyz: np.ndarray) -> None:
+    """Write points (n, 3), local coordinates [m], as a raycloudtools ray cloud PLY.
+
+    Each point is a ray end; its start, ``RAY_LENGTH`` above it, is stored as the vector
+    start - end in the normal field (``nx``, ``ny``, ``nz``), as raycloudtools does.
+    Times count up in input order; colours are grey with alpha 255 (a bounded ray: a
+    real return).
+    """
+    from plyfile import PlyData, PlyElement
+
+    n = len(xyz)
+    v = np.zeros(n, dtype=[("x", "<f4"), ("y", "<f4"), ("z", "<f4"), ("time", "<f8"), ("nx", "<f4"), ("ny", "<f4"),
+                           ("nz", "<f4"), ("red", "u1"), ("green", "u1"), ("blue", "u1"), ("alpha", "u1")])
+    v["x"], v["y"], v["z"] = xyz[:, 0], xyz[:, 1], xyz[:, 2]
+    v["time"] = np.arange(n, dtype=np.float64) * 1e-5
+    v["nz"] = RAY_LENGTH
+    v["red"] = v["green"] = v["blue"] = 128
+    v["alpha"] = 255
+    PlyData([PlyElement.describe(v, "vertex")], byte_order="<").write(str(path))
+
+
+def write_ground_mesh(path: Path, params: SimulationParams, origin: np.ndarray, lo: np.ndarray, hi: np.ndarray) -> int:
+    """Write the simulator's true ground over the XY box ``lo``-``hi`` (local [m]) as a
+    triangle-mesh PLY in local coordinates; returns the number of triangles."""
+    from plyfile import PlyData, PlyElement
+
+    gx = np.arange(lo[0] - MESH_CELL, hi[0] + 2 * MESH_CELL, MESH_CELL)
+    gy = np.arange(lo[1] - MESH_CELL, hi[1] + 2 * MESH_CELL, MESH_CELL)
+    X, Y = np.meshgrid(gx, gy, indexing="ij")
+    Z = ground_height(params, X.ravel() + origin[0], Y.ravel() + origin[1]) - origin[2]
+    verts = np.zeros(X.size, dtype=[("x", "<f4"), ("y", "<f4"), ("z", "<f4")])
+    verts["x"], verts["y"], verts["z"] = X.ravel(), Y.ravel(), Z
+    idx = np.arange(X.size).reshape(X.shape)
+    a, b, c, d = idx[:-1, :-1].ravel(), idx[1:, :-1].ravel(), idx[1:, 1:].ravel(), idx[:-1, 1:].ravel()
+    tri = np.concatenate([np.c_[a, b, c], np.c_[a, c, d]]).astype(np.int32)
+    faces = np.zeros(len(tri), dtype=[("vertex_indices", "i4", (3,))])
+    faces["vertex_indices"] = tri
+    PlyData([PlyElement.describe(verts, "vertex"), PlyElement.describe(faces, "face")], byte_order="<").write(str(path))
+    return len(tri)
+
+
+def read_segmented(path: Path, xyz: np.ndarray, tolerance: float = 1e-3) -> np.ndarray:
+    """Tree labels (n,) int64 from rayextract's ``_segmented.ply``: one label per colour,
+    0 for black (no tree). The file must hold the input's points in the input's order."""
+    from plyfile import PlyData
+
+    v = PlyData.read(str(path))["vertex"].data
+    if len(v) != len(xyz):
+        raise ValueError(f"{path.name} has {len(v)} points, the input {len(xyz)}: the order cannot be matched")
+    got = np.c_[v["x"], v["y"], v["z"]].astype(np.float64)
+    worst = float(np.abs(got - xyz).max()) if len(xyz) else 0.0
+    if worst > tolerance:
+        raise ValueError(f"{path.name} is not in the input's order (a point moved {worst:.3g} m)")
+    rgb = (v["red"].astype(np.int64) << 16) | (v["green"].astype(np.int64) << 8) | v["blue"].astype(np.int64)
+    _, labels = np.unique(rgb, return_inverse=True)
+    labels = labels.astype(np.int64) + 1
+    labels[rgb == 0] = 0
+    return labels
+
+
+def read_tree_bases(path: Path) -> np.ndarray:
+    """Base (first segment's x, y, z) of every tree in rayextract's ``_trees.txt``: (k, 3)."""
+    bases = []
+    for line in path.read_text().splitlines():
+        text = line.strip()
+        if not text or not (text[0].isdigit() or text[0] in "-."):
+            continue  # the comment and the column-name lines
+        bases.append([float(s) for s in text.replace(",", " ").split()[:3]])
+    return np.asarray(bases, dtype=np.float64).reshape(-1, 3)
+
+
+def run_rayextract(binary: str, folder: Path, xyz: np.ndarray, params: SimulationParams, origin: np.ndarray,
+                   *, timeout: float = 3600.0) -> tuple[np.ndarray, np.ndarray, float]:
+    """Write the ray cloud and ground mesh into ``folder``, run ``rayextract trees`` on
+    them; returns (labels (n,), tree bases (k, 3) in local coordinates, seconds)."""
+    folder.mkdir(parents=True, exist_ok=True)
+    cloud, mesh = folder / "cloud.ply", folder / "mesh.ply"
+    write_ray_cloud(cloud, xyz)
+    write_ground_mesh(mesh, params, origin, xyz[:, :2].min(axis=0), xyz[:, :2].max(axis=0))
+    env = dict(os.environ, **SINGLE_THREAD_ENV)
+    t = time.perf_counter()
+    proc = subprocess.run([binary, "trees", cloud.name, mesh.name], cwd=folder, env=env, capture_output=True,
+                          text=True, timeout=timeout)
+    seconds = time.perf_counter() - t
+    if proc.returncode != 0:
+        tail = "\n".join((proc.stdout + proc.stderr).strip().splitlines()[-5:])
+        raise RuntimeError(f"rayextract exited {proc.returncode}: {tail}")
+    labels = read_segmented(folder / "cloud_segmented.ply", xyz)
+    return labels, read_tree_bases(folder / "cloud_trees.txt"), seconds
+
+
+def compare_block(binary: str, work: Path, setting: str, seed: int) -> dict:
+    """Ours and rayextract on one generated block: {method: scores}, plus block facts."""
+    from pipeline.params import PipelineParams
+    from workers.job import JobSpec, run_job
+
+    params = SimulationParams(seed=seed, **SETTINGS[setting])
+    block = make_block(work, f"rayextract-s{seed}", params)
+    truth, true_trunks = read_truth(block.truth)
+    out = {"setting": setting, "seed": seed, "n_points": block.n_points, "n_trees": block.n_trees, "methods": {}}
+
+    result_dir = work / "rayextract-results" / Path(block.las).stem
+    shutil.rmtree(result_dir, ignore_errors=True)
+    t = time.perf_counter()
+    run_job(JobSpec(input_path=block.las, out_dir=str(result_dir), params=PipelineParams()))
+    seconds = time.perf_counter() - t
+    ours = evaluate.evaluate_result(block.truth, str(result_dir))
+    out["methods"]["ours"] = dict(ours, seconds=seconds, found=ours["n_found_trees"])
+
+    xyz, info = blockio.read_points(block.las)
+    origin = np.asarray(info.origin, dtype=np.float64)
+    labels, bases, seconds = run_rayextract(binary, work / "rayextract-runs" / Path(block.las).stem, xyz, params, origin)
+    scores = evaluate.score_labels(
+        true_tree_id=truth["tree_id"], true_is_wood=truth["is_wood"], true_trunks=true_trunks,
+        pred_tree_id=labels, pred_is_wood=np.zeros(len(labels), bool), found_trunks=bases + origin,
+    )
+    out["methods"]["rayextract trees"] = dict(scores, seconds=seconds, found=scores["n_found_trees"])
+    return out
+
+
+def table(rows: list[dict]) -> str:
+    lines = ["| setting | seed | points | method | trunks found (true) | trunk F1 | v-measure | seconds |",
+             "|---|---|---|---|---|---|---|---|"]
+    for r in rows:
+        for name, m in r["methods"].items():
+            lines.append(f"| {r['setting']} | {r['seed']} | {r['n_points']:,} | {name} | {m['found']} ({r['n_trees']}) "
+                         f"| {m['trunk_f1']:.2f} | {m['v_measure']:.3f} | {m['seconds']:.1f} |")
+    return "\n".join(lines)
+
+
+def main(argv: list[str] | None = None) -> int:
+    p = argparse.ArgumentParser(prog="python -m bench.rayextract", description=__doc__.splitlines()[0])
+    p.add_argument("--rayextract", required=True, help="path of a rayextract binary (raycloudtools)")
+    p.add_argument("--seeds", default="0,1", help="evaluation seeds, comma-separated (default 0,1)")
+    p.add_argument("--work-dir", type=Path, default=Path(os.environ.get("ORCHARD_BENCH_WORK", "/tmp/orchard-bench")),
+                   help="folder for the blocks and both tools' outputs (default /tmp/orchard-bench)")
+    args = p.parse_args(argv)
+    binary = shutil.which(args.rayextract) or args.rayextract
+    if not (os.path.isfile(binary) and os.access(binary, os.X_OK)):
+        print(f"error: {args.rayextract} is not an executable file", file=sys.stderr)
+        return 2
+    seeds = [int(s) for s in args.seeds.split(",") if s.strip()]
+    rows = [compare_block(binary, args.work_dir, setting, seed) for setting in SETTINGS for seed in seeds]
+    print(table(rows))
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
