@@ -481,8 +481,12 @@ class _Plan:
     pass_z: np.ndarray  # (q, m) sensor z of each pass at profile_x
 
     def offset(self) -> np.ndarray:
-        p = self.params
-        return np.array([p.easting, p.northing, p.elevation])
+        return _offset(self.params)
+
+
+def _offset(p: SimulationParams) -> np.ndarray:
+    """Absolute coordinates of the block's local origin."""
+    return np.array([p.easting, p.northing, p.elevation])
 
 
 def _tree_rng(seed: int, i: int) -> np.random.Generator:
@@ -927,7 +931,7 @@ def ground_height(params: SimulationParams, x: np.ndarray, y: np.ndarray) -> np.
     draws, so it is rebuilt here from the seed without growing the trees.
     """
     ground = _Ground.make(params, np.random.default_rng([params.seed, 0]))
-    off = np.array([params.easting, params.northing, params.elevation])
+    off = _offset(params)
     return ground.z(np.asarray(x, dtype=np.float64) - off[0], np.asarray(y, dtype=np.float64) - off[1]) + off[2]
 
 
