@@ -22,11 +22,17 @@ For each block of the issue's two accuracy settings (the same ``SETTINGS`` as
   would have to estimate it). Its ``cloud_segmented.ply`` gives one colour per tree
   (black: no tree) in the input order; its ``cloud_trees.txt`` gives each tree's base.
 
+Then the same for real trees (``--adtree``): the row of four AdTree scans of
+:func:`bench.real_data.adtree_row` at each crown overlap, written to a LAZ for ours and
+given its flat ground plane as the mesh for rayextract (read from ``../shared/data/real/``;
+left out with a note when that folder is missing).
+
 Both are scored by :func:`pipeline.evaluate.score_labels` on the same truth: trunk F1
 with one-to-one matching within 1 m, v-measure on true tree points. ``rayextract`` has no
 per-point wood flag, so wood F1 is left out. Seconds are wall-clock for the whole run of
-each (reading, processing, writing), one thread (``OMP_NUM_THREADS=1``). Prints a
-Markdown table.
+each (reading, processing, writing), one thread (``OMP_NUM_THREADS=1``); ours after one
+untimed warm-up run in the same process (as a dask worker runs it), rayextract as a fresh
+process. Prints a Markdown table.
 """
 
 from __future__ import annotations
@@ -38,11 +44,13 @@ import subprocess
 import sys
 import time
 from pathlib import Path
+from typing import Callable
 
 import numpy as np
 
 from bench.blocks import make_block
 from bench.oracles import SETTINGS
+from bench.real_data import REAL
 from bench.runner import SINGLE_THREAD_ENV
 from pipeline import evaluate
 from pipeline import io as blockio
@@ -76,15 +84,17 @@ def write_ray_cloud(path: Path, xyz: np.ndarray) -> None:
     PlyData([PlyElement.describe(v, "vertex")], byte_order="<").write(str(path))
 
 
-def write_ground_mesh(path: Path, params: SimulationParams, origin: np.ndarray, lo: np.ndarray, hi: np.ndarray) -> int:
-    """Write the simulator's true ground over the XY box ``lo``-``hi`` (local [m]) as a
-    triangle-mesh PLY in local coordinates; returns the number of triangles."""
+def write_ground_mesh(path: Path, ground: Callable[[np.ndarray, np.ndarray], np.ndarray], lo: np.ndarray,
+                      hi: np.ndarray) -> int:
+    """Write the ground surface ``ground(x, y) -> z`` (local [m]) over the XY box
+    ``lo``-``hi`` as a triangle-mesh PLY in local coordinates; returns the number of
+    triangles."""
     from plyfile import PlyData, PlyElement
 
     gx = np.arange(lo[0] - MESH_CELL, hi[0] + 2 * MESH_CELL, MESH_CELL)
     gy = np.arange(lo[1] - MESH_CELL, hi[1] + 2 * MESH_CELL, MESH_CELL)
     X, Y = np.meshgrid(gx, gy, indexing="ij")
-    Z = ground_height(params, X.ravel() + origin[0], Y.ravel() + origin[1]) - origin[2]
+    Z = np.broadcast_to(np.asarray(ground(X.ravel(), Y.ravel()), dtype=np.float64), (X.size,))
     verts = np.zeros(X.size, dtype=[("x", "<f4"), ("y", "<f4"), ("z", "<f4")])
     verts["x"], verts["y"], verts["z"] = X.ravel(), Y.ravel(), Z
     idx = np.arange(X.size).reshape(X.shape)
@@ -94,6 +104,11 @@ def write_ground_mesh(path: Path, params: SimulationParams, origin: np.ndarray, 
     faces["vertex_indices"] = tri
     PlyData([PlyElement.describe(verts, "vertex"), PlyElement.describe(faces, "face")], byte_order="<").write(str(path))
     return len(tri)
+
+
+def true_ground(params: SimulationParams, origin: np.ndarray) -> Callable[[np.ndarray, np.ndarray], np.ndarray]:
+    """The simulated block's true ground as ``(x, y) -> z``, all relative to ``origin``."""
+    return lambda x, y: ground_height(params, x + origin[0], y + origin[1]) - origin[2]
 
 
 def read_segmented(path: Path, xyz: np.ndarray, tolerance: float = 1e-3) -> np.ndarray:
@@ -126,14 +141,15 @@ def read_tree_bases(path: Path) -> np.ndarray:
     return np.asarray(bases, dtype=np.float64).reshape(-1, 3)
 
 
-def run_rayextract(binary: str, folder: Path, xyz: np.ndarray, params: SimulationParams, origin: np.ndarray,
+def run_rayextract(binary: str, folder: Path, xyz: np.ndarray, ground: Callable[[np.ndarray, np.ndarray], np.ndarray],
                    *, timeout: float = 3600.0) -> tuple[np.ndarray, np.ndarray, float]:
-    """Write the ray cloud and ground mesh into ``folder``, run ``rayextract trees`` on
-    them; returns (labels (n,), tree bases (k, 3) in local coordinates, seconds)."""
+    """Write the ray cloud of ``xyz`` (local [m]) and the mesh of ``ground`` (see
+    :func:`write_ground_mesh`) into ``folder``, run ``rayextract trees`` on them; returns
+    (labels (n,), tree bases (k, 3) in local coordinates, seconds)."""
     folder.mkdir(parents=True, exist_ok=True)
     cloud, mesh = folder / "cloud.ply", folder / "mesh.ply"
     write_ray_cloud(cloud, xyz)
-    write_ground_mesh(mesh, params, origin, xyz[:, :2].min(axis=0), xyz[:, :2].max(axis=0))
+    write_ground_mesh(mesh, ground, xyz[:, :2].min(axis=0), xyz[:, :2].max(axis=0))
     env = dict(os.environ, **SINGLE_THREAD_ENV)
     t = time.perf_counter()
     proc = subprocess.run([binary, "trees", cloud.name, mesh.name], cwd=folder, env=env, capture_output=True,
@@ -146,32 +162,79 @@ def run_rayextract(binary: str, folder: Path, xyz: np.ndarray, params: Simulatio
     return labels, read_tree_bases(folder / "cloud_trees.txt"), seconds
 
 
-def compare_block(binary: str, work: Path, setting: str, seed: int) -> dict:
-    """Ours and rayextract on one generated block: {method: scores}, plus block facts."""
+def _run_ours(las: str, result_dir: Path) -> float:
+    """Our job on ``las`` (LAZ in, Parquet out into ``result_dir``) after one untimed
+    warm-up run, as in the stand benchmark; returns the timed run's wall time [s]."""
     from pipeline.params import PipelineParams
     from workers.job import JobSpec, run_job
 
+    seconds = 0.0
+    for _ in range(2):
+        shutil.rmtree(result_dir, ignore_errors=True)
+        t = time.perf_counter()
+        run_job(JobSpec(input_path=las, out_dir=str(result_dir), params=PipelineParams()))
+        seconds = time.perf_counter() - t
+    return seconds
+
+
+def compare_block(binary: str, work: Path, setting: str, seed: int) -> dict:
+    """Ours and rayextract on one generated block: {method: scores}, plus block facts."""
     params = SimulationParams(seed=seed, **SETTINGS[setting])
     block = make_block(work, f"rayextract-s{seed}", params)
     truth, true_trunks = read_truth(block.truth)
     out = {"setting": setting, "seed": seed, "n_points": block.n_points, "n_trees": block.n_trees, "methods": {}}
 
     result_dir = work / "rayextract-results" / Path(block.las).stem
-    shutil.rmtree(result_dir, ignore_errors=True)
-    t = time.perf_counter()
-    run_job(JobSpec(input_path=block.las, out_dir=str(result_dir), params=PipelineParams()))
-    seconds = time.perf_counter() - t
+    seconds = _run_ours(block.las, result_dir)
     ours = evaluate.evaluate_result(block.truth, str(result_dir))
     out["methods"]["ours"] = dict(ours, seconds=seconds, found=ours["n_found_trees"])
 
     xyz, info = blockio.read_points(block.las)
     origin = np.asarray(info.origin, dtype=np.float64)
-    labels, bases, seconds = run_rayextract(binary, work / "rayextract-runs" / Path(block.las).stem, xyz, params, origin)
+    labels, bases, seconds = run_rayextract(binary, work / "rayextract-runs" / Path(block.las).stem, xyz,
+                                            true_ground(params, origin))
     scores = evaluate.score_labels(
         true_tree_id=truth["tree_id"], true_is_wood=truth["is_wood"], true_trunks=true_trunks,
         pred_tree_id=labels, pred_is_wood=np.zeros(len(labels), bool), found_trunks=bases + origin,
     )
     out["methods"]["rayextract trees"] = dict(scores, seconds=seconds, found=scores["n_found_trees"])
+    return out
+
+
+def compare_adtree(binary: str, work: Path, overlap: float) -> dict:
+    """Ours and rayextract on the real-tree row of :func:`bench.real_data.adtree_row`
+    (four AdTree scans, crowns overlapping by ``overlap`` of their summed radii, on a flat
+    ground plane at z = 0), scored on its exact tree ids. Wood is not labelled there."""
+    from bench.real_data import adtree_row
+    from pipeline.evaluate import _read_points_labels
+    from pipeline.io import LasBlockWriter, read_trees_parquet
+
+    xyz, tid, bases = adtree_row(overlap=overlap)
+    origin = np.floor(xyz.min(axis=0))
+    folder = work / "rayextract-adtree" / f"overlap-{overlap:g}"
+    folder.mkdir(parents=True, exist_ok=True)
+    las = folder / "row.laz"
+    with LasBlockWriter(las, offsets=origin) as w:
+        w.write(xyz)
+    out = {"setting": f"AdTree row (real trees), overlap {overlap:g}", "seed": "-", "n_points": len(xyz),
+           "n_trees": len(bases), "methods": {}}
+    no_wood = np.zeros(len(xyz), bool)
+
+    result_dir = folder / "ours"
+    seconds = _run_ours(str(las), result_dir)
+    trees, _ = read_trees_parquet(str(result_dir / "trees.parquet"))
+    pred, _, _ = _read_points_labels(str(result_dir / "points.parquet"), len(xyz))
+    found = np.c_[np.asarray(trees["trunk_x"], np.float64), np.asarray(trees["trunk_y"], np.float64)]
+    s = evaluate.score_labels(true_tree_id=tid, true_is_wood=no_wood, true_trunks=bases[:, :2], pred_tree_id=pred,
+                              pred_is_wood=no_wood, found_trunks=found)
+    out["methods"]["ours"] = dict(s, seconds=seconds, found=s["n_found_trees"])
+
+    local = np.asarray(blockio.read_points(str(las), origin=origin)[0])
+    labels, found, seconds = run_rayextract(binary, folder / "rayextract", local,
+                                            lambda x, y: np.full(len(x), -origin[2]))
+    s = evaluate.score_labels(true_tree_id=tid, true_is_wood=no_wood, true_trunks=bases[:, :2], pred_tree_id=labels,
+                              pred_is_wood=no_wood, found_trunks=found[:, :2] + origin[:2])
+    out["methods"]["rayextract trees"] = dict(s, seconds=seconds, found=s["n_found_trees"])
     return out
 
 
@@ -191,6 +254,9 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--seeds", default="0,1", help="evaluation seeds, comma-separated (default 0,1)")
     p.add_argument("--work-dir", type=Path, default=Path(os.environ.get("ORCHARD_BENCH_WORK", "/tmp/orchard-bench")),
                    help="folder for the blocks and both tools' outputs (default /tmp/orchard-bench)")
+    p.add_argument("--adtree", default="0.8,1.0",
+                   help="also the row of four real AdTree trees (bench.real_data) at these crown overlaps, "
+                        "comma-separated fractions of the summed crown radii; '' for none (default 0.8,1.0)")
     args = p.parse_args(argv)
     binary = shutil.which(args.rayextract) or args.rayextract
     if not (os.path.isfile(binary) and os.access(binary, os.X_OK)):
@@ -198,6 +264,11 @@ def main(argv: list[str] | None = None) -> int:
         return 2
     seeds = [int(s) for s in args.seeds.split(",") if s.strip()]
     rows = [compare_block(binary, args.work_dir, setting, seed) for setting in SETTINGS for seed in seeds]
+    overlaps = [float(o) for o in args.adtree.split(",") if o.strip()]
+    if overlaps and not (REAL / "AdTree").is_dir():
+        print(f"note: {REAL / 'AdTree'} is missing; the real-tree rows are left out", file=sys.stderr)
+        overlaps = []
+    rows += [compare_adtree(binary, args.work_dir, o) for o in overlaps]
     print(table(rows))
     return 0
 

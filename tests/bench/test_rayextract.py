@@ -11,15 +11,18 @@ import pytest
 from plyfile import PlyData, PlyElement
 
 from bench.rayextract import (
+    compare_adtree,
     MESH_CELL,
     RAY_LENGTH,
     main,
     read_segmented,
     read_tree_bases,
     run_rayextract,
+    true_ground,
     write_ground_mesh,
     write_ray_cloud,
 )
+from bench.real_data import REAL
 from pipeline.simulate import SimulationParams, ground_height
 
 XYZ = np.array([[0.0, 0.0, 0.1], [1.0, 2.0, 3.0], [-4.5, 2.25, 1.5], [7.0, -1.0, 0.0]])
@@ -43,7 +46,7 @@ def test_ground_mesh_is_the_true_ground_over_the_box(tmp_path):
     params = SimulationParams(seed=3, slope=0.2)
     origin = np.array([params.easting, params.northing, params.elevation]) + np.array([1.0, -2.0, 0.5])
     lo, hi = np.array([-1.0, -1.0]), np.array([3.0, 2.0])
-    n_tri = write_ground_mesh(tmp_path / "m.ply", params, origin, lo, hi)
+    n_tri = write_ground_mesh(tmp_path / "m.ply", true_ground(params, origin), lo, hi)
     ply = PlyData.read(str(tmp_path / "m.ply"))
     v, f = ply["vertex"].data, np.stack(ply["face"].data["vertex_indices"])
     assert f.shape == (n_tri, 3) and f.min() == 0 and f.max() == len(v) - 1
@@ -120,7 +123,7 @@ def test_run_feeds_the_tool_and_reads_back_its_answer(tmp_path):
     tool.chmod(tool.stat().st_mode | stat.S_IXUSR)
     params = SimulationParams(seed=1)
     origin = np.array([params.easting, params.northing, params.elevation])
-    labels, bases, seconds = run_rayextract(str(tool), tmp_path / "run", XYZ, params, origin)
+    labels, bases, seconds = run_rayextract(str(tool), tmp_path / "run", XYZ, true_ground(params, origin))
     assert labels[0] == 0 and labels[3] == 0  # below 0.5 m
     assert labels[1] > 0 and labels[2] > 0 and labels[1] != labels[2]
     np.testing.assert_allclose(bases, [[-4.5, 2.25, 0.0], [1.0, 2.0, 0.0]])
@@ -133,9 +136,25 @@ def test_a_failing_tool_is_reported_with_its_output(tmp_path):
     tool.write_text(f"#!{sys.executable}\nimport sys\nprint('cannot read mesh', file=sys.stderr)\nsys.exit(3)\n")
     tool.chmod(tool.stat().st_mode | stat.S_IXUSR)
     with pytest.raises(RuntimeError, match="exited 3: cannot read mesh"):
-        run_rayextract(str(tool), tmp_path / "run", XYZ, SimulationParams(), np.zeros(3))
+        run_rayextract(str(tool), tmp_path / "run", XYZ, lambda x, y: np.zeros(len(x)))
 
 
 def test_main_refuses_a_missing_binary(tmp_path, capsys):
     assert main(["--rayextract", str(tmp_path / "nope")]) == 2
     assert "is not an executable file" in capsys.readouterr().err
+
+
+@pytest.mark.skipif(not (REAL / "AdTree").is_dir(), reason="../shared/data/real/AdTree not present")
+def test_real_tree_row_scores_both_tools_on_the_exact_tree_ids(tmp_path):
+    tool = tmp_path / "rayextract"
+    tool.write_text(textwrap.dedent(STAND_IN).format(python=sys.executable))
+    tool.chmod(tool.stat().st_mode | stat.S_IXUSR)
+    row = compare_adtree(str(tool), tmp_path, 0.8)
+    assert row["n_trees"] == 4 and row["n_points"] > 100_000
+    ours, other = row["methods"]["ours"], row["methods"]["rayextract trees"]
+    assert ours["found"] == 4 and ours["trunk_f1"] == 1.0 and ours["v_measure"] > 0.8
+    # the stand-in puts every point above 0.5 m (local) into one tree, with the two bases it
+    # always reports: a single cluster has no homogeneity, so its v-measure is 0
+    assert other["found"] == 2 and other["v_measure"] == pytest.approx(0.0, abs=1e-9)
+    mesh = PlyData.read(str(tmp_path / "rayextract-adtree" / "overlap-0.8" / "rayextract" / "mesh.ply"))
+    assert np.ptp(mesh["vertex"].data["z"]) == 0.0  # the row's flat ground plane
