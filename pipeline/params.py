@@ -74,7 +74,7 @@ class SegmentParams(_Model):
     leaf_cost: float = Field(0.0, ge=0.0, le=100.0, description="segmentation paths through fully scattered (leafy) nodes cost this much more (0 = plain distance) [x]")
     floating_height: float = Field(0.5, ge=0.0, le=20.0, description="unreached fragments whose lowest point is above this height are canopy and join the nearest tree; lower ones are separate objects [m]")
     min_fragment: int = Field(3, ge=1, le=10_000, description="unreached fragments of fewer graph nodes than this are noise (outliers) and stay unlabelled, unless they float within fragment_reach of a tree [nodes]")
-    fragment_reach: float = Field(0.3, ge=0.0, le=5.0, description="a floating unreached fragment smaller than min_fragment (a lone leaf at the crown's rim) joins the nearest tree if a tree node lies this close; farther it is an outlier [m]")
+    fragment_reach: float = Field(0.3, ge=0.0, le=5.0, description="a floating unreached fragment smaller than min_fragment (a lone leaf at the crown's rim) joins the nearest tree if a tree node, or a fragment that joined, lies this close; farther it is an outlier [m]")
     foot_margin: float = Field(0.03, ge=0.0, le=0.5, description="ground points within the trunk's fitted circle plus this margin are the trunk's foot and belong to the tree [m]")
     unreached_radius: float = Field(0.6, ge=0.0, le=10.0, description="points the graph does not reach go to the nearest trunk if a tree node lies this close [m]")
     surface_area: float = Field(0.4, ge=0.0, le=1000.0, description="a connected planar surface this large standing above floating_height (a vehicle's or a bin's side, a wall) is never tree material, nor is anything within surface_margin of it; 0 = off [m^2]")

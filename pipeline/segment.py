@@ -13,6 +13,10 @@ from pipeline.graph import ShortestPaths, shortest_paths
 from pipeline.metrics import tree_circles
 from pipeline.params import SegmentParams
 
+#: rounds in which small floating fragments may join a tree through fragments that joined
+#: the round before (each round reaches ``fragment_reach`` farther into a sparse rim)
+RIM_ROUNDS = 10
+
 
 @dataclass(frozen=True)
 class Segmentation:
@@ -54,7 +58,8 @@ def segment_nodes(
     ``unreached_radius`` of a tree join it. Either way within ``max_crown_radius``.
     Fragments smaller than ``min_fragment`` nodes are outliers and stay unlabelled,
     unless they float within ``fragment_reach`` of a labelled node (sparse leaves at the
-    crown's rim, which the scanner saw only once).
+    crown's rim, which the scanner saw only once), or of such a fragment that has joined
+    (up to ``RIM_ROUNDS`` links: the rim of a sparsely scanned crown).
 
     Parameters
     ----------
@@ -109,6 +114,21 @@ def segment_nodes(
         # the fallback must also respect the crown reach
         ok = ((nodes[todo[hit], :2] - trunk_xy[cand_tree - 1]) ** 2).sum(1) <= params.max_crown_radius**2
         node_tree[todo[hit][ok]] = cand_tree[ok]
+        # small floating fragments also join through fragments that have just joined
+        # (a sparsely scanned crown's rim: a chain of lone leaves)
+        rim = todo[~big & floating]
+        for _ in range(RIM_ROUNDS):
+            rim = rim[node_tree[rim] == 0]
+            lab = np.flatnonzero(node_tree > 0)
+            if rim.size == 0 or lab.size == 0:
+                break
+            d, j = cKDTree(nodes[lab]).query(nodes[rim], distance_upper_bound=params.fragment_reach)
+            hit = np.isfinite(d)
+            cand_tree = node_tree[lab[j[hit]]]
+            ok = ((nodes[rim[hit], :2] - trunk_xy[cand_tree - 1]) ** 2).sum(1) <= params.max_crown_radius**2
+            if not ok.any():
+                break
+            node_tree[rim[hit][ok]] = cand_tree[ok]
     return Segmentation(node_tree, sp, reached)
 
 

@@ -24,7 +24,8 @@ def test_adtree_row_every_real_trunk_is_a_tree():
         pred_tree_id=r.tree_id, pred_is_wood=r.is_wood, found_trunks=r.trunks[:, :2],
     )
     assert s["trunk_tp"] == 4 and s["trunk_fp"] == 0, s
-    assert s["v_measure"] >= 0.85, s
+    # 0.887 measured; 0.868 before lone rim leaves of the sparse crowns could join in a chain
+    assert s["v_measure"] >= 0.88, s
 
 
 def test_archi_thick_trunk_is_found():

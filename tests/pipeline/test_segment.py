@@ -151,6 +151,24 @@ def test_lone_fragments_join_a_tree_only_when_they_float_right_beside_it():
     assert (tree[23:] == 1).all()  # a fragment of min_fragment nodes is canopy, labelled by distance
 
 
+
+def test_a_chain_of_lone_leaves_joins_link_by_link_but_not_across_a_gap():
+    trunk = np.column_stack([np.zeros(20), np.zeros(20), np.arange(20) * 0.1])  # 0-1.9 m
+    chain = np.column_stack([0.25 * np.arange(1, 7), np.zeros(6), np.full(6, 1.9)])  # 0.25 m apart, to x = 1.5
+    beyond = [[1.5 + 0.45, 0.0, 1.9]]  # 0.45 m past the chain's end
+    grass = np.column_stack([0.25 * np.arange(1, 5), np.zeros(4), np.full(4, 0.2)])  # lone tufts on the ground
+    nodes = np.vstack([trunk, chain, beyond, grass])
+    graph = build_graph(nodes, radius=0.15)
+    assert graph[20:].nnz == 0  # every leaf and tuft is its own fragment
+    kw = dict(source_nodes=np.array([0]), source_trunk=np.array([0]), trunk_xy=np.zeros((1, 2)), node_height=nodes[:, 2])
+    tree = segment_nodes(nodes, graph, params=SegmentParams(fragment_reach=0.3), **kw).node_tree
+    assert (tree[20:26] == 1).all()  # 1.5 m of sparse rim, one fragment_reach at a time
+    assert tree[26] == 0  # an outlier past the rim's end
+    assert (tree[27:] == 0).all()  # tufts on the ground do not chain (only the first is within reach: too low)
+    tree = segment_nodes(nodes, graph, params=SegmentParams(fragment_reach=0.3, max_crown_radius=1.1), **kw).node_tree
+    assert (tree[20:24] == 1).all() and (tree[24:26] == 0).all()  # never past the crown radius
+
+
 def _trunk_on_ground(radius=0.1, noise=0.0, seed=0):
     """A vertical trunk (circle of ``radius`` at the origin, 0-0.6 m) standing on a flat ground grid."""
     rng = np.random.default_rng(seed)

@@ -38,3 +38,95 @@ def test_no_ground_layer_points_means_no_evidence():
     assert foot_ratio(np.zeros((3, 2)), None).tolist() == [1.0, 1.0, 1.0]
     assert foot_ratio(np.zeros((2, 2)), np.zeros((0, 2))).tolist() == [1.0, 1.0]
     assert foot_ratio(np.zeros((0, 2)), np.zeros((5, 2))).shape == (0,)
+
+
+# ------------------------------------------------------------------ detect_trunks by hand
+
+STEP = 0.1  # node lattice [m], as the voxel graph's centroids
+
+
+def _column(x, y, z0, z1, side=2):
+    """A vertical column of nodes ``side`` x ``side`` wide from z0 to z1."""
+    g = np.arange(side) * STEP
+    z = np.arange(z0, z1 + 1e-9, STEP)
+    xx, yy, zz = np.meshgrid(x + g, y + g, z, indexing="ij")
+    return np.column_stack([xx.ravel(), yy.ravel(), zz.ravel()])
+
+
+def _ball(cx, cy, cz, r):
+    g = np.arange(-r, r + 1e-9, STEP)
+    xx, yy, zz = np.meshgrid(cx + g, cy + g, cz + g, indexing="ij")
+    p = np.column_stack([xx.ravel(), yy.ravel(), zz.ravel()])
+    return p[((p - [cx, cy, cz]) ** 2).sum(1) <= r * r]
+
+
+def _box(x0, y0, size, height):
+    """The four walls of a box standing on the ground (a bin or a van), planar nodes."""
+    s = np.arange(0.0, size + 1e-9, STEP)
+    z = np.arange(0.05, height + 1e-9, STEP)
+    walls = []
+    for xs, ys in ((s, [0.0]), (s, [size]), ([0.0], s), ([size], s)):
+        xx, yy, zz = np.meshgrid(x0 + np.asarray(xs), y0 + np.asarray(ys), z, indexing="ij")
+        walls.append(np.column_stack([xx.ravel(), yy.ravel(), zz.ravel()]))
+    return np.unique(np.round(np.vstack(walls), 6), axis=0)
+
+
+def _orchard_scene():
+    """Two trees (a 0.2 m trunk under a 1 m ball of crown), a fence post and a tall box."""
+    parts = {
+        "tree_a": np.vstack([_column(0.0, 0.0, 0.05, 1.05), _ball(0.05, 0.05, 2.0, 1.0)]),
+        "tree_b": np.vstack([_column(5.0, 0.0, 0.05, 1.05), _ball(5.05, 0.05, 2.0, 1.0)]),
+        "post": _column(2.5, 4.5, 0.05, 1.25, side=1),  # over 4 m from both trees: no satellite
+        "box": _box(2.0, -4.0, 1.5, 2.5),
+    }
+    nodes = np.vstack(list(parts.values()))
+    part = np.repeat(np.arange(len(parts)), [len(p) for p in parts.values()])
+    return nodes, part, list(parts)
+
+
+def _detect(nodes, planar, **overrides):
+    from pipeline.graph import build_graph
+    from pipeline.params import TrunkParams
+    from pipeline.trunks import detect_trunks
+
+    graph = build_graph(nodes, radius=0.15)
+    return detect_trunks(nodes, nodes[:, 2], graph, planar=planar, params=TrunkParams(**overrides))
+
+
+def test_detect_trunks_finds_each_tree_and_rejects_a_post_and_a_box():
+    nodes, part, names = _orchard_scene()
+    planar = part == names.index("box")
+    det = _detect(nodes, planar)
+    assert det.k == 2
+    order = np.argsort(det.xy[:, 0])
+    # the flow-weighted centre of the band above the contacts: the middle of the 2 x 2 column
+    np.testing.assert_allclose(det.xy[order], [[0.05, 0.05], [5.05, 0.05]], atol=0.01)
+    # everything above each trunk drains through it: its column and its whole crown
+    sizes = np.bincount(part)[:2]
+    np.testing.assert_allclose(det.support[order], sizes)
+    assert np.all(det.width <= 0.5)
+    # segmentation sources are the trunks' own lowest nodes
+    assert np.all(nodes[det.source_nodes, 2] < 0.08)
+    np.testing.assert_array_equal(part[det.source_nodes], det.source_trunk if order[0] == 0 else 1 - det.source_trunk)
+    # why the others were refused: the post is too low, the box too planar
+    c = det.candidates
+    post = np.flatnonzero(np.hypot(c["x"] - 2.5, c["y"] - 4.5) < 0.2)
+    box = np.flatnonzero((c["x"] > 1.9) & (c["x"] < 3.6) & (c["y"] < -2.4))
+    assert post.size == 1 and c["top"][post[0]] < 2.0 and not c["accepted"][post[0]]
+    assert box.size >= 1 and np.all(c["top"][box] >= 2.0) and np.all(c["planar"][box] > 0.15)
+    assert not c["accepted"][box].any()
+
+
+def test_detect_trunks_thresholds_decide():
+    nodes, part, names = _orchard_scene()
+    planar = part == names.index("box")
+    # the same box is a "tree" (or several) when its surfaces are not known to be planar ...
+    det = _detect(nodes, np.zeros(len(nodes), bool))
+    on_box = (det.xy[:, 0] > 1.9) & (det.xy[:, 0] < 3.6) & (det.xy[:, 1] < -2.4)
+    assert det.k >= 3 and on_box.sum() == det.k - 2
+    # ... the post is one when trees may be that low and that small ...
+    assert _detect(nodes, planar, min_tree_height=1.0, min_canopy_voxels=5).k == 3
+    # ... and no tree has enough canopy when the least catchment exceeds its crown
+    assert _detect(nodes, planar, min_canopy_voxels=int(np.bincount(part)[:2].max()) + 1).k == 0
+    # a trunk wider than max_trunk_width is refused
+    assert _detect(nodes, planar, max_trunk_width=0.1).k == 0
