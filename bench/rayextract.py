@@ -32,7 +32,8 @@ with one-to-one matching within 1 m, v-measure on true tree points. ``rayextract
 per-point wood flag, so wood F1 is left out. Seconds are wall-clock for the whole run of
 each (reading, processing, writing), one thread (``OMP_NUM_THREADS=1``); ours after one
 untimed warm-up run in the same process (as a dask worker runs it), rayextract as a fresh
-process. Prints a Markdown table.
+process; the median of ``--repeats`` timed runs of each (default 3). Prints a Markdown
+table.
 """
 
 from __future__ import annotations
@@ -40,6 +41,7 @@ from __future__ import annotations
 import argparse
 import os
 import shutil
+import statistics
 import subprocess
 import sys
 import time
@@ -142,42 +144,47 @@ def read_tree_bases(path: Path) -> np.ndarray:
 
 
 def run_rayextract(binary: str, folder: Path, xyz: np.ndarray, ground: Callable[[np.ndarray, np.ndarray], np.ndarray],
-                   *, timeout: float = 3600.0) -> tuple[np.ndarray, np.ndarray, float]:
+                   *, repeats: int = 1, timeout: float = 3600.0) -> tuple[np.ndarray, np.ndarray, float]:
     """Write the ray cloud of ``xyz`` (local [m]) and the mesh of ``ground`` (see
-    :func:`write_ground_mesh`) into ``folder``, run ``rayextract trees`` on them; returns
-    (labels (n,), tree bases (k, 3) in local coordinates, seconds)."""
+    :func:`write_ground_mesh`) into ``folder``, run ``rayextract trees`` on them
+    ``repeats`` times; returns (labels (n,), tree bases (k, 3) in local coordinates,
+    median wall time [s])."""
     folder.mkdir(parents=True, exist_ok=True)
     cloud, mesh = folder / "cloud.ply", folder / "mesh.ply"
     write_ray_cloud(cloud, xyz)
     write_ground_mesh(mesh, ground, xyz[:, :2].min(axis=0), xyz[:, :2].max(axis=0))
     env = dict(os.environ, **SINGLE_THREAD_ENV)
-    t = time.perf_counter()
-    proc = subprocess.run([binary, "trees", cloud.name, mesh.name], cwd=folder, env=env, capture_output=True,
-                          text=True, timeout=timeout)
-    seconds = time.perf_counter() - t
-    if proc.returncode != 0:
-        tail = "\n".join((proc.stdout + proc.stderr).strip().splitlines()[-5:])
-        raise RuntimeError(f"rayextract exited {proc.returncode}: {tail}")
+    walls = []
+    for _ in range(max(1, repeats)):
+        t = time.perf_counter()
+        proc = subprocess.run([binary, "trees", cloud.name, mesh.name], cwd=folder, env=env, capture_output=True,
+                              text=True, timeout=timeout)
+        walls.append(time.perf_counter() - t)
+        if proc.returncode != 0:
+            tail = "\n".join((proc.stdout + proc.stderr).strip().splitlines()[-5:])
+            raise RuntimeError(f"rayextract exited {proc.returncode}: {tail}")
     labels = read_segmented(folder / "cloud_segmented.ply", xyz)
-    return labels, read_tree_bases(folder / "cloud_trees.txt"), seconds
+    return labels, read_tree_bases(folder / "cloud_trees.txt"), statistics.median(walls)
 
 
-def _run_ours(las: str, result_dir: Path) -> float:
-    """Our job on ``las`` (LAZ in, Parquet out into ``result_dir``) after one untimed
-    warm-up run, as in the stand benchmark; returns the timed run's wall time [s]."""
+def _run_ours(las: str, result_dir: Path, repeats: int = 1) -> float:
+    """Our job on ``las`` (LAZ in, Parquet out into ``result_dir``): one untimed warm-up
+    run, as in the stand benchmark, then ``repeats`` timed runs; returns their median
+    wall time [s]."""
     from pipeline.params import PipelineParams
     from workers.job import JobSpec, run_job
 
-    seconds = 0.0
-    for _ in range(2):
+    walls = []
+    for i in range(1 + max(1, repeats)):
         shutil.rmtree(result_dir, ignore_errors=True)
         t = time.perf_counter()
         run_job(JobSpec(input_path=las, out_dir=str(result_dir), params=PipelineParams()))
-        seconds = time.perf_counter() - t
-    return seconds
+        if i:
+            walls.append(time.perf_counter() - t)
+    return statistics.median(walls)
 
 
-def compare_block(binary: str, work: Path, setting: str, seed: int) -> dict:
+def compare_block(binary: str, work: Path, setting: str, seed: int, repeats: int = 1) -> dict:
     """Ours and rayextract on one generated block: {method: scores}, plus block facts."""
     params = SimulationParams(seed=seed, **SETTINGS[setting])
     block = make_block(work, f"rayextract-s{seed}", params)
@@ -185,14 +192,14 @@ def compare_block(binary: str, work: Path, setting: str, seed: int) -> dict:
     out = {"setting": setting, "seed": seed, "n_points": block.n_points, "n_trees": block.n_trees, "methods": {}}
 
     result_dir = work / "rayextract-results" / Path(block.las).stem
-    seconds = _run_ours(block.las, result_dir)
+    seconds = _run_ours(block.las, result_dir, repeats)
     ours = evaluate.evaluate_result(block.truth, str(result_dir))
     out["methods"]["ours"] = dict(ours, seconds=seconds, found=ours["n_found_trees"])
 
     xyz, info = blockio.read_points(block.las)
     origin = np.asarray(info.origin, dtype=np.float64)
     labels, bases, seconds = run_rayextract(binary, work / "rayextract-runs" / Path(block.las).stem, xyz,
-                                            true_ground(params, origin))
+                                            true_ground(params, origin), repeats=repeats)
     scores = evaluate.score_labels(
         true_tree_id=truth["tree_id"], true_is_wood=truth["is_wood"], true_trunks=true_trunks,
         pred_tree_id=labels, pred_is_wood=np.zeros(len(labels), bool), found_trunks=bases + origin,
@@ -201,7 +208,7 @@ def compare_block(binary: str, work: Path, setting: str, seed: int) -> dict:
     return out
 
 
-def compare_adtree(binary: str, work: Path, overlap: float) -> dict:
+def compare_adtree(binary: str, work: Path, overlap: float, repeats: int = 1) -> dict:
     """Ours and rayextract on the real-tree row of :func:`bench.real_data.adtree_row`
     (four AdTree scans, crowns overlapping by ``overlap`` of their summed radii, on a flat
     ground plane at z = 0), scored on its exact tree ids. Wood is not labelled there."""
@@ -221,7 +228,7 @@ def compare_adtree(binary: str, work: Path, overlap: float) -> dict:
     no_wood = np.zeros(len(xyz), bool)
 
     result_dir = folder / "ours"
-    seconds = _run_ours(str(las), result_dir)
+    seconds = _run_ours(str(las), result_dir, repeats)
     trees, _ = read_trees_parquet(str(result_dir / "trees.parquet"))
     pred, _, _ = _read_points_labels(str(result_dir / "points.parquet"), len(xyz))
     found = np.c_[np.asarray(trees["trunk_x"], np.float64), np.asarray(trees["trunk_y"], np.float64)]
@@ -231,7 +238,7 @@ def compare_adtree(binary: str, work: Path, overlap: float) -> dict:
 
     local = np.asarray(blockio.read_points(str(las), origin=origin)[0])
     labels, found, seconds = run_rayextract(binary, folder / "rayextract", local,
-                                            lambda x, y: np.full(len(x), -origin[2]))
+                                            lambda x, y: np.full(len(x), -origin[2]), repeats=repeats)
     s = evaluate.score_labels(true_tree_id=tid, true_is_wood=no_wood, true_trunks=bases[:, :2], pred_tree_id=labels,
                               pred_is_wood=no_wood, found_trunks=found[:, :2] + origin[:2])
     out["methods"]["rayextract trees"] = dict(s, seconds=seconds, found=s["n_found_trees"])
@@ -257,18 +264,19 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--adtree", default="0.8,1.0",
                    help="also the row of four real AdTree trees (bench.real_data) at these crown overlaps, "
                         "comma-separated fractions of the summed crown radii; '' for none (default 0.8,1.0)")
+    p.add_argument("--repeats", type=int, default=3, help="timed runs of each tool per scene; the median is reported (default 3)")
     args = p.parse_args(argv)
     binary = shutil.which(args.rayextract) or args.rayextract
     if not (os.path.isfile(binary) and os.access(binary, os.X_OK)):
         print(f"error: {args.rayextract} is not an executable file", file=sys.stderr)
         return 2
     seeds = [int(s) for s in args.seeds.split(",") if s.strip()]
-    rows = [compare_block(binary, args.work_dir, setting, seed) for setting in SETTINGS for seed in seeds]
+    rows = [compare_block(binary, args.work_dir, setting, seed, args.repeats) for setting in SETTINGS for seed in seeds]
     overlaps = [float(o) for o in args.adtree.split(",") if o.strip()]
     if overlaps and not (REAL / "AdTree").is_dir():
         print(f"note: {REAL / 'AdTree'} is missing; the real-tree rows are left out", file=sys.stderr)
         overlaps = []
-    rows += [compare_adtree(binary, args.work_dir, o) for o in overlaps]
+    rows += [compare_adtree(binary, args.work_dir, o, args.repeats) for o in overlaps]
     print(table(rows))
     return 0
 
