@@ -113,22 +113,23 @@ def segment_nodes(
         cand_tree = node_tree[lab[j[hit]]]
         # the fallback must also respect the crown reach
         ok = ((nodes[todo[hit], :2] - trunk_xy[cand_tree - 1]) ** 2).sum(1) <= params.max_crown_radius**2
-        node_tree[todo[hit][ok]] = cand_tree[ok]
-        # small floating fragments also join through fragments that have just joined
-        # (a sparsely scanned crown's rim: a chain of lone leaves)
+        joined = todo[hit][ok]
+        node_tree[joined] = cand_tree[ok]
+        # small floating fragments also join through fragments that have just joined (a
+        # sparsely scanned crown's rim: a chain of lone leaves). The nodes labelled before
+        # a round are all beyond fragment_reach of the rest, so each round only searches
+        # the nodes that joined in the round before.
         rim = todo[~big & floating]
         for _ in range(RIM_ROUNDS):
             rim = rim[node_tree[rim] == 0]
-            lab = np.flatnonzero(node_tree > 0)
-            if rim.size == 0 or lab.size == 0:
+            if rim.size == 0 or joined.size == 0:
                 break
-            d, j = cKDTree(nodes[lab]).query(nodes[rim], distance_upper_bound=params.fragment_reach)
+            d, j = cKDTree(nodes[joined]).query(nodes[rim], distance_upper_bound=params.fragment_reach)
             hit = np.isfinite(d)
-            cand_tree = node_tree[lab[j[hit]]]
+            cand_tree = node_tree[joined[j[hit]]]
             ok = ((nodes[rim[hit], :2] - trunk_xy[cand_tree - 1]) ** 2).sum(1) <= params.max_crown_radius**2
-            if not ok.any():
-                break
-            node_tree[rim[hit][ok]] = cand_tree[ok]
+            joined = rim[hit][ok]
+            node_tree[joined] = cand_tree[ok]
     return Segmentation(node_tree, sp, reached)
 
 
