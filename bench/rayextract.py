@@ -45,6 +45,7 @@ import statistics
 import subprocess
 import sys
 import time
+from functools import partial
 from pathlib import Path
 from typing import Callable
 
@@ -106,11 +107,6 @@ def write_ground_mesh(path: Path, ground: Callable[[np.ndarray, np.ndarray], np.
     faces["vertex_indices"] = tri
     PlyData([PlyElement.describe(verts, "vertex"), PlyElement.describe(faces, "face")], byte_order="<").write(str(path))
     return len(tri)
-
-
-def true_ground(params: SimulationParams, origin: np.ndarray) -> Callable[[np.ndarray, np.ndarray], np.ndarray]:
-    """The simulated block's true ground as ``(x, y) -> z``, all relative to ``origin``."""
-    return lambda x, y: ground_height(params, x + origin[0], y + origin[1]) - origin[2]
 
 
 def read_segmented(path: Path, xyz: np.ndarray, tolerance: float = 1e-3) -> np.ndarray:
@@ -184,65 +180,58 @@ def _run_ours(las: str, result_dir: Path, repeats: int = 1) -> float:
     return statistics.median(walls)
 
 
-def compare_block(binary: str, work: Path, setting: str, seed: int, repeats: int = 1) -> dict:
-    """Ours and rayextract on one generated block: {method: scores}, plus block facts."""
-    params = SimulationParams(seed=seed, **SETTINGS[setting])
-    block = make_block(work, f"rayextract-s{seed}", params)
-    truth, true_trunks = read_truth(block.truth)
-    out = {"setting": setting, "seed": seed, "n_points": block.n_points, "n_trees": block.n_trees, "methods": {}}
+def compare_scene(binary: str, work: Path, las: str, truth_path: str,
+                  ground: Callable[[np.ndarray, np.ndarray], np.ndarray], repeats: int = 1) -> dict:
+    """Ours and rayextract on one block with its truth file (``pipeline.simulate``'s
+    format): {method: scores and seconds}. ``ground(x, y) -> z`` is the true ground in the
+    block's absolute coordinates [m]."""
+    truth, true_trunks = read_truth(truth_path)
+    name = Path(las).stem
+    result_dir = work / "rayextract-results" / name
+    seconds = _run_ours(las, result_dir, repeats)
+    ours = evaluate.evaluate_result(truth_path, str(result_dir))
+    methods = {"ours": dict(ours, seconds=seconds, found=ours["n_found_trees"])}
 
-    result_dir = work / "rayextract-results" / Path(block.las).stem
-    seconds = _run_ours(block.las, result_dir, repeats)
-    ours = evaluate.evaluate_result(block.truth, str(result_dir))
-    out["methods"]["ours"] = dict(ours, seconds=seconds, found=ours["n_found_trees"])
-
-    xyz, info = blockio.read_points(block.las)
+    xyz, info = blockio.read_points(las)
     origin = np.asarray(info.origin, dtype=np.float64)
-    labels, bases, seconds = run_rayextract(binary, work / "rayextract-runs" / Path(block.las).stem, xyz,
-                                            true_ground(params, origin), repeats=repeats)
+    labels, bases, seconds = run_rayextract(binary, work / "rayextract-runs" / name, xyz,
+                                            lambda x, y: ground(x + origin[0], y + origin[1]) - origin[2],
+                                            repeats=repeats)
     scores = evaluate.score_labels(
         true_tree_id=truth["tree_id"], true_is_wood=truth["is_wood"], true_trunks=true_trunks,
         pred_tree_id=labels, pred_is_wood=np.zeros(len(labels), bool), found_trunks=bases + origin,
     )
-    out["methods"]["rayextract trees"] = dict(scores, seconds=seconds, found=scores["n_found_trees"])
-    return out
+    methods["rayextract trees"] = dict(scores, seconds=seconds, found=scores["n_found_trees"])
+    return methods
+
+
+def compare_block(binary: str, work: Path, setting: str, seed: int, repeats: int = 1) -> dict:
+    """Ours and rayextract on one generated block: {method: scores}, plus block facts."""
+    params = SimulationParams(seed=seed, **SETTINGS[setting])
+    block = make_block(work, f"rayextract-s{seed}", params)
+    methods = compare_scene(binary, work, block.las, block.truth, partial(ground_height, params), repeats)
+    return {"setting": setting, "seed": seed, "n_points": block.n_points, "n_trees": block.n_trees, "methods": methods}
 
 
 def compare_adtree(binary: str, work: Path, overlap: float, repeats: int = 1) -> dict:
     """Ours and rayextract on the real-tree row of :func:`bench.real_data.adtree_row`
     (four AdTree scans, crowns overlapping by ``overlap`` of their summed radii, on a flat
-    ground plane at z = 0), scored on its exact tree ids. Wood is not labelled there."""
+    ground plane at z = 0), written as a block with its exact tree ids as the truth. The
+    scans carry no wood labels: ``is_wood`` is all False there (wood F1 is not reported)."""
     from bench.real_data import adtree_row
-    from pipeline.evaluate import _read_points_labels
-    from pipeline.io import LasBlockWriter, read_trees_parquet
+    from pipeline.simulate import GROUND, LEAF, Orchard, write_simulation
 
     xyz, tid, bases = adtree_row(overlap=overlap)
-    origin = np.floor(xyz.min(axis=0))
-    folder = work / "rayextract-adtree" / f"overlap-{overlap:g}"
+    row = Orchard(xyz=xyz, tree_id=tid, is_wood=np.zeros(len(xyz), bool),
+                  kind=np.where(tid > 0, LEAF, GROUND).astype(np.uint8), trunks=bases,
+                  trunk_radius=np.full(len(bases), np.nan))
+    folder = work / "blocks"
     folder.mkdir(parents=True, exist_ok=True)
-    las = folder / "row.laz"
-    with LasBlockWriter(las, offsets=origin) as w:
-        w.write(xyz)
-    out = {"setting": f"AdTree row (real trees), overlap {overlap:g}", "seed": "-", "n_points": len(xyz),
-           "n_trees": len(bases), "methods": {}}
-    no_wood = np.zeros(len(xyz), bool)
-
-    result_dir = folder / "ours"
-    seconds = _run_ours(str(las), result_dir, repeats)
-    trees, _ = read_trees_parquet(str(result_dir / "trees.parquet"))
-    pred, _, _ = _read_points_labels(str(result_dir / "points.parquet"), len(xyz))
-    found = np.c_[np.asarray(trees["trunk_x"], np.float64), np.asarray(trees["trunk_y"], np.float64)]
-    s = evaluate.score_labels(true_tree_id=tid, true_is_wood=no_wood, true_trunks=bases[:, :2], pred_tree_id=pred,
-                              pred_is_wood=no_wood, found_trunks=found)
-    out["methods"]["ours"] = dict(s, seconds=seconds, found=s["n_found_trees"])
-
-    local = np.asarray(blockio.read_points(str(las), origin=origin)[0])
-    labels, found, seconds = run_rayextract(binary, folder / "rayextract", local,
-                                            lambda x, y: np.full(len(x), -origin[2]), repeats=repeats)
-    s = evaluate.score_labels(true_tree_id=tid, true_is_wood=no_wood, true_trunks=bases[:, :2], pred_tree_id=labels,
-                              pred_is_wood=no_wood, found_trunks=found[:, :2] + origin[:2])
-    out["methods"]["rayextract trees"] = dict(s, seconds=seconds, found=s["n_found_trees"])
-    return out
+    las, truth = folder / f"adtree-row-{overlap:g}.laz", folder / f"adtree-row-{overlap:g}.truth.parquet"
+    write_simulation(row, str(las), str(truth))
+    methods = compare_scene(binary, work, str(las), str(truth), lambda x, y: np.zeros(len(x)), repeats)
+    return {"setting": f"AdTree row (real trees), overlap {overlap:g}", "seed": "-", "n_points": len(xyz),
+            "n_trees": len(bases), "methods": methods}
 
 
 def table(rows: list[dict]) -> str:

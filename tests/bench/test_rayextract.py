@@ -18,11 +18,11 @@ from bench.rayextract import (
     read_segmented,
     read_tree_bases,
     run_rayextract,
-    true_ground,
     write_ground_mesh,
     write_ray_cloud,
 )
 from bench.real_data import REAL
+from pipeline.io import read_info
 from pipeline.simulate import SimulationParams, ground_height
 
 XYZ = np.array([[0.0, 0.0, 0.1], [1.0, 2.0, 3.0], [-4.5, 2.25, 1.5], [7.0, -1.0, 0.0]])
@@ -46,7 +46,8 @@ def test_ground_mesh_is_the_true_ground_over_the_box(tmp_path):
     params = SimulationParams(seed=3, slope=0.2)
     origin = np.array([params.easting, params.northing, params.elevation]) + np.array([1.0, -2.0, 0.5])
     lo, hi = np.array([-1.0, -1.0]), np.array([3.0, 2.0])
-    n_tri = write_ground_mesh(tmp_path / "m.ply", true_ground(params, origin), lo, hi)
+    local_ground = lambda x, y: ground_height(params, x + origin[0], y + origin[1]) - origin[2]  # noqa: E731
+    n_tri = write_ground_mesh(tmp_path / "m.ply", local_ground, lo, hi)
     ply = PlyData.read(str(tmp_path / "m.ply"))
     v, f = ply["vertex"].data, np.stack(ply["face"].data["vertex_indices"])
     assert f.shape == (n_tri, 3) and f.min() == 0 and f.max() == len(v) - 1
@@ -121,9 +122,7 @@ def test_run_feeds_the_tool_and_reads_back_its_answer(tmp_path):
     tool = tmp_path / "rayextract"
     tool.write_text(textwrap.dedent(STAND_IN).format(python=sys.executable))
     tool.chmod(tool.stat().st_mode | stat.S_IXUSR)
-    params = SimulationParams(seed=1)
-    origin = np.array([params.easting, params.northing, params.elevation])
-    labels, bases, seconds = run_rayextract(str(tool), tmp_path / "run", XYZ, true_ground(params, origin))
+    labels, bases, seconds = run_rayextract(str(tool), tmp_path / "run", XYZ, lambda x, y: np.zeros(len(x)))
     assert labels[0] == 0 and labels[3] == 0  # below 0.5 m
     assert labels[1] > 0 and labels[2] > 0 and labels[1] != labels[2]
     np.testing.assert_allclose(bases, [[-4.5, 2.25, 0.0], [1.0, 2.0, 0.0]])
@@ -156,5 +155,7 @@ def test_real_tree_row_scores_both_tools_on_the_exact_tree_ids(tmp_path):
     # the stand-in puts every point above 0.5 m (local) into one tree, with the two bases it
     # always reports: a single cluster has no homogeneity, so its v-measure is 0
     assert other["found"] == 2 and other["v_measure"] == pytest.approx(0.0, abs=1e-9)
-    mesh = PlyData.read(str(tmp_path / "rayextract-adtree" / "overlap-0.8" / "rayextract" / "mesh.ply"))
-    assert np.ptp(mesh["vertex"].data["z"]) == 0.0  # the row's flat ground plane
+    # the row's flat ground plane, z = 0, in the block's local frame
+    origin = read_info(str(tmp_path / "blocks" / "adtree-row-0.8.laz")).origin
+    mesh = PlyData.read(str(tmp_path / "rayextract-runs" / "adtree-row-0.8" / "mesh.ply"))
+    np.testing.assert_allclose(mesh["vertex"].data["z"], -origin[2], atol=1e-6)
