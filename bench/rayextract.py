@@ -53,11 +53,11 @@ import numpy as np
 
 from bench.blocks import make_block
 from bench.oracles import SETTINGS
-from bench.real_data import REAL
+from bench.real_data import REAL, adtree_row
 from bench.runner import SINGLE_THREAD_ENV
 from pipeline import evaluate
 from pipeline import io as blockio
-from pipeline.simulate import SimulationParams, ground_height, read_truth
+from pipeline.simulate import GROUND, LEAF, Orchard, SimulationParams, ground_height, read_truth, write_simulation
 
 MESH_CELL = 0.25
 """Edge of the ground mesh's grid cells [m]."""
@@ -218,9 +218,6 @@ def compare_adtree(binary: str, work: Path, overlap: float, repeats: int = 1) ->
     (four AdTree scans, crowns overlapping by ``overlap`` of their summed radii, on a flat
     ground plane at z = 0), written as a block with its exact tree ids as the truth. The
     scans carry no wood labels: ``is_wood`` is all False there (wood F1 is not reported)."""
-    from bench.real_data import adtree_row
-    from pipeline.simulate import GROUND, LEAF, Orchard, write_simulation
-
     xyz, tid, bases = adtree_row(overlap=overlap)
     row = Orchard(xyz=xyz, tree_id=tid, is_wood=np.zeros(len(xyz), bool),
                   kind=np.where(tid > 0, LEAF, GROUND).astype(np.uint8), trunks=bases,

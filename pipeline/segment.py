@@ -90,10 +90,25 @@ def segment_nodes(
     node_tree = np.zeros(m, np.int64)
     reached = sp.source >= 0
     node_tree[reached] = trunk_of_node[sp.source[reached]] + 1
+
+    def within_crown(idx: np.ndarray, tree: np.ndarray) -> np.ndarray:
+        """Nodes ``idx`` lie within max_crown_radius (horizontally) of trunk ``tree`` (1-based)."""
+        return ((nodes[idx, :2] - trunk_xy[tree - 1]) ** 2).sum(1) <= params.max_crown_radius**2
+
+    def join_nearest(cand: np.ndarray, lab: np.ndarray, bound, reach: float) -> np.ndarray:
+        """Give each node of ``cand`` the tree of its nearest node of ``lab`` where that lies
+        within ``bound`` [m] (scalar or per node; searched up to ``reach``) and the node lies
+        within its trunk's crown radius; returns the nodes that joined."""
+        d, j = cKDTree(nodes[lab]).query(nodes[cand], distance_upper_bound=reach)
+        hit = np.isfinite(d) & (d <= bound)
+        tree = node_tree[lab[j[hit]]]
+        ok = within_crown(cand[hit], tree)  # the fallback must also respect the crown reach
+        node_tree[cand[hit][ok]] = tree[ok]
+        return cand[hit][ok]
+
     if trunk_xy.shape[0]:
-        t = node_tree[reached] - 1
-        far = ((nodes[reached, :2] - trunk_xy[t]) ** 2).sum(1) > params.max_crown_radius**2
-        idx = np.flatnonzero(reached)[far]
+        idx = np.flatnonzero(reached)
+        idx = idx[~within_crown(idx, node_tree[idx])]
         node_tree[idx] = 0
         reached[idx] = False
     labelled = node_tree > 0
@@ -107,14 +122,7 @@ def segment_nodes(
         big = np.bincount(comp)[comp] >= params.min_fragment
         # a small fragment is an outlier unless it floats right beside a tree (a lone leaf at the rim)
         bound = np.where(big, bound, np.where(floating, params.fragment_reach, -1.0))
-        lab = np.flatnonzero(labelled)
-        d, j = cKDTree(nodes[lab]).query(nodes[todo], distance_upper_bound=max(params.max_crown_radius, params.unreached_radius))
-        hit = np.isfinite(d) & (d <= bound)
-        cand_tree = node_tree[lab[j[hit]]]
-        # the fallback must also respect the crown reach
-        ok = ((nodes[todo[hit], :2] - trunk_xy[cand_tree - 1]) ** 2).sum(1) <= params.max_crown_radius**2
-        joined = todo[hit][ok]
-        node_tree[joined] = cand_tree[ok]
+        joined = join_nearest(todo, np.flatnonzero(labelled), bound, max(params.max_crown_radius, params.unreached_radius))
         # small floating fragments also join through fragments that have just joined (a
         # sparsely scanned crown's rim: a chain of lone leaves). The nodes labelled before
         # a round are all beyond fragment_reach of the rest, so each round only searches
@@ -124,12 +132,7 @@ def segment_nodes(
             rim = rim[node_tree[rim] == 0]
             if rim.size == 0 or joined.size == 0:
                 break
-            d, j = cKDTree(nodes[joined]).query(nodes[rim], distance_upper_bound=params.fragment_reach)
-            hit = np.isfinite(d)
-            cand_tree = node_tree[joined[j[hit]]]
-            ok = ((nodes[rim[hit], :2] - trunk_xy[cand_tree - 1]) ** 2).sum(1) <= params.max_crown_radius**2
-            joined = rim[hit][ok]
-            node_tree[joined] = cand_tree[ok]
+            joined = join_nearest(rim, joined, params.fragment_reach, params.fragment_reach)
     return Segmentation(node_tree, sp, reached)
 
 
