@@ -6,29 +6,54 @@ from dataclasses import dataclass
 
 import numpy as np
 from scipy import ndimage
+from scipy.spatial import cKDTree
 
+from pipeline.errors import InputError
 from pipeline.params import GroundParams
+
+#: a part of a block is modelled as one raster of at most this many cells (about 1.1 km
+#: across at the default 0.25 m cell; the filters hold a few arrays of this size at once)
+MAX_PART_CELLS = 20_000_000
+
+#: a block whose footprint fits a raster of this many cells (500 m x 500 m at 0.25 m) is
+#: modelled as one part, without looking for gaps
+ONE_PART_CELLS = 4_000_000
+
+#: in a wider block, points farther apart than this [m] (and than four search radii) with
+#: nothing between them belong to separate parts, each modelled by its own raster
+PART_GAP = 32.0
 
 
 @dataclass(frozen=True)
 class GroundModel:
-    """A gridded terrain model.
+    """A gridded terrain model: one raster per separate part of the block.
+
+    Most blocks are one part (every block that fits ``ONE_PART_CELLS``). In a wider one,
+    points far from the rest (stray returns kilometres away, or two orchard blocks in one
+    file) get rasters of their own instead of one raster spanning the empty ground
+    between them.
 
     Attributes
     ----------
-    dtm : (nx, ny) float64
-        Ground height of each cell [m]; every cell is filled (holes from the nearest ground cell).
-    origin : (2,) float64
-        XY of the corner of cell (0, 0) [m].
+    dtms : tuple of (nx, ny) float64
+        Ground height of each cell of each part [m]; every cell is filled (holes from the
+        nearest ground cell of the part).
+    origins : (p, 2) float64
+        XY of the corner of cell (0, 0) of each part [m].
     cell_size : float [m]
     noise : float
         Robust estimate of the vertical spread of ground points around the surface [m].
+    part_xy : (b, 2) float64, optional
+        Centres of the occupied ``PART_GAP`` squares, and ``part_of`` (b,) int64 the part of
+        each: a point is modelled by the part of the nearest one (several parts only).
     """
 
-    dtm: np.ndarray
-    origin: np.ndarray
+    dtms: tuple
+    origins: np.ndarray
     cell_size: float
     noise: float
+    part_xy: np.ndarray | None = None
+    part_of: np.ndarray | None = None
 
     def tolerance(self, params: GroundParams) -> float:
         """Height [m] up to which points are ground: the parameter, widened to three
@@ -37,8 +62,20 @@ class GroundModel:
 
     def height_at(self, xy: np.ndarray) -> np.ndarray:
         """Ground height [m] under each (x, y) (bilinear between cell centres), shape (n,)."""
-        g = (np.asarray(xy, dtype=np.float64)[:, :2] - self.origin) / self.cell_size - 0.5
-        return ndimage.map_coordinates(self.dtm, g.T, order=1, mode="nearest")
+        xy = np.asarray(xy, dtype=np.float64)[:, :2]
+        if len(self.dtms) == 1:
+            return self._part_height(0, xy)
+        _, near = cKDTree(self.part_xy).query(xy)
+        part = self.part_of[near]
+        out = np.empty(xy.shape[0])
+        for k in np.unique(part):
+            sel = part == k
+            out[sel] = self._part_height(int(k), xy[sel])
+        return out
+
+    def _part_height(self, k: int, xy: np.ndarray) -> np.ndarray:
+        g = (xy - self.origins[k]) / self.cell_size - 0.5
+        return ndimage.map_coordinates(self.dtms[k], g.T, order=1, mode="nearest")
 
 
 def _disk(radius_cells: float) -> np.ndarray:
@@ -65,21 +102,102 @@ def ground_model(
     Returns
     -------
     GroundModel
+
+    Raises
+    ------
+    InputError
+        A connected part of the block is too wide to model in one piece (more than
+        ``MAX_PART_CELLS`` cells): it has to be processed in tiles.
     """
-    # Strategy: per-cell minimum z; drop cells far below their neighbourhood (isolated
-    # points under the ground); the paper's local z-minimum over R_g picks ground cells
-    # (a cell is ground if its minimum is near the local minimum, allowing for slope);
-    # holes (cells under dense canopy with no ground return) take the nearest ground cell.
+    # Strategy: split the block into parts separated by empty ground wider than the
+    # filters reach, and fit one raster per part (:func:`_part_dtm`); then estimate the
+    # ground noise over all of them and lift the surface by the part the noise explains.
     xyz = np.asarray(xyz, dtype=np.float64)
     c = params.cell_size
     go = np.asarray(grid_origin[:2], dtype=np.float64)
     if xyz.shape[0] == 0:
-        return GroundModel(np.zeros((1, 1)), go.copy(), c, 0.0)
+        return GroundModel((np.zeros((1, 1)),), go[None].copy(), c, 0.0)
     ij = np.floor((xyz[:, :2] - go) / c).astype(np.int64)
-    lo = ij.min(axis=0)
-    ij -= lo
+    span = ij.max(axis=0) - ij.min(axis=0) + 1
+    part = part_xy = part_of = None
+    if float(span[0]) * float(span[1]) > ONE_PART_CELLS:
+        part, part_xy, part_of = _parts(ij, c, go, max(PART_GAP, 4.0 * params.search_radius))
+    if part is None:
+        members = [slice(None)]
+    else:
+        order = np.argsort(part, kind="stable")
+        members = np.split(order, np.cumsum(np.bincount(part))[:-1])
+    dtms, origins = [], []
+    for sel in members:
+        lo = ij[sel].min(axis=0)
+        dtms.append(_part_dtm(xyz[sel], ij[sel] - lo, params))
+        origins.append(go + lo * c)
+    model = GroundModel(tuple(dtms), np.array(origins), c, 0.0, part_xy, part_of)
+
+    # Cell minima sit about two noise widths below the true surface: shift the model up
+    # by the median residual of the near-ground points and take their spread as noise.
+    sub = xyz[:: max(1, xyz.shape[0] // 200_000)]  # the statistics need no more points
+    resid = sub[:, 2] - model.height_at(sub)
+    band = resid[(resid >= -0.05) & (resid < 0.5)]
+    noise = 0.0
+    if band.size:
+        shift = float(np.median(band))
+        noise = float(1.4826 * np.median(np.abs(band - shift)))
+        # only a shift the noise explains; a thick layer of grass must not lift the ground
+        dtms = [d + min(max(shift - noise, 0.0), 2.5 * noise) for d in dtms]
+    return GroundModel(tuple(dtms), model.origins, c, noise, part_xy, part_of)
+
+
+def _parts(ij: np.ndarray, cell: float, grid_origin: np.ndarray, gap: float):
+    """Separate parts of a block: connected sets of occupied ``gap``-wide squares.
+
+    Points of two parts are at least ``gap`` [m] apart, so no filter of :func:`_part_dtm`
+    reaches from one into the other.
+
+    Returns
+    -------
+    part : (n,) int64 part of each point, or None when the block is one part
+    part_xy : (b, 2) float64 centres of the occupied squares (None for one part)
+    part_of : (b,) int64 part of each square (None for one part)
+    """
+    per = max(1, int(np.ceil(gap / cell)))  # cells per square
+    sq = ij // per
+    lo = sq.min(axis=0)
+    sq -= lo
+    span = sq.max(axis=0) + 1
+    if float(span[0]) * float(span[1]) > 50_000_000:  # the grid of squares itself
+        raise InputError(f"points spread over {span[0] * per * cell:.0f} x {span[1] * per * cell:.0f} m; split the file")
+    occupied = np.zeros((int(span[0]), int(span[1])), bool)
+    occupied[sq[:, 0], sq[:, 1]] = True
+    label, n = ndimage.label(occupied, structure=np.ones((3, 3), bool))
+    for box in ndimage.find_objects(label):  # each part's raster must fit
+        _check_fits(np.array([b.stop - b.start for b in box]) * per, cell, cells=MAX_PART_CELLS)
+    if n == 1:
+        return None, None, None
+    rows, cols = np.nonzero(occupied)
+    part_xy = grid_origin + (np.column_stack([rows, cols]) + lo + 0.5) * per * cell
+    return label[sq[:, 0], sq[:, 1]] - 1, part_xy, label[rows, cols] - 1
+
+
+def _check_fits(cells_xy: np.ndarray, cell: float, *, cells: float) -> None:
+    """Raise InputError when a raster of ``cells_xy`` cells has more than ``cells``."""
+    if float(cells_xy[0]) * float(cells_xy[1]) > cells:
+        tile = np.floor(0.8 * np.sqrt(cells) * cell / 100.0) * 100.0  # a tile and its buffers fit
+        raise InputError(
+            f"points spread over {cells_xy[0] * cell:.0f} x {cells_xy[1] * cell:.0f} m without a gap: too wide to "
+            f"model the ground in one piece; process the block in tiles (--tile-size) of at most {tile:.0f} m"
+        )
+
+
+def _part_dtm(xyz: np.ndarray, ij: np.ndarray, params: GroundParams) -> np.ndarray:
+    """Ground height of each cell of one part [m], (nx, ny); ``ij`` the cell of each point
+    relative to the part's corner cell."""
+    # Strategy: per-cell minimum z; drop cells far below their neighbourhood (isolated
+    # points under the ground); the paper's local z-minimum over R_g picks ground cells
+    # (a cell is ground if its minimum is near the local minimum, allowing for slope);
+    # holes (cells under dense canopy with no ground return) take the nearest ground cell.
+    c = params.cell_size
     nx, ny = (ij.max(axis=0) + 1).tolist()
-    origin = go + lo * c
     flat = ij[:, 0] * ny + ij[:, 1]
     zmin = np.full(nx * ny, np.inf)
     np.minimum.at(zmin, flat, xyz[:, 2])
@@ -112,21 +230,7 @@ def ground_model(
     smooth = ndimage.median_filter(dtm0, footprint=foot, mode="nearest")
     is_ground_cell &= zmin - smooth <= params.tolerance + 0.15 * params.search_radius
     dtm = _fill_nearest(np.where(is_ground_cell, zmin, np.nan), is_ground_cell)
-    dtm = ndimage.median_filter(dtm, size=3, mode="nearest")
-
-    # Cell minima sit about two noise widths below the true surface: shift the model up
-    # by the median residual of the near-ground points and take their spread as noise.
-    model = GroundModel(dtm, origin, c, 0.0)
-    sub = xyz[:: max(1, xyz.shape[0] // 200_000)]  # the statistics need no more points
-    resid = sub[:, 2] - model.height_at(sub)
-    band = resid[(resid >= -0.05) & (resid < 0.5)]
-    noise = 0.0
-    if band.size:
-        shift = float(np.median(band))
-        noise = float(1.4826 * np.median(np.abs(band - shift)))
-        # only a shift the noise explains; a thick layer of grass must not lift the ground
-        dtm = dtm + min(max(shift - noise, 0.0), 2.5 * noise)
-    return GroundModel(dtm, origin, c, noise)
+    return ndimage.median_filter(dtm, size=3, mode="nearest")
 
 
 def _fill_nearest(values: np.ndarray, valid: np.ndarray) -> np.ndarray:

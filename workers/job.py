@@ -32,7 +32,7 @@ from typing import Callable
 import numpy as np
 
 from pipeline import io as blockio
-from pipeline.errors import NoTreesError, OrchardError, ParameterError
+from pipeline.errors import InputError, NoTreesError, OrchardError, ParameterError
 from pipeline.io import BlockInfo
 from pipeline.merge import GlobalTrunks, TileTrunks, reconcile_trunks
 from pipeline.metrics import combine_partials, finalize_metrics, tree_partials
@@ -154,7 +154,10 @@ def process_tile(work_url: str, tile_id: int, params_json: str, fail: bool = Fal
     ints = np.column_stack([rec["X"], rec["Y"], rec["Z"]])
     xyz = blockio.to_local(ints, _frame(index))
     core = rec["core"].astype(bool)
-    result = process_points(xyz, params=params, grid_origin=(0.0, 0.0, 0.0))
+    try:
+        result = process_points(xyz, params=params, grid_origin=(0.0, 0.0, 0.0))
+    except InputError as exc:
+        raise InputError(f"tile {tile_id}: {exc}") from None
     key = result_key(tile_id)
     store.put_array(f"{key}/index.npy", rec["index"][core])
     store.put_array(f"{key}/tree_id.npy", np.asarray(result.tree_id[core], dtype=np.int64))
@@ -326,7 +329,10 @@ def _run_single(spec, info, t0, progress, cancel) -> JobOutcome:
     timings["read"] = time.perf_counter() - t0
     _check_cancel(cancel)
     t = time.perf_counter()
-    result = process_points(xyz, params=params, grid_origin=(0.0, 0.0, 0.0))
+    try:
+        result = process_points(xyz, params=params, grid_origin=(0.0, 0.0, 0.0))
+    except InputError as exc:
+        raise InputError(f"{Path(info.path).name}: {exc}") from None
     timings["process"] = time.perf_counter() - t
     _check_cancel(cancel)
     t = time.perf_counter()

@@ -49,6 +49,24 @@ def test_result_is_deterministic(small_block):
     assert np.array_equal(r.trunks, again.trunks)
 
 
+def test_stray_points_kilometres_away_leave_the_trees_unchanged(small_block):
+    # GNSS glitches and multipath returns land far from the block; the ground model
+    # gives them rasters of their own instead of one raster spanning 60 km (which needed
+    # hundreds of GiB: MemoryError)
+    _, xyz, r = small_block
+    stray = np.array([[20_000.0, 3.0, 1.0], [20_000.5, 3.2, 2.0], [5.0, 60_000.0, -40.0], [40_000.0, 40_000.0, 9.0]])
+    again = process_points(np.vstack([xyz, stray]), params=PipelineParams())
+    n = len(xyz)
+    assert np.array_equal(again.tree_id[:n], r.tree_id)
+    assert np.allclose(again.trunks, r.trunks)
+    assert (again.tree_id[n:] == 0).all()
+    # the strays enter the ground-noise statistics: heights move by rounding only
+    assert np.abs(again.height[:n] - r.height).max() < 1e-4
+    assert (again.is_ground[:n] != r.is_ground).sum() <= 3
+    # the stray 1 m above its neighbour is 1 m above the ground there
+    assert abs(again.height[n + 1] - 1.0) < 0.05
+
+
 @pytest.mark.parametrize("n", [0, 1, 3])
 def test_tiny_inputs(n):
     xyz = np.random.default_rng(0).uniform(0, 1, (n, 3))

@@ -46,6 +46,24 @@ def test_process_tiled_with_embedded_cluster(small_block, tmp_path, capsys):
     assert sorted(p.name for p in (tmp_path / "o").iterdir()) == ["labelled.laz", "points.parquet", "trees.parquet"]
 
 
+def test_process_a_block_with_stray_points_kilometres_away(small_block, tmp_path, capsys):
+    # a GNSS glitch: three returns 30-40 km from the orchard (before, one ground raster
+    # spanning them needed hundreds of GiB and the run died of a MemoryError)
+    from pipeline.io import LasBlockWriter, read_points
+
+    xyz, info = read_points(small_block)
+    xyz = xyz + info.origin
+    stray = xyz[:3] + [[30_000.0, 0.0, 0.0], [0.0, 40_000.0, 0.0], [30_000.0, 30_000.0, 5.0]]
+    path = tmp_path / "stray.laz"
+    with LasBlockWriter(path, offsets=tuple(np.floor(xyz.min(axis=0)))) as w:
+        w.write(np.vstack([xyz, stray]))
+    code, out, err = _run(capsys, path, "--out", tmp_path / "o")
+    assert code == 0, err
+    assert "8 trees" in err
+    tree_id = pq.read_table(tmp_path / "o" / "points.parquet").column("tree_id").to_numpy()
+    assert len(tree_id) == len(xyz) + 3 and (tree_id[-3:] == 0).all()
+
+
 def _las(path, n=1000, **kw):
     from pipeline.io import LasBlockWriter
 
@@ -94,6 +112,24 @@ def test_bad_input(tmp_path, capsys, case, tiled):
     code, _, err = _run(capsys, path, "--out", out_dir, *extra)
     _assert_clean_failure(code, err, out_dir)
     assert words in err
+
+
+@pytest.mark.parametrize("extra", [[], ["--tile-size", 5000]])
+def test_a_block_too_wide_for_one_ground_raster(tmp_path, capsys, extra):
+    # a 1.5 km diagonal line of points with no gap: one raster would need 36 M cells
+    from pipeline.io import LasBlockWriter
+
+    t = np.arange(0.0, 1500.0, 2.0)
+    path = tmp_path / "line.laz"
+    with LasBlockWriter(path, offsets=(500_000.0, 6_950_000.0, 0.0)) as w:
+        w.write(np.column_stack([t + 500_000.0, t + 6_950_000.0, np.full_like(t, 100.0)]))
+    out_dir = tmp_path / "out"
+    code, _, err = _run(capsys, path, "--out", out_dir, *extra)
+    if extra:  # the embedded cluster's dashboard and progress lines come first
+        err = err.strip().splitlines()[-1]
+    _assert_clean_failure(code, err, out_dir)
+    assert "too wide" in err and "--tile-size" in err
+    assert ("tile 0: " in err) == bool(extra)
 
 
 @pytest.mark.parametrize(
