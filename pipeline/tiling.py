@@ -123,7 +123,7 @@ def plan_grid(
     buffer: float,
     grid_origin=(0.0, 0.0),
     reach: float | None = None,
-    max_tiles: int = 1_000_000,
+    max_tiles: int = 100_000_000,
 ) -> TileGrid:
     """Plan the tiles that cover a block.
 
@@ -140,7 +140,8 @@ def plan_grid(
     reach : float, optional
         The parameters' reach (``PipelineParams.reach()``); the buffer must cover it.
     max_tiles : int
-        Refuse grids with more tiles than this.
+        Refuse grids with more tiles than this (the grid is never enumerated: only tiles
+        holding points are written, so this bounds tile ids, not work).
 
     Returns
     -------

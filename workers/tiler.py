@@ -38,7 +38,7 @@ def _absolute_xy(ints: np.ndarray, info: BlockInfo) -> np.ndarray:
     return ints[:, :2] * np.asarray(info.scales[:2]) + np.asarray(info.offsets[:2])
 
 
-def _write_parts(store: WorkStore, part: str, ints, index, xy, grid, counts_core, counts_all) -> None:
+def _write_parts(store: WorkStore, part: str, ints, index, xy, grid, counts: dict) -> None:
     core = core_tile(xy, grid)
     p, t = buffered_tiles(xy, grid, core=core)
     if p.size == 0:
@@ -54,13 +54,27 @@ def _write_parts(store: WorkStore, part: str, ints, index, xy, grid, counts_core
         rec["index"] = index[sel]
         rec["core"] = core[sel] == tid
         store.put_array(f"{tile_key(tid)}/{part}.npy", rec)
-        counts_all[tid] += sel.size
-        counts_core[tid] += int(rec["core"].sum())
+        _count(counts, tid, rec)
 
 
-def _index(info: BlockInfo, grid: TileGrid, counts_core: np.ndarray, counts_all: np.ndarray, engine: str) -> dict:
+def _count(counts: dict, tid: int, rec: np.ndarray) -> None:
+    """Add a tile part's points to ``counts`` ({tile id: [core, buffered]}; only tiles
+    holding points are keys, so a block spanning millions of empty tiles costs nothing)."""
+    c = counts.setdefault(int(tid), [0, 0])
+    c[0] += int(rec["core"].sum())
+    c[1] += len(rec)
+
+
+def _merge_counts(total: dict, part: dict) -> None:
+    for tid, (core, every) in part.items():
+        c = total.setdefault(tid, [0, 0])
+        c[0] += core
+        c[1] += every
+
+
+def _index(info: BlockInfo, grid: TileGrid, counts: dict, engine: str) -> dict:
     tiles = []
-    for tid in np.flatnonzero(counts_all):
+    for tid in sorted(counts):
         t = grid.tile(int(tid))
         tiles.append(
             {
@@ -69,8 +83,8 @@ def _index(info: BlockInfo, grid: TileGrid, counts_core: np.ndarray, counts_all:
                 "row": t.row,
                 "core": list(t.core),
                 "buffered": list(t.buffered),
-                "n_core": int(counts_core[tid]),
-                "n_buffered": int(counts_all[tid]),
+                "n_core": int(counts[tid][0]),
+                "n_buffered": int(counts[tid][1]),
             }
         )
     return {
@@ -86,22 +100,21 @@ def _index(info: BlockInfo, grid: TileGrid, counts_core: np.ndarray, counts_all:
     }
 
 
-def _split_chunk(info, grid, store, start, ints, counts_core, counts_all) -> None:
+def _split_chunk(info, grid, store, start, ints, counts: dict) -> None:
     blockio.check_bounds(blockio.to_local(ints, info), info, start=start)
     index = np.arange(start, start + len(ints), dtype=np.uint64)
-    _write_parts(store, f"part-{start:012d}", ints, index, _absolute_xy(ints, info), grid, counts_core, counts_all)
+    _write_parts(store, f"part-{start:012d}", ints, index, _absolute_xy(ints, info), grid, counts)
 
 
-def tile_range(info: BlockInfo, grid: TileGrid, store: WorkStore, start: int, count: int) -> tuple[np.ndarray, np.ndarray]:
+def tile_range(info: BlockInfo, grid: TileGrid, store: WorkStore, start: int, count: int) -> dict:
     """Split points ``[start, start + count)`` of the block into tile parts (a dask task).
 
-    Returns the per-tile point counts (core, buffered) this range contributed.
+    Returns the point counts this range contributed, {tile id: [core, buffered]}.
     """
-    counts_core = np.zeros(grid.n_tiles, dtype=np.int64)
-    counts_all = np.zeros(grid.n_tiles, dtype=np.int64)
+    counts = {}
     ints = blockio.read_raw_range(info.path, start, count, info=info)
-    _split_chunk(info, grid, store, start, ints, counts_core, counts_all)
-    return counts_core, counts_all
+    _split_chunk(info, grid, store, start, ints, counts)
+    return counts
 
 
 def tile_block(
@@ -139,8 +152,7 @@ def tile_block(
     if engine == "pdal":
         return tile_block_pdal(info, grid, store)
     store.remove("tiles")
-    counts_core = np.zeros(grid.n_tiles, dtype=np.int64)
-    counts_all = np.zeros(grid.n_tiles, dtype=np.int64)
+    counts = {}
     if client is not None and info.n_points > chunk_points:
         # each worker reads and splits its own range of the file: tiling runs in parallel
         starts = list(range(0, info.n_points, int(chunk_points)))
@@ -148,13 +160,12 @@ def tile_block(
             client.submit(tile_range, info, grid, store, start, int(chunk_points), key=f"tile-range-{start}-{store.url}", pure=False)
             for start in starts
         ]
-        for core, every in client.gather(futures):
-            counts_core += core
-            counts_all += every
+        for part in client.gather(futures):
+            _merge_counts(counts, part)
     else:
         for start, ints in blockio.iter_raw(info.path, chunk_points=chunk_points, info=info):
-            _split_chunk(info, grid, store, start, ints, counts_core, counts_all)
-    idx = _index(info, grid, counts_core, counts_all, "laspy")
+            _split_chunk(info, grid, store, start, ints, counts)
+    idx = _index(info, grid, counts, "laspy")
     store.put_json(INDEX_KEY, idx)
     return idx
 
@@ -218,8 +229,7 @@ def tile_block_pdal(info: BlockInfo, grid: TileGrid, store: WorkStore) -> dict:
     )
     splitter.execute()
     store.remove("tiles")
-    counts_core = np.zeros(grid.n_tiles, dtype=np.int64)
-    counts_all = np.zeros(grid.n_tiles, dtype=np.int64)
+    counts = {}
     scales = np.asarray(info.scales)
     offsets = np.asarray(info.offsets)
     for view in splitter.arrays:
@@ -237,9 +247,8 @@ def tile_block_pdal(info: BlockInfo, grid: TileGrid, store: WorkStore) -> dict:
         rec["index"] = view["OriginIndex"].astype(np.uint64)
         rec["core"] = core == tid
         store.put_array(f"{tile_key(tid)}/part-pdal.npy", rec)
-        counts_all[tid] += len(rec)
-        counts_core[tid] += int(rec["core"].sum())
-    idx = _index(info, grid, counts_core, counts_all, "pdal")
+        _count(counts, tid, rec)
+    idx = _index(info, grid, counts, "pdal")
     store.put_json(INDEX_KEY, idx)
     return idx
 

@@ -46,9 +46,11 @@ def test_process_tiled_with_embedded_cluster(small_block, tmp_path, capsys):
     assert sorted(p.name for p in (tmp_path / "o").iterdir()) == ["labelled.laz", "points.parquet", "trees.parquet"]
 
 
-def test_process_a_block_with_stray_points_kilometres_away(small_block, tmp_path, capsys):
-    # a GNSS glitch: three returns 30-40 km from the orchard (before, one ground raster
-    # spanning them needed hundreds of GiB and the run died of a MemoryError)
+@pytest.mark.parametrize("extra", [[], ["--tile-size", 10, "--workers", 1]])
+def test_process_a_block_with_stray_points_kilometres_away(small_block, tmp_path, capsys, extra):
+    # a GNSS glitch: three returns 30-40 km from the orchard. Before, one ground raster
+    # spanning them needed hundreds of GiB (MemoryError), and 10 m tiles over the 40 km
+    # box (12 M, a few dozen of them holding points) were refused as more than 1 M tiles
     from pipeline.io import LasBlockWriter, read_points
 
     xyz, info = read_points(small_block)
@@ -57,7 +59,7 @@ def test_process_a_block_with_stray_points_kilometres_away(small_block, tmp_path
     path = tmp_path / "stray.laz"
     with LasBlockWriter(path, offsets=tuple(np.floor(xyz.min(axis=0)))) as w:
         w.write(np.vstack([xyz, stray]))
-    code, out, err = _run(capsys, path, "--out", tmp_path / "o")
+    code, out, err = _run(capsys, path, "--out", tmp_path / "o", *extra)
     assert code == 0, err
     assert "8 trees" in err
     tree_id = pq.read_table(tmp_path / "o" / "points.parquet").column("tree_id").to_numpy()
