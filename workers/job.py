@@ -136,6 +136,15 @@ def result_key(tile_id: int) -> str:
     return f"results/{tile_id:06d}"
 
 
+def _process(xyz: np.ndarray, params: PipelineParams, where: str):
+    """``process_points`` on a block or tile; an InputError (e.g. points spread too wide
+    for one ground model) names ``where``, the file or the tile."""
+    try:
+        return process_points(xyz, params=params, grid_origin=(0.0, 0.0, 0.0))
+    except InputError as exc:
+        raise InputError(f"{where}: {exc}") from None
+
+
 def process_tile(work_url: str, tile_id: int, params_json: str, fail: bool = False) -> dict:
     """Task body: process one buffered tile from the work store.
 
@@ -154,10 +163,7 @@ def process_tile(work_url: str, tile_id: int, params_json: str, fail: bool = Fal
     ints = np.column_stack([rec["X"], rec["Y"], rec["Z"]])
     xyz = blockio.to_local(ints, _frame(index))
     core = rec["core"].astype(bool)
-    try:
-        result = process_points(xyz, params=params, grid_origin=(0.0, 0.0, 0.0))
-    except InputError as exc:
-        raise InputError(f"tile {tile_id}: {exc}") from None
+    result = _process(xyz, params, f"tile {tile_id}")
     key = result_key(tile_id)
     store.put_array(f"{key}/index.npy", rec["index"][core])
     store.put_array(f"{key}/tree_id.npy", np.asarray(result.tree_id[core], dtype=np.int64))
@@ -329,10 +335,7 @@ def _run_single(spec, info, t0, progress, cancel) -> JobOutcome:
     timings["read"] = time.perf_counter() - t0
     _check_cancel(cancel)
     t = time.perf_counter()
-    try:
-        result = process_points(xyz, params=params, grid_origin=(0.0, 0.0, 0.0))
-    except InputError as exc:
-        raise InputError(f"{Path(info.path).name}: {exc}") from None
+    result = _process(xyz, params, Path(info.path).name)
     timings["process"] = time.perf_counter() - t
     _check_cancel(cancel)
     t = time.perf_counter()
