@@ -46,6 +46,7 @@ from __future__ import annotations
 import argparse
 import heapq
 import math
+from itertools import pairwise
 
 import numpy as np
 from scipy import sparse
@@ -191,6 +192,52 @@ def twig_visibility(xyz: np.ndarray, is_twig: np.ndarray, is_leaf: np.ndarray, r
     return float(mannwhitneyu(x, y).statistic) / (x.size * y.size)
 
 
+RATIO_BANDS = (0.0, 0.3, 0.4, 0.5, 0.6, 1.0)
+"""Bands of ``midpoint_ratio`` in the error table (0.5 = the midpoint between two trunks)."""
+
+BAND_NAMES = tuple(f"{lo}-{hi}" for lo, hi in pairwise(RATIO_BANDS))
+
+
+def error_breakdown(true_tree: np.ndarray, pred_tree: np.ndarray, ratio: np.ndarray) -> dict[str, float]:
+    """Where a segmentation of true tree points goes wrong.
+
+    Each predicted tree stands for the true tree most of its points belong to; a point
+    is *wrong* when its predicted tree stands for another tree, *unlabelled* when its
+    predicted tree is 0. Returns the v-measure as it is, with every wrong point and with
+    every unlabelled point given the predicted tree that stands for its true tree (or a
+    tree of its own where none does), the shares of wrong and unlabelled points, and per
+    ``RATIO_BANDS`` band (``ratio`` from :func:`midpoint_ratio`) its points and the
+    share of them that are wrong (keys ``"band a-b points"``, ``"band a-b wrong"``).
+
+    Parameters
+    ----------
+    true_tree, pred_tree : (n,) int64 — true and predicted tree of each true tree point
+    ratio : (n,) float64
+    """
+    k = int(pred_tree.max()) + 1
+    counts = np.zeros((k, int(true_tree.max()) + 1), np.int64)
+    np.add.at(counts, (pred_tree, true_tree), 1)
+    stands_for = counts.argmax(axis=1)
+    stands_for[0] = -1
+    unlabelled = pred_tree == 0
+    wrong = ~unlabelled & (stands_for[pred_tree] != true_tree)
+    # the predicted tree that stands for each true tree (the largest such), else a new id
+    fix = np.arange(counts.shape[1]) + k
+    for p in np.argsort(counts.max(axis=1))[::-1]:
+        if p > 0 and fix[stands_for[p]] >= k:
+            fix[stands_for[p]] = p
+    out = {"v-measure": v_measure(true_tree, pred_tree), "wrong": float(wrong.mean()), "unlabelled": float(unlabelled.mean())}
+    for name, m in (("wrong right", wrong), ("unlabelled right", unlabelled)):
+        pred = pred_tree.copy()
+        pred[m] = fix[true_tree[m]]
+        out[f"v-measure, {name}"] = v_measure(true_tree, pred)
+    for name, (lo, hi) in zip(BAND_NAMES, pairwise(RATIO_BANDS)):
+        band = (ratio >= lo) & ((ratio < hi) | (hi == RATIO_BANDS[-1]))
+        out[f"band {name} points"] = float(band.sum())
+        out[f"band {name} wrong"] = float(wrong[band].mean()) if band.any() else 0.0
+    return out
+
+
 def oracle_scores(o: Orchard, params: PipelineParams) -> dict[str, float]:
     xyz = o.xyz - np.floor(o.xyz.min(axis=0))
     tree = o.tree_id > 0
@@ -199,6 +246,9 @@ def oracle_scores(o: Orchard, params: PipelineParams) -> dict[str, float]:
     result = block_result(xyz, a, params=params)
     for name, r in (("ours", result), ("closest trunk", nearest_trunk_labels(xyz, result))):
         out[name] = v_measure(o.tree_id[tree], r.tree_id[tree])
+    ratio = midpoint_ratio(o.xyz[:, :2], o.tree_id, o.trunks[:, :2])
+    errors = error_breakdown(o.tree_id[tree], result.tree_id[tree], ratio[tree])
+    out.update({f"errors: {key}": v for key, v in errors.items()})
     pv = a.vox.point_voxel
     t = o.tree_id[a.veg_idx]
     counts = np.zeros((a.vox.n, int(o.tree_id.max()) + 1))
@@ -253,12 +303,15 @@ def main(argv: list[str] | None = None) -> None:
             "twig oracle", "voxel oracle")
     kinds = ("all", "wood", "twig", "leaf")
     _header(cols)
-    shares = []
+    shares, errors = [], []
+    error_cols = ("wrong", "unlabelled", "v-measure", "v-measure, wrong right", "v-measure, unlabelled right",
+                  *BAND_NAMES)
     for label, sim in SETTINGS.items():
         for seed in range(args.seeds):
             o = simulate_orchard(SimulationParams(seed=seed, **sim))
             s = oracle_scores(o, params)
             print(f"| {label} | {seed} | " + " | ".join(f"{s[c]:.3f}" for c in cols) + " |", flush=True)
+            errors.append(f"| {label} | {seed} | " + " | ".join(_error_cell(s, c) for c in error_cols) + " |")
             s = overlap_shares(o)
             tree = o.tree_id > 0
             auc = twig_visibility(o.xyz[tree], (o.is_wood | (o.kind == TWIG))[tree], (o.kind == LEAF)[tree])
@@ -267,9 +320,23 @@ def main(argv: list[str] | None = None) -> None:
     print("\nShare of tree points beyond the midpoint towards another trunk:\n")
     _header(kinds)
     print("\n".join(shares))
+    print("\nWhere ours goes wrong (true tree points; a found tree stands for the true tree most of its points"
+          " belong to): share in a tree standing for another (wrong) or in none (unlabelled); v-measure as is and"
+          " with either kind put right; share wrong, of all points in each band of midpoint ratio (0.5 = midway"
+          " to the nearest other trunk):\n")
+    _header(("wrong", "unlabelled", "v-measure", "wrong put right", "unlabelled put right", *(f"ratio {b}" for b in BAND_NAMES)))
+    print("\n".join(errors))
     print(f"\nTwig and wood points against leaf points by neighbourhood linearity ({TWIG_RADIUS} m), ROC AUC:\n")
     _header(("AUC",))
     print("\n".join(visible))
+
+
+def _error_cell(s: dict[str, float], col: str) -> str:
+    if col in ("wrong", "unlabelled"):
+        return f"{100 * s['errors: ' + col]:.2f} %"
+    if col.startswith("v-measure"):
+        return f"{s['errors: ' + col]:.4f}"
+    return f"{100 * s[f'errors: band {col} wrong']:.1f} % of {s[f'errors: band {col} points']:,.0f}"
 
 
 def _header(cols: tuple[str, ...]) -> None:

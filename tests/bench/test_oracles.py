@@ -4,7 +4,7 @@ import numpy as np
 import pytest
 from scipy import sparse
 
-from bench.oracles import direction_paths, midpoint_ratio, twig_visibility
+from bench.oracles import direction_paths, error_breakdown, midpoint_ratio, twig_visibility
 from pipeline.graph import shortest_paths
 
 
@@ -78,3 +78,33 @@ def test_twig_visibility_separates_a_line_from_discs_and_not_from_itself():
     leaf_a, leaf_b = np.r_[np.zeros(200, bool), half], np.r_[np.zeros(200, bool), ~half]
     assert abs(twig_visibility(xyz, leaf_a, leaf_b) - 0.5) < 0.1
     assert np.isnan(twig_visibility(xyz, twig, np.zeros(600, bool)))
+
+
+def test_error_breakdown_by_hand():
+    # true trees 1 and 2 with three points each; found tree 5 stands for true 1 and found
+    # tree 7 for true 2. Point 2 (true 1) went to 7: wrong; point 5 went to no tree.
+    true = np.array([1, 1, 1, 2, 2, 2])
+    pred = np.array([5, 5, 7, 7, 7, 0])
+    ratio = np.array([0.1, 0.2, 0.55, 0.1, 0.45, 0.2])
+    e = error_breakdown(true, pred, ratio)
+    assert e["wrong"] == pytest.approx(1 / 6) and e["unlabelled"] == pytest.approx(1 / 6)
+    # with point 2 put right the only error left is the unlabelled point, and vice versa
+    from pipeline.evaluate import v_measure
+
+    assert e["v-measure, wrong right"] == pytest.approx(v_measure(true, np.array([5, 5, 5, 7, 7, 0])))
+    assert e["v-measure, unlabelled right"] == pytest.approx(v_measure(true, np.array([5, 5, 7, 7, 7, 7])))
+    assert e["v-measure"] < min(e["v-measure, wrong right"], e["v-measure, unlabelled right"])
+    # bands: 0-0.3 holds 4 points (none wrong), 0.4-0.5 one, 0.5-0.6 the wrong one
+    assert e["band 0.0-0.3 points"] == 4 and e["band 0.0-0.3 wrong"] == 0
+    assert e["band 0.4-0.5 points"] == 1 and e["band 0.5-0.6 wrong"] == 1.0
+    assert e["band 0.6-1.0 points"] == 0
+
+
+def test_error_breakdown_a_true_tree_no_found_tree_stands_for_gets_its_own_id():
+    # found tree 3 holds most of both true trees' points: it stands for true 1; true 2's
+    # points are wrong, and putting them right needs a new id, not tree 3
+    true = np.array([1, 1, 1, 2, 2])
+    pred = np.array([3, 3, 3, 3, 3])
+    e = error_breakdown(true, pred, np.zeros(5))
+    assert e["wrong"] == pytest.approx(2 / 5)
+    assert e["v-measure, wrong right"] == pytest.approx(1.0)
