@@ -54,18 +54,12 @@ def _write_parts(store: WorkStore, part: str, ints, index, xy, grid, counts: dic
         rec["index"] = index[sel]
         rec["core"] = core[sel] == tid
         store.put_array(f"{tile_key(tid)}/{part}.npy", rec)
-        _count(counts, tid, rec)
-
-
-def _count(counts: dict, tid: int, rec: np.ndarray) -> None:
-    """Add a tile part's points to ``counts`` ({tile id: [core, buffered]}; only tiles
-    holding points are keys, so a block spanning millions of empty tiles costs nothing)."""
-    c = counts.setdefault(int(tid), [0, 0])
-    c[0] += int(rec["core"].sum())
-    c[1] += len(rec)
+        _merge_counts(counts, {int(tid): (int(rec["core"].sum()), len(rec))})
 
 
 def _merge_counts(total: dict, part: dict) -> None:
+    """Add ``part``'s point counts to ``total``, both {tile id: [core, buffered]}. Only
+    tiles holding points are keys, so a block spanning millions of empty tiles costs nothing."""
     for tid, (core, every) in part.items():
         c = total.setdefault(tid, [0, 0])
         c[0] += core
@@ -247,7 +241,7 @@ def tile_block_pdal(info: BlockInfo, grid: TileGrid, store: WorkStore) -> dict:
         rec["index"] = view["OriginIndex"].astype(np.uint64)
         rec["core"] = core == tid
         store.put_array(f"{tile_key(tid)}/part-pdal.npy", rec)
-        _count(counts, tid, rec)
+        _merge_counts(counts, {int(tid): (int(rec["core"].sum()), len(rec))})
     idx = _index(info, grid, counts, "pdal")
     store.put_json(INDEX_KEY, idx)
     return idx
