@@ -34,7 +34,18 @@ A second table says what the contested material is: the share of each kind of tr
 point (all, wood, twig, leaf) lying beyond the midpoint towards another trunk (closer,
 horizontally, to another tree's trunk base than to its own; see ``midpoint_ratio``).
 
-A third table says whether twigs could be found at all: how well the linearity of each
+A third table says where ours goes wrong (``error_breakdown``): the share of true tree
+points in a found tree that stands for another tree or in none, the v-measure with
+either kind put right, and the share wrong in each band of ``midpoint_ratio``.
+
+A fourth table asks whether cutting the graph could help: the share of edges joining
+voxels of two different true trees (by majority), the v-measure of our shortest-path
+segmentation on the whole graph and with exactly those edges cut (``edge_cut_scores``),
+and how well three local features mark those edges (ROC AUC): the longer edge, the more
+scattered of its two nodes, and fewer point contacts (pairs of points of its two voxels
+within ``CONTACT_RADIUS``).
+
+A fifth table says whether twigs could be found at all: how well the linearity of each
 tree point's neighbourhood (``TWIG_RADIUS``) tells twig and wood points from leaf points,
 as the area under the ROC curve (``twig_visibility``; 0.5 = no better than chance).
 
@@ -58,7 +69,8 @@ from pipeline.enrichment import shape_features
 from pipeline.evaluate import v_measure
 from pipeline.graph import build_graph, shortest_paths
 from pipeline.params import PipelineParams
-from pipeline.process import analyse_nodes, block_result
+from pipeline.process import NodeAnalysis, analyse_nodes, block_result
+from pipeline.segment import segment_nodes
 from pipeline.simulate import LEAF, TWIG, Orchard, SimulationParams, simulate_orchard
 
 SKELETON_RADIUS = 0.12
@@ -69,6 +81,9 @@ SKELETON_CELL = 0.03
 
 SKELETON_SMOOTHING = 0.85
 """``smoothing`` of the skeleton's direction paths."""
+
+CONTACT_RADIUS = 0.04
+"""Two points of neighbouring voxels this close [m] are a contact of the edge between them."""
 
 TWIG_RADIUS = 0.08
 """Neighbourhood radius of the twig-visibility test [m]."""
@@ -186,10 +201,71 @@ def twig_visibility(xyz: np.ndarray, is_twig: np.ndarray, is_leaf: np.ndarray, r
     leaf point (ties count half): 1 = twigs stand out, 0.5 = they do not.
     """
     lin = shape_features(xyz, radius=radius).linearity
-    x, y = lin[is_twig], lin[is_leaf]
+    return auc(lin[is_twig], lin[is_leaf])
+
+
+def auc(x: np.ndarray, y: np.ndarray) -> float:
+    """ROC AUC: the probability that a random value of ``x`` exceeds a random value of
+    ``y`` (ties count half); NaN when either is empty."""
     if x.size == 0 or y.size == 0:
         return float("nan")
     return float(mannwhitneyu(x, y).statistic) / (x.size * y.size)
+
+
+def cross_edges(graph: sparse.spmatrix, majority: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Each edge of a symmetric ``graph`` once (``i < j``), and whether it joins two trees.
+
+    Returns ``i``, ``j`` and a bool mask ``cross`` over them: both nodes belong to a tree
+    (``majority`` > 0, the true tree of most of each node's points) and not the same one.
+    Edges touching a node of no tree are never cross edges.
+    """
+    g = sparse.triu(sparse.coo_matrix(graph), k=1).tocoo()
+    i, j = g.row.astype(np.int64), g.col.astype(np.int64)
+    cross = (majority[i] > 0) & (majority[j] > 0) & (majority[i] != majority[j])
+    return i, j, cross
+
+
+def edge_cut_scores(
+    o: Orchard, xyz: np.ndarray, a: NodeAnalysis, majority: np.ndarray, params: PipelineParams
+) -> dict[str, float]:
+    """Could cutting the graph's edges between trees fix the segmentation? See the module doc.
+
+    ``majority`` is the true tree of most of each node's points. Both v-measures (true
+    tree points) come from the same ``segment_nodes`` call on our trunks, so they differ
+    only by the cut edges (without the box-surface exclusion, hence "all edges" may differ
+    slightly from ``ours``). The AUCs compare edges joining two trees against edges
+    within one tree.
+    """
+    i, j, cross = cross_edges(a.graph, majority)
+    both = (majority[i] > 0) & (majority[j] > 0)
+    tree = o.tree_id > 0
+    pv = a.vox.point_voxel
+    det = a.trunks
+    out = {"cross share": float(cross.sum() / max(both.sum(), 1))}
+    w = np.asarray(a.graph.tocsr()[i, j]).ravel()
+    for name, keep in (("all edges", np.ones(i.size, bool)), ("cross edges cut", ~cross)):
+        g = sparse.coo_matrix((w[keep], (i[keep], j[keep])), shape=a.graph.shape)
+        seg = segment_nodes(
+            a.vox.centroids, (g + g.T).tocsr(), source_nodes=det.source_nodes, source_trunk=det.source_trunk,
+            trunk_xy=det.xy, node_height=a.node_height, params=params.segment,
+        )
+        pred = np.zeros(o.tree_id.shape[0], np.int64)
+        pred[a.veg_idx] = seg.node_tree[pv]
+        out[name] = v_measure(o.tree_id[tree], pred[tree])
+    pairs = cKDTree(xyz[a.veg_idx]).query_pairs(CONTACT_RADIUS, output_type="ndarray")
+    vi, vj = pv[pairs[:, 0]], pv[pairs[:, 1]]
+    apart = vi != vj
+    lo, hi = np.minimum(vi[apart], vj[apart]), np.maximum(vi[apart], vj[apart])
+    contacts = sparse.coo_matrix((np.ones(lo.size), (lo, hi)), shape=a.graph.shape).tocsr()
+    nodes, scattering = a.vox.centroids, a.features.scattering
+    feats = {
+        "longer": np.linalg.norm(nodes[i] - nodes[j], axis=1),
+        "more scattered": np.maximum(scattering[i], scattering[j]),
+        "fewer contacts": -np.asarray(contacts[i, j]).ravel(),
+    }
+    for name, f in feats.items():
+        out[f"auc {name}"] = auc(f[both & cross], f[both & ~cross])
+    return out
 
 
 RATIO_BANDS = (0.0, 0.3, 0.4, 0.5, 0.6, 1.0)
@@ -290,7 +366,11 @@ def oracle_scores(o: Orchard, params: PipelineParams) -> dict[str, float]:
         pred = ours_pt.copy()
         pred[ours_pt > 0] = sk_trunk[reached][j] + 1
         out[name] = v_measure(o.tree_id[tree], pred[tree])
+    out.update({f"edges: {key}": v for key, v in edge_cut_scores(o, xyz, a, majority, params).items()})
     return out
+
+
+EDGE_COLS = ("cross share", "all edges", "cross edges cut", "auc longer", "auc more scattered", "auc fewer contacts")
 
 
 def main(argv: list[str] | None = None) -> None:
@@ -303,7 +383,7 @@ def main(argv: list[str] | None = None) -> None:
             "twig oracle", "voxel oracle")
     kinds = ("all", "wood", "twig", "leaf")
     _header(cols)
-    shares, errors = [], []
+    shares, errors, edges = [], [], []
     error_cols = ("wrong", "unlabelled", "v-measure", "v-measure, wrong right", "v-measure, unlabelled right",
                   *BAND_NAMES)
     for label, sim in SETTINGS.items():
@@ -312,6 +392,8 @@ def main(argv: list[str] | None = None) -> None:
             s = oracle_scores(o, params)
             print(f"| {label} | {seed} | " + " | ".join(f"{s[c]:.3f}" for c in cols) + " |", flush=True)
             errors.append(f"| {label} | {seed} | " + " | ".join(_error_cell(s, c) for c in error_cols) + " |")
+            edges.append(f"| {label} | {seed} | {100 * s['edges: cross share']:.2f} % | "
+                         + " | ".join(f"{s['edges: ' + c]:.3f}" for c in EDGE_COLS[1:]) + " |")
             s = overlap_shares(o)
             tree = o.tree_id > 0
             auc = twig_visibility(o.xyz[tree], (o.is_wood | (o.kind == TWIG))[tree], (o.kind == LEAF)[tree])
@@ -326,6 +408,11 @@ def main(argv: list[str] | None = None) -> None:
           " to the nearest other trunk):\n")
     _header(("wrong", "unlabelled", "v-measure", "wrong put right", "unlabelled put right", *(f"ratio {b}" for b in BAND_NAMES)))
     print("\n".join(errors))
+    print("\nEdges joining two trees' voxels: their share of the edges within trees, v-measure of the same"
+          " shortest-path segmentation on all edges and with them cut, and ROC AUC of local features marking them:\n")
+    _header(("share of edges", "v-measure, all edges", "v-measure, cross edges cut", "AUC edge length",
+             "AUC larger scattering", "AUC fewer point contacts"))
+    print("\n".join(edges))
     print(f"\nTwig and wood points against leaf points by neighbourhood linearity ({TWIG_RADIUS} m), ROC AUC:\n")
     _header(("AUC",))
     print("\n".join(visible))

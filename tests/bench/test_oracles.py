@@ -4,7 +4,7 @@ import numpy as np
 import pytest
 from scipy import sparse
 
-from bench.oracles import direction_paths, error_breakdown, midpoint_ratio, twig_visibility
+from bench.oracles import auc, cross_edges, direction_paths, error_breakdown, midpoint_ratio, twig_visibility
 from pipeline.graph import shortest_paths
 
 
@@ -108,3 +108,20 @@ def test_error_breakdown_a_true_tree_no_found_tree_stands_for_gets_its_own_id():
     e = error_breakdown(true, pred, np.zeros(5))
     assert e["wrong"] == pytest.approx(2 / 5)
     assert e["v-measure, wrong right"] == pytest.approx(1.0)
+
+
+def test_cross_edges_by_hand():
+    # a chain 0-1-2-3-4 with a chord 0-4: nodes 0,1 are tree 1, nodes 2,3 tree 2, node 4
+    # no tree. Only 1-2 joins two trees; edges touching node 4 never count.
+    nodes = np.array([[x, 0.0, 0.0] for x in range(5)], float)
+    g = _graph(nodes, [(0, 1), (1, 2), (2, 3), (3, 4), (0, 4)])
+    i, j, cross = cross_edges(g, np.array([1, 1, 2, 2, 0]))
+    edges = {(int(a), int(b)): bool(c) for a, b, c in zip(i, j, cross)}
+    assert edges == {(0, 1): False, (1, 2): True, (2, 3): False, (3, 4): False, (0, 4): False}
+
+
+def test_auc_by_hand():
+    # 2 of the 4 pairs have x > y, one ties (half), one has x < y: (2 + 0.5) / 4
+    assert auc(np.array([1.0, 3.0]), np.array([1.0, 2.0])) == pytest.approx(0.625)
+    assert auc(np.array([5.0]), np.array([1.0, 2.0])) == 1.0
+    assert np.isnan(auc(np.array([]), np.array([1.0])))
