@@ -1,10 +1,17 @@
-"""bench.oracles helpers (direction_paths, midpoint_ratio) on inputs small enough to check by hand."""
+"""bench.oracles helpers (direction_paths, midpoint_ratio, error_breakdown, cross_edges, auc) on inputs small enough to check by hand."""
 
 import numpy as np
 import pytest
 from scipy import sparse
 
-from bench.oracles import auc, cross_edges, direction_paths, error_breakdown, midpoint_ratio, twig_visibility
+from bench.oracles import (
+    auc,
+    cross_edges,
+    direction_paths,
+    error_breakdown,
+    midpoint_ratio,
+    twig_visibility,
+)
 from pipeline.graph import shortest_paths
 
 
