@@ -41,9 +41,11 @@ either kind put right, and the share wrong in each band of ``midpoint_ratio``.
 A fourth table asks whether cutting the graph could help: the share of edges joining
 voxels of two different true trees (by majority), the v-measure of our shortest-path
 segmentation on the whole graph and with exactly those edges cut (``edge_cut_scores``),
-and how well three local features mark those edges (ROC AUC): the longer edge, the more
-scattered of its two nodes, and fewer point contacts (pairs of points of its two voxels
-within ``CONTACT_RADIUS``).
+with each edge's length scaled up by the score of an imagined classifier of those edges
+of ROC AUC 0.75, 0.85 or 0.95 (``noisy_edge_scores``; what a learned edge weight would
+need), and how well three local features mark those edges (ROC AUC): the longer edge,
+the more scattered of its two nodes, and fewer point contacts (pairs of points of its
+two voxels within ``CONTACT_RADIUS``).
 
 A fifth table says whether twigs could be found at all: how well the linearity of each
 tree point's neighbourhood (``TWIG_RADIUS``) tells twig and wood points from leaf points,
@@ -62,7 +64,7 @@ from itertools import pairwise
 import numpy as np
 from scipy import sparse
 from scipy.spatial import cKDTree
-from scipy.stats import mannwhitneyu
+from scipy.stats import mannwhitneyu, norm
 
 from pipeline.baselines import nearest_trunk_labels
 from pipeline.enrichment import shape_features
@@ -233,8 +235,10 @@ def edge_cut_scores(
     ``majority`` is the true tree of most of each node's points. Both v-measures (true
     tree points) come from the same ``segment_nodes`` call on our trunks, so they differ
     only by the cut edges (without the box-surface exclusion, hence "all edges" may differ
-    slightly from ``ours``). The AUCs compare edges joining two trees against edges
-    within one tree.
+    slightly from ``ours``). ``classifier t`` is the best v-measure over
+    ``CLASSIFIER_GAINS`` with edge lengths scaled by ``noisy_edge_scores`` of AUC ``t``
+    (the gain picked on the block itself, which flatters it). The feature AUCs compare
+    edges joining two trees against edges within one tree.
     """
     i, j, cross = cross_edges(a.graph, majority)
     both = (majority[i] > 0) & (majority[j] > 0)
@@ -243,15 +247,25 @@ def edge_cut_scores(
     det = a.trunks
     out = {"cross share": float(cross.sum() / max(both.sum(), 1))}
     w = np.asarray(a.graph.tocsr()[i, j]).ravel()
-    for name, keep in (("all edges", np.ones(i.size, bool)), ("cross edges cut", ~cross)):
-        g = sparse.coo_matrix((w[keep], (i[keep], j[keep])), shape=a.graph.shape)
+
+    def score(weight: np.ndarray) -> float:
+        """v-measure of our segmentation on the graph's edges with these weights (inf = cut)."""
+        keep = np.isfinite(weight)
+        g = sparse.coo_matrix((weight[keep], (i[keep], j[keep])), shape=a.graph.shape)
         seg = segment_nodes(
             a.vox.centroids, (g + g.T).tocsr(), source_nodes=det.source_nodes, source_trunk=det.source_trunk,
             trunk_xy=det.xy, node_height=a.node_height, params=params.segment,
         )
         pred = np.zeros(o.tree_id.shape[0], np.int64)
         pred[a.veg_idx] = seg.node_tree[pv]
-        out[name] = v_measure(o.tree_id[tree], pred[tree])
+        return v_measure(o.tree_id[tree], pred[tree])
+
+    out["all edges"] = score(w)
+    out["cross edges cut"] = score(np.where(cross, np.inf, w))
+    rng = np.random.default_rng(0)
+    for target in CLASSIFIER_AUCS:
+        p = noisy_edge_scores(cross, target, rng)
+        out[f"classifier {target}"] = max(score(w * (1.0 + b * p**2)) for b in CLASSIFIER_GAINS)
     pairs = cKDTree(xyz[a.veg_idx]).query_pairs(CONTACT_RADIUS, output_type="ndarray")
     vi, vj = pv[pairs[:, 0]], pv[pairs[:, 1]]
     apart = vi != vj
@@ -266,6 +280,25 @@ def edge_cut_scores(
     for name, f in feats.items():
         out[f"auc {name}"] = auc(f[both & cross], f[both & ~cross])
     return out
+
+
+CLASSIFIER_AUCS = (0.75, 0.85, 0.95)
+"""ROC AUCs of the imagined edge classifiers in ``edge_cut_scores``."""
+
+CLASSIFIER_GAINS = (1.0, 4.0, 16.0)
+"""An edge of classifier score p costs ``1 + gain * p**2`` times its length; the best gain counts."""
+
+
+def noisy_edge_scores(cross: np.ndarray, target_auc: float, rng: np.random.Generator) -> np.ndarray:
+    """Scores in (0, 1) of an imagined classifier of cross edges with ROC AUC ``target_auc``.
+
+    Binormal: a cross edge scores N(d, 1), any other N(0, 1), with d = √2·Φ⁻¹(AUC), so a
+    random cross edge outscores a random other edge with probability ``target_auc``;
+    then mapped through Φ(z - d/2) to (0, 1) (monotone, so the AUC is unchanged).
+    """
+    d = math.sqrt(2.0) * norm.ppf(target_auc)
+    z = rng.standard_normal(cross.shape[0]) + d * cross
+    return norm.cdf(z - d / 2)
 
 
 RATIO_BANDS = (0.0, 0.3, 0.4, 0.5, 0.6, 1.0)
@@ -370,7 +403,8 @@ def oracle_scores(o: Orchard, params: PipelineParams) -> dict[str, float]:
     return out
 
 
-EDGE_COLS = ("cross share", "all edges", "cross edges cut", "auc longer", "auc more scattered", "auc fewer contacts")
+EDGE_COLS = ("cross share", "all edges", "cross edges cut", *(f"classifier {t}" for t in CLASSIFIER_AUCS),
+             "auc longer", "auc more scattered", "auc fewer contacts")
 
 
 def main(argv: list[str] | None = None) -> None:
@@ -409,8 +443,11 @@ def main(argv: list[str] | None = None) -> None:
     _header(("wrong", "unlabelled", "v-measure", "wrong put right", "unlabelled put right", *(f"ratio {b}" for b in BAND_NAMES)))
     print("\n".join(errors))
     print("\nEdges joining two trees' voxels: their share of the edges within trees, v-measure of the same"
-          " shortest-path segmentation on all edges and with them cut, and ROC AUC of local features marking them:\n")
-    _header(("share of edges", "v-measure, all edges", "v-measure, cross edges cut", "AUC edge length",
+          " shortest-path segmentation on all edges, with them cut, and with each edge's length scaled by"
+          f" 1 + gain * p^2 (best gain of {CLASSIFIER_GAINS}) where p is the score of an imagined classifier of"
+          " them with the given ROC AUC, and the ROC AUC of local features marking them:\n")
+    _header(("share of edges", "v-measure, all edges", "v-measure, cross edges cut",
+             *(f"v-measure, classifier AUC {t}" for t in CLASSIFIER_AUCS), "AUC edge length",
              "AUC larger scattering", "AUC fewer point contacts"))
     print("\n".join(edges))
     print(f"\nTwig and wood points against leaf points by neighbourhood linearity ({TWIG_RADIUS} m), ROC AUC:\n")

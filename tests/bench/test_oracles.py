@@ -10,6 +10,7 @@ from bench.oracles import (
     direction_paths,
     error_breakdown,
     midpoint_ratio,
+    noisy_edge_scores,
     twig_visibility,
 )
 from pipeline.graph import shortest_paths
@@ -132,3 +133,11 @@ def test_auc_by_hand():
     assert auc(np.array([1.0, 3.0]), np.array([1.0, 2.0])) == pytest.approx(0.625)
     assert auc(np.array([5.0]), np.array([1.0, 2.0])) == 1.0
     assert np.isnan(auc(np.array([]), np.array([1.0])))
+
+
+@pytest.mark.parametrize("target", [0.6, 0.75, 0.95])
+def test_noisy_edge_scores_have_the_asked_auc(target):
+    cross = np.arange(400_000) % 10 == 0
+    p = noisy_edge_scores(cross, target, np.random.default_rng(1))
+    assert ((p > 0) & (p < 1)).all()
+    assert auc(p[cross], p[~cross]) == pytest.approx(target, abs=0.01)
