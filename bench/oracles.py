@@ -232,9 +232,9 @@ def edge_cut_scores(
 ) -> dict[str, float]:
     """Could cutting the graph's edges between trees fix the segmentation? See the module doc.
 
-    ``majority`` is the true tree of most of each node's points. Both v-measures (true
-    tree points) come from the same ``segment_nodes`` call on our trunks, so they differ
-    only by the cut edges (without the box-surface exclusion, hence "all edges" may differ
+    ``majority`` is the true tree of most of each node's points. Every v-measure (true
+    tree points) comes from the same ``segment_nodes`` call on our trunks, so they differ
+    only by the edges' weights (without the box-surface exclusion, hence "all edges" may differ
     slightly from ``ours``). ``classifier t`` is the best v-measure over
     ``CLASSIFIER_GAINS`` with edge lengths scaled by ``noisy_edge_scores`` of AUC ``t``
     (the gain picked on the block itself, which flatters it). The feature AUCs compare
@@ -430,8 +430,8 @@ def main(argv: list[str] | None = None) -> None:
                          + " | ".join(f"{s['edges: ' + c]:.3f}" for c in EDGE_COLS[1:]) + " |")
             s = overlap_shares(o)
             tree = o.tree_id > 0
-            auc = twig_visibility(o.xyz[tree], (o.is_wood | (o.kind == TWIG))[tree], (o.kind == LEAF)[tree])
-            visible.append(f"| {label} | {seed} | {auc:.3f} |")
+            twig_auc = twig_visibility(o.xyz[tree], (o.is_wood | (o.kind == TWIG))[tree], (o.kind == LEAF)[tree])
+            visible.append(f"| {label} | {seed} | {twig_auc:.3f} |")
             shares.append(f"| {label} | {seed} | " + " | ".join(f"{100 * s[k]:.1f} %" for k in kinds) + " |")
     print("\nShare of tree points beyond the midpoint towards another trunk:\n")
     _header(kinds)
