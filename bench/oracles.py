@@ -227,6 +227,14 @@ def cross_edges(graph: sparse.spmatrix, majority: np.ndarray) -> tuple[np.ndarra
     return i, j, cross
 
 
+def point_labels(a: NodeAnalysis, node_labels: np.ndarray, n: int) -> np.ndarray:
+    """Each of the ``n`` input points takes its node's label, (n,) int64; points not in
+    the graph (ground, below it) take 0."""
+    out = np.zeros(n, np.int64)
+    out[a.veg_idx] = node_labels[a.vox.point_voxel]
+    return out
+
+
 def edge_cut_scores(
     o: Orchard, xyz: np.ndarray, a: NodeAnalysis, majority: np.ndarray, params: PipelineParams
 ) -> dict[str, float]:
@@ -256,9 +264,7 @@ def edge_cut_scores(
             a.vox.centroids, (g + g.T).tocsr(), source_nodes=det.source_nodes, source_trunk=det.source_trunk,
             trunk_xy=det.xy, node_height=a.node_height, params=params.segment,
         )
-        pred = np.zeros(o.tree_id.shape[0], np.int64)
-        pred[a.veg_idx] = seg.node_tree[pv]
-        return v_measure(o.tree_id[tree], pred[tree])
+        return v_measure(o.tree_id[tree], point_labels(a, seg.node_tree, o.tree_id.shape[0])[tree])
 
     out["all edges"] = score(w)
     out["cross edges cut"] = score(np.where(cross, np.inf, w))
@@ -371,16 +377,13 @@ def oracle_scores(o: Orchard, params: PipelineParams) -> dict[str, float]:
     trunk = direction_paths(a.graph.tocsr(), a.vox.centroids, det.source_nodes, det.source_trunk, det.xy)
     directed = np.where(ours > 0, np.where(trunk >= 0, trunk + 1, ours), 0)
     for name, lab in (("wood oracle", node), ("voxel oracle", majority), ("direction paths", directed)):
-        pred = np.zeros(o.tree_id.shape[0], np.int64)
-        pred[a.veg_idx] = lab[pv]
-        out[name] = v_measure(o.tree_id[tree], pred[tree])
+        out[name] = v_measure(o.tree_id[tree], point_labels(a, lab, o.tree_id.shape[0])[tree])
 
     skeleton = o.is_wood | (o.kind == TWIG)
     _, j = cKDTree(xyz[skeleton]).query(xyz[tree], workers=-1)
     out["twig oracle"] = v_measure(o.tree_id[tree], o.tree_id[skeleton][j])
 
-    ours_pt = np.zeros(o.tree_id.shape[0], np.int64)
-    ours_pt[a.veg_idx] = ours[pv]
+    ours_pt = point_labels(a, ours, o.tree_id.shape[0])
     seed_trunk = np.full(a.vox.n, -1)
     seed_trunk[det.source_nodes] = det.source_trunk
     point_trunk = np.full(o.tree_id.shape[0], -1)
