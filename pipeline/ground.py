@@ -224,6 +224,11 @@ def _part_dtm(xyz: np.ndarray, ij: np.ndarray, params: GroundParams) -> np.ndarr
     allowance = params.tolerance + 0.3 * params.search_radius
     with np.errstate(invalid="ignore"):  # empty cells: inf - inf
         is_ground_cell = occupied & (zmin - local_min <= allowance)
+    if params.max_slope > 0:
+        # crown bottoms with no ground return within R_g (a tree cut out of a scan with
+        # only a patch of ground under its trunk) pass the local test: reject cells that
+        # rise more steeply than max_slope from any lower ground cell
+        is_ground_cell &= ~_too_steep(np.where(is_ground_cell, zmin, np.inf), c, params.max_slope, allowance)
     # second pass: compare to the smoothed ground surface so that canopy cells next to
     # ground cells on a slope are not taken as ground
     dtm0 = _fill_nearest(np.where(is_ground_cell, zmin, np.nan), is_ground_cell)
@@ -231,6 +236,42 @@ def _part_dtm(xyz: np.ndarray, ij: np.ndarray, params: GroundParams) -> np.ndarr
     is_ground_cell &= zmin - smooth <= params.tolerance + 0.15 * params.search_radius
     dtm = _fill_nearest(np.where(is_ground_cell, zmin, np.nan), is_ground_cell)
     return ndimage.median_filter(dtm, size=3, mode="nearest")
+
+
+#: the slope test compares cells with the lowest ground cell of each square of this size [m]
+SLOPE_BLOCK = 1.0
+
+#: and looks for lower ground up to this many squares away
+SLOPE_STEPS = 40
+
+
+def _too_steep(z: np.ndarray, cell: float, slope: float, allowance: float) -> np.ndarray:
+    """Cells that stand more than ``allowance + slope * distance`` above another cell, (nx, ny) bool
+    (False where ``z`` is inf).
+
+    ``z`` holds the cells' heights (inf where there is none). The lower envelope
+    min_j(z_j + slope * d_ij) is taken on ``SLOPE_BLOCK`` squares (the minimum of their
+    cells) by repeated 3 x 3 erosions with a cone (at most ``SLOPE_STEPS`` squares of
+    reach); a cell is too steep when it stands higher than its square's envelope by
+    more than ``allowance`` plus the slope across one square's diagonal, so coarse
+    squares never reject a cell that a fine test would keep.
+    """
+    f = max(1, int(round(SLOPE_BLOCK / cell)))
+    nx, ny = z.shape
+    px, py = -nx % f, -ny % f
+    zc = np.pad(z, ((0, px), (0, py)), constant_values=np.inf)
+    zc = zc.reshape((nx + px) // f, f, (ny + py) // f, f).min(axis=(1, 3))
+    step = slope * f * cell
+    cone = -step * np.array([[np.sqrt(2.0), 1.0, np.sqrt(2.0)], [1.0, 0.0, 1.0], [np.sqrt(2.0), 1.0, np.sqrt(2.0)]])
+    env = zc
+    for _ in range(SLOPE_STEPS):
+        nxt = np.minimum(env, ndimage.grey_erosion(env, structure=cone, mode="constant", cval=np.inf))
+        if np.array_equal(nxt, env):
+            break
+        env = nxt
+    env = np.repeat(np.repeat(env, f, axis=0), f, axis=1)[:nx, :ny]
+    with np.errstate(invalid="ignore"):  # empty cells: inf - inf
+        return np.isfinite(z) & (z - env > allowance + step * np.sqrt(2.0))
 
 
 def _fill_nearest(values: np.ndarray, valid: np.ndarray) -> np.ndarray:

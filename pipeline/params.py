@@ -24,6 +24,7 @@ class GroundParams(_Model):
     search_radius: float = Field(1.0, gt=0.05, le=20.0, description="lateral radius of the local z-minimum (R_g) [m]")
     tolerance: float = Field(0.12, ge=0.0, le=2.0, description="points this close above the ground surface are ground [m]")
     outlier_depth: float = Field(0.3, gt=0.0, le=10.0, description="cell minima this far below their neighbours' median are noise, not ground [m]")
+    max_slope: float = Field(1.0, ge=0.0, le=10.0, description="ground rises at most this much per metre from lower ground (0 = no limit) [m/m]")
 
 
 class GraphParams(_Model):

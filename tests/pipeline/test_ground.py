@@ -95,3 +95,52 @@ def test_a_part_too_wide_for_one_raster_is_refused_with_a_message():
     t = np.arange(0.0, side, 5.0)
     with pytest.raises(InputError, match="process the block in tiles"):
         ground_model(np.column_stack([t, t, np.zeros_like(t)]), params=p)
+
+
+def test_too_steep_by_hand():
+    # 1 m cells (one cell per slope square), slope 1: the envelope at a cell is the lowest
+    # z_j + d_ij; a cell is too steep above allowance + one square's diagonal (0.5 + 1.414)
+    z = np.full((5, 5), np.inf)
+    z[0, 0] = 0.0
+    for height, steep in ((4.0, False), (4.9, False), (5.0, True)):
+        z[3, 0] = height  # 3 m from the low cell: envelope 3, margin 1.914
+        assert ground._too_steep(z, 1.0, 1.0, 0.5)[3, 0] == steep, height
+    z[3, 0] = np.inf
+    z[3, 3] = 3 * np.sqrt(2.0) + 1.9  # diagonal steps cost sqrt(2) each
+    assert not ground._too_steep(z, 1.0, 1.0, 0.5)[3, 3]
+    z[3, 3] += 0.1
+    out = ground._too_steep(z, 1.0, 1.0, 0.5)
+    assert out[3, 3] and out.sum() == 1  # the low cell and empty cells are never too steep
+
+
+def test_a_tall_crown_over_a_patch_of_ground_is_not_ground():
+    # a tree cut out of a scan with only a patch of ground under its trunk: the lowest
+    # points of its crown have no ground within R_g, so the local minimum alone takes
+    # them for ground; they stand 8 m above ground less than 5 m away (slope > 1)
+    rng = np.random.default_rng(5)
+    patch = np.column_stack([rng.uniform(9.5, 10.5, (800, 2)), rng.normal(0.0, 0.01, 800)])
+    stem = np.column_stack([rng.normal(10.0, 0.1, (2000, 2)), rng.uniform(0.0, 8.0, 2000)])
+    r, a = 5.0 * np.sqrt(rng.uniform(0, 1, 20000)), rng.uniform(0, 2 * np.pi, 20000)
+    crown = np.column_stack([10 + r * np.cos(a), 10 + r * np.sin(a), rng.uniform(8.0, 12.0, 20000)])
+    xyz = np.concatenate([patch, stem, crown])
+    in_crown = np.arange(len(xyz)) >= len(patch) + len(stem)
+    for slope, crown_ground in ((0.0, True), (1.0, False)):
+        p = GroundParams(max_slope=slope)
+        m = ground_model(xyz, params=p)
+        h, is_g = classify_ground(xyz, m, params=p)
+        assert is_g[: len(patch)].mean() > 0.99
+        assert is_g[in_crown].any() == crown_ground, slope
+    assert np.abs(h[in_crown] - xyz[in_crown, 2]).max() < 0.1  # heights from the patch's level
+
+
+def test_a_steep_hillside_stays_ground():
+    # 40 % over 60 m: within the local test's slope allowance and under max_slope, so the
+    # slope test rejects none of it (its envelope reaches 40 squares of 1 m)
+    rng = np.random.default_rng(6)
+    g = _terrain(rng, n=60000, slope=0.0)
+    g[:, 0] *= 3.0
+    g[:, 2] += 0.4 * g[:, 0]
+    p = GroundParams()
+    m = ground_model(g, params=p)
+    _, is_g = classify_ground(g, m, params=p)
+    assert is_g.mean() > 0.99

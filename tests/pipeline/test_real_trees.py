@@ -38,6 +38,23 @@ def test_archi_thick_trunk_is_found():
     r = process_points(pts, params=PipelineParams())
     d = np.hypot(*(r.trunks[:, :2] - stem).T)
     assert d.size and d.min() < 0.5, (stem, r.trunks)
-    # and the tree standing on it is the largest found
-    main = int(np.argmin(d)) + 1
-    assert np.bincount(r.tree_id)[1:].argmax() + 1 == main
+    # and it is the only tree: the scan has ground only within 0.6 m of the stem, so the
+    # lowest branches 8-10 m up, with no ground return under them, were taken for ground
+    # and stood as two more trees until the ground model limited its slope (max_slope)
+    assert r.n_trees == 1, r.trunks
+
+
+@pytest.mark.parametrize("max_slope, trees", [(0.0, 3), (1.0, 1)])
+def test_itsme_tall_tree_cut_out_of_a_scan_is_one_tree(max_slope, trees):
+    # ITSMe tree_1: an 18-25 m tree with ground only under its stem; its crown, 20 m up,
+    # has no ground under it. Without the slope limit the crown's lowest points are ground
+    # and two parts of the crown stand on them as trees
+    pts = np.loadtxt(REAL / "ITSMe" / "tree_1_pc.txt")[:, :3]
+    pts -= np.floor(pts.min(axis=0))
+    params = PipelineParams.model_validate({"ground": {"max_slope": max_slope}})
+    r = process_points(pts, params=params)
+    assert r.n_trees == trees, r.trunks
+    if trees == 1:
+        low = pts[:, 2] < 1.0
+        assert np.hypot(*(r.trunks[0, :2] - np.median(pts[low, :2], axis=0))) < 0.5
+        assert (r.tree_id > 0).mean() > 0.9
