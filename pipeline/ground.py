@@ -130,7 +130,7 @@ def ground_model(
     dtms, origins = [], []
     for sel in members:
         lo = ij[sel].min(axis=0)
-        dtms.append(_part_dtm(xyz[sel], ij[sel] - lo, params))
+        dtms.append(_part_dtm(xyz[sel], ij[sel] - lo, params, corner=lo))
         origins.append(go + lo * c)
     model = GroundModel(tuple(dtms), np.array(origins), c, 0.0, part_xy, part_of)
 
@@ -189,9 +189,9 @@ def _check_fits(cells_xy: np.ndarray, cell: float, *, cells: float) -> None:
         )
 
 
-def _part_dtm(xyz: np.ndarray, ij: np.ndarray, params: GroundParams) -> np.ndarray:
+def _part_dtm(xyz: np.ndarray, ij: np.ndarray, params: GroundParams, corner=(0, 0)) -> np.ndarray:
     """Ground height of each cell of one part [m], (nx, ny); ``ij`` the cell of each point
-    relative to the part's corner cell."""
+    relative to the part's corner cell, ``corner`` that cell's index on the block's grid."""
     # Strategy: per-cell minimum z; drop cells far below their neighbourhood (isolated
     # points under the ground); the paper's local z-minimum over R_g picks ground cells
     # (a cell is ground if its minimum is near the local minimum, allowing for slope);
@@ -228,7 +228,7 @@ def _part_dtm(xyz: np.ndarray, ij: np.ndarray, params: GroundParams) -> np.ndarr
         # crown bottoms with no ground return within R_g (a tree cut out of a scan with
         # only a patch of ground under its trunk) pass the local test: reject cells that
         # rise more steeply than max_slope from any lower ground cell
-        is_ground_cell &= ~_too_steep(np.where(is_ground_cell, zmin, np.inf), c, params.max_slope, allowance)
+        is_ground_cell &= ~_too_steep(np.where(is_ground_cell, zmin, np.inf), c, params.max_slope, allowance, corner)
     # second pass: compare to the smoothed ground surface so that canopy cells next to
     # ground cells on a slope are not taken as ground
     dtm0 = _fill_nearest(np.where(is_ground_cell, zmin, np.nan), is_ground_cell)
@@ -245,7 +245,7 @@ SLOPE_BLOCK = 1.0
 SLOPE_STEPS = 40
 
 
-def _too_steep(z: np.ndarray, cell: float, slope: float, allowance: float) -> np.ndarray:
+def _too_steep(z: np.ndarray, cell: float, slope: float, allowance: float, corner=(0, 0)) -> np.ndarray:
     """Cells that stand more than ``allowance + slope * distance`` above another cell, (nx, ny) bool
     (False where ``z`` is inf).
 
@@ -254,13 +254,16 @@ def _too_steep(z: np.ndarray, cell: float, slope: float, allowance: float) -> np
     cells) by repeated 3 x 3 erosions with a cone (at most ``SLOPE_STEPS`` squares of
     reach); a cell is too steep when it stands higher than its square's envelope by
     more than ``allowance`` plus the slope across one square's diagonal, so coarse
-    squares never reject a cell that a fine test would keep.
+    squares never reject a cell that a fine test would keep. The squares are aligned to
+    the block's grid (``corner``: the index of cell (0, 0) on it), so that tiles of one
+    block share them.
     """
     f = max(1, int(round(SLOPE_BLOCK / cell)))
     nx, ny = z.shape
-    px, py = -nx % f, -ny % f
-    zc = np.pad(z, ((0, px), (0, py)), constant_values=np.inf)
-    zc = zc.reshape((nx + px) // f, f, (ny + py) // f, f).min(axis=(1, 3))
+    ax, ay = int(corner[0]) % f, int(corner[1]) % f  # cells of the first square before the raster
+    px, py = -(nx + ax) % f, -(ny + ay) % f
+    zc = np.pad(z, ((ax, px), (ay, py)), constant_values=np.inf)
+    zc = zc.reshape((ax + nx + px) // f, f, (ay + ny + py) // f, f).min(axis=(1, 3))
     step = slope * f * cell
     cone = -step * np.array([[np.sqrt(2.0), 1.0, np.sqrt(2.0)], [1.0, 0.0, 1.0], [np.sqrt(2.0), 1.0, np.sqrt(2.0)]])
     env = zc
@@ -269,7 +272,7 @@ def _too_steep(z: np.ndarray, cell: float, slope: float, allowance: float) -> np
         if np.array_equal(nxt, env):
             break
         env = nxt
-    env = np.repeat(np.repeat(env, f, axis=0), f, axis=1)[:nx, :ny]
+    env = np.repeat(np.repeat(env, f, axis=0), f, axis=1)[ax : ax + nx, ay : ay + ny]
     with np.errstate(invalid="ignore"):  # empty cells: inf - inf
         return np.isfinite(z) & (z - env > allowance + step * np.sqrt(2.0))
 

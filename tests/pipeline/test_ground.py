@@ -144,3 +144,17 @@ def test_a_steep_hillside_stays_ground():
     m = ground_model(g, params=p)
     _, is_g = classify_ground(g, m, params=p)
     assert is_g.mean() > 0.99
+
+
+def test_too_steep_squares_follow_the_block_grid():
+    # a tile's raster starts at another cell of the block's grid; with the squares aligned
+    # to that grid it judges every cell as the whole block's raster does
+    rng = np.random.default_rng(7)
+    z = np.full((60, 60), np.inf)
+    cells = rng.integers(5, 55, (300, 2))
+    z[cells[:, 0], cells[:, 1]] = rng.uniform(0.0, 6.0, 300)
+    whole = ground._too_steep(z, 0.25, 1.0, 0.42)
+    assert 0 < whole.sum() < 300
+    for corner in ((1, 3), (2, 2), (5, 0)):
+        tile = ground._too_steep(z[corner[0] :, corner[1] :], 0.25, 1.0, 0.42, corner)
+        assert np.array_equal(tile, whole[corner[0] :, corner[1] :]), corner
