@@ -279,6 +279,46 @@ def score_result(orchard, result, *, origin=(0.0, 0.0, 0.0), match_distance: flo
     )
 
 
+def diameter_errors(
+    true_xy: np.ndarray,
+    true_diameter: np.ndarray,
+    found_xy: np.ndarray,
+    found_diameter: np.ndarray,
+    *,
+    match_distance: float = 1.0,
+) -> dict:
+    """How far measured trunk diameters are from the true ones, over matched trunks.
+
+    Trunks are matched one to one as in :func:`trunk_scores`; a matched tree counts when
+    both diameters are finite (a NaN measurement is "not measurable", counted apart).
+
+    Parameters
+    ----------
+    true_xy, found_xy : (k, 2|3), (m, 2|3) float64 — trunk positions [m], same frame
+    true_diameter, found_diameter : (k,), (m,) float64 [m]
+    match_distance : float [m]
+
+    Returns
+    -------
+    dict
+        ``trunk_diameter_n`` (matched trees compared), ``trunk_diameter_unmeasured``
+        (matched trees whose measurement is NaN), ``trunk_diameter_bias`` (mean of
+        measured - true) and ``trunk_diameter_mae`` (mean absolute error) [m], NaN with
+        nothing to compare.
+    """
+    pairs = trunk_scores(true_xy, found_xy, match_distance=match_distance)["pairs"]
+    t = np.asarray(true_diameter, dtype=np.float64)[pairs[:, 0]]
+    f = np.asarray(found_diameter, dtype=np.float64)[pairs[:, 1]]
+    ok = np.isfinite(t) & np.isfinite(f)
+    err = f[ok] - t[ok]
+    return {
+        "trunk_diameter_n": int(ok.sum()),
+        "trunk_diameter_unmeasured": int((np.isfinite(t) & ~np.isfinite(f)).sum()),
+        "trunk_diameter_bias": float(err.mean()) if err.size else float("nan"),
+        "trunk_diameter_mae": float(np.abs(err).mean()) if err.size else float("nan"),
+    }
+
+
 def _read_points_labels(path: str, n: int) -> tuple[np.ndarray, np.ndarray, int]:
     """tree_id and is_wood of points.parquet scattered to (n,) arrays by point_index;
     points absent from the file are tree 0, not wood. Also returns how many are absent."""
@@ -314,7 +354,10 @@ def evaluate_result(truth_path: str, result_dir: str, *, match_distance: float =
     -------
     dict
         The metrics of :func:`score_labels` plus ``n_missing_points`` (truth points
-        absent from points.parquet; they count as tree 0, not wood).
+        absent from points.parquet; they count as tree 0, not wood) and, where the truth
+        carries trunk radii and trees.parquet a ``trunk_diameter_m`` column, those of
+        :func:`diameter_errors` (the truth's radius is at 0.3 m above the trunk base, the
+        default ``--metrics-trunk-height``).
 
     Raises
     ------
@@ -351,4 +394,8 @@ def evaluate_result(truth_path: str, result_dir: str, *, match_distance: float =
         match_distance=match_distance,
     )
     out["n_missing_points"] = missing
+    radius = truth.get("trunk_radius")
+    if "trunk_diameter_m" in trees and radius is not None and len(radius) == len(true_trunks):
+        out.update(diameter_errors(true_trunks, 2.0 * radius, found, np.asarray(trees["trunk_diameter_m"], dtype=np.float64),
+                                   match_distance=match_distance))
     return out

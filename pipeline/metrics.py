@@ -290,6 +290,40 @@ def fit_circle(xy: np.ndarray, *, inlier: float = 0.02, trials: int = 256) -> tu
     return centre, float(np.sqrt(max(sol[2] + (sol[:2] ** 2).sum(), 0.0)))
 
 
+#: radial residuals within this distance [m] of a first circle estimate the scan's noise
+#: at the trunk (see :func:`trunk_circle`)
+NOISE_WINDOW = 0.15
+
+
+def trunk_circle(xy: np.ndarray, *, inlier: float = 0.02, trials: int = 256) -> tuple[np.ndarray, float]:
+    """A circle through a trunk's cross-section, corrected for the scan's noise.
+
+    Range noise scatters the bark's points on both sides of the circle, and a circle fit
+    to them comes out too large: with noise sigma per axis the mean squared distance
+    from the centre is r² + 2 sigma². This fits :func:`fit_circle`, estimates sigma from
+    the points' radial residuals (1.4826 x their median absolute deviation, within
+    ``NOISE_WINDOW`` of that circle), refits with the inlier band widened to
+    2.5 sigma (a 2 cm band keeps only part of a noisy trunk) and returns the radius
+    sqrt(R² - 2 sigma²), at least R / 2. On generated trunks 0.12-0.3 m thick it cuts the
+    diameter error from 1.0 to 0.5 cm at sigma 0.02 m and from 4.0 to 2.6 cm at 0.05 m
+    (``bench``, "Trunk diameters").
+
+    Returns
+    -------
+    centre (2,), radius [m]; as :func:`fit_circle`.
+    """
+    centre, r = fit_circle(xy, inlier=inlier, trials=trials)
+    if not np.isfinite(r):
+        return centre, r
+    res = np.hypot(xy[:, 0] - centre[0], xy[:, 1] - centre[1]) - r
+    res = res[np.abs(res) < NOISE_WINDOW]
+    sigma = 1.4826 * float(np.median(np.abs(res - np.median(res))))
+    c2, r2 = fit_circle(xy, inlier=max(inlier, 2.5 * sigma), trials=trials)
+    if not np.isfinite(r2):
+        return centre, r
+    return c2, float(np.sqrt(max(r2 * r2 - 2.0 * sigma * sigma, 0.25 * r2 * r2)))
+
+
 def trunk_diameters(
     xyz: np.ndarray,
     tree_id: np.ndarray,
@@ -301,8 +335,9 @@ def trunk_diameters(
 ) -> np.ndarray:
     """Trunk diameter of each tree at ``params.trunk_height`` above its base.
 
-    Fits a circle to the tree's points in a horizontal slice of thickness
-    ``params.trunk_slice`` within ``max_radius`` of the trunk. ``height`` (n,), the
+    Fits a circle (:func:`trunk_circle`, corrected for noise) to the tree's points in a
+    horizontal slice of thickness ``params.trunk_slice`` within ``max_radius`` of the
+    trunk. ``height`` (n,), the
     points' height above ground [m], only speeds up the selection.
 
     Returns
@@ -322,14 +357,14 @@ def trunk_diameters(
     in_slice = np.abs(dz - params.trunk_height) <= params.trunk_slice / 2
     d2 = ((pts[:, :2] - trunks[ids - 1, :2]) ** 2).sum(1)
     sel = in_slice & (d2 <= max_radius**2)
-    _, r = tree_circles(pts[sel, :2], ids[sel], k)
+    _, r = tree_circles(pts[sel, :2], ids[sel], k, fit=trunk_circle)
     ok = np.isfinite(r) & (r > 0.005) & (r <= max_radius)
     out[ok] = 2 * r[ok]
     return out
 
 
-def tree_circles(xy: np.ndarray, tree_id: np.ndarray, k: int) -> tuple[np.ndarray, np.ndarray]:
-    """A circle (:func:`fit_circle`) through each tree's points.
+def tree_circles(xy: np.ndarray, tree_id: np.ndarray, k: int, *, fit=fit_circle) -> tuple[np.ndarray, np.ndarray]:
+    """A circle (``fit``: :func:`fit_circle` or :func:`trunk_circle`) through each tree's points.
 
     Parameters
     ----------
@@ -347,5 +382,5 @@ def tree_circles(xy: np.ndarray, tree_id: np.ndarray, k: int) -> tuple[np.ndarra
     xy, tree_id = xy[order], tree_id[order]
     uniq, start, counts = np.unique(tree_id, return_index=True, return_counts=True)
     for t, s, c in zip(uniq, start, counts):
-        centres[t - 1], radii[t - 1] = fit_circle(xy[s : s + c])
+        centres[t - 1], radii[t - 1] = fit(xy[s : s + c])
     return centres, radii

@@ -13,7 +13,8 @@ NAME = "evaluate"
 HELP = (
     "Score the result of `orchard process` on a generated block against its truth file: trunk "
     "precision/recall/F1 (one-to-one matching within --match-distance) and mean distance of the "
-    "matches, V-measure of the tree labels and wood F1, both on the points that truly belong to a tree."
+    "matches, V-measure of the tree labels and wood F1, both on the points that truly belong to a tree, "
+    "and the trunk diameter error of the matched trees (truth at 0.3 m above the base)."
 )
 
 _ROWS = [
@@ -30,6 +31,10 @@ _ROWS = [
     ("wood_f1", "wood F1 (tree points)", "{:.3f}"),
     ("wood_precision", "  wood precision", "{:.3f}"),
     ("wood_recall", "  wood recall", "{:.3f}"),
+    ("trunk_diameter_mae", "trunk diameter error [m]", "{:.3f}"),
+    ("trunk_diameter_bias", "  bias (measured - true) [m]", "{:+.3f}"),
+    ("trunk_diameter_n", "  trees compared", "{:d}"),
+    ("trunk_diameter_unmeasured", "  not measurable", "{:d}"),
     ("n_true_trees", "true trees", "{:d}"),
     ("n_found_trees", "found trees", "{:d}"),
     ("n_points", "points", "{:,d}"),

@@ -10,6 +10,7 @@ import pytest
 
 from pipeline.errors import InputError
 from pipeline.evaluate import (
+    diameter_errors,
     evaluate_result,
     homogeneity_completeness_v_measure,
     score_labels,
@@ -182,7 +183,7 @@ def test_score_result_takes_a_local_frame_result():
     assert score_result(truth, result)["trunk_tp"] == 0  # frames must agree
 
 
-def _write_result(folder, trunks_xy, point_index, tree_id, is_wood):
+def _write_result(folder, trunks_xy, point_index, tree_id, is_wood, diameters=None):
     from pipeline.io import PointsParquetWriter, write_trees_parquet
     from pipeline.metrics import TREE_COLUMNS
 
@@ -192,6 +193,8 @@ def _write_result(folder, trunks_xy, point_index, tree_id, is_wood):
     cols["tree_id"] = np.arange(1, k + 1, dtype=np.int64)
     cols["n_points"] = np.zeros(k, dtype=np.int64)
     cols["trunk_x"], cols["trunk_y"] = trunks_xy[:, 0].astype(float), trunks_xy[:, 1].astype(float)
+    if diameters is not None:
+        cols["trunk_diameter_m"] = np.asarray(diameters, dtype=float)
     write_trees_parquet(str(folder / "trees.parquet"), cols, crs_wkt=None)
     with PointsParquetWriter(str(folder / "points.parquet")) as w:
         w.write(point_index, tree_id, np.zeros(len(point_index), bool), is_wood, np.zeros(len(point_index), np.float32))
@@ -222,14 +225,31 @@ def test_evaluate_result_reads_a_result_folder(tmp_path, truth_file):
     idx = np.array([6, 0, 1, 2, 3, 4, 5], dtype=np.uint64)
     tree = np.array([1, 0, 1, 1, 1, 2, 2])
     wood = np.array([0, 0, 1, 0, 1, 1, 1], bool)
-    _write_result(tmp_path / "res", np.array([[500001.2, 6950000.0], [500004.9, 6950000.1], [500020.0, 6950000.0]]), idx, tree, wood)
+    _write_result(tmp_path / "res", np.array([[500001.2, 6950000.0], [500004.9, 6950000.1], [500020.0, 6950000.0]]), idx, tree, wood,
+                  diameters=[0.25, np.nan, 0.5])
     m = evaluate_result(str(truth_file), str(tmp_path / "res"))
+    # true trunks are 0.2 m thick: tree 1 measured 0.25, tree 2 not measurable, the false one not compared
+    assert (m["trunk_diameter_n"], m["trunk_diameter_unmeasured"]) == (1, 1)
+    assert (m["trunk_diameter_bias"], m["trunk_diameter_mae"]) == pytest.approx((0.05, 0.05))
     assert (m["trunk_tp"], m["trunk_fp"], m["trunk_fn"]) == (2, 1, 0)
     assert m["trunk_mean_distance"] == pytest.approx((0.2 + math.hypot(0.1, 0.1)) / 2)
     assert m["v_measure"] == pytest.approx(v_measure([1, 1, 1, 2, 2, 2], [1, 1, 1, 2, 2, 1]))
     assert m["wood_f1"] == pytest.approx(wood_f1([1, 0, 0, 1, 1, 0], [1, 0, 1, 1, 1, 0]))
     assert m["n_missing_points"] == 1
     assert m["n_tree_points"] == 6
+
+
+def test_diameter_errors_by_hand():
+    true_xy = np.array([[0.0, 0.0], [5.0, 0.0], [10.0, 0.0]])
+    true_d = np.array([0.2, 0.3, 0.1])
+    # found: near trunk 2 (0.26: -0.04), near trunk 1 (0.26: +0.06), a false one, none at trunk 3
+    found_xy = np.array([[5.2, 0.0], [0.1, 0.1], [20.0, 0.0]])
+    m = diameter_errors(true_xy, true_d, found_xy, np.array([0.26, 0.26, 0.9]))
+    assert m["trunk_diameter_n"] == 2 and m["trunk_diameter_unmeasured"] == 0
+    assert (m["trunk_diameter_bias"], m["trunk_diameter_mae"]) == pytest.approx((0.01, 0.05))
+    m = diameter_errors(true_xy, true_d, found_xy, np.array([np.nan, np.nan, 0.9]))
+    assert (m["trunk_diameter_n"], m["trunk_diameter_unmeasured"]) == (0, 2)
+    assert np.isnan(m["trunk_diameter_bias"]) and np.isnan(m["trunk_diameter_mae"])
 
 
 def test_evaluate_result_rejects_foreign_results(tmp_path, truth_file):
