@@ -306,7 +306,7 @@ def trunk_circle(xy: np.ndarray, *, inlier: float = 0.02, trials: int = 256) -> 
     2.5 sigma (a 2 cm band keeps only part of a noisy trunk) and returns the radius
     sqrt(R² - 2 sigma²), at least R / 2. On the generated trunks of ``python -m bench``
     (about 0.12-0.30 m thick) the mean absolute diameter error falls from 1.0 to 0.7 cm
-    at sigma 0.02 m, 4.1 to 2.2 cm at 0.05 m and 7.2 to 5.3 cm at 0.1 m.
+    at sigma 0.02 m, 4.1 to 2.1 cm at 0.05 m and 7.2 to 5.3 cm at 0.1 m.
 
     Returns
     -------
