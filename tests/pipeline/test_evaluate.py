@@ -278,8 +278,11 @@ def test_cli_simulate_then_evaluate_a_perfect_result(tmp_path, capsys):
 
     m = json.loads(capsys.readouterr().out)
     assert m["trunk_f1"] == 1.0 and m["v_measure"] == pytest.approx(1.0) and m["wood_f1"] == 1.0
+    # the written result measured every trunk as 0 m thick: the error is the true diameter
+    assert m["trunk_diameter_n"] == 2 and m["trunk_diameter_bias"] == pytest.approx(-2 * cols["trunk_radius"].mean())
     assert main(["evaluate", "--truth", str(truth), "--result", str(tmp_path / "res")]) == 0
-    assert "trunk F1" in capsys.readouterr().out
+    out = capsys.readouterr().out
+    assert "trunk F1" in out and "trunk diameter error [m]" in out
 
 
 def test_cli_rejects_nonsense_with_one_line(tmp_path, capsys):
