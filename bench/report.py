@@ -159,9 +159,9 @@ def diameter_table(blocks: list[dict]) -> list[str]:
     if not rows:
         return []
     out = ["", "### Trunk diameters", "",
-           "Ours (`trunk_diameter_m`, a noise-corrected circle fit to a 0.1 m slice at 0.3 m) against the "
-           "simulator's trunk at that height (about 0.12–0.30 m thick), over the matched trees of the blocks above, "
-           "by noise level (all spacings):", "",
+           ("Ours (`trunk_diameter_m`, a noise-corrected circle fit to a 0.1 m slice at 0.3 m) against the "
+            "simulator's trunk at that height (about 0.12–0.30 m thick), over the matched trees of the blocks above, "
+            "by noise level (all spacings):"), "",
            "| noise [m] | trees compared | not measurable | bias [cm] | mean absolute error [cm] |",
            "| --- | --- | --- | --- | --- |"]
     for noise in sorted(rows):

@@ -258,7 +258,7 @@ def _too_steep(z: np.ndarray, cell: float, slope: float, allowance: float, corne
     the block's grid (``corner``: the index of cell (0, 0) on it), so that tiles of one
     block share them.
     """
-    f = max(1, int(round(SLOPE_BLOCK / cell)))
+    f = max(1, round(SLOPE_BLOCK / cell))
     nx, ny = z.shape
     ax, ay = int(corner[0]) % f, int(corner[1]) % f  # cells of the first square before the raster
     px, py = -(nx + ax) % f, -(ny + ay) % f

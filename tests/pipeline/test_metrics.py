@@ -5,7 +5,15 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from pipeline.metrics import TREE_COLUMNS, combine_partials, finalize_metrics, fit_circle, tree_partials, trunk_circle, trunk_diameters
+from pipeline.metrics import (
+    TREE_COLUMNS,
+    combine_partials,
+    finalize_metrics,
+    fit_circle,
+    tree_partials,
+    trunk_circle,
+    trunk_diameters,
+)
 from pipeline.params import MetricsParams
 
 
