@@ -337,8 +337,8 @@ def trunk_diameters(
 
     Fits a circle (:func:`trunk_circle`, corrected for noise) to the tree's points in a
     horizontal slice of thickness ``params.trunk_slice`` within ``max_radius`` of the
-    trunk. ``height`` (n,), the
-    points' height above ground [m], only speeds up the selection.
+    trunk. ``height`` (n,), the points' height above ground [m], only speeds up the
+    selection.
 
     Returns
     -------
