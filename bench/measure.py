@@ -20,6 +20,8 @@ import shutil
 import sys
 import time
 
+from bench.runner import pin_one_core
+
 
 def _maxrss_bytes() -> int:
     return resource.getrusage(resource.RUSAGE_SELF).ru_maxrss * 1024  # Linux: kB
@@ -29,12 +31,6 @@ def _cpu_seconds() -> float:
     """User + system CPU time of this process so far [s]."""
     r = resource.getrusage(resource.RUSAGE_SELF)
     return r.ru_utime + r.ru_stime
-
-
-def _pin_one_core() -> int:
-    cpus = sorted(os.sched_getaffinity(0))
-    os.sched_setaffinity(0, {cpus[0]})
-    return cpus[0]
 
 
 def _warm_up() -> bool:
@@ -60,7 +56,7 @@ def run_job_measure(cfg: dict) -> dict:
     workers = int(cfg.get("workers", 0))
     out = {"kind": "job", "workers": workers, "runs": []}
     if workers == 0 and cfg.get("one_core", True):
-        out["pinned_cpu"] = _pin_one_core()
+        out["pinned_cpu"] = pin_one_core()
     client = cluster = None
     if workers > 0:
         from distributed import Client, LocalCluster
@@ -128,7 +124,7 @@ def run_decode_measure(cfg: dict) -> dict:
     path = cfg["input"]
     chunk = int(cfg.get("chunk_points", 2_000_000))
     repeats = int(cfg.get("repeats", 1))
-    _pin_one_core()
+    pin_one_core()
     res = {"kind": "decode", "chunk_points": chunk}
 
     def all_fields():

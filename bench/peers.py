@@ -16,6 +16,8 @@ import sys
 import time
 from pathlib import Path
 
+from bench.runner import one_core, pinned_to
+
 PEER = "dendromatics"
 SCRIPT = Path(__file__).with_name("peer_dendromatics.py")
 
@@ -96,10 +98,10 @@ def run_on_block(status: dict, block, work: Path, *, config_name: str, timeout: 
     env = dict(os.environ, OMP_NUM_THREADS="1", OPENBLAS_NUM_THREADS="1", MKL_NUM_THREADS="1")
     t = time.perf_counter()
     try:
-        with open(folder / "peer.log", "w") as logf:
+        with open(folder / "peer.log", "w") as logf, one_core() as core:
             proc = subprocess.run(
                 [status["python"], str(SCRIPT), str(pts), str(out), json.dumps(cfg)],
-                stdout=logf, stderr=subprocess.STDOUT, timeout=timeout, env=env,
+                stdout=logf, stderr=subprocess.STDOUT, timeout=timeout, env=env, preexec_fn=pinned_to(core),
             )
     except subprocess.TimeoutExpired:
         return {"error": f"did not finish within {timeout:.0f} s"}

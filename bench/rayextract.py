@@ -30,10 +30,11 @@ left out with a note when that folder is missing).
 Both are scored by :func:`pipeline.evaluate.score_labels` on the same truth: trunk F1
 with one-to-one matching within 1 m, v-measure on true tree points. ``rayextract`` has no
 per-point wood flag, so wood F1 is left out. Seconds are wall-clock for the whole run of
-each (reading, processing, writing), one thread (``OMP_NUM_THREADS=1``); ours after one
-untimed warm-up run in the same process (as a dask worker runs it), rayextract as a fresh
-process; the median of ``--repeats`` timed runs of each (default 3). Prints a Markdown
-table.
+each (reading, processing, writing) on one core: ours in this process pinned to one core
+(:func:`bench.runner.one_core`; the LAZ decoder and the Parquet writer would otherwise
+use every core), after one untimed warm-up run (as a dask worker runs it); rayextract as
+a fresh process pinned to the same core, with ``OMP_NUM_THREADS=1``; the median of
+``--repeats`` timed runs of each (default 3). Prints a Markdown table.
 """
 
 from __future__ import annotations
@@ -54,7 +55,7 @@ import numpy as np
 from bench.blocks import make_block
 from bench.oracles import SETTINGS
 from bench.real_data import REAL, adtree_row
-from bench.runner import SINGLE_THREAD_ENV
+from bench.runner import SINGLE_THREAD_ENV, one_core, pinned_to
 from pipeline import evaluate
 from pipeline import io as blockio
 from pipeline.simulate import GROUND, LEAF, Orchard, SimulationParams, ground_height, read_truth, write_simulation
@@ -151,32 +152,34 @@ def run_rayextract(binary: str, folder: Path, xyz: np.ndarray, ground: Callable[
     write_ground_mesh(mesh, ground, xyz[:, :2].min(axis=0), xyz[:, :2].max(axis=0))
     env = dict(os.environ, **SINGLE_THREAD_ENV)
     walls = []
-    for _ in range(max(1, repeats)):
-        t = time.perf_counter()
-        proc = subprocess.run([binary, "trees", cloud.name, mesh.name], cwd=folder, env=env, capture_output=True,
-                              text=True, timeout=timeout)
-        walls.append(time.perf_counter() - t)
-        if proc.returncode != 0:
-            tail = "\n".join((proc.stdout + proc.stderr).strip().splitlines()[-5:])
-            raise RuntimeError(f"rayextract exited {proc.returncode}: {tail}")
+    with one_core() as core:
+        for _ in range(max(1, repeats)):
+            t = time.perf_counter()
+            proc = subprocess.run([binary, "trees", cloud.name, mesh.name], cwd=folder, env=env, capture_output=True,
+                                  text=True, timeout=timeout, preexec_fn=pinned_to(core))
+            walls.append(time.perf_counter() - t)
+            if proc.returncode != 0:
+                tail = "\n".join((proc.stdout + proc.stderr).strip().splitlines()[-5:])
+                raise RuntimeError(f"rayextract exited {proc.returncode}: {tail}")
     labels = read_segmented(folder / "cloud_segmented.ply", xyz)
     return labels, read_tree_bases(folder / "cloud_trees.txt"), statistics.median(walls)
 
 
 def _run_ours(las: str, result_dir: Path, repeats: int = 1) -> float:
-    """Our job on ``las`` (LAZ in, Parquet out into ``result_dir``): one untimed warm-up
-    run, as in the stand benchmark, then ``repeats`` timed runs; returns their median
-    wall time [s]."""
+    """Our job on ``las`` (LAZ in, Parquet out into ``result_dir``) on one core: one
+    untimed warm-up run, as in the stand benchmark, then ``repeats`` timed runs; returns
+    their median wall time [s]."""
     from pipeline.params import PipelineParams
     from workers.job import JobSpec, run_job
 
     walls = []
-    for i in range(1 + max(1, repeats)):
-        shutil.rmtree(result_dir, ignore_errors=True)
-        t = time.perf_counter()
-        run_job(JobSpec(input_path=las, out_dir=str(result_dir), params=PipelineParams()))
-        if i:
-            walls.append(time.perf_counter() - t)
+    with one_core():
+        for i in range(1 + max(1, repeats)):
+            shutil.rmtree(result_dir, ignore_errors=True)
+            t = time.perf_counter()
+            run_job(JobSpec(input_path=las, out_dir=str(result_dir), params=PipelineParams()))
+            if i:
+                walls.append(time.perf_counter() - t)
     return statistics.median(walls)
 
 

@@ -7,6 +7,8 @@ import os
 import subprocess
 import sys
 import tempfile
+from collections.abc import Iterator
+from contextlib import contextmanager
 
 from bench.memory import TreeSampler, wait_sampled
 
@@ -18,6 +20,30 @@ SINGLE_THREAD_ENV = {
     "NUMEXPR_NUM_THREADS": "1",
     "VECLIB_MAXIMUM_THREADS": "1",
 }
+
+
+def pin_one_core() -> int:
+    """Pin this process to the lowest-numbered core it may run on; returns that core."""
+    core = min(os.sched_getaffinity(0))
+    os.sched_setaffinity(0, {core})
+    return core
+
+
+@contextmanager
+def one_core() -> Iterator[int]:
+    """Run the body on one core (:func:`pin_one_core`), then restore the affinity. SINGLE_THREAD_ENV caps the numeric libraries at one thread, but the LAZ
+    decoder (lazrs, rayon threads) and pyarrow's writer still spread over every core they
+    may use: a time said to be on one core is only that when the process is pinned."""
+    before = os.sched_getaffinity(0)
+    try:
+        yield pin_one_core()
+    finally:
+        os.sched_setaffinity(0, before)
+
+
+def pinned_to(core: int):
+    """A ``preexec_fn`` for :mod:`subprocess` that pins the child to ``core``."""
+    return lambda: os.sched_setaffinity(0, {core})
 
 
 def measure(cfg: dict, *, timeout: float = 3600.0) -> dict:
