@@ -189,7 +189,7 @@ def _check_fits(cells_xy: np.ndarray, cell: float, *, cells: float) -> None:
         )
 
 
-def _part_dtm(xyz: np.ndarray, ij: np.ndarray, params: GroundParams, corner=(0, 0)) -> np.ndarray:
+def _part_dtm(xyz: np.ndarray, ij: np.ndarray, params: GroundParams, *, corner: np.ndarray) -> np.ndarray:
     """Ground height of each cell of one part [m], (nx, ny); ``ij`` the cell of each point
     relative to the part's corner cell, ``corner`` that cell's index on the block's grid."""
     # Strategy: per-cell minimum z; drop cells far below their neighbourhood (isolated
