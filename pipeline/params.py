@@ -65,6 +65,7 @@ class TrunkParams(_Model):
     satellite_ratio: float = Field(1.5, ge=1.0, le=100.0, description="... when the trunk drains this many times more material, times (distance/satellite_radius)^2 beyond satellite_radius [x]")
     max_trunk_width: float = Field(1.0, gt=0.0, le=5.0, description="widest trunk cross-section accepted near the ground [m]")
     max_planar_fraction: float = Field(0.15, ge=0.0, le=1.0, description="objects whose material below min_tree_height is more planar (box-like) than this are not trees [fraction]")
+    stem_ratio: float = Field(3.0, ge=0.0, le=1000.0, description="a contact group within satellite_radius of a trunk that drains at least half as much and whose stem stands out this many times more clearly in the 0.3 m above the ground layer is that tree's shoots or foliage touching down, not a trunk; 0 = off [x]")
     min_foot_ratio: float = Field(0.0, ge=0.0, le=100.0, description="a trunk continues into the ground layer: the density of points in the upper half of the ground layer within 0.2 m of a trunk's centre must be at least this many times that 0.2-0.8 m around it (a shoot hanging into the grass has no foot). Off by default: it removes about half the false trunks of noisy high-density scans but also drops trunks on clean ones (README, Known limits); 1.0 is the measured setting; 0 = off [x]")
 
 

@@ -18,7 +18,7 @@ from pipeline.ground import GroundModel, classify_ground, ground_model
 from pipeline.metrics import trunk_diameters
 from pipeline.params import PipelineParams
 from pipeline.segment import Segmentation, curved_patches, faces, hard_surfaces, planar_patches, segment_nodes, trunk_feet
-from pipeline.trunks import TrunkDetection, box_like_trees, detect_trunks, drop_trunks
+from pipeline.trunks import STEM_SLICE_HEIGHT, STEM_SLICES, TrunkDetection, box_like_trees, detect_trunks, drop_trunks
 from pipeline.voxels import Voxels, voxelize
 
 #: a node is on a planar surface (box, vehicle, wall) above this planarity ...
@@ -129,6 +129,16 @@ def noisy_planar(feats: ShapeFeatures, *, noise: float) -> np.ndarray:
     return (spread >= NOISY_PLANAR_MIN_SPREAD) & (feats.scattering <= NOISY_PLANAR_MAX_SCATTER)
 
 
+def _stem_points(xyz, height, is_ground, ground_top: float, *, on: bool) -> dict:
+    """Non-ground points in the STEM_SLICES slices just above the ground layer, with
+    their slice, for :func:`pipeline.trunks.stem_contrast` (empty dict when off)."""
+    if not on:
+        return {}
+    rel = height - ground_top
+    sel = np.flatnonzero(~is_ground & (rel >= 0) & (rel < STEM_SLICES * STEM_SLICE_HEIGHT))
+    return {"stem_xy": xyz[sel, :2], "stem_slice": (rel[sel] // STEM_SLICE_HEIGHT).astype(np.int64)}
+
+
 def analyse_nodes(
     xyz: np.ndarray,
     *,
@@ -201,6 +211,7 @@ def analyse_nodes(
         scattering=feats.scattering,
         ground_top=ground_top,
         foot_xy=xyz[is_ground & (height > 0.5 * ground_top), :2] if params.trunks.min_foot_ratio > 0 else None,
+        **_stem_points(xyz, height, is_ground, ground_top, on=params.trunks.stem_ratio > 0),
         params=params.trunks,
     )
     surfaces = hard_surfaces(

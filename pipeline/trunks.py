@@ -124,6 +124,86 @@ def foot_ratio(xy: np.ndarray, foot_xy: np.ndarray | None) -> np.ndarray:
     return (d_in + 1.0) / (d_out + 1.0)
 
 
+STEM_RADIUS = 0.15
+STEM_RING = (0.25, 0.4)
+STEM_SEARCH = 0.4
+STEM_STEP = 0.05
+STEM_SLICES = 3
+STEM_SLICE_HEIGHT = 0.1
+SHOOT_MIN_SUPPORT = 0.5
+
+
+def stem_contrast(xy: np.ndarray, stem_xy: np.ndarray | None, stem_slice: np.ndarray | None, *, n_slices: int) -> np.ndarray:
+    """How much a standing stem stands out just above the ground layer, near each ``xy``.
+
+    A trunk is a column of bark rising out of the ground: in every thin horizontal
+    slice above the ground layer its points crowd a small disc, much denser than the
+    ring around it. Shoots or foliage hanging to a few decimetres above the grass leave
+    the lowest slices thin or evenly spread. For a position p and a slice, the contrast
+    is (density within STEM_RADIUS of p + 1) / (density in the ring STEM_RING around p
+    + 1) [points/m²]; a position's score is its lowest contrast over the slices, and a
+    candidate's score the best position within STEM_SEARCH of ``xy`` (on a STEM_STEP
+    lattice, since the flow-weighted centre of a group may sit off its stem).
+
+    Parameters
+    ----------
+    xy : (k, 2) float64 — candidate centres [m]
+    stem_xy : (p, 2) float64 or None — non-ground points just above the ground layer [m]
+    stem_slice : (p,) int64 or None — slice of each point, 0 .. n_slices-1
+    n_slices : int
+
+    Returns
+    -------
+    (k,) float64, the score (NaN where no points were given: the test is then off).
+    """
+    k = xy.shape[0]
+    if stem_xy is None or stem_slice is None or k == 0:
+        return np.full(k, np.nan)
+    g = np.arange(-STEM_SEARCH, STEM_SEARCH + 1e-9, STEM_STEP)
+    off = np.stack(np.meshgrid(g, g, indexing="ij"), axis=-1).reshape(-1, 2)
+    off = off[np.hypot(off[:, 0], off[:, 1]) <= STEM_SEARCH + 1e-9]
+    probes = (xy[:, None, :] + off[None, :, :]).reshape(-1, 2)
+    score = np.full(probes.shape[0], np.inf)
+    a_in = np.pi * STEM_RADIUS**2
+    a_ring = np.pi * (STEM_RING[1] ** 2 - STEM_RING[0] ** 2)
+    for s in range(n_slices):
+        pts = stem_xy[stem_slice == s]
+        if pts.shape[0] == 0:
+            return np.zeros(k)
+        tree = cKDTree(pts)
+        n_in = tree.query_ball_point(probes, STEM_RADIUS, return_length=True)
+        n_a = tree.query_ball_point(probes, STEM_RING[0], return_length=True)
+        n_b = tree.query_ball_point(probes, STEM_RING[1], return_length=True)
+        c = (n_in / a_in + 1.0) / ((n_b - n_a) / a_ring + 1.0)
+        score = np.minimum(score, c)
+    return score.reshape(k, -1).max(axis=1)
+
+
+def _shoots(xy: np.ndarray, stem: np.ndarray, support: np.ndarray, ok: np.ndarray, radius: float, ratio: float) -> np.ndarray:
+    """Accepted groups beside a much clearer stem: greedy by stem score, a group within
+    ``radius`` of a kept group whose stem score is at least ``ratio`` times its own, and
+    which drains at least SHOOT_MIN_SUPPORT times as much, is a shoot or foliage touching
+    down near that trunk, not a trunk (a grass tuft under a shoot tip can make a sharp
+    little column that drains little: it must not drop a trunk). NaN scores compare
+    false: a group without a score is never dropped and drops nothing."""
+    out = np.zeros(xy.shape[0], bool)
+    idx = np.flatnonzero(ok)
+    if idx.size < 2 or ratio <= 0:
+        return out
+    tree = cKDTree(xy[idx])
+    for j in np.argsort(-np.nan_to_num(stem[idx], nan=-np.inf), kind="stable"):
+        i = idx[j]
+        if out[i]:
+            continue
+        for q in tree.query_ball_point(xy[i], radius):
+            other = idx[q]
+            if other == i or out[other]:
+                continue
+            if stem[i] >= ratio * stem[other] and support[i] >= SHOOT_MIN_SUPPORT * support[other]:
+                out[other] = True
+    return out
+
+
 def detect_trunks(
     nodes: np.ndarray,
     node_height: np.ndarray,
@@ -133,6 +213,8 @@ def detect_trunks(
     scattering: np.ndarray | None = None,
     ground_top: float = 0.0,
     foot_xy: np.ndarray | None = None,
+    stem_xy: np.ndarray | None = None,
+    stem_slice: np.ndarray | None = None,
     params: TrunkParams,
 ) -> TrunkDetection:
     """Find one trunk per tree.
@@ -222,6 +304,11 @@ def detect_trunks(
     foot = foot_ratio(centre, foot_xy)
     candidates["foot"] = foot
     ok &= foot >= params.min_foot_ratio
+    stem = np.full(groups.size, np.nan)
+    if params.stem_ratio > 0:
+        stem[ok] = stem_contrast(centre[ok], stem_xy, stem_slice, n_slices=STEM_SLICES)
+    candidates["stem"] = stem
+    ok &= ~_shoots(centre, stem, g_support, ok, params.satellite_radius, params.stem_ratio)
     # satellites: strongest first, a group near an accepted, much stronger one is not a tree
     ok &= ~_satellites(centre, g_support, ok, params.satellite_radius, params.satellite_ratio)
     candidates["accepted"] = ok.copy()

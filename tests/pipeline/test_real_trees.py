@@ -44,11 +44,12 @@ def test_archi_thick_trunk_is_found():
     assert r.n_trees == 1, r.trunks
 
 
-@pytest.mark.parametrize("max_slope, trees", [(0.0, 3), (1.0, 1)])
+@pytest.mark.parametrize("max_slope, trees", [(0.0, 2), (1.0, 1)])
 def test_itsme_tall_tree_cut_out_of_a_scan_is_one_tree(max_slope, trees):
     # ITSMe tree_1: an 18-25 m tree with ground only under its stem; its crown, 20 m up,
     # has no ground under it. Without the slope limit the crown's lowest points are ground
-    # and two parts of the crown stand on them as trees
+    # and parts of the crown stand on them as trees (two before the stem test, which
+    # drops one of them beside the other: one still stands, 20 m up)
     pts = np.loadtxt(REAL / "ITSMe" / "tree_1_pc.txt")[:, :3]
     pts -= np.floor(pts.min(axis=0))
     params = PipelineParams.model_validate({"ground": {"max_slope": max_slope}})

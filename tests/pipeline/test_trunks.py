@@ -3,7 +3,7 @@
 import numpy as np
 import pytest
 
-from pipeline.trunks import FOOT_ANNULUS, FOOT_RADIUS, foot_ratio
+from pipeline.trunks import FOOT_ANNULUS, FOOT_RADIUS, STEM_RADIUS, _shoots, foot_ratio, stem_contrast
 
 
 def _ground(rng, n=20000, half=2.0):
@@ -38,6 +38,84 @@ def test_no_ground_layer_points_means_no_evidence():
     assert foot_ratio(np.zeros((3, 2)), None).tolist() == [1.0, 1.0, 1.0]
     assert foot_ratio(np.zeros((2, 2)), np.zeros((0, 2))).tolist() == [1.0, 1.0]
     assert foot_ratio(np.zeros((0, 2)), np.zeros((5, 2))).shape == (0,)
+
+
+# ------------------------------------------------------------------ stem contrast
+
+
+def _stem_slices(rng, centre, per_slice, *, n_slices=3, skip=(), bark=0.1, floor=2000, half=1.5):
+    """Points in ``n_slices`` slices: uniform clutter everywhere plus bark points of a
+    0.1 m trunk at ``centre`` in every slice not in ``skip``."""
+    xy, sl = [], []
+    for s in range(n_slices):
+        xy.append(rng.uniform(-half, half, (floor, 2)))
+        sl.append(np.full(floor, s))
+        if s not in skip:
+            a = rng.uniform(0, 2 * np.pi, per_slice)
+            xy.append(np.asarray(centre) + bark * np.column_stack([np.cos(a), np.sin(a)]))
+            sl.append(np.full(per_slice, s))
+    return np.concatenate(xy), np.concatenate(sl)
+
+
+def test_stem_contrast_by_hand():
+    # 10 points at the probe in each of two slices, nothing in the ring: every probe of
+    # the lattice within STEM_RADIUS of the origin scores (10 / area + 1) / 1, the best
+    xy = np.zeros((20, 2))
+    sl = np.repeat([0, 1], 10)
+    s = stem_contrast(np.zeros((1, 2)), xy, sl, n_slices=2)
+    assert s[0] == pytest.approx(10 / (np.pi * STEM_RADIUS**2) + 1.0)
+    # the same points 2 m away: no probe has any within its disc or ring, (0 + 1) / (0 + 1)
+    a = np.linspace(0, 2 * np.pi, 20, endpoint=False)
+    far = 2.0 * np.column_stack([np.cos(a), np.sin(a)])
+    s = stem_contrast(np.zeros((1, 2)), np.vstack([far, far]), np.repeat([0, 1], 20), n_slices=2)
+    assert s[0] == pytest.approx(1.0)
+    # a slice with no points at all: no stem anywhere
+    assert stem_contrast(np.zeros((2, 2)), xy, sl, n_slices=3).tolist() == [0.0, 0.0]
+
+
+def test_stem_contrast_sees_a_trunk_and_not_a_gap():
+    rng = np.random.default_rng(0)
+    trunk = _stem_slices(rng, (0.0, 0.0), 200)
+    gap = _stem_slices(rng, (0.0, 0.0), 200, skip=(0,))  # a shoot tip hanging into slice 1
+    s_trunk = stem_contrast(np.zeros((1, 2)), *trunk, n_slices=3)[0]
+    s_gap = stem_contrast(np.zeros((1, 2)), *gap, n_slices=3)[0]
+    assert s_trunk > 3.0 * s_gap, (s_trunk, s_gap)
+    assert s_gap < 2.0  # the empty slice is plain clutter
+
+
+def test_stem_contrast_searches_around_an_off_centre_group():
+    # the group's flow-weighted centre sits 0.3 m from its stem: the search finds the stem
+    rng = np.random.default_rng(1)
+    xy, sl = _stem_slices(rng, (0.3, 0.0), 200)
+    near = stem_contrast(np.array([[0.0, 0.0]]), xy, sl, n_slices=3)[0]
+    at = stem_contrast(np.array([[0.3, 0.0]]), xy, sl, n_slices=3)[0]
+    far = stem_contrast(np.array([[1.0, 1.0]]), xy, sl, n_slices=3)[0]
+    assert near == pytest.approx(at, rel=0.2)
+    assert near > 5.0 * far
+
+
+def test_no_stem_points_means_the_test_is_off():
+    assert np.isnan(stem_contrast(np.zeros((2, 2)), None, None, n_slices=3)).all()
+    ok = np.ones(2, bool)
+    nan = np.full(2, np.nan)
+    assert not _shoots(np.array([[0.0, 0.0], [1.0, 0.0]]), nan, np.ones(2), ok, 2.0, 3.0).any()
+
+
+def test_shoots_by_hand():
+    xy = np.array([[0.0, 0.0], [1.0, 0.0], [5.0, 0.0], [0.0, 1.5]])
+    support = np.array([1000.0, 900.0, 900.0, 2500.0])
+    stem = np.array([90.0, 20.0, 1.0, 20.0])
+    ok = np.ones(4, bool)
+    out = _shoots(xy, stem, support, ok, 2.0, 3.0)
+    # 1: within 2 m of group 0, a 4.5 times clearer stem draining more than half as much
+    # 2: 5 m away from any clearer stem
+    # 3: drains 2.5 times as much as group 0: a sharp column beside it does not drop it
+    assert out.tolist() == [False, True, False, False]
+    # a ratio the stems do not reach drops nothing; groups not accepted neither drop nor go
+    assert not _shoots(xy, stem, support, ok, 2.0, 5.0).any()
+    assert not _shoots(xy, stem, support, np.array([False, True, True, True]), 2.0, 3.0).any()
+    # off
+    assert not _shoots(xy, stem, support, ok, 2.0, 0.0).any()
 
 
 # ------------------------------------------------------------------ detect_trunks by hand
