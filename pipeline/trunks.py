@@ -7,9 +7,10 @@ graph. Every node's shortest path down ends in one contact; the number of nodes 
 path ends there (the contact's subtree size in the shortest-path forest) is its
 *catchment*. A trunk is where a whole canopy drains to the ground: contacts are grouped
 by non-maximum suppression, and a group is a trunk when its catchment is large, reaches
-tree height, is not box-like (planar), and the flow into it passes through a compact,
+tree height, is not box-like (planar), the flow into it passes through a compact,
 trunk-sized cross-section (hanging foliage drains through wide curtains; fence posts
-drain nothing above them).
+drain nothing above them), and its stem stands out above the ground layer about as
+clearly as its neighbours' (shoots hanging into the grass beside a trunk do not).
 """
 
 from __future__ import annotations
@@ -124,12 +125,20 @@ def foot_ratio(xy: np.ndarray, foot_xy: np.ndarray | None) -> np.ndarray:
     return (d_in + 1.0) / (d_out + 1.0)
 
 
+#: the stem test (:func:`stem_contrast`): a disc of this radius [m] around a probe ...
 STEM_RADIUS = 0.15
+#: ... against the ring between these radii [m] (a trunk of radius up to about 0.2 m
+#: fills the disc and leaves the ring to the grass and clutter around it)
 STEM_RING = (0.25, 0.4)
+#: probes on a STEM_STEP lattice [m] within STEM_SEARCH [m] of a group's centre
 STEM_SEARCH = 0.4
 STEM_STEP = 0.05
+#: slices of this height [m] stacked from the top of the ground layer (0-0.3 m above it:
+#: every generated trunk branches at 0.4 m or higher; drooping shoots end 0.2-0.5 m up)
 STEM_SLICES = 3
 STEM_SLICE_HEIGHT = 0.1
+#: a clearer stem drops a group only if it drains at least this share of that group's
+#: catchment (a grass tuft under a shoot tip makes a sharp little column that drains little)
 SHOOT_MIN_SUPPORT = 0.5
 
 
@@ -228,6 +237,11 @@ def detect_trunks(
     scattering : (m,) float64, optional — shape scattering of each node (diagnostics)
     ground_top : float — height [m] up to which points were classified ground; contacts
         lie within ``params.contact_height`` above it
+    foot_xy : (f, 2) float64, optional — points in the upper half of the ground layer
+        [m], for the foot test (``params.min_foot_ratio``)
+    stem_xy : (p, 2) float64, optional — non-ground points in the STEM_SLICES slices
+        above the ground layer [m], and stem_slice : (p,) int64 their slice, for the stem
+        test (``params.stem_ratio``); without them the test is off
     params : TrunkParams
 
     Returns
