@@ -82,6 +82,29 @@ def _group_percentile(values: np.ndarray, group: np.ndarray, n_groups: int, q: f
     return out
 
 
+def _suppressed(xy: np.ndarray, strength: np.ndarray, ok: np.ndarray, reach: float, beats) -> np.ndarray:
+    """Greedy suppression among the accepted groups ``ok``: strongest first by
+    ``strength`` (NaN last), each group not yet suppressed suppresses every group within
+    ``reach`` [m] for which ``beats(i, other, d)`` holds (d: their distance [m]).
+
+    Returns (g,) bool, the suppressed groups.
+    """
+    out = np.zeros(xy.shape[0], bool)
+    idx = np.flatnonzero(ok)
+    if idx.size < 2:
+        return out
+    tree = cKDTree(xy[idx])
+    for j in np.argsort(-np.nan_to_num(strength[idx], nan=-np.inf), kind="stable"):
+        i = idx[j]
+        if out[i]:
+            continue
+        for q in tree.query_ball_point(xy[i], reach):
+            other = idx[q]
+            if other != i and not out[other] and beats(i, other, float(np.hypot(*(xy[other] - xy[i])))):
+                out[other] = True
+    return out
+
+
 def _satellites(xy: np.ndarray, support: np.ndarray, ok: np.ndarray, radius: float, ratio: float) -> np.ndarray:
     """Groups dominated by a stronger accepted group nearby.
 
@@ -89,10 +112,10 @@ def _satellites(xy: np.ndarray, support: np.ndarray, ok: np.ndarray, radius: flo
     that group drains ``ratio * max(1, d / radius)**2`` times more material, up to
     ``2 * radius`` away (the farther, the weaker a satellite must be).
     """
-    sat = np.zeros(xy.shape[0], bool)
-    idx = np.flatnonzero(ok)
-    if idx.size < 2 or radius <= 0:
-        return sat
+    if radius <= 0:
+        return np.zeros(xy.shape[0], bool)
+    return _suppressed(xy, support, ok, 2.0 * radius,
+                       lambda i, other, d: support[i] >= ratio * max(1.0, d / radius) ** 2 * support[other])
     tree = cKDTree(xy[idx])
     for j in np.argsort(-support[idx], kind="stable"):
         i = idx[j]
@@ -176,10 +199,7 @@ def stem_contrast(xy: np.ndarray, stem_xy: np.ndarray | None, stem_slice: np.nda
     a_in = np.pi * STEM_RADIUS**2
     a_ring = np.pi * (STEM_RING[1] ** 2 - STEM_RING[0] ** 2)
     for s in range(n_slices):
-        pts = stem_xy[stem_slice == s]
-        if pts.shape[0] == 0:
-            return np.zeros(k)
-        tree = cKDTree(pts)
+        tree = cKDTree(stem_xy[stem_slice == s].reshape(-1, 2))  # an empty slice: contrast 1 everywhere
         n_in = tree.query_ball_point(probes, STEM_RADIUS, return_length=True)
         n_a = tree.query_ball_point(probes, STEM_RING[0], return_length=True)
         n_b = tree.query_ball_point(probes, STEM_RING[1], return_length=True)
@@ -195,10 +215,10 @@ def _shoots(xy: np.ndarray, stem: np.ndarray, support: np.ndarray, ok: np.ndarra
     down near that trunk, not a trunk (a grass tuft under a shoot tip can make a sharp
     little column that drains little: it must not drop a trunk). NaN scores compare
     false: a group without a score is never dropped and drops nothing."""
-    out = np.zeros(xy.shape[0], bool)
-    idx = np.flatnonzero(ok)
-    if idx.size < 2 or ratio <= 0:
-        return out
+    if ratio <= 0:
+        return np.zeros(xy.shape[0], bool)
+    return _suppressed(xy, stem, ok, radius, lambda i, other, d: (
+        stem[i] >= ratio * stem[other] and support[i] >= SHOOT_MIN_SUPPORT * support[other]))
     tree = cKDTree(xy[idx])
     for j in np.argsort(-np.nan_to_num(stem[idx], nan=-np.inf), kind="stable"):
         i = idx[j]
