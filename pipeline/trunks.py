@@ -116,19 +116,6 @@ def _satellites(xy: np.ndarray, support: np.ndarray, ok: np.ndarray, radius: flo
         return np.zeros(xy.shape[0], bool)
     return _suppressed(xy, support, ok, 2.0 * radius,
                        lambda i, other, d: support[i] >= ratio * max(1.0, d / radius) ** 2 * support[other])
-    tree = cKDTree(xy[idx])
-    for j in np.argsort(-support[idx], kind="stable"):
-        i = idx[j]
-        if sat[i]:
-            continue
-        for q in tree.query_ball_point(xy[i], 2.0 * radius):
-            other = idx[q]
-            if other == i or sat[other]:
-                continue
-            d = float(np.hypot(*(xy[other] - xy[i])))
-            if support[i] >= ratio * max(1.0, d / radius) ** 2 * support[other]:
-                sat[other] = True
-    return sat
 
 
 FOOT_RADIUS = 0.2
@@ -219,18 +206,6 @@ def _shoots(xy: np.ndarray, stem: np.ndarray, support: np.ndarray, ok: np.ndarra
         return np.zeros(xy.shape[0], bool)
     return _suppressed(xy, stem, ok, radius, lambda i, other, d: (
         stem[i] >= ratio * stem[other] and support[i] >= SHOOT_MIN_SUPPORT * support[other]))
-    tree = cKDTree(xy[idx])
-    for j in np.argsort(-np.nan_to_num(stem[idx], nan=-np.inf), kind="stable"):
-        i = idx[j]
-        if out[i]:
-            continue
-        for q in tree.query_ball_point(xy[i], radius):
-            other = idx[q]
-            if other == i or out[other]:
-                continue
-            if stem[i] >= ratio * stem[other] and support[i] >= SHOOT_MIN_SUPPORT * support[other]:
-                out[other] = True
-    return out
 
 
 def detect_trunks(
