@@ -11,6 +11,8 @@ tree height, is not box-like (planar), the flow into it passes through a compact
 trunk-sized cross-section (hanging foliage drains through wide curtains; fence posts
 drain nothing above them), and its stem stands out above the ground layer about as
 clearly as its neighbours' (shoots hanging into the grass beside a trunk do not).
+Groups that are no trunks themselves (too wide, or such shoots) pass their catchment to
+the trunk beside them before neighbouring trunks' catchments are compared.
 """
 
 from __future__ import annotations
@@ -87,22 +89,43 @@ def _suppressed(xy: np.ndarray, strength: np.ndarray, ok: np.ndarray, reach: flo
     ``strength`` (NaN last), each group not yet suppressed suppresses every group within
     ``reach`` [m] for which ``beats(i, other, d)`` holds (d: their distance [m]).
 
-    Returns (g,) bool, the suppressed groups.
+    Returns (g,) int64, the group that suppressed each group (-1: not suppressed).
     """
-    out = np.zeros(xy.shape[0], bool)
+    by = np.full(xy.shape[0], -1, np.int64)
     idx = np.flatnonzero(ok)
     if idx.size < 2:
-        return out
+        return by
     tree = cKDTree(xy[idx])
     for j in np.argsort(-np.nan_to_num(strength[idx], nan=-np.inf), kind="stable"):
         i = idx[j]
-        if out[i]:
+        if by[i] >= 0:
             continue
         for q in tree.query_ball_point(xy[i], reach):
             other = idx[q]
-            if other != i and not out[other] and beats(i, other, float(np.hypot(*(xy[other] - xy[i])))):
-                out[other] = True
-    return out
+            if other != i and by[other] < 0 and beats(i, other, float(np.hypot(*(xy[other] - xy[i])))):
+                by[other] = i
+    return by
+
+
+#: groups that are no trunks (too wide, or shoots beside a clearer stem) pass their
+#: catchment to the accepted group they lie beside, up to this many cluster radii away
+POOL_REACH = 1.25
+
+
+def _nearest(xy: np.ndarray, ok: np.ndarray, which: np.ndarray, reach: float) -> np.ndarray:
+    """For the groups ``which``, the nearest group in ``ok`` within ``reach`` [m] (-1: none)."""
+    out = np.full(which.size, -1, np.int64)
+    idx = np.flatnonzero(ok)
+    if idx.size == 0 or which.size == 0:
+        return out
+    d, j = cKDTree(xy[idx]).query(xy[which])
+    return np.where(d <= reach, idx[np.minimum(j, idx.size - 1)], -1)
+
+
+def _pool(support: np.ndarray, which: np.ndarray, into: np.ndarray) -> None:
+    """Add ``support`` of the groups ``which`` to the groups ``into`` (-1: nowhere), in place."""
+    has = into >= 0
+    np.add.at(support, into[has], support[which[has]])
 
 
 def _satellites(xy: np.ndarray, support: np.ndarray, ok: np.ndarray, radius: float, ratio: float) -> np.ndarray:
@@ -115,7 +138,7 @@ def _satellites(xy: np.ndarray, support: np.ndarray, ok: np.ndarray, radius: flo
     if radius <= 0:
         return np.zeros(xy.shape[0], bool)
     return _suppressed(xy, support, ok, 2.0 * radius,
-                       lambda i, other, d: support[i] >= ratio * max(1.0, d / radius) ** 2 * support[other])
+                       lambda i, other, d: support[i] >= ratio * max(1.0, d / radius) ** 2 * support[other]) >= 0
 
 
 FOOT_RADIUS = 0.2
@@ -201,11 +224,54 @@ def _shoots(xy: np.ndarray, stem: np.ndarray, support: np.ndarray, ok: np.ndarra
     which drains at least SHOOT_MIN_SUPPORT times as much, is a shoot or foliage touching
     down near that trunk, not a trunk (a grass tuft under a shoot tip can make a sharp
     little column that drains little: it must not drop a trunk). NaN scores compare
-    false: a group without a score is never dropped and drops nothing."""
+    false: a group without a score is never dropped and drops nothing.
+
+    Returns (g,) int64, the trunk group each shoot group lies beside (-1: not a shoot)."""
     if ratio <= 0:
-        return np.zeros(xy.shape[0], bool)
+        return np.full(xy.shape[0], -1, np.int64)
     return _suppressed(xy, stem, ok, radius, lambda i, other, d: (
         stem[i] >= ratio * stem[other] and support[i] >= SHOOT_MIN_SUPPORT * support[other]))
+
+
+def _accept(
+    xy: np.ndarray, support: np.ndarray, stem: np.ndarray, ok: np.ndarray, wide: np.ndarray, params: TrunkParams
+) -> tuple[np.ndarray, np.ndarray]:
+    """The last trunk tests, between neighbouring groups: shoots, then satellites.
+
+    A tree's catchment also drains through groups beside its trunk that are no trunks
+    themselves: a curtain too wide for a trunk (``wide``: groups that failed only the
+    width test) and shoots beside a clearer stem. Each passes its catchment to the group
+    it lies beside (the nearest accepted one, or the stem that made it a shoot), up to
+    POOL_REACH cluster radii away, before the satellite test compares catchments. (On
+    noisy high-density scans a shoot bundle next to a trunk can otherwise take most of
+    its catchment, and the trunk is dropped as a satellite of its neighbour in the row.)
+
+    Parameters
+    ----------
+    xy : (g, 2) float64 — group centres [m]
+    support : (g,) float64 — each group's own catchment [nodes]
+    stem : (g,) float64 — stem scores (:func:`stem_contrast`; NaN: none)
+    ok : (g,) bool — groups that passed every test of their own
+    wide : (g,) bool — groups that failed only the width test
+    params : TrunkParams
+
+    Returns
+    -------
+    ok : (g,) bool — the groups accepted as trunks
+    pooled : (g,) float64 — each group's catchment with what it received
+    """
+    reach = POOL_REACH * params.cluster_radius
+    pooled = support.astype(np.float64).copy()
+    wide = np.flatnonzero(wide)
+    _pool(pooled, wide, _nearest(xy, ok, wide, reach))
+    shoot_of = _shoots(xy, stem, pooled, ok, params.satellite_radius, params.stem_ratio)
+    shoot = np.flatnonzero(shoot_of >= 0)
+    beside = np.hypot(*(xy[shoot] - xy[shoot_of[shoot]]).T) <= reach
+    _pool(pooled, shoot, np.where(beside, shoot_of[shoot], -1))
+    ok = ok & (shoot_of < 0)
+    # satellites: strongest first, a group near an accepted, much stronger one is not a tree
+    ok &= ~_satellites(xy, pooled, ok, params.satellite_radius, params.satellite_ratio)
+    return ok, pooled
 
 
 def detect_trunks(
@@ -274,7 +340,7 @@ def detect_trunks(
     node_group = np.where(reached, group_of_contact[np.maximum(sp.source, 0)], -1)
     g_top = _group_percentile(node_height, node_group, groups.size, 95.0)
     g_planar = np.bincount(gidx, weights=n_planar[cand]) / np.maximum(np.bincount(gidx, weights=n_low[cand]), 1)
-    ok = (g_support >= params.min_canopy_voxels) & (g_top >= params.min_tree_height) & (g_planar <= params.max_planar_fraction)
+    fits = (g_support >= params.min_canopy_voxels) & (g_top >= params.min_tree_height) & (g_planar <= params.max_planar_fraction)
 
     # cross-section of the flow just above the contact band: nodes whose path ends in the
     # group, in the band [contact_top, contact_top + 0.4 m], weighted by the flow
@@ -298,7 +364,7 @@ def detect_trunks(
     cx = np.where(has_band, cx, lx)
     cy = np.where(has_band, cy, ly)
     width = np.where(has_band, width, 0.1)
-    ok &= width <= params.max_trunk_width
+    ok = fits & (width <= params.max_trunk_width)
     sc = scattering if scattering is not None else np.zeros(m)
     band_scatter = np.bincount(bg, weights=wgt * sc[bn], minlength=groups.size) / np.maximum(wsum, 1e-12)
     band_max = np.zeros(groups.size)
@@ -317,9 +383,8 @@ def detect_trunks(
     if params.stem_ratio > 0:
         stem[ok] = stem_contrast(centre[ok], stem_xy, stem_slice, n_slices=STEM_SLICES)
     candidates["stem"] = stem
-    ok &= ~_shoots(centre, stem, g_support, ok, params.satellite_radius, params.stem_ratio)
-    # satellites: strongest first, a group near an accepted, much stronger one is not a tree
-    ok &= ~_satellites(centre, g_support, ok, params.satellite_radius, params.satellite_ratio)
+    ok, support = _accept(centre, g_support, stem, ok, fits & (width > params.max_trunk_width), params)
+    candidates["pooled_support"] = support
     candidates["accepted"] = ok.copy()
     sel = np.flatnonzero(ok)
     xy = np.column_stack([cx[sel], cy[sel]])
@@ -338,7 +403,7 @@ def detect_trunks(
     src_t = np.concatenate([src_t, np.arange(sel.size)])
     src, first = np.unique(src, return_index=True)
     src_t = src_t[first]
-    return TrunkDetection(xy, g_support[sel], width[sel], src, src_t, candidates)
+    return TrunkDetection(xy, support[sel], width[sel], src, src_t, candidates)
 
 
 def box_like_trees(

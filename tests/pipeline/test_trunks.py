@@ -3,7 +3,8 @@
 import numpy as np
 import pytest
 
-from pipeline.trunks import FOOT_ANNULUS, FOOT_RADIUS, STEM_RADIUS, _shoots, foot_ratio, stem_contrast
+from pipeline.params import TrunkParams
+from pipeline.trunks import FOOT_ANNULUS, FOOT_RADIUS, POOL_REACH, STEM_RADIUS, _accept, _shoots, foot_ratio, stem_contrast
 
 
 def _ground(rng, n=20000, half=2.0):
@@ -99,7 +100,7 @@ def test_no_stem_points_means_the_test_is_off():
     assert np.isnan(stem_contrast(np.zeros((2, 2)), None, None, n_slices=3)).all()
     ok = np.ones(2, bool)
     nan = np.full(2, np.nan)
-    assert not _shoots(np.array([[0.0, 0.0], [1.0, 0.0]]), nan, np.ones(2), ok, 2.0, 3.0).any()
+    assert (_shoots(np.array([[0.0, 0.0], [1.0, 0.0]]), nan, np.ones(2), ok, 2.0, 3.0) < 0).all()
 
 
 def test_shoots_by_hand():
@@ -111,12 +112,55 @@ def test_shoots_by_hand():
     # 1: within 2 m of group 0, a 4.5 times clearer stem draining more than half as much
     # 2: 5 m away from any clearer stem
     # 3: drains 2.5 times as much as group 0: a sharp column beside it does not drop it
-    assert out.tolist() == [False, True, False, False]
+    # (each shoot names the stem beside it)
+    assert out.tolist() == [-1, 0, -1, -1]
     # a ratio the stems do not reach drops nothing; groups not accepted neither drop nor go
-    assert not _shoots(xy, stem, support, ok, 2.0, 5.0).any()
-    assert not _shoots(xy, stem, support, np.array([False, True, True, True]), 2.0, 3.0).any()
+    assert (_shoots(xy, stem, support, ok, 2.0, 5.0) < 0).all()
+    assert (_shoots(xy, stem, support, np.array([False, True, True, True]), 2.0, 3.0) < 0).all()
     # off
-    assert not _shoots(xy, stem, support, ok, 2.0, 0.0).any()
+    assert (_shoots(xy, stem, support, ok, 2.0, 0.0) < 0).all()
+
+
+def _row_of_two():
+    """Trunk A at x = 0 and trunk B 2.5 m along the row, each with a group beside it
+    that is no trunk: A's catchment mostly drains through a curtain too wide for a trunk
+    0.7 m away, B's partly through shoots 0.8 m away (a stem 10 times fainter)."""
+    xy = np.array([[0.0, 0.0], [0.7, 0.0], [2.5, 0.0], [3.3, 0.0]])
+    support = np.array([1000.0, 2000.0, 2500.0, 1500.0])
+    stem = np.array([100.0, np.nan, 100.0, 10.0])
+    ok = np.array([True, False, True, True])
+    wide = np.array([False, True, False, False])
+    return xy, support, stem, ok, wide
+
+
+def test_accept_pools_the_catchment_beside_a_trunk_by_hand():
+    xy, support, stem, ok, wide = _row_of_two()
+    params = TrunkParams()
+    assert POOL_REACH * params.cluster_radius == 1.0
+    accepted, pooled = _accept(xy, support, stem, ok, wide, params)
+    # A: 1000 + the curtain's 2000; B: 2500 + its shoots' 1500; the others keep their own
+    assert pooled.tolist() == [3000.0, 2000.0, 4000.0, 1500.0]
+    # B drains 1.33 times as much as A, 2.5 m away: a satellite needs 1.5 * 1.25² = 2.34
+    assert accepted.tolist() == [True, False, True, False]
+    # by their own catchments A (1000) would be a satellite of B (2500 >= 2344)
+    far = xy.copy()
+    far[1] = [-1.1, 0.0]  # the curtain 1.1 m from A: beyond the reach, it is no part of A
+    accepted, pooled = _accept(far, support, stem, ok, wide, params)
+    assert pooled.tolist() == [1000.0, 2000.0, 4000.0, 1500.0]
+    assert accepted.tolist() == [False, False, True, False]
+
+
+def test_accept_pools_only_within_the_reach_of_the_cluster_radius():
+    xy, support, stem, ok, wide = _row_of_two()
+    # with a 0.5 m cluster radius neither neighbour is within 0.625 m: no pooling, A goes
+    accepted, pooled = _accept(xy, support, stem, ok, wide, TrunkParams(cluster_radius=0.5))
+    assert pooled.tolist() == support.tolist()
+    assert accepted.tolist() == [False, False, True, False]
+    # without the stem test the shoots give nothing; they are B's satellite instead
+    # (2500 >= 1.5 * 1500 within 2 m)
+    accepted, pooled = _accept(xy, support, stem, ok, wide, TrunkParams(stem_ratio=0))
+    assert pooled.tolist() == [3000.0, 2000.0, 2500.0, 1500.0]
+    assert accepted.tolist() == [True, False, True, False]
 
 
 # ------------------------------------------------------------------ detect_trunks by hand
