@@ -119,7 +119,7 @@ def _nearest(xy: np.ndarray, ok: np.ndarray, which: np.ndarray, reach: float) ->
     if idx.size == 0 or which.size == 0:
         return out
     d, j = cKDTree(xy[idx]).query(xy[which])
-    return np.where(d <= reach, idx[np.minimum(j, idx.size - 1)], -1)
+    return np.where(d <= reach, idx[j], -1)
 
 
 def _pool(support: np.ndarray, which: np.ndarray, into: np.ndarray) -> None:
