@@ -261,7 +261,7 @@ def _accept(
     pooled : (g,) float64 — each group's catchment with what it received
     """
     reach = POOL_REACH * params.cluster_radius
-    pooled = support.astype(np.float64).copy()
+    pooled = support.astype(np.float64)
     wide = np.flatnonzero(wide)
     _pool(pooled, wide, _nearest(xy, ok, wide, reach))
     shoot_of = _shoots(xy, stem, pooled, ok, params.satellite_radius, params.stem_ratio)
