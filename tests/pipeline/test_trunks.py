@@ -4,7 +4,16 @@ import numpy as np
 import pytest
 
 from pipeline.params import TrunkParams
-from pipeline.trunks import FOOT_ANNULUS, FOOT_RADIUS, POOL_REACH, STEM_RADIUS, _accept, _shoots, foot_ratio, stem_contrast
+from pipeline.trunks import (
+    FOOT_ANNULUS,
+    FOOT_RADIUS,
+    POOL_REACH,
+    STEM_RADIUS,
+    _accept,
+    _shoots,
+    foot_ratio,
+    stem_contrast,
+)
 
 
 def _ground(rng, n=20000, half=2.0):
