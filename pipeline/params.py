@@ -57,7 +57,7 @@ class TrunkParams(_Model):
     """Trunk detection without priors: where the canopy's shortest paths reach the ground."""
 
     contact_height: float = Field(0.08, gt=0.0, le=3.0, description="graph nodes this far above the top of the ground layer (the ground tolerance) can be a tree's ground contact [m]")
-    cluster_radius: float = Field(0.8, gt=0.0, le=5.0, description="ground contacts closer than this are one trunk [m]")
+    cluster_radius: float = Field(0.8, gt=0.0, le=5.0, description="ground contacts closer than this are one trunk; a group of contacts that is no trunk (too wide, or shoots beside a clearer stem) counts towards a trunk within 1.25 times this [m]")
     min_tree_height: float = Field(2.0, gt=0.0, le=50.0, description="95 % of a tree's material must lie below a height of at least this (fence posts, bins and vehicles stay lower) [m]")
     min_canopy_voxels: int = Field(150, ge=1, le=10_000_000, description="least number of voxels whose shortest path ends in a trunk [voxels]")
     leaf_cost: float = Field(4.0, ge=0.0, le=100.0, description="drainage paths through fully scattered (leafy) nodes cost this much more, so canopies drain down their branches [x]")

@@ -109,6 +109,7 @@ def _suppressed(xy: np.ndarray, strength: np.ndarray, ok: np.ndarray, reach: flo
 
 #: groups that are no trunks (too wide, or shoots beside a clearer stem) pass their
 #: catchment to the accepted group they lie beside, up to this many cluster radii away
+#: (stated in the help of TrunkParams.cluster_radius)
 POOL_REACH = 1.25
 
 

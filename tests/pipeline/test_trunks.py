@@ -146,6 +146,8 @@ def test_accept_pools_the_catchment_beside_a_trunk_by_hand():
     xy, support, stem, ok, wide = _row_of_two()
     params = TrunkParams()
     assert POOL_REACH * params.cluster_radius == 1.0
+    # the option's help states the reach
+    assert f"within {POOL_REACH:g} times this" in TrunkParams.model_fields["cluster_radius"].description
     accepted, pooled = _accept(xy, support, stem, ok, wide, params)
     # A: 1000 + the curtain's 2000; B: 2500 + its shoots' 1500; the others keep their own
     assert pooled.tolist() == [3000.0, 2000.0, 4000.0, 1500.0]
