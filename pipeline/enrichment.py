@@ -11,7 +11,7 @@ from dataclasses import dataclass
 import numpy as np
 from scipy import sparse
 
-from pipeline.graph import node_pairs, pairs_within
+from pipeline.graph import node_pairs, pairs_within, symmetric_csr
 
 
 @dataclass(frozen=True)
@@ -47,9 +47,7 @@ def neighbourhood_matrix(
     """
     m = nodes.shape[0]
     pairs, _ = node_pairs(nodes, radius) if candidates is None else pairs_within(candidates, radius)
-    rows = np.concatenate([pairs[:, 0], pairs[:, 1], np.arange(m)])
-    cols = np.concatenate([pairs[:, 1], pairs[:, 0], np.arange(m)])
-    return sparse.csr_matrix((np.ones(rows.shape[0]), (rows, cols)), shape=(m, m))
+    return symmetric_csr(pairs, np.ones(pairs.shape[0]), m, diagonal=np.ones(m))
 
 
 def shape_features(nodes: np.ndarray, *, radius: float, adjacency: sparse.csr_matrix | None = None) -> ShapeFeatures:

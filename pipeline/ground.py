@@ -10,6 +10,7 @@ from scipy.spatial import cKDTree
 
 from pipeline.errors import InputError
 from pipeline.params import GroundParams
+from pipeline.voxels import column_max, column_min
 
 #: a part of a block is modelled as one raster of at most this many cells (about 1.1 km
 #: across at the default 0.25 m cell; the filters hold a few arrays of this size at once)
@@ -117,8 +118,10 @@ def ground_model(
     go = np.asarray(grid_origin[:2], dtype=np.float64)
     if xyz.shape[0] == 0:
         return GroundModel((np.zeros((1, 1)),), go[None].copy(), c, 0.0)
-    ij = np.floor((xyz[:, :2] - go) / c).astype(np.int64)
-    span = ij.max(axis=0) - ij.min(axis=0) + 1
+    ij = np.empty((xyz.shape[0], 2), np.int64)
+    for d in (0, 1):  # column by column: no (n, 2) float temporaries
+        ij[:, d] = np.floor((xyz[:, d] - go[d]) / c)
+    span = column_max(ij) - column_min(ij) + 1
     part = part_xy = part_of = None
     if float(span[0]) * float(span[1]) > ONE_PART_CELLS:
         part, part_xy, part_of = _parts(ij, c, go, max(PART_GAP, 4.0 * params.search_radius))
@@ -129,7 +132,7 @@ def ground_model(
         members = np.split(order, np.cumsum(np.bincount(part))[:-1])
     dtms, origins = [], []
     for sel in members:
-        lo = ij[sel].min(axis=0)
+        lo = column_min(ij[sel])
         dtms.append(_part_dtm(xyz[sel], ij[sel] - lo, params, corner=lo))
         origins.append(go + lo * c)
     model = GroundModel(tuple(dtms), np.array(origins), c, 0.0, part_xy, part_of)
@@ -162,9 +165,9 @@ def _parts(ij: np.ndarray, cell: float, grid_origin: np.ndarray, gap: float):
     """
     per = max(1, int(np.ceil(gap / cell)))  # cells per square
     sq = ij // per
-    lo = sq.min(axis=0)
+    lo = column_min(sq)
     sq -= lo
-    span = sq.max(axis=0) + 1
+    span = column_max(sq) + 1
     if float(span[0]) * float(span[1]) > 50_000_000:  # the grid of squares itself
         raise InputError(f"points spread over {span[0] * per * cell:.0f} x {span[1] * per * cell:.0f} m; split the file")
     occupied = np.zeros((int(span[0]), int(span[1])), bool)
@@ -197,7 +200,7 @@ def _part_dtm(xyz: np.ndarray, ij: np.ndarray, params: GroundParams, *, corner: 
     # (a cell is ground if its minimum is near the local minimum, allowing for slope);
     # holes (cells under dense canopy with no ground return) take the nearest ground cell.
     c = params.cell_size
-    nx, ny = (ij.max(axis=0) + 1).tolist()
+    nx, ny = (column_max(ij) + 1).tolist()
     flat = ij[:, 0] * ny + ij[:, 1]
     zmin = np.full(nx * ny, np.inf)
     np.minimum.at(zmin, flat, xyz[:, 2])
@@ -209,12 +212,13 @@ def _part_dtm(xyz: np.ndarray, ij: np.ndarray, params: GroundParams, *, corner: 
     med = ndimage.median_filter(_fill_nearest(zmin, occupied), size=5, mode="nearest")
     low = occupied & (zmin < med - params.outlier_depth)
     if low.any():
-        # recompute those cells' minima without the low points
-        pz = zmin.ravel()[flat]
-        bad_pt = low.ravel()[flat] & (xyz[:, 2] <= pz + 1e-9)
-        zmin2 = np.full(nx * ny, np.inf)
-        keep = ~bad_pt
-        np.minimum.at(zmin2, flat[keep], xyz[keep, 2])
+        # recompute those cells' minima without the low points (other cells keep theirs)
+        in_low = np.flatnonzero(low.ravel()[flat])
+        z_low = xyz[in_low, 2]
+        keep = z_low > zmin.ravel()[flat[in_low]] + 1e-9
+        zmin2 = zmin.ravel().copy()
+        zmin2[low.ravel()] = np.inf
+        np.minimum.at(zmin2, flat[in_low[keep]], z_low[keep])
         zmin = zmin2.reshape(nx, ny)
         occupied = np.isfinite(zmin)
 

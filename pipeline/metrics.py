@@ -67,6 +67,25 @@ class TreePartials:
         )
 
 
+def _runs(labels: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """Group equal labels: a stable order that sorts ``labels`` (n,) int, and each
+    label's value, first position and length in that order (like ``np.unique`` with
+    ``return_index`` and ``return_counts`` on the sorted labels).
+
+    Labels in 0..65535 (tree ids of any tile) are sorted as uint16, which numpy sorts by
+    radix, three times faster than int64.
+    """
+    labels = np.asarray(labels)
+    key = labels
+    if labels.size and labels.min() >= 0 and labels.max() <= np.iinfo(np.uint16).max:
+        key = labels.astype(np.uint16)
+    order = np.argsort(key, kind="stable")
+    s = labels[order]
+    start = np.flatnonzero(np.r_[True, s[1:] != s[:-1]]) if s.size else np.zeros(0, np.int64)
+    counts = np.diff(np.r_[start, s.size])
+    return order, s[start], start, counts
+
+
 def _hull_vertices(pts: np.ndarray) -> np.ndarray:
     """Vertices of the convex hull of ``pts`` (all points if degenerate or tiny)."""
     d = pts.shape[1]
@@ -119,13 +138,10 @@ def tree_partials(
     TreePartials for the trees that have at least one point.
     """
     # Strategy: sort the tree points by id once, then reduce each contiguous run.
-    mask = tree_id > 0
-    ids = tree_id[mask]
-    pts = xyz[mask]
-    wood = is_wood[mask]
-    order = np.argsort(ids, kind="stable")
-    ids, pts, wood = ids[order], pts[order], wood[order]
-    uniq, start, counts = np.unique(ids, return_index=True, return_counts=True)
+    idx = np.flatnonzero(tree_id > 0)
+    order, uniq, start, counts = _runs(tree_id[idx])
+    idx = idx[order]
+    pts, wood = xyz[idx], is_wood[idx]
     n_wood = np.add.reduceat(wood.astype(np.int64), start) if uniq.size else np.zeros(0, np.int64)
     z_max = np.maximum.reduceat(pts[:, 2], start) if uniq.size else np.zeros(0)
     crown_xy, crown_xyz = [], []
@@ -378,9 +394,8 @@ def tree_circles(xy: np.ndarray, tree_id: np.ndarray, k: int, *, fit=fit_circle)
     """
     centres = np.full((k, 2), np.nan)
     radii = np.full(k, np.nan)
-    order = np.argsort(tree_id, kind="stable")
-    xy, tree_id = xy[order], tree_id[order]
-    uniq, start, counts = np.unique(tree_id, return_index=True, return_counts=True)
+    order, uniq, start, counts = _runs(tree_id)
+    xy = xy[order]
     for t, s, c in zip(uniq, start, counts):
         centres[t - 1], radii[t - 1] = fit(xy[s : s + c])
     return centres, radii

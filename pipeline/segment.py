@@ -99,7 +99,14 @@ def segment_nodes(
         """Give each node of ``cand`` the tree of its nearest node of ``lab`` where that lies
         within ``bound`` [m] (scalar or per node; searched up to ``reach``) and the node lies
         within its trunk's crown radius; returns the nodes that joined."""
-        d, j = cKDTree(nodes[lab]).query(nodes[cand], distance_upper_bound=reach)
+        tree_of = cKDTree(nodes[lab])
+        bound = np.broadcast_to(np.minimum(bound, reach), cand.shape)
+        d, j = np.full(cand.shape, np.inf), np.zeros(cand.shape, np.int64)
+        # one search per distinct bound: a node far from every tree is given up on at its
+        # own bound, not at the widest one (the same nearest node wherever one is in reach)
+        for b in np.unique(bound[bound >= 0]):
+            sel = np.flatnonzero(bound == b)
+            d[sel], j[sel] = tree_of.query(nodes[cand[sel]], distance_upper_bound=b * (1 + 1e-9) + 1e-12)
         hit = np.isfinite(d) & (d <= bound)
         tree = node_tree[lab[j[hit]]]
         ok = within_crown(cand[hit], tree)  # the fallback must also respect the crown reach
@@ -275,6 +282,15 @@ def hard_surfaces(
     return np.isfinite(d)
 
 
+def _near_any(values: np.ndarray, centres: np.ndarray, reach: float) -> np.ndarray:
+    """(n,) bool: each value within ``reach`` of at least one of ``centres`` (k >= 1)."""
+    c = np.sort(centres)
+    i = np.searchsorted(c, values)
+    below = np.abs(values - c[np.maximum(i - 1, 0)])
+    above = np.abs(c[np.minimum(i, c.size - 1)] - values)
+    return np.minimum(below, above) <= reach
+
+
 def trunk_feet(
     xyz: np.ndarray,
     tree_id: np.ndarray,
@@ -322,7 +338,11 @@ def trunk_feet(
     cand = cand[((xyz[cand, :2] - own) ** 2).sum(1) <= max_radius**2]
     if cand.size == 0:
         return empty
-    # ground points sorted by x: each trunk looks only at its own narrow window
+    # ground points sorted by x: each trunk looks only at its own narrow window. A foot
+    # lies within 2 max_radius + margin of its trunk in x and in y; sort only such points.
+    reach_any = 2.0 * max_radius + margin
+    for d in (0, 1):
+        gidx = gidx[_near_any(xyz[gidx, d], trunk_xy[:, d], reach_any)]
     gidx = gidx[np.argsort(xyz[gidx, 0], kind="stable")]
     gx = xyz[gidx, 0]
     centres, radii = tree_circles(xyz[cand, :2], tree_id[cand], k)

@@ -33,6 +33,17 @@ class Voxels:
         return int(self.counts.shape[0])
 
 
+def column_min(a: np.ndarray) -> np.ndarray:
+    """``a.min(axis=0)`` of an (n, d) array, shape (d,), in one pass per column (numpy's
+    reduction over the rows of a narrow array is 10-20 times slower)."""
+    return np.array([a[:, d].min() for d in range(a.shape[1])], dtype=a.dtype)
+
+
+def column_max(a: np.ndarray) -> np.ndarray:
+    """``a.max(axis=0)`` of an (n, d) array, like :func:`column_min`."""
+    return np.array([a[:, d].max() for d in range(a.shape[1])], dtype=a.dtype)
+
+
 def voxelize(
     xyz: np.ndarray,
     *,
@@ -56,10 +67,12 @@ def voxelize(
     xyz = np.asarray(xyz, dtype=np.float64)
     if xyz.shape[0] == 0:
         return Voxels(np.zeros(0, np.int64), np.zeros((0, 3), np.int64), np.zeros((0, 3)), np.zeros(0, np.int64))
-    keys = np.floor((xyz - np.asarray(grid_origin, dtype=np.float64)) / voxel_size).astype(np.int64)
-    lo = keys.min(axis=0)
+    keys = np.empty(xyz.shape, np.int64)
+    for d in range(3):  # column by column: no (n, 3) float temporaries
+        keys[:, d] = np.floor((xyz[:, d] - float(grid_origin[d])) / voxel_size)
+    lo = column_min(keys)
     rel = keys - lo
-    span = rel.max(axis=0) + 1
+    span = column_max(rel) + 1
     if float(span[0]) * float(span[1]) * float(span[2]) >= 2**62:
         raise ValueError("block extent too large for the voxel size; tile it")
     packed = (rel[:, 0] * span[1] + rel[:, 1]) * span[2] + rel[:, 2]

@@ -118,8 +118,9 @@ def _summarise(tile_id, xyz, core, result, grid: TileGrid | None, origin, params
         owned = np.ones(len(trunks), dtype=bool)
     else:
         owned = core_tile(trunks[:, :2] + np.asarray(origin[:2]), grid) == tile_id
+    sel = slice(None) if core.all() else core  # a whole block: no copies
     partials = tree_partials(
-        xyz[core], result.tree_id[core], result.is_wood[core], trunks[:, 2], params=params.metrics
+        xyz[sel], result.tree_id[sel], result.is_wood[sel], trunks[:, 2], params=params.metrics
     )
     return {
         "tile_id": int(tile_id),

@@ -183,3 +183,45 @@ def test_one_neighbour_search_serves_both_radii():
     assert abs(own - shared).max() == 0
     assert abs(neighbourhood_matrix(nodes, radius=0.25) - neighbourhood_matrix(nodes, radius=0.25, candidates=pairs)).max() == 0
     assert shared.max() <= 0.15
+
+
+@settings(max_examples=40, deadline=None)
+@given(st.integers(0, 40), st.integers(0, 10_000), st.booleans())
+def test_symmetric_csr_equals_scipys_canonical_matrix(m, seed, with_diagonal):
+    from pipeline.graph import symmetric_csr
+
+    rng = np.random.default_rng(seed)
+    upper = np.argwhere(np.triu(rng.random((m, m)) < 0.3, k=1))
+    pairs = upper[rng.permutation(len(upper))]  # any order, as the KD-tree gives them
+    w = rng.random(len(pairs)) + 0.1
+    diag = rng.random(m) if with_diagonal else None
+    got = symmetric_csr(pairs, w, m, diagonal=diag)
+    rows = [pairs[:, 0], pairs[:, 1]] + ([np.arange(m)] if with_diagonal else [])
+    cols = [pairs[:, 1], pairs[:, 0]] + ([np.arange(m)] if with_diagonal else [])
+    vals = [w, w] + ([diag] if with_diagonal else [])
+    want = sparse.csr_matrix((np.concatenate(vals), (np.concatenate(rows), np.concatenate(cols))), shape=(m, m))
+    assert got.has_sorted_indices
+    # the same arrays, element for element: sparse products sum in the same order
+    np.testing.assert_array_equal(got.indptr, want.indptr)
+    np.testing.assert_array_equal(got.indices, want.indices)
+    np.testing.assert_array_equal(got.data, want.data)
+
+
+def test_pair_lengths_by_hand():
+    from pipeline.graph import pair_lengths
+
+    pts = np.array([[0.0, 0.0, 0.0], [3.0, 4.0, 0.0], [1.0, 2.0, 2.0]])
+    np.testing.assert_allclose(pair_lengths(pts, np.array([[0, 1], [0, 2], [1, 2], [2, 2]])), [5.0, 3.0, np.sqrt(12.0), 0.0])
+    assert pair_lengths(pts, np.zeros((0, 2), np.int64)).shape == (0,)
+
+
+def test_reweight_keeps_the_structure_and_scales_each_edge():
+    from pipeline.graph import reweight
+
+    g = build_graph(np.array([[0.0, 0, 0], [0.1, 0, 0], [0.2, 0, 0]]), radius=0.15)
+    r = reweight(g, np.array([1.0, 3.0, 5.0]))
+    np.testing.assert_allclose(r.toarray(), g.toarray() * np.array([[0, 2, 3], [2, 0, 4], [3, 4, 0]]))
+    # a matrix whose rows are not sorted gives the same result as its sorted form
+    messy = sparse.csr_matrix((g.data[::-1].copy(), g.indices[::-1].copy(), g.indptr.copy()), shape=g.shape)
+    messy.has_sorted_indices = False
+    assert (reweight(messy, np.array([1.0, 3.0, 5.0])) != reweight(messy.sorted_indices(), np.array([1.0, 3.0, 5.0]))).nnz == 0

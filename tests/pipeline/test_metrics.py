@@ -136,3 +136,18 @@ def test_crown_hulls_match_hulls_of_all_points(shape):
     assert {tuple(p) for p in xy} == {tuple(p) for p in pts[ConvexHull(pts[:, :2]).vertices, :2]}
     if shape == "cone":
         assert ConvexHull(xyz).volume == pytest.approx(ConvexHull(pts).volume, rel=1e-12)
+
+
+@settings(max_examples=60, deadline=None)
+@given(st.lists(st.integers(-3, 70_000), max_size=60), st.booleans())
+def test_runs_group_labels_like_a_stable_sort_and_unique(labels, small):
+    from pipeline.metrics import _runs
+
+    labels = np.asarray([v % 50 for v in labels] if small else labels, dtype=np.int64)
+    order, uniq, start, counts = _runs(labels)
+    np.testing.assert_array_equal(order, np.argsort(labels, kind="stable"))
+    want_u, want_s, want_c = np.unique(labels[order], return_index=True, return_counts=True)
+    np.testing.assert_array_equal(uniq, want_u)
+    np.testing.assert_array_equal(start, want_s)
+    np.testing.assert_array_equal(counts, want_c)
+    assert uniq.dtype == np.int64

@@ -38,3 +38,13 @@ def test_shared_grid_origin_gives_same_voxels_for_subsets():
 def test_empty_input():
     vox = voxelize(np.zeros((0, 3)), voxel_size=0.1)
     assert vox.n == 0 and vox.point_voxel.shape == (0,)
+
+
+@settings(max_examples=50, deadline=None)
+@given(arrays(np.int64, st.tuples(st.integers(1, 50), st.integers(1, 4)), elements=st.integers(-(2**40), 2**40)))
+def test_column_min_and_max_equal_numpys_reductions(a):
+    from pipeline.voxels import column_max, column_min
+
+    np.testing.assert_array_equal(column_min(a), a.min(axis=0))
+    np.testing.assert_array_equal(column_max(a), a.max(axis=0))
+    assert column_min(a).dtype == a.dtype
