@@ -8,7 +8,18 @@ from scipy import sparse
 from scipy.sparse import csgraph
 
 from pipeline.enrichment import neighbourhood_matrix
-from pipeline.graph import bridge_floating, build_graph, check_graph_size, depths, node_pairs, shortest_paths, subtree_sizes
+from pipeline.graph import (
+    bridge_floating,
+    build_graph,
+    check_graph_size,
+    depths,
+    node_pairs,
+    pair_lengths,
+    reweight,
+    shortest_paths,
+    subtree_sizes,
+    symmetric_csr,
+)
 from pipeline.voxels import voxelize
 
 
@@ -188,8 +199,6 @@ def test_one_neighbour_search_serves_both_radii():
 @settings(max_examples=40, deadline=None)
 @given(st.integers(0, 40), st.integers(0, 10_000), st.booleans())
 def test_symmetric_csr_equals_scipys_canonical_matrix(m, seed, with_diagonal):
-    from pipeline.graph import symmetric_csr
-
     rng = np.random.default_rng(seed)
     upper = np.argwhere(np.triu(rng.random((m, m)) < 0.3, k=1))
     pairs = upper[rng.permutation(len(upper))]  # any order, as the KD-tree gives them
@@ -208,16 +217,12 @@ def test_symmetric_csr_equals_scipys_canonical_matrix(m, seed, with_diagonal):
 
 
 def test_pair_lengths_by_hand():
-    from pipeline.graph import pair_lengths
-
     pts = np.array([[0.0, 0.0, 0.0], [3.0, 4.0, 0.0], [1.0, 2.0, 2.0]])
     np.testing.assert_allclose(pair_lengths(pts, np.array([[0, 1], [0, 2], [1, 2], [2, 2]])), [5.0, 3.0, np.sqrt(12.0), 0.0])
     assert pair_lengths(pts, np.zeros((0, 2), np.int64)).shape == (0,)
 
 
 def test_reweight_keeps_the_structure_and_scales_each_edge():
-    from pipeline.graph import reweight
-
     g = build_graph(np.array([[0.0, 0, 0], [0.1, 0, 0], [0.2, 0, 0]]), radius=0.15)
     r = reweight(g, np.array([1.0, 3.0, 5.0]))
     np.testing.assert_allclose(r.toarray(), g.toarray() * np.array([[0, 2, 3], [2, 0, 4], [3, 4, 0]]))

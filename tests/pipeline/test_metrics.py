@@ -7,6 +7,7 @@ from hypothesis import strategies as st
 
 from pipeline.metrics import (
     TREE_COLUMNS,
+    _runs,
     combine_partials,
     finalize_metrics,
     fit_circle,
@@ -141,8 +142,6 @@ def test_crown_hulls_match_hulls_of_all_points(shape):
 @settings(max_examples=60, deadline=None)
 @given(st.lists(st.integers(-3, 70_000), max_size=60), st.booleans())
 def test_runs_group_labels_like_a_stable_sort_and_unique(labels, small):
-    from pipeline.metrics import _runs
-
     labels = np.asarray([v % 50 for v in labels] if small else labels, dtype=np.int64)
     order, uniq, start, counts = _runs(labels)
     np.testing.assert_array_equal(order, np.argsort(labels, kind="stable"))

@@ -4,7 +4,15 @@ import numpy as np
 
 from pipeline.graph import build_graph
 from pipeline.params import SegmentParams
-from pipeline.segment import curved_patches, faces, hard_surfaces, planar_patches, segment_nodes, trunk_feet
+from pipeline.segment import (
+    _near_any,
+    curved_patches,
+    faces,
+    hard_surfaces,
+    planar_patches,
+    segment_nodes,
+    trunk_feet,
+)
 
 
 def _grid(x0, y0, z, n, step=0.1):
@@ -220,8 +228,6 @@ def test_trunk_feet_need_a_plausible_trunk():
 
 
 def test_near_any_by_hand():
-    from pipeline.segment import _near_any
-
     values = np.array([-5.0, 0.0, 0.9, 1.1, 4.5, 9.0, 10.0, 12.5])
     got = _near_any(values, np.array([10.0, 0.0, 4.0]), 1.0)
     np.testing.assert_array_equal(got, [False, True, True, False, True, True, True, False])

@@ -5,7 +5,7 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 from hypothesis.extra.numpy import arrays
 
-from pipeline.voxels import voxelize
+from pipeline.voxels import column_max, column_min, voxelize
 
 coords = arrays(np.float64, st.tuples(st.integers(1, 300), st.just(3)), elements=st.floats(-50, 50, allow_nan=False))
 
@@ -43,8 +43,6 @@ def test_empty_input():
 @settings(max_examples=50, deadline=None)
 @given(arrays(np.int64, st.tuples(st.integers(1, 50), st.integers(1, 4)), elements=st.integers(-(2**40), 2**40)))
 def test_column_min_and_max_equal_numpys_reductions(a):
-    from pipeline.voxels import column_max, column_min
-
     np.testing.assert_array_equal(column_min(a), a.min(axis=0))
     np.testing.assert_array_equal(column_max(a), a.max(axis=0))
     assert column_min(a).dtype == a.dtype
