@@ -19,6 +19,7 @@ from scipy import sparse
 
 from pipeline.enrichment import ShapeFeatures
 from pipeline.graph import subtree_sizes
+from pipeline.metrics import group_runs
 from pipeline.params import MatterParams
 
 #: names of the columns of :func:`wood_features`
@@ -85,12 +86,10 @@ def neighbourhood_max(values: np.ndarray, adjacency: sparse.csr_matrix) -> np.nd
 
 
 def _per_group(values: np.ndarray, group: np.ndarray, fn) -> np.ndarray:
-    order = np.argsort(group, kind="stable")
-    g = group[order]
-    uniq, start = np.unique(g, return_index=True)
+    order, uniq, start, counts = group_runs(group)
     out = np.zeros(int(group.max()) + 1 if group.size else 1)
-    for u, a, b in zip(uniq, start, np.r_[start[1:], g.size]):
-        out[u] = fn(values[order[a:b]])
+    for u, a, c in zip(uniq, start, counts):
+        out[u] = fn(values[order[a : a + c]])
     return out
 
 

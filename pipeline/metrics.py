@@ -67,7 +67,7 @@ class TreePartials:
         )
 
 
-def _runs(labels: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+def group_runs(labels: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
     """Group equal labels: a stable order that sorts ``labels`` (n,) int, and each
     label's value, first position and length in that order (like ``np.unique`` with
     ``return_index`` and ``return_counts`` on the sorted labels).
@@ -139,7 +139,7 @@ def tree_partials(
     """
     # Strategy: sort the tree points by id once, then reduce each contiguous run.
     idx = np.flatnonzero(tree_id > 0)
-    order, uniq, start, counts = _runs(tree_id[idx])
+    order, uniq, start, counts = group_runs(tree_id[idx])
     idx = idx[order]
     pts, wood = xyz[idx], is_wood[idx]
     n_wood = np.add.reduceat(wood.astype(np.int64), start) if uniq.size else np.zeros(0, np.int64)
@@ -394,7 +394,7 @@ def tree_circles(xy: np.ndarray, tree_id: np.ndarray, k: int, *, fit=fit_circle)
     """
     centres = np.full((k, 2), np.nan)
     radii = np.full(k, np.nan)
-    order, uniq, start, counts = _runs(tree_id)
+    order, uniq, start, counts = group_runs(tree_id)
     xy = xy[order]
     for t, s, c in zip(uniq, start, counts):
         centres[t - 1], radii[t - 1] = fit(xy[s : s + c])

@@ -10,7 +10,7 @@ from scipy.sparse import csgraph
 from scipy.spatial import cKDTree
 
 from pipeline.graph import ShortestPaths, shortest_paths
-from pipeline.metrics import tree_circles
+from pipeline.metrics import group_runs, tree_circles
 from pipeline.params import SegmentParams
 
 #: rounds in which small floating fragments may join a tree through fragments that joined
@@ -202,8 +202,8 @@ def curved_patches(
     idx = np.flatnonzero(faces(patch, size, min_nodes))
     if idx.size == 0:
         return out
-    idx = idx[np.argsort(patch[idx], kind="stable")]
-    ids, start = np.unique(patch[idx], return_index=True)
+    order, ids, start, _ = group_runs(patch[idx])
+    idx = idx[order]
     for pid, part in zip(ids, np.split(idx, start[1:])):
         n = normals[part]
         w, v = np.linalg.eigh(n.T @ n / part.size)

@@ -7,10 +7,10 @@ from hypothesis import strategies as st
 
 from pipeline.metrics import (
     TREE_COLUMNS,
-    _runs,
     combine_partials,
     finalize_metrics,
     fit_circle,
+    group_runs,
     tree_partials,
     trunk_circle,
     trunk_diameters,
@@ -141,9 +141,9 @@ def test_crown_hulls_match_hulls_of_all_points(shape):
 
 @settings(max_examples=60, deadline=None)
 @given(st.lists(st.integers(-3, 70_000), max_size=60), st.booleans())
-def test_runs_group_labels_like_a_stable_sort_and_unique(labels, small):
+def test_group_runs_groups_labels_like_a_stable_sort_and_unique(labels, small):
     labels = np.asarray([v % 50 for v in labels] if small else labels, dtype=np.int64)
-    order, uniq, start, counts = _runs(labels)
+    order, uniq, start, counts = group_runs(labels)
     np.testing.assert_array_equal(order, np.argsort(labels, kind="stable"))
     want_u, want_s, want_c = np.unique(labels[order], return_index=True, return_counts=True)
     np.testing.assert_array_equal(uniq, want_u)
