@@ -40,7 +40,9 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--tile-size", type=float, default=20.0, help="tile core size for the tiled runs [m] (default 20)")
     p.add_argument("--workers", type=int, default=2, help="dask workers for the size runs (default 2)")
     p.add_argument("--workers-block", type=float, default=10.0, help="size of the 1-vs-2-workers block, millions of points (default 10)")
-    p.add_argument("--skip", default="", help="comma-separated parts to skip: accuracy,real,stand,scaling,workers,peers")
+    p.add_argument("--tile-sizes", type=_floats, default=[20.0, 30.0, 40.0, 60.0],
+                   help="tile sizes [m] compared on the --workers-block block, comma-separated (default 20,30,40,60)")
+    p.add_argument("--skip", default="", help="comma-separated parts to skip: accuracy,real,stand,scaling,workers,tiles,peers")
     p.add_argument("--work-dir", type=Path, default=Path(os.environ.get("ORCHARD_BENCH_WORK", "/tmp/orchard-bench")),
                    help="folder for generated blocks and outputs (reused between runs; default /tmp/orchard-bench)")
     p.add_argument("--out-dir", type=Path, default=HERE, help="where results.md and the plots go (default bench/)")
@@ -106,7 +108,7 @@ def main(argv: list[str] | None = None) -> int:
         data["real_data_md"] = real_data.run() if real_data.REAL.is_dir() else "## Real data\n\nNot run: ../shared/data/real is absent.\n"
 
     stand = None
-    if "stand" not in skip or "scaling" not in skip or "workers" not in skip:
+    if not {"stand", "scaling", "workers", "tiles"} <= skip:  # any part that needs the stand density
         from bench.blocks import count_points, stand_density, stand_params
 
         density = stand_density(args.stand_points)
@@ -132,14 +134,21 @@ def main(argv: list[str] | None = None) -> int:
                                             tile_size=args.tile_size, workers=args.workers, log=log)
         log(f"  exponent {data['scaling']['exponent']:.2f}")
 
-    if "workers" not in skip:
+    if "workers" not in skip or "tiles" not in skip:
         from bench import scaling
         from bench.blocks import make_block, orchard_params
 
         target = int(args.workers_block * 1_000_000)
         block = make_block(work, f"size-{target // 1_000_000}M", orchard_params(target, density, points_per_tree))
+    if "workers" not in skip:
         log(f"workers: 1 vs 2 on {block.n_points:,} points")
         data["workers"] = scaling.run_workers(work, block, tile_size=args.tile_size, log=log)
+    if "tiles" not in skip:
+        from pipeline.params import PipelineParams
+
+        log(f"tile sizes: {', '.join(f'{s:g} m' for s in args.tile_sizes)} on {block.n_points:,} points")
+        data["tiles"] = scaling.run_tile_sizes(work, block, tile_sizes=args.tile_sizes, workers=args.workers,
+                                               buffer=PipelineParams().reach(), log=log)
 
     if "peers" not in skip:
         from bench import peers

@@ -303,6 +303,24 @@ def render(data: dict) -> str:
             out += ["", f"This machine has {data['machine']['usable_cores']} cores, shared by the workers and the "
                     "process that tiles, merges and writes."]
 
+    ts = data.get("tiles")
+    if ts:
+        b = ts["block"]
+        out += ["", "## Tile size", ""]
+        out.append(f"The same block ({b['n_points']:,} points, {b['n_trees']} trees) at several tile sizes, on a fresh "
+                   f"`LocalCluster` of {ts['workers']} single-threaded worker processes. Each tile is processed with a "
+                   f"{ts['buffer']:.2f} m buffer on every side (`params.reach()`), so an interior tile of size s "
+                   "processes ((s + 2 × buffer) / s)² times the points of its core (*buffer factor*): larger tiles "
+                   "repeat less work and need more memory per worker.")
+        out += ["", "| tile size | buffer factor | tiles | trees found | wall time | CPU time | points/s | tiling / processing / merge+write | largest worker peak |",
+                "| --- | --- | --- | --- | --- | --- | --- | --- | --- |"]
+        for r in ts["rows"]:
+            t = r.get("timings") or {}
+            split = " / ".join(f"{t[k]:.1f} s" for k in ("tile", "process", "merge_write") if k in t)
+            out.append(f"| {r['tile_size']:g} m | {r['buffer_factor']:.2f} | {r['n_tiles']} | {r['n_found']} | "
+                       f"{r['wall_s']:.1f} s | {r.get('cpu_s', float('nan')):.1f} s | {_mpts(r['points_per_s'])} | {split} | "
+                       f"{_gib(max(r['worker_maxrss'] or [0]))} |")
+
     pe = data.get("peers")
     if pe:
         st = pe["status"]

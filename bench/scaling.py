@@ -49,6 +49,26 @@ def run_sizes(work: Path, targets: list[int], *, density: float, points_per_tree
     return {"rows": rows, "exponent": exponent, "tile_size": tile_size, "workers": workers}
 
 
+def run_tile_sizes(work: Path, block, *, tile_sizes: list[float], workers: int, buffer: float, log=print) -> dict:
+    """The same block tiled at each tile size, on ``workers`` single-threaded workers.
+
+    Every tile is processed with its buffer (``buffer`` [m] on each side): an interior
+    tile of size s reads ((s + 2 buffer) / s)^2 times the points of its core.
+    """
+    rows = []
+    for size in tile_sizes:
+        r = measure({"kind": "job", "input": block.las, "out": str(work / "out" / f"tiles-{size:g}"),
+                     "workers": workers, "tile_size": size, "repeats": 1}, timeout=6 * 3600)
+        run = r["runs"][0]
+        rows.append({"tile_size": size, "buffer_factor": ((size + 2 * buffer) / size) ** 2, "wall_s": run["wall_s"],
+                     "cpu_s": run.get("cpu_s"), "timings": run["timings"], "n_tiles": run["n_tiles"],
+                     "n_found": run["n_trees"], "points_per_s": block.n_points / run["wall_s"],
+                     "worker_maxrss": r.get("worker_maxrss", [])})
+        log(f"  {size:g} m tiles: {run['wall_s']:.1f} s ({run['n_tiles']} tiles), "
+            f"worker peak {max(r.get('worker_maxrss', [0])) / 2**30:.2f} GiB")
+    return {"rows": rows, "block": block.__dict__, "workers": workers, "buffer": buffer}
+
+
 def run_workers(work: Path, block, *, tile_size: float, counts=(1, 2), log=print) -> dict:
     """The same tiled block on 1 and 2 workers."""
     rows = []
