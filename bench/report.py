@@ -46,6 +46,12 @@ def _gib(b) -> str:
     return "–" if not b else f"{b / 2**30:.2f} GiB"
 
 
+def _stage_split(run: dict) -> str:
+    """"tiling / processing / merge+write" seconds of a tiled run."""
+    t = run.get("timings") or {}
+    return " / ".join(f"{t[k]:.1f} s" for k in ("tile", "process", "merge_write") if k in t)
+
+
 def _mpts(x) -> str:
     return f"{x / 1e6:.2f} M/s"
 
@@ -289,10 +295,8 @@ def render(data: dict) -> str:
         out += ["", "| workers | wall time | CPU time | cores used (CPU ÷ wall) | speed-up | tiles | tiling / processing / merge+write | largest worker peak |",
                 "| --- | --- | --- | --- | --- | --- | --- | --- |"]
         for r in wk["rows"]:
-            t = r.get("timings") or {}
-            split = " / ".join(f"{t[k]:.1f} s" for k in ("tile", "process", "merge_write") if k in t)
             out.append(f"| {r['workers']} | {r['wall_s']:.1f} s | {r.get('cpu_s', float('nan')):.1f} s | {_cores(r)} | "
-                       f"{r['speedup']:.2f}× | {r['n_tiles']} | {split} | {_gib(max(r['worker_maxrss'] or [0]))} |")
+                       f"{r['speedup']:.2f}× | {r['n_tiles']} | {_stage_split(r)} | {_gib(max(r['worker_maxrss'] or [0]))} |")
         two = [r for r in wk["rows"] if r["workers"] >= 2 and r.get("cpu_s")]
         if two and two[0]["cpu_s"] / two[0]["wall_s"] < 1.5:
             out += ["", f"With {two[0]['workers']} workers the measured processes used only "
@@ -315,10 +319,8 @@ def render(data: dict) -> str:
         out += ["", "| tile size | buffer factor | tiles | trees found | wall time | CPU time | points/s | tiling / processing / merge+write | largest worker peak |",
                 "| --- | --- | --- | --- | --- | --- | --- | --- | --- |"]
         for r in ts["rows"]:
-            t = r.get("timings") or {}
-            split = " / ".join(f"{t[k]:.1f} s" for k in ("tile", "process", "merge_write") if k in t)
             out.append(f"| {r['tile_size']:g} m | {r['buffer_factor']:.2f} | {r['n_tiles']} | {r['n_found']} | "
-                       f"{r['wall_s']:.1f} s | {r.get('cpu_s', float('nan')):.1f} s | {_mpts(r['points_per_s'])} | {split} | "
+                       f"{r['wall_s']:.1f} s | {r.get('cpu_s', float('nan')):.1f} s | {_mpts(r['points_per_s'])} | {_stage_split(r)} | "
                        f"{_gib(max(r['worker_maxrss'] or [0]))} |")
 
     pe = data.get("peers")
