@@ -24,15 +24,20 @@ def fit_exponent(points, seconds) -> float:
     return float(slope)
 
 
+def _tiled_run(las: str, out: Path, *, workers: int, tile_size: float) -> tuple[dict, dict]:
+    """One tiled job on a fresh cluster of ``workers``: (the measurement, its run)."""
+    r = measure({"kind": "job", "input": las, "out": str(out), "workers": workers, "tile_size": tile_size, "repeats": 1},
+                timeout=6 * 3600)
+    return r, r["runs"][0]
+
+
 def run_sizes(work: Path, targets: list[int], *, density: float, points_per_tree: float, tile_size: float,
               workers: int, log=print) -> dict:
     rows = []
     for target in targets:
         block = make_block(work, f"size-{target // 1_000_000}M", orchard_params(target, density, points_per_tree))
         log(f"  size ~{target / 1e6:g} M: {block.n_points:,} points, {block.n_trees} trees; tiled, {workers} workers")
-        r = measure({"kind": "job", "input": block.las, "out": str(work / "out" / f"size-{target}"),
-                     "workers": workers, "tile_size": tile_size, "repeats": 1}, timeout=6 * 3600)
-        run = r["runs"][0]
+        r, run = _tiled_run(block.las, work / "out" / f"size-{target}", workers=workers, tile_size=tile_size)
         d = measure({"kind": "decode", "input": block.las, "repeats": 1 if block.n_points > 20e6 else 3}, timeout=3600)
         rows.append({
             "target": target, "n_points": block.n_points, "n_trees": block.n_trees, "n_found": run["n_trees"],
@@ -57,9 +62,7 @@ def run_tile_sizes(work: Path, block, *, tile_sizes: list[float], workers: int, 
     """
     rows = []
     for size in tile_sizes:
-        r = measure({"kind": "job", "input": block.las, "out": str(work / "out" / f"tiles-{size:g}"),
-                     "workers": workers, "tile_size": size, "repeats": 1}, timeout=6 * 3600)
-        run = r["runs"][0]
+        r, run = _tiled_run(block.las, work / "out" / f"tiles-{size:g}", workers=workers, tile_size=size)
         rows.append({"tile_size": size, "buffer_factor": ((size + 2 * buffer) / size) ** 2, "wall_s": run["wall_s"],
                      "cpu_s": run.get("cpu_s"), "timings": run["timings"], "n_tiles": run["n_tiles"],
                      "n_found": run["n_trees"], "points_per_s": block.n_points / run["wall_s"],
@@ -73,9 +76,7 @@ def run_workers(work: Path, block, *, tile_size: float, counts=(1, 2), log=print
     """The same tiled block on 1 and 2 workers."""
     rows = []
     for n in counts:
-        r = measure({"kind": "job", "input": block.las, "out": str(work / "out" / f"workers-{n}"),
-                     "workers": n, "tile_size": tile_size, "repeats": 1}, timeout=6 * 3600)
-        run = r["runs"][0]
+        r, run = _tiled_run(block.las, work / "out" / f"workers-{n}", workers=n, tile_size=tile_size)
         rows.append({"workers": n, "wall_s": run["wall_s"], "cpu_s": run.get("cpu_s"), "timings": run["timings"], "n_tiles": run["n_tiles"],
                      "worker_maxrss": r.get("worker_maxrss", []), "main_maxrss": r["main_maxrss"]})
         log(f"  {n} worker(s): {run['wall_s']:.1f} s ({run['n_tiles']} tiles)")
