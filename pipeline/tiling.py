@@ -110,9 +110,24 @@ def check_buffer(buffer: float, reach: float) -> None:
     if buffer < reach:
         raise ParameterError(
             f"tile buffer {buffer:g} m is smaller than the reach of the parameters ({reach:g} m = "
-            "2 x segment.max_crown_radius + graph.edge_radius): tiles would cut crowns; "
+            "segment.max_crown_radius + 1 m + graph.edge_radius): tiles would cut crowns; "
             f"use --buffer {math.ceil(reach * 100) / 100:g} or more, or a smaller --segment-max-crown-radius"
         )
+
+
+def check_tiling(tile_size: float, buffer: float | None, reach: float | None = None) -> None:
+    """Raise ParameterError unless ``tile_size`` [m] is positive and finite and ``buffer``
+    [m] (None = the reach) is non-negative, finite and at least ``reach`` (when given)."""
+    s = float(tile_size)
+    if not (math.isfinite(s) and s > 0):
+        raise ParameterError(f"tile size must be a positive number of metres, not {tile_size}")
+    if buffer is None:
+        return
+    b = float(buffer)
+    if not (math.isfinite(b) and b >= 0):
+        raise ParameterError(f"tile buffer must be a non-negative number of metres, not {buffer}")
+    if reach is not None:
+        check_buffer(b, reach)
 
 
 def plan_grid(
@@ -152,16 +167,11 @@ def plan_grid(
     ParameterError
         Non-positive or non-finite sizes, a buffer below the reach, too many tiles.
     """
+    check_tiling(tile_size, buffer, reach)
     s, b = float(tile_size), float(buffer)
-    if not (math.isfinite(s) and s > 0):
-        raise ParameterError(f"tile size must be a positive number of metres, not {tile_size}")
-    if not (math.isfinite(b) and b >= 0):
-        raise ParameterError(f"tile buffer must be a non-negative number of metres, not {buffer}")
     gx, gy = (float(v) for v in grid_origin)
     if not (math.isfinite(gx) and math.isfinite(gy)):
         raise ParameterError(f"grid origin must be finite, not {tuple(grid_origin)}")
-    if reach is not None:
-        check_buffer(b, reach)
     (c0, c1), (r0, r1) = (
         (_cell(np.asarray([mins[0]]), gx, s)[0], _cell(np.asarray([maxs[0]]), gx, s)[0]),
         (_cell(np.asarray([mins[1]]), gy, s)[0], _cell(np.asarray([maxs[1]]), gy, s)[0]),

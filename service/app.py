@@ -34,7 +34,16 @@ from service import report as reports
 from service.auth import authenticate
 from service.errors import TooLargeError, install_error_handlers
 from service.runner import Runner, job_dir
-from service.schedules import DEFAULT_CRON, ScheduleClock, next_run_time, run_schedule, validate_cron, validate_inbox
+from service.schedules import (
+    DEFAULT_CRON,
+    ScheduleClock,
+    check_inbox_use,
+    next_run_time,
+    run_schedule,
+    tenant_inbox_root,
+    validate_cron,
+    validate_inbox,
+)
 from service.settings import Settings
 from service.store import Store, accept_block
 
@@ -616,12 +625,7 @@ def create_app(settings: Settings) -> FastAPI:
     @v1.post("/jobs", response_model=Job, status_code=201, tags=["jobs"], summary="Submit a job for a block")
     def create_job(body: JobCreate, request: Request, response: Response, tenant: TenantDep, store: StoreDep):
         block = store.get_block(tenant["id"], body.block_id)
-        tiling = body.tiling.model_dump() if body.tiling else None
-        if body.tiling and body.tiling.buffer is not None and body.tiling.buffer < body.params.reach():
-            raise ParameterError(
-                f"tiling.buffer ({body.tiling.buffer} m) is smaller than the parameters' reach "
-                f"({body.params.reach():.2f} m): trees near tile edges would be cut; omit buffer to use the reach"
-            )
+        tiling = _checked_tiling(body.params, body.tiling)
         job = store.create_job(tenant_id=tenant["id"], block_id=block["id"], params=body.params.model_dump(), tiling=tiling)
         _wake_runner(request.app)
         response.headers["Location"] = f"/v1/jobs/{job['id']}"
@@ -733,13 +737,16 @@ def create_app(settings: Settings) -> FastAPI:
     @v1.post("/schedules", response_model=Schedule, status_code=201, tags=["schedules"], summary="Register an inbox and a cron schedule")
     def create_schedule(body: ScheduleCreate, request: Request, response: Response, tenant: TenantDep, store: StoreDep, settings: SettingsDep):
         cron = validate_cron(body.cron)
-        inbox = validate_inbox(body.inbox, root=settings.inbox_root)
+        # a tenant's inboxes lie in its own folder: no other farm's captures, no server files
+        inbox = validate_inbox(body.inbox, root=tenant_inbox_root(settings, tenant["name"]), root_label="this tenant's inbox folder")
+        check_inbox_use(inbox, settings=settings, store=store, tenant_id=tenant["id"])
+        tiling = _checked_tiling(body.params, body.tiling)  # as a job would: refused now, not every night
         rec = store.create_schedule(
             tenant_id=tenant["id"],
             inbox=str(inbox),
             cron=cron,
             params=body.params.model_dump(),
-            tiling=body.tiling.model_dump() if body.tiling else None,
+            tiling=tiling,
             next_run_at=next_run_time(cron, datetime.now().astimezone()).timestamp(),
         )
         clock = request.app.state.clock
@@ -771,6 +778,20 @@ def create_app(settings: Settings) -> FastAPI:
 
     app.include_router(v1)
     return app
+
+
+def _checked_tiling(params: PipelineParams, tiling: Tiling | None) -> dict | None:
+    """The tiling of a job or schedule as stored; ParameterError (422) when its buffer is
+    below the parameters' reach."""
+    if tiling is None:
+        return None
+    if tiling.buffer is not None and tiling.buffer < params.reach():
+        raise ParameterError(
+            f"tiling.buffer ({tiling.buffer:g} m) is smaller than the parameters' reach "
+            f"({params.reach():.2f} m = segment.max_crown_radius + 1 m + graph.edge_radius): trees near tile edges "
+            "would be cut; omit buffer to use the reach"
+        )
+    return tiling.model_dump()
 
 
 def _wake_runner(app: FastAPI) -> None:

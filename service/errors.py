@@ -9,12 +9,15 @@ a 500 with a short message: clients never see a traceback (it goes to the server
 from __future__ import annotations
 
 import logging
+import re
+from pathlib import Path
 
 from fastapi import FastAPI, Request
 from fastapi.exceptions import RequestValidationError
 from fastapi.responses import JSONResponse
 from pydantic import ValidationError
 from starlette.exceptions import HTTPException as StarletteHTTPException
+from starlette.requests import ClientDisconnect
 
 from pipeline.errors import ConflictError, InputError, NoTreesError, NotFoundError, OrchardError, ParameterError
 
@@ -70,6 +73,31 @@ def _json_safe_errors(errors) -> list[dict]:
     return out
 
 
+def _request_fields() -> dict[str, str]:
+    from pipeline.params import GROUPS
+
+    fields = {"tile-size": "tiling.tile_size", "buffer": "tiling.buffer"}
+    for group, model in GROUPS.items():
+        for name in model.model_fields:
+            fields[f"{group}-{name}".replace("_", "-")] = f"params.{group}.{name}"
+    return fields
+
+
+_FLAG = re.compile(r"--([a-z][a-z0-9-]*)")
+
+
+def api_wording(message: str, *, block_path: str | None = None, filename: str | None = None) -> str:
+    """A job's error message as an API client reads it: the block named by the file name
+    it was uploaded as, not the server's stored file, and parameters by their request
+    fields (``params.trunks.min_tree_height``, ``tiling.buffer``), not the command line's
+    options (``--trunks-min-tree-height``, ``--buffer``). Other text is unchanged."""
+    if block_path:
+        name = filename or "the block"
+        message = message.replace(str(block_path), name).replace(Path(block_path).name, name)
+    fields = _request_fields()
+    return _FLAG.sub(lambda m: fields.get(m.group(1), m.group(0)), message)
+
+
 def error_response(status: int, detail: str, **extra) -> JSONResponse:
     headers = {"WWW-Authenticate": "Bearer"} if status == 401 else None
     return JSONResponse({"detail": detail, **extra}, status_code=status, headers=headers)
@@ -99,6 +127,13 @@ def install_error_handlers(app: FastAPI) -> None:
         if exc.headers:
             resp.headers.update(exc.headers)
         return resp
+
+    @app.exception_handler(ClientDisconnect)
+    async def _gone(request: Request, exc: ClientDisconnect) -> JSONResponse:
+        # the client hung up mid-request (an upload cut short): nothing went wrong here, and
+        # the upload's temporary file is already gone; nobody reads the answer
+        log.info("client disconnected during %s %s", request.method, request.url.path)
+        return error_response(400, "the client disconnected before the request was complete")
 
     @app.exception_handler(Exception)
     async def _unexpected(request: Request, exc: Exception) -> JSONResponse:

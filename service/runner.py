@@ -15,7 +15,6 @@ from __future__ import annotations
 
 import dataclasses
 import logging
-import shutil
 import threading
 import time
 from pathlib import Path
@@ -25,6 +24,7 @@ import numpy as np
 
 from pipeline.errors import OrchardError
 from pipeline.params import PipelineParams
+from service.errors import api_wording
 from service.settings import Settings
 from service.store import Store
 
@@ -183,6 +183,17 @@ class Runner(threading.Thread):
             return f"{self.settings.work_dir.rstrip('/')}/{job_id}"
         return str(out_dir / "_work")
 
+    def _drop_work(self, job_id: str, out_dir: Path) -> None:
+        """Delete a job's work store (its tiles), and its result folder if that is left empty."""
+        from workers.store import WorkStore
+
+        try:
+            WorkStore(self._work_dir(job_id, out_dir)).remove()
+            if out_dir.is_dir() and not any(out_dir.iterdir()):
+                out_dir.rmdir()
+        except Exception as exc:  # noqa: BLE001 - leftover tiles must not change the job's outcome
+            log.warning("job %s: could not delete its tiles: %s", job_id, exc)
+
     def run_job(self, job: dict[str, Any]) -> dict[str, Any]:
         """Run one claimed (``running``) job to a final state; returns the stored job."""
         cancel = threading.Event()
@@ -202,6 +213,7 @@ class Runner(threading.Thread):
 
         out_dir = job_dir(self.settings, job["id"])
         t0 = time.perf_counter()
+        block = None
         try:
             from workers.job import JobSpec, run_job
 
@@ -222,8 +234,7 @@ class Runner(threading.Thread):
             record.pop("trees", None)  # the per-tree table is in trees.parquet
             timings = dict(record.get("timings") or {})
             timings.setdefault("total", round(time.perf_counter() - t0, 3))
-            if self.settings.work_dir is None:
-                shutil.rmtree(out_dir / "_work", ignore_errors=True)  # tiles of a finished job are not needed again
+            self._drop_work(job["id"], out_dir)  # tiles of a finished job are not needed again
             done = self.store.finish_job(job["id"], "done", outcome=record, timings=timings)
             if self._after_done is not None:
                 try:
@@ -236,9 +247,12 @@ class Runner(threading.Thread):
                 if self._stopping.is_set():
                     log.info("job %s interrupted by shutdown; it is re-queued at the next start", job["id"])
                     return self.store.get_job(None, job["id"])
+                self._drop_work(job["id"], out_dir)  # the service never resumes a cancelled job
                 return self.store.finish_job(job["id"], "cancelled", error="cancelled on request")
             if isinstance(exc, OrchardError):
                 message = str(exc) or type(exc).__name__
+                if block is not None:
+                    message = api_wording(message, block_path=block["path"], filename=block.get("filename"))
             elif isinstance(exc, (KeyboardInterrupt, SystemExit)):
                 raise
             elif isinstance(exc, ClusterUnavailable):

@@ -22,6 +22,7 @@ from pathlib import Path
 from typing import Any
 
 from croniter import croniter
+from croniter.croniter import CroniterBadDateError
 
 from pipeline.errors import InputError, ParameterError
 from service.settings import Settings
@@ -36,12 +37,17 @@ _run_lock = threading.Lock()
 
 
 def validate_cron(expr: str) -> str:
-    """The expression, stripped, if it is a valid 5-field cron expression; ParameterError otherwise."""
+    """The expression, stripped, if it is a valid 5-field cron expression that ever
+    matches; ParameterError otherwise."""
     expr = " ".join(str(expr).split())
     if len(expr.split(" ")) != 5 or not croniter.is_valid(expr):
         raise ParameterError(
             f"invalid cron expression {expr!r}: use 5 fields 'minute hour day month weekday', e.g. '0 1 * * *' for 01:00"
         )
+    try:  # valid fields can still name a day that never comes ('0 0 31 2 *')
+        croniter(expr, datetime(2000, 1, 1).astimezone()).get_next(datetime)
+    except (CroniterBadDateError, ValueError):
+        raise ParameterError(f"cron expression {expr!r} never matches a date (e.g. 30 or 31 February)") from None
     return expr
 
 
@@ -56,14 +62,20 @@ def next_run_time(cron: str, after: datetime | float) -> datetime:
         start = after.astimezone()
     else:
         start = after
-    return croniter(validate_cron(cron), start).get_next(datetime)
+    try:
+        return croniter(validate_cron(cron), start).get_next(datetime)
+    except CroniterBadDateError:
+        raise ParameterError(f"cron expression {cron!r} matches no date after {start.isoformat()}") from None
 
 
-def validate_inbox(inbox: str, *, root: Path | None = None, base: Path | None = None) -> Path:
-    """The resolved inbox folder; ParameterError if it does not exist, is not a folder or lies outside ``root``.
+def validate_inbox(inbox: str, *, root: Path | None = None, base: Path | None = None, root_label: str = "the allowed inbox root") -> Path:
+    """The resolved inbox folder; ParameterError if it lies outside ``root``, does not
+    exist or is not a folder.
 
     Relative paths are resolved against ``base`` (the command line's working folder);
     without ``base`` they are refused (the server's working folder means nothing to a client).
+    A path outside ``root`` is refused before anything about it is looked up, so the
+    message says nothing about folders a client may not use.
     """
     raw = str(inbox)
     if not raw or "\x00" in raw:
@@ -80,8 +92,15 @@ def validate_inbox(inbox: str, *, root: Path | None = None, base: Path | None = 
         path = base / path
     try:
         path = path.resolve()
-        exists, is_dir = path.exists(), path.is_dir()
     except (OSError, RuntimeError, ValueError):
+        raise ParameterError(f"inbox {raw!r} cannot be resolved to a folder") from None
+    if root is not None:
+        root = Path(root).resolve()
+        if path != root and root not in path.parents:
+            raise ParameterError(f"inbox {str(path)!r} is outside {root_label} {str(root)!r}")
+    try:
+        exists, is_dir = path.exists(), path.is_dir()
+    except (OSError, ValueError):
         raise ParameterError(f"inbox {raw!r} cannot be resolved to a folder") from None
     if not exists:
         raise ParameterError(f"inbox {str(path)!r} does not exist; create the folder where the captures land first")
@@ -89,11 +108,37 @@ def validate_inbox(inbox: str, *, root: Path | None = None, base: Path | None = 
         raise ParameterError(f"inbox {str(path)!r} is not a folder")
     if not os.access(path, os.R_OK | os.X_OK):
         raise ParameterError(f"inbox {str(path)!r} is not readable by the service")
-    if root is not None:
-        root = Path(root).resolve()
-        if path != root and root not in path.parents:
-            raise ParameterError(f"inbox {str(path)!r} is outside the allowed inbox root {str(root)!r}")
     return path
+
+
+def tenant_inbox_root(settings: Settings, tenant_name: str) -> Path:
+    """The folder a tenant's inboxes must lie in when it creates schedules over HTTP:
+    ``<inbox root>/<tenant name>``, the inbox root being ``ORCHARD_INBOX_ROOT`` or
+    ``<data dir>/inboxes``. Created if missing (where the service may)."""
+    name = str(tenant_name)
+    if name in (".", "..") or any(c in name for c in "/\\\x00"):
+        raise ParameterError(
+            f"tenant {name!r} has no inbox folder (its name is not a folder name); "
+            "an operator can create its schedules with `orchard schedules create`"
+        )
+    folder = Path(settings.http_inbox_root) / name
+    try:
+        folder.mkdir(parents=True, exist_ok=True)
+    except OSError:
+        pass  # validate_inbox says it does not exist
+    return folder
+
+
+def check_inbox_use(inbox: Path, *, settings: Settings, store: Store, tenant_id: str) -> None:
+    """ParameterError if ``inbox`` (resolved) is one of the service's own folders or
+    another tenant's inbox: a schedule would hand their files to this tenant."""
+    data = Path(settings.data_dir).resolve()
+    own = [data / "blocks", data / "jobs", data / "tmp"]
+    if inbox == data or any(inbox == d or d in inbox.parents for d in own):
+        raise ParameterError(f"inbox {str(inbox)!r} is a folder of the service's own data; captures must land elsewhere")
+    for sched in store.list_schedules():
+        if sched["tenant_id"] != tenant_id and Path(sched["inbox"]) == inbox:
+            raise ParameterError(f"inbox {str(inbox)!r} is already another tenant's inbox")
 
 
 def captures(inbox: Path) -> list[Path]:

@@ -33,7 +33,11 @@ class Settings(BaseSettings):
     max_request_kb: int = Field(1024, ge=1, description="largest accepted request body other than an upload [kB]")
     runner: bool = Field(True, description="run queued jobs in this process (background runner thread)")
     scheduling: bool = Field(True, description="run overnight schedules in this process (schedule clock thread)")
-    inbox_root: Path | None = Field(None, description="if set, schedule inbox folders must lie inside this folder")
+    inbox_root: Path | None = Field(
+        None,
+        description="if set, schedule inbox folders must lie inside this folder; a tenant creating a schedule over HTTP "
+        "may only use folders in <inbox root>/<tenant name> (unset: <data_dir>/inboxes/<tenant name>)",
+    )
     schedule_poll_s: float = Field(30.0, gt=0, le=3600, description="longest sleep of the schedule clock between checks [s]")
     runner_poll_s: float = Field(1.0, gt=0, le=60, description="longest sleep of the runner between looks at the queue [s]")
 
@@ -48,6 +52,11 @@ class Settings(BaseSettings):
     @property
     def jobs_dir(self) -> Path:
         return self.data_dir / "jobs"
+
+    @property
+    def http_inbox_root(self) -> Path:
+        """Root of the tenants' inbox folders for schedules created over HTTP."""
+        return self.inbox_root if self.inbox_root is not None else self.data_dir / "inboxes"
 
     @property
     def tmp_dir(self) -> Path:

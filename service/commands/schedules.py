@@ -46,7 +46,8 @@ def _when(ts: float | None) -> str:
 
 def run(args: argparse.Namespace) -> int:
     from pipeline.errors import ParameterError
-    from service.schedules import next_run_time, run_schedule, validate_cron, validate_inbox
+    from pipeline.tiling import check_tiling
+    from service.schedules import check_inbox_use, next_run_time, run_schedule, validate_cron, validate_inbox
     from service.settings import build_settings
     from service.store import Store
 
@@ -69,12 +70,12 @@ def run(args: argparse.Namespace) -> int:
             params = pipeline_params_from_args(args)
             tiling = None
             if args.tile_size is not None:
-                if args.buffer is not None and args.buffer < params.reach():
-                    raise ParameterError(f"--buffer {args.buffer} m is smaller than the parameters' reach ({params.reach():.2f} m)")
+                check_tiling(args.tile_size, args.buffer, params.reach())
                 tiling = {"tile_size": args.tile_size, "buffer": args.buffer}
             elif args.buffer is not None:
                 raise ParameterError("--buffer needs --tile-size")
             tenant = store.ensure_tenant(args.tenant)
+            check_inbox_use(inbox, settings=settings, store=store, tenant_id=tenant["id"])
             rec = store.create_schedule(
                 tenant_id=tenant["id"],
                 inbox=str(inbox),

@@ -84,6 +84,14 @@ class ServerProcess:
             pass
 
 
+def tenant_inbox(data_dir: Path, tenant: str, name: str = "inbox") -> Path:
+    """A folder in ``tenant``'s inbox folder of a server with the default inbox root
+    (``<data dir>/inboxes/<tenant>``): the only place its schedules may watch over HTTP."""
+    path = Path(data_dir) / "inboxes" / tenant / name
+    path.mkdir(parents=True, exist_ok=True)
+    return path
+
+
 def make_token(data_dir: Path, tenant: str) -> str:
     store = Store(Path(data_dir) / "orchard.sqlite")
     try:

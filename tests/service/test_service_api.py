@@ -7,7 +7,7 @@ import hashlib
 import httpx
 import pytest
 
-from service_fixtures import write_las
+from service_fixtures import tenant_inbox, write_las
 
 
 def upload(client: httpx.Client, path, name: str | None = None) -> httpx.Response:
@@ -205,7 +205,7 @@ def test_unknown_ids_are_404(client_a, path):
     assert "detail" in r.json()
 
 
-def test_cross_tenant_access_is_404(client_a, client_b, block_a, tmp_path):
+def test_cross_tenant_access_is_404(client_a, client_b, block_a, api_server):
     job = client_a.post("/v1/jobs", json={"block_id": block_a["id"]}).json()
     assert client_b.get(f"/v1/blocks/{block_a['id']}").status_code == 404
     assert client_b.get(f"/v1/jobs/{job['id']}").status_code == 404
@@ -215,8 +215,7 @@ def test_cross_tenant_access_is_404(client_a, client_b, block_a, tmp_path):
     assert client_b.post("/v1/jobs", json={"block_id": block_a["id"]}).status_code == 404
     assert block_a["id"] not in [b["id"] for b in client_b.get("/v1/blocks").json()]
     assert job["id"] not in [j["id"] for j in client_b.get("/v1/jobs").json()]
-    inbox = tmp_path / "inbox"
-    inbox.mkdir()
+    inbox = tenant_inbox(api_server.data_dir, "farm-a", "cross-tenant")
     sched = client_a.post("/v1/schedules", json={"inbox": str(inbox)}).json()
     assert client_b.get(f"/v1/schedules/{sched['id']}").status_code == 404
     assert client_b.post(f"/v1/schedules/{sched['id']}/run").status_code == 404

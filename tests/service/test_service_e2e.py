@@ -100,13 +100,19 @@ def test_cancel_a_running_job(runner_server, block_file):
     with _client(runner_server, "farm-e2e") as c:
         with open(block_file, "rb") as fh:
             block = c.post("/v1/blocks", files={"file": ("orchard.laz", fh)}).json()
-        job = c.post("/v1/jobs", json={"block_id": block["id"], "tiling": {"tile_size": 20}}).json()
+        job = c.post("/v1/jobs", json={"block_id": block["id"], "tiling": {"tile_size": 10}}).json()
         assert wait_for_job(c, job["id"], states=("running", "done", "failed"))["state"] == "running"
+        deadline = time.monotonic() + 60  # cancel once the tiles are written and being processed
+        while not c.get(f"/v1/jobs/{job['id']}").json()["tiles_total"] and time.monotonic() < deadline:
+            time.sleep(0.05)
         r = c.delete(f"/v1/jobs/{job['id']}")
         assert r.status_code == 202 and r.json()["cancel_requested"] is True
         final = wait_for_job(c, job["id"])
         assert final["state"] == "cancelled", final
         assert c.get(f"/v1/jobs/{job['id']}/trees").status_code == 409
+    # the service never resumes a cancelled job: its tiles are deleted, not kept for good
+    job_dir = runner_server.data_dir / "jobs" / job["id"]
+    assert not (job_dir / "_work").exists(), sorted(p.name for p in job_dir.iterdir())
 
 
 def test_job_that_finds_no_trees_fails_with_its_message(runner_server, tmp_path):
@@ -120,6 +126,11 @@ def test_job_that_finds_no_trees_fails_with_its_message(runner_server, tmp_path)
         done = wait_for_job(c, job["id"])
         assert done["state"] == "failed"
         assert "tree" in done["error"] and "Traceback" not in done["error"]
+        # named as the client knows them: its file name, the request's fields; not the
+        # server's stored file (named by its sha256) or the command line's options
+        assert done["error"].startswith("flat.laz: "), done["error"]
+        assert block["sha256"][:12] not in done["error"]
+        assert "params.trunks.min_tree_height" in done["error"] and "--" not in done["error"]
         assert c.get(f"/v1/jobs/{job['id']}/trees").status_code == 409
 
 

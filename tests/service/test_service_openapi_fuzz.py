@@ -11,7 +11,7 @@ import sys
 
 import pytest
 
-from service_fixtures import write_las
+from service_fixtures import tenant_inbox, write_las
 
 pytestmark = pytest.mark.slow
 
@@ -21,8 +21,7 @@ def test_no_server_errors(api_server, tokens, client_a, small_las, tmp_path):
     with open(small_las, "rb") as fh:
         block = client_a.post("/v1/blocks", files={"file": ("small.laz", fh)}).json()
     job = client_a.post("/v1/jobs", json={"block_id": block["id"]}).json()
-    inbox = tmp_path / "inbox"
-    inbox.mkdir()
+    inbox = tenant_inbox(api_server.data_dir, "farm-a", "fuzz")
     write_las(inbox / "capture.laz", 500, seed=31)
     sched = client_a.post("/v1/schedules", json={"inbox": str(inbox)}).json()
     (tmp_path / "schemathesis.toml").write_text(

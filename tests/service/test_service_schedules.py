@@ -13,10 +13,19 @@ from pathlib import Path
 import pytest
 
 from pipeline.errors import ParameterError
-from service.schedules import ScheduleClock, next_run_time, run_schedule, validate_cron, validate_inbox
+from service.errors import api_wording
+from service.schedules import (
+    ScheduleClock,
+    check_inbox_use,
+    next_run_time,
+    run_schedule,
+    tenant_inbox_root,
+    validate_cron,
+    validate_inbox,
+)
 from service.settings import Settings
 from service.store import Store
-from service_fixtures import write_las
+from service_fixtures import tenant_inbox, write_las
 
 
 def test_next_run_default_is_one_in_the_morning_local_time():
@@ -42,6 +51,19 @@ def test_invalid_cron_is_refused(expr):
         validate_cron(expr)
 
 
+@pytest.mark.parametrize("expr", ["0 0 31 2 *", "0 0 30 2 *", "15 3 31 4,6,9,11 *"])
+def test_cron_that_never_matches_is_refused(expr):
+    # valid fields, but the day never comes: croniter would fail at the first next run
+    with pytest.raises(ParameterError, match="never matches"):
+        validate_cron(expr)
+    with pytest.raises(ParameterError):
+        next_run_time(expr, datetime(2026, 1, 1))
+
+
+def test_leap_day_cron_is_accepted():
+    assert next_run_time("0 1 29 2 *", datetime(2026, 3, 1)).replace(tzinfo=None) == datetime(2028, 2, 29, 1, 0)
+
+
 def test_inbox_validation(tmp_path):
     (tmp_path / "file.las").write_bytes(b"x")
     assert validate_inbox(str(tmp_path)) == tmp_path.resolve()
@@ -63,6 +85,58 @@ def test_inbox_validation(tmp_path):
         validate_inbox(str(tmp_path), root=root)
     with pytest.raises(ParameterError, match="outside"):
         validate_inbox(str(root / "farm" / ".." / ".."), root=root)
+
+
+def test_outside_root_is_refused_before_the_path_is_looked_up(tmp_path):
+    root = tmp_path / "root"
+    root.mkdir()
+    (tmp_path / "present").mkdir()
+    # the same message whether the folder exists, is a file or does not: nothing is given away
+    for outside in ("/etc", "/etc/passwd", "/no/such/folder", str(tmp_path / "present")):
+        with pytest.raises(ParameterError, match="outside this farm's folder") as err:
+            validate_inbox(outside, root=root, root_label="this farm's folder")
+        assert "does not exist" not in str(err.value) and "not a folder" not in str(err.value)
+
+
+def test_tenant_inbox_root_is_the_tenants_own_folder(tmp_path):
+    settings = Settings(data_dir=tmp_path / "data")
+    assert tenant_inbox_root(settings, "farm-a") == tmp_path / "data" / "inboxes" / "farm-a"
+    assert (tmp_path / "data" / "inboxes" / "farm-a").is_dir()  # created, ready for captures
+    settings = Settings(data_dir=tmp_path / "data", inbox_root=tmp_path / "drop")
+    assert tenant_inbox_root(settings, "farm-b") == tmp_path / "drop" / "farm-b"
+    for name in ("..", ".", "a/b", "a\\b"):
+        with pytest.raises(ParameterError, match="no inbox folder"):
+            tenant_inbox_root(settings, name)
+
+
+def test_inbox_use_refuses_service_folders_and_other_tenants_inboxes(tmp_path):
+    settings = Settings(data_dir=tmp_path / "data")
+    store = Store(settings.store_path)
+    try:
+        a, b = store.ensure_tenant("a"), store.ensure_tenant("b")
+        data = settings.data_dir.resolve()
+        for folder in (data, data / "blocks", data / "jobs" / "x" / "_work", data / "tmp"):
+            with pytest.raises(ParameterError, match="service's own data"):
+                check_inbox_use(folder, settings=settings, store=store, tenant_id=a["id"])
+        inbox = (tmp_path / "in").resolve()
+        check_inbox_use(inbox, settings=settings, store=store, tenant_id=a["id"])  # free: fine
+        _schedule(store, a, inbox)
+        check_inbox_use(inbox, settings=settings, store=store, tenant_id=a["id"])  # a's own: fine
+        with pytest.raises(ParameterError, match="another tenant"):
+            check_inbox_use(inbox, settings=settings, store=store, tenant_id=b["id"])
+        check_inbox_use(data / "inboxes" / "b", settings=settings, store=store, tenant_id=b["id"])
+    finally:
+        store.close()
+
+
+def test_api_wording_names_the_upload_and_the_request_fields():
+    msg = ("/srv/data/blocks/ab12cd.laz: no trees found in 50000 points; lower --trunks-min-tree-height / "
+           "--trunks-min-canopy-voxels, or use --buffer 6.15 with --tile-size 20 (--resume is the operator's)")
+    out = api_wording(msg, block_path="/srv/data/blocks/ab12cd.laz", filename="north-block.laz")
+    assert out == ("north-block.laz: no trees found in 50000 points; lower params.trunks.min_tree_height / "
+                   "params.trunks.min_canopy_voxels, or use tiling.buffer 6.15 with tiling.tile_size 20 "
+                   "(--resume is the operator's)")
+    assert api_wording("tile 3 of ab12cd.laz failed", block_path="/x/ab12cd.laz") == "tile 3 of the block failed"
 
 
 @pytest.fixture()
@@ -127,9 +201,8 @@ def test_clock_runs_due_schedules_and_sets_next_run(local):
     assert rec2["next_run_at"] > rec["next_run_at"]
 
 
-def test_api_schedules_run_now(client_a, tmp_path):
-    inbox = tmp_path / "inbox"
-    inbox.mkdir()
+def test_api_schedules_run_now(client_a, api_server):
+    inbox = tenant_inbox(api_server.data_dir, "farm-a", "run-now")
     write_las(inbox / "one.laz", 800, seed=21)
     write_las(inbox / "two.las", 900, seed=22)
     r = client_a.post("/v1/schedules", json={"inbox": str(inbox), "tiling": {"tile_size": 20}})
@@ -153,16 +226,46 @@ def test_api_schedules_run_now(client_a, tmp_path):
 @pytest.mark.parametrize(
     "body, fragment",
     [
-        ({"inbox": "/definitely/not/here"}, "does not exist"),
+        ({"inbox": "/definitely/not/here"}, "outside this tenant's inbox folder"),
         ({"inbox": "relative"}, "absolute"),
         ({"inbox": "~\ud872\ude05N\u00adl\u0014\u00a2\r"}, "absolute"),  # found by schemathesis: was a 500
         ({"inbox": "/tmp", "cron": "whenever"}, "cron"),
+        ({"inbox": "{farm-a}", "cron": "0 0 31 2 *"}, "never matches"),  # was a 500
+        ({"inbox": "{farm-a}/missing"}, "does not exist"),
+        ({"inbox": "{farm-a}", "tiling": {"tile_size": 10, "buffer": 1}}, "tiling.buffer"),  # every night's job would fail
+        ({"inbox": "{farm-a}", "tiling": {"tile_size": 0}}, "tile_size"),
     ],
 )
-def test_api_bad_schedule_is_422(client_a, body, fragment):
+def test_api_bad_schedule_is_422(client_a, api_server, body, fragment):
+    own = str(tenant_inbox(api_server.data_dir, "farm-a", "bad-schedule"))
+    body = {k: v.replace("{farm-a}", own) if isinstance(v, str) else v for k, v in body.items()}
     r = client_a.post("/v1/schedules", content=json.dumps(body), headers={"content-type": "application/json"})
-    assert r.status_code == 422
+    assert r.status_code == 422, r.text
     assert fragment in r.json()["detail"]
+    assert all(s["inbox"] != own for s in client_a.get("/v1/schedules").json())  # nothing stored
+
+
+def test_api_inbox_is_confined_to_the_tenants_folder(client_a, client_b, api_server):
+    """A farm cannot watch the service's uploads, server folders or another farm's
+    inbox: each would hand it files that are not its own."""
+    data = api_server.data_dir.resolve()
+    own_b = tenant_inbox(api_server.data_dir, "farm-b", "captures")
+    for outside in (data / "blocks", data, Path("/etc"), Path("/root"), data / "inboxes",
+                    data / "inboxes" / "farm-a", own_b / ".." / ".." / "farm-a"):
+        r = client_b.post("/v1/schedules", json={"inbox": str(outside)})
+        assert r.status_code == 422, (outside, r.text)
+        assert "outside this tenant's inbox folder" in r.json()["detail"]
+    # symlinks are followed before the check: a link in its own folder does not get out
+    link = own_b / "link-to-blocks"
+    if not link.exists():
+        link.symlink_to(data / "blocks")
+    r = client_b.post("/v1/schedules", json={"inbox": str(link)})
+    assert r.status_code == 422 and "outside" in r.json()["detail"]
+    # its own folder, and the folder itself, are fine
+    for inbox in (own_b, own_b.parent):
+        r = client_b.post("/v1/schedules", json={"inbox": str(inbox)})
+        assert r.status_code == 201, r.text
+        assert client_b.delete(f"/v1/schedules/{r.json()['id']}").status_code == 204
 
 
 def _orchard(*args, env_data_dir=None):
