@@ -233,3 +233,33 @@ def test_errors_are_json_without_traceback(client_a):
     r = client_a.post("/v1/jobs", content=b"{not json", headers={"content-type": "application/json"})
     assert r.status_code == 422
     assert "Traceback" not in r.text and isinstance(r.json()["detail"], str)
+
+
+def test_client_hanging_up_mid_upload_is_not_a_server_error(api_server, tokens, small_las):
+    """A capture upload cut short by the client (a dropped connection) leaves no
+    temporary file and no error with a traceback in the server's log."""
+    import socket
+    import time
+
+    body = small_las.read_bytes()
+    boundary = "orchardboundary"
+    head = (f"--{boundary}\r\nContent-Disposition: form-data; name=\"file\"; filename=\"cut.laz\"\r\n"
+            "Content-Type: application/octet-stream\r\n\r\n").encode()
+    total = len(head) + len(body) + len(f"\r\n--{boundary}--\r\n")
+    before = api_server.log_path.stat().st_size
+    with socket.create_connection(("127.0.0.1", api_server.port), timeout=10) as sock:
+        sock.sendall((f"POST /v1/blocks HTTP/1.1\r\nHost: 127.0.0.1\r\nAuthorization: Bearer {tokens['a']}\r\n"
+                      f"Content-Type: multipart/form-data; boundary={boundary}\r\nContent-Length: {total}\r\n\r\n").encode()
+                     + head + body[: len(body) // 2])
+        time.sleep(0.5)
+    deadline = time.monotonic() + 10
+    tmp = api_server.data_dir / "tmp"
+    while time.monotonic() < deadline and tmp.is_dir() and any(tmp.glob("upload-*")):
+        time.sleep(0.1)
+    assert not (tmp.is_dir() and any(tmp.glob("upload-*")))
+    time.sleep(0.5)
+    with open(api_server.log_path, "rb") as fh:
+        fh.seek(before)
+        new_log = fh.read().decode(errors="replace")
+    assert "Traceback" not in new_log and "ERROR" not in new_log, new_log[-2000:]
+    assert httpx.get(api_server.url + "/healthz", timeout=5).status_code == 200
