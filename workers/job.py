@@ -414,6 +414,13 @@ def _run_tiled(spec, info, client, t0, progress, cancel) -> JobOutcome:
     out_existed = out_dir.exists()
     work = spec.work_dir or default_work_dir(spec.out_dir)
     store = WorkStore(work)
+    foreign = store.foreign()
+    if foreign:  # the store deletes what it writes: it must not share a folder with anything else
+        shown = ", ".join(foreign[:3]) + (", ..." if len(foreign) > 3 else "")
+        raise ParameterError(
+            f"work folder {work} holds files that are not a work store's ({shown}); give --work a new or empty folder"
+        )
+    store.remove()  # an earlier job's tiles and results there must not mix with this job's
     record = _job_record(spec, info, grid, work)
     keep_work = False
     try:

@@ -16,6 +16,16 @@ import fsspec
 import numpy as np
 
 
+#: What a work store writes at its root: the job record, the tiles, the tile results and
+#: the attempt log (plus hidden temporary files of writes in progress). Nothing else
+#: there is the store's to delete.
+OWN_ENTRIES = ("job.json", "tiles", "results", "attempts")
+
+
+def _own(name: str) -> bool:
+    return name in OWN_ENTRIES or (name.startswith(".") and name.endswith(".tmp"))
+
+
 class WorkStore:
     """Arrays, JSON and small pickles under one root (folder or fsspec URL).
 
@@ -87,11 +97,34 @@ class WorkStore:
         names = [p.rstrip("/").rsplit("/", 1)[-1] for p in self.fs.ls(path, detail=False)]
         return sorted(f"{prefix.rstrip('/')}/{n}" for n in names if not n.startswith("."))
 
+    def entries(self) -> list[str]:
+        """Names directly in the store's root folder, sorted (none if it does not exist)."""
+        if not self.fs.exists(self.root):
+            return []
+        return sorted(p.rstrip("/").rsplit("/", 1)[-1] for p in self.fs.ls(self.root, detail=False))
+
+    def foreign(self) -> list[str]:
+        """Names in the root folder that the store did not write (a folder that is not a
+        work store, or not only one)."""
+        return [n for n in self.entries() if not _own(n)]
+
     def remove(self, prefix: str = "") -> None:
-        """Delete a folder of the store (the whole store when ``prefix`` is empty)."""
-        path = self.path(prefix) if prefix else self.root
-        if self.fs.exists(path):
-            self.fs.rm(path, recursive=True)
+        """Delete a folder of the store; with no ``prefix``, everything the store writes
+        (:data:`OWN_ENTRIES`) and then the root folder if that leaves it empty. Files of
+        anyone else in the root folder are never touched."""
+        if prefix:
+            path = self.path(prefix)
+            if self.fs.exists(path):
+                self.fs.rm(path, recursive=True)
+            return
+        for name in self.entries():
+            if _own(name):
+                self.fs.rm(self.path(name), recursive=True)
+        if self.fs.exists(self.root) and not self.entries():
+            try:
+                self.fs.rm(self.root, recursive=True)  # empty: nothing but the folder goes
+            except (OSError, ValueError):  # e.g. the working directory itself
+                pass
 
 
 def default_work_dir(out_dir: str) -> str:

@@ -157,3 +157,44 @@ def test_params_reach_the_tiles(small_block, tmp_path):
     params = PipelineParams.model_validate({"trunks": {"min_canopy_voxels": 10_000_000}})
     with pytest.raises(NoTreesError):
         run_job(JobSpec(str(small_block), str(tmp_path / "o"), params=params, tile_size=10.0))
+
+
+def test_work_folder_holding_other_files_is_refused_and_left_alone(small_block, tmp_path):
+    # `--work` pointed at a folder of the user's: the store deletes what it writes, so it
+    # must not take a folder that holds anything else (it used to delete the folder whole)
+    mine = tmp_path / "mine"
+    mine.mkdir()
+    (mine / "notes.txt").write_text("keep me")
+    with pytest.raises(ParameterError, match="new or empty folder"):
+        run_job(JobSpec(str(small_block), str(tmp_path / "out"), tile_size=10.0, work_dir=str(mine)))
+    assert sorted(p.name for p in mine.iterdir()) == ["notes.txt"]
+    assert small_block.exists() and not (tmp_path / "out").exists()
+
+
+def test_work_store_removes_only_what_it_wrote(small_block, tmp_path):
+    # the work folder is the output folder: after the job the outputs stay, the tiles go
+    out = tmp_path / "out"
+    run_job(JobSpec(str(small_block), str(out), tile_size=10.0, work_dir=str(out)))
+    assert sorted(p.name for p in out.iterdir()) == ["points.parquet", "trees.parquet"]
+    store = WorkStore(str(tmp_path / "w"))
+    store.put_json("job.json", {})
+    store.put_array("tiles/000001/part.npy", np.zeros(3))
+    (tmp_path / "w" / "later.txt").write_text("someone else's")
+    store.remove()
+    assert sorted(p.name for p in (tmp_path / "w").iterdir()) == ["later.txt"]
+    (tmp_path / "w" / "later.txt").unlink()
+    store.put_json("job.json", {})
+    store.remove()
+    assert not (tmp_path / "w").exists()  # nothing else there: the folder goes too
+
+
+def test_a_new_job_does_not_reuse_an_earlier_jobs_tile_results(small_block, tmp_path):
+    work = tmp_path / "work"
+    first = run_job(JobSpec(str(small_block), str(tmp_path / "a"), tile_size=10.0, work_dir=str(work), inject_failure=(3,)))
+    assert first.partial and WorkStore(str(work)).list("results")  # kept for a re-run
+    with pytest.raises(TileFailed):
+        run_job(JobSpec(str(small_block), str(tmp_path / "b"), tile_size=12.0, work_dir=str(work), inject_failure=(0,)))
+    # the second job's store holds its own tiles and no result of the first job's tiles,
+    # which a --resume would have merged as if they were its own
+    assert WorkStore(str(work)).list("results") == []
+    assert WorkStore(str(work)).get_json("job.json")["grid"]["tile_size"] == 12.0
