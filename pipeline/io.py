@@ -526,7 +526,9 @@ def write_labelled_las(
     try:
         with laspy.open(info.path, read_evlrs=True) as reader:
             src_header = reader.header
-            header = laspy.LasHeader(version=src_header.version, point_format=src_header.point_format.id)
+            # laspy writes LAS 1.2-1.4; a LAS 1.0/1.1 block (same point formats 0-1) is copied as 1.2
+            version = src_header.version if src_header.version.minor >= 2 else laspy.header.Version(1, 2)
+            header = laspy.LasHeader(version=version, point_format=src_header.point_format.id)
             header.scales = src_header.scales
             header.offsets = src_header.offsets
             header.vlrs = [v for v in src_header.vlrs if not isinstance(v, laspy.vlrs.known.ExtraBytesVlr)]
@@ -535,8 +537,12 @@ def write_labelled_las(
             keep_extra = [n for n in src_extra if n not in types]
             params = []
             for d in src_header.point_format.extra_dimensions:
-                if d.name in keep_extra:
-                    params.append(laspy.ExtraBytesParams(name=d.name, type=d.dtype, description=d.description))
+                if d.name in keep_extra:  # with its scales and offsets: the stored integers keep their meaning
+                    params.append(laspy.ExtraBytesParams(
+                        name=d.name, type=d.dtype, description=d.description,
+                        offsets=d.offsets if d.is_scaled else None, scales=d.scales if d.is_scaled else None,
+                        no_data=d.no_data,
+                    ))
             params += [laspy.ExtraBytesParams(name=k, type=v) for k, v in types.items()]
             header.add_extra_dims(params)
             with laspy.open(str(tmp), mode="w", header=header, do_compress=dst.suffix.lower() == ".laz") as writer:
@@ -544,10 +550,10 @@ def write_labelled_las(
                 for chunk in reader.chunk_iterator(int(chunk_points)):
                     m = len(chunk)
                     rec = laspy.ScaleAwarePointRecord.zeros(m, header=header)
-                    for name in chunk.point_format.dimension_names:
+                    for name in chunk.array.dtype.names:  # the stored values, bit for bit
                         if name in types:
                             continue
-                        rec[name] = chunk[name]
+                        rec.array[name] = chunk.array[name]
                     for k, v in get(start, start + m).items():
                         rec[k] = np.asarray(v).astype(types[k])
                     writer.write_points(rec)

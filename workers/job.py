@@ -20,6 +20,8 @@ re-run that tile alone (:func:`run_tile`) and merge again (:func:`finish_job`).
 from __future__ import annotations
 
 import dataclasses
+import os
+import shutil
 import json
 import threading
 import time
@@ -242,15 +244,28 @@ def _trees_table(summaries: list[dict], merged: GlobalTrunks, origin) -> dict:
     return cols
 
 
+OUTPUT_NAMES = ("points.parquet", "labelled.laz", "trees.parquet")
+
+
 def _write_outputs(out_dir: Path, info: BlockInfo, labels: _Labels, trees: dict, *, labelled_laz: bool, failed: list[int]) -> dict:
-    out_dir.mkdir(parents=True, exist_ok=True)
-    done: list[Path] = []
-    outputs = {}
+    """Write the outputs of a job into ``out_dir`` as one set.
+
+    Every file is written into a hidden staging folder first; only when all are complete
+    do they replace the folder's outputs, and an output of an earlier run that this run
+    does not write (``labelled.laz``) is removed, so ``out_dir`` never mixes two runs.
+    A failure leaves ``out_dir`` as it was.
+    """
+    stage = out_dir / f".staging-{uuid.uuid4().hex[:12]}"
+    try:
+        stage.mkdir(parents=True)
+    except OSError as exc:
+        raise ParameterError(f"cannot write the outputs to {out_dir}: {exc.strerror or exc}") from None
+    written: dict[str, Path] = {}
     meta = {"orchard:input": info.path}
     if failed:
         meta["orchard:failed_tiles"] = json.dumps(failed)
     try:
-        path = out_dir / "points.parquet"
+        path = stage / "points.parquet"
         with blockio.PointsParquetWriter(path, metadata=meta) as w:
             for a in range(0, labels.n_points, WINDOW_POINTS):
                 b = min(labels.n_points, a + WINDOW_POINTS)
@@ -260,26 +275,31 @@ def _write_outputs(out_dir: Path, info: BlockInfo, labels: _Labels, trees: dict,
                     idx = idx[filled]
                     lab = {k: v[filled] for k, v in lab.items()}
                 w.write(idx, lab["tree_id"], lab["is_ground"], lab["is_wood"], lab["wood_score"])
-        done.append(path)
-        outputs["points"] = str(path)
+        written["points"] = path
         if labelled_laz:
-            path = out_dir / "labelled.laz"
+            path = stage / "labelled.laz"
             blockio.write_labelled_las(
                 info.path,
                 path,
                 labels=lambda a, b: {k: v for k, v in labels.window(a, b)[1].items() if k != "is_ground"},
             )
-            done.append(path)
-            outputs["labelled"] = str(path)
-        path = out_dir / "trees.parquet"
+            written["labelled"] = path
+        path = stage / "trees.parquet"
         blockio.write_trees_parquet(path, trees, crs_wkt=info.crs_wkt)
-        done.append(path)
-        outputs["trees"] = str(path)
-    except BaseException:
-        for p in done:
-            p.unlink(missing_ok=True)
-        raise
-    return outputs
+        written["trees"] = path
+        outputs = {}
+        for key, staged in written.items():  # complete: publish (each rename is atomic)
+            final = out_dir / staged.name
+            os.replace(staged, final)
+            outputs[key] = str(final)
+        for name in OUTPUT_NAMES:
+            if name not in {p.name for p in written.values()}:
+                (out_dir / name).unlink(missing_ok=True)  # an earlier run's, not this run's
+        return outputs
+    except OSError as exc:  # a full disk, a folder that turned read-only: one line, nothing half-written
+        raise ParameterError(f"cannot write the outputs to {out_dir}: {exc.strerror or exc}") from None
+    finally:
+        shutil.rmtree(stage, ignore_errors=True)
 
 
 # ------------------------------------------------------------------------- the job
@@ -370,13 +390,31 @@ def check_job(spec: JobSpec, *, tiled: bool | None = None) -> tuple[BlockInfo, T
     Raises InputError or ParameterError.
     """
     info = blockio.read_info(spec.input_path)
+    check_out_dir(spec.out_dir)
     if tiled is None:
         tiled = spec.tile_size is not None
     if not tiled:
+        if spec.buffer is not None:
+            raise ParameterError("--buffer needs --tile-size: a block processed in one piece has no tile buffer")
         return info, None
     grid = _plan(spec, info)
     check_engine(spec.engine, grid)
     return info, grid
+
+
+def check_out_dir(out_dir) -> None:
+    """ParameterError unless ``out_dir`` is a folder, or can be made one, that this
+    process may write to (checked before any work; nothing is created)."""
+    out = Path(out_dir)
+    if out.exists() and not out.is_dir():
+        raise ParameterError(f"output folder {out} is a file, not a folder")
+    parent = out
+    while not parent.exists() and parent != parent.parent:
+        parent = parent.parent
+    if not parent.is_dir():
+        raise ParameterError(f"cannot make output folder {out}: {parent} is a file, not a folder")
+    if not os.access(parent, os.W_OK | os.X_OK):
+        raise ParameterError(f"cannot write to output folder {out}: {parent} is not writable")
 
 
 def _plan(spec: JobSpec, info: BlockInfo) -> TileGrid:

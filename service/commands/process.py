@@ -35,9 +35,9 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     g.add_argument("--tile-size", type=float, default=None, metavar="M", help="side of a square tile core [m]; default: one tile")
     g.add_argument(
         "--buffer", type=float, default=None, metavar="M",
-        help="tile buffer on every side [m]; default and minimum: the parameters' reach (2 x max crown radius + edge radius)",
+        help="tile buffer on every side [m]; default and minimum: the parameters' reach (max crown radius + 1 m + edge radius)",
     )
-    g.add_argument("--grid-origin", type=_origin, default=None, metavar="X,Y", help="a corner of the tile grid, input CRS [m]; default: the block's minimum, rounded down")
+    g.add_argument("--grid-origin", type=_origin, default=None, metavar="X,Y", help="a corner of the tile grid, input CRS [m]; default: the block's minimum, rounded down (negative: --grid-origin=-1000,-2000)")
     g.add_argument("--workers", type=int, default=2, metavar="N", help="workers of the embedded dask cluster (default 2)")
     g.add_argument("--scheduler", default=None, metavar="tcp://HOST:PORT", help="use a running dask cluster instead of an embedded one")
     g.add_argument("--work", default=None, metavar="DIR_OR_URL", help="work store for tiles (folder or fsspec URL); default OUT/_work")

@@ -369,3 +369,53 @@ def test_points_parquet_stores_the_point_index_delta_encoded(tmp_path):
     column = pq.ParquetFile(path).metadata.row_group(0).column(0)
     assert column.path_in_schema == "point_index" and "DELTA_BINARY_PACKED" in column.encodings
     assert column.total_compressed_size < n // 10  # a counter costs next to nothing, not 8 bytes a row
+
+
+def _labels(n):
+    return {"tree_id": np.arange(n) % 7, "is_wood": np.arange(n) % 3 == 0, "wood_score": np.linspace(0, 1, n, dtype=np.float32)}
+
+
+def test_labelled_las_keeps_scaled_extra_dimensions(tmp_path):
+    # an input's own extra bytes keep their scales and offsets: the stored integers keep
+    # their meaning (they were truncated to whole numbers: 1.55 -> 1)
+    n = 2000
+    rng = np.random.default_rng(3)
+    header = laspy.LasHeader(version="1.4", point_format=6)
+    header.offsets, header.scales = [EASTING, NORTHING, 0.0], [0.001] * 3
+    header.add_extra_dims([
+        laspy.ExtraBytesParams(name="scaled", type=np.int16, scales=np.array([0.01]), offsets=np.array([0.0])),
+        laspy.ExtraBytesParams(name="plain", type=np.uint16),
+    ])
+    las = laspy.LasData(header)
+    xyz = _cloud(n)
+    las.x, las.y, las.z = xyz[:, 0], xyz[:, 1], xyz[:, 2]
+    las.scaled = np.round(rng.random(n) * 10, 2)
+    las.plain = np.arange(n, dtype=np.uint16)
+    src = tmp_path / "extra.laz"
+    las.write(src)
+    io.write_labelled_las(src, tmp_path / "out.laz", labels=_labels(n), chunk_points=700)
+    out, orig = laspy.read(tmp_path / "out.laz"), laspy.read(src)
+    assert np.array_equal(out.points.array["scaled"], orig.points.array["scaled"])  # the stored integers
+    np.testing.assert_allclose(out.scaled, orig.scaled)  # and what they mean
+    assert not np.allclose(out.scaled, np.floor(orig.scaled))
+    assert np.array_equal(out.plain, orig.plain)
+    assert np.array_equal(out.tree_id, _labels(n)["tree_id"])
+
+
+@pytest.mark.parametrize("minor", [0, 1])
+def test_labelled_las_of_a_las_1_0_or_1_1_block(tmp_path, minor):
+    # laspy cannot write LAS 1.0/1.1: the labelled copy of such a block is LAS 1.2 (same
+    # point formats 0-1, same points); it used to fail after the whole block was processed
+    xyz = _cloud(1500)
+    src = _write(tmp_path / "old.las", xyz, point_format=1, version="1.2")
+    with open(src, "r+b") as fh:
+        fh.seek(25)  # version minor
+        fh.write(bytes([minor]))
+    assert io.read_info(src).version == f"1.{minor}"
+    io.write_labelled_las(src, tmp_path / "out.laz", labels=_labels(len(xyz)))
+    out = laspy.read(tmp_path / "out.laz")
+    assert str(out.header.version) == "1.2"
+    orig = laspy.read(src)
+    for dim in ("X", "Y", "Z", "intensity", "gps_time"):
+        assert np.array_equal(out[dim], orig[dim])
+    assert np.array_equal(out.tree_id, _labels(len(xyz))["tree_id"])

@@ -198,3 +198,26 @@ def test_a_new_job_does_not_reuse_an_earlier_jobs_tile_results(small_block, tmp_
     # which a --resume would have merged as if they were its own
     assert WorkStore(str(work)).list("results") == []
     assert WorkStore(str(work)).get_json("job.json")["grid"]["tile_size"] == 12.0
+
+
+def test_a_failed_write_leaves_the_previous_outputs_whole(small_block, tmp_path, monkeypatch):
+    # outputs are published as one set: an output failing after another was written
+    # must not leave the folder mixing two runs (or one run's trees without its points)
+    out = tmp_path / "out"
+    run_job(JobSpec(str(small_block), str(out), labelled_laz=True))
+    before = {p.name: p.read_bytes() for p in out.iterdir()}
+    assert sorted(before) == ["labelled.laz", "points.parquet", "trees.parquet"]
+
+    def disk_full(*a, **k):
+        raise OSError(28, "No space left on device")
+
+    import workers.job as job
+
+    monkeypatch.setattr(job.blockio, "write_trees_parquet", disk_full)
+    with pytest.raises(ParameterError, match="cannot write the outputs .* No space left"):
+        run_job(JobSpec(str(small_block), str(out), params=PipelineParams.model_validate({"matter": {"threshold": 0.9}})))
+    assert {p.name: p.read_bytes() for p in out.iterdir()} == before  # no staging folder left either
+    monkeypatch.undo()
+    # a run without --labelled-laz removes the earlier run's labelled.laz with the rest
+    run_job(JobSpec(str(small_block), str(out)))
+    assert sorted(p.name for p in out.iterdir()) == ["points.parquet", "trees.parquet"]

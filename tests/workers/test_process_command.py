@@ -172,3 +172,21 @@ def test_console_script_bad_input(tmp_path):
     assert run.returncode == 2
     assert len(run.stderr.decode().strip().splitlines()) == 1
     assert not (tmp_path / "out").exists()
+
+
+def test_unusable_output_folder_fails_before_any_work(small_block, tmp_path, capsys):
+    a_file = tmp_path / "afile"
+    a_file.write_text("x")
+    for out, words in ((a_file, "is a file"), (a_file / "sub", "is a file")):
+        code, _, err = _run(capsys, small_block, "--out", out, "--tile-size", 10)
+        assert code == 2 and len(err.strip().splitlines()) == 1, err
+        assert words in err and "dask dashboard" not in err  # refused before a cluster starts
+    assert a_file.read_text() == "x"
+
+
+@pytest.mark.parametrize("argv", [["--buffer", "nan"], ["--buffer", "-1"], ["--buffer", "20"]])
+def test_buffer_without_tiles_is_refused(small_block, tmp_path, capsys, argv):
+    out_dir = tmp_path / "out"
+    code, _, err = _run(capsys, small_block, "--out", out_dir, *argv)
+    _assert_clean_failure(code, err, out_dir)
+    assert "--buffer needs --tile-size" in err
