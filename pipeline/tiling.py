@@ -115,19 +115,50 @@ def check_buffer(buffer: float, reach: float) -> None:
         )
 
 
-def check_tiling(tile_size: float, buffer: float | None, reach: float | None = None) -> None:
+#: Most buffered tiles one point may fall in (each holds a copy of it): 8 x 8, i.e. a
+#: buffer up to 3.5 tile sizes wide. More is only the cost of the buffer many times over
+#: (memory and time grow with it), never a better result.
+MAX_COPIES = 64
+
+
+def copies_per_point(tile_size: float, buffer: float, ncols: int = 2**62, nrows: int = 2**62) -> int:
+    """Most buffered tiles of an ``ncols`` x ``nrows`` grid that one point falls in."""
+    per_axis = math.ceil(2.0 * buffer / tile_size) + 1
+    return min(per_axis, ncols) * min(per_axis, nrows)
+
+
+def min_tile_size(buffer: float) -> float:
+    """Smallest tile size [m], rounded up to cm, for which a ``buffer`` [m] keeps
+    :func:`copies_per_point` within :data:`MAX_COPIES`."""
+    per_axis = math.isqrt(MAX_COPIES)
+    return math.ceil(2.0 * buffer / (per_axis - 1) * 100.0) / 100.0
+
+
+def check_tiling(tile_size: float, buffer: float | None, reach: float | None = None, *, copies: bool = True) -> None:
     """Raise ParameterError unless ``tile_size`` [m] is positive and finite and ``buffer``
-    [m] (None = the reach) is non-negative, finite and at least ``reach`` (when given)."""
+    [m] (None = the reach) is non-negative, finite and at least ``reach`` (when given);
+    with ``copies``, also unless a point falls in at most :data:`MAX_COPIES` buffered tiles
+    (whatever the block: :func:`plan_grid` checks that against the block's grid instead)."""
     s = float(tile_size)
     if not (math.isfinite(s) and s > 0):
         raise ParameterError(f"tile size must be a positive number of metres, not {tile_size}")
-    if buffer is None:
-        return
-    b = float(buffer)
-    if not (math.isfinite(b) and b >= 0):
-        raise ParameterError(f"tile buffer must be a non-negative number of metres, not {buffer}")
-    if reach is not None:
-        check_buffer(b, reach)
+    if buffer is not None:
+        b = float(buffer)
+        if not (math.isfinite(b) and b >= 0):
+            raise ParameterError(f"tile buffer must be a non-negative number of metres, not {buffer}")
+        if reach is not None:
+            check_buffer(b, reach)
+    width = buffer if buffer is not None else reach
+    if copies and width is not None:
+        _check_copies(s, float(width), copies_per_point(s, float(width)))
+
+
+def _check_copies(tile_size: float, buffer: float, copies: int) -> None:
+    if copies > MAX_COPIES:
+        raise ParameterError(
+            f"tile size {tile_size:g} m with a {buffer:g} m buffer would copy each point into up to {copies} tiles "
+            f"(at most {MAX_COPIES}); use a --tile-size of at least {min_tile_size(buffer):g} m"
+        )
 
 
 def plan_grid(
@@ -167,11 +198,16 @@ def plan_grid(
     ParameterError
         Non-positive or non-finite sizes, a buffer below the reach, too many tiles.
     """
-    check_tiling(tile_size, buffer, reach)
+    check_tiling(tile_size, buffer, reach, copies=False)
     s, b = float(tile_size), float(buffer)
     gx, gy = (float(v) for v in grid_origin)
     if not (math.isfinite(gx) and math.isfinite(gy)):
         raise ParameterError(f"grid origin must be finite, not {tuple(grid_origin)}")
+    spans = [(float(maxs[d]) - min(float(mins[d]), (gx, gy)[d])) / s + 2.0 for d in range(2)]
+    if spans[0] * spans[1] > max_tiles:  # before any cell number is cast to an integer
+        raise ParameterError(
+            f"tile size {s:g} m gives more than {max_tiles} tiles over the block; use a larger --tile-size"
+        )
     (c0, c1), (r0, r1) = (
         (_cell(np.asarray([mins[0]]), gx, s)[0], _cell(np.asarray([maxs[0]]), gx, s)[0]),
         (_cell(np.asarray([mins[1]]), gy, s)[0], _cell(np.asarray([maxs[1]]), gy, s)[0]),
@@ -181,6 +217,7 @@ def plan_grid(
         raise ParameterError(
             f"tile size {s:g} m gives {ncols * nrows} tiles (more than {max_tiles}); use a larger --tile-size"
         )
+    _check_copies(s, b, copies_per_point(s, b, ncols, nrows))
     return TileGrid(origin=(gx, gy), tile_size=s, buffer=b, col0=int(c0), row0=int(r0), ncols=ncols, nrows=nrows)
 
 
@@ -253,20 +290,24 @@ def buffered_tiles(xy: np.ndarray, grid: TileGrid, *, core: np.ndarray | None = 
         x, y = xy[sub, 0], xy[sub, 1]
         col, row = col[sub], row[sub]
         reach = int(math.floor(b / s)) + 1  # ceil(b/s), plus one where b/s is whole (rounding)
-        offsets = range(-reach, reach + 1)
+        # no neighbour lies farther than the grid is wide: a buffer far wider than the
+        # block costs nothing extra
+        col_offsets = range(-min(reach, grid.ncols - 1), min(reach, grid.ncols - 1) + 1)
+        row_offsets = range(-min(reach, grid.nrows - 1), min(reach, grid.nrows - 1) + 1)
         # column/row tests once per offset, then combine them per neighbour
         xin, yin = {}, {}
-        for d in offsets:
+        for d in col_offsets:
             c = col + d
             minx = gx + c * s - b
             xin[d] = (minx < x) & (x < minx + s + 2 * b) & (c >= grid.col0) & (c < grid.col0 + grid.ncols)
+        for d in row_offsets:
             r = row + d
             miny = gy + r * s - b
             yin[d] = (miny < y) & (y < miny + s + 2 * b) & (r >= grid.row0) & (r < grid.row0 + grid.nrows)
-        for dc in offsets:
+        for dc in col_offsets:
             if not xin[dc].any():
                 continue
-            for dr in offsets:
+            for dr in row_offsets:
                 if dc == 0 and dr == 0:
                     continue
                 idx = np.flatnonzero(xin[dc] & yin[dr])

@@ -30,9 +30,10 @@ from starlette.requests import ClientDisconnect
 
 from pipeline.errors import ConflictError, InputError, NotFoundError, ParameterError
 from pipeline.params import PipelineParams
+from pipeline.tiling import check_tiling
 from service import report as reports
 from service.auth import authenticate
-from service.errors import TooLargeError, install_error_handlers
+from service.errors import TooLargeError, api_wording, install_error_handlers
 from service.runner import Runner, job_dir
 from service.schedules import (
     DEFAULT_CRON,
@@ -782,7 +783,8 @@ def create_app(settings: Settings) -> FastAPI:
 
 def _checked_tiling(params: PipelineParams, tiling: Tiling | None) -> dict | None:
     """The tiling of a job or schedule as stored; ParameterError (422) when its buffer is
-    below the parameters' reach."""
+    below the parameters' reach or its tiles so small that each point would be copied
+    into too many of them."""
     if tiling is None:
         return None
     if tiling.buffer is not None and tiling.buffer < params.reach():
@@ -791,6 +793,10 @@ def _checked_tiling(params: PipelineParams, tiling: Tiling | None) -> dict | Non
             f"({params.reach():.2f} m = segment.max_crown_radius + 1 m + graph.edge_radius): trees near tile edges "
             "would be cut; omit buffer to use the reach"
         )
+    try:
+        check_tiling(tiling.tile_size, tiling.buffer, params.reach())
+    except ParameterError as exc:
+        raise ParameterError(api_wording(str(exc))) from None
     return tiling.model_dump()
 
 

@@ -9,7 +9,7 @@ from hypothesis import strategies as st
 
 from pipeline.errors import ParameterError
 from pipeline.params import PipelineParams, SegmentParams
-from pipeline.tiling import buffered_tiles, check_buffer, core_tile, plan_grid
+from pipeline.tiling import MAX_COPIES, buffered_tiles, check_buffer, check_tiling, copies_per_point, core_tile, min_tile_size, plan_grid
 
 
 def _brute_force(xy, grid):
@@ -109,3 +109,48 @@ def test_too_many_tiles():
 def test_grid_round_trips_through_dict():
     grid = plan_grid((3.0, 4.0), (45.0, 20.0), tile_size=7.5, buffer=2.0, grid_origin=(1.0, 2.0))
     assert type(grid).from_dict(grid.to_dict()) == grid
+
+
+def test_copies_per_point_by_hand():
+    # a 6.15 m buffer reaches ceil(2 x 6.15 / s) + 1 tiles along each axis, at most the grid's
+    assert copies_per_point(10.0, 6.15) == 3 * 3
+    assert copies_per_point(20.0, 6.15) == 2 * 2
+    assert copies_per_point(1.0, 6.15) == 14 * 14
+    assert copies_per_point(1.0, 6.15, ncols=2, nrows=1) == 2
+    assert copies_per_point(12.0, 1e6, ncols=2, nrows=1) == 2
+    assert copies_per_point(min_tile_size(6.15), 6.15) <= MAX_COPIES < copies_per_point(min_tile_size(6.15) - 0.01, 6.15)
+
+
+@pytest.mark.parametrize("size", [0.05, 1.0, 1.75])
+def test_tiles_much_smaller_than_their_buffer_are_refused(size):
+    # every point would be copied into hundreds of buffered tiles: refused before any work
+    with pytest.raises(ParameterError, match=r"copy each point .* at least 1\.76 m"):
+        plan_grid((0, 0), (50, 50), tile_size=size, buffer=6.15)
+    with pytest.raises(ParameterError, match="copy each point"):
+        check_tiling(size, None, 6.15)
+    plan_grid((0, 0), (50, 50), tile_size=min_tile_size(6.15), buffer=6.15)
+    check_tiling(min_tile_size(6.15), None, 6.15)
+
+
+@pytest.mark.parametrize("size", [1e-300, 1e-20])
+def test_absurdly_small_tile_size_is_refused_without_overflow(size):
+    import warnings
+
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")  # no "invalid value encountered in cast"
+        with pytest.raises(ParameterError, match="larger --tile-size"):
+            plan_grid((0, 0), (50, 50), tile_size=size, buffer=0.0)
+
+
+def test_huge_buffer_over_a_small_grid_is_cheap():
+    # a buffer far wider than the block: every point in every tile of the 2 x 1 grid, and
+    # no loop over the million-metre reach (that used to exhaust memory)
+    rng = np.random.default_rng(0)
+    xy = rng.uniform(0, 1, (1000, 2)) * [20.0, 10.0]
+    grid = plan_grid((0, 0), (20, 10), tile_size=12.0, buffer=1e6)
+    assert (grid.ncols, grid.nrows) == (2, 1)
+    p, t = buffered_tiles(xy, grid)
+    assert len(p) == 2000 and set(zip(p.tolist(), t.tolist())) == _brute_force(xy, grid)
+    # a block processed in one piece is one tile, however small next to the buffer
+    one = plan_grid((0, 0), (0.5, 0.5), tile_size=1.5, buffer=6.15)
+    assert one.ncols * one.nrows == 1

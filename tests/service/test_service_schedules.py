@@ -234,6 +234,7 @@ def test_api_schedules_run_now(client_a, api_server):
         ({"inbox": "{farm-a}/missing"}, "does not exist"),
         ({"inbox": "{farm-a}", "tiling": {"tile_size": 10, "buffer": 1}}, "tiling.buffer"),  # every night's job would fail
         ({"inbox": "{farm-a}", "tiling": {"tile_size": 0}}, "tile_size"),
+        ({"inbox": "{farm-a}", "tiling": {"tile_size": 1}}, "use a tiling.tile_size of at least 1.76 m"),  # 196 copies a point
     ],
 )
 def test_api_bad_schedule_is_422(client_a, api_server, body, fragment):
