@@ -324,10 +324,17 @@ def _read_points_labels(path: str, n: int) -> tuple[np.ndarray, np.ndarray, int]
     points absent from the file are tree 0, not wood. Also returns how many are absent."""
     from pipeline.io import read_parquet_columns
 
-    table, _ = read_parquet_columns(path, ["point_index", "tree_id", "is_wood"], what="points.parquet")
+    table, meta = read_parquet_columns(path, ["point_index", "tree_id", "is_wood"], what="points.parquet")
     idx = table["point_index"].astype(np.int64)
     if len(idx) and (idx.min() < 0 or idx.max() >= n):
         raise InputError(f"{path} has point_index values outside the truth's 0..{n - 1}: is it the result of another block?")
+    # `orchard process` writes every point of its block, unless tiles failed (a partial
+    # result says which): fewer points than the truth's means another (smaller) block
+    complete = b"orchard:input" in meta and b"orchard:failed_tiles" not in meta
+    if complete and len(idx) != n:
+        raise InputError(
+            f"{path} holds {len(idx)} points and the truth {n}: is it the result of another block?"
+        )
     tree_id = np.zeros(n, dtype=np.int64)
     is_wood = np.zeros(n, dtype=bool)
     tree_id[idx] = table["tree_id"]

@@ -5,7 +5,7 @@ from __future__ import annotations
 import argparse
 import os
 
-from pipeline.errors import InputError
+from pipeline.errors import InputError, ParameterError
 from pipeline.simulate import SimulationParams, write_simulation
 from service.commands.options import base_type, metavar
 
@@ -38,12 +38,29 @@ def params_from_args(args: argparse.Namespace) -> SimulationParams:
     return SimulationParams.model_validate(given)
 
 
+def _check_crs(epsg: int) -> None:
+    """ParameterError unless ``epsg`` names a projected CRS in metres (the simulator's
+    coordinates are metres east and north)."""
+    import pyproj
+
+    try:
+        crs = pyproj.CRS.from_epsg(epsg)
+    except pyproj.exceptions.CRSError:
+        raise ParameterError(f"--epsg {epsg}: not a known EPSG code") from None
+    units = {a.unit_name for a in crs.axis_info}
+    if not crs.is_projected or units != {"metre"}:
+        raise ParameterError(f"--epsg {epsg} ({crs.name}): give a projected CRS in metres, e.g. a UTM zone (28356)")
+
+
 def run(args: argparse.Namespace) -> int:
     params = params_from_args(args)
+    _check_crs(params.epsg)
     for path in (args.out, args.truth):
         folder = os.path.dirname(os.path.abspath(path))
         if not os.path.isdir(folder):
             raise InputError(f"folder {folder} does not exist: create it first")
+        if os.path.isdir(path):
+            raise InputError(f"{path} is a folder: give a file name")
     if not args.out.lower().endswith((".las", ".laz")):
         raise InputError(f"--out {args.out}: the file name must end in .las or .laz")
     if os.path.abspath(args.out) == os.path.abspath(args.truth):

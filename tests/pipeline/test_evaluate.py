@@ -295,3 +295,44 @@ def test_cli_rejects_nonsense_with_one_line(tmp_path, capsys):
     err = capsys.readouterr().err
     assert rc == 2 and err.count("\n") == 1
     assert list(tmp_path.iterdir()) == []
+
+
+def test_evaluate_refuses_the_truth_of_a_larger_block(tmp_path, capsys):
+    """A complete `orchard process` result with fewer points than the truth is the result
+    of another block (it used to be scored: v-measure 0.6 and "78,793 points missing")."""
+    from service.cli import main
+
+    small, big = tmp_path / "small.laz", tmp_path / "big.laz"
+    args = ["--rows", "1", "--trees-per-row", "2", "--density", "0.05", "--seed", "3", "--no-vehicle"]
+    assert main(["simulate", "--out", str(small), "--truth", str(tmp_path / "small.parquet"), *args]) == 0
+    assert main(["simulate", "--out", str(big), "--truth", str(tmp_path / "big.parquet"), *args, "--trees-per-row", "3"]) == 0
+    assert main(["process", str(small), "--out", str(tmp_path / "res")]) == 0
+    capsys.readouterr()
+    assert main(["evaluate", "--truth", str(tmp_path / "small.parquet"), "--result", str(tmp_path / "res")]) == 0
+    capsys.readouterr()
+    assert main(["evaluate", "--truth", str(tmp_path / "big.parquet"), "--result", str(tmp_path / "res")]) == 2
+    err = capsys.readouterr().err
+    assert err.count("\n") == 1 and "another block" in err
+
+
+@pytest.mark.parametrize(
+    "extra, words",
+    [(["--epsg", "999999"], "not a known EPSG code"), (["--epsg", "4326"], "projected CRS in metres")],
+)
+def test_cli_simulate_refuses_a_crs_that_is_not_metres(tmp_path, capsys, extra, words):
+    from service.cli import main
+
+    rc = main(["simulate", "--out", str(tmp_path / "b.laz"), "--truth", str(tmp_path / "t.parquet"), *extra])
+    err = capsys.readouterr().err
+    assert rc == 2 and err.count("\n") == 1 and words in err
+    assert list(tmp_path.iterdir()) == []
+
+
+def test_cli_simulate_refuses_a_folder_as_output(tmp_path, capsys):
+    from service.cli import main
+
+    (tmp_path / "d.laz").mkdir()
+    rc = main(["simulate", "--out", str(tmp_path / "d.laz"), "--truth", str(tmp_path / "t.parquet")])
+    err = capsys.readouterr().err
+    assert rc == 2 and err.count("\n") == 1 and "is a folder" in err
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["d.laz"]  # no truth without its block
