@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import logging
+
 from distributed import Client, LocalCluster
 
 from pipeline.errors import ParameterError
@@ -16,6 +18,7 @@ def make_client(
     processes: bool = True,
     memory_limit: str | float | None = "auto",
     timeout: str = "20s",
+    quiet: bool = False,
 ) -> Client:
     """A dask client.
 
@@ -34,6 +37,9 @@ def make_client(
         ``memory://`` work store).
     timeout : str
         How long to try to reach ``scheduler``.
+    quiet : bool
+        Embedded cluster only: its workers print nothing (a failing tile is reported once,
+        by the job, instead of as a worker traceback per attempt).
 
     Raises
     ------
@@ -54,6 +60,7 @@ def make_client(
         processes=processes,
         dashboard_address=":0" if dashboard else None,
         memory_limit=memory_limit,
+        silence_logs=logging.CRITICAL if quiet else logging.WARNING,
     )
     client = Client(cluster)
     client.orchard_dashboard = dashboard  # the HTTP server runs anyway; remember whether it serves the dashboard

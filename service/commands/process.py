@@ -135,7 +135,7 @@ def run(args: argparse.Namespace) -> int:
         if tiled:
             from workers.cluster import close_client, dashboard_address, make_client
 
-            client = make_client(args.scheduler, n_workers=args.workers)
+            client = make_client(args.scheduler, n_workers=args.workers, quiet=True)
             link = dashboard_address(client)
             print(f"dask dashboard: {link or 'none'}", file=sys.stderr)
         outcome = run_job(spec, client=client, progress=_Bar() if tiled else None)  # TileFailed: exit 1 (service.cli)

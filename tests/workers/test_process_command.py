@@ -190,3 +190,23 @@ def test_buffer_without_tiles_is_refused(small_block, tmp_path, capsys, argv):
     code, _, err = _run(capsys, small_block, "--out", out_dir, *argv)
     _assert_clean_failure(code, err, out_dir)
     assert "--buffer needs --tile-size" in err
+
+
+def test_a_failing_tile_prints_one_message_not_worker_tracebacks(tmp_path):
+    # the dask workers are other processes writing to the same terminal: each attempt of
+    # a failing tile used to print a "Compute Failed ... Traceback" block there
+    from pipeline.io import LasBlockWriter
+
+    t = np.arange(0.0, 1500.0, 2.0)
+    path = tmp_path / "line.laz"
+    with LasBlockWriter(path, offsets=(500_000.0, 6_950_000.0, 0.0)) as w:
+        w.write(np.column_stack([t + 500_000.0, t + 6_950_000.0, np.full_like(t, 100.0)]))
+    run = subprocess.run(
+        [sys.executable, "-m", "service.cli", "process", str(path), "--out", str(tmp_path / "out"),
+         "--tile-size", "5000", "--workers", "1"],
+        capture_output=True, text=True, timeout=180,
+    )
+    assert run.returncode == 2, run.stderr
+    lines = run.stderr.strip().splitlines()
+    assert "Traceback" not in run.stderr and "Compute Failed" not in run.stderr, run.stderr
+    assert len(lines) <= 3 and lines[-1].startswith("orchard process: tile 0: ") and "too wide" in lines[-1]
