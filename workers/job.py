@@ -20,9 +20,9 @@ re-run that tile alone (:func:`run_tile`) and merge again (:func:`finish_job`).
 from __future__ import annotations
 
 import dataclasses
+import json
 import os
 import shutil
-import json
 import threading
 import time
 import uuid

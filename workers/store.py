@@ -15,7 +15,6 @@ from pathlib import Path
 import fsspec
 import numpy as np
 
-
 #: What a work store writes at its root: the job record, the tiles, the tile results and
 #: the attempt log (plus hidden temporary files of writes in progress). Nothing else
 #: there is the store's to delete.

@@ -9,7 +9,16 @@ from hypothesis import strategies as st
 
 from pipeline.errors import ParameterError
 from pipeline.params import PipelineParams, SegmentParams
-from pipeline.tiling import MAX_COPIES, buffered_tiles, check_buffer, check_tiling, copies_per_point, core_tile, min_tile_size, plan_grid
+from pipeline.tiling import (
+    MAX_COPIES,
+    buffered_tiles,
+    check_buffer,
+    check_tiling,
+    copies_per_point,
+    core_tile,
+    min_tile_size,
+    plan_grid,
+)
 
 
 def _brute_force(xy, grid):

@@ -211,7 +211,7 @@ def test_a_failed_write_leaves_the_previous_outputs_whole(small_block, tmp_path,
     def disk_full(*a, **k):
         raise OSError(28, "No space left on device")
 
-    import workers.job as job
+    from workers import job
 
     monkeypatch.setattr(job.blockio, "write_trees_parquet", disk_full)
     with pytest.raises(ParameterError, match="cannot write the outputs .* No space left"):
