@@ -536,8 +536,15 @@ def write_labelled_las(
             src_extra = list(src_header.point_format.extra_dimension_names)
             keep_extra = [n for n in src_extra if n not in types]
             params = []
+            split: dict[str, int] = {}  # undocumented extra bytes -> one uint8 dimension per byte
             for d in src_header.point_format.extra_dimensions:
-                if d.name in keep_extra:  # with its scales and offsets: the stored integers keep their meaning
+                if d.name in keep_extra and d.num_elements > 3:
+                    # bytes no ExtraBytes record describes: laspy can write them only as an
+                    # "undocumented" record that it cannot read back, so each byte becomes a
+                    # documented uint8 dimension NAME_0, NAME_1, ... holding the same values
+                    split[d.name] = int(d.num_elements)
+                    params += [laspy.ExtraBytesParams(name=f"{d.name}_{i}", type=np.uint8) for i in range(d.num_elements)]
+                elif d.name in keep_extra:  # with its scales and offsets: the stored integers keep their meaning
                     params.append(laspy.ExtraBytesParams(
                         name=d.name, type=d.dtype, description=d.description,
                         offsets=d.offsets if d.is_scaled else None, scales=d.scales if d.is_scaled else None,
@@ -552,6 +559,10 @@ def write_labelled_las(
                     rec = laspy.ScaleAwarePointRecord.zeros(m, header=header)
                     for name in chunk.array.dtype.names:  # the stored values, bit for bit
                         if name in types:
+                            continue
+                        if name in split:
+                            for i in range(split[name]):
+                                rec.array[f"{name}_{i}"] = chunk.array[name][:, i]
                             continue
                         rec.array[name] = chunk.array[name]
                     for k, v in get(start, start + m).items():

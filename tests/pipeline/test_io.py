@@ -419,3 +419,30 @@ def test_labelled_las_of_a_las_1_0_or_1_1_block(tmp_path, minor):
     for dim in ("X", "Y", "Z", "intensity", "gps_time"):
         assert np.array_equal(out[dim], orig[dim])
     assert np.array_equal(out.tree_id, _labels(len(xyz))["tree_id"])
+
+
+def test_labelled_las_of_a_block_with_undocumented_extra_bytes(tmp_path):
+    # bytes at the end of each point that no ExtraBytes record describes: the labelled copy
+    # keeps them as one uint8 dimension per byte (laspy could not read its own
+    # "undocumented" record back, so the copy did not open)
+    n = 500
+    header = laspy.LasHeader(version="1.4", point_format=6)
+    header.offsets, header.scales = [EASTING, NORTHING, 0.0], [0.001] * 3
+    header.add_extra_dims([laspy.ExtraBytesParams(name="pad", type="10u1")])
+    las = laspy.LasData(header)
+    xyz = _cloud(n)
+    las.x, las.y, las.z = xyz[:, 0], xyz[:, 1], xyz[:, 2]
+    las.pad = np.arange(n * 10, dtype=np.uint8).reshape(n, 10)
+    src = tmp_path / "undocumented.las"
+    las.write(src)
+    raw = bytearray(src.read_bytes())
+    at = raw.find(b"LASF_Spec")
+    raw[at + 16 : at + 18] = struct.pack("<H", 9999)  # the ExtraBytes record becomes an unknown one
+    src.write_bytes(bytes(raw))
+    orig = laspy.read(src)
+    assert "ExtraBytes" in list(orig.point_format.extra_dimension_names)
+    io.write_labelled_las(src, tmp_path / "out.laz", labels=_labels(n))
+    out = laspy.read(tmp_path / "out.laz")
+    for i in range(10):
+        assert np.array_equal(out[f"ExtraBytes_{i}"], orig.points.array["ExtraBytes"][:, i])
+    assert np.array_equal(out.tree_id, _labels(n)["tree_id"]) and np.array_equal(out.X, orig.X)
