@@ -85,11 +85,24 @@ def _disk(radius_cells: float) -> np.ndarray:
     return (ii**2 + jj**2) <= radius_cells**2 + 1e-9
 
 
+#: The ground noise is estimated from every k-th point of the block, k = n // STATS_SAMPLE
+#: (at least 1): about this many points, enough for a median, in file order, so that the
+#: tiles of a tiled job can take the same points (see :func:`stats_stride`).
+STATS_SAMPLE = 200_000
+
+
+def stats_stride(n_points: int) -> int:
+    """The k of "every k-th point" that :func:`ground_model` samples for the noise of a
+    block of ``n_points``."""
+    return max(1, int(n_points) // STATS_SAMPLE)
+
+
 def ground_model(
     xyz: np.ndarray,
     *,
     params: GroundParams,
     grid_origin: tuple[float, float, float] = (0.0, 0.0, 0.0),
+    stats: tuple[float, float] | None = None,
 ) -> GroundModel:
     """Fit a terrain model from the lowest points.
 
@@ -99,6 +112,10 @@ def ground_model(
     params : GroundParams
     grid_origin : (3,) float
         The grid is aligned to this point so that tiles of one block share cells.
+    stats : (shift, noise), optional
+        :func:`ground_stats` of the whole block. A tile of a tiled job passes the block's,
+        so that every tile lifts its surface alike; by default they are estimated from
+        every :func:`stats_stride`-th point of ``xyz``.
 
     Returns
     -------
@@ -110,9 +127,24 @@ def ground_model(
         A connected part of the block is too wide to model in one piece (more than
         ``MAX_PART_CELLS`` cells): it has to be processed in tiles.
     """
+    xyz = np.asarray(xyz, dtype=np.float64)
+    model = raw_ground_model(xyz, params=params, grid_origin=grid_origin)
+    if xyz.shape[0] == 0:
+        return model
+    if stats is None:
+        stats = ground_stats(ground_residuals(model, xyz[:: stats_stride(xyz.shape[0])]))
+    return lifted(model, stats)
+
+
+def raw_ground_model(
+    xyz: np.ndarray,
+    *,
+    params: GroundParams,
+    grid_origin: tuple[float, float, float] = (0.0, 0.0, 0.0),
+) -> GroundModel:
+    """The terrain model of :func:`ground_model` before it is lifted by the noise (noise 0)."""
     # Strategy: split the block into parts separated by empty ground wider than the
-    # filters reach, and fit one raster per part (:func:`_part_dtm`); then estimate the
-    # ground noise over all of them and lift the surface by the part the noise explains.
+    # filters reach, and fit one raster per part (:func:`_part_dtm`).
     xyz = np.asarray(xyz, dtype=np.float64)
     c = params.cell_size
     go = np.asarray(grid_origin[:2], dtype=np.float64)
@@ -135,20 +167,32 @@ def ground_model(
         lo = column_min(ij[sel])
         dtms.append(_part_dtm(xyz[sel], ij[sel] - lo, params, corner=lo))
         origins.append(go + lo * c)
-    model = GroundModel(tuple(dtms), np.array(origins), c, 0.0, part_xy, part_of)
+    return GroundModel(tuple(dtms), np.array(origins), c, 0.0, part_xy, part_of)
 
-    # Cell minima sit about two noise widths below the true surface: shift the model up
-    # by the median residual of the near-ground points and take their spread as noise.
-    sub = xyz[:: max(1, xyz.shape[0] // 200_000)]  # the statistics need no more points
-    resid = sub[:, 2] - model.height_at(sub)
+
+def ground_residuals(model: GroundModel, xyz: np.ndarray) -> np.ndarray:
+    """(m,) height [m] of points (m, 3) above a (raw) terrain model."""
+    return xyz[:, 2] - model.height_at(xyz)
+
+
+def ground_stats(residuals: np.ndarray) -> tuple[float, float]:
+    """(shift, noise) [m] from residuals above the raw model: cell minima sit about two
+    noise widths below the true surface, so the median residual of the near-ground
+    points is the shift and their robust spread the noise. (0, 0) without such points."""
+    resid = np.asarray(residuals, dtype=np.float64)
     band = resid[(resid >= -0.05) & (resid < 0.5)]
-    noise = 0.0
-    if band.size:
-        shift = float(np.median(band))
-        noise = float(1.4826 * np.median(np.abs(band - shift)))
-        # only a shift the noise explains; a thick layer of grass must not lift the ground
-        dtms = [d + min(max(shift - noise, 0.0), 2.5 * noise) for d in dtms]
-    return GroundModel(tuple(dtms), model.origins, c, noise, part_xy, part_of)
+    if not band.size:
+        return 0.0, 0.0
+    shift = float(np.median(band))
+    return shift, float(1.4826 * np.median(np.abs(band - shift)))
+
+
+def lifted(model: GroundModel, stats: tuple[float, float]) -> GroundModel:
+    """The raw model lifted by the part of the shift its noise explains (a thick layer of
+    grass must not lift the ground), carrying that noise."""
+    shift, noise = (float(v) for v in stats)
+    lift = min(max(shift - noise, 0.0), 2.5 * noise)
+    return GroundModel(tuple(d + lift for d in model.dtms), model.origins, model.cell_size, noise, model.part_xy, model.part_of)
 
 
 def _parts(ij: np.ndarray, cell: float, grid_origin: np.ndarray, gap: float):

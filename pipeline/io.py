@@ -624,7 +624,7 @@ def geo_metadata(crs_wkt: str | None, bbox: list[float] | None) -> dict:
     return {"version": "1.1.0", "primary_column": "geometry", "columns": {"geometry": column}}
 
 
-def write_trees_parquet(path, columns: dict[str, np.ndarray], *, crs_wkt: str | None) -> None:
+def write_trees_parquet(path, columns: dict[str, np.ndarray], *, crs_wkt: str | None, metadata: dict | None = None) -> None:
     """Write the per-tree table as GeoParquet (atomic).
 
     Parameters
@@ -634,6 +634,8 @@ def write_trees_parquet(path, columns: dict[str, np.ndarray], *, crs_wkt: str | 
         ``metrics.TREE_COLUMNS`` (coordinates in the input CRS); other columns are kept.
     crs_wkt : str or None
         The block's CRS, stored as PROJJSON in the ``geo`` metadata (``null`` = unknown).
+    metadata : dict str → str, optional
+        More key-value metadata (e.g. ``orchard:failed_tiles`` of a partial result).
     """
     dst = Path(str(path))
     x = np.asarray(columns["trunk_x"], dtype=np.float64)
@@ -646,6 +648,7 @@ def write_trees_parquet(path, columns: dict[str, np.ndarray], *, crs_wkt: str | 
     table = pa.table(arrays)
     meta = dict(table.schema.metadata or {})
     meta[b"geo"] = json.dumps(geo_metadata(crs_wkt, bbox)).encode()
+    meta.update({str(k).encode(): str(v).encode() for k, v in (metadata or {}).items()})
     table = table.replace_schema_metadata(meta)
     tmp = _temp_name(dst)
     try:

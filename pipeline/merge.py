@@ -83,6 +83,7 @@ def reconcile_trunks(
     cluster_radius: float,
     match_distance: float = 1.0,
     fallback_radius: float = 3.5,
+    dead_zones: np.ndarray | None = None,
 ) -> GlobalTrunks:
     """Reconcile the trunks of all tiles and map local tree ids to global ones.
 
@@ -97,6 +98,10 @@ def reconcile_trunks(
         trunk within this distance [m].
     fallback_radius : float
         Else the nearest global trunk within this distance [m] (the widest crown); else 0.
+    dead_zones : (f, 4) float64, optional
+        Boxes ``(x0, y0, x1, y1)`` (same frame) where no tile reported: the cores of
+        failed tiles. A local trunk there with no global trunk within ``match_distance``
+        is a tree nobody owns, not part of its neighbour: its points map to 0.
 
     Returns
     -------
@@ -136,6 +141,14 @@ def reconcile_trunks(
         if g_tree is not None and len(local):
             d, j = g_tree.query(local[:, :2], k=1)
             ok = d <= max(match_distance, fallback_radius)
+            if dead_zones is not None and len(dead_zones):
+                ok &= (d <= match_distance) | ~_in_boxes(local[:, :2], np.asarray(dead_zones, dtype=np.float64))
             mp[1:][ok] = j[ok] + 1
         id_maps[t.tile_id] = mp
     return GlobalTrunks(g_pos, g_diam, g_sup, g_owner, id_maps)
+
+
+def _in_boxes(xy: np.ndarray, boxes: np.ndarray) -> np.ndarray:
+    """(k,) bool: the point lies in one of the half-open boxes (x0, y0, x1, y1)."""
+    x, y = xy[:, 0:1], xy[:, 1:2]
+    return ((boxes[:, 0] <= x) & (x < boxes[:, 2]) & (boxes[:, 1] <= y) & (y < boxes[:, 3])).any(axis=1)

@@ -144,6 +144,7 @@ def analyse_nodes(
     *,
     params: PipelineParams,
     grid_origin: tuple[float, float, float] = (0.0, 0.0, 0.0),
+    ground_stats: tuple[float, float] | None = None,
 ) -> NodeAnalysis:
     """Ground, voxel graph, trunks and segmentation at the node level.
 
@@ -152,6 +153,8 @@ def analyse_nodes(
     xyz : (n, 3) float64 [m], local frame
     params : PipelineParams
     grid_origin : (3,) float
+    ground_stats : (shift, noise), optional
+        The block's ground statistics (:func:`pipeline.ground.ground_stats`) for a tile.
 
     Returns
     -------
@@ -163,7 +166,7 @@ def analyse_nodes(
     xyz = np.asarray(xyz, dtype=np.float64)
     if xyz.ndim != 2 or xyz.shape[1] != 3:
         raise ValueError("xyz must have shape (n, 3)")
-    gm = ground_model(xyz, params=params.ground, grid_origin=grid_origin)
+    gm = ground_model(xyz, params=params.ground, grid_origin=grid_origin, stats=ground_stats)
     height, is_ground = classify_ground(xyz, gm, params=params.ground)
     veg_idx = np.flatnonzero(~is_ground & (height > 0))
     vox = voxelize(xyz[veg_idx], voxel_size=params.graph.voxel_size, grid_origin=grid_origin)
@@ -275,6 +278,7 @@ def process_points(
     *,
     params: PipelineParams,
     grid_origin: tuple[float, float, float] = (0.0, 0.0, 0.0),
+    ground_stats: tuple[float, float] | None = None,
 ) -> BlockResult:
     """Run the whole per-block pipeline on one point cloud.
 
@@ -286,12 +290,16 @@ def process_points(
     grid_origin : (3,) float
         Origin of the voxel and ground grids in the same frame. Tiles of one block pass
         the same value so that their grids line up and results agree across tiles.
+    ground_stats : (shift, noise), optional
+        The whole block's ground statistics; tiles of one block pass the same values, so
+        that their ground models are lifted alike. Default: estimated from ``xyz``.
 
     Returns
     -------
     BlockResult
     """
-    return block_result(xyz, analyse_nodes(xyz, params=params, grid_origin=grid_origin), params=params)
+    a = analyse_nodes(xyz, params=params, grid_origin=grid_origin, ground_stats=ground_stats)
+    return block_result(xyz, a, params=params)
 
 
 def block_result(xyz: np.ndarray, a: NodeAnalysis, *, params: PipelineParams) -> BlockResult:

@@ -19,6 +19,7 @@ re-run that tile alone (:func:`run_tile`) and merge again (:func:`finish_job`).
 
 from __future__ import annotations
 
+import contextlib
 import dataclasses
 import json
 import os
@@ -35,6 +36,7 @@ import numpy as np
 
 from pipeline import io as blockio
 from pipeline.errors import InputError, NoTreesError, OrchardError, ParameterError
+from pipeline.ground import ground_residuals, ground_stats, raw_ground_model, stats_stride
 from pipeline.io import BlockInfo
 from pipeline.merge import GlobalTrunks, TileTrunks, reconcile_trunks
 from pipeline.metrics import combine_partials, finalize_metrics, tree_partials
@@ -45,6 +47,8 @@ from workers.store import WorkStore, default_work_dir
 from workers.tiler import INDEX_KEY, check_engine, read_tile, tile_block
 
 JOB_KEY = "job.json"
+#: how far beyond its core a tile claims a trunk, in cluster radii
+OWNERSHIP_MARGIN = 0.5
 #: Attempts after the first for a failing tile.
 TILE_RETRIES = 2
 #: Points per output window when streaming labels (bounded memory).
@@ -119,7 +123,14 @@ def _summarise(tile_id, xyz, core, result, grid: TileGrid | None, origin, params
     if grid is None:
         owned = np.ones(len(trunks), dtype=bool)
     else:
-        owned = core_tile(trunks[:, :2] + np.asarray(origin[:2]), grid) == tile_id
+        # a tile claims trunks up to half a cluster radius beyond its core: two tiles may
+        # place one trunk a few cm apart (their ground models differ slightly), each in the
+        # other's core, and it must not be owned by neither (the merge keeps one of two)
+        xy = trunks[:, :2] + np.asarray(origin[:2])
+        x0, y0, x1, y1 = grid.tile(int(tile_id)).core
+        m = OWNERSHIP_MARGIN * params.trunks.cluster_radius
+        near = (x0 - m <= xy[:, 0]) & (xy[:, 0] < x1 + m) & (y0 - m <= xy[:, 1]) & (xy[:, 1] < y1 + m)
+        owned = (core_tile(xy, grid) == tile_id) | near
     sel = slice(None) if core.all() else core  # a whole block: no copies
     partials = tree_partials(
         xyz[sel], result.tree_id[sel], result.is_wood[sel], trunks[:, 2], params=params.metrics
@@ -139,13 +150,72 @@ def result_key(tile_id: int) -> str:
     return f"results/{tile_id:06d}"
 
 
-def _process(xyz: np.ndarray, params: PipelineParams, where: str):
+def _process(xyz: np.ndarray, params: PipelineParams, where: str, ground: tuple[float, float] | None = None):
     """``process_points`` on a block or tile; an InputError (e.g. points spread too wide
     for one ground model) names ``where``, the file or the tile."""
     try:
-        return process_points(xyz, params=params, grid_origin=(0.0, 0.0, 0.0))
+        return process_points(xyz, params=params, grid_origin=(0.0, 0.0, 0.0), ground_stats=ground)
     except InputError as exc:
         raise InputError(f"{where}: {exc}") from None
+
+
+def _tile_points(store: WorkStore, tile_id: int, index: dict) -> tuple[dict, np.ndarray]:
+    """A buffered tile's record array and its points in the block's local frame."""
+    rec = read_tile(store, tile_id)
+    ints = np.column_stack([rec["X"], rec["Y"], rec["Z"]])
+    return rec, blockio.to_local(ints, _frame(index))
+
+
+def ground_sample(work_url: str, tile_id: int, params_json: str, stride: int) -> np.ndarray:
+    """Task body: heights above the tile's raw ground model of the core points whose
+    position in the block is a multiple of ``stride``.
+
+    Over all tiles these are the very points an untiled run samples for the ground noise
+    (every ``stride``-th point of the file), measured against the same terrain, so the
+    block's statistics (and with them every tile's ground) come out as untiled.
+    """
+    store = WorkStore(work_url)
+    index = store.get_json(INDEX_KEY)
+    params = PipelineParams.model_validate_json(params_json)
+    rec, xyz = _tile_points(store, tile_id, index)
+    pick = rec["core"].astype(bool) & (rec["index"] % np.uint64(stride) == 0)
+    try:
+        model = raw_ground_model(xyz, params=params.ground)
+    except InputError as exc:
+        raise InputError(f"tile {tile_id}: {exc}") from None
+    return ground_residuals(model, xyz[pick])
+
+
+def _block_ground_stats(store, tiles, spec, client, cancel, n_points: int) -> list[float]:
+    """The block's ground (shift, noise) from :func:`ground_sample` of every tile."""
+    stride = stats_stride(n_points)
+    params_json = spec.params.model_dump_json()
+    parts = []
+    if client is None:
+        for t in tiles:
+            _check_cancel(cancel)
+            parts.append(ground_sample(store.url, t["id"], params_json, stride))
+    else:
+        by_id = {t["id"]: t for t in tiles}
+        token = uuid.uuid4().hex[:8]
+        futures = {
+            client.submit(ground_sample, store.url, t["id"], params_json, stride, key=f"orchard-ground-{t['id']}-{token}",
+                          retries=TILE_RETRIES, pure=False): t["id"]
+            for t in tiles
+        }
+        with contextlib.closing(_completed(client, futures, cancel, store)) as done:
+            for tid, fut in done:
+                if fut.status == "finished":
+                    parts.append(fut.result())
+                    continue
+                exc = fut.exception()
+                if isinstance(exc, OrchardError):
+                    raise exc
+                raise TileFailed(
+                    f"{_describe(by_id[tid])} failed after {TILE_RETRIES + 1} attempts to model its ground: {_error_line(exc)}",
+                    tid,
+                )
+    return list(ground_stats(np.concatenate(parts) if parts else np.zeros(0)))
 
 
 def process_tile(work_url: str, tile_id: int, params_json: str, fail: bool = False) -> dict:
@@ -159,15 +229,18 @@ def process_tile(work_url: str, tile_id: int, params_json: str, fail: bool = Fal
     if fail:  # testing the failure policy: leave a trace of each attempt, then fail
         store.put_json(f"attempts/{tile_id:06d}/{uuid.uuid4().hex}.json", {"tile": tile_id, "time": time.time()})
         raise RuntimeError(f"injected failure in tile {tile_id} (testing)")
+    if not store.exists(JOB_KEY):  # the job ended (its store deleted) before this tile started
+        return _abandon(store)
+    stats = store.get_json(JOB_KEY).get("ground_stats")  # the block's, shared by every tile
     index = store.get_json(INDEX_KEY)
     params = PipelineParams.model_validate_json(params_json)
     grid = TileGrid.from_dict(index["grid"])
-    rec = read_tile(store, tile_id)
-    ints = np.column_stack([rec["X"], rec["Y"], rec["Z"]])
-    xyz = blockio.to_local(ints, _frame(index))
+    rec, xyz = _tile_points(store, tile_id, index)
     core = rec["core"].astype(bool)
-    result = _process(xyz, params, f"tile {tile_id}")
+    result = _process(xyz, params, f"tile {tile_id}", tuple(stats) if stats else None)
     key = result_key(tile_id)
+    if not store.exists(JOB_KEY):  # the job was cancelled (its store deleted) while this tile ran
+        return _abandon(store)
     store.put_array(f"{key}/index.npy", rec["index"][core])
     store.put_array(f"{key}/tree_id.npy", np.asarray(result.tree_id[core], dtype=np.int64))
     store.put_array(f"{key}/is_ground.npy", np.asarray(result.is_ground[core], dtype=bool))
@@ -175,7 +248,22 @@ def process_tile(work_url: str, tile_id: int, params_json: str, fail: bool = Fal
     store.put_array(f"{key}/wood_score.npy", np.asarray(result.wood_score[core], dtype=np.float32))
     summary = _summarise(tile_id, xyz, core, result, grid, index["origin"], params)
     store.put_object(f"{key}/summary.pkl", summary)
+    if not store.exists(JOB_KEY):  # deleted while these were written: take them back
+        return _abandon(store)
     return summary
+
+
+def _kept(summary: dict) -> dict:
+    if summary.get("abandoned"):  # the work store went away under the job
+        raise JobCancelled("job cancelled: its work store was deleted")
+    return summary
+
+
+def _abandon(store: WorkStore) -> dict:
+    """A tile that finished after its job ended: what it wrote goes (the store deletes
+    only its own files, and its folder if nothing else is left)."""
+    store.remove()
+    return {"abandoned": True}
 
 
 # ------------------------------------------------------------------------- labels
@@ -285,7 +373,7 @@ def _write_outputs(out_dir: Path, info: BlockInfo, labels: _Labels, trees: dict,
             )
             written["labelled"] = path
         path = stage / "trees.parquet"
-        blockio.write_trees_parquet(path, trees, crs_wkt=info.crs_wkt)
+        blockio.write_trees_parquet(path, trees, crs_wkt=info.crs_wkt, metadata=meta)
         written["trees"] = path
         outputs = {}
         for key, staged in written.items():  # complete: publish (each rename is atomic)
@@ -469,6 +557,10 @@ def _run_tiled(spec, info, client, t0, progress, cancel) -> JobOutcome:
         tiles = [t for t in index["tiles"] if t["n_core"] > 0]
         t = time.perf_counter()
         try:
+            record["ground_stats"] = _block_ground_stats(store, tiles, spec, client, cancel, info.n_points)
+            store.put_json(JOB_KEY, record)
+            timings["ground"] = time.perf_counter() - t
+            t = time.perf_counter()
             summaries, failed = _run_tiles(store, tiles, spec, client, progress, cancel)
         except (TileFailed, JobCancelled, ClusterLost):
             keep_work = True  # everything needed to re-run or resume stays in the work store
@@ -525,7 +617,7 @@ def _run_tiles(store, tiles, spec, client, progress, cancel) -> tuple[list[dict]
             err = None
             for _ in range(TILE_RETRIES + 1):
                 try:
-                    summaries.append(process_tile(store.url, t["id"], params_json, t["id"] in inject))
+                    summaries.append(_kept(process_tile(store.url, t["id"], params_json, t["id"] in inject)))
                     err = None
                     break
                 except OrchardError:
@@ -539,8 +631,6 @@ def _run_tiles(store, tiles, spec, client, progress, cancel) -> tuple[list[dict]
             if progress:
                 progress(i + 1, total)
         return summaries, failed
-
-    from distributed import wait
 
     token = uuid.uuid4().hex[:8]
     futures = {}
@@ -557,8 +647,35 @@ def _run_tiles(store, tiles, spec, client, progress, cancel) -> tuple[list[dict]
             priority=1 if t["id"] == canary else 0,
         )
         futures[fut] = t["id"]
-    pending = set(futures)
     done_count = 0
+    with contextlib.closing(_completed(client, futures, cancel, store)) as done:
+        for tid, fut in done:
+            if fut.status == "finished":
+                summaries.append(_kept(fut.result()))
+            else:
+                exc = fut.exception()
+                if isinstance(exc, OrchardError):
+                    raise exc
+                if tid == canary:
+                    raise fail_canary(tid, exc)
+                failed[tid] = _error_line(exc)
+            done_count += 1
+            if progress:
+                progress(done_count, total)
+    summaries.sort(key=lambda s: s["tile_id"])
+    return summaries, failed
+
+
+def _completed(client, futures: dict, cancel, store: WorkStore):
+    """Yield ``(futures[f], f)`` for each dask future ``f`` as it finishes.
+
+    Raises JobCancelled when ``cancel`` is set, and ClusterLost after NO_WORKER_TIMEOUT
+    seconds without any worker; the futures still pending when it stops (or is closed)
+    are cancelled.
+    """
+    from distributed import wait
+
+    pending = set(futures)
     last_worker_seen = time.monotonic()
     last_check = 0.0
     try:
@@ -580,34 +697,23 @@ def _run_tiles(store, tiles, spec, client, progress, cancel) -> tuple[list[dict]
                 continue
             for fut in res.done:
                 pending.discard(fut)
-                tid = futures[fut]
-                if fut.status == "finished":
-                    summaries.append(fut.result())
-                else:
-                    exc = fut.exception()
-                    if isinstance(exc, OrchardError):
-                        raise exc
-                    if tid == canary:
-                        raise fail_canary(tid, exc)
-                    failed[tid] = _error_line(exc)
-                done_count += 1
-                if progress:
-                    progress(done_count, total)
+                yield futures[fut], fut
     finally:
         if pending:
             client.cancel(list(pending))
-    summaries.sort(key=lambda s: s["tile_id"])
-    return summaries, failed
 
 
 def _finish(store: WorkStore, record: dict, index: dict, summaries: list[dict], failed: list[int]) -> JobOutcome:
     info = BlockInfo(**{k: tuple(v) if isinstance(v, list) else v for k, v in record["info"].items()})
     params = PipelineParams.model_validate(record["params"])
     summaries = sorted(summaries, key=lambda s: s["tile_id"])
+    origin = np.asarray(index["origin"][:2], dtype=np.float64)
+    dead = [np.asarray(t["core"], dtype=np.float64) - np.r_[origin, origin] for t in index["tiles"] if t["id"] in set(failed)]
     merged = reconcile_trunks(
         [_tile_trunks(s) for s in summaries],
         cluster_radius=params.trunks.cluster_radius,
         fallback_radius=params.segment.max_crown_radius,
+        dead_zones=np.array(dead).reshape(-1, 4),
     )
     if merged.n_trees == 0:
         raise _no_trees(info)
@@ -665,6 +771,10 @@ def resume_job(
         if t["n_core"] > 0 and not store.exists(f"{result_key(t['id'])}/summary.pkl")
     ]
     spec = JobSpec(record["input_path"], out_dir or record["out_dir"], params=PipelineParams.model_validate(record["params"]))
+    if todo and "ground_stats" not in record:  # stopped before the block's ground statistics were taken
+        tiles = [t for t in index["tiles"] if t["n_core"] > 0]
+        record["ground_stats"] = _block_ground_stats(store, tiles, spec, client, cancel, record["info"]["n_points"])
+        store.put_json(JOB_KEY, record)
     if todo:
         _run_tiles(store, todo, spec, client, progress, cancel)
     return finish_job(work_dir, out_dir=out_dir)

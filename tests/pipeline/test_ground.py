@@ -158,3 +158,26 @@ def test_too_steep_squares_follow_the_block_grid():
     for corner in ((1, 3), (2, 2), (5, 0)):
         tile = ground._too_steep(z[corner[0] :, corner[1] :], 0.25, 1.0, 0.42, corner)
         assert np.array_equal(tile, whole[corner[0] :, corner[1] :]), corner
+
+
+def test_block_statistics_make_a_part_of_the_block_lift_like_the_block():
+    # a tile of a tiled job fits its own raw surface but takes the block's (shift, noise):
+    # where the tile and the block see the same ground, their models then agree exactly
+    rng = np.random.default_rng(5)
+    g = _terrain(rng, n=60000, slope=0.05)
+    g[:, 2] += rng.normal(0.0, 0.03, len(g))
+    p = GroundParams()
+    block = ground_model(g, params=p)
+    raw = ground.raw_ground_model(g, params=p)
+    stats = ground.ground_stats(ground.ground_residuals(raw, g[:: ground.stats_stride(len(g))]))
+    assert stats[1] == block.noise > 0.02
+    assert all(np.array_equal(a, b) for a, b in zip(ground.lifted(raw, stats).dtms, block.dtms))
+    # a 10 m square of it: its own estimate differs, the block's statistics do not
+    part = g[(g[:, 0] < 10) & (g[:, 1] < 10)]
+    inner = np.array([[4.0, 4.0], [5.0, 6.0], [6.5, 3.5]])
+    own = ground_model(part, params=p)
+    shared = ground_model(part, params=p, stats=stats)
+    assert shared.noise == block.noise and own.noise != block.noise
+    assert np.array_equal(shared.height_at(inner), block.height_at(inner))
+    assert not np.array_equal(own.height_at(inner), block.height_at(inner))
+    assert ground.stats_stride(199_999) == 1 and ground.stats_stride(1_000_000) == 5

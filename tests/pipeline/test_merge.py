@@ -85,3 +85,21 @@ def test_ids_do_not_depend_on_tile_order(seed, perm_seed):
                 assert np.hypot(*(g1.trunks[i, :2] - g1.trunks[j, :2])) > 0.8
     # ids follow position
     assert np.array_equal(position_order(g1.trunks), np.arange(g1.n_trees))
+
+
+def test_buffer_trunks_in_a_failed_tile_map_to_nothing():
+    # tile 1 (core x 10..20) failed: tile 0 saw its trunk at x=12 in its buffer. That tree
+    # has no owner; its buffer points must not join tile 0's tree at x=8 (3.9 m away,
+    # within the fallback radius), which would swell that tree's crown
+    a = _tile(0, [[8.0, 5.0, 0.0], [11.9, 5.0, 0.0], [10.3, 5.0, 0.0]], [100, 90, 80], [True, False, False])
+    dead = np.array([[10.0, 0.0, 20.0, 10.0]])
+    g = reconcile_trunks([a], cluster_radius=0.8, fallback_radius=5.0, dead_zones=dead)
+    assert g.n_trees == 1 and g.id_maps[0].tolist() == [0, 1, 0, 0]
+    # without a failed tile the fallback joins them (a buffer trunk the owner dropped)
+    g = reconcile_trunks([a], cluster_radius=0.8, fallback_radius=5.0)
+    assert g.id_maps[0].tolist() == [0, 1, 1, 1]
+    # a trunk in the dead zone still takes a global trunk within the match distance: one
+    # that the neighbour owns through its ownership margin
+    b = _tile(2, [[10.2, 5.0, 0.0]], [120], [True])
+    g = reconcile_trunks([a, b], cluster_radius=0.8, fallback_radius=5.0, dead_zones=dead)
+    assert g.n_trees == 2 and g.id_maps[0].tolist() == [0, 1, 0, 2]
