@@ -160,6 +160,10 @@ class Health(BaseModel):
     version: str
     runner: str
     schedules: str
+    cluster: str = Field(
+        description="the runner's dask client: 'connected', 'not started' (until the first job), "
+        "or distributed's state of a client that lost its scheduler (e.g. 'connecting')"
+    )
 
 
 # -- conversions ---------------------------------------------------------------------------
@@ -579,6 +583,7 @@ def create_app(settings: Settings) -> FastAPI:
             version=API_VERSION,
             runner="disabled" if runner is None else ("alive" if runner.is_alive() else "stopped"),
             schedules="disabled" if clock is None else ("alive" if clock.is_alive() else "stopped"),
+            cluster="disabled" if runner is None else runner.cluster_state(),
         )
 
     # blocks ------------------------------------------------------------------------------

@@ -15,6 +15,7 @@ from __future__ import annotations
 
 import dataclasses
 import logging
+import re
 import threading
 import time
 from pathlib import Path
@@ -42,6 +43,13 @@ def job_dir(settings: Settings, job_id: str) -> Path:
 
 def _is_cancel(exc: BaseException) -> bool:
     return type(exc).__name__ in ("JobCancelled", "CancelledError")
+
+
+def _without_resume_hints(message: str) -> str:
+    """A job error without the command line's advice to resume from or re-run tiles of the
+    work store: the service deletes a failed job's work store and never resumes it."""
+    message = re.sub(r"; its data is kept in \S+ \(re-run it alone with --work \S+ --rerun-tile \d+\)", "", message)
+    return re.sub(r"; start workers and resume with --work \S+ --resume", "; start dask workers and submit the job again", message)
 
 
 def _short(exc: BaseException, limit: int = 300) -> str:
@@ -111,6 +119,15 @@ class Runner(threading.Thread):
         if self.is_alive():
             self.join(timeout)
 
+    def cluster_state(self) -> str:
+        """'connected', 'not started', or the dask client's own status (e.g. 'connecting'
+        while it has lost its scheduler)."""
+        client = self._client
+        if client is None:
+            return "not started"
+        status = str(getattr(client, "status", "running"))
+        return "connected" if status == "running" else status
+
     @property
     def current_job(self) -> str | None:
         return self._current
@@ -129,7 +146,9 @@ class Runner(threading.Thread):
 
     def _get_client(self):
         client = self._client
-        if client is not None and getattr(client, "status", "running") not in ("running", "connecting"):
+        # a client still "connecting" has lost its scheduler: start afresh, so that a job
+        # finds out at once (and clearly) whether the cluster is back
+        if client is not None and getattr(client, "status", "running") != "running":
             self._close_client()
             client = None
         if client is None:
@@ -250,16 +269,20 @@ class Runner(threading.Thread):
                 self._drop_work(job["id"], out_dir)  # the service never resumes a cancelled job
                 return self.store.finish_job(job["id"], "cancelled", error="cancelled on request")
             if isinstance(exc, OrchardError):
-                message = str(exc) or type(exc).__name__
+                message = _without_resume_hints(str(exc) or type(exc).__name__)
                 if block is not None:
                     message = api_wording(message, block_path=block["path"], filename=block.get("filename"))
             elif isinstance(exc, (KeyboardInterrupt, SystemExit)):
                 raise
             elif isinstance(exc, ClusterUnavailable):
                 message = str(exc)
+            elif type(exc).__name__ == "FuturesCancelledError" or "scheduler-connection-lost" in str(exc):
+                self._close_client()  # the next job connects afresh
+                message = "lost the connection to the dask scheduler during the job; submit it again once the cluster is back"
             else:
                 log.error("job %s failed unexpectedly", job["id"], exc_info=exc)
                 message = f"internal error ({type(exc).__name__}): {_short(exc)}"
+            self._drop_work(job["id"], out_dir)  # the service never resumes a job: its tiles are not needed
             return self.store.finish_job(job["id"], "failed", error=message)
         finally:
             with self._lock:

@@ -131,14 +131,22 @@ def tenant_inbox_root(settings: Settings, tenant_name: str) -> Path:
 
 def check_inbox_use(inbox: Path, *, settings: Settings, store: Store, tenant_id: str) -> None:
     """ParameterError if ``inbox`` (resolved) is one of the service's own folders or
-    another tenant's inbox: a schedule would hand their files to this tenant."""
+    another tenant's inbox (a schedule would hand their files to this tenant), or
+    already has a schedule (each capture would be processed once per schedule)."""
     data = Path(settings.data_dir).resolve()
     own = [data / "blocks", data / "jobs", data / "tmp"]
     if inbox == data or any(inbox == d or d in inbox.parents for d in own):
         raise ParameterError(f"inbox {str(inbox)!r} is a folder of the service's own data; captures must land elsewhere")
     for sched in store.list_schedules():
-        if sched["tenant_id"] != tenant_id and Path(sched["inbox"]) == inbox:
+        if Path(sched["inbox"]) != inbox:
+            continue
+        if sched["tenant_id"] != tenant_id:
             raise ParameterError(f"inbox {str(inbox)!r} is already another tenant's inbox")
+        # two schedules on one inbox would each take every capture
+        raise ParameterError(
+            f"inbox {str(inbox)!r} already has schedule {sched['id']} (cron {sched['cron']!r}); "
+            "delete it first to change the cron, parameters or tiling (captures it took are not taken again)"
+        )
 
 
 def captures(inbox: Path) -> list[Path]:
@@ -192,7 +200,8 @@ def run_schedule(store: Store, settings: Settings, schedule: dict[str, Any]) -> 
             except OSError as exc:
                 result["rejected"].append({"file": path.name, "error": f"cannot read: {exc.strerror}"})
                 continue
-            if store.schedule_file_seen(schedule["id"], sha):
+            # taken before by this schedule, or by an earlier one of this farm (deleted to change its cron)
+            if store.schedule_file_seen(schedule["id"], sha) or store.capture_scheduled(schedule["tenant_id"], sha):
                 result["skipped"] += 1
                 continue
             tmp = settings.tmp_dir / f"inbox-{uuid.uuid4().hex}.part"

@@ -72,6 +72,7 @@ CREATE TABLE IF NOT EXISTS jobs (
 );
 CREATE INDEX IF NOT EXISTS jobs_by_state ON jobs(state, created_at);
 CREATE INDEX IF NOT EXISTS jobs_by_tenant ON jobs(tenant_id, created_at);
+CREATE INDEX IF NOT EXISTS jobs_by_block ON jobs(block_id);
 CREATE TABLE IF NOT EXISTS schedules (
     id TEXT PRIMARY KEY,
     tenant_id TEXT NOT NULL REFERENCES tenants(id),
@@ -425,6 +426,15 @@ class Store:
             except sqlite3.IntegrityError:
                 return False
         return True
+
+    def capture_scheduled(self, tenant_id: str, sha256: str) -> bool:
+        """Whether a schedule of this tenant (any, deleted ones too) already queued a job
+        for the capture with this sha256."""
+        return self._one(
+            "SELECT 1 AS seen FROM jobs j JOIN blocks b ON b.id = j.block_id "
+            "WHERE b.tenant_id = ? AND b.sha256 = ? AND j.schedule_id IS NOT NULL LIMIT 1",
+            (tenant_id, sha256),
+        ) is not None
 
     def schedule_files(self, schedule_id: str) -> list[dict[str, Any]]:
         return self._all_rows("SELECT * FROM schedule_files WHERE schedule_id = ? ORDER BY seen_at", (schedule_id,))

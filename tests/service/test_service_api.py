@@ -21,7 +21,7 @@ def upload(client: httpx.Client, path, name: str | None = None) -> httpx.Respons
 def test_healthz_needs_no_token(api_server):
     r = httpx.get(api_server.url + "/healthz")
     assert r.status_code == 200
-    assert r.json()["status"] == "ok"
+    assert r.json()["status"] == "ok" and r.json()["cluster"] == "disabled"  # this server runs no jobs
 
 
 def test_openapi_and_docs(api_server):

@@ -59,6 +59,7 @@ def test_upload_job_results(runner_server, block_file):
                 break
             time.sleep(0.2)
         assert cur["state"] == "done", cur["error"]
+        assert httpx.get(runner_server.url + "/healthz").json()["cluster"] == "connected"
         assert cur["tiles_total"] > 1 and cur["tiles_done"] == cur["tiles_total"]
         assert cur["timings"] and cur["n_trees"] >= 6 and cur["n_points"] == block["n_points"]
 

@@ -58,6 +58,17 @@ def test_done_records_outcome_and_progress(env, monkeypatch):
         (InputError("b.laz: truncated"), "b.laz: truncated"),
         (NoTreesError("no trees found"), "no trees found"),
         (ZeroDivisionError("division by zero"), "internal error (ZeroDivisionError): division by zero"),
+        # the command line's advice to resume from the work store does not apply: the
+        # service deletes a failed job's work store
+        (workers_job.ClusterLost("no dask worker for 120 s with 6 tiles to go; start workers and resume with "
+                                 "--work /srv/work/abc --resume"),
+         "no dask worker for 120 s with 6 tiles to go; start dask workers and submit the job again"),
+        (workers_job.TileFailed("tile 3 (core x 0.00..10.00, y 0.00..10.00, 99 points) failed after 3 attempts: "
+                                "MemoryError: ; its data is kept in /srv/work/abc (re-run it alone with --work "
+                                "/srv/work/abc --rerun-tile 3)", 3),
+         "tile 3 (core x 0.00..10.00, y 0.00..10.00, 99 points) failed after 3 attempts: MemoryError: "),
+        (type("FuturesCancelledError", (Exception,), {})("46 Futures cancelled: reason scheduler-connection-lost"),
+         "lost the connection to the dask scheduler during the job; submit it again once the cluster is back"),
     ],
 )
 def test_failures_keep_a_one_line_message(env, monkeypatch, exc, expected):
@@ -67,9 +78,38 @@ def test_failures_keep_a_one_line_message(env, monkeypatch, exc, expected):
         raise exc
 
     monkeypatch.setattr(workers_job, "run_job", fake)
-    failed = Runner(store, settings, client_factory=lambda: None).run_job(_queue(store, tenant, block))
+    job = _queue(store, tenant, block)
+    work = settings.jobs_dir / job["id"] / "_work"  # what a tiled job leaves when it stops
+    (work / "tiles").mkdir(parents=True)
+    (work / "job.json").write_text("{}")
+    failed = Runner(store, settings, client_factory=lambda: None).run_job(job)
     assert failed["state"] == "failed" and failed["error"] == expected
     assert "Traceback" not in failed["error"]
+    assert not (settings.jobs_dir / job["id"]).exists()  # nothing left: the service never resumes a job
+
+
+def test_a_client_that_lost_its_scheduler_is_replaced(env, monkeypatch):
+    settings, store, tenant, block = env
+    made = []
+
+    class Client:
+        def __init__(self):
+            self.status = "running"
+            made.append(self)
+
+        def close(self):
+            self.status = "closed"
+
+    monkeypatch.setattr(workers_job, "run_job", lambda spec, *, client, progress, cancel: pytest.fail("x")
+                        if client is not made[-1] else workers_job.JobOutcome(1, 1, 1, [], False, {}, {}))
+    runner = Runner(store, Settings(data_dir=settings.data_dir, scheduler="tcp://127.0.0.1:1"), client_factory=Client)
+    assert runner.cluster_state() == "not started"
+    assert runner.run_job(_queue(store, tenant, block))["state"] == "done"
+    assert runner.cluster_state() == "connected"
+    made[0].status = "connecting"  # the scheduler went away: distributed keeps trying to reconnect
+    assert runner.cluster_state() == "connecting"  # what /healthz shows
+    assert runner.run_job(_queue(store, tenant, block))["state"] == "done"
+    assert len(made) == 2 and made[0].status == "closed"
 
 
 def test_cluster_that_cannot_start_fails_the_job_clearly(env, monkeypatch):

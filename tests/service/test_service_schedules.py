@@ -121,9 +121,11 @@ def test_inbox_use_refuses_service_folders_and_other_tenants_inboxes(tmp_path):
         inbox = (tmp_path / "in").resolve()
         check_inbox_use(inbox, settings=settings, store=store, tenant_id=a["id"])  # free: fine
         _schedule(store, a, inbox)
-        check_inbox_use(inbox, settings=settings, store=store, tenant_id=a["id"])  # a's own: fine
         with pytest.raises(ParameterError, match="another tenant"):
             check_inbox_use(inbox, settings=settings, store=store, tenant_id=b["id"])
+        # a second schedule of a's own on it would take every capture twice
+        with pytest.raises(ParameterError, match="already has schedule"):
+            check_inbox_use(inbox, settings=settings, store=store, tenant_id=a["id"])
         check_inbox_use(data / "inboxes" / "b", settings=settings, store=store, tenant_id=b["id"])
     finally:
         store.close()
@@ -172,6 +174,27 @@ def test_run_schedule_takes_each_capture_once(local):
     # a new capture is
     write_las(inbox / "c.laz", 700, seed=3)
     assert len(run_schedule(store, settings, sched)["jobs"]) == 1
+
+
+def test_a_schedule_made_again_does_not_take_old_captures_again(local):
+    # a farm deletes its schedule and makes a new one on the same inbox (to change its
+    # cron): the captures the old one took are not processed a second time
+    settings, store, tenant, inbox = local
+    write_las(inbox / "a.laz", 500, seed=1)
+    write_las(inbox / "b.las", 600, seed=2)
+    old = _schedule(store, tenant, inbox)
+    assert len(run_schedule(store, settings, old)["jobs"]) == 2
+    store.delete_schedule(tenant["id"], old["id"])
+    new = _schedule(store, tenant, inbox, cron="30 2 * * *")
+    write_las(inbox / "c.laz", 700, seed=3)
+    res = run_schedule(store, settings, new)
+    assert len(res["jobs"]) == 1 and res["skipped"] == 2
+    # another farm with the same capture is another matter: it gets its own job
+    from service.schedules import file_sha256
+
+    sha = file_sha256(inbox / "a.laz")
+    other = store.ensure_tenant("other")
+    assert store.capture_scheduled(tenant["id"], sha) and not store.capture_scheduled(other["id"], sha)
 
 
 def test_unusable_capture_is_rejected_once(local):
