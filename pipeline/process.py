@@ -17,8 +17,24 @@ from pipeline.graph import bridge_floating, build_graph, node_pairs, reweight
 from pipeline.ground import GroundModel, classify_ground, ground_model
 from pipeline.metrics import trunk_diameters
 from pipeline.params import PipelineParams
-from pipeline.segment import Segmentation, curved_patches, faces, hard_surfaces, planar_patches, segment_nodes, trunk_feet
-from pipeline.trunks import STEM_SLICE_HEIGHT, STEM_SLICES, TrunkDetection, box_like_trees, detect_trunks, drop_trunks
+from pipeline.segment import (
+    Segmentation,
+    curved_patches,
+    faces,
+    hard_surfaces,
+    planar_patches,
+    segment_nodes,
+    trunk_feet,
+)
+from pipeline.trunks import (
+    STEM_SLICE_HEIGHT,
+    STEM_SLICES,
+    TrunkDetection,
+    box_like_trees,
+    detect_trunks,
+    drop_trunks,
+    low_trees,
+)
 from pipeline.voxels import Voxels, voxelize
 
 #: a node is on a planar surface (box, vehicle, wall) above this planarity ...
@@ -243,8 +259,11 @@ def analyse_nodes(
         )
 
     seg = segment(det)
-    for _ in range(3):  # dropping a box-like "tree" (a vehicle) re-segments its material
-        drop = box_like_trees(seg.node_tree, node_height, nodes=nodes, trunk_xy=det.xy, planar=face, params=params.trunks)
+    for _ in range(3):  # dropping a box-like or low "tree" (a vehicle) re-segments its material
+        drop = np.union1d(
+            box_like_trees(seg.node_tree, node_height, nodes=nodes, trunk_xy=det.xy, planar=face, params=params.trunks),
+            low_trees(seg.node_tree, node_height, det.k, params=params.trunks),
+        )
         if drop.size == 0:
             break
         det = drop_trunks(det, drop)

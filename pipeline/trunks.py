@@ -439,6 +439,22 @@ def box_like_trees(
     return np.flatnonzero(n_pl > params.max_planar_fraction * np.maximum(n_low, 1))
 
 
+def low_trees(node_tree: np.ndarray, node_height: np.ndarray, k: int, *, params: TrunkParams) -> np.ndarray:
+    """Trees (0-based) whose segmented material fails the height test of
+    :func:`detect_trunks`: its 95th percentile lies below ``min_tree_height``.
+
+    The catchment passed the test, but segmentation can leave a "tree" much lower: the
+    surfaces of a vehicle under a crown are cut out of the graph after detection, and
+    what is left of such a trunk's catchment is grass and a wheel (0.2 m tall).
+
+    Returns
+    -------
+    (j,) int64 indices of trunks to drop.
+    """
+    top = _group_percentile(node_height, np.asarray(node_tree, dtype=np.int64) - 1, k, 95.0)
+    return np.flatnonzero(top < params.min_tree_height)
+
+
 def drop_trunks(det: TrunkDetection, drop: np.ndarray) -> TrunkDetection:
     """The detection without the trunks in ``drop`` (0-based), renumbered."""
     keep = np.ones(det.k, bool)

@@ -233,3 +233,4 @@ def test_tree_heights_match_truth_despite_outliers():
     err = np.abs(err)
     assert np.median(err) < 0.15, err
     assert err.max() < 1.0, err
+

@@ -12,6 +12,7 @@ from pipeline.trunks import (
     _accept,
     _shoots,
     foot_ratio,
+    low_trees,
     stem_contrast,
 )
 
@@ -264,3 +265,13 @@ def test_detect_trunks_thresholds_decide():
     assert _detect(nodes, planar, min_canopy_voxels=int(np.bincount(part)[:2].max()) + 1).k == 0
     # a trunk wider than max_trunk_width is refused
     assert _detect(nodes, planar, max_trunk_width=0.1).k == 0
+
+
+def test_low_trees_by_hand():
+    # tree 1: tall; tree 2: 0.2 m of grass and a wheel once the vehicle's faces are cut out;
+    # tree 3: one tall outlier over low material (the 95th percentile, not the maximum);
+    # tree 4: no material left at all
+    h = np.array([0.1, 1.0, 2.5, 3.0, 3.5, 0.1, 0.2, 0.15] + [0.3] * 19 + [6.0])
+    tree = np.array([1, 1, 1, 1, 1, 2, 2, 2] + [3] * 19 + [3])
+    assert low_trees(tree, h, 4, params=TrunkParams()).tolist() == [1, 2, 3]
+    assert low_trees(tree, h, 4, params=TrunkParams(min_tree_height=0.1)).tolist() == [3]
