@@ -268,10 +268,16 @@ def _part_dtm(xyz: np.ndarray, ij: np.ndarray, params: GroundParams, *, corner: 
 
     big = np.where(occupied, zmin, np.inf)
     local_min = ndimage.minimum_filter(big, footprint=foot, mode="nearest")
-    # slope allowance: up to 30 % slope across the search radius counts as ground
-    allowance = params.tolerance + 0.3 * params.search_radius
+    # slope allowance: up to 30 % slope across the search radius counts as ground, and on
+    # steeper terrain its own slope (the local minimum lies a search radius downhill)
+    allowance = params.tolerance + SLOPE_ALLOWANCE * params.search_radius
+    slope = _terrain_slope(local_min, c, foot, cap=params.max_slope if params.max_slope > 0 else MAX_TERRAIN_SLOPE)
     with np.errstate(invalid="ignore"):  # empty cells: inf - inf
-        is_ground_cell = occupied & (zmin - local_min <= allowance)
+        if (slope > SLOPE_ALLOWANCE).any():
+            steep_allowance = params.tolerance + np.maximum(slope, SLOPE_ALLOWANCE) * params.search_radius
+            is_ground_cell = occupied & (zmin - local_min <= steep_allowance)
+        else:  # the common case: the fixed allowance, exactly
+            is_ground_cell = occupied & (zmin - local_min <= allowance)
     if params.max_slope > 0:
         # crown bottoms with no ground return within R_g (a tree cut out of a scan with
         # only a patch of ground under its trunk) pass the local test: reject cells that
@@ -284,6 +290,31 @@ def _part_dtm(xyz: np.ndarray, ij: np.ndarray, params: GroundParams, *, corner: 
     is_ground_cell &= zmin - smooth <= params.tolerance + 0.15 * params.search_radius
     dtm = _fill_nearest(np.where(is_ground_cell, zmin, np.nan), is_ground_cell)
     return ndimage.median_filter(dtm, size=3, mode="nearest")
+
+
+#: slope [m/m] that the ground test always allows across the search radius
+SLOPE_ALLOWANCE = 0.3
+
+#: steepest terrain slope [m/m] allowed for when ``max_slope`` is 0 (no limit)
+MAX_TERRAIN_SLOPE = 2.0
+
+
+def _terrain_slope(local_min: np.ndarray, cell: float, foot: np.ndarray, *, cap: float) -> np.ndarray:
+    """Slope of the terrain [m/m] at each cell, (nx, ny), from the surface of local minima
+    (on a plane it is the plane moved a search radius downhill: same slope).
+
+    The gradient of that surface, smoothed, is then taken as the smallest within three
+    search radii: a step of the surface where it runs from ground onto the bottom of a
+    crown is steep over a cell or two, a hillside everywhere. At most ``cap``.
+    """
+    finite = np.isfinite(local_min)
+    if not finite.any() or min(local_min.shape) < 2:
+        return np.zeros(local_min.shape)
+    surface = _fill_nearest(np.where(finite, local_min, np.nan), finite)
+    surface = ndimage.median_filter(surface, footprint=foot, mode="nearest")
+    gx, gy = np.gradient(surface, cell)
+    size = 2 * (3 * (foot.shape[0] // 2)) + 1
+    return np.minimum(ndimage.minimum_filter(np.hypot(gx, gy), size=size, mode="nearest"), cap)
 
 
 #: the slope test compares cells with the lowest ground cell of each square of this size [m]
