@@ -48,7 +48,7 @@ def _is_cancel(exc: BaseException) -> bool:
 def _without_resume_hints(message: str) -> str:
     """A job error without the command line's advice to resume from or re-run tiles of the
     work store: the service deletes a failed job's work store and never resumes it."""
-    message = re.sub(r"; its data is kept in \S+ \(re-run it alone with --work \S+ --rerun-tile \d+\)", "", message)
+    message = re.sub(r"; its data is kept in \S+ \(run the job's tiles again with --work \S+ --resume\)", "", message)
     return re.sub(r"; start workers and resume with --work \S+ --resume", "; start dask workers and submit the job again", message)
 
 
@@ -157,7 +157,8 @@ class Runner(threading.Thread):
             try:
                 client = self._client_factory()
             except Exception as exc:  # noqa: BLE001 - becomes the job's error; the next job tries again
-                raise ClusterUnavailable(f"cannot start or reach the dask cluster ({where}): {_short(exc, 200)}") from exc
+                why = _short(exc, 200).replace("or fix --scheduler", "or fix ORCHARD_SCHEDULER")
+                raise ClusterUnavailable(f"cannot start or reach the dask cluster ({where}): {why}") from exc
             self._client = client
             if self.settings.dashboard:
                 self.dashboard_link = getattr(client, "dashboard_link", None)

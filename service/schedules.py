@@ -150,14 +150,18 @@ def check_inbox_use(inbox: Path, *, settings: Settings, store: Store, tenant_id:
 
 
 def captures(inbox: Path) -> list[Path]:
-    """LAS/LAZ files directly in ``inbox`` (not in sub-folders), sorted by name."""
+    """LAS/LAZ files directly in ``inbox`` (not in sub-folders), sorted by name.
+
+    Symbolic links are not captures: a link could hand a farm a file outside its inbox
+    (another farm's capture), so only files that are really in the folder are taken.
+    """
     out = []
     try:
         entries = sorted(inbox.iterdir())
     except OSError as exc:
         raise InputError(f"cannot read inbox {str(inbox)!r}: {exc.strerror}") from None
     for p in entries:
-        if p.suffix.lower() in CAPTURE_SUFFIXES and not p.name.startswith(".") and p.is_file():
+        if p.suffix.lower() in CAPTURE_SUFFIXES and not p.name.startswith(".") and not p.is_symlink() and p.is_file():
             out.append(p)
     return out
 
@@ -192,6 +196,8 @@ def run_schedule(store: Store, settings: Settings, schedule: dict[str, Any]) -> 
     inbox = Path(schedule["inbox"])
     if not inbox.is_dir():
         raise InputError(f"inbox {str(inbox)!r} of schedule {schedule['id']} no longer exists")
+    if inbox.resolve() != inbox:  # checked when the schedule was made: it must still be that folder
+        raise InputError(f"inbox {str(inbox)!r} of schedule {schedule['id']} is now a link to another folder; not scanned")
     settings.tmp_dir.mkdir(parents=True, exist_ok=True)
     with _run_lock:
         for path in captures(inbox):
@@ -225,14 +231,10 @@ def run_schedule(store: Store, settings: Settings, schedule: dict[str, Any]) -> 
                 continue
             finally:
                 tmp.unlink(missing_ok=True)
-            job = store.create_job(
-                tenant_id=schedule["tenant_id"],
-                block_id=block["id"],
-                params=schedule["params"],
-                tiling=schedule["tiling"],
-                schedule_id=schedule["id"],
-            )
-            store.record_schedule_file(schedule_id=schedule["id"], sha256=sha, path=str(path), job_id=job["id"], error=None)
+            job = store.create_scheduled_job(schedule=schedule, block_id=block["id"], sha256=sha, path=str(path))
+            if job is None:  # another scan of this inbox (another process) took it first
+                result["skipped"] += 1
+                continue
             result["jobs"].append(job["id"])
     return result
 

@@ -24,7 +24,7 @@ import uuid
 from pathlib import Path
 from typing import Any, Iterator
 
-from pipeline.errors import ConflictError, InputError, NotFoundError
+from pipeline.errors import ConflictError, InputError, NotFoundError, ParameterError
 
 JOB_STATES = ("queued", "running", "done", "failed", "cancelled")
 FINAL_STATES = ("done", "failed", "cancelled")
@@ -371,6 +371,12 @@ class Store:
     ) -> dict[str, Any]:
         sid = new_id()
         with self._tx() as con:
+            # one schedule per inbox, checked inside the write transaction: requests at the
+            # same moment cannot both pass (BEGIN IMMEDIATE serialises them)
+            other = con.execute("SELECT id, tenant_id FROM schedules WHERE inbox = ?", (inbox,)).fetchone()
+            if other is not None:
+                whose = "this tenant's" if other[1] == tenant_id else "another tenant's"
+                raise ParameterError(f"inbox {inbox!r} already has a schedule ({whose}); one schedule per inbox")
             con.execute(
                 "INSERT INTO schedules (id, tenant_id, inbox, cron, params, tiling, created_at, next_run_at) "
                 "VALUES (?, ?, ?, ?, ?, ?, ?, ?)",
@@ -426,6 +432,29 @@ class Store:
             except sqlite3.IntegrityError:
                 return False
         return True
+
+    def create_scheduled_job(
+        self, *, schedule: dict[str, Any], block_id: str, sha256: str, path: str
+    ) -> dict[str, Any] | None:
+        """Queue the job of a capture a schedule found and record the capture as handled,
+        in one transaction; None (nothing queued) if the capture was handled already,
+        e.g. by a scan of the same inbox running at the same moment in another process."""
+        jid = new_id()
+        with self._tx() as con:
+            try:
+                con.execute(
+                    "INSERT INTO schedule_files (schedule_id, sha256, path, job_id, error, seen_at) VALUES (?, ?, ?, ?, ?, ?)",
+                    (schedule["id"], sha256, path, jid, None, time.time()),
+                )
+            except sqlite3.IntegrityError:
+                return None
+            con.execute(
+                "INSERT INTO jobs (id, tenant_id, block_id, schedule_id, params, tiling, state, created_at) "
+                "VALUES (?, ?, ?, ?, ?, ?, 'queued', ?)",
+                (jid, schedule["tenant_id"], block_id, schedule["id"], json.dumps(schedule["params"]),
+                 json.dumps(schedule["tiling"]) if schedule["tiling"] else None, time.time()),
+            )
+        return self.get_job(None, jid)
 
     def capture_scheduled(self, tenant_id: str, sha256: str) -> bool:
         """Whether a schedule of this tenant (any, deleted ones too) already queued a job

@@ -240,7 +240,7 @@ def process_tile(work_url: str, tile_id: int, params_json: str, fail: bool = Fal
     result = _process(xyz, params, f"tile {tile_id}", tuple(stats) if stats else None)
     key = result_key(tile_id)
     if not store.exists(JOB_KEY):  # the job was cancelled (its store deleted) while this tile ran
-        return _abandon(store)
+        return _abandon(store, tile_id)
     store.put_array(f"{key}/index.npy", rec["index"][core])
     store.put_array(f"{key}/tree_id.npy", np.asarray(result.tree_id[core], dtype=np.int64))
     store.put_array(f"{key}/is_ground.npy", np.asarray(result.is_ground[core], dtype=bool))
@@ -249,7 +249,7 @@ def process_tile(work_url: str, tile_id: int, params_json: str, fail: bool = Fal
     summary = _summarise(tile_id, xyz, core, result, grid, index["origin"], params)
     store.put_object(f"{key}/summary.pkl", summary)
     if not store.exists(JOB_KEY):  # deleted while these were written: take them back
-        return _abandon(store)
+        return _abandon(store, tile_id)
     return summary
 
 
@@ -259,10 +259,17 @@ def _kept(summary: dict) -> dict:
     return summary
 
 
-def _abandon(store: WorkStore) -> dict:
-    """A tile that finished after its job ended: what it wrote goes (the store deletes
-    only its own files, and its folder if nothing else is left)."""
-    store.remove()
+def _abandon(store: WorkStore, tile_id: int | None = None) -> dict:
+    """A tile that finished after its job ended: what it wrote goes (its results, and the
+    folders they leave empty)."""
+    if tile_id is not None:
+        store.remove(result_key(tile_id))
+        for folder in (store.path("results"), store.root):
+            try:
+                if store.fs.exists(folder) and not store.fs.ls(folder, detail=False):
+                    store.fs.rmdir(folder)
+            except OSError:
+                pass
     return {"abandoned": True}
 
 
@@ -487,6 +494,12 @@ def check_job(spec: JobSpec, *, tiled: bool | None = None) -> tuple[BlockInfo, T
         return info, None
     grid = _plan(spec, info)
     check_engine(spec.engine, grid)
+    foreign = WorkStore(spec.work_dir or default_work_dir(spec.out_dir)).foreign()
+    if foreign:
+        raise ParameterError(
+            f"work folder {spec.work_dir or default_work_dir(spec.out_dir)} holds files that are not a work store's "
+            f"({', '.join(foreign[:3])}{', ...' if len(foreign) > 3 else ''}); give --work a new or empty folder"
+        )
     return info, grid
 
 
@@ -540,14 +553,18 @@ def _run_tiled(spec, info, client, t0, progress, cancel) -> JobOutcome:
     out_existed = out_dir.exists()
     work = spec.work_dir or default_work_dir(spec.out_dir)
     store = WorkStore(work)
-    foreign = store.foreign()
-    if foreign:  # the store deletes what it writes: it must not share a folder with anything else
-        shown = ", ".join(foreign[:3]) + (", ..." if len(foreign) > 3 else "")
-        raise ParameterError(
-            f"work folder {work} holds files that are not a work store's ({shown}); give --work a new or empty folder"
-        )
-    store.remove()  # an earlier job's tiles and results there must not mix with this job's
-    record = _job_record(spec, info, grid, work)
+    try:
+        with store.lock():  # one job per work store: another would delete this one's tiles
+            store.remove()  # an earlier job's tiles and results there must not mix with this job's
+            store.claim()  # refused if the folder holds anything that is not a work store's
+            return _run_tiled_locked(spec, info, client, t0, progress, cancel, grid, store, timings)
+    finally:
+        if not out_existed and out_dir.exists() and not any(out_dir.iterdir()):
+            out_dir.rmdir()
+
+
+def _run_tiled_locked(spec, info, client, t0, progress, cancel, grid, store, timings) -> JobOutcome:
+    record = _job_record(spec, info, grid, store.url)
     keep_work = False
     try:
         store.put_json(JOB_KEY, record)
@@ -579,8 +596,6 @@ def _run_tiled(spec, info, client, t0, progress, cancel) -> JobOutcome:
     finally:
         if not keep_work:
             store.remove()
-            if not out_existed and out_dir.exists() and not any(out_dir.iterdir()):
-                out_dir.rmdir()
 
 
 def _describe(tile: dict) -> str:
@@ -607,7 +622,7 @@ def _run_tiles(store, tiles, spec, client, progress, cancel) -> tuple[list[dict]
     def fail_canary(tid: int, exc: BaseException):
         return TileFailed(
             f"{_describe(by_id[tid])} failed after {TILE_RETRIES + 1} attempts: {_error_line(exc)}; "
-            f"its data is kept in {store.url} (re-run it alone with --work {store.url} --rerun-tile {tid})",
+            f"its data is kept in {store.url} (run the job's tiles again with --work {store.url} --resume)",
             tid,
         )
 
@@ -745,7 +760,8 @@ def run_tile(work_dir: str, tile_id: int) -> dict:
     if tile_id not in {t["id"] for t in index["tiles"] if t["n_core"] > 0}:
         raise ParameterError(f"tile {tile_id} is not a tile of the job in {work_dir}")
     params = PipelineParams.model_validate(record["params"])
-    return process_tile(store.url, tile_id, params.model_dump_json())
+    with store.lock():
+        return process_tile(store.url, tile_id, params.model_dump_json())
 
 
 def resume_job(
@@ -764,6 +780,11 @@ def resume_job(
     store = WorkStore(work_dir)
     if not store.exists(JOB_KEY):
         raise ParameterError(f"{work_dir} holds no job (no {JOB_KEY}); give the --work folder of a tiled run")
+    with store.lock():
+        return _resume(store, out_dir, client, progress, cancel)
+
+
+def _resume(store: WorkStore, out_dir, client, progress, cancel) -> JobOutcome:
     record = store.get_json(JOB_KEY)
     index = store.get_json(INDEX_KEY)
     todo = [
@@ -777,7 +798,7 @@ def resume_job(
         store.put_json(JOB_KEY, record)
     if todo:
         _run_tiles(store, todo, spec, client, progress, cancel)
-    return finish_job(work_dir, out_dir=out_dir)
+    return _finish_job(store, out_dir)
 
 
 def finish_job(work_dir: str, *, out_dir: str | None = None) -> JobOutcome:
@@ -786,10 +807,15 @@ def finish_job(work_dir: str, *, out_dir: str | None = None) -> JobOutcome:
     Tiles still without results stay missing (the outcome is then partial). The work
     store is removed when nothing is missing.
     """
-    t0 = time.perf_counter()
     store = WorkStore(work_dir)
     if not store.exists(JOB_KEY):
         raise ParameterError(f"{work_dir} holds no job (no {JOB_KEY}); give the --work folder of a tiled run")
+    with store.lock():
+        return _finish_job(store, out_dir)
+
+
+def _finish_job(store: WorkStore, out_dir: str | None) -> JobOutcome:
+    t0 = time.perf_counter()
     record = store.get_json(JOB_KEY)
     if out_dir is not None:
         record["out_dir"] = out_dir
@@ -803,7 +829,16 @@ def finish_job(work_dir: str, *, out_dir: str | None = None) -> JobOutcome:
             summaries.append(store.get_object(key))
         else:
             missing.append(t["id"])
-    outcome = _finish(store, record, index, summaries, missing)
+    try:
+        outcome = _finish(store, record, index, summaries, missing)
+    except NoTreesError:
+        if not missing:
+            raise
+        n = len([t for t in index["tiles"] if t["n_core"] > 0])
+        raise ParameterError(  # not "no trees": most of the block has not been processed
+            f"{len(missing)} of the job's {n} tiles have no result yet, and the others hold no tree; "
+            f"process them with --work {store.url} --resume"
+        ) from None
     record["failed_tiles"] = missing
     if missing:
         store.put_json(JOB_KEY, record)

@@ -5,24 +5,36 @@ instead of receiving them through the scheduler."""
 
 from __future__ import annotations
 
+import contextlib
+import fcntl
 import io
 import json
 import os
 import pickle
+import time
 import uuid
 from pathlib import Path
 
 import fsspec
 import numpy as np
 
+from pipeline.errors import ParameterError
+
 #: What a work store writes at its root: the job record, the tiles, the tile results and
 #: the attempt log (plus hidden temporary files of writes in progress). Nothing else
-#: there is the store's to delete.
+#: there is the store's to delete, and these only in a folder the store has marked.
 OWN_ENTRIES = ("job.json", "tiles", "results", "attempts")
+
+#: The mark a work store leaves in its root folder: only a marked folder's entries of the
+#: names above are the store's (a user's own "tiles" folder is not).
+MARKER = ".orchard-work-store"
+
+#: Held (flock) by the process running a job on a local store: one job per store.
+LOCK = ".orchard-lock"
 
 
 def _own(name: str) -> bool:
-    return name in OWN_ENTRIES or (name.startswith(".") and name.endswith(".tmp"))
+    return name in OWN_ENTRIES or name in (MARKER, LOCK) or (name.startswith(".") and name.endswith(".tmp"))
 
 
 class WorkStore:
@@ -102,28 +114,94 @@ class WorkStore:
             return []
         return sorted(p.rstrip("/").rsplit("/", 1)[-1] for p in self.fs.ls(self.root, detail=False))
 
+    def marked(self) -> bool:
+        return self.fs.exists(self.path(MARKER))
+
     def foreign(self) -> list[str]:
-        """Names in the root folder that the store did not write (a folder that is not a
-        work store, or not only one)."""
-        return [n for n in self.entries() if not _own(n)]
+        """Names in the root folder that are not the store's: all of them in a folder the
+        store has not marked, else those it does not write."""
+        names = self.entries()
+        if not self.marked():
+            return [n for n in names if n != LOCK]
+        return [n for n in names if not _own(n)]
+
+    def claim(self) -> None:
+        """Mark the root folder as a work store (created if missing).
+
+        Raises
+        ------
+        ParameterError
+            The folder holds files that are not a work store's.
+        """
+        foreign = self.foreign()
+        if foreign:
+            shown = ", ".join(foreign[:3]) + (", ..." if len(foreign) > 3 else "")
+            raise ParameterError(
+                f"work folder {self.url} holds files that are not a work store's ({shown}); "
+                "give --work a new or empty folder"
+            )
+        self._put(MARKER, b"orchard work store: deleted with the job\n")
+
+    @contextlib.contextmanager
+    def lock(self):
+        """Hold the store for one job (local folders; a no-op elsewhere).
+
+        Raises
+        ------
+        ParameterError
+            Another process holds it: two jobs would delete each other's tiles.
+        """
+        if not self.local:
+            yield
+            return
+        os.makedirs(self.root, exist_ok=True)
+        fh = open(os.path.join(self.root, LOCK), "a+")  # noqa: SIM115 - held for the whole job
+        try:
+            try:
+                fcntl.flock(fh, fcntl.LOCK_EX | fcntl.LOCK_NB)
+            except BlockingIOError:
+                raise ParameterError(
+                    f"work folder {self.url} is in use by another run; give each run its own --out or --work"
+                ) from None
+            yield
+        finally:
+            try:  # the lock file goes with the lock, and the folder if nothing else is left
+                os.unlink(os.path.join(self.root, LOCK))
+                if not os.listdir(self.root):
+                    os.rmdir(self.root)
+            except OSError:
+                pass
+            finally:
+                fh.close()
 
     def remove(self, prefix: str = "") -> None:
         """Delete a folder of the store; with no ``prefix``, everything the store writes
-        (:data:`OWN_ENTRIES`) and then the root folder if that leaves it empty. Files of
-        anyone else in the root folder are never touched."""
+        (:data:`OWN_ENTRIES`), its mark, and then the root folder if that leaves it empty.
+        Files of anyone else are never touched, nor anything in an unmarked folder.
+
+        Tolerant of tiles still writing meanwhile (a job that stopped while tasks ran):
+        what cannot be deleted is left, and no error replaces the job's own.
+        """
         if prefix:
-            path = self.path(prefix)
-            if self.fs.exists(path):
-                self.fs.rm(path, recursive=True)
+            self._rm(self.path(prefix))
+            return
+        if not self.marked():
             return
         for name in self.entries():
-            if _own(name):
-                self.fs.rm(self.path(name), recursive=True)
-        if self.fs.exists(self.root) and not self.entries():
+            if _own(name) and name not in (MARKER, LOCK):
+                self._rm(self.path(name))
+        self._rm(self.path(MARKER))
+        if not self.entries():  # (a held lock stays: its holder removes it when it lets go)
+            self._rm(self.root)  # empty: nothing but the folder goes
+
+    def _rm(self, path: str) -> None:
+        for _ in range(3):
             try:
-                self.fs.rm(self.root, recursive=True)  # empty: nothing but the folder goes
-            except (OSError, ValueError):  # e.g. the working directory itself
-                pass
+                if self.fs.exists(path):
+                    self.fs.rm(path, recursive=True)
+                return
+            except (OSError, ValueError):  # a writer added or took files meanwhile; or the working directory
+                time.sleep(0.05)
 
 
 def default_work_dir(out_dir: str) -> str:

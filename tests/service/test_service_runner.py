@@ -13,6 +13,7 @@ from service.settings import Settings
 from service.store import Store
 
 workers_job = pytest.importorskip("workers.job")
+workers_store = pytest.importorskip("workers.store")
 
 
 @pytest.fixture()
@@ -64,8 +65,8 @@ def test_done_records_outcome_and_progress(env, monkeypatch):
                                  "--work /srv/work/abc --resume"),
          "no dask worker for 120 s with 6 tiles to go; start dask workers and submit the job again"),
         (workers_job.TileFailed("tile 3 (core x 0.00..10.00, y 0.00..10.00, 99 points) failed after 3 attempts: "
-                                "MemoryError: ; its data is kept in /srv/work/abc (re-run it alone with --work "
-                                "/srv/work/abc --rerun-tile 3)", 3),
+                                "MemoryError: ; its data is kept in /srv/work/abc (run the job's tiles again with --work "
+                                "/srv/work/abc --resume)", 3),
          "tile 3 (core x 0.00..10.00, y 0.00..10.00, 99 points) failed after 3 attempts: MemoryError: "),
         (type("FuturesCancelledError", (Exception,), {})("46 Futures cancelled: reason scheduler-connection-lost"),
          "lost the connection to the dask scheduler during the job; submit it again once the cluster is back"),
@@ -80,6 +81,7 @@ def test_failures_keep_a_one_line_message(env, monkeypatch, exc, expected):
     monkeypatch.setattr(workers_job, "run_job", fake)
     job = _queue(store, tenant, block)
     work = settings.jobs_dir / job["id"] / "_work"  # what a tiled job leaves when it stops
+    workers_store.WorkStore(str(work)).claim()
     (work / "tiles").mkdir(parents=True)
     (work / "job.json").write_text("{}")
     failed = Runner(store, settings, client_factory=lambda: None).run_job(job)

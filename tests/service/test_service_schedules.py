@@ -12,7 +12,7 @@ from pathlib import Path
 
 import pytest
 
-from pipeline.errors import ParameterError
+from pipeline.errors import InputError, ParameterError
 from service.errors import api_wording
 from service.schedules import (
     ScheduleClock,
@@ -344,3 +344,41 @@ def test_cli_tokens_create_prints_only_the_token(tmp_path, monkeypatch, capsys):
     monkeypatch.setenv("ORCHARD_DATA_DIR", str(data))
     assert main(["tokens", "list"]) == 0
     assert "farm-y\t1 token(s)" in capsys.readouterr().out
+
+
+def test_one_schedule_per_inbox_in_the_store_and_one_job_per_capture(local):
+    # requests at the same moment both passed the API's check (5 schedules on one inbox),
+    # and two scans at once queued every capture twice: the store now refuses both
+    settings, store, tenant, inbox = local
+    sched = _schedule(store, tenant, inbox)
+    with pytest.raises(ParameterError, match="already has a schedule"):
+        _schedule(store, tenant, inbox)
+    block, _ = store.insert_block(tenant_id=tenant["id"], sha256="cd" * 32, path=str(inbox / "x.laz"),
+                                  filename="x.laz", size_bytes=1, info={})
+    first = store.create_scheduled_job(schedule=sched, block_id=block["id"], sha256="cd" * 32, path="x.laz")
+    again = store.create_scheduled_job(schedule=sched, block_id=block["id"], sha256="cd" * 32, path="x.laz")
+    assert first["schedule_id"] == sched["id"] and again is None
+    assert len(store.list_jobs(tenant["id"])) == 1
+
+
+def test_links_in_an_inbox_are_not_followed(local, tmp_path):
+    # a farm able to place links in its inbox (rsync -a) could hand itself any file on the
+    # server, another farm's capture included
+    settings, store, tenant, inbox = local
+    elsewhere = tmp_path / "elsewhere"
+    elsewhere.mkdir()
+    write_las(elsewhere / "theirs.laz", 500, seed=4)
+    (inbox / "stolen.laz").symlink_to(elsewhere / "theirs.laz")
+    write_las(inbox / "mine.laz", 500, seed=5)
+    sched = _schedule(store, tenant, inbox)
+    res = run_schedule(store, settings, sched)
+    assert len(res["jobs"]) == 1 and res["skipped"] == 0
+    assert store.get_block(None, store.get_job(None, res["jobs"][0])["block_id"])["filename"] == "mine.laz"
+    # the inbox itself swapped for a link to another folder after the schedule was made
+    sub = tmp_path / "sub"
+    sub.mkdir()
+    sched2 = _schedule(store, tenant, sub.resolve())
+    sub.rmdir()
+    sub.symlink_to(elsewhere)
+    with pytest.raises(InputError, match="now a link"):
+        run_schedule(store, settings, sched2)

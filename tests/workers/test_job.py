@@ -122,7 +122,8 @@ def test_first_tile_failure_stops_and_names_the_tile(small_block, tmp_path):
         run_job(JobSpec(str(small_block), str(tmp_path / "out"), tile_size=10.0, work_dir=str(work), inject_failure=(0,)))
     assert e.value.tile_id == 0
     msg = str(e.value)
-    assert msg.startswith("tile 0 (core x") and "after 3 attempts" and "--rerun-tile 0" in msg and "\n" not in msg
+    assert msg.startswith("tile 0 (core x") and "after 3 attempts" in msg and f"--work {work} --resume" in msg
+    assert "\n" not in msg
     assert len(WorkStore(str(work)).list("attempts/000000")) == 3
     assert not (tmp_path / "out" / "trees.parquet").exists()
 
@@ -178,12 +179,14 @@ def test_work_store_removes_only_what_it_wrote(small_block, tmp_path):
     run_job(JobSpec(str(small_block), str(out), tile_size=10.0, work_dir=str(out)))
     assert sorted(p.name for p in out.iterdir()) == ["points.parquet", "trees.parquet"]
     store = WorkStore(str(tmp_path / "w"))
+    store.claim()
     store.put_json("job.json", {})
     store.put_array("tiles/000001/part.npy", np.zeros(3))
     (tmp_path / "w" / "later.txt").write_text("someone else's")
     store.remove()
     assert sorted(p.name for p in (tmp_path / "w").iterdir()) == ["later.txt"]
     (tmp_path / "w" / "later.txt").unlink()
+    store.claim()
     store.put_json("job.json", {})
     store.remove()
     assert not (tmp_path / "w").exists()  # nothing else there: the folder goes too
@@ -264,7 +267,7 @@ def test_a_tile_that_finishes_after_its_job_was_cancelled_leaves_nothing(small_b
     (work / "job.json").unlink()  # the job's end took the store away (job record first)
     shutil.rmtree(work / "results", ignore_errors=True)
     assert process_tile(str(work), 3, PipelineParams().model_dump_json()) == {"abandoned": True}
-    assert not work.exists()  # its results, and the tiles the store's end had not reached yet
+    assert not (work / "results").exists()  # its results are gone (the rest is the job's end to delete)
 
 
 def test_small_tiles_through_a_trunk_give_the_untiled_result(tmp_path):
@@ -301,3 +304,28 @@ def test_no_tree_is_left_lower_than_a_tree(tmp_path):
     out = run_job(JobSpec(str(block), str(tmp_path / "out")))
     assert out.n_trees == 10
     assert (out.trees["height_m"] >= 2.0).all() and (out.trees["crown_area_m2"] > 0).all()
+
+
+def test_a_users_folders_named_like_the_stores_are_not_its_own(small_block, tmp_path):
+    # a folder of the user's that happens to hold "tiles" and "results" folders: only a
+    # folder the store marked is the store's (they were deleted with it)
+    mine = tmp_path / "survey"
+    (mine / "tiles").mkdir(parents=True)
+    (mine / "tiles" / "my-tile.laz").write_bytes(b"x")
+    (mine / "results").mkdir()
+    (mine / ".draft.tmp").write_text("y")
+    with pytest.raises(ParameterError, match="new or empty folder"):
+        run_job(JobSpec(str(small_block), str(tmp_path / "out"), tile_size=10.0, work_dir=str(mine)))
+    assert sorted(p.relative_to(mine).as_posix() for p in mine.rglob("*")) == [".draft.tmp", "results", "tiles", "tiles/my-tile.laz"]
+    WorkStore(str(mine)).remove()  # not marked: nothing is the store's
+    assert (mine / "tiles" / "my-tile.laz").exists()
+
+
+def test_two_runs_cannot_share_a_work_store(small_block, tmp_path):
+    # a second run on the same --work (or --out) used to delete the first one's tiles
+    work = tmp_path / "work"
+    with WorkStore(str(work)).lock():  # a run holding it
+        with pytest.raises(ParameterError, match="in use by another run"):
+            run_job(JobSpec(str(small_block), str(tmp_path / "out"), tile_size=10.0, work_dir=str(work)))
+    run_job(JobSpec(str(small_block), str(tmp_path / "out"), tile_size=10.0, work_dir=str(work)))  # free again
+    assert not work.exists()

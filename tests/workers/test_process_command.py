@@ -145,6 +145,7 @@ def test_a_block_too_wide_for_one_ground_raster(tmp_path, capsys, extra):
         (["--workers", "0"], "--workers"),
         (["--rerun-tile", "3"], "--work"),
         (["--tile-size", "20", "--engine", "pdal"], "pdal"),
+        (["--tile-size", "20", "--work", "memory://w1"], "lives in this process only"),
     ],
 )
 def test_nonsense_parameters(small_block, tmp_path, capsys, argv, words):
