@@ -36,7 +36,12 @@ import numpy as np
 
 from pipeline import io as blockio
 from pipeline.errors import InputError, NoTreesError, OrchardError, ParameterError
-from pipeline.ground import ground_residuals, ground_stats, raw_ground_model, stats_stride
+from pipeline.ground import (
+    ground_residuals,
+    ground_stats,
+    raw_ground_model,
+    stats_stride,
+)
 from pipeline.io import BlockInfo
 from pipeline.merge import GlobalTrunks, TileTrunks, reconcile_trunks
 from pipeline.metrics import combine_partials, finalize_metrics, tree_partials

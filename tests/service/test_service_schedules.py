@@ -11,6 +11,7 @@ from datetime import datetime
 from pathlib import Path
 
 import pytest
+from service_fixtures import tenant_inbox, write_las
 
 from pipeline.errors import InputError, ParameterError
 from service.errors import api_wording
@@ -25,7 +26,6 @@ from service.schedules import (
 )
 from service.settings import Settings
 from service.store import Store
-from service_fixtures import tenant_inbox, write_las
 
 
 def test_next_run_default_is_one_in_the_morning_local_time():
