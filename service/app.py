@@ -789,15 +789,9 @@ def create_app(settings: Settings) -> FastAPI:
 def _checked_tiling(params: PipelineParams, tiling: Tiling | None) -> dict | None:
     """The tiling of a job or schedule as stored; ParameterError (422) when its buffer is
     below the parameters' reach or its tiles so small that each point would be copied
-    into too many of them."""
+    into too many of them (the command line's check, in the request's words)."""
     if tiling is None:
         return None
-    if tiling.buffer is not None and tiling.buffer < params.reach():
-        raise ParameterError(
-            f"tiling.buffer ({tiling.buffer:g} m) is smaller than the parameters' reach "
-            f"({params.reach():.2f} m = segment.max_crown_radius + 1 m + graph.edge_radius): trees near tile edges "
-            "would be cut; omit buffer to use the reach"
-        )
     try:
         check_tiling(tiling.tile_size, tiling.buffer, params.reach())
     except ParameterError as exc:

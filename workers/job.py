@@ -499,12 +499,7 @@ def check_job(spec: JobSpec, *, tiled: bool | None = None) -> tuple[BlockInfo, T
         return info, None
     grid = _plan(spec, info)
     check_engine(spec.engine, grid)
-    foreign = WorkStore(spec.work_dir or default_work_dir(spec.out_dir)).foreign()
-    if foreign:
-        raise ParameterError(
-            f"work folder {spec.work_dir or default_work_dir(spec.out_dir)} holds files that are not a work store's "
-            f"({', '.join(foreign[:3])}{', ...' if len(foreign) > 3 else ''}); give --work a new or empty folder"
-        )
+    WorkStore(spec.work_dir or default_work_dir(spec.out_dir)).check_free()  # before any cluster starts
     return info, grid
 
 

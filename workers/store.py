@@ -125,14 +125,8 @@ class WorkStore:
             return [n for n in names if n != LOCK]
         return [n for n in names if not _own(n)]
 
-    def claim(self) -> None:
-        """Mark the root folder as a work store (created if missing).
-
-        Raises
-        ------
-        ParameterError
-            The folder holds files that are not a work store's.
-        """
+    def check_free(self) -> None:
+        """ParameterError if the root folder holds files that are not a work store's."""
         foreign = self.foreign()
         if foreign:
             shown = ", ".join(foreign[:3]) + (", ..." if len(foreign) > 3 else "")
@@ -140,6 +134,11 @@ class WorkStore:
                 f"work folder {self.url} holds files that are not a work store's ({shown}); "
                 "give --work a new or empty folder"
             )
+
+    def claim(self) -> None:
+        """Mark the root folder as a work store (created if missing); ParameterError if
+        it holds files that are not a work store's."""
+        self.check_free()
         self._put(MARKER, b"orchard work store: deleted with the job\n")
 
     @contextlib.contextmanager
