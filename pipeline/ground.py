@@ -272,12 +272,9 @@ def _part_dtm(xyz: np.ndarray, ij: np.ndarray, params: GroundParams, *, corner: 
     # steeper terrain its own slope (the local minimum lies a search radius downhill)
     allowance = params.tolerance + SLOPE_ALLOWANCE * params.search_radius
     slope = _terrain_slope(local_min, c, foot, cap=params.max_slope if params.max_slope > 0 else MAX_TERRAIN_SLOPE)
+    cell_allowance = params.tolerance + np.maximum(slope, SLOPE_ALLOWANCE) * params.search_radius
     with np.errstate(invalid="ignore"):  # empty cells: inf - inf
-        if (slope > SLOPE_ALLOWANCE).any():
-            steep_allowance = params.tolerance + np.maximum(slope, SLOPE_ALLOWANCE) * params.search_radius
-            is_ground_cell = occupied & (zmin - local_min <= steep_allowance)
-        else:  # the common case: the fixed allowance, exactly
-            is_ground_cell = occupied & (zmin - local_min <= allowance)
+        is_ground_cell = occupied & (zmin - local_min <= cell_allowance)
     if params.max_slope > 0:
         # crown bottoms with no ground return within R_g (a tree cut out of a scan with
         # only a patch of ground under its trunk) pass the local test: reject cells that
