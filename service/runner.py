@@ -15,7 +15,6 @@ from __future__ import annotations
 
 import dataclasses
 import logging
-import re
 import threading
 import time
 from pathlib import Path
@@ -43,13 +42,6 @@ def job_dir(settings: Settings, job_id: str) -> Path:
 
 def _is_cancel(exc: BaseException) -> bool:
     return type(exc).__name__ in ("JobCancelled", "CancelledError")
-
-
-def _without_resume_hints(message: str) -> str:
-    """A job error without the command line's advice to resume from or re-run tiles of the
-    work store: the service deletes a failed job's work store and never resumes it."""
-    message = re.sub(r"; its data is kept in \S+ \(run the job's tiles again with --work \S+ --resume\)", "", message)
-    return re.sub(r"; start workers and resume with --work \S+ --resume", "; start dask workers and submit the job again", message)
 
 
 def _short(exc: BaseException, limit: int = 300) -> str:
@@ -270,7 +262,11 @@ class Runner(threading.Thread):
                 self._drop_work(job["id"], out_dir)  # the service never resumes a cancelled job
                 return self.store.finish_job(job["id"], "cancelled", error="cancelled on request")
             if isinstance(exc, OrchardError):
-                message = _without_resume_hints(str(exc) or type(exc).__name__)
+                # without the command line's advice to resume from the work store: the
+                # service deletes a failed job's work store and never resumes it
+                message = getattr(exc, "reason", None) or str(exc) or type(exc).__name__
+                if type(exc).__name__ == "ClusterLost":
+                    message += "; start dask workers and submit the job again"
                 if block is not None:
                     message = api_wording(message, block_path=block["path"], filename=block.get("filename"))
             elif isinstance(exc, (KeyboardInterrupt, SystemExit)):

@@ -60,11 +60,20 @@ TILE_RETRIES = 2
 WINDOW_POINTS = 2_000_000
 
 
-class TileFailed(OrchardError):
+class _Stopped(OrchardError):
+    """A tiled job stopped with its work store kept: ``reason`` says why, ``hint`` (for
+    the command line) how to go on from that store; the message is both."""
+
+    def __init__(self, reason: str, hint: str = ""):
+        super().__init__(reason + hint)
+        self.reason, self.hint = reason, hint
+
+
+class TileFailed(_Stopped):
     """A tile's processing failed after its retries (the message names the tile)."""
 
-    def __init__(self, message: str, tile_id: int):
-        super().__init__(message)
+    def __init__(self, reason: str, tile_id: int, hint: str = ""):
+        super().__init__(reason, hint)
         self.tile_id = tile_id
 
 
@@ -72,7 +81,7 @@ class JobCancelled(OrchardError):
     """The job was cancelled before it finished."""
 
 
-class ClusterLost(OrchardError):
+class ClusterLost(_Stopped):
     """The dask cluster had no workers for too long; the job stopped (it can be resumed)."""
 
 
@@ -621,9 +630,9 @@ def _run_tiles(store, tiles, spec, client, progress, cancel) -> tuple[list[dict]
 
     def fail_canary(tid: int, exc: BaseException):
         return TileFailed(
-            f"{_describe(by_id[tid])} failed after {TILE_RETRIES + 1} attempts: {_error_line(exc)}; "
-            f"its data is kept in {store.url} (run the job's tiles again with --work {store.url} --resume)",
+            f"{_describe(by_id[tid])} failed after {TILE_RETRIES + 1} attempts: {_error_line(exc)}",
             tid,
+            hint=f"; its data is kept in {store.url} (run the job's tiles again with --work {store.url} --resume)",
         )
 
     if client is None:
@@ -706,8 +715,8 @@ def _completed(client, futures: dict, cancel, store: WorkStore):
                         last_worker_seen = now
                     elif now - last_worker_seen > NO_WORKER_TIMEOUT:
                         raise ClusterLost(
-                            f"no dask worker for {NO_WORKER_TIMEOUT:.0f} s with {len(pending)} tiles to go; "
-                            f"start workers and resume with --work {store.url} --resume"
+                            f"no dask worker for {NO_WORKER_TIMEOUT:.0f} s with {len(pending)} tiles to go",
+                            hint=f"; start workers and resume with --work {store.url} --resume",
                         ) from None
                 continue
             for fut in res.done:

@@ -61,12 +61,12 @@ def test_done_records_outcome_and_progress(env, monkeypatch):
         (ZeroDivisionError("division by zero"), "internal error (ZeroDivisionError): division by zero"),
         # the command line's advice to resume from the work store does not apply: the
         # service deletes a failed job's work store
-        (workers_job.ClusterLost("no dask worker for 120 s with 6 tiles to go; start workers and resume with "
-                                 "--work /srv/work/abc --resume"),
+        (workers_job.ClusterLost("no dask worker for 120 s with 6 tiles to go",
+                                 hint="; start workers and resume with --work /srv/work/abc --resume"),
          "no dask worker for 120 s with 6 tiles to go; start dask workers and submit the job again"),
         (workers_job.TileFailed("tile 3 (core x 0.00..10.00, y 0.00..10.00, 99 points) failed after 3 attempts: "
-                                "MemoryError: ; its data is kept in /srv/work/abc (run the job's tiles again with --work "
-                                "/srv/work/abc --resume)", 3),
+                                "MemoryError: ", 3, hint="; its data is kept in /srv/work/abc (run the job's tiles "
+                                "again with --work /srv/work/abc --resume)"),
          "tile 3 (core x 0.00..10.00, y 0.00..10.00, 99 points) failed after 3 attempts: MemoryError: "),
         (type("FuturesCancelledError", (Exception,), {})("46 Futures cancelled: reason scheduler-connection-lost"),
          "lost the connection to the dask scheduler during the job; submit it again once the cluster is back"),
