@@ -3,6 +3,10 @@
 from __future__ import annotations
 
 import logging
+import signal
+import threading
+from contextlib import contextmanager
+from multiprocessing import resource_tracker
 
 from distributed import Client, LocalCluster
 
@@ -54,17 +58,86 @@ def make_client(
                 f"cannot reach the dask scheduler at {scheduler} ({type(exc).__name__}); "
                 "start one with `dask scheduler` or fix --scheduler"
             ) from None
-    cluster = LocalCluster(
-        n_workers=int(n_workers),
-        threads_per_worker=int(threads_per_worker),
-        processes=processes,
-        dashboard_address=":0" if dashboard else None,
-        memory_limit=memory_limit,
-        silence_logs=logging.CRITICAL if quiet else logging.WARNING,
-    )
+    with _workers_ignore_interrupt():
+        cluster = LocalCluster(
+            n_workers=int(n_workers),
+            threads_per_worker=int(threads_per_worker),
+            processes=processes,
+            # the scheduler's HTTP server runs either way; on a free port, so that a second
+            # cluster (or anything else on 8787) is no cause for a warning
+            dashboard_address=":0",
+            memory_limit=memory_limit,
+            silence_logs=logging.CRITICAL if quiet else logging.WARNING,
+            preload=[__name__] if processes else None,  # dask_setup below, in each worker
+        )
     client = Client(cluster)
     client.orchard_dashboard = dashboard  # the HTTP server runs anyway; remember whether it serves the dashboard
     return client
+
+
+class _ClosingNoise(logging.Filter):
+    """Drops the warning a worker logs for each task it was running when it was closed
+    ("Async instruction for <Task ...> ended with CancelledError": distributed logs it
+    only from ``Worker.close``), which otherwise follows every shutdown mid-job."""
+
+    def filter(self, record: logging.LogRecord) -> bool:
+        return not str(record.msg).endswith("ended with CancelledError")
+
+
+def dask_setup(worker) -> None:
+    """Preload hook of the embedded cluster's workers (dask calls it at worker start)."""
+    logging.getLogger("distributed.worker.state_machine").addFilter(_ClosingNoise())
+
+
+@contextmanager
+def _workers_ignore_interrupt():
+    """Start an embedded cluster with SIGINT blocked in the starting thread.
+
+    A terminal's Ctrl-C goes to its whole process group, worker processes included,
+    each of which then printed a KeyboardInterrupt traceback while this process was
+    already shutting them down. The cluster's event-loop thread, created in here,
+    inherits the blocked signal, and so do the worker processes it spawns (now and
+    when a worker is restarted): they are stopped by this process, never by Ctrl-C.
+    This thread's own mask is restored on the way out, so an interrupt that arrived
+    meanwhile is delivered then.
+    """
+    # multiprocessing's resource tracker, when it first starts (here: at the first worker's
+    # queue), unblocks SIGINT in the thread that starts it; start it beforehand
+    resource_tracker.ensure_running()
+    try:
+        old = signal.pthread_sigmask(signal.SIG_BLOCK, {signal.SIGINT})
+    except (AttributeError, OSError, ValueError):  # no POSIX signal masks
+        yield
+        return
+    try:
+        yield
+    finally:
+        signal.pthread_sigmask(signal.SIG_SETMASK, old)
+
+
+@contextmanager
+def interrupts_deferred():
+    """Let a shutdown finish before Ctrl-C takes effect.
+
+    In the main thread, a SIGINT that arrives inside the block is held back and acted on
+    (as ``KeyboardInterrupt``, or whatever the previous handler does) when the block
+    ends: interrupted half-way, closing a cluster left it to an exit hook of
+    distributed's that then failed with a traceback. Elsewhere (signals go to the main
+    thread) it does nothing.
+    """
+    if threading.current_thread() is not threading.main_thread():
+        yield
+        return
+    caught: list[int] = []
+    previous = signal.signal(signal.SIGINT, lambda signum, frame: caught.append(signum))
+    try:
+        yield
+    finally:
+        signal.signal(signal.SIGINT, previous)
+    if caught and callable(previous):
+        previous(signal.SIGINT, None)
+    elif caught and previous == signal.SIG_DFL:
+        raise KeyboardInterrupt
 
 
 def dashboard_address(client: Client) -> str | None:
@@ -86,7 +159,23 @@ def dashboard_address(client: Client) -> str | None:
 
 def close_client(client: Client) -> None:
     """Close a client and, for an embedded cluster, the cluster too."""
+    with interrupts_deferred():
+        _close(client)
+
+
+def _close(client: Client) -> None:
     cluster = getattr(client, "cluster", None)
     client.close()
     if cluster is not None:
-        cluster.close()
+        # closing it is the end of the embedded cluster's work: a worker still starting
+        # or busy is killed, and the nanny's and scheduler's warnings about that (worker
+        # "still alive after 4.0 seconds, killing", tasks lost with it) are expected
+        loggers = [logging.getLogger(name) for name in ("distributed.nanny", "distributed.scheduler")]
+        levels = [lg.level for lg in loggers]
+        for lg in loggers:
+            lg.setLevel(max(lg.getEffectiveLevel(), logging.ERROR))
+        try:
+            cluster.close()
+        finally:
+            for lg, level in zip(loggers, levels):
+                lg.setLevel(level)

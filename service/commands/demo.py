@@ -113,6 +113,7 @@ def run(args: argparse.Namespace) -> int:
     from service.app import create_app
     from service.auth import create_token
     from service.settings import build_settings
+    from workers.cluster import interrupts_deferred
 
     t_start = time.perf_counter()
     data_dir = Path(args.data_dir) if args.data_dir else Path(tempfile.mkdtemp(prefix="orchard-demo-"))
@@ -176,7 +177,8 @@ def run(args: argparse.Namespace) -> int:
     finally:
         _say("shutting the service and its dask workers down ...")
         server.should_exit = True
-        thread.join(60)
+        with interrupts_deferred():  # a Ctrl-C now waits until the cluster is closed
+            thread.join(60)
 
     timings = ", ".join(f"{k} {v:.1f} s" for k, v in (job.get("timings") or {}).items() if isinstance(v, (int, float)))
     print(f"\n{job['n_trees']} trees found in {job['n_points']:,} points ({sim.rows * sim.trees_per_row} simulated); {timings}\n")

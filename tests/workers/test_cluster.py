@@ -1,13 +1,18 @@
-"""Dask clients: embedded cluster with a dashboard, unreachable scheduler → clear error."""
+"""Dask clients: embedded cluster with a dashboard, unreachable scheduler → clear error,
+Ctrl-C handled by this process alone."""
 
 from __future__ import annotations
 
+import os
+import signal
 import socket
+import time
+from pathlib import Path
 
 import pytest
 
 from pipeline.errors import ParameterError
-from workers.cluster import close_client, dashboard_address, make_client
+from workers.cluster import close_client, dashboard_address, interrupts_deferred, make_client
 
 
 def test_embedded_cluster_has_workers_and_a_dashboard():
@@ -34,3 +39,36 @@ def test_unreachable_scheduler_is_a_parameter_error():
         port = s.getsockname()[1]
     with pytest.raises(ParameterError, match=f"127.0.0.1:{port}.*dask scheduler"):
         make_client(f"tcp://127.0.0.1:{port}", timeout="2s")
+
+
+def _sigint_blocked(_=None) -> bool:
+    with open("/proc/thread-self/status") as fh:
+        mask = next(line for line in fh if line.startswith("SigBlk:")).split()[1]
+    return bool(int(mask, 16) & (1 << (signal.SIGINT - 1)))
+
+
+@pytest.mark.skipif(not Path("/proc/thread-self/status").exists(), reason="needs Linux /proc")
+def test_embedded_workers_do_not_take_ctrl_c_and_this_thread_does():
+    """A terminal's Ctrl-C reaches every process of its group: the embedded workers
+    must leave it to this process (which stops them) instead of each printing a
+    KeyboardInterrupt traceback; the calling thread's own mask is as before."""
+    client = make_client(n_workers=1, dashboard=False)
+    try:
+        assert not _sigint_blocked()
+        worker_blocked = client.run(_sigint_blocked)
+        assert list(worker_blocked.values()) == [True]
+    finally:
+        close_client(client)
+
+
+def test_interrupt_during_a_shutdown_is_held_until_it_ends():
+    done = []
+    with pytest.raises(KeyboardInterrupt):
+        with interrupts_deferred():
+            os.kill(os.getpid(), signal.SIGINT)
+            time.sleep(0.2)  # the signal is delivered meanwhile
+            done.append(True)
+    assert done == [True]
+    assert signal.getsignal(signal.SIGINT) is signal.default_int_handler
+    with interrupts_deferred():  # nothing caught, nothing raised
+        pass

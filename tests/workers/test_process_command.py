@@ -2,9 +2,13 @@
 
 from __future__ import annotations
 
+import os
+import signal
 import struct
 import subprocess
 import sys
+import time
+from pathlib import Path
 
 import laspy
 import numpy as np
@@ -211,3 +215,43 @@ def test_a_failing_tile_prints_one_message_not_worker_tracebacks(tmp_path):
     lines = run.stderr.strip().splitlines()
     assert "Traceback" not in run.stderr and "Compute Failed" not in run.stderr, run.stderr
     assert len(lines) <= 3 and lines[-1].startswith("orchard process: tile 0: ") and "too wide" in lines[-1]
+
+
+def _children(pid: int) -> list[int]:
+    kids = []
+    for stat in Path("/proc").glob("[0-9]*/stat"):
+        try:
+            fields = stat.read_text().rsplit(")", 1)[1].split()
+        except OSError:
+            continue
+        if int(fields[1]) == pid:
+            kids.append(int(stat.parent.name))
+    return kids
+
+
+@pytest.mark.skipif(not Path("/proc/self/stat").exists(), reason="needs Linux /proc")
+def test_ctrl_c_during_a_tiled_run_prints_one_line(orchard_block, tmp_path):
+    # a terminal's Ctrl-C goes to the whole process group: the dask workers each printed
+    # a KeyboardInterrupt traceback (and the shutdown warnings) under "interrupted"
+    out = tmp_path / "out"
+    proc = subprocess.Popen(
+        [sys.executable, "-m", "service.cli", "process", str(orchard_block), "--out", str(out),
+         "--tile-size", "8", "--workers", "2"],
+        stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, start_new_session=True,
+    )
+    try:
+        deadline = time.monotonic() + 120
+        while len(_children(proc.pid)) < 2 and proc.poll() is None and time.monotonic() < deadline:
+            time.sleep(0.1)
+        time.sleep(2.0)  # the workers are up and busy with tiles
+        assert proc.poll() is None, "the run ended before it could be interrupted"
+        os.killpg(proc.pid, signal.SIGINT)
+        _, err = proc.communicate(timeout=120)
+    finally:
+        if proc.poll() is None:
+            os.killpg(proc.pid, signal.SIGKILL)
+            proc.wait()
+    assert proc.returncode == 130, err
+    assert "Traceback" not in err and "WARNING" not in err and "KeyboardInterrupt" not in err, err
+    assert err.strip().splitlines()[-1] == "orchard: interrupted"
+    assert not (out / "trees.parquet").exists()
