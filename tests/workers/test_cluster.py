@@ -12,7 +12,12 @@ from pathlib import Path
 import pytest
 
 from pipeline.errors import ParameterError
-from workers.cluster import close_client, dashboard_address, interrupts_deferred, make_client
+from workers.cluster import (
+    close_client,
+    dashboard_address,
+    interrupts_deferred,
+    make_client,
+)
 
 
 def test_embedded_cluster_has_workers_and_a_dashboard():
@@ -63,11 +68,10 @@ def test_embedded_workers_do_not_take_ctrl_c_and_this_thread_does():
 
 def test_interrupt_during_a_shutdown_is_held_until_it_ends():
     done = []
-    with pytest.raises(KeyboardInterrupt):
-        with interrupts_deferred():
-            os.kill(os.getpid(), signal.SIGINT)
-            time.sleep(0.2)  # the signal is delivered meanwhile
-            done.append(True)
+    with pytest.raises(KeyboardInterrupt), interrupts_deferred():
+        os.kill(os.getpid(), signal.SIGINT)
+        time.sleep(0.2)  # the signal is delivered meanwhile
+        done.append(True)
     assert done == [True]
     assert signal.getsignal(signal.SIGINT) is signal.default_int_handler
     with interrupts_deferred():  # nothing caught, nothing raised
