@@ -54,18 +54,32 @@ def validate_cron(expr: str) -> str:
 def next_run_time(cron: str, after: datetime | float) -> datetime:
     """First time strictly after ``after`` that ``cron`` matches, in local time (timezone-aware).
 
-    ``after`` is a datetime (naive = local time) or a POSIX timestamp.
+    ``after`` is a datetime (naive = local time) or a POSIX timestamp. The expression is
+    matched against the server's local wall clock (``TZ``), daylight-saving changes
+    included: ``0 1 * * *`` is 01:00 on the nights either side of a change too. A time
+    the clock skips (02:30 when it jumps from 02:00 to 03:00) runs when the clock has
+    passed it (03:30), a time it shows twice runs once.
     """
-    if isinstance(after, (int, float)):
-        start = datetime.fromtimestamp(after).astimezone()
-    elif after.tzinfo is None:
-        start = after.astimezone()
+    if isinstance(after, datetime):
+        after_ts = after.timestamp()  # naive: local time
     else:
-        start = after
+        after_ts = float(after)
+    # croniter steps through naive wall-clock times; time.mktime turns each into an
+    # instant by the local zone's rules for that date (a fixed UTC offset, as an aware
+    # start would give, is off by an hour across a change)
+    wall = datetime.fromtimestamp(after_ts).replace(microsecond=0)
     try:
-        return croniter(validate_cron(cron), start).get_next(datetime)
+        it = croniter(validate_cron(cron), wall)
+        for _ in range(10_000):
+            candidate = it.get_next(datetime)
+            ts = time.mktime(candidate.timetuple()[:8] + (-1,))
+            if ts > after_ts:
+                return datetime.fromtimestamp(ts).astimezone()
     except CroniterBadDateError:
-        raise ParameterError(f"cron expression {cron!r} matches no date after {start.isoformat()}") from None
+        pass
+    raise ParameterError(
+        f"cron expression {cron!r} matches no date after {datetime.fromtimestamp(after_ts).astimezone().isoformat()}"
+    ) from None
 
 
 def validate_inbox(inbox: str, *, root: Path | None = None, base: Path | None = None, root_label: str = "the allowed inbox root") -> Path:

@@ -45,6 +45,43 @@ def test_next_run_from_timestamp_and_weekdays():
     assert nxt.weekday() == 5
 
 
+@pytest.fixture
+def local_zone(monkeypatch):
+    """Set the process's local time zone (``TZ``) for one test."""
+
+    def use(name: str) -> None:
+        monkeypatch.setenv("TZ", name)
+        time.tzset()
+
+    yield use
+    monkeypatch.undo()
+    time.tzset()
+
+
+@pytest.mark.skipif(not hasattr(time, "tzset") or not Path("/usr/share/zoneinfo/Europe/Berlin").exists(),
+                    reason="needs time.tzset and the system's zone files")
+def test_cron_keeps_local_time_across_daylight_saving_changes(local_zone):
+    # a fixed UTC offset taken from the start put the night after a change an hour off
+    # (02:00 CEST in spring, 00:00 CET in autumn)
+    local_zone("Europe/Berlin")
+    cases = [
+        (datetime(2026, 3, 29, 1, 30), "0 1 * * *", datetime(2026, 3, 30, 1, 0), 2),  # after the spring change
+        (datetime(2026, 10, 25, 1, 30), "0 1 * * *", datetime(2026, 10, 26, 1, 0), 1),  # after the autumn change
+        (datetime(2026, 3, 28, 12, 0), "0 1 * * *", datetime(2026, 3, 29, 1, 0), 1),
+    ]
+    for start, expr, expected, utc_offset_h in cases:
+        nxt = next_run_time(expr, start)
+        assert nxt.replace(tzinfo=None) == expected
+        assert nxt.utcoffset().total_seconds() == utc_offset_h * 3600
+    # 02:30 does not exist on 2026-03-29 (02:00 -> 03:00): it runs once the clock is past it
+    skipped = next_run_time("30 2 * * *", datetime(2026, 3, 29, 1, 0))
+    assert skipped.replace(tzinfo=None) == datetime(2026, 3, 29, 3, 30)
+    # 02:30 happens twice on 2026-10-25: one run, then the next night
+    first = next_run_time("30 2 * * *", datetime(2026, 10, 25, 0, 0))
+    assert first.replace(tzinfo=None) == datetime(2026, 10, 25, 2, 30)
+    assert next_run_time("30 2 * * *", first).replace(tzinfo=None) == datetime(2026, 10, 26, 2, 30)
+
+
 @pytest.mark.parametrize("expr", ["", "every night", "61 1 * * *", "0 25 * * *", "* * * *", "0 1 * * * *"])
 def test_invalid_cron_is_refused(expr):
     with pytest.raises(ParameterError, match="cron"):
