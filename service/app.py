@@ -153,6 +153,10 @@ class ScheduleRun(BaseModel):
     jobs: list[str]
     skipped: int
     rejected: list[RejectedFile]
+    waiting: list[str] = Field(
+        default_factory=list,
+        description="captures still being copied in (written to within ORCHARD_CAPTURE_SETTLE_S): the schedule looks at them again once they have settled",
+    )
 
 
 class Health(BaseModel):

@@ -5,8 +5,10 @@ A schedule is ``{inbox, cron, params, tiling}`` owned by a tenant. The
 expression, default ``0 1 * * *`` = 01:00 every night), then `run_schedule` submits one
 job per new capture in the inbox: every ``*.las`` / ``*.laz`` file whose sha256 this
 schedule has not handled before. Handled files (accepted, or rejected as unusable) are
-recorded in the store, so a capture is never processed twice. A run the service missed
-while it was down happens once at the next start.
+recorded in the store, so a capture is never processed twice. A capture still being
+copied in (written to within ``capture_settle_s``) is left for a scan that follows
+as soon as it has settled. A run the service missed while it was down happens once at
+the next start.
 """
 
 from __future__ import annotations
@@ -199,14 +201,24 @@ def _copy_hashed(src: Path, dst: Path) -> tuple[str, int]:
     return h.hexdigest(), n
 
 
-def run_schedule(store: Store, settings: Settings, schedule: dict[str, Any]) -> dict[str, Any]:
+def display_name(path: Path) -> str:
+    """A file name as text, whatever its bytes (undecodable ones as ``\\xNN``)."""
+    return os.fsencode(path.name).decode("utf-8", "backslashreplace")
+
+
+def run_schedule(store: Store, settings: Settings, schedule: dict[str, Any], *, now: float | None = None) -> dict[str, Any]:
     """Submit a job for every new capture in the schedule's inbox; returns what was done.
 
     Returns ``{"schedule_id", "jobs": [job ids], "skipped": n already handled,
-    "rejected": [{"file", "error"}]}``. Unusable files are recorded as handled (with
-    their error) so they are not retried every night.
+    "rejected": [{"file", "error"}], "waiting": [file names]}``. Unusable files are
+    recorded as handled (with their error) so they are not retried every night. A
+    capture written to within ``settings.capture_settle_s`` of ``now`` (or changed while
+    it was read) is still arriving: it is left as *waiting*, not recorded, for a later
+    scan. A file whose name is not valid UTF-8 is rejected without being recorded (taken
+    once renamed), and a capture that fails in any other unexpected way is rejected and
+    logged without stopping the scan of the others.
     """
-    result: dict[str, Any] = {"schedule_id": schedule["id"], "jobs": [], "skipped": 0, "rejected": []}
+    result: dict[str, Any] = {"schedule_id": schedule["id"], "jobs": [], "skipped": 0, "rejected": [], "waiting": []}
     inbox = Path(schedule["inbox"])
     if not inbox.is_dir():
         raise InputError(f"inbox {str(inbox)!r} of schedule {schedule['id']} no longer exists")
@@ -215,42 +227,66 @@ def run_schedule(store: Store, settings: Settings, schedule: dict[str, Any]) -> 
     settings.tmp_dir.mkdir(parents=True, exist_ok=True)
     with _run_lock:
         for path in captures(inbox):
+            name = display_name(path)
             try:
-                sha = file_sha256(path)
-            except OSError as exc:
-                result["rejected"].append({"file": path.name, "error": f"cannot read: {exc.strerror}"})
-                continue
-            # taken before by this schedule, or by an earlier one of this farm (deleted to change its cron)
-            if store.schedule_file_seen(schedule["id"], sha) or store.capture_scheduled(schedule["tenant_id"], sha):
+                outcome = _take_capture(store, settings, schedule, path, name, time.time() if now is None else now)
+            except Exception as exc:  # one capture must not stop the scan of the others (logged)
+                log.warning("schedule %s: capture %s could not be taken", schedule["id"], name, exc_info=True)
+                outcome = ("rejected", f"could not be taken ({type(exc).__name__}: {exc}); it is tried again at the next scan")
+            kind, detail = outcome
+            if kind == "job":
+                result["jobs"].append(detail)
+            elif kind == "skipped":
                 result["skipped"] += 1
-                continue
-            tmp = settings.tmp_dir / f"inbox-{uuid.uuid4().hex}.part"
-            try:
-                copied_sha, size = _copy_hashed(path, tmp)
-                if copied_sha != sha:  # the capture is still being written; take it next time
-                    tmp.unlink(missing_ok=True)
-                    continue
-                block, _ = accept_block(
-                    store,
-                    blocks_dir=settings.blocks_dir,
-                    tenant_id=schedule["tenant_id"],
-                    tmp_path=tmp,
-                    sha256=sha,
-                    size_bytes=size,
-                    filename=path.name,
-                )
-            except InputError as exc:
-                store.record_schedule_file(schedule_id=schedule["id"], sha256=sha, path=str(path), job_id=None, error=str(exc))
-                result["rejected"].append({"file": path.name, "error": str(exc)})
-                continue
-            finally:
-                tmp.unlink(missing_ok=True)
-            job = store.create_scheduled_job(schedule=schedule, block_id=block["id"], sha256=sha, path=str(path))
-            if job is None:  # another scan of this inbox (another process) took it first
-                result["skipped"] += 1
-                continue
-            result["jobs"].append(job["id"])
+            elif kind == "waiting":
+                result["waiting"].append(name)
+            else:
+                result["rejected"].append({"file": name, "error": detail})
     return result
+
+
+def _take_capture(
+    store: Store, settings: Settings, schedule: dict[str, Any], path: Path, name: str, now: float
+) -> tuple[str, str | None]:
+    """One capture of a scan: ("job", job id), ("skipped", None), ("waiting", None) or
+    ("rejected", error)."""
+    try:
+        path.name.encode("utf-8", "strict")  # undecodable bytes are surrogates here
+    except UnicodeEncodeError:
+        return "rejected", "the file name is not valid UTF-8 (as names from some USB sticks or shares are); rename the file to have it taken"
+    try:
+        stat = path.stat()
+        if now - stat.st_mtime < settings.capture_settle_s:  # still being copied in
+            return "waiting", None
+        sha = file_sha256(path)
+    except OSError as exc:
+        return "rejected", f"cannot read: {exc.strerror}"
+    # taken before by this schedule, or by an earlier one of this farm (deleted to change its cron)
+    if store.schedule_file_seen(schedule["id"], sha) or store.capture_scheduled(schedule["tenant_id"], sha):
+        return "skipped", None
+    tmp = settings.tmp_dir / f"inbox-{uuid.uuid4().hex}.part"
+    try:
+        copied_sha, size = _copy_hashed(path, tmp)
+        if copied_sha != sha or path.stat().st_mtime != stat.st_mtime:  # written to meanwhile
+            return "waiting", None
+        block, _ = accept_block(
+            store,
+            blocks_dir=settings.blocks_dir,
+            tenant_id=schedule["tenant_id"],
+            tmp_path=tmp,
+            sha256=sha,
+            size_bytes=size,
+            filename=name,
+        )
+    except InputError as exc:
+        store.record_schedule_file(schedule_id=schedule["id"], sha256=sha, path=str(path), job_id=None, error=str(exc))
+        return "rejected", str(exc)
+    finally:
+        tmp.unlink(missing_ok=True)
+    job = store.create_scheduled_job(schedule=schedule, block_id=block["id"], sha256=sha, path=str(path))
+    if job is None:  # another scan of this inbox (another process) took it first
+        return "skipped", None
+    return "job", job["id"]
 
 
 class ScheduleClock(threading.Thread):
@@ -288,14 +324,20 @@ class ScheduleClock(threading.Thread):
                     nxt = next_run_time(sched["cron"], now).timestamp()
                     self.store.set_schedule_times(sched["id"], last_run_at=None, next_run_at=nxt)
                 elif nxt <= now:
+                    again = None
                     try:
-                        res = run_schedule(self.store, self.settings, sched)
-                        log.info("schedule %s: %d new jobs, %d already handled", sched["id"], len(res["jobs"]), res["skipped"])
+                        res = run_schedule(self.store, self.settings, sched, now=now)
+                        log.info("schedule %s: %d new jobs, %d already handled, %d still arriving",
+                                 sched["id"], len(res["jobs"]), res["skipped"], len(res["waiting"]))
                         if res["jobs"] and self.on_jobs:
                             self.on_jobs()
+                        if res["waiting"]:  # look again once they have settled, not a day later
+                            again = now + max(self.settings.capture_settle_s, 1.0)
                     except Exception as exc:  # noqa: BLE001 - one farm's broken inbox must not stop the others
                         log.warning("schedule %s failed: %s", sched["id"], exc)
                     nxt = next_run_time(sched["cron"], now).timestamp()
+                    if again is not None:
+                        nxt = min(nxt, again)
                     self.store.set_schedule_times(sched["id"], last_run_at=now, next_run_at=nxt)
             except ParameterError as exc:
                 log.warning("schedule %s has an invalid cron expression: %s", sched["id"], exc)

@@ -39,6 +39,10 @@ class Settings(BaseSettings):
         "may only use folders in <inbox root>/<tenant name> (unset: <data_dir>/inboxes/<tenant name>)",
     )
     schedule_poll_s: float = Field(30.0, gt=0, le=3600, description="longest sleep of the schedule clock between checks [s]")
+    capture_settle_s: float = Field(
+        60.0, ge=0, le=86400,
+        description="a capture written to within this many seconds is still arriving: a scan leaves it and looks again this much later [s]",
+    )
     runner_poll_s: float = Field(1.0, gt=0, le=60, description="longest sleep of the runner between looks at the queue [s]")
 
     @property

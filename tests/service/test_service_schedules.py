@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import json
+import os
 import shutil
 import subprocess
 import sys
@@ -180,7 +181,9 @@ def test_api_wording_names_the_upload_and_the_request_fields():
 
 @pytest.fixture()
 def local(tmp_path):
-    settings = Settings(data_dir=tmp_path / "data")
+    # captures are written just before each scan here: take them at once (the settle
+    # time has its own tests)
+    settings = Settings(data_dir=tmp_path / "data", capture_settle_s=0)
     store = Store(settings.store_path)
     tenant = store.ensure_tenant("farm")
     inbox = tmp_path / "inbox"
@@ -211,6 +214,83 @@ def test_run_schedule_takes_each_capture_once(local):
     # a new capture is
     write_las(inbox / "c.laz", 700, seed=3)
     assert len(run_schedule(store, settings, sched)["jobs"]) == 1
+
+
+def test_a_capture_still_being_copied_in_waits_for_a_later_scan(local):
+    # a copy tool that sets the final size first and fills the file in afterwards (SMB,
+    # robocopy, rsync --preallocate) passed every check half-written, and its job ended
+    # "done" with the wrong trees
+    settings, store, tenant, inbox = local
+    settings = settings.model_copy(update={"capture_settle_s": 30.0})
+    write_las(inbox / "a.laz", 500, seed=1)
+    sched = _schedule(store, tenant, inbox)
+    now = time.time()
+    first = run_schedule(store, settings, sched, now=now)
+    assert first["waiting"] == ["a.laz"] and first["jobs"] == [] and first["rejected"] == []
+    assert store.schedule_files(sched["id"]) == []  # not recorded: it is looked at again
+    later = run_schedule(store, settings, sched, now=now + 31)
+    assert len(later["jobs"]) == 1 and later["waiting"] == []
+
+
+def test_the_clock_looks_again_soon_at_a_capture_still_arriving(local):
+    settings, store, tenant, inbox = local
+    settings = settings.model_copy(update={"capture_settle_s": 120.0})
+    now = time.time()
+    sched = store.create_schedule(tenant_id=tenant["id"], inbox=str(inbox), cron="0 1 * * *", params={},
+                                  tiling=None, next_run_at=now - 1)
+    write_las(inbox / "a.laz", 500, seed=1)
+    ScheduleClock(store, settings).tick(now)
+    rec = store.get_schedule(tenant["id"], sched["id"])
+    assert rec["next_run_at"] == pytest.approx(now + 120)  # not tomorrow at 01:00
+    os.utime(inbox / "a.laz", (now - 600, now - 600))  # the copy has finished
+    ScheduleClock(store, settings).tick(now + 121)
+    assert len(store.list_jobs(tenant["id"], schedule_id=sched["id"])) == 1
+    rec = store.get_schedule(tenant["id"], sched["id"])
+    assert rec["next_run_at"] == next_run_time("0 1 * * *", now + 121).timestamp()
+
+
+@pytest.mark.skipif(sys.platform != "linux", reason="needs a file system that takes any bytes as a name")
+def test_a_file_name_that_is_not_utf8_does_not_stop_the_scan(local):
+    # a Latin-1 name from a USB stick: SQLite refused the name, the scan stopped there
+    # every night, and no capture sorted after it was ever taken
+    settings, store, tenant, inbox = local
+    bad = os.fsencode(inbox) + b"/B\xe4ume.las"
+    with open(bad, "wb") as fh:
+        fh.write(write_las(inbox / "tmp.las", 500, seed=1).read_bytes())
+    (inbox / "tmp.las").unlink()
+    write_las(inbox / "zz new capture.laz", 600, seed=2)
+    sched = _schedule(store, tenant, inbox)
+    res = run_schedule(store, settings, sched)
+    assert len(res["jobs"]) == 1
+    assert res["rejected"] == [{"file": "B\\xe4ume.las", "error": res["rejected"][0]["error"]}]
+    assert "not valid UTF-8" in res["rejected"][0]["error"]
+    json.dumps(res)  # the API returns it as it is
+    assert [f["path"] for f in store.schedule_files(sched["id"])] == [str(inbox / "zz new capture.laz")]
+    # renamed, it is taken
+    os.rename(bad, os.fsencode(inbox) + b"/Baeume.las")
+    assert len(run_schedule(store, settings, sched)["jobs"]) == 1
+
+
+def test_an_unexpected_failure_of_one_capture_does_not_stop_the_scan(local, monkeypatch):
+    settings, store, tenant, inbox = local
+    write_las(inbox / "a.laz", 500, seed=1)
+    write_las(inbox / "b.laz", 600, seed=2)
+    from service import schedules
+
+    real = schedules.accept_block
+
+    def flaky(store, **kw):
+        if kw["filename"] == "a.laz":
+            raise RuntimeError("disk hiccup")
+        return real(store, **kw)
+
+    monkeypatch.setattr(schedules, "accept_block", flaky)
+    sched = _schedule(store, tenant, inbox)
+    res = run_schedule(store, settings, sched)
+    assert len(res["jobs"]) == 1 and res["rejected"][0]["file"] == "a.laz"
+    assert "disk hiccup" in res["rejected"][0]["error"] and "tried again" in res["rejected"][0]["error"]
+    monkeypatch.setattr(schedules, "accept_block", real)
+    assert len(run_schedule(store, settings, sched)["jobs"]) == 1  # and it is
 
 
 def test_a_schedule_made_again_does_not_take_old_captures_again(local):
@@ -357,6 +437,7 @@ def test_cli_schedules_create_and_list(tmp_path, monkeypatch, capsys):
     assert main(["schedules", "create", "--tenant", "farm-x", "--inbox", str(inbox), "--cron", "bad", "--data-dir", str(data)]) == 2
     assert "cron" in capsys.readouterr().err
     write_las(inbox / "a.laz", 300, seed=8)
+    monkeypatch.setenv("ORCHARD_CAPTURE_SETTLE_S", "0")  # just written
     assert main(["schedules", "run", sid, "--data-dir", str(data)]) == 0
     assert '"jobs": [' in capsys.readouterr().out
     store = Store(data / "orchard.sqlite")
