@@ -494,14 +494,21 @@ def ensure_report(store: Store, settings: Settings, job: dict) -> Path:
     block = store.get_block(None, job["block_id"])
     _, trees = _results(store, settings, {"id": job["tenant_id"]}, job["id"], "trees.parquet")
     _, points = _results(store, settings, {"id": job["tenant_id"]}, job["id"], "points.parquet")
-    rows_total = (job.get("outcome") or {}).get("n_trees")
+    outcome = job.get("outcome") or {}
+    rows_total = outcome.get("n_trees")
+    finished = job.get("finished_at")
     summary = {
         "Block": block.get("filename") or block["id"],
         "Job": job["id"],
-        "Finished": _iso(job.get("finished_at")) or "",
+        "Finished": datetime.fromtimestamp(finished, timezone.utc).strftime("%Y-%m-%d %H:%M UTC") if finished else "",
         "Points": str((block.get("info") or {}).get("n_points", "")),
         "Trees": str(rows_total if rows_total is not None else ""),
     }
+    warning = None
+    if outcome.get("partial"):
+        failed = ", ".join(str(t) for t in outcome.get("failed_tiles") or []) or "some"
+        warning = (f"Partial result: tile(s) {failed} of this block failed. Trees standing in them are missing "
+                   "from this report and the downloads, and their points are in no tree.")
     return reports.write_report(
         block_path=block["path"],
         trees_parquet=_require(trees, "trees.parquet"),
@@ -509,6 +516,7 @@ def ensure_report(store: Store, settings: Settings, job: dict) -> Path:
         out_dir=out,
         title=f"Orchard report — {block.get('filename') or block['id']}",
         summary=summary,
+        warning=warning,
     )
 
 

@@ -17,6 +17,8 @@ import uuid
 from pathlib import Path
 
 import numpy as np
+import pyarrow as pa
+import pyarrow.compute as pc
 import pyarrow.csv as pacsv
 import pyarrow.parquet as pq
 
@@ -68,10 +70,15 @@ def trees_records(trees_parquet: str | os.PathLike) -> list[dict]:
 
 
 def write_trees_csv(trees_parquet: str | os.PathLike, csv_path: str | os.PathLike) -> Path:
-    """``trees.csv``: the columns of ``trees.parquet`` without the geometry (atomic)."""
+    """``trees.csv``: the columns of ``trees.parquet`` without the geometry (atomic); a
+    value that could not be measured (NaN) is an empty cell, as spreadsheets expect."""
     table = pq.read_table(str(trees_parquet))
     if "geometry" in table.column_names:
         table = table.drop(["geometry"])
+    for i, field in enumerate(table.schema):
+        if pa.types.is_floating(field.type):
+            col = table.column(i)
+            table = table.set_column(i, field, pc.if_else(pc.is_nan(col), pa.scalar(None, field.type), col))
     buf = io.BytesIO()
     pacsv.write_csv(table, buf)
     path = Path(csv_path)
@@ -159,7 +166,7 @@ def render_map(xy: np.ndarray, tree_id: np.ndarray, trunks_xy: np.ndarray, trunk
     ax.set_aspect("equal")
     ax.set_xlabel("x [m] (local)")
     ax.set_ylabel("y [m] (local)")
-    ax.set_title(title)
+    ax.set_title(title, parse_math=False)  # a file name with "$...$" is text, not a formula
     fig.tight_layout()
     buf = io.BytesIO()
     fig.savefig(buf, format="png")
@@ -179,12 +186,15 @@ def _cell(value, fmt: str) -> str:
         return html.escape(str(value))
 
 
-def render_html(*, title: str, png: bytes, rows: list[dict], origin: np.ndarray, summary: dict[str, str]) -> str:
+def render_html(
+    *, title: str, png: bytes, rows: list[dict], origin: np.ndarray, summary: dict[str, str], warning: str | None = None
+) -> str:
     head = "".join(f"<th>{html.escape(label)}</th>" for _, label, _ in TABLE_COLUMNS)
     body = "\n".join(
         "<tr>" + "".join(f"<td>{_cell(r.get(key), fmt)}</td>" for key, _, fmt in TABLE_COLUMNS) + "</tr>" for r in rows
     )
     facts = "".join(f"<li>{html.escape(k)}: {html.escape(v)}</li>" for k, v in summary.items())
+    notice = f'<p class="warning"><strong>{html.escape(warning)}</strong></p>' if warning else ""
     img = base64.b64encode(png).decode("ascii")
     return f"""<!doctype html>
 <html lang="en"><head><meta charset="utf-8"><title>{html.escape(title)}</title>
@@ -192,9 +202,11 @@ def render_html(*, title: str, png: bytes, rows: list[dict], origin: np.ndarray,
 body {{ font-family: system-ui, sans-serif; margin: 2em; color: #222; }}
 table {{ border-collapse: collapse; }} th, td {{ padding: 4px 10px; border-bottom: 1px solid #ddd; text-align: right; }}
 th {{ background: #f3f3f3; }} img {{ max-width: 100%; border: 1px solid #ddd; }}
+.warning {{ background: #fff3cd; border: 1px solid #e0b000; padding: 0.6em 1em; }}
 </style></head>
 <body>
 <h1>{html.escape(title)}</h1>
+{notice}
 <ul>{facts}</ul>
 <p>Map: the block from above; tree points coloured by tree, trunks numbered. Local frame: x − {origin[0]:.0f}, y − {origin[1]:.0f} (input CRS).</p>
 <img alt="map of the block with numbered trees" src="data:image/png;base64,{img}">
@@ -215,9 +227,11 @@ def write_report(
     out_dir: str | os.PathLike,
     title: str,
     summary: dict[str, str] | None = None,
+    warning: str | None = None,
     max_points: int = 150_000,
 ) -> Path:
-    """Write ``report.html`` (with the map embedded) and ``map.png`` into ``out_dir``; returns the HTML path."""
+    """Write ``report.html`` (with the map embedded) and ``map.png`` into ``out_dir``;
+    returns the HTML path. ``warning`` is shown above everything else (a partial result)."""
     out = Path(out_dir)
     xy, tree_id, origin = sample_points(block_path, points_parquet, max_points=max_points)
     rows = trees_records(trees_parquet)
@@ -228,7 +242,7 @@ def write_report(
         trunks_xy, ids = np.zeros((0, 2)), np.zeros(0, np.int64)
     png = render_map(xy, tree_id, trunks_xy, ids, title=title)
     _atomic_write(out / "map.png", png)
-    page = render_html(title=title, png=png, rows=rows, origin=origin, summary=summary or {})
+    page = render_html(title=title, png=png, rows=rows, origin=origin, summary=summary or {}, warning=warning)
     path = out / "report.html"
     _atomic_write(path, page.encode("utf-8"))
     return path

@@ -58,3 +58,61 @@ def test_report_html_and_csv(tmp_path):
     csv = write_trees_csv(trees, tmp_path / "trees.csv").read_text().splitlines()
     assert csv[0].split(",")[0] == '"tree_id"' and len(csv) == 3 and "geometry" not in csv[0]
     assert not math.isnan(rows[0]["trunk_diameter_m"])
+
+
+def test_csv_leaves_unmeasured_values_empty(tmp_path):
+    # "nan" in a spreadsheet is text; JSON gives null and the report "–"
+    _, trees = _outputs(tmp_path, 100)
+    lines = write_trees_csv(trees, tmp_path / "trees.csv").read_text().splitlines()
+    header = [h.strip('"') for h in lines[0].split(",")]
+    second = lines[2].split(",")
+    assert "nan" not in lines[2].lower()
+    assert second[header.index("trunk_diameter_m")] == ""
+    assert float(lines[1].split(",")[header.index("trunk_diameter_m")]) == 0.12
+
+
+def test_a_title_with_dollar_signs_is_text_and_a_partial_result_says_so(tmp_path):
+    # matplotlib read "$...$" in a capture's file name as a formula: the map, and with it
+    # the whole report, failed with a 500 on every request
+    block = write_las(tmp_path / "b.las", 2_000, seed=3)
+    points, trees = _outputs(tmp_path, 2_000)
+    for name in ("row_$1_$2.laz", r"price $\frac{a$ and $6.laz"):
+        page = write_report(block_path=str(block), trees_parquet=trees, points_parquet=points, out_dir=tmp_path,
+                            title=f"Orchard report — {name}", warning="Partial result: tile(s) 3, 4 of this block failed.")
+        text = page.read_text()
+        assert name.replace("&", "&amp;") in text
+        assert text.index("Partial result: tile(s) 3, 4") < text.index("<ul>")
+
+
+def test_the_report_of_a_partial_result_says_which_tiles_are_missing(tmp_path):
+    # the API said "partial", the report did not: a grower reading it saw a block with
+    # fewer trees and no word why
+    import shutil
+
+    from service.app import ensure_report
+    from service.runner import job_dir
+    from service.schedules import file_sha256
+    from service.settings import Settings
+    from service.store import Store, accept_block
+
+    settings = Settings(data_dir=tmp_path / "data")
+    settings.blocks_dir.mkdir(parents=True)
+    store = Store(settings.store_path)
+    try:
+        tenant = store.ensure_tenant("farm")
+        src = write_las(tmp_path / "upload.las", 3_000, seed=4)
+        block, _ = accept_block(store, blocks_dir=settings.blocks_dir, tenant_id=tenant["id"], tmp_path=src,
+                                sha256=file_sha256(src), size_bytes=src.stat().st_size, filename="north $block$.las")
+        job = store.create_job(tenant_id=tenant["id"], block_id=block["id"], params={}, tiling={"tile_size": 20})
+        assert store.claim_next_job()["id"] == job["id"]
+        out = job_dir(settings, job["id"])
+        out.mkdir(parents=True)
+        points, trees = _outputs(tmp_path, 3_000)
+        shutil.copy(points, out / "points.parquet")
+        shutil.copy(trees, out / "trees.parquet")
+        job = store.finish_job(job["id"], "done", outcome={"n_trees": 2, "partial": True, "failed_tiles": [3, 4]})
+        text = ensure_report(store, settings, job).read_text()
+        assert "Partial result: tile(s) 3, 4 of this block failed" in text
+        assert "north $block$.las" in text and " UTC</li>" in text
+    finally:
+        store.close()
