@@ -32,9 +32,10 @@ from pipeline.errors import ConflictError, InputError, NotFoundError, ParameterE
 from pipeline.params import PipelineParams
 from pipeline.tiling import check_tiling
 from service import report as reports
+from service import scratch
 from service.auth import authenticate
 from service.errors import TooLargeError, api_wording, install_error_handlers
-from service.runner import Runner, job_dir
+from service.runner import Runner, hold_runner_lock, job_dir
 from service.schedules import (
     DEFAULT_CRON,
     ScheduleClock,
@@ -407,7 +408,7 @@ async def _receive_upload(request: Request, settings: Settings) -> _FilePart:
     if ctype != b"multipart/form-data" or not boundary:
         raise InputError("send the block as multipart/form-data with the file in the field 'file' (curl -F file=@block.laz)")
     settings.tmp_dir.mkdir(parents=True, exist_ok=True)
-    part = _FilePart(settings.tmp_dir / f"upload-{uuid.uuid4().hex}.part", settings.max_upload_bytes)
+    part = _FilePart(scratch.scratch_dir(settings.tmp_dir) / f"upload-{uuid.uuid4().hex}.part", settings.max_upload_bytes)
     try:
         parser = MultipartParser(boundary, part.callbacks())
     except Exception:
@@ -523,6 +524,8 @@ def ensure_report(store: Store, settings: Settings, job: dict) -> Path:
 def create_app(settings: Settings) -> FastAPI:
     """The API app. Starting it (lifespan) re-queues interrupted jobs and starts the runner and the schedule clock."""
     settings.data_dir.mkdir(parents=True, exist_ok=True)
+    # the one process that runs this folder's jobs and schedules (a second one is refused)
+    runner_lock = hold_runner_lock(settings.data_dir) if settings.runner or settings.scheduling else None
     store = Store(settings.store_path)
     report_lock = threading.Lock()
 
@@ -534,12 +537,11 @@ def create_app(settings: Settings) -> FastAPI:
     async def lifespan(app: FastAPI):
         for d in (settings.blocks_dir, settings.jobs_dir, settings.tmp_dir):
             d.mkdir(parents=True, exist_ok=True)
-        for pattern in ("upload-*", "inbox-*"):  # temporary files of uploads a crash interrupted
-            for stale in settings.tmp_dir.glob(pattern):
-                stale.unlink(missing_ok=True)
-        n = store.requeue_running()
-        if n:
-            log.info("re-queued %d job(s) interrupted by the last shutdown", n)
+        scratch.sweep(settings.tmp_dir)  # uploads a crash interrupted (not those of live processes)
+        if runner_lock is not None:  # no other process runs jobs here: a "running" job is an orphan
+            n = store.requeue_running()
+            if n:
+                log.info("re-queued %d job(s) interrupted by the last shutdown", n)
         if settings.runner:
             app.state.runner = Runner(store, settings, after_done=after_done)
             app.state.runner.start()
@@ -554,6 +556,8 @@ def create_app(settings: Settings) -> FastAPI:
             if app.state.runner is not None:
                 await run_in_threadpool(app.state.runner.stop)
             store.close()
+            if runner_lock is not None:
+                runner_lock.close()
 
     app = FastAPI(
         title="Orchard service",

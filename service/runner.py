@@ -9,20 +9,27 @@ with its outcome and timings, ``failed`` with a one-line error (a domain error's
 message; for anything unexpected a short message, the traceback only in the log), or
 ``cancelled``. A job left ``running`` when the process dies is re-queued by
 `Store.requeue_running` at the next start.
+
+One process per data folder runs jobs and schedules: it holds `hold_runner_lock`'s
+lock for as long as it lives, and only it re-queues ``running`` jobs at its start
+(a second service on the folder, started as the runner too, is refused; started as API
+only, it leaves the other's running job alone).
 """
 
 from __future__ import annotations
 
 import dataclasses
+import fcntl
 import logging
+import os
 import threading
 import time
 from pathlib import Path
-from typing import Any, Callable
+from typing import IO, Any, Callable
 
 import numpy as np
 
-from pipeline.errors import OrchardError
+from pipeline.errors import OrchardError, ParameterError
 from pipeline.params import PipelineParams
 from service.errors import api_wording
 from service.settings import Settings
@@ -33,6 +40,37 @@ log = logging.getLogger("orchard.runner")
 
 class ClusterUnavailable(RuntimeError):
     """The dask cluster could not be started or reached (the job fails; the next one tries again)."""
+
+
+RUNNER_LOCK = "runner.lock"
+
+
+def hold_runner_lock(data_dir: Path) -> IO:
+    """Take the data folder's runner lock (flock on ``<data dir>/runner.lock``) for this
+    process; keep the returned file open for as long as it runs jobs and schedules.
+
+    Raises
+    ------
+    ParameterError
+        Another live process holds it.
+    """
+    path = Path(data_dir) / RUNNER_LOCK
+    fh = open(path, "a+")  # noqa: SIM115 - the open file is the lock
+    try:
+        fcntl.flock(fh, fcntl.LOCK_EX | fcntl.LOCK_NB)
+    except BlockingIOError:
+        fh.seek(0)
+        holder = fh.read().strip() or "another process"
+        fh.close()
+        raise ParameterError(
+            f"{holder} already runs the jobs and schedules of data folder {Path(data_dir)}; give this service "
+            "another --data-dir, or start it to serve the API only (ORCHARD_RUNNER=false ORCHARD_SCHEDULING=false)"
+        ) from None
+    fh.seek(0)
+    fh.truncate()
+    fh.write(f"orchard service pid {os.getpid()}\n")
+    fh.flush()
+    return fh
 
 
 def job_dir(settings: Settings, job_id: str) -> Path:

@@ -27,6 +27,7 @@ from croniter import croniter
 from croniter.croniter import CroniterBadDateError
 
 from pipeline.errors import InputError, ParameterError
+from service.scratch import scratch_dir
 from service.settings import Settings
 from service.store import Store, accept_block
 
@@ -264,7 +265,7 @@ def _take_capture(
     # taken before by this schedule, or by an earlier one of this farm (deleted to change its cron)
     if store.schedule_file_seen(schedule["id"], sha) or store.capture_scheduled(schedule["tenant_id"], sha):
         return "skipped", None
-    tmp = settings.tmp_dir / f"inbox-{uuid.uuid4().hex}.part"
+    tmp = scratch_dir(settings.tmp_dir) / f"inbox-{uuid.uuid4().hex}.part"
     try:
         copied_sha, size = _copy_hashed(path, tmp)
         if copied_sha != sha or path.stat().st_mtime != stat.st_mtime:  # written to meanwhile

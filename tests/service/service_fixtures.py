@@ -84,6 +84,13 @@ class ServerProcess:
             pass
 
 
+def temp_files(data_dir: Path, pattern: str = "*") -> list[Path]:
+    """The service's temporary files under ``data_dir/tmp`` (in its processes' own
+    folders), without those folders' lock files."""
+    tmp = Path(data_dir) / "tmp"
+    return [p for p in tmp.rglob(pattern) if p.is_file() and p.name != ".lock"] if tmp.is_dir() else []
+
+
 def tenant_inbox(data_dir: Path, tenant: str, name: str = "inbox") -> Path:
     """A folder in ``tenant``'s inbox folder of a server with the default inbox root
     (``<data dir>/inboxes/<tenant>``): the only place its schedules may watch over HTTP."""

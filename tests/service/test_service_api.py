@@ -7,7 +7,7 @@ import hashlib
 import httpx
 import pytest
 
-from service_fixtures import tenant_inbox, write_las
+from service_fixtures import temp_files, tenant_inbox, write_las
 
 
 def upload(client: httpx.Client, path, name: str | None = None) -> httpx.Response:
@@ -77,7 +77,7 @@ def test_uploaded_file_lands_under_its_checksum(api_server, client_a, tmp_path):
     assert block["filename"] == "passwd.las"
     stored = api_server.data_dir / "blocks" / f"{block['sha256']}.las"
     assert stored.read_bytes() == path.read_bytes()
-    assert not list((api_server.data_dir / "tmp").glob("*"))
+    assert not temp_files(api_server.data_dir)
 
 
 @pytest.mark.parametrize(
@@ -130,7 +130,7 @@ def test_too_big_upload_is_413(api_server, client_a, tmp_path):
     r = upload(client_a, path)
     assert r.status_code == 413, r.text
     assert "limit" in r.json()["detail"]
-    assert not list((api_server.data_dir / "tmp").glob("*"))
+    assert not temp_files(api_server.data_dir)
 
 
 def test_far_too_big_upload_is_413_before_reading(client_a):
@@ -253,10 +253,9 @@ def test_client_hanging_up_mid_upload_is_not_a_server_error(api_server, tokens, 
                      + head + body[: len(body) // 2])
         time.sleep(0.5)
     deadline = time.monotonic() + 10
-    tmp = api_server.data_dir / "tmp"
-    while time.monotonic() < deadline and tmp.is_dir() and any(tmp.glob("upload-*")):
+    while time.monotonic() < deadline and temp_files(api_server.data_dir, "upload-*"):
         time.sleep(0.1)
-    assert not (tmp.is_dir() and any(tmp.glob("upload-*")))
+    assert not temp_files(api_server.data_dir, "upload-*")
     time.sleep(0.5)
     with open(api_server.log_path, "rb") as fh:
         fh.seek(before)

@@ -7,15 +7,26 @@ from __future__ import annotations
 import io
 import re
 import sqlite3
+import subprocess
+import sys
 import time
+from pathlib import Path
 
 import httpx
 import numpy as np
 import pyarrow.csv as pacsv
 import pyarrow.parquet as pq
 import pytest
+from service_fixtures import (
+    ServerProcess,
+    make_token,
+    simulated_block,
+    wait_for_job,
+    write_las,
+)
 
-from service_fixtures import ServerProcess, make_token, simulated_block, wait_for_job
+from service.schedules import file_sha256
+from service.store import Store, accept_block
 
 pytestmark = pytest.mark.slow
 
@@ -171,3 +182,64 @@ def test_restart_in_the_middle_of_a_job(tmp_path, tiny_block):
             assert c2.get(f"/v1/jobs/{job['id']}/trees").json()["total"] == done["n_trees"]
     finally:
         srv2.stop()
+
+
+def test_a_second_service_on_one_data_folder_leaves_the_first_ones_work_alone(tmp_path):
+    # a second `orchard serve` on the same folder re-queued the job the first was running
+    # (which then ran twice) and deleted the upload it was receiving
+    data = tmp_path / "data"
+    first = ServerProcess(data, ORCHARD_SCHEDULING="false").start()
+    api_only = None
+    try:
+        store = Store(data / "orchard.sqlite")
+        tenant = store.ensure_tenant("farm-two")
+        block_file = write_las(tmp_path / "b.las", 500, seed=5)
+        block, _ = accept_block(store, blocks_dir=data / "blocks", tenant_id=tenant["id"],
+                                tmp_path=block_file, sha256=file_sha256(block_file),
+                                size_bytes=block_file.stat().st_size, filename="b.las")
+        # a job the first service runs (as the store sees it), and an upload it is receiving
+        con = sqlite3.connect(data / "orchard.sqlite")
+        with con:
+            con.execute("INSERT INTO jobs (id, tenant_id, block_id, params, state, created_at, started_at) "
+                        "VALUES ('j-running', ?, ?, '{}', 'running', 0, 0)", (tenant["id"], block["id"]))
+        con.close()
+        holder = subprocess.Popen(
+            [sys.executable, "-c",
+             ("import sys, time; from pathlib import Path; from service.scratch import scratch_dir; "
+              "d = scratch_dir(Path(sys.argv[1])); (d / 'upload-x.part').write_bytes(b'half'); "
+              "print(d, flush=True); time.sleep(120)"), str(data / "tmp")],
+            stdout=subprocess.PIPE, text=True,
+        )
+        receiving = Path(holder.stdout.readline().strip())
+        # started as the runner too: refused, in one line, nothing touched
+        refused = subprocess.run(
+            [sys.executable, "-m", "service.cli", "serve", "--data-dir", str(data), "--port", "0"],
+            capture_output=True, text=True, timeout=60, check=False,
+        )
+        assert refused.returncode == 2, refused.stderr
+        assert len(refused.stderr.strip().splitlines()) == 1 and "already runs the jobs" in refused.stderr
+        assert "ORCHARD_RUNNER=false" in refused.stderr and "Traceback" not in refused.stderr
+        # as API only it starts, and leaves the running job and the upload alone
+        api_only = ServerProcess(data, ORCHARD_RUNNER="false", ORCHARD_SCHEDULING="false").start()
+        assert store.get_job(None, "j-running")["state"] == "running"
+        assert (receiving / "upload-x.part").read_bytes() == b"half"
+        holder.kill()
+        holder.wait()
+        api_only.stop()
+        api_only = None
+        first.stop()
+        # the folder's next runner finds both orphaned: the job is re-queued, the upload swept
+        third = ServerProcess(data, ORCHARD_SCHEDULING="false").start()
+        try:
+            deadline = time.monotonic() + 30
+            while store.get_job(None, "j-running")["state"] == "running" and time.monotonic() < deadline:
+                time.sleep(0.2)
+            assert store.get_job(None, "j-running")["state"] != "running"
+            assert not receiving.exists()
+        finally:
+            third.stop()
+        store.close()
+    finally:
+        if api_only is not None:
+            api_only.stop()
+        first.stop()
