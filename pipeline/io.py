@@ -101,7 +101,7 @@ def read_info(path) -> BlockInfo:
     InputError
         Not a LAS/LAZ file, truncated, no points, NaN/infinite/zero scales or offsets,
         absurd bounds (``|coord| > 1e8 m`` or extent ``> 1e5 m``), unsupported version
-        or point format.
+        or point format, a CRS whose unit is not the metre (feet, degrees).
     """
     p = Path(str(path))
     if not p.is_file():
@@ -159,13 +159,11 @@ def read_info(path) -> BlockInfo:
         raise _fail(p, f"absurd coordinates (bounds {mins} to {maxs}): |coordinate| above 1e8 m")
     if any(hi - lo > MAX_EXTENT or hi < lo for lo, hi in zip(mins, maxs)):
         raise _fail(p, f"absurd bounds {mins} to {maxs}: a block must span at most 1e5 m; split the file")
-    crs_wkt = None
-    try:
-        crs = header.parse_crs()
-        if crs is not None:
-            crs_wkt = crs.to_wkt()
-    except Exception:  # an unreadable CRS is not fatal: outputs say "unknown CRS"
-        crs_wkt = None
+    crs = _parse_crs(p, header)
+    crs_wkt = crs.to_wkt() if crs is not None else None
+    problem = crs_units_problem(crs)
+    if problem:
+        raise _fail(p, problem)
     origin = tuple(float(math.floor(v)) for v in mins)
     return BlockInfo(
         path=str(p),
@@ -180,6 +178,45 @@ def read_info(path) -> BlockInfo:
         crs_wkt=crs_wkt,
         origin=origin,
     )
+
+
+def _parse_crs(p: Path, header):
+    """The block's CRS from its WKT or GeoTIFF-key records, EVLRs included (LAS 1.4 may
+    keep it there); None when absent or not understood (outputs then say "unknown CRS")."""
+    try:
+        crs = header.parse_crs()
+        if crs is None and int(getattr(header, "number_of_evlrs", 0) or 0) > 0:
+            with laspy.open(str(p), read_evlrs=True) as reader:
+                crs = reader.header.parse_crs()
+        return crs
+    except Exception:  # an unreadable CRS is not fatal
+        return None
+
+
+def crs_units_problem(crs) -> str | None:
+    """Why coordinates in ``crs`` (a pyproj CRS or None) cannot be used as metres, or
+    None when they can (every axis in metres, or no CRS given).
+
+    Every length the pipeline measures or is given is in metres: a block in feet came
+    out with heights three times too large under ``_m`` names, and one in degrees found
+    no trees.
+    """
+    if crs is None:
+        return None
+    try:
+        units = {(a.unit_name, float(a.unit_conversion_factor)) for a in crs.axis_info}
+        geographic = bool(crs.is_geographic)
+        name = crs.name
+    except Exception:  # a CRS pyproj cannot describe: take the coordinates as given
+        return None
+    if geographic:
+        return (f"its coordinates are longitude/latitude in degrees ({name}); "
+                "reproject the block to a projected CRS in metres (e.g. its UTM zone) first")
+    other = sorted(unit for unit, factor in units if unit != "metre" and factor != 1.0)
+    if other:
+        return (f"its coordinate unit is {' and '.join(other)} ({name}), but every length here is in metres; "
+                "reproject the block to a projected CRS in metres (e.g. its UTM zone) first")
+    return None
 
 
 def iter_raw(path, *, chunk_points: int = 2_000_000, info: BlockInfo | None = None) -> Iterator[tuple[int, np.ndarray]]:

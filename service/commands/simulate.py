@@ -47,8 +47,9 @@ def _check_crs(epsg: int) -> None:
         crs = pyproj.CRS.from_epsg(epsg)
     except pyproj.exceptions.CRSError:
         raise ParameterError(f"--epsg {epsg}: not a known EPSG code") from None
-    units = {a.unit_name for a in crs.axis_info}
-    if not crs.is_projected or units != {"metre"}:
+    from pipeline.io import crs_units_problem
+
+    if not crs.is_projected or crs_units_problem(crs):
         raise ParameterError(f"--epsg {epsg} ({crs.name}): give a projected CRS in metres, e.g. a UTM zone (28356)")
 
 

@@ -78,6 +78,38 @@ def test_custom_crs_without_geotiff_encoding(tmp_path):
     assert pyproj.CRS.from_wkt(io.read_info(path).crs_wkt).equals(custom)
 
 
+@pytest.mark.parametrize("suffix", [".las", ".laz"])
+def test_crs_in_an_extended_vlr_is_read(tmp_path, suffix):
+    # LAS 1.4 may keep its WKT in an EVLR after the points: it was not looked at, and
+    # trees.parquet said "unknown CRS"
+    src = _write(tmp_path / f"src{suffix}", _cloud(500), version="1.4", point_format=6)
+    las = laspy.read(src)
+    las.evlrs = laspy.vlrs.vlrlist.VLRList([laspy.vlrs.known.WktCoordinateSystemVlr(pyproj.CRS.from_epsg(32633).to_wkt())])
+    las.header.global_encoding.wkt = True
+    path = tmp_path / f"evlr{suffix}"
+    las.write(path)
+    assert pyproj.CRS.from_wkt(io.read_info(path).crs_wkt).to_epsg() == 32633
+
+
+@pytest.mark.parametrize(
+    "epsg, words",
+    [(2227, "US survey foot"), (2277, "US survey foot"), (4326, "longitude/latitude in degrees")],
+)
+def test_a_crs_not_in_metres_is_refused(tmp_path, epsg, words):
+    # every length (parameters, heights, diameters, areas) is in metres: a block in feet
+    # gave 14 m "heights" for 4 m trees and split trees; one in degrees found no trees
+    path = _write(tmp_path / "b.las", _cloud(100), version="1.4", point_format=6,
+                  crs_wkt=pyproj.CRS.from_epsg(epsg).to_wkt())
+    with pytest.raises(InputError, match=f"{words}.*reproject"):
+        io.read_info(path)
+
+
+def test_a_compound_crs_in_metres_is_fine(tmp_path):
+    crs = pyproj.CRS.from_user_input("EPSG:28355+5711")  # GDA94 / MGA 55 + AHD height
+    path = _write(tmp_path / "b.las", _cloud(100), version="1.4", point_format=6, crs_wkt=crs.to_wkt())
+    assert pyproj.CRS.from_wkt(io.read_info(path).crs_wkt).equals(crs)
+
+
 def test_no_crs_is_none(tmp_path):
     assert io.read_info(_write(tmp_path / "b.las", _cloud(10))).crs_wkt is None
 
