@@ -349,7 +349,21 @@ def trunk_diameters(
     max_radius: float = 0.5,
     height: np.ndarray | None = None,
 ) -> np.ndarray:
-    """Trunk diameter of each tree at ``params.trunk_height`` above its base.
+    """Trunk diameter of each tree at ``params.trunk_height`` above its base: the
+    diameters of :func:`trunk_circles` ((k,) float64 [m], NaN where not measurable)."""
+    return trunk_circles(xyz, tree_id, trunks, params=params, max_radius=max_radius, height=height)[1]
+
+
+def trunk_circles(
+    xyz: np.ndarray,
+    tree_id: np.ndarray,
+    trunks: np.ndarray,
+    *,
+    params: MetricsParams,
+    max_radius: float = 0.5,
+    height: np.ndarray | None = None,
+) -> tuple[np.ndarray, np.ndarray]:
+    """The stem of each tree at ``params.trunk_height`` above its base: centre and diameter.
 
     Fits a circle (:func:`trunk_circle`, corrected for noise) to the tree's points in a
     horizontal slice of thickness ``params.trunk_slice`` within ``max_radius`` of the
@@ -358,12 +372,16 @@ def trunk_diameters(
 
     Returns
     -------
-    (k,) float64 diameters [m], NaN where fewer than 5 points or the fit is implausible.
+    centres : (k, 2) float64 [m]
+        Centre of each fitted circle (same frame as ``xyz``); NaN where not measurable.
+    diameters : (k,) float64 [m]
+        NaN where fewer than 5 points or the fit is implausible.
     """
     k = trunks.shape[0]
     out = np.full(k, np.nan)
+    centres = np.full((k, 2), np.nan)
     if k == 0:
-        return out
+        return centres, out
     if height is not None:  # pre-select the slice by height above ground (cheap)
         mask = (np.abs(height - params.trunk_height) <= params.trunk_slice / 2 + 0.1) & (tree_id > 0)
     else:
@@ -373,10 +391,11 @@ def trunk_diameters(
     in_slice = np.abs(dz - params.trunk_height) <= params.trunk_slice / 2
     d2 = ((pts[:, :2] - trunks[ids - 1, :2]) ** 2).sum(1)
     sel = in_slice & (d2 <= max_radius**2)
-    _, r = tree_circles(pts[sel, :2], ids[sel], k, fit=trunk_circle)
+    c, r = tree_circles(pts[sel, :2], ids[sel], k, fit=trunk_circle)
     ok = np.isfinite(r) & (r > 0.005) & (r <= max_radius)
     out[ok] = 2 * r[ok]
-    return out
+    centres[ok] = c[ok]
+    return centres, out
 
 
 def tree_circles(xy: np.ndarray, tree_id: np.ndarray, k: int, *, fit=fit_circle) -> tuple[np.ndarray, np.ndarray]:

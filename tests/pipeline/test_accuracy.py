@@ -56,7 +56,8 @@ def high_density():
 def test_paper_setting_trunks_found_without_priors(paper_setting):
     for s in paper_setting:
         assert s["trunk_f1"] >= 0.97, s
-        assert s["trunk_mean_distance"] < 0.15, s
+        # the stem's fitted circle, not the centroid of its voxels (4-5 cm off)
+        assert s["trunk_mean_distance"] < 0.03, s
 
 
 def test_paper_setting_segmentation(paper_setting):

@@ -118,3 +118,31 @@ def test_noisy_planar_finds_a_blurred_face_but_not_foliage():
     # 0.1 m noise faces and foliage look alike
     for noise in (0.02, NOISY_BOX_NOISE[1], 0.1):
         assert not noisy_planar(face_features, noise=noise).any()
+
+
+def test_trunk_position_is_the_centre_of_the_stem():
+    # two cylinder stems with their crowns off to one side, on flat ground: the trunk
+    # position was the flow-weighted centroid of the stem's voxels, 5-7 cm off the axis
+    rng = np.random.default_rng(5)
+
+    def tree(cx, cy, r=0.08, crown_off=(0.6, 0.0)):
+        th, z = rng.uniform(0, 2 * np.pi, 6000), rng.uniform(0, 1.2, 6000)
+        stem = np.column_stack([cx + r * np.cos(th), cy + r * np.sin(th), z])
+        u = rng.normal(size=(40_000, 3))
+        u /= np.linalg.norm(u, axis=1)[:, None]
+        rad = 1.2 * rng.uniform(0, 1, 40_000) ** (1 / 3)
+        crown = np.column_stack([cx + crown_off[0] + rad * u[:, 0], cy + crown_off[1] + rad * u[:, 1],
+                                 2.4 + 0.8 * rad * u[:, 2]])
+        t = rng.uniform(0, 1, 3000)
+        limb = np.column_stack([cx + t * crown_off[0], cy + t * crown_off[1], 1.2 + t]) + rng.normal(0, 0.02, (3000, 3))
+        return np.concatenate([stem, limb, crown])
+
+    g = rng.uniform([-3, -3], [9, 3], (60_000, 2))
+    ground = np.column_stack([g, rng.normal(0, 0.01, len(g))])
+    axes = np.array([[0.0, 0.0], [5.0, 0.3]])
+    xyz = np.concatenate([ground] + [tree(*c) for c in axes]) + [10.0, 10.0, 0.0]
+    r = process_points(xyz, params=PipelineParams())
+    assert r.trunks.shape == (2, 3)
+    assert np.hypot(*(r.trunks[:, :2] - 10.0 - axes).T).max() < 0.005
+    assert np.abs(r.trunks[:, 2]).max() < 0.05  # on the ground
+    assert r.trunk_diameter == pytest.approx([0.16, 0.16], abs=0.005)
