@@ -93,9 +93,15 @@ def _hull_vertices(pts: np.ndarray) -> np.ndarray:
         return pts.copy()
     try:
         return pts[ConvexHull(pts).vertices]
-    except QhullError:  # flat or collinear: every point may matter, keep the extremes
-        keep = np.unique(np.concatenate([np.argmin(pts, axis=0), np.argmax(pts, axis=0)]))
-        return pts[keep]
+    except QhullError:
+        pass
+    # flat or collinear: the hull within their plane or line still matters when these
+    # points are merged with another tile's (the per-axis extremes alone lost vertices);
+    # joggled input gives it, the points themselves if even that fails
+    try:
+        return pts[ConvexHull(pts, qhull_options="QJ").vertices]
+    except QhullError:
+        return np.unique(pts, axis=0)
 
 
 def _crown_hulls(crown: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
