@@ -233,7 +233,9 @@ def run_schedule(store: Store, settings: Settings, schedule: dict[str, Any], *, 
                 outcome = _take_capture(store, settings, schedule, path, name, time.time() if now is None else now)
             except Exception as exc:  # one capture must not stop the scan of the others (logged)
                 log.warning("schedule %s: capture %s could not be taken", schedule["id"], name, exc_info=True)
-                outcome = ("rejected", f"could not be taken ({type(exc).__name__}: {exc}); it is tried again at the next scan")
+                # the farm sees the kind of failure, not the server's paths; the log has the rest
+                why = exc.strerror if isinstance(exc, OSError) and exc.strerror else type(exc).__name__
+                outcome = ("rejected", f"could not be taken ({why}); it is tried again at the next scan")
             kind, detail = outcome
             if kind == "job":
                 result["jobs"].append(detail)
