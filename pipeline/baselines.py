@@ -23,7 +23,7 @@ from scipy.spatial import cKDTree
 
 from pipeline.graph import build_graph, subtree_sizes
 from pipeline.ground import classify_ground, ground_model
-from pipeline.metrics import trunk_diameters
+from pipeline.metrics import trunk_circles
 from pipeline.params import PipelineParams
 from pipeline.process import BlockResult, process_points
 from pipeline.voxels import voxelize
@@ -209,5 +209,5 @@ def paper_as_published(
         height=height.astype(np.float32),
         trunks=trunks,
         trunk_support=np.zeros(k),
-        trunk_diameter=trunk_diameters(xyz, tree_id, trunks, params=params.metrics),
+        trunk_diameter=trunk_circles(xyz, tree_id, trunks, params=params.metrics)[1],
     )

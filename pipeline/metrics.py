@@ -346,20 +346,6 @@ def trunk_circle(xy: np.ndarray, *, inlier: float = 0.02, trials: int = 256) -> 
     return c2, float(np.sqrt(max(r2 * r2 - 2.0 * sigma * sigma, 0.25 * r2 * r2)))
 
 
-def trunk_diameters(
-    xyz: np.ndarray,
-    tree_id: np.ndarray,
-    trunks: np.ndarray,
-    *,
-    params: MetricsParams,
-    max_radius: float = 0.5,
-    height: np.ndarray | None = None,
-) -> np.ndarray:
-    """Trunk diameter of each tree at ``params.trunk_height`` above its base: the
-    diameters of :func:`trunk_circles` ((k,) float64 [m], NaN where not measurable)."""
-    return trunk_circles(xyz, tree_id, trunks, params=params, max_radius=max_radius, height=height)[1]
-
-
 def trunk_circles(
     xyz: np.ndarray,
     tree_id: np.ndarray,

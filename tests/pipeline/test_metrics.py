@@ -13,7 +13,7 @@ from pipeline.metrics import (
     group_runs,
     tree_partials,
     trunk_circle,
-    trunk_diameters,
+    trunk_circles,
 )
 from pipeline.params import MetricsParams
 
@@ -75,7 +75,7 @@ def test_metrics_of_a_known_shape():
     trunks = np.array([[0.0, 0.0, 0.0]])
     p = MetricsParams(trunk_height=0.3, crown_base=1.0)
     parts = tree_partials(xyz, tid, wood, trunks[:, 2], params=p)
-    cols = finalize_metrics(parts, trunks, trunk_diameters(xyz, tid, trunks, params=p))
+    cols = finalize_metrics(parts, trunks, trunk_circles(xyz, tid, trunks, params=p)[1])
     assert list(cols) == list(TREE_COLUMNS)
     assert cols["height_m"][0] == pytest.approx(3.0)
     assert cols["crown_area_m2"][0] == pytest.approx(4.0, rel=1e-6)
