@@ -51,13 +51,14 @@ stop_all() {
     # Stop in reverse order of start: the API first, then workers, then the scheduler.
     [[ $stopping -eq 1 ]] && return
     stopping=1
+    # One at a time, each given up to 20 s: the API must be gone before its scheduler
+    # is, or the job it is running fails ("lost the connection to the dask scheduler")
+    # instead of staying "running" to be re-queued at the next start.
     local i pid deadline
     for (( i=${#pids[@]}-1; i>=0; i-- )); do
         pid="${pids[$i]}"
         kill -TERM -- "-$pid" 2>/dev/null || kill -TERM "$pid" 2>/dev/null || true
-    done
-    deadline=$(( SECONDS + 20 ))
-    for pid in "${pids[@]}"; do
+        deadline=$(( SECONDS + 20 ))
         while kill -0 -- "-$pid" 2>/dev/null && (( SECONDS < deadline )); do sleep 0.2; done
         kill -KILL -- "-$pid" 2>/dev/null || true
         wait "$pid" 2>/dev/null || true
@@ -134,14 +135,10 @@ export ORCHARD_SCHEDULER="$scheduler"
 export ORCHARD_DATA_DIR="$data_dir"
 if [[ -n "$ready_file" ]]; then
     tmp="$ready_file.tmp"
-    {
-        echo "ORCHARD_URL=$ORCHARD_URL"
-        echo "ORCHARD_SCHEDULER=$ORCHARD_SCHEDULER"
-        echo "ORCHARD_DATA_DIR=$ORCHARD_DATA_DIR"
-        echo "DASHBOARD_URL=http://$host:$dashboard_port"
-        echo "LOG_DIR=$log_dir"
-        echo "PIDS=${pids[*]}"
-        echo "TOPOLOGY_PID=$$"
+    {   # quoted for the shell (%q): `source` the file to get these variables
+        printf '%s=%q\n' ORCHARD_URL "$ORCHARD_URL" ORCHARD_SCHEDULER "$ORCHARD_SCHEDULER" \
+            ORCHARD_DATA_DIR "$ORCHARD_DATA_DIR" DASHBOARD_URL "http://$host:$dashboard_port" \
+            LOG_DIR "$log_dir" PIDS "${pids[*]}" TOPOLOGY_PID "$$"
     } > "$tmp"
     mv "$tmp" "$ready_file"
 fi

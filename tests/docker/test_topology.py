@@ -46,8 +46,17 @@ def _alive(pid: int) -> bool:
         return False
 
 
+READY_KEYS = ("ORCHARD_URL", "ORCHARD_SCHEDULER", "ORCHARD_DATA_DIR", "DASHBOARD_URL", "LOG_DIR", "PIDS", "TOPOLOGY_PID")
+
+
 def _read_env(path: Path) -> dict[str, str]:
-    return dict(line.split("=", 1) for line in path.read_text().splitlines() if "=" in line)
+    """The ready file's variables, as a shell that sources it sees them (the documented
+    use: an unquoted list of pids made `source` fail)."""
+    script = 'set -a; source "$1"; for k in "${@:2}"; do printf "%s=%s\\0" "$k" "${!k}"; done'
+    run = subprocess.run(["bash", "-c", script, "_", str(path), *READY_KEYS],
+                         capture_output=True, text=True, timeout=30, check=False)
+    assert run.returncode == 0 and not run.stderr, run.stderr
+    return dict(item.split("=", 1) for item in run.stdout.split("\0") if "=" in item)
 
 
 def _tail(path: Path, n: int = 30) -> str:
