@@ -35,7 +35,7 @@ from service import report as reports
 from service import scratch
 from service.auth import authenticate
 from service.errors import TooLargeError, api_wording, install_error_handlers
-from service.runner import Runner, hold_runner_lock, job_dir
+from service.runner import Runner, drop_work, hold_runner_lock, job_dir
 from service.schedules import (
     DEFAULT_CRON,
     ScheduleClock,
@@ -523,6 +523,13 @@ def ensure_report(store: Store, settings: Settings, job: dict) -> Path:
 
 def create_app(settings: Settings) -> FastAPI:
     """The API app. Starting it (lifespan) re-queues interrupted jobs and starts the runner and the schedule clock."""
+    if settings.work_dir and settings.runner:  # the runner's jobs would each fail on it
+        from workers.store import check_work_url
+
+        try:
+            check_work_url(settings.work_dir, shared=True)
+        except ParameterError as exc:
+            raise ParameterError(f"ORCHARD_WORK_DIR: {exc}") from None
     settings.data_dir.mkdir(parents=True, exist_ok=True)
     # the one process that runs this folder's jobs and schedules (a second one is refused)
     runner_lock = hold_runner_lock(settings.data_dir) if settings.runner or settings.scheduling else None
@@ -539,6 +546,8 @@ def create_app(settings: Settings) -> FastAPI:
             d.mkdir(parents=True, exist_ok=True)
         scratch.sweep(settings.tmp_dir)  # uploads a crash interrupted (not those of live processes)
         if runner_lock is not None:  # no other process runs jobs here: a "running" job is an orphan
+            for job_id in store.cancel_interrupted():  # asked to stop before the last shutdown
+                drop_work(settings, job_id)
             n = store.requeue_running()
             if n:
                 log.info("re-queued %d job(s) interrupted by the last shutdown", n)

@@ -78,6 +78,26 @@ def job_dir(settings: Settings, job_id: str) -> Path:
     return settings.jobs_dir / job_id
 
 
+def work_dir_of(settings: Settings, job_id: str) -> str:
+    """A job's work store (its tiles): ``<work_dir>/<job id>``, or ``<job dir>/_work``."""
+    if settings.work_dir:
+        return f"{settings.work_dir.rstrip('/')}/{job_id}"
+    return str(job_dir(settings, job_id) / "_work")
+
+
+def drop_work(settings: Settings, job_id: str) -> None:
+    """Delete a job's work store, and its result folder if that is left empty."""
+    from workers.store import WorkStore
+
+    out_dir = job_dir(settings, job_id)
+    try:
+        WorkStore(work_dir_of(settings, job_id)).remove()
+        if out_dir.is_dir() and not any(out_dir.iterdir()):
+            out_dir.rmdir()
+    except Exception as exc:  # noqa: BLE001 - leftover tiles must not change the job's outcome
+        log.warning("job %s: could not delete its tiles: %s", job_id, exc)
+
+
 def _is_cancel(exc: BaseException) -> bool:
     return type(exc).__name__ in ("JobCancelled", "CancelledError")
 
@@ -223,26 +243,16 @@ class Runner(threading.Thread):
                     continue
                 try:
                     self.run_job(job)
-                except Exception as exc:  # noqa: BLE001 - e.g. the store failed while recording; keep running
-                    log.error("runner: job %s could not be recorded: %s", job["id"], exc)
+                except Exception as exc:  # e.g. the store failed while recording (logged); keep running
+                    log.error("runner: job %s could not be recorded", job["id"], exc_info=exc)
+                    try:  # not left "running" (and waited on) for good
+                        self.store.finish_job(job["id"], "failed", error=f"internal error ({type(exc).__name__}) "
+                                              "while recording the job's outcome; see the service log")
+                    except Exception as again:  # noqa: BLE001 - the store itself is failing; the next start re-queues it
+                        log.error("runner: job %s stays running: %s", job["id"], again)
         finally:
             self._close_client()
 
-    def _work_dir(self, job_id: str, out_dir: Path) -> str:
-        if self.settings.work_dir:
-            return f"{self.settings.work_dir.rstrip('/')}/{job_id}"
-        return str(out_dir / "_work")
-
-    def _drop_work(self, job_id: str, out_dir: Path) -> None:
-        """Delete a job's work store (its tiles), and its result folder if that is left empty."""
-        from workers.store import WorkStore
-
-        try:
-            WorkStore(self._work_dir(job_id, out_dir)).remove()
-            if out_dir.is_dir() and not any(out_dir.iterdir()):
-                out_dir.rmdir()
-        except Exception as exc:  # noqa: BLE001 - leftover tiles must not change the job's outcome
-            log.warning("job %s: could not delete its tiles: %s", job_id, exc)
 
     def run_job(self, job: dict[str, Any]) -> dict[str, Any]:
         """Run one claimed (``running``) job to a final state; returns the stored job."""
@@ -275,7 +285,7 @@ class Runner(threading.Thread):
                 params=PipelineParams.model_validate(job["params"]),
                 tile_size=tiling.get("tile_size"),
                 buffer=tiling.get("buffer"),
-                work_dir=self._work_dir(job["id"], out_dir),
+                work_dir=work_dir_of(self.settings, job["id"]),
             )
             out_dir.mkdir(parents=True, exist_ok=True)
             client = self._get_client()
@@ -284,7 +294,7 @@ class Runner(threading.Thread):
             record.pop("trees", None)  # the per-tree table is in trees.parquet
             timings = dict(record.get("timings") or {})
             timings.setdefault("total", round(time.perf_counter() - t0, 3))
-            self._drop_work(job["id"], out_dir)  # tiles of a finished job are not needed again
+            drop_work(self.settings, job["id"])  # tiles of a finished job are not needed again
             done = self.store.finish_job(job["id"], "done", outcome=record, timings=timings)
             if self._after_done is not None:
                 try:
@@ -294,10 +304,10 @@ class Runner(threading.Thread):
             return done
         except BaseException as exc:  # noqa: BLE001 - every outcome is recorded
             if _is_cancel(exc) or (cancel.is_set() and not isinstance(exc, OrchardError)):
-                if self._stopping.is_set():
+                if self._stopping.is_set() and not self.store.cancel_requested(job["id"]):
                     log.info("job %s interrupted by shutdown; it is re-queued at the next start", job["id"])
                     return self.store.get_job(None, job["id"])
-                self._drop_work(job["id"], out_dir)  # the service never resumes a cancelled job
+                drop_work(self.settings, job["id"])  # the service never resumes a cancelled job
                 return self.store.finish_job(job["id"], "cancelled", error="cancelled on request")
             if isinstance(exc, OrchardError):
                 # without the command line's advice to resume from the work store: the
@@ -317,7 +327,7 @@ class Runner(threading.Thread):
             else:
                 log.error("job %s failed unexpectedly", job["id"], exc_info=exc)
                 message = f"internal error ({type(exc).__name__}): {_short(exc)}"
-            self._drop_work(job["id"], out_dir)  # the service never resumes a job: its tiles are not needed
+            drop_work(self.settings, job["id"])  # the service never resumes a job: its tiles are not needed
             return self.store.finish_job(job["id"], "failed", error=message)
         finally:
             with self._lock:

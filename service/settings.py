@@ -8,9 +8,10 @@ by `orchard serve`, `orchard tokens`, `orchard schedules` and `orchard demo`.
 
 from __future__ import annotations
 
+import os
 from pathlib import Path
 
-from pydantic import Field
+from pydantic import Field, field_validator
 from pydantic_settings import BaseSettings, SettingsConfigDict
 
 
@@ -19,7 +20,10 @@ class Settings(BaseSettings):
 
     model_config = SettingsConfigDict(env_prefix="ORCHARD_", extra="ignore")
 
-    data_dir: Path = Field(Path("orchard-data"), description="folder of the job store (SQLite), uploaded blocks and job results")
+    data_dir: Path = Field(
+        Path("orchard-data"), validate_default=True,
+        description="folder of the job store (SQLite), uploaded blocks and job results (a relative path is taken from the current folder)",
+    )
     host: str = Field("127.0.0.1", description="address the HTTP server binds")
     port: int = Field(8000, ge=0, le=65535, description="port the HTTP server binds (0 = any free port)")
     scheduler: str | None = Field(None, description="dask scheduler address (tcp://HOST:PORT); unset = embedded LocalCluster")
@@ -44,6 +48,22 @@ class Settings(BaseSettings):
         description="a capture written to within this many seconds is still arriving: a scan leaves it and looks again this much later [s]",
     )
     runner_poll_s: float = Field(1.0, gt=0, le=60, description="longest sleep of the runner between looks at the queue [s]")
+
+    @field_validator("data_dir", "inbox_root")
+    @classmethod
+    def _absolute_path(cls, v: Path | None) -> Path | None:
+        # the store records block paths, and dask workers resolve relative ones against
+        # their own folders: every path is absolute from here on
+        return None if v is None else Path(os.path.abspath(os.path.expanduser(v)))
+
+    @field_validator("work_dir")
+    @classmethod
+    def _absolute_work_dir(cls, v: str | None) -> str | None:
+        if not v:
+            return None
+        from workers.store import absolute_url
+
+        return absolute_url(v)
 
     @property
     def store_path(self) -> Path:

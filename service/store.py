@@ -203,8 +203,22 @@ class Store:
 
     # -- blocks -----------------------------------------------------------------------
 
+    def _located(self, rec: dict[str, Any] | None) -> dict[str, Any] | None:
+        """A block record whose ``path`` is where its file is now: a path recorded
+        relative to some process's folder (before paths were made absolute), or under a
+        data folder since moved or mounted elsewhere, is looked up in this store's own
+        ``blocks/`` folder, where every block file lives under its checksum name."""
+        if rec is None:
+            return None
+        path = Path(rec["path"])
+        if not path.is_absolute() or not path.exists():
+            here = self.path.parent / "blocks" / path.name
+            if here.exists() or not path.is_absolute():
+                rec["path"] = str(here.absolute())
+        return rec
+
     def block_by_sha(self, tenant_id: str, sha256: str) -> dict[str, Any] | None:
-        return self._one("SELECT * FROM blocks WHERE tenant_id = ? AND sha256 = ?", (tenant_id, sha256))
+        return self._located(self._one("SELECT * FROM blocks WHERE tenant_id = ? AND sha256 = ?", (tenant_id, sha256)))
 
     def insert_block(
         self, *, tenant_id: str, sha256: str, path: str, filename: str | None, size_bytes: int, info: dict
@@ -216,7 +230,10 @@ class Store:
         with self._tx() as con:
             row = con.execute("SELECT * FROM blocks WHERE tenant_id = ? AND sha256 = ?", (tenant_id, sha256)).fetchone()
             if row is not None:
-                return _record(row), False
+                if row["path"] != path and not Path(row["path"]).exists():  # its file was landed again
+                    con.execute("UPDATE blocks SET path = ? WHERE id = ?", (path, row["id"]))
+                    row = con.execute("SELECT * FROM blocks WHERE id = ?", (row["id"],)).fetchone()
+                return self._located(_record(row)), False
             bid = new_id()
             con.execute(
                 "INSERT INTO blocks (id, tenant_id, sha256, path, filename, size_bytes, info, created_at) "
@@ -224,7 +241,7 @@ class Store:
                 (bid, tenant_id, sha256, path, filename, size_bytes, json.dumps(info), time.time()),
             )
             row = con.execute("SELECT * FROM blocks WHERE id = ?", (bid,)).fetchone()
-        return _record(row), True
+        return self._located(_record(row)), True
 
     def get_block(self, tenant_id: str | None, block_id: str) -> dict[str, Any]:
         if tenant_id is None:
@@ -233,12 +250,12 @@ class Store:
             rec = self._one("SELECT * FROM blocks WHERE id = ? AND tenant_id = ?", (block_id, tenant_id))
         if rec is None:
             raise NotFoundError(f"no block {block_id!r}; list yours with GET /v1/blocks")
-        return rec
+        return self._located(rec)
 
     def list_blocks(self, tenant_id: str, *, limit: int = 100, offset: int = 0) -> list[dict[str, Any]]:
-        return self._all_rows(
+        return [self._located(rec) for rec in self._all_rows(
             "SELECT * FROM blocks WHERE tenant_id = ? ORDER BY created_at, id LIMIT ? OFFSET ?", (tenant_id, limit, offset)
-        )
+        )]
 
     # -- jobs -------------------------------------------------------------------------
 
@@ -349,17 +366,25 @@ class Store:
         rec = self._one("SELECT cancel_requested FROM jobs WHERE id = ?", (job_id,))
         return bool(rec and rec["cancel_requested"])
 
+    def cancel_interrupted(self) -> list[str]:
+        """Cancel the jobs left ``running`` by a dead service that had been asked to stop;
+        returns their ids (their work stores are the caller's to delete)."""
+        with self._tx() as con:
+            ids = [r["id"] for r in con.execute("SELECT id FROM jobs WHERE state = 'running' AND cancel_requested = 1")]
+            con.executemany(
+                "UPDATE jobs SET state = 'cancelled', finished_at = ?, error = 'cancelled on request' WHERE id = ?",
+                [(time.time(), jid) for jid in ids],
+            )
+        return ids
+
     def requeue_running(self) -> int:
-        """Put jobs left ``running`` by a dead service back in the queue (cancel those asked to stop).
+        """Put jobs left ``running`` by a dead service back in the queue (those asked to
+        stop are cancelled instead, see `cancel_interrupted`).
 
         Called once at start-up, before the runner takes jobs. Returns the number re-queued.
         """
+        self.cancel_interrupted()
         with self._tx() as con:
-            con.execute(
-                "UPDATE jobs SET state = 'cancelled', finished_at = ?, error = 'cancelled' "
-                "WHERE state = 'running' AND cancel_requested = 1",
-                (time.time(),),
-            )
             return con.execute(
                 "UPDATE jobs SET state = 'queued', tiles_done = 0 WHERE state = 'running'"
             ).rowcount

@@ -48,7 +48,7 @@ from pipeline.metrics import combine_partials, finalize_metrics, tree_partials
 from pipeline.params import PipelineParams
 from pipeline.process import process_points
 from pipeline.tiling import TileGrid, core_tile, plan_grid
-from workers.store import WorkStore, default_work_dir
+from workers.store import WorkStore, absolute_url, default_work_dir
 from workers.tiler import INDEX_KEY, check_engine, read_tile, tile_block
 
 JOB_KEY = "job.json"
@@ -110,6 +110,14 @@ class JobSpec:
     engine: str = "laspy"
     chunk_points: int = 2_000_000
     inject_failure: tuple[int, ...] = ()
+
+    def __post_init__(self) -> None:
+        # dask workers run in folders of their own: a relative path would name another
+        # file there (or none), so every local path is made absolute here
+        self.input_path = os.path.abspath(os.fspath(self.input_path))
+        self.out_dir = os.path.abspath(os.fspath(self.out_dir))
+        if self.work_dir is not None:
+            self.work_dir = absolute_url(self.work_dir)
 
 
 @dataclass
@@ -267,8 +275,18 @@ def process_tile(work_url: str, tile_id: int, params_json: str, fail: bool = Fal
     return summary
 
 
-def _kept(summary: dict) -> dict:
-    if summary.get("abandoned"):  # the work store went away under the job
+def _kept(summary: dict, store: WorkStore, tile: dict) -> dict:
+    """A tile's summary, unless its task found no job in the work store: the job's store
+    was deleted under it (cancelled), or, if this process still sees the job there, the
+    worker that ran the tile does not see the same store."""
+    if summary.get("abandoned"):
+        if store.exists(JOB_KEY):
+            raise TileFailed(
+                f"{_describe(tile)}: the dask worker that ran it does not see the job's work store {store.url}",
+                tile["id"],
+                hint="; every worker must reach the work store at the same address (--work or ORCHARD_WORK_DIR "
+                "on a folder all of them share, or an fsspec URL)",
+            )
         raise JobCancelled("job cancelled: its work store was deleted")
     return summary
 
@@ -641,7 +659,7 @@ def _run_tiles(store, tiles, spec, client, progress, cancel) -> tuple[list[dict]
             err = None
             for _ in range(TILE_RETRIES + 1):
                 try:
-                    summaries.append(_kept(process_tile(store.url, t["id"], params_json, t["id"] in inject)))
+                    summaries.append(_kept(process_tile(store.url, t["id"], params_json, t["id"] in inject), store, t))
                     err = None
                     break
                 except OrchardError:
@@ -675,7 +693,7 @@ def _run_tiles(store, tiles, spec, client, progress, cancel) -> tuple[list[dict]
     with contextlib.closing(_completed(client, futures, cancel, store)) as done:
         for tid, fut in done:
             if fut.status == "finished":
-                summaries.append(_kept(fut.result()))
+                summaries.append(_kept(fut.result(), store, by_id[tid]))
             else:
                 exc = fut.exception()
                 if isinstance(exc, OrchardError):

@@ -37,6 +37,34 @@ def _own(name: str) -> bool:
     return name in OWN_ENTRIES or name in (MARKER, LOCK) or (name.startswith(".") and name.endswith(".tmp"))
 
 
+def absolute_url(url: str) -> str:
+    """A work-store address that means the same in every process: a local path made
+    absolute (a worker resolved a relative one against its own folder); URLs as given."""
+    url = os.fspath(url)
+    if "://" in url:
+        return url
+    return os.path.abspath(os.path.expanduser(url))
+
+
+def check_work_url(url: str, *, shared: bool) -> None:
+    """ParameterError unless this process can use the work store at ``url``; ``shared``:
+    dask worker processes must reach it too (``memory://`` lives in one process only).
+    An fsspec URL whose file-system package is not installed (``s3://`` without s3fs)
+    failed every job with an ImportError; it is refused up front instead."""
+    url = os.fspath(url)
+    if shared and url.startswith("memory://"):
+        raise ParameterError(
+            f"work store {url} lives in this process only, and the dask workers are other processes: "
+            "give a folder all of them share or a shared URL (s3://...)"
+        )
+    try:
+        fsspec.core.url_to_fs(url)
+    except ImportError as exc:
+        raise ParameterError(f"work store {url}: {exc} (pip install it here and on every dask worker)") from None
+    except ValueError as exc:
+        raise ParameterError(f"work store {url}: {exc}; give a folder or an fsspec URL such as s3://bucket/orchard") from None
+
+
 class WorkStore:
     """Arrays, JSON and small pickles under one root (folder or fsspec URL).
 
@@ -45,7 +73,7 @@ class WorkStore:
     """
 
     def __init__(self, url: str):
-        self.url = str(url)
+        self.url = absolute_url(url)
         self.fs, root = fsspec.core.url_to_fs(self.url)
         self.root = root.rstrip("/")
         self.local = "file" in (self.fs.protocol if isinstance(self.fs.protocol, tuple) else (self.fs.protocol,))

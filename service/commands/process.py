@@ -129,11 +129,13 @@ def run(args: argparse.Namespace) -> int:
         inject_failure=tuple(args.inject_failure or ()),
     )
     tiled = args.tile_size is not None or args.scheduler is not None
-    if tiled and str(args.work or "").startswith("memory://"):
-        raise ParameterError(
-            "--work memory://... lives in this process only, and the dask workers are other processes: "
-            "give a folder or a shared URL (s3://...)"
-        )
+    if args.work:
+        from workers.store import check_work_url
+
+        try:
+            check_work_url(args.work, shared=tiled)
+        except ParameterError as exc:
+            raise ParameterError(f"--work: {exc}") from None
     client = None
     try:
         check_job(spec, tiled=tiled)  # bad input or parameters fail before a cluster starts

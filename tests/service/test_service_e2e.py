@@ -5,6 +5,7 @@ and the restart test (the server dies in the middle of a job; the job completes 
 from __future__ import annotations
 
 import io
+import os
 import re
 import sqlite3
 import subprocess
@@ -243,3 +244,46 @@ def test_a_second_service_on_one_data_folder_leaves_the_first_ones_work_alone(tm
         if api_only is not None:
             api_only.stop()
         first.stop()
+
+
+def test_a_job_cancelled_just_before_a_shutdown_loses_its_tiles_at_the_next_start(tmp_path):
+    # DELETE then SIGTERM at once: the job stayed "running" with cancel requested, the next
+    # start cancelled it in the store, and its tiles stayed on disk for good
+    from service.runner import work_dir_of
+    from service.settings import Settings
+    from workers.store import WorkStore
+
+    data = tmp_path / "data"
+    store = Store(data / "orchard.sqlite")
+    tenant = store.ensure_tenant("farm-cancel")
+    block_file = write_las(tmp_path / "b.las", 500, seed=6)
+    block, _ = accept_block(store, blocks_dir=data / "blocks", tenant_id=tenant["id"], tmp_path=block_file,
+                            sha256=file_sha256(block_file), size_bytes=block_file.stat().st_size, filename="b.las")
+    job = store.create_job(tenant_id=tenant["id"], block_id=block["id"], params={}, tiling={"tile_size": 6.0})
+    assert store.claim_next_job()["id"] == job["id"]
+    store.request_cancel(tenant["id"], job["id"])
+    work = WorkStore(work_dir_of(Settings(data_dir=data), job["id"]))
+    work.claim()
+    work.put_json("job.json", {"tiles": []})
+    assert Path(work.root).is_dir()
+    srv = ServerProcess(data, ORCHARD_SCHEDULING="false").start()
+    try:
+        rec = store.get_job(None, job["id"])
+        assert rec["state"] == "cancelled" and rec["error"] == "cancelled on request"
+        assert not Path(work.root).exists()
+    finally:
+        srv.stop()
+        store.close()
+
+
+@pytest.mark.parametrize("work, words", [("memory://orchard", "lives in this process only"),
+                                         ("nosuch://bucket/orchard", "Protocol not known")])
+def test_a_work_store_the_workers_cannot_use_stops_the_service_at_start(tmp_path, work, words):
+    # each job failed on it instead (ImportError: Install s3fs, for s3:// without s3fs)
+    run = subprocess.run(
+        [sys.executable, "-m", "service.cli", "serve", "--data-dir", str(tmp_path / "data"), "--port", "0"],
+        capture_output=True, text=True, timeout=60, check=False, env={**os.environ, "ORCHARD_WORK_DIR": work},
+    )
+    assert run.returncode == 2, run.stderr
+    assert run.stderr.strip().splitlines() == [run.stderr.strip()] and "ORCHARD_WORK_DIR" in run.stderr
+    assert words in run.stderr and "Traceback" not in run.stderr

@@ -157,3 +157,30 @@ def test_cancel_a_running_job_and_stop(env, monkeypatch):
     assert not runner.is_alive()
     assert store.get_job(None, second)["state"] == "running"
     assert store.requeue_running() == 1
+    # ... but one asked to stop just before the shutdown is cancelled then, not re-queued
+    started.clear()
+    runner = Runner(store, settings, client_factory=lambda: None)
+    runner.start()
+    assert started.wait(10)
+    third = runner.current_job
+    store.request_cancel(tenant["id"], third)
+    runner.stop()
+    assert store.get_job(None, third)["state"] == "cancelled"
+
+
+def test_a_job_whose_outcome_cannot_be_recorded_is_not_left_running(env, monkeypatch):
+    # an error while recording left the job "running" for good: a client waiting on it
+    # (orchard demo) waited for ever
+    settings, store, tenant, block = env
+    monkeypatch.setattr(Runner, "run_job", lambda self, job: (_ for _ in ()).throw(RuntimeError("store hiccup")))
+    job = store.create_job(tenant_id=tenant["id"], block_id=block["id"], params={}, tiling=None)
+    runner = Runner(store, settings, client_factory=lambda: None)
+    runner.start()
+    try:
+        deadline = time.monotonic() + 10
+        while store.get_job(None, job["id"])["state"] in ("queued", "running") and time.monotonic() < deadline:
+            time.sleep(0.02)
+        rec = store.get_job(None, job["id"])
+        assert rec["state"] == "failed" and "RuntimeError" in rec["error"]
+    finally:
+        runner.stop()

@@ -144,3 +144,52 @@ def test_accept_block_lands_file_and_dedupes(store, tmp_path):
     with pytest.raises(InputError, match="capture.las"):
         accept_block(store, blocks_dir=blocks, tenant_id=t["id"], tmp_path=bad, sha256="0" * 64, size_bytes=400, filename="capture.las")
     assert not bad.exists() and not list(tmp_path.glob("bad*"))
+
+
+def test_block_files_are_found_in_the_data_folder_whatever_path_was_recorded(tmp_path, monkeypatch):
+    # a service started with a relative --data-dir recorded block paths relative to its
+    # folder: started again from elsewhere, every block was "no such file", and uploading
+    # the file again did not mend the record
+    import hashlib
+    import shutil
+
+    data = tmp_path / "data"
+    store = Store(data / "orchard.sqlite")
+    t = store.ensure_tenant("farm")
+    src = write_las(tmp_path / "in.laz", 300, seed=4)
+    sha = hashlib.sha256(src.read_bytes()).hexdigest()
+    (data / "blocks").mkdir()
+    shutil.copy(src, data / "blocks" / f"{sha}.laz")
+    block, _ = store.insert_block(tenant_id=t["id"], sha256=sha, path=f"data/blocks/{sha}.laz", filename="in.laz",
+                                  size_bytes=src.stat().st_size, info={"n_points": 300})
+    elsewhere = tmp_path / "elsewhere"
+    elsewhere.mkdir()
+    monkeypatch.chdir(elsewhere)
+    for rec in (store.get_block(None, block["id"]), store.list_blocks(t["id"])[0], store.block_by_sha(t["id"], sha)):
+        assert rec["path"] == str(data / "blocks" / f"{sha}.laz")
+    store.close()
+    # the data folder moved (or mounted elsewhere): its blocks come with it
+    moved = tmp_path / "moved"
+    shutil.move(data, moved)
+    store = Store(moved / "orchard.sqlite")
+    assert store.get_block(None, block["id"])["path"] == str(moved / "blocks" / f"{sha}.laz")
+    # a file landed again under a new path mends the record
+    (moved / "blocks" / f"{sha}.laz").unlink()
+    again = tmp_path / "again.part"
+    shutil.copy(src, again)
+    rec, created = accept_block(store, blocks_dir=tmp_path / "new-blocks", tenant_id=t["id"], tmp_path=again, sha256=sha,
+                                size_bytes=src.stat().st_size, filename="in.laz")
+    assert not created and rec["id"] == block["id"] and rec["path"] == str(tmp_path / "new-blocks" / f"{sha}.laz")
+    assert store.get_block(None, block["id"])["path"] == rec["path"]
+    store.close()
+
+
+def test_settings_paths_are_absolute(tmp_path, monkeypatch):
+    from service.settings import Settings
+
+    monkeypatch.chdir(tmp_path)
+    s = Settings(data_dir="d", work_dir="w", inbox_root="in")
+    assert s.data_dir == tmp_path / "d" and s.store_path == tmp_path / "d" / "orchard.sqlite"
+    assert s.work_dir == str(tmp_path / "w") and s.inbox_root == tmp_path / "in"
+    assert Settings().data_dir == tmp_path / "orchard-data"
+    assert Settings(work_dir="s3://bucket/orchard").work_dir == "s3://bucket/orchard"

@@ -120,3 +120,22 @@ def test_later_tile_failing_gives_partial_result_then_rerun_alone(small_block, r
     assert rerun.returncode == 0, rerun.stderr.decode()
     _same_outputs(out, reference)
     assert not work.exists()
+
+
+def test_relative_paths_mean_the_same_on_workers_in_other_folders(small_block, reference, loopback_cluster, tmp_path):
+    # the workers run in a folder of their own: relative --out / --work / input paths
+    # named files there (FileNotFoundError on .../tiles/index.json), so every local
+    # path is made absolute before a task is sent
+    import shutil
+
+    here = tmp_path / "client"
+    here.mkdir()
+    shutil.copy(small_block, here / "block.laz")
+    assert Path(os.getcwd()).resolve() != here.resolve()
+    loopback_cluster.ensure_workers(2)
+    run = subprocess.run(
+        _orchard("block.laz", "--out", "out", "--tile-size", 6, "--scheduler", loopback_cluster.address),
+        cwd=here, capture_output=True, text=True, timeout=TIMEOUT, check=False,
+    )
+    assert run.returncode == 0, run.stderr
+    _same_outputs(here / "out", reference)

@@ -329,3 +329,23 @@ def test_two_runs_cannot_share_a_work_store(small_block, tmp_path):
             run_job(JobSpec(str(small_block), str(tmp_path / "out"), tile_size=10.0, work_dir=str(work)))
     run_job(JobSpec(str(small_block), str(tmp_path / "out"), tile_size=10.0, work_dir=str(work)))  # free again
     assert not work.exists()
+
+
+def test_a_tile_whose_worker_does_not_see_the_work_store_fails_the_job_clearly(tmp_path):
+    # the task finds no job in the store: deleted under it (a cancel), or, if this process
+    # still sees the job there, a worker with another view of the store; the second was
+    # recorded as "cancelled on request"
+    from workers.job import JOB_KEY, JobCancelled, TileFailed, _kept
+    from workers.store import WorkStore
+
+    store = WorkStore(str(tmp_path / "work"))
+    store.claim()
+    tile = {"id": 3, "core": (0.0, 0.0, 6.0, 6.0), "n_buffered": 10}
+    store.put_json(JOB_KEY, {"tiles": []})
+    with pytest.raises(TileFailed, match="tile 3 .*does not see the job's work store") as err:
+        _kept({"abandoned": True}, store, tile)
+    assert "same address" in err.value.hint
+    store.remove(JOB_KEY)
+    with pytest.raises(JobCancelled):
+        _kept({"abandoned": True}, store, tile)
+    assert _kept({"tile_id": 3}, store, tile) == {"tile_id": 3}

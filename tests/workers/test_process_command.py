@@ -150,6 +150,8 @@ def test_a_block_too_wide_for_one_ground_raster(tmp_path, capsys, extra):
         (["--rerun-tile", "3"], "--work"),
         (["--tile-size", "20", "--engine", "pdal"], "pdal"),
         (["--tile-size", "20", "--work", "memory://w1"], "lives in this process only"),
+        # every job failed on it with "ImportError: Install s3fs" after the block was read
+        (["--tile-size", "20", "--work", "nosuch://bucket/w"], "Protocol not known"),
     ],
 )
 def test_nonsense_parameters(small_block, tmp_path, capsys, argv, words):
