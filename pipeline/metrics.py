@@ -272,6 +272,11 @@ def finalize_metrics(
     }
 
 
+#: points of one cross-section a circle fit uses at most (evenly spaced in input order)
+MAX_FIT_POINTS = 100_000
+_FIT_CHUNK = 1 << 21  # residuals computed per block of trials (elements)
+
+
 def fit_circle(xy: np.ndarray, *, inlier: float = 0.02, trials: int = 256) -> tuple[np.ndarray, float]:
     """Robust circle through 2D points: RANSAC over point triples, then least squares.
 
@@ -288,6 +293,9 @@ def fit_circle(xy: np.ndarray, *, inlier: float = 0.02, trials: int = 256) -> tu
     n = len(xy)
     if n < 5:
         return np.full(2, np.nan), float("nan")
+    if n > MAX_FIT_POINTS:  # a cross-section scanned at sub-millimetre spacing: every k-th point
+        xy = xy[:: -(-n // MAX_FIT_POINTS)]
+        n = len(xy)
     rng = np.random.default_rng(0)
     tri = rng.integers(0, n, (trials, 3))  # a triple repeating a point is degenerate: d = 0 below
     a, b, c = xy[tri[:, 0]], xy[tri[:, 1]], xy[tri[:, 2]]
@@ -297,10 +305,16 @@ def fit_circle(xy: np.ndarray, *, inlier: float = 0.02, trials: int = 256) -> tu
     ux = (a2 * (b[:, 1] - c[:, 1]) + b2 * (c[:, 1] - a[:, 1]) + c2 * (a[:, 1] - b[:, 1])) / np.where(ok, d, 1)
     uy = (a2 * (c[:, 0] - b[:, 0]) + b2 * (a[:, 0] - c[:, 0]) + c2 * (b[:, 0] - a[:, 0])) / np.where(ok, d, 1)
     r = np.hypot(a[:, 0] - ux, a[:, 1] - uy)
-    resid = np.abs(np.hypot(xy[None, :, 0] - ux[:, None], xy[None, :, 1] - uy[:, None]) - r[:, None])
-    support = np.where(ok, (resid < inlier).sum(1), -1)
+    # residuals of all points to the trials' circles, a few trials at a time (a trials x n
+    # matrix took 6 KB per point: gigabytes on a densely scanned trunk)
+    support = np.full(trials, -1)
+    step = max(1, _FIT_CHUNK // n)
+    for s0 in range(0, trials, step):
+        s1 = s0 + step
+        resid = np.abs(np.hypot(xy[None, :, 0] - ux[s0:s1, None], xy[None, :, 1] - uy[s0:s1, None]) - r[s0:s1, None])
+        support[s0:s1] = np.where(ok[s0:s1], (resid < inlier).sum(1), -1)
     best = int(np.argmax(support))
-    keep = resid[best] < inlier
+    keep = np.abs(np.hypot(xy[:, 0] - ux[best], xy[:, 1] - uy[best]) - r[best]) < inlier
     if keep.sum() < 5:
         return np.full(2, np.nan), float("nan")
     # algebraic least squares on the inliers

@@ -338,25 +338,30 @@ def trunk_feet(
     cand = cand[((xyz[cand, :2] - own) ** 2).sum(1) <= max_radius**2]
     if cand.size == 0:
         return empty
-    # ground points sorted by x: each trunk looks only at its own narrow window. A foot
-    # lies within 2 max_radius + margin of its trunk in x and in y; sort only such points.
+    # only ground points within 2 max_radius + margin of some trunk in x and in y can be
+    # a foot; each trunk then looks at its own disc of them through one k-d tree (a
+    # window sorted by x spanned every row: time grew with the square of the trees)
     reach_any = 2.0 * max_radius + margin
     for d in (0, 1):
         gidx = gidx[_near_any(xyz[gidx, d], trunk_xy[:, d], reach_any)]
-    gidx = gidx[np.argsort(xyz[gidx, 0], kind="stable")]
-    gx = xyz[gidx, 0]
     centres, radii = tree_circles(xyz[cand, :2], tree_id[cand], k)
     off = np.hypot(*(centres - trunk_xy).T)
-    trunk_like = np.isfinite(radii) & (radii <= max_radius) & (off <= max_radius)
+    trunk_like = np.flatnonzero(np.isfinite(radii) & (radii <= max_radius) & (off <= max_radius))
+    if gidx.size == 0 or trunk_like.size == 0:
+        return empty
+    order, uniq, start, counts = group_runs(tree_id[cand])  # each tree's slice points, in input order
+    first = dict(zip(uniq.tolist(), zip(start.tolist(), counts.tolist())))
+    reaches = radii[trunk_like] + margin
+    near = cKDTree(xyz[gidx, :2]).query_ball_point(centres[trunk_like], reaches * (1 + 1e-9) + 1e-12)
     idx, src = [], []
-    for t in np.flatnonzero(trunk_like):
-        c, reach = centres[t], radii[t] + margin
-        pts = cand[tree_id[cand] == t + 1]
-        lo, hi = np.searchsorted(gx, [c[0] - reach, c[0] + reach])
-        win = gidx[lo:hi]
-        foot = win[((xyz[win, :2] - c) ** 2).sum(1) <= reach**2]
+    for t, reach, hits in zip(trunk_like, reaches, near):
+        c = centres[t]
+        win = gidx[np.sort(np.asarray(hits, dtype=np.int64))]
+        foot = win[((xyz[win, :2] - c) ** 2).sum(1) <= reach**2]  # the exact test
         if foot.size == 0:
             continue
+        s0, n0 = first[t + 1]
+        pts = cand[order[s0 : s0 + n0]]
         _, j = cKDTree(xyz[pts]).query(xyz[foot])
         idx.append(foot)
         src.append(pts[j])

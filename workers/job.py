@@ -745,6 +745,24 @@ def _completed(client, futures: dict, cancel, store: WorkStore):
             client.cancel(list(pending))
 
 
+def _open_files_allow(n: int) -> bool:
+    """Whether this process may hold ``n`` more open files, after raising its soft limit
+    towards the hard one if needed (False: read arrays into memory instead)."""
+    try:
+        import resource
+
+        soft, hard = resource.getrlimit(resource.RLIMIT_NOFILE)
+        in_use = len(os.listdir("/proc/self/fd")) if os.path.isdir("/proc/self/fd") else 64
+        need = in_use + n
+        if soft != resource.RLIM_INFINITY and soft < need:
+            target = need if hard == resource.RLIM_INFINITY else min(hard, need)
+            resource.setrlimit(resource.RLIMIT_NOFILE, (target, hard))
+            soft = target
+        return soft == resource.RLIM_INFINITY or soft >= need
+    except (ImportError, OSError, ValueError):
+        return False
+
+
 def _finish(store: WorkStore, record: dict, index: dict, summaries: list[dict], failed: list[int]) -> JobOutcome:
     info = BlockInfo(**{k: tuple(v) if isinstance(v, list) else v for k, v in record["info"].items()})
     params = PipelineParams.model_validate(record["params"])
@@ -760,10 +778,14 @@ def _finish(store: WorkStore, record: dict, index: dict, summaries: list[dict], 
     if merged.n_trees == 0:
         raise _no_trees(info)
     trees = _trees_table(summaries, merged, info.origin)
+    fields = ("index",) + _Labels.FIELDS
+    # each memory-mapped array holds a file descriptor: with hundreds of tiles the usual
+    # limit of 1024 ran out after every tile was done ("Too many open files")
+    mmap = _open_files_allow(len(fields) * len(summaries) + 64)
     parts = []
     for s in summaries:
         key = result_key(s["tile_id"])
-        part = {f: store.get_array(f"{key}/{f}.npy", mmap=True) for f in ("index",) + _Labels.FIELDS}
+        part = {f: store.get_array(f"{key}/{f}.npy", mmap=mmap) for f in fields}
         part["map"] = merged.id_maps[s["tile_id"]]
         parts.append(part)
     labels = _Labels(parts, info.n_points)
