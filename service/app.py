@@ -407,7 +407,6 @@ async def _receive_upload(request: Request, settings: Settings) -> _FilePart:
     boundary = opts.get(b"boundary")
     if ctype != b"multipart/form-data" or not boundary:
         raise InputError("send the block as multipart/form-data with the file in the field 'file' (curl -F file=@block.laz)")
-    settings.tmp_dir.mkdir(parents=True, exist_ok=True)
     part = _FilePart(scratch.scratch_dir(settings.tmp_dir) / f"upload-{uuid.uuid4().hex}.part", settings.max_upload_bytes)
     try:
         parser = MultipartParser(boundary, part.callbacks())

@@ -225,7 +225,6 @@ def run_schedule(store: Store, settings: Settings, schedule: dict[str, Any], *, 
         raise InputError(f"inbox {str(inbox)!r} of schedule {schedule['id']} no longer exists")
     if inbox.resolve() != inbox:  # checked when the schedule was made: it must still be that folder
         raise InputError(f"inbox {str(inbox)!r} of schedule {schedule['id']} is now a link to another folder; not scanned")
-    settings.tmp_dir.mkdir(parents=True, exist_ok=True)
     with _run_lock:
         for path in captures(inbox):
             name = display_name(path)
