@@ -251,15 +251,23 @@ def _part_dtm(xyz: np.ndarray, ij: np.ndarray, params: GroundParams, *, corner: 
     zmin = zmin.reshape(nx, ny)
     occupied = np.isfinite(zmin)
 
-    # isolated low points: a cell minimum well below the median of its neighbourhood
+    # isolated low points: a cell minimum well below the median of its neighbourhood,
+    # the neighbourhood seen through minima that other points back (multipath returns
+    # under the ground can sit in most cells of a dense scan, several to a cell)
     foot = _disk(max(params.search_radius / c, 1.0))
-    med = ndimage.median_filter(_fill_nearest(zmin, occupied), size=5, mode="nearest")
+    backed, own = _backed_minima(xyz[:, 2], flat, zmin, params.outlier_depth)
+    med = ndimage.median_filter(_fill_nearest(backed, np.isfinite(backed)), size=5, mode="nearest")
     low = occupied & (zmin < med - params.outlier_depth)
     if low.any():
-        # recompute those cells' minima without the low points (other cells keep theirs)
+        # recompute those cells' minima without the lowest point, nor any other that
+        # deep unless its cell's points back it (a cell can hold several stray returns;
+        # a patch of ground that the neighbourhood misjudges keeps all but its lowest)
         in_low = np.flatnonzero(low.ravel()[flat])
-        z_low = xyz[in_low, 2]
-        keep = z_low > zmin.ravel()[flat[in_low]] + 1e-9
+        z_low, f_low = xyz[in_low, 2], flat[in_low]
+        stray = (z_low < (med.ravel() - params.outlier_depth)[f_low]) & (
+            (z_low < backed.ravel()[f_low]) | ~own.ravel()[f_low]
+        )
+        keep = (z_low > zmin.ravel()[f_low] + 1e-9) & ~stray
         zmin2 = zmin.ravel().copy()
         zmin2[low.ravel()] = np.inf
         np.minimum.at(zmin2, flat[in_low[keep]], z_low[keep])
@@ -287,6 +295,66 @@ def _part_dtm(xyz: np.ndarray, ij: np.ndarray, params: GroundParams, *, corner: 
     is_ground_cell &= zmin - smooth <= params.tolerance + 0.15 * params.search_radius
     dtm = _fill_nearest(np.where(is_ground_cell, zmin, np.nan), is_ground_cell)
     return ndimage.median_filter(dtm, size=3, mode="nearest")
+
+
+
+#: rounds of :func:`_backed_minima`: a cell's lowest this many points can be unbacked
+BACKED_ROUNDS = 8
+
+#: points of a cell within the band above its minimum (the minimum included) that back
+#: it: at least this many, and this share of the cell's points
+BACKED_MIN = 3
+BACKED_SHARE = 0.01
+
+
+def _backed_minima(z: np.ndarray, flat: np.ndarray, zmin: np.ndarray, band: float) -> tuple[np.ndarray, np.ndarray]:
+    """Per cell the lowest point that other points back, (nx, ny) (inf where none), and
+    whether its own cell's points back it, (nx, ny) bool.
+
+    A point is backed when points of its cell lie at most ``band`` [m] above it (with it,
+    ``BACKED_MIN`` and ``BACKED_SHARE`` of the cell's points), or the minima of two
+    neighbouring cells lie within ``band`` of it: ground points come in numbers and
+    continue into the next cells, stray returns far under the ground (multipath) at
+    scattered depths do neither, even where a dense cell holds a dozen of them (by
+    chance, the minima of neighbouring cells can). A cell's unbacked lowest points are
+    passed over, up to ``BACKED_ROUNDS`` of them; after that the cell has no backed minimum.
+    """
+    nx, ny = zmin.shape
+    cur = zmin.ravel().copy()
+    zp, fp = z, flat  # the points of the cells still to check
+    cells = np.flatnonzero(np.isfinite(cur))  # cells still to check
+    need = np.maximum(BACKED_MIN, np.ceil(BACKED_SHARE * np.bincount(flat, minlength=nx * ny)))
+    own = np.zeros(nx * ny, bool)
+    for _ in range(BACKED_ROUNDS):
+        if not cells.size:
+            break
+        ci, cj = np.divmod(cells, ny)
+        near = np.zeros(cells.size, np.int64)  # neighbouring cells' minima within the band
+        for dx in (-1, 0, 1):
+            for dy in (-1, 0, 1):
+                if dx or dy:
+                    ni, nj = ci + dx, cj + dy
+                    inside = (ni >= 0) & (ni < nx) & (nj >= 0) & (nj < ny)
+                    nb = np.where(inside, cur[np.where(inside, ni * ny + nj, 0)], np.inf)
+                    with np.errstate(invalid="ignore"):  # inf - inf
+                        near += np.abs(nb - cur[cells]) <= band
+        count = np.bincount(fp[zp <= cur[fp] + band], minlength=nx * ny)
+        own[cells] = count[cells] >= need[cells]
+        alone = np.zeros(nx * ny, bool)
+        alone[cells] = ~own[cells] & (near < 2)
+        if not alone.any():
+            break
+        # pass over the unbacked minimum of those cells: their next point is checked next
+        rest = alone[fp] & (zp > cur[fp])
+        zp, fp = zp[rest], fp[rest]
+        cells = np.flatnonzero(alone)
+        cur[cells] = np.inf
+        np.minimum.at(cur, fp, zp)
+        cells = cells[np.isfinite(cur[cells])]
+    else:  # minima left unchecked after the last round
+        cur[cells] = np.inf
+    own &= np.isfinite(cur)
+    return cur.reshape(nx, ny), own.reshape(nx, ny)
 
 
 #: slope [m/m] that the ground test always allows across the search radius

@@ -50,6 +50,61 @@ def test_isolated_points_below_ground_do_not_pull_the_surface_down():
     assert (h[-20:] < -1.5).all()  # ... nor anything above it
 
 
+def _dense_scene(rng):
+    """Flat ground 20 x 20 m at about 100 points per 0.25 m cell, with a dense trunk-like
+    column (several thousand points in one cell, as under a scanned trunk)."""
+    g = _terrain(rng, n=160_000, slope=0.05)
+    col = np.column_stack([rng.uniform(10.0, 10.2, (6000, 2)), rng.uniform(0.5, 3.0, 6000)])
+    col[:, 2] += 0.05 * col[:, 0]
+    return np.concatenate([g, col])
+
+
+@pytest.mark.parametrize("depths", ["scattered", "one cell"])
+def test_many_returns_far_below_the_ground_leave_the_surface_where_it_is(depths):
+    # multipath: returns metres under the ground. Scattered over the block (0.2 % of the
+    # points: one cell in twenty has one, the trunk's column a dozen) or five in one
+    # cell; before, the cell test dropped only the lowest point of a cell and judged
+    # cells against neighbours that were as deep, and the surface fell 10-15 m
+    rng = np.random.default_rng(3)
+    xyz = _dense_scene(rng)
+    p = GroundParams()
+    clean = ground_model(xyz, params=p)
+    noisy = xyz.copy()
+    if depths == "scattered":
+        pick = rng.choice(len(xyz), int(0.002 * len(xyz)), replace=False)
+    else:
+        pick = np.flatnonzero((np.abs(xyz[:, 0] - 10.1) < 0.1) & (np.abs(xyz[:, 1] - 10.1) < 0.1))[:5]
+    noisy[pick, 2] -= rng.uniform(2.0, 20.0, len(pick))
+    m = ground_model(noisy, params=p)
+    assert np.abs(m.dtms[0] - clean.dtms[0]).max() < 0.05
+    h, is_g = classify_ground(noisy, m, params=p)
+    assert not is_g[pick].any()
+    assert (h[pick] < -1.5).all()
+
+
+def test_backed_minima_by_hand():
+    # one row of five 1 m cells, band 0.3 m; a minimum is backed by three points of its
+    # cell within the band (itself included) or by two neighbouring minima within it:
+    # cell 0: 0.0, 0.1, 0.2 -> backed by its own points
+    # cell 1: -5.0 alone, then 0.0, 0.1, 0.25 -> the -5 is passed over, 0.0 backed by its own
+    # cell 2: -3.0 alone, nothing else -> no backed minimum
+    # cell 3: 0.05 alone, backed by cell 4 only -> not backed: a cell more is needed
+    # cell 4: 0.1 alone, backed by cell 3 only -> neither
+    z = np.array([0.0, 0.1, 0.2, -5.0, 0.0, 0.1, 0.25, -3.0, 0.05, 0.1])
+    flat = np.array([0, 0, 0, 1, 1, 1, 1, 2, 3, 4])
+    zmin = np.array([[0.0, -5.0, -3.0, 0.05, 0.1]])
+    got, own = ground._backed_minima(z, flat, zmin, 0.3)
+    assert got.tolist() == [[0.0, 0.0, np.inf, np.inf, np.inf]]
+    assert own.tolist() == [[True, True, False, False, False]]
+    # lone points continued by the minima of two neighbouring cells are backed (sparse
+    # ground: one return per cell), though their cells do not back them
+    z = np.array([1.0, 1.1, 1.2])
+    got, own = ground._backed_minima(z, np.arange(3), z.reshape(1, 3), 0.3)
+    assert got.tolist() == [[np.inf, 1.1, np.inf]]
+    got, own = ground._backed_minima(np.tile(z, 3), np.arange(9), np.tile(z, 3).reshape(3, 3), 0.3)
+    assert np.isfinite(got).all() and not own.any()
+
+
 def test_noise_estimate_widens_tolerance_on_noisy_scans():
     rng = np.random.default_rng(2)
     g = _terrain(rng, slope=0.05)
