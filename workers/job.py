@@ -49,7 +49,7 @@ from pipeline.params import PipelineParams
 from pipeline.process import process_points
 from pipeline.tiling import TileGrid, core_tile, plan_grid
 from workers.store import WorkStore, absolute_url, default_work_dir
-from workers.tiler import INDEX_KEY, check_engine, read_tile, tile_block
+from workers.tiler import INDEX_KEY, check_engine, read_frame, read_tile, tile_block
 
 JOB_KEY = "job.json"
 #: how far beyond its core a tile claims a trunk, in cluster radii
@@ -181,11 +181,12 @@ def _process(xyz: np.ndarray, params: PipelineParams, where: str, ground: tuple[
         raise InputError(f"{where}: {exc}") from None
 
 
-def _tile_points(store: WorkStore, tile_id: int, index: dict) -> tuple[dict, np.ndarray]:
-    """A buffered tile's record array and its points in the block's local frame."""
+def _tile_points(store: WorkStore, tile_id: int, frame: dict) -> tuple[dict, np.ndarray]:
+    """A buffered tile's record array and its points in the block's local frame
+    (``frame``: the tile index, or its frame from :func:`workers.tiler.read_frame`)."""
     rec = read_tile(store, tile_id)
     ints = np.column_stack([rec["X"], rec["Y"], rec["Z"]])
-    return rec, blockio.to_local(ints, _frame(index))
+    return rec, blockio.to_local(ints, _frame(frame))
 
 
 def ground_sample(work_url: str, tile_id: int, params_json: str, stride: int) -> np.ndarray:
@@ -197,9 +198,9 @@ def ground_sample(work_url: str, tile_id: int, params_json: str, stride: int) ->
     block's statistics (and with them every tile's ground) come out as untiled.
     """
     store = WorkStore(work_url)
-    index = store.get_json(INDEX_KEY)
+    frame = read_frame(store)
     params = PipelineParams.model_validate_json(params_json)
-    rec, xyz = _tile_points(store, tile_id, index)
+    rec, xyz = _tile_points(store, tile_id, frame)
     pick = rec["core"].astype(bool) & (rec["index"] % np.uint64(stride) == 0)
     try:
         model = raw_ground_model(xyz, params=params.ground)
@@ -254,10 +255,10 @@ def process_tile(work_url: str, tile_id: int, params_json: str, fail: bool = Fal
     if not store.exists(JOB_KEY):  # the job ended (its store deleted) before this tile started
         return _abandon(store)
     stats = store.get_json(JOB_KEY).get("ground_stats")  # the block's, shared by every tile
-    index = store.get_json(INDEX_KEY)
+    frame = read_frame(store)
     params = PipelineParams.model_validate_json(params_json)
-    grid = TileGrid.from_dict(index["grid"])
-    rec, xyz = _tile_points(store, tile_id, index)
+    grid = TileGrid.from_dict(frame["grid"])
+    rec, xyz = _tile_points(store, tile_id, frame)
     core = rec["core"].astype(bool)
     result = _process(xyz, params, f"tile {tile_id}", tuple(stats) if stats else None)
     key = result_key(tile_id)
@@ -268,7 +269,7 @@ def process_tile(work_url: str, tile_id: int, params_json: str, fail: bool = Fal
     store.put_array(f"{key}/is_ground.npy", np.asarray(result.is_ground[core], dtype=bool))
     store.put_array(f"{key}/is_wood.npy", np.asarray(result.is_wood[core], dtype=bool))
     store.put_array(f"{key}/wood_score.npy", np.asarray(result.wood_score[core], dtype=np.float32))
-    summary = _summarise(tile_id, xyz, core, result, grid, index["origin"], params)
+    summary = _summarise(tile_id, xyz, core, result, grid, frame["origin"], params)
     store.put_object(f"{key}/summary.pkl", summary)
     if not store.exists(JOB_KEY):  # deleted while these were written: take them back
         return _abandon(store, tile_id)

@@ -27,6 +27,9 @@ from workers.store import WorkStore
 #: One record per (point, tile): stored integers, source index, core flag.
 TILE_DTYPE = np.dtype([("X", "<i4"), ("Y", "<i4"), ("Z", "<i4"), ("index", "<u8"), ("core", "u1")])
 INDEX_KEY = "tiles/index.json"
+#: the index without its list of tiles: what a tile's task needs (frame and grid), so
+#: that the tasks of a job of many tiles do not each read the whole list
+FRAME_KEY = "tiles/frame.json"
 
 
 def tile_key(tile_id: int) -> str:
@@ -160,7 +163,7 @@ def tile_block(
         for start, ints in blockio.iter_raw(info.path, chunk_points=chunk_points, info=info):
             _split_chunk(info, grid, store, start, ints, counts)
     idx = _index(info, grid, counts, "laspy")
-    store.put_json(INDEX_KEY, idx)
+    put_index(store, idx)
     return idx
 
 
@@ -243,7 +246,7 @@ def tile_block_pdal(info: BlockInfo, grid: TileGrid, store: WorkStore) -> dict:
         store.put_array(f"{tile_key(tid)}/part-pdal.npy", rec)
         _merge_counts(counts, {int(tid): (int(rec["core"].sum()), len(rec))})
     idx = _index(info, grid, counts, "pdal")
-    store.put_json(INDEX_KEY, idx)
+    put_index(store, idx)
     return idx
 
 
@@ -257,6 +260,20 @@ def _view_tile(xy: np.ndarray, core: np.ndarray, grid: TileGrid) -> int:
         if inside.all():
             return int(tid)
     raise RuntimeError("a PDAL view matches no tile of the grid")
+
+
+def put_index(store: WorkStore, idx: dict) -> None:
+    """Store a tile index, and its frame (everything but the list of tiles) beside it."""
+    store.put_json(FRAME_KEY, {k: v for k, v in idx.items() if k != "tiles"})
+    store.put_json(INDEX_KEY, idx)
+
+
+def read_frame(store: WorkStore) -> dict:
+    """The tile index of a work store without its list of tiles (from the whole index
+    in a work store written before the frame was stored on its own)."""
+    if store.exists(FRAME_KEY):
+        return store.get_json(FRAME_KEY)
+    return {k: v for k, v in store.get_json(INDEX_KEY).items() if k != "tiles"}
 
 
 def read_tile(store: WorkStore, tile_id: int) -> np.ndarray:

@@ -17,8 +17,9 @@ from pipeline.errors import InputError, NoTreesError, ParameterError
 from pipeline.evaluate import v_measure
 from pipeline.params import PipelineParams
 from workers.cluster import close_client, make_client
-from workers.job import JobSpec, TileFailed, finish_job, run_job, run_tile
+from workers.job import JobSpec, TileFailed, finish_job, ground_sample, process_tile, result_key, run_job, run_tile
 from workers.store import WorkStore
+from workers.tiler import FRAME_KEY, INDEX_KEY
 
 
 def _points(out):
@@ -149,6 +150,32 @@ def test_later_tile_failure_gives_partial_result_then_replay(small_block, tmp_pa
     assert _points(out) == _points(tmp_path / "ref")
     assert _trees(out).equals(_trees(tmp_path / "ref"))
     assert not work.exists()
+
+
+def test_tile_tasks_read_the_frame_not_the_list_of_tiles(small_block, tmp_path, monkeypatch):
+    # every tile's task used to read the whole index (all tiles' bounds and counts): with
+    # thousands of tiles that cost grew with the square of their number
+    ref = run_job(JobSpec(str(small_block), str(tmp_path / "ref"), tile_size=10.0))
+    work, out = tmp_path / "work", tmp_path / "out"
+    victim = 3
+    run_job(JobSpec(str(small_block), str(out), tile_size=10.0, work_dir=str(work), inject_failure=(victim,)))
+    store = WorkStore(str(work))
+    assert store.get_json(FRAME_KEY) == {k: v for k, v in store.get_json(INDEX_KEY).items() if k != "tiles"}
+    reads = []
+    get_json = WorkStore.get_json
+    monkeypatch.setattr(WorkStore, "get_json", lambda self, key: reads.append(key) or get_json(self, key))
+    params = PipelineParams().model_dump_json()
+    ground_sample(store.url, victim, params, 7)
+    process_tile(store.url, victim, params)
+    assert FRAME_KEY in reads and INDEX_KEY not in reads
+    monkeypatch.undo()
+    # a work store left by an earlier version has no frame: its tiles read the index
+    store.remove(result_key(victim))
+    store.remove(FRAME_KEY)
+    run_tile(str(work), victim)
+    assert finish_job(str(work)).n_trees == ref.n_trees
+    assert _points(out) == _points(tmp_path / "ref")
+    assert _trees(out).equals(_trees(tmp_path / "ref"))
 
 
 def test_run_tile_needs_a_job(tmp_path):
