@@ -106,6 +106,8 @@ class Job(BaseModel):
     timings: dict[str, Any]
     error: str | None
     cancel_requested: bool
+    attempts: int = 0
+    retry_at: str | None = None
     params: dict[str, Any]
     tiling: dict[str, Any] | None
     n_points: int | None = None
@@ -219,6 +221,8 @@ def job_out(rec: dict) -> Job:
         timings=rec.get("timings") or {},
         error=rec.get("error"),
         cancel_requested=bool(rec.get("cancel_requested")),
+        attempts=int(rec.get("attempts") or 0),
+        retry_at=_iso(rec.get("retry_at")),
         params=rec.get("params") or {},
         tiling=rec.get("tiling"),
         n_points=outcome.get("n_points"),

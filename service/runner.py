@@ -254,6 +254,19 @@ class Runner(threading.Thread):
             self._close_client()
 
 
+    def _after_cluster_failure(self, job: dict[str, Any], message: str, *, advice: str) -> dict[str, Any]:
+        """A job the dask cluster failed: queued again after ``retry_delay_s`` while it
+        has attempts left (``job_retries``), failed for good (with ``advice``) after the last."""
+        attempts = int(job.get("attempts") or 1)
+        if attempts > self.settings.job_retries:
+            tries = f" (attempt {attempts}, the last)" if attempts > 1 else ""
+            return self.store.finish_job(job["id"], "failed", error=message + tries + advice)
+        at = time.time() + self.settings.retry_delay_s
+        when = time.strftime("%Y-%m-%d %H:%M:%S UTC", time.gmtime(at))
+        log.warning("job %s: attempt %d failed (%s); queued again from %s", job["id"], attempts, message, when)
+        note = f"attempt {attempts} of {self.settings.job_retries + 1} failed: {message}; trying again from {when}"
+        return self.store.retry_job(job["id"], error=note, retry_at=at)
+
     def run_job(self, job: dict[str, Any]) -> dict[str, Any]:
         """Run one claimed (``running``) job to a final state; returns the stored job."""
         cancel = threading.Event()
@@ -309,25 +322,30 @@ class Runner(threading.Thread):
                     return self.store.get_job(None, job["id"])
                 drop_work(self.settings, job["id"])  # the service never resumes a cancelled job
                 return self.store.finish_job(job["id"], "cancelled", error="cancelled on request")
+            cluster = None  # the cluster failed the job, not the job itself: worth another attempt (then this advice)
             if isinstance(exc, OrchardError):
                 # without the command line's advice to resume from the work store: the
                 # service deletes a failed job's work store and never resumes it
                 message = getattr(exc, "reason", None) or str(exc) or type(exc).__name__
                 if type(exc).__name__ == "ClusterLost":
-                    message += "; start dask workers and submit the job again"
+                    cluster = "; start dask workers and submit the job again"
                 if block is not None:
                     message = api_wording(message, block_path=block["path"], filename=block.get("filename"))
             elif isinstance(exc, (KeyboardInterrupt, SystemExit)):
                 raise
             elif isinstance(exc, ClusterUnavailable):
+                cluster = ""
                 message = str(exc)
             elif type(exc).__name__ == "FuturesCancelledError" or "scheduler-connection-lost" in str(exc):
                 self._close_client()  # the next job connects afresh
-                message = "lost the connection to the dask scheduler during the job; submit it again once the cluster is back"
+                cluster = "; submit it again once the cluster is back"
+                message = "lost the connection to the dask scheduler during the job"
             else:
                 log.error("job %s failed unexpectedly", job["id"], exc_info=exc)
                 message = f"internal error ({type(exc).__name__}): {_short(exc)}"
             drop_work(self.settings, job["id"])  # the service never resumes a job: its tiles are not needed
+            if cluster is not None:
+                return self._after_cluster_failure(job, message, advice=cluster)
             return self.store.finish_job(job["id"], "failed", error=message)
         finally:
             with self._lock:

@@ -48,6 +48,12 @@ class Settings(BaseSettings):
         description="a capture written to within this many seconds is still arriving: a scan leaves it and looks again this much later [s]",
     )
     runner_poll_s: float = Field(1.0, gt=0, le=60, description="longest sleep of the runner between looks at the queue [s]")
+    job_retries: int = Field(
+        2, ge=0, le=20,
+        description="times a job is queued again after the dask cluster could not be reached or was lost during it "
+        "(an overnight job outlives a cluster restart); other failures are final",
+    )
+    retry_delay_s: float = Field(300.0, ge=0, le=86400, description="wait before such a job runs again [s]")
 
     @field_validator("data_dir", "inbox_root")
     @classmethod

@@ -66,6 +66,7 @@ CREATE TABLE IF NOT EXISTS jobs (
     error TEXT,
     cancel_requested INTEGER NOT NULL DEFAULT 0,
     attempts INTEGER NOT NULL DEFAULT 0,
+    retry_at REAL,
     created_at REAL NOT NULL,
     started_at REAL,
     finished_at REAL
@@ -123,6 +124,17 @@ class Store:
         self._all: list[sqlite3.Connection] = []
         self._all_lock = threading.Lock()
         self._con().executescript(_SCHEMA)
+        self._migrate()
+
+    def _migrate(self) -> None:
+        """Bring a store written by an earlier version up to the schema (added columns)."""
+        columns = {r["name"] for r in self._con().execute("PRAGMA table_info(jobs)")}
+        if "retry_at" not in columns:
+            try:
+                self._con().execute("ALTER TABLE jobs ADD COLUMN retry_at REAL")
+            except sqlite3.OperationalError:  # another process added it meanwhile
+                if not any(r["name"] == "retry_at" for r in self._con().execute("PRAGMA table_info(jobs)")):
+                    raise
 
     # -- connections and transactions ------------------------------------------------
 
@@ -301,14 +313,21 @@ class Store:
         return self._all_rows(sql, tuple(params))
 
     def claim_next_job(self) -> dict[str, Any] | None:
-        """Move the oldest queued job to ``running`` and return it (None if the queue is empty)."""
+        """Move the oldest queued job to ``running`` and return it (None if the queue is
+        empty, or holds only jobs waiting for their retry time)."""
+        now = time.time()
         with self._tx() as con:
-            row = con.execute("SELECT id FROM jobs WHERE state = 'queued' ORDER BY created_at, id LIMIT 1").fetchone()
+            row = con.execute(
+                "SELECT id FROM jobs WHERE state = 'queued' AND (retry_at IS NULL OR retry_at <= ?) "
+                "ORDER BY created_at, id LIMIT 1",
+                (now,),
+            ).fetchone()
             if row is None:
                 return None
             con.execute(
-                "UPDATE jobs SET state = 'running', started_at = ?, attempts = attempts + 1, error = NULL WHERE id = ?",
-                (time.time(), row["id"]),
+                "UPDATE jobs SET state = 'running', started_at = ?, attempts = attempts + 1, error = NULL, "
+                "retry_at = NULL WHERE id = ?",
+                (now, row["id"]),
             )
             job = con.execute("SELECT * FROM jobs WHERE id = ?", (row["id"],)).fetchone()
         return _record(job)
@@ -343,6 +362,17 @@ class Store:
             if state == "done":
                 sets += ", tiles_done = tiles_total"
             con.execute(f"UPDATE jobs SET {sets} WHERE id = ? AND state = 'running'", (*params, job_id))
+        return self.get_job(None, job_id)
+
+    def retry_job(self, job_id: str, *, error: str, retry_at: float) -> dict[str, Any]:
+        """Put a running job back in the queue, to be taken again from ``retry_at`` (epoch
+        seconds); ``error`` says why its last attempt failed."""
+        with self._tx() as con:
+            con.execute(
+                "UPDATE jobs SET state = 'queued', error = ?, retry_at = ?, tiles_done = 0, tiles_total = 0 "
+                "WHERE id = ? AND state = 'running'",
+                (error, retry_at, job_id),
+            )
         return self.get_job(None, job_id)
 
     def request_cancel(self, tenant_id: str, job_id: str) -> dict[str, Any]:

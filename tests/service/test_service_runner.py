@@ -10,6 +10,7 @@ import pytest
 from pipeline.errors import InputError, NoTreesError
 from service.runner import Runner
 from service.settings import Settings
+from service import store as service_store
 from service.store import Store
 
 workers_job = pytest.importorskip("workers.job")
@@ -18,7 +19,7 @@ workers_store = pytest.importorskip("workers.store")
 
 @pytest.fixture()
 def env(tmp_path):
-    settings = Settings(data_dir=tmp_path / "data", runner_poll_s=0.05)
+    settings = Settings(data_dir=tmp_path / "data", runner_poll_s=0.05, job_retries=0)
     store = Store(settings.store_path)
     tenant = store.ensure_tenant("farm")
     block, _ = store.insert_block(tenant_id=tenant["id"], sha256="ab" * 32, path=str(tmp_path / "b.laz"),
@@ -123,6 +124,85 @@ def test_cluster_that_cannot_start_fails_the_job_clearly(env, monkeypatch):
     monkeypatch.setattr(workers_job, "run_job", lambda *a, **k: pytest.fail("must not run"))
     failed = Runner(store, settings, client_factory=broken).run_job(_queue(store, tenant, block))
     assert failed["state"] == "failed" and failed["error"].startswith("cannot start or reach the dask cluster")
+
+
+def test_a_job_the_cluster_failed_is_queued_again_later(env, monkeypatch):
+    # the cluster cannot be reached twice (a scheduler restarting in the night), then is
+    # back: the job waits out the delay each time and ends done on its third attempt
+    settings, store, tenant, block = env
+    settings = Settings(data_dir=settings.data_dir, job_retries=2, retry_delay_s=0.5)
+    calls = []
+
+    def flaky():
+        calls.append(time.time())
+        if len(calls) < 3:
+            raise OSError("Timed out trying to connect to tcp://10.0.0.1:8786")
+        return None
+
+    monkeypatch.setattr(workers_job, "run_job", lambda spec, **kw: workers_job.JobOutcome(9, 1, 1, [], False, {}, {}))
+    runner = Runner(store, settings, client_factory=flaky)
+    job = _queue(store, tenant, block)
+    for attempt in (1, 2):
+        again = runner.run_job(job)
+        assert again["state"] == "queued" and again["attempts"] == attempt and again["tiles_done"] == 0
+        assert again["error"].startswith(f"attempt {attempt} of 3 failed: cannot start or reach the dask cluster")
+        assert "trying again from" in again["error"] and again["retry_at"] >= calls[-1] + 0.5
+        assert store.claim_next_job() is None  # not before its time
+        time.sleep(max(0.0, again["retry_at"] - time.time()) + 0.05)
+        job = store.claim_next_job()
+        assert job["id"] == again["id"] and job["error"] is None and job["retry_at"] is None
+    done = runner.run_job(job)
+    assert done["state"] == "done" and done["attempts"] == 3 and done["error"] is None
+
+
+def test_the_last_attempt_fails_for_good_and_other_failures_at_once(env, monkeypatch):
+    settings, store, tenant, block = env
+    settings = Settings(data_dir=settings.data_dir, job_retries=1, retry_delay_s=0.0)
+    lost = workers_job.ClusterLost("no dask worker for 120 s with 6 tiles to go", hint="; resume with --work x")
+    monkeypatch.setattr(workers_job, "run_job", lambda spec, **kw: (_ for _ in ()).throw(lost))
+    runner = Runner(store, settings, client_factory=lambda: None)
+    assert runner.run_job(_queue(store, tenant, block))["state"] == "queued"
+    failed = runner.run_job(store.claim_next_job())
+    assert failed["state"] == "failed" and failed["attempts"] == 2
+    assert failed["error"] == ("no dask worker for 120 s with 6 tiles to go (attempt 2, the last); "
+                               "start dask workers and submit the job again")
+    # a failure of the job itself is not the cluster's: no second attempt
+    monkeypatch.setattr(workers_job, "run_job", lambda spec, **kw: (_ for _ in ()).throw(InputError("b.laz: truncated")))
+    failed = runner.run_job(_queue(store, tenant, block))
+    assert failed["state"] == "failed" and failed["attempts"] == 1 and failed["error"] == "b.laz: truncated"
+
+
+def test_a_job_waiting_for_its_retry_can_be_cancelled(env, monkeypatch):
+    settings, store, tenant, block = env
+    settings = Settings(data_dir=settings.data_dir, job_retries=2, retry_delay_s=3600.0)
+    runner = Runner(store, settings, client_factory=lambda: (_ for _ in ()).throw(OSError("refused")))
+    waiting = runner.run_job(_queue(store, tenant, block))
+    assert waiting["state"] == "queued"
+    assert store.request_cancel(tenant["id"], waiting["id"])["state"] == "cancelled"
+    assert store.claim_next_job() is None
+
+
+def test_a_store_of_an_earlier_version_gains_the_retry_column(tmp_path):
+    import sqlite3
+
+    path = tmp_path / "old.sqlite"
+    con = sqlite3.connect(path)
+    old_schema = service_store._SCHEMA.replace("    retry_at REAL,\n", "")
+    assert "retry_at" not in old_schema
+    con.executescript(old_schema)
+    con.execute("INSERT INTO tenants (id, name, created_at) VALUES ('t', 'farm', 0)")
+    con.execute("INSERT INTO blocks (id, tenant_id, sha256, path, size_bytes, info, created_at) "
+                "VALUES ('b', 't', 'x', '/b.laz', 1, '{}', 0)")
+    con.execute("INSERT INTO jobs (id, tenant_id, block_id, params, state, created_at) VALUES ('j', 't', 'b', '{}', 'queued', 0)")
+    con.commit()
+    con.close()
+    store = Store(path)
+    try:
+        job = store.claim_next_job()  # the queued job of the old store runs
+        assert job["id"] == "j" and job["retry_at"] is None
+        Store(path).close()  # a second process opening it: nothing to add
+    finally:
+        store.close()
 
 
 def test_cancel_a_running_job_and_stop(env, monkeypatch):
