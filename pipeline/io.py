@@ -85,6 +85,33 @@ def _one_line(exc: BaseException) -> str:
     return (text[:200] + "...") if len(text) > 200 else (text or type(exc).__name__)
 
 
+#: no LAZ file holds more points per byte of compressed data than this (identical
+#: points compress to about 140 per byte); the bound for files without a chunk table
+MAX_LAZ_POINTS_PER_BYTE = 1000
+
+
+def _laz_points_held(p: Path, header, table: int, n_bytes: int) -> int:
+    """The most points the compressed data of a LAZ file can hold: from its chunk table
+    (fixed-size chunks: each holds at most the chunk size), or for a file without one,
+    a bound from its size. A forged point count would otherwise have the tiler plan
+    work for points that are not there (1e12 points in a 0.5 MB file)."""
+    import lazrs
+
+    vlr = next((v for v in header.vlrs if v.user_id == "laszip encoded" and v.record_id == 22204), None)
+    if table == -1 or vlr is None:
+        return max(1, n_bytes) * MAX_LAZ_POINTS_PER_BYTE
+    try:
+        laz_vlr = lazrs.LazVlr(vlr.record_data)
+        with open(p, "rb") as f:
+            f.seek(table)
+            chunks = lazrs.read_chunk_table_only(f, laz_vlr)
+    except Exception as exc:  # lazrs raises its own error types for a broken table
+        raise _fail(p, f"corrupt: its LAZ chunk table cannot be read ({_one_line(exc)})") from None
+    if laz_vlr.uses_variable_size_chunks():
+        return sum(int(c[0]) for c in chunks)
+    return len(chunks) * int(laz_vlr.chunk_size())
+
+
 def read_info(path) -> BlockInfo:
     """Read and check the header of a LAS/LAZ file.
 
@@ -145,6 +172,9 @@ def read_info(path) -> BlockInfo:
         (table,) = struct.unpack("<q", raw)
         if table != -1 and not (start < table <= size - 8):
             raise _fail(p, "truncated: the LAZ chunk table lies beyond the end of the file")
+        most = _laz_points_held(p, header, table, size - start)
+        if n > most:
+            raise _fail(p, f"corrupt: the header announces {n:,} points but its compressed data holds at most {most:,}")
     scales = tuple(float(s) for s in header.scales)
     offsets = tuple(float(o) for o in header.offsets)
     if not all(math.isfinite(s) and s > 0 for s in scales):

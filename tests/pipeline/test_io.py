@@ -195,6 +195,21 @@ def test_truncated(tmp_path, suffix):
     assert "truncated" in _one_line(e)
 
 
+@pytest.mark.parametrize("table", ["kept", "unknown"])
+def test_a_laz_whose_header_claims_more_points_than_its_chunks_hold(tmp_path, table):
+    # a forged count (1e12 points in a file of 50,000) had the tiler plan 500,000 tasks
+    path = _write(tmp_path / "b.laz", _cloud(50_000), version="1.4", point_format=6)
+    assert io.read_info(path).n_points == 50_000
+    _patch(path, 247, "<Q", 10**12)  # LAS 1.4: number of point records
+    if table == "unknown":  # a LAZ written without a chunk table: bounded by its size
+        with laspy.open(path) as reader:
+            start = reader.header.offset_to_point_data
+        _patch(path, start, "<q", -1)
+    with pytest.raises(InputError) as e:
+        io.read_info(path)
+    assert "corrupt: the header announces 1,000,000,000,000 points but its compressed data holds at most" in _one_line(e)
+
+
 def test_empty_header_only(tmp_path):
     header = laspy.LasHeader(version="1.4", point_format=6)
     with laspy.open(tmp_path / "e.las", mode="w", header=header):
