@@ -114,7 +114,7 @@ def validate_inbox(inbox: str, *, root: Path | None = None, base: Path | None = 
     if root is not None:
         root = Path(root).resolve()
         if path != root and root not in path.parents:
-            raise ParameterError(f"inbox {str(path)!r} is outside {root_label} {str(root)!r}")
+            raise ParameterError(f"inbox {raw!r} is outside {root_label} {str(root)!r}")  # as given: resolved, it could show where a link leads
     try:
         exists, is_dir = path.exists(), path.is_dir()
     except (OSError, ValueError):

@@ -134,6 +134,12 @@ def test_outside_root_is_refused_before_the_path_is_looked_up(tmp_path):
         with pytest.raises(ParameterError, match="outside this farm's folder") as err:
             validate_inbox(outside, root=root, root_label="this farm's folder")
         assert "does not exist" not in str(err.value) and "not a folder" not in str(err.value)
+    # nor where a link leads: the message shows the path as given
+    (root / "escape").symlink_to(tmp_path / "present")
+    for given in (str(root / "escape"), "/proc/self/cwd"):
+        with pytest.raises(ParameterError) as err:
+            validate_inbox(given, root=root, root_label="this farm's folder")
+        assert str(err.value) == f"inbox {given!r} is outside this farm's folder {str(root)!r}"
 
 
 def test_tenant_inbox_root_is_the_tenants_own_folder(tmp_path):
