@@ -121,6 +121,13 @@ def check_buffer(buffer: float, reach: float) -> None:
 MAX_COPIES = 64
 
 
+#: widest tile buffer [m]: a block spans at most 1e5 m (``pipeline.io.MAX_EXTENT``)
+MAX_BUFFER = 1e5
+
+#: farthest a grid origin may lie from 0 [m], like a block's coordinates (``pipeline.io.MAX_ABS_COORD``)
+MAX_ORIGIN = 1e8
+
+
 def copies_per_point(tile_size: float, buffer: float, ncols: int = 2**62, nrows: int = 2**62) -> int:
     """Most buffered tiles of an ``ncols`` x ``nrows`` grid that one point falls in."""
     per_axis = math.ceil(2.0 * buffer / tile_size) + 1
@@ -146,6 +153,8 @@ def check_tiling(tile_size: float, buffer: float | None, reach: float | None = N
         b = float(buffer)
         if not (math.isfinite(b) and b >= 0):
             raise ParameterError(f"tile buffer must be a non-negative number of metres, not {buffer}")
+        if b > MAX_BUFFER:
+            raise ParameterError(f"tile buffer {buffer:g} m is wider than any block ({MAX_BUFFER:g} m at most)")
         if reach is not None:
             check_buffer(b, reach)
     width = buffer if buffer is not None else reach
@@ -201,8 +210,8 @@ def plan_grid(
     check_tiling(tile_size, buffer, reach, copies=False)
     s, b = float(tile_size), float(buffer)
     gx, gy = (float(v) for v in grid_origin)
-    if not (math.isfinite(gx) and math.isfinite(gy)):
-        raise ParameterError(f"grid origin must be finite, not {tuple(grid_origin)}")
+    if not (math.isfinite(gx) and math.isfinite(gy)) or max(abs(gx), abs(gy)) > MAX_ORIGIN:
+        raise ParameterError(f"grid origin must be finite and within {MAX_ORIGIN:g} m of 0, not {tuple(grid_origin)}")
     spans = [(float(maxs[d]) - min(float(mins[d]), (gx, gy)[d])) / s + 2.0 for d in range(2)]
     if spans[0] * spans[1] > max_tiles:  # before any cell number is cast to an integer
         raise ParameterError(

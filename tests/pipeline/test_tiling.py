@@ -110,6 +110,17 @@ def test_bad_tile_size(size):
         plan_grid((0, 0), (10, 10), tile_size=size, buffer=0.0)
 
 
+def test_absurd_buffer_and_grid_origin_are_parameter_errors():
+    # 2 x 1e308 overflowed to inf in the copy count (an internal error); an origin of
+    # 1e21 overflowed the cell numbers (numpy warnings, then a run on garbage cells)
+    with pytest.raises(ParameterError, match="tile buffer 1e\\+308 m is wider than any block"):
+        check_tiling(20.0, 1e308)
+    for origin in ((1e21, 1e21), (-1e16, 0.0), (float("nan"), 0.0)):
+        with pytest.raises(ParameterError, match="grid origin must be finite and within 1e\\+08 m of 0"):
+            plan_grid((0, 0), (10, 10), tile_size=5.0, buffer=1.0, grid_origin=origin)
+    plan_grid((0, 0), (10, 10), tile_size=5.0, buffer=1.0, grid_origin=(-9.9e7, 9.9e7))
+
+
 def test_too_many_tiles():
     with pytest.raises(ParameterError, match="larger --tile-size"):
         plan_grid((0, 0), (10_000, 10_000), tile_size=0.5, buffer=0.0)
@@ -153,10 +164,10 @@ def test_absurdly_small_tile_size_is_refused_without_overflow(size):
 
 def test_huge_buffer_over_a_small_grid_is_cheap():
     # a buffer far wider than the block: every point in every tile of the 2 x 1 grid, and
-    # no loop over the million-metre reach (that used to exhaust memory)
+    # no loop over the 100 km reach (that used to exhaust memory)
     rng = np.random.default_rng(0)
     xy = rng.uniform(0, 1, (1000, 2)) * [20.0, 10.0]
-    grid = plan_grid((0, 0), (20, 10), tile_size=12.0, buffer=1e6)
+    grid = plan_grid((0, 0), (20, 10), tile_size=12.0, buffer=1e5)  # the widest allowed
     assert (grid.ncols, grid.nrows) == (2, 1)
     p, t = buffered_tiles(xy, grid)
     assert len(p) == 2000 and set(zip(p.tolist(), t.tolist())) == _brute_force(xy, grid)
