@@ -1000,6 +1000,10 @@ def write_simulation(source: Orchard | SimulationParams | Iterable[Orchard], las
             n += m
         if las is None:
             raise ValueError("nothing to write: the simulation produced no chunks")
+        if n == 0:  # a file no command reads (`orchard process` refuses it as empty)
+            from pipeline.errors import ParameterError
+
+            raise ParameterError("the simulation made no points (density too low); raise --density")
         truth.close()
         las.close()
     except BaseException:

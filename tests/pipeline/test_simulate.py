@@ -273,6 +273,16 @@ def test_failed_write_leaves_nothing(tmp_path, small):
     assert list(tmp_path.iterdir()) == []
 
 
+def test_a_simulation_without_points_writes_nothing(tmp_path):
+    # --density 1e-300 used to write a 0-point block ("wrote 0 points", exit 0)
+    from pipeline.errors import ParameterError
+
+    with pytest.raises(ParameterError, match="made no points"):
+        write_simulation(SimulationParams(rows=1, trees_per_row=2, density=1e-300), str(tmp_path / "x.laz"),
+                         str(tmp_path / "x.parquet"))
+    assert list(tmp_path.iterdir()) == []
+
+
 def test_read_truth_rejects_other_files(tmp_path):
     from pipeline.errors import InputError
 
