@@ -218,8 +218,27 @@ class WorkStore:
             if _own(name) and name not in (MARKER, LOCK):
                 self._rm(self.path(name))
         self._rm(self.path(MARKER))
-        if not self.entries():  # (a held lock stays: its holder removes it when it lets go)
+        self._drop_stale_lock()  # (a held lock stays: its holder removes it when it lets go)
+        if not self.entries():
             self._rm(self.root)  # empty: nothing but the folder goes
+
+    def _drop_stale_lock(self) -> None:
+        """Delete the lock file of a local store if no process holds it (its holder was
+        killed before it could let go)."""
+        if not self.local:
+            return
+        path = os.path.join(self.root, LOCK)
+        try:
+            fh = open(path, "r+")  # noqa: SIM115 - closed below
+        except OSError:
+            return
+        try:
+            fcntl.flock(fh, fcntl.LOCK_EX | fcntl.LOCK_NB)
+            os.unlink(path)  # while holding it: no run can take it meanwhile and lose it
+        except OSError:  # held (BlockingIOError), or gone
+            pass
+        finally:
+            fh.close()
 
     def _rm(self, path: str) -> None:
         for _ in range(3):

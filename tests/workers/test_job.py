@@ -221,6 +221,24 @@ def test_work_store_removes_only_what_it_wrote(small_block, tmp_path):
     assert not (tmp_path / "w").exists()  # nothing else there: the folder goes too
 
 
+def test_a_lock_file_left_by_a_killed_run_goes_with_its_store(tmp_path):
+    # kill -9 during a job: the next start cancels it and deletes its store, which left
+    # the lock file (and so the folder) behind for good
+    work = tmp_path / "w"
+    store = WorkStore(str(work))
+    store.claim()
+    store.put_json("job.json", {})
+    (work / ".orchard-lock").write_text("")  # no process holds it any more
+    store.remove()
+    assert not work.exists()
+    # a lock still held stays, with its folder, until its holder lets go
+    store.claim()
+    with WorkStore(str(work)).lock():
+        store.remove()
+        assert sorted(p.name for p in work.iterdir()) == [".orchard-lock"]
+    assert not work.exists()
+
+
 def test_a_new_job_does_not_reuse_an_earlier_jobs_tile_results(small_block, tmp_path):
     work = tmp_path / "work"
     first = run_job(JobSpec(str(small_block), str(tmp_path / "a"), tile_size=10.0, work_dir=str(work), inject_failure=(3,)))
