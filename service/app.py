@@ -10,6 +10,7 @@ only its own resources (anything else is 404). Errors are JSON ``{"detail": ...}
 
 from __future__ import annotations
 
+import asyncio
 import contextlib
 import hashlib
 import logging
@@ -34,7 +35,7 @@ from pipeline.tiling import check_tiling
 from service import report as reports
 from service import scratch
 from service.auth import authenticate
-from service.errors import TooLargeError, api_wording, install_error_handlers
+from service.errors import StalledUploadError, TooLargeError, api_wording, install_error_handlers
 from service.runner import Runner, drop_work, hold_runner_lock, job_dir
 from service.schedules import (
     DEFAULT_CRON,
@@ -349,6 +350,7 @@ class _FilePart:
         self.size = 0
         self.filename: str | None = None
         self.found = False
+        self.complete = False  # the file's part ended at a boundary (not cut off)
         self.too_large = False
         self._in_file = False
         self._field = bytearray()
@@ -399,6 +401,7 @@ class _FilePart:
     def _part_end(self) -> None:
         if self._in_file and self.fh is not None:
             self.fh.close()
+            self.complete = True
         self._in_file = False
 
     def close(self) -> None:
@@ -418,7 +421,15 @@ async def _receive_upload(request: Request, settings: Settings) -> _FilePart:
         raise InputError("the multipart boundary is invalid") from None
     stream = request.stream()
     try:
-        async for chunk in stream:
+        while True:
+            try:  # a client that stops sending would hold the request and its partial file for good
+                chunk = await asyncio.wait_for(anext(stream), settings.upload_idle_s)
+            except StopAsyncIteration:
+                break
+            except TimeoutError:
+                raise StalledUploadError(
+                    f"the upload sent nothing for {settings.upload_idle_s:g} s (ORCHARD_UPLOAD_IDLE_S); send it again"
+                ) from None
             try:
                 parser.write(chunk)
             except Exception:
@@ -436,9 +447,11 @@ async def _receive_upload(request: Request, settings: Settings) -> _FilePart:
                 f"the file is larger than the upload limit of {settings.max_upload_mb:g} MB (ORCHARD_MAX_UPLOAD_MB)"
             )
         try:
-            parser.finalize()
+            parser.finalize()  # (it does not check that the body ended at a boundary)
         except Exception:
             raise InputError("the multipart body is incomplete") from None
+        if part.found and not part.complete:
+            raise InputError("the multipart body is incomplete: the file's part has no closing boundary (upload cut off?)")
     except BaseException:
         part.close()
         part.tmp_path.unlink(missing_ok=True)

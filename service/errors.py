@@ -35,6 +35,13 @@ class TooLargeError(StarletteHTTPException):
         super().__init__(status_code=413, detail=detail)
 
 
+class StalledUploadError(StarletteHTTPException):
+    """An upload whose body stopped arriving for longer than the idle limit (408)."""
+
+    def __init__(self, detail: str) -> None:
+        super().__init__(status_code=408, detail=detail)
+
+
 STATUS: dict[type[Exception], int] = {
     UnauthorizedError: 401,
     NotFoundError: 404,

@@ -35,6 +35,10 @@ class Settings(BaseSettings):
     )
     max_upload_mb: float = Field(4096.0, gt=0, description="largest accepted block upload [MB]")
     max_request_kb: int = Field(1024, ge=1, description="largest accepted request body other than an upload [kB]")
+    upload_idle_s: float = Field(
+        300.0, gt=0, le=86400,
+        description="an upload whose body sends nothing for this long is dropped (408) and its partial file deleted [s]",
+    )
     runner: bool = Field(True, description="run queued jobs in this process (background runner thread)")
     scheduling: bool = Field(True, description="run overnight schedules in this process (schedule clock thread)")
     inbox_root: Path | None = Field(

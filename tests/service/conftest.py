@@ -15,7 +15,8 @@ def api_server(tmp_path_factory):
     """A server whose runner is off (jobs stay queued): API, upload, schedule and fuzz tests."""
     root = tmp_path_factory.mktemp("api")
     srv = ServerProcess(root / "data", ORCHARD_RUNNER="false", ORCHARD_SCHEDULING="false", ORCHARD_MAX_UPLOAD_MB="1",
-                        ORCHARD_CAPTURE_SETTLE_S="0")  # captures are written just before each scan
+                        ORCHARD_CAPTURE_SETTLE_S="0",  # captures are written just before each scan
+                        ORCHARD_UPLOAD_IDLE_S="3")
     srv.start()
     try:
         yield srv

@@ -103,6 +103,19 @@ def test_truncated_upload_is_422(client_a, tmp_path):
     assert "truncated" in r.json()["detail"]
 
 
+def test_upload_without_its_closing_boundary_is_422_and_stores_nothing(api_server, client_a, tmp_path):
+    # a whole LAS file in the part, but the body stops before the part's boundary: the
+    # parser's finalize() does not notice, and the block was stored (201)
+    data = write_las(tmp_path / "u.las", 2000, seed=11).read_bytes()
+    body = b'--abc\r\nContent-Disposition: form-data; name="file"; filename="u.las"\r\n\r\n' + data
+    r = client_a.post("/v1/blocks", content=body, headers={"content-type": "multipart/form-data; boundary=abc"})
+    assert r.status_code == 422 and "no closing boundary" in r.json()["detail"]
+    assert all(b["filename"] != "u.las" for b in client_a.get("/v1/blocks").json())
+    closed = body + b"\r\n--abc--\r\n"
+    r = client_a.post("/v1/blocks", content=closed, headers={"content-type": "multipart/form-data; boundary=abc"})
+    assert r.status_code == 201, r.text
+
+
 def test_zero_point_las_is_422(client_a, tmp_path):
     path = write_las(tmp_path / "z.las", 0)
     r = upload(client_a, path)
@@ -233,6 +246,30 @@ def test_errors_are_json_without_traceback(client_a):
     r = client_a.post("/v1/jobs", content=b"{not json", headers={"content-type": "application/json"})
     assert r.status_code == 422
     assert "Traceback" not in r.text and isinstance(r.json()["detail"], str)
+
+
+def test_an_upload_that_stops_sending_is_dropped_with_408(api_server, tokens, small_las):
+    """A client that sends half its body and then nothing, keeping the connection open,
+    held the request and its partial file for good (ORCHARD_UPLOAD_IDLE_S is 3 s here)."""
+    import socket
+    import time
+
+    body = small_las.read_bytes()
+    head = (b'--b0\r\nContent-Disposition: form-data; name="file"; filename="slow.laz"\r\n\r\n')
+    with socket.create_connection(("127.0.0.1", api_server.port), timeout=20) as sock:
+        sock.sendall((f"POST /v1/blocks HTTP/1.1\r\nHost: 127.0.0.1\r\nAuthorization: Bearer {tokens['a']}\r\n"
+                      f"Content-Type: multipart/form-data; boundary=b0\r\nContent-Length: {len(head) + len(body) + 8}"
+                      "\r\n\r\n").encode() + head + body[: len(body) // 2])
+        time.sleep(1.0)
+        assert temp_files(api_server.data_dir, "upload-*")  # still arriving
+        t0 = time.monotonic()
+        reply = sock.recv(65536).decode(errors="replace")
+    assert reply.startswith("HTTP/1.1 408"), reply[:200]
+    assert "sent nothing for 3 s" in reply and time.monotonic() - t0 < 10
+    deadline = time.monotonic() + 5
+    while time.monotonic() < deadline and temp_files(api_server.data_dir, "upload-*"):
+        time.sleep(0.1)
+    assert not temp_files(api_server.data_dir, "upload-*")
 
 
 def test_client_hanging_up_mid_upload_is_not_a_server_error(api_server, tokens, small_las):
