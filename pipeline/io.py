@@ -131,8 +131,12 @@ def read_info(path) -> BlockInfo:
         or point format, a CRS whose unit is not the metre (feet, degrees).
     """
     p = Path(str(path))
+    if not str(path):
+        raise InputError("no input file given")
     if not p.is_file():
-        raise _fail(p, "no such file")
+        if p.is_dir():
+            raise _fail(p, "is a folder; give a .las or .laz file")
+        raise _fail(p, "not a regular file (a device or pipe)" if p.exists() else "no such file")
     size = p.stat().st_size
     with open(p, "rb") as f:
         magic = f.read(4)

@@ -113,7 +113,11 @@ class JobSpec:
 
     def __post_init__(self) -> None:
         # dask workers run in folders of their own: a relative path would name another
-        # file there (or none), so every local path is made absolute here
+        # file there (or none), so every local path is made absolute here (an empty one
+        # would become the current folder)
+        for what, value in (("input file", self.input_path), ("output folder", self.out_dir)):
+            if not os.fspath(value):
+                raise ParameterError(f"no {what} given (an empty path)")
         self.input_path = os.path.abspath(os.fspath(self.input_path))
         self.out_dir = os.path.abspath(os.fspath(self.out_dir))
         if self.work_dir is not None:

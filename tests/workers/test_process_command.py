@@ -106,10 +106,14 @@ def _bad_inputs(tmp_path):
         "nan-scale": (nan, "scale"),
         "absurd-offset": (absurd, "absurd"),
         "missing": (tmp_path / "nope.laz", "no such file"),
+        "folder": (tmp_path, "is a folder; give a .las or .laz file"),  # was "no such file"
+        "device": (Path("/dev/null"), "not a regular file"),
+        "empty-path": ("", "no input file given"),  # was the current folder's name
     }
 
 
-@pytest.mark.parametrize("case", ["not-las", "truncated", "truncated-laz", "empty", "nan-scale", "absurd-offset", "missing"])
+@pytest.mark.parametrize("case", ["not-las", "truncated", "truncated-laz", "empty", "nan-scale", "absurd-offset", "missing",
+                                  "folder", "device", "empty-path"])
 @pytest.mark.parametrize("tiled", [False, True])
 def test_bad_input(tmp_path, capsys, case, tiled):
     path, words = _bad_inputs(tmp_path)[case]
@@ -142,6 +146,9 @@ def test_a_block_too_wide_for_one_ground_raster(tmp_path, capsys, extra):
     "argv,words",
     [
         (["--graph-voxel-size", "-1"], "voxel_size"),
+        (["--graph-voxel-size", "nan"], "voxel_size: Input should be a finite number"),
+        (["--tile-size", "20", "--buffer", "1e308"], "wider than any block"),  # was an internal OverflowError
+        (["--tile-size", "20", "--grid-origin=1e21,1e21"], "grid origin must be finite and within"),
         (["--graph-edge-radius", "5", "--graph-voxel-size", "0.1"], "edge_radius"),
         (["--tile-size", "0"], "tile size"),
         (["--tile-size", "10", "--buffer", "1"], "reach"),
