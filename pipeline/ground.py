@@ -297,7 +297,6 @@ def _part_dtm(xyz: np.ndarray, ij: np.ndarray, params: GroundParams, *, corner: 
     return ndimage.median_filter(dtm, size=3, mode="nearest")
 
 
-
 #: rounds of :func:`_backed_minima`: a cell's lowest this many points can be unbacked
 BACKED_ROUNDS = 8
 
