@@ -132,11 +132,13 @@ def simulated_block(path: Path, *, rows: int = 2, trees_per_row: int = 4, seed: 
     return path
 
 
-def wait_for_job(client: httpx.Client, job_id: str, *, states=("done", "failed", "cancelled"), timeout: float = 150.0) -> dict:
+def wait_for_job(client: httpx.Client, job_id: str, *, states=("done", "failed", "cancelled"), timeout: float = 150.0,
+                 when=lambda job: True) -> dict:
+    """The job once it is in one of ``states`` and ``when(job)`` holds."""
     deadline = time.monotonic() + timeout
     while time.monotonic() < deadline:
         job = client.get(f"/v1/jobs/{job_id}").json()
-        if job["state"] in states:
+        if job["state"] in states and when(job):
             return job
         time.sleep(0.2)
     raise AssertionError(f"job {job_id} still {job['state']} after {timeout} s")
