@@ -16,8 +16,13 @@ import time
 
 import httpx
 import pytest
-
-from service_fixtures import ServerProcess, free_port, make_token, simulated_block, wait_for_job
+from service_fixtures import (
+    ServerProcess,
+    free_port,
+    make_token,
+    simulated_block,
+    wait_for_job,
+)
 
 pytestmark = pytest.mark.skipif(shutil.which("dask") is None, reason="the `dask` command is not installed")
 
