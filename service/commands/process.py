@@ -129,6 +129,8 @@ def run(args: argparse.Namespace) -> int:
         inject_failure=tuple(args.inject_failure or ()),
     )
     tiled = args.tile_size is not None or args.scheduler is not None
+    if args.work and not tiled:  # it went unused, without a word
+        raise ParameterError("--work needs --tile-size: a block processed in one piece has no tiles to keep")
     if args.work:
         from workers.store import check_work_url
 

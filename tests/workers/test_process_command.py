@@ -147,6 +147,7 @@ def test_a_block_too_wide_for_one_ground_raster(tmp_path, capsys, extra):
     [
         (["--graph-voxel-size", "-1"], "voxel_size"),
         (["--graph-voxel-size", "nan"], "voxel_size: Input should be a finite number"),
+        (["--work", "w"], "--work needs --tile-size"),
         (["--tile-size", "20", "--buffer", "1e308"], "wider than any block"),  # was an internal OverflowError
         (["--tile-size", "20", "--grid-origin=1e21,1e21"], "grid origin must be finite and within"),
         (["--graph-edge-radius", "5", "--graph-voxel-size", "0.1"], "edge_radius"),
