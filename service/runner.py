@@ -322,30 +322,32 @@ class Runner(threading.Thread):
                     return self.store.get_job(None, job["id"])
                 drop_work(self.settings, job["id"])  # the service never resumes a cancelled job
                 return self.store.finish_job(job["id"], "cancelled", error="cancelled on request")
-            cluster = None  # the cluster failed the job, not the job itself: worth another attempt (then this advice)
+            # the cluster failed the job, not the job itself: worth another attempt, and
+            # this advice after the last
+            retry_advice: str | None = None
             if isinstance(exc, OrchardError):
                 # without the command line's advice to resume from the work store: the
                 # service deletes a failed job's work store and never resumes it
                 message = getattr(exc, "reason", None) or str(exc) or type(exc).__name__
                 if type(exc).__name__ == "ClusterLost":
-                    cluster = "; start dask workers and submit the job again"
+                    retry_advice = "; start dask workers and submit the job again"
                 if block is not None:
                     message = api_wording(message, block_path=block["path"], filename=block.get("filename"))
             elif isinstance(exc, (KeyboardInterrupt, SystemExit)):
                 raise
             elif isinstance(exc, ClusterUnavailable):
-                cluster = ""
+                retry_advice = ""
                 message = str(exc)
             elif type(exc).__name__ == "FuturesCancelledError" or "scheduler-connection-lost" in str(exc):
                 self._close_client()  # the next job connects afresh
-                cluster = "; submit it again once the cluster is back"
+                retry_advice = "; submit it again once the cluster is back"
                 message = "lost the connection to the dask scheduler during the job"
             else:
                 log.error("job %s failed unexpectedly", job["id"], exc_info=exc)
                 message = f"internal error ({type(exc).__name__}): {_short(exc)}"
             drop_work(self.settings, job["id"])  # the service never resumes a job: its tiles are not needed
-            if cluster is not None:
-                return self._after_cluster_failure(job, message, advice=cluster)
+            if retry_advice is not None:
+                return self._after_cluster_failure(job, message, advice=retry_advice)
             return self.store.finish_job(job["id"], "failed", error=message)
         finally:
             with self._lock:

@@ -128,12 +128,15 @@ class Store:
 
     def _migrate(self) -> None:
         """Bring a store written by an earlier version up to the schema (added columns)."""
-        columns = {r["name"] for r in self._con().execute("PRAGMA table_info(jobs)")}
-        if "retry_at" not in columns:
+
+        def has_retry_at() -> bool:
+            return any(r["name"] == "retry_at" for r in self._con().execute("PRAGMA table_info(jobs)"))
+
+        if not has_retry_at():
             try:
                 self._con().execute("ALTER TABLE jobs ADD COLUMN retry_at REAL")
             except sqlite3.OperationalError:  # another process added it meanwhile
-                if not any(r["name"] == "retry_at" for r in self._con().execute("PRAGMA table_info(jobs)")):
+                if not has_retry_at():
                     raise
 
     # -- connections and transactions ------------------------------------------------

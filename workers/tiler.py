@@ -262,9 +262,14 @@ def _view_tile(xy: np.ndarray, core: np.ndarray, grid: TileGrid) -> int:
     raise RuntimeError("a PDAL view matches no tile of the grid")
 
 
+def _frame_of(idx: dict) -> dict:
+    """A tile index without its list of tiles."""
+    return {k: v for k, v in idx.items() if k != "tiles"}
+
+
 def put_index(store: WorkStore, idx: dict) -> None:
     """Store a tile index, and its frame (everything but the list of tiles) beside it."""
-    store.put_json(FRAME_KEY, {k: v for k, v in idx.items() if k != "tiles"})
+    store.put_json(FRAME_KEY, _frame_of(idx))
     store.put_json(INDEX_KEY, idx)
 
 
@@ -273,7 +278,7 @@ def read_frame(store: WorkStore) -> dict:
     in a work store written before the frame was stored on its own)."""
     if store.exists(FRAME_KEY):
         return store.get_json(FRAME_KEY)
-    return {k: v for k, v in store.get_json(INDEX_KEY).items() if k != "tiles"}
+    return _frame_of(store.get_json(INDEX_KEY))
 
 
 def read_tile(store: WorkStore, tile_id: int) -> np.ndarray:
