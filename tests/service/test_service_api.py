@@ -248,6 +248,24 @@ def test_errors_are_json_without_traceback(client_a):
     assert "Traceback" not in r.text and isinstance(r.json()["detail"], str)
 
 
+def _read_response(sock) -> str:
+    """One whole HTTP response from a raw socket: the headers and the body can arrive in
+    separate segments, so read until Content-Length is met or the server closes."""
+    data = b""
+    while True:
+        head, sep, rest = data.partition(b"\r\n\r\n")
+        if sep:
+            length = next((int(line.split(b":", 1)[1]) for line in head.split(b"\r\n")
+                           if line.lower().startswith(b"content-length:")), None)
+            if length is not None and len(rest) >= length:
+                break
+        chunk = sock.recv(65536)
+        if not chunk:
+            break
+        data += chunk
+    return data.decode(errors="replace")
+
+
 def test_an_upload_that_stops_sending_is_dropped_with_408(api_server, tokens, small_las):
     """A client that sends half its body and then nothing, keeping the connection open,
     held the request and its partial file for good (ORCHARD_UPLOAD_IDLE_S is 3 s here)."""
@@ -263,7 +281,7 @@ def test_an_upload_that_stops_sending_is_dropped_with_408(api_server, tokens, sm
         time.sleep(1.0)
         assert temp_files(api_server.data_dir, "upload-*")  # still arriving
         t0 = time.monotonic()
-        reply = sock.recv(65536).decode(errors="replace")
+        reply = _read_response(sock)
     assert reply.startswith("HTTP/1.1 408"), reply[:200]
     assert "sent nothing for 3 s" in reply and time.monotonic() - t0 < 10
     deadline = time.monotonic() + 5
