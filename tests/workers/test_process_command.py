@@ -248,6 +248,9 @@ def test_ctrl_c_during_a_tiled_run_prints_one_line(orchard_block, tmp_path):
         [sys.executable, "-m", "service.cli", "process", str(orchard_block), "--out", str(out),
          "--tile-size", "8", "--workers", "2"],
         stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, start_new_session=True,
+        # as from a terminal, even when this suite runs as a shell's background job (which
+        # starts it, and so the command, with SIGINT ignored)
+        preexec_fn=lambda: signal.signal(signal.SIGINT, signal.SIG_DFL),
     )
     try:
         deadline = time.monotonic() + 120
