@@ -126,6 +126,28 @@ def test_utm_coordinates_lose_nothing(tmp_path):
     assert np.abs(pts + info.origin - xyz).max() < 1e-3
 
 
+def test_the_same_points_read_the_same_whatever_the_offset_and_scale(tmp_path):
+    """A block re-saved by another tool with another offset (or a finer scale) holds the
+    same millimetre points; ``X * scale + (offset - origin)`` differed in its last bit for
+    most of them, enough to move points on a 0.1 m voxel boundary into the next voxel."""
+    mm = np.round(_cloud(50_000), 3)
+    mm[:5000, 0] = EASTING + np.round(np.arange(5000) * 0.1, 1)  # on the 0.1 m planes
+    mm[:5000, 2] = 100.0 + np.round(np.arange(5000) % 300 * 0.1, 1)
+    paths = [
+        _write(tmp_path / "a.laz", mm),
+        _write(tmp_path / "b.laz", mm, offsets=(EASTING - 999.0, NORTHING + 123.456, 99.0)),
+        _write(tmp_path / "c.laz", mm, offsets=(500_000.0, 6_000_000.0, 0.0)),
+        _write(tmp_path / "d.laz", mm, scales=(0.0001, 0.0001, 0.0001)),
+    ]
+    local = [io.read_points(p)[0] for p in paths]
+    assert len({io.read_info(p).origin for p in paths}) == 1
+    naive = [(laspy.read(p).X * 0.001 + io.read_info(p).offsets[0] - io.read_info(p).origin[0]) for p in paths[:3]]
+    assert not all(np.array_equal(naive[0], n) for n in naive[1:])  # what the rounding is for
+    for other in local[1:]:
+        assert np.array_equal(local[0], other)
+    assert np.abs(local[0] + io.read_info(paths[0]).origin - mm).max() < 1e-6
+
+
 def test_iter_points_chunks_cover_the_file_in_order(tmp_path):
     xyz = _cloud(10_001)
     path = _write(tmp_path / "b.laz", xyz)
