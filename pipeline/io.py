@@ -195,9 +195,9 @@ def read_info(path) -> BlockInfo:
         raise _fail(p, f"absurd coordinates (bounds {mins} to {maxs}): |coordinate| above 1e8 m")
     if any(hi - lo > MAX_EXTENT or hi < lo for lo, hi in zip(mins, maxs)):
         raise _fail(p, f"absurd bounds {mins} to {maxs}: a block must span at most 1e5 m; split the file")
-    crs = _parse_crs(p, header)
+    crs, problem = _parse_crs(p, header)
     crs_wkt = crs.to_wkt() if crs is not None else None
-    problem = crs_units_problem(crs)
+    problem = problem or crs_units_problem(crs)
     if problem:
         raise _fail(p, problem)
     origin = tuple(float(math.floor(v)) for v in mins)
@@ -218,15 +218,65 @@ def read_info(path) -> BlockInfo:
 
 def _parse_crs(p: Path, header):
     """The block's CRS from its WKT or GeoTIFF-key records, EVLRs included (LAS 1.4 may
-    keep it there); None when absent or not understood (outputs then say "unknown CRS")."""
+    keep it there), or None when absent or not understood (outputs then say "unknown
+    CRS"); and why the GeoTIFF keys' units are not metres, or None.
+
+    laspy reads only the CRS codes of GeoTIFF keys: a user-defined CRS with its linear
+    unit in feet, or heights in feet (VerticalUnitsGeoKey), passed as metres, and the
+    vertical CRS (VerticalCSTypeGeoKey) was dropped. Those keys are read here."""
     try:
         crs = header.parse_crs()
         if crs is None and int(getattr(header, "number_of_evlrs", 0) or 0) > 0:
             with laspy.open(str(p), read_evlrs=True) as reader:
-                crs = reader.header.parse_crs()
-        return crs
+                header = reader.header
+            crs = header.parse_crs()
+        keys = _geo_keys(header)
     except Exception:  # an unreadable CRS is not fatal
-        return None
+        return None, None
+    vertical = keys.get(_VERTICAL_CS_KEY)
+    if crs is not None and vertical is not None and 1024 <= vertical <= 32766 and not crs.is_compound:
+        try:
+            import pyproj
+
+            vcrs = pyproj.CRS.from_epsg(vertical)
+            if vcrs.is_vertical:
+                crs = pyproj.CRS(pyproj.crs.CompoundCRS(name=f"{crs.name} + {vcrs.name}", components=[crs, vcrs]))
+        except Exception:  # a code pyproj does not know: the horizontal CRS alone
+            pass
+    return crs, _geo_key_units_problem(keys)
+
+
+_LINEAR_UNITS_KEY, _VERTICAL_CS_KEY, _VERTICAL_UNITS_KEY = 3076, 4096, 4099
+_METRE = 9001
+_UNIT_NAMES = {9002: "foot", 9003: "US survey foot", 9005: "Clarke's foot", 9014: "fathom", 9030: "nautical mile",
+               9036: "kilometre", 9070: "British foot", 9093: "statute mile", 9096: "yard", 32767: "user-defined unit"}
+
+
+def _geo_keys(header) -> dict[int, int]:
+    """The short-valued GeoTIFF keys of a header's GeoKeyDirectory record (VLRs and any EVLRs
+    read); empty when a WKT record is present, which readers take instead."""
+    records = list(header.vlrs.get_by_id("LASF_Projection"))
+    if getattr(header, "evlrs", None) is not None:
+        records += list(header.evlrs.get_by_id("LASF_Projection"))
+    if any(isinstance(r, laspy.vlrs.known.WktCoordinateSystemVlr) for r in records):
+        return {}
+    keys: dict[int, int] = {}
+    for rec in records:
+        if isinstance(rec, laspy.vlrs.known.GeoKeyDirectoryVlr):
+            for key in rec.geo_keys:
+                if int(key.tiff_tag_location) == 0:  # the value itself, not an index into a params record
+                    keys[int(key.id)] = int(key.value_offset)
+    return keys
+
+
+def _geo_key_units_problem(keys: dict[int, int]) -> str | None:
+    for key, what in ((_LINEAR_UNITS_KEY, "coordinate"), (_VERTICAL_UNITS_KEY, "height")):
+        unit = keys.get(key)
+        if unit not in (None, 0, _METRE):
+            name = _UNIT_NAMES.get(unit, f"EPSG unit {unit}")
+            return (f"its GeoTIFF keys give the {what} unit as {name} (EPSG unit code {unit}), but every length "
+                    "here is in metres; reproject the block to a projected CRS in metres (e.g. its UTM zone) first")
+    return None
 
 
 def crs_units_problem(crs) -> str | None:
@@ -242,11 +292,15 @@ def crs_units_problem(crs) -> str | None:
     try:
         units = {(a.unit_name, float(a.unit_conversion_factor)) for a in crs.axis_info}
         geographic = bool(crs.is_geographic)
+        geocentric = bool(crs.is_geocentric)
         name = crs.name
     except Exception:  # a CRS pyproj cannot describe: take the coordinates as given
         return None
     if geographic:
         return (f"its coordinates are longitude/latitude in degrees ({name}); "
+                "reproject the block to a projected CRS in metres (e.g. its UTM zone) first")
+    if geocentric:
+        return (f"its coordinates are Earth-centred X/Y/Z ({name}), where Z is not up; "
                 "reproject the block to a projected CRS in metres (e.g. its UTM zone) first")
     other = sorted(unit for unit, factor in units if unit != "metre" and factor != 1.0)
     if other:

@@ -110,6 +110,54 @@ def test_a_compound_crs_in_metres_is_fine(tmp_path):
     assert pyproj.CRS.from_wkt(io.read_info(path).crs_wkt).equals(crs)
 
 
+def _with_geo_keys(path, keys):
+    """A LAS 1.2 file whose only CRS record is a GeoKeyDirectory holding ``keys`` ({id: value})."""
+    src = laspy.read(_write(path.with_name("src.las"), _cloud(100)))
+    header = laspy.LasHeader(version="1.2", point_format=1)
+    header.scales, header.offsets = src.header.scales, src.header.offsets
+    vlr = laspy.vlrs.known.GeoKeyDirectoryVlr()
+    vlr.geo_keys_header.key_directory_version = vlr.geo_keys_header.key_revision = 1
+    vlr.geo_keys = []
+    for key_id, value in {1024: 1, **keys}.items():  # 1024: GTModelType projected
+        entry = laspy.vlrs.geotiff.GeoKeyEntryStruct()
+        entry.id, entry.tiff_tag_location, entry.count, entry.value_offset = key_id, 0, 1, value
+        vlr.geo_keys.append(entry)
+    vlr.geo_keys_header.number_of_keys = len(vlr.geo_keys)
+    header.vlrs.append(vlr)
+    las = laspy.LasData(header)
+    las.x, las.y, las.z = src.x, src.y, src.z
+    las.write(path)
+    return path
+
+
+@pytest.mark.parametrize(
+    "keys, words",
+    [
+        ({3072: 32767, 3076: 9003}, "coordinate unit as US survey foot"),  # user-defined CRS in feet
+        ({3072: 26918, 4096: 6360, 4099: 9003}, "height unit as US survey foot"),  # UTM, heights in feet
+        ({3072: 2264}, "US survey foot"),  # an EPSG CRS in feet, as before
+    ],
+)
+def test_geotiff_keys_in_feet_are_refused(tmp_path, keys, words):
+    # laspy reads only the CRS codes of GeoTIFF keys: both files passed as metres
+    with pytest.raises(InputError, match=f"{words}.*reproject"):
+        io.read_info(_with_geo_keys(tmp_path / "b.las", keys))
+
+
+def test_geotiff_keys_keep_the_vertical_crs(tmp_path):
+    info = io.read_info(_with_geo_keys(tmp_path / "b.las", {3072: 28356, 4096: 5711, 4099: 9001}))
+    crs = pyproj.CRS.from_wkt(info.crs_wkt)
+    assert crs.is_compound and [c.to_epsg() for c in crs.sub_crs_list] == [28356, 5711]
+    assert io.read_info(_with_geo_keys(tmp_path / "c.las", {3072: 28356})).crs_wkt == pyproj.CRS.from_epsg(28356).to_wkt()
+
+
+def test_a_geocentric_crs_is_refused(tmp_path):
+    path = _write(tmp_path / "b.las", _cloud(100), version="1.4", point_format=6,
+                  crs_wkt=pyproj.CRS.from_epsg(4978).to_wkt())
+    with pytest.raises(InputError, match="Earth-centred.*reproject"):
+        io.read_info(path)
+
+
 def test_no_crs_is_none(tmp_path):
     assert io.read_info(_write(tmp_path / "b.las", _cloud(10))).crs_wkt is None
 
