@@ -821,6 +821,8 @@ def create_app(settings: Settings) -> FastAPI:
         result = run_schedule(store, settings, sched)
         if result["jobs"]:
             _wake_runner(request.app)
+        if result["waiting"] and request.app.state.clock is not None:
+            request.app.state.clock.wake()  # the schedule now runs once they have settled
         return ScheduleRun(**result)
 
     app.include_router(v1)

@@ -215,7 +215,9 @@ def run_schedule(store: Store, settings: Settings, schedule: dict[str, Any], *, 
     recorded as handled (with their error) so they are not retried every night. A
     capture written to within ``settings.capture_settle_s`` of ``now`` (or changed while
     it was read) is still arriving: it is left as *waiting*, not recorded, for a later
-    scan. A file whose name is not valid UTF-8 is rejected without being recorded (taken
+    scan, and the schedule's next run is brought forward to when it will have settled (a
+    scan asked for by hand said "waiting" and then left it to the next cron time, a month
+    away for a monthly schedule). A file whose name is not valid UTF-8 is rejected without being recorded (taken
     once renamed), and a capture that fails in any other unexpected way is rejected and
     logged without stopping the scan of the others.
     """
@@ -225,11 +227,12 @@ def run_schedule(store: Store, settings: Settings, schedule: dict[str, Any], *, 
         raise InputError(f"inbox {str(inbox)!r} of schedule {schedule['id']} no longer exists")
     if inbox.resolve() != inbox:  # checked when the schedule was made: it must still be that folder
         raise InputError(f"inbox {str(inbox)!r} of schedule {schedule['id']} is now a link to another folder; not scanned")
+    now = time.time() if now is None else now
     with _run_lock:
         for path in captures(inbox):
             name = display_name(path)
             try:
-                outcome = _take_capture(store, settings, schedule, path, name, time.time() if now is None else now)
+                outcome = _take_capture(store, settings, schedule, path, name, now)
             except Exception as exc:  # one capture must not stop the scan of the others (logged)
                 log.warning("schedule %s: capture %s could not be taken", schedule["id"], name, exc_info=True)
                 # the farm sees the kind of failure, not the server's paths; the log has the rest
@@ -244,7 +247,27 @@ def run_schedule(store: Store, settings: Settings, schedule: dict[str, Any], *, 
                 result["waiting"].append(name)
             else:
                 result["rejected"].append({"file": name, "error": detail})
+    if result["waiting"]:
+        store.bring_schedule_forward(schedule["id"], settled_at(settings, now))
     return result
+
+
+def settled_at(settings: Settings, now: float) -> float:
+    """When a capture seen arriving at ``now`` is looked at again."""
+    return now + max(settings.capture_settle_s, 1.0)
+
+
+def still_arriving(stat: os.stat_result, now: float, settle_s: float) -> bool:
+    """Whether a file was written to (or its times set) less than ``settle_s`` before ``now``.
+
+    A copy that keeps the source's times (``cp -p``, ``rsync -a``, unzip) from a device
+    whose clock runs ahead gives a modification time in the future: read as "written just
+    now", such a capture waited until that date came round, and its inbox was re-read at
+    every settle interval meanwhile. A time further ahead than ``settle_s`` says nothing;
+    the change time (ctime, the server's own clock, set again by every write and by
+    setting the times) does.
+    """
+    return any(abs(now - t) < settle_s for t in (stat.st_mtime, stat.st_ctime))
 
 
 def _take_capture(
@@ -258,7 +281,7 @@ def _take_capture(
         return "rejected", "the file name is not valid UTF-8 (as names from some USB sticks or shares are); rename the file to have it taken"
     try:
         stat = path.stat()
-        if now - stat.st_mtime < settings.capture_settle_s:  # still being copied in
+        if still_arriving(stat, now, settings.capture_settle_s):  # still being copied in
             return "waiting", None
         sha = file_sha256(path)
     except OSError as exc:
@@ -334,7 +357,7 @@ class ScheduleClock(threading.Thread):
                         if res["jobs"] and self.on_jobs:
                             self.on_jobs()
                         if res["waiting"]:  # look again once they have settled, not a day later
-                            again = now + max(self.settings.capture_settle_s, 1.0)
+                            again = settled_at(self.settings, now)
                     except Exception as exc:  # noqa: BLE001 - one farm's broken inbox must not stop the others
                         log.warning("schedule %s failed: %s", sched["id"], exc)
                     nxt = next_run_time(sched["cron"], now).timestamp()

@@ -472,6 +472,14 @@ class Store:
                     "UPDATE schedules SET last_run_at = ?, next_run_at = ? WHERE id = ?", (last_run_at, next_run_at, schedule_id)
                 )
 
+    def bring_schedule_forward(self, schedule_id: str, at: float) -> None:
+        """Run a schedule at ``at`` if its next run is later (or not set)."""
+        with self._tx() as con:
+            con.execute(
+                "UPDATE schedules SET next_run_at = ? WHERE id = ? AND (next_run_at IS NULL OR next_run_at > ?)",
+                (at, schedule_id, at),
+            )
+
     def schedule_file_seen(self, schedule_id: str, sha256: str) -> bool:
         return self._one(
             "SELECT 1 AS seen FROM schedule_files WHERE schedule_id = ? AND sha256 = ?", (schedule_id, sha256)

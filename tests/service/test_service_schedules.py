@@ -238,6 +238,40 @@ def test_a_capture_still_being_copied_in_waits_for_a_later_scan(local):
     assert len(later["jobs"]) == 1 and later["waiting"] == []
 
 
+def test_a_scan_by_hand_that_finds_a_capture_arriving_looks_again_once_it_settled(local):
+    # "POST /schedules/{id}/run" and "orchard schedules run" said "waiting" and left the
+    # capture to the next cron time, a month away for a monthly schedule
+    settings, store, tenant, inbox = local
+    settings = settings.model_copy(update={"capture_settle_s": 60.0})
+    now = time.time()
+    sched = store.create_schedule(tenant_id=tenant["id"], inbox=str(inbox), cron="0 1 1 * *", params={},
+                                  tiling=None, next_run_at=next_run_time("0 1 1 * *", now).timestamp())
+    write_las(inbox / "a.laz", 500, seed=1)
+    assert run_schedule(store, settings, sched, now=now)["waiting"] == ["a.laz"]
+    assert store.get_schedule(tenant["id"], sched["id"])["next_run_at"] == pytest.approx(now + 60)
+    ScheduleClock(store, settings).tick(now + 61)
+    assert len(store.list_jobs(tenant["id"], schedule_id=sched["id"])) == 1
+    rec = store.get_schedule(tenant["id"], sched["id"])
+    assert rec["next_run_at"] == next_run_time("0 1 1 * *", now + 61).timestamp()  # the cron again
+    # a scan that finds nothing arriving leaves the next run alone
+    assert run_schedule(store, settings, rec, now=now + 62)["waiting"] == []
+    assert store.get_schedule(tenant["id"], sched["id"])["next_run_at"] == rec["next_run_at"]
+
+
+def test_a_capture_dated_in_the_future_settles_by_the_servers_clock(local):
+    # copied with its times kept from a device whose clock runs ahead: "written just now"
+    # until that date came round, and the inbox re-read at every settle interval meanwhile
+    settings, store, tenant, inbox = local
+    settings = settings.model_copy(update={"capture_settle_s": 30.0})
+    path = write_las(inbox / "a.laz", 500, seed=1)
+    ahead = time.time() + 5 * 365 * 86400
+    os.utime(path, (ahead, ahead))
+    sched = _schedule(store, tenant, inbox)
+    now = time.time()
+    assert run_schedule(store, settings, sched, now=now)["waiting"] == ["a.laz"]  # its times were just set
+    assert len(run_schedule(store, settings, sched, now=now + 31)["jobs"]) == 1
+
+
 def test_the_clock_looks_again_soon_at_a_capture_still_arriving(local):
     settings, store, tenant, inbox = local
     settings = settings.model_copy(update={"capture_settle_s": 120.0})
