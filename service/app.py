@@ -503,12 +503,16 @@ def _require(path: Path, what: str) -> Path:
 
 
 def ensure_report(store: Store, settings: Settings, job: dict) -> Path:
-    """``report.html`` of a finished job, written if missing."""
+    """``report.html`` (and ``map.png``) of a finished job, both written again if either is
+    missing (a lost ``map.png`` beside its report was a 500 on every request)."""
     out = job_dir(settings, job["id"])
     html_path = out / "report.html"
-    if html_path.exists():
+    if html_path.exists() and (out / "map.png").exists():
         return html_path
     block = store.get_block(None, job["block_id"])
+    if not Path(block["path"]).is_file():  # not the farm's fault, and not its file name to show
+        raise NotFoundError("the uploaded block of this job is missing on the server, so its report cannot be "
+                            "drawn; the per-tree downloads (trees.csv, trees.parquet) still work")
     _, trees = _results(store, settings, {"id": job["tenant_id"]}, job["id"], "trees.parquet")
     _, points = _results(store, settings, {"id": job["tenant_id"]}, job["id"], "points.parquet")
     outcome = job.get("outcome") or {}
@@ -777,7 +781,7 @@ def create_app(settings: Settings) -> FastAPI:
         job, _ = _results(store, settings, tenant, job_id, "trees.parquet")
         with report_lock:
             ensure_report(store, settings, job)
-        return _file(job_dir(settings, job_id) / "map.png", "image/png", f"map-{job_id}.png")
+        return _file(_require(job_dir(settings, job_id) / "map.png", "map"), "image/png", f"map-{job_id}.png")
 
     # schedules ---------------------------------------------------------------------------
 

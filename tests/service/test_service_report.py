@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import math
+from pathlib import Path
 
 import numpy as np
 import pyarrow as pa
@@ -114,5 +115,49 @@ def test_the_report_of_a_partial_result_says_which_tiles_are_missing(tmp_path):
         text = ensure_report(store, settings, job).read_text()
         assert "Partial result: tile(s) 3, 4 of this block failed" in text
         assert "north $block$.las" in text and " UTC</li>" in text
+    finally:
+        store.close()
+
+
+def test_a_lost_map_is_drawn_again_and_a_lost_block_is_a_clear_404(tmp_path):
+    # map.png lost beside its report.html: every request for it was a 500 (and the map was
+    # never drawn again); the block file lost: a 422 naming the server's checksum file
+    import shutil
+
+    import pytest
+
+    from pipeline.errors import NotFoundError
+    from service.app import ensure_report
+    from service.runner import job_dir
+    from service.schedules import file_sha256
+    from service.settings import Settings
+    from service.store import Store, accept_block
+
+    settings = Settings(data_dir=tmp_path / "data")
+    settings.blocks_dir.mkdir(parents=True)
+    store = Store(settings.store_path)
+    try:
+        tenant = store.ensure_tenant("farm")
+        src = write_las(tmp_path / "upload.las", 3_000, seed=4)
+        block, _ = accept_block(store, blocks_dir=settings.blocks_dir, tenant_id=tenant["id"], tmp_path=src,
+                                sha256=file_sha256(src), size_bytes=src.stat().st_size, filename="north.las")
+        job = store.create_job(tenant_id=tenant["id"], block_id=block["id"], params={}, tiling=None)
+        assert store.claim_next_job()["id"] == job["id"]
+        out = job_dir(settings, job["id"])
+        out.mkdir(parents=True)
+        points, trees = _outputs(tmp_path, 3_000)
+        shutil.copy(points, out / "points.parquet")
+        shutil.copy(trees, out / "trees.parquet")
+        job = store.finish_job(job["id"], "done", outcome={"n_trees": 2})
+        ensure_report(store, settings, job)
+        (out / "map.png").unlink()
+        ensure_report(store, settings, job)
+        assert (out / "map.png").read_bytes()[:4] == b"\x89PNG"
+        (out / "report.html").unlink()
+        stored = Path(store.get_block(None, block["id"])["path"])
+        stored.unlink()
+        with pytest.raises(NotFoundError, match="uploaded block of this job is missing on the server") as err:
+            ensure_report(store, settings, job)
+        assert stored.name not in str(err.value)
     finally:
         store.close()
