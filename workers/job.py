@@ -357,7 +357,9 @@ class _Labels:
             out["is_wood"][pos] = p["is_wood"][lo:hi]
             out["wood_score"][pos] = p["wood_score"][lo:hi]
             filled[pos] = True
-        out["is_wood"] &= out["tree_id"] > 0
+        not_tree = out["tree_id"] == 0  # e.g. of a tree a failed tile owned, in a partial result
+        out["is_wood"][not_tree] = False
+        out["wood_score"][not_tree] = 0.0
         return filled, out
 
 

@@ -301,6 +301,9 @@ def test_a_partial_result_gives_no_tree_the_points_of_a_failed_tiles_tree(small_
         mine = [i for i, t in zip(p_part["point_index"], p_part["tree_id"]) if t == gid]
         wrong = sum(lab_full[i] != fid for i in mine)
         assert wrong <= 0.002 * len(mine), (gid, wrong, len(mine))
+    # points in no tree carry no wood score, as in a complete run
+    for p in (p_full, p_part):
+        assert not np.asarray(p["wood_score"])[np.asarray(p["tree_id"]) == 0].any()
 
 
 def test_a_tile_that_finishes_after_its_job_was_cancelled_leaves_nothing(small_block, tmp_path):
