@@ -16,6 +16,7 @@ from __future__ import annotations
 import hashlib
 import logging
 import os
+import re
 import threading
 import time
 import uuid
@@ -39,14 +40,38 @@ _CHUNK = 1 << 20
 _run_lock = threading.Lock()
 
 
+_CRON_FIELDS = (
+    ("minute", "0-59"),
+    ("hour", "0-23"),
+    ("day-of-month", "1-31, or L for the last day"),
+    ("month", "1-12 or JAN-DEC"),
+    ("weekday", "0-7 or SUN-SAT, 0 and 7 being Sunday"),
+)
+_CRON_EXAMPLE = "e.g. '0 1 * * *' for 01:00 every night"
+# croniter's R (a random value, drawn again each time the next run is worked out: the
+# schedule wandered) and H (a hashed one)
+_CRON_RANDOM = re.compile(r"(?:^|,)[RH](?:$|[(/,])", re.IGNORECASE)
+
+
 def validate_cron(expr: str) -> str:
     """The expression, stripped, if it is a valid 5-field cron expression that ever
-    matches; ParameterError otherwise."""
+    matches; ParameterError naming the field at fault otherwise."""
     expr = " ".join(str(expr).split())
-    if len(expr.split(" ")) != 5 or not croniter.is_valid(expr):
+    fields = expr.split(" ") if expr else []
+    if len(fields) != 5:
         raise ParameterError(
-            f"invalid cron expression {expr!r}: use 5 fields 'minute hour day month weekday', e.g. '0 1 * * *' for 01:00"
+            f"invalid cron expression {expr!r}: it has {len(fields)} field(s); use 5, "
+            f"'minute hour day-of-month month weekday', {_CRON_EXAMPLE}"
         )
+    for i, (field, (name, values)) in enumerate(zip(fields, _CRON_FIELDS)):
+        alone = " ".join(field if j == i else "*" for j in range(5))
+        if _CRON_RANDOM.search(field) or not croniter.is_valid(alone):
+            raise ParameterError(
+                f"invalid cron expression {expr!r}: its {name} field {field!r} is not valid (values {values}; "
+                f"'*', lists 'a,b', ranges 'a-b' and steps '*/n' or 'a-b/n' with n > 0); {_CRON_EXAMPLE}"
+            )
+    if not croniter.is_valid(expr):
+        raise ParameterError(f"invalid cron expression {expr!r}; {_CRON_EXAMPLE}")
     try:  # valid fields can still name a day that never comes ('0 0 31 2 *')
         croniter(expr, datetime(2000, 1, 1).astimezone()).get_next(datetime)
     except (CroniterBadDateError, ValueError):

@@ -83,10 +83,31 @@ def test_cron_keeps_local_time_across_daylight_saving_changes(local_zone):
     assert next_run_time("30 2 * * *", first).replace(tzinfo=None) == datetime(2026, 10, 26, 2, 30)
 
 
-@pytest.mark.parametrize("expr", ["", "every night", "61 1 * * *", "0 25 * * *", "* * * *", "0 1 * * * *"])
-def test_invalid_cron_is_refused(expr):
-    with pytest.raises(ParameterError, match="cron"):
+@pytest.mark.parametrize(
+    "expr, words",
+    [
+        ("", "it has 0 field"),
+        ("every night", "it has 2 field"),
+        ("* * * *", "it has 4 field"),
+        ("0 1 * * * *", "it has 6 field"),
+        ("61 1 * * *", "minute field '61'"),
+        ("0 25 * * *", "hour field '25'"),
+        ("*/0 * * * *", "minute field '\\*/0'"),  # a five-field expression was told to use 5 fields
+        ("0 0 32 * *", "day-of-month field '32'"),
+        ("0 0 * 13 *", "month field '13'"),
+        ("0 0 * * 8", "weekday field '8'"),
+        ("R 1 * * *", "minute field 'R'"),  # croniter's random minute: drawn again at each run
+        ("0 H * * *", "hour field 'H'"),
+    ],
+)
+def test_invalid_cron_is_refused_naming_the_field(expr, words):
+    with pytest.raises(ParameterError, match=f"invalid cron expression.*{words}"):
         validate_cron(expr)
+
+
+@pytest.mark.parametrize("expr", ["0 1 * * *", "0 0 L * *", "0 0 * * 1#5", "30 2 * MAR,OCT THU", "*/15 22-2 * * 7", "0 1 15W * *"])
+def test_valid_cron_is_kept(expr):
+    assert validate_cron(f"  {expr} ") == expr
 
 
 @pytest.mark.parametrize("expr", ["0 0 31 2 *", "0 0 30 2 *", "15 3 31 4,6,9,11 *"])
