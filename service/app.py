@@ -15,7 +15,6 @@ import contextlib
 import hashlib
 import logging
 import threading
-import unicodedata
 import uuid
 from datetime import datetime, timezone
 from pathlib import Path
@@ -42,6 +41,7 @@ from service.schedules import (
     ScheduleClock,
     check_inbox_use,
     next_run_time,
+    printable,
     run_schedule,
     tenant_inbox_root,
     validate_cron,
@@ -255,7 +255,7 @@ def display_filename(name: str | None) -> str | None:
     if not name:
         return None
     base = name.replace("\\", "/").rsplit("/", 1)[-1]
-    base = "".join(c for c in base if unicodedata.category(c)[0] != "C").strip()
+    base = printable(base).strip()
     return base[:200] or None
 
 

@@ -19,6 +19,7 @@ import os
 import re
 import threading
 import time
+import unicodedata
 import uuid
 from datetime import datetime
 from pathlib import Path
@@ -227,9 +228,16 @@ def _copy_hashed(src: Path, dst: Path) -> tuple[str, int]:
     return h.hexdigest(), n
 
 
+def printable(text: str) -> str:
+    """``text`` without control and format characters (newlines, escape sequences,
+    right-to-left overrides), as file names are shown in the API and the reports."""
+    return "".join(c for c in text if unicodedata.category(c)[0] != "C")
+
+
 def display_name(path: Path) -> str:
-    """A file name as text, whatever its bytes (undecodable ones as ``\\xNN``)."""
-    return os.fsencode(path.name).decode("utf-8", "backslashreplace")
+    """A file name as text, whatever its bytes (undecodable ones as ``\\xNN``), without
+    control characters (a capture's name reached the API and the report's title raw)."""
+    return printable(os.fsencode(path.name).decode("utf-8", "backslashreplace")).strip() or "(unnamed)"
 
 
 def run_schedule(store: Store, settings: Settings, schedule: dict[str, Any], *, now: float | None = None) -> dict[str, Any]:

@@ -259,6 +259,19 @@ def test_a_capture_still_being_copied_in_waits_for_a_later_scan(local):
     assert len(later["jobs"]) == 1 and later["waiting"] == []
 
 
+@pytest.mark.skipif(sys.platform != "linux", reason="needs a file system that takes any bytes as a name")
+def test_control_characters_in_a_captures_name_are_not_shown(local):
+    # an escape sequence or newline in an inbox file's name reached the API, the block's
+    # filename and the report's title raw (uploads' names were already cleaned)
+    settings, store, tenant, inbox = local
+    write_las(inbox / "row\x1b[31m 4\n\u202e.las", 500, seed=1)
+    sched = _schedule(store, tenant, inbox)
+    res = run_schedule(store, settings, sched)
+    assert len(res["jobs"]) == 1
+    job = store.get_job(tenant["id"], res["jobs"][0])
+    assert store.get_block(None, job["block_id"])["filename"] == "row[31m 4.las"
+
+
 def test_a_scan_by_hand_that_finds_a_capture_arriving_looks_again_once_it_settled(local):
     # "POST /schedules/{id}/run" and "orchard schedules run" said "waiting" and left the
     # capture to the next cron time, a month away for a monthly schedule
