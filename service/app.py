@@ -210,7 +210,7 @@ def job_out(rec: dict) -> Job:
     base = f"/v1/jobs/{rec['id']}"
     links = {"self": base}
     if rec["state"] == "done":
-        for name in ("trees", "trees.parquet", "trees.csv", "points.parquet", "report"):
+        for name in ("trees", "trees.parquet", "trees.csv", "points.parquet", "report", "map.png"):
             links[name] = f"{base}/{name}"
     return Job(
         id=rec["id"],
@@ -484,6 +484,9 @@ _UPLOAD_BODY = {
 
 def _results(store: Store, settings: Settings, tenant: dict, job_id: str, name: str) -> tuple[dict, Path]:
     job = store.get_job(tenant["id"], job_id)
+    if job["state"] in ("failed", "cancelled"):  # "once it is done" would never come
+        raise ConflictError(f"job {job_id} is {job['state']} and has no results; submit its block again "
+                            f"with POST /v1/jobs (GET /v1/jobs/{job_id} says why it ended)")
     if job["state"] != "done":
         raise ConflictError(f"job {job_id} is {job['state']}; results are available once it is done (GET /v1/jobs/{job_id})")
     path = job_dir(settings, job_id) / name
@@ -736,18 +739,19 @@ def create_app(settings: Settings) -> FastAPI:
 
     parquet = {200: {"content": {"application/vnd.apache.parquet": {}}, "description": "GeoParquet / Parquet file"}}
 
-    @v1.get("/jobs/{job_id}/trees.parquet", tags=["results"], responses={**parquet, **unfinished}, response_class=FileResponse)
+    @v1.api_route("/jobs/{job_id}/trees.parquet", methods=["GET", "HEAD"], tags=["results"], responses={**parquet, **unfinished}, response_class=FileResponse)
     def job_trees_parquet(job_id: str, tenant: TenantDep, store: StoreDep, settings: SettingsDep):
         _, path = _results(store, settings, tenant, job_id, "trees.parquet")
         return _file(_require(path, "trees.parquet"), "application/vnd.apache.parquet", f"trees-{job_id}.parquet")
 
-    @v1.get("/jobs/{job_id}/points.parquet", tags=["results"], responses={**parquet, **unfinished}, response_class=FileResponse)
+    @v1.api_route("/jobs/{job_id}/points.parquet", methods=["GET", "HEAD"], tags=["results"], responses={**parquet, **unfinished}, response_class=FileResponse)
     def job_points_parquet(job_id: str, tenant: TenantDep, store: StoreDep, settings: SettingsDep):
         _, path = _results(store, settings, tenant, job_id, "points.parquet")
         return _file(_require(path, "points.parquet"), "application/vnd.apache.parquet", f"points-{job_id}.parquet")
 
-    @v1.get(
+    @v1.api_route(
         "/jobs/{job_id}/trees.csv",
+        methods=["GET", "HEAD"],
         tags=["results"],
         responses={200: {"content": {"text/csv": {}}, "description": "one row per tree"}, **unfinished},
         response_class=FileResponse,
@@ -771,8 +775,9 @@ def create_app(settings: Settings) -> FastAPI:
             path = ensure_report(store, settings, job)
         return HTMLResponse(path.read_text(encoding="utf-8"))
 
-    @v1.get(
+    @v1.api_route(
         "/jobs/{job_id}/map.png",
+        methods=["GET", "HEAD"],
         tags=["results"],
         response_class=FileResponse,
         responses={200: {"content": {"image/png": {}}, "description": "map of the block with numbered trees"}, **unfinished},

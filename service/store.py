@@ -269,7 +269,7 @@ class Store:
 
     def list_blocks(self, tenant_id: str, *, limit: int = 100, offset: int = 0) -> list[dict[str, Any]]:
         return [self._located(rec) for rec in self._all_rows(
-            "SELECT * FROM blocks WHERE tenant_id = ? ORDER BY created_at, id LIMIT ? OFFSET ?", (tenant_id, limit, offset)
+            "SELECT * FROM blocks WHERE tenant_id = ? ORDER BY created_at DESC, id DESC LIMIT ? OFFSET ?", (tenant_id, limit, offset)
         )]
 
     # -- jobs -------------------------------------------------------------------------
@@ -311,7 +311,7 @@ class Store:
             if value is not None:
                 sql += f" AND {column} = ?"
                 params.append(value)
-        sql += " ORDER BY created_at, id LIMIT ? OFFSET ?"
+        sql += " ORDER BY created_at DESC, id DESC LIMIT ? OFFSET ?"  # newest first: last night's jobs on the first page
         params += [limit, offset]
         return self._all_rows(sql, tuple(params))
 

@@ -93,6 +93,11 @@ def test_upload_job_results(runner_server, block_file):
 
         r = c.get(f"/v1/jobs/{job['id']}/points.parquet")
         points = pq.read_table(io.BytesIO(r.content))
+        # download tools ask for the size first and resume a broken download where it stopped
+        head = c.head(f"/v1/jobs/{job['id']}/points.parquet")
+        assert head.status_code == 200 and int(head.headers["content-length"]) == len(r.content) and head.content == b""
+        part = c.get(f"/v1/jobs/{job['id']}/points.parquet", headers={"Range": f"bytes={len(r.content) - 100}-"})
+        assert part.status_code == 206 and part.content == r.content[-100:]
         assert points.num_rows == block["n_points"]
         assert np.array_equal(np.sort(points.column("point_index").to_numpy()), np.arange(block["n_points"]))
         assert set(np.unique(points.column("tree_id").to_numpy())) <= set(range(cur["n_trees"] + 1))
@@ -101,7 +106,8 @@ def test_upload_job_results(runner_server, block_file):
         assert r.status_code == 200 and r.headers["content-type"].startswith("text/html")
         assert re.search(r'<img [^>]*src="data:image/png;base64,[A-Za-z0-9+/=]{1000,}"', r.text)
         assert r.text.count("<tr>") == cur["n_trees"] + 1
-        png = c.get(f"/v1/jobs/{job['id']}/map.png")
+        assert set(cur["links"]) == {"self", "trees", "trees.parquet", "trees.csv", "points.parquet", "report", "map.png"}
+        png = c.get(cur["links"]["map.png"])
         assert png.content[:8] == b"\x89PNG\r\n\x1a\n"
 
         for suffix in ("", "/trees", "/trees.csv", "/points.parquet", "/report"):
@@ -122,7 +128,8 @@ def test_cancel_a_running_job(runner_server, block_file):
         assert r.status_code == 202 and r.json()["cancel_requested"] is True
         final = wait_for_job(c, job["id"])
         assert final["state"] == "cancelled", final
-        assert c.get(f"/v1/jobs/{job['id']}/trees").status_code == 409
+        r = c.get(f"/v1/jobs/{job['id']}/trees")
+        assert r.status_code == 409 and "cancelled and has no results" in r.json()["detail"]
     # the service never resumes a cancelled job: its tiles are deleted, not kept for good
     job_dir = runner_server.data_dir / "jobs" / job["id"]
     assert not (job_dir / "_work").exists(), sorted(p.name for p in job_dir.iterdir())
