@@ -673,8 +673,14 @@ def write_labelled_las(
             header.offsets = src_header.offsets
             header.vlrs = [v for v in src_header.vlrs if not isinstance(v, laspy.vlrs.known.ExtraBytesVlr)]
             header.global_encoding = src_header.global_encoding
+            # the file's identity, as a copy of it (these were reset to zeros and "OTHER")
+            header.file_source_id = src_header.file_source_id
+            header.uuid = src_header.uuid
+            header.system_identifier = src_header.system_identifier
             src_extra = list(src_header.point_format.extra_dimension_names)
-            keep_extra = [n for n in src_extra if n not in types]
+            keep_extra = list(src_extra)
+            # an input's own dimension named like one of ours is kept as input_NAME (it vanished)
+            renamed = {n: _free_name(f"input_{n}", set(src_extra)) for n in src_extra if n in types}
             params = []
             split: dict[str, int] = {}  # undocumented extra bytes -> one uint8 dimension per byte
             for d in src_header.point_format.extra_dimensions:
@@ -686,7 +692,7 @@ def write_labelled_las(
                     params += [laspy.ExtraBytesParams(name=f"{d.name}_{i}", type=np.uint8) for i in range(d.num_elements)]
                 elif d.name in keep_extra:  # with its scales and offsets: the stored integers keep their meaning
                     params.append(laspy.ExtraBytesParams(
-                        name=d.name, type=d.dtype, description=d.description,
+                        name=renamed.get(d.name, d.name), type=d.dtype, description=d.description,
                         offsets=d.offsets if d.is_scaled else None, scales=d.scales if d.is_scaled else None,
                         no_data=d.no_data,
                     ))
@@ -698,13 +704,11 @@ def write_labelled_las(
                     m = len(chunk)
                     rec = laspy.ScaleAwarePointRecord.zeros(m, header=header)
                     for name in chunk.array.dtype.names:  # the stored values, bit for bit
-                        if name in types:
-                            continue
                         if name in split:
                             for i in range(split[name]):
                                 rec.array[f"{name}_{i}"] = chunk.array[name][:, i]
                             continue
-                        rec.array[name] = chunk.array[name]
+                        rec.array[renamed.get(name, name)] = chunk.array[name]
                     for k, v in get(start, start + m).items():
                         rec[k] = np.asarray(v).astype(types[k])
                     writer.write_points(rec)
@@ -715,6 +719,15 @@ def write_labelled_las(
     except BaseException:
         tmp.unlink(missing_ok=True)
         raise
+
+
+def _free_name(name: str, taken: set[str]) -> str:
+    """``name``, or ``name_2``, ``name_3``, ... if it is taken."""
+    candidate, i = name, 1
+    while candidate in taken:
+        i += 1
+        candidate = f"{name}_{i}"
+    return candidate
 
 
 # ----------------------------------------------------------------------------- parquet

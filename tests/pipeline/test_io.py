@@ -519,6 +519,35 @@ def test_labelled_las_keeps_scaled_extra_dimensions(tmp_path):
     assert np.array_equal(out.tree_id, _labels(n)["tree_id"])
 
 
+def test_labelled_las_keeps_an_inputs_own_tree_id_and_the_files_identity(tmp_path):
+    # an input's own extra dimension called tree_id vanished under ours, and the copy's
+    # file source id, project GUID and system identifier were reset
+    import uuid as uuidlib
+
+    n = 1500
+    header = laspy.LasHeader(version="1.4", point_format=6)
+    header.offsets, header.scales = [EASTING, NORTHING, 0.0], [0.001] * 3
+    header.add_extra_dims([laspy.ExtraBytesParams(name="tree_id", type=np.uint8),
+                           laspy.ExtraBytesParams(name="input_tree_id", type=np.uint16)])
+    header.file_source_id = 4242
+    header.uuid = uuidlib.UUID("12345678-1234-5678-1234-567812345678")
+    header.system_identifier = "SCANNER-7"
+    las = laspy.LasData(header)
+    xyz = _cloud(n)
+    las.x, las.y, las.z = xyz[:, 0], xyz[:, 1], xyz[:, 2]
+    las.tree_id = np.arange(n) % 200
+    las.input_tree_id = np.arange(n)
+    src = tmp_path / "own.laz"
+    las.write(src)
+    io.write_labelled_las(src, tmp_path / "out.laz", labels=_labels(n), chunk_points=600)
+    out = laspy.read(tmp_path / "out.laz")
+    assert np.array_equal(out.tree_id, _labels(n)["tree_id"])  # ours
+    assert np.array_equal(out.input_tree_id_2, np.arange(n) % 200)  # theirs, under a free name
+    assert np.array_equal(out.input_tree_id, np.arange(n))
+    assert out.header.file_source_id == 4242 and out.header.uuid == header.uuid
+    assert out.header.system_identifier == "SCANNER-7"
+
+
 @pytest.mark.parametrize("minor", [0, 1])
 def test_labelled_las_of_a_las_1_0_or_1_1_block(tmp_path, minor):
     # laspy cannot write LAS 1.0/1.1: the labelled copy of such a block is LAS 1.2 (same
