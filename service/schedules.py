@@ -316,7 +316,11 @@ def _take_capture(
         stat = path.stat()
         if still_arriving(stat, now, settings.capture_settle_s):  # still being copied in
             return "waiting", None
-        sha = file_sha256(path)
+        sha = store.known_hash(str(path), stat)
+        if sha is None:
+            sha = file_sha256(path)
+            if _same_file_state(path.stat(), stat):  # not written to while it was read
+                store.remember_hash(str(path), stat, sha)
     except OSError as exc:
         return "rejected", f"cannot read: {exc.strerror}"
     # taken before by this schedule, or by an earlier one of this farm (deleted to change its cron)
@@ -345,6 +349,10 @@ def _take_capture(
     if job is None:  # another scan of this inbox (another process) took it first
         return "skipped", None
     return "job", job["id"]
+
+
+def _same_file_state(a: os.stat_result, b: os.stat_result) -> bool:
+    return (a.st_size, a.st_mtime_ns, a.st_ctime_ns, a.st_ino) == (b.st_size, b.st_mtime_ns, b.st_ctime_ns, b.st_ino)
 
 
 class ScheduleClock(threading.Thread):

@@ -94,6 +94,14 @@ CREATE TABLE IF NOT EXISTS schedule_files (
     seen_at REAL NOT NULL,
     PRIMARY KEY (schedule_id, sha256)
 );
+CREATE TABLE IF NOT EXISTS capture_hashes (
+    path TEXT PRIMARY KEY,
+    size INTEGER NOT NULL,
+    mtime_ns INTEGER NOT NULL,
+    ctime_ns INTEGER NOT NULL,
+    inode INTEGER NOT NULL,
+    sha256 TEXT NOT NULL
+);
 """
 
 _JSON_COLUMNS = ("info", "params", "tiling", "timings", "outcome")
@@ -478,6 +486,22 @@ class Store:
             con.execute(
                 "UPDATE schedules SET next_run_at = ? WHERE id = ? AND (next_run_at IS NULL OR next_run_at > ?)",
                 (at, schedule_id, at),
+            )
+
+    def known_hash(self, path: str, stat: os.stat_result) -> str | None:
+        """The sha256 of an inbox file hashed before and unchanged since (same size, times
+        and inode), or None: scans re-read every capture left in an inbox every night."""
+        row = self._one(
+            "SELECT sha256 FROM capture_hashes WHERE path = ? AND size = ? AND mtime_ns = ? AND ctime_ns = ? AND inode = ?",
+            (path, stat.st_size, stat.st_mtime_ns, stat.st_ctime_ns, stat.st_ino),
+        )
+        return None if row is None else row["sha256"]
+
+    def remember_hash(self, path: str, stat: os.stat_result, sha256: str) -> None:
+        with self._tx() as con:
+            con.execute(
+                "INSERT OR REPLACE INTO capture_hashes (path, size, mtime_ns, ctime_ns, inode, sha256) VALUES (?, ?, ?, ?, ?, ?)",
+                (path, stat.st_size, stat.st_mtime_ns, stat.st_ctime_ns, stat.st_ino, sha256),
             )
 
     def schedule_file_seen(self, schedule_id: str, sha256: str) -> bool:

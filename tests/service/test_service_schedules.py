@@ -272,6 +272,29 @@ def test_control_characters_in_a_captures_name_are_not_shown(local):
     assert store.get_block(None, job["block_id"])["filename"] == "row[31m 4.las"
 
 
+def test_a_capture_handled_before_is_not_read_again(local, monkeypatch):
+    # every scan hashed every file in the inbox, captures handled long ago included: a
+    # season's captures left there were all re-read every night
+    import service.schedules as schedules
+
+    settings, store, tenant, inbox = local
+    write_las(inbox / "a.laz", 500, seed=1)
+    write_las(inbox / "junk.las", 10, seed=2).write_bytes(b"not a LAS file")
+    sched = _schedule(store, tenant, inbox)
+    read = []
+    real = schedules.file_sha256
+    monkeypatch.setattr(schedules, "file_sha256", lambda p: read.append(p.name) or real(p))
+    first = run_schedule(store, settings, sched)
+    assert len(first["jobs"]) == 1 and len(first["rejected"]) == 1 and sorted(read) == ["a.laz", "junk.las"]
+    read.clear()
+    again = run_schedule(store, settings, sched)
+    assert again["skipped"] == 2 and again["jobs"] == [] and read == []
+    # a file written to since is read again (and, being new, taken)
+    write_las(inbox / "a.laz", 700, seed=3)
+    third = run_schedule(store, settings, sched)
+    assert read == ["a.laz"] and len(third["jobs"]) == 1
+
+
 def test_a_scan_by_hand_that_finds_a_capture_arriving_looks_again_once_it_settled(local):
     # "POST /schedules/{id}/run" and "orchard schedules run" said "waiting" and left the
     # capture to the next cron time, a month away for a monthly schedule
