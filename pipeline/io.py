@@ -241,7 +241,7 @@ def _parse_crs(p: Path, header):
             vcrs = pyproj.CRS.from_epsg(vertical)
             if vcrs.is_vertical:
                 crs = pyproj.CRS(pyproj.crs.CompoundCRS(name=f"{crs.name} + {vcrs.name}", components=[crs, vcrs]))
-        except Exception:  # a code pyproj does not know: the horizontal CRS alone
+        except pyproj.exceptions.CRSError:  # a code pyproj does not know: the horizontal CRS alone
             pass
     return crs, _geo_key_units_problem(keys)
 

@@ -250,9 +250,9 @@ def run_schedule(store: Store, settings: Settings, schedule: dict[str, Any], *, 
     it was read) is still arriving: it is left as *waiting*, not recorded, for a later
     scan, and the schedule's next run is brought forward to when it will have settled (a
     scan asked for by hand said "waiting" and then left it to the next cron time, a month
-    away for a monthly schedule). A file whose name is not valid UTF-8 is rejected without being recorded (taken
-    once renamed), and a capture that fails in any other unexpected way is rejected and
-    logged without stopping the scan of the others.
+    away for a monthly schedule). A file whose name is not valid UTF-8 is rejected
+    without being recorded (taken once renamed), and a capture that fails in any other
+    unexpected way is rejected and logged without stopping the scan of the others.
     """
     result: dict[str, Any] = {"schedule_id": schedule["id"], "jobs": [], "skipped": 0, "rejected": [], "waiting": []}
     inbox = Path(schedule["inbox"])

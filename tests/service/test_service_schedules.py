@@ -275,7 +275,7 @@ def test_control_characters_in_a_captures_name_are_not_shown(local):
 def test_a_capture_handled_before_is_not_read_again(local, monkeypatch):
     # every scan hashed every file in the inbox, captures handled long ago included: a
     # season's captures left there were all re-read every night
-    import service.schedules as schedules
+    from service import schedules
 
     settings, store, tenant, inbox = local
     write_las(inbox / "a.laz", 500, seed=1)

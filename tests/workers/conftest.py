@@ -121,3 +121,15 @@ def loopback_cluster(tmp_path_factory):
         yield cluster
     finally:
         cluster.close()
+
+
+@pytest.fixture
+def default_sigint():
+    """Python's own Ctrl-C handler here, and so the default one in the commands this test
+    starts, even when the suite runs as a shell's background job (which starts it with
+    SIGINT ignored, and a command inherits that)."""
+    previous = signal.signal(signal.SIGINT, signal.default_int_handler)
+    try:
+        yield
+    finally:
+        signal.signal(signal.SIGINT, previous)

@@ -66,17 +66,6 @@ def test_embedded_workers_do_not_take_ctrl_c_and_this_thread_does():
         close_client(client)
 
 
-@pytest.fixture
-def default_sigint():
-    """Python's own Ctrl-C handler, even when this suite runs as a shell's background job
-    (which starts it with SIGINT ignored)."""
-    previous = signal.signal(signal.SIGINT, signal.default_int_handler)
-    try:
-        yield
-    finally:
-        signal.signal(signal.SIGINT, previous)
-
-
 def test_interrupt_during_a_shutdown_is_held_until_it_ends(default_sigint):
     done = []
     with pytest.raises(KeyboardInterrupt), interrupts_deferred():

@@ -240,7 +240,7 @@ def _children(pid: int) -> list[int]:
 
 
 @pytest.mark.skipif(not Path("/proc/self/stat").exists(), reason="needs Linux /proc")
-def test_ctrl_c_during_a_tiled_run_prints_one_line(orchard_block, tmp_path):
+def test_ctrl_c_during_a_tiled_run_prints_one_line(orchard_block, tmp_path, default_sigint):
     # a terminal's Ctrl-C goes to the whole process group: the dask workers each printed
     # a KeyboardInterrupt traceback (and the shutdown warnings) under "interrupted"
     out = tmp_path / "out"
@@ -248,9 +248,6 @@ def test_ctrl_c_during_a_tiled_run_prints_one_line(orchard_block, tmp_path):
         [sys.executable, "-m", "service.cli", "process", str(orchard_block), "--out", str(out),
          "--tile-size", "8", "--workers", "2"],
         stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, start_new_session=True,
-        # as from a terminal, even when this suite runs as a shell's background job (which
-        # starts it, and so the command, with SIGINT ignored)
-        preexec_fn=lambda: signal.signal(signal.SIGINT, signal.SIG_DFL),
     )
     try:
         deadline = time.monotonic() + 120
