@@ -3,14 +3,16 @@
 from __future__ import annotations
 
 import math
+import shutil
 from pathlib import Path
 
 import numpy as np
 import pyarrow as pa
 import pyarrow.parquet as pq
+import pytest
+from service_fixtures import write_las
 
 from service.report import sample_points, trees_records, write_report, write_trees_csv
-from service_fixtures import write_las
 
 
 def _outputs(tmp_path, n):
@@ -85,12 +87,10 @@ def test_a_title_with_dollar_signs_is_text_and_a_partial_result_says_so(tmp_path
         assert text.index("Partial result: tile(s) 3, 4") < text.index("<ul>")
 
 
-def test_the_report_of_a_partial_result_says_which_tiles_are_missing(tmp_path):
-    # the API said "partial", the report did not: a grower reading it saw a block with
-    # fewer trees and no word why
-    import shutil
-
-    from service.app import ensure_report
+@pytest.fixture
+def finished_job(tmp_path):
+    """A store holding one uploaded block and a job of it marked done with the given
+    outcome (and result files): ``make(filename, outcome) -> (settings, store, job)``."""
     from service.runner import job_dir
     from service.schedules import file_sha256
     from service.settings import Settings
@@ -99,11 +99,12 @@ def test_the_report_of_a_partial_result_says_which_tiles_are_missing(tmp_path):
     settings = Settings(data_dir=tmp_path / "data")
     settings.blocks_dir.mkdir(parents=True)
     store = Store(settings.store_path)
-    try:
+
+    def make(filename: str, outcome: dict):
         tenant = store.ensure_tenant("farm")
         src = write_las(tmp_path / "upload.las", 3_000, seed=4)
         block, _ = accept_block(store, blocks_dir=settings.blocks_dir, tenant_id=tenant["id"], tmp_path=src,
-                                sha256=file_sha256(src), size_bytes=src.stat().st_size, filename="north $block$.las")
+                                sha256=file_sha256(src), size_bytes=src.stat().st_size, filename=filename)
         job = store.create_job(tenant_id=tenant["id"], block_id=block["id"], params={}, tiling={"tile_size": 20})
         assert store.claim_next_job()["id"] == job["id"]
         out = job_dir(settings, job["id"])
@@ -111,53 +112,41 @@ def test_the_report_of_a_partial_result_says_which_tiles_are_missing(tmp_path):
         points, trees = _outputs(tmp_path, 3_000)
         shutil.copy(points, out / "points.parquet")
         shutil.copy(trees, out / "trees.parquet")
-        job = store.finish_job(job["id"], "done", outcome={"n_trees": 2, "partial": True, "failed_tiles": [3, 4]})
-        text = ensure_report(store, settings, job).read_text()
-        assert "Partial result: tile(s) 3, 4 of this block failed" in text
-        assert "north $block$.las" in text and " UTC</li>" in text
+        return settings, store, store.finish_job(job["id"], "done", outcome=outcome)
+
+    try:
+        yield make
     finally:
         store.close()
 
 
-def test_a_lost_map_is_drawn_again_and_a_lost_block_is_a_clear_404(tmp_path):
+def test_the_report_of_a_partial_result_says_which_tiles_are_missing(finished_job):
+    # the API said "partial", the report did not: a grower reading it saw a block with
+    # fewer trees and no word why
+    from service.app import ensure_report
+
+    settings, store, job = finished_job("north $block$.las", {"n_trees": 2, "partial": True, "failed_tiles": [3, 4]})
+    text = ensure_report(store, settings, job).read_text()
+    assert "Partial result: tile(s) 3, 4 of this block failed" in text
+    assert "north $block$.las" in text and " UTC</li>" in text
+
+
+def test_a_lost_map_is_drawn_again_and_a_lost_block_is_a_clear_404(finished_job):
     # map.png lost beside its report.html: every request for it was a 500 (and the map was
     # never drawn again); the block file lost: a 422 naming the server's checksum file
-    import shutil
-
-    import pytest
-
     from pipeline.errors import NotFoundError
     from service.app import ensure_report
     from service.runner import job_dir
-    from service.schedules import file_sha256
-    from service.settings import Settings
-    from service.store import Store, accept_block
 
-    settings = Settings(data_dir=tmp_path / "data")
-    settings.blocks_dir.mkdir(parents=True)
-    store = Store(settings.store_path)
-    try:
-        tenant = store.ensure_tenant("farm")
-        src = write_las(tmp_path / "upload.las", 3_000, seed=4)
-        block, _ = accept_block(store, blocks_dir=settings.blocks_dir, tenant_id=tenant["id"], tmp_path=src,
-                                sha256=file_sha256(src), size_bytes=src.stat().st_size, filename="north.las")
-        job = store.create_job(tenant_id=tenant["id"], block_id=block["id"], params={}, tiling=None)
-        assert store.claim_next_job()["id"] == job["id"]
-        out = job_dir(settings, job["id"])
-        out.mkdir(parents=True)
-        points, trees = _outputs(tmp_path, 3_000)
-        shutil.copy(points, out / "points.parquet")
-        shutil.copy(trees, out / "trees.parquet")
-        job = store.finish_job(job["id"], "done", outcome={"n_trees": 2})
+    settings, store, job = finished_job("north.las", {"n_trees": 2})
+    out = job_dir(settings, job["id"])
+    ensure_report(store, settings, job)
+    (out / "map.png").unlink()
+    ensure_report(store, settings, job)
+    assert (out / "map.png").read_bytes()[:4] == b"\x89PNG"
+    (out / "report.html").unlink()
+    stored = Path(store.get_block(None, job["block_id"])["path"])
+    stored.unlink()
+    with pytest.raises(NotFoundError, match="uploaded block of this job is missing on the server") as err:
         ensure_report(store, settings, job)
-        (out / "map.png").unlink()
-        ensure_report(store, settings, job)
-        assert (out / "map.png").read_bytes()[:4] == b"\x89PNG"
-        (out / "report.html").unlink()
-        stored = Path(store.get_block(None, block["id"])["path"])
-        stored.unlink()
-        with pytest.raises(NotFoundError, match="uploaded block of this job is missing on the server") as err:
-            ensure_report(store, settings, job)
-        assert stored.name not in str(err.value)
-    finally:
-        store.close()
+    assert stored.name not in str(err.value)
