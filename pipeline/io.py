@@ -4,8 +4,8 @@ The only module of ``pipeline`` that touches files (laspy/lazrs, pyarrow, pyproj
 Blocks are read in bounded-memory chunks and returned in float64 relative to a local
 origin (``floor`` of the header minimum), so UTM-sized coordinates lose nothing:
 ``local = X * scale + (offset - origin)`` where ``X`` is the stored integer, rounded to
-whole micrometres (:data:`LOCAL_STEPS_PER_M`), so that a point gets the same float whatever scale
-and offset its file stores it with.
+whole micrometres (:data:`LOCAL_STEPS_PER_M`), so that a point gets the same float
+whatever scale and offset its file stores it with.
 
 Every problem with an input file becomes an :class:`~pipeline.errors.InputError` whose
 message is one line naming the file and what is wrong. Every output is written to a
@@ -377,10 +377,10 @@ def read_raw_range(path, start: int, count: int, *, info: BlockInfo | None = Non
 
 LOCAL_STEPS_PER_M = 1e6
 """Local coordinates are whole multiples of ``1 / LOCAL_STEPS_PER_M`` [m] (1 µm).
-``X * scale + (offset - origin)`` alone depends in its last bit on how a file stores a point: the same millimetre point,
-re-saved with another offset or scale, fell on the other side of a 0.1 m voxel or
-ground-cell boundary (about 1 % of points per axis in a probe). Rounding to 1 µm gives
-one float per point; no scale in use comes near it."""
+``X * scale + (offset - origin)`` alone depends in its last bit on how a file stores a
+point: the same millimetre point, re-saved with another offset or scale, fell on the
+other side of a 0.1 m voxel or ground-cell boundary (about 1 % of points per axis in a
+probe). Rounding to 1 µm gives one float per point; no scale in use comes near it."""
 
 
 def to_local(ints: np.ndarray, info: BlockInfo, origin=None, *, out: np.ndarray | None = None) -> np.ndarray:
@@ -677,20 +677,19 @@ def write_labelled_las(
             header.file_source_id = src_header.file_source_id
             header.uuid = src_header.uuid
             header.system_identifier = src_header.system_identifier
-            src_extra = list(src_header.point_format.extra_dimension_names)
-            keep_extra = list(src_extra)
+            src_extra = set(src_header.point_format.extra_dimension_names)
             # an input's own dimension named like one of ours is kept as input_NAME (it vanished)
-            renamed = {n: _free_name(f"input_{n}", set(src_extra)) for n in src_extra if n in types}
+            renamed = {n: _free_name(f"input_{n}", src_extra) for n in src_extra if n in types}
             params = []
             split: dict[str, int] = {}  # undocumented extra bytes -> one uint8 dimension per byte
             for d in src_header.point_format.extra_dimensions:
-                if d.name in keep_extra and d.num_elements > 3:
+                if d.num_elements > 3:
                     # bytes no ExtraBytes record describes: laspy can write them only as an
                     # "undocumented" record that it cannot read back, so each byte becomes a
                     # documented uint8 dimension NAME_0, NAME_1, ... holding the same values
                     split[d.name] = int(d.num_elements)
                     params += [laspy.ExtraBytesParams(name=f"{d.name}_{i}", type=np.uint8) for i in range(d.num_elements)]
-                elif d.name in keep_extra:  # with its scales and offsets: the stored integers keep their meaning
+                else:  # with its scales and offsets: the stored integers keep their meaning
                     params.append(laspy.ExtraBytesParams(
                         name=renamed.get(d.name, d.name), type=d.dtype, description=d.description,
                         offsets=d.offsets if d.is_scaled else None, scales=d.scales if d.is_scaled else None,
