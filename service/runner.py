@@ -192,6 +192,7 @@ class Runner(threading.Thread):
             n_workers=self.settings.n_workers,
             threads_per_worker=self.settings.threads_per_worker,
             dashboard=self.settings.dashboard,
+            timeout=f"{self.settings.scheduler_timeout_s}s",
         )
 
     def _get_client(self):

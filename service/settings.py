@@ -27,6 +27,9 @@ class Settings(BaseSettings):
     host: str = Field("127.0.0.1", description="address the HTTP server binds")
     port: int = Field(8000, ge=0, le=65535, description="port the HTTP server binds (0 = any free port)")
     scheduler: str | None = Field(None, description="dask scheduler address (tcp://HOST:PORT); unset = embedded LocalCluster")
+    scheduler_timeout_s: float = Field(
+        20.0, gt=0, le=600, description="how long a job waits to reach the dask scheduler before that attempt fails [s]"
+    )
     n_workers: int = Field(2, ge=1, le=256, description="workers of the embedded LocalCluster")
     threads_per_worker: int = Field(1, ge=1, le=64, description="threads per worker of the embedded LocalCluster")
     dashboard: bool = Field(False, description="start the dask dashboard of the embedded LocalCluster")

@@ -41,7 +41,7 @@ def test_a_job_waits_for_a_scheduler_that_comes_back(tmp_path):
     port = free_port()
     block = simulated_block(tmp_path / "b.laz", rows=1, trees_per_row=3, seed=7, density=0.3)
     srv = ServerProcess(tmp_path / "data", ORCHARD_SCHEDULER=f"tcp://127.0.0.1:{port}", ORCHARD_JOB_RETRIES="10",
-                        ORCHARD_RETRY_DELAY_S="1", ORCHARD_SCHEDULING="false").start()
+                        ORCHARD_RETRY_DELAY_S="1", ORCHARD_SCHEDULER_TIMEOUT_S="3", ORCHARD_SCHEDULING="false").start()
     cluster: list[subprocess.Popen] = []
     try:
         token = make_token(srv.data_dir, "farm")
