@@ -34,7 +34,7 @@ from pipeline.tiling import check_tiling
 from service import report as reports
 from service import scratch
 from service.auth import authenticate
-from service.errors import StalledUploadError, TooLargeError, api_wording, install_error_handlers
+from service.errors import ShuttingDownError, StalledUploadError, TooLargeError, api_wording, install_error_handlers
 from service.runner import Runner, drop_work, hold_runner_lock, job_dir
 from service.schedules import (
     DEFAULT_CRON,
@@ -420,16 +420,27 @@ async def _receive_upload(request: Request, settings: Settings) -> _FilePart:
     except Exception:
         raise InputError("the multipart boundary is invalid") from None
     stream = request.stream()
+    stopping = getattr(request.app.state, "stopping", None)  # set when the server is told to stop
+    stop = asyncio.ensure_future(stopping.wait()) if stopping is not None else None
     try:
         while True:
-            try:  # a client that stops sending would hold the request and its partial file for good
-                chunk = await asyncio.wait_for(anext(stream), settings.upload_idle_s)
-            except StopAsyncIteration:
-                break
-            except TimeoutError:
+            # a client that stops sending would hold the request and its partial file for good,
+            # and a stopping server waited for it, then cut the connection without a reply
+            nxt = asyncio.ensure_future(anext(stream))
+            done, _ = await asyncio.wait({nxt} | ({stop} if stop else set()), timeout=settings.upload_idle_s,
+                                         return_when=asyncio.FIRST_COMPLETED)
+            if nxt not in done:
+                nxt.cancel()
+                if stop is not None and stop in done:
+                    raise ShuttingDownError("the server is stopping and cannot take this upload; send it again "
+                                            "once it is back (nothing of it was kept)")
                 raise StalledUploadError(
                     f"the upload sent nothing for {settings.upload_idle_s:g} s (ORCHARD_UPLOAD_IDLE_S); send it again"
-                ) from None
+                )
+            try:
+                chunk = nxt.result()
+            except StopAsyncIteration:
+                break
             try:
                 parser.write(chunk)
             except Exception:
@@ -456,6 +467,9 @@ async def _receive_upload(request: Request, settings: Settings) -> _FilePart:
         part.close()
         part.tmp_path.unlink(missing_ok=True)
         raise
+    finally:
+        if stop is not None:
+            stop.cancel()
     part.close()
     if not part.found:
         part.tmp_path.unlink(missing_ok=True)
@@ -580,6 +594,10 @@ def create_app(settings: Settings) -> FastAPI:
         if settings.scheduling:
             app.state.clock = ScheduleClock(store, settings, on_jobs=lambda: _wake_runner(app))
             app.state.clock.start()
+        loop = asyncio.get_running_loop()
+        app.state.stopping = asyncio.Event()
+        # called from the server's signal handler: uploads still arriving answer 503 at once
+        app.state.begin_shutdown = lambda: loop.call_soon_threadsafe(app.state.stopping.set)
         try:
             yield
         finally:

@@ -42,6 +42,13 @@ class StalledUploadError(StarletteHTTPException):
         super().__init__(status_code=408, detail=detail)
 
 
+class ShuttingDownError(StarletteHTTPException):
+    """A request the server cannot finish because it is stopping (503)."""
+
+    def __init__(self, detail: str) -> None:
+        super().__init__(status_code=503, detail=detail)
+
+
 STATUS: dict[type[Exception], int] = {
     UnauthorizedError: 401,
     NotFoundError: 404,

@@ -7,7 +7,7 @@ import hashlib
 import httpx
 import pytest
 
-from service_fixtures import temp_files, tenant_inbox, write_las
+from service_fixtures import ServerProcess, make_token, temp_files, tenant_inbox, write_las
 
 
 def upload(client: httpx.Client, path, name: str | None = None) -> httpx.Response:
@@ -288,6 +288,39 @@ def test_an_upload_that_stops_sending_is_dropped_with_408(api_server, tokens, sm
     while time.monotonic() < deadline and temp_files(api_server.data_dir, "upload-*"):
         time.sleep(0.1)
     assert not temp_files(api_server.data_dir, "upload-*")
+
+
+def test_an_upload_arriving_when_the_server_is_told_to_stop_gets_503_at_once(tmp_path, small_las):
+    """SIGTERM during an upload that is still arriving: the server waited out its graceful
+    shutdown (10 s), then cut the connection without a reply and logged an ERROR."""
+    import os
+    import signal
+    import socket
+    import time
+
+    srv = ServerProcess(tmp_path / "data", ORCHARD_RUNNER="false", ORCHARD_SCHEDULING="false").start()
+    try:
+        token = make_token(srv.data_dir, "farm")
+        body = small_las.read_bytes()
+        head = b'--b0\r\nContent-Disposition: form-data; name="file"; filename="slow.laz"\r\n\r\n'
+        with socket.create_connection(("127.0.0.1", srv.port), timeout=20) as sock:
+            sock.sendall((f"POST /v1/blocks HTTP/1.1\r\nHost: 127.0.0.1\r\nAuthorization: Bearer {token}\r\n"
+                          f"Content-Type: multipart/form-data; boundary=b0\r\nContent-Length: {len(head) + len(body) + 8}"
+                          "\r\n\r\n").encode() + head + body[: len(body) // 2])
+            deadline = time.monotonic() + 10
+            while not temp_files(srv.data_dir, "upload-*") and time.monotonic() < deadline:
+                time.sleep(0.05)
+            assert temp_files(srv.data_dir, "upload-*")  # arriving
+            t0 = time.monotonic()
+            os.killpg(srv.proc.pid, signal.SIGTERM)
+            reply = _read_response(sock)
+        assert reply.startswith("HTTP/1.1 503"), reply[:300]
+        assert "the server is stopping" in reply and time.monotonic() - t0 < 5
+        srv.proc.wait(30)  # (it ends by the signal, as uvicorn re-raises it once shut down)
+        assert not temp_files(srv.data_dir, "upload-*")
+        assert "ERROR" not in srv.log() and "Traceback" not in srv.log(), srv.log()[-2000:]
+    finally:
+        srv.stop()
 
 
 def test_client_hanging_up_mid_upload_is_not_a_server_error(api_server, tokens, small_las):
