@@ -316,11 +316,12 @@ def _take_capture(
         stat = path.stat()
         if still_arriving(stat, now, settings.capture_settle_s):  # still being copied in
             return "waiting", None
-        sha = store.known_hash(str(path), stat)
+        state = _file_state(stat)
+        sha = store.known_hash(str(path), state)
         if sha is None:
             sha = file_sha256(path)
-            if _same_file_state(path.stat(), stat):  # not written to while it was read
-                store.remember_hash(str(path), stat, sha)
+            if _file_state(path.stat()) == state:  # not written to while it was read
+                store.remember_hash(str(path), state, sha)
     except OSError as exc:
         return "rejected", f"cannot read: {exc.strerror}"
     # taken before by this schedule, or by an earlier one of this farm (deleted to change its cron)
@@ -351,8 +352,9 @@ def _take_capture(
     return "job", job["id"]
 
 
-def _same_file_state(a: os.stat_result, b: os.stat_result) -> bool:
-    return (a.st_size, a.st_mtime_ns, a.st_ctime_ns, a.st_ino) == (b.st_size, b.st_mtime_ns, b.st_ctime_ns, b.st_ino)
+def _file_state(stat: os.stat_result) -> tuple[int, int, int, int]:
+    """What changes when a file is written to or replaced: size, mtime_ns, ctime_ns, inode."""
+    return stat.st_size, stat.st_mtime_ns, stat.st_ctime_ns, stat.st_ino
 
 
 class ScheduleClock(threading.Thread):

@@ -488,20 +488,21 @@ class Store:
                 (at, schedule_id, at),
             )
 
-    def known_hash(self, path: str, stat: os.stat_result) -> str | None:
-        """The sha256 of an inbox file hashed before and unchanged since (same size, times
-        and inode), or None: scans re-read every capture left in an inbox every night."""
+    def known_hash(self, path: str, state: tuple[int, int, int, int]) -> str | None:
+        """The sha256 of an inbox file hashed before and unchanged since (``state``: size,
+        mtime_ns, ctime_ns, inode), or None: scans re-read every capture left in an inbox
+        every night."""
         row = self._one(
             "SELECT sha256 FROM capture_hashes WHERE path = ? AND size = ? AND mtime_ns = ? AND ctime_ns = ? AND inode = ?",
-            (path, stat.st_size, stat.st_mtime_ns, stat.st_ctime_ns, stat.st_ino),
+            (path, *state),
         )
         return None if row is None else row["sha256"]
 
-    def remember_hash(self, path: str, stat: os.stat_result, sha256: str) -> None:
+    def remember_hash(self, path: str, state: tuple[int, int, int, int], sha256: str) -> None:
         with self._tx() as con:
             con.execute(
                 "INSERT OR REPLACE INTO capture_hashes (path, size, mtime_ns, ctime_ns, inode, sha256) VALUES (?, ?, ?, ?, ?, ?)",
-                (path, stat.st_size, stat.st_mtime_ns, stat.st_ctime_ns, stat.st_ino, sha256),
+                (path, *state, sha256),
             )
 
     def schedule_file_seen(self, schedule_id: str, sha256: str) -> bool:
