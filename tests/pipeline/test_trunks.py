@@ -106,6 +106,42 @@ def test_stem_contrast_searches_around_an_off_centre_group():
     assert near > 5.0 * far
 
 
+def _stem_contrast_in_full(xy, stem_xy, stem_slice, n_slices):
+    """Every probe in every slice, no pruning: what stem_contrast's search must equal."""
+    from scipy.spatial import cKDTree
+
+    from pipeline.trunks import STEM_RING, STEM_SEARCH, STEM_STEP
+
+    g = np.arange(-STEM_SEARCH, STEM_SEARCH + 1e-9, STEM_STEP)
+    off = np.stack(np.meshgrid(g, g, indexing="ij"), axis=-1).reshape(-1, 2)
+    off = off[np.hypot(off[:, 0], off[:, 1]) <= STEM_SEARCH + 1e-9]
+    probes = (xy[:, None, :] + off[None, :, :]).reshape(-1, 2)
+    score = np.full(probes.shape[0], np.inf)
+    for s in range(n_slices):
+        tree = cKDTree(stem_xy[stem_slice == s].reshape(-1, 2))
+        n_in = tree.query_ball_point(probes, STEM_RADIUS, return_length=True)
+        ring = (tree.query_ball_point(probes, STEM_RING[1], return_length=True)
+                - tree.query_ball_point(probes, STEM_RING[0], return_length=True))
+        c = (n_in / (np.pi * STEM_RADIUS**2) + 1.0) / (ring / (np.pi * (STEM_RING[1] ** 2 - STEM_RING[0] ** 2)) + 1.0)
+        score = np.minimum(score, c)
+    return score.reshape(xy.shape[0], -1).max(axis=1)
+
+
+@pytest.mark.parametrize("seed", range(6))
+def test_stem_contrast_equals_the_search_of_every_probe_in_every_slice(seed):
+    # the search prunes probes that cannot beat a candidate's best: it must give the
+    # full search's scores to the bit, on trunks, shoot tips, clutter and empty spots
+    rng = np.random.default_rng(seed)
+    parts = [_stem_slices(rng, tuple(rng.uniform(-3, 3, 2)), int(rng.integers(20, 300)),
+                          skip=tuple(np.flatnonzero(rng.random(3) < 0.3))) for _ in range(8)]
+    clutter = rng.uniform(-4, 4, (3000, 2))
+    xy = np.concatenate([p[0] for p in parts] + [clutter])
+    sl = np.concatenate([p[1] for p in parts] + [rng.integers(0, 3, clutter.shape[0])])
+    cand = np.concatenate([rng.uniform(-4, 4, (30, 2)), xy[rng.choice(xy.shape[0], 10)]])
+    got = stem_contrast(cand, xy, sl, n_slices=3)
+    np.testing.assert_array_equal(got, _stem_contrast_in_full(cand, xy, sl, 3))
+
+
 def test_no_stem_points_means_the_test_is_off():
     assert np.isnan(stem_contrast(np.zeros((2, 2)), None, None, n_slices=3)).all()
     ok = np.ones(2, bool)
