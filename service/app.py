@@ -136,15 +136,26 @@ class ScheduleCreate(BaseModel):
     tiling: Tiling | None = None
 
 
+class ScheduleUpdate(BaseModel):
+    """The settings to change; those left out stay as they are."""
+
+    model_config = ConfigDict(extra="forbid")
+    paused: bool | None = Field(None, description="true: the clock skips the schedule (a scan by hand still runs); false: it runs again from its next cron time")
+    cron: str | None = Field(None, max_length=200, description="cron expression, local time")
+    params: PipelineParams | None = Field(None, description="parameters of the jobs it queues from now on (all of them: left-out fields take their defaults)")
+    tiling: Tiling | None = Field(None, description="tiling of the jobs it queues from now on; null: one tile")
+
+
 class Schedule(BaseModel):
     id: str
     inbox: str
     cron: str
     params: dict[str, Any]
     tiling: dict[str, Any] | None
+    paused: bool = Field(description="the clock skips a paused schedule (PATCH it with paused false to resume)")
     created_at: str | None
     last_run_at: str | None
-    next_run_at: str | None
+    next_run_at: str | None = Field(description="the next scan by the clock; null while paused")
 
 
 class RejectedFile(BaseModel):
@@ -244,9 +255,10 @@ def schedule_out(rec: dict) -> Schedule:
         cron=rec["cron"],
         params=rec.get("params") or {},
         tiling=rec.get("tiling"),
+        paused=bool(rec.get("paused")),
         created_at=_iso(rec.get("created_at")),
         last_run_at=_iso(rec.get("last_run_at"), local=True),
-        next_run_at=_iso(rec.get("next_run_at"), local=True),
+        next_run_at=None if rec.get("paused") else _iso(rec.get("next_run_at"), local=True),
     )
 
 
@@ -837,6 +849,15 @@ def create_app(settings: Settings) -> FastAPI:
     def get_schedule(schedule_id: str, tenant: TenantDep, store: StoreDep):
         return schedule_out(store.get_schedule(tenant["id"], schedule_id))
 
+    @v1.patch("/schedules/{schedule_id}", response_model=Schedule, tags=["schedules"], summary="Pause, resume or change a schedule")
+    def update_schedule(schedule_id: str, body: ScheduleUpdate, request: Request, tenant: TenantDep, store: StoreDep):
+        sched = store.get_schedule(tenant["id"], schedule_id)
+        rec = store.update_schedule(tenant["id"], schedule_id, schedule_changes(sched, body))
+        clock = request.app.state.clock
+        if clock is not None:
+            clock.wake()
+        return schedule_out(rec)
+
     @v1.delete("/schedules/{schedule_id}", status_code=204, tags=["schedules"], response_class=Response)
     def delete_schedule(schedule_id: str, tenant: TenantDep, store: StoreDep):
         store.delete_schedule(tenant["id"], schedule_id)
@@ -867,6 +888,38 @@ def _checked_tiling(params: PipelineParams, tiling: Tiling | None) -> dict | Non
     except ParameterError as exc:
         raise ParameterError(api_wording(str(exc))) from None
     return tiling.model_dump()
+
+
+def schedule_changes(sched: dict, body: ScheduleUpdate, *, now: datetime | None = None) -> dict[str, Any]:
+    """The store changes of a PATCH of ``sched``, checked as at creation (ParameterError:
+    422). A new cron, or a resume, starts from the next cron time after ``now``: runs
+    missed while paused are not made up."""
+    given = body.model_fields_set
+    changes: dict[str, Any] = {}
+    cron = sched["cron"]
+    if "cron" in given:
+        if body.cron is None:
+            raise ParameterError("cron: a schedule needs a cron expression")
+        cron = changes["cron"] = validate_cron(body.cron)
+    params = PipelineParams(**sched["params"])
+    if "params" in given:
+        if body.params is None:
+            raise ParameterError("params: give the parameters, or {} for the defaults")
+        params = body.params
+        changes["params"] = params.model_dump()
+    if "tiling" in given or "params" in given:
+        tiling = body.tiling if "tiling" in given else (Tiling(**sched["tiling"]) if sched["tiling"] else None)
+        changes["tiling"] = _checked_tiling(params, tiling)
+    if "paused" in given:
+        if body.paused is None:
+            raise ParameterError("paused: true or false")
+        changes["paused"] = body.paused
+    paused = changes.get("paused", bool(sched["paused"]))
+    if paused:
+        changes["next_run_at"] = None
+    elif "cron" in changes or bool(sched["paused"]):
+        changes["next_run_at"] = next_run_time(cron, now or datetime.now().astimezone()).timestamp()
+    return changes
 
 
 def _wake_runner(app: FastAPI) -> None:

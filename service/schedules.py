@@ -188,7 +188,7 @@ def check_inbox_use(inbox: Path, *, settings: Settings, store: Store, tenant_id:
         # two schedules on one inbox would each take every capture
         raise ParameterError(
             f"inbox {str(inbox)!r} already has schedule {sched['id']} (cron {sched['cron']!r}); "
-            "delete it first to change the cron, parameters or tiling (captures it took are not taken again)"
+            "change that one's cron, parameters or tiling instead (PATCH /v1/schedules/ID, 'orchard schedules update')"
         )
 
 
@@ -386,11 +386,13 @@ class ScheduleClock(threading.Thread):
         now = time.time() if now is None else now
         earliest = now + self.settings.schedule_poll_s
         for sched in self.store.list_schedules():
+            if sched["paused"]:
+                continue
             nxt = sched["next_run_at"]
             try:
                 if nxt is None:
                     nxt = next_run_time(sched["cron"], now).timestamp()
-                    self.store.set_schedule_times(sched["id"], last_run_at=None, next_run_at=nxt)
+                    self.store.set_schedule_times(sched["id"], cron=sched["cron"], last_run_at=None, next_run_at=nxt)
                 elif nxt <= now:
                     again = None
                     try:
@@ -406,7 +408,7 @@ class ScheduleClock(threading.Thread):
                     nxt = next_run_time(sched["cron"], now).timestamp()
                     if again is not None:
                         nxt = min(nxt, again)
-                    self.store.set_schedule_times(sched["id"], last_run_at=now, next_run_at=nxt)
+                    self.store.set_schedule_times(sched["id"], cron=sched["cron"], last_run_at=now, next_run_at=nxt)
             except ParameterError as exc:
                 log.warning("schedule %s has an invalid cron expression: %s", sched["id"], exc)
                 continue

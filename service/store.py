@@ -83,7 +83,8 @@ CREATE TABLE IF NOT EXISTS schedules (
     tiling TEXT,
     created_at REAL NOT NULL,
     last_run_at REAL,
-    next_run_at REAL
+    next_run_at REAL,
+    paused INTEGER NOT NULL DEFAULT 0
 );
 CREATE TABLE IF NOT EXISTS schedule_files (
     schedule_id TEXT NOT NULL,
@@ -136,15 +137,18 @@ class Store:
 
     def _migrate(self) -> None:
         """Bring a store written by an earlier version up to the schema (added columns)."""
+        self._add_column("jobs", "retry_at", "REAL")
+        self._add_column("schedules", "paused", "INTEGER NOT NULL DEFAULT 0")
 
-        def has_retry_at() -> bool:
-            return any(r["name"] == "retry_at" for r in self._con().execute("PRAGMA table_info(jobs)"))
+    def _add_column(self, table: str, column: str, decl: str) -> None:
+        def present() -> bool:
+            return any(r["name"] == column for r in self._con().execute(f"PRAGMA table_info({table})"))
 
-        if not has_retry_at():
+        if not present():
             try:
-                self._con().execute("ALTER TABLE jobs ADD COLUMN retry_at REAL")
+                self._con().execute(f"ALTER TABLE {table} ADD COLUMN {column} {decl}")
             except sqlite3.OperationalError:  # another process added it meanwhile
-                if not has_retry_at():
+                if not present():
                     raise
 
     # -- connections and transactions ------------------------------------------------
@@ -471,22 +475,41 @@ class Store:
                 raise NotFoundError(f"no schedule {schedule_id!r}; list yours with GET /v1/schedules")
             con.execute("DELETE FROM schedule_files WHERE schedule_id = ?", (schedule_id,))
 
-    def set_schedule_times(self, schedule_id: str, *, last_run_at: float | None, next_run_at: float | None) -> None:
-        with self._tx() as con:
-            if last_run_at is None:
-                con.execute("UPDATE schedules SET next_run_at = ? WHERE id = ?", (next_run_at, schedule_id))
-            else:
-                con.execute(
-                    "UPDATE schedules SET last_run_at = ?, next_run_at = ? WHERE id = ?", (last_run_at, next_run_at, schedule_id)
-                )
-
-    def bring_schedule_forward(self, schedule_id: str, at: float) -> None:
-        """Run a schedule at ``at`` if its next run is later (or not set)."""
+    def set_schedule_times(self, schedule_id: str, *, cron: str, last_run_at: float | None, next_run_at: float | None) -> None:
+        """Record a run and the next one, computed from ``cron``: left alone if the
+        schedule was paused or given another cron meanwhile (that change set its own)."""
         with self._tx() as con:
             con.execute(
-                "UPDATE schedules SET next_run_at = ? WHERE id = ? AND (next_run_at IS NULL OR next_run_at > ?)",
+                "UPDATE schedules SET last_run_at = COALESCE(?, last_run_at), next_run_at = ? "
+                "WHERE id = ? AND cron = ? AND paused = 0",
+                (last_run_at, next_run_at, schedule_id, cron),
+            )
+
+    def bring_schedule_forward(self, schedule_id: str, at: float) -> None:
+        """Run a schedule at ``at`` if its next run is later (or not set) and it is not paused."""
+        with self._tx() as con:
+            con.execute(
+                "UPDATE schedules SET next_run_at = ? WHERE id = ? AND paused = 0 AND (next_run_at IS NULL OR next_run_at > ?)",
                 (at, schedule_id, at),
             )
+
+    def update_schedule(self, tenant_id: str | None, schedule_id: str, changes: dict[str, Any]) -> dict[str, Any]:
+        """Change a schedule's ``cron``, ``params``, ``tiling``, ``paused`` and
+        ``next_run_at`` (the keys given; checked by the caller) in one transaction."""
+        allowed = {"cron", "params", "tiling", "paused", "next_run_at"}
+        if not changes.keys() <= allowed:
+            raise ValueError(f"not a schedule setting: {sorted(changes.keys() - allowed)}")
+        values = {k: (json.dumps(v) if k in ("params", "tiling") and v is not None else v) for k, v in changes.items()}
+        if "paused" in values:
+            values["paused"] = int(bool(values["paused"]))
+        sets = ", ".join(f"{k} = ?" for k in values) or "id = id"
+        where, args = "id = ?", [schedule_id]
+        if tenant_id is not None:
+            where, args = "id = ? AND tenant_id = ?", [schedule_id, tenant_id]
+        with self._tx() as con:
+            if con.execute(f"UPDATE schedules SET {sets} WHERE {where}", [*values.values(), *args]).rowcount == 0:
+                raise NotFoundError(f"no schedule {schedule_id!r}; list yours with GET /v1/schedules")
+        return self.get_schedule(tenant_id, schedule_id)
 
     def known_hash(self, path: str, state: tuple[int, int, int, int]) -> str | None:
         """The sha256 of an inbox file hashed before and unchanged since (``state``: size,

@@ -1,4 +1,4 @@
-"""``orchard schedules``: list, create, run and delete overnight inbox schedules."""
+"""``orchard schedules``: list, create, change, pause, run and delete overnight inbox schedules."""
 
 from __future__ import annotations
 
@@ -10,7 +10,7 @@ from pathlib import Path
 from service.commands.options import add_pipeline_options, pipeline_params_from_args
 
 NAME = "schedules"
-HELP = "List, create, run or delete overnight schedules (an inbox folder scanned on a cron schedule)."
+HELP = "List, create, change, pause, resume, run or delete overnight schedules (an inbox folder scanned on a cron schedule)."
 
 
 def _data_dir(p: argparse.ArgumentParser) -> None:
@@ -32,6 +32,18 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     c.add_argument("--buffer", type=float, default=None, help="tile overlap [m] (default: the parameters' reach)")
     _data_dir(c)
     add_pipeline_options(c)
+    u = sub.add_parser("update", help="change a schedule's cron or tiling (what is not given stays)")
+    u.add_argument("schedule_id")
+    u.add_argument("--cron", default=None, help="new cron expression in local time")
+    u.add_argument("--tile-size", type=float, default=None, help="process in square tiles of this size [m]")
+    u.add_argument("--buffer", type=float, default=None, help="tile overlap [m] (default: the parameters' reach)")
+    u.add_argument("--untiled", action="store_true", help="process each capture as one tile")
+    _data_dir(u)
+    for action, what in (("pause", "the clock skips it until it is resumed (a scan by hand still runs)"),
+                         ("resume", "run it again from its next cron time (runs missed while paused are not made up)")):
+        a = sub.add_parser(action, help=f"{action} a schedule: {what}")
+        a.add_argument("schedule_id")
+        _data_dir(a)
     r = sub.add_parser("run", help="scan a schedule's inbox now and queue jobs for new captures")
     r.add_argument("schedule_id")
     _data_dir(r)
@@ -59,11 +71,11 @@ def run(args: argparse.Namespace) -> int:
             tenant_id = store.tenant_by_name(args.tenant)["id"] if args.tenant else None
             rows = store.list_schedules(tenant_id)
             if args.json:
-                print(json.dumps([{**s, "tenant": tenants.get(s["tenant_id"])} for s in rows], indent=2))
+                print(json.dumps([{**s, "paused": bool(s["paused"]), "tenant": tenants.get(s["tenant_id"])} for s in rows], indent=2))
             else:
                 print("id\ttenant\tcron\tnext run\tinbox")
                 for s in rows:
-                    print(f"{s['id']}\t{tenants.get(s['tenant_id'])}\t{s['cron']}\t{_when(s['next_run_at'])}\t{s['inbox']}")
+                    print(f"{s['id']}\t{tenants.get(s['tenant_id'])}\t{s['cron']}\t{'paused' if s['paused'] else _when(s['next_run_at'])}\t{s['inbox']}")
         elif args.action == "create":
             cron = validate_cron(args.cron)
             inbox = validate_inbox(args.inbox, root=settings.inbox_root, base=Path.cwd())
@@ -85,6 +97,14 @@ def run(args: argparse.Namespace) -> int:
                 next_run_at=next_run_time(cron, datetime.now().astimezone()).timestamp(),
             )
             print(rec["id"])
+        elif args.action in ("update", "pause", "resume"):
+            from service.app import ScheduleUpdate, schedule_changes
+
+            sched = store.get_schedule(None, args.schedule_id)
+            body = _update_body(args) if args.action == "update" else {"paused": args.action == "pause"}
+            rec = store.update_schedule(None, sched["id"], schedule_changes(sched, ScheduleUpdate(**body)))
+            state = "paused" if rec["paused"] else f"next run {_when(rec['next_run_at'])}"
+            print(f"{rec['id']}\t{rec['cron']}\t{state}")
         elif args.action == "run":
             sched = store.get_schedule(None, args.schedule_id)
             res = run_schedule(store, settings, sched)
@@ -96,3 +116,23 @@ def run(args: argparse.Namespace) -> int:
     finally:
         store.close()
     return 0
+
+
+def _update_body(args: argparse.Namespace) -> dict:
+    """The PATCH body of ``orchard schedules update``'s options."""
+    from pipeline.errors import ParameterError
+
+    body: dict = {}
+    if args.cron is not None:
+        body["cron"] = args.cron
+    if args.untiled and (args.tile_size is not None or args.buffer is not None):
+        raise ParameterError("--untiled takes no --tile-size or --buffer")
+    if args.untiled:
+        body["tiling"] = None
+    elif args.tile_size is not None:
+        body["tiling"] = {"tile_size": args.tile_size, "buffer": args.buffer}
+    elif args.buffer is not None:
+        raise ParameterError("--buffer needs --tile-size")
+    if not body:
+        raise ParameterError("nothing to change: give --cron, --tile-size (with --buffer) or --untiled")
+    return body

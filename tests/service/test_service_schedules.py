@@ -597,3 +597,134 @@ def test_links_in_an_inbox_are_not_followed(local, tmp_path):
     sub.symlink_to(elsewhere)
     with pytest.raises(InputError, match="now a link"):
         run_schedule(store, settings, sched2)
+
+
+def test_a_paused_schedule_is_skipped_by_the_clock_and_resumes_at_its_next_cron_time(local):
+    from service.app import ScheduleUpdate, schedule_changes
+
+    settings, store, tenant, inbox = local
+    write_las(inbox / "a.laz", 500, seed=1)
+    sched = _schedule(store, tenant, inbox)
+    clock = ScheduleClock(store, settings)
+    now = time.time()
+    clock.tick(now)
+    due = store.get_schedule(None, sched["id"])["next_run_at"]
+    sched = store.get_schedule(None, sched["id"])
+    store.update_schedule(tenant["id"], sched["id"], schedule_changes(sched, ScheduleUpdate(paused=True)))
+    paused = store.get_schedule(None, sched["id"])
+    assert paused["paused"] == 1 and paused["next_run_at"] is None
+    for night in range(3):  # three nights pass: nothing is scanned, nothing is set
+        clock.tick(due + 1 + night * 86400)
+    assert store.list_jobs(tenant["id"]) == []
+    assert store.get_schedule(None, sched["id"])["next_run_at"] is None
+    # a scan by hand still runs, and does not bring a paused schedule forward
+    assert len(run_schedule(store, settings, paused)["jobs"]) == 1
+    assert store.get_schedule(None, sched["id"])["next_run_at"] is None
+    # resumed three nights later: from the next cron time, the missed nights not made up
+    later = datetime.fromtimestamp(due + 3 * 86400 + 3600).astimezone()
+    changes = schedule_changes(paused, ScheduleUpdate(paused=False), now=later)
+    assert changes == {"paused": False, "next_run_at": next_run_time("0 1 * * *", later).timestamp()}
+    store.update_schedule(tenant["id"], sched["id"], changes)
+    rec = store.get_schedule(None, sched["id"])
+    assert rec["paused"] == 0 and rec["next_run_at"] == changes["next_run_at"]
+
+
+def test_the_clock_does_not_undo_a_pause_or_a_new_cron_made_while_it_ran(local):
+    # the clock computes the next run from the cron it read; a pause or cron change
+    # stored meanwhile must win
+    settings, store, tenant, inbox = local
+    sched = _schedule(store, tenant, inbox)
+    store.update_schedule(tenant["id"], sched["id"], {"paused": True, "next_run_at": None})
+    store.set_schedule_times(sched["id"], cron=sched["cron"], last_run_at=1.0, next_run_at=2.0)
+    assert store.get_schedule(None, sched["id"])["next_run_at"] is None
+    store.update_schedule(tenant["id"], sched["id"], {"paused": False, "cron": "0 3 * * *", "next_run_at": 5.0})
+    store.set_schedule_times(sched["id"], cron="0 1 * * *", last_run_at=1.0, next_run_at=2.0)
+    assert store.get_schedule(None, sched["id"])["next_run_at"] == 5.0
+    store.set_schedule_times(sched["id"], cron="0 3 * * *", last_run_at=1.0, next_run_at=7.0)
+    rec = store.get_schedule(None, sched["id"])
+    assert rec["next_run_at"] == 7.0 and rec["last_run_at"] == 1.0
+
+
+def test_a_store_from_before_pausing_gains_the_column(tmp_path):
+    import sqlite3
+
+    path = tmp_path / "old.sqlite"
+    Store(path).close()
+    con = sqlite3.connect(path)
+    con.execute("ALTER TABLE schedules DROP COLUMN paused")
+    con.execute("INSERT INTO tenants (id, name, created_at) VALUES ('t', 'farm', 0)")
+    con.execute("INSERT INTO schedules (id, tenant_id, inbox, cron, params, created_at) VALUES ('s', 't', '/x', '0 1 * * *', '{}', 0)")
+    con.commit()
+    con.close()
+    store = Store(path)
+    assert store.get_schedule(None, "s")["paused"] == 0
+    store.close()
+
+
+def test_api_pause_resume_and_change_a_schedule(client_a, client_b, api_server):
+    inbox = tenant_inbox(api_server.data_dir, "farm-a", "patch-me")
+    sched = client_a.post("/v1/schedules", json={"inbox": str(inbox)}).json()
+    assert sched["paused"] is False and sched["next_run_at"]
+    url = f"/v1/schedules/{sched['id']}"
+    r = client_a.patch(url, json={"paused": True})
+    assert r.status_code == 200, r.text
+    assert r.json()["paused"] is True and r.json()["next_run_at"] is None
+    assert client_a.get(url).json()["paused"] is True
+    # another farm cannot see it, let alone change it
+    assert client_b.patch(url, json={"paused": False}).status_code == 404
+    assert client_a.get(url).json()["paused"] is True
+    r = client_a.patch(url, json={"paused": False, "cron": "30 2 * * 6"})
+    got = r.json()
+    assert r.status_code == 200 and got["paused"] is False and got["cron"] == "30 2 * * 6"
+    nxt = datetime.fromisoformat(got["next_run_at"])
+    assert (nxt.weekday(), nxt.hour, nxt.minute) == (5, 2, 30)
+    # tiling and parameters: checked as at creation, and nothing stored when refused
+    r = client_a.patch(url, json={"tiling": {"tile_size": 30, "buffer": 7}, "params": {"trunks": {"min_tree_height": 1.5}}})
+    assert r.status_code == 200, r.text
+    assert r.json()["tiling"] == {"tile_size": 30, "buffer": 7} and r.json()["params"]["trunks"]["min_tree_height"] == 1.5
+    for body, fragment in (
+        ({"tiling": {"tile_size": 10, "buffer": 1}}, "tiling.buffer"),
+        ({"params": {"segment": {"max_crown_radius": 10}}}, "tiling.buffer"),  # its reach outgrows the stored buffer
+        ({"cron": "0 0 31 2 *"}, "never matches"),
+        ({"cron": None}, "cron"),
+        ({"paused": None}, "paused"),
+        ({"inbox": "/elsewhere"}, "inbox"),
+    ):
+        r = client_a.patch(url, json=body)
+        assert r.status_code == 422, (body, r.text)
+        assert fragment in r.json()["detail"], (body, r.text)
+    kept = client_a.get(url).json()
+    assert kept["cron"] == "30 2 * * 6" and kept["tiling"]["tile_size"] == 30 and kept["paused"] is False
+    r = client_a.patch(url, json={"tiling": None})
+    assert r.status_code == 200 and r.json()["tiling"] is None
+    assert client_a.patch("/v1/schedules/nope", json={"paused": True}).status_code == 404
+    assert client_a.delete(url).status_code == 204
+
+
+def test_cli_schedules_pause_resume_and_update(tmp_path, capsys):
+    from service.cli import main
+
+    data, inbox = tmp_path / "data", tmp_path / "inbox"
+    inbox.mkdir()
+    assert main(["schedules", "create", "--tenant", "farm-x", "--inbox", str(inbox), "--data-dir", str(data)]) == 0
+    sid = capsys.readouterr().out.strip()
+    assert main(["schedules", "pause", sid, "--data-dir", str(data)]) == 0
+    assert "paused" in capsys.readouterr().out
+    assert main(["schedules", "list", "--data-dir", str(data)]) == 0
+    assert f"{sid}\tfarm-x\t0 1 * * *\tpaused\t" in capsys.readouterr().out
+    assert main(["schedules", "resume", sid, "--data-dir", str(data)]) == 0
+    assert "next run" in capsys.readouterr().out
+    assert main(["schedules", "update", sid, "--cron", "15 3 * * *", "--tile-size", "40", "--data-dir", str(data)]) == 0
+    capsys.readouterr()
+    store = Store(data / "orchard.sqlite")
+    rec = store.get_schedule(None, sid)
+    store.close()
+    assert rec["cron"] == "15 3 * * *" and rec["tiling"] == {"tile_size": 40.0, "buffer": None} and rec["paused"] == 0
+    for args, fragment in ((["--cron", "61 * * * *"], "minute field"), ([], "nothing to change"),
+                           (["--untiled", "--tile-size", "5"], "--untiled"), (["--buffer", "9"], "--buffer needs --tile-size"),
+                           (["--tile-size", "10", "--buffer", "1"], "buffer")):
+        assert main(["schedules", "update", sid, *args, "--data-dir", str(data)]) == 2, args
+        err = capsys.readouterr().err
+        assert fragment in err and "Traceback" not in err, (args, err)
+    assert main(["schedules", "update", sid, "--untiled", "--data-dir", str(data)]) == 0
+    assert main(["schedules", "pause", "nope", "--data-dir", str(data)]) == 3
