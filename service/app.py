@@ -35,7 +35,7 @@ from service import report as reports
 from service import scratch
 from service.auth import authenticate
 from service.errors import ShuttingDownError, StalledUploadError, TooLargeError, api_wording, install_error_handlers
-from service.runner import Runner, drop_work, hold_runner_lock, job_dir
+from service.runner import Runner, drop_work, hold_runner_lock, job_block_name, job_dir
 from service.schedules import (
     DEFAULT_CRON,
     ScheduleClock,
@@ -101,6 +101,8 @@ class Job(BaseModel):
     id: str
     block_id: str
     schedule_id: str | None
+    capture: str | None = Field(None, description="name of the inbox file its schedule took the block from (the block's own "
+                                "filename is that of its first upload or capture)")
     state: Literal["queued", "running", "done", "failed", "cancelled"]
     tiles_done: int
     tiles_total: int
@@ -227,6 +229,7 @@ def job_out(rec: dict) -> Job:
         id=rec["id"],
         block_id=rec["block_id"],
         schedule_id=rec.get("schedule_id"),
+        capture=rec.get("capture"),
         state=rec["state"],
         tiles_done=rec["tiles_done"],
         tiles_total=rec["tiles_total"],
@@ -548,7 +551,7 @@ def ensure_report(store: Store, settings: Settings, job: dict) -> Path:
     rows_total = outcome.get("n_trees")
     finished = job.get("finished_at")
     summary = {
-        "Block": block.get("filename") or block["id"],
+        "Block": job_block_name(job, block) or block["id"],
         "Job": job["id"],
         "Finished": datetime.fromtimestamp(finished, timezone.utc).strftime("%Y-%m-%d %H:%M UTC") if finished else "",
         "Points": str((block.get("info") or {}).get("n_points", "")),
@@ -564,7 +567,7 @@ def ensure_report(store: Store, settings: Settings, job: dict) -> Path:
         trees_parquet=_require(trees, "trees.parquet"),
         points_parquet=_require(points, "points.parquet"),
         out_dir=out,
-        title=f"Orchard report — {block.get('filename') or block['id']}",
+        title=f"Orchard report — {job_block_name(job, block) or block['id']}",
         summary=summary,
         warning=warning,
     )

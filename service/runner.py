@@ -73,6 +73,12 @@ def hold_runner_lock(data_dir: Path) -> IO:
     return fh
 
 
+def job_block_name(job: dict, block: dict | None) -> str | None:
+    """How a job names its block to the farm: the inbox file its schedule took it from,
+    else the block's file name (its first upload's); None if neither is known."""
+    return job.get("capture") or (block or {}).get("filename")
+
+
 def job_dir(settings: Settings, job_id: str) -> Path:
     """Where a job's results live: ``data_dir/jobs/<job id>/``."""
     return settings.jobs_dir / job_id
@@ -333,7 +339,7 @@ class Runner(threading.Thread):
                 if type(exc).__name__ == "ClusterLost":
                     retry_advice = "; start dask workers and submit the job again"
                 if block is not None:
-                    message = api_wording(message, block_path=block["path"], filename=block.get("filename"))
+                    message = api_wording(message, block_path=block["path"], filename=job_block_name(job, block))
             elif isinstance(exc, (KeyboardInterrupt, SystemExit)):
                 raise
             elif isinstance(exc, ClusterUnavailable):

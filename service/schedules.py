@@ -346,7 +346,7 @@ def _take_capture(
         return "rejected", str(exc)
     finally:
         tmp.unlink(missing_ok=True)
-    job = store.create_scheduled_job(schedule=schedule, block_id=block["id"], sha256=sha, path=str(path))
+    job = store.create_scheduled_job(schedule=schedule, block_id=block["id"], sha256=sha, path=str(path), capture=name)
     if job is None:  # another scan of this inbox (another process) took it first
         return "skipped", None
     return "job", job["id"]

@@ -69,7 +69,8 @@ CREATE TABLE IF NOT EXISTS jobs (
     retry_at REAL,
     created_at REAL NOT NULL,
     started_at REAL,
-    finished_at REAL
+    finished_at REAL,
+    capture TEXT
 );
 CREATE INDEX IF NOT EXISTS jobs_by_state ON jobs(state, created_at);
 CREATE INDEX IF NOT EXISTS jobs_by_tenant ON jobs(tenant_id, created_at);
@@ -138,6 +139,7 @@ class Store:
     def _migrate(self) -> None:
         """Bring a store written by an earlier version up to the schema (added columns)."""
         self._add_column("jobs", "retry_at", "REAL")
+        self._add_column("jobs", "capture", "TEXT")
         self._add_column("schedules", "paused", "INTEGER NOT NULL DEFAULT 0")
 
     def _add_column(self, table: str, column: str, decl: str) -> None:
@@ -548,11 +550,13 @@ class Store:
         return True
 
     def create_scheduled_job(
-        self, *, schedule: dict[str, Any], block_id: str, sha256: str, path: str
+        self, *, schedule: dict[str, Any], block_id: str, sha256: str, path: str, capture: str | None = None
     ) -> dict[str, Any] | None:
         """Queue the job of a capture a schedule found and record the capture as handled,
         in one transaction; None (nothing queued) if the capture was handled already,
-        e.g. by a scan of the same inbox running at the same moment in another process."""
+        e.g. by a scan of the same inbox running at the same moment in another process.
+        ``capture`` is the file's name as shown to the farm (the block may be an earlier
+        upload of the same bytes under another name)."""
         jid = new_id()
         with self._tx() as con:
             try:
@@ -563,10 +567,10 @@ class Store:
             except sqlite3.IntegrityError:
                 return None
             con.execute(
-                "INSERT INTO jobs (id, tenant_id, block_id, schedule_id, params, tiling, state, created_at) "
-                "VALUES (?, ?, ?, ?, ?, ?, 'queued', ?)",
+                "INSERT INTO jobs (id, tenant_id, block_id, schedule_id, params, tiling, state, created_at, capture) "
+                "VALUES (?, ?, ?, ?, ?, ?, 'queued', ?, ?)",
                 (jid, schedule["tenant_id"], block_id, schedule["id"], json.dumps(schedule["params"]),
-                 json.dumps(schedule["tiling"]) if schedule["tiling"] else None, time.time()),
+                 json.dumps(schedule["tiling"]) if schedule["tiling"] else None, time.time(), capture),
             )
         return self.get_job(None, jid)
 

@@ -150,3 +150,16 @@ def test_a_lost_map_is_drawn_again_and_a_lost_block_is_a_clear_404(finished_job)
     with pytest.raises(NotFoundError, match="uploaded block of this job is missing on the server") as err:
         ensure_report(store, settings, job)
     assert stored.name not in str(err.value)
+
+
+def test_a_scheduled_jobs_report_names_its_capture(finished_job):
+    # the same bytes were uploaded before as "test-upload.las": the night's report is
+    # about the capture the schedule took
+    from service.app import ensure_report, job_out
+
+    settings, store, job = finished_job("test-upload.las", {"n_trees": 2})
+    store._con().execute("UPDATE jobs SET capture = 'night-7.laz' WHERE id = ?", (job["id"],))
+    job = store.get_job(None, job["id"])
+    assert job_out(job).capture == "night-7.laz"
+    text = ensure_report(store, settings, job).read_text()
+    assert "Orchard report — night-7.laz" in text and "test-upload.las" not in text

@@ -264,3 +264,24 @@ def test_a_job_whose_outcome_cannot_be_recorded_is_not_left_running(env, monkeyp
         assert rec["state"] == "failed" and "RuntimeError" in rec["error"]
     finally:
         runner.stop()
+
+
+def test_a_scheduled_jobs_error_names_the_capture_not_an_earlier_upload_of_the_same_bytes(env, monkeypatch):
+    # the block b.laz was first uploaded as "b.laz"; a schedule later found the same
+    # bytes as "north-row-2.laz": that job's messages speak of the capture
+    settings, store, tenant, block = env
+
+    def fake(spec, **kw):
+        raise NoTreesError(f"{spec.input_path}: no trees found in 100 points")
+
+    monkeypatch.setattr(workers_job, "run_job", fake)
+    sched = store.create_schedule(tenant_id=tenant["id"], inbox="/in", cron="0 1 * * *", params={}, tiling=None, next_run_at=None)
+    store.create_scheduled_job(schedule=sched, block_id=block["id"], sha256=block["sha256"], path="/in/north-row-2.laz",
+                               capture="north-row-2.laz")
+    job = store.claim_next_job()
+    assert job["capture"] == "north-row-2.laz"
+    failed = Runner(store, settings, client_factory=lambda: None).run_job(job)
+    assert failed["error"] == "north-row-2.laz: no trees found in 100 points"
+    # an uploaded job's still names the upload
+    uploaded = _queue(store, tenant, block)
+    assert Runner(store, settings, client_factory=lambda: None).run_job(uploaded)["error"] == "b.laz: no trees found in 100 points"

@@ -450,9 +450,12 @@ def test_api_schedules_run_now(client_a, api_server):
     assert sched["id"] in [s["id"] for s in client_a.get("/v1/schedules").json()]
     run = client_a.post(f"/v1/schedules/{sched['id']}/run").json()
     assert len(run["jobs"]) == 2
+    captures = set()
     for jid in run["jobs"]:
         job = client_a.get(f"/v1/jobs/{jid}").json()
         assert job["schedule_id"] == sched["id"] and job["tiling"]["tile_size"] == 20
+        captures.add(job["capture"])
+    assert captures == {"one.laz", "two.las"}
     assert client_a.post(f"/v1/schedules/{sched['id']}/run").json()["jobs"] == []
     listed = client_a.get("/v1/jobs", params={"schedule_id": sched["id"]}).json()
     assert sorted(j["id"] for j in listed) == sorted(run["jobs"])
