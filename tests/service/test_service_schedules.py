@@ -635,7 +635,7 @@ def test_a_paused_schedule_is_skipped_by_the_clock_and_resumes_at_its_next_cron_
 def test_the_clock_does_not_undo_a_pause_or_a_new_cron_made_while_it_ran(local):
     # the clock computes the next run from the cron it read; a pause or cron change
     # stored meanwhile must win
-    settings, store, tenant, inbox = local
+    _, store, tenant, inbox = local
     sched = _schedule(store, tenant, inbox)
     store.update_schedule(tenant["id"], sched["id"], {"paused": True, "next_run_at": None})
     store.set_schedule_times(sched["id"], cron=sched["cron"], last_run_at=1.0, next_run_at=2.0)
