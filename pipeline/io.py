@@ -63,6 +63,11 @@ class BlockInfo:
         From the WKT VLR or the GeoTIFF keys; None when absent or not understood.
     origin : (3,) float
         Local origin = ``floor(mins)``; local coordinates are ``xyz - origin``.
+    seekable : bool
+        Whether a range of points can be read without decoding the points before it
+        (:func:`read_raw_range`): LAS, and LAZ with fixed-size chunks and a chunk table.
+        lazrs 0.8 decodes wrong points after a seek in a LAZ file of variable-size
+        chunks (as COPC files are stored), so those are read from the start.
     """
 
     path: str
@@ -76,6 +81,7 @@ class BlockInfo:
     maxs: tuple[float, float, float]
     crs_wkt: str | None
     origin: tuple[float, float, float]
+    seekable: bool = True
 
 
 def _fail(path, what: str) -> InputError:
@@ -92,16 +98,17 @@ def _one_line(exc: BaseException) -> str:
 MAX_LAZ_POINTS_PER_BYTE = 1000
 
 
-def _laz_points_held(p: Path, header, table: int, n_bytes: int) -> int:
+def _laz_points_held(p: Path, header, table: int, n_bytes: int) -> tuple[int, bool]:
     """The most points the compressed data of a LAZ file can hold: from its chunk table
     (fixed-size chunks: each holds at most the chunk size), or for a file without one,
     a bound from its size. A forged point count would otherwise have the tiler plan
-    work for points that are not there (1e12 points in a 0.5 MB file)."""
+    work for points that are not there (1e12 points in a 0.5 MB file). Also whether
+    the file is seekable (see :class:`BlockInfo`)."""
     import lazrs
 
     vlr = next((v for v in header.vlrs if v.user_id == "laszip encoded" and v.record_id == 22204), None)
     if table == -1 or vlr is None:
-        return max(1, n_bytes) * MAX_LAZ_POINTS_PER_BYTE
+        return max(1, n_bytes) * MAX_LAZ_POINTS_PER_BYTE, False
     try:
         laz_vlr = lazrs.LazVlr(vlr.record_data)
         with open(p, "rb") as f:
@@ -110,8 +117,8 @@ def _laz_points_held(p: Path, header, table: int, n_bytes: int) -> int:
     except Exception as exc:  # lazrs raises its own error types for a broken table
         raise _fail(p, f"corrupt: its LAZ chunk table cannot be read ({_one_line(exc)})") from None
     if laz_vlr.uses_variable_size_chunks():
-        return sum(int(c[0]) for c in chunks)
-    return len(chunks) * int(laz_vlr.chunk_size())
+        return sum(int(c[0]) for c in chunks), False
+    return len(chunks) * int(laz_vlr.chunk_size()), True
 
 
 def read_info(path) -> BlockInfo:
@@ -163,6 +170,7 @@ def read_info(path) -> BlockInfo:
     if n == 0:
         raise _fail(p, "empty: the header says it holds no points")
     compressed = bool(header.are_points_compressed)
+    seekable = True
     start = int(header.offset_to_point_data)
     if not compressed:
         need = start + n * int(header.point_format.size)
@@ -178,7 +186,7 @@ def read_info(path) -> BlockInfo:
         (table,) = struct.unpack("<q", raw)
         if table != -1 and not (start < table <= size - 8):
             raise _fail(p, "truncated: the LAZ chunk table lies beyond the end of the file")
-        most = _laz_points_held(p, header, table, size - start)
+        most, seekable = _laz_points_held(p, header, table, size - start)
         if n > most:
             raise _fail(p, f"corrupt: the header announces {n:,} points but its compressed data holds at most {most:,}")
     scales = tuple(float(s) for s in header.scales)
@@ -213,6 +221,7 @@ def read_info(path) -> BlockInfo:
         maxs=maxs,
         crs_wkt=crs_wkt,
         origin=origin,
+        seekable=seekable,
     )
 
 
@@ -355,7 +364,7 @@ def read_raw_range(path, start: int, count: int, *, info: BlockInfo | None = Non
     """The stored integer X, Y, Z of points ``[start, start + count)``, shape (m, 3) int32.
 
     Seeks in the file (LAZ chunk table), so workers can each read their own range of one
-    block in parallel.
+    block in parallel; a file that is not ``info.seekable`` is decoded from its start.
 
     Raises
     ------
@@ -366,7 +375,15 @@ def read_raw_range(path, start: int, count: int, *, info: BlockInfo | None = Non
     count = max(0, min(int(count), info.n_points - int(start)))
     try:
         with laspy.open(info.path, read_evlrs=False, decompression_selection=_XYZ_ONLY) as reader:
-            reader.seek(int(start))
+            if info.seekable:
+                reader.seek(int(start))
+            else:  # decode and drop the points before the range
+                skip = int(start)
+                while skip > 0:
+                    got = len(reader.read_points(min(skip, 1_000_000)))
+                    if got == 0:
+                        break
+                    skip -= got
             arr = reader.read_points(count).array
     except Exception as exc:
         raise _fail(info.path, f"corrupt or truncated point data after point {start} ({_one_line(exc)})") from None

@@ -150,8 +150,9 @@ def tile_block(
         return tile_block_pdal(info, grid, store)
     store.remove("tiles")
     counts = {}
-    if client is not None and info.n_points > chunk_points:
+    if client is not None and info.n_points > chunk_points and info.seekable:
         # each worker reads and splits its own range of the file: tiling runs in parallel
+        # (a LAZ of variable-size chunks cannot be entered in the middle: read in one pass)
         starts = list(range(0, info.n_points, int(chunk_points)))
         futures = [
             client.submit(tile_range, info, grid, store, start, int(chunk_points), key=f"tile-range-{start}-{store.url}", pure=False)
