@@ -122,6 +122,28 @@ class JobSpec:
         self.out_dir = os.path.abspath(os.fspath(self.out_dir))
         if self.work_dir is not None:
             self.work_dir = absolute_url(self.work_dir)
+        check_job_paths(self.input_path, self.out_dir, self.work_dir)
+
+
+def check_job_paths(input_path: str, out_dir: str, work_dir: str | None) -> None:
+    """ParameterError when the outputs would destroy the input or be destroyed: an input
+    lying in the output folder under an output's name is replaced (or deleted, as an
+    earlier run's ``labelled.laz``), and outputs inside the work folder are deleted with
+    it when the job is done (the work store removes its ``results``, ``tiles``...)."""
+    out = Path(out_dir).resolve()
+    source = Path(input_path).resolve()
+    if source.parent == out and source.name in OUTPUT_NAMES:
+        raise ParameterError(
+            f"the input {source.name} lies in the output folder {out_dir} under the name of an output, "
+            "which the run replaces: choose another --out"
+        )
+    if work_dir is not None and (work_dir.startswith("file://") or "://" not in work_dir):
+        work = Path(work_dir.removeprefix("file://")).resolve()
+        if out == work or work in out.parents:
+            raise ParameterError(
+                f"--out {out_dir} lies inside --work {work_dir}, which is deleted when the job is done: "
+                "put the outputs elsewhere"
+            )
 
 
 @dataclass
@@ -874,6 +896,8 @@ def _finish_job(store: WorkStore, out_dir: str | None) -> JobOutcome:
     t0 = time.perf_counter()
     record = store.get_json(JOB_KEY)
     if out_dir is not None:
+        out_dir = os.path.abspath(out_dir)
+        check_job_paths(record["input_path"], out_dir, store.url)
         record["out_dir"] = out_dir
     index = store.get_json(INDEX_KEY)
     summaries, missing = [], []

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import os
+import shutil
 import signal
 import struct
 import subprocess
@@ -12,6 +13,7 @@ from pathlib import Path
 
 import laspy
 import numpy as np
+
 import pyarrow.parquet as pq
 import pytest
 
@@ -197,6 +199,33 @@ def test_unusable_output_folder_fails_before_any_work(small_block, tmp_path, cap
         assert code == 2 and len(err.strip().splitlines()) == 1, err
         assert words in err and "dask dashboard" not in err  # refused before a cluster starts
     assert a_file.read_text() == "x"
+
+
+def test_outputs_that_would_destroy_the_input_or_be_deleted_are_refused(small_block, tmp_path, capsys):
+    # --out inside --work: printed "4 trees -> wr/results", exit 0, then the work store
+    # deleted its results folder with the outputs; an input named labelled.laz in --out
+    # was deleted as an earlier run's output (or overwritten with --labelled-laz)
+    work = tmp_path / "wr"
+    for out in (work / "results", work, work / "x" / "y"):
+        code, _, err = _run(capsys, small_block, "--out", out, "--tile-size", 12, "--work", work)
+        _assert_clean_failure(code, err, out)
+        assert "lies inside --work" in err and "dask dashboard" not in err
+    folder = tmp_path / "again"
+    folder.mkdir()
+    for name in ("labelled.laz", "points.parquet"):
+        source = folder / name
+        shutil.copy(small_block, source)
+        for extra in ([], ["--labelled-laz"], ["--tile-size", "12"]):
+            code, _, err = _run(capsys, source, "--out", folder, *extra)
+            assert code == 2 and "under the name of an output" in err and "Traceback" not in err, err
+            assert source.read_bytes() == small_block.read_bytes()
+        source.unlink()
+    assert sorted(p.name for p in folder.iterdir()) == []
+    # an input in the output folder under a name of its own is fine
+    shutil.copy(small_block, folder / "block.laz")
+    code, _, err = _run(capsys, folder / "block.laz", "--out", folder, "--labelled-laz")
+    assert code == 0, err
+    assert sorted(p.name for p in folder.iterdir()) == ["block.laz", "labelled.laz", "points.parquet", "trees.parquet"]
 
 
 @pytest.mark.parametrize("argv", [["--buffer", "nan"], ["--buffer", "-1"], ["--buffer", "20"]])
