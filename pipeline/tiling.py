@@ -212,10 +212,16 @@ def plan_grid(
     gx, gy = (float(v) for v in grid_origin)
     if not (math.isfinite(gx) and math.isfinite(gy)) or max(abs(gx), abs(gy)) > MAX_ORIGIN:
         raise ParameterError(f"grid origin must be finite and within {MAX_ORIGIN:g} m of 0, not {tuple(grid_origin)}")
-    spans = [(float(maxs[d]) - min(float(mins[d]), (gx, gy)[d])) / s + 2.0 for d in range(2)]
+    spans = [(float(maxs[d]) - float(mins[d])) / s + 2.0 for d in range(2)]
     if spans[0] * spans[1] > max_tiles:  # before any cell number is cast to an integer
         raise ParameterError(
             f"tile size {s:g} m gives more than {max_tiles} tiles over the block; use a larger --tile-size"
+        )
+    far = max(abs(float(v) - o) for v, o in ((mins[0], gx), (maxs[0], gx), (mins[1], gy), (maxs[1], gy))) / s
+    if not far < 2.0**52:  # tile numbers counted from the origin stay exact integers
+        raise ParameterError(
+            f"the grid origin {(gx, gy)} lies {far:.3g} tiles of {s:g} m from the block; use a larger --tile-size "
+            "or an origin nearer the block"
         )
     (c0, c1), (r0, r1) = (
         (_cell(np.asarray([mins[0]]), gx, s)[0], _cell(np.asarray([maxs[0]]), gx, s)[0]),

@@ -110,6 +110,16 @@ def test_bad_tile_size(size):
         plan_grid((0, 0), (10, 10), tile_size=size, buffer=0.0)
 
 
+def test_a_grid_origin_far_below_the_block_counts_only_the_blocks_tiles():
+    # a national grid's origin (0, 0) under a UTM block: 9 tiles, not "more than 1e8 tiles"
+    grid = plan_grid((500_003.0, 6_000_001.0), (500_023.0, 6_000_021.0), tile_size=10.0, buffer=2.0, grid_origin=(0.0, 0.0))
+    assert (grid.col0, grid.row0, grid.ncols, grid.nrows) == (50_000, 600_000, 3, 3)
+    with pytest.raises(ParameterError, match="tile size 0.001 m gives more than"):
+        plan_grid((500_003.0, 6_000_001.0), (500_023.0, 6_000_021.0), tile_size=1e-3, buffer=0.0, grid_origin=(0.0, 0.0))
+    with pytest.raises(ParameterError, match="lies 5e\\+16 tiles of 1e-09 m from the block"):
+        plan_grid((5e7, 5e7), (5e7, 5e7), tile_size=1e-9, buffer=0.0, grid_origin=(0.0, 0.0))
+
+
 def test_absurd_buffer_and_grid_origin_are_parameter_errors():
     # 2 x 1e308 overflowed to inf in the copy count (an internal error); an origin of
     # 1e21 overflowed the cell numbers (numpy warnings, then a run on garbage cells)
