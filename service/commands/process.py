@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import argparse
+import os
 import sys
 import time
 from pathlib import Path
@@ -38,10 +39,10 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         help="tile buffer on every side [m]; default and minimum: the parameters' reach (max crown radius + 1 m + edge radius)",
     )
     g.add_argument("--grid-origin", type=_origin, default=None, metavar="X,Y", help="a corner of the tile grid, input CRS [m]; default: the block's minimum, rounded down (negative: --grid-origin=-1000,-2000)")
-    g.add_argument("--workers", type=int, default=2, metavar="N", help="workers of the embedded dask cluster (default 2)")
+    g.add_argument("--workers", type=int, default=None, metavar="N", help=f"workers of the embedded dask cluster (default {DEFAULT_WORKERS}, at most 4 per CPU)")
     g.add_argument("--scheduler", default=None, metavar="tcp://HOST:PORT", help="use a running dask cluster instead of an embedded one")
     g.add_argument("--work", default=None, metavar="DIR_OR_URL", help="work store for tiles (folder or fsspec URL); default OUT/_work")
-    g.add_argument("--engine", choices=["laspy", "pdal"], default="laspy", help="tiler engine (pdal needs PDAL's Python bindings)")
+    g.add_argument("--engine", choices=["laspy", "pdal"], default=None, help="tiler engine (default laspy; pdal needs PDAL's Python bindings)")
     g.add_argument("--rerun-tile", type=int, action="append", default=None, metavar="ID", help="re-run this failed tile of the job in --work alone, then merge again (repeatable)")
     g.add_argument("--resume", action="store_true", help="process the tiles of the job in --work that have no result yet, then merge")
     g.add_argument("--labelled-laz", action="store_true", help="also write labelled.laz: the input with extra dimensions tree_id, is_wood, wood_score")
@@ -90,12 +91,34 @@ def _print_trees(trees: dict, stream=None) -> None:
         stream.write("  ".join(c.rjust(w) for c, w in zip(r, widths)) + "\n")
 
 
+DEFAULT_WORKERS = 2
+
+
+def _check_cluster_options(args: argparse.Namespace) -> None:
+    """ParameterError for tiling and cluster options that would go unused without a
+    word (a block processed in one piece has no grid, tiler or embedded workers)."""
+    tiled = args.tile_size is not None or args.scheduler is not None
+    if args.workers is not None:
+        most = 4 * (os.cpu_count() or 1)
+        if not 1 <= args.workers <= most:
+            raise ParameterError(f"--workers must be from 1 to {most} (4 per CPU of this machine), not {args.workers}")
+        if args.scheduler is not None:
+            raise ParameterError("--workers is for the embedded cluster; a running one (--scheduler) brings its own workers")
+        if not tiled:
+            raise ParameterError("--workers needs --tile-size: a block processed in one piece runs in this process")
+    else:
+        args.workers = DEFAULT_WORKERS
+    if args.grid_origin is not None and args.tile_size is None:
+        raise ParameterError("--grid-origin needs --tile-size: a block processed in one piece has no tile grid")
+    if args.engine is not None and not tiled:
+        raise ParameterError("--engine needs --tile-size: a block processed in one piece is not tiled")
+
+
 def run(args: argparse.Namespace) -> int:
     from workers.job import JobSpec, check_job, finish_job, resume_job, run_job, run_tile
 
     params = pipeline_params_from_args(args)
-    if args.workers < 1:
-        raise ParameterError(f"--workers must be at least 1, not {args.workers}")
+    _check_cluster_options(args)
     if args.rerun_tile or args.resume:
         if not args.work:
             raise ParameterError("--rerun-tile and --resume need --work: the work folder of the tiled run that failed")
@@ -125,7 +148,7 @@ def run(args: argparse.Namespace) -> int:
         grid_origin=args.grid_origin,
         work_dir=args.work,
         labelled_laz=args.labelled_laz,
-        engine=args.engine,
+        engine=args.engine or "laspy",
         inject_failure=tuple(args.inject_failure or ()),
     )
     tiled = args.tile_size is not None or args.scheduler is not None
