@@ -606,7 +606,7 @@ def _run_tiled(spec, info, client, t0, progress, cancel) -> JobOutcome:
     grid = _plan(spec, info)
     check_engine(spec.engine, grid)
     out_dir = Path(spec.out_dir)
-    out_existed = out_dir.exists()
+    made = [d for d in (out_dir, *out_dir.parents) if not d.exists()]  # deepest first
     work = spec.work_dir or default_work_dir(spec.out_dir)
     store = WorkStore(work)
     try:
@@ -615,8 +615,10 @@ def _run_tiled(spec, info, client, t0, progress, cancel) -> JobOutcome:
             store.claim()  # refused if the folder holds anything that is not a work store's
             return _run_tiled_locked(spec, info, client, t0, progress, cancel, grid, store, timings)
     finally:
-        if not out_existed and out_dir.exists() and not any(out_dir.iterdir()):
-            out_dir.rmdir()
+        for folder in made:  # folders this run made for its outputs and left empty
+            if not folder.is_dir() or any(folder.iterdir()):
+                break
+            folder.rmdir()
 
 
 def _run_tiled_locked(spec, info, client, t0, progress, cancel, grid, store, timings) -> JobOutcome:

@@ -183,6 +183,10 @@ def test_no_trees_exit_code(ground_block, tmp_path, capsys):
     code, _, err = _run(capsys, ground_block, "--out", out_dir)
     _assert_clean_failure(code, err, out_dir, expect_code=3)
     assert "no trees" in err
+    # tiled, into folders that did not exist: none is left behind (a/b stayed)
+    code, _, err = _run(capsys, ground_block, "--out", tmp_path / "a" / "b" / "c", "--tile-size", 10, "--workers", 1)
+    assert code == 3 and "no trees" in err, err
+    assert not (tmp_path / "a").exists()
 
 
 def test_console_script_bad_input(tmp_path):
