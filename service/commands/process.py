@@ -181,8 +181,14 @@ def _report(outcome, args) -> int:
     if outcome.trees is not None:
         _print_trees(outcome.trees)
     out = Path(args.out)
+    points = f"{outcome.n_points} points"
+    if outcome.partial and outcome.outputs.get("points"):
+        import pyarrow.parquet as pq
+
+        rows = pq.ParquetFile(outcome.outputs["points"]).metadata.num_rows
+        points = f"{outcome.n_points} points ({rows} of them in points.parquet)"
     print(
-        f"{outcome.n_trees} trees, {outcome.n_points} points, {outcome.n_tiles} tile(s) "
+        f"{outcome.n_trees} trees, {points}, {outcome.n_tiles} tile(s) "
         f"in {outcome.timings.get('total', 0.0):.1f} s -> {out}",
         file=sys.stderr,
     )

@@ -112,7 +112,9 @@ def test_later_tile_failing_gives_partial_result_then_rerun_alone(small_block, r
     assert run.returncode == 4, err
     assert "partial result: tiles [5] failed" in err and "--rerun-tile 5" in err
     assert len(WorkStore(str(work)).list("attempts/000005")) == 3
-    assert (out / "points.parquet").exists()
+    rows = pq.ParquetFile(out / "points.parquet").metadata.num_rows
+    # the summary says how many points the file holds (it gave the block's count alone)
+    assert f"({rows} of them in points.parquet)" in err and rows < pq.ParquetFile(reference / "points.parquet").metadata.num_rows
 
     rerun = subprocess.run(
         _orchard(small_block, "--out", out, "--work", work, "--rerun-tile", 5), capture_output=True, timeout=TIMEOUT
