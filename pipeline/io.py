@@ -914,6 +914,8 @@ def read_parquet_columns(path, columns: list[str] | None = None, *, what: str = 
     InputError
         The file does not exist or is not readable as Parquet (``what`` names it).
     """
+    if os.path.exists(path) and not os.path.isfile(path):
+        raise InputError(f"{what} {path} is not a regular file (a folder, device or pipe)")
     try:
         table = pq.read_table(str(path), columns=columns)
     except FileNotFoundError:

@@ -258,6 +258,10 @@ def test_evaluate_result_rejects_foreign_results(tmp_path, truth_file):
         evaluate_result(str(truth_file), str(tmp_path / "res"))
     with pytest.raises(InputError, match="does not exist"):
         evaluate_result(str(truth_file), str(tmp_path / "nowhere"))
+    # a device or a folder as the truth file: said so, not "does not exist"
+    for odd in ("/dev/null", str(tmp_path)):
+        with pytest.raises(InputError, match="is not a regular file"):
+            evaluate_result(odd, str(tmp_path / "res"))
 
 
 def test_cli_simulate_then_evaluate_a_perfect_result(tmp_path, capsys):
