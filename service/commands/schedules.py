@@ -57,6 +57,8 @@ def _when(ts: float | None) -> str:
 
 
 def run(args: argparse.Namespace) -> int:
+    from pydantic import ValidationError
+
     from pipeline.errors import ParameterError
     from pipeline.tiling import check_tiling
     from service.schedules import check_inbox_use, next_run_time, run_schedule, validate_cron, validate_inbox
@@ -100,17 +102,23 @@ def run(args: argparse.Namespace) -> int:
         elif args.action in ("update", "pause", "resume"):
             from service.app import ScheduleUpdate, schedule_changes
 
-            sched = store.get_schedule(None, args.schedule_id)
-            body = _update_body(args) if args.action == "update" else {"paused": args.action == "pause"}
-            rec = store.update_schedule(None, sched["id"], schedule_changes(sched, ScheduleUpdate(**body)))
+            sched = _schedule(store, args.schedule_id)
+            body = _update_body(args, sched) if args.action == "update" else {"paused": args.action == "pause"}
+            try:
+                update = ScheduleUpdate(**body)
+            except ValidationError as exc:  # in the command line's words, not the API's
+                raise ParameterError("; ".join(
+                    f"{_OPTION.get(tuple(map(str, e['loc'])), '.'.join(map(str, e['loc'])))}: {e['msg']}"
+                    for e in exc.errors())) from None
+            rec = store.update_schedule(None, sched["id"], schedule_changes(sched, update))
             state = "paused" if rec["paused"] else f"next run {_when(rec['next_run_at'])}"
             print(f"{rec['id']}\t{rec['cron']}\t{state}")
         elif args.action == "run":
-            sched = store.get_schedule(None, args.schedule_id)
+            sched = _schedule(store, args.schedule_id)
             res = run_schedule(store, settings, sched)
             print(json.dumps(res, indent=2))
         elif args.action == "delete":
-            sched = store.get_schedule(None, args.schedule_id)
+            sched = _schedule(store, args.schedule_id)
             store.delete_schedule(sched["tenant_id"], sched["id"])
             print("deleted")
     finally:
@@ -118,8 +126,23 @@ def run(args: argparse.Namespace) -> int:
     return 0
 
 
-def _update_body(args: argparse.Namespace) -> dict:
-    """The PATCH body of ``orchard schedules update``'s options."""
+#: request fields of a schedule update → the options that set them
+_OPTION = {("tiling", "tile_size"): "--tile-size", ("tiling", "buffer"): "--buffer", ("cron",): "--cron"}
+
+
+def _schedule(store, schedule_id: str) -> dict:
+    """The schedule, or NotFoundError naming the command that lists them."""
+    from pipeline.errors import NotFoundError
+
+    try:
+        return store.get_schedule(None, schedule_id)
+    except NotFoundError:
+        raise NotFoundError(f"no schedule {schedule_id!r}; list them with 'orchard schedules list'") from None
+
+
+def _update_body(args: argparse.Namespace, sched: dict) -> dict:
+    """The PATCH body of ``orchard schedules update``'s options (``--buffer`` alone
+    changes a tiled schedule's buffer)."""
     from pipeline.errors import ParameterError
 
     body: dict = {}
@@ -132,7 +155,9 @@ def _update_body(args: argparse.Namespace) -> dict:
     elif args.tile_size is not None:
         body["tiling"] = {"tile_size": args.tile_size, "buffer": args.buffer}
     elif args.buffer is not None:
-        raise ParameterError("--buffer needs --tile-size")
+        if not sched.get("tiling"):
+            raise ParameterError("--buffer needs --tile-size: the schedule processes each capture as one tile")
+        body["tiling"] = {"tile_size": sched["tiling"]["tile_size"], "buffer": args.buffer}
     if not body:
         raise ParameterError("nothing to change: give --cron, --tile-size (with --buffer) or --untiled")
     return body

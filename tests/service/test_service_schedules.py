@@ -724,10 +724,19 @@ def test_cli_schedules_pause_resume_and_update(tmp_path, capsys):
     store.close()
     assert rec["cron"] == "15 3 * * *" and rec["tiling"] == {"tile_size": 40.0, "buffer": None} and rec["paused"] == 0
     for args, fragment in ((["--cron", "61 * * * *"], "minute field"), ([], "nothing to change"),
-                           (["--untiled", "--tile-size", "5"], "--untiled"), (["--buffer", "9"], "--buffer needs --tile-size"),
+                           (["--untiled", "--tile-size", "5"], "--untiled"), (["--tile-size", "0.5"], "--tile-size: Input should be"),
                            (["--tile-size", "10", "--buffer", "1"], "buffer")):
         assert main(["schedules", "update", sid, *args, "--data-dir", str(data)]) == 2, args
         err = capsys.readouterr().err
         assert fragment in err and "Traceback" not in err, (args, err)
+    assert main(["schedules", "update", sid, "--buffer", "9", "--data-dir", str(data)]) == 0  # keeps its 40 m tiles
+    store = Store(data / "orchard.sqlite")
+    assert store.get_schedule(None, sid)["tiling"] == {"tile_size": 40.0, "buffer": 9.0}
+    store.close()
     assert main(["schedules", "update", sid, "--untiled", "--data-dir", str(data)]) == 0
-    assert main(["schedules", "pause", "nope", "--data-dir", str(data)]) == 3
+    capsys.readouterr()
+    assert main(["schedules", "update", sid, "--buffer", "9", "--data-dir", str(data)]) == 2
+    assert "the schedule processes each capture as one tile" in capsys.readouterr().err
+    for action in (["pause"], ["run"], ["delete"], ["update", "--cron", "1 * * * *"]):
+        assert main(["schedules", action[0], "nope", *action[1:], "--data-dir", str(data)]) == 3
+        assert "list them with 'orchard schedules list'" in capsys.readouterr().err
