@@ -114,6 +114,27 @@ def _check_cluster_options(args: argparse.Namespace) -> None:
         raise ParameterError("--engine needs --tile-size: a block processed in one piece is not tiled")
 
 
+def _check_same_input(work: str, input_path: str) -> None:
+    """ParameterError if INPUT is another file than the block of the job in ``work``
+    (--rerun-tile and --resume take the block the job was started on)."""
+    from workers.job import JOB_KEY
+    from workers.store import WorkStore
+
+    store = WorkStore(work)
+    if not store.exists(JOB_KEY):
+        return  # said by resume_job / finish_job / run_tile
+    started_on = store.get_json(JOB_KEY)["input_path"]
+    try:
+        same = os.path.samefile(started_on, input_path)
+    except OSError:  # one of them is gone: the paths must agree
+        same = os.path.abspath(started_on) == os.path.abspath(input_path)
+    if not same:
+        raise ParameterError(
+            f"INPUT {input_path} is not the block the job in --work {work} was started on ({started_on}); "
+            "give that block, or start a new job without --resume / --rerun-tile"
+        )
+
+
 def run(args: argparse.Namespace) -> int:
     from workers.job import JobSpec, check_job, finish_job, resume_job, run_job, run_tile
 
@@ -122,6 +143,7 @@ def run(args: argparse.Namespace) -> int:
     if args.rerun_tile or args.resume:
         if not args.work:
             raise ParameterError("--rerun-tile and --resume need --work: the work folder of the tiled run that failed")
+        _check_same_input(args.work, args.input)
         for tid in args.rerun_tile or ():
             print(f"re-running tile {tid} from {args.work}", file=sys.stderr)
             run_tile(args.work, tid)

@@ -239,6 +239,20 @@ def test_outputs_that_would_destroy_the_input_or_be_deleted_are_refused(small_bl
     assert sorted(p.name for p in folder.iterdir()) == ["block.laz", "labelled.laz", "points.parquet", "trees.parquet"]
 
 
+def test_resume_and_rerun_take_only_the_block_the_job_was_started_on(small_block, ground_block, tmp_path, capsys):
+    # INPUT was ignored: another block given with --resume merged the first block's tiles
+    from workers.job import JOB_KEY
+    from workers.store import WorkStore
+
+    work = WorkStore(str(tmp_path / "work"))
+    work.claim()
+    work.put_json(JOB_KEY, {"input_path": str(small_block)})
+    for extra in (["--resume"], ["--rerun-tile", "3"]):
+        code, _, err = _run(capsys, ground_block, "--out", tmp_path / "out", "--work", tmp_path / "work", *extra)
+        _assert_clean_failure(code, err, tmp_path / "out")
+        assert f"is not the block the job in --work {tmp_path / 'work'} was started on ({small_block})" in err
+
+
 @pytest.mark.parametrize("argv", [["--buffer", "nan"], ["--buffer", "-1"], ["--buffer", "20"]])
 def test_buffer_without_tiles_is_refused(small_block, tmp_path, capsys, argv):
     out_dir = tmp_path / "out"
