@@ -48,7 +48,7 @@ from pipeline.metrics import combine_partials, finalize_metrics, tree_partials
 from pipeline.params import PipelineParams
 from pipeline.process import process_points
 from pipeline.tiling import TileGrid, core_tile, plan_grid
-from workers.store import WorkStore, absolute_url, default_work_dir
+from workers.store import WorkStore, absolute_url, default_work_dir, own_entry
 from workers.tiler import INDEX_KEY, check_engine, read_frame, read_tile, tile_block
 
 JOB_KEY = "job.json"
@@ -129,7 +129,8 @@ def check_job_paths(input_path: str, out_dir: str, work_dir: str | None) -> None
     """ParameterError when the outputs would destroy the input or be destroyed: an input
     lying in the output folder under an output's name is replaced (or deleted, as an
     earlier run's ``labelled.laz``), and outputs inside the work folder are deleted with
-    it when the job is done (the work store removes its ``results``, ``tiles``...)."""
+    it when the job is done (the work store removes its ``results``, ``tiles``...; a
+    folder of the user's in the work folder, or the work folder itself, are kept)."""
     out = Path(out_dir).resolve()
     source = Path(input_path).resolve()
     if source.parent == out and source.name in OUTPUT_NAMES:
@@ -139,10 +140,10 @@ def check_job_paths(input_path: str, out_dir: str, work_dir: str | None) -> None
         )
     if work_dir is not None and (work_dir.startswith("file://") or "://" not in work_dir):
         work = Path(work_dir.removeprefix("file://")).resolve()
-        if out == work or work in out.parents:
+        if work in out.parents and own_entry(out.relative_to(work).parts[0]):
             raise ParameterError(
-                f"--out {out_dir} lies inside --work {work_dir}, which is deleted when the job is done: "
-                "put the outputs elsewhere"
+                f"--out {out_dir} lies inside the folder {out.relative_to(work).parts[0]} of --work {work_dir}, "
+                "which is deleted when the job is done: put the outputs elsewhere"
             )
 
 

@@ -33,7 +33,7 @@ MARKER = ".orchard-work-store"
 LOCK = ".orchard-lock"
 
 
-def _own(name: str) -> bool:
+def own_entry(name: str) -> bool:
     return name in OWN_ENTRIES or name in (MARKER, LOCK) or (name.startswith(".") and name.endswith(".tmp"))
 
 
@@ -151,7 +151,7 @@ class WorkStore:
         names = self.entries()
         if not self.marked():
             return [n for n in names if n != LOCK]
-        return [n for n in names if not _own(n)]
+        return [n for n in names if not own_entry(n)]
 
     def check_free(self) -> None:
         """ParameterError if the root folder holds files that are not a work store's."""
@@ -215,7 +215,7 @@ class WorkStore:
         if not self.marked():
             return
         for name in self.entries():
-            if _own(name) and name not in (MARKER, LOCK):
+            if own_entry(name) and name not in (MARKER, LOCK):
                 self._rm(self.path(name))
         self._rm(self.path(MARKER))
         self._drop_stale_lock()  # (a held lock stays: its holder removes it when it lets go)

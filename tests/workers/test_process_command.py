@@ -217,10 +217,10 @@ def test_outputs_that_would_destroy_the_input_or_be_deleted_are_refused(small_bl
     # deleted its results folder with the outputs; an input named labelled.laz in --out
     # was deleted as an earlier run's output (or overwritten with --labelled-laz)
     work = tmp_path / "wr"
-    for out in (work / "results", work, work / "x" / "y"):
+    for out in (work / "results", work / "tiles" / "x", work / "attempts"):
         code, _, err = _run(capsys, small_block, "--out", out, "--tile-size", 12, "--work", work)
         _assert_clean_failure(code, err, out)
-        assert "lies inside --work" in err and "dask dashboard" not in err
+        assert f"lies inside the folder {out.relative_to(work).parts[0]} of --work" in err and "dask dashboard" not in err
     folder = tmp_path / "again"
     folder.mkdir()
     for name in ("labelled.laz", "points.parquet"):
