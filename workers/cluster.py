@@ -8,9 +8,29 @@ import threading
 from contextlib import contextmanager
 from multiprocessing import resource_tracker
 
+from dask.utils import parse_timedelta
 from distributed import Client, LocalCluster
 
 from pipeline.errors import ParameterError
+
+
+def _check_answers(address: str, seconds: float) -> None:
+    """TimeoutError unless a dask scheduler answers at ``address`` within ``seconds``.
+
+    distributed's Client waits forever on a port that accepts connections but does not
+    answer its handshake (a web server, the dashboard's 8787 typed for 8786): a job
+    stayed "running" for good. One comm opened and closed under a deadline of our own
+    tells a scheduler from those.
+    """
+    import asyncio
+
+    from distributed.comm import connect
+
+    async def knock() -> None:
+        comm = await asyncio.wait_for(connect(address, timeout=seconds), seconds)
+        await comm.close()
+
+    asyncio.run(knock())
 
 
 def make_client(
@@ -52,8 +72,15 @@ def make_client(
     """
     if scheduler:
         try:
+            _check_answers(scheduler, parse_timedelta(timeout))
             return Client(scheduler, timeout=timeout)
-        except (OSError, TimeoutError, ValueError) as exc:
+        except TimeoutError:
+            raise ParameterError(
+                f"no dask scheduler answered at {scheduler} within {parse_timedelta(timeout):g} s (TimeoutError); "
+                "start one with `dask scheduler`, or fix --scheduler (its port, 8786 by default, not the "
+                "dashboard's 8787)"
+            ) from None
+        except (OSError, ValueError) as exc:
             raise ParameterError(
                 f"cannot reach the dask scheduler at {scheduler} ({type(exc).__name__}); "
                 "start one with `dask scheduler` or fix --scheduler"

@@ -46,6 +46,19 @@ def test_unreachable_scheduler_is_a_parameter_error():
         make_client(f"tcp://127.0.0.1:{port}", timeout="2s")
 
 
+def test_a_port_that_accepts_but_never_answers_is_a_parameter_error_in_time():
+    # distributed's Client waited for good on such a port (a web server; the dashboard's
+    # 8787 typed for the scheduler's 8786): the service's job stayed "running" for ever
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        s.listen(8)  # the kernel completes the connection; nobody ever answers
+        port = s.getsockname()[1]
+        t = time.monotonic()
+        with pytest.raises(ParameterError, match=f"no dask scheduler answered at tcp://127.0.0.1:{port} within 2 s"):
+            make_client(f"tcp://127.0.0.1:{port}", timeout="2s")
+        assert time.monotonic() - t < 30
+
+
 def _sigint_blocked(_=None) -> bool:
     with open("/proc/thread-self/status") as fh:
         mask = next(line for line in fh if line.startswith("SigBlk:")).split()[1]
