@@ -108,6 +108,16 @@ def _is_cancel(exc: BaseException) -> bool:
     return type(exc).__name__ in ("JobCancelled", "CancelledError")
 
 
+def _lost_scheduler(exc: BaseException) -> bool:
+    """Whether ``exc`` says the dask scheduler went away during the job: its futures
+    cancelled, or the connection closed while results were fetched (CommClosedError
+    from a gather)."""
+    from distributed.comm.core import CommClosedError
+
+    return (isinstance(exc, CommClosedError) or type(exc).__name__ == "FuturesCancelledError"
+            or "scheduler-connection-lost" in str(exc))
+
+
 def _short(exc: BaseException, limit: int = 300) -> str:
     text = " ".join(str(exc).split())
     return text if len(text) <= limit else text[: limit - 3] + "..."
@@ -345,7 +355,7 @@ class Runner(threading.Thread):
             elif isinstance(exc, ClusterUnavailable):
                 retry_advice = ""
                 message = str(exc)
-            elif type(exc).__name__ == "FuturesCancelledError" or "scheduler-connection-lost" in str(exc):
+            elif _lost_scheduler(exc):
                 self._close_client()  # the next job connects afresh
                 retry_advice = "; submit it again once the cluster is back"
                 message = "lost the connection to the dask scheduler during the job"

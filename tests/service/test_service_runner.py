@@ -6,6 +6,7 @@ import threading
 import time
 
 import pytest
+from distributed.comm.core import CommClosedError
 
 from pipeline.errors import InputError, NoTreesError
 from service.runner import Runner
@@ -70,6 +71,9 @@ def test_done_records_outcome_and_progress(env, monkeypatch):
                                 "again with --work /srv/work/abc --resume)"),
          "tile 3 (core x 0.00..10.00, y 0.00..10.00, 99 points) failed after 3 attempts: MemoryError: "),
         (type("FuturesCancelledError", (Exception,), {})("46 Futures cancelled: reason scheduler-connection-lost"),
+         "lost the connection to the dask scheduler during the job; submit it again once the cluster is back"),
+        # the scheduler killed while results were fetched: a final "internal error" before
+        (CommClosedError("in <TCP (closed) ConnectionPool.gather local=tcp://127.0.0.1:1>: Stream is closed"),
          "lost the connection to the dask scheduler during the job; submit it again once the cluster is back"),
     ],
 )
