@@ -335,7 +335,8 @@ class Runner(threading.Thread):
         except BaseException as exc:  # noqa: BLE001 - every outcome is recorded
             if _is_cancel(exc) or (cancel.is_set() and not isinstance(exc, OrchardError)):
                 if self._stopping.is_set() and not self.store.cancel_requested(job["id"]):
-                    log.info("job %s interrupted by shutdown; it is re-queued at the next start", job["id"])
+                    log.info("job %s interrupted by shutdown; it runs again at the next start", job["id"])
+                    self.store.release_job(job["id"])
                     return self.store.get_job(None, job["id"])
                 drop_work(self.settings, job["id"])  # the service never resumes a cancelled job
                 return self.store.finish_job(job["id"], "cancelled", error="cancelled on request")

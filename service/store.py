@@ -424,6 +424,17 @@ class Store:
             )
         return ids
 
+    def release_job(self, job_id: str) -> None:
+        """Put a running job back in the queue as if it had not been claimed (the service
+        is stopping): a restart is no attempt of the job's, and must not use up the
+        retries meant for a lost cluster."""
+        with self._tx() as con:
+            con.execute(
+                "UPDATE jobs SET state = 'queued', tiles_done = 0, attempts = MAX(attempts - 1, 0) "
+                "WHERE id = ? AND state = 'running'",
+                (job_id,),
+            )
+
     def requeue_running(self) -> int:
         """Put jobs left ``running`` by a dead service back in the queue (those asked to
         stop are cancelled instead, see `cancel_interrupted`).

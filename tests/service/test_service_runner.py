@@ -231,16 +231,19 @@ def test_cancel_a_running_job_and_stop(env, monkeypatch):
     while store.get_job(None, job_id)["state"] == "running" and time.monotonic() < deadline:
         time.sleep(0.02)
     assert store.get_job(None, job_id)["state"] == "cancelled"
-    # a job interrupted by shutdown stays running, for the next start to re-queue
+    # a job interrupted by shutdown goes back in the queue, and the restart is no attempt
+    # of its own (two restarts used up its retries for a lost cluster)
     started.clear()
     store.create_job(tenant_id=tenant["id"], block_id=block["id"], params={}, tiling=None)
     runner.wake()
     assert started.wait(10)
     second = runner.current_job
+    assert store.get_job(None, second)["attempts"] == 1
     runner.stop()
     assert not runner.is_alive()
-    assert store.get_job(None, second)["state"] == "running"
-    assert store.requeue_running() == 1
+    rec = store.get_job(None, second)
+    assert (rec["state"], rec["attempts"]) == ("queued", 0)
+    assert store.requeue_running() == 0
     # ... but one asked to stop just before the shutdown is cancelled then, not re-queued
     started.clear()
     runner = Runner(store, settings, client_factory=lambda: None)
