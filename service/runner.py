@@ -43,6 +43,8 @@ class ClusterUnavailable(RuntimeError):
 
 
 RUNNER_LOCK = "runner.lock"
+#: how often [s] a running job looks in the store for a cancel made by another process
+CANCEL_POLL_S = 1.0
 
 
 def hold_runner_lock(data_dir: Path) -> IO:
@@ -284,6 +286,17 @@ class Runner(threading.Thread):
         note = f"attempt {attempts} of {self.settings.job_retries + 1} failed: {message}; trying again from {when}"
         return self.store.retry_job(job["id"], error=note, retry_at=at)
 
+    def _watch_cancel(self, job_id: str, cancel: threading.Event, done: threading.Event) -> None:
+        """Set ``cancel`` once the store says the job is to be cancelled: a cancel made
+        through another API process reached the job only when a tile finished (minutes
+        while the cluster waited for workers)."""
+        while not done.wait(CANCEL_POLL_S) and not cancel.is_set():
+            try:
+                if self.store.cancel_requested(job_id):
+                    cancel.set()
+            except Exception as exc:  # noqa: BLE001 - the store briefly locked: look again
+                log.debug("job %s: cannot read its cancel flag: %s", job_id, exc)
+
     def run_job(self, job: dict[str, Any]) -> dict[str, Any]:
         """Run one claimed (``running``) job to a final state; returns the stored job."""
         cancel = threading.Event()
@@ -291,6 +304,9 @@ class Runner(threading.Thread):
             self._current, self._cancel = job["id"], cancel
         if self.store.cancel_requested(job["id"]):
             cancel.set()
+        watching = threading.Event()
+        threading.Thread(target=self._watch_cancel, args=(job["id"], cancel, watching), daemon=True,
+                         name=f"orchard-cancel-{job['id'][:8]}").start()
         last_check = [0.0]
 
         def progress(done: int, total: int) -> None:
@@ -368,5 +384,6 @@ class Runner(threading.Thread):
                 return self._after_cluster_failure(job, message, advice=retry_advice)
             return self.store.finish_job(job["id"], "failed", error=message)
         finally:
+            watching.set()
             with self._lock:
                 self._current, self._cancel = None, None

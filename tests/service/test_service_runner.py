@@ -292,3 +292,32 @@ def test_a_scheduled_jobs_error_names_the_capture_not_an_earlier_upload_of_the_s
     # an uploaded job's still names the upload
     uploaded = _queue(store, tenant, block)
     assert Runner(store, settings, client_factory=lambda: None).run_job(uploaded)["error"] == "b.laz: no trees found in 100 points"
+
+
+def test_a_cancel_stored_by_another_process_stops_a_job_that_makes_no_progress(env, monkeypatch):
+    # the cancel flag was read only when a tile finished: a job waiting for dask workers
+    # ran on for minutes after a DELETE sent to an API-only process
+    settings, store, tenant, block = env
+    started = threading.Event()
+
+    def stuck(spec, *, client, progress, cancel):
+        started.set()
+        while not cancel.wait(0.01):  # no tile ever finishes
+            pass
+        raise workers_job.JobCancelled("job cancelled")
+
+    monkeypatch.setattr(workers_job, "run_job", stuck)
+    job = store.create_job(tenant_id=tenant["id"], block_id=block["id"], params={}, tiling=None)
+    runner = Runner(store, settings, client_factory=lambda: None)
+    runner.start()
+    try:
+        assert started.wait(10)
+        other = Store(settings.store_path)  # another API process
+        other.request_cancel(tenant["id"], job["id"])
+        other.close()
+        deadline = time.monotonic() + 10
+        while store.get_job(None, job["id"])["state"] == "running" and time.monotonic() < deadline:
+            time.sleep(0.05)
+        assert store.get_job(None, job["id"])["state"] == "cancelled"
+    finally:
+        runner.stop()
