@@ -628,7 +628,8 @@ def _run_tiled_locked(spec, info, client, t0, progress, cancel, grid, store, tim
     try:
         store.put_json(JOB_KEY, record)
         _check_cancel(cancel)
-        index = tile_block(info, grid, store, chunk_points=spec.chunk_points, engine=spec.engine, client=client)
+        index = tile_block(info, grid, store, chunk_points=spec.chunk_points, engine=spec.engine, client=client,
+                           gather=lambda futures: _results(client, futures, cancel, store))
         timings["tile"] = time.perf_counter() - t0
         tiles = [t for t in index["tiles"] if t["n_core"] > 0]
         t = time.perf_counter()
@@ -738,6 +739,13 @@ def _run_tiles(store, tiles, spec, client, progress, cancel) -> tuple[list[dict]
                 progress(done_count, total)
     summaries.sort(key=lambda s: s["tile_id"])
     return summaries, failed
+
+
+def _results(client, futures: list, cancel, store: WorkStore) -> list:
+    """The results of dask ``futures`` as they finish (in that order), stopping like
+    :func:`_completed` on a cancel or a cluster left without workers."""
+    with contextlib.closing(_completed(client, dict.fromkeys(futures), cancel, store)) as done:
+        return [fut.result() for _, fut in done]
 
 
 def _completed(client, futures: dict, cancel, store: WorkStore):

@@ -122,6 +122,7 @@ def tile_block(
     chunk_points: int = 2_000_000,
     engine: str = "laspy",
     client=None,
+    gather=None,
 ) -> dict:
     """Split a block into buffered tiles in the work store.
 
@@ -138,6 +139,10 @@ def tile_block(
     client : distributed.Client, optional
         With a client (and more than one chunk), every chunk is split by a dask task
         that reads its own range of the file; the workers must see the input path.
+    gather : callable, optional
+        ``gather(futures)`` → their results, in any order: how to wait for those tasks
+        (default ``client.gather``; a job passes one that stops on a cancel and on a
+        cluster left without workers).
 
     Returns
     -------
@@ -158,7 +163,7 @@ def tile_block(
             client.submit(tile_range, info, grid, store, start, int(chunk_points), key=f"tile-range-{start}-{store.url}", pure=False)
             for start in starts
         ]
-        for part in client.gather(futures):
+        for part in (gather or client.gather)(futures):
             _merge_counts(counts, part)
     else:
         for start, ints in blockio.iter_raw(info.path, chunk_points=chunk_points, info=info):

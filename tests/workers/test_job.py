@@ -415,3 +415,21 @@ def test_many_tiles_under_a_low_open_file_limit(small_block, tmp_path, soft, har
     assert run.returncode == 0, run.stderr[-2000:]
     n_tiles, n_trees = map(int, run.stdout.split())
     assert 5 * n_tiles > 3 * soft and n_trees >= 6
+
+
+def test_a_cancel_while_the_file_is_tiled_on_a_cluster_without_workers_stops_the_job(small_block, tmp_path):
+    # the range tasks of a block of more than chunk_points were waited for with
+    # client.gather: with no worker left, the job waited for ever and heard no cancel
+    import threading
+
+    from distributed import Client, LocalCluster
+
+    from workers.job import JobCancelled
+
+    cancel = threading.Event()
+    with LocalCluster(n_workers=0, processes=False, dashboard_address=None) as cluster, Client(cluster) as client:
+        threading.Timer(1.0, cancel.set).start()
+        with pytest.raises(JobCancelled):
+            run_job(JobSpec(str(small_block), str(tmp_path / "out"), tile_size=10.0, chunk_points=50_000,
+                            work_dir=str(tmp_path / "work")), client=client, cancel=cancel)
+    assert not (tmp_path / "out" / "trees.parquet").exists()
