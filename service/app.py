@@ -458,6 +458,8 @@ async def _receive_upload(request: Request, settings: Settings) -> _FilePart:
                 break
             try:
                 parser.write(chunk)
+            except OSError:  # writing the file (a full disk): the server's fault, not the body's
+                raise
             except Exception:
                 raise InputError("the multipart body is malformed; send the file as field 'file'") from None
             if part.too_large:
@@ -474,12 +476,15 @@ async def _receive_upload(request: Request, settings: Settings) -> _FilePart:
             )
         try:
             parser.finalize()  # (it does not check that the body ended at a boundary)
+        except OSError:  # closing the file (a full disk)
+            raise
         except Exception:
             raise InputError("the multipart body is incomplete") from None
         if part.found and not part.complete:
             raise InputError("the multipart body is incomplete: the file's part has no closing boundary (upload cut off?)")
     except BaseException:
-        part.close()
+        with contextlib.suppress(OSError):  # (its last write may fail again: a full disk)
+            part.close()
         part.tmp_path.unlink(missing_ok=True)
         raise
     finally:

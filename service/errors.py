@@ -8,8 +8,10 @@ a 500 with a short message: clients never see a traceback (it goes to the server
 
 from __future__ import annotations
 
+import errno
 import logging
 import re
+import sqlite3
 from pathlib import Path
 
 from fastapi import FastAPI, Request
@@ -48,6 +50,9 @@ class ShuttingDownError(StarletteHTTPException):
     def __init__(self, detail: str) -> None:
         super().__init__(status_code=503, detail=detail)
 
+
+#: errno values of a full disk or an exhausted quota
+DISK_FULL = (errno.ENOSPC, errno.EDQUOT)
 
 STATUS: dict[type[Exception], int] = {
     UnauthorizedError: 401,
@@ -149,7 +154,28 @@ def install_error_handlers(app: FastAPI) -> None:
         log.info("client disconnected during %s %s", request.method, request.url.path)
         return error_response(400, "the client disconnected before the request was complete")
 
+    @app.exception_handler(OSError)
+    async def _os(request: Request, exc: OSError) -> JSONResponse:
+        if exc.errno in DISK_FULL:
+            log.error("%s %s: the data folder's disk is full (%s)", request.method, request.url.path, exc)
+            return error_response(507, "the server has no disk space left for this request; nothing of it was "
+                                  "kept: try again later (the operator has been told in the service log)")
+        log.error("unexpected error on %s %s", request.method, request.url.path, exc_info=exc)
+        return error_response(500, f"internal error ({type(exc).__name__}); the server log has the details")
+
+    @app.exception_handler(sqlite3.OperationalError)
+    async def _store_busy(request: Request, exc: sqlite3.OperationalError) -> JSONResponse:
+        if "locked" in str(exc) or "busy" in str(exc):
+            log.warning("%s %s: the job store stayed locked (%s)", request.method, request.url.path, exc)
+            resp = error_response(503, "the job store is busy; try again in a few seconds")
+            resp.headers["Retry-After"] = "5"
+            return resp
+        log.error("unexpected error on %s %s", request.method, request.url.path, exc_info=exc)
+        return error_response(500, f"internal error ({type(exc).__name__}); the server log has the details")
+
     @app.exception_handler(Exception)
     async def _unexpected(request: Request, exc: Exception) -> JSONResponse:
-        log.error("unexpected error on %s %s", request.method, request.url.path, exc_info=exc)
+        # one line: Starlette re-raises what reaches this last handler, and the server logs
+        # its traceback (logging it here too printed every traceback twice)
+        log.error("unexpected error on %s %s: %s: %s", request.method, request.url.path, type(exc).__name__, exc)
         return error_response(500, f"internal error ({type(exc).__name__}); the server log has the details")

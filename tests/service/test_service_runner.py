@@ -72,6 +72,9 @@ def test_done_records_outcome_and_progress(env, monkeypatch):
          "tile 3 (core x 0.00..10.00, y 0.00..10.00, 99 points) failed after 3 attempts: MemoryError: "),
         (type("FuturesCancelledError", (Exception,), {})("46 Futures cancelled: reason scheduler-connection-lost"),
          "lost the connection to the dask scheduler during the job; submit it again once the cluster is back"),
+        # a full disk is the server's to fix, not the job's: "internal error (OSError)" before
+        (OSError(28, "No space left on device"),
+         "the server ran out of disk space during the job; free disk space on the server and submit it again"),
         # the scheduler killed while results were fetched: a final "internal error" before
         (CommClosedError("in <TCP (closed) ConnectionPool.gather local=tcp://127.0.0.1:1>: Stream is closed"),
          "lost the connection to the dask scheduler during the job; submit it again once the cluster is back"),

@@ -1,0 +1,81 @@
+"""The server's own faults (a full disk, a busy job store) answered as such, on a real
+uvicorn server on loopback running in this process, so the fault can be injected."""
+
+from __future__ import annotations
+
+import errno
+import sqlite3
+import threading
+import time
+
+import httpx
+import pytest
+from service_fixtures import free_port, make_token, write_las
+
+from service.app import _FilePart, create_app
+from service.settings import Settings
+from service.store import Store
+
+
+@pytest.fixture()
+def server(tmp_path):
+    import uvicorn
+
+    settings = Settings(data_dir=tmp_path / "data", runner=False, scheduling=False)
+    app = create_app(settings)
+    port = free_port()
+    srv = uvicorn.Server(uvicorn.Config(app, host="127.0.0.1", port=port, log_level="warning", lifespan="on"))
+    thread = threading.Thread(target=srv.run, daemon=True)
+    thread.start()
+    deadline = time.monotonic() + 30
+    while not srv.started and time.monotonic() < deadline:
+        time.sleep(0.05)
+    assert srv.started
+    token = make_token(settings.data_dir, "farm")
+    try:
+        with httpx.Client(base_url=f"http://127.0.0.1:{port}", headers={"Authorization": f"Bearer {token}"}, timeout=30) as c:
+            yield settings, c
+    finally:
+        srv.should_exit = True
+        thread.join(30)
+
+
+def test_an_upload_to_a_full_disk_is_507_and_leaves_nothing(server, tmp_path, monkeypatch, caplog):
+    # it was a 422 "the multipart body is malformed": the farm was told the fault was its
+    # own, and the operator heard nothing
+    settings, c = server
+    block = write_las(tmp_path / "b.laz", 3000, seed=3)
+    real = _FilePart._data
+
+    def full(self, data, start, end):
+        real(self, data, start, min(end, start + 1000))  # the first kilobyte fits
+        if self.size:
+            raise OSError(errno.ENOSPC, "No space left on device")
+
+    monkeypatch.setattr(_FilePart, "_data", full)
+    with caplog.at_level("ERROR", logger="orchard.service"):
+        r = c.post("/v1/blocks", files={"file": ("b.laz", block.read_bytes())})
+    assert r.status_code == 507, r.text
+    assert "no disk space left" in r.json()["detail"]
+    assert any("disk is full" in rec.getMessage() for rec in caplog.records)
+    assert c.get("/v1/blocks").json() == []
+    assert not any(p.is_file() for p in settings.data_dir.rglob("*") if p.suffix in (".laz", ".part"))
+    monkeypatch.setattr(_FilePart, "_data", real)  # space again: the same upload goes through
+    assert c.post("/v1/blocks", files={"file": ("b.laz", block.read_bytes())}).status_code == 201
+
+
+def test_a_job_store_locked_for_too_long_is_503_with_retry_after(server, tmp_path, monkeypatch):
+    # it was a 500 "internal error (OperationalError)", with the traceback logged twice
+    settings, c = server
+    block = write_las(tmp_path / "b.laz", 3000, seed=4)
+    up = c.post("/v1/blocks", files={"file": ("b.laz", block.read_bytes())}).json()
+
+    def locked(self, **kw):
+        raise sqlite3.OperationalError("database is locked")
+
+    monkeypatch.setattr(Store, "create_job", locked)
+    r = c.post("/v1/jobs", json={"block_id": up["id"]})
+    assert r.status_code == 503 and r.headers["retry-after"] == "5", r.text
+    assert "busy" in r.json()["detail"]
+    monkeypatch.undo()
+    assert c.post("/v1/jobs", json={"block_id": up["id"]}).status_code == 201
