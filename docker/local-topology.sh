@@ -46,6 +46,7 @@ free_port() {
 }
 
 pids=()
+command_pid=""
 stopping=0
 stop_all() {
     # Stop in reverse order of start: the API first, then workers, then the scheduler.
@@ -55,6 +56,12 @@ stop_all() {
     # is, or the job it is running fails ("lost the connection to the dask scheduler")
     # instead of staying "running" to be re-queued at the next start.
     local i pid deadline
+    if [[ -n "$command_pid" ]] && kill -0 "$command_pid" 2>/dev/null; then  # the command, first
+        kill -TERM "$command_pid" 2>/dev/null || true
+        deadline=$(( SECONDS + 20 ))
+        while kill -0 "$command_pid" 2>/dev/null && (( SECONDS < deadline )); do sleep 0.2; done
+        kill -KILL "$command_pid" 2>/dev/null || true
+    fi
     for (( i=${#pids[@]}-1; i>=0; i-- )); do
         pid="${pids[$i]}"
         kill -TERM -- "-$pid" 2>/dev/null || kill -TERM "$pid" 2>/dev/null || true
@@ -145,8 +152,14 @@ fi
 echo "local-topology: up. API $ORCHARD_URL, scheduler $ORCHARD_SCHEDULER, dashboard http://$host:$dashboard_port/status, data $data_dir" >&2
 
 if [[ ${#command[@]} -gt 0 ]]; then
+    # In the background, so that a SIGTERM or Ctrl-C is acted on at once (bash runs a
+    # trap only once its foreground child has ended), with the terminal's stdin kept
+    # (a background command would read /dev/null); stop_all stops it first.
+    "${command[@]}" 0<&0 &
+    command_pid=$!
     status=0
-    "${command[@]}" || status=$?
+    wait "$command_pid" || status=$?
+    command_pid=""
     exit "$status"
 fi
 echo "local-topology: Ctrl-C to stop" >&2

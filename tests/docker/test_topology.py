@@ -199,3 +199,41 @@ def test_job_end_to_end_through_separate_processes(topology, tmp_path):
     scores = trunk_scores(true_trunks, found, match_distance=1.0)
     assert scores["recall"] >= 5 / 6 and scores["precision"] >= 5 / 6, scores
     assert all(t["height_m"] > 1.5 for t in trees)
+
+
+def test_a_command_run_in_the_topology_gets_its_variables_and_sigterm_stops_everything(tmp_path):
+    # with `-- COMMAND` a SIGTERM waited until the command ended (bash runs traps only
+    # between foreground commands): `timeout 600 local-topology.sh -- client` overran
+    ready, seen, log = tmp_path / "ready.env", tmp_path / "seen", tmp_path / "topology.log"
+    command = f'echo "$ORCHARD_URL $ORCHARD_SCHEDULER" > {seen}; exec sleep 300'
+    with open(log, "w") as logf:
+        proc = subprocess.Popen(
+            ["bash", str(SCRIPT), "--data-dir", str(tmp_path / "data"), "--workers", "1", "--ready-file", str(ready),
+             "--", "sh", "-c", command],
+            stdout=logf, stderr=subprocess.STDOUT, start_new_session=True,
+        )
+    pids: list[int] = []
+    try:
+        deadline = time.monotonic() + START_TIMEOUT
+        while not (ready.exists() and seen.exists() and seen.read_text().strip()):
+            assert proc.poll() is None and time.monotonic() < deadline, _tail(log)
+            time.sleep(0.2)
+        env = _read_env(ready)
+        pids = [int(p) for p in env["PIDS"].split()]
+        assert seen.read_text().split() == [env["ORCHARD_URL"], env["ORCHARD_SCHEDULER"]]
+        sleeper = int(subprocess.run(["pgrep", "-f", "sleep 300", "-P", str(proc.pid)],
+                                     capture_output=True, text=True, timeout=10).stdout.split()[0])
+        t = time.monotonic()
+        proc.send_signal(signal.SIGTERM)
+        assert proc.wait(timeout=STOP_TIMEOUT) == 143, _tail(log)
+        assert time.monotonic() - t < 30, "it waited for the command to end"
+        assert not _alive(sleeper) and not any(_alive(p) for p in pids)
+    finally:
+        for pid in [proc.pid, *pids]:
+            try:
+                os.killpg(pid, signal.SIGKILL)
+            except (ProcessLookupError, PermissionError):
+                pass
+        if proc.poll() is None:
+            proc.kill()
+            proc.wait(timeout=10)
