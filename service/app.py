@@ -183,6 +183,7 @@ class Health(BaseModel):
     schedules: str
     cluster: str = Field(
         description="the runner's dask client: 'connected', 'not started' (until the first job), "
+        "'unreachable' (the last attempt to reach the cluster failed; the next job tries again), "
         "or distributed's state of a client that lost its scheduler (e.g. 'connecting')"
     )
 

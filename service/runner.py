@@ -158,6 +158,7 @@ class Runner(threading.Thread):
         self._client_factory = client_factory or self._default_client
         self._after_done = after_done
         self._client = None
+        self._unreachable = False  # the last attempt to start or reach the cluster failed
         self._stopping = threading.Event()
         self._wake = threading.Event()
         self._lock = threading.Lock()
@@ -188,11 +189,12 @@ class Runner(threading.Thread):
             self.join(timeout)
 
     def cluster_state(self) -> str:
-        """'connected', 'not started', or the dask client's own status (e.g. 'connecting'
+        """'connected', 'not started', 'unreachable' (the last attempt to reach it failed;
+        the next job tries again), or the dask client's own status (e.g. 'connecting'
         while it has lost its scheduler)."""
         client = self._client
         if client is None:
-            return "not started"
+            return "unreachable" if self._unreachable else "not started"
         status = str(getattr(client, "status", "running"))
         return "connected" if status == "running" else status
 
@@ -226,9 +228,11 @@ class Runner(threading.Thread):
             try:
                 client = self._client_factory()
             except Exception as exc:  # noqa: BLE001 - becomes the job's error; the next job tries again
+                self._unreachable = True
                 why = _short(exc, 200).replace("or fix --scheduler", "or fix ORCHARD_SCHEDULER")
                 raise ClusterUnavailable(f"cannot start or reach the dask cluster ({where}): {why}") from exc
             self._client = client
+            self._unreachable = False
             if self.settings.dashboard:
                 self.dashboard_link = getattr(client, "dashboard_link", None)
                 log.info("dask dashboard: %s", self.dashboard_link)

@@ -430,7 +430,7 @@ class Store:
         retries meant for a lost cluster."""
         with self._tx() as con:
             con.execute(
-                "UPDATE jobs SET state = 'queued', tiles_done = 0, attempts = MAX(attempts - 1, 0) "
+                "UPDATE jobs SET state = 'queued', tiles_done = 0, tiles_total = 0, attempts = MAX(attempts - 1, 0) "
                 "WHERE id = ? AND state = 'running'",
                 (job_id,),
             )
@@ -444,7 +444,7 @@ class Store:
         self.cancel_interrupted()
         with self._tx() as con:
             return con.execute(
-                "UPDATE jobs SET state = 'queued', tiles_done = 0 WHERE state = 'running'"
+                "UPDATE jobs SET state = 'queued', tiles_done = 0, tiles_total = 0 WHERE state = 'running'"
             ).rowcount
 
     # -- schedules --------------------------------------------------------------------

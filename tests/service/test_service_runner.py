@@ -129,8 +129,10 @@ def test_cluster_that_cannot_start_fails_the_job_clearly(env, monkeypatch):
         raise OSError("Timed out trying to connect to tcp://10.0.0.1:8786")
 
     monkeypatch.setattr(workers_job, "run_job", lambda *a, **k: pytest.fail("must not run"))
-    failed = Runner(store, settings, client_factory=broken).run_job(_queue(store, tenant, block))
+    runner = Runner(store, settings, client_factory=broken)
+    failed = runner.run_job(_queue(store, tenant, block))
     assert failed["state"] == "failed" and failed["error"].startswith("cannot start or reach the dask cluster")
+    assert runner.cluster_state() == "unreachable"  # /healthz said "not started"
 
 
 def test_a_job_the_cluster_failed_is_queued_again_later(env, monkeypatch):
