@@ -559,7 +559,8 @@ def ensure_report(store: Store, settings: Settings, job: dict) -> Path:
     summary = {
         "Block": job_block_name(job, block) or block["id"],
         "Job": job["id"],
-        "Finished": datetime.fromtimestamp(finished, timezone.utc).strftime("%Y-%m-%d %H:%M UTC") if finished else "",
+        # the server's local time, as its schedules' cron times, with the zone said
+        "Finished": datetime.fromtimestamp(finished).astimezone().strftime("%Y-%m-%d %H:%M %Z (UTC%z)") if finished else "",
         "Points": str((block.get("info") or {}).get("n_points", "")),
         "Trees": str(rows_total if rows_total is not None else ""),
     }

@@ -4,6 +4,8 @@ from __future__ import annotations
 
 import math
 import shutil
+import time
+from datetime import datetime
 from pathlib import Path
 
 import numpy as np
@@ -128,7 +130,7 @@ def test_the_report_of_a_partial_result_says_which_tiles_are_missing(finished_jo
     settings, store, job = finished_job("north $block$.las", {"n_trees": 2, "partial": True, "failed_tiles": [3, 4]})
     text = ensure_report(store, settings, job).read_text()
     assert "Partial result: tile(s) 3, 4 of this block failed" in text
-    assert "north $block$.las" in text and " UTC</li>" in text
+    assert "north $block$.las" in text and "(UTC" in text  # the finish time, its zone said
 
 
 def test_a_lost_map_is_drawn_again_and_a_lost_block_is_a_clear_404(finished_job):
@@ -163,3 +165,21 @@ def test_a_scheduled_jobs_report_names_its_capture(finished_job):
     assert job_out(job).capture == "night-7.laz"
     text = ensure_report(store, settings, job).read_text()
     assert "Orchard report — night-7.laz" in text and "test-upload.las" not in text
+
+
+@pytest.mark.skipif(not hasattr(time, "tzset") or not Path("/usr/share/zoneinfo/Australia/Sydney").exists(),
+                    reason="needs time.tzset and the system's zone files")
+def test_the_report_gives_the_finish_time_in_the_servers_zone(finished_job, monkeypatch):
+    # a grower read "Finished ... UTC" while the schedules run on the server's local time
+    from service.app import ensure_report
+
+    monkeypatch.setenv("TZ", "Australia/Sydney")
+    time.tzset()
+    try:
+        settings, store, job = finished_job("north.las", {"n_trees": 2})
+        text = ensure_report(store, settings, job).read_text()
+        local = datetime.fromtimestamp(job["finished_at"]).astimezone()
+        assert local.strftime("%Y-%m-%d %H:%M") in text and "(UTC+1100)" in text  # AEDT in November
+    finally:
+        monkeypatch.undo()
+        time.tzset()
