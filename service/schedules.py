@@ -28,7 +28,7 @@ from typing import Any
 from croniter import croniter
 from croniter.croniter import CroniterBadDateError
 
-from pipeline.errors import InputError, ParameterError
+from pipeline.errors import InputError, NotFoundError, ParameterError
 from service.scratch import scratch_dir
 from service.settings import Settings
 from service.store import Store, accept_block
@@ -240,7 +240,9 @@ def display_name(path: Path) -> str:
     return printable(os.fsencode(path.name).decode("utf-8", "backslashreplace")).strip() or "(unnamed)"
 
 
-def run_schedule(store: Store, settings: Settings, schedule: dict[str, Any], *, now: float | None = None) -> dict[str, Any]:
+def run_schedule(
+    store: Store, settings: Settings, schedule: dict[str, Any], *, now: float | None = None, by_clock: bool = False
+) -> dict[str, Any]:
     """Submit a job for every new capture in the schedule's inbox; returns what was done.
 
     Returns ``{"schedule_id", "jobs": [job ids], "skipped": n already handled,
@@ -253,6 +255,10 @@ def run_schedule(store: Store, settings: Settings, schedule: dict[str, Any], *, 
     away for a monthly schedule). A file whose name is not valid UTF-8 is rejected
     without being recorded (taken once renamed), and a capture that fails in any other
     unexpected way is rejected and logged without stopping the scan of the others.
+
+    The schedule is read again before each capture's job is queued: a change made during
+    a long scan applies to the jobs queued after it, and a pause (``by_clock``: the
+    clock's scan; a scan by hand runs on) or a deletion ends the scan there.
     """
     result: dict[str, Any] = {"schedule_id": schedule["id"], "jobs": [], "skipped": 0, "rejected": [], "waiting": []}
     inbox = Path(schedule["inbox"])
@@ -263,15 +269,20 @@ def run_schedule(store: Store, settings: Settings, schedule: dict[str, Any], *, 
     now = time.time() if now is None else now
     with _run_lock:
         for path in captures(inbox):
+            schedule = _current(store, schedule["id"], by_clock=by_clock)
+            if schedule is None:
+                break
             name = display_name(path)
             try:
-                outcome = _take_capture(store, settings, schedule, path, name, now)
+                outcome = _take_capture(store, settings, schedule, path, name, now, by_clock=by_clock)
             except Exception as exc:  # one capture must not stop the scan of the others (logged)
                 log.warning("schedule %s: capture %s could not be taken", schedule["id"], name, exc_info=True)
                 # the farm sees the kind of failure, not the server's paths; the log has the rest
                 why = exc.strerror if isinstance(exc, OSError) and exc.strerror else type(exc).__name__
                 outcome = ("rejected", f"could not be taken ({why}); it is tried again at the next scan")
             kind, detail = outcome
+            if kind == "stopped":
+                break
             if kind == "job":
                 result["jobs"].append(detail)
             elif kind == "skipped":
@@ -303,11 +314,21 @@ def still_arriving(stat: os.stat_result, now: float, settle_s: float) -> bool:
     return any(abs(now - t) < settle_s for t in (stat.st_mtime, stat.st_ctime))
 
 
+def _current(store: Store, schedule_id: str, *, by_clock: bool) -> dict[str, Any] | None:
+    """The schedule as stored now; None if it was deleted, or paused during a clock's scan."""
+    try:
+        schedule = store.get_schedule(None, schedule_id)
+    except NotFoundError:
+        return None
+    return None if by_clock and schedule["paused"] else schedule
+
+
 def _take_capture(
-    store: Store, settings: Settings, schedule: dict[str, Any], path: Path, name: str, now: float
+    store: Store, settings: Settings, schedule: dict[str, Any], path: Path, name: str, now: float, *, by_clock: bool = False
 ) -> tuple[str, str | None]:
-    """One capture of a scan: ("job", job id), ("skipped", None), ("waiting", None) or
-    ("rejected", error)."""
+    """One capture of a scan: ("job", job id), ("skipped", None), ("waiting", None),
+    ("rejected", error), or ("stopped", None) when the schedule was paused or deleted
+    while the capture was read (nothing queued; a later scan takes it)."""
     try:
         path.name.encode("utf-8", "strict")  # undecodable bytes are surrogates here
     except UnicodeEncodeError:
@@ -346,6 +367,9 @@ def _take_capture(
         return "rejected", str(exc)
     finally:
         tmp.unlink(missing_ok=True)
+    schedule = _current(store, schedule["id"], by_clock=by_clock)  # reading may have taken minutes
+    if schedule is None:
+        return "stopped", None
     job = store.create_scheduled_job(schedule=schedule, block_id=block["id"], sha256=sha, path=str(path), capture=name)
     if job is None:  # another scan of this inbox (another process) took it first
         return "skipped", None
@@ -396,7 +420,7 @@ class ScheduleClock(threading.Thread):
                 elif nxt <= now:
                     again = None
                     try:
-                        res = run_schedule(self.store, self.settings, sched, now=now)
+                        res = run_schedule(self.store, self.settings, sched, now=now, by_clock=True)
                         log.info("schedule %s: %d new jobs, %d already handled, %d still arriving",
                                  sched["id"], len(res["jobs"]), res["skipped"], len(res["waiting"]))
                         if res["jobs"] and self.on_jobs:

@@ -740,3 +740,32 @@ def test_cli_schedules_pause_resume_and_update(tmp_path, capsys):
     for action in (["pause"], ["run"], ["delete"], ["update", "--cron", "1 * * * *"]):
         assert main(["schedules", action[0], "nope", *action[1:], "--data-dir", str(data)]) == 3
         assert "list them with 'orchard schedules list'" in capsys.readouterr().err
+
+
+def test_a_change_or_pause_during_a_long_scan_applies_to_the_captures_queued_after_it(local, monkeypatch):
+    # the scan queued every capture with the settings read before it started: a farm that
+    # paused or fixed its parameters during a night's multi-GB scan still got the old jobs
+    import service.schedules as schedules
+
+    settings, store, tenant, inbox = local
+    for i in range(3):
+        write_las(inbox / f"c{i}.laz", 400 + i, seed=40 + i)
+    sched = _schedule(store, tenant, inbox)
+    real_copy = schedules._copy_hashed
+    change = {}
+
+    def copy_and_change(src, dst):
+        if change:
+            store.update_schedule(tenant["id"], sched["id"], change.copy())
+            change.clear()
+        return real_copy(src, dst)
+
+    monkeypatch.setattr(schedules, "_copy_hashed", copy_and_change)
+    change.update(paused=True)  # paused while the clock's scan reads its first capture
+    res = run_schedule(store, settings, sched, by_clock=True)
+    assert res["jobs"] == [] and store.list_jobs(tenant["id"]) == []
+    new = {"segment": {"max_crown_radius": 3.0}}
+    change.update(params=new)  # a scan by hand of the paused schedule runs on, with the new parameters
+    res = run_schedule(store, settings, store.get_schedule(None, sched["id"]))
+    assert len(res["jobs"]) == 3
+    assert all(j["params"] == new for j in store.list_jobs(tenant["id"]))
