@@ -24,7 +24,7 @@ from fastapi import APIRouter, Depends, FastAPI, Query, Request, Response
 from fastapi.concurrency import run_in_threadpool
 from fastapi.responses import FileResponse, HTMLResponse, JSONResponse, RedirectResponse
 from fastapi.security import HTTPAuthorizationCredentials, HTTPBearer
-from pydantic import BaseModel, ConfigDict, Field
+from pydantic import BaseModel, ConfigDict, Field, StrictBool
 from python_multipart.multipart import MultipartParser, parse_options_header
 from starlette.requests import ClientDisconnect
 
@@ -69,8 +69,8 @@ class Tiling(BaseModel):
     """Split the block into square tiles processed on the dask workers."""
 
     model_config = ConfigDict(extra="forbid")
-    tile_size: float = Field(ge=1.0, le=100_000.0, description="tile edge length [m]")
-    buffer: float | None = Field(None, ge=0.0, le=1_000.0, description="overlap on every side [m]; default = the parameters' reach")
+    tile_size: float = Field(ge=1.0, le=100_000.0, allow_inf_nan=False, description="tile edge length [m]")
+    buffer: float | None = Field(None, ge=0.0, le=1_000.0, allow_inf_nan=False, description="overlap on every side [m]; default = the parameters' reach")
 
 
 class JobCreate(BaseModel):
@@ -142,9 +142,10 @@ class ScheduleUpdate(BaseModel):
     """The settings to change; those left out stay as they are."""
 
     model_config = ConfigDict(extra="forbid")
-    paused: bool | None = Field(None, description="true: the clock skips the schedule (a scan by hand still runs); false: it runs again from its next cron time")
-    cron: str | None = Field(None, max_length=200, description="cron expression, local time")
-    params: PipelineParams | None = Field(None, description="parameters of the jobs it queues from now on (all of them: left-out fields take their defaults)")
+    # (not nullable: a field left out stays as it is; None is only the "not given" default)
+    paused: StrictBool = Field(None, description="true: the clock skips the schedule (a scan by hand still runs); false: it runs again from its next cron time")
+    cron: str = Field(None, max_length=200, description="cron expression, local time")
+    params: PipelineParams = Field(None, description="parameters of the jobs it queues from now on (all of them: left-out fields take their defaults)")
     tiling: Tiling | None = Field(None, description="tiling of the jobs it queues from now on; null: one tile")
 
 
@@ -861,8 +862,7 @@ def create_app(settings: Settings) -> FastAPI:
 
     @v1.patch("/schedules/{schedule_id}", response_model=Schedule, tags=["schedules"], summary="Pause, resume or change a schedule")
     def update_schedule(schedule_id: str, body: ScheduleUpdate, request: Request, tenant: TenantDep, store: StoreDep):
-        sched = store.get_schedule(tenant["id"], schedule_id)
-        rec = store.update_schedule(tenant["id"], schedule_id, schedule_changes(sched, body))
+        rec = store.update_schedule(tenant["id"], schedule_id, lambda current: schedule_changes(current, body))
         clock = request.app.state.clock
         if clock is not None:
             clock.wake()
@@ -887,42 +887,39 @@ def create_app(settings: Settings) -> FastAPI:
     return app
 
 
-def _checked_tiling(params: PipelineParams, tiling: Tiling | None) -> dict | None:
+def _checked_tiling(params: PipelineParams, tiling: Tiling | None, *, api: bool = True) -> dict | None:
     """The tiling of a job or schedule as stored; ParameterError (422) when its buffer is
     below the parameters' reach or its tiles so small that each point would be copied
-    into too many of them (the command line's check, in the request's words)."""
+    into too many of them (the command line's check, in the request's words unless
+    ``api`` is False)."""
     if tiling is None:
         return None
     try:
         check_tiling(tiling.tile_size, tiling.buffer, params.reach())
     except ParameterError as exc:
+        if not api:
+            raise
         raise ParameterError(api_wording(str(exc))) from None
     return tiling.model_dump()
 
 
-def schedule_changes(sched: dict, body: ScheduleUpdate, *, now: datetime | None = None) -> dict[str, Any]:
+def schedule_changes(sched: dict, body: ScheduleUpdate, *, now: datetime | None = None, api: bool = True) -> dict[str, Any]:
     """The store changes of a PATCH of ``sched``, checked as at creation (ParameterError:
-    422). A new cron, or a resume, starts from the next cron time after ``now``: runs
-    missed while paused are not made up."""
+    422; in the command line's words unless ``api``). A new cron, or a resume, starts
+    from the next cron time after ``now``: runs missed while paused are not made up."""
     given = body.model_fields_set
     changes: dict[str, Any] = {}
     cron = sched["cron"]
     if "cron" in given:
-        if body.cron is None:
-            raise ParameterError("cron: a schedule needs a cron expression")
         cron = changes["cron"] = validate_cron(body.cron)
     params = PipelineParams(**sched["params"])
     if "params" in given:
-        if body.params is None:
-            raise ParameterError("params: give the parameters, or {} for the defaults")
         params = body.params
         changes["params"] = params.model_dump()
     if "tiling" in given or "params" in given:
         tiling = body.tiling if "tiling" in given else (Tiling(**sched["tiling"]) if sched["tiling"] else None)
-        changes["tiling"] = _checked_tiling(params, tiling)
+        changes["tiling"] = _checked_tiling(params, tiling, api=api)
     if "paused" in given:
-        if body.paused is None:
-            raise ParameterError("paused: true or false")
         changes["paused"] = body.paused
     paused = changes.get("paused", bool(sched["paused"]))
     if paused:

@@ -22,6 +22,7 @@ import threading
 import time
 import uuid
 from pathlib import Path
+from collections.abc import Callable
 from typing import Any, Iterator
 
 from pipeline.errors import ConflictError, InputError, NotFoundError, ParameterError
@@ -506,22 +507,31 @@ class Store:
                 (at, schedule_id, at),
             )
 
-    def update_schedule(self, tenant_id: str | None, schedule_id: str, changes: dict[str, Any]) -> dict[str, Any]:
+    def update_schedule(
+        self, tenant_id: str | None, schedule_id: str, changes: dict[str, Any] | Callable[[dict[str, Any]], dict[str, Any]]
+    ) -> dict[str, Any]:
         """Change a schedule's ``cron``, ``params``, ``tiling``, ``paused`` and
-        ``next_run_at`` (the keys given; checked by the caller) in one transaction."""
+        ``next_run_at`` (the keys given) in one transaction. ``changes`` may be a function
+        of the schedule as stored, called inside that transaction, so that what it checks
+        (a tiling against the parameters) cannot be changed by another request meanwhile."""
         allowed = {"cron", "params", "tiling", "paused", "next_run_at"}
-        if not changes.keys() <= allowed:
-            raise ValueError(f"not a schedule setting: {sorted(changes.keys() - allowed)}")
-        values = {k: (json.dumps(v) if k in ("params", "tiling") and v is not None else v) for k, v in changes.items()}
-        if "paused" in values:
-            values["paused"] = int(bool(values["paused"]))
-        sets = ", ".join(f"{k} = ?" for k in values) or "id = id"
         where, args = "id = ?", [schedule_id]
         if tenant_id is not None:
             where, args = "id = ? AND tenant_id = ?", [schedule_id, tenant_id]
         with self._tx() as con:
-            if con.execute(f"UPDATE schedules SET {sets} WHERE {where}", [*values.values(), *args]).rowcount == 0:
+            current = _record(con.execute(f"SELECT * FROM schedules WHERE {where}", args).fetchone())
+            if current is None:
                 raise NotFoundError(f"no schedule {schedule_id!r}; list yours with GET /v1/schedules")
+            if callable(changes):
+                changes = changes(current)
+            if not changes.keys() <= allowed:
+                raise ValueError(f"not a schedule setting: {sorted(changes.keys() - allowed)}")
+            values = {k: (json.dumps(v) if k in ("params", "tiling") and v is not None else v) for k, v in changes.items()}
+            if "paused" in values:
+                values["paused"] = int(bool(values["paused"]))
+            if values:
+                con.execute(f"UPDATE schedules SET {', '.join(f'{k} = ?' for k in values)} WHERE {where}",
+                            [*values.values(), *args])
         return self.get_schedule(tenant_id, schedule_id)
 
     def known_hash(self, path: str, state: tuple[int, int, int, int]) -> str | None:

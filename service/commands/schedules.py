@@ -35,8 +35,8 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     u = sub.add_parser("update", help="change a schedule's cron or tiling (what is not given stays)")
     u.add_argument("schedule_id")
     u.add_argument("--cron", default=None, help="new cron expression in local time")
-    u.add_argument("--tile-size", type=float, default=None, help="process in square tiles of this size [m]")
-    u.add_argument("--buffer", type=float, default=None, help="tile overlap [m] (default: the parameters' reach)")
+    u.add_argument("--tile-size", type=float, default=None, help="process in square tiles of this size [m] (the buffer stays as it is unless --buffer is given)")
+    u.add_argument("--buffer", type=float, default=None, help="tile overlap [m]; alone, it changes a tiled schedule's buffer")
     u.add_argument("--untiled", action="store_true", help="process each capture as one tile")
     _data_dir(u)
     for action, what in (("pause", "the clock skips it until it is resumed (a scan by hand still runs)"),
@@ -110,7 +110,7 @@ def run(args: argparse.Namespace) -> int:
                 raise ParameterError("; ".join(
                     f"{_OPTION.get(tuple(map(str, e['loc'])), '.'.join(map(str, e['loc'])))}: {e['msg']}"
                     for e in exc.errors())) from None
-            rec = store.update_schedule(None, sched["id"], schedule_changes(sched, update))
+            rec = store.update_schedule(None, sched["id"], lambda current: schedule_changes(current, update, api=False))
             state = "paused" if rec["paused"] else f"next run {_when(rec['next_run_at'])}"
             print(f"{rec['id']}\t{rec['cron']}\t{state}")
         elif args.action == "run":
@@ -152,8 +152,9 @@ def _update_body(args: argparse.Namespace, sched: dict) -> dict:
         raise ParameterError("--untiled takes no --tile-size or --buffer")
     if args.untiled:
         body["tiling"] = None
-    elif args.tile_size is not None:
-        body["tiling"] = {"tile_size": args.tile_size, "buffer": args.buffer}
+    elif args.tile_size is not None:  # a buffer set before stays (widened for wide crowns, say)
+        buffer = args.buffer if args.buffer is not None else (sched.get("tiling") or {}).get("buffer")
+        body["tiling"] = {"tile_size": args.tile_size, "buffer": buffer}
     elif args.buffer is not None:
         if not sched.get("tiling"):
             raise ParameterError("--buffer needs --tile-size: the schedule processes each capture as one tile")

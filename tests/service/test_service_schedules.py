@@ -730,9 +730,14 @@ def test_cli_schedules_pause_resume_and_update(tmp_path, capsys):
         err = capsys.readouterr().err
         assert fragment in err and "Traceback" not in err, (args, err)
     assert main(["schedules", "update", sid, "--buffer", "9", "--data-dir", str(data)]) == 0  # keeps its 40 m tiles
+    assert main(["schedules", "update", sid, "--tile-size", "30", "--data-dir", str(data)]) == 0  # keeps its 9 m buffer
     store = Store(data / "orchard.sqlite")
-    assert store.get_schedule(None, sid)["tiling"] == {"tile_size": 40.0, "buffer": 9.0}
+    assert store.get_schedule(None, sid)["tiling"] == {"tile_size": 30.0, "buffer": 9.0}
     store.close()
+    # a check of the tiling speaks of the command's options, not the API's fields
+    assert main(["schedules", "update", sid, "--buffer", "3", "--data-dir", str(data)]) == 2
+    err = capsys.readouterr().err
+    assert "--buffer" in err and "tiling.buffer" not in err, err
     assert main(["schedules", "update", sid, "--untiled", "--data-dir", str(data)]) == 0
     capsys.readouterr()
     assert main(["schedules", "update", sid, "--buffer", "9", "--data-dir", str(data)]) == 2
@@ -769,3 +774,38 @@ def test_a_change_or_pause_during_a_long_scan_applies_to_the_captures_queued_aft
     res = run_schedule(store, settings, store.get_schedule(None, sched["id"]))
     assert len(res["jobs"]) == 3
     assert all(j["params"] == new for j in store.list_jobs(tenant["id"]))
+
+
+def test_two_changes_at_once_cannot_store_a_buffer_below_the_reach(local):
+    # each PATCH was checked against the schedule read before either wrote: new default
+    # parameters (reach 6.15 m) and a 3.5 m buffer (fine for the old 2 m crowns) were both
+    # stored, and every night's job then failed at planning
+    import threading
+
+    from service.app import ScheduleUpdate, schedule_changes
+
+    settings, store, tenant, inbox = local
+    sched = store.create_schedule(tenant_id=tenant["id"], inbox=str(inbox), cron="0 1 * * *",
+                                  params={"segment": {"max_crown_radius": 2.0}}, tiling={"tile_size": 30.0, "buffer": None},
+                                  next_run_at=None)
+    inside = threading.Event()
+
+    def slow_params(current):
+        changes = schedule_changes(current, ScheduleUpdate(params={}))
+        inside.set()
+        time.sleep(0.5)  # still in its write transaction
+        return changes
+
+    first = threading.Thread(target=store.update_schedule, args=(tenant["id"], sched["id"], slow_params))
+    first.start()
+    assert inside.wait(10)
+    other = Store(settings.store_path)  # another request's connection
+    try:
+        with pytest.raises(ParameterError, match="buffer"):
+            other.update_schedule(tenant["id"], sched["id"],
+                                  lambda current: schedule_changes(current, ScheduleUpdate(tiling={"tile_size": 30, "buffer": 3.5})))
+    finally:
+        first.join(10)
+        other.close()
+    rec = store.get_schedule(None, sched["id"])
+    assert rec["tiling"] == {"tile_size": 30.0, "buffer": None} and rec["params"]["segment"]["max_crown_radius"] == 5.0
