@@ -96,7 +96,19 @@ DEFAULT_WORKERS = 2
 
 def _check_cluster_options(args: argparse.Namespace) -> None:
     """ParameterError for tiling and cluster options that would go unused without a
-    word (a block processed in one piece has no grid, tiler or embedded workers)."""
+    word (a block processed in one piece has no grid, tiler or embedded workers; a job
+    resumed from --work keeps the grid it was planned with and runs here or on
+    --scheduler)."""
+    if args.rerun_tile or args.resume:
+        given = [flag for flag, value in (("--tile-size", args.tile_size), ("--buffer", args.buffer),
+                                          ("--grid-origin", args.grid_origin), ("--engine", args.engine),
+                                          ("--workers", args.workers)) if value is not None]
+        if given:
+            raise ParameterError(
+                f"{', '.join(given)}: --resume and --rerun-tile go on with the job in --work as it was planned "
+                "(its tiles, on --scheduler or in this process); start a new job to change them"
+            )
+        return
     tiled = args.tile_size is not None or args.scheduler is not None
     if args.workers is not None:
         most = 4 * (os.cpu_count() or 1)
@@ -114,16 +126,28 @@ def _check_cluster_options(args: argparse.Namespace) -> None:
         raise ParameterError("--engine needs --tile-size: a block processed in one piece is not tiled")
 
 
-def _check_same_input(work: str, input_path: str) -> None:
-    """ParameterError if INPUT is another file than the block of the job in ``work``
-    (--rerun-tile and --resume take the block the job was started on)."""
+def _check_same_job(args: argparse.Namespace) -> None:
+    """ParameterError if INPUT, the pipeline options or --labelled-laz are not those the
+    job in ``work`` was started with (--rerun-tile and --resume go on with that job: they
+    were ignored without a word)."""
+    from pipeline.params import PipelineParams
     from workers.job import JOB_KEY
     from workers.store import WorkStore
 
+    work, input_path = args.work, args.input
     store = WorkStore(work)
     if not store.exists(JOB_KEY):
         return  # said by resume_job / finish_job / run_tile
-    started_on = store.get_json(JOB_KEY)["input_path"]
+    record = store.get_json(JOB_KEY)
+    started_with = PipelineParams.model_validate(record.get("params") or {})
+    if pipeline_params_from_args(args, base=started_with) != started_with:  # an option given to change one
+        raise ParameterError(
+            f"the pipeline options differ from those the job in --work {work} was started with; "
+            "--resume and --rerun-tile go on with that job: leave them out, or start a new job"
+        )
+    if args.labelled_laz and not record.get("labelled_laz", False):
+        raise ParameterError(f"the job in --work {work} was started without --labelled-laz; start a new job to write it")
+    started_on = record["input_path"]
     try:
         same = os.path.samefile(started_on, input_path)
     except OSError:  # one of them is gone: the paths must agree
@@ -143,7 +167,7 @@ def run(args: argparse.Namespace) -> int:
     if args.rerun_tile or args.resume:
         if not args.work:
             raise ParameterError("--rerun-tile and --resume need --work: the work folder of the tiled run that failed")
-        _check_same_input(args.work, args.input)
+        _check_same_job(args)
         for tid in args.rerun_tile or ():
             print(f"re-running tile {tid} from {args.work}", file=sys.stderr)
             run_tile(args.work, tid)

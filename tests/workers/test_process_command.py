@@ -246,11 +246,24 @@ def test_resume_and_rerun_take_only_the_block_the_job_was_started_on(small_block
 
     work = WorkStore(str(tmp_path / "work"))
     work.claim()
-    work.put_json(JOB_KEY, {"input_path": str(small_block)})
+    work.put_json(JOB_KEY, {"input_path": str(small_block), "params": {"segment": {"max_crown_radius": 3.0}},
+                            "labelled_laz": False})
     for extra in (["--resume"], ["--rerun-tile", "3"]):
         code, _, err = _run(capsys, ground_block, "--out", tmp_path / "out", "--work", tmp_path / "work", *extra)
         _assert_clean_failure(code, err, tmp_path / "out")
         assert f"is not the block the job in --work {tmp_path / 'work'} was started on ({small_block})" in err
+    # nor other options, which went ignored: the job goes on as it was planned
+    for extra, words in ((["--tile-size", "50", "--workers", "2"], "--tile-size, --workers: --resume and --rerun-tile go on"),
+                         (["--grid-origin=0,0"], "--grid-origin: --resume"), (["--engine", "laspy"], "--engine: --resume"),
+                         (["--segment-max-crown-radius", "2"], "the pipeline options differ"),
+                         (["--labelled-laz"], "started without --labelled-laz")):
+        code, _, err = _run(capsys, small_block, "--out", tmp_path / "out", "--work", tmp_path / "work", "--resume", *extra)
+        _assert_clean_failure(code, err, tmp_path / "out")
+        assert words in err, err
+    # the job's own value of an option is no change
+    code, _, err = _run(capsys, small_block, "--out", tmp_path / "out", "--work", tmp_path / "work", "--resume",
+                        "--segment-max-crown-radius", "3")
+    assert "differ" not in err and "--resume and --rerun-tile go on" not in err
 
 
 @pytest.mark.parametrize("argv", [["--buffer", "nan"], ["--buffer", "-1"], ["--buffer", "20"]])
