@@ -83,6 +83,11 @@ def main(argv: list[str] | None = None) -> int:
     except Exception as exc:  # noqa: BLE001 - last line of defence: no tracebacks
         if os.environ.get("ORCHARD_DEBUG") == "1":
             raise
+        from service.errors import disk_full
+
+        if disk_full(exc):  # the machine's trouble, said as such
+            print(f"orchard {args.command}: the disk is full ({exc}); free some space and run it again", file=sys.stderr)
+            return 1
         print(f"orchard {args.command}: internal error: {type(exc).__name__}: {exc}", file=sys.stderr)
         return 1
 

@@ -54,6 +54,14 @@ class ShuttingDownError(StarletteHTTPException):
 #: errno values of a full disk or an exhausted quota
 DISK_FULL = (errno.ENOSPC, errno.EDQUOT)
 
+def disk_full(exc: BaseException) -> bool:
+    """Whether ``exc`` says the disk (or the quota) is full: an OSError's errno, or
+    SQLite's "database or disk is full"."""
+    if isinstance(exc, sqlite3.OperationalError):
+        return "disk is full" in str(exc)
+    return isinstance(exc, OSError) and exc.errno in DISK_FULL
+
+
 STATUS: dict[type[Exception], int] = {
     UnauthorizedError: 401,
     NotFoundError: 404,
@@ -156,7 +164,7 @@ def install_error_handlers(app: FastAPI) -> None:
 
     @app.exception_handler(OSError)
     async def _os(request: Request, exc: OSError) -> JSONResponse:
-        if exc.errno in DISK_FULL:
+        if disk_full(exc):
             log.error("%s %s: the data folder's disk is full (%s)", request.method, request.url.path, exc)
             return error_response(507, "the server has no disk space left for this request; nothing of it was "
                                   "kept: try again later (the operator has been told in the service log)")
@@ -165,6 +173,10 @@ def install_error_handlers(app: FastAPI) -> None:
 
     @app.exception_handler(sqlite3.OperationalError)
     async def _store_busy(request: Request, exc: sqlite3.OperationalError) -> JSONResponse:
+        if disk_full(exc):
+            log.error("%s %s: the job store's disk is full (%s)", request.method, request.url.path, exc)
+            return error_response(507, "the server has no disk space left for this request; nothing of it was "
+                                  "kept: try again later (the operator has been told in the service log)")
         if "locked" in str(exc) or "busy" in str(exc):
             log.warning("%s %s: the job store stayed locked (%s)", request.method, request.url.path, exc)
             resp = error_response(503, "the job store is busy; try again in a few seconds")

@@ -31,7 +31,7 @@ import numpy as np
 
 from pipeline.errors import OrchardError, ParameterError
 from pipeline.params import PipelineParams
-from service.errors import DISK_FULL, api_wording
+from service.errors import api_wording, disk_full
 from service.settings import Settings
 from service.store import Store
 
@@ -376,7 +376,7 @@ class Runner(threading.Thread):
             elif isinstance(exc, ClusterUnavailable):
                 retry_advice = ""
                 message = str(exc)
-            elif isinstance(exc, OSError) and exc.errno in DISK_FULL:
+            elif disk_full(exc):
                 log.error("job %s: the disk is full (%s)", job["id"], exc)
                 retry_advice = "; free disk space on the server and submit it again"
                 message = "the server ran out of disk space during the job"
