@@ -657,6 +657,8 @@ def create_app(settings: Settings) -> FastAPI:
         404: {"model": ErrorBody, "description": "no such resource for this tenant"},
         413: {"model": ErrorBody, "description": "request body too large"},
         422: {"model": ErrorBody, "description": "invalid request"},
+        503: {"model": ErrorBody, "description": "the job store is busy (Retry-After) or the server is stopping; try again"},
+        507: {"model": ErrorBody, "description": "the server's disk is full; nothing of the request was kept"},
     }
     v1 = APIRouter(prefix="/v1", responses=errors)
 
