@@ -54,6 +54,10 @@ class ShuttingDownError(StarletteHTTPException):
 #: errno values of a full disk or an exhausted quota
 DISK_FULL = (errno.ENOSPC, errno.EDQUOT)
 
+DISK_FULL_DETAIL = ("the server has no disk space left for this request; nothing of it was kept: try again "
+                    "later (the operator has been told in the service log)")
+
+
 def disk_full(exc: BaseException) -> bool:
     """Whether ``exc`` says the disk (or the quota) is full: an OSError's errno, or
     SQLite's "database or disk is full"."""
@@ -166,8 +170,7 @@ def install_error_handlers(app: FastAPI) -> None:
     async def _os(request: Request, exc: OSError) -> JSONResponse:
         if disk_full(exc):
             log.error("%s %s: the data folder's disk is full (%s)", request.method, request.url.path, exc)
-            return error_response(507, "the server has no disk space left for this request; nothing of it was "
-                                  "kept: try again later (the operator has been told in the service log)")
+            return error_response(507, DISK_FULL_DETAIL)
         log.error("unexpected error on %s %s", request.method, request.url.path, exc_info=exc)
         return error_response(500, f"internal error ({type(exc).__name__}); the server log has the details")
 
@@ -175,8 +178,7 @@ def install_error_handlers(app: FastAPI) -> None:
     async def _store_busy(request: Request, exc: sqlite3.OperationalError) -> JSONResponse:
         if disk_full(exc):
             log.error("%s %s: the job store's disk is full (%s)", request.method, request.url.path, exc)
-            return error_response(507, "the server has no disk space left for this request; nothing of it was "
-                                  "kept: try again later (the operator has been told in the service log)")
+            return error_response(507, DISK_FULL_DETAIL)
         if "locked" in str(exc) or "busy" in str(exc):
             log.warning("%s %s: the job store stayed locked (%s)", request.method, request.url.path, exc)
             resp = error_response(503, "the job store is busy; try again in a few seconds")

@@ -46,6 +46,18 @@ def _alive(pid: int) -> bool:
         return False
 
 
+def _kill_everything(proc: subprocess.Popen, pids: list[int]) -> None:
+    """SIGKILL the script's and every role's process group, and reap the script."""
+    for pid in [proc.pid, *pids]:
+        try:
+            os.killpg(pid, signal.SIGKILL)
+        except (ProcessLookupError, PermissionError):
+            pass
+    if proc.poll() is None:
+        proc.kill()
+        proc.wait(timeout=10)
+
+
 READY_KEYS = ("ORCHARD_URL", "ORCHARD_SCHEDULER", "ORCHARD_DATA_DIR", "DASHBOARD_URL", "LOG_DIR", "PIDS", "TOPOLOGY_PID")
 
 
@@ -105,15 +117,7 @@ def topology(tmp_path):
                 time.sleep(0.1)
             if _alive(pid):
                 leftovers.append(pid)
-        # never leave anything behind, even when the test fails
-        for pid in [proc.pid] + pids:
-            try:
-                os.killpg(pid, signal.SIGKILL)
-            except (ProcessLookupError, PermissionError):
-                pass
-        if proc.poll() is None:
-            proc.kill()
-            proc.wait(timeout=10)
+        _kill_everything(proc, pids)  # never leave anything behind, even when the test fails
         assert clean, f"local-topology.sh did not stop within {STOP_TIMEOUT:.0f} s of SIGTERM:\n{_tail(log)}"
         assert not leftovers, f"processes still running after shutdown: {leftovers}"
         assert not ready.exists(), "the ready file should be removed on shutdown"
@@ -229,11 +233,4 @@ def test_a_command_run_in_the_topology_gets_its_variables_and_sigterm_stops_ever
         assert time.monotonic() - t < 30, "it waited for the command to end"
         assert not _alive(sleeper) and not any(_alive(p) for p in pids)
     finally:
-        for pid in [proc.pid, *pids]:
-            try:
-                os.killpg(pid, signal.SIGKILL)
-            except (ProcessLookupError, PermissionError):
-                pass
-        if proc.poll() is None:
-            proc.kill()
-            proc.wait(timeout=10)
+        _kill_everything(proc, pids)
