@@ -21,8 +21,8 @@ import sqlite3
 import threading
 import time
 import uuid
-from pathlib import Path
 from collections.abc import Callable
+from pathlib import Path
 from typing import Any, Iterator
 
 from pipeline.errors import ConflictError, InputError, NotFoundError, ParameterError

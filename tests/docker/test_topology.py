@@ -226,7 +226,7 @@ def test_a_command_run_in_the_topology_gets_its_variables_and_sigterm_stops_ever
         pids = [int(p) for p in env["PIDS"].split()]
         assert seen.read_text().split() == [env["ORCHARD_URL"], env["ORCHARD_SCHEDULER"]]
         sleeper = int(subprocess.run(["pgrep", "-f", "sleep 300", "-P", str(proc.pid)],
-                                     capture_output=True, text=True, timeout=10).stdout.split()[0])
+                                     capture_output=True, text=True, timeout=10, check=False).stdout.split()[0])
         t = time.monotonic()
         proc.send_signal(signal.SIGTERM)
         assert proc.wait(timeout=STOP_TIMEOUT) == 143, _tail(log)

@@ -750,7 +750,7 @@ def test_cli_schedules_pause_resume_and_update(tmp_path, capsys):
 def test_a_change_or_pause_during_a_long_scan_applies_to_the_captures_queued_after_it(local, monkeypatch):
     # the scan queued every capture with the settings read before it started: a farm that
     # paused or fixed its parameters during a night's multi-GB scan still got the old jobs
-    import service.schedules as schedules
+    from service import schedules
 
     settings, store, tenant, inbox = local
     for i in range(3):

@@ -66,7 +66,7 @@ def test_an_upload_to_a_full_disk_is_507_and_leaves_nothing(server, tmp_path, mo
 
 def test_a_job_store_locked_for_too_long_is_503_with_retry_after(server, tmp_path, monkeypatch):
     # it was a 500 "internal error (OperationalError)", with the traceback logged twice
-    settings, c = server
+    _, c = server
     block = write_las(tmp_path / "b.laz", 3000, seed=4)
     up = c.post("/v1/blocks", files={"file": ("b.laz", block.read_bytes())}).json()
 

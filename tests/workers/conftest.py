@@ -42,7 +42,6 @@ def write_variable_chunk_laz(src: Path, dst: Path, sizes: list[int]) -> Path:
     backend is handed a LAZ VLR asking for variable ones for this write."""
     import laspy
     import laspy._compression.lazrsbackend as backend
-    import lazrs
 
     las = laspy.read(src)
     assert sum(sizes) == len(las.points)

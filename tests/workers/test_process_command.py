@@ -13,7 +13,6 @@ from pathlib import Path
 
 import laspy
 import numpy as np
-
 import pyarrow.parquet as pq
 import pytest
 

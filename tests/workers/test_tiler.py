@@ -112,9 +112,8 @@ def test_parallel_tiling_on_dask_gives_the_same_tiles(tmp_path):
     """Chunks split by dask tasks (each seeking its own range) equal the sequential tiler,
     also for a LAZ of variable-size chunks (lazrs cannot seek in those: its points after a
     seek were garbage within the bounds, and tiled runs gave wrong trees, exit 0)."""
-    from distributed import Client, LocalCluster
-
     from conftest import write_variable_chunk_laz
+    from distributed import Client, LocalCluster
 
     rng = np.random.default_rng(4)
     xyz = np.column_stack([rng.uniform(0, 30, 50_000), rng.uniform(0, 20, 50_000), rng.uniform(0, 3, 50_000)]) + [500000, 6950000, 100]
