@@ -36,35 +36,6 @@ def orchard_block(tmp_path_factory) -> Path:
     )
 
 
-def write_variable_chunk_laz(src: Path, dst: Path, sizes: list[int]) -> Path:
-    """The points of ``src`` as a LAZ of variable-size chunks (``sizes`` points each), as
-    COPC files and some writers store them. laspy writes fixed chunks only, so its lazrs
-    backend is handed a LAZ VLR asking for variable ones for this write."""
-    import laspy
-    import laspy._compression.lazrsbackend as backend
-
-    las = laspy.read(src)
-    assert sum(sizes) == len(las.points)
-    real = backend.lazrs.LazVlr  # the lazrs module's own class
-
-    class VariableVlr:
-        @staticmethod
-        def new_for_compression(fmt, extra, *_):
-            return real.new_for_compression(fmt, extra, True)
-
-    backend.lazrs.LazVlr = VariableVlr
-    try:
-        with laspy.open(dst, mode="w", header=las.header, do_compress=True, laz_backend=laspy.LazBackend.Lazrs) as w:
-            start = 0
-            for n in sizes:
-                w.write_points(las.points[start : start + n])
-                w.point_writer.compressor.finish_current_chunk()
-                start += n
-    finally:
-        backend.lazrs.LazVlr = real
-    return dst
-
-
 @pytest.fixture(scope="session")
 def ground_block(tmp_path_factory) -> Path:
     """A bare, gently sloping ground plane: no trees."""

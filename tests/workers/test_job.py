@@ -17,7 +17,16 @@ from pipeline.errors import InputError, NoTreesError, ParameterError
 from pipeline.evaluate import v_measure
 from pipeline.params import PipelineParams
 from workers.cluster import close_client, make_client
-from workers.job import JobSpec, TileFailed, finish_job, ground_sample, process_tile, result_key, run_job, run_tile
+from workers.job import (
+    JobSpec,
+    TileFailed,
+    finish_job,
+    ground_sample,
+    process_tile,
+    result_key,
+    run_job,
+    run_tile,
+)
 from workers.store import WorkStore
 from workers.tiler import FRAME_KEY, INDEX_KEY
 

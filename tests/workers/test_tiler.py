@@ -112,8 +112,8 @@ def test_parallel_tiling_on_dask_gives_the_same_tiles(tmp_path):
     """Chunks split by dask tasks (each seeking its own range) equal the sequential tiler,
     also for a LAZ of variable-size chunks (lazrs cannot seek in those: its points after a
     seek were garbage within the bounds, and tiled runs gave wrong trees, exit 0)."""
-    from conftest import write_variable_chunk_laz
     from distributed import Client, LocalCluster
+    from laz_fixtures import write_variable_chunk_laz
 
     rng = np.random.default_rng(4)
     xyz = np.column_stack([rng.uniform(0, 30, 50_000), rng.uniform(0, 20, 50_000), rng.uniform(0, 3, 50_000)]) + [500000, 6950000, 100]
@@ -137,7 +137,7 @@ def test_parallel_tiling_on_dask_gives_the_same_tiles(tmp_path):
 
 
 def test_a_range_of_a_laz_with_variable_size_chunks_is_the_same_points(small_block, tmp_path):
-    from conftest import write_variable_chunk_laz
+    from laz_fixtures import write_variable_chunk_laz
 
     n = read_info(small_block).n_points
     sizes = [40_000, 3, 25_000] + [50_000] * ((n - 65_003) // 50_000)
