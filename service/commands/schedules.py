@@ -39,6 +39,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     u.add_argument("--buffer", type=float, default=None, help="tile overlap [m]; alone, it changes a tiled schedule's buffer")
     u.add_argument("--untiled", action="store_true", help="process each capture as one tile")
     _data_dir(u)
+    add_pipeline_options(u)  # each given option changes that parameter; the others stay
     for action, what in (("pause", "the clock skips it until it is resumed (a scan by hand still runs)"),
                          ("resume", "run it again from its next cron time (runs missed while paused are not made up)")):
         a = sub.add_parser(action, help=f"{action} a schedule: {what}")
@@ -142,12 +143,18 @@ def _schedule(store, schedule_id: str) -> dict:
 
 def _update_body(args: argparse.Namespace, sched: dict) -> dict:
     """The PATCH body of ``orchard schedules update``'s options (``--buffer`` alone
-    changes a tiled schedule's buffer)."""
+    changes a tiled schedule's buffer; a pipeline option changes that parameter and
+    leaves the schedule's others as they are)."""
     from pipeline.errors import ParameterError
+    from pipeline.params import PipelineParams
 
     body: dict = {}
     if args.cron is not None:
         body["cron"] = args.cron
+    current = PipelineParams.model_validate(sched["params"])
+    params = pipeline_params_from_args(args, base=current)
+    if params != current:
+        body["params"] = params.model_dump()
     if args.untiled and (args.tile_size is not None or args.buffer is not None):
         raise ParameterError("--untiled takes no --tile-size or --buffer")
     if args.untiled:
@@ -160,5 +167,5 @@ def _update_body(args: argparse.Namespace, sched: dict) -> dict:
             raise ParameterError("--buffer needs --tile-size: the schedule processes each capture as one tile")
         body["tiling"] = {"tile_size": sched["tiling"]["tile_size"], "buffer": args.buffer}
     if not body:
-        raise ParameterError("nothing to change: give --cron, --tile-size (with --buffer) or --untiled")
+        raise ParameterError("nothing to change: give --cron, --tile-size (with --buffer), --untiled or pipeline options")
     return body

@@ -738,6 +738,19 @@ def test_cli_schedules_pause_resume_and_update(tmp_path, capsys):
     assert main(["schedules", "update", sid, "--buffer", "3", "--data-dir", str(data)]) == 2
     err = capsys.readouterr().err
     assert "--buffer" in err and "tiling.buffer" not in err, err
+    # pipeline options change those parameters and keep the others; the advice of that
+    # error (a smaller crown radius) can be followed from here
+    assert main(["schedules", "update", sid, "--trunks-min-tree-height", "1.5", "--data-dir", str(data)]) == 0
+    assert main(["schedules", "update", sid, "--buffer", "3", "--segment-max-crown-radius", "1.5",
+                 "--data-dir", str(data)]) == 0
+    capsys.readouterr()
+    store = Store(data / "orchard.sqlite")
+    rec = store.get_schedule(None, sid)
+    store.close()
+    assert rec["params"]["trunks"]["min_tree_height"] == 1.5 and rec["params"]["segment"]["max_crown_radius"] == 1.5
+    assert rec["tiling"] == {"tile_size": 30.0, "buffer": 3.0}
+    assert main(["schedules", "update", sid, "--segment-max-crown-radius", "5", "--data-dir", str(data)]) == 2
+    assert "--buffer" in capsys.readouterr().err  # 5 m crowns need more than the 3 m buffer
     assert main(["schedules", "update", sid, "--untiled", "--data-dir", str(data)]) == 0
     capsys.readouterr()
     assert main(["schedules", "update", sid, "--buffer", "9", "--data-dir", str(data)]) == 2
