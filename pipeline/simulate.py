@@ -16,7 +16,8 @@ hard in the ways real mobile captures are hard:
   coarse leaf-area grid);
 - Gaussian noise, ghosting (each alley pass is offset by a small rigid shift, so
   surfaces seen from two passes are doubled), random outliers in the block volume,
-  fence posts with a wire, a parked vehicle and a bin as distractors.
+  fence posts with a wire, a parked vehicle and a bin as distractors; optionally a
+  trellis in every row (``trellis``: posts among the trees, wires along the row).
 
 Everything is deterministic for a seed. Blocks are generated tree by tree
 (:func:`iter_simulation`), so memory stays bounded whatever the block size.
@@ -78,6 +79,7 @@ class SimulationParams(BaseModel):
     posts: bool = Field(True, description="fence posts with a wire along one long edge of the block")
     vehicle: bool = Field(True, description="a vehicle parked in a headland")
     bin: bool = Field(True, description="a 1.2 m fruit bin in the other headland")
+    trellis: int = Field(0, ge=0, le=50, description="a trellis in every row: a post (2.8-3.2 m tall, 0.05-0.065 m radius) at both row ends and in every this many-th gap between trees, with wires at 0.8, 1.6 and 2.4 m along the row; 0 = none")
     ghosting: float = Field(0.01, ge=0.0, le=0.05, description="registration drift: rigid offset of each alley pass [m]")
     outliers: float = Field(0.002, ge=0.0, le=0.05, description="fraction of random outlier points in the block volume")
     occlusion: float = Field(1.0, ge=0.0, le=10.0, description="scale of the leaf optical depth (0 = no occlusion)")
@@ -800,8 +802,39 @@ def _box_faces(centre, size, yaw=0.0, tile=0.25):
     return np.concatenate(corners), np.concatenate(us), np.concatenate(vs)
 
 
+#: heights of a trellis's wires above the ground [m]
+TRELLIS_WIRES = (0.8, 1.6, 2.4)
+
+
+def _add_trellis(ch: _Chunk, plan: _Plan) -> None:
+    """Trellis posts and wires in every row (``params.trellis``), as points of kind post."""
+    p = plan.params
+    rng = np.random.default_rng([p.seed, 5])  # its own stream: blocks without a trellis are unchanged
+    g = plan.ground
+    for r in range(p.rows):
+        row = plan.tree_xy[r * p.trees_per_row : (r + 1) * p.trees_per_row]
+        gaps = np.arange(0, p.trees_per_row - 1, p.trellis)
+        xs = np.concatenate([[row[0, 0] - p.spacing / 2], (row[gaps, 0] + row[gaps + 1, 0]) / 2, [row[-1, 0] + p.spacing / 2]])
+        # on the row's line through its trees
+        ys = (np.interp(xs, row[:, 0], row[:, 1]) if p.trees_per_row > 1 else np.full(len(xs), row[0, 1]))
+        ys = ys + rng.normal(0, 0.03, len(xs))
+        zb = g.z(xs, ys)
+        ht = rng.uniform(2.8, 3.2, len(xs))
+        rp = rng.uniform(0.05, 0.065, len(xs))
+        a = np.c_[xs, ys, zb - 0.05]
+        b = np.c_[xs + rng.normal(0, 0.02, len(xs)), ys + rng.normal(0, 0.02, len(xs)), zb + ht]
+        wa = np.vstack([np.c_[xs[:-1], ys[:-1], zb[:-1] + h] for h in TRELLIS_WIRES])
+        wb = np.vstack([np.c_[xs[1:], ys[1:], zb[1:] + h] for h in TRELLIS_WIRES])
+        ca, cb = np.vstack([a, wa]), np.vstack([b, wb])
+        cr = np.concatenate([rp, np.full(len(wa), 0.002)])
+        for k in _passes_for(plan, float(np.mean(ys))):
+            pts, _, _ = _sample_cylinders(rng, plan, k, ca, cb, cr, cr)
+            pts = pts[pts[:, 2] >= g.z(pts[:, 0], pts[:, 1])]
+            ch.add(plan, rng, k, pts, 0, False, POST)
+
+
 def _objects_chunk(plan: _Plan) -> Orchard:
-    """Fence posts and wire, the vehicle and the bin."""
+    """Fence posts and wire, trellis posts and wires (when asked for), the vehicle and the bin."""
     p = plan.params
     rng = np.random.default_rng([p.seed, 4])
     g = plan.ground
@@ -827,6 +860,8 @@ def _objects_chunk(plan: _Plan) -> Orchard:
             pts, _, _ = _sample_cylinders(rng, plan, k, ca, cb, cr, cr)
             pts = pts[pts[:, 2] >= g.z(pts[:, 0], pts[:, 1])]
             ch.add(plan, rng, k, pts, 0, False, POST)
+    if p.trellis:
+        _add_trellis(ch, plan)
     boxes = []
     if p.vehicle:  # parked in the far headland beside the first inner alley's path
         k_al = min(1, len(plan.pass_y) - 1)

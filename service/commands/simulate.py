@@ -13,7 +13,8 @@ NAME = "simulate"
 HELP = (
     "Generate an orchard block as a mobile scanner driving the alleys sees it (branching trees with "
     "overlapping crowns on sloping ground with grass, range fall-off, leaf occlusion, noise, ghosting, "
-    "outliers, fence posts and a vehicle), and its ground truth: tree id, wood flag and kind per point, "
+    "outliers, fence posts and a vehicle; optionally a trellis in every row), and its ground truth: tree id, "
+    "wood flag and kind per point, "
     "trunk base per tree. Deterministic for a seed; large blocks are streamed to disk."
 )
 

@@ -151,6 +151,32 @@ def test_low_foliage_hangs_near_the_ground():
     assert low_leaves(low) > 5 * max(low_leaves(plain), 1)
 
 
+def test_a_trellis_stands_in_every_row():
+    p = SimulationParams(rows=2, trees_per_row=5, spacing=2.5, row_spacing=4.5, density=0.15, seed=4, trellis=2)
+    o = simulate_orchard(p)
+    plain = simulate_orchard(p.model_copy(update={"trellis": 0}))
+    post = o.kind == POST
+    assert (o.tree_id[post] == 0).all()
+    height = o.xyz[:, 2] - ground_height(p, o.xyz[:, 0], o.xyz[:, 1])
+    for row in range(p.rows):
+        trunks = o.trunks[row * p.trees_per_row : (row + 1) * p.trees_per_row]
+        in_row = post & (np.abs(o.xyz[:, 1] - trunks[:, 1].mean()) < 0.3)
+        assert not (plain.kind[np.abs(plain.xyz[:, 1] - trunks[:, 1].mean()) < 0.3] == POST).any()
+        # a post at both row ends and in gaps 0 and 2 (every second gap), 2.8-3.2 m tall
+        xs = [trunks[0, 0] - p.spacing / 2, *(0.5 * (trunks[i, 0] + trunks[i + 1, 0]) for i in (0, 2)),
+              trunks[-1, 0] + p.spacing / 2]
+        for x in xs:
+            on = in_row & (np.abs(o.xyz[:, 0] - x) < 0.15)
+            assert np.count_nonzero(on) > 50, x
+            assert 2.6 < np.percentile(height[on], 99.5) < 3.3, x
+        # three wires along the row between the posts: a few points at their heights
+        for h in (0.8, 1.6, 2.4):
+            wire = in_row & (np.abs(height - h) < 0.1) & (np.min(np.abs(o.xyz[:, [0]] - np.array(xs)), axis=1) > 0.3)
+            assert np.count_nonzero(wire) > 5, h
+    # the rest of the block is drawn as without a trellis
+    assert np.array_equal(o.xyz[o.kind != POST][: 10_000], plain.xyz[plain.kind != POST][: 10_000])
+
+
 def _ground_roughness(o):
     """Median std of ground points about a plane fitted in 1 m cells."""
     g = o.xyz[o.kind == 0]
