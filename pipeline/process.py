@@ -10,6 +10,7 @@ from dataclasses import dataclass
 
 import numpy as np
 from scipy import sparse
+from scipy.spatial import cKDTree
 
 from pipeline import matter
 from pipeline.enrichment import ShapeFeatures, neighbourhood_matrix, shape_features
@@ -17,6 +18,7 @@ from pipeline.graph import bridge_floating, build_graph, node_pairs, reweight
 from pipeline.ground import GroundModel, classify_ground, ground_model
 from pipeline.metrics import trunk_circles
 from pipeline.params import PipelineParams
+from pipeline.posts import Posts, find_posts, on_post_surface, post_nodes
 from pipeline.segment import (
     Segmentation,
     curved_patches,
@@ -75,6 +77,15 @@ BARK_MAX_RADIUS = 0.75
 BARK_MAX_RESIDUAL = 0.25
 #: scattering (λ3/λ1) of fully leafy material; woody nodes measure about 0.05-0.1
 LEAFY_SCATTERING = 0.3
+#: Trellis posts (:mod:`pipeline.posts`) are looked for on scans whose estimated ground
+#: noise [m] is below this (about 0.03 m of range noise). Noisier scans blur a 5-10 cm
+#: post into a column of foliage-like points: at 0.05 m of range noise the post test
+#: took 1-2 true trunks per 4 generated blocks for posts.
+POST_MAX_NOISE = 0.05
+#: graph nodes within a post's radius plus this [m] of its axis are the post's ...
+POST_NODE_MARGIN = 0.05
+#: ... and of their points, those within its radius plus this [m] (range noise) are
+POST_SURFACE_MARGIN = 0.03
 
 
 @dataclass(frozen=True)
@@ -133,6 +144,16 @@ class NodeAnalysis:
     graph: sparse.csr_matrix
     trunks: TrunkDetection
     segmentation: Segmentation
+    posts: Posts | None = None
+    on_post: np.ndarray | None = None
+
+
+def _without(graph: sparse.csr_matrix, cut: np.ndarray) -> sparse.csr_matrix:
+    """``graph`` without the edges of the nodes in ``cut`` (m,) bool."""
+    keep = sparse.diags((~cut).astype(np.float64))
+    out = (keep @ graph @ keep).tocsr()
+    out.eliminate_zeros()
+    return out
 
 
 def noisy_planar(feats: ShapeFeatures, *, noise: float) -> np.ndarray:
@@ -222,18 +243,36 @@ def analyse_nodes(
     face = faces(patch, size, MIN_FACE_NODES)
     box_planar = face | noisy_planar(feats, noise=gm.noise)
     ground_top = gm.tolerance(params.ground)
-    det = detect_trunks(
-        nodes,
-        node_height,
-        drainage,
-        planar=box_planar,
-        scattering=feats.scattering,
-        ground_top=ground_top,
-        foot_xy=xyz[is_ground & (height > 0.5 * ground_top), :2] if params.trunks.min_foot_ratio > 0 else None,
-        **_stem_points(xyz, height, is_ground, ground_top, on=params.trunks.stem_ratio > 0),
-        params=params.trunks,
-    )
-    surfaces = hard_surfaces(
+    stem_points = _stem_points(xyz, height, is_ground, ground_top, on=params.trunks.stem_ratio > 0)
+    foot_xy = xyz[is_ground & (height > 0.5 * ground_top), :2] if params.trunks.min_foot_ratio > 0 else None
+
+    def detect(drainage: sparse.csr_matrix) -> TrunkDetection:
+        return detect_trunks(
+            nodes,
+            node_height,
+            drainage,
+            planar=box_planar,
+            scattering=feats.scattering,
+            ground_top=ground_top,
+            foot_xy=foot_xy,
+            **stem_points,
+            params=params.trunks,
+        )
+
+    det = detect(drainage)
+    # trellis posts drain crowns like trunks: cut them out of the graph and detect again
+    on_post = np.zeros(vox.n, bool)
+    posts = None
+    if params.trunks.max_post_radius > 0 and gm.noise < POST_MAX_NOISE and det.candidates is not None:
+        cand = det.candidates
+        tall = cand["top"] >= params.trunks.min_tree_height
+        posts = find_posts(
+            xyz[veg_idx], height[veg_idx], np.c_[cand["x"], cand["y"]][tall], max_radius=params.trunks.max_post_radius
+        )
+        on_post = post_nodes(nodes, node_height, posts, margin=POST_NODE_MARGIN)
+        if on_post.any():
+            det = detect(_without(drainage, on_post))
+    surfaces = on_post | hard_surfaces(
         nodes,
         patch,
         size,
@@ -268,7 +307,7 @@ def analyse_nodes(
             break
         det = drop_trunks(det, drop)
         seg = segment(det)
-    return NodeAnalysis(gm, height, is_ground, veg_idx, vox, node_height, adjacency, feats, graph, det, seg)
+    return NodeAnalysis(gm, height, is_ground, veg_idx, vox, node_height, adjacency, feats, graph, det, seg, posts, on_post)
 
 
 def node_wood_score(a: NodeAnalysis, *, params: PipelineParams) -> np.ndarray:
@@ -349,6 +388,19 @@ def block_result(xyz: np.ndarray, a: NodeAnalysis, *, params: PipelineParams) ->
     tree_id[a.veg_idx] = node_tree[pv]
     is_wood[a.veg_idx] = node_wood[pv]
     wood_score[a.veg_idx] = score[pv]
+    if a.on_post is not None and a.on_post.any():
+        # a post's voxels also hold the foliage touching it: that takes the labels of
+        # the nearest tree node (within fragment_reach); the post's own points stay 0
+        near = a.veg_idx[a.on_post[pv]]
+        near = near[~on_post_surface(xyz[near], a.height[near], a.posts, margin=POST_SURFACE_MARGIN)]
+        tree_nodes = np.flatnonzero((node_tree > 0) & ~a.on_post)
+        if near.size and tree_nodes.size:
+            d, j = cKDTree(a.vox.centroids[tree_nodes]).query(xyz[near], distance_upper_bound=params.segment.fragment_reach)
+            hit = np.isfinite(d)
+            near, src = near[hit], tree_nodes[j[hit]]
+            tree_id[near] = node_tree[src]
+            is_wood[near] = node_wood[src]
+            wood_score[near] = score[src]
     # the bottom of each trunk fell below the ground tolerance: it takes its tree's labels back
     is_ground = a.is_ground.copy()
     foot, src = trunk_feet(

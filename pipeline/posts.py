@@ -1,0 +1,228 @@
+"""Trellis posts: straight vertical poles standing in a tree row.
+
+A trellised row (high-density apples, pears) has a post every few trees and at both
+row ends, 2.5-4 m tall, with wires along the row. The foliage touches the posts all
+the way up, so a post drains crown material to the ground like a trunk: it is taken
+for a tree, or it drains more of a crown than the tree's own trunk, which is then
+dropped as its satellite. A post differs from a trunk in its shape: a trunk tapers and
+splits into scaffolds below about 1 m (a central leader goes on thinner and bends),
+while a post keeps one thickness on one vertical axis from the ground to its top, and
+ends there (a forest tree's bole goes on into its crown, far above any post). A trunk
+whose straight central leader is about as thick as itself can look like a post too,
+so the test is opt-in (``TrunkParams.max_post_radius``).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+from scipy.spatial import cKDTree
+
+from pipeline.metrics import trunk_circle
+
+#: heights above the ground [m] of the cross-sections that must all show the same circle
+POST_HEIGHTS = (0.3, 0.7, 1.2, 1.7, 2.2)
+#: above POST_HEIGHTS the column is followed in steps of this [m] to find the post's
+#: top, then in steps of POST_FINE_STEP [m]
+POST_STEP = 0.5
+POST_FINE_STEP = 0.1
+#: a column still going on at this height [m] is a tree's bole, not a post; followed up
+#: to there with an axis drifting up to POST_FOLLOW_SHIFT [m] per POST_STEP and a radius
+#: within POST_FOLLOW_TOL of the post's (pine boles on TreeLS's plot lean 5-10 cm per
+#: 1.5 m and their sections swell and shrink by up to 40 %)
+POST_MAX_TOP = 4.5
+POST_FOLLOW_SHIFT = 0.08
+POST_FOLLOW_TOL = 0.5
+#: half the thickness of each cross-section [m]
+POST_SLAB = 0.05
+#: points at most this far out from the radius found at the lowest section count in the
+#: sections above it [m] (the foliage touching the post stays out)
+POST_MARGIN = 0.08
+#: the circles' centres lie within this of their median [m] (a vertical axis)
+POST_MAX_SHIFT = 0.05
+#: the circles' radii lie within this share of their median, or POST_MIN_RADIUS_TOL [m]
+POST_RADIUS_TOL = 0.3
+POST_MIN_RADIUS_TOL = 0.015
+#: fewest points in a cross-section
+POST_MIN_POINTS = 8
+
+
+@dataclass(frozen=True)
+class Posts:
+    """Posts found among candidate positions.
+
+    Attributes
+    ----------
+    xy : (p, 2) float64 — post axis [m]
+    radius : (p,) float64 [m]
+    top : (p,) float64 — height above the ground up to which the post was followed [m]
+    """
+
+    xy: np.ndarray
+    radius: np.ndarray
+    top: np.ndarray
+
+
+def find_posts(
+    xyz: np.ndarray,
+    height: np.ndarray,
+    centres: np.ndarray,
+    *,
+    max_radius: float,
+    reach: float = 0.25,
+) -> Posts:
+    """The candidate positions that stand on a trellis post.
+
+    At each candidate, circles (:func:`pipeline.metrics.trunk_circle`) are fitted to
+    the points in thin horizontal sections at ``POST_HEIGHTS`` above the ground: the
+    lowest within ``reach`` of the candidate, the others within the lowest circle's
+    radius plus ``POST_MARGIN`` of its centre. A post's circles all lie on one vertical
+    axis (centres within ``POST_MAX_SHIFT`` of their median) with one radius (within
+    ``POST_RADIUS_TOL`` of the median, at most ``max_radius``). The column is then
+    followed upwards while the same circle is found (steps of ``POST_STEP``, then of
+    ``POST_FINE_STEP``); a column still found at ``POST_MAX_TOP``, on that axis or on
+    one drifting as a leaning bole's does (``_Column.goes_on``), is a tree's bole, not a
+    post.
+
+    Parameters
+    ----------
+    xyz : (n, 3) float64 [m]
+    height : (n,) float64 — height above the ground [m]
+    centres : (c, 2) float64 — candidate positions (contact groups) [m]
+    max_radius : float — thickest post [m]; 0 finds none
+    reach : float — radius of the lowest section around a candidate [m]
+
+    Returns
+    -------
+    Posts (one per candidate that is a post; nearby candidates on one post give one)
+    """
+    # Strategy: a grid picks the points near any candidate, one k-d tree over their xy
+    # finds each candidate's column; per candidate, a handful of circle fits on the few
+    # hundred points of its column.
+    none = Posts(np.zeros((0, 2)), np.zeros(0), np.zeros(0))
+    if max_radius <= 0 or centres.shape[0] == 0 or xyz.shape[0] == 0:
+        return none
+    column_reach = reach + max_radius + POST_MARGIN + POST_FOLLOW_SHIFT
+    near = _near_centres(xyz[:, :2], centres, column_reach)
+    near = near[(height[near] >= POST_HEIGHTS[0] - POST_SLAB) & (height[near] <= POST_MAX_TOP + POST_SLAB)]
+    xyz, height = xyz[near], height[near]
+    tree = cKDTree(xyz[:, :2])
+    found_xy, found_r, found_top = [], [], []
+    for c in np.asarray(centres, dtype=np.float64):
+        if found_xy and np.min(np.hypot(*(np.asarray(found_xy) - c).T)) <= 2 * max_radius:
+            continue  # on a post already found
+        idx = np.asarray(tree.query_ball_point(c, column_reach), dtype=np.int64)
+        if idx.size < POST_MIN_POINTS * len(POST_HEIGHTS):
+            continue
+        column = _Column(xyz[idx, :2], height[idx])
+        c0, r0 = column.section(POST_HEIGHTS[0], c, reach)
+        if not 0 < r0 <= max_radius:
+            continue
+        circles = [(c0, r0)] + [column.section(at, c0, r0 + POST_MARGIN) for at in POST_HEIGHTS[1:]]
+        if not all(np.isfinite(r) for _, r in circles):
+            continue
+        axis = np.median([cc for cc, _ in circles], axis=0)
+        r_med = float(np.median([r for _, r in circles]))
+        if r_med > max_radius or not all(_same(cc, r, axis, r_med) for cc, r in circles):
+            continue
+        top = POST_HEIGHTS[-1]
+        for step in (POST_STEP, POST_FINE_STEP):  # the post's top: coarse steps up, then fine ones
+            while top < POST_MAX_TOP and _same(*column.section(top + step, axis, r_med + POST_MARGIN), axis, r_med):
+                top += step
+        if top >= POST_MAX_TOP or column.goes_on(axis, r_med):
+            continue  # a bole going on into a crown
+        found_xy.append(axis)
+        found_r.append(r_med)
+        found_top.append(top + POST_FINE_STEP)
+    if not found_xy:
+        return none
+    return Posts(np.asarray(found_xy), np.asarray(found_r), np.asarray(found_top))
+
+
+def _near_centres(xy: np.ndarray, centres: np.ndarray, reach: float) -> np.ndarray:
+    """Indices of the points ``xy`` (n, 2) in the grid cells of side ``reach`` [m] at and
+    around each centre: a superset of those within ``reach`` of a centre, found without
+    a k-d tree over all the points (building one took 0.1 s on a 1 M-point stand)."""
+    lo = centres.min(axis=0) - reach
+    hi = centres.max(axis=0) + reach
+    inside = np.flatnonzero((xy[:, 0] >= lo[0]) & (xy[:, 0] <= hi[0]) & (xy[:, 1] >= lo[1]) & (xy[:, 1] <= hi[1]))
+    shape = (np.floor((hi - lo) / reach).astype(np.int64) + 1)
+    if shape[0] * shape[1] > 4_000_000:  # candidates spread over a huge extent: the box alone
+        return inside
+    grid = np.zeros(shape, bool)
+    cell = np.floor((centres - lo) / reach).astype(np.int64)
+    for dx in (-1, 0, 1):
+        for dy in (-1, 0, 1):
+            grid[np.clip(cell[:, 0] + dx, 0, shape[0] - 1), np.clip(cell[:, 1] + dy, 0, shape[1] - 1)] = True
+    at = np.floor((xy[inside] - lo) / reach).astype(np.int64)
+    return inside[grid[np.minimum(at[:, 0], shape[0] - 1), np.minimum(at[:, 1], shape[1] - 1)]]
+
+
+def _same(centre: np.ndarray, radius: float, axis: np.ndarray, r_med: float) -> bool:
+    """A circle on the post's axis (within POST_MAX_SHIFT) with its radius (within
+    POST_RADIUS_TOL of ``r_med``, or POST_MIN_RADIUS_TOL)."""
+    return bool(
+        np.isfinite(radius)
+        and np.hypot(*(centre - axis)) <= POST_MAX_SHIFT
+        and abs(radius - r_med) <= max(POST_MIN_RADIUS_TOL, POST_RADIUS_TOL * r_med)
+    )
+
+
+class _Column:
+    """The points around one candidate: xy (n, 2) [m] and height above the ground (n,) [m]."""
+
+    def __init__(self, xy: np.ndarray, height: np.ndarray) -> None:
+        self.xy, self.height = xy, height
+
+    def section(self, at: float, centre: np.ndarray, within: float) -> tuple[np.ndarray, float]:
+        """The circle through the points within POST_SLAB of height ``at`` and ``within``
+        [m] of ``centre``; NaN with fewer than POST_MIN_POINTS points."""
+        sel = (np.abs(self.height - at) <= POST_SLAB) & (((self.xy - centre) ** 2).sum(1) <= within**2)
+        if np.count_nonzero(sel) < POST_MIN_POINTS:
+            return np.full(2, np.nan), float("nan")
+        return trunk_circle(self.xy[sel])
+
+    def goes_on(self, axis: np.ndarray, radius: float) -> bool:
+        """The column above POST_HEIGHTS goes on to POST_MAX_TOP: a tree's bole.
+
+        Followed in steps of POST_STEP, each section centred on the last circle found
+        (a bole leans: its axis drifts up to POST_FOLLOW_SHIFT per step) with a radius
+        within POST_FOLLOW_TOL of ``radius`` (a bole tapers and swells at whorls). One
+        section without such a circle is passed over (a sparsely scanned stretch); two
+        end it.
+        """
+        at, centre, missed = POST_HEIGHTS[-1], axis, 0
+        while at < POST_MAX_TOP:
+            at += POST_STEP
+            c, r = self.section(at, centre, radius + POST_MARGIN + POST_FOLLOW_SHIFT)
+            if (np.isfinite(r) and abs(r - radius) <= POST_FOLLOW_TOL * radius
+                    and np.hypot(*(c - centre)) <= POST_FOLLOW_SHIFT):
+                centre, missed = c, 0
+            else:
+                missed += 1
+                if missed == 2:
+                    return False
+        return True
+
+
+def post_nodes(nodes: np.ndarray, node_height: np.ndarray, posts: Posts, *, margin: float) -> np.ndarray:
+    """Graph nodes on a post: within its radius plus ``margin`` [m] of its axis and below
+    its top, (m,) bool."""
+    out = np.zeros(nodes.shape[0], bool)
+    if posts.xy.shape[0] == 0 or nodes.shape[0] == 0:
+        return out
+    tree = cKDTree(nodes[:, :2])
+    for xy, r, top in zip(posts.xy, posts.radius, posts.top):
+        idx = np.asarray(tree.query_ball_point(xy, r + margin), dtype=np.int64)
+        out[idx[node_height[idx] <= top]] = True
+    return out
+
+
+def on_post_surface(xyz: np.ndarray, height: np.ndarray, posts: Posts, *, margin: float) -> np.ndarray:
+    """Points on a post: within its radius plus ``margin`` [m] of its axis and below its
+    top, (n,) bool (the rest of a post's voxels is foliage touching it)."""
+    out = np.zeros(xyz.shape[0], bool)
+    for xy, r, top in zip(posts.xy, posts.radius, posts.top):
+        out |= (((xyz[:, :2] - xy) ** 2).sum(1) <= (r + margin) ** 2) & (height <= top)
+    return out

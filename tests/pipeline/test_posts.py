@@ -1,0 +1,110 @@
+"""Trellis posts: the post test on hand-made columns, and on generated trellised rows."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from pipeline.evaluate import score_labels
+from pipeline.params import PipelineParams
+from pipeline.posts import Posts, find_posts, on_post_surface, post_nodes
+from pipeline.process import process_points
+from pipeline.simulate import POST, SimulationParams, simulate_orchard
+
+RNG = np.random.default_rng(3)
+
+
+def _cylinder(a, b, r, per_m2=3000, noise=0.01):
+    """Noisy points on the surface of the cylinder from ``a`` to ``b`` [m], radius ``r``."""
+    a, b = np.asarray(a, float), np.asarray(b, float)
+    axis = b - a
+    length = np.linalg.norm(axis)
+    u = axis / length
+    e1 = np.cross(u, [1.0, 0, 0] if abs(u[0]) < 0.9 else [0, 1.0, 0])
+    e1 /= np.linalg.norm(e1)
+    e2 = np.cross(u, e1)
+    n = int(per_m2 * 2 * np.pi * r * length)
+    t, phi = RNG.uniform(0, length, n), RNG.uniform(0, 2 * np.pi, n)
+    pts = a + t[:, None] * u + r * (np.cos(phi)[:, None] * e1 + np.sin(phi)[:, None] * e2)
+    return pts + RNG.normal(0, noise, pts.shape)
+
+
+def _scene():
+    """A post, a tree (a 7 cm trunk splitting at 0.8 m into scaffolds and a leader half
+    as thick) and a bole as thin as the post going on to 7 m, on flat ground (height =
+    z), with foliage."""
+    post = _cylinder([0, 0, -0.05], [0, 0, 3.0], 0.06)
+    tree = np.vstack([
+        _cylinder([3, 0, -0.05], [3, 0, 0.85], 0.07),
+        *(_cylinder([3, 0, 0.8], [3 + 1.2 * np.cos(az), 1.2 * np.sin(az), 2.0], 0.05) for az in (0.3, 2.4, 4.4)),
+        _cylinder([3, 0, 0.8], [3.1, 0.05, 3.2], 0.035),
+    ])
+    bole = _cylinder([6, 0, -0.05], [6.1, 0.05, 7.0], 0.07)
+    foliage = RNG.uniform([-1, -1, 1.0], [7.5, 1, 3.5], (4000, 3))
+    xyz = np.vstack([post, tree, bole, foliage])
+    return xyz, xyz[:, 2].copy()
+
+
+CENTRES = np.array([[0.02, -0.01], [3.0, 0.03], [6.0, 0.0]])
+
+
+def test_the_post_is_found_and_the_tree_and_the_bole_are_not():
+    xyz, height = _scene()
+    posts = find_posts(xyz, height, CENTRES, max_radius=0.08)
+    assert posts.xy.shape == (1, 2)
+    assert np.hypot(*posts.xy[0]) < 0.02
+    assert posts.radius[0] == pytest.approx(0.06, abs=0.01)
+    assert 2.8 <= posts.top[0] <= 3.3
+
+
+def test_no_posts_when_off_or_thinner_than_the_post():
+    xyz, height = _scene()
+    assert find_posts(xyz, height, CENTRES, max_radius=0.0).xy.shape == (0, 2)
+    assert find_posts(xyz, height, CENTRES, max_radius=0.04).xy.shape == (0, 2)
+    assert find_posts(xyz, height, np.zeros((0, 2)), max_radius=0.08).xy.shape == (0, 2)
+
+
+def test_two_candidates_on_one_post_give_one_post():
+    xyz, height = _scene()
+    posts = find_posts(xyz, height, np.array([[0.02, 0.0], [-0.03, 0.02]]), max_radius=0.08)
+    assert posts.xy.shape == (1, 2)
+
+
+def test_post_nodes_and_surface_points_by_hand():
+    posts = Posts(np.array([[1.0, 1.0]]), np.array([0.05]), np.array([3.0]))
+    nodes = np.array([[1.0, 1.0, 1.0], [1.09, 1.0, 2.0], [1.11, 1.0, 2.0], [1.0, 1.0, 3.2]])
+    assert post_nodes(nodes, nodes[:, 2], posts, margin=0.05).tolist() == [True, True, False, False]
+    pts = np.array([[1.0, 1.07, 1.0], [1.0, 1.09, 1.0], [1.0, 1.0, 3.1]])
+    assert on_post_surface(pts, pts[:, 2], posts, margin=0.03).tolist() == [True, False, False]
+
+
+HIGH_DENSITY = {"rows": 2, "trees_per_row": 5, "spacing": 2.5, "row_spacing": 4.5, "low_foliage": True}
+
+
+def _run(o, radius):
+    origin = np.floor(o.xyz.min(axis=0))
+    r = process_points(o.xyz - origin, params=PipelineParams.model_validate({"trunks": {"max_post_radius": radius}}))
+    s = score_labels(true_tree_id=o.tree_id, true_is_wood=o.is_wood, true_trunks=o.trunks - origin,
+                     pred_tree_id=r.tree_id, pred_is_wood=r.is_wood, found_trunks=r.trunks)
+    in_rows = (o.kind == POST) & (o.xyz[:, 1] > o.trunks[:, 1].min() - 1.0)
+    return r, s, float((r.tree_id[in_rows] > 0).mean()) if in_rows.any() else 0.0
+
+
+def test_posts_of_a_trellised_high_density_row_are_no_trees():
+    # seed 1: without the post test a row-end post is taken for a tree and the tree
+    # beside it is dropped as its satellite (measured: 8 of 10 trunks, 1 false)
+    o = simulate_orchard(SimulationParams(seed=1, trellis=2, **HIGH_DENSITY))
+    _, off, off_share = _run(o, 0.0)
+    _, on, on_share = _run(o, 0.08)
+    assert off["trunk_tp"] < 10 or off["trunk_fp"] > 0, off  # the weakness the test exists for
+    assert on["trunk_tp"] == 10 and on["trunk_fp"] == 0, on
+    assert on["v_measure"] > off["v_measure"] + 0.01
+    assert on_share < 0.5 * off_share
+
+
+def test_the_post_test_changes_nothing_without_posts():
+    o = simulate_orchard(SimulationParams(seed=2, **HIGH_DENSITY))
+    off, _, _ = _run(o, 0.0)
+    on, _, _ = _run(o, 0.08)
+    assert np.array_equal(off.tree_id, on.tree_id) and np.array_equal(off.is_wood, on.is_wood)
+    assert np.array_equal(off.trunks, on.trunks)
