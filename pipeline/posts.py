@@ -46,6 +46,9 @@ POST_RADIUS_TOL = 0.3
 POST_MIN_RADIUS_TOL = 0.015
 #: fewest points in a cross-section
 POST_MIN_POINTS = 8
+#: RANSAC trials of each section's circle fit: foliage touching the post crowds its
+#: sections, and with the trunk fit's 256 a post could pass or fail by the draw
+POST_TRIALS = 1024
 
 
 @dataclass(frozen=True)
@@ -112,7 +115,9 @@ def find_posts(
     for c in np.asarray(centres, dtype=np.float64):
         if found_xy and np.min(np.hypot(*(np.asarray(found_xy) - c).T)) <= 2 * max_radius:
             continue  # on a post already found
-        idx = np.asarray(tree.query_ball_point(c, column_reach), dtype=np.int64)
+        # in input order: the circle fits draw their trials by position, and the k-d
+        # tree's order depends on which points it holds (a tile's, or the block's)
+        idx = np.sort(np.asarray(tree.query_ball_point(c, column_reach), dtype=np.int64))
         if idx.size < POST_MIN_POINTS * len(POST_HEIGHTS):
             continue
         column = _Column(xyz[idx, :2], height[idx])
@@ -181,7 +186,7 @@ class _Column:
         sel = (np.abs(self.height - at) <= POST_SLAB) & (((self.xy - centre) ** 2).sum(1) <= within**2)
         if np.count_nonzero(sel) < POST_MIN_POINTS:
             return np.full(2, np.nan), float("nan")
-        return trunk_circle(self.xy[sel])
+        return trunk_circle(self.xy[sel], trials=POST_TRIALS)
 
     def goes_on(self, axis: np.ndarray, radius: float) -> bool:
         """The column above POST_HEIGHTS goes on to POST_MAX_TOP: a tree's bole.
