@@ -58,15 +58,20 @@ def score_blocks(noise: float, seed: int, variants: dict[str, dict] = VARIANTS) 
     return out
 
 
-def table_row(noise: float, variant: str, scores: list[Score]) -> str:
-    """One Markdown row: totals over the blocks, pooled F1, mean [min, max] v-measure."""
+def totals(scores: list[Score]) -> str:
+    """Markdown cells over the blocks: their number, true trunks found of all, false
+    trunks, pooled F1, mean [min, max] v-measure."""
     tp = sum(s.tp for s in scores)
     fp = sum(s.fp for s in scores)
     fn = sum(s.fn for s in scores)
     f1 = 2 * tp / max(2 * tp + fp + fn, 1)
     v = np.array([s.v_measure for s in scores])
-    return (f"| {noise:g} | {variant} | {len(scores)} | {tp} of {tp + fn} | {fp} | {f1:.2f} "
-            f"| {v.mean():.3f} [{v.min():.3f}, {v.max():.3f}] |")
+    return f"{len(scores)} | {tp} of {tp + fn} | {fp} | {f1:.2f} | {v.mean():.3f} [{v.min():.3f}, {v.max():.3f}]"
+
+
+def table_row(noise: float, variant: str, scores: list[Score]) -> str:
+    """One Markdown row: totals over the blocks, pooled F1, mean [min, max] v-measure."""
+    return f"| {noise:g} | {variant} | {totals(scores)} |"
 
 
 HEADER = (

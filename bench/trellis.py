@@ -19,6 +19,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from bench import shoots
 from bench.oracles import SETTINGS
 from pipeline.evaluate import score_labels
 from pipeline.params import PipelineParams
@@ -30,13 +31,9 @@ TRELLIS = 2
 
 
 @dataclass(frozen=True)
-class Score:
+class Score(shoots.Score):
     """One block under one setting of the post test."""
 
-    tp: int
-    fp: int
-    fn: int
-    v_measure: float
     post_in_tree: float  # share of the trellis's points in a tree (NaN: no trellis)
 
 
@@ -61,15 +58,9 @@ def score_block(sim: dict, seed: int, trellis: int, radii: tuple[float, ...]) ->
 def table_row(setting: str, trellis: str, test: str, scores: list[Score]) -> str:
     """One Markdown row: totals over the blocks, pooled F1, mean [min, max] v-measure,
     mean share of trellis points in trees."""
-    tp = sum(s.tp for s in scores)
-    fp = sum(s.fp for s in scores)
-    fn = sum(s.fn for s in scores)
-    f1 = 2 * tp / max(2 * tp + fp + fn, 1)
-    v = np.array([s.v_measure for s in scores])
     share = np.array([s.post_in_tree for s in scores])
     posts = "–" if np.isnan(share).all() else f"{np.nanmean(share) * 100:.0f} %"
-    return (f"| {setting} | {trellis} | {test} | {len(scores)} | {tp} of {tp + fn} | {fp} | {f1:.2f} "
-            f"| {v.mean():.3f} [{v.min():.3f}, {v.max():.3f}] | {posts} |")
+    return f"| {setting} | {trellis} | {test} | {shoots.totals(scores)} | {posts} |"
 
 
 HEADER = (

@@ -810,7 +810,6 @@ def _add_trellis(ch: _Chunk, plan: _Plan) -> None:
     """Trellis posts and wires in every row (``params.trellis``), as points of kind post."""
     p = plan.params
     rng = np.random.default_rng([p.seed, 5])  # its own stream: blocks without a trellis are unchanged
-    g = plan.ground
     for r in range(p.rows):
         row = plan.tree_xy[r * p.trees_per_row : (r + 1) * p.trees_per_row]
         gaps = np.arange(0, p.trees_per_row - 1, p.trellis)
@@ -818,19 +817,27 @@ def _add_trellis(ch: _Chunk, plan: _Plan) -> None:
         # on the row's line through its trees
         ys = (np.interp(xs, row[:, 0], row[:, 1]) if p.trees_per_row > 1 else np.full(len(xs), row[0, 1]))
         ys = ys + rng.normal(0, 0.03, len(xs))
-        zb = g.z(xs, ys)
         ht = rng.uniform(2.8, 3.2, len(xs))
         rp = rng.uniform(0.05, 0.065, len(xs))
-        a = np.c_[xs, ys, zb - 0.05]
-        b = np.c_[xs + rng.normal(0, 0.02, len(xs)), ys + rng.normal(0, 0.02, len(xs)), zb + ht]
-        wa = np.vstack([np.c_[xs[:-1], ys[:-1], zb[:-1] + h] for h in TRELLIS_WIRES])
-        wb = np.vstack([np.c_[xs[1:], ys[1:], zb[1:] + h] for h in TRELLIS_WIRES])
-        ca, cb = np.vstack([a, wa]), np.vstack([b, wb])
-        cr = np.concatenate([rp, np.full(len(wa), 0.002)])
-        for k in _passes_for(plan, float(np.mean(ys))):
-            pts, _, _ = _sample_cylinders(rng, plan, k, ca, cb, cr, cr)
-            pts = pts[pts[:, 2] >= g.z(pts[:, 0], pts[:, 1])]
-            ch.add(plan, rng, k, pts, 0, False, POST)
+        _add_posts(ch, plan, rng, xs, ys, ht, rp, wires=TRELLIS_WIRES, y=float(np.mean(ys)))
+
+
+def _add_posts(ch: _Chunk, plan: _Plan, rng, xs, ys, height, radius, *, wires, y: float) -> None:
+    """Posts of ``height`` and ``radius`` (p,) [m] standing at ``xs``, ``ys`` (p,) (tops
+    leaning by about 2 cm), wires at ``wires`` [m] above the ground between consecutive
+    posts, seen from the passes near ``y``; points of kind post."""
+    g = plan.ground
+    zb = g.z(xs, ys)
+    a = np.c_[xs, ys, zb - 0.05]
+    b = np.c_[xs + rng.normal(0, 0.02, len(xs)), ys + rng.normal(0, 0.02, len(xs)), zb + height]
+    wa = np.vstack([np.c_[xs[:-1], ys[:-1], zb[:-1] + h] for h in wires])
+    wb = np.vstack([np.c_[xs[1:], ys[1:], zb[1:] + h] for h in wires])
+    ca, cb = np.vstack([a, wa]), np.vstack([b, wb])
+    cr = np.concatenate([radius, np.full(len(wa), 0.002)])
+    for k in _passes_for(plan, y):
+        pts, _, _ = _sample_cylinders(rng, plan, k, ca, cb, cr, cr)
+        pts = pts[pts[:, 2] >= g.z(pts[:, 0], pts[:, 1])]
+        ch.add(plan, rng, k, pts, 0, False, POST)
 
 
 def _objects_chunk(plan: _Plan) -> Orchard:
@@ -844,22 +851,9 @@ def _objects_chunk(plan: _Plan) -> Orchard:
         y_f = plan.pass_y[0] - 2.5
         xs = np.arange(x0 + 1.0, x1 - 0.5, 3.0) + rng.normal(0, 0.08, len(np.arange(x0 + 1.0, x1 - 0.5, 3.0)))
         ys = y_f + rng.normal(0, 0.03, len(xs))
-        zb = g.z(xs, ys)
         ht = rng.uniform(1.2, 1.8, len(xs))
         rp = rng.uniform(0.04, 0.06, len(xs))
-        a = np.c_[xs, ys, zb - 0.05]
-        b = np.c_[xs + rng.normal(0, 0.02, len(xs)), ys + rng.normal(0, 0.02, len(xs)), zb + ht]
-        # one wire ~1.0 m high between consecutive posts
-        wz = zb + 1.0
-        wa = np.c_[xs[:-1], ys[:-1], wz[:-1]]
-        wb = np.c_[xs[1:], ys[1:], wz[1:]]
-        ca = np.vstack([a, wa])
-        cb = np.vstack([b, wb])
-        cr = np.concatenate([rp, np.full(len(wa), 0.002)])
-        for k in _passes_for(plan, y_f):
-            pts, _, _ = _sample_cylinders(rng, plan, k, ca, cb, cr, cr)
-            pts = pts[pts[:, 2] >= g.z(pts[:, 0], pts[:, 1])]
-            ch.add(plan, rng, k, pts, 0, False, POST)
+        _add_posts(ch, plan, rng, xs, ys, ht, rp, wires=(1.0,), y=y_f)  # one wire ~1.0 m high
     if p.trellis:
         _add_trellis(ch, plan)
     boxes = []
