@@ -314,3 +314,11 @@ def subtree_sizes(pred: np.ndarray, weights: np.ndarray | None = None) -> np.nda
         nodes = order[bounds[d] : bounds[d + 1]]
         size += np.bincount(pred[nodes], weights=size[nodes], minlength=m)
     return size
+
+
+def without_nodes(graph: sparse.csr_matrix, cut: np.ndarray) -> sparse.csr_matrix:
+    """``graph`` (m, m) without the edges of the nodes in ``cut`` (m,) bool (no path passes them)."""
+    keep = sparse.diags((~cut).astype(np.float64))
+    out = (keep @ graph @ keep).tocsr()
+    out.eliminate_zeros()
+    return out

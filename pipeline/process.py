@@ -14,7 +14,13 @@ from scipy.spatial import cKDTree
 
 from pipeline import matter
 from pipeline.enrichment import ShapeFeatures, neighbourhood_matrix, shape_features
-from pipeline.graph import bridge_floating, build_graph, node_pairs, reweight
+from pipeline.graph import (
+    bridge_floating,
+    build_graph,
+    node_pairs,
+    reweight,
+    without_nodes,
+)
 from pipeline.ground import GroundModel, classify_ground, ground_model
 from pipeline.metrics import trunk_circles
 from pipeline.params import PipelineParams
@@ -148,14 +154,6 @@ class NodeAnalysis:
     on_post: np.ndarray | None = None
 
 
-def _without(graph: sparse.csr_matrix, cut: np.ndarray) -> sparse.csr_matrix:
-    """``graph`` without the edges of the nodes in ``cut`` (m,) bool."""
-    keep = sparse.diags((~cut).astype(np.float64))
-    out = (keep @ graph @ keep).tocsr()
-    out.eliminate_zeros()
-    return out
-
-
 def noisy_planar(feats: ShapeFeatures, *, noise: float) -> np.ndarray:
     """Nodes on a box face blurred by range noise, (m,) bool; all False unless the
     block's estimated ground ``noise`` [m] is in ``NOISY_BOX_NOISE``."""
@@ -271,7 +269,7 @@ def analyse_nodes(
         )
         on_post = post_nodes(nodes, node_height, posts, margin=POST_NODE_MARGIN)
         if on_post.any():
-            det = detect(_without(drainage, on_post))
+            det = detect(without_nodes(drainage, on_post))
     surfaces = on_post | hard_surfaces(
         nodes,
         patch,

@@ -9,7 +9,7 @@ from scipy import sparse
 from scipy.sparse import csgraph
 from scipy.spatial import cKDTree
 
-from pipeline.graph import ShortestPaths, shortest_paths
+from pipeline.graph import ShortestPaths, shortest_paths, without_nodes
 from pipeline.metrics import group_runs, tree_circles
 from pipeline.params import SegmentParams
 
@@ -81,9 +81,7 @@ def segment_nodes(
     if exclude is not None and exclude.any():
         exclude = exclude.copy()
         exclude[source_nodes] = False  # a trunk's seeds stay, whatever stands beside it
-        keep = sparse.diags((~exclude).astype(np.float64))
-        graph = (keep @ graph @ keep).tocsr()
-        graph.eliminate_zeros()
+        graph = without_nodes(graph, exclude)
     sp = shortest_paths(graph, source_nodes)
     trunk_of_node = np.full(m, -1, np.int64)
     trunk_of_node[source_nodes] = source_trunk
