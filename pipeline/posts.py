@@ -211,22 +211,11 @@ class _Column:
         return True
 
 
-def post_nodes(nodes: np.ndarray, node_height: np.ndarray, posts: Posts, *, margin: float) -> np.ndarray:
-    """Graph nodes on a post: within its radius plus ``margin`` [m] of its axis and below
-    its top, (m,) bool."""
-    out = np.zeros(nodes.shape[0], bool)
-    if posts.xy.shape[0] == 0 or nodes.shape[0] == 0:
-        return out
-    tree = cKDTree(nodes[:, :2])
-    for xy, r, top in zip(posts.xy, posts.radius, posts.top):
-        idx = np.asarray(tree.query_ball_point(xy, r + margin), dtype=np.int64)
-        out[idx[node_height[idx] <= top]] = True
-    return out
-
-
-def on_post_surface(xyz: np.ndarray, height: np.ndarray, posts: Posts, *, margin: float) -> np.ndarray:
-    """Points on a post: within its radius plus ``margin`` [m] of its axis and below its
-    top, (n,) bool (the rest of a post's voxels is foliage touching it)."""
+def on_posts(xyz: np.ndarray, height: np.ndarray, posts: Posts, *, margin: float) -> np.ndarray:
+    """Points (or graph nodes) on a post: within its radius plus ``margin`` [m] of its
+    axis and at most its top above the ground, (n,) bool. With a node-sized margin the
+    nodes to cut out of the graph; with a noise-sized one the points that are the post
+    itself (the rest of a post's voxels is foliage touching it)."""
     out = np.zeros(xyz.shape[0], bool)
     for xy, r, top in zip(posts.xy, posts.radius, posts.top):
         out |= (((xyz[:, :2] - xy) ** 2).sum(1) <= (r + margin) ** 2) & (height <= top)

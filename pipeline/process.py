@@ -24,7 +24,7 @@ from pipeline.graph import (
 from pipeline.ground import GroundModel, classify_ground, ground_model
 from pipeline.metrics import trunk_circles
 from pipeline.params import PipelineParams
-from pipeline.posts import Posts, find_posts, on_post_surface, post_nodes
+from pipeline.posts import Posts, find_posts, on_posts
 from pipeline.segment import (
     Segmentation,
     curved_patches,
@@ -267,7 +267,7 @@ def analyse_nodes(
         posts = find_posts(
             xyz[veg_idx], height[veg_idx], np.c_[cand["x"], cand["y"]][tall], max_radius=params.trunks.max_post_radius
         )
-        on_post = post_nodes(nodes, node_height, posts, margin=POST_NODE_MARGIN)
+        on_post = on_posts(nodes, node_height, posts, margin=POST_NODE_MARGIN)
         if on_post.any():
             det = detect(without_nodes(drainage, on_post))
     surfaces = on_post | hard_surfaces(
@@ -390,7 +390,7 @@ def block_result(xyz: np.ndarray, a: NodeAnalysis, *, params: PipelineParams) ->
         # a post's voxels also hold the foliage touching it: that takes the labels of
         # the nearest tree node (within fragment_reach); the post's own points stay 0
         near = a.veg_idx[a.on_post[pv]]
-        near = near[~on_post_surface(xyz[near], a.height[near], a.posts, margin=POST_SURFACE_MARGIN)]
+        near = near[~on_posts(xyz[near], a.height[near], a.posts, margin=POST_SURFACE_MARGIN)]
         tree_nodes = np.flatnonzero((node_tree > 0) & ~a.on_post)
         if near.size and tree_nodes.size:
             d, j = cKDTree(a.vox.centroids[tree_nodes]).query(xyz[near], distance_upper_bound=params.segment.fragment_reach)

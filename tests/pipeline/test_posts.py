@@ -7,7 +7,7 @@ import pytest
 
 from pipeline.evaluate import score_labels
 from pipeline.params import PipelineParams
-from pipeline.posts import Posts, find_posts, on_post_surface, post_nodes
+from pipeline.posts import Posts, find_posts, on_posts
 from pipeline.process import process_points
 from pipeline.simulate import POST, SimulationParams, simulate_orchard
 
@@ -70,12 +70,12 @@ def test_two_candidates_on_one_post_give_one_post():
     assert posts.xy.shape == (1, 2)
 
 
-def test_post_nodes_and_surface_points_by_hand():
+def test_nodes_and_points_on_posts_by_hand():
     posts = Posts(np.array([[1.0, 1.0]]), np.array([0.05]), np.array([3.0]))
     nodes = np.array([[1.0, 1.0, 1.0], [1.09, 1.0, 2.0], [1.11, 1.0, 2.0], [1.0, 1.0, 3.2]])
-    assert post_nodes(nodes, nodes[:, 2], posts, margin=0.05).tolist() == [True, True, False, False]
+    assert on_posts(nodes, nodes[:, 2], posts, margin=0.05).tolist() == [True, True, False, False]
     pts = np.array([[1.0, 1.07, 1.0], [1.0, 1.09, 1.0], [1.0, 1.0, 3.1]])
-    assert on_post_surface(pts, pts[:, 2], posts, margin=0.03).tolist() == [True, False, False]
+    assert on_posts(pts, pts[:, 2], posts, margin=0.03).tolist() == [True, False, False]
 
 
 HIGH_DENSITY = {"rows": 2, "trees_per_row": 5, "spacing": 2.5, "row_spacing": 4.5, "low_foliage": True}
