@@ -110,6 +110,7 @@ class Job(BaseModel):
     error: str | None
     cancel_requested: bool
     attempts: int = 0
+    crashes: int = Field(0, description="times the service died while running this job (not attempts; at ORCHARD_MAX_CRASHES it fails)")
     retry_at: str | None = None
     params: dict[str, Any]
     tiling: dict[str, Any] | None
@@ -239,6 +240,7 @@ def job_out(rec: dict) -> Job:
         error=rec.get("error"),
         cancel_requested=bool(rec.get("cancel_requested")),
         attempts=int(rec.get("attempts") or 0),
+        crashes=int(rec.get("crashes") or 0),
         retry_at=_iso(rec.get("retry_at")),
         params=rec.get("params") or {},
         tiling=rec.get("tiling"),
@@ -608,7 +610,7 @@ def create_app(settings: Settings) -> FastAPI:
         if runner_lock is not None:  # no other process runs jobs here: a "running" job is an orphan
             for job_id in store.cancel_interrupted():  # asked to stop before the last shutdown
                 drop_work(settings, job_id)
-            n = store.requeue_running()
+            n = store.requeue_running(max_crashes=settings.max_crashes)
             if n:
                 log.info("re-queued %d job(s) interrupted by the last shutdown", n)
         if settings.runner:
@@ -689,6 +691,8 @@ def create_app(settings: Settings) -> FastAPI:
         summary="Upload a LAS/LAZ block (multipart field 'file')",
     )
     async def upload_block(request: Request, response: Response, tenant: TenantDep, store: StoreDep, settings: SettingsDep):
+        declared = request.headers.get("content-length", "")  # refused before the body is read; checked again after
+        await run_in_threadpool(store.check_storage, tenant["id"], max(int(declared) - _UPLOAD_SLACK if declared.isdigit() else 0, 1))
         part = await _receive_upload(request, settings)
         block, created = await run_in_threadpool(
             accept_block,
@@ -719,7 +723,8 @@ def create_app(settings: Settings) -> FastAPI:
 
     # jobs --------------------------------------------------------------------------------
 
-    @v1.post("/jobs", response_model=Job, status_code=201, tags=["jobs"], summary="Submit a job for a block")
+    @v1.post("/jobs", response_model=Job, status_code=201, tags=["jobs"], summary="Submit a job for a block",
+             responses={429: {"model": ErrorBody, "description": "the tenant has as many jobs queued as its quota allows"}})
     def create_job(body: JobCreate, request: Request, response: Response, tenant: TenantDep, store: StoreDep):
         block = store.get_block(tenant["id"], body.block_id)
         tiling = _checked_tiling(body.params, body.tiling)

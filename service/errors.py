@@ -22,6 +22,7 @@ from starlette.exceptions import HTTPException as StarletteHTTPException
 from starlette.requests import ClientDisconnect
 
 from pipeline.errors import ConflictError, InputError, NoTreesError, NotFoundError, OrchardError, ParameterError
+from service.quotas import QueueQuotaExceeded, StorageQuotaExceeded
 
 log = logging.getLogger("orchard.service")
 
@@ -73,6 +74,8 @@ STATUS: dict[type[Exception], int] = {
     InputError: 422,
     ParameterError: 422,
     NoTreesError: 422,
+    QueueQuotaExceeded: 429,
+    StorageQuotaExceeded: 507,  # a quota is "insufficient storage" in WebDAV's quota extension (RFC 4331)
     OrchardError: 400,
 }
 

@@ -29,6 +29,7 @@ from croniter import croniter
 from croniter.croniter import CroniterBadDateError
 
 from pipeline.errors import InputError, NotFoundError, ParameterError
+from service.quotas import QuotaExceeded
 from service.scratch import scratch_dir
 from service.settings import Settings
 from service.store import Store, accept_block
@@ -38,7 +39,16 @@ log = logging.getLogger("orchard.schedules")
 DEFAULT_CRON = "0 1 * * *"
 CAPTURE_SUFFIXES = (".las", ".laz")
 _CHUNK = 1 << 20
-_run_lock = threading.Lock()
+LAS_MAGIC = b"LASF"  #: the first 4 bytes of every LAS and LAZ file (file signature)
+_scan_locks: dict[str, threading.Lock] = {}
+_scan_locks_guard = threading.Lock()
+
+
+def scan_lock(tenant_id: str) -> threading.Lock:
+    """The lock a tenant's inbox scans take in turn: one farm's scan waits for its own
+    farm's other scans only, not behind another farm copying a large capture."""
+    with _scan_locks_guard:
+        return _scan_locks.setdefault(tenant_id, threading.Lock())
 
 
 _CRON_FIELDS = (
@@ -267,7 +277,7 @@ def run_schedule(
     if inbox.resolve() != inbox:  # checked when the schedule was made: it must still be that folder
         raise InputError(f"inbox {str(inbox)!r} of schedule {schedule['id']} is now a link to another folder; not scanned")
     now = time.time() if now is None else now
-    with _run_lock:
+    with scan_lock(schedule["tenant_id"]):
         for path in captures(inbox):
             schedule = _current(store, schedule["id"], by_clock=by_clock)
             if schedule is None:
@@ -348,8 +358,14 @@ def _take_capture(
     # taken before by this schedule, or by an earlier one of this farm (deleted to change its cron)
     if store.schedule_file_seen(schedule["id"], sha) or store.capture_scheduled(schedule["tenant_id"], sha):
         return "skipped", None
+    if not _las_signed(path):  # refused before the copy (a 2 GB non-LAS file held the scan for seconds)
+        error = f"{name}: not a LAS or LAZ file (it does not begin with the LAS signature 'LASF')"
+        store.record_schedule_file(schedule_id=schedule["id"], sha256=sha, path=str(path), job_id=None, error=error)
+        return "rejected", error
     tmp = scratch_dir(settings.tmp_dir) / f"inbox-{uuid.uuid4().hex}.part"
     try:
+        if store.block_by_sha(schedule["tenant_id"], sha) is None:  # the same bytes uploaded before take no more room
+            store.check_storage(schedule["tenant_id"], stat.st_size)
         copied_sha, size = _copy_hashed(path, tmp)
         if copied_sha != sha or path.stat().st_mtime != stat.st_mtime:  # written to meanwhile
             return "waiting", None
@@ -362,6 +378,8 @@ def _take_capture(
             size_bytes=size,
             filename=name,
         )
+    except QuotaExceeded as exc:  # not recorded: taken at a scan after the quota allows it
+        return "rejected", f"{exc}; the capture is tried again at the next scan"
     except InputError as exc:
         store.record_schedule_file(schedule_id=schedule["id"], sha256=sha, path=str(path), job_id=None, error=str(exc))
         return "rejected", str(exc)
@@ -370,10 +388,22 @@ def _take_capture(
     schedule = _current(store, schedule["id"], by_clock=by_clock)  # reading may have taken minutes
     if schedule is None:
         return "stopped", None
-    job = store.create_scheduled_job(schedule=schedule, block_id=block["id"], sha256=sha, path=str(path), capture=name)
+    try:
+        job = store.create_scheduled_job(schedule=schedule, block_id=block["id"], sha256=sha, path=str(path), capture=name)
+    except QuotaExceeded as exc:
+        return "rejected", f"{exc}; the capture is tried again at the next scan"
     if job is None:  # another scan of this inbox (another process) took it first
         return "skipped", None
     return "job", job["id"]
+
+
+def _las_signed(path: Path) -> bool:
+    """Whether the file begins with the LAS file signature (LAS and LAZ alike)."""
+    try:
+        with open(path, "rb") as fh:
+            return fh.read(len(LAS_MAGIC)) == LAS_MAGIC
+    except OSError:
+        return True  # unreadable now: the copy says why
 
 
 def _file_state(stat: os.stat_result) -> tuple[int, int, int, int]:

@@ -61,6 +61,11 @@ class Settings(BaseSettings):
         "(an overnight job outlives a cluster restart); other failures are final",
     )
     retry_delay_s: float = Field(300.0, ge=0, le=86400, description="wait before such a job runs again [s]")
+    max_crashes: int = Field(
+        2, ge=1, le=100,
+        description="a job during which the service process died (killed, out of memory, power cut) this many times "
+        "is failed at the next start instead of run again: it may be what kills the service",
+    )
 
     @field_validator("data_dir", "inbox_root")
     @classmethod

@@ -16,6 +16,7 @@ from __future__ import annotations
 import contextlib
 import dataclasses
 import json
+import logging
 import os
 import sqlite3
 import threading
@@ -26,6 +27,9 @@ from pathlib import Path
 from typing import Any, Iterator
 
 from pipeline.errors import ConflictError, InputError, NotFoundError, ParameterError
+from service.quotas import QueueQuotaExceeded, StorageQuotaExceeded
+
+log = logging.getLogger("orchard.store")
 
 JOB_STATES = ("queued", "running", "done", "failed", "cancelled")
 FINAL_STATES = ("done", "failed", "cancelled")
@@ -67,6 +71,7 @@ CREATE TABLE IF NOT EXISTS jobs (
     error TEXT,
     cancel_requested INTEGER NOT NULL DEFAULT 0,
     attempts INTEGER NOT NULL DEFAULT 0,
+    crashes INTEGER NOT NULL DEFAULT 0,
     retry_at REAL,
     created_at REAL NOT NULL,
     started_at REAL,
@@ -76,6 +81,13 @@ CREATE TABLE IF NOT EXISTS jobs (
 CREATE INDEX IF NOT EXISTS jobs_by_state ON jobs(state, created_at);
 CREATE INDEX IF NOT EXISTS jobs_by_tenant ON jobs(tenant_id, created_at);
 CREATE INDEX IF NOT EXISTS jobs_by_block ON jobs(block_id);
+CREATE INDEX IF NOT EXISTS jobs_by_tenant_started ON jobs(tenant_id, started_at);
+CREATE TABLE IF NOT EXISTS tenant_quotas (
+    tenant_id TEXT PRIMARY KEY REFERENCES tenants(id),
+    storage_bytes INTEGER,
+    queued_jobs INTEGER,
+    updated_at REAL NOT NULL
+);
 CREATE TABLE IF NOT EXISTS schedules (
     id TEXT PRIMARY KEY,
     tenant_id TEXT NOT NULL REFERENCES tenants(id),
@@ -141,6 +153,7 @@ class Store:
         """Bring a store written by an earlier version up to the schema (added columns)."""
         self._add_column("jobs", "retry_at", "REAL")
         self._add_column("jobs", "capture", "TEXT")
+        self._add_column("jobs", "crashes", "INTEGER NOT NULL DEFAULT 0")
         self._add_column("schedules", "paused", "INTEGER NOT NULL DEFAULT 0")
 
     def _add_column(self, table: str, column: str, decl: str) -> None:
@@ -247,6 +260,10 @@ class Store:
                 rec["path"] = str(here.absolute())
         return rec
 
+    def block_file_used(self, path: str) -> bool:
+        """Whether any tenant's block is recorded at ``path``."""
+        return self._one("SELECT 1 AS used FROM blocks WHERE path = ?", (path,)) is not None
+
     def block_by_sha(self, tenant_id: str, sha256: str) -> dict[str, Any] | None:
         return self._located(self._one("SELECT * FROM blocks WHERE tenant_id = ? AND sha256 = ?", (tenant_id, sha256)))
 
@@ -264,6 +281,7 @@ class Store:
                     con.execute("UPDATE blocks SET path = ? WHERE id = ?", (path, row["id"]))
                     row = con.execute("SELECT * FROM blocks WHERE id = ?", (row["id"],)).fetchone()
                 return self._located(_record(row)), False
+            self._check_storage(con, tenant_id, size_bytes)
             bid = new_id()
             con.execute(
                 "INSERT INTO blocks (id, tenant_id, sha256, path, filename, size_bytes, info, created_at) "
@@ -294,6 +312,7 @@ class Store:
     ) -> dict[str, Any]:
         jid = new_id()
         with self._tx() as con:
+            self._check_queue(con, tenant_id)
             con.execute(
                 "INSERT INTO jobs (id, tenant_id, block_id, schedule_id, params, tiling, state, created_at) "
                 "VALUES (?, ?, ?, ?, ?, ?, 'queued', ?)",
@@ -331,14 +350,27 @@ class Store:
         return self._all_rows(sql, tuple(params))
 
     def claim_next_job(self) -> dict[str, Any] | None:
-        """Move the oldest queued job to ``running`` and return it (None if the queue is
-        empty, or holds only jobs waiting for their retry time)."""
+        """Move the next queued job to ``running`` and return it (None if the queue is
+        empty, or holds only jobs waiting for their retry time).
+
+        Fair share between tenants: the job comes from the tenant with a job ready that
+        has the fewest jobs running, then the one served least recently (its latest
+        job's start; never served first), then the one whose oldest ready job is
+        oldest; within a tenant, oldest first. One farm's hundred queued jobs delay
+        another's by at most one job each.
+        """
         now = time.time()
         with self._tx() as con:
             row = con.execute(
-                "SELECT id FROM jobs WHERE state = 'queued' AND (retry_at IS NULL OR retry_at <= ?) "
-                "ORDER BY created_at, id LIMIT 1",
-                (now,),
+                "WITH ready AS (SELECT tenant_id, MIN(created_at) AS oldest FROM jobs "
+                "  WHERE state = 'queued' AND (retry_at IS NULL OR retry_at <= :now) GROUP BY tenant_id), "
+                "pick AS (SELECT r.tenant_id FROM ready r ORDER BY "
+                "  (SELECT COUNT(*) FROM jobs x WHERE x.state = 'running' AND x.tenant_id = r.tenant_id), "
+                "  COALESCE((SELECT MAX(x.started_at) FROM jobs x WHERE x.tenant_id = r.tenant_id), 0), "
+                "  r.oldest, r.tenant_id LIMIT 1) "
+                "SELECT id FROM jobs WHERE tenant_id = (SELECT tenant_id FROM pick) AND state = 'queued' "
+                "AND (retry_at IS NULL OR retry_at <= :now) ORDER BY created_at, id LIMIT 1",
+                {"now": now},
             ).fetchone()
             if row is None:
                 return None
@@ -436,17 +468,99 @@ class Store:
                 (job_id,),
             )
 
-    def requeue_running(self) -> int:
+    def requeue_running(self, *, max_crashes: int | None = None) -> int:
         """Put jobs left ``running`` by a dead service back in the queue (those asked to
         stop are cancelled instead, see `cancel_interrupted`).
+
+        The service's death is counted in the job's ``crashes``, not its ``attempts``
+        (those are for a lost cluster, `Runner` retries). A job during which the service
+        has now died ``max_crashes`` times is failed instead (a poison job: it would take
+        the service down at every start, and the rest of the queue with it).
 
         Called once at start-up, before the runner takes jobs. Returns the number re-queued.
         """
         self.cancel_interrupted()
         with self._tx() as con:
-            return con.execute(
-                "UPDATE jobs SET state = 'queued', tiles_done = 0, tiles_total = 0 WHERE state = 'running'"
-            ).rowcount
+            con.execute(
+                "UPDATE jobs SET crashes = crashes + 1, attempts = MAX(attempts - 1, 0), tiles_done = 0, "
+                "tiles_total = 0 WHERE state = 'running'"
+            )
+            poisoned = []
+            if max_crashes is not None:
+                poisoned = [(r["id"], r["crashes"]) for r in con.execute(
+                    "SELECT id, crashes FROM jobs WHERE state = 'running' AND crashes >= ?", (max_crashes,))]
+                con.executemany(
+                    "UPDATE jobs SET state = 'failed', finished_at = ?, retry_at = NULL, error = 'the service stopped ' "
+                    "|| crashes || ' times while running this job; it is not retried (it may be what stops the "
+                    "service: see the service log; submit it again to retry)' WHERE id = ?",
+                    [(time.time(), jid) for jid, _ in poisoned],
+                )
+            n = con.execute("UPDATE jobs SET state = 'queued' WHERE state = 'running'").rowcount
+        for jid, crashes in poisoned:
+            log.warning("job %s failed: the service stopped %d times while running it", jid, crashes)
+        return n
+
+    # -- tenant quotas ----------------------------------------------------------------
+
+    def set_quota(self, tenant_id: str, **limits: int | None) -> dict[str, Any]:
+        """Set a tenant's ``storage_bytes`` and/or ``queued_jobs`` limit (the keys given;
+        None = unlimited); returns `quota`. What the tenant holds already is kept."""
+        if not limits.keys() <= {"storage_bytes", "queued_jobs"}:
+            raise ValueError(f"not a quota: {sorted(limits.keys() - {'storage_bytes', 'queued_jobs'})}")
+        with self._tx() as con:
+            con.execute("INSERT OR IGNORE INTO tenant_quotas (tenant_id, updated_at) VALUES (?, ?)", (tenant_id, time.time()))
+            for key, value in limits.items():
+                con.execute(f"UPDATE tenant_quotas SET {key} = ?, updated_at = ? WHERE tenant_id = ?",
+                            (None if value is None else int(value), time.time(), tenant_id))
+        return self.quota(tenant_id)
+
+    def quota(self, tenant_id: str) -> dict[str, Any]:
+        """A tenant's limits and use: ``{"storage_bytes", "queued_jobs"}`` (limits, None =
+        unlimited) and ``{"used_storage_bytes", "used_queued_jobs"}``."""
+        con = self._con()
+        row = con.execute("SELECT storage_bytes, queued_jobs FROM tenant_quotas WHERE tenant_id = ?", (tenant_id,)).fetchone()
+        return {
+            "storage_bytes": None if row is None else row["storage_bytes"],
+            "queued_jobs": None if row is None else row["queued_jobs"],
+            "used_storage_bytes": self._stored_bytes(con, tenant_id),
+            "used_queued_jobs": self._queued_jobs(con, tenant_id),
+        }
+
+    @staticmethod
+    def _stored_bytes(con: sqlite3.Connection, tenant_id: str) -> int:
+        return int(con.execute("SELECT COALESCE(SUM(size_bytes), 0) FROM blocks WHERE tenant_id = ?", (tenant_id,)).fetchone()[0])
+
+    @staticmethod
+    def _queued_jobs(con: sqlite3.Connection, tenant_id: str) -> int:
+        return int(con.execute("SELECT COUNT(*) FROM jobs WHERE tenant_id = ? AND state = 'queued'", (tenant_id,)).fetchone()[0])
+
+    @staticmethod
+    def _limit(con: sqlite3.Connection, tenant_id: str, column: str) -> tuple[int | None, str]:
+        row = con.execute(
+            f"SELECT q.{column} AS lim, t.name FROM tenants t LEFT JOIN tenant_quotas q ON q.tenant_id = t.id WHERE t.id = ?",
+            (tenant_id,),
+        ).fetchone()
+        return (None, "") if row is None else (row["lim"], row["name"])
+
+    def _check_storage(self, con: sqlite3.Connection, tenant_id: str, size_bytes: int) -> None:
+        limit, name = self._limit(con, tenant_id, "storage_bytes")
+        if limit is not None:
+            used = self._stored_bytes(con, tenant_id)
+            if used + size_bytes > limit:
+                raise StorageQuotaExceeded(tenant=name, limit=limit, used=used, requested=size_bytes)
+
+    def _check_queue(self, con: sqlite3.Connection, tenant_id: str) -> None:
+        limit, name = self._limit(con, tenant_id, "queued_jobs")
+        if limit is not None:
+            used = self._queued_jobs(con, tenant_id)
+            if used + 1 > limit:
+                raise QueueQuotaExceeded(tenant=name, limit=limit, used=used)
+
+    def check_storage(self, tenant_id: str, size_bytes: int) -> None:
+        """StorageQuotaExceeded if a new block of ``size_bytes`` would not fit the
+        tenant's storage quota now: asked before a file is copied or landed, so a refused
+        one costs nothing (`insert_block` checks again when it records the block)."""
+        self._check_storage(self._con(), tenant_id, size_bytes)
 
     # -- schedules --------------------------------------------------------------------
 
@@ -587,6 +701,7 @@ class Store:
                 )
             except sqlite3.IntegrityError:
                 return None
+            self._check_queue(con, schedule["tenant_id"])  # rolls the capture's record back too
             con.execute(
                 "INSERT INTO jobs (id, tenant_id, block_id, schedule_id, params, tiling, state, created_at, capture) "
                 "VALUES (?, ?, ?, ?, ?, ?, 'queued', ?, ?)",
@@ -662,6 +777,7 @@ def accept_block(
             return existing, False
         if size_bytes == 0:
             raise InputError("the file is empty (0 bytes); upload a LAS or LAZ file")
+        store.check_storage(tenant_id, size_bytes)
         suffix = _sniff_suffix(tmp_path)
         typed = tmp_path.with_suffix(suffix)
         os.replace(tmp_path, typed)
@@ -673,19 +789,25 @@ def accept_block(
             raise InputError(text) from None
         blocks_dir.mkdir(parents=True, exist_ok=True)
         final = blocks_dir / f"{sha256}{'.laz' if getattr(info, 'compressed', suffix == '.laz') else '.las'}"
-        if not final.exists():
+        landed = not final.exists()
+        if landed:
             with open(tmp_path, "rb+") as fh:
                 os.fsync(fh.fileno())
             os.replace(tmp_path, final)
             _fsync_dir(blocks_dir)
-        return store.insert_block(
-            tenant_id=tenant_id,
-            sha256=sha256,
-            path=str(final),
-            filename=filename,
-            size_bytes=size_bytes,
-            info=info_record(info),
-        )
+        try:
+            return store.insert_block(
+                tenant_id=tenant_id,
+                sha256=sha256,
+                path=str(final),
+                filename=filename,
+                size_bytes=size_bytes,
+                info=info_record(info),
+            )
+        except StorageQuotaExceeded:  # another upload of the tenant's took the room meanwhile
+            if landed and not store.block_file_used(str(final)):
+                final.unlink(missing_ok=True)
+            raise
     finally:
         with contextlib.suppress(FileNotFoundError):
             tmp_path.unlink()
