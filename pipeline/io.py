@@ -21,6 +21,7 @@ import os
 import struct
 import uuid
 from dataclasses import dataclass
+from io import BytesIO
 from pathlib import Path
 from typing import Callable, Iterator
 
@@ -29,6 +30,7 @@ import numpy as np
 import pyarrow as pa
 import pyarrow.parquet as pq
 
+from pipeline import lasheader
 from pipeline.errors import InputError
 
 #: Largest absolute coordinate accepted [m] (UTM northings are < 1e7).
@@ -121,6 +123,15 @@ def _laz_points_held(p: Path, header, table: int, n_bytes: int) -> tuple[int, bo
     return len(chunks) * int(laz_vlr.chunk_size()), True
 
 
+def _projection_evlrs(p: Path, layout: lasheader.HeaderLayout):
+    """The EVLRs that may hold the CRS (LAS 1.4 may keep it there), and only those: a
+    waveform EVLR can take gigabytes, and laspy would read every EVLR whole."""
+    if not layout.evlrs:
+        return None
+    data, count = lasheader.read_records(p, layout.evlrs, user_id="LASF_Projection", extended=True)
+    return laspy.vlrs.vlrlist.VLRList.read_from(BytesIO(data), count, extended=True)
+
+
 def read_info(path) -> BlockInfo:
     """Read and check the header of a LAS/LAZ file.
 
@@ -146,21 +157,13 @@ def read_info(path) -> BlockInfo:
         if p.is_dir():
             raise _fail(p, "is a folder; give a .las or .laz file")
         raise _fail(p, "not a regular file (a device or pipe)" if p.exists() else "no such file")
-    size = p.stat().st_size
-    with open(p, "rb") as f:
-        magic = f.read(4)
-        if magic != b"LASF":
-            raise _fail(p, "not a LAS/LAZ file (it does not start with 'LASF'); give a .las or .laz point cloud")
-        f.seek(24)
-        raw_version = f.read(2)
-    if len(raw_version) < 2:
-        raise _fail(p, "truncated: the file ends inside the LAS header")
-    version = f"{raw_version[0]}.{raw_version[1]}"
-    if version not in SUPPORTED_VERSIONS:
-        raise _fail(p, f"unsupported LAS version {version}; versions 1.0 to 1.4 are read")
-    try:
-        with laspy.open(str(p), read_evlrs=False) as reader:
-            header = reader.header
+    # every size, count and offset is checked against the file before laspy walks them
+    layout = lasheader.check_header(p)
+    size, version = layout.file_size, layout.version
+    try:  # the header and VLRs only: no EVLRs, no LAZ decompressor (it reads the chunk table)
+        with open(p, "rb") as f:
+            header = laspy.LasHeader.read_from(f, read_evlrs=False)
+        header.evlrs = _projection_evlrs(p, layout)
     except Exception as exc:  # laspy raises many types for a broken header
         raise _fail(p, f"not a readable LAS/LAZ file ({_one_line(exc)})") from None
     fmt = int(header.point_format.id)
@@ -172,21 +175,8 @@ def read_info(path) -> BlockInfo:
     compressed = bool(header.are_points_compressed)
     seekable = True
     start = int(header.offset_to_point_data)
-    if not compressed:
-        need = start + n * int(header.point_format.size)
-        if size < need:
-            have = max(0, (size - start) // int(header.point_format.size))
-            raise _fail(p, f"truncated: the header announces {n} points but the file holds only {have}")
-    else:
-        with open(p, "rb") as f:
-            f.seek(start)
-            raw = f.read(8)
-        if len(raw) < 8:
-            raise _fail(p, "truncated: the file ends before the compressed points")
-        (table,) = struct.unpack("<q", raw)
-        if table != -1 and not (start < table <= size - 8):
-            raise _fail(p, "truncated: the LAZ chunk table lies beyond the end of the file")
-        most, seekable = _laz_points_held(p, header, table, size - start)
+    if compressed:  # a LAS file's points were checked to fit by check_header
+        most, seekable = _laz_points_held(p, header, layout.chunk_table, size - start)
         if n > most:
             raise _fail(p, f"corrupt: the header announces {n:,} points but its compressed data holds at most {most:,}")
     scales = tuple(float(s) for s in header.scales)
@@ -234,11 +224,7 @@ def _parse_crs(p: Path, header):
     unit in feet, or heights in feet (VerticalUnitsGeoKey), passed as metres, and the
     vertical CRS (VerticalCSTypeGeoKey) was dropped. Those keys are read here."""
     try:
-        crs = header.parse_crs()
-        if crs is None and int(getattr(header, "number_of_evlrs", 0) or 0) > 0:
-            with laspy.open(str(p), read_evlrs=True) as reader:
-                header = reader.header
-            crs = header.parse_crs()
+        crs = header.parse_crs()  # its EVLRs are read_info's projection EVLRs only
         keys = _geo_keys(header)
     except Exception:  # an unreadable CRS is not fatal
         return None, None
