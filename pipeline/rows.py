@@ -1,0 +1,381 @@
+"""Orchard rows from tree positions: row lines, tree addresses, empty slots, replants.
+
+Growers address trees as "row 12, tree 37". This module turns the merged trunk
+positions of a block into that address book. It works on trunk positions (and tree
+heights) only, after the tiles are merged, so a tiled run and an untiled run that find
+the same trunks get the same addresses.
+
+Numbering rule (documented in docs/rows.md):
+
+- A block may hold several *sections* of different row direction; each section's rows
+  run along one direction ``u``. Rows that run closer to north–south than to east–west
+  are numbered from west to east, their positions from south to north; rows closer to
+  east–west are numbered from south to north, their positions from west to east.
+  Sections are numbered in the same order as their rows' centres, so a file with two
+  blocks numbers the rows of the first section, then those of the second.
+- ``position`` counts planting slots along the row from its first tree (position 1):
+  an empty slot between two trees keeps its number, and the tree after it keeps its
+  own. An empty slot at a row's end cannot be told from the row's end.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+from pydantic import BaseModel, ConfigDict, Field
+from scipy.sparse import coo_matrix
+from scipy.sparse.csgraph import connected_components
+from scipy.spatial import cKDTree
+
+#: neighbours whose smoothed direction defines a tree's local row direction: enough to
+#: outvote the few trees whose nearest neighbour lies across the row
+_DIRECTION_NEIGHBOURS = 12
+#: first-pass links reach this many slots (one empty slot between two trees)
+_SHORT_LINK_SLOTS = 2.5
+#: a row's planting distance differs from the block's by at most this fraction ...
+_SPACING_SLACK = 0.1
+#: ... and is looked for in this many steps (0.1 % of the spacing)
+_SPACING_STEPS = 201
+
+
+class RowParams(BaseModel):
+    """Finding rows and addresses (:func:`find_rows`)."""
+
+    model_config = ConfigDict(extra="forbid", frozen=True)
+
+    enabled: bool = Field(True, description="find rows and give every tree a row and position")
+    max_gap_slots: float = Field(6.0, ge=1.5, le=100.0, description="longest run of empty planting slots, plus one, that still joins two trees into one row [slots]")
+    lateral_tolerance: float = Field(0.3, gt=0.0, lt=0.5, description="two trees are neighbours in a row when one lies at most this fraction of the distance between rows to the side of the other's row line [fraction]")
+    max_section_angle: float = Field(15.0, gt=0.0, le=45.0, description="neighbouring trees whose row directions differ by more than this belong to different sections (blocks of another row direction) [degrees]")
+    young_ratio: float = Field(0.6, gt=0.0, lt=1.0, description="a tree lower than this fraction of the median height of its two neighbours on either side in the row is a replant (young) [fraction]")
+
+
+@dataclass(frozen=True)
+class RowLayout:
+    """Rows of a block and every tree's address.
+
+    Attributes
+    ----------
+    row, position : (k,) int32
+        1-based row number and planting-slot position of each tree.
+    young : (k,) bool
+        A replant: much lower than its row neighbours.
+    rows : dict of str → ndarray
+        One entry per row: ``row`` (int32), ``n_trees``, ``n_gaps`` (int32),
+        ``spacing_m``, ``length_m``, ``azimuth_deg`` (float64; azimuth of increasing
+        positions, clockwise from grid north, [0, 360)).
+    lines : list of (m, 2) float64
+        Each row's line through its trees' positions, in position order [m].
+    gaps : dict of str → ndarray
+        One entry per empty slot between two trees of a row: ``row``, ``position``
+        (int32), ``x``, ``y`` (float64, the slot's centre on the row line) [m].
+    """
+
+    row: np.ndarray
+    position: np.ndarray
+    young: np.ndarray
+    rows: dict
+    lines: list
+    gaps: dict
+
+
+def _doubled(vec: np.ndarray) -> np.ndarray:
+    """Unit vectors of twice each vector's angle: a direction and its opposite agree."""
+    ang = 2.0 * np.arctan2(vec[:, 1], vec[:, 0])
+    return np.c_[np.cos(ang), np.sin(ang)]
+
+
+def _local_directions(xy: np.ndarray, tree: cKDTree) -> np.ndarray:
+    """(k, 2) unit row direction at each tree: its nearest-neighbour direction,
+    averaged (as doubled angles) over its nearest trees, so that in a grid whose rows are
+    only a little wider than the in-row spacing the majority decides."""
+    k = len(xy)
+    _, nn = tree.query(xy, k=2)
+    d2 = _doubled(xy[nn[:, 1]] - xy)
+    m = min(k, _DIRECTION_NEIGHBOURS)
+    _, near = tree.query(xy, k=m)
+    near = near.reshape(k, m)
+    mean = d2[near].mean(axis=1)
+    ang = 0.5 * np.arctan2(mean[:, 1], mean[:, 0])
+    return np.c_[np.cos(ang), np.sin(ang)]
+
+
+def _sections(xy: np.ndarray, direction: np.ndarray, max_angle: float) -> np.ndarray:
+    """(k,) section label of each tree: trees joined through neighbours (Delaunay edges)
+    whose row directions agree within ``max_angle`` degrees."""
+    k = len(xy)
+    if k < 4:
+        return np.zeros(k, dtype=np.int64)
+    from scipy.spatial import Delaunay, QhullError
+
+    try:
+        simplices = Delaunay(xy).simplices
+    except (QhullError, ValueError):  # all trees on one line: one section
+        return np.zeros(k, dtype=np.int64)
+    e = np.r_[simplices[:, [0, 1]], simplices[:, [1, 2]], simplices[:, [2, 0]]]
+    cos = np.abs(np.einsum("ij,ij->i", direction[e[:, 0]], direction[e[:, 1]]))
+    keep = cos >= np.cos(np.radians(max_angle))
+    e = e[keep]
+    graph = coo_matrix((np.ones(len(e)), (e[:, 0], e[:, 1])), shape=(k, k))
+    _, labels = connected_components(graph, directed=False)
+    # small sections (a stray tree, a headland corner) join their nearest large one
+    sizes = np.bincount(labels)
+    big = sizes[labels] >= 3
+    if big.any() and not big.all():
+        tree = cKDTree(xy[big])
+        _, j = tree.query(xy[~big])
+        labels[~big] = labels[big][j]
+    return np.unique(labels, return_inverse=True)[1]
+
+
+def _oriented(u: np.ndarray) -> np.ndarray:
+    """The row direction pointed the way positions increase: north for rows closer to
+    north–south, east for rows closer to east–west."""
+    u = u / np.hypot(*u)
+    if abs(u[1]) > abs(u[0]):
+        return u if u[1] > 0 else -u
+    return u if u[0] > 0 else -u
+
+
+def _section_direction(direction: np.ndarray) -> np.ndarray:
+    mean = _doubled(direction).mean(axis=0)
+    ang = 0.5 * np.arctan2(mean[1], mean[0])
+    return _oriented(np.array([np.cos(ang), np.sin(ang)]))
+
+
+def _link(xy, direction, u, members, spacing, tol, max_gap_slots):
+    """Successor of each member tree along its row (-1 at a row's end).
+
+    Strategy: candidate links go forward along ``u`` and lie within ``tol`` of the
+    line through both trees' local row directions; the shortest links are taken first,
+    each tree keeping one successor and one predecessor. Short links (up to one empty
+    slot) are matched before long ones, so a long link only bridges a run of empty
+    slots between two row fragments.
+    """
+    n = len(members)
+    succ = np.full(n, -1, dtype=np.int64)
+    pred = np.full(n, -1, dtype=np.int64)
+    p = xy[members]
+    d_loc = direction[members]
+    tree = cKDTree(p)
+
+    def match(pairs: np.ndarray) -> None:
+        if not len(pairs):
+            return
+        i, j = pairs[:, 0], pairs[:, 1]
+        vec = p[j] - p[i]
+        along = vec @ u
+        flip = along < 0
+        i, j = np.where(flip, j, i), np.where(flip, i, j)
+        vec = np.where(flip[:, None], -vec, vec)
+        mid = d_loc[i] * np.sign(np.einsum("ij,ij->i", d_loc[i], d_loc[j]))[:, None] + d_loc[j]
+        norm = np.hypot(mid[:, 0], mid[:, 1])
+        mid = mid / np.where(norm > 0, norm, 1.0)[:, None]
+        lateral = np.abs(vec[:, 0] * mid[:, 1] - vec[:, 1] * mid[:, 0])
+        dist = np.hypot(vec[:, 0], vec[:, 1])
+        ok = (lateral <= tol) & (np.abs(vec @ u) > 0)
+        order = np.lexsort((j[ok], i[ok], dist[ok]))
+        for a, b in zip(i[ok][order], j[ok][order]):
+            if succ[a] < 0 and pred[b] < 0:  # links go forward along u: no loops
+                succ[a] = b
+                pred[b] = a
+
+    match(tree.query_pairs(_SHORT_LINK_SLOTS * spacing, output_type="ndarray").astype(np.int64).reshape(-1, 2))
+    ends = np.flatnonzero((succ < 0) | (pred < 0))
+    if len(ends) > 1 and max_gap_slots > _SHORT_LINK_SLOTS:
+        sub = cKDTree(p[ends])
+        far = sub.query_pairs(max_gap_slots * spacing, output_type="ndarray").astype(np.int64).reshape(-1, 2)
+        if len(far):
+            far = ends[far]
+            a, b = far[:, 0], far[:, 1]
+            fwd = (p[b] - p[a]) @ u > 0
+            start, stop = np.where(fwd, a, b), np.where(fwd, b, a)
+            usable = (succ[start] < 0) & (pred[stop] < 0)
+            match(np.c_[start[usable], stop[usable]])
+    return succ, pred
+
+
+def _chains(succ: np.ndarray, pred: np.ndarray) -> list[np.ndarray]:
+    chains = []
+    for start in np.flatnonzero(pred < 0):
+        chain = [start]
+        while succ[chain[-1]] >= 0:
+            chain.append(succ[chain[-1]])
+        chains.append(np.asarray(chain, dtype=np.int64))
+    return chains
+
+
+def _row_spacing(xy: np.ndarray, direction: np.ndarray, tree: cKDTree) -> float:
+    """Median distance [m] from a tree to the nearest tree of a neighbouring row (one
+    lying more than 60° off its row direction), or NaN for a block of one row."""
+    k = len(xy)
+    m = min(k, 40)
+    dist, near = tree.query(xy, k=m)
+    vec = xy[near.reshape(k, m)] - xy[:, None, :]
+    along = np.abs(np.einsum("ijk,ik->ij", vec, direction))
+    across = np.abs(vec[..., 0] * direction[:, None, 1] - vec[..., 1] * direction[:, None, 0])
+    off = across > np.tan(np.radians(60.0)) * along
+    off[:, 0] = False
+    lateral = np.where(off, across, np.inf).min(axis=1)
+    lateral = lateral[np.isfinite(lateral)]
+    return float(np.median(lateral)) if len(lateral) >= max(3, 0.2 * k) else float("nan")
+
+
+def _steps(p: np.ndarray, d: np.ndarray) -> np.ndarray:
+    """Distances [m] between consecutive trees of a row along its local direction: a
+    zigzag of trees planted a little off the line would otherwise lengthen the row by a
+    slot every few dozen trees."""
+    mid = d[:-1] * np.sign(np.einsum("ij,ij->i", d[:-1], d[1:]))[:, None] + d[1:]
+    mid /= np.hypot(mid[:, 0], mid[:, 1])[:, None]
+    return np.abs(np.einsum("ij,ij->i", np.diff(p, axis=0), mid))
+
+
+def _slots(p: np.ndarray, d: np.ndarray, spacing: float) -> tuple[np.ndarray, float]:
+    """Planting slot (0-based) of each tree of a row, in chain order, and the row's
+    spacing [m]. ``p`` are the trees' positions, ``d`` their local row directions,
+    ``spacing`` the block's typical step between neighbours [m].
+
+    Strategy: the trees' distances along the row line from the first tree are fitted by
+    a lattice of slots (spacing within 10 % of the block's, and offset) that most trees
+    lie close to, the peak of their periodogram; every tree goes to its nearest slot, so
+    one tree far off its slot does not shift the trees after it.
+    """
+    if len(p) == 1:
+        return np.zeros(1, dtype=np.int64), float("nan")
+    step = _steps(p, d)
+    arc = np.r_[0.0, np.cumsum(step)]
+    if len(p) < 3:
+        slot = np.r_[0, np.cumsum(np.maximum(1, np.rint(step / spacing)))].astype(np.int64)
+        return slot, spacing
+    # the spacing and offset of the lattice of slots that the trees fit best (the peak
+    # of their periodogram near the block's spacing)
+    cand = spacing * (1.0 + np.linspace(-_SPACING_SLACK, _SPACING_SLACK, _SPACING_STEPS))
+    phase = np.exp(2j * np.pi * arc[None, :] / cand[:, None])
+    power = np.abs(phase.mean(axis=1))
+    best = int(np.argmax(power))
+    s = float(cand[best])
+    a0 = s * float(np.angle(phase[best].mean())) / (2 * np.pi)
+    slot = np.rint((arc - a0) / s).astype(np.int64)
+    slot = np.maximum.accumulate(slot - np.arange(len(slot))) + np.arange(len(slot))  # strictly increasing
+    slot = slot - slot[0]
+    return slot, s
+
+
+def _young(height: np.ndarray, chains: list[np.ndarray], ratio: float) -> np.ndarray:
+    young = np.zeros(len(height), dtype=bool)
+    for chain in chains:
+        if len(chain) < 3:
+            continue
+        h = height[chain]
+        for a in range(len(chain)):
+            nb = np.r_[h[max(0, a - 2):a], h[a + 1:a + 3]]
+            if len(nb) and h[a] < ratio * np.median(nb):
+                young[chain[a]] = True
+    return young
+
+
+def _azimuth(v: np.ndarray) -> float:
+    return float(np.degrees(np.arctan2(v[0], v[1])) % 360.0)
+
+
+def find_rows(xy: np.ndarray, height: np.ndarray | None = None, *, params: RowParams | None = None) -> RowLayout:
+    """Find the rows of a block and give every tree its address.
+
+    Parameters
+    ----------
+    xy : (k, 2) float64
+        Trunk positions [m] in a projected CRS (x east, y north).
+    height : (k,) float64, optional
+        Tree heights [m], for telling replants (``young``); without, no tree is young.
+    params : RowParams, optional
+
+    Returns
+    -------
+    RowLayout
+        Addresses are unique: no two trees share a (row, position).
+    """
+    params = params or RowParams()
+    xy = np.asarray(xy, dtype=np.float64).reshape(-1, 2)
+    k = len(xy)
+    height = np.zeros(k) if height is None else np.asarray(height, dtype=np.float64)
+    row = np.zeros(k, dtype=np.int32)
+    position = np.zeros(k, dtype=np.int32)
+    empty_rows = {"row": np.zeros(0, np.int32), "n_trees": np.zeros(0, np.int32), "n_gaps": np.zeros(0, np.int32),
+                  "spacing_m": np.zeros(0), "length_m": np.zeros(0), "azimuth_deg": np.zeros(0)}
+    empty_gaps = {"row": np.zeros(0, np.int32), "position": np.zeros(0, np.int32), "x": np.zeros(0), "y": np.zeros(0)}
+    if k == 0:
+        return RowLayout(row, position, np.zeros(0, bool), empty_rows, [], empty_gaps)
+    centre = xy.mean(axis=0)
+    local = xy - centre
+    if k == 1:
+        row[:] = 1
+        position[:] = 1
+        rows = dict(empty_rows, row=np.array([1], np.int32), n_trees=np.array([1], np.int32),
+                    n_gaps=np.array([0], np.int32), spacing_m=np.array([np.nan]), length_m=np.array([0.0]),
+                    azimuth_deg=np.array([np.nan]))
+        return RowLayout(row, position, np.zeros(1, bool), rows, [xy.copy()], empty_gaps)
+
+    tree = cKDTree(local)
+    direction = _local_directions(local, tree)
+    section = _sections(local, direction, params.max_section_angle)
+    nn_dist = tree.query(local, k=2)[0][:, 1]
+
+    found = []  # (section key, across, along, chain as global indices, spacing, slots)
+    for sec in np.unique(section):
+        members = np.flatnonzero(section == sec)
+        sec_key = tuple(np.round(local[members].mean(axis=0), 3))
+        u = _section_direction(direction[members]) if len(members) > 1 else np.array([1.0, 0.0])
+        v = np.array([u[1], -u[0]]) if abs(u[1]) > abs(u[0]) else np.array([-u[1], u[0]])  # numbering: east or north
+        spacing = float(np.median(nn_dist[members]))
+        across = _row_spacing(local[members], direction[members], cKDTree(local[members]))
+        tol = params.lateral_tolerance * across if np.isfinite(across) else max(spacing, 0.5)
+        succ, _pred = _link(local, direction, u, members, spacing, tol, params.max_gap_slots)
+        chains = [members[c] for c in _chains(succ, _pred)]
+        steps = [_steps(local[g], direction[g]) for g in chains if len(g) > 1]
+        if steps:  # the planting distance: the typical step between neighbours in a row
+            spacing = float(np.median(np.concatenate(steps)))
+        for g in chains:
+            slots, s = _slots(local[g], direction[g], spacing)
+            found.append((sec_key, float(np.mean(local[g] @ v)), float(np.mean(local[g] @ u)), g,
+                          s if np.isfinite(s) else spacing, slots, u, v))
+
+    # order: sections west to east (then south to north), rows across, then along
+    keys = [c[:3] for c in found]
+    order = sorted(range(len(found)), key=lambda a: keys[a])
+    chains = []
+    rows_out = {key: [] for key in empty_rows}
+    lines = []
+    gaps = {key: [] for key in empty_gaps}
+    for number, a in enumerate(order, start=1):
+        _, _, _, g, s, slots, u, v = found[a]
+        row[g] = number
+        position[g] = slots + 1
+        chains.append(g)
+        line = xy[g]
+        lines.append(line.copy())
+        missing = np.setdiff1d(np.arange(slots[-1] + 1), slots)
+        if len(missing):
+            gx = np.interp(missing, slots, line[:, 0])
+            gy = np.interp(missing, slots, line[:, 1])
+            gaps["row"].append(np.full(len(missing), number, np.int32))
+            gaps["position"].append((missing + 1).astype(np.int32))
+            gaps["x"].append(gx)
+            gaps["y"].append(gy)
+        rows_out["row"].append(number)
+        rows_out["n_trees"].append(len(g))
+        rows_out["n_gaps"].append(len(missing))
+        rows_out["spacing_m"].append(s if len(g) > 1 else np.nan)
+        rows_out["length_m"].append(float(np.hypot(*np.diff(line, axis=0).T).sum()) if len(g) > 1 else 0.0)
+        rows_out["azimuth_deg"].append(_azimuth(line[-1] - line[0]) if len(g) > 1 else _azimuth(u))
+    young = _young(height, chains, params.young_ratio)
+    rows = {
+        "row": np.asarray(rows_out["row"], np.int32),
+        "n_trees": np.asarray(rows_out["n_trees"], np.int32),
+        "n_gaps": np.asarray(rows_out["n_gaps"], np.int32),
+        "spacing_m": np.asarray(rows_out["spacing_m"], np.float64),
+        "length_m": np.asarray(rows_out["length_m"], np.float64),
+        "azimuth_deg": np.asarray(rows_out["azimuth_deg"], np.float64),
+    }
+    gap_cols = {key: (np.concatenate(val) if val else empty_gaps[key]) for key, val in gaps.items()}
+    return RowLayout(row, position, young, rows, lines, gap_cols)

@@ -1,0 +1,192 @@
+"""Rows, addresses, empty slots and replants from trunk positions (pipeline.rows)."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+from hypothesis import HealthCheck, given, settings
+from hypothesis import strategies as st
+
+from pipeline.evaluate_rows import address_scores, gap_scores
+from pipeline.rows import RowParams, find_rows
+
+
+def plan(n_rows=4, per_row=20, s=1.0, r=3.5, jitter=0.05, missing=(), angle=0.0, sag=0.0, seed=0, origin=(500000.0, 6950000.0)):
+    """A planting plan: trunk xy, true row and slot (1-based), and empty slots' xy.
+
+    Rows run along x before the rotation by ``angle`` degrees (counter-clockwise);
+    ``missing`` lists (row, slot) pairs left empty; ``sag`` bows every row sideways [m].
+    """
+    rng = np.random.default_rng(seed)
+    pts, rows, slots, empty = [], [], [], []
+    length = (per_row - 1) * s
+    for i in range(n_rows):
+        for j in range(per_row):
+            x = j * s
+            y = i * r + sag * (1 - ((x - length / 2) / (length / 2)) ** 2)
+            if (i + 1, j + 1) in missing:
+                empty.append((x, y))
+                continue
+            pts.append(np.array([x, y]) + rng.normal(0, jitter, 2))
+            rows.append(i + 1)
+            slots.append(j + 1)
+    a = np.radians(angle)
+    rot = np.array([[np.cos(a), -np.sin(a)], [np.sin(a), np.cos(a)]])
+    xy = np.asarray(pts) @ rot.T + np.asarray(origin)
+    gaps = np.asarray(empty, dtype=np.float64).reshape(-1, 2) @ rot.T + np.asarray(origin)
+    return xy, np.asarray(rows), np.asarray(slots), gaps
+
+
+def addresses(layout):
+    return set(zip(layout.row.tolist(), layout.position.tolist()))
+
+
+def test_one_straight_row_is_numbered_from_its_western_end():
+    xy = np.c_[np.arange(6) * 2.0, np.zeros(6)][::-1]  # given east to west
+    lay = find_rows(xy)
+    assert lay.row.tolist() == [1] * 6
+    assert lay.position.tolist() == [6, 5, 4, 3, 2, 1]
+    assert lay.rows["n_trees"].tolist() == [6]
+    assert lay.rows["n_gaps"].tolist() == [0]
+    assert lay.rows["spacing_m"][0] == pytest.approx(2.0)
+    assert lay.rows["length_m"][0] == pytest.approx(10.0)
+    assert lay.rows["azimuth_deg"][0] == pytest.approx(90.0)  # positions increase eastwards
+    assert len(lay.gaps["row"]) == 0
+
+
+def test_a_row_with_two_gaps_keeps_the_numbers_of_the_trees_after_them():
+    x = np.array([0, 1, 2, 4, 5, 7, 8, 9], dtype=float)  # slots 4 and 7 (1-based) empty
+    lay = find_rows(np.c_[x, np.full(len(x), 10.0)])
+    assert lay.position.tolist() == [1, 2, 3, 5, 6, 8, 9, 10]
+    assert lay.gaps["position"].tolist() == [4, 7]
+    assert lay.gaps["row"].tolist() == [1, 1]
+    np.testing.assert_allclose(lay.gaps["x"], [3.0, 6.0])
+    np.testing.assert_allclose(lay.gaps["y"], [10.0, 10.0])
+    assert lay.rows["n_gaps"].tolist() == [2]
+
+
+def test_north_south_rows_are_numbered_west_to_east_positions_south_to_north():
+    xy, true_row, true_slot, _ = plan(n_rows=3, per_row=8, s=1.5, r=4.0, jitter=0.0, angle=90.0)
+    # rotated by 90°: rows run north; the simulator's row 1 lies east, its slot 1 south
+    lay = find_rows(xy)
+    assert lay.row.tolist() == (4 - true_row).tolist()
+    assert lay.position.tolist() == true_slot.tolist()
+    az = lay.rows["azimuth_deg"]
+    np.testing.assert_allclose(np.minimum(az, 360.0 - az), 0.0, atol=1e-6)  # positions increase northwards
+
+
+def test_east_west_rows_are_numbered_south_to_north():
+    xy, true_row, true_slot, _ = plan(n_rows=3, per_row=8, jitter=0.0)
+    lay = find_rows(xy)
+    assert lay.row.tolist() == true_row.tolist()
+    assert lay.position.tolist() == true_slot.tolist()
+
+
+def test_a_curved_row_is_one_row_with_its_slots():
+    xy, true_row, true_slot, _ = plan(n_rows=3, per_row=60, s=1.0, r=3.0, sag=2.5, jitter=0.03, seed=3)
+    lay = find_rows(xy)
+    assert len(lay.rows["row"]) == 3
+    assert lay.row.tolist() == true_row.tolist()
+    assert lay.position.tolist() == true_slot.tolist()
+    assert lay.rows["length_m"].min() > 59.0  # along the bow, not the chord
+
+
+def test_a_replant_is_young_and_keeps_its_slot():
+    xy, _, true_slot, _ = plan(n_rows=2, per_row=10, jitter=0.02)
+    height = np.full(len(xy), 3.2)
+    height[4] = 1.1  # a replant in row 1, slot 5
+    lay = find_rows(xy, height)
+    assert np.flatnonzero(lay.young).tolist() == [4]
+    assert lay.position[4] == true_slot[4]
+
+
+def test_without_heights_no_tree_is_young():
+    xy, *_ = plan(n_rows=2, per_row=10)
+    assert not find_rows(xy).young.any()
+
+
+def test_two_blocks_of_different_row_direction_in_one_file():
+    a, ra, sa, _ = plan(n_rows=4, per_row=25, s=1.0, r=3.5, seed=1)
+    b, rb, sb, _ = plan(n_rows=6, per_row=15, s=2.0, r=4.5, angle=90.0, seed=2, origin=(500060.0, 6950000.0))
+    lay = find_rows(np.r_[a, b])
+    true = np.r_[ra, rb + 100]
+    assert len(lay.rows["row"]) == 10
+    for r in np.unique(lay.row):
+        assert len(np.unique(true[lay.row == r])) == 1  # no row mixes the blocks
+    assert set(lay.row[: len(a)]) == {1, 2, 3, 4}  # the western block first
+    az = lay.rows["azimuth_deg"]
+    assert np.allclose(az[:4], 90.0, atol=3.0)
+    assert np.allclose(np.minimum(az[4:], 360 - az[4:]), 0.0, atol=3.0)
+
+
+@pytest.mark.parametrize("angle", [0.0, 17.0, 45.0, 90.0, 133.0, 200.0, 301.0])
+def test_addresses_are_right_at_any_rotation(angle):
+    missing = {(1, 5), (2, 9), (2, 10), (3, 15)}
+    xy, true_row, true_slot, gaps = plan(n_rows=4, per_row=24, s=1.2, r=3.5, angle=angle, missing=missing, seed=5)
+    lay = find_rows(xy)
+    s = address_scores(xy, true_row, true_slot, xy, lay.row, lay.position, match_distance=0.3)
+    assert s["address_accuracy"] == 1.0
+    g = gap_scores(gaps, np.c_[lay.gaps["x"], lay.gaps["y"]], match_distance=0.5)
+    assert (g["gap_precision"], g["gap_recall"]) == (1.0, 1.0)
+
+
+@pytest.mark.parametrize("spacing,row_spacing", [(0.8, 3.0), (1.5, 3.5), (2.5, 4.5), (5.0, 6.0), (8.0, 8.5)])
+def test_any_spacing(spacing, row_spacing):
+    xy, true_row, true_slot, _ = plan(n_rows=4, per_row=15, s=spacing, r=row_spacing, jitter=0.04 * spacing, seed=7)
+    lay = find_rows(xy)
+    assert lay.row.tolist() == true_row.tolist()
+    assert lay.position.tolist() == true_slot.tolist()
+
+
+def test_empty_and_single_tree_blocks():
+    lay = find_rows(np.zeros((0, 2)))
+    assert len(lay.row) == 0 and len(lay.rows["row"]) == 0 and len(lay.gaps["row"]) == 0
+    lay = find_rows(np.array([[3.0, 4.0]]))
+    assert lay.row.tolist() == [1] and lay.position.tolist() == [1]
+
+
+def test_params_validate():
+    with pytest.raises(ValueError):
+        RowParams(lateral_tolerance=0.7)
+
+
+def test_address_scores_forgive_the_numbering_rule_but_not_a_shift_within_a_row():
+    xy, true_row, true_slot, _ = plan(n_rows=2, per_row=5, jitter=0.0)
+    # reversed rows and positions, shifted: still right
+    s = address_scores(xy, true_row, true_slot, xy, 10 - true_row, 7 - true_slot, match_distance=0.3)
+    assert s["address_accuracy"] == 1.0
+    pos = true_slot.copy()
+    pos[3:5] += 1  # the last two trees of row 1 one slot off
+    s = address_scores(xy, true_row, true_slot, xy, true_row, pos, match_distance=0.3)
+    assert s["n_correct"] == 8
+
+
+@settings(max_examples=40, deadline=None, suppress_health_check=[HealthCheck.too_slow])
+@given(
+    n=st.integers(0, 120),
+    seed=st.integers(0, 2**16),
+    scale=st.floats(0.5, 50.0),
+)
+def test_every_tree_has_one_address_and_no_two_share_one(n, seed, scale):
+    xy = np.random.default_rng(seed).uniform(0, scale, (n, 2))
+    lay = find_rows(xy, np.random.default_rng(seed + 1).uniform(0.5, 4.0, n))
+    assert lay.row.dtype == np.int32 and lay.position.dtype == np.int32
+    assert len(lay.row) == n
+    assert np.all(lay.row >= 1) and np.all(lay.position >= 1)
+    assert len(addresses(lay)) == n
+    assert sorted(set(lay.row.tolist())) == list(range(1, len(lay.rows["row"]) + 1))
+    assert int(lay.rows["n_trees"].sum()) == n
+    gap_addr = set(zip(lay.gaps["row"].tolist(), lay.gaps["position"].tolist()))
+    assert not gap_addr & addresses(lay)  # an empty slot is not a tree's slot
+    assert int(lay.rows["n_gaps"].sum()) == len(gap_addr) == len(lay.gaps["row"])
+
+
+@settings(max_examples=25, deadline=None)
+@given(angle=st.floats(0, 360), dx=st.floats(-1e4, 1e4), dy=st.floats(-1e4, 1e4), seed=st.integers(0, 1000))
+def test_addresses_do_not_depend_on_the_order_of_the_trees(angle, dx, dy, seed):
+    xy, *_ = plan(n_rows=3, per_row=12, angle=angle, seed=seed, origin=(500000.0 + dx, 6950000.0 + dy))
+    lay = find_rows(xy)
+    perm = np.random.default_rng(seed).permutation(len(xy))
+    lay2 = find_rows(xy[perm])
+    assert lay2.row.tolist() == lay.row[perm].tolist()
+    assert lay2.position.tolist() == lay.position[perm].tolist()
