@@ -14,6 +14,7 @@ import asyncio
 import contextlib
 import hashlib
 import logging
+import os
 import threading
 import uuid
 from datetime import datetime, timezone
@@ -35,6 +36,7 @@ from service import report as reports
 from service import scratch
 from service.auth import authenticate
 from service.errors import ShuttingDownError, StalledUploadError, TooLargeError, api_wording, install_error_handlers
+from service.permissions import FILE_MODE, private_dir, tighten
 from service.runner import Runner, drop_work, hold_runner_lock, job_block_name, job_dir
 from service.schedules import (
     DEFAULT_CRON,
@@ -404,6 +406,7 @@ class _FilePart:
             raw = opts.get(b"filename")
             self.filename = display_filename(raw.decode("utf-8", "replace")) if raw else None
             self.fh = open(self.tmp_path, "wb")
+            os.fchmod(self.fh.fileno(), FILE_MODE)  # a farm's file, whatever the process umask
 
     def _data(self, data: bytes, start: int, end: int) -> None:
         if not self._in_file or self.too_large:
@@ -592,7 +595,7 @@ def create_app(settings: Settings) -> FastAPI:
             check_work_url(settings.work_dir, shared=True)
         except ParameterError as exc:
             raise ParameterError(f"ORCHARD_WORK_DIR: {exc}") from None
-    settings.data_dir.mkdir(parents=True, exist_ok=True)
+    private_dir(settings.data_dir)
     # the one process that runs this folder's jobs and schedules (a second one is refused)
     runner_lock = hold_runner_lock(settings.data_dir) if settings.runner or settings.scheduling else None
     store = Store(settings.store_path)
@@ -601,11 +604,16 @@ def create_app(settings: Settings) -> FastAPI:
     def after_done(job: dict) -> None:
         with report_lock:
             ensure_report(store, settings, job)
+        tighten(job_dir(settings, job["id"]))  # results are the farm's: whoever wrote them (a remote worker)
 
     @contextlib.asynccontextmanager
     async def lifespan(app: FastAPI):
+        log.info("data folder %s (tokens for this server: orchard tokens create --tenant NAME --data-dir %s)",
+                 settings.data_dir, settings.data_dir)
         for d in (settings.blocks_dir, settings.jobs_dir, settings.tmp_dir):
-            d.mkdir(parents=True, exist_ok=True)
+            private_dir(d)
+        # a folder written by an earlier version, or copied in: the farms' inboxes stay as they are
+        await run_in_threadpool(tighten, settings.data_dir, skip=[settings.http_inbox_root])
         scratch.sweep(settings.tmp_dir)  # uploads a crash interrupted (not those of live processes)
         if runner_lock is not None:  # no other process runs jobs here: a "running" job is an orphan
             for job_id in store.cancel_interrupted():  # asked to stop before the last shutdown

@@ -27,6 +27,7 @@ from pathlib import Path
 from typing import Any, Iterator
 
 from pipeline.errors import ConflictError, InputError, NotFoundError, ParameterError
+from service.permissions import FILE_MODE, private_dir, private_file
 from service.quotas import QueueQuotaExceeded, StorageQuotaExceeded
 
 log = logging.getLogger("orchard.store")
@@ -43,7 +44,11 @@ CREATE TABLE IF NOT EXISTS tenants (
 CREATE TABLE IF NOT EXISTS tokens (
     hash TEXT PRIMARY KEY,
     tenant_id TEXT NOT NULL REFERENCES tenants(id),
-    created_at REAL NOT NULL
+    created_at REAL NOT NULL,
+    id TEXT,
+    prefix TEXT,
+    last_used_at REAL,
+    expires_at REAL
 );
 CREATE TABLE IF NOT EXISTS blocks (
     id TEXT PRIMARY KEY,
@@ -127,6 +132,11 @@ def new_id() -> str:
     return uuid.uuid4().hex
 
 
+def new_token_id() -> str:
+    """A token's id: 12 hex digits, shown in listings and used to revoke it (not a secret)."""
+    return uuid.uuid4().hex[:12]
+
+
 def _record(row: sqlite3.Row | None) -> dict[str, Any] | None:
     if row is None:
         return None
@@ -142,7 +152,8 @@ class Store:
 
     def __init__(self, path: str | os.PathLike) -> None:
         self.path = Path(path)
-        self.path.parent.mkdir(parents=True, exist_ok=True)
+        private_dir(self.path.parent)
+        private_file(self.path)  # before SQLite opens it: its -wal and -shm files take this file's mode
         self._local = threading.local()
         self._all: list[sqlite3.Connection] = []
         self._all_lock = threading.Lock()
@@ -155,6 +166,7 @@ class Store:
         self._add_column("jobs", "capture", "TEXT")
         self._add_column("jobs", "crashes", "INTEGER NOT NULL DEFAULT 0")
         self._add_column("schedules", "paused", "INTEGER NOT NULL DEFAULT 0")
+        self._migrate_tokens()
 
     def _add_column(self, table: str, column: str, decl: str) -> None:
         def present() -> bool:
@@ -231,18 +243,67 @@ class Store:
             "SELECT t.*, (SELECT COUNT(*) FROM tokens k WHERE k.tenant_id = t.id) AS n_tokens FROM tenants t ORDER BY name"
         )
 
-    def add_token(self, tenant_id: str, token_hash: str) -> None:
+    def _migrate_tokens(self) -> None:
+        """Tokens stored before they had ids get one; their visible prefix stays unknown
+        (only their hash was kept), and they never expire."""
+        for column, decl in (("id", "TEXT"), ("prefix", "TEXT"), ("last_used_at", "REAL"), ("expires_at", "REAL")):
+            self._add_column("tokens", column, decl)
+        if self._one("SELECT 1 AS x FROM tokens WHERE id IS NULL LIMIT 1") is not None:
+            with self._tx() as con:
+                for row in con.execute("SELECT hash FROM tokens WHERE id IS NULL").fetchall():
+                    con.execute("UPDATE tokens SET id = ? WHERE hash = ?", (new_token_id(), row["hash"]))
+        self._con().execute("CREATE UNIQUE INDEX IF NOT EXISTS tokens_by_id ON tokens(id)")
+
+    def add_token(
+        self, tenant_id: str, token_hash: str, *, prefix: str | None = None, expires_at: float | None = None
+    ) -> dict[str, Any]:
+        """Store a token's hash for ``tenant_id``; returns its record (``id``, ``prefix``,
+        ``created_at``, ``expires_at`` [s since the epoch] ...)."""
+        token_id = new_token_id()
         with self._tx() as con:
-            con.execute("INSERT INTO tokens (hash, tenant_id, created_at) VALUES (?, ?, ?)", (token_hash, tenant_id, time.time()))
+            con.execute(
+                "INSERT INTO tokens (hash, tenant_id, created_at, id, prefix, expires_at) VALUES (?, ?, ?, ?, ?, ?)",
+                (token_hash, tenant_id, time.time(), token_id, prefix, expires_at),
+            )
+        return self._one("SELECT id, tenant_id, prefix, created_at, last_used_at, expires_at FROM tokens WHERE id = ?", (token_id,))
+
+    def list_tokens(self, tenant_id: str | None = None) -> list[dict[str, Any]]:
+        """Tokens (never their hashes) with their tenant's name, by tenant, oldest first."""
+        sql = ("SELECT k.id, k.tenant_id, t.name AS tenant, k.prefix, k.created_at, k.last_used_at, k.expires_at "
+               "FROM tokens k JOIN tenants t ON t.id = k.tenant_id")
+        if tenant_id is None:
+            return self._all_rows(sql + " ORDER BY t.name, k.created_at, k.id")
+        return self._all_rows(sql + " WHERE k.tenant_id = ? ORDER BY k.created_at, k.id", (tenant_id,))
 
     def revoke_token(self, token_hash: str) -> bool:
         with self._tx() as con:
             return con.execute("DELETE FROM tokens WHERE hash = ?", (token_hash,)).rowcount > 0
 
+    def revoke_token_id(self, token_id: str) -> bool:
+        """Delete the token with this id; False if there is none."""
+        with self._tx() as con:
+            return con.execute("DELETE FROM tokens WHERE id = ?", (token_id,)).rowcount > 0
+
     def tenant_for_token(self, token_hash: str) -> dict[str, Any] | None:
         return self._one(
             "SELECT t.* FROM tokens k JOIN tenants t ON t.id = k.tenant_id WHERE k.hash = ?", (token_hash,)
         )
+
+    def token_by_hash(self, token_hash: str) -> dict[str, Any] | None:
+        """The token record (``id``, ``prefix``, ``expires_at``, ``last_used_at``) with its
+        tenant as ``tenant`` (a tenant record), or None."""
+        rec = self._one(
+            "SELECT k.id, k.prefix, k.created_at, k.last_used_at, k.expires_at, k.tenant_id FROM tokens k WHERE k.hash = ?",
+            (token_hash,),
+        )
+        if rec is not None:
+            rec["tenant"] = self._one("SELECT * FROM tenants WHERE id = ?", (rec["tenant_id"],))
+        return rec
+
+    def touch_token(self, token_id: str, at: float) -> None:
+        """Record a use of the token at ``at`` [s since the epoch]."""
+        with self._tx() as con:
+            con.execute("UPDATE tokens SET last_used_at = ? WHERE id = ?", (at, token_id))
 
     # -- blocks -----------------------------------------------------------------------
 
@@ -792,6 +853,7 @@ def accept_block(
         landed = not final.exists()
         if landed:
             with open(tmp_path, "rb+") as fh:
+                os.fchmod(fh.fileno(), FILE_MODE)  # a farm's file: the service user's alone
                 os.fsync(fh.fileno())
             os.replace(tmp_path, final)
             _fsync_dir(blocks_dir)

@@ -4,7 +4,10 @@ from __future__ import annotations
 
 import argparse
 import contextlib
+import errno
 import logging
+import os
+import socket
 
 NAME = "serve"
 HELP = "Run the HTTP service (API under /v1, docs at /docs) with its job runner and overnight schedules."
@@ -21,6 +24,31 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--workers", type=int, default=None, help="workers of the embedded LocalCluster (default 2; env ORCHARD_N_WORKERS)")
     parser.add_argument("--max-upload-mb", type=float, default=None, help="largest accepted upload [MB] (env ORCHARD_MAX_UPLOAD_MB)")
     parser.add_argument("--log-level", default="info", choices=["debug", "info", "warning", "error"], help="server log level")
+
+
+def bind(host: str, port: int) -> socket.socket:
+    """The listening socket of the server, bound before the app starts, so that an
+    address in use is said as such (`ParameterError`: exit 2, as a second runner on a
+    data folder) and not as an app that failed to start."""
+    from pipeline.errors import ParameterError
+
+    family = socket.AF_INET6 if ":" in host else socket.AF_INET
+    sock = socket.socket(family, socket.SOCK_STREAM)
+    sock.setsockopt(socket.SOL_SOCKET, socket.SO_REUSEADDR, 1)  # as uvicorn: a restart binds at once
+    try:
+        sock.bind((host, port))
+    except OSError as exc:
+        sock.close()
+        if exc.errno == errno.EADDRINUSE:
+            why = "the address is already in use (another server, or another orchard serve, listens there)"
+        elif exc.errno in (errno.EACCES, errno.EPERM):
+            why = "permission denied (ports below 1024 need privileges)"
+        else:
+            why = exc.strerror or str(exc)
+        raise ParameterError(f"cannot listen on {host}:{port}: {why}; choose another with --port "
+                             "(or ORCHARD_PORT), or --host") from None
+    sock.set_inheritable(True)
+    return sock
 
 
 def run(args: argparse.Namespace) -> int:
@@ -40,7 +68,17 @@ def run(args: argparse.Namespace) -> int:
     logging.basicConfig(level=args.log_level.upper(), format="%(asctime)s %(levelname)s %(name)s: %(message)s")
     if args.log_level != "debug":
         logging.getLogger("distributed").setLevel(logging.WARNING)  # the cluster's own chatter
-    app = create_app(settings)
+    from service.permissions import UMASK
+
+    os.umask(UMASK)  # what the service and its local workers write is the service user's alone
+    sock = bind(settings.host, settings.port)
+    host, port = sock.getsockname()[:2]
+    logging.getLogger("orchard.service").info("listening on http://%s:%d", f"[{host}]" if ":" in host else host, port)
+    try:
+        app = create_app(settings)
+    except BaseException:
+        sock.close()
+        raise
 
     class Server(uvicorn.Server):
         def handle_exit(self, sig, frame) -> None:  # SIGTERM / Ctrl-C
@@ -52,7 +90,7 @@ def run(args: argparse.Namespace) -> int:
     config = uvicorn.Config(app, host=settings.host, port=settings.port, log_level=args.log_level, timeout_graceful_shutdown=10)
     server = Server(config)
     with contextlib.suppress(KeyboardInterrupt):
-        server.run()
-    if not server.started:  # as uvicorn.run: the app did not start (e.g. its work store is unusable)
-        return 3
+        server.run(sockets=[sock])
+    if not server.started:  # the app did not start (its log says why): a failed run, not "no trees" (3)
+        return 1
     return 0

@@ -561,7 +561,8 @@ def test_cli_tokens_create_prints_only_the_token(tmp_path, monkeypatch, capsys):
 
     monkeypatch.setenv("ORCHARD_DATA_DIR", str(data))
     assert main(["tokens", "list"]) == 0
-    assert "farm-y\t1 token(s)" in capsys.readouterr().out
+    listed = [line.split("\t") for line in capsys.readouterr().out.splitlines()[1:]]
+    assert [(row[0], row[2]) for row in listed] == [("farm-y", token[:13])]
 
 
 def test_one_schedule_per_inbox_in_the_store_and_one_job_per_capture(local):
