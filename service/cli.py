@@ -13,14 +13,18 @@ import importlib
 import os
 import sys
 
-from pydantic import ValidationError
-
 from pipeline.errors import NoTreesError, NotFoundError, OrchardError
 from service.commands import COMMANDS
-from workers.job import ClusterLost, JobCancelled, TileFailed
 
 
-def _validation_message(err: ValidationError) -> str:
+def _validation_error(exc: BaseException) -> bool:
+    """True for pydantic's ValidationError (pydantic is imported only by the commands
+    that validate something: `orchard --help` starts without it)."""
+    core = sys.modules.get("pydantic_core")
+    return core is not None and isinstance(exc, core.ValidationError)
+
+
+def _validation_message(err) -> str:
     parts = []
     for e in err.errors():
         loc = ".".join(str(p) for p in e.get("loc", ()) if p != "__root__")
@@ -37,7 +41,24 @@ class _Parser(argparse.ArgumentParser):
         self.exit(2, f"{self.prog}: {message} (see {self.prog} --help)\n")
 
 
-def build_parser() -> tuple[argparse.ArgumentParser, dict]:
+def _run_failed(exc: BaseException) -> bool:
+    """True for a run that failed rather than its input (a tile that kept failing, a lost
+    cluster, a cancel). Only a job run raises these, and it has imported workers.job:
+    the command line need not import it (and dask) to tell."""
+    job = sys.modules.get("workers.job")
+    return job is not None and isinstance(exc, (job.TileFailed, job.ClusterLost, job.JobCancelled))
+
+
+def _command_in(argv: list[str]) -> str | None:
+    """The sub-command named in ``argv``: its first word that is not an option."""
+    return next((a for a in argv if not a.startswith("-")), None)
+
+
+def build_parser(argv: list[str] | None = None) -> tuple[argparse.ArgumentParser, dict]:
+    """The parser of ``orchard``; only the sub-command named in ``argv`` (default
+    ``sys.argv[1:]``) gets its options, so ``orchard --help`` and each command import
+    no more than they need (the pipeline's options load pydantic models)."""
+    chosen = _command_in(sys.argv[1:] if argv is None else argv)
     parser = _Parser(
         prog="orchard",
         description="Turn LiDAR captures of orchards into per-tree data.",
@@ -52,13 +73,14 @@ def build_parser() -> tuple[argparse.ArgumentParser, dict]:
                 continue
             raise
         p = sub.add_parser(mod.NAME, help=mod.HELP, description=mod.HELP)
-        mod.add_arguments(p)
+        if mod.NAME == chosen:
+            mod.add_arguments(p)
         modules[mod.NAME] = mod
     return parser, modules
 
 
 def main(argv: list[str] | None = None) -> int:
-    parser, modules = build_parser()
+    parser, modules = build_parser(argv)
     args = parser.parse_args(argv)
     if not args.command:
         parser.print_help()
@@ -68,19 +90,16 @@ def main(argv: list[str] | None = None) -> int:
     except KeyboardInterrupt:
         print("orchard: interrupted", file=sys.stderr)
         return 130
-    except ValidationError as exc:
-        print(f"orchard {args.command}: {_validation_message(exc)}", file=sys.stderr)
-        return 2
     except (NoTreesError, NotFoundError) as exc:
         print(f"orchard {args.command}: {exc}", file=sys.stderr)
         return 3
-    except (TileFailed, ClusterLost, JobCancelled) as exc:  # the run failed, not the input
-        print(f"orchard {args.command}: {exc}", file=sys.stderr)
-        return 1
     except OrchardError as exc:
         print(f"orchard {args.command}: {exc}", file=sys.stderr)
-        return 2
+        return 1 if _run_failed(exc) else 2
     except Exception as exc:  # noqa: BLE001 - last line of defence: no tracebacks
+        if _validation_error(exc):
+            print(f"orchard {args.command}: {_validation_message(exc)}", file=sys.stderr)
+            return 2
         if os.environ.get("ORCHARD_DEBUG") == "1":
             raise
         from service.errors import disk_full

@@ -6,7 +6,8 @@ from __future__ import annotations
 import argparse
 import typing
 
-from pipeline.params import GROUPS, PipelineParams
+if typing.TYPE_CHECKING:
+    from pipeline.params import PipelineParams
 
 
 def base_type(annotation):
@@ -21,6 +22,8 @@ def metavar(kind, description: str | None) -> str:
 
 
 def add_pipeline_options(parser: argparse.ArgumentParser) -> None:
+    from pipeline.params import GROUPS  # imported here: `orchard --help` needs no models
+
     for group, model in GROUPS.items():
         g = parser.add_argument_group(f"{group} parameters")
         for field_name, field in model.model_fields.items():
@@ -39,6 +42,8 @@ def add_pipeline_options(parser: argparse.ArgumentParser) -> None:
 
 def pipeline_params_from_args(args: argparse.Namespace, base: PipelineParams | None = None) -> PipelineParams:
     """Build validated parameters from the options given (unset options keep defaults)."""
+    from pipeline.params import PipelineParams
+
     data = (base or PipelineParams()).model_dump()
     for key, value in vars(args).items():
         if key.startswith("p__") and value is not None:

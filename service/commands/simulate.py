@@ -4,9 +4,9 @@ from __future__ import annotations
 
 import argparse
 import os
+import typing
 
 from pipeline.errors import InputError, ParameterError
-from pipeline.simulate import SimulationParams, write_simulation
 from service.commands.options import base_type, metavar
 
 NAME = "simulate"
@@ -18,7 +18,13 @@ HELP = (
     "trunk base per tree. Deterministic for a seed; large blocks are streamed to disk."
 )
 
+if typing.TYPE_CHECKING:
+    from pipeline.simulate import SimulationParams
+
+
 def add_arguments(parser: argparse.ArgumentParser) -> None:
+    from pipeline.simulate import SimulationParams  # imported here: `orchard --help` needs no numpy
+
     parser.add_argument("--out", required=True, metavar="BLOCK.laz", help="output point cloud (.laz compressed, .las plain)")
     parser.add_argument("--truth", required=True, metavar="TRUTH.parquet", help="output ground truth (one row per point; trunks in the metadata)")
     g = parser.add_argument_group("orchard parameters (lengths in metres)")
@@ -35,6 +41,8 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 
 def params_from_args(args: argparse.Namespace) -> SimulationParams:
     """Validated parameters from the options given (unset options keep their defaults)."""
+    from pipeline.simulate import SimulationParams
+
     given = {k[3:]: v for k, v in vars(args).items() if k.startswith("s__") and v is not None}
     return SimulationParams.model_validate(given)
 
@@ -67,6 +75,8 @@ def run(args: argparse.Namespace) -> int:
         raise InputError(f"--out {args.out}: the file name must end in .las or .laz")
     if os.path.abspath(args.out) == os.path.abspath(args.truth):
         raise InputError("--out and --truth must be different files")
+    from pipeline.simulate import write_simulation
+
     summary = write_simulation(params, args.out, args.truth)
     print(
         f"wrote {summary['n_points']:,} points, {summary['n_trees']} trees "

@@ -1,0 +1,44 @@
+"""`orchard --help` and `orchard process --help` start without the heavy libraries.
+
+Start-up time is measured in docs/performance.md; here only what gets imported is
+checked (no timed assertions), in a fresh interpreter so earlier tests' imports do
+not hide a regression.
+"""
+
+import subprocess
+import sys
+
+import pytest
+
+#: never needed to print help
+HEAVY = ("dask", "distributed", "fastapi", "matplotlib", "pyproj", "pyarrow", "scipy", "laspy")
+
+_PROBE = """
+import sys
+from service.cli import main
+try:
+    main({argv!r})
+except SystemExit:
+    pass
+print("imported:", *sorted(name for name in {names!r} if name in sys.modules))
+"""
+
+
+def _imported_after(argv: list[str], names: tuple[str, ...]) -> set[str]:
+    p = subprocess.run(
+        [sys.executable, "-c", _PROBE.format(argv=argv, names=names)], capture_output=True, text=True, timeout=60
+    )
+    assert p.returncode == 0, p.stderr
+    assert "usage:" in p.stdout
+    last = p.stdout.rstrip("\n").splitlines()[-1]
+    assert last.startswith("imported:")
+    return set(last.split()[1:])
+
+
+def test_top_level_help_imports_no_numpy_pydantic_or_service_libraries():
+    assert _imported_after(["--help"], HEAVY + ("numpy", "pydantic")) == set()
+
+
+@pytest.mark.parametrize("command", ["process", "simulate", "evaluate", "schedules"])
+def test_command_help_imports_no_cluster_web_or_plotting_libraries(command):
+    assert _imported_after([command, "--help"], HEAVY if command != "simulate" else HEAVY[:4]) == set()
