@@ -34,7 +34,7 @@ from pipeline.params import PipelineParams
 from pipeline.tiling import check_tiling
 from service import report as reports
 from service import scratch
-from service.auth import authenticate
+from service import web
 from service.errors import ShuttingDownError, StalledUploadError, TooLargeError, api_wording, install_error_handlers
 from service.permissions import FILE_MODE, private_dir, tighten
 from service.runner import Runner, drop_work, hold_runner_lock, job_block_name, job_dir
@@ -51,6 +51,7 @@ from service.schedules import (
 )
 from service.settings import Settings
 from service.store import Store, accept_block
+from service.web import sessions as web_sessions
 
 log = logging.getLogger("orchard.service")
 
@@ -226,7 +227,7 @@ def block_out(rec: dict) -> Block:
 def job_out(rec: dict) -> Job:
     outcome = rec.get("outcome") or {}
     base = f"/v1/jobs/{rec['id']}"
-    links = {"self": base}
+    links = {"self": base, "page": f"/jobs/{rec['id']}"}
     if rec["state"] == "done":
         for name in ("trees", "trees.parquet", "trees.csv", "points.parquet", "report", "map.png"):
             links[name] = f"{base}/{name}"
@@ -349,7 +350,7 @@ def get_tenant(
     store: Annotated[Store, Depends(get_store)],
     _creds: Annotated[HTTPAuthorizationCredentials | None, Depends(_bearer)],
 ) -> dict:
-    return authenticate(store, request.headers.get("authorization"))
+    return web_sessions.request_tenant(request, store)  # a bearer token, or a browser's session cookie
 
 
 StoreDep = Annotated[Store, Depends(get_store)]
@@ -648,7 +649,8 @@ def create_app(settings: Settings) -> FastAPI:
         description="Upload LiDAR blocks of orchards, run per-tree jobs on dask workers, "
         "schedule overnight processing of capture inboxes, download per-tree results and reports.",
         lifespan=lifespan,
-        docs_url="/docs",
+        docs_url=None,  # served by service.web from vendored files: they render offline
+        redoc_url=None,
     )
     app.state.settings = settings
     app.state.store = store
@@ -674,7 +676,7 @@ def create_app(settings: Settings) -> FastAPI:
 
     @app.get("/", include_in_schema=False)
     def root() -> RedirectResponse:
-        return RedirectResponse("/docs")
+        return RedirectResponse("/blocks")
 
     @app.get("/healthz", response_model=Health, tags=["service"])
     def healthz(request: Request) -> Health:
@@ -899,6 +901,7 @@ def create_app(settings: Settings) -> FastAPI:
         return ScheduleRun(**result)
 
     app.include_router(v1)
+    web.install(app)
     return app
 
 

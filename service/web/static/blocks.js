@@ -1,0 +1,76 @@
+/* The blocks page: every block of the farm with its jobs, refreshed every few seconds. */
+(function () {
+  "use strict";
+  const O = window.Orchard;
+  const el = O.el;
+  const REFRESH_MS = 3000;
+
+  function jobRow(job) {
+    const cancel =
+      job.state === "queued" || job.state === "running"
+        ? el("button", { class: "secondary", type: "button", text: "Cancel", onclick: () => cancelJob(job.id) })
+        : null;
+    return el("tr", { "data-job": job.id }, [
+      el("td", { class: "text" }, [el("a", { href: job.links.page, text: job.id })]),
+      el("td", { class: "text" }, [O.stateBadge(job), " ", O.progress(job)]),
+      el("td", { text: job.n_trees === null || job.n_trees === undefined ? "–" : O.fmt(job.n_trees) }),
+      el("td", { class: "text", text: job.capture || (job.schedule_id ? "schedule" : "upload") }),
+      el("td", { class: "text", text: O.when(job.created_at) }),
+      el("td", { class: "text", text: O.when(job.finished_at) }),
+      el("td", { class: "text" }, [cancel]),
+    ]);
+  }
+
+  async function cancelJob(id) {
+    try {
+      await O.api("/v1/jobs/" + encodeURIComponent(id), { method: "DELETE" });
+    } catch (err) {
+      document.getElementById("updated").textContent = "Could not cancel: " + err.message;
+    }
+    refresh();
+  }
+
+  function render(blocks, jobs) {
+    const byBlock = new Map();
+    for (const j of jobs) {
+      if (!byBlock.has(j.block_id)) byBlock.set(j.block_id, []);
+      byBlock.get(j.block_id).push(j);
+    }
+    const root = document.getElementById("blocks");
+    const parts = [];
+    if (!blocks.length) parts.push(el("p", { text: "No blocks yet: upload one with POST /v1/blocks or let a schedule find captures." }));
+    for (const b of blocks) {
+      const js = (byBlock.get(b.id) || []).sort((a, c) => (c.created_at || "").localeCompare(a.created_at || ""));
+      const head = el("tr", {}, ["Job", "State", "Trees", "From", "Submitted", "Finished", ""].map((h) => el("th", { class: h === "Trees" ? "" : "text", text: h })));
+      parts.push(
+        el("section", { class: "block", "data-block": b.id }, [
+          el("h2", { text: b.filename || b.id }),
+          el("p", { class: "small", text: `${b.id} · ${O.fmt(b.n_points)} points · ${(b.size_bytes / 1e6).toFixed(1)} MB · uploaded ${O.when(b.created_at)}` }),
+          js.length
+            ? el("table", { class: "data" }, [el("thead", {}, [head]), el("tbody", {}, js.map(jobRow))])
+            : el("p", { class: "small", text: "No jobs for this block." }),
+        ])
+      );
+    }
+    root.replaceChildren(...parts);
+  }
+
+  async function refresh() {
+    const status = document.getElementById("updated");
+    try {
+      const [blocks, jobs] = await Promise.all([O.api("/v1/blocks?limit=1000"), O.api("/v1/jobs?limit=1000")]);
+      render(blocks, jobs);
+      const active = jobs.filter((j) => j.state === "queued" || j.state === "running").length;
+      status.textContent = `${blocks.length} block(s), ${jobs.length} job(s), ${active} queued or running · updated ${new Date().toLocaleTimeString()}`;
+    } catch (err) {
+      status.textContent = "Could not refresh: " + err.message + " (trying again)";
+    }
+  }
+
+  O.blocks = function () {
+    refresh();
+    setInterval(() => {
+      if (!document.hidden) refresh();
+    }, REFRESH_MS);
+  };
+})();

@@ -1,0 +1,340 @@
+/* A job's page: state while it runs, then the block's map (Leaflet, canvas, local metres),
+   the per-row and block summaries, and the sortable per-tree table. The same script
+   drives report.html, where the data is inlined in the page. */
+(function () {
+  "use strict";
+  const O = window.Orchard;
+  const el = O.el;
+  const POLL_MS = 2000;
+  const PAGE = 200; // table rows per page: 5,000 rows at once would make the page sluggish
+
+  const LABELS = {
+    tree_id: ["Tree", 0], row: ["Row", 0], position: ["Position", 0], young: ["Young", 0],
+    trunk_x: ["Trunk x", 2], trunk_y: ["Trunk y", 2], trunk_z: ["Trunk z", 2],
+    height_m: ["Height [m]", 2], crown_diameter_m: ["Crown diameter [m]", 2], crown_area_m2: ["Crown area [m²]", 2],
+    crown_volume_m3: ["Crown volume [m³]", 2], trunk_diameter_m: ["Trunk diameter [m]", 3], n_points: ["Points", 0],
+    wood_fraction: ["Wood fraction", 2],
+  };
+  const NOT_METRICS = new Set(["tree_id", "trunk_x", "trunk_y", "trunk_z", "row", "position"]);
+  // viridis: ordered, readable by the colour-blind, prints in grey
+  const RAMP = ["#440154", "#482878", "#3e4989", "#31688e", "#26828e", "#1f9e89", "#35b779", "#6ece58", "#b5de2b", "#fde725"];
+  const NO_VALUE = "#bdbdbd";
+
+  function label(name) { return (LABELS[name] || [name])[0]; }
+  function digits(name) { return LABELS[name] ? LABELS[name][1] : 2; }
+
+  function rgb(hex) { return [1, 3, 5].map((i) => parseInt(hex.slice(i, i + 2), 16)); }
+  const RAMP_RGB = RAMP.map(rgb);
+  function rampColour(t) {
+    const x = Math.min(Math.max(t, 0), 1) * (RAMP.length - 1);
+    const i = Math.min(Math.floor(x), RAMP.length - 2), f = x - i;
+    const a = RAMP_RGB[i], b = RAMP_RGB[i + 1];
+    return "rgb(" + a.map((v, k) => Math.round(v + (b[k] - v) * f)).join(",") + ")";
+  }
+
+  /* "12/37", "row 12 tree 37", "r12 t37", "12 37" → {row, position}; "37" → {id}. */
+  function parseQuery(text) {
+    const q = text.trim().toLowerCase();
+    let m = q.match(/^(?:row|r)?\s*(\d+)\s*(?:\/|,|\s+|\s*(?:tree|t|position|pos|p)\s*)\s*(\d+)$/);
+    if (m && /\D/.test(q)) return { row: +m[1], position: +m[2] };
+    m = q.match(/^(?:tree|id|#)?\s*(\d+)$/);
+    if (m) return { id: +m[1] };
+    return null;
+  }
+
+  class JobView {
+    constructor(data, options) {
+      this.d = data;
+      this.opts = options || {};
+      this.n = data.n_trees;
+      this.cols = data.columns;
+      this.metrics = Object.keys(this.cols).filter((k) => !NOT_METRICS.has(k));
+      this.metric = this.metrics.includes("height_m") ? "height_m" : this.metrics[0];
+      this.sort = { key: "tree_id", dir: 1 };
+      this.page = 0;
+      this.selected = -1;
+      this.byId = new Map();
+      (this.cols.tree_id || []).forEach((id, i) => this.byId.set(id, i));
+    }
+
+    draw() {
+      document.getElementById("mapsection").hidden = false;
+      document.getElementById("tree-count").textContent = O.fmt(this.n);
+      this.drawMap();
+      this.fillMetricChoice();
+      this.recolour();
+      this.summaries();
+      this.table();
+      document.getElementById("searchform").addEventListener("submit", (ev) => {
+        ev.preventDefault();
+        this.search(document.getElementById("search").value);
+      });
+      // the first frame with every tree on it: what bench/webpage.py times
+      requestAnimationFrame(() => requestAnimationFrame(() => {
+        window.orchardFirstDraw = performance.now();
+        document.body.dataset.drawn = String(this.n);
+      }));
+    }
+
+    drawMap() {
+      const d = this.d;
+      const map = (this.map = L.map("map", {
+        crs: L.CRS.Simple, preferCanvas: true, minZoom: -6, maxZoom: 7, zoomSnap: 0.25, attributionControl: false,
+      }));
+      const renderer = (this.renderer = L.canvas({ padding: 0.3, tolerance: 2 }));
+      // the view first: layers added to a map without one are placed wrongly until it moves
+      const bounds = L.latLngBounds([]);
+      for (let i = 0; i < this.n; i++) {
+        const r = Math.max((this.cols.crown_diameter_m || [])[i] || 1, 1) / 2;
+        if (d.x[i] !== null && d.y[i] !== null) bounds.extend([[d.y[i] - r, d.x[i] - r], [d.y[i] + r, d.x[i] + r]]);
+      }
+      (d.gaps || []).forEach((g) => { if (g.x !== undefined && g.x !== null) bounds.extend([g.y, g.x]); });
+      if (bounds.isValid()) map.fitBounds(bounds.pad(0.05));
+      else map.setView([0, 0], 0);
+      L.control.scale({ imperial: false, metric: true, maxWidth: 160 }).addTo(map);
+      (d.rows || []).forEach((r) => {
+        if (!r.line || r.line.length < 4) return;
+        const pts = [];
+        for (let k = 0; k < r.line.length; k += 2) pts.push([r.line[k + 1], r.line[k]]);
+        L.polyline(pts, { renderer, color: "#8a7f62", weight: 1.5, dashArray: "6 4", interactive: false }).addTo(map);
+      });
+      this.shapes = new Array(this.n);
+      this.trunks = new Array(this.n);
+      const crownD = this.cols.crown_diameter_m || [];
+      for (let i = 0; i < this.n; i++) {
+        const x = d.x[i], y = d.y[i];
+        if (x === null || y === null) continue;
+        const outline = d.outlines ? d.outlines[i] : null;
+        let shape;
+        if (outline && outline.length >= 6) {
+          const pts = [];
+          for (let k = 0; k < outline.length; k += 2) pts.push([outline[k + 1], outline[k]]);
+          shape = L.polygon(pts, { renderer, weight: 1, color: "#333", fillOpacity: 0.75 });
+        } else {
+          shape = L.circle([y, x], { renderer, radius: Math.max((crownD[i] || 1) / 2, 0.2), weight: 1, color: "#333", fillOpacity: 0.75 });
+        }
+        shape.on("click", () => this.select(i, false));
+        shape.addTo(map);
+        this.shapes[i] = shape;
+        const trunk = L.circleMarker([y, x], { renderer, radius: 3, weight: 1, color: "#fff", fillColor: "#2b1a0e", fillOpacity: 1 });
+        trunk.on("click", () => this.select(i, false));
+        trunk.addTo(map);
+        this.trunks[i] = trunk;
+      }
+      (d.gaps || []).forEach((g) => {
+        if (g.x === undefined || g.x === null) return;
+        const slot = L.circle([g.y, g.x], { renderer, radius: 0.5, color: "#b3261e", weight: 1.5, dashArray: "3 3", fill: false });
+        slot.on("click", () => this.showGap(g));
+        slot.addTo(map);
+      });
+    }
+
+    fillMetricChoice() {
+      const sel = document.getElementById("metric");
+      sel.replaceChildren(...this.metrics.map((m) => el("option", { value: m, text: label(m) })));
+      sel.value = this.metric;
+      sel.addEventListener("change", () => { this.metric = sel.value; this.recolour(); });
+    }
+
+    recolour() {
+      const v = this.cols[this.metric] || [];
+      let lo = Infinity, hi = -Infinity;
+      for (const x of v) if (x !== null) { lo = Math.min(lo, x); hi = Math.max(hi, x); }
+      const span = hi > lo ? hi - lo : 1;
+      const binary = v.every((x) => x === null || x === 0 || x === 1);
+      const colour = (x) => (x === null || x === undefined ? NO_VALUE : binary ? (x ? RAMP[8] : RAMP[2]) : rampColour((x - lo) / span));
+      for (let i = 0; i < this.n; i++) if (this.shapes[i]) this.shapes[i].setStyle({ fillColor: colour(v[i]) });
+      const legend = document.getElementById("legend");
+      const parts = [el("strong", { text: label(this.metric) })];
+      if (binary) {
+        parts.push(el("span", { class: "swatch", style: "background:" + RAMP[2] }), "no",
+                   el("span", { class: "swatch", style: "background:" + RAMP[8] }), "yes");
+      } else if (lo <= hi) {
+        const stops = RAMP.map((c, k) => c + " " + Math.round((100 * k) / (RAMP.length - 1)) + "%").join(",");
+        parts.push(O.fmt(lo, digits(this.metric)), el("span", { class: "ramp", style: "background:linear-gradient(to right," + stops + ")" }), O.fmt(hi, digits(this.metric)));
+      }
+      parts.push(el("span", { class: "swatch", style: "background:" + NO_VALUE }), "not measured");
+      if (this.d.gaps && this.d.gaps.length) parts.push(el("span", { class: "swatch", style: "border:1.5px dashed #b3261e;border-radius:50%" }), "empty slot");
+      if (this.d.rows && this.d.rows.length) parts.push(el("span", { class: "swatch", style: "border:0;border-top:2px dashed #8a7f62;height:2px" }), "row");
+      legend.replaceChildren(...parts);
+    }
+
+    details(i) {
+      const items = [];
+      for (const k of Object.keys(this.cols)) items.push(el("dt", { text: label(k) }), el("dd", { text: O.fmt(this.cols[k][i], digits(k)) }));
+      return el("dl", {}, items);
+    }
+
+    address(i) {
+      const r = this.cols.row, p = this.cols.position;
+      return r && p && r[i] !== null && p[i] !== null ? ` (row ${r[i]} tree ${p[i]})` : "";
+    }
+
+    select(i, pan) {
+      if (this.selected >= 0 && this.shapes[this.selected]) this.shapes[this.selected].setStyle({ color: "#333", weight: 1 });
+      this.selected = i;
+      const shape = this.shapes[i];
+      if (shape) {
+        shape.setStyle({ color: "#e8590c", weight: 3 });
+        shape.bringToFront();
+        if (pan) this.map.setView(shape.getBounds ? shape.getBounds().getCenter() : [this.d.y[i], this.d.x[i]], Math.max(this.map.getZoom(), 3));
+      }
+      const box = document.getElementById("details");
+      box.replaceChildren(el("h3", { id: "selected-tree", text: "Tree " + this.cols.tree_id[i] + this.address(i) }), this.details(i));
+      document.querySelectorAll("#treestable tr.selected").forEach((r) => r.classList.remove("selected"));
+      const row = document.querySelector(`#treestable tr[data-i="${i}"]`);
+      if (row) row.classList.add("selected");
+    }
+
+    showGap(g) {
+      const items = [];
+      for (const [k, v] of Object.entries(g)) if (k !== "line" && k !== "x" && k !== "y") items.push(el("dt", { text: label(k) }), el("dd", { text: O.fmt(v) }));
+      document.getElementById("details").replaceChildren(el("h3", { text: "Empty slot" }), el("dl", {}, items));
+      this.map.setView([g.y, g.x], Math.max(this.map.getZoom(), 3));
+    }
+
+    search(text) {
+      const out = document.getElementById("searchresult");
+      const q = parseQuery(text);
+      let i;
+      if (!q) { out.textContent = "Type a tree id, or an address such as row 12 tree 37 (or 12/37)."; return; }
+      if (q.id !== undefined) i = this.byId.get(q.id);
+      else if (this.cols.row && this.cols.position) {
+        i = this.cols.row.findIndex((r, k) => r === q.row && this.cols.position[k] === q.position);
+        if (i < 0) {
+          const gap = (this.d.gaps || []).find((g) => g.row === q.row && g.position === q.position);
+          if (gap) { out.textContent = `Row ${q.row} tree ${q.position} is an empty slot.`; this.showGap(gap); return; }
+        }
+      } else { out.textContent = "This job's trees have no row addresses; search by tree id."; return; }
+      if (i === undefined || i < 0) { out.textContent = "No such tree."; return; }
+      out.textContent = "Found tree " + this.cols.tree_id[i] + this.address(i) + ".";
+      this.select(i, true);
+    }
+
+    summaries() {
+      const c = this.cols, n = this.n;
+      const vals = (k) => (c[k] || []).filter((v) => v !== null);
+      const mean = (a) => (a.length ? a.reduce((s, v) => s + v, 0) / a.length : null);
+      const sum = (a) => a.reduce((s, v) => s + v, 0);
+      const median = (a) => { if (!a.length) return null; const s = [...a].sort((x, y) => x - y); const m = s.length >> 1; return s.length % 2 ? s[m] : (s[m - 1] + s[m]) / 2; };
+      const facts = [["Trees", O.fmt(n)]];
+      if (c.height_m) facts.push(["Height, mean / median [m]", O.fmt(mean(vals("height_m"))) + " / " + O.fmt(median(vals("height_m")))]);
+      if (c.crown_diameter_m) facts.push(["Crown diameter, mean [m]", O.fmt(mean(vals("crown_diameter_m")))]);
+      if (c.crown_area_m2) facts.push(["Crown area, total [m²]", O.fmt(sum(vals("crown_area_m2")), 1)]);
+      if (c.crown_volume_m3) facts.push(["Crown volume, total [m³]", O.fmt(sum(vals("crown_volume_m3")), 1)]);
+      if (c.young) facts.push(["Young trees", O.fmt(vals("young").filter((v) => v).length)]);
+      if (this.d.gaps) facts.push(["Empty slots", O.fmt(this.d.gaps.length)]);
+      if (this.d.rows) facts.push(["Rows", O.fmt(this.d.rows.length)]);
+      for (const [k, v] of Object.entries(this.opts.facts || {})) facts.unshift([k, v]);
+      document.getElementById("blocksummary").replaceChildren(...facts.flatMap(([k, v]) => [el("dt", { text: k }), el("dd", { text: v })]));
+      if (!c.row) return;
+      const groups = new Map();
+      c.row.forEach((r, i) => { if (r === null) return; if (!groups.has(r)) groups.set(r, []); groups.get(r).push(i); });
+      const gapsPerRow = new Map();
+      (this.d.gaps || []).forEach((g) => gapsPerRow.set(g.row, (gapsPerRow.get(g.row) || 0) + 1));
+      const pick = (k, idx) => idx.map((i) => (c[k] || [])[i]).filter((v) => v !== null && v !== undefined);
+      const head = ["Row", "Trees", "Young", "Empty slots", "Height, mean [m]", "Crown diameter, mean [m]", "Crown area, total [m²]"];
+      const rows = [...groups.keys()].sort((a, b) => a - b).map((r) => {
+        const idx = groups.get(r);
+        return el("tr", {}, [r, idx.length, c.young ? pick("young", idx).filter((v) => v).length : null, this.d.gaps ? gapsPerRow.get(r) || 0 : null,
+          mean(pick("height_m", idx)), mean(pick("crown_diameter_m", idx)), sum(pick("crown_area_m2", idx))]
+          .map((v, k) => el("td", { text: k < 4 ? O.fmt(v) : O.fmt(v, k === 6 ? 1 : 2) })));
+      });
+      document.getElementById("rowstable").replaceChildren(el("thead", {}, [el("tr", {}, head.map((h) => el("th", { text: h })))]), el("tbody", {}, rows));
+      document.getElementById("rowsection").hidden = false;
+    }
+
+    table() {
+      const keys = Object.keys(this.cols);
+      const order = [...Array(this.n).keys()];
+      const col = this.cols[this.sort.key] || [];
+      const dir = this.sort.dir;
+      order.sort((a, b) => {
+        const x = col[a], y = col[b];
+        if (x === y) return a - b;
+        if (x === null) return 1; // unmeasured last, whatever the direction
+        if (y === null) return -1;
+        return (x < y ? -1 : 1) * dir;
+      });
+      const pages = Math.max(1, Math.ceil(this.n / PAGE));
+      this.page = Math.min(this.page, pages - 1);
+      const shown = order.slice(this.page * PAGE, (this.page + 1) * PAGE);
+      const head = el("tr", {}, keys.map((k) => el("th", {
+        class: "sortable" + (k === this.sort.key ? (dir > 0 ? " sorted-asc" : " sorted-desc") : ""),
+        "data-key": k, text: label(k), title: "sort",
+        onclick: () => { this.sort = { key: k, dir: k === this.sort.key ? -dir : 1 }; this.page = 0; this.table(); },
+      })));
+      const body = shown.map((i) => el("tr", { "data-i": String(i), class: i === this.selected ? "selected" : null, onclick: () => this.select(i, true) },
+        keys.map((k) => el("td", { text: O.fmt(this.cols[k][i], digits(k)) }))));
+      document.getElementById("treestable").replaceChildren(el("thead", {}, [head]), el("tbody", {}, body));
+      const pager = document.getElementById("pager");
+      const go = (p) => { this.page = p; this.table(); };
+      pager.replaceChildren(
+        el("button", { type: "button", class: "secondary", text: "‹ Previous", disabled: this.page === 0 ? "" : null, onclick: () => go(this.page - 1) }),
+        el("span", { text: `${this.n ? this.page * PAGE + 1 : 0}–${Math.min((this.page + 1) * PAGE, this.n)} of ${this.n}` }),
+        el("button", { type: "button", class: "secondary", text: "Next ›", disabled: this.page >= pages - 1 ? "" : null, onclick: () => go(this.page + 1) })
+      );
+    }
+  }
+
+  const DOWNLOADS = [
+    ["trees.csv", "Trees (CSV)"], ["trees.parquet", "Trees (GeoParquet)"], ["points.parquet", "Points (Parquet)"],
+    ["report", "Report (HTML)"], ["map.png", "Map (PNG)"],
+  ];
+
+  function showDownloads(links) {
+    const parts = DOWNLOADS.filter(([k]) => links[k]).map(([k, text]) => el("a", { class: "button secondary", href: links[k], download: "", text }));
+    document.getElementById("downloads").replaceChildren(...(parts.length ? [el("strong", { text: "Downloads" }), ...parts] : []));
+  }
+
+  function showStatus(job) {
+    const facts = [O.stateBadge(job), O.progress(job)];
+    facts.push(el("span", { text: "block " + job.block_id }));
+    if (job.capture) facts.push(el("span", { text: "capture " + job.capture }));
+    facts.push(el("span", { text: "submitted " + O.when(job.created_at) }));
+    if (job.finished_at) facts.push(el("span", { text: "finished " + O.when(job.finished_at) }));
+    if (job.n_trees !== null && job.n_trees !== undefined) facts.push(el("span", { text: O.fmt(job.n_trees) + " trees" }));
+    if (job.error) facts.push(el("span", { class: "error", text: job.error }));
+    document.getElementById("status").replaceChildren(...facts.filter((f) => f));
+    if (job.partial) {
+      const w = document.getElementById("warning");
+      w.textContent = `Partial result: tile(s) ${job.failed_tiles.join(", ")} failed; trees standing in them are missing.`;
+      w.hidden = false;
+    }
+  }
+
+  /* The page in the service: follow the job until it is done, then draw it. */
+  O.job = async function (cfg) {
+    const path = "/v1/jobs/" + encodeURIComponent(cfg.jobId);
+    let job;
+    for (;;) {
+      try {
+        job = await O.api(path);
+      } catch (err) {
+        document.getElementById("status").textContent = "Could not load the job: " + err.message;
+        await new Promise((r) => setTimeout(r, POLL_MS * 2));
+        continue;
+      }
+      showStatus(job);
+      showDownloads(job.links);
+      if (job.state !== "queued" && job.state !== "running") break;
+      await new Promise((r) => setTimeout(r, POLL_MS));
+    }
+    if (job.state !== "done") return;
+    const data = await O.api("/web/jobs/" + encodeURIComponent(cfg.jobId) + "/map.json");
+    window.orchardView = new JobView(data, {});
+    window.orchardView.draw();
+  };
+
+  /* report.html: everything is in the page. */
+  O.report = function () {
+    const data = JSON.parse(document.getElementById("orchard-data").textContent);
+    const cfg = JSON.parse(document.getElementById("orchard-report").textContent);
+    if (cfg.warning) { const w = document.getElementById("warning"); w.textContent = cfg.warning; w.hidden = false; }
+    showDownloads(cfg.downloads || {});
+    window.orchardView = new JobView(data, { facts: cfg.facts });
+    window.orchardView.draw();
+  };
+
+  O.parseQuery = parseQuery;
+})();
