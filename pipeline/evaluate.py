@@ -401,6 +401,9 @@ def evaluate_result(truth_path: str, result_dir: str, *, match_distance: float =
         match_distance=match_distance,
     )
     out["n_missing_points"] = missing
+    from pipeline.evaluate_rows import score_layout  # imports this module
+
+    out.update(score_layout(truth_path, result_dir, trees, match_distance=match_distance))
     radius = truth.get("trunk_radius")
     if "trunk_diameter_m" in trees and radius is not None and len(radius) == len(true_trunks):
         out.update(diameter_errors(true_trunks, 2.0 * radius, found, np.asarray(trees["trunk_diameter_m"], dtype=np.float64),

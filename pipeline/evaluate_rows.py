@@ -90,3 +90,46 @@ def gap_scores(true_xy: np.ndarray, found_xy: np.ndarray, *, match_distance: flo
         "gap_fp": s["fp"],
         "gap_fn": s["fn"],
     }
+
+
+def score_layout(truth_path: str, result_dir: str, trees: dict, *, match_distance: float) -> dict:
+    """Address, empty-slot and replant scores of a result folder against a truth file
+    that records its planting plan; empty when either side lacks it.
+
+    Parameters
+    ----------
+    truth_path : str
+        Truth Parquet of :func:`pipeline.simulate.write_simulation`.
+    result_dir : str
+        Folder holding ``gaps.parquet`` beside the trees table.
+    trees : dict
+        Columns of ``trees.parquet`` (``trunk_x``, ``trunk_y``, ``row``, ``position``,
+        ``young``).
+    match_distance : float
+        Largest trunk match distance [m]; empty slots match within half the spacing.
+    """
+    import os
+
+    from pipeline.io import read_parquet_columns
+    from pipeline.simulate import read_truth, read_truth_layout
+
+    plan = read_truth_layout(truth_path)
+    if plan["tree_row"] is None or "row" not in trees or "position" not in trees:
+        return {}
+    _, true_trunks = read_truth(truth_path)
+    found = np.c_[np.asarray(trees["trunk_x"], np.float64), np.asarray(trees["trunk_y"], np.float64)]
+    out = address_scores(true_trunks[:, :2], plan["tree_row"], plan["tree_slot"], found, trees["row"], trees["position"],
+                         match_distance=match_distance)
+    gaps_path = os.path.join(result_dir, "gaps.parquet")
+    if os.path.exists(gaps_path):
+        gaps, _ = read_parquet_columns(gaps_path, ["x", "y"], what="gaps.parquet")
+        reach = 0.5 * (plan["spacing"] or 2.0 * match_distance)
+        out.update(gap_scores(plan["empty_slots"][:, 2:4], np.c_[gaps["x"], gaps["y"]], match_distance=reach))
+    if "young" in trees and plan["tree_young"] is not None:
+        pairs = trunk_scores(true_trunks[:, :2], found, match_distance=match_distance)["pairs"]
+        t = np.asarray(plan["tree_young"], bool)[pairs[:, 0]]
+        f = np.asarray(trees["young"], bool)[pairs[:, 1]]
+        out["young_true"] = int(np.asarray(plan["tree_young"], bool).sum())
+        out["young_found"] = int(f.sum())
+        out["young_correct"] = int((t & f).sum())
+    return out

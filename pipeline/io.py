@@ -766,14 +766,32 @@ def wkb_points(x: np.ndarray, y: np.ndarray) -> pa.Array:
     )
 
 
-def geo_metadata(crs_wkt: str | None, bbox: list[float] | None) -> dict:
-    """GeoParquet 1.1 ``geo`` metadata for a WKB point column named ``geometry``."""
+def wkb_linestrings(lines: list[np.ndarray]) -> pa.Array:
+    """WKB (little-endian, ISO) 2D line strings as an Arrow binary array.
+
+    Parameters
+    ----------
+    lines : list of (m, 2) float64
+        Each line's vertices [m]; a line of one vertex is stored with it twice (WKB
+        line strings have at least two points).
+    """
+    blobs = []
+    for line in lines:
+        v = np.asarray(line, dtype="<f8").reshape(-1, 2)
+        if len(v) == 1:
+            v = np.r_[v, v]
+        blobs.append(struct.pack("<BII", 1, 2, len(v)) + v.tobytes())
+    return pa.array(blobs, type=pa.binary())
+
+
+def geo_metadata(crs_wkt: str | None, bbox: list[float] | None, geometry_type: str = "Point") -> dict:
+    """GeoParquet 1.1 ``geo`` metadata for a WKB column named ``geometry``."""
     crs = None
     if crs_wkt:
         import pyproj
 
         crs = pyproj.CRS.from_wkt(crs_wkt).to_json_dict()
-    column = {"encoding": "WKB", "geometry_types": ["Point"], "crs": crs}
+    column = {"encoding": "WKB", "geometry_types": [geometry_type], "crs": crs}
     if bbox is not None:
         column["bbox"] = bbox
     return {"version": "1.1.0", "primary_column": "geometry", "columns": {"geometry": column}}
@@ -792,17 +810,44 @@ def write_trees_parquet(path, columns: dict[str, np.ndarray], *, crs_wkt: str | 
     metadata : dict str → str, optional
         More key-value metadata (e.g. ``orchard:failed_tiles`` of a partial result).
     """
-    dst = Path(str(path))
     x = np.asarray(columns["trunk_x"], dtype=np.float64)
     y = np.asarray(columns["trunk_y"], dtype=np.float64)
-    arrays = {}
-    for name, values in columns.items():
-        arrays[name] = pa.array(np.asarray(values))
-    arrays["geometry"] = wkb_points(x, y)
     bbox = [float(x.min()), float(y.min()), float(x.max()), float(y.max())] if len(x) else None
+    _write_geoparquet(path, columns, wkb_points(x, y), "Point", bbox, crs_wkt=crs_wkt, metadata=metadata)
+
+
+def write_rows_parquet(path, columns: dict[str, np.ndarray], lines: list[np.ndarray], *, crs_wkt: str | None) -> None:
+    """Write the per-row table as GeoParquet (atomic): one row per orchard row, its
+    line through its trees (WKB line string) as ``geometry``.
+
+    Parameters
+    ----------
+    columns : dict name → (r,) array
+        ``row``, ``n_trees``, ``n_gaps``, ``spacing_m``, ``length_m``, ``azimuth_deg``.
+    lines : list of (m, 2) float64
+        Each row's line [m], input CRS.
+    """
+    v = np.concatenate([np.asarray(line).reshape(-1, 2) for line in lines]) if lines else np.zeros((0, 2))
+    bbox = [float(v[:, 0].min()), float(v[:, 1].min()), float(v[:, 0].max()), float(v[:, 1].max())] if len(v) else None
+    _write_geoparquet(path, columns, wkb_linestrings(lines), "LineString", bbox, crs_wkt=crs_wkt)
+
+
+def write_gaps_parquet(path, columns: dict[str, np.ndarray], *, crs_wkt: str | None) -> None:
+    """Write the empty planting slots as GeoParquet (atomic): ``row``, ``position``,
+    ``x``, ``y`` (input CRS) and the slot's point as ``geometry``."""
+    x = np.asarray(columns["x"], dtype=np.float64)
+    y = np.asarray(columns["y"], dtype=np.float64)
+    bbox = [float(x.min()), float(y.min()), float(x.max()), float(y.max())] if len(x) else None
+    _write_geoparquet(path, columns, wkb_points(x, y), "Point", bbox, crs_wkt=crs_wkt)
+
+
+def _write_geoparquet(path, columns: dict, geometry: pa.Array, geometry_type: str, bbox, *, crs_wkt, metadata=None) -> None:
+    dst = Path(str(path))
+    arrays = {name: pa.array(np.asarray(values)) for name, values in columns.items()}
+    arrays["geometry"] = geometry
     table = pa.table(arrays)
     meta = dict(table.schema.metadata or {})
-    meta[b"geo"] = json.dumps(geo_metadata(crs_wkt, bbox)).encode()
+    meta[b"geo"] = json.dumps(geo_metadata(crs_wkt, bbox, geometry_type)).encode()
     meta.update({str(k).encode(): str(v).encode() for k, v in (metadata or {}).items()})
     table = table.replace_schema_metadata(meta)
     tmp = _temp_name(dst)

@@ -23,10 +23,11 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 import numpy as np
-from pydantic import BaseModel, ConfigDict, Field
 from scipy.sparse import coo_matrix
 from scipy.sparse.csgraph import connected_components
 from scipy.spatial import cKDTree
+
+from pipeline.params import RowParams
 
 #: neighbours whose smoothed direction defines a tree's local row direction: enough to
 #: outvote the few trees whose nearest neighbour lies across the row
@@ -37,18 +38,6 @@ _SHORT_LINK_SLOTS = 2.5
 _SPACING_SLACK = 0.1
 #: ... and is looked for in this many steps (0.1 % of the spacing)
 _SPACING_STEPS = 201
-
-
-class RowParams(BaseModel):
-    """Finding rows and addresses (:func:`find_rows`)."""
-
-    model_config = ConfigDict(extra="forbid", frozen=True)
-
-    enabled: bool = Field(True, description="find rows and give every tree a row and position")
-    max_gap_slots: float = Field(6.0, ge=1.5, le=100.0, description="longest run of empty planting slots, plus one, that still joins two trees into one row [slots]")
-    lateral_tolerance: float = Field(0.3, gt=0.0, lt=0.5, description="two trees are neighbours in a row when one lies at most this fraction of the distance between rows to the side of the other's row line [fraction]")
-    max_section_angle: float = Field(15.0, gt=0.0, le=45.0, description="neighbouring trees whose row directions differ by more than this belong to different sections (blocks of another row direction) [degrees]")
-    young_ratio: float = Field(0.6, gt=0.0, lt=1.0, description="a tree lower than this fraction of the median height of its two neighbours on either side in the row is a replant (young) [fraction]")
 
 
 @dataclass(frozen=True)

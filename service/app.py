@@ -229,7 +229,7 @@ def job_out(rec: dict) -> Job:
     base = f"/v1/jobs/{rec['id']}"
     links = {"self": base, "page": f"/jobs/{rec['id']}"}
     if rec["state"] == "done":
-        for name in ("trees", "trees.parquet", "trees.csv", "points.parquet", "report", "map.png"):
+        for name in ("trees", "trees.parquet", "trees.csv", "points.parquet", "rows.parquet", "gaps.parquet", "report", "map.png"):
             links[name] = f"{base}/{name}"
     return Job(
         id=rec["id"],
@@ -801,6 +801,18 @@ def create_app(settings: Settings) -> FastAPI:
     def job_trees_parquet(job_id: str, tenant: TenantDep, store: StoreDep, settings: SettingsDep):
         _, path = _results(store, settings, tenant, job_id, "trees.parquet")
         return _file(_require(path, "trees.parquet"), "application/vnd.apache.parquet", f"trees-{job_id}.parquet")
+
+    @v1.api_route("/jobs/{job_id}/rows.parquet", methods=["GET", "HEAD"], tags=["results"], responses={**parquet, **unfinished}, response_class=FileResponse)
+    def job_rows_parquet(job_id: str, tenant: TenantDep, store: StoreDep, settings: SettingsDep):
+        """The orchard rows found in the block: one row per orchard row with its line (GeoParquet)."""
+        _, path = _results(store, settings, tenant, job_id, "rows.parquet")
+        return _file(_require(path, "rows.parquet"), "application/vnd.apache.parquet", f"rows-{job_id}.parquet")
+
+    @v1.api_route("/jobs/{job_id}/gaps.parquet", methods=["GET", "HEAD"], tags=["results"], responses={**parquet, **unfinished}, response_class=FileResponse)
+    def job_gaps_parquet(job_id: str, tenant: TenantDep, store: StoreDep, settings: SettingsDep):
+        """The empty planting slots between two trees of a row (GeoParquet points)."""
+        _, path = _results(store, settings, tenant, job_id, "gaps.parquet")
+        return _file(_require(path, "gaps.parquet"), "application/vnd.apache.parquet", f"gaps-{job_id}.parquet")
 
     @v1.api_route("/jobs/{job_id}/points.parquet", methods=["GET", "HEAD"], tags=["results"], responses={**parquet, **unfinished}, response_class=FileResponse)
     def job_points_parquet(job_id: str, tenant: TenantDep, store: StoreDep, settings: SettingsDep):

@@ -88,7 +88,7 @@ def test_upload_job_results(runner_server, block_file):
         r = c.get(f"/v1/jobs/{job['id']}/trees.csv")
         assert r.status_code == 200 and r.headers["content-type"].startswith("text/csv")
         csv = pacsv.read_csv(io.BytesIO(r.content))
-        assert csv.num_rows == cur["n_trees"] and csv.column_names == TREE_COLUMNS
+        assert csv.num_rows == cur["n_trees"] and csv.column_names == TREE_COLUMNS + ["row", "position", "young"]
         np.testing.assert_allclose(csv.column("height_m").to_numpy(), trees.column("height_m").to_numpy())
 
         r = c.get(f"/v1/jobs/{job['id']}/points.parquet")
@@ -106,11 +106,16 @@ def test_upload_job_results(runner_server, block_file):
         assert r.status_code == 200 and r.headers["content-type"].startswith("text/html")
         assert re.search(r'<img [^>]*src="data:image/png;base64,[A-Za-z0-9+/=]{1000,}"', r.text)
         assert r.text.count("<tr>") == cur["n_trees"] + 1
-        assert set(cur["links"]) == {"self", "trees", "trees.parquet", "trees.csv", "points.parquet", "report", "map.png"}
+        assert {"self", "trees", "trees.parquet", "trees.csv", "points.parquet", "rows.parquet", "gaps.parquet", "report",
+                "map.png"} <= set(cur["links"])
+        rows = pq.read_table(io.BytesIO(c.get(cur["links"]["rows.parquet"]).content))
+        assert rows.column("n_trees").to_numpy().sum() == cur["n_trees"] and b"geo" in rows.schema.metadata
+        gaps = pq.read_table(io.BytesIO(c.get(cur["links"]["gaps.parquet"]).content))
+        assert {"row", "position", "x", "y", "geometry"} <= set(gaps.column_names)
         png = c.get(cur["links"]["map.png"])
         assert png.content[:8] == b"\x89PNG\r\n\x1a\n"
 
-        for suffix in ("", "/trees", "/trees.csv", "/points.parquet", "/report"):
+        for suffix in ("", "/trees", "/trees.csv", "/points.parquet", "/rows.parquet", "/gaps.parquet", "/report"):
             assert other.get(f"/v1/jobs/{job['id']}{suffix}").status_code == 404
         assert c.delete(f"/v1/jobs/{job['id']}").status_code == 409
 
