@@ -30,11 +30,15 @@ from __future__ import annotations
 
 import json
 from dataclasses import dataclass, field
-from typing import Iterable, Iterator
+from functools import cached_property
+from typing import Iterable, Iterator, Literal
 
 import numpy as np
 from pydantic import BaseModel, ConfigDict, Field, model_validator
 from scipy.special import ndtri
+
+from pipeline.simforms import _Tree, _perpendicular, _unit, grow_tree
+from pipeline.simlayout import Layout, make_layout, place, unplace_xy, young_scale
 
 KIND = ("ground", "grass", "wood", "leaf", "post", "vehicle", "outlier", "twig")
 """Names of the per-point ``kind`` codes (index = code). Non-wood tree material is
@@ -61,18 +65,21 @@ class SimulationParams(BaseModel):
 
     model_config = ConfigDict(extra="forbid", frozen=True)
 
-    rows: int = Field(2, ge=1, le=500, description="number of tree rows (rows run along x)")
-    trees_per_row: int = Field(5, ge=1, le=2000, description="trees in each row")
-    spacing: float = Field(5.0, ge=1.0, le=20.0, description="distance between trees in a row [m]")
+    form: Literal["vase", "spindle", "hedge"] = Field(
+        "vase", description="tree form: vase (open-centre trees), spindle (tall-spindle apple: thin leader, short "
+        "laterals along the row) or hedge (super-high-density olive/almond: a continuous wall)")
+    rows: int = Field(2, ge=1, le=500, description="number of tree rows (rows run along x before any rotation)")
+    trees_per_row: int = Field(5, ge=1, le=2000, description="planting slots in each row")
+    spacing: float = Field(5.0, ge=0.8, le=20.0, description="distance between trees in a row [m]")
     row_spacing: float = Field(6.0, ge=2.0, le=30.0, description="distance between rows [m]")
-    position_jitter: float = Field(0.15, ge=0.0, le=1.0, description="standard deviation of tree positions around the grid [m]")
+    position_jitter: float | None = Field(None, ge=0.0, le=1.0, description="standard deviation of tree positions around the grid [m]; default vase 0.15, spindle and hedge 0.04 (planted to a line)")
     noise: float = Field(0.02, ge=0.0, le=0.1, description="standard deviation of the Gaussian range noise [m]")
     seed: int = Field(0, ge=0, le=2**32 - 1, description="random seed; the same seed gives the same block")
     density: float = Field(1.0, gt=0.0, le=1000.0, description="scale of the point density (1 = about 40-80 k points per tree)")
-    crown_radius: float | None = Field(None, gt=0.2, le=15.0, description="crown radius along the row [m]; default 0.55 x spacing")
-    tree_height: float | None = Field(None, gt=1.0, le=30.0, description="tree height [m]; default random 3.5-4.5 per tree")
-    trunk_radius: float | None = Field(None, gt=0.01, le=1.0, description="trunk radius [m]; default random 0.06-0.15 per tree")
-    low_foliage: bool = Field(False, description="drooping outer branches, leaves down to 0.2-0.5 m above the ground")
+    crown_radius: float | None = Field(None, gt=0.2, le=15.0, description="crown radius along the row [m] (spindle: the longest lateral); default vase 0.55 x spacing, spindle 0.7, hedge 0.8 x spacing up to 1.6")
+    tree_height: float | None = Field(None, gt=1.0, le=30.0, description="tree height [m]; default random per tree: vase 3.5-4.5, spindle 2.8-3.5, hedge 2.5-3.0")
+    trunk_radius: float | None = Field(None, gt=0.01, le=1.0, description="trunk radius [m]; default random per tree: vase 0.06-0.15, spindle 0.015-0.025, hedge 0.04-0.06")
+    low_foliage: bool = Field(False, description="drooping outer branches, leaves down to 0.2-0.5 m above the ground (vase and hedge)")
     slope: float = Field(0.04, ge=0.0, le=0.5, description="ground slope [m/m], in a random direction")
     undulation: float = Field(0.15, ge=0.0, le=2.0, description="amplitude of gentle ground undulations [m]")
     grass: float = Field(0.5, ge=0.0, le=1.0, description="fraction of the ground covered by grass patches (0-0.12 m, tufts to 0.25 m)")
@@ -87,6 +94,11 @@ class SimulationParams(BaseModel):
     northing: float = Field(6950000.0, ge=-1e7, le=1e7, description="y of the local origin [m]")
     elevation: float = Field(100.0, ge=-1e4, le=1e4, description="ground height at the local origin [m]")
     epsg: int = Field(28356, ge=1024, le=999999, description="EPSG code of the coordinates")
+    missing: float = Field(0.0, ge=0.0, le=0.5, description="fraction of the planting slots left empty (inner slots of the rows only)")
+    replants: float = Field(0.0, ge=0.0, le=0.5, description="fraction of the planting slots holding a young replant (0.3-0.5 times a grown tree's height and trunk)")
+    rotation: float = Field(0.0, ge=-360.0, le=360.0, description="rotation of the whole block about the first slot [degrees, counterclockwise from east]")
+    row_curvature: float = Field(0.0, ge=-20.0, le=20.0, description="sideways bow (sagitta) of every row over its length [m]")
+    ragged_rows: bool = Field(False, description="rows of different length: each row loses 0-3 slots at either end at random")
 
     @model_validator(mode="after")
     def _sizes(self) -> "SimulationParams":
@@ -94,10 +106,21 @@ class SimulationParams(BaseModel):
             raise ValueError(f"{self.rows * self.trees_per_row} trees is too many (at most 200000)")
         if self.crown_radius is not None and self.crown_radius > 2.0 * self.spacing:
             raise ValueError(f"crown_radius ({self.crown_radius} m) above twice the spacing ({self.spacing} m)")
+        if self.row_curvature and abs(self.row_curvature) > 0.25 * (self.trees_per_row - 1) * self.spacing:
+            raise ValueError(f"row_curvature ({self.row_curvature} m) above a quarter of the row length "
+                             f"({(self.trees_per_row - 1) * self.spacing:g} m): rows must stay gently curved")
         return self
 
     @property
+    def jitter(self) -> float:
+        """Standard deviation [m] of the tree positions: ``position_jitter`` or the form's default."""
+        if self.position_jitter is not None:
+            return self.position_jitter
+        return 0.15 if self.form == "vase" else 0.04
+
+    @property
     def n_trees(self) -> int:
+        """Planting slots of the grid (the number of trees without ``missing`` or ``ragged_rows``)."""
         return self.rows * self.trees_per_row
 
 
@@ -120,6 +143,15 @@ class Orchard:
     trunk_radius : (k,) float64
         Trunk radius 0.3 m above the base [m].
     crs_epsg : int
+    tree_row, tree_slot : (k,) int64, optional
+        1-based row of each tree (rows counted from the simulator's first row) and its
+        1-based planting slot along the row (counted from the row's first planted slot).
+    tree_young : (k,) bool, optional
+        The tree is a replant.
+    empty_slots : (e, 4) float64, optional
+        ``[row, slot, x, y]`` of every empty planting slot, ``x, y`` the absolute slot centre [m].
+    spacing, row_spacing : float, optional
+        The block's in-row and between-row spacing [m].
     """
 
     xyz: np.ndarray
@@ -129,6 +161,12 @@ class Orchard:
     trunks: np.ndarray
     trunk_radius: np.ndarray
     crs_epsg: int = 28356
+    tree_row: np.ndarray | None = None
+    tree_slot: np.ndarray | None = None
+    tree_young: np.ndarray | None = None
+    empty_slots: np.ndarray | None = None
+    spacing: float | None = None
+    row_spacing: float | None = None
 
     @property
     def n_points(self) -> int:
@@ -136,21 +174,6 @@ class Orchard:
 
 
 # --------------------------------------------------------------------------- geometry
-
-
-def _unit(v: np.ndarray) -> np.ndarray:
-    n = np.linalg.norm(v, axis=-1, keepdims=True)
-    return v / np.maximum(n, 1e-12)
-
-
-def _perpendicular(u: np.ndarray, rng: np.random.Generator) -> np.ndarray:
-    """Random unit vectors perpendicular to the unit vectors ``u`` (m, 3)."""
-    r = rng.normal(size=u.shape)
-    r -= np.sum(r * u, axis=1, keepdims=True) * u
-    bad = np.linalg.norm(r, axis=1) < 1e-6
-    if bad.any():
-        r[bad] = np.cross(u[bad], [1.0, 0.0, 0.0])
-    return _unit(r)
 
 
 @dataclass
@@ -220,246 +243,6 @@ class _Ground:
         return np.where(in_patch, h, 0.0)
 
 
-@dataclass
-class _Envelope:
-    """Crown envelope: two half-ellipsoids (upper, lower) sharing their equator."""
-
-    centre: np.ndarray  # (3,)
-    rx: float
-    ry: float
-    c_up: float
-    c_lo: float
-
-    def inside(self, q: np.ndarray) -> np.ndarray:
-        d = q - self.centre
-        c = np.where(d[..., 2] > 0, self.c_up, self.c_lo)
-        return (d[..., 0] / self.rx) ** 2 + (d[..., 1] / self.ry) ** 2 + (d[..., 2] / c) ** 2 <= 1.0
-
-    def distance(self, p: np.ndarray, d: np.ndarray) -> np.ndarray:
-        """Distance [m] from points ``p`` (m,3) along unit directions ``d`` to the envelope
-        (0 for points outside). The envelope is convex, so bisection is exact."""
-        lo = np.zeros(len(p))
-        hi = np.full(len(p), 2.5 * max(self.rx, self.ry, self.c_up + self.c_lo))
-        inside0 = self.inside(p)
-        for _ in range(24):
-            mid = 0.5 * (lo + hi)
-            ins = self.inside(p + mid[:, None] * d)
-            lo = np.where(ins, mid, lo)
-            hi = np.where(ins, hi, mid)
-        return np.where(inside0, lo, 0.0)
-
-
-# --------------------------------------------------------------------------- trees
-
-
-@dataclass
-class _Tree:
-    """Surface elements of one tree (local frame)."""
-
-    cyl_a: np.ndarray  # (m, 3) segment start
-    cyl_b: np.ndarray  # (m, 3) segment end
-    cyl_ra: np.ndarray  # (m,) radius at start
-    cyl_rb: np.ndarray  # (m,) radius at end
-    leaf_c: np.ndarray  # (q, 3) leaf disc centres
-    leaf_n: np.ndarray  # (q, 3) unit normals
-    leaf_r: np.ndarray  # (q,) disc radii
-    base: np.ndarray  # (3,) trunk centre at ground level
-    trunk_radius: float  # at 0.3 m above base
-    top: float  # highest z
-
-
-@dataclass
-class _Branches:
-    a: list = field(default_factory=list)
-    b: list = field(default_factory=list)
-    ra: list = field(default_factory=list)
-    rb: list = field(default_factory=list)
-
-    def add(self, a, b, ra, rb):
-        self.a.append(a)
-        self.b.append(b)
-        self.ra.append(ra)
-        self.rb.append(rb)
-
-    def arrays(self):
-        return (np.concatenate(self.a), np.concatenate(self.b), np.concatenate(self.ra), np.concatenate(self.rb))
-
-
-def _polylines(rng, p0, d, length, r0, r1, *, n_sub=3, bend=0.12, lift=0.0):
-    """Branches as bent polylines. Returns nodes (m, n_sub+1, 3) and radii (m, n_sub+1)."""
-    m = len(p0)
-    nodes = np.empty((m, n_sub + 1, 3))
-    nodes[:, 0] = p0
-    cur = d.copy()
-    step = (length / n_sub)[:, None]
-    for k in range(n_sub):
-        cur = _unit(cur + bend * rng.normal(size=(m, 3)) + np.array([0.0, 0.0, lift]))
-        nodes[:, k + 1] = nodes[:, k] + step * cur
-    frac = np.linspace(0.0, 1.0, n_sub + 1)
-    radii = r0[:, None] + (r1 - r0)[:, None] * frac[None, :]
-    return nodes, radii
-
-
-def _add_polylines(br: _Branches, nodes, radii):
-    br.add(
-        nodes[:, :-1].reshape(-1, 3),
-        nodes[:, 1:].reshape(-1, 3),
-        radii[:, :-1].reshape(-1),
-        radii[:, 1:].reshape(-1),
-    )
-
-
-def _points_on(nodes, radii, owner, t):
-    """Position, direction and radius at fraction ``t`` along polylines ``owner``."""
-    n_sub = nodes.shape[1] - 1
-    s = np.clip(t, 0.0, 1.0 - 1e-9) * n_sub
-    k = s.astype(np.int64)
-    f = (s - k)[:, None]
-    a = nodes[owner, k]
-    b = nodes[owner, k + 1]
-    pos = a + f * (b - a)
-    rad = radii[owner, k] + f[:, 0] * (radii[owner, k + 1] - radii[owner, k])
-    return pos, _unit(b - a), rad
-
-
-def _children(rng, env, axis_xy, nodes, radii, *, n_lateral, t_min, angle, reach, radius_factor,
-              out_bias, up_bias, min_len=0.08):
-    """Spawn an apical and ``n_lateral`` (per parent) lateral children on parent polylines."""
-    m = nodes.shape[0]
-    owner = np.concatenate([np.arange(m), np.repeat(np.arange(m), n_lateral)])
-    t = np.concatenate([np.ones(m), rng.uniform(t_min, 0.95, int(n_lateral.sum()))])
-    pos, pdir, prad = _points_on(nodes, radii, owner, t)
-    n = len(owner)
-    apical = np.arange(n) < m
-    alpha = np.where(apical, np.deg2rad(rng.uniform(0, 15, n)), np.deg2rad(rng.uniform(*angle, n)))
-    w = _perpendicular(pdir, rng)
-    d = np.cos(alpha)[:, None] * pdir + np.sin(alpha)[:, None] * w
-    out = np.zeros((n, 3))
-    out[:, :2] = pos[:, :2] - axis_xy
-    out = _unit(out)
-    d = _unit(d + out_bias * out + np.array([0.0, 0.0, up_bias]))
-    dist = env.distance(pos, d)
-    length = np.maximum(rng.uniform(*reach, n) * dist, min_len)
-    r0 = np.maximum(prad * rng.uniform(*radius_factor, n), 0.004)
-    return pos, d, length, r0
-
-
-def _grow_tree(rng: np.random.Generator, p: SimulationParams, base_xy: np.ndarray, ground: _Ground) -> _Tree:
-    """Branching structure and leaves of one tree (local frame)."""
-    gz = float(ground.z(base_xy[0], base_xy[1]))
-    base = np.array([base_xy[0], base_xy[1], gz])
-    height = (p.tree_height * rng.uniform(0.95, 1.05)) if p.tree_height else rng.uniform(3.5, 4.5)
-    r_t = (p.trunk_radius * rng.uniform(0.9, 1.1)) if p.trunk_radius else rng.uniform(0.06, 0.15)
-    r_crown = (p.crown_radius if p.crown_radius else 0.55 * p.spacing) * rng.uniform(0.95, 1.05)
-    # the envelope is slightly wider than the crown radius: twigs and leaves fill it only sparsely at the rim
-    rx = 1.12 * r_crown
-    ry = 1.08 * min(r_crown, 0.36 * p.row_spacing) * rng.uniform(0.95, 1.05)
-    h_branch = rng.uniform(0.4, 0.9)
-    crown_base = h_branch - 0.15  # envelope bottom just below the branching point
-    # lean
-    lean = np.deg2rad(rng.uniform(0.0, 4.0))
-    az = rng.uniform(0, 2 * np.pi)
-    d0 = np.array([np.sin(lean) * np.cos(az), np.sin(lean) * np.sin(az), np.cos(lean)])
-    trunk_len = (h_branch + 0.1) / d0[2]
-    a0 = base - 0.1 / d0[2] * d0
-    top0 = a0 + trunk_len * d0
-    zc = gz + crown_base + 0.45 * (height - crown_base)
-    env = _Envelope(centre=np.array([top0[0], top0[1], zc]), rx=rx, ry=ry, c_up=gz + height - zc, c_lo=zc - gz - crown_base)
-    axis_xy = top0[:2]
-
-    br = _Branches()
-    ra_t, rb_t = r_t * 1.08, r_t * 0.85
-    br.add(a0[None], top0[None], np.array([ra_t]), np.array([rb_t]))
-    trunk_radius_03 = ra_t + (rb_t - ra_t) * (0.1 + 0.3) / (trunk_len * d0[2])
-
-    # level 1: scaffolds (+ optional central leader)
-    n_s = int(rng.integers(3, 6))
-    # orchard trees are trained along the row: two scaffolds point along +x and -x (into
-    # the neighbours' crowns), the others across the row
-    side = rng.choice([-1.0, 1.0]) * np.pi / 2
-    across = side + np.pi * np.arange(n_s - 2) + rng.uniform(-0.6, 0.6, n_s - 2)
-    azs = np.concatenate([[0.0, np.pi], across]) + rng.normal(0, 0.2, n_s)
-    pol = np.deg2rad(rng.uniform(30, 60, n_s))
-    d1 = np.c_[np.sin(pol) * np.cos(azs), np.sin(pol) * np.sin(azs), np.cos(pol)]
-    p1 = top0[None] + d0[None] * rng.uniform(-0.08, 0.15, n_s)[:, None]
-    r1 = rb_t * rng.uniform(0.55, 0.75, n_s)
-    if rng.random() < 0.6:  # central leader
-        d1 = np.vstack([d1, _unit(np.array([[0, 0, 1.0]]) + rng.normal(0, 0.05, (1, 3)))])
-        p1 = np.vstack([p1, top0[None]])
-        r1 = np.append(r1, rb_t * rng.uniform(0.6, 0.75))
-    len1 = np.maximum(env.distance(p1, d1) * rng.uniform(0.5, 0.7, len(p1)), 0.2)
-    nodes1, rad1 = _polylines(rng, p1, d1, len1, r1, r1 * 0.6, bend=0.1, lift=0.05)
-    _add_polylines(br, nodes1, rad1)
-
-    # levels 2-3: recursive sub-branching towards the envelope
-    nodes, rad = nodes1, rad1
-    level_spec = [
-        dict(n_lat=(3, 6), t_min=0.2, angle=(30, 65), reach=(0.5, 0.8), rf=(0.55, 0.75), out=0.25, up=0.1),
-        dict(n_lat=(2, 5), t_min=0.25, angle=(30, 70), reach=(0.7, 0.95), rf=(0.5, 0.7), out=0.15, up=0.05),
-    ]
-    level_nodes = []
-    for spec in level_spec:
-        n_lat = rng.integers(spec["n_lat"][0], spec["n_lat"][1], len(nodes))
-        pos, d, length, r0 = _children(rng, env, axis_xy, nodes, rad, n_lateral=n_lat, t_min=spec["t_min"],
-                                       angle=spec["angle"], reach=spec["reach"], radius_factor=spec["rf"],
-                                       out_bias=spec["out"], up_bias=spec["up"])
-        nodes, rad = _polylines(rng, pos, d, length, r0, r0 * 0.6, bend=0.15)
-        _add_polylines(br, nodes, rad)
-        level_nodes.append((nodes, rad))
-
-    # level 4: terminal twigs (not wood) reaching the envelope
-    n_lat = rng.integers(2, 5, len(nodes))
-    pos, d, length, _ = _children(rng, env, axis_xy, nodes, rad, n_lateral=n_lat, t_min=0.2, angle=(30, 75),
-                                  reach=(0.92, 1.08), radius_factor=(1, 1), out_bias=0.1, up_bias=0.0, min_len=0.1)
-    r_tw = rng.uniform(0.006, 0.011, len(pos))
-    twig_nodes, twig_rad = _polylines(rng, pos, d, length, r_tw, np.full(len(pos), 0.004), n_sub=2, bend=0.2)
-    _add_polylines(br, twig_nodes, twig_rad)
-
-    # leaves along the outer parts of twigs and of the finest branches
-    leaf_sets = [(twig_nodes, twig_rad, 0.1, 6.0), (level_nodes[-1][0], level_nodes[-1][1], 0.4, 2.0)]
-
-    if p.low_foliage:
-        # drooping shoots hanging from the lower, outer parts of the crown
-        n3, r3 = level_nodes[-1]
-        owner = np.arange(len(n3))
-        pos, _, _ = _points_on(n3, r3, owner, rng.uniform(0.5, 1.0, len(owner)))
-        horiz = np.hypot(pos[:, 0] - axis_xy[0], pos[:, 1] - axis_xy[1]) / max(rx, ry)
-        ok = (pos[:, 2] < zc + 0.3) & (horiz > 0.35)
-        cand = np.flatnonzero(ok)
-        n_p = min(len(cand), int(rng.integers(18, 30)))
-        if n_p:
-            pick = rng.choice(cand, n_p, replace=False)
-            start = pos[pick]
-            out = np.zeros((n_p, 3))
-            out[:, :2] = start[:, :2] - axis_xy
-            out = _unit(out)
-            dd = _unit(out * rng.uniform(0.25, 0.6, (n_p, 1)) + np.array([0.0, 0.0, -1.0]) + rng.normal(0, 0.12, (n_p, 3)))
-            target = ground.z(start[:, 0], start[:, 1]) + rng.uniform(0.2, 0.5, n_p)
-            length = np.maximum((start[:, 2] - target) / np.maximum(-dd[:, 2], 0.3), 0.1)
-            pn, pr = _polylines(rng, start, dd, length, np.full(n_p, 0.009), np.full(n_p, 0.004), bend=0.08)
-            # keep the shoot above its target height (the bends can push it lower)
-            pn[:, :, 2] = np.maximum(pn[:, :, 2], target[:, None])
-            _add_polylines(br, pn, pr)
-            leaf_sets.append((pn, pr, 0.1, 15.0))
-
-    leaf_scale = min(1.0, np.sqrt(min(rx, ry) / 2.5))
-    lc, ln, lr = [], [], []
-    for nd, rd, t0, rate in leaf_sets:
-        seg_len = np.linalg.norm(np.diff(nd, axis=1), axis=2).sum(axis=1)
-        # narrow crowns pack the same twigs into less room: fewer leaves per twig there
-        cnt = rng.poisson(rate * leaf_scale * seg_len * (1.0 - t0))
-        owner = np.repeat(np.arange(len(nd)), cnt)
-        t = rng.uniform(t0, 1.0, len(owner))
-        pos, _, _ = _points_on(nd, rd, owner, t)
-        lc.append(pos + rng.normal(0.0, 0.07, pos.shape))
-        ln.append(_unit(rng.normal(size=pos.shape) + np.array([0.0, 0.0, 0.4])))
-        lr.append(rng.uniform(0.03, 0.06, len(owner)))
-    a, b, ra, rb = br.arrays()
-    leaf_c = np.concatenate(lc)
-    top = float(max(np.max(b[:, 2]), np.max(leaf_c[:, 2]) if len(leaf_c) else -np.inf))
-    return _Tree(a, b, ra, rb, leaf_c, np.concatenate(ln), np.concatenate(lr), base, float(trunk_radius_03), top)
-
-
 # --------------------------------------------------------------------------- the block plan
 
 
@@ -467,7 +250,8 @@ def _grow_tree(rng: np.random.Generator, p: SimulationParams, base_xy: np.ndarra
 class _Plan:
     params: SimulationParams
     ground: _Ground
-    tree_xy: np.ndarray  # (k, 2) local
+    tree_xy: np.ndarray  # (s, 2) every grid slot, straight frame
+    layout: Layout
     bounds: tuple[float, float, float, float]  # x0, x1, y0, y1 local
     pass_y: np.ndarray  # (q,) alley centre lines
     pass_h: np.ndarray  # (q,) sensor height above ground
@@ -475,8 +259,9 @@ class _Plan:
     lad: np.ndarray  # (nx, ny, nh) leaf area density [m^2/m^3], flattened C order
     grid_shape: tuple[int, int, int]
     grid_origin: np.ndarray  # (3,) x, y, h
-    trunks: np.ndarray  # (k, 3) local
+    trunks: np.ndarray  # (k, 3) local block frame
     trunk_radius: np.ndarray  # (k,)
+    scale: np.ndarray  # (k,) size of each tree (1, or less for a replant)
     z_top: float  # highest tree point above ground (max)
     rho: float
     profile_x: np.ndarray  # (m,) along-track stations of the sensor height profiles
@@ -484,6 +269,22 @@ class _Plan:
 
     def offset(self) -> np.ndarray:
         return _offset(self.params)
+
+    @cached_property
+    def addresses(self) -> dict:
+        """The truth of the block's layout, as :class:`Orchard` fields."""
+        p, lay = self.params, self.layout
+        trees, empty = lay.trees, lay.empty
+        centre = np.c_[lay.col[empty] * p.spacing, lay.row[empty] * p.row_spacing, np.zeros(len(empty))]
+        xy = place(p, centre)[:, :2] + self.offset()[:2]
+        return dict(
+            tree_row=lay.row[trees] + 1,
+            tree_slot=lay.position[trees],
+            tree_young=lay.young[trees],
+            empty_slots=np.c_[lay.row[empty] + 1, lay.position[empty], xy].astype(np.float64),
+            spacing=p.spacing,
+            row_spacing=p.row_spacing,
+        )
 
 
 def _offset(p: SimulationParams) -> np.ndarray:
@@ -499,7 +300,7 @@ def _plan(p: SimulationParams) -> _Plan:
     rng = np.random.default_rng([p.seed, 0])
     ground = _Ground.make(p, rng)
     r_idx, t_idx = np.divmod(np.arange(p.n_trees), p.trees_per_row)
-    tree_xy = np.c_[t_idx * p.spacing, r_idx * p.row_spacing] + rng.normal(0.0, p.position_jitter, (p.n_trees, 2))
+    tree_xy = np.c_[t_idx * p.spacing, r_idx * p.row_spacing] + rng.normal(0.0, p.jitter, (p.n_trees, 2))
     x0, x1 = -_HEADLAND, (p.trees_per_row - 1) * p.spacing + _HEADLAND
     y0, y1 = -0.5 * p.row_spacing - _MARGIN, (p.rows - 0.5) * p.row_spacing + _MARGIN
     pass_y = (np.arange(p.rows + 1) - 0.5) * p.row_spacing
@@ -516,13 +317,17 @@ def _plan(p: SimulationParams) -> _Plan:
     )
     origin = np.array([x0, y0, h0])
     lad = np.zeros(int(np.prod(shape)), dtype=np.float32)
-    trunks = np.empty((p.n_trees, 3))
-    trunk_r = np.empty(p.n_trees)
+    layout = make_layout(p)
+    slots = layout.trees
+    scale = np.array([young_scale(p, i) if layout.young[i] else 1.0 for i in slots])
+    trunks = np.empty((len(slots), 3))
+    trunk_r = np.empty(len(slots))
     z_top = 0.0
-    for i in range(p.n_trees):
-        tree = _grow_tree(_tree_rng(p.seed, i), p, tree_xy[i], ground)
-        trunks[i] = tree.base
-        trunk_r[i] = tree.trunk_radius
+    # a tree's random stream is that of its slot: removing a tree leaves the others unchanged
+    for k, i in enumerate(slots):
+        tree = grow_tree(_tree_rng(p.seed, i), p, tree_xy[i], ground, scale=scale[k])
+        trunks[k] = place(p, tree.base[None], tree.base[:2])[0]
+        trunk_r[k] = tree.trunk_radius
         z_top = max(z_top, tree.top - tree.base[2])
         c = tree.leaf_c
         h = c[:, 2] - ground.z(c[:, 0], c[:, 1])
@@ -531,8 +336,8 @@ def _plan(p: SimulationParams) -> _Plan:
     lad /= _VOXEL**3
     profile_x = np.arange(x0 - 2.0, x1 + 2.0, 0.1)
     pass_z = np.stack([ground.z(profile_x, np.full(len(profile_x), yk)) + hk for yk, hk in zip(pass_y, pass_h)])
-    return _Plan(p, ground, tree_xy, (x0, x1, y0, y1), pass_y, pass_h, shift, lad, shape, origin, trunks, trunk_r,
-                 z_top, _RHO * p.density, profile_x, pass_z)
+    return _Plan(p, ground, tree_xy, layout, (x0, x1, y0, y1), pass_y, pass_h, shift, lad, shape, origin, trunks,
+                 trunk_r, scale, z_top, _RHO * p.density, profile_x, pass_z)
 
 
 def _grid_index(q: np.ndarray, origin: np.ndarray, shape) -> np.ndarray:
@@ -693,7 +498,9 @@ class _Chunk:
         self.is_wood.append(np.broadcast_to(np.asarray(is_wood, dtype=bool), keep.shape)[keep])
         self.kind.append(np.broadcast_to(np.asarray(kind, dtype=np.uint8), keep.shape)[keep])
 
-    def finish(self, plan: _Plan, rng) -> Orchard:
+    def finish(self, plan: _Plan, rng, base_xy: np.ndarray | None = None) -> Orchard:
+        """The chunk's points in absolute block coordinates, with outliers; ``base_xy``:
+        the trunk position of the tree the chunk holds (it moves rigidly with its row)."""
         p = plan.params
         xyz = np.concatenate(self.xyz) if self.xyz else np.empty((0, 3))
         tid = np.concatenate(self.tree_id) if self.tree_id else np.empty(0, np.int64)
@@ -709,13 +516,16 @@ class _Chunk:
             tid = np.concatenate([tid, np.zeros(n_out, np.int64)])
             wood = np.concatenate([wood, np.zeros(n_out, bool)])
             kind = np.concatenate([kind, np.full(n_out, OUTLIER, np.uint8)])
+        xyz = place(p, xyz, base_xy)
         return Orchard(xyz + plan.offset(), tid, wood, kind, plan.trunks + plan.offset(), plan.trunk_radius.copy(),
-                       p.epsg)
+                       p.epsg, **plan.addresses)
 
 
-def _tree_chunk(plan: _Plan, i: int) -> Orchard:
+def _tree_chunk(plan: _Plan, t: int) -> Orchard:
+    """Points of tree ``t`` (0-based; id ``t + 1``)."""
     p = plan.params
-    tree = _grow_tree(_tree_rng(p.seed, i), p, plan.tree_xy[i], plan.ground)
+    i = int(plan.layout.trees[t])
+    tree = grow_tree(_tree_rng(p.seed, i), p, plan.tree_xy[i], plan.ground, scale=plan.scale[t])
     rng = np.random.default_rng([p.seed, 2, i])
     ch = _Chunk()
     for k in _passes_for(plan, tree.base[1]):
@@ -724,10 +534,10 @@ def _tree_chunk(plan: _Plan, i: int) -> Orchard:
         above = h >= 0.0  # the trunk starts below the ground
         pts, rad, h = pts[above], rad[above], h[above]
         wood = rad >= WOOD_RADIUS
-        ch.add(plan, rng, k, pts, i + 1, wood, np.where(wood, WOOD, TWIG), h=h)
+        ch.add(plan, rng, k, pts, t + 1, wood, np.where(wood, WOOD, TWIG), h=h)
         pts, _ = _sample_discs(rng, plan, k, tree.leaf_c, tree.leaf_n, tree.leaf_r)
-        ch.add(plan, rng, k, pts, i + 1, False, LEAF)
-    return ch.finish(plan, rng)
+        ch.add(plan, rng, k, pts, t + 1, False, LEAF)
+    return ch.finish(plan, rng, tree.base[:2])
 
 
 def _ground_chunk(plan: _Plan, k: int, xa: float, xb: float, j: int) -> Orchard:
@@ -811,11 +621,12 @@ def _add_trellis(ch: _Chunk, plan: _Plan) -> None:
     p = plan.params
     rng = np.random.default_rng([p.seed, 5])  # its own stream: blocks without a trellis are unchanged
     for r in range(p.rows):
-        row = plan.tree_xy[r * p.trees_per_row : (r + 1) * p.trees_per_row]
-        gaps = np.arange(0, p.trees_per_row - 1, p.trellis)
+        # the row's planted slots (an empty slot keeps its place in the trellis)
+        row = plan.tree_xy[r * p.trees_per_row : (r + 1) * p.trees_per_row][plan.layout.planted[plan.layout.row == r]]
+        gaps = np.arange(0, len(row) - 1, p.trellis)
         xs = np.concatenate([[row[0, 0] - p.spacing / 2], (row[gaps, 0] + row[gaps + 1, 0]) / 2, [row[-1, 0] + p.spacing / 2]])
         # on the row's line through its trees
-        ys = (np.interp(xs, row[:, 0], row[:, 1]) if p.trees_per_row > 1 else np.full(len(xs), row[0, 1]))
+        ys = (np.interp(xs, row[:, 0], row[:, 1]) if len(row) > 1 else np.full(len(xs), row[0, 1]))
         ys = ys + rng.normal(0, 0.03, len(xs))
         ht = rng.uniform(2.8, 3.2, len(xs))
         rp = rng.uniform(0.05, 0.065, len(xs))
@@ -910,8 +721,8 @@ def iter_simulation(params: SimulationParams, *, ground_chunk_length: float = 25
         in every chunk. Concatenating the chunks gives :func:`simulate_orchard`'s block.
     """
     plan = _plan(params)
-    for i in range(params.n_trees):
-        yield _tree_chunk(plan, i)
+    for t in range(len(plan.trunks)):
+        yield _tree_chunk(plan, t)
     x0, x1, _, _ = plan.bounds
     edges = np.arange(x0, x1, ground_chunk_length).tolist() + [x1]
     for k in range(len(plan.pass_y)):
@@ -932,6 +743,12 @@ def concatenate(chunks: Iterable[Orchard]) -> Orchard:
         trunks=first.trunks,
         trunk_radius=first.trunk_radius,
         crs_epsg=first.crs_epsg,
+        tree_row=first.tree_row,
+        tree_slot=first.tree_slot,
+        tree_young=first.tree_young,
+        empty_slots=first.empty_slots,
+        spacing=first.spacing,
+        row_spacing=first.row_spacing,
     )
 
 
@@ -961,7 +778,9 @@ def ground_height(params: SimulationParams, x: np.ndarray, y: np.ndarray) -> np.
     """
     ground = _Ground.make(params, np.random.default_rng([params.seed, 0]))
     off = _offset(params)
-    return ground.z(np.asarray(x, dtype=np.float64) - off[0], np.asarray(y, dtype=np.float64) - off[1]) + off[2]
+    # the ground is bent and turned with the rows: look it up in the straight frame
+    xs, ys = unplace_xy(params, np.asarray(x, dtype=np.float64) - off[0], np.asarray(y, dtype=np.float64) - off[1])
+    return ground.z(xs, ys) + off[2]
 
 
 # --------------------------------------------------------------------------- files
@@ -990,7 +809,10 @@ def write_simulation(source: Orchard | SimulationParams | Iterable[Orchard], las
     ``tree_id`` (int64, 0 = not a tree), ``is_wood`` (bool), ``kind`` (uint8 code into
     :data:`KIND`). Its key-value metadata holds ``orchard:trunks`` (JSON list of absolute
     [x, y, z] trunk bases, tree ``k`` at position ``k-1``), ``orchard:trunk_radius``,
-    ``orchard:kinds`` and ``orchard:crs_epsg``.
+    ``orchard:kinds`` and ``orchard:crs_epsg``; for a generated block also the layout
+    (:func:`read_truth_layout`): ``orchard:tree_rows``, ``orchard:tree_slots``,
+    ``orchard:tree_young``, ``orchard:empty_slots``, ``orchard:spacing`` and
+    ``orchard:row_spacing``.
     """
     from pipeline.io import LasBlockWriter, TruthParquetWriter
 
@@ -1019,6 +841,7 @@ def write_simulation(source: Orchard | SimulationParams | Iterable[Orchard], las
                         "orchard:trunk_radius": json.dumps(np.round(ch.trunk_radius, 6).tolist()),
                         "orchard:kinds": json.dumps(list(KIND)),
                         "orchard:crs_epsg": str(ch.crs_epsg),
+                        **_layout_metadata(ch),
                     },
                 )
             m = ch.n_points
@@ -1067,3 +890,55 @@ def read_truth(path: str) -> tuple[dict[str, np.ndarray], np.ndarray]:
     trunks = np.asarray(json.loads(meta[b"orchard:trunks"]), dtype=np.float64).reshape(-1, 3)
     cols["trunk_radius"] = np.asarray(json.loads(meta.get(b"orchard:trunk_radius", b"[]")), dtype=np.float64)
     return cols, trunks
+
+
+def _layout_metadata(o: Orchard) -> dict[str, str]:
+    """The truth file's layout keys (none for a block without a layout)."""
+    out = {}
+    if o.tree_row is not None:
+        out["orchard:tree_rows"] = json.dumps(np.asarray(o.tree_row, dtype=np.int64).tolist())
+    if o.tree_slot is not None:
+        out["orchard:tree_slots"] = json.dumps(np.asarray(o.tree_slot, dtype=np.int64).tolist())
+    if o.tree_young is not None:
+        out["orchard:tree_young"] = json.dumps(np.asarray(o.tree_young, dtype=bool).tolist())
+    if o.empty_slots is not None:
+        e = np.asarray(o.empty_slots, dtype=np.float64).reshape(-1, 4)
+        out["orchard:empty_slots"] = json.dumps([[int(r), int(s), round(float(x), 6), round(float(y), 6)] for r, s, x, y in e])
+    if o.spacing is not None:
+        out["orchard:spacing"] = json.dumps(float(o.spacing))
+    if o.row_spacing is not None:
+        out["orchard:row_spacing"] = json.dumps(float(o.row_spacing))
+    return out
+
+
+def read_truth_layout(path: str) -> dict:
+    """The planting layout stored in a truth file by :func:`write_simulation`.
+
+    Returns
+    -------
+    dict
+        ``tree_row`` (k,) int64 and ``tree_slot`` (k,) int64 (1-based; tree ``k`` at
+        position ``k-1``), ``tree_young`` (k,) bool, ``empty_slots`` (e, 4) float64 rows of
+        ``[row, slot, x, y]`` (absolute slot centre [m]), ``spacing`` and ``row_spacing``
+        [m]. Keys a file lacks (written before layouts were recorded) are ``None``, and
+        ``empty_slots`` is then an empty (0, 4) array.
+    """
+    from pipeline.io import read_parquet_columns
+
+    _, meta = read_parquet_columns(path, [], what="truth file")
+
+    def get(key, dtype):
+        raw = meta.get(key.encode())
+        return None if raw is None else np.asarray(json.loads(raw), dtype=dtype)
+
+    empty = get("orchard:empty_slots", np.float64)
+    spacing = get("orchard:spacing", np.float64)
+    row_spacing = get("orchard:row_spacing", np.float64)
+    return {
+        "tree_row": get("orchard:tree_rows", np.int64),
+        "tree_slot": get("orchard:tree_slots", np.int64),
+        "tree_young": get("orchard:tree_young", bool),
+        "empty_slots": np.empty((0, 4)) if empty is None else empty.reshape(-1, 4),
+        "spacing": None if spacing is None else float(spacing),
+        "row_spacing": None if row_spacing is None else float(row_spacing),
+    }

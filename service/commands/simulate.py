@@ -31,10 +31,12 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     for name, field in SimulationParams.model_fields.items():
         flag = "--" + name.replace("_", "-")
         kind = base_type(field.annotation)
-        default = "random per tree" if field.default is None else field.default
-        help_text = f"{field.description} (default: {default})"
+        # a field without a fixed default says in its description what it defaults to
+        help_text = field.description if field.default is None else f"{field.description} (default: {field.default})"
         if kind is bool:
             g.add_argument(flag, dest=f"s__{name}", action=argparse.BooleanOptionalAction, default=None, help=help_text)
+        elif typing.get_origin(kind) is typing.Literal:
+            g.add_argument(flag, dest=f"s__{name}", choices=list(typing.get_args(kind)), default=None, help=help_text)
         else:
             g.add_argument(flag, dest=f"s__{name}", type=kind, default=None, metavar=metavar(kind, field.description), help=help_text)
 

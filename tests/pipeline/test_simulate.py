@@ -325,3 +325,329 @@ def test_trunks_are_visible_points_close_to_the_truth(small):
     tree = cKDTree(small.xyz[small.tree_id > 0])
     d, _ = tree.query(small.trunks + [0, 0, 0.3])
     assert np.all(d < small.trunk_radius + 0.1)
+
+
+# --------------------------------------------------------------------------- forms and layout
+
+# SHA-1 of xyz, tree_id, kind and trunks of vase blocks generated before the forms and the
+# layout options existed: with every new option at its default a vase block is the same
+# block to the bit (float arithmetic of this platform's numpy; a port may need new pins).
+VASE_PINS = [
+    (dict(rows=2, trees_per_row=3, density=0.1, seed=0), 69831, "b68ff3f92ae89372606b4356fd2aa39346ae1ddb"),
+    (dict(rows=2, trees_per_row=3, density=0.1, seed=1), 70347, "238e576df1ca9562d2d4f56f512ab3c9da827ad2"),
+    (dict(rows=2, trees_per_row=3, density=0.1, seed=2), 70559, "406048e3136f97d41005f61e54b33c09334418c1"),
+    (dict(rows=2, trees_per_row=4, density=0.1, seed=5, spacing=2.5, row_spacing=4.5, low_foliage=True, trellis=2),
+     95477, "52cffa90755473ee6d877c0d89af20ea5751e77d"),
+]
+
+
+def _block_sha1(o) -> str:
+    import hashlib
+
+    h = hashlib.sha1()
+    for a in (o.xyz, o.tree_id, o.kind, o.trunks):
+        h.update(np.ascontiguousarray(a).tobytes())
+    return h.hexdigest()
+
+
+@pytest.mark.parametrize("kw, n_points, sha1", VASE_PINS)
+def test_vase_blocks_are_unchanged_to_the_bit(kw, n_points, sha1):
+    o = simulate_orchard(SimulationParams(**kw))
+    assert o.n_points == n_points
+    assert _block_sha1(o) == sha1
+
+
+SPINDLE = SimulationParams(form="spindle", rows=2, trees_per_row=5, spacing=1.0, row_spacing=3.5, density=0.25, seed=3)
+HEDGE = SimulationParams(form="hedge", rows=2, trees_per_row=5, spacing=1.3, row_spacing=4.0, density=0.25, seed=3)
+
+
+@pytest.fixture(scope="module")
+def spindle():
+    return simulate_orchard(SPINDLE)
+
+
+@pytest.fixture(scope="module")
+def hedge():
+    return simulate_orchard(HEDGE)
+
+
+def _tree_points(o, k):
+    m = o.tree_id == k
+    return o.xyz[m] - o.trunks[k - 1], m
+
+
+def test_spindle_leaders_are_thin_and_tall(spindle):
+    assert len(spindle.trunks) == SPINDLE.n_trees
+    # 3-5 cm at the ground, a little thinner 0.3 m up (where the truth radius is taken)
+    assert np.all((2 * spindle.trunk_radius > 0.026) & (2 * spindle.trunk_radius < 0.05))
+    for k in range(1, len(spindle.trunks) + 1):
+        d, _ = _tree_points(spindle, k)
+        assert 2.7 < d[:, 2].max() < 3.65, k
+        # the stem near the ground is one thin pole: its points hug the trunk axis
+        low = (d[:, 2] > 0.1) & (d[:, 2] < 0.4)
+        r = np.hypot(d[low, 0], d[low, 1])
+        assert np.count_nonzero(r < 0.1) > 5, k
+        assert np.mean(r < 0.07) > 0.8, k  # radius 1.5-2.5 cm, noise and ghosting around it
+
+
+def test_spindle_laterals_are_short_and_trained_along_the_row(spindle):
+    counts = []
+    for k in range(1, len(spindle.trunks) + 1):
+        d, _ = _tree_points(spindle, k)
+        crown = d[d[:, 2] > 0.7]
+        ax, ay = np.abs(crown[:, 0]), np.abs(crown[:, 1])
+        assert 0.3 < np.percentile(ax, 98) < 0.95, k  # laterals 0.3-0.7 m (+ spurs and leaves)
+        assert np.percentile(ax, 90) > 1.3 * np.percentile(ay, 90), k  # along the row more than across
+        counts.append(len(d))
+    # a small tree: ~10-30 k points at density 1
+    assert 8_000 < np.median(counts) / SPINDLE.density < 35_000
+
+
+def test_spindle_crowns_touch_along_the_row(spindle):
+    p = SPINDLE
+    for r in range(p.rows):
+        for c in range(p.trees_per_row - 1):
+            a, b = r * p.trees_per_row + c + 1, r * p.trees_per_row + c + 2
+            da, _ = _tree_points(spindle, a)
+            db, _ = _tree_points(spindle, b)
+            gap = spindle.trunks[b - 1, 0] - spindle.trunks[a - 1, 0]
+            # tree a reaches at least to the midpoint, and so does b from the other side
+            assert da[:, 0].max() > 0.45 * gap and db[:, 0].min() < -0.45 * gap, (a, b)
+
+
+def test_hedge_trunk_branches_low_into_a_wall(hedge):
+    from pipeline.simforms import grow_tree
+
+    class Flat:
+        def z(self, x, y):
+            return np.zeros(np.shape(x))
+
+    for i in range(8):
+        tree = grow_tree(np.random.default_rng([9, i]), HEDGE, np.zeros(2), Flat())
+        # the first cylinder is the trunk: from below the ground to the branching point
+        assert 0.5 <= tree.cyl_b[0, 2] <= 0.8
+        assert 0.04 <= tree.cyl_ra[0] / 1.08 <= 0.06  # 8-12 cm diameter
+    assert np.all((2 * hedge.trunk_radius > 0.07) & (2 * hedge.trunk_radius < 0.13))
+    for k in range(1, len(hedge.trunks) + 1):
+        d, m = _tree_points(hedge, k)
+        assert 2.4 < d[:, 2].max() < 3.15, k
+        # below the branching point only the trunk; the crown is 1-1.5 m wide across the row
+        low = d[:, 2] < 0.45
+        assert np.percentile(np.hypot(d[low, 0], d[low, 1]), 95) < 0.12, k
+        crown = d[:, 2] > 0.9
+        width = np.percentile(d[crown, 1], 98) - np.percentile(d[crown, 1], 2)
+        assert 0.8 < width < 1.7, (k, width)
+
+
+def test_hedge_crowns_form_a_continuous_wall(hedge):
+    p = HEDGE
+    tree = hedge.tree_id > 0
+    for r in range(p.rows):
+        row = hedge.trunks[r * p.trees_per_row : (r + 1) * p.trees_per_row]
+        for a, b in zip(row[:-1], row[1:]):
+            mid = 0.5 * (a + b)
+            h = hedge.xyz[:, 2] - mid[2]
+            at = tree & (np.abs(hedge.xyz[:, 0] - mid[0]) < 0.1) & (np.abs(hedge.xyz[:, 1] - mid[1]) < 0.6)
+            for lo in (1.0, 1.5, 2.0):  # no hole between neighbours up the wall
+                assert np.count_nonzero(at & (h > lo) & (h < lo + 0.5)) > 10, (r, lo)
+
+
+def test_spacing_down_to_0_8_m():
+    p = SimulationParams(form="spindle", rows=1, trees_per_row=3, spacing=0.8, row_spacing=3.0, density=0.05, seed=1)
+    o = simulate_orchard(p)
+    gaps = np.diff(o.trunks[:, 0])
+    assert np.all(np.abs(gaps - 0.8) < 0.6)
+    assert set(np.unique(o.tree_id)) == {0, 1, 2, 3}
+    with pytest.raises(ValidationError):
+        SimulationParams(spacing=0.79)
+
+
+LAYOUT = SimulationParams(form="spindle", rows=3, trees_per_row=10, spacing=1.0, row_spacing=3.5, density=0.05,
+                          seed=7, missing=0.1, replants=0.1, posts=False, vehicle=False, bin=False)
+
+
+@pytest.fixture(scope="module")
+def gappy():
+    return simulate_orchard(LAYOUT)
+
+
+def test_missing_trees_and_replants_are_counted_exactly(gappy):
+    n = len(gappy.trunks)
+    assert n == 30 - 3  # round(0.1 x 30) empty slots
+    assert set(np.unique(gappy.tree_id)) == set(range(n + 1))  # ids stay 1..n
+    assert gappy.tree_young.sum() == 3 and len(gappy.empty_slots) == 3
+    for arr in (gappy.tree_row, gappy.tree_slot, gappy.tree_young, gappy.trunk_radius):
+        assert len(arr) == n
+    # every slot of every row holds one tree or is empty, never both; empty slots lie between trees
+    taken = {(int(r), int(s)) for r, s in zip(gappy.tree_row, gappy.tree_slot)}
+    empty = {(int(r), int(s)) for r, s, _, _ in gappy.empty_slots}
+    assert len(taken) == n and not taken & empty
+    assert taken | empty == {(r, s) for r in (1, 2, 3) for s in range(1, 11)}
+    for r, s in empty:
+        row = gappy.tree_slot[gappy.tree_row == r]
+        assert row.min() < s < row.max()
+    # trees in row-major order: rows, then slots, ascending
+    assert np.all(np.diff(gappy.tree_row * 100 + gappy.tree_slot) > 0)
+
+
+def test_empty_slots_sit_on_the_grid_between_their_neighbours(gappy):
+    for r, s, x, y in gappy.empty_slots:
+        row = (gappy.tree_row == r)
+        before = gappy.trunks[row & (gappy.tree_slot == s - 1)]
+        after = gappy.trunks[row & (gappy.tree_slot == s + 1)]
+        expect = gappy.trunks[0, :2] + [0, 0]  # any neighbour pair brackets the slot centre
+        for nb, sign in ((before, -1), (after, 1)):
+            if len(nb):
+                assert abs((nb[0, 0] - x) - sign * LAYOUT.spacing) < 0.6
+                assert abs(nb[0, 1] - y) < 0.6
+        assert expect.shape == (2,)
+
+
+def test_replants_are_much_smaller_than_their_neighbours(gappy):
+    heights = np.array([_tree_points(gappy, k)[0][:, 2].max() for k in range(1, len(gappy.trunks) + 1)])
+    young, old = gappy.tree_young, ~gappy.tree_young
+    assert np.all(heights[young] < 0.6 * np.median(heights[old]))
+    assert np.all(gappy.trunk_radius[young] < 0.6 * np.median(gappy.trunk_radius[old]))
+    assert np.all(heights[young] > 0.25 * np.median(heights[old]))
+
+
+def test_other_trees_stay_when_a_slot_is_emptied(gappy):
+    """A tree's random stream is its slot's: the full block holds the same trees."""
+    full = simulate_orchard(LAYOUT.model_copy(update={"missing": 0.0, "replants": 0.0}))
+    slot = (gappy.tree_row - 1) * LAYOUT.trees_per_row + gappy.tree_slot - 1
+    same = ~gappy.tree_young
+    assert np.allclose(full.trunks[slot[same]], gappy.trunks[same])
+    assert np.allclose(full.trunk_radius[slot[same]], gappy.trunk_radius[same])
+
+
+def test_ragged_rows_lose_up_to_three_slots_at_either_end():
+    from pipeline.simlayout import make_layout
+
+    p = SimulationParams(rows=4, trees_per_row=12, spacing=1.2, form="hedge", ragged_rows=True, seed=3,
+                         density=0.02, posts=False, vehicle=False, bin=False)
+    o = simulate_orchard(p)
+    lengths = set()
+    for r in range(1, 5):
+        slots = o.tree_slot[o.tree_row == r]
+        assert slots[0] == 1 and np.array_equal(slots, np.arange(1, len(slots) + 1))
+        assert 6 <= len(slots) <= 12
+        lengths.add(len(slots))
+        # the first tree stands 0-3 slots from the grid's first slot
+        x0 = o.trunks[o.tree_row == r][0, 0] - p.easting
+        assert -0.5 < x0 < 3 * 1.2 + 0.5
+    assert len(lengths) > 1
+    cuts = set()
+    for seed in range(30):
+        lay = make_layout(p.model_copy(update={"seed": seed}))
+        for r in range(4):
+            planted = lay.col[(lay.row == r) & lay.planted]
+            assert np.array_equal(planted, np.arange(planted[0], planted[-1] + 1))
+            cuts |= {int(planted[0]), int(11 - planted[-1])}
+    assert cuts == {0, 1, 2, 3}
+
+
+def _rot(xy, deg):
+    a = np.deg2rad(deg)
+    return np.c_[np.cos(a) * xy[:, 0] - np.sin(a) * xy[:, 1], np.sin(a) * xy[:, 0] + np.cos(a) * xy[:, 1]]
+
+
+def test_rotation_turns_the_whole_block_about_the_first_slot():
+    p = SimulationParams(form="spindle", rows=2, trees_per_row=6, spacing=1.0, row_spacing=3.5, density=0.03, seed=2,
+                         position_jitter=0.0)
+    straight = simulate_orchard(p)
+    turned = simulate_orchard(p.model_copy(update={"rotation": 35.0}))
+    origin = np.array([p.easting, p.northing])
+    assert np.allclose(_rot(straight.trunks[:, :2] - origin, 35.0) + origin, turned.trunks[:, :2], atol=1e-6)
+    assert np.allclose(straight.trunks[:, 2], turned.trunks[:, 2])
+    assert np.allclose(_rot(straight.xyz[:, :2] - origin, 35.0) + origin, turned.xyz[:, :2], atol=1e-6)
+    assert np.array_equal(straight.tree_id, turned.tree_id)
+    # each row's direction is the rotation
+    for r in (1, 2):
+        t = turned.trunks[turned.tree_row == r, :2]
+        t = t - t.mean(axis=0)
+        direction = np.linalg.svd(t, full_matrices=False)[2][0]
+        azimuth = np.rad2deg(np.arctan2(direction[1], direction[0])) % 180.0
+        assert abs(azimuth - 35.0) < 0.5
+    # the ground turns with the block
+    g = turned.kind == GROUND
+    assert np.percentile(np.abs(turned.xyz[g, 2] - ground_height(turned_p := p.model_copy(update={"rotation": 35.0}),
+                                                                   turned.xyz[g, 0], turned.xyz[g, 1])), 95) < 0.06
+    assert turned_p.rotation == 35.0
+
+
+def test_curved_rows_bow_sideways_and_keep_their_trees_whole():
+    p = SimulationParams(form="spindle", rows=2, trees_per_row=9, spacing=1.0, row_spacing=3.5, density=0.03, seed=2,
+                         trellis=2)
+    straight = simulate_orchard(p)
+    bowed = simulate_orchard(p.model_copy(update={"row_curvature": 1.0}))
+    u = (straight.trunks[:, 0] - p.easting) / 8.0
+    assert np.allclose(bowed.trunks[:, 1] - straight.trunks[:, 1], 4.0 * u * (1 - u), atol=1e-6)
+    assert np.allclose(bowed.trunks[:, [0, 2]], straight.trunks[:, [0, 2]])
+    mid = bowed.tree_slot == 5
+    assert np.all(np.abs(bowed.trunks[mid, 1] - straight.trunks[mid, 1] - 1.0) < 0.05)
+    # a tree moves as one rigid body: distances between its points are kept
+    for k in (1, 5, 9):
+        a = straight.xyz[straight.tree_id == k][:200]
+        b = bowed.xyz[bowed.tree_id == k][:200]
+        da = np.linalg.norm(a[:, None] - a[None], axis=2)
+        db = np.linalg.norm(b[:, None] - b[None], axis=2)
+        assert np.allclose(da, db, atol=1e-6)
+    # the trellis follows the rows: post points near the middle of row 1 bowed by ~1 m
+    post = (bowed.kind == POST) & (np.abs(bowed.xyz[:, 0] - p.easting - 4.0) < 1.2)
+    row1 = np.abs(bowed.xyz[:, 1] - p.northing - 1.0) < 0.4
+    assert np.count_nonzero(post & row1) > 20
+    assert ground_height(p.model_copy(update={"row_curvature": 1.0}), np.array([p.easting + 4.0]),
+                         np.array([p.northing + 1.0]))[0] == pytest.approx(
+        ground_height(p, np.array([p.easting + 4.0]), np.array([p.northing]))[0])
+
+
+def test_curvature_must_stay_gentle():
+    with pytest.raises(ValidationError):
+        SimulationParams(trees_per_row=5, spacing=1.0, row_curvature=1.5)
+    SimulationParams(trees_per_row=5, spacing=1.0, row_curvature=-1.0)
+
+
+def test_truth_layout_round_trip(tmp_path, gappy):
+    from pipeline.simulate import Orchard, read_truth_layout
+
+    las, truth = str(tmp_path / "b.las"), str(tmp_path / "t.parquet")
+    write_simulation(gappy, las, truth)
+    lay = read_truth_layout(truth)
+    assert np.array_equal(lay["tree_row"], gappy.tree_row) and lay["tree_row"].dtype == np.int64
+    assert np.array_equal(lay["tree_slot"], gappy.tree_slot)
+    assert np.array_equal(lay["tree_young"], gappy.tree_young) and lay["tree_young"].dtype == bool
+    assert np.allclose(lay["empty_slots"], gappy.empty_slots, atol=1e-6) and lay["empty_slots"].shape == (3, 4)
+    assert lay["spacing"] == 1.0 and lay["row_spacing"] == 3.5
+    cols, trunks = read_truth(truth)  # the point truth reads as before
+    assert len(trunks) == len(gappy.trunks)
+    # a truth file without a layout (an Orchard made by hand) answers None and no empty slots
+    bare = Orchard(gappy.xyz[:100], gappy.tree_id[:100], gappy.is_wood[:100], gappy.kind[:100], gappy.trunks,
+                   gappy.trunk_radius)
+    write_simulation(bare, str(tmp_path / "c.las"), str(tmp_path / "u.parquet"))
+    old = read_truth_layout(str(tmp_path / "u.parquet"))
+    assert old["tree_row"] is None and old["tree_slot"] is None and old["tree_young"] is None
+    assert old["spacing"] is None and old["empty_slots"].shape == (0, 4)
+
+
+def test_a_block_without_options_has_a_full_layout(small):
+    assert np.array_equal(small.tree_row, np.repeat([1, 2], 3))
+    assert np.array_equal(small.tree_slot, np.tile([1, 2, 3], 2))
+    assert not small.tree_young.any() and small.empty_slots.shape == (0, 4)
+    assert small.spacing == SMALL.spacing and small.row_spacing == SMALL.row_spacing
+
+
+def test_the_cli_takes_the_new_options():
+    import argparse
+
+    from service.commands import simulate as cmd
+
+    parser = argparse.ArgumentParser()
+    cmd.add_arguments(parser)
+    args = parser.parse_args(["--out", "b.laz", "--truth", "t.parquet", "--form", "hedge", "--spacing", "0.8",
+                              "--missing", "0.1", "--replants", "0.05", "--rotation", "-20", "--row-curvature",
+                              "0.5", "--ragged-rows"])
+    p = cmd.params_from_args(args)
+    assert (p.form, p.spacing, p.missing, p.replants, p.rotation, p.row_curvature, p.ragged_rows) == (
+        "hedge", 0.8, 0.1, 0.05, -20.0, 0.5, True)
+    with pytest.raises(SystemExit):
+        parser.parse_args(["--out", "b.laz", "--truth", "t.parquet", "--form", "pyramid"])
