@@ -1,6 +1,7 @@
 """The background job runner of ``orchard serve``.
 
-One thread takes queued jobs from the store, oldest first, one at a time, and runs
+One thread takes queued jobs from the store one at a time (`Store.claim_next_job`: fair
+share between tenants, oldest first within one), and runs
 each with `workers.job.run_job` on a dask client it owns (an embedded `LocalCluster`,
 or the cluster at ``settings.scheduler``; created when the first job arrives). Tiles
 done / total go to the store through the progress callback; a cancel request sets the
@@ -8,7 +9,8 @@ job's `threading.Event`. The outcome of every job is one store transaction: ``do
 with its outcome and timings, ``failed`` with a one-line error (a domain error's own
 message; for anything unexpected a short message, the traceback only in the log), or
 ``cancelled``. A job left ``running`` when the process dies is re-queued by
-`Store.requeue_running` at the next start.
+`Store.requeue_running` at the next start, as a crash (not an attempt); one during
+which the process has died ``settings.max_crashes`` times is failed there instead.
 
 One process per data folder runs jobs and schedules: it holds `hold_runner_lock`'s
 lock for as long as it lives, and only it re-queues ``running`` jobs at its start
