@@ -1,5 +1,9 @@
 """The per-tree report a grower reads: one HTML page with a map of the block and a table.
 
+The page is interactive (`service.web.render.report_page`: pan, zoom, colour by a
+metric, search, a sortable table) and self-contained; the static map and table below
+are what it shows where scripts do not run.
+
 The map (PNG, matplotlib's Agg backend, embedded in the page as base64 and also saved
 as ``map.png``) shows a subsample of the block's points seen from above, tree points
 coloured by tree id, other points grey, and each trunk as a marker with its number. The
@@ -21,6 +25,11 @@ import pyarrow as pa
 import pyarrow.compute as pc
 import pyarrow.csv as pacsv
 import pyarrow.parquet as pq
+
+from service.web import mapdata, render
+
+#: the outputs the report links to, beside it (relative links)
+DOWNLOADS = ("trees.csv", "trees.parquet", "points.parquet", "map.png")
 
 TABLE_COLUMNS = [
     ("tree_id", "Tree", "{:d}"),
@@ -219,6 +228,11 @@ th {{ background: #f3f3f3; }} img {{ max-width: 100%; border: 1px solid #ddd; }}
 """
 
 
+def _body_of(page: str) -> str:
+    """The inside of a page's ``<body>`` (the static report, shown where scripts do not run)."""
+    return page.split("<body>", 1)[1].rsplit("</body>", 1)[0]
+
+
 def write_report(
     *,
     block_path: str,
@@ -230,8 +244,13 @@ def write_report(
     warning: str | None = None,
     max_points: int = 150_000,
 ) -> Path:
-    """Write ``report.html`` (with the map embedded) and ``map.png`` into ``out_dir``;
-    returns the HTML path. ``warning`` is shown above everything else (a partial result)."""
+    """Write ``report.html`` and ``map.png`` into ``out_dir``; returns the HTML path.
+
+    The report is the job page of the service (`service.web.render.report_page`) with its
+    scripts, styles and data inlined: it opens from disk, offline. Where scripts do not
+    run it shows the static map (``map.png``, embedded) and table. ``warning`` is shown
+    above everything else (a partial result).
+    """
     out = Path(out_dir)
     xy, tree_id, origin = sample_points(block_path, points_parquet, max_points=max_points)
     rows = trees_records(trees_parquet)
@@ -242,7 +261,12 @@ def write_report(
         trunks_xy, ids = np.zeros((0, 2)), np.zeros(0, np.int64)
     png = render_map(xy, tree_id, trunks_xy, ids, title=title)
     _atomic_write(out / "map.png", png)
-    page = render_html(title=title, png=png, rows=rows, origin=origin, summary=summary or {}, warning=warning)
+    static = render_html(title=title, png=png, rows=rows, origin=origin, summary=summary or {}, warning=warning)
+    data = mapdata.build_map_data(trees_parquet, sample=(xy + origin[:2], tree_id))
+    # the files beside the report: relative links work from disk and under /v1/jobs/<id>/
+    downloads = {name: name for name in DOWNLOADS}
+    page = render.report_page(title=title, data_json=mapdata.to_json(data), facts=summary or {}, downloads=downloads,
+                              warning=warning, fallback=_body_of(static))
     path = out / "report.html"
     _atomic_write(path, page.encode("utf-8"))
     return path

@@ -1,4 +1,4 @@
-"""``orchard process``: a LAS/LAZ block in, trees.parquet and points.parquet out."""
+"""``orchard process``: a LAS/LAZ block in; trees.parquet, points.parquet, trees.csv and report.html out."""
 
 from __future__ import annotations
 
@@ -14,7 +14,7 @@ from service.commands.options import add_pipeline_options, pipeline_params_from_
 NAME = "process"
 HELP = (
     "Process a LAS/LAZ block into trees.parquet (one row per tree, GeoParquet) and points.parquet "
-    "(one row per input point). Without --tile-size the block is processed in one piece in this "
+    "(one row per input point), with trees.csv and report.html (a page that opens from disk) beside them. Without --tile-size the block is processed in one piece in this "
     "process; with it, the block is split into buffered tiles processed by dask workers and merged. "
     "Exit codes: 0 done, 1 a tile failed or internal error, 2 bad input or parameters, "
     "3 no trees, 4 finished without some tiles (partial result; re-run them with --rerun-tile)."
@@ -31,7 +31,7 @@ def _origin(text: str) -> tuple[float, float]:
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("input", metavar="INPUT", help="LAS or LAZ block (LAS 1.2-1.4, point formats 0-10)")
-    parser.add_argument("--out", required=True, metavar="DIR", help="output folder for trees.parquet and points.parquet")
+    parser.add_argument("--out", required=True, metavar="DIR", help="output folder for trees.parquet, points.parquet, trees.csv and report.html")
     g = parser.add_argument_group("tiling and workers")
     g.add_argument("--tile-size", type=float, default=None, metavar="M", help="side of a square tile core [m]; default: one tile")
     g.add_argument(
@@ -41,6 +41,8 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     g.add_argument("--grid-origin", type=_origin, default=None, metavar="X,Y", help="a corner of the tile grid, input CRS [m]; default: the block's minimum, rounded down (negative: --grid-origin=-1000,-2000)")
     g.add_argument("--workers", type=int, default=None, metavar="N", help=f"workers of the embedded dask cluster (default {DEFAULT_WORKERS}, at most 4 per CPU)")
     g.add_argument("--scheduler", default=None, metavar="tcp://HOST:PORT", help="use a running dask cluster instead of an embedded one")
+    g.add_argument("--dask-host", default=None, metavar="HOST", help="address the embedded dask cluster and its dashboard listen on (default 127.0.0.1: this machine only)")
+    g.add_argument("--no-dashboard", dest="dashboard", action="store_false", help="start the embedded dask cluster without its dashboard")
     g.add_argument("--work", default=None, metavar="DIR_OR_URL", help="work store for tiles (folder or fsspec URL); default OUT/_work")
     g.add_argument("--engine", choices=["laspy", "pdal"], default=None, help="tiler engine (default laspy; pdal needs PDAL's Python bindings)")
     g.add_argument("--rerun-tile", type=int, action="append", default=None, metavar="ID", help="re-run this failed tile of the job in --work alone, then merge again (repeatable)")
@@ -102,7 +104,8 @@ def _check_cluster_options(args: argparse.Namespace) -> None:
     if args.rerun_tile or args.resume:
         given = [flag for flag, value in (("--tile-size", args.tile_size), ("--buffer", args.buffer),
                                           ("--grid-origin", args.grid_origin), ("--engine", args.engine),
-                                          ("--workers", args.workers)) if value is not None]
+                                          ("--workers", args.workers), ("--dask-host", args.dask_host),
+                                          ("--no-dashboard", None if args.dashboard else True)) if value is not None]
         if given:
             raise ParameterError(
                 f"{', '.join(given)}: --resume and --rerun-tile go on with the job in --work as it was planned "
@@ -120,6 +123,11 @@ def _check_cluster_options(args: argparse.Namespace) -> None:
             raise ParameterError("--workers needs --tile-size: a block processed in one piece runs in this process")
     else:
         args.workers = DEFAULT_WORKERS
+    for flag, given in (("--dask-host", args.dask_host is not None), ("--no-dashboard", not args.dashboard)):
+        if given and args.scheduler is not None:
+            raise ParameterError(f"{flag} is for the embedded cluster; a running one (--scheduler) was started with its own")
+        if given and not tiled:
+            raise ParameterError(f"{flag} needs --tile-size: a block processed in one piece runs in this process")
     if args.grid_origin is not None and args.tile_size is None:
         raise ParameterError("--grid-origin needs --tile-size: a block processed in one piece has no tile grid")
     if args.engine is not None and not tiled:
@@ -211,9 +219,10 @@ def run(args: argparse.Namespace) -> int:
     try:
         check_job(spec, tiled=tiled)  # bad input or parameters fail before a cluster starts
         if tiled:
-            from workers.cluster import close_client, dashboard_address, make_client
+            from workers.cluster import LOOPBACK, close_client, dashboard_address, make_client
 
-            client = make_client(args.scheduler, n_workers=args.workers, quiet=True)
+            client = make_client(args.scheduler, n_workers=args.workers, quiet=True, dashboard=args.dashboard,
+                                 host=args.dask_host or LOOPBACK)
             link = dashboard_address(client)
             print(f"dask dashboard: {link or 'none'}", file=sys.stderr)
         outcome = run_job(spec, client=client, progress=_Bar() if tiled else None)  # TileFailed: exit 1 (service.cli)
@@ -223,9 +232,32 @@ def run(args: argparse.Namespace) -> int:
     return _report(outcome, args)
 
 
+def _write_views(outcome, args) -> None:
+    """``trees.csv`` and ``report.html`` beside the Parquet files: a spreadsheet and a page
+    that open from disk."""
+    from service.report import write_report, write_trees_csv
+
+    trees, points = outcome.outputs.get("trees"), outcome.outputs.get("points")
+    if not trees:
+        return
+    out = Path(trees).parent
+    write_trees_csv(trees, out / "trees.csv")
+    if not points:
+        return
+    name = Path(args.input).name
+    summary = {"Block": name, "Points": str(outcome.n_points), "Trees": str(outcome.n_trees)}
+    warning = None
+    if outcome.partial:
+        warning = (f"Partial result: tile(s) {', '.join(map(str, outcome.failed_tiles))} of this block failed. Trees "
+                   "standing in them are missing from this report, and their points are in no tree.")
+    write_report(block_path=args.input, trees_parquet=trees, points_parquet=points, out_dir=out,
+                 title=f"Orchard report — {name}", summary=summary, warning=warning)
+
+
 def _report(outcome, args) -> int:
     if outcome.trees is not None:
         _print_trees(outcome.trees)
+    _write_views(outcome, args)
     out = Path(args.out)
     points = f"{outcome.n_points} points"
     if outcome.partial and outcome.outputs.get("points"):

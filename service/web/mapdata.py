@@ -151,9 +151,15 @@ def build_map_data(
     *,
     block_path: str | None = None,
     points_parquet: str | os.PathLike | None = None,
+    sample: tuple[np.ndarray, np.ndarray] | None = None,
     max_points: int = FOOTPRINT_POINTS,
 ) -> dict[str, Any]:
-    """The map's data for a job's outputs folder (see the module docstring)."""
+    """The map's data for a job's outputs folder (see the module docstring).
+
+    The footprints come from ``sample`` ((m, 2) points in the input CRS [m] and their
+    (m,) tree ids) or else from sampling ``block_path`` with ``points_parquet``; without
+    either the page draws circles.
+    """
     trees_parquet = Path(trees_parquet)
     table = pq.read_table(str(trees_parquet))
     names = [n for n in table.column_names if n != "geometry"]
@@ -164,11 +170,13 @@ def build_map_data(
     finite = np.isfinite(tx) & np.isfinite(ty)
     origin = np.floor([tx[finite].min(), ty[finite].min()]) if finite.any() else np.zeros(2)
     outlines: list | None = None
-    if block_path and points_parquet and Path(block_path).is_file() and Path(points_parquet).is_file() and n:
+    if sample is None and block_path and points_parquet and Path(block_path).is_file() and Path(points_parquet).is_file():
         from service.report import sample_points
 
-        xy, tree_id, _ = sample_points(block_path, points_parquet, max_points=max_points)
-        outlines = footprints(xy - origin, tree_id, np.asarray(cols["tree_id"]))
+        xy, tree_id, block_origin = sample_points(block_path, points_parquet, max_points=max_points)
+        sample = (xy + block_origin[:2], tree_id)
+    if sample is not None and n:
+        outlines = footprints(sample[0] - origin, sample[1], np.asarray(cols["tree_id"]))
     folder = trees_parquet.parent
     return {
         "origin": origin.tolist(),
@@ -185,4 +193,5 @@ def build_map_data(
 
 def to_json(data: dict[str, Any]) -> str:
     """Compact JSON safe to put inside an HTML ``<script>`` element."""
-    return json.dumps(data, separators=(",", ":"), allow_nan=False).replace("</", "<\\/")
+    # no "<" at all: "</script" would end the element, "<!--" would change how it is parsed
+    return json.dumps(data, separators=(",", ":"), allow_nan=False).replace("<", "\\u003c")

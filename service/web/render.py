@@ -136,7 +136,7 @@ def job_page(*, job_id: str, tenant_name: str, csrf: str) -> str:
 def _js_string(text: str) -> str:
     import json
 
-    return json.dumps(text).replace("</", "<\\/")
+    return json.dumps(text).replace("<", "\\u003c")
 
 
 def report_page(*, title: str, data_json: str, facts: dict[str, str], downloads: dict[str, str],
@@ -149,7 +149,7 @@ def report_page(*, title: str, data_json: str, facts: dict[str, str], downloads:
     """
     import json
 
-    cfg = json.dumps({"title": title, "facts": facts, "downloads": downloads, "warning": warning}).replace("</", "<\\/")
+    cfg = json.dumps({"title": title, "facts": facts, "downloads": downloads, "warning": warning}).replace("<", "\\u003c")
     return (
         _head(title, _JOB_STYLES, inline=True)
         + "<body>"

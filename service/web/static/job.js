@@ -177,6 +177,7 @@
       if (shape) {
         shape.setStyle({ color: "#e8590c", weight: 3 });
         shape.bringToFront();
+        if (this.trunks[i]) this.trunks[i].bringToFront();
         if (pan) this.map.setView(shape.getBounds ? shape.getBounds().getCenter() : [this.d.y[i], this.d.x[i]], Math.max(this.map.getZoom(), 3));
       }
       const box = document.getElementById("details");
@@ -225,8 +226,9 @@
       if (c.young) facts.push(["Young trees", O.fmt(vals("young").filter((v) => v).length)]);
       if (this.d.gaps) facts.push(["Empty slots", O.fmt(this.d.gaps.length)]);
       if (this.d.rows) facts.push(["Rows", O.fmt(this.d.rows.length)]);
-      for (const [k, v] of Object.entries(this.opts.facts || {})) facts.unshift([k, v]);
-      document.getElementById("blocksummary").replaceChildren(...facts.flatMap(([k, v]) => [el("dt", { text: k }), el("dd", { text: v })]));
+      const given = Object.entries(this.opts.facts || {});
+      const all = given.concat(facts.filter(([k]) => !given.some(([g]) => g === k)));
+      document.getElementById("blocksummary").replaceChildren(...all.flatMap(([k, v]) => [el("dt", { text: k }), el("dd", { text: v })]));
       if (!c.row) return;
       const groups = new Map();
       c.row.forEach((r, i) => { if (r === null) return; if (!groups.has(r)) groups.set(r, []); groups.get(r).push(i); });
