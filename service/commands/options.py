@@ -32,6 +32,8 @@ def add_pipeline_options(parser: argparse.ArgumentParser) -> None:
             kwargs: dict = {"dest": f"p__{group}__{field_name}", "default": None}
             if typing.get_origin(ann) is typing.Literal:
                 kwargs["choices"] = list(typing.get_args(ann))
+            elif ann is bool:
+                kwargs["action"] = argparse.BooleanOptionalAction
             elif ann in (int, float):
                 kwargs["type"] = ann
                 kwargs["metavar"] = metavar(ann, field.description)

@@ -51,6 +51,7 @@ def test_tiling_invariance_on_a_40_tree_block(orchard_block, tmp_path):
     dist = np.hypot(a["trunk_x"] - b["trunk_x"], a["trunk_y"] - b["trunk_y"])
     assert dist.max() <= 0.05
     assert np.abs(a["height_m"] - b["height_m"]).max() <= 0.1
+    assert a["row"].tolist() == b["row"].tolist() and a["position"].tolist() == b["position"].tolist()
     pa, pb = _points(tmp_path / "single"), _points(tmp_path / "tiled")
     assert np.array_equal(pa["point_index"], np.arange(single.n_points))
     assert np.array_equal(pb["point_index"], pa["point_index"])
@@ -71,14 +72,41 @@ def test_ids_do_not_depend_on_tiling(small_block, tmp_path):
         assert np.hypot(r.trees["trunk_x"] - ref["trunk_x"], r.trees["trunk_y"] - ref["trunk_y"]).max() < 0.05
     pa, pc = _points(tmp_path / "a"), _points(tmp_path / "c")
     assert v_measure(np.asarray(pa["tree_id"]), np.asarray(pc["tree_id"])) >= 0.99
+    for r in runs[1:]:  # addresses too, and the row and gap tables
+        for col in ("row", "position", "young"):
+            assert r.trees[col].tolist() == ref[col].tolist()
+    for name in ("rows.parquet", "gaps.parquet"):
+        a = pq.read_table(tmp_path / "a" / name).drop(["geometry"]).to_pydict()
+        for other in ("b", "c"):
+            b = pq.read_table(tmp_path / other / name).drop(["geometry"]).to_pydict()
+            assert a.keys() == b.keys()
+            for k in a:
+                np.testing.assert_allclose(np.asarray(a[k], dtype=float), np.asarray(b[k], dtype=float), atol=0.05)
+
+
+def test_rows_can_be_switched_off(small_block, tmp_path):
+    out = tmp_path / "out"
+    outcome = run_job(JobSpec(str(small_block), str(out), params=PipelineParams(rows={"enabled": False})))
+    assert sorted(p.name for p in out.iterdir()) == ["points.parquet", "trees.parquet"]
+    assert "row" not in outcome.trees
 
 
 def test_outputs_contract(small_block, tmp_path):
     out = tmp_path / "out"
     outcome = run_job(JobSpec(str(small_block), str(out), labelled_laz=True))
-    assert sorted(p.name for p in out.iterdir()) == ["labelled.laz", "points.parquet", "trees.parquet"]
+    assert sorted(p.name for p in out.iterdir()) == ["gaps.parquet", "labelled.laz", "points.parquet", "rows.parquet", "trees.parquet"]
     trees = _trees(out)
     assert trees.schema.field("tree_id").type == "int64" and trees.schema.field("n_points").type == "int64"
+    assert [str(trees.schema.field(n).type) for n in ("row", "position", "young")] == ["int32", "int32", "bool"]
+    # 2 rows of 4 trees: numbered from the south, positions from the west
+    t = trees.to_pydict()
+    order = np.lexsort((t["trunk_x"], np.round(np.asarray(t["trunk_y"]) / 6.0)))  # rows 6 m apart
+    assert np.asarray(t["row"])[order].tolist() == [1] * 4 + [2] * 4
+    assert np.asarray(t["position"])[order].tolist() == [1, 2, 3, 4] * 2
+    rows = pq.read_table(out / "rows.parquet")
+    assert rows.column("n_trees").to_pylist() == [4, 4] and rows.column("n_gaps").to_pylist() == [0, 0]
+    assert json.loads(rows.schema.metadata[b"geo"])["columns"]["geometry"]["geometry_types"] == ["LineString"]
+    assert pq.read_table(out / "gaps.parquet").num_rows == 0
     geo = json.loads(trees.schema.metadata[b"geo"])
     assert pyproj.CRS.from_json_dict(geo["columns"]["geometry"]["crs"]).to_epsg() == 28356
     points = pq.read_table(out / "points.parquet")
