@@ -1,0 +1,135 @@
+"""Browser sign-in over HTTP against a real server: the cookie's flags, CSRF, sign-out,
+other farms' jobs, and the offline API docs (the browser itself: test_web_browser.py)."""
+
+from __future__ import annotations
+
+import re
+
+import httpx
+import pytest
+from service_fixtures import make_token
+
+
+@pytest.fixture(scope="module")
+def tokens(api_server):
+    """Farms of their own: the jobs these tests make are in no other test's listings."""
+    return {"a": make_token(api_server.data_dir, "web-a"), "b": make_token(api_server.data_dir, "web-b")}
+
+
+@pytest.fixture(scope="module")
+def queued_jobs(api_server, tokens, small_las):
+    """A queued job of each farm (the server's runner is off)."""
+    out = {}
+    for farm in ("a", "b"):
+        with httpx.Client(base_url=api_server.url, headers={"Authorization": f"Bearer {tokens[farm]}"}, timeout=30) as c:
+            block = c.post("/v1/blocks", files={"file": ("small.laz", small_las.read_bytes())}).json()
+            out[farm] = c.post("/v1/jobs", json={"block_id": block["id"]}).json()
+    return out
+
+
+def _browser(api_server) -> httpx.Client:
+    return httpx.Client(base_url=api_server.url, timeout=30, follow_redirects=False)
+
+
+def _sign_in(c: httpx.Client, token: str, **headers) -> httpx.Response:
+    return c.post("/signin", data={"token": token, "next": "/blocks"}, headers=headers)
+
+
+def _csrf(c: httpx.Client) -> str:
+    page = c.get("/blocks")
+    assert page.status_code == 200
+    return re.search(r'<meta name="csrf-token" content="([^"]+)">', page.text).group(1)
+
+
+def test_sign_in_sets_a_strict_httponly_expiring_cookie(api_server, tokens):
+    with _browser(api_server) as c:
+        assert c.get("/").headers["location"] == "/blocks"
+        to_signin = c.get("/blocks")
+        assert to_signin.status_code == 303 and to_signin.headers["location"].startswith("/signin")
+        form = c.get("/signin")
+        assert form.status_code == 200 and 'method="post"' in form.text and form.headers["cache-control"] == "no-store"
+        resp = _sign_in(c, tokens["a"])
+        assert resp.status_code == 303 and resp.headers["location"] == "/blocks"
+        cookie = resp.headers["set-cookie"].lower()
+        assert "httponly" in cookie and "samesite=strict" in cookie and "max-age=43200" in cookie and "path=/" in cookie
+        assert tokens["a"] not in resp.headers["set-cookie"] and tokens["a"] not in resp.headers["location"]
+        assert c.get("/v1/jobs").status_code == 200  # the API with the cookie alone
+    assert tokens["a"] not in api_server.log()  # nor in the server's log
+
+
+def test_a_wrong_token_is_refused_and_no_cookie_is_set(api_server, tokens):
+    with _browser(api_server) as c:
+        resp = _sign_in(c, tokens["a"] + "x")
+        assert resp.status_code == 401 and "set-cookie" not in resp.headers and "not known" in resp.text
+        assert c.get("/v1/jobs").status_code == 401
+
+
+def test_sign_in_from_another_site_is_refused(api_server, tokens):
+    with _browser(api_server) as c:
+        resp = _sign_in(c, tokens["a"], Origin="https://evil.example")
+        assert resp.status_code == 403 and "set-cookie" not in resp.headers
+
+
+def test_next_stays_on_this_server(api_server, tokens):
+    with _browser(api_server) as c:
+        resp = c.post("/signin", data={"token": tokens["a"], "next": "//evil.example/x"})
+        assert resp.headers["location"] == "/blocks"
+
+
+def test_changes_with_the_cookie_need_the_csrf_token(api_server, tokens, queued_jobs):
+    job_id = queued_jobs["a"]["id"]
+    with _browser(api_server) as c:
+        _sign_in(c, tokens["a"])
+        csrf = _csrf(c)
+        assert c.delete(f"/v1/jobs/{job_id}").status_code == 403  # a forged form or script
+        assert c.delete(f"/v1/jobs/{job_id}", headers={"X-CSRF-Token": "wrong"}).status_code == 403
+        foreign = {"X-CSRF-Token": csrf, "Origin": "https://evil.example"}
+        assert c.delete(f"/v1/jobs/{job_id}", headers=foreign).status_code == 403
+        assert c.get(f"/v1/jobs/{job_id}").json()["state"] == "queued"  # nothing changed
+        ok = c.delete(f"/v1/jobs/{job_id}", headers={"X-CSRF-Token": csrf, "Origin": api_server.url})
+        assert ok.status_code == 202 and ok.json()["cancel_requested"]
+
+
+def test_bearer_requests_need_no_csrf_token(api_server, tokens, queued_jobs):
+    with httpx.Client(base_url=api_server.url, headers={"Authorization": f"Bearer {tokens['a']}"}, timeout=30) as c:
+        resp = c.post("/v1/jobs", json={"block_id": queued_jobs["a"]["block_id"]})
+    assert resp.status_code == 201
+    assert set(resp.json()["links"]) == {"self", "page"} and resp.json()["links"]["page"] == f"/jobs/{resp.json()['id']}"
+
+
+def test_sign_out_ends_the_session_on_the_server(api_server, tokens):
+    with _browser(api_server) as c:
+        _sign_in(c, tokens["a"])
+        csrf = _csrf(c)
+        cookie = c.cookies.get("orchard_session")
+        assert c.post("/signout", data={"csrf": "wrong"}).status_code == 403
+        out = c.post("/signout", data={"csrf": csrf})
+        assert out.status_code == 303 and out.headers["location"] == "/signin"
+        assert 'orchard_session=""' in out.headers["set-cookie"] or "max-age=0" in out.headers["set-cookie"].lower()
+    with _browser(api_server) as replay:  # the old cookie, kept by someone: no longer valid
+        replay.cookies.set("orchard_session", cookie)
+        assert replay.get("/v1/jobs").status_code == 401
+        assert replay.get("/blocks").status_code == 303
+
+
+def test_another_farms_job_page_is_404(api_server, tokens, queued_jobs):
+    with _browser(api_server) as c:
+        _sign_in(c, tokens["a"])
+        assert c.get(f"/jobs/{queued_jobs['a']['id']}").status_code == 200
+        other = c.get(f"/jobs/{queued_jobs['b']['id']}")
+        assert other.status_code == 404 and "No such job" in other.text
+        assert c.get(f"/web/jobs/{queued_jobs['b']['id']}/map.json").status_code == 404
+        assert c.get(f"/web/jobs/{queued_jobs['a']['id']}/map.json").status_code == 409  # not done yet
+
+
+@pytest.mark.parametrize("path", ["/docs", "/redoc"])
+def test_api_docs_load_only_files_of_this_server(api_server, path):
+    page = httpx.get(api_server.url + path, timeout=30)
+    assert page.status_code == 200
+    urls = re.findall(r'(?:src|href)\s*=\s*["\']([^"\']+)', page.text) + re.findall(r"url:\s*'([^']+)'", page.text)
+    assert urls and all(u.startswith("/") and not u.startswith("//") for u in urls), urls
+    for url in urls:
+        assert httpx.get(api_server.url + url, timeout=30).status_code == 200, url
+    if path == "/redoc":
+        script = httpx.get(api_server.url + "/redoc/redoc.standalone.js", timeout=30).text
+        assert "cdn.redoc.ly" not in script
