@@ -87,6 +87,7 @@ CREATE INDEX IF NOT EXISTS jobs_by_state ON jobs(state, created_at);
 CREATE INDEX IF NOT EXISTS jobs_by_tenant ON jobs(tenant_id, created_at);
 CREATE INDEX IF NOT EXISTS jobs_by_block ON jobs(block_id);
 CREATE INDEX IF NOT EXISTS jobs_by_tenant_started ON jobs(tenant_id, started_at);
+CREATE INDEX IF NOT EXISTS jobs_by_tenant_state ON jobs(tenant_id, state, created_at);
 CREATE TABLE IF NOT EXISTS tenant_quotas (
     tenant_id TEXT PRIMARY KEY REFERENCES tenants(id),
     storage_bytes INTEGER,
@@ -426,7 +427,7 @@ class Store:
                 "WITH ready AS (SELECT tenant_id, MIN(created_at) AS oldest FROM jobs "
                 "  WHERE state = 'queued' AND (retry_at IS NULL OR retry_at <= :now) GROUP BY tenant_id), "
                 "pick AS (SELECT r.tenant_id FROM ready r ORDER BY "
-                "  (SELECT COUNT(*) FROM jobs x WHERE x.state = 'running' AND x.tenant_id = r.tenant_id), "
+                "  (SELECT COUNT(*) FROM jobs x WHERE x.tenant_id = r.tenant_id AND x.state = 'running'), "
                 "  COALESCE((SELECT MAX(x.started_at) FROM jobs x WHERE x.tenant_id = r.tenant_id), 0), "
                 "  r.oldest, r.tenant_id LIMIT 1) "
                 "SELECT id FROM jobs WHERE tenant_id = (SELECT tenant_id FROM pick) AND state = 'queued' "
