@@ -5,11 +5,12 @@ hard in the ways real mobile captures are hard:
 
 - rows of trees along x with jittered positions, on sloping, gently undulating ground
   with patchy grass and a few points below the ground;
-- trees with a real branching structure: a slightly leaning trunk that branches low
-  (0.4-0.9 m), 3-5 scaffolds and 3 recursive sub-levels tapering to ~1 cm twigs that
-  reach a crown envelope wide enough for neighbouring crowns to overlap; leaf clusters
-  (small discs) fill mostly the outer shell of the crown; optionally drooping branches
-  whose leaves hang down to 0.2-0.5 m above the ground (``low_foliage``);
+- trees with a real branching structure (:mod:`pipeline.simforms`): open-centre vase
+  trees whose crowns overlap their neighbours', tall-spindle apples (a thin leader with
+  short laterals along the row) or a hedgerow wall of olive/almond trees; optionally
+  drooping branches whose leaves hang down to 0.2-0.5 m above the ground (``low_foliage``);
+- a planting layout (:mod:`pipeline.simlayout`): empty slots, young replants, rows of
+  different length, rows bowed sideways and the whole block rotated;
 - sampled as a mobile scanner driving every alley sees it: point density falls with
   range (1/r^2) and with the cosine of incidence, only surfaces facing the sensor are
   seen, and leaves occlude what lies behind them (Beer-Lambert attenuation through a
@@ -22,8 +23,10 @@ hard in the ways real mobile captures are hard:
 Everything is deterministic for a seed. Blocks are generated tree by tree
 (:func:`iter_simulation`), so memory stays bounded whatever the block size.
 
-All lengths are metres. The local frame has the first tree of the first row at the
-origin; absolute coordinates add ``(easting, northing, elevation)``.
+All lengths are metres. The local frame has the first slot of the first row at the
+origin; absolute coordinates add ``(easting, northing, elevation)``. The block is built in
+a straight frame (rows along x) and mapped to the local frame by :func:`simlayout.place`
+as each chunk is finished. The truth file's contract is in ``docs/simulator.md``.
 """
 
 from __future__ import annotations
@@ -37,7 +40,7 @@ import numpy as np
 from pydantic import BaseModel, ConfigDict, Field, model_validator
 from scipy.special import ndtri
 
-from pipeline.simforms import _Tree, _perpendicular, _unit, grow_tree
+from pipeline.simforms import _perpendicular, _unit, grow_tree
 from pipeline.simlayout import Layout, make_layout, place, unplace_xy, young_scale
 
 KIND = ("ground", "grass", "wood", "leaf", "post", "vehicle", "outlier", "twig")

@@ -81,8 +81,8 @@ def run(args: argparse.Namespace) -> int:
 
     summary = write_simulation(params, args.out, args.truth)
     print(
-        f"wrote {summary['n_points']:,} points, {summary['n_trees']} trees "
-        f"({params.rows} rows x {params.trees_per_row}, EPSG:{summary['crs_epsg']}, seed {params.seed}) "
+        f"wrote {summary['n_points']:,} points, {summary['n_trees']} {params.form} trees "
+        f"({params.rows} rows x {params.trees_per_row} slots, EPSG:{summary['crs_epsg']}, seed {params.seed}) "
         f"to {args.out}; truth in {args.truth}"
     )
     return 0

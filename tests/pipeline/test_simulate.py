@@ -492,15 +492,13 @@ def test_missing_trees_and_replants_are_counted_exactly(gappy):
 
 def test_empty_slots_sit_on_the_grid_between_their_neighbours(gappy):
     for r, s, x, y in gappy.empty_slots:
-        row = (gappy.tree_row == r)
-        before = gappy.trunks[row & (gappy.tree_slot == s - 1)]
-        after = gappy.trunks[row & (gappy.tree_slot == s + 1)]
-        expect = gappy.trunks[0, :2] + [0, 0]  # any neighbour pair brackets the slot centre
-        for nb, sign in ((before, -1), (after, 1)):
+        assert x == pytest.approx(LAYOUT.easting + (s - 1) * LAYOUT.spacing)  # no ragged rows: slot 1 at x = 0
+        assert y == pytest.approx(LAYOUT.northing + (r - 1) * LAYOUT.row_spacing)
+        row = gappy.tree_row == r
+        for step in (-1, 1):  # a neighbour one slot away, when that slot holds a tree (jitter 0.04 m)
+            nb = gappy.trunks[row & (gappy.tree_slot == s + step)]
             if len(nb):
-                assert abs((nb[0, 0] - x) - sign * LAYOUT.spacing) < 0.6
-                assert abs(nb[0, 1] - y) < 0.6
-        assert expect.shape == (2,)
+                assert np.hypot(nb[0, 0] - x - step * LAYOUT.spacing, nb[0, 1] - y) < 0.2
 
 
 def test_replants_are_much_smaller_than_their_neighbours(gappy):
@@ -523,14 +521,14 @@ def test_other_trees_stay_when_a_slot_is_emptied(gappy):
 def test_ragged_rows_lose_up_to_three_slots_at_either_end():
     from pipeline.simlayout import make_layout
 
-    p = SimulationParams(rows=4, trees_per_row=12, spacing=1.2, form="hedge", ragged_rows=True, seed=3,
+    p = SimulationParams(rows=4, trees_per_row=8, spacing=1.2, form="hedge", ragged_rows=True, seed=3,
                          density=0.02, posts=False, vehicle=False, bin=False)
     o = simulate_orchard(p)
     lengths = set()
     for r in range(1, 5):
         slots = o.tree_slot[o.tree_row == r]
         assert slots[0] == 1 and np.array_equal(slots, np.arange(1, len(slots) + 1))
-        assert 6 <= len(slots) <= 12
+        assert 2 <= len(slots) <= 8
         lengths.add(len(slots))
         # the first tree stands 0-3 slots from the grid's first slot
         x0 = o.trunks[o.tree_row == r][0, 0] - p.easting
@@ -542,7 +540,7 @@ def test_ragged_rows_lose_up_to_three_slots_at_either_end():
         for r in range(4):
             planted = lay.col[(lay.row == r) & lay.planted]
             assert np.array_equal(planted, np.arange(planted[0], planted[-1] + 1))
-            cuts |= {int(planted[0]), int(11 - planted[-1])}
+            cuts |= {int(planted[0]), int(p.trees_per_row - 1 - planted[-1])}
     assert cuts == {0, 1, 2, 3}
 
 
