@@ -215,6 +215,7 @@ class Runner(threading.Thread):
             threads_per_worker=self.settings.threads_per_worker,
             dashboard=self.settings.dashboard,
             timeout=f"{self.settings.scheduler_timeout_s}s",
+            host=self.settings.dask_host,
         )
 
     def _get_client(self):
@@ -231,7 +232,7 @@ class Runner(threading.Thread):
                 client = self._client_factory()
             except Exception as exc:  # noqa: BLE001 - becomes the job's error; the next job tries again
                 self._unreachable = True
-                why = _short(exc, 200).replace("or fix --scheduler", "or fix ORCHARD_SCHEDULER")
+                why = _short(exc, 600).replace("or fix --scheduler", "or fix ORCHARD_SCHEDULER")
                 raise ClusterUnavailable(f"cannot start or reach the dask cluster ({where}): {why}") from exc
             self._client = client
             self._unreachable = False

@@ -33,6 +33,11 @@ class Settings(BaseSettings):
     n_workers: int = Field(2, ge=1, le=256, description="workers of the embedded LocalCluster")
     threads_per_worker: int = Field(1, ge=1, le=64, description="threads per worker of the embedded LocalCluster")
     dashboard: bool = Field(False, description="start the dask dashboard of the embedded LocalCluster")
+    dask_host: str = Field(
+        "127.0.0.1", min_length=1,
+        description="address the embedded LocalCluster's scheduler, workers and dashboard listen on "
+        "(none asks for a login; 0.0.0.0 exposes them on every interface)",
+    )
     work_dir: str | None = Field(
         None, description="work store for tiles (folder or fsspec URL such as s3://bucket/orchard); a job uses <work_dir>/<job id>; unset = data_dir/jobs/<id>/_work"
     )

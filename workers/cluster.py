@@ -3,8 +3,11 @@
 from __future__ import annotations
 
 import logging
+import re
 import signal
+import socket
 import threading
+from concurrent.futures import ThreadPoolExecutor
 from contextlib import contextmanager
 from multiprocessing import resource_tracker
 
@@ -12,6 +15,45 @@ from dask.utils import parse_timedelta
 from distributed import Client, LocalCluster
 
 from pipeline.errors import ParameterError
+from workers.identity import DISTRIBUTION, identity
+
+log = logging.getLogger(__name__)
+
+#: Where an embedded cluster listens unless told otherwise: its scheduler, nannies,
+#: workers and dashboard answer anyone who can reach them, without a login.
+LOOPBACK = "127.0.0.1"
+#: Workers of an external cluster named in a :class:`WorkersUnfit` message (the rest are counted).
+MAX_NAMED_WORKERS = 3
+
+
+class WorkersUnfit(ParameterError):
+    """Workers of an external dask cluster that cannot run this process's tasks.
+
+    Attributes
+    ----------
+    scheduler : str
+        The cluster's scheduler address.
+    problems : dict[str, str]
+        Worker address -> what is wrong there (cannot import the project, another
+        version, other pipeline parameters).
+    n_workers : int
+        Workers checked.
+    expected : dict
+        This process's :func:`workers.identity.identity`.
+    """
+
+    def __init__(self, scheduler: str, problems: dict[str, str], n_workers: int, expected: dict):
+        self.scheduler, self.problems, self.n_workers, self.expected = scheduler, problems, n_workers, expected
+        named = [f"{address} {what}" for address, what in list(problems.items())[:MAX_NAMED_WORKERS]]
+        more = len(problems) - len(named)
+        version = expected.get("version") or "(this checkout)"
+        super().__init__(
+            f"{len(problems)} of {n_workers} dask worker(s) of {scheduler} cannot run orchard tiles: "
+            + "; ".join(named) + (f"; and {more} more" if more else "")
+            + f". Install {DISTRIBUTION} {version}, the release or checkout this process runs "
+            f"({expected.get('python')} on {expected.get('host')}), into the Python of each of those workers, "
+            "then restart them"
+        )
 
 
 def _check_answers(address: str, seconds: float) -> None:
@@ -43,6 +85,7 @@ def make_client(
     memory_limit: str | float | None = "auto",
     timeout: str = "20s",
     quiet: bool = False,
+    host: str = LOOPBACK,
 ) -> Client:
     """A dask client.
 
@@ -55,25 +98,32 @@ def make_client(
         Size of the embedded cluster (one thread per worker: the pipeline's kernels
         are numpy/scipy bound and a tile's memory is per worker).
     dashboard : bool
-        Serve the dashboard on a free port (``client.dashboard_link`` tells where).
+        Embedded cluster only: serve the dashboard on a free port of ``host``
+        (``client.dashboard_link`` tells where); False starts no HTTP server at all.
     processes : bool
         Worker processes (True) or threads of this process (False; needed for a
         ``memory://`` work store).
     timeout : str
-        How long to try to reach ``scheduler``.
+        How long to try to reach ``scheduler``, and for each of its workers to answer
+        :func:`check_workers`.
     quiet : bool
         Embedded cluster only: its workers print nothing (a failing tile is reported once,
         by the job, instead of as a worker traceback per attempt).
+    host : str
+        Embedded cluster only: the address its scheduler, nannies, workers and
+        dashboard listen on (loopback by default: none of them asks for a login).
 
     Raises
     ------
     ParameterError
-        The scheduler cannot be reached.
+        The scheduler cannot be reached, or ``host`` is not an address of this machine.
+    WorkersUnfit
+        A worker of ``scheduler``'s cluster cannot run this process's tasks.
     """
     if scheduler:
         try:
             _check_answers(scheduler, parse_timedelta(timeout))
-            return Client(scheduler, timeout=timeout)
+            client = Client(scheduler, timeout=timeout)
         except TimeoutError:
             raise ParameterError(
                 f"no dask scheduler answered at {scheduler} within {parse_timedelta(timeout):g} s (TimeoutError); "
@@ -85,21 +135,134 @@ def make_client(
                 f"cannot reach the dask scheduler at {scheduler} ({type(exc).__name__}); "
                 "start one with `dask scheduler` or fix --scheduler"
             ) from None
+        try:
+            check_workers(client, scheduler=scheduler, seconds=parse_timedelta(timeout))
+        except BaseException:
+            client.close()
+            raise
+        return client
+    _check_host(host)
     with _workers_ignore_interrupt():
         cluster = LocalCluster(
             n_workers=int(n_workers),
             threads_per_worker=int(threads_per_worker),
             processes=processes,
-            # the scheduler's HTTP server runs either way; on a free port, so that a second
-            # cluster (or anything else on 8787) is no cause for a warning
-            dashboard_address=":0",
+            host=host if processes else None,  # in-process workers talk over inproc://, no network
+            # the scheduler's HTTP server starts even without a dashboard (None means 8787):
+            # on a free port of ``host`` (a bare ":0" would mean every interface)
+            dashboard_address=f"{_bracketed(host)}:0",
+            scheduler_kwargs={"dashboard": dashboard},
             memory_limit=memory_limit,
             silence_logs=logging.CRITICAL if quiet else logging.WARNING,
             preload=[__name__] if processes else None,  # dask_setup below, in each worker
         )
+    # distributed starts an HTTP server (metrics, health, task and worker details) in the
+    # scheduler even without a dashboard, and one in each worker: none is needed here
+    cluster.sync(_stop_http_servers, [cluster.scheduler, *cluster.workers.values()] if not dashboard
+                 else list(cluster.workers.values()))
     client = Client(cluster)
-    client.orchard_dashboard = dashboard  # the HTTP server runs anyway; remember whether it serves the dashboard
+    client.orchard_dashboard = dashboard
+    client.orchard_host = host
     return client
+
+
+def _bracketed(host: str) -> str:
+    return f"[{host}]" if ":" in host else host
+
+
+def _check_host(host: str) -> None:
+    """ParameterError unless this machine can listen on ``host``."""
+    try:
+        family, _, _, _, address = socket.getaddrinfo(host, 0, type=socket.SOCK_STREAM)[0]
+        with socket.socket(family, socket.SOCK_STREAM) as sock:
+            sock.bind(address)
+    except (OSError, UnicodeError) as exc:
+        raise ParameterError(
+            f"the embedded dask cluster cannot listen on {host!r} ({getattr(exc, 'strerror', None) or exc}); "
+            f"give an address of this machine: {LOOPBACK} (the default) for this machine alone, 0.0.0.0 for every interface"
+        ) from None
+
+
+def _stop_http(server) -> None:
+    """Stop the HTTP server of a dask scheduler or worker (on its event loop) and stop
+    advertising it."""
+    http = getattr(server, "http_server", None)
+    if http is not None:
+        http.stop()
+        server.services.pop("dashboard", None)
+
+
+async def _stop_http_servers(servers: list) -> None:
+    for server in servers:  # nannies have none; in-process workers (processes=False) do
+        _stop_http(server)
+
+
+def expected_identity() -> dict:
+    """What every worker's :func:`workers.identity.identity` must match: this process's."""
+    return identity()
+
+
+def check_workers(client: Client, *, scheduler: str = "", expected: dict | None = None, seconds: float = 20.0) -> None:
+    """Make sure every worker of ``client``'s cluster can run this process's tasks.
+
+    Each worker runs :func:`workers.identity.identity` (``Client.run``, at most
+    ``seconds`` [s] each, all at once): the project must import there, in the version
+    and with the pipeline parameters of this process (``expected``, by default
+    :func:`expected_identity`). A worker missing the project died at its first task and
+    left the job waiting for workers; this says so before any task is sent. A worker
+    that does not answer in time is logged, not refused (a busy event loop is no proof).
+
+    Raises
+    ------
+    WorkersUnfit
+        Names each unfit worker and what it lacks.
+    """
+    expected = expected_identity() if expected is None else expected
+    addresses = sorted(client.ncores())
+    if not addresses:
+        return  # nothing to check yet: the job waits for workers (and says so if none come)
+
+    def ask(address: str):
+        try:
+            return client.run(identity, workers=[address], on_error="return", callback_timeout=seconds).get(address)
+        except TimeoutError:
+            return None
+        except Exception as exc:  # noqa: BLE001 - e.g. the worker left meanwhile
+            return exc
+
+    with ThreadPoolExecutor(max_workers=min(16, len(addresses))) as pool:
+        answers = dict(zip(addresses, pool.map(ask, addresses)))
+    problems = {}
+    for address, answer in answers.items():
+        if answer is None:
+            log.warning("dask worker %s did not answer a check within %g s", address, seconds)
+            continue
+        what = _unfit(answer, expected)
+        if what:
+            problems[address] = what
+    if problems:
+        raise WorkersUnfit(scheduler or str(client.scheduler.address), problems, len(addresses), expected)
+
+
+def _unfit(answer, expected: dict) -> str | None:
+    """What keeps a worker whose :func:`identity` is ``answer`` from running this
+    process's tasks, or None."""
+    if isinstance(answer, BaseException):  # it could not even load workers.identity
+        text = f"{type(answer).__name__}: {answer}"
+        # distributed may hand back the worker's exception as Exception('ModuleNotFoundError("...")')
+        repr_ = re.fullmatch(r"""(\w+)\((['"])(.*)\2\)""", str(answer)) if type(answer) is Exception else None
+        if repr_:
+            text = f"{repr_[1]}: {repr_[3]}"
+        return f"cannot import the project ({text})"
+    where = f"({answer.get('python')} on {answer.get('host')})"
+    if answer.get("error"):
+        return f"{where} cannot import the project ({answer['error']})"
+    if answer.get("version") != expected.get("version"):
+        return f"{where} has {DISTRIBUTION} {answer.get('version') or '(not installed)'}, not {expected.get('version')}"
+    if answer.get("schema") != expected.get("schema"):
+        return (f"{where} has {DISTRIBUTION} {answer.get('version')} with other pipeline parameters "
+                "(another revision of the code)")
+    return None
 
 
 class _ClosingNoise(logging.Filter):
@@ -112,8 +275,10 @@ class _ClosingNoise(logging.Filter):
 
 
 def dask_setup(worker) -> None:
-    """Preload hook of the embedded cluster's workers (dask calls it at worker start)."""
+    """Preload hook of the embedded cluster's workers (dask calls it at worker start,
+    on its event loop, before it registers with the scheduler)."""
     logging.getLogger("distributed.worker.state_machine").addFilter(_ClosingNoise())
+    _stop_http(worker)  # also in a worker the nanny restarts
 
 
 @contextmanager
@@ -178,6 +343,9 @@ def dashboard_address(client: Client) -> str | None:
         return None
     if not port:
         return None
+    host = getattr(client, "orchard_host", None)
+    if host and host not in ("0.0.0.0", "::"):  # where it listens (an in-process cluster's link names another address)
+        return f"http://{_bracketed(host)}:{port}/status"
     try:
         return client.dashboard_link
     except Exception:

@@ -773,7 +773,8 @@ def _completed(client, futures: dict, cancel, store: WorkStore):
                         last_worker_seen = now
                     elif now - last_worker_seen > NO_WORKER_TIMEOUT:
                         raise ClusterLost(
-                            f"no dask worker for {NO_WORKER_TIMEOUT:.0f} s with {len(pending)} tiles to go",
+                            f"no dask worker for {NO_WORKER_TIMEOUT:.0f} s (they died or left; their logs say why) "
+                            f"with {len(pending)} tiles to go",
                             hint=f"; start workers and resume with --work {store.url} --resume",
                         ) from None
                 continue

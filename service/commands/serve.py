@@ -22,6 +22,10 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         help="dask scheduler address tcp://HOST:PORT (default: an embedded LocalCluster; env ORCHARD_SCHEDULER)",
     )
     parser.add_argument("--workers", type=int, default=None, help="workers of the embedded LocalCluster (default 2; env ORCHARD_N_WORKERS)")
+    parser.add_argument("--dashboard", action="store_true", default=None,
+                        help="serve the embedded LocalCluster's dask dashboard (default off; env ORCHARD_DASHBOARD)")
+    parser.add_argument("--dask-host", default=None, metavar="HOST",
+                        help="address the embedded LocalCluster and its dashboard listen on (default 127.0.0.1; env ORCHARD_DASK_HOST)")
     parser.add_argument("--max-upload-mb", type=float, default=None, help="largest accepted upload [MB] (env ORCHARD_MAX_UPLOAD_MB)")
     parser.add_argument("--log-level", default="info", choices=["debug", "info", "warning", "error"], help="server log level")
 
@@ -63,6 +67,8 @@ def run(args: argparse.Namespace) -> int:
         data_dir=args.data_dir,
         scheduler=args.scheduler,
         n_workers=args.workers,
+        dashboard=args.dashboard,
+        dask_host=args.dask_host,
         max_upload_mb=args.max_upload_mb,
     )
     logging.basicConfig(level=args.log_level.upper(), format="%(asctime)s %(levelname)s %(name)s: %(message)s")
