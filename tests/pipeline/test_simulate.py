@@ -4,6 +4,8 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
+from hypothesis import given, settings
+from hypothesis import strategies as st
 from pydantic import ValidationError
 from scipy.spatial import cKDTree
 
@@ -649,3 +651,50 @@ def test_the_cli_takes_the_new_options():
         "hedge", 0.8, 0.1, 0.05, -20.0, 0.5, True)
     with pytest.raises(SystemExit):
         parser.parse_args(["--out", "b.laz", "--truth", "t.parquet", "--form", "pyramid"])
+
+
+_layouts = dict(
+    rows=st.integers(1, 6), trees_per_row=st.integers(1, 15), missing=st.floats(0.0, 0.5),
+    replants=st.floats(0.0, 0.5), ragged_rows=st.booleans(), seed=st.integers(0, 2**32 - 1),
+)
+
+
+@settings(max_examples=150, deadline=None)
+@given(**_layouts)
+def test_every_slot_is_a_tree_an_empty_slot_or_off_the_row(**kw):
+    from pipeline.simlayout import make_layout
+
+    p = SimulationParams(**kw)
+    lay = make_layout(p)
+    n = p.rows * p.trees_per_row
+    assert not (lay.present & ~lay.planted).any() and not (lay.young & ~lay.present).any()
+    for r in range(p.rows):
+        planted = np.flatnonzero(lay.planted & (lay.row == r))
+        assert len(planted) >= min(2, p.trees_per_row)
+        assert np.array_equal(np.diff(planted), np.ones(len(planted) - 1))  # one unbroken run
+        assert lay.present[planted[0]] and lay.present[planted[-1]]  # rows end in trees
+        assert np.array_equal(lay.position[planted], np.arange(1, len(planted) + 1))
+        if not p.ragged_rows:
+            assert len(planted) == p.trees_per_row
+    inner = sum(max(np.count_nonzero(lay.planted & (lay.row == r)) - 2, 0) for r in range(p.rows))
+    assert len(lay.empty) == min(round(p.missing * n), inner)
+    assert np.count_nonzero(lay.young) == min(round(p.replants * n), len(lay.trees))
+
+
+@settings(max_examples=100, deadline=None)
+@given(rotation=st.floats(-360, 360), bow=st.floats(-1.0, 1.0), tpr=st.integers(2, 30),
+       xyz=st.lists(st.tuples(st.floats(-20, 60), st.floats(-10, 40), st.floats(-2, 5)), min_size=1, max_size=20))
+def test_the_block_frame_maps_back_to_the_straight_frame(rotation, bow, tpr, xyz):
+    from pipeline.simlayout import place, unplace_xy
+
+    p = SimulationParams(trees_per_row=tpr, spacing=1.0, rotation=rotation, row_curvature=bow * 0.25 * (tpr - 1))
+    pts = np.array(xyz, dtype=np.float64)
+    out = place(p, pts)
+    assert np.array_equal(out[:, 2], pts[:, 2])
+    x, y = unplace_xy(p, out[:, 0], out[:, 1])
+    assert np.allclose(np.c_[x, y], pts[:, :2], atol=1e-7)
+    # a tree moves rigidly: distances between its points are kept
+    tree = place(p, pts, pts[0, :2])
+    d0 = np.linalg.norm(pts[:, None] - pts[None], axis=2)
+    assert np.allclose(np.linalg.norm(tree[:, None] - tree[None], axis=2), d0, atol=1e-7)
+    assert np.allclose(tree[0], out[0], atol=1e-9)  # the trunk base lands where the ground under it does
