@@ -11,7 +11,7 @@ from dataclasses import dataclass
 import numpy as np
 from scipy import sparse
 
-from pipeline.graph import node_pairs, pairs_within, symmetric_csr
+from pipeline.graph import NodePairs, node_pairs, symmetric_csr
 
 
 @dataclass(frozen=True)
@@ -39,15 +39,15 @@ def neighbourhood_matrix(
     nodes: np.ndarray,
     *,
     radius: float,
-    candidates: tuple[np.ndarray, np.ndarray] | None = None,
+    candidates: NodePairs | None = None,
 ) -> sparse.csr_matrix:
     """(m, m) 0/1 matrix of node pairs within ``radius`` [m], diagonal included.
 
     ``candidates``: optional ``node_pairs(nodes, r)`` with ``r >= radius``.
     """
     m = nodes.shape[0]
-    pairs, _ = node_pairs(nodes, radius) if candidates is None else pairs_within(candidates, radius)
-    return symmetric_csr(pairs, np.ones(pairs.shape[0]), m, diagonal=np.ones(m))
+    found = node_pairs(nodes, radius) if candidates is None else candidates.within(radius)
+    return symmetric_csr(found, np.ones(len(found)), m, diagonal=np.ones(m))
 
 
 def shape_features(nodes: np.ndarray, *, radius: float, adjacency: sparse.csr_matrix | None = None) -> ShapeFeatures:

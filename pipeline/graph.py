@@ -8,6 +8,7 @@ forest, computed level by level from the predecessor array.
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass
 
 import numpy as np
@@ -27,18 +28,66 @@ def check_graph_size(n_nodes: int, n_edges: int) -> None:
         )
 
 
-def node_pairs(nodes: np.ndarray, radius: float) -> tuple[np.ndarray, np.ndarray]:
+@dataclass(frozen=True)
+class NodePairs:
+    """Node pairs within a radius, in the order that lets a symmetric matrix be built
+    with one stable counting pass.
+
+    Attributes
+    ----------
+    pairs : (p, 2) int64, ``pairs[:, 0] < pairs[:, 1]``
+    length : (p,) float64 — distance between the two nodes [m]
+    groups : (g + 1,) int64 or None
+        ``pairs[groups[k]:groups[k + 1]]`` is group k, sorted by (first, second). A
+        node's partners of larger index ascend with the group, those of smaller index
+        descend (the voxel column offsets of :func:`voxel_pairs`, in ascending key
+        order). None: no order (any pairs, as a k-d tree gives them).
+    """
+
+    pairs: np.ndarray
+    length: np.ndarray
+    groups: np.ndarray | None = None
+
+    def __len__(self) -> int:
+        return int(self.pairs.shape[0])
+
+    def within(self, radius: float) -> "NodePairs":
+        """The pairs at most ``radius`` [m] long, in the same order and groups."""
+        near = self.length <= radius
+        groups = None
+        if self.groups is not None:
+            groups = np.r_[0, np.cumsum(near)][self.groups]
+        return NodePairs(self.pairs[near], self.length[near], groups)
+
+
+def node_pairs(
+    nodes: np.ndarray,
+    radius: float,
+    *,
+    keys: np.ndarray | None = None,
+    voxel_size: float | None = None,
+) -> NodePairs:
     """Every pair of nodes at most ``radius`` [m] apart, and its length.
+
+    Parameters
+    ----------
+    nodes : (m, 3) float64 [m]
+    radius : float [m]
+    keys : (m, 3) int64, optional
+        Voxel keys of the nodes when they are voxel centroids (:class:`pipeline.voxels.Voxels`,
+        one node per voxel, ordered by key); with ``voxel_size`` [m] the pairs are found
+        from the voxel grid's integer offsets (:func:`voxel_pairs`), else by a k-d tree.
 
     Returns
     -------
-    pairs : (p, 2) int64, i < j
-    length : (p,) float64 [m]
+    NodePairs
     """
+    if keys is not None and voxel_size is not None:
+        return voxel_pairs(keys, nodes, radius=radius, voxel_size=voxel_size)
     if nodes.shape[0] == 0:
-        return np.zeros((0, 2), np.int64), np.zeros(0)
+        return NodePairs(np.zeros((0, 2), np.int64), np.zeros(0))
     pairs = cKDTree(nodes).query_pairs(radius, output_type="ndarray")
-    return pairs, pair_lengths(nodes, pairs)
+    return NodePairs(pairs, pair_lengths(nodes, pairs))
 
 
 def pair_lengths(points: np.ndarray, pairs: np.ndarray) -> np.ndarray:
@@ -55,11 +104,103 @@ def pair_lengths(points: np.ndarray, pairs: np.ndarray) -> np.ndarray:
     return np.sqrt(total, out=total)
 
 
-def pairs_within(candidates: tuple[np.ndarray, np.ndarray], radius: float) -> tuple[np.ndarray, np.ndarray]:
-    """The pairs of a :func:`node_pairs` result at most ``radius`` [m] long, and their lengths."""
-    pairs, length = candidates
-    near = length <= radius
-    return pairs[near], length[near]
+def stencil(radius: float, voxel_size: float) -> np.ndarray:
+    """(s, 3) int64 voxel offsets whose voxels can hold a node within ``radius`` [m] of
+    a node in voxel (0, 0, 0): the lexicographically positive half, in ascending order."""
+    # two voxels d apart along an axis hold points at least (|d| - 1) voxel sizes apart
+    # there; the margin keeps borderline offsets for the exact distance test (a
+    # centroid may lie an ulp outside its voxel)
+    reach = int(math.floor(radius / voxel_size * (1 + 1e-9))) + 1
+    g = np.arange(-reach, reach + 1)
+    off = np.stack(np.meshgrid(g, g, g, indexing="ij"), -1).reshape(-1, 3)
+    gap = np.maximum(np.abs(off) - 1, 0).astype(np.float64) * voxel_size
+    near = (gap * gap).sum(1) <= (radius * (1 + 1e-9)) ** 2
+    x, y, z = off[:, 0], off[:, 1], off[:, 2]
+    positive = (x > 0) | ((x == 0) & ((y > 0) | ((y == 0) & (z > 0))))
+    return off[near & positive]
+
+
+def voxel_pairs(keys: np.ndarray, nodes: np.ndarray, *, radius: float, voxel_size: float) -> NodePairs:
+    """:func:`node_pairs` of voxel centroids, from the voxel grid's integer offsets.
+
+    Parameters
+    ----------
+    keys : (m, 3) int64 — voxel keys, unique, sorted by (x, y, z) (as :func:`pipeline.voxels.voxelize` gives them)
+    nodes : (m, 3) float64 — centroids, each inside its voxel [m]
+    radius, voxel_size : float [m]
+
+    Returns
+    -------
+    NodePairs, one group per (dx, dy) of :func:`stencil`, each sorted by node, then partner.
+    """
+    # Strategy: a node per voxel, and nodes sorted by key form (x, y) columns of
+    # ascending z. For each (dx, dy) of the half stencil, one np.searchsorted on the
+    # column keys finds every column's neighbour column; the partners of a node there
+    # are the run of that column's nodes within the stencil's dz range, read from a
+    # table counting each column's nodes below every z (padded, so no lookup leaves
+    # its column). The exact distance test ends it.
+    m = keys.shape[0]
+    off = stencil(radius, voxel_size)
+    columns, inverse = np.unique(off[:, :2], axis=0, return_inverse=True)
+    if m < 2 or off.shape[0] == 0:
+        return NodePairs(np.zeros((0, 2), np.int64), np.zeros(0), np.zeros(columns.shape[0] + 1, np.int64))
+    reach = int(np.abs(off).max())
+    pad = 2 * reach + 1
+    kx = keys[:, 0] - keys[:, 0].min()
+    ky = keys[:, 1] - keys[:, 1].min() + reach
+    kz = keys[:, 2]
+    ny = int(ky.max()) + reach + 1
+    colkey = kx * ny + ky  # (x, y) of a column and its neighbours, without wrapping
+    start = np.flatnonzero(np.r_[True, colkey[1:] != colkey[:-1]])
+    size = np.diff(np.r_[start, m])
+    ucol, ncol = colkey[start], start.shape[0]
+    col = np.repeat(np.arange(ncol), size)
+    zlo = kz[start]
+    zspan = kz[start + size - 1] - zlo + 1
+    width = zspan + 2 * pad
+    tstart = np.cumsum(width) - width + pad  # slot of each column's lowest voxel
+    occupied = np.zeros(int(width.sum()), np.int64)
+    occupied[tstart[col] + (kz - zlo[col])] = 1
+    below = np.zeros(occupied.shape[0] + 1, np.int64)  # nodes in the slots before each slot
+    np.cumsum(occupied, out=below[1:])
+    del occupied
+    x, y, z = (np.ascontiguousarray(nodes[:, d]) for d in range(3))
+    r2 = radius * radius
+    firsts, seconds, lengths = [], [], []
+    for c, (dx, dy) in enumerate(columns):
+        dz = off[inverse.reshape(-1) == c, 2]  # one run of dz, ascending
+        if dx == 0 and dy == 0:
+            sel, other = np.arange(m), col
+        else:
+            target = ucol + dx * ny + dy
+            pos = np.minimum(np.searchsorted(ucol, target), ncol - 1)
+            nb = np.where(ucol[pos] == target, pos, -1)[col]
+            sel = np.flatnonzero(nb >= 0)
+            other = nb[sel]
+        # z of each node in the other column's frame, clamped where no dz can reach
+        base = tstart[other] + np.clip(kz[sel] - zlo[other], -reach - 1, zspan[other] + reach)
+        lo = below[base + dz[0]]
+        count = below[base + dz[-1] + 1] - lo
+        ends = np.cumsum(count)
+        a = np.repeat(sel, count)
+        b = np.arange(int(ends[-1]) if ends.size else 0) + np.repeat(lo - (ends - count), count)
+        # the distance as pair_lengths computes it, so lengths equal the k-d tree path's
+        d2 = x[a] - x[b]
+        d2 *= d2
+        step = y[a] - y[b]
+        step *= step
+        d2 += step
+        step = z[a] - z[b]
+        step *= step
+        d2 += step
+        near = d2 <= r2
+        firsts.append(a[near])
+        seconds.append(b[near])
+        lengths.append(np.sqrt(d2[near]))
+    pairs = np.empty((sum(f.shape[0] for f in firsts), 2), np.int64)
+    pairs[:, 0] = np.concatenate(firsts)
+    pairs[:, 1] = np.concatenate(seconds)
+    return NodePairs(pairs, np.concatenate(lengths), np.r_[0, np.cumsum([f.shape[0] for f in firsts])])
 
 
 def build_graph(
@@ -78,8 +219,9 @@ def build_graph(
     edge_scale : (m, f) float64, optional
         Per-node feature vectors; when given, each edge's length is multiplied by
         ``1 + (1 - cos_sim(f_a, f_b))`` (the paper's cosine-similarity enrichment).
-    candidates : optional ``node_pairs(nodes, r)`` with ``r >= radius``, to reuse one
-        neighbour search for several radii
+    candidates : NodePairs, optional
+        ``node_pairs(nodes, r)`` with ``r >= radius``, to reuse one neighbour search
+        for several radii (and to search voxel centroids by their keys)
 
     Returns
     -------
@@ -88,34 +230,50 @@ def build_graph(
     m = nodes.shape[0]
     if m == 0:
         return sparse.csr_matrix((0, 0))
-    pairs, w = node_pairs(nodes, radius) if candidates is None else pairs_within(candidates, radius)
-    check_graph_size(m, pairs.shape[0])
-    a, b = pairs[:, 0], pairs[:, 1]
+    found = node_pairs(nodes, radius) if candidates is None else candidates.within(radius)
+    check_graph_size(m, len(found))
+    a, b, w = found.pairs[:, 0], found.pairs[:, 1], found.length
     if edge_scale is not None:
         f = edge_scale / (np.linalg.norm(edge_scale, axis=1, keepdims=True) + 1e-12)
         cos = (f[a] * f[b]).sum(1)
         w = w * (1.0 + (1.0 - np.clip(cos, -1.0, 1.0)))
     w = np.maximum(w, 1e-6)  # csgraph treats explicit zeros as missing edges
-    return symmetric_csr(pairs, w, m)
+    return symmetric_csr(found, w, m)
 
 
-def symmetric_csr(pairs: np.ndarray, weight: np.ndarray, m: int, *, diagonal: np.ndarray | None = None) -> sparse.csr_matrix:
+def symmetric_csr(
+    pairs: "NodePairs | np.ndarray", weight: np.ndarray, m: int, *, diagonal: np.ndarray | None = None
+) -> sparse.csr_matrix:
     """(m, m) symmetric csr_matrix with ``weight`` at (i, j) and (j, i) of each pair, sorted
     indices (canonical), and ``diagonal`` (m,) on the diagonal when given.
 
-    ``pairs`` (p, 2) int must hold each unordered pair once and no (i, i).
+    ``pairs``: :class:`NodePairs`, or (p, 2) int in any order; each unordered pair once
+    and no (i, i).
     """
-    # Strategy: without duplicates nothing needs summing, so skip scipy's sort of every
-    # row: building the transpose row by row (a counting pass) leaves each row sorted.
-    a, b = pairs[:, 0], pairs[:, 1]
-    rows, cols, data = [a, b], [b, a], [weight, weight]
+    # Strategy: without duplicates nothing needs summing, and scipy's COO -> CSR is a
+    # stable counting pass by row. Grouped pairs are laid out so that it leaves every
+    # row sorted (partners below the node by group from last to first, the diagonal,
+    # partners above it by group); pairs in no order take a second pass (the transpose,
+    # built row by row).
+    groups = pairs.groups if isinstance(pairs, NodePairs) else None
+    p = pairs.pairs if isinstance(pairs, NodePairs) else pairs
+    a, b = p[:, 0], p[:, 1]
+    if groups is None:
+        rows, cols, data = [a, b], [b, a], [weight, weight]
+    else:
+        back = np.concatenate([np.arange(groups[k], groups[k + 1]) for k in range(len(groups) - 2, -1, -1)] or [np.zeros(0, np.int64)])
+        rows, cols, data = [b[back], a], [a[back], b], [weight[back], weight]
     if diagonal is not None:
-        rows.append(np.arange(m))
-        cols.append(np.arange(m))
-        data.append(diagonal)
+        rows.insert(1, np.arange(m))
+        cols.insert(1, np.arange(m))
+        data.insert(1, diagonal)
     g = sparse.coo_matrix((np.concatenate(data), (np.concatenate(rows), np.concatenate(cols))), shape=(m, m))
     g.has_canonical_format = True  # no duplicates: tocsr need not sum (and sort) them
-    return g.tocsr().T.tocsr()
+    if groups is None:
+        return g.tocsr().T.tocsr()
+    out = g.tocsr()
+    out.has_sorted_indices = True
+    return out
 
 
 def reweight(graph: sparse.csr_matrix, node_cost: np.ndarray) -> sparse.csr_matrix:

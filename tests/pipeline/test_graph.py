@@ -17,6 +17,7 @@ from pipeline.graph import (
     pair_lengths,
     reweight,
     shortest_paths,
+    stencil,
     subtree_sizes,
     symmetric_csr,
 )
@@ -230,3 +231,83 @@ def test_reweight_keeps_the_structure_and_scales_each_edge():
     messy = sparse.csr_matrix((g.data[::-1].copy(), g.indices[::-1].copy(), g.indptr.copy()), shape=g.shape)
     messy.has_sorted_indices = False
     assert (reweight(messy, np.array([1.0, 3.0, 5.0])) != reweight(messy.sorted_indices(), np.array([1.0, 3.0, 5.0]))).nnz == 0
+
+
+def _blocks(seed: int, n: int = 4000) -> np.ndarray:
+    """Points of a small generated stand: trunks (vertical lines), crowns (noisy balls),
+    grass (a noisy plane) and scattered outliers, over 6 x 4 x 4 m."""
+    rng = np.random.default_rng(seed)
+    parts = [rng.uniform([0, 0, 0], [6, 4, 0.2], (n // 4, 3))]
+    for cx in (1.5, 4.5):
+        parts.append(np.column_stack([rng.normal(cx, 0.05, n // 8), rng.normal(2, 0.05, n // 8), rng.uniform(0, 2, n // 8)]))
+        parts.append(rng.normal([cx, 2, 2.6], 0.6, (n // 4, 3)))
+    parts.append(rng.uniform([0, 0, 0], [6, 4, 4], (n // 50, 3)))
+    return np.concatenate(parts)
+
+
+def _pair_set(found) -> dict:
+    return {(int(a), int(b)): float(w) for (a, b), w in zip(found.pairs, found.length)}
+
+
+@pytest.mark.parametrize("seed", range(2))
+@pytest.mark.parametrize("voxel, radius", [(0.1, 0.25), (0.1, 0.15), (0.1, 0.2), (0.1, 0.1), (0.05, 0.3), (0.2, 0.25)])
+def test_voxel_offset_graph_equals_the_kd_tree_graph_edge_for_edge(seed, voxel, radius):
+    # the voxel-offset search (keys) against the k-d tree reference (no keys): the same
+    # pairs with the same lengths, and the same matrices array for array
+    xyz = _blocks(seed)
+    vox = voxelize(xyz, voxel_size=voxel, grid_origin=(-0.37, 0.11, -0.05))
+    nodes = vox.centroids
+    ref = node_pairs(nodes, radius)
+    got = node_pairs(nodes, radius, keys=vox.keys, voxel_size=voxel)
+    assert len(got) == len(ref) > 0
+    assert _pair_set(got) == _pair_set(ref)
+    assert (got.pairs[:, 0] < got.pairs[:, 1]).all()
+    small = min(radius, 0.15)
+    for mine, theirs in (
+        (build_graph(nodes, radius=small, candidates=got), build_graph(nodes, radius=small)),
+        (build_graph(nodes, radius=small, edge_scale=np.cos(nodes), candidates=got), build_graph(nodes, radius=small, edge_scale=np.cos(nodes))),
+        (neighbourhood_matrix(nodes, radius=radius, candidates=got), neighbourhood_matrix(nodes, radius=radius)),
+    ):
+        assert mine.has_sorted_indices
+        np.testing.assert_array_equal(mine.indptr, theirs.indptr)
+        np.testing.assert_array_equal(mine.indices, theirs.indices)
+        np.testing.assert_array_equal(mine.data, theirs.data)
+
+
+@settings(max_examples=60, deadline=None)
+@given(
+    st.integers(0, 10_000),
+    st.integers(0, 300),
+    st.sampled_from([0.05, 0.1, 0.3]),
+    st.floats(1.0, 6.0),
+)
+def test_voxel_offset_pairs_equal_the_kd_tree_pairs(seed, n, voxel, ratio):
+    # any cloud (including empty, one point, and clouds one voxel thick), any radius the
+    # parameters allow (voxel size to 6 voxel sizes)
+    rng = np.random.default_rng(seed)
+    extent = rng.choice([0.3, 1.0, 3.0], 3)
+    xyz = rng.uniform(-extent, extent, (n, 3)) + rng.uniform(-1e3, 1e3, 3)
+    vox = voxelize(xyz, voxel_size=voxel)
+    got = node_pairs(vox.centroids, voxel * ratio, keys=vox.keys, voxel_size=voxel)
+    assert _pair_set(got) == _pair_set(node_pairs(vox.centroids, voxel * ratio))
+    radius = voxel * ratio
+    m = vox.n
+    mine = symmetric_csr(got, got.length, m, diagonal=np.ones(m))
+    theirs = symmetric_csr(got.pairs[::-1], got.length[::-1], m, diagonal=np.ones(m))  # no groups: the general path
+    np.testing.assert_array_equal(mine.indices, theirs.indices)
+    np.testing.assert_array_equal(mine.data, theirs.data)
+    assert got.within(radius / 2).groups[-1] == len(got.within(radius / 2))
+
+
+def test_stencil_by_hand():
+    # radius of one voxel: offsets up to 2 along at most one axis (two voxels apart the
+    # nodes can still be 0+ apart; along two axes they are at least 0.1 x sqrt 2 apart):
+    # 27 + 3 x 2 x 9 = 81 offsets, without (0, 0, 0) and halved: 40
+    off = stencil(0.1, 0.1)
+    assert off.shape == (40, 3)
+    assert ((np.abs(off) == 2).sum(1) <= 1).all()
+    assert (off == [0, 0, 1]).all(1).any() and not (off == [0, 0, -1]).all(1).any()
+    # each offset or its negation, never both
+    both = {tuple(o) for o in off} & {tuple(-o) for o in off}
+    assert not both
+    assert (np.diff(off[:, 0] * 100 + off[:, 1] * 10 + off[:, 2]) > 0).all()  # ascending
