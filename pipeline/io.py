@@ -118,6 +118,11 @@ def _laz_points_held(p: Path, header, table: int, n_bytes: int) -> tuple[int, bo
             chunks = lazrs.read_chunk_table_only(f, laz_vlr)
     except Exception as exc:  # lazrs raises its own error types for a broken table
         raise _fail(p, f"corrupt: its LAZ chunk table cannot be read ({_one_line(exc)})") from None
+    # lazrs allocates each chunk's byte count when it reads the chunk: bound them by the data
+    data_bytes = table - int(header.offset_to_point_data) - 8
+    if sum(int(c[1]) for c in chunks) > data_bytes:
+        raise _fail(p, f"corrupt: its LAZ chunk table gives {sum(int(c[1]) for c in chunks):,} bytes of chunks "
+                       f"but its compressed data holds {data_bytes:,}")
     if laz_vlr.uses_variable_size_chunks():
         return sum(int(c[0]) for c in chunks), False
     return len(chunks) * int(laz_vlr.chunk_size()), True

@@ -92,8 +92,9 @@ class HeaderLayout:
     vlrs, evlrs : tuple of Record
         Every one fits in the file (``evlrs`` is empty before LAS 1.4).
     chunk_table : int or None
-        LAZ only: the chunk-table offset stored at the start of the point data (-1 when
-        the writer could not store it).
+        LAZ only: the offset of the chunk table lazrs will read [bytes], -1 when there is
+        none. It is stored at the start of the point data or, when that says -1 (the
+        writer could not seek back), in the file's last 8 bytes.
     chunk_size : int or None
         LAZ only: points per chunk, :data:`VARIABLE_CHUNK_SIZE` for variable-size chunks.
     """
@@ -254,8 +255,8 @@ def _walk_evlrs(p: Path, f: BinaryIO, start: int, n: int, offset: int, size: int
 
 
 def _check_laz(p: Path, f: BinaryIO, layout: HeaderLayout, points_end: int) -> tuple[int, int]:
-    """The chunk-table offset and chunk size of a LAZ file, after checking its LASzip
-    record and that lazrs will find a chunk table of a bounded count where it looks."""
+    """The offset of the chunk table lazrs will read (-1 for none) and the chunk size of
+    a LAZ file, after checking its LASzip record and the table's chunk count."""
     laszip = next((r for r in layout.vlrs if (r.user_id, r.record_id) == (LASZIP_USER_ID, LASZIP_RECORD_ID)), None)
     if laszip is None:
         raise _corrupt(p, "its point format says LAZ (compressed) but it has no LASzip record")
@@ -275,7 +276,7 @@ def _check_laz(p: Path, f: BinaryIO, layout: HeaderLayout, points_end: int) -> t
                        f"file {size:,} bytes)")
     if table != -1 and table < start + 8:
         raise _corrupt(p, f"its LAZ chunk table offset {table:,} lies before its compressed data (byte {start + 8:,})")
-    # Strategy: lazrs takes an offset at or below the data start as "look in the last 8
+    # lazrs takes an offset at or below the data start as "look in the last 8
     # bytes of the file", then allocates what the table there claims; bound that too.
     found = table
     if table == -1 and size >= start + 16:
@@ -284,7 +285,7 @@ def _check_laz(p: Path, f: BinaryIO, layout: HeaderLayout, points_end: int) -> t
             return table, chunk_size  # none there (lazrs fails to read one): the chunks are read in order
     if found == -1:
         return table, chunk_size
-    version, n_chunks = struct.unpack("<II", _read(f, found, 8))
+    _, n_chunks = struct.unpack("<II", _read(f, found, 8))  # the table's version, then its count
     n = layout.point_count
     by_points = n + 1 if chunk_size == VARIABLE_CHUNK_SIZE else math.ceil(n / chunk_size) + 1
     most = min(MAX_LAZ_CHUNKS, max(0, found - start - 8), by_points)
@@ -293,7 +294,7 @@ def _check_laz(p: Path, f: BinaryIO, layout: HeaderLayout, points_end: int) -> t
                           f"{n:,} points and {max(0, found - start - 8):,} bytes of compressed data")
     if found > points_end:
         raise _corrupt(p, f"its LAZ chunk table at byte {found:,} lies among its EVLRs (from byte {points_end:,})")
-    return table, chunk_size
+    return found, chunk_size
 
 
 def read_records(path, records, *, user_id: str, extended: bool, budget: int = MAX_VLR_AREA) -> tuple[bytes, int]:

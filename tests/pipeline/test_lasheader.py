@@ -189,6 +189,30 @@ def test_a_forged_laz_chunk_table_offset(tmp_path, where, words):
     assert words in _refused(path)
 
 
+def test_a_laz_whose_chunk_table_offset_is_in_its_last_8_bytes(tmp_path):
+    # what a LAZ writer that could not seek back leaves: -1 first, the offset at the end
+    path = _block(tmp_path / "b.laz", version="1.2", fmt=1, n=3000)
+    expected, _ = io.read_points(path)
+    start, table = lasheader.check_header(path).offset_to_point_data, _chunk_table(path)
+    _patch(path, start, "q", -1)
+    path.write_bytes(path.read_bytes() + struct.pack("<q", table))
+    assert lasheader.check_header(path).chunk_table == table
+    points, info = io.read_points(path)
+    assert info.n_points == 3000 and np.array_equal(points, expected)
+
+
+def test_laz_chunks_larger_than_the_compressed_data(tmp_path):
+    # lazrs allocates a chunk's byte count as it reads it: 100 bytes cut out of the only
+    # chunk, the table moved up to match, and the table still says the chunk is whole
+    path = _block(tmp_path / "b.laz", version="1.2", fmt=3, n=3000)
+    start, table = lasheader.check_header(path).offset_to_point_data, _chunk_table(path)
+    data = path.read_bytes()
+    path.write_bytes(data[: table - 100] + data[table:])
+    _patch(path, start, "q", table - 100)
+    assert f"its LAZ chunk table gives {table - start - 8:,} bytes of chunks but its compressed data holds " \
+           f"{table - start - 108:,}" in _refused(path)
+
+
 def test_a_laz_chunk_size_of_zero(tmp_path):
     path = _block(tmp_path / "b.laz")
     rec = next(r for r in lasheader.check_header(path).vlrs if r.user_id == lasheader.LASZIP_USER_ID)
