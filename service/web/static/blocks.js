@@ -58,7 +58,9 @@
   async function refresh() {
     const status = document.getElementById("updated");
     try {
-      const [blocks, jobs] = await Promise.all([O.api("/v1/blocks?limit=1000"), O.api("/v1/jobs?limit=1000")]);
+      // a list, or a page of one ({items, total, ...})
+      const items = (x) => (Array.isArray(x) ? x : x.items || []);
+      const [blocks, jobs] = (await Promise.all([O.api("/v1/blocks?limit=1000"), O.api("/v1/jobs?limit=1000")])).map(items);
       render(blocks, jobs);
       const active = jobs.filter((j) => j.state === "queued" || j.state === "running").length;
       status.textContent = `${blocks.length} block(s), ${jobs.length} job(s), ${active} queued or running · updated ${new Date().toLocaleTimeString()}`;

@@ -308,7 +308,7 @@
   /* The page in the service: follow the job until it is done, then draw it. */
   O.job = async function (cfg) {
     const path = "/v1/jobs/" + encodeURIComponent(cfg.jobId);
-    let job;
+    let job, named = false;
     for (;;) {
       try {
         job = await O.api(path);
@@ -319,6 +319,14 @@
       }
       showStatus(job);
       showDownloads(job.links);
+      if (!named) {
+        named = true;
+        O.api("/v1/blocks/" + encodeURIComponent(job.block_id)).then((b) => {
+          const name = job.capture || b.filename || b.id;
+          document.getElementById("title").textContent = name + " — job " + job.id.slice(0, 8);
+          document.title = name + " — Orchard";
+        }).catch(() => {});
+      }
       if (job.state !== "queued" && job.state !== "running") break;
       await new Promise((r) => setTimeout(r, POLL_MS));
     }
