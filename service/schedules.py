@@ -358,8 +358,8 @@ def _take_capture(
     # taken before by this schedule, or by an earlier one of this farm (deleted to change its cron)
     if store.schedule_file_seen(schedule["id"], sha) or store.capture_scheduled(schedule["tenant_id"], sha):
         return "skipped", None
-    if not _las_signed(path):  # refused before the copy (a 2 GB non-LAS file held the scan for seconds)
-        error = f"{name}: not a LAS or LAZ file (it does not begin with the LAS signature 'LASF')"
+    error = _header_problem(path, name)  # before the copy: a 2 GB file refused after it held the scan for seconds
+    if error is not None:
         store.record_schedule_file(schedule_id=schedule["id"], sha256=sha, path=str(path), job_id=None, error=error)
         return "rejected", error
     tmp = scratch_dir(settings.tmp_dir) / f"inbox-{uuid.uuid4().hex}.part"
@@ -397,13 +397,22 @@ def _take_capture(
     return "job", job["id"]
 
 
-def _las_signed(path: Path) -> bool:
-    """Whether the file begins with the LAS file signature (LAS and LAZ alike)."""
+def _header_problem(path: Path, name: str) -> str | None:
+    """Why an inbox file is no usable LAS/LAZ file, read from its signature and header
+    where it lies (the header and VLRs only); None if it looks usable. The copy taken
+    afterwards is checked again, as any upload."""
+    from pipeline.io import read_info
+
     try:
         with open(path, "rb") as fh:
-            return fh.read(len(LAS_MAGIC)) == LAS_MAGIC
+            if fh.read(len(LAS_MAGIC)) != LAS_MAGIC:
+                return f"{name}: not a LAS or LAZ file (it does not begin with the LAS signature 'LASF')"
+        read_info(str(path))
+    except InputError as exc:
+        return str(exc).replace(str(path), name).replace(path.name, name)
     except OSError:
-        return True  # unreadable now: the copy says why
+        return None  # unreadable now: the copy says why
+    return None
 
 
 def _file_state(stat: os.stat_result) -> tuple[int, int, int, int]:

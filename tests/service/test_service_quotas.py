@@ -133,6 +133,16 @@ def test_a_file_without_the_las_signature_is_refused_without_a_copy(farms, monke
     assert again["rejected"] == [] and again["skipped"] == 2
 
 
+def test_a_file_with_a_broken_header_is_refused_without_a_copy(farms, monkeypatch):
+    settings, store, out = farms
+    _, inbox, sched = out["farm-a"]
+    (inbox / "junk.las").write_bytes(b"LASF" + bytes(100_000))  # the signature, then nothing of a header
+    monkeypatch.setattr(schedules, "_copy_hashed", lambda src, dst: pytest.fail(f"{src.name} was copied"))
+    (rej,) = run_schedule(store, settings, sched)["rejected"]
+    assert rej["file"] == "junk.las" and rej["error"].startswith("junk.las: ") and "LAS version 0.0" in rej["error"]
+    assert str(inbox) not in rej["error"]  # the farm sees its file's name, not the server's path
+
+
 def test_a_capture_over_the_storage_quota_waits_for_room_without_a_copy(farms, monkeypatch):
     settings, store, out = farms
     tenant, inbox, sched = out["farm-a"]
