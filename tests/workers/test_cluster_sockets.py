@@ -6,7 +6,7 @@
 - ``orchard process --scheduler`` against a real ``dask worker`` that cannot import the
   project exits 2 at once, naming the worker and what to install (it used to wait for
   workers until the job gave up); another version or other pipeline parameters on the
-  workers are refused the same way.
+  workers are refused the same way; a job whose workers all die stops with a message.
 """
 
 from __future__ import annotations
@@ -17,7 +17,6 @@ import site
 import socket
 import subprocess
 import sys
-import time
 from pathlib import Path
 
 import httpx
@@ -29,9 +28,10 @@ from pipeline.simulate import SimulationParams, write_simulation
 from service.cli import main as orchard
 from tests.service.service_fixtures import ServerProcess, make_token, wait_for_job
 from workers import cluster as cluster_module
+from workers import job as job_module
 from workers.cluster import WorkersUnfit, check_workers, close_client, dashboard_address, make_client
 from workers.identity import identity
-from workers.job import JobSpec, run_job
+from workers.job import ClusterLost, JobSpec, run_job
 
 LOOPBACK_IPS = {"127.0.0.1", "::1"}
 
@@ -145,6 +145,16 @@ def _free_port() -> int:
         return s.getsockname()[1]
 
 
+_SCHEDULER_ARGS = ("--host", "127.0.0.1", "--no-dashboard", "--port")
+_WORKER_ARGS = ("--nthreads", "1", "--no-dashboard", "--no-nanny")
+
+
+def _start(logs, *args: str, cwd=None) -> subprocess.Popen:
+    """``python ARGS`` in a process group of its own, its output in ``logs``."""
+    return subprocess.Popen([sys.executable, *args], cwd=cwd, stdout=logs, stderr=subprocess.STDOUT,
+                            start_new_session=True)
+
+
 def _stop(proc: subprocess.Popen) -> None:
     if proc.poll() is None:
         os.killpg(proc.pid, signal.SIGTERM)
@@ -169,14 +179,10 @@ def test_a_worker_without_the_project_is_named_at_once(tiny_block, tmp_path):
     port = _free_port()
     address = f"tcp://127.0.0.1:{port}"
     logs = open(tmp_path / "cluster.log", "ab")  # noqa: SIM115 - closed below
-    procs = [subprocess.Popen(
-        [sys.executable, "-m", "distributed.cli.dask_scheduler", "--host", "127.0.0.1", "--port", str(port),
-         "--no-dashboard"], stdout=logs, stderr=subprocess.STDOUT, start_new_session=True)]
+    procs = [_start(logs, "-m", "distributed.cli.dask_scheduler", *_SCHEDULER_ARGS, str(port))]
     try:
         paths = ":".join(site.getsitepackages())
-        procs.append(subprocess.Popen(
-            [sys.executable, "-I", "-S", "-c", _BARE_WORKER, paths, address, "--nthreads", "1", "--no-dashboard",
-             "--no-nanny"], cwd=tmp_path, stdout=logs, stderr=subprocess.STDOUT, start_new_session=True))
+        procs.append(_start(logs, "-I", "-S", "-c", _BARE_WORKER, paths, address, *_WORKER_ARGS, cwd=tmp_path))
         with Client(address, timeout="60s") as c:
             c.wait_for_workers(1, timeout=120)
             (worker,) = c.ncores()
@@ -190,6 +196,33 @@ def test_a_worker_without_the_project_is_named_at_once(tiny_block, tmp_path):
                "(ModuleNotFoundError: No module named 'workers')" in proc.stderr
         assert f"Install orchard-trees {identity()['version']}" in proc.stderr and "Traceback" not in proc.stderr
         assert procs[1].poll() is None  # told before any task was sent: the worker is still there
+    finally:
+        for p in reversed(procs):
+            _stop(p)
+        logs.close()
+
+
+@pytest.mark.slow
+def test_a_job_whose_workers_all_die_stops_saying_so(tiny_block, tmp_path, monkeypatch):
+    port = _free_port()
+    address = f"tcp://127.0.0.1:{port}"
+    logs = open(tmp_path / "cluster.log", "ab")  # noqa: SIM115 - closed below
+    procs = [_start(logs, "-m", "distributed.cli.dask_scheduler", *_SCHEDULER_ARGS, str(port))]
+    try:
+        procs.append(_start(logs, "-m", "distributed.cli.dask_worker", address, *_WORKER_ARGS))
+        monkeypatch.setattr(job_module, "NO_WORKER_TIMEOUT", 1.0)
+
+        def kill_the_worker(done: int, total: int) -> None:
+            if done == 1:  # the rest of the tiles wait for a worker that will not come back
+                os.killpg(procs[1].pid, signal.SIGKILL)
+
+        with Client(address, timeout="60s") as client:
+            client.wait_for_workers(1, timeout=120)
+            with pytest.raises(ClusterLost, match=r"no dask worker for 1 s \(they died or left; their logs say why\) "
+                                                  r"with \d+ tiles to go"):
+                run_job(JobSpec(str(tiny_block), str(tmp_path / "out"), tile_size=4.0), client=client,
+                        progress=kill_the_worker)
+        assert procs[1].wait(10) == -signal.SIGKILL
     finally:
         for p in reversed(procs):
             _stop(p)
