@@ -925,10 +925,18 @@ def read_truth_layout(path: str) -> dict:
         ``[row, slot, x, y]`` (absolute slot centre [m]), ``spacing`` and ``row_spacing``
         [m]. Keys a file lacks (written before layouts were recorded) are ``None``, and
         ``empty_slots`` is then an empty (0, 4) array.
+
+    Raises
+    ------
+    InputError
+        The file is missing, not Parquet, or not a truth file.
     """
+    from pipeline.errors import InputError
     from pipeline.io import read_parquet_columns
 
     _, meta = read_parquet_columns(path, [], what="truth file")
+    if b"orchard:trunks" not in meta:
+        raise InputError(f"{path} is not an orchard truth file (run `orchard simulate --truth ...`)")
 
     def get(key, dtype):
         raw = meta.get(key.encode())

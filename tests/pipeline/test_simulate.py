@@ -320,6 +320,17 @@ def test_read_truth_rejects_other_files(tmp_path):
         read_truth(str(bad))
     with pytest.raises(InputError):
         read_truth(str(tmp_path / "missing.parquet"))
+    from pipeline.simulate import read_truth_layout
+
+    for path in (bad, tmp_path / "missing.parquet"):
+        with pytest.raises(InputError):
+            read_truth_layout(str(path))
+    import pyarrow as pa
+    import pyarrow.parquet as pq
+
+    pq.write_table(pa.table({"x": [1.0]}), tmp_path / "other.parquet")
+    with pytest.raises(InputError, match="not an orchard truth file"):
+        read_truth_layout(str(tmp_path / "other.parquet"))
 
 
 def test_trunks_are_visible_points_close_to_the_truth(small):
