@@ -15,6 +15,7 @@ import contextlib
 import hashlib
 import logging
 import os
+import shutil
 import threading
 import uuid
 from datetime import datetime, timezone
@@ -33,8 +34,10 @@ from pipeline.errors import ConflictError, InputError, NotFoundError, ParameterE
 from pipeline.params import PipelineParams
 from pipeline.tiling import check_tiling
 from service import report as reports
+from service import openapi as api_document
 from service import scratch
 from service import web
+from service.downloads import DownloadResponse
 from service.errors import ShuttingDownError, StalledUploadError, TooLargeError, api_wording, install_error_handlers
 from service.permissions import FILE_MODE, private_dir, tighten
 from service.runner import Runner, drop_work, hold_runner_lock, job_block_name, job_dir
@@ -134,6 +137,15 @@ class TreesPage(BaseModel):
     offset: int
 
 
+class JobsPage(BaseModel):
+    """A page of jobs, newest first (as `TreesPage`: ``offset`` + ``limit`` < ``total`` means more)."""
+
+    items: list[Job]
+    total: int = Field(description="jobs matching the filters, on every page")
+    limit: int
+    offset: int
+
+
 class ScheduleCreate(BaseModel):
     model_config = ConfigDict(extra="forbid")
     inbox: str = Field(max_length=4096, description="absolute path of the folder on the server where captures land")
@@ -182,7 +194,9 @@ class ScheduleRun(BaseModel):
 
 
 class Health(BaseModel):
-    status: str
+    status: Literal["ok", "not ok"] = Field(description="'not ok' (HTTP 503) says why in problems")
+    problems: list[str] = Field(default_factory=list, description="what is wrong, one line each")
+    disk_free_mb: float | None = Field(None, description="free space on the data folder's disk [MB]")
     version: str
     runner: str
     schedules: str
@@ -427,6 +441,11 @@ class _FilePart:
             self.complete = True
         self._in_file = False
 
+    @property
+    def header_name(self) -> bytes:
+        """The name of the part header being read (empty between headers)."""
+        return bytes(self._field)
+
     def close(self) -> None:
         if self.fh is not None and not self.fh.closed:
             self.fh.close()
@@ -469,6 +488,9 @@ async def _receive_upload(request: Request, settings: Settings) -> _FilePart:
             except OSError:  # writing the file (a full disk): the server's fault, not the body's
                 raise
             except Exception:
+                if part.header_name.lower() == b"content-disposition":  # (python-multipart's 4,224-byte line limit)
+                    raise InputError("the file name of the upload is too long; rename the file (a name is kept "
+                                     "to 200 characters) and send it again") from None
                 raise InputError("the multipart body is malformed; send the file as field 'file'") from None
             if part.too_large:
                 break
@@ -657,6 +679,7 @@ def create_app(settings: Settings) -> FastAPI:
     app.state.runner = None
     app.state.clock = None
     install_error_handlers(app)
+    api_document.install(app)
     app.add_middleware(
         BodyLimit,
         default=settings.max_request_kb * 1024,
@@ -673,16 +696,30 @@ def create_app(settings: Settings) -> FastAPI:
         507: {"model": ErrorBody, "description": "the server's disk is full; nothing of the request was kept"},
     }
     v1 = APIRouter(prefix="/v1", responses=errors)
+    json_body = {415: {"model": ErrorBody, "description": "the body was not sent as JSON (Content-Type: application/json)"}}
 
     @app.get("/", include_in_schema=False)
     def root() -> RedirectResponse:
         return RedirectResponse("/blocks")
 
-    @app.get("/healthz", response_model=Health, tags=["service"])
-    def healthz(request: Request) -> Health:
+    @app.get("/healthz", response_model=Health, tags=["service"],
+             responses={503: {"model": Health, "description": "not ok: problems says why"}})
+    def healthz(request: Request, response: Response) -> Health:
         runner, clock = request.app.state.runner, request.app.state.clock
+        problems, free_mb = [], None
+        try:
+            free_mb = shutil.disk_usage(settings.data_dir).free / 2**20
+        except OSError as exc:
+            problems.append(f"the data folder cannot be read ({exc.strerror or exc})")
+        if free_mb is not None and free_mb < settings.min_free_mb:
+            problems.append(f"the data folder's disk has {free_mb:.0f} MB free, below {settings.min_free_mb:g} MB "
+                            "(ORCHARD_MIN_FREE_MB): uploads and jobs will fail until space is freed")
+        if problems:
+            response.status_code = 503
         return Health(
-            status="ok",
+            status="not ok" if problems else "ok",
+            problems=problems,
+            disk_free_mb=None if free_mb is None else round(free_mb, 1),
             version=API_VERSION,
             runner="disabled" if runner is None else ("alive" if runner.is_alive() else "stopped"),
             schedules="disabled" if clock is None else ("alive" if clock.is_alive() else "stopped"),
@@ -734,7 +771,8 @@ def create_app(settings: Settings) -> FastAPI:
     # jobs --------------------------------------------------------------------------------
 
     @v1.post("/jobs", response_model=Job, status_code=201, tags=["jobs"], summary="Submit a job for a block",
-             responses={429: {"model": ErrorBody, "description": "the tenant has as many jobs queued as its quota allows"}})
+             responses={429: {"model": ErrorBody, "description": "the tenant has as many jobs queued as its quota allows"},
+                        **json_body})
     def create_job(body: JobCreate, request: Request, response: Response, tenant: TenantDep, store: StoreDep):
         block = store.get_block(tenant["id"], body.block_id)
         tiling = _checked_tiling(body.params, body.tiling)
@@ -743,7 +781,7 @@ def create_app(settings: Settings) -> FastAPI:
         response.headers["Location"] = f"/v1/jobs/{job['id']}"
         return job_out(job)
 
-    @v1.get("/jobs", response_model=list[Job], tags=["jobs"])
+    @v1.get("/jobs", response_model=JobsPage | list[Job], tags=["jobs"], summary="List jobs, newest first, a page at a time")
     def list_jobs(
         tenant: TenantDep,
         store: StoreDep,
@@ -752,9 +790,13 @@ def create_app(settings: Settings) -> FastAPI:
         schedule_id: Annotated[str | None, Query(max_length=200)] = None,
         limit: Annotated[int, Query(ge=1, le=1000)] = 100,
         offset: Annotated[int, Query(ge=0, le=1_000_000_000)] = 0,
+        paged: Annotated[bool, Query(description="false: the page's jobs as a bare list, as before pages (deprecated)")] = True,
     ):
-        rows = store.list_jobs(tenant["id"], state=state, block_id=block_id, schedule_id=schedule_id, limit=limit, offset=offset)
-        return [job_out(j) for j in rows]
+        filters = {"state": state, "block_id": block_id, "schedule_id": schedule_id}
+        items = [job_out(j) for j in store.list_jobs(tenant["id"], **filters, limit=limit, offset=offset)]
+        if not paged:
+            return items
+        return JobsPage(items=items, total=store.count_jobs(tenant["id"], **filters), limit=limit, offset=offset)
 
     @v1.get("/jobs/{job_id}", response_model=Job, tags=["jobs"])
     def get_job(job_id: str, tenant: TenantDep, store: StoreDep):
@@ -793,7 +835,7 @@ def create_app(settings: Settings) -> FastAPI:
         return TreesPage(items=rows[offset : offset + limit], total=len(rows), limit=limit, offset=offset)
 
     def _file(path: Path, media_type: str, filename: str) -> FileResponse:
-        return FileResponse(path, media_type=media_type, filename=filename)
+        return DownloadResponse(path, media_type=media_type, filename=filename)
 
     parquet = {200: {"content": {"application/vnd.apache.parquet": {}}, "description": "GeoParquet / Parquet file"}}
 
@@ -860,7 +902,8 @@ def create_app(settings: Settings) -> FastAPI:
 
     # schedules ---------------------------------------------------------------------------
 
-    @v1.post("/schedules", response_model=Schedule, status_code=201, tags=["schedules"], summary="Register an inbox and a cron schedule")
+    @v1.post("/schedules", response_model=Schedule, status_code=201, tags=["schedules"], summary="Register an inbox and a cron schedule",
+             responses=json_body)
     def create_schedule(body: ScheduleCreate, request: Request, response: Response, tenant: TenantDep, store: StoreDep, settings: SettingsDep):
         cron = validate_cron(body.cron)
         # a tenant's inboxes lie in its own folder: no other farm's captures, no server files
@@ -889,7 +932,8 @@ def create_app(settings: Settings) -> FastAPI:
     def get_schedule(schedule_id: str, tenant: TenantDep, store: StoreDep):
         return schedule_out(store.get_schedule(tenant["id"], schedule_id))
 
-    @v1.patch("/schedules/{schedule_id}", response_model=Schedule, tags=["schedules"], summary="Pause, resume or change a schedule")
+    @v1.patch("/schedules/{schedule_id}", response_model=Schedule, tags=["schedules"], summary="Pause, resume or change a schedule",
+              responses=json_body)
     def update_schedule(schedule_id: str, body: ScheduleUpdate, request: Request, tenant: TenantDep, store: StoreDep):
         rec = store.update_schedule(tenant["id"], schedule_id, lambda current: schedule_changes(current, body))
         clock = request.app.state.clock

@@ -100,6 +100,29 @@ def validation_message(errors: list[dict]) -> str:
     return "invalid request: " + "; ".join(parts)
 
 
+def body_problem(content_type: str | None, errors: list[dict]) -> tuple[int, str] | None:
+    """Status and message of a request whose body is not a JSON object (sent without the
+    JSON content type, not JSON at all, or missing), in words a client can act on; None
+    when the errors are about the body's fields."""
+    body = [e for e in errors if tuple(e.get("loc", ()))[:1] == ("body",)]
+    if not body:
+        return None
+    media = (content_type or "").split(";", 1)[0].strip().lower()
+    if media != "application/json" and not media.endswith("+json"):
+        had = f"Content-Type {media!r}" if media else "no Content-Type"
+        return 415, f"send the request body as JSON with the header 'Content-Type: application/json' (this request had {had})"
+    for e in body:
+        loc = tuple(e.get("loc", ()))
+        if e.get("type") == "json_invalid":
+            where = f" at character {loc[1]}" if len(loc) > 1 else ""
+            return 422, f"the request body is not valid JSON ({(e.get('ctx') or {}).get('error', 'decode error')}{where})"
+        if loc == ("body",) and e.get("type") == "missing":
+            return 422, "the request has no body; send a JSON object (the fields are in the API document at /docs)"
+        if loc == ("body",) and e.get("type") in ("model_attributes_type", "dict_type", "model_type"):
+            return 422, "the request body must be a JSON object (the fields are in the API document at /docs)"
+    return None
+
+
 def _json_safe_errors(errors) -> list[dict]:
     out = []
     for e in list(errors)[:50]:
@@ -147,6 +170,9 @@ def install_error_handlers(app: FastAPI) -> None:
     @app.exception_handler(RequestValidationError)
     async def _request_validation(request: Request, exc: RequestValidationError) -> JSONResponse:
         errors = list(exc.errors())
+        problem = body_problem(request.headers.get("content-type"), errors)
+        if problem is not None:
+            return error_response(problem[0], problem[1])
         return error_response(422, validation_message(errors), errors=_json_safe_errors(errors))
 
     @app.exception_handler(ValidationError)

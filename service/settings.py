@@ -42,6 +42,9 @@ class Settings(BaseSettings):
         None, description="work store for tiles (folder or fsspec URL such as s3://bucket/orchard); a job uses <work_dir>/<job id>; unset = data_dir/jobs/<id>/_work"
     )
     max_upload_mb: float = Field(4096.0, gt=0, description="largest accepted block upload [MB]")
+    min_free_mb: float = Field(
+        512.0, ge=0, description="/healthz answers 'not ok' (503) while the data folder's disk has less free space [MB]"
+    )
     max_request_kb: int = Field(1024, ge=1, description="largest accepted request body other than an upload [kB]")
     upload_idle_s: float = Field(
         300.0, gt=0, le=86400,

@@ -411,6 +411,18 @@ class Store:
         params += [limit, offset]
         return self._all_rows(sql, tuple(params))
 
+    def count_jobs(
+        self, tenant_id: str, *, state: str | None = None, block_id: str | None = None, schedule_id: str | None = None
+    ) -> int:
+        """How many jobs `list_jobs` with these filters lists over all its pages."""
+        sql = "SELECT COUNT(*) AS n FROM jobs WHERE tenant_id = ?"
+        params: list[Any] = [tenant_id]
+        for column, value in (("state", state), ("block_id", block_id), ("schedule_id", schedule_id)):
+            if value is not None:
+                sql += f" AND {column} = ?"
+                params.append(value)
+        return self._one(sql, tuple(params))["n"]
+
     def claim_next_job(self) -> dict[str, Any] | None:
         """Move the next queued job to ``running`` and return it (None if the queue is
         empty, or holds only jobs waiting for their retry time).

@@ -173,9 +173,9 @@ def test_job_lifecycle_without_runner(client_a, block_a):
     assert job["state"] == "queued" and job["id"] and job["tiling"]["tile_size"] == 20
     assert r.headers["location"] == f"/v1/jobs/{job['id']}"
     assert client_a.get(f"/v1/jobs/{job['id']}").json()["state"] == "queued"
-    listed = client_a.get("/v1/jobs", params={"state": "queued", "block_id": block_a["id"]}).json()
+    listed = client_a.get("/v1/jobs", params={"state": "queued", "block_id": block_a["id"]}).json()["items"]
     assert listed[0]["id"] == job["id"]  # newest first: other tests' jobs do not push it off the page
-    assert job["id"] not in [j["id"] for j in client_a.get("/v1/jobs", params={"state": "done"}).json()]
+    assert job["id"] not in [j["id"] for j in client_a.get("/v1/jobs", params={"state": "done"}).json()["items"]]
     for suffix in ("trees", "trees.parquet", "trees.csv", "points.parquet", "report", "map.png"):
         res = client_a.get(f"/v1/jobs/{job['id']}/{suffix}")
         assert res.status_code == 409, suffix
@@ -227,7 +227,7 @@ def test_cross_tenant_access_is_404(client_a, client_b, block_a, api_server):
     assert client_b.delete(f"/v1/jobs/{job['id']}").status_code == 404
     assert client_b.post("/v1/jobs", json={"block_id": block_a["id"]}).status_code == 404
     assert block_a["id"] not in [b["id"] for b in client_b.get("/v1/blocks").json()]
-    assert job["id"] not in [j["id"] for j in client_b.get("/v1/jobs").json()]
+    assert job["id"] not in [j["id"] for j in client_b.get("/v1/jobs").json()["items"]]
     inbox = tenant_inbox(api_server.data_dir, "farm-a", "cross-tenant")
     sched = client_a.post("/v1/schedules", json={"inbox": str(inbox)}).json()
     assert client_b.get(f"/v1/schedules/{sched['id']}").status_code == 404

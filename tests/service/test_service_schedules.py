@@ -457,7 +457,7 @@ def test_api_schedules_run_now(client_a, api_server):
         captures.add(job["capture"])
     assert captures == {"one.laz", "two.las"}
     assert client_a.post(f"/v1/schedules/{sched['id']}/run").json()["jobs"] == []
-    listed = client_a.get("/v1/jobs", params={"schedule_id": sched["id"]}).json()
+    listed = client_a.get("/v1/jobs", params={"schedule_id": sched["id"]}).json()["items"]
     assert sorted(j["id"] for j in listed) == sorted(run["jobs"])
     for jid in run["jobs"]:
         client_a.delete(f"/v1/jobs/{jid}")

@@ -1,0 +1,212 @@
+"""Rough edges of the API and of `orchard serve`: operationIds, bodies that are not JSON,
+paged job lists, over-long file names, a full disk on /healthz, malformed ranges and a
+port in use."""
+
+from __future__ import annotations
+
+import json
+import os
+import socket
+import subprocess
+import sys
+
+import httpx
+import pytest
+from app_thread import app_in_thread
+from service_fixtures import make_token, temp_files, write_las
+
+from service.app import create_app
+from service.openapi import unique_operation_ids
+from service.runner import job_dir
+from service.settings import Settings
+from service.store import Store
+
+_METHODS = {"get", "put", "post", "delete", "options", "head", "patch", "trace"}
+
+
+@pytest.fixture(scope="module")
+def api(tmp_path_factory):
+    """An app without runner (jobs stay queued) served in this process, and a client of one tenant."""
+    settings = Settings(data_dir=tmp_path_factory.mktemp("edges") / "data", runner=False, scheduling=False)
+    with app_in_thread(settings) as url:
+        token = make_token(settings.data_dir, "farm")
+        with httpx.Client(base_url=url, headers={"Authorization": f"Bearer {token}"}, timeout=30) as c:
+            yield settings, c
+
+
+@pytest.fixture(scope="module")
+def block(api, tmp_path_factory):
+    _, c = api
+    path = write_las(tmp_path_factory.mktemp("las") / "b.laz", 500, seed=5)
+    r = c.post("/v1/blocks", files={"file": ("b.laz", path.read_bytes())})
+    assert r.status_code == 201, r.text
+    return r.json()
+
+
+def _operation_ids(spec: dict) -> list[tuple[str, str, str]]:
+    return [(path, method, op["operationId"]) for path, item in spec["paths"].items()
+            for method, op in item.items() if method in _METHODS]
+
+
+def test_every_operation_id_is_unique_and_names_its_method(tmp_path):
+    spec = create_app(Settings(data_dir=tmp_path / "data", runner=False, scheduling=False)).openapi()
+    ops = _operation_ids(spec)
+    ids = [op_id for _, _, op_id in ops]
+    assert len(ids) == len(set(ids)), sorted(i for i in ids if ids.count(i) > 1)
+    assert all(op_id.endswith("_" + method) for _, method, op_id in ops)
+    # a download answers GET and HEAD as two operations
+    download = spec["paths"]["/v1/jobs/{job_id}/trees.parquet"]
+    assert {download["get"]["operationId"], download["head"]["operationId"]} == {
+        "job_trees_parquet_v1_jobs__job_id__trees_parquet_get", "job_trees_parquet_v1_jobs__job_id__trees_parquet_head"}
+    assert spec["paths"]["/v1/jobs"]["get"]["operationId"] == "list_jobs_v1_jobs_get"  # one-method routes as before
+
+
+@pytest.mark.slow
+def test_operation_ids_are_the_same_whatever_the_hash_seed(tmp_path):
+    # the duplicated ids ended in whichever method a set yielded first: with these two seeds,
+    # both operations of a download were once "..._get" and once "..._head"
+    code = ("import json, sys; from service.app import create_app; from service.settings import Settings; "
+            "spec = create_app(Settings(data_dir=sys.argv[1], runner=False, scheduling=False)).openapi(); "
+            "print(json.dumps(sorted(op['operationId'] for item in spec['paths'].values() for op in item.values() "
+            "if isinstance(op, dict) and 'operationId' in op)))")
+    runs = []
+    for seed in ("1", "3"):
+        r = subprocess.run([sys.executable, "-c", code, str(tmp_path / f"d{seed}")], capture_output=True, text=True,
+                           timeout=120, env={**os.environ, "PYTHONHASHSEED": seed})
+        assert r.returncode == 0, r.stderr
+        runs.append(json.loads(r.stdout))
+    assert runs[0] == runs[1]
+
+
+def test_unique_operation_ids_renames_only_the_shared_ones():
+    spec = {"paths": {
+        "/a": {"get": {"operationId": "a_head"}, "head": {"operationId": "a_head"}, "parameters": []},
+        "/b": {"post": {"operationId": "b_post"}},
+    }}
+    unique_operation_ids(spec)
+    assert [op_id for _, _, op_id in _operation_ids(spec)] == ["a_get", "a_head", "b_post"]
+
+
+@pytest.mark.parametrize("headers", [{}, {"Content-Type": "text/plain"}, {"Content-Type": "application/x-www-form-urlencoded"}])
+def test_a_json_body_without_its_content_type_is_415_in_our_words(api, block, headers):
+    _, c = api
+    r = c.post("/v1/jobs", content=json.dumps({"block_id": block["id"]}).encode(), headers=headers)
+    assert r.status_code == 415, r.text
+    detail = r.json()["detail"]
+    assert "Content-Type: application/json" in detail and "dictionary" not in detail
+
+
+@pytest.mark.parametrize(("body", "says"), [
+    (b'{"block_id": ', "not valid JSON"),
+    (b'["a list"]', "must be a JSON object"),
+    (b"", "no body"),
+])
+def test_a_body_that_is_not_a_json_object_is_422_in_our_words(api, body, says):
+    _, c = api
+    r = c.post("/v1/jobs", content=body, headers={"Content-Type": "application/json"})
+    assert r.status_code == 422 and says in r.json()["detail"], r.text
+
+
+def test_field_errors_keep_their_list(api):
+    _, c = api
+    r = c.post("/v1/jobs", json={"block_id": "x", "nope": 1})
+    assert r.status_code == 422 and r.json()["errors"][0]["loc"] == ["body", "nope"], r.text
+
+
+def test_jobs_are_listed_a_page_at_a_time_like_trees(api, block):
+    settings, c = api
+    made = [c.post("/v1/jobs", json={"block_id": block["id"]}).json()["id"] for _ in range(3)]
+    first = c.get("/v1/jobs", params={"block_id": block["id"], "limit": 2}).json()
+    assert set(first) == {"items", "total", "limit", "offset"}
+    assert first["total"] == 3 and first["limit"] == 2 and first["offset"] == 0
+    second = c.get("/v1/jobs", params={"block_id": block["id"], "limit": 2, "offset": 2}).json()
+    assert [j["id"] for j in first["items"] + second["items"]] == made[::-1]  # newest first, each once
+    assert c.get("/v1/jobs", params={"block_id": block["id"], "state": "done"}).json()["total"] == 0
+    # the bare list of before, for callers not yet reading pages
+    bare = c.get("/v1/jobs", params={"block_id": block["id"], "paged": "false"}).json()
+    assert [j["id"] for j in bare] == made[::-1]
+
+
+def test_an_over_long_file_name_is_refused_as_such(api):
+    settings, c = api
+    data = write_las(settings.data_dir.parent / "long.laz", 300, seed=6).read_bytes()
+    r = c.post("/v1/blocks", files={"file": ("a" * 5000 + ".laz", data)})
+    assert r.status_code == 422 and "file name of the upload is too long" in r.json()["detail"], r.text
+    assert temp_files(settings.data_dir) == []
+    ok = c.post("/v1/blocks", files={"file": ("b" * 1000 + ".laz", data)})  # long, within the limit: shortened
+    assert ok.status_code == 201 and ok.json()["filename"] == "b" * 200, ok.text
+
+
+def test_healthz_is_not_ok_when_the_disk_is_below_the_threshold(tmp_path):
+    low = Settings(data_dir=tmp_path / "data", runner=False, scheduling=False, min_free_mb=1e12)  # an exabyte
+    with app_in_thread(low) as url:
+        r = httpx.get(url + "/healthz", timeout=30)
+    assert r.status_code == 503, r.text
+    body = r.json()
+    assert body["status"] == "not ok" and body["disk_free_mb"] > 0
+    assert "MB free, below 1e+12 MB (ORCHARD_MIN_FREE_MB)" in body["problems"][0]
+
+
+def test_healthz_is_ok_with_room(api):
+    _, c = api
+    body = c.get("/healthz").json()
+    assert body["status"] == "ok" and body["problems"] == [] and body["disk_free_mb"] > 512
+
+
+@pytest.fixture(scope="module")
+def done_job(api, block):
+    """A job marked done with a 100-byte trees.parquet (the download routes serve files)."""
+    settings, c = api
+    job_id = c.post("/v1/jobs", json={"block_id": block["id"]}).json()["id"]
+    store = Store(settings.store_path)
+    try:
+        while (claimed := store.claim_next_job()) is not None and claimed["id"] != job_id:
+            pass
+        out = job_dir(settings, job_id)
+        out.mkdir(parents=True, exist_ok=True)
+        (out / "trees.parquet").write_bytes(bytes(range(100)))
+        store.finish_job(job_id, "done", outcome={"n_trees": 0})
+    finally:
+        store.close()
+    return job_id
+
+
+@pytest.mark.parametrize("method", ["GET", "HEAD"])
+@pytest.mark.parametrize(("range_", "status"), [
+    ("bytes=abc", 400), ("bytes=5-2", 400), ("bytes", 400), ("bytes=100-", 416), ("bytes=500-600", 416),
+])
+def test_a_range_that_cannot_be_served_is_a_json_error(api, done_job, method, range_, status):
+    _, c = api
+    r = c.request(method, f"/v1/jobs/{done_job}/trees.parquet", headers={"Range": range_})
+    assert r.status_code == status, r.text
+    assert r.headers["content-type"] == "application/json"
+    if method == "GET":
+        assert "Range" in r.json()["detail"]
+    if status == 416:
+        assert r.headers["content-range"] == "bytes */100"
+
+
+def test_ranges_that_can_be_served_are(api, done_job):
+    _, c = api
+    url = f"/v1/jobs/{done_job}/trees.parquet"
+    r = c.get(url, headers={"Range": "bytes=10-13"})
+    assert r.status_code == 206 and r.content == bytes(range(10, 14)) and r.headers["content-range"] == "bytes 10-13/100"
+    assert c.get(url, headers={"Range": "bytes=-3"}).content == bytes(range(97, 100))
+    whole = c.get(url, headers={"Range": "pages=1-2"})  # a unit it does not know: ignored (RFC 9110 14.2)
+    assert whole.status_code == 200 and whole.content == bytes(range(100))
+
+
+def test_a_port_in_use_is_exit_2_naming_it_and_creates_nothing(tmp_path):
+    with socket.socket() as busy:
+        busy.bind(("127.0.0.1", 0))
+        busy.listen()
+        port = busy.getsockname()[1]
+        r = subprocess.run(
+            [sys.executable, "-m", "service.cli", "serve", "--port", str(port), "--data-dir", str(tmp_path / "data")],
+            capture_output=True, text=True, timeout=120,
+            env={**os.environ, "ORCHARD_RUNNER": "false", "ORCHARD_SCHEDULING": "false"},
+        )
+    assert r.returncode == 2, r.stderr  # not 3: that is "no trees"
+    assert f"cannot listen on 127.0.0.1:{port}: the address is already in use" in r.stderr
+    assert "--port" in r.stderr and "Traceback" not in r.stderr
+    assert not (tmp_path / "data").exists()
