@@ -709,3 +709,17 @@ def test_the_block_frame_maps_back_to_the_straight_frame(rotation, bow, tpr, xyz
     d0 = np.linalg.norm(pts[:, None] - pts[None], axis=2)
     assert np.allclose(np.linalg.norm(tree[:, None] - tree[None], axis=2), d0, atol=1e-7)
     assert np.allclose(tree[0], out[0], atol=1e-9)  # the trunk base lands where the ground under it does
+
+
+@pytest.mark.parametrize("form, spacing", [("vase", 2.5), ("hedge", 1.3)])
+def test_replants_of_every_form_are_30_to_50_percent_of_a_tree(form, spacing):
+    p = SimulationParams(form=form, rows=1, trees_per_row=6, spacing=spacing, row_spacing=4.0, density=0.03,
+                         replants=0.34, seed=5, posts=False, vehicle=False, bin=False, tree_height=3.0,
+                         trunk_radius=0.05)
+    o = simulate_orchard(p)
+    assert o.tree_young.sum() == 2
+    ratio = o.trunk_radius[o.tree_young] / np.median(o.trunk_radius[~o.tree_young])
+    assert np.all((ratio > 0.25) & (ratio < 0.56))
+    heights = np.array([_tree_points(o, k)[0][:, 2].max() for k in range(1, 7)])
+    ratio = heights[o.tree_young] / np.median(heights[~o.tree_young])
+    assert np.all((ratio > 0.22) & (ratio < 0.6))
