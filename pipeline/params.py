@@ -76,17 +76,26 @@ class TrunkParams(_Model):
     """Trunk detection without priors: where the canopy's shortest paths reach the ground."""
 
     contact_height: float = Field(0.08, gt=0.0, le=3.0, description="graph nodes this far above the top of the ground layer (the ground tolerance) can be a tree's ground contact [m]")
-    cluster_radius: float = Field(0.8, gt=0.0, le=5.0, description="ground contacts closer than this are one trunk; a group of contacts that is no trunk (too wide, or shoots beside a clearer stem) counts towards a trunk within 1.25 times this [m]")
+    cluster_radius: float | None = Field(None, gt=0.0, le=5.0, description="ground contacts closer than this are one trunk; a group of contacts that is no trunk (too wide, or shoots beside a clearer stem) counts towards a trunk within 1.25 times this; default: 0.32 x the block's measured in-row tree spacing, at most 0.8 [m]")
     min_tree_height: float = Field(2.0, gt=0.0, le=50.0, description="95 % of a tree's material must lie below a height of at least this (fence posts, bins and vehicles stay lower) [m]")
     min_canopy_voxels: int = Field(150, ge=1, le=10_000_000, description="least number of voxels whose shortest path ends in a trunk [voxels]")
     leaf_cost: float = Field(4.0, ge=0.0, le=100.0, description="drainage paths through fully scattered (leafy) nodes cost this much more, so canopies drain down their branches [x]")
-    satellite_radius: float = Field(2.0, ge=0.0, le=10.0, description="a contact this close to a stronger trunk is that tree's branch or foliage touching the ground; up to twice as far when the trunk is much stronger (see satellite_ratio) [m]")
+    satellite_radius: float | None = Field(None, ge=0.0, le=10.0, description="a contact this close to a stronger trunk is that tree's branch or foliage touching the ground; up to twice as far when the trunk is much stronger (see satellite_ratio); also the reach of the stem test (stem_ratio); default: 0.8 x the block's measured in-row tree spacing, at most 2.0 [m]")
     satellite_ratio: float = Field(1.5, ge=1.0, le=100.0, description="... when the trunk drains this many times more material, times (distance/satellite_radius)^2 beyond satellite_radius [x]")
     max_trunk_width: float = Field(1.0, gt=0.0, le=5.0, description="widest trunk cross-section accepted near the ground [m]")
     max_planar_fraction: float = Field(0.15, ge=0.0, le=1.0, description="objects whose material below min_tree_height is more planar (box-like) than this are not trees [fraction]")
     stem_ratio: float = Field(3.0, ge=0.0, le=1000.0, description="a contact group within satellite_radius of a trunk that drains at least half as much and whose stem stands out this many times more clearly in the 0.3 m above the ground layer is that tree's shoots or foliage touching down, not a trunk; 0 = off [x]")
     max_post_radius: float = Field(0.0, ge=0.0, le=1.0, description="for trellised rows: a contact group standing on a straight vertical pole of one thickness, at most this radius, from 0.3 to 2.2 m above the ground and ending below 4.5 m (a trellis post) is no trunk; the post is cut out of the graph and is not tree material. Looked for on scans whose estimated ground noise is under 0.05 m (about 0.03 m of range noise). Off by default: a trunk with a straight central leader can pass for a post (README, Known limits); 0.08 is the measured setting; 0 = off [m]")
     min_foot_ratio: float = Field(0.0, ge=0.0, le=100.0, description="a trunk continues into the ground layer: the density of points in the upper half of the ground layer within 0.2 m of a trunk's centre must be at least this many times that 0.2-0.8 m around it (a shoot hanging into the grass has no foot). Off by default: it removes about half the false trunks of noisy high-density scans but also drops trunks on clean ones (README, Known limits); 1.0 is the measured setting; 0 = off [x]")
+
+    def needs_spacing(self) -> bool:
+        """Whether a radius is left to follow the block's tree spacing."""
+        return any(getattr(self, f) is None for f in SPACING_SHARES["trunks"])
+
+    def at_spacing(self, spacing: float | None) -> "TrunkParams":
+        """These parameters with every radius left unset set from the in-row tree
+        ``spacing`` [m] (None: not measured, the free-standing trees' values)."""
+        return self.model_copy(update=_from_spacing(self, "trunks", spacing))
 
 
 class SegmentParams(_Model):
@@ -98,9 +107,32 @@ class SegmentParams(_Model):
     min_fragment: int = Field(3, ge=1, le=10_000, description="unreached fragments of fewer graph nodes than this are noise (outliers) and stay unlabelled, unless they float within fragment_reach of a tree [nodes]")
     fragment_reach: float = Field(0.3, ge=0.0, le=5.0, description="a floating unreached fragment smaller than min_fragment (a lone leaf at the crown's rim) joins the nearest tree if a tree node, or a fragment that joined, lies this close; farther it is an outlier [m]")
     foot_margin: float = Field(0.03, ge=0.0, le=0.5, description="ground points within the trunk's fitted circle plus this margin are the trunk's foot and belong to the tree [m]")
-    unreached_radius: float = Field(0.6, ge=0.0, le=10.0, description="points the graph does not reach go to the nearest trunk if a tree node lies this close [m]")
+    unreached_radius: float | None = Field(None, ge=0.0, le=10.0, description="points the graph does not reach go to the nearest trunk if a tree node lies this close; default: 0.24 x the block's measured in-row tree spacing, at most 0.6 [m]")
     surface_area: float = Field(0.4, ge=0.0, le=1000.0, description="a connected planar surface this large standing above floating_height (a vehicle's or a bin's side, a wall) is never tree material, nor is anything within surface_margin of it; 0 = off [m^2]")
     surface_margin: float = Field(0.3, ge=0.0, le=5.0, description="material this close to such a surface belongs to the object (its edges, wheels) [m]")
+
+    def at_spacing(self, spacing: float | None) -> "SegmentParams":
+        """These parameters with every radius left unset set from the in-row tree
+        ``spacing`` [m] (None: not measured, the free-standing trees' values)."""
+        return self.model_copy(update=_from_spacing(self, "segment", spacing))
+
+
+#: Radii left unset (None) follow the block's in-row tree spacing s [m]: (share of s,
+#: cap [m]). The caps are the values measured on free-standing trees; every share
+#: reaches its cap at s = 2.5 m, so blocks planted 2.5 m apart or wider keep them.
+SPACING_SHARES: dict[str, dict[str, tuple[float, float]]] = {
+    "trunks": {"cluster_radius": (0.32, 0.8), "satellite_radius": (0.8, 2.0)},
+    "segment": {"unreached_radius": (0.24, 0.6)},
+}
+
+
+def _from_spacing(model: _Model, group: str, spacing: float | None) -> dict[str, float]:
+    """The radii of ``model`` left unset, from ``spacing`` [m] by SPACING_SHARES."""
+    out = {}
+    for field, (share, cap) in SPACING_SHARES[group].items():
+        if getattr(model, field) is None:
+            out[field] = cap if spacing is None else min(cap, share * spacing)
+    return out
 
 
 #: the wood threshold the paper selected on its real data
@@ -137,6 +169,18 @@ class MetricsParams(_Model):
     crown_base: float = Field(0.5, ge=0.0, le=20.0, description="tree material above this height counts as crown [m]")
 
 
+class RowParams(_Model):
+    """Rows, tree addresses and empty slots (:func:`pipeline.rows.find_rows`)."""
+
+    enabled: bool = Field(True, description="find the rows and give every tree a row and position")
+    max_gap_slots: float = Field(6.0, ge=1.5, le=100.0, description="two trees this many planting slots apart (a run of empty slots between them) still belong to one row [slots]")
+    lateral_tolerance: float = Field(0.3, gt=0.0, lt=0.5, description="two trees are neighbours in a row when one lies at most this fraction of the distance between rows to the side of the other's row line [fraction]")
+    max_offset: float = Field(0.2, gt=0.0, lt=0.5, description="a tree farther than this fraction of the distance between rows from its row's line is off the row (a false trunk between rows, a lone tree) [fraction]")
+    max_section_angle: float = Field(15.0, gt=0.0, le=45.0, description="neighbouring trees whose row directions differ by more than this belong to different sections (blocks of another row direction) [degrees]")
+    young_ratio: float = Field(0.6, gt=0.0, lt=1.0, description="a tree lower than this fraction of the median height of its two neighbours on either side in its row is a replant (young) [fraction]")
+    drop_between_rows: bool = Field(True, description="a trunk standing between two rows (off both row lines, within the rows' extent) is no tree but foliage or a weed touching down: its material goes to the nearest tree")
+
+
 class PipelineParams(_Model):
     """Everything the per-block pipeline needs; stored with each job."""
 
@@ -146,6 +190,7 @@ class PipelineParams(_Model):
     segment: SegmentParams = SegmentParams()
     matter: MatterParams = MatterParams()
     metrics: MetricsParams = MetricsParams()
+    rows: RowParams = RowParams()
 
     def reach(self) -> float:
         """Horizontal distance [m] beyond which a point does not change a label.
@@ -166,4 +211,5 @@ GROUPS: dict[str, type[_Model]] = {
     "segment": SegmentParams,
     "matter": MatterParams,
     "metrics": MetricsParams,
+    "rows": RowParams,
 }

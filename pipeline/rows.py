@@ -59,6 +59,12 @@ class RowLayout:
     gaps : dict of str → ndarray
         One entry per empty slot between two trees of a row: ``row``, ``position``
         (int32), ``x``, ``y`` (float64, the slot's centre on the row line) [m].
+    off_row : (k,) bool
+        Trees off every row line, or a second tree in an occupied slot; each is a row of
+        its own, numbered after the rows.
+    between_rows : (k,) bool
+        Those off-row trees that stand between two rows, within the rows' extent: more
+        likely a false trunk (foliage or a weed touching down) than a tree.
     """
 
     row: np.ndarray
@@ -67,6 +73,8 @@ class RowLayout:
     rows: dict
     lines: list
     gaps: dict
+    off_row: np.ndarray
+    between_rows: np.ndarray
 
 
 def _doubled(vec: np.ndarray) -> np.ndarray:
@@ -220,35 +228,101 @@ def _steps(p: np.ndarray, d: np.ndarray) -> np.ndarray:
     return np.abs(np.einsum("ij,ij->i", np.diff(p, axis=0), mid))
 
 
-def _slots(p: np.ndarray, d: np.ndarray, spacing: float) -> tuple[np.ndarray, float]:
-    """Planting slot (0-based) of each tree of a row, in chain order, and the row's
-    spacing [m]. ``p`` are the trees' positions, ``d`` their local row directions,
-    ``spacing`` the block's typical step between neighbours [m].
+def _section_rows(local, direction, members, u, v, spacing, params):
+    """Rows of one section of the block.
+
+    Strategy: trees linked into chains (:func:`_link`) give the rows' course; the
+    curvature common to the section's rows (across offset quadratic in the along
+    coordinate, fitted to every chain of three or more trees at once) is taken off, so
+    that each row is one across offset. Chains of three or more trees, and shorter ones
+    half a row spacing from all of those, are rows; those whose offsets lie within half
+    the lateral tolerance of each other are one row (fragments on both sides of a run of
+    empty slots). Every tree goes to its nearest row, unless it lies farther from it
+    than ``params.max_offset`` times the distance between rows.
+
+    Returns
+    -------
+    rows : list of (offset, (n,) int64 tree indices in order along the row)
+    off : (o,) int64 — trees off every row
+    between : (b,) int64 — those of them between two rows, within the rows' extent
+    spacing : float — the typical step between neighbours in a row [m]
+    """
+    p = local[members]
+    across = _row_spacing(p, direction[members], cKDTree(p))
+    tol = params.lateral_tolerance * across if np.isfinite(across) else max(spacing, 0.5)
+    succ, pred = _link(local, direction, u, members, spacing, tol, params.max_gap_slots)
+    chains = _chains(succ, pred)
+    steps = [_steps(p[c], direction[members][c]) for c in chains if len(c) > 1]
+    if steps:  # the planting distance: the typical step between neighbours in a row
+        spacing = float(np.median(np.concatenate(steps)))
+    a, c = p @ u, p @ v
+    scale = max(float(np.ptp(a)), 1.0)
+    t = (a - a.mean()) / scale
+    long = [ch for ch in chains if len(ch) >= 3]
+    curve = np.zeros(2)
+    if sum(len(ch) for ch in long) >= 6:
+        x = np.concatenate([np.c_[t[ch] - t[ch].mean(), t[ch] ** 2 - (t[ch] ** 2).mean()] for ch in long])
+        y = np.concatenate([c[ch] - c[ch].mean() for ch in long])
+        curve = np.linalg.lstsq(x, y, rcond=None)[0]
+    flat = c - curve[0] * t - curve[1] * t**2
+    seeds = list(long)
+    if long and np.isfinite(across):  # a short row of its own lies half a row spacing from every long one
+        known = np.array([np.median(flat[ch]) for ch in long])
+        seeds += [ch for ch in chains if len(ch) < 3 and np.abs(known - np.median(flat[ch])).min() > 0.5 * across]
+    elif not long:
+        seeds = chains
+    offs = np.array([np.median(flat[ch]) for ch in seeds])
+    weight = np.array([len(ch) for ch in seeds], dtype=np.float64)
+    order = np.argsort(offs)
+    offs, weight = offs[order], weight[order]
+    merge = 0.5 * tol if np.isfinite(across) else np.inf
+    cut = np.r_[0, np.flatnonzero(np.diff(offs) > merge) + 1, len(offs)]
+    centres = np.array([np.average(offs[i:j], weights=weight[i:j]) for i, j in zip(cut[:-1], cut[1:])])
+    nearest = np.abs(flat[:, None] - centres[None, :]).argmin(axis=1)
+    dist = np.abs(flat - centres[nearest])
+    on = dist <= params.max_offset * across if np.isfinite(across) else np.ones(len(p), dtype=bool)
+    rows = []
+    for r, centre in enumerate(centres):
+        sel = np.flatnonzero(on & (nearest == r))
+        if len(sel):
+            rows.append((float(centre), members[sel[np.argsort(a[sel], kind="stable")]]))
+    inside = (flat > centres.min()) & (flat < centres.max())
+    if on.any():
+        inside &= (a >= a[on].min() - spacing) & (a <= a[on].max() + spacing)
+    return rows, members[~on], members[~on & inside], spacing
+
+
+def _slots(p: np.ndarray, d: np.ndarray, spacing: float) -> tuple[np.ndarray, float, np.ndarray]:
+    """Planting slot (0-based) of each tree of a row, in order along the row, the row's
+    spacing [m], and which trees keep their slot. ``p`` are the trees' positions, ``d``
+    their local row directions, ``spacing`` the block's typical step between
+    neighbours [m].
 
     Strategy: the trees' distances along the row line from the first tree are fitted by
     a lattice of slots (spacing within 10 % of the block's, and offset) that most trees
     lie close to, the peak of their periodogram; every tree goes to its nearest slot, so
-    one tree far off its slot does not shift the trees after it.
+    one tree far off its slot does not shift the trees after it. Of two trees in one
+    slot the one nearer its centre keeps it.
     """
+    keep = np.ones(len(p), dtype=bool)
     if len(p) == 1:
-        return np.zeros(1, dtype=np.int64), float("nan")
+        return np.zeros(1, dtype=np.int64), float("nan"), keep
     step = _steps(p, d)
     arc = np.r_[0.0, np.cumsum(step)]
     if len(p) < 3:
         slot = np.r_[0, np.cumsum(np.maximum(1, np.rint(step / spacing)))].astype(np.int64)
-        return slot, spacing
-    # the spacing and offset of the lattice of slots that the trees fit best (the peak
-    # of their periodogram near the block's spacing)
+        return slot, spacing, keep
     cand = spacing * (1.0 + np.linspace(-_SPACING_SLACK, _SPACING_SLACK, _SPACING_STEPS))
     phase = np.exp(2j * np.pi * arc[None, :] / cand[:, None])
-    power = np.abs(phase.mean(axis=1))
-    best = int(np.argmax(power))
+    best = int(np.argmax(np.abs(phase.mean(axis=1))))
     s = float(cand[best])
     a0 = s * float(np.angle(phase[best].mean())) / (2 * np.pi)
     slot = np.rint((arc - a0) / s).astype(np.int64)
-    slot = np.maximum.accumulate(slot - np.arange(len(slot))) + np.arange(len(slot))  # strictly increasing
-    slot = slot - slot[0]
-    return slot, s
+    off = np.abs(arc - a0 - slot * s)
+    for value in np.unique(slot[np.r_[False, np.diff(slot) == 0]]):
+        same = np.flatnonzero(slot == value)
+        keep[same[same != same[np.argmin(off[same])]]] = False
+    return slot, s, keep
 
 
 def _young(height: np.ndarray, chains: list[np.ndarray], ratio: float) -> np.ndarray:
@@ -294,7 +368,7 @@ def find_rows(xy: np.ndarray, height: np.ndarray | None = None, *, params: RowPa
                   "spacing_m": np.zeros(0), "length_m": np.zeros(0), "azimuth_deg": np.zeros(0)}
     empty_gaps = {"row": np.zeros(0, np.int32), "position": np.zeros(0, np.int32), "x": np.zeros(0), "y": np.zeros(0)}
     if k == 0:
-        return RowLayout(row, position, np.zeros(0, bool), empty_rows, [], empty_gaps)
+        return RowLayout(row, position, np.zeros(0, bool), empty_rows, [], empty_gaps, np.zeros(0, bool), np.zeros(0, bool))
     centre = xy.mean(axis=0)
     local = xy - centre
     if k == 1:
@@ -303,60 +377,60 @@ def find_rows(xy: np.ndarray, height: np.ndarray | None = None, *, params: RowPa
         rows = dict(empty_rows, row=np.array([1], np.int32), n_trees=np.array([1], np.int32),
                     n_gaps=np.array([0], np.int32), spacing_m=np.array([np.nan]), length_m=np.array([0.0]),
                     azimuth_deg=np.array([np.nan]))
-        return RowLayout(row, position, np.zeros(1, bool), rows, [xy.copy()], empty_gaps)
+        return RowLayout(row, position, np.zeros(1, bool), rows, [xy.copy()], empty_gaps, np.zeros(1, bool), np.zeros(1, bool))
 
     tree = cKDTree(local)
     direction = _local_directions(local, tree)
     section = _sections(local, direction, params.max_section_angle)
     nn_dist = tree.query(local, k=2)[0][:, 1]
 
-    found = []  # (section key, across, along, chain as global indices, spacing, slots)
+    found = []  # per row: (section key, across offset, trees in order along the row, slots, spacing, u)
+    off_row = np.zeros(k, dtype=bool)
+    between_rows = np.zeros(k, dtype=bool)
     for sec in np.unique(section):
         members = np.flatnonzero(section == sec)
         sec_key = tuple(np.round(local[members].mean(axis=0), 3))
         u = _section_direction(direction[members]) if len(members) > 1 else np.array([1.0, 0.0])
         v = np.array([u[1], -u[0]]) if abs(u[1]) > abs(u[0]) else np.array([-u[1], u[0]])  # numbering: east or north
-        spacing = float(np.median(nn_dist[members]))
-        across = _row_spacing(local[members], direction[members], cKDTree(local[members]))
-        tol = params.lateral_tolerance * across if np.isfinite(across) else max(spacing, 0.5)
-        succ, _pred = _link(local, direction, u, members, spacing, tol, params.max_gap_slots)
-        chains = [members[c] for c in _chains(succ, _pred)]
-        steps = [_steps(local[g], direction[g]) for g in chains if len(g) > 1]
-        if steps:  # the planting distance: the typical step between neighbours in a row
-            spacing = float(np.median(np.concatenate(steps)))
-        for g in chains:
-            slots, s = _slots(local[g], direction[g], spacing)
-            found.append((sec_key, float(np.mean(local[g] @ v)), float(np.mean(local[g] @ u)), g,
-                          s if np.isfinite(s) else spacing, slots, u, v))
+        rows_here, off, between, spacing = _section_rows(local, direction, members, u, v, float(np.median(nn_dist[members])), params)
+        off_row[off] = True
+        between_rows[between] = True
+        for offset, g in rows_here:
+            slots, s, keep = _slots(local[g], direction[g], spacing)
+            off_row[g[~keep]] = True  # a second tree in an occupied slot
+            found.append((sec_key, offset, g[keep], slots[keep], s, u))
+    for i in np.flatnonzero(off_row):  # off every row line: one row each, after the rows
+        found.append(((np.inf,), float(xy[i, 0]), np.array([i]), np.zeros(1, np.int64), float("nan"), np.array([1.0, 0.0])))
 
-    # order: sections west to east (then south to north), rows across, then along
-    keys = [c[:3] for c in found]
-    order = sorted(range(len(found)), key=lambda a: keys[a])
+    # order: sections west to east (then south to north), rows across
+    order = sorted(range(len(found)), key=lambda a: (found[a][0], found[a][1]))
     chains = []
     rows_out = {key: [] for key in empty_rows}
     lines = []
     gaps = {key: [] for key in empty_gaps}
     for number, a in enumerate(order, start=1):
-        _, _, _, g, s, slots, u, v = found[a]
+        _, _, g, slots, s, u = found[a]
+        slots = slots - slots[0]
         row[g] = number
         position[g] = slots + 1
         chains.append(g)
         line = xy[g]
         lines.append(line.copy())
         missing = np.setdiff1d(np.arange(slots[-1] + 1), slots)
+        # a run of more empty slots than max_gap_slots is no planting (a road, a headland)
+        run = np.interp(missing, slots[1:], np.diff(slots)) if len(missing) else missing
+        missing = missing[run <= params.max_gap_slots]
         if len(missing):
-            gx = np.interp(missing, slots, line[:, 0])
-            gy = np.interp(missing, slots, line[:, 1])
             gaps["row"].append(np.full(len(missing), number, np.int32))
             gaps["position"].append((missing + 1).astype(np.int32))
-            gaps["x"].append(gx)
-            gaps["y"].append(gy)
+            gaps["x"].append(np.interp(missing, slots, line[:, 0]))
+            gaps["y"].append(np.interp(missing, slots, line[:, 1]))
         rows_out["row"].append(number)
         rows_out["n_trees"].append(len(g))
         rows_out["n_gaps"].append(len(missing))
         rows_out["spacing_m"].append(s if len(g) > 1 else np.nan)
         rows_out["length_m"].append(float(np.hypot(*np.diff(line, axis=0).T).sum()) if len(g) > 1 else 0.0)
-        rows_out["azimuth_deg"].append(_azimuth(line[-1] - line[0]) if len(g) > 1 else _azimuth(u))
+        rows_out["azimuth_deg"].append(_azimuth(line[-1] - line[0]) if len(g) > 1 else np.nan)
     young = _young(height, chains, params.young_ratio)
     rows = {
         "row": np.asarray(rows_out["row"], np.int32),
@@ -367,4 +441,74 @@ def find_rows(xy: np.ndarray, height: np.ndarray | None = None, *, params: RowPa
         "azimuth_deg": np.asarray(rows_out["azimuth_deg"], np.float64),
     }
     gap_cols = {key: (np.concatenate(val) if val else empty_gaps[key]) for key, val in gaps.items()}
-    return RowLayout(row, position, young, rows, lines, gap_cols)
+    return RowLayout(row, position, young, rows, lines, gap_cols, off_row, between_rows)
+
+
+def row_prior(tree_xy: np.ndarray, cand_xy: np.ndarray, *, params: RowParams | None = None,
+              slot_reach: float = 0.3) -> tuple[np.ndarray, np.ndarray]:
+    """Where trunk candidates stand relative to the rows of the trees already found.
+
+    A candidate on an empty planting slot of a row is more likely a tree (a replant, a
+    thin or hidden trunk); one between two rows is more likely a post, a vehicle or a
+    weed.
+
+    Parameters
+    ----------
+    tree_xy : (k, 2) float64
+        Trunks accepted so far [m].
+    cand_xy : (c, 2) float64
+        Candidates to judge [m].
+    params : RowParams, optional
+    slot_reach : float
+        A candidate is on an empty slot within this fraction of the row's spacing.
+
+    Returns
+    -------
+    at_empty_slot : (c,) bool
+        Within ``slot_reach`` spacings of an empty slot between two trees of a row.
+    between_rows : (c,) bool
+        Farther to the side of every row line (through rows of at least three trees)
+        than ``params.lateral_tolerance`` times the distance between rows, and within
+        the rows' extent; False everywhere when the block has fewer than two such rows.
+    """
+    params = params or RowParams()
+    cand_xy = np.asarray(cand_xy, dtype=np.float64).reshape(-1, 2)
+    c = len(cand_xy)
+    at_slot = np.zeros(c, dtype=bool)
+    between = np.zeros(c, dtype=bool)
+    tree_xy = np.asarray(tree_xy, dtype=np.float64).reshape(-1, 2)
+    if c == 0 or len(tree_xy) < 3:
+        return at_slot, between
+    lay = find_rows(tree_xy, params=params)
+    if len(lay.gaps["row"]):
+        spacing = lay.rows["spacing_m"][lay.gaps["row"] - 1]
+        d, j = cKDTree(np.c_[lay.gaps["x"], lay.gaps["y"]]).query(cand_xy)
+        at_slot = d <= slot_reach * spacing[j]
+    long_rows = [line for line, n in zip(lay.lines, lay.rows["n_trees"]) if n >= 3]
+    if len(long_rows) >= 2:
+        step = 0.1 * float(np.nanmedian(lay.rows["spacing_m"]))
+        dense, which = [], []
+        for r, line in enumerate(long_rows):  # each row line sampled every tenth of a spacing
+            seg = np.diff(line, axis=0)
+            n = np.maximum(1, np.ceil(np.hypot(seg[:, 0], seg[:, 1]) / step)).astype(int)
+            t = np.concatenate([np.arange(k) / k for k in n])
+            base = np.repeat(np.arange(len(seg)), n)
+            dense.append(np.r_[line[base] + seg[base] * t[:, None], line[-1:]])
+            which.append(np.full(len(dense[-1]), r))
+        dense, which = np.concatenate(dense), np.concatenate(which)
+        # distance between rows: each row line's distance to its nearest other row line
+        tree = cKDTree(dense)
+        gaps = []
+        for r in range(len(long_rows)):
+            other = cKDTree(dense[which != r])
+            gaps.append(np.median(other.query(dense[which == r])[0]))
+        across = float(np.median(gaps))
+        d, j = tree.query(cand_xy)
+        # within the rows' extent: the nearest sample is not a row's end point
+        ends = np.zeros(len(dense), dtype=bool)
+        starts = np.flatnonzero(np.r_[True, np.diff(which) != 0])
+        ends[starts] = True
+        ends[np.r_[starts[1:] - 1, len(dense) - 1]] = True
+        between = (d > params.lateral_tolerance * across) & (d < (1 - params.lateral_tolerance) * across) & ~ends[j]
+    return at_slot, between
+

@@ -33,6 +33,7 @@ from types import SimpleNamespace
 from typing import Callable
 
 import numpy as np
+from scipy.spatial import cKDTree
 
 from pipeline import io as blockio
 from pipeline.errors import InputError, NoTreesError, OrchardError, ParameterError
@@ -45,9 +46,10 @@ from pipeline.ground import (
 from pipeline.io import BlockInfo
 from pipeline.merge import GlobalTrunks, TileTrunks, reconcile_trunks
 from pipeline.metrics import combine_partials, finalize_metrics, tree_partials
-from pipeline.params import PipelineParams
+from pipeline.params import PipelineParams, RowParams
 from pipeline.process import process_points
-from pipeline.tiling import TileGrid, core_tile, plan_grid
+from pipeline.rows import RowLayout, find_rows
+from pipeline.tiling import TileGrid, core_tile, plan_grid, tile_size_for_budget
 from workers.store import WorkStore, absolute_url, default_work_dir, own_entry
 from workers.tiler import INDEX_KEY, check_engine, read_frame, read_tile, tile_block
 
@@ -93,8 +95,9 @@ NO_WORKER_TIMEOUT = 120.0
 class JobSpec:
     """What to process and how.
 
-    ``tile_size`` None processes the block as one tile; ``buffer`` None uses
-    ``params.reach()``; ``grid_origin`` None uses the block origin (floor of the header
+    ``tile_size`` None processes the block as one tile, unless it would need more than
+    ``memory_budget`` bytes in one piece: then :func:`auto_tiled` chooses tiles that fit
+    it (None: no budget). ``buffer`` None uses ``params.reach()``; ``grid_origin`` None uses the block origin (floor of the header
     minimum), in the input CRS; ``work_dir`` None uses ``out_dir/_work``.
     ``inject_failure`` lists tiles whose task raises (testing the failure policy only).
     """
@@ -110,6 +113,7 @@ class JobSpec:
     engine: str = "laspy"
     chunk_points: int = 2_000_000
     inject_failure: tuple[int, ...] = ()
+    memory_budget: float | None = None
 
     def __post_init__(self) -> None:
         # dask workers run in folders of their own: a relative path would name another
@@ -169,6 +173,7 @@ def _frame(index: dict) -> SimpleNamespace:
 def _summarise(tile_id, xyz, core, result, grid: TileGrid | None, origin, params: PipelineParams) -> dict:
     """Small per-tile summary: trunks, ownership and partial metrics of the core points."""
     trunks = np.asarray(result.trunks, dtype=np.float64).reshape(-1, 3)
+    cluster_radius = params.trunks.at_spacing(result.spacing).cluster_radius  # the radius the tile used
     if grid is None:
         owned = np.ones(len(trunks), dtype=bool)
     else:
@@ -177,7 +182,7 @@ def _summarise(tile_id, xyz, core, result, grid: TileGrid | None, origin, params
         # other's core, and it must not be owned by neither (the merge keeps one of two)
         xy = trunks[:, :2] + np.asarray(origin[:2])
         x0, y0, x1, y1 = grid.tile(int(tile_id)).core
-        m = OWNERSHIP_MARGIN * params.trunks.cluster_radius
+        m = OWNERSHIP_MARGIN * cluster_radius
         near = (x0 - m <= xy[:, 0]) & (xy[:, 0] < x1 + m) & (y0 - m <= xy[:, 1]) & (xy[:, 1] < y1 + m)
         owned = (core_tile(xy, grid) == tile_id) | near
     sel = slice(None) if core.all() else core  # a whole block: no copies
@@ -190,6 +195,7 @@ def _summarise(tile_id, xyz, core, result, grid: TileGrid | None, origin, params
         "support": np.asarray(result.trunk_support, dtype=np.float64),
         "diameter": np.asarray(result.trunk_diameter, dtype=np.float64),
         "owned": owned,
+        "cluster_radius": cluster_radius,
         "partials": partials,
         "n_core": int(core.sum()),
     }
@@ -401,10 +407,42 @@ def _trees_table(summaries: list[dict], merged: GlobalTrunks, origin) -> dict:
     return cols
 
 
-OUTPUT_NAMES = ("points.parquet", "labelled.laz", "trees.parquet")
+OUTPUT_NAMES = ("points.parquet", "labelled.laz", "trees.parquet", "rows.parquet", "gaps.parquet")
 
 
-def _write_outputs(out_dir: Path, info: BlockInfo, labels: _Labels, trees: dict, *, labelled_laz: bool, failed: list[int]) -> dict:
+def _without_trunks_between_rows(merged: GlobalTrunks, params: PipelineParams) -> GlobalTrunks:
+    """The merged trunks less those that stand between two rows (the row model as a
+    prior: off both row lines is foliage or a weed touching down, not a tree); the
+    material of each goes to the nearest remaining tree within the crown radius.
+    Decided on the whole block's trunks, so tiled and untiled runs agree."""
+    if not (params.rows.enabled and params.rows.drop_between_rows) or merged.n_trees < 3:
+        return merged
+    xy = merged.trunks[:, :2]
+    drop = find_rows(xy, params=params.rows).between_rows
+    if not drop.any() or drop.all():
+        return merged
+    keep = ~drop
+    new_id = np.zeros(merged.n_trees + 1, dtype=np.int64)
+    new_id[1:][keep] = np.arange(1, int(keep.sum()) + 1)
+    dist, nearest = cKDTree(xy[keep]).query(xy[drop])
+    new_id[1:][drop] = np.where(dist <= params.segment.max_crown_radius, nearest + 1, 0)
+    return GlobalTrunks(
+        merged.trunks[keep], merged.diameter[keep], merged.support[keep], merged.owner[keep],
+        {t: new_id[m] for t, m in merged.id_maps.items()},
+    )
+
+
+def _with_rows(trees: dict, params: RowParams) -> tuple[dict, RowLayout | None]:
+    """The trees table with each tree's address (``row``, ``position``, ``young``), and
+    the block's rows; computed on the merged trees, so tiled and untiled runs agree."""
+    if not params.enabled:
+        return trees, None
+    layout = find_rows(np.c_[trees["trunk_x"], trees["trunk_y"]], trees["height_m"], params=params)
+    return dict(trees, row=layout.row, position=layout.position, young=layout.young), layout
+
+
+def _write_outputs(out_dir: Path, info: BlockInfo, labels: _Labels, trees: dict, *, labelled_laz: bool, failed: list[int],
+                   layout: RowLayout | None = None) -> dict:
     """Write the outputs of a job into ``out_dir`` as one set.
 
     Every file is written into a hidden staging folder first; only when all are complete
@@ -444,6 +482,13 @@ def _write_outputs(out_dir: Path, info: BlockInfo, labels: _Labels, trees: dict,
         path = stage / "trees.parquet"
         blockio.write_trees_parquet(path, trees, crs_wkt=info.crs_wkt, metadata=meta)
         written["trees"] = path
+        if layout is not None:
+            path = stage / "rows.parquet"
+            blockio.write_rows_parquet(path, layout.rows, layout.lines, crs_wkt=info.crs_wkt)
+            written["rows"] = path
+            path = stage / "gaps.parquet"
+            blockio.write_gaps_parquet(path, layout.gaps, crs_wkt=info.crs_wkt)
+            written["gaps"] = path
         outputs = {}
         for key, staged in written.items():  # complete: publish (each rename is atomic)
             final = out_dir / staged.name
@@ -499,6 +544,7 @@ def run_job(
     """
     t0 = time.perf_counter()
     info = blockio.read_info(spec.input_path)
+    spec = auto_tiled(spec, info)
     if spec.tile_size is None and client is None:
         return _run_single(spec, info, t0, progress, cancel)
     return _run_tiled(spec, info, client, t0, progress, cancel)
@@ -521,14 +567,15 @@ def _run_single(spec, info, t0, progress, cancel) -> JobOutcome:
     summary = _summarise(0, xyz, core, result, None, info.origin, params)
     merged = reconcile_trunks(
         [_tile_trunks(summary)],
-        cluster_radius=params.trunks.cluster_radius,
+        cluster_radius=summary["cluster_radius"],
         fallback_radius=params.segment.max_crown_radius,
     )
+    merged = _without_trunks_between_rows(merged, params)
     if merged.n_trees == 0:
         raise _no_trees(info)
-    trees = _trees_table([summary], merged, info.origin)
+    trees, layout = _with_rows(_trees_table([summary], merged, info.origin), params.rows)
     labels = _Labels.single(result, merged.id_maps[0])
-    outputs = _write_outputs(Path(spec.out_dir), info, labels, trees, labelled_laz=spec.labelled_laz, failed=[])
+    outputs = _write_outputs(Path(spec.out_dir), info, labels, trees, labelled_laz=spec.labelled_laz, failed=[], layout=layout)
     timings["merge_write"] = time.perf_counter() - t
     timings["total"] = time.perf_counter() - t0
     if progress:
@@ -573,6 +620,21 @@ def check_out_dir(out_dir) -> None:
         raise ParameterError(f"cannot make output folder {out}: {parent} is a file, not a folder")
     if not os.access(parent, os.W_OK | os.X_OK):
         raise ParameterError(f"cannot write to output folder {out}: {parent} is not writable")
+
+
+def auto_tiled(spec: JobSpec, info: BlockInfo | None = None) -> JobSpec:
+    """``spec`` with the tile size :func:`pipeline.tiling.tile_size_for_budget` chooses
+    when it has none and a memory budget the whole block would not fit (else ``spec``).
+
+    ``info``: the block's header, read from ``spec.input_path`` when not given.
+    Raises ParameterError (a :class:`pipeline.tiling.BudgetError` when no tile fits).
+    """
+    if spec.tile_size is not None or spec.memory_budget is None:
+        return spec
+    info = info or blockio.read_info(spec.input_path)
+    buffer = spec.params.reach() if spec.buffer is None else float(spec.buffer)
+    size = tile_size_for_budget(info.n_points, info.mins, info.maxs, budget=spec.memory_budget, buffer=buffer)
+    return spec if size is None else dataclasses.replace(spec, tile_size=size)
 
 
 def _plan(spec: JobSpec, info: BlockInfo) -> TileGrid:
@@ -812,13 +874,16 @@ def _finish(store: WorkStore, record: dict, index: dict, summaries: list[dict], 
     dead = [np.asarray(t["core"], dtype=np.float64) - np.r_[origin, origin] for t in index["tiles"] if t["id"] in set(failed)]
     merged = reconcile_trunks(
         [_tile_trunks(s) for s in summaries],
-        cluster_radius=params.trunks.cluster_radius,
+        # the tiles' own clustering radii (they follow the trees' spacing): the smallest
+        cluster_radius=min((s.get("cluster_radius", params.trunks.at_spacing(None).cluster_radius) for s in summaries),
+                           default=params.trunks.at_spacing(None).cluster_radius),
         fallback_radius=params.segment.max_crown_radius,
         dead_zones=np.array(dead).reshape(-1, 4),
     )
+    merged = _without_trunks_between_rows(merged, params)
     if merged.n_trees == 0:
         raise _no_trees(info)
-    trees = _trees_table(summaries, merged, info.origin)
+    trees, layout = _with_rows(_trees_table(summaries, merged, info.origin), params.rows)
     fields = ("index",) + _Labels.FIELDS
     # each memory-mapped array holds a file descriptor: with hundreds of tiles the usual
     # limit of 1024 ran out after every tile was done ("Too many open files")
@@ -831,7 +896,7 @@ def _finish(store: WorkStore, record: dict, index: dict, summaries: list[dict], 
         parts.append(part)
     labels = _Labels(parts, info.n_points)
     outputs = _write_outputs(
-        Path(record["out_dir"]), info, labels, trees, labelled_laz=record["labelled_laz"], failed=failed
+        Path(record["out_dir"]), info, labels, trees, labelled_laz=record["labelled_laz"], failed=failed, layout=layout
     )
     n_tiles = len([t for t in index["tiles"] if t["n_core"] > 0])
     return JobOutcome(info.n_points, merged.n_trees, n_tiles, list(failed), bool(failed), {}, outputs, trees)

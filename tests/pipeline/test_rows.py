@@ -190,3 +190,26 @@ def test_addresses_do_not_depend_on_the_order_of_the_trees(angle, dx, dy, seed):
     lay2 = find_rows(xy[perm])
     assert lay2.row.tolist() == lay.row[perm].tolist()
     assert lay2.position.tolist() == lay.position[perm].tolist()
+
+
+def test_row_prior_finds_empty_slots_and_candidates_between_rows():
+    from pipeline.rows import row_prior
+
+    xy, _, _, gaps = plan(n_rows=3, per_row=12, s=1.0, r=3.5, jitter=0.0, missing={(2, 6)})
+    cands = np.array([
+        gaps[0] + [0.1, 0.05],          # on the empty slot: a replant
+        xy[3] + [0.5, 0.0],             # between two trees of a row, no empty slot there
+        xy[5] + [0.0, 1.75],            # half-way between rows 1 and 2: a post or a weed
+        xy[0] + [-3.0, 0.0],            # beyond the end of row 1: neither
+        xy[30] + [0.0, 0.1],            # on a row line
+    ])
+    at_slot, between = row_prior(xy, cands)
+    assert at_slot.tolist() == [True, False, False, False, False]
+    assert between.tolist() == [False, False, True, False, False]
+
+
+def test_row_prior_without_rows_judges_nothing():
+    from pipeline.rows import row_prior
+
+    at_slot, between = row_prior(np.array([[0.0, 0.0], [5.0, 0.0]]), np.array([[2.5, 0.0], [2.5, 2.0]]))
+    assert not at_slot.any() and not between.any()
