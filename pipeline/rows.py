@@ -418,8 +418,8 @@ def find_rows(xy: np.ndarray, height: np.ndarray | None = None, *, params: RowPa
         lines.append(line.copy())
         missing = np.setdiff1d(np.arange(slots[-1] + 1), slots)
         # a run of more empty slots than max_gap_slots is no planting (a road, a headland)
-        run = np.interp(missing, slots[1:], np.diff(slots)) if len(missing) else missing
-        missing = missing[run <= params.max_gap_slots]
+        nxt = np.searchsorted(slots, missing)
+        missing = missing[slots[nxt] - slots[nxt - 1] <= params.max_gap_slots]
         if len(missing):
             gaps["row"].append(np.full(len(missing), number, np.int32))
             gaps["position"].append((missing + 1).astype(np.int32))

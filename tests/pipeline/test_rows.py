@@ -213,3 +213,56 @@ def test_row_prior_without_rows_judges_nothing():
 
     at_slot, between = row_prior(np.array([[0.0, 0.0], [5.0, 0.0]]), np.array([[2.5, 0.0], [2.5, 2.0]]))
     assert not at_slot.any() and not between.any()
+
+
+def test_a_false_trunk_between_rows_does_not_renumber_the_rows():
+    xy, true_row, true_slot, _ = plan(n_rows=3, per_row=10, s=2.5, r=4.5, jitter=0.03)
+    false = xy[14] + [0.3, 1.3]  # foliage of row 2 touching down 1.3 m off its line
+    lay = find_rows(np.r_[xy, [false]])
+    assert lay.row[:-1].tolist() == true_row.tolist()
+    assert lay.position[:-1].tolist() == true_slot.tolist()
+    assert lay.off_row.tolist() == [False] * len(xy) + [True]
+    assert lay.between_rows.tolist() == [False] * len(xy) + [True]
+    assert lay.row[-1] == 4 and lay.position[-1] == 1  # a row of its own, after the rows
+
+
+def test_a_lone_tree_beyond_the_rows_is_not_between_them():
+    xy, true_row, _, _ = plan(n_rows=3, per_row=10, s=2.5, r=4.5, jitter=0.03)
+    lone = np.array([[xy[:, 0].mean(), xy[:, 1].max() + 12.0]])  # a tree by the farm track
+    lay = find_rows(np.r_[xy, lone])
+    assert not lay.between_rows[-1]
+    assert lay.row[:-1].tolist() == true_row.tolist() and lay.row[-1] == 4  # a row of its own
+
+
+def test_a_second_trunk_in_one_slot_is_off_the_row():
+    xy, true_row, true_slot, _ = plan(n_rows=2, per_row=12, s=1.5, r=3.5, jitter=0.02)
+    twin = xy[5] + [0.15, 0.05]  # a split trunk, a sucker
+    lay = find_rows(np.r_[xy, [twin]])
+    assert lay.off_row.sum() == 1
+    assert len(set(zip(lay.row.tolist(), lay.position.tolist()))) == len(xy) + 1
+    assert lay.row[:-1].tolist() == true_row.tolist() or lay.off_row[5]
+
+
+def test_a_long_empty_stretch_is_no_run_of_empty_slots():
+    x = np.r_[np.arange(10) * 1.0, 30.0 + np.arange(5) * 1.0]  # 20 m without trees (a road)
+    lay = find_rows(np.c_[x, np.zeros(len(x))])
+    assert len(lay.rows["row"]) == 1
+    assert lay.position.tolist() == list(range(1, 11)) + list(range(31, 36))
+    assert len(lay.gaps["row"]) == 0  # more than max_gap_slots empty: not reported as gaps
+
+
+def test_trunks_between_rows_give_their_material_to_the_nearest_tree():
+    from pipeline.merge import GlobalTrunks
+    from pipeline.params import PipelineParams
+    from workers.job import _without_trunks_between_rows
+
+    xy, *_ = plan(n_rows=3, per_row=6, s=2.5, r=4.5, jitter=0.0, origin=(0.0, 0.0))
+    false = xy[8] + [0.2, 1.3]
+    trunks = np.c_[np.r_[xy, [false]], np.zeros(len(xy) + 1)]
+    k = len(trunks)
+    merged = GlobalTrunks(trunks, np.full(k, 0.1), np.ones(k), np.zeros(k, np.int64), {0: np.arange(k + 1)})
+    out = _without_trunks_between_rows(merged, PipelineParams())
+    assert out.n_trees == k - 1
+    assert out.id_maps[0].tolist() == list(range(k)) + [9]  # the false tree's points → tree 9 (xy[8])
+    off = _without_trunks_between_rows(merged, PipelineParams(rows={"drop_between_rows": False}))
+    assert off is merged
