@@ -1,7 +1,8 @@
 """``python -m bench [--quick]``: run the benchmark suite and write the results.
 
-Writes ``bench/results.md``, PNG plots next to it, and the README section between
-``<!-- bench:start -->`` and ``<!-- bench:end -->`` (nothing else in the README).
+Writes ``bench/results.md``, PNG plots next to it, and the section of
+``docs/benchmarks.md`` between ``<!-- bench:start -->`` and ``<!-- bench:end -->``
+(nothing else on that page; the README only links it).
 """
 
 from __future__ import annotations
@@ -22,6 +23,7 @@ from pathlib import Path  # noqa: E402
 
 HERE = Path(__file__).resolve().parent
 ROOT = HERE.parent
+DOCS_PAGE = ROOT / "docs" / "benchmarks.md"
 
 
 def _floats(text: str) -> list[float]:
@@ -49,9 +51,10 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--peers-venv", type=Path, default=Path.home() / ".cache" / "orchard-bench" / "peers",
                    help="virtualenv for peers from PyPI (created if missing)")
     p.add_argument("--peer-timeout", type=float, default=1800.0, help="seconds one peer run may take (default 1800)")
-    p.add_argument("--no-readme", action="store_true", help="do not update the README section")
+    p.add_argument("--no-docs", "--no-readme", dest="no_docs", action="store_true",
+                   help="do not update the section of docs/benchmarks.md")
     p.add_argument("--render", type=Path, metavar="RESULTS_JSON",
-                   help="measure nothing: re-render results.md, the plots and the README section from the raw "
+                   help="measure nothing: re-render results.md, the plots and the docs/benchmarks.md section from the raw "
                         "data of an earlier run (the results.json it left in its work folder)")
     return p
 
@@ -60,7 +63,7 @@ def main(argv: list[str] | None = None) -> int:
     args = build_parser().parse_args(argv)
     if args.render:
         data = json.loads(args.render.read_text())
-        write_outputs(data, args.out_dir, readme=not args.no_readme, log=print)
+        write_outputs(data, args.out_dir, page=None if args.no_docs else DOCS_PAGE, log=print)
         return 0
     quick = args.quick
     noises = args.noises or ([0.02, 0.1] if quick else [0.0, 0.02, 0.05, 0.1])
@@ -185,12 +188,12 @@ def main(argv: list[str] | None = None) -> int:
     data["load"] = {"min": min(loads), "max": max(loads), "mean": sum(loads) / len(loads)} if loads else None
     (work / "results.json").write_text(json.dumps(data, indent=1, default=str))
     log(f"raw data: {work / 'results.json'}")
-    write_outputs(data, args.out_dir, readme=not args.no_readme, log=log)
+    write_outputs(data, args.out_dir, page=None if args.no_docs else DOCS_PAGE, log=log)
     return 0
 
 
-def write_outputs(data: dict, out: Path, *, readme: bool, log) -> None:
-    """results.md, the PNG plots and (if ``readme``) the README section, from one run's data."""
+def write_outputs(data: dict, out: Path, *, page: Path | None, log) -> None:
+    """results.md, the PNG plots and (unless ``page`` is None) its section of ``page``, from one run's data."""
     from bench import report
 
     out.mkdir(parents=True, exist_ok=True)
@@ -203,11 +206,16 @@ def write_outputs(data: dict, out: Path, *, readme: bool, log) -> None:
     text = report.render(data)
     (out / "results.md").write_text(text)
     log(f"wrote {out / 'results.md'}")
-    if readme:
-        if report.splice_readme(ROOT / "README.md", text):
-            log("updated the README section between the bench markers")
+    if page is not None:
+        if report.splice_section(page, text, image_prefix=_relative_prefix(page.parent, out)):
+            log(f"updated the section of {page} between the bench markers")
         else:
-            log("README.md has no <!-- bench:start --> / <!-- bench:end --> markers; left it alone")
+            log(f"{page} has no <!-- bench:start --> / <!-- bench:end --> markers; left it alone")
+
+
+def _relative_prefix(page_dir: Path, out: Path) -> str:
+    """How the page links to the plots in ``out``: ``../bench/`` for docs/ and bench/."""
+    return Path(os.path.relpath(out.resolve(), page_dir.resolve())).as_posix() + "/"
 
 
 if __name__ == "__main__":

@@ -1,4 +1,4 @@
-"""bench/results.md, the PNG plots, and the README section between the bench markers."""
+"""bench/results.md, the PNG plots, and the section of docs/benchmarks.md between the bench markers."""
 
 from __future__ import annotations
 
@@ -349,14 +349,19 @@ def render(data: dict) -> str:
     return "\n".join(out)
 
 
-def splice_readme(readme: Path, results_md: str, *, image_prefix: str = "bench/") -> bool:
-    """Replace the text between the bench markers; False (and nothing written) without them."""
-    if not readme.exists():
+def splice_section(page: Path, results_md: str, *, image_prefix: str = "../bench/") -> bool:
+    """Replace the text of ``page`` between the bench markers with ``results_md``.
+
+    The results' title is dropped and their headings are nested under the page's last
+    heading above the start marker; relative image links get ``image_prefix`` (the plots
+    live in ``bench/``, the page in ``docs/``). Returns False, writing nothing, when the
+    page or its markers are missing.
+    """
+    if not page.exists():
         return False
-    text = readme.read_text()
+    text = page.read_text()
     if START not in text or END not in text or text.index(START) > text.index(END):
         return False
-    # Nest under the README's own heading: drop the file's title, shift its sections below that heading.
     above = re.findall(r"^(#+) ", text[: text.index(START)], flags=re.M)
     level = len(above[-1]) if above else 1
     body = re.sub(r"\A# [^\n]*\n+", "", results_md)
@@ -364,5 +369,5 @@ def splice_readme(readme: Path, results_md: str, *, image_prefix: str = "bench/"
     body = re.sub(r"!\[([^\]]*)\]\((?!https?:|/)([^)]+)\)", lambda mm: f"![{mm.group(1)}]({image_prefix}{mm.group(2)})", body)
     a = text.index(START) + len(START)
     b = text.index(END)
-    readme.write_text(text[:a] + "\n" + body.strip() + "\n" + text[b:])
+    page.write_text(text[:a] + "\n" + body.strip() + "\n" + text[b:])
     return True
