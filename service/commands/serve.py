@@ -78,13 +78,13 @@ def run(args: argparse.Namespace) -> int:
 
     os.umask(UMASK)  # what the service and its local workers write is the service user's alone
     sock = bind(settings.host, settings.port)
-    host, port = sock.getsockname()[:2]
-    logging.getLogger("orchard.service").info("listening on http://%s:%d", f"[{host}]" if ":" in host else host, port)
     try:
         app = create_app(settings)
     except BaseException:
         sock.close()
         raise
+    host, port = sock.getsockname()[:2]
+    logging.getLogger("orchard.service").info("listening on http://%s:%d", f"[{host}]" if ":" in host else host, port)
 
     class Server(uvicorn.Server):
         def handle_exit(self, sig, frame) -> None:  # SIGTERM / Ctrl-C
