@@ -188,7 +188,8 @@ def _check_public(p: Path, f: BinaryIO, head: bytes, minor: int, size: int) -> H
     count, evlrs = legacy_count, ()
     if minor >= 4:
         _, evlr_start, n_evlrs, count = _EXTENDED.unpack_from(head, _PUBLIC.size)[:4]
-        if legacy_count not in (0, count):
+        saturated = 2**32 - 1 if count >= 2**32 else 0  # what some writers store for a count above 32 bits
+        if legacy_count not in (0, count, saturated):
             raise _corrupt(p, f"its legacy point count {legacy_count:,} differs from its point count {count:,}")
         evlrs = _walk_evlrs(p, f, evlr_start, n_evlrs, offset, size)
     vlrs = _walk_vlrs(p, f, header_size, n_vlrs, offset)
