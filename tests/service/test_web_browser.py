@@ -111,11 +111,10 @@ def served(tmp_path_factory):
 
 
 def _click_tree(page, i: int) -> None:
-    """Click tree ``i``'s crown on the map's canvas, where the browser draws it."""
+    """Click tree ``i``'s trunk on the map's canvas, where the browser draws it."""
     x, y = page.evaluate(
-        """(i) => { const v = window.orchardView; const s = v.shapes[i];
-                    const c = s.getBounds ? s.getBounds().getCenter() : s.getLatLng();
-                    const p = v.map.latLngToContainerPoint(c); const r = document.getElementById('map').getBoundingClientRect();
+        """(i) => { const v = window.orchardView;
+                    const p = v.map.latLngToContainerPoint([v.d.y[i], v.d.x[i]]); const r = document.getElementById('map').getBoundingClientRect();
                     return [r.left + p.x, r.top + p.y]; }""",
         i,
     )
@@ -148,7 +147,7 @@ def test_walk_through_sign_in_blocks_job_sign_out_and_docs(browser, served):
         page.click(f"a[href='/jobs/{job['id']}']")
         page.wait_for_selector("body[data-drawn]", timeout=60_000)
         assert page.text_content("#tree-count") == str(job["n_trees"]) == str(len(trees))
-        assert page.evaluate("window.orchardView.shapes.filter(Boolean).length") == job["n_trees"]
+        assert page.evaluate("window.orchardView.drawn") == job["n_trees"]  # every tree on the canvas
 
         # a click on a crown shows that tree
         _click_tree(page, 1)

@@ -42,6 +42,54 @@
     return null;
   }
 
+  function insidePolygon(ring, x, y) {
+    let inside = false;
+    for (let a = 0, b = ring.length - 2; a < ring.length; b = a, a += 2) {
+      const xa = ring[a], ya = ring[a + 1], xb = ring[b], yb = ring[b + 1];
+      if (ya > y !== yb > y && x < ((xb - xa) * (y - ya)) / (yb - ya) + xa) inside = !inside;
+    }
+    return inside;
+  }
+
+  /* One canvas over the map (with a margin, so a pan shows trees before it ends), drawn
+     by the view after each move or zoom; scaled by CSS during the zoom animation. */
+  const TreeCanvas = L.Layer.extend({
+    PAD: 0.3,
+    initialize(view) { this.view = view; },
+    onAdd(map) {
+      this.canvas = L.DomUtil.create("canvas", "leaflet-zoom-animated");
+      map.getPanes().overlayPane.appendChild(this.canvas);
+      map.on("moveend viewreset resize", this.redraw, this);
+      map.on("zoomanim", this.animateZoom, this);
+      this.redraw();
+    },
+    onRemove(map) {
+      L.DomUtil.remove(this.canvas);
+      map.off("moveend viewreset resize", this.redraw, this);
+      map.off("zoomanim", this.animateZoom, this);
+    },
+    scale() { return this._map.getZoomScale(this._map.getZoom(), 0); }, // pixels per metre
+    animateZoom(e) {
+      const offset = this._map._latLngBoundsToNewLayerBounds(this.bounds, e.zoom, e.center).min;
+      L.DomUtil.setTransform(this.canvas, offset, this._map.getZoomScale(e.zoom));
+    },
+    redraw() {
+      const map = this._map, size = map.getSize(), dpr = window.devicePixelRatio || 1;
+      const px = Math.round(size.x * this.PAD), py = Math.round(size.y * this.PAD);
+      const w = size.x + 2 * px, h = size.y + 2 * py;
+      this.bounds = L.latLngBounds(map.containerPointToLatLng([-px, size.y + py]), map.containerPointToLatLng([size.x + px, -py]));
+      L.DomUtil.setPosition(this.canvas, map.containerPointToLayerPoint([-px, -py]));
+      this.canvas.width = Math.round(w * dpr);
+      this.canvas.height = Math.round(h * dpr);
+      this.canvas.style.width = w + "px";
+      this.canvas.style.height = h + "px";
+      const ctx = this.canvas.getContext("2d");
+      ctx.setTransform(dpr, 0, 0, dpr, 0, 0);
+      const origin = map.latLngToContainerPoint([0, 0]);
+      this.view.paint(ctx, { ox: origin.x + px, oy: origin.y + py, s: this.scale(), w, h });
+    },
+  });
+
   class JobView {
     constructor(data, options) {
       this.d = data;
@@ -60,9 +108,9 @@
     draw() {
       document.getElementById("mapsection").hidden = false;
       document.getElementById("tree-count").textContent = O.fmt(this.n);
-      this.drawMap();
       this.fillMetricChoice();
       this.recolour();
+      this.drawMap();
       this.summaries();
       this.table();
       document.getElementById("searchform").addEventListener("submit", (ev) => {
@@ -79,54 +127,118 @@
     drawMap() {
       const d = this.d;
       const map = (this.map = L.map("map", {
-        crs: L.CRS.Simple, preferCanvas: true, minZoom: -6, maxZoom: 7, zoomSnap: 0.25, attributionControl: false,
+        crs: L.CRS.Simple, minZoom: -6, maxZoom: 7, zoomSnap: 0.25, attributionControl: false,
       }));
-      const renderer = (this.renderer = L.canvas({ padding: 0.3, tolerance: 2 }));
-      // the view first: layers added to a map without one are placed wrongly until it moves
+      L.control.scale({ imperial: false, metric: true, maxWidth: 160 }).addTo(map);
+      // each tree's shape once, in local metres: its footprint, or a circle of its crown
+      this.shape = new Array(this.n);
+      this.box = new Float64Array(4 * this.n).fill(NaN);
+      const crownD = this.cols.crown_diameter_m || [];
       const bounds = L.latLngBounds([]);
       for (let i = 0; i < this.n; i++) {
-        const r = Math.max((this.cols.crown_diameter_m || [])[i] || 1, 1) / 2;
-        if (d.x[i] !== null && d.y[i] !== null) bounds.extend([[d.y[i] - r, d.x[i] - r], [d.y[i] + r, d.x[i] + r]]);
+        const x = d.x[i], y = d.y[i];
+        if (x === null || y === null) continue;
+        const o = d.outlines ? d.outlines[i] : null;
+        let x0, y0, x1, y1;
+        if (o && o.length >= 6) {
+          this.shape[i] = Float64Array.from(o);
+          x0 = x1 = x; y0 = y1 = y;
+          for (let k = 0; k < o.length; k += 2) { x0 = Math.min(x0, o[k]); x1 = Math.max(x1, o[k]); y0 = Math.min(y0, o[k + 1]); y1 = Math.max(y1, o[k + 1]); }
+        } else {
+          const r = Math.max((crownD[i] || 1) / 2, 0.2);
+          this.shape[i] = r;
+          x0 = x - r; x1 = x + r; y0 = y - r; y1 = y + r;
+        }
+        this.box.set([x0, y0, x1, y1], 4 * i);
+        bounds.extend([[y0, x0], [y1, x1]]);
       }
       (d.gaps || []).forEach((g) => { if (g.x !== undefined && g.x !== null) bounds.extend([g.y, g.x]); });
       if (bounds.isValid()) map.fitBounds(bounds.pad(0.05));
       else map.setView([0, 0], 0);
-      L.control.scale({ imperial: false, metric: true, maxWidth: 160 }).addTo(map);
-      (d.rows || []).forEach((r) => {
-        if (!r.line || r.line.length < 4) return;
-        const pts = [];
-        for (let k = 0; k < r.line.length; k += 2) pts.push([r.line[k + 1], r.line[k]]);
-        L.polyline(pts, { renderer, color: "#8a7f62", weight: 1.5, dashArray: "6 4", interactive: false }).addTo(map);
-      });
-      this.shapes = new Array(this.n);
-      this.trunks = new Array(this.n);
-      const crownD = this.cols.crown_diameter_m || [];
-      for (let i = 0; i < this.n; i++) {
-        const x = d.x[i], y = d.y[i];
-        if (x === null || y === null) continue;
-        const outline = d.outlines ? d.outlines[i] : null;
-        let shape;
-        if (outline && outline.length >= 6) {
-          const pts = [];
-          for (let k = 0; k < outline.length; k += 2) pts.push([outline[k + 1], outline[k]]);
-          shape = L.polygon(pts, { renderer, weight: 1, color: "#333", fillOpacity: 0.75 });
+      this.layer = new TreeCanvas(this).addTo(map);
+      map.on("click", (e) => this.clicked(e.latlng.lng, e.latlng.lat));
+    }
+
+    /* Draw every visible tree on the canvas: one path per colour, one for the outlines,
+       one for the trunks (a path per tree would take seconds with 5,000 trees). */
+    paint(ctx, t) {
+      const { ox, oy, s, w, h } = t;
+      const X = (x) => ox + x * s, Y = (y) => oy - y * s;
+      const xmin = -ox / s, xmax = (w - ox) / s, ymin = (oy - h) / s, ymax = oy / s;
+      const visible = (i) => { const b = 4 * i; return this.box[b] <= xmax && this.box[b + 2] >= xmin && this.box[b + 1] <= ymax && this.box[b + 3] >= ymin; };
+      const trace = (i) => {
+        const sh = this.shape[i];
+        if (typeof sh === "number") {
+          ctx.moveTo(X(this.d.x[i] + sh), Y(this.d.y[i]));
+          ctx.arc(X(this.d.x[i]), Y(this.d.y[i]), sh * s, 0, 2 * Math.PI);
         } else {
-          shape = L.circle([y, x], { renderer, radius: Math.max((crownD[i] || 1) / 2, 0.2), weight: 1, color: "#333", fillOpacity: 0.75 });
+          ctx.moveTo(X(sh[0]), Y(sh[1]));
+          for (let k = 2; k < sh.length; k += 2) ctx.lineTo(X(sh[k]), Y(sh[k + 1]));
+          ctx.closePath();
         }
-        shape.on("click", () => this.select(i, false));
-        shape.addTo(map);
-        this.shapes[i] = shape;
-        const trunk = L.circleMarker([y, x], { renderer, radius: 3, weight: 1, color: "#fff", fillColor: "#2b1a0e", fillOpacity: 1 });
-        trunk.on("click", () => this.select(i, false));
-        trunk.addTo(map);
-        this.trunks[i] = trunk;
+      };
+      ctx.clearRect(0, 0, w, h);
+      const shown = [];
+      for (let i = 0; i < this.n; i++) if (this.shape[i] !== undefined && visible(i)) shown.push(i);
+      if (this.d.rows) {
+        ctx.beginPath();
+        for (const r of this.d.rows) {
+          if (!r.line || r.line.length < 4) continue;
+          ctx.moveTo(X(r.line[0]), Y(r.line[1]));
+          for (let k = 2; k < r.line.length; k += 2) ctx.lineTo(X(r.line[k]), Y(r.line[k + 1]));
+        }
+        ctx.setLineDash([6, 4]); ctx.strokeStyle = "#8a7f62"; ctx.lineWidth = 1.5; ctx.stroke(); ctx.setLineDash([]);
       }
-      (d.gaps || []).forEach((g) => {
-        if (g.x === undefined || g.x === null) return;
-        const slot = L.circle([g.y, g.x], { renderer, radius: 0.5, color: "#b3261e", weight: 1.5, dashArray: "3 3", fill: false });
-        slot.on("click", () => this.showGap(g));
-        slot.addTo(map);
-      });
+      ctx.globalAlpha = 0.8;
+      for (let b = 0; b < this.binColour.length; b++) {
+        ctx.beginPath();
+        let any = false;
+        for (const i of shown) if (this.bin[i] === b) { trace(i); any = true; }
+        if (any) { ctx.fillStyle = this.binColour[b]; ctx.fill(); }
+      }
+      ctx.globalAlpha = 1;
+      // strokes cost most: outlines and round trunks once they can be told apart
+      // (a few metres across the screen's pixels, or fewer trees in view)
+      const few = shown.length <= 1500;
+      if (s >= 6 || few) {
+        ctx.beginPath(); for (const i of shown) trace(i);
+        ctx.strokeStyle = "#333"; ctx.lineWidth = 1; ctx.stroke();
+      }
+      if (few) {
+        ctx.beginPath();
+        const r = Math.min(Math.max(s * 0.1, 2), 5);
+        for (const i of shown) { ctx.moveTo(X(this.d.x[i]) + r, Y(this.d.y[i])); ctx.arc(X(this.d.x[i]), Y(this.d.y[i]), r, 0, 2 * Math.PI); }
+        ctx.fillStyle = "#2b1a0e"; ctx.fill(); ctx.strokeStyle = "#fff"; ctx.stroke();
+      } else if (s >= 2) {
+        ctx.fillStyle = "#2b1a0e";
+        for (const i of shown) ctx.fillRect(X(this.d.x[i]) - 1, Y(this.d.y[i]) - 1, 3, 3);
+      }
+      if (this.d.gaps && this.d.gaps.length) {
+        ctx.beginPath();
+        for (const g of this.d.gaps) if (g.x !== null && g.x !== undefined) { ctx.moveTo(X(g.x) + Math.max(0.5 * s, 3), Y(g.y)); ctx.arc(X(g.x), Y(g.y), Math.max(0.5 * s, 3), 0, 2 * Math.PI); }
+        ctx.setLineDash([3, 3]); ctx.strokeStyle = "#b3261e"; ctx.lineWidth = 1.5; ctx.stroke(); ctx.setLineDash([]);
+      }
+      if (this.selected >= 0 && this.shape[this.selected] !== undefined) {
+        ctx.beginPath(); trace(this.selected);
+        ctx.strokeStyle = "#e8590c"; ctx.lineWidth = 3; ctx.stroke();
+      }
+      this.drawn = shown.length;
+    }
+
+    /* The tree under a click: the crowns holding the point, the one whose trunk is nearest. */
+    clicked(x, y) {
+      const tol = 4 / this.layer.scale(); // a few pixels, in metres
+      let best = -1, bestD = Infinity;
+      for (let i = 0; i < this.n; i++) {
+        const b = 4 * i, sh = this.shape[i];
+        if (sh === undefined || x < this.box[b] - tol || x > this.box[b + 2] + tol || y < this.box[b + 1] - tol || y > this.box[b + 3] + tol) continue;
+        const dx = x - this.d.x[i], dy = y - this.d.y[i], dist = Math.hypot(dx, dy);
+        const inside = typeof sh === "number" ? dist <= sh + tol : dist <= tol || insidePolygon(sh, x, y);
+        if (inside && dist < bestD) { best = i; bestD = dist; }
+      }
+      if (best >= 0) { this.select(best, false); return; }
+      const gap = (this.d.gaps || []).find((g) => Math.hypot(g.x - x, g.y - y) <= 0.5 + tol);
+      if (gap) this.showGap(gap);
     }
 
     fillMetricChoice() {
@@ -142,8 +254,15 @@
       for (const x of v) if (x !== null) { lo = Math.min(lo, x); hi = Math.max(hi, x); }
       const span = hi > lo ? hi - lo : 1;
       const binary = v.every((x) => x === null || x === 0 || x === 1);
-      const colour = (x) => (x === null || x === undefined ? NO_VALUE : binary ? (x ? RAMP[8] : RAMP[2]) : rampColour((x - lo) / span));
-      for (let i = 0; i < this.n; i++) if (this.shapes[i]) this.shapes[i].setStyle({ fillColor: colour(v[i]) });
+      // colours in bins: one fill per bin when drawing
+      const BINS = 48;
+      this.binColour = binary ? [NO_VALUE, RAMP[2], RAMP[8]] : [NO_VALUE].concat([...Array(BINS).keys()].map((k) => rampColour(k / (BINS - 1))));
+      this.bin = new Uint8Array(this.n);
+      for (let i = 0; i < this.n; i++) {
+        const x = v[i];
+        this.bin[i] = x === null || x === undefined ? 0 : binary ? 1 + (x ? 1 : 0) : 1 + Math.round(((x - lo) / span) * (BINS - 1));
+      }
+      if (this.layer) this.layer.redraw();
       const legend = document.getElementById("legend");
       const parts = [el("strong", { text: label(this.metric) })];
       if (binary) {
@@ -171,14 +290,10 @@
     }
 
     select(i, pan) {
-      if (this.selected >= 0 && this.shapes[this.selected]) this.shapes[this.selected].setStyle({ color: "#333", weight: 1 });
       this.selected = i;
-      const shape = this.shapes[i];
-      if (shape) {
-        shape.setStyle({ color: "#e8590c", weight: 3 });
-        shape.bringToFront();
-        if (this.trunks[i]) this.trunks[i].bringToFront();
-        if (pan) this.map.setView(shape.getBounds ? shape.getBounds().getCenter() : [this.d.y[i], this.d.x[i]], Math.max(this.map.getZoom(), 3));
+      if (this.shape[i] !== undefined) {
+        if (pan) this.map.setView([this.d.y[i], this.d.x[i]], Math.max(this.map.getZoom(), 3));
+        this.layer.redraw();
       }
       const box = document.getElementById("details");
       box.replaceChildren(el("h3", { id: "selected-tree", text: "Tree " + this.cols.tree_id[i] + this.address(i) }), this.details(i));
