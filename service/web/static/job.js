@@ -209,7 +209,7 @@
         const r = Math.min(Math.max(s * 0.1, 2), 5);
         for (const i of shown) { ctx.moveTo(X(this.d.x[i]) + r, Y(this.d.y[i])); ctx.arc(X(this.d.x[i]), Y(this.d.y[i]), r, 0, 2 * Math.PI); }
         ctx.fillStyle = "#2b1a0e"; ctx.fill(); ctx.strokeStyle = "#fff"; ctx.stroke();
-      } else if (s >= 2) {
+      } else if (s >= 5) { // below that a trunk would hide its crown
         ctx.fillStyle = "#2b1a0e";
         for (const i of shown) ctx.fillRect(X(this.d.x[i]) - 1, Y(this.d.y[i]) - 1, 3, 3);
       }
