@@ -264,9 +264,14 @@ def _check_laz(p: Path, f: BinaryIO, layout: HeaderLayout, points_end: int) -> t
     data = _read(f, laszip.start + VLR_HEADER_SIZE, laszip.length)
     if len(data) < _LASZIP.size or len(data) < _LASZIP.size + 6 * _LASZIP.unpack_from(data)[-1]:
         raise _corrupt(p, f"its LASzip record is {len(data)} bytes, too short for what it describes")
-    chunk_size = _LASZIP.unpack_from(data)[6]
+    chunk_size, n_items = _LASZIP.unpack_from(data)[6], _LASZIP.unpack_from(data)[-1]
     if chunk_size == 0:
         raise _corrupt(p, "its LASzip record gives a chunk size of 0 points")
+    # the items are the parts of a point record; lazrs panics (divides by zero) on none
+    item_bytes = sum(struct.unpack_from("<H", data, _LASZIP.size + 6 * i + 2)[0] for i in range(n_items))
+    if item_bytes != layout.point_record_length:
+        raise _corrupt(p, f"its LASzip record's {n_items} items take {item_bytes} bytes a point, but its point "
+                          f"records take {layout.point_record_length}")
     start, size = layout.offset_to_point_data, layout.file_size
     raw = _read(f, start, 8)
     if len(raw) < 8:

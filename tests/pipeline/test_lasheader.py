@@ -213,6 +213,17 @@ def test_laz_chunks_larger_than_the_compressed_data(tmp_path):
            f"{table - start - 108:,}" in _refused(path)
 
 
+@pytest.mark.parametrize("field, value, words", [
+    (32, 0, "its LASzip record's 0 items take 0 bytes a point, but its point records take 30"),  # lazrs panicked
+    (34 + 2, 31, "its LASzip record's 1 items take 31 bytes a point, but its point records take 30"),
+])
+def test_laszip_items_that_do_not_make_up_a_point(tmp_path, field, value, words):
+    path = _block(tmp_path / "b.laz", fmt=6)
+    rec = next(r for r in lasheader.check_header(path).vlrs if r.user_id == lasheader.LASZIP_USER_ID)
+    _patch(path, rec.start + lasheader.VLR_HEADER_SIZE + field, "H", value)
+    assert words in _refused(path)
+
+
 def test_a_laz_chunk_size_of_zero(tmp_path):
     path = _block(tmp_path / "b.laz")
     rec = next(r for r in lasheader.check_header(path).vlrs if r.user_id == lasheader.LASZIP_USER_ID)

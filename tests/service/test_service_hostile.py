@@ -76,6 +76,7 @@ def _hostile(root: Path) -> dict[str, bytes]:
         "chunk-table-past-eof.laz": _patched(laz, (start, "q", 2**40)),
         "chunk-table-offset-0.laz": _patched(laz, (start, "q", 0)),
         "chunk-size-0.laz": _patched(laz, (laszip.start + lasheader.VLR_HEADER_SIZE + 12, "I", 0)),
+        "laszip-no-items.laz": _patched(laz, (laszip.start + lasheader.VLR_HEADER_SIZE + 32, "H", 0)),
         "evlr-start-inside-points.las": _patched(las, (235, "Q", las_l.offset_to_point_data + 5)),
     }
 
