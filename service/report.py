@@ -29,7 +29,7 @@ import pyarrow.parquet as pq
 from service.web import mapdata, render
 
 #: the outputs the report links to, beside it (relative links)
-DOWNLOADS = ("trees.csv", "trees.parquet", "points.parquet", "map.png")
+DOWNLOADS = ("trees.csv", "trees.parquet", "points.parquet", "rows.parquet", "gaps.parquet", "map.png")
 
 TABLE_COLUMNS = [
     ("tree_id", "Tree", "{:d}"),
@@ -264,7 +264,8 @@ def write_report(
     static = render_html(title=title, png=png, rows=rows, origin=origin, summary=summary or {}, warning=warning)
     data = mapdata.build_map_data(trees_parquet, sample=(xy + origin[:2], tree_id))
     # the files beside the report: relative links work from disk and under /v1/jobs/<id>/
-    downloads = {name: name for name in DOWNLOADS}
+    # (trees.csv is written beside it by `orchard process`, and on its first download by the service)
+    downloads = {name: name for name in DOWNLOADS if name == "trees.csv" or (out / name).is_file()}
     page = render.report_page(title=title, data_json=mapdata.to_json(data), facts=summary or {}, downloads=downloads,
                               warning=warning, fallback=_body_of(static))
     path = out / "report.html"

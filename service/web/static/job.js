@@ -394,13 +394,16 @@
     }
   }
 
-  const DOWNLOADS = [
-    ["trees.csv", "Trees (CSV)"], ["trees.parquet", "Trees (GeoParquet)"], ["points.parquet", "Points (Parquet)"],
-    ["report", "Report (HTML)"], ["map.png", "Map (PNG)"],
-  ];
+  const DOWNLOADS = {
+    "trees.csv": "Trees (CSV)", "trees.parquet": "Trees (GeoParquet)", "points.parquet": "Points (Parquet)",
+    "rows.parquet": "Rows (GeoParquet)", "gaps.parquet": "Empty slots (GeoParquet)", report: "Report (HTML)", "map.png": "Map (PNG)",
+  };
+  const NOT_DOWNLOADS = new Set(["self", "page", "trees"]); // the resource, this page, the JSON of the table
 
   function showDownloads(links) {
-    const parts = DOWNLOADS.filter(([k]) => links[k]).map(([k, text]) => el("a", { class: "button secondary", href: links[k], download: "", text }));
+    const known = Object.keys(DOWNLOADS).filter((k) => links[k]);
+    const other = Object.keys(links).filter((k) => !NOT_DOWNLOADS.has(k) && !(k in DOWNLOADS)).sort();
+    const parts = known.concat(other).map((k) => el("a", { class: "button secondary", href: links[k], download: "", text: DOWNLOADS[k] || k }));
     document.getElementById("downloads").replaceChildren(...(parts.length ? [el("strong", { text: "Downloads" }), ...parts] : []));
   }
 
