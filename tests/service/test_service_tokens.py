@@ -184,7 +184,10 @@ def test_the_service_tightens_its_data_folder_at_start_and_leaves_inboxes_alone(
     # the farm's inbox and capture as they were; the symlink's target untouched
     assert _mode(data / "inboxes") == 0o755 and _mode(inbox) == 0o755 and _mode(inbox / "capture.laz") == 0o644
     assert os.path.islink(data / "jobs" / "link")
-    assert tighten(data, skip=[data / "inboxes"]) >= 0 and _mode(inbox / "capture.laz") == 0o644
+    # once private, a start changes nothing more outside the inboxes (the server's own
+    # temporary folder may be made private only now: in tests there is no umask 077)
+    tighten(data, skip=[data / "inboxes"])
+    assert tighten(data, skip=[data / "inboxes"]) == 0
 
 
 def test_the_401_of_a_token_from_another_data_folder_says_how_to_make_one_for_this_server(tmp_path):
