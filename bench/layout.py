@@ -23,6 +23,7 @@ import subprocess
 import sys
 from collections import Counter
 from dataclasses import dataclass, field
+from datetime import UTC
 from pathlib import Path
 
 ROOT = Path(__file__).resolve().parent.parent
@@ -204,18 +205,19 @@ def render(layout: Layout, *, top: int = 5) -> str:
     out = []
     pkgs = sorted(layout.packages)
     out += ["## Packages", "",
-            f"{len(layout.lines)} modules, {sum(layout.lines.values()):,} lines in {len(pkgs)} packages. "
-            "An arrow is an import; its label, how many module-to-module imports it stands for.", "",
+            (f"{len(layout.lines)} modules, {sum(layout.lines.values()):,} lines in {len(pkgs)} packages. "
+             "An arrow is an import; its label, how many module-to-module imports it stands for."), "",
             "```mermaid", "flowchart LR"]
     for p in pkgs:
-        n = sum(1 for m in layout.lines if layout.package_of(m) == p)
-        out.append(f'    {_node(p)}["{p}<br/>{n} modules, {sum(v for m, v in layout.lines.items() if layout.package_of(m) == p):,} lines"]')
+        sizes = [n for m, n in layout.lines.items() if layout.package_of(m) == p]
+        out.append(f'    {_node(p)}["{p}<br/>{len(sizes)} modules, {sum(sizes):,} lines"]')
     for (a, b), k in sorted(package_edges(layout).items()):
         out.append(f"    {_node(a)} -->|{k}| {_node(b)}")
     out += ["```", ""]
 
-    out += ["## Modules", "", "Every module of a package in one box; an arrow is an import of one module by another, "
-            "dotted where it is made inside a function.", "",
+    out += ["## Modules", "",
+            ("Every module of a package in one box; an arrow is an import of one module by another, "
+             "dotted where it is made inside a function."), "",
             "```mermaid", "flowchart LR"]
     for p in pkgs:
         out.append(f'    subgraph {_node(p)}_box["{p}"]')
@@ -245,9 +247,9 @@ def render(layout: Layout, *, top: int = 5) -> str:
 
 def stamp(root: Path) -> str:
     """Which command made the report, when, and on which commit."""
-    from datetime import datetime, timezone
+    from datetime import datetime
 
-    when = datetime.now(timezone.utc).strftime("%Y-%m-%d %H:%M UTC")
+    when = datetime.now(UTC).strftime("%Y-%m-%d %H:%M UTC")
     try:
         commit = subprocess.run(["git", "-C", str(root), "rev-parse", "--short", "HEAD"], capture_output=True,
                                 text=True, timeout=10, check=True).stdout.strip()

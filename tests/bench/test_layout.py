@@ -1,6 +1,16 @@
 """bench.layout on a hand-made project whose imports are known."""
 
-from bench.layout import END, START, against_direction, cycles, largest, main, package_edges, render, scan
+from bench.layout import (
+    END,
+    START,
+    against_direction,
+    cycles,
+    largest,
+    main,
+    package_edges,
+    render,
+    scan,
+)
 
 
 def _write(root, files):
