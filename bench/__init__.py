@@ -1,5 +1,5 @@
 """Benchmark suite: ``python -m bench [--quick]`` writes ``bench/results.md``, PNG plots
-next to it, and the README section between ``<!-- bench:start -->`` and ``<!-- bench:end -->``.
+next to it, and the section of docs/benchmarks.md between ``<!-- bench:start -->`` and ``<!-- bench:end -->``.
 
 Every figure in the results comes from the run that writes them. Measurements run in
 fresh subprocesses (:mod:`bench.measure`) so that timings and peak memory of one do

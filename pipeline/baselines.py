@@ -1,4 +1,4 @@
-"""Baselines that the README compares against, run on the same data.
+"""Baselines that the benchmarks (docs/benchmarks.md) compare against, run on the same data.
 
 - ``closest_trunk``: every non-ground point goes to the nearest trunk in plan view
   (the paper's comparison method), with our trunks, so only segmentation differs.

@@ -1,9 +1,9 @@
-"""End to end on generated orchards with known truth: the accuracy the README reports.
+"""End to end on generated orchards with known truth: the accuracy docs/benchmarks.md reports.
 
 Blocks use evaluation seeds (< 1000); the wood model was fitted on seeds >= 1000.
 Thresholds: trunk F1 and wood F1 are the issue's targets. v-measure is asserted at the
 level the method reaches on this simulator, just below the measured means (the issue's
-0.96 / 0.90 targets are not met yet; see README "Accuracy"), so a regression still fails
+0.96 / 0.90 targets are not met yet; see docs/limits.md), so a regression still fails
 the test.
 """
 
@@ -132,7 +132,7 @@ def test_thick_trunks_are_trees_not_boxes():
     ],
 )
 def test_options_for_very_thick_trunks(sim, seed, options):
-    # the options README's "Very thick trunks" names; the defaults stay (they cost trunks
+    # the options docs/limits.md's "Very thick trunks" names; the defaults stay (they cost trunks
     # on noisy high-density scans)
     default = _score(PAPER_SETTING | sim, seed)
     assert default["trunk_tp"] < 8 or default["trunk_fp"] > 0, default

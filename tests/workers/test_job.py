@@ -376,7 +376,7 @@ def test_small_tiles_through_a_trunk_give_the_untiled_result(tmp_path):
     for col in ("point_index", "tree_id", "is_ground"):
         assert pa[col] == pb[col], col
     same_wood = np.mean(np.asarray(pa["is_wood"]) == np.asarray(pb["is_wood"]))
-    assert same_wood >= 0.999  # the per-tree wood normalisers see the tile (README, Known limits)
+    assert same_wood >= 0.999  # the per-tree wood normalisers see the tile (docs/limits.md)
 
 
 def test_trellis_post_test_gives_the_untiled_result_in_tiles(tmp_path):
