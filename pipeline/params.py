@@ -76,11 +76,11 @@ class TrunkParams(_Model):
     """Trunk detection without priors: where the canopy's shortest paths reach the ground."""
 
     contact_height: float = Field(0.08, gt=0.0, le=3.0, description="graph nodes this far above the top of the ground layer (the ground tolerance) can be a tree's ground contact [m]")
-    cluster_radius: float | None = Field(None, gt=0.0, le=5.0, description="ground contacts closer than this are one trunk; a group of contacts that is no trunk (too wide, or shoots beside a clearer stem) counts towards a trunk within 1.25 times this; default: 0.32 x the block's measured in-row tree spacing, at most 0.8 [m]")
+    cluster_radius: float | None = Field(None, gt=0.0, le=5.0, description="ground contacts closer than this are one trunk; a group of contacts that is no trunk (too wide, or shoots beside a clearer stem) counts towards a trunk within 1.25 times this; default: from the block's measured in-row tree spacing s, 0.8 x min(1, s / 2.2 m) [m]")
     min_tree_height: float = Field(2.0, gt=0.0, le=50.0, description="95 % of a tree's material must lie below a height of at least this (fence posts, bins and vehicles stay lower) [m]")
     min_canopy_voxels: int = Field(150, ge=1, le=10_000_000, description="least number of voxels whose shortest path ends in a trunk [voxels]")
     leaf_cost: float = Field(4.0, ge=0.0, le=100.0, description="drainage paths through fully scattered (leafy) nodes cost this much more, so canopies drain down their branches [x]")
-    satellite_radius: float | None = Field(None, ge=0.0, le=10.0, description="a contact this close to a stronger trunk is that tree's branch or foliage touching the ground; up to twice as far when the trunk is much stronger (see satellite_ratio); also the reach of the stem test (stem_ratio); default: 0.8 x the block's measured in-row tree spacing, at most 2.0 [m]")
+    satellite_radius: float | None = Field(None, ge=0.0, le=10.0, description="a contact this close to a stronger trunk is that tree's branch or foliage touching the ground; up to twice as far when the trunk is much stronger (see satellite_ratio); also the reach of the stem test (stem_ratio); default: from the block's measured in-row tree spacing s, 2.0 x min(1, s / 2.2 m)^2 [m]")
     satellite_ratio: float = Field(1.5, ge=1.0, le=100.0, description="... when the trunk drains this many times more material, times (distance/satellite_radius)^2 beyond satellite_radius [x]")
     max_trunk_width: float = Field(1.0, gt=0.0, le=5.0, description="widest trunk cross-section accepted near the ground [m]")
     max_planar_fraction: float = Field(0.15, ge=0.0, le=1.0, description="objects whose material below min_tree_height is more planar (box-like) than this are not trees [fraction]")
@@ -90,7 +90,7 @@ class TrunkParams(_Model):
 
     def needs_spacing(self) -> bool:
         """Whether a radius is left to follow the block's tree spacing."""
-        return any(getattr(self, f) is None for f in SPACING_SHARES["trunks"])
+        return any(getattr(self, f) is None for f in SPACING_RADII["trunks"])
 
     def at_spacing(self, spacing: float | None) -> "TrunkParams":
         """These parameters with every radius left unset set from the in-row tree
@@ -107,7 +107,7 @@ class SegmentParams(_Model):
     min_fragment: int = Field(3, ge=1, le=10_000, description="unreached fragments of fewer graph nodes than this are noise (outliers) and stay unlabelled, unless they float within fragment_reach of a tree [nodes]")
     fragment_reach: float = Field(0.3, ge=0.0, le=5.0, description="a floating unreached fragment smaller than min_fragment (a lone leaf at the crown's rim) joins the nearest tree if a tree node, or a fragment that joined, lies this close; farther it is an outlier [m]")
     foot_margin: float = Field(0.03, ge=0.0, le=0.5, description="ground points within the trunk's fitted circle plus this margin are the trunk's foot and belong to the tree [m]")
-    unreached_radius: float | None = Field(None, ge=0.0, le=10.0, description="points the graph does not reach go to the nearest trunk if a tree node lies this close; default: 0.24 x the block's measured in-row tree spacing, at most 0.6 [m]")
+    unreached_radius: float | None = Field(None, ge=0.0, le=10.0, description="points the graph does not reach go to the nearest trunk if a tree node lies this close; default: from the block's measured in-row tree spacing s, 0.6 x min(1, s / 2.2 m) [m]")
     surface_area: float = Field(0.4, ge=0.0, le=1000.0, description="a connected planar surface this large standing above floating_height (a vehicle's or a bin's side, a wall) is never tree material, nor is anything within surface_margin of it; 0 = off [m^2]")
     surface_margin: float = Field(0.3, ge=0.0, le=5.0, description="material this close to such a surface belongs to the object (its edges, wheels) [m]")
 
@@ -117,21 +117,25 @@ class SegmentParams(_Model):
         return self.model_copy(update=_from_spacing(self, "segment", spacing))
 
 
-#: Radii left unset (None) follow the block's in-row tree spacing s [m]: (share of s,
-#: cap [m]). The caps are the values measured on free-standing trees; every share
-#: reaches its cap at s = 2.5 m, so blocks planted 2.5 m apart or wider keep them.
-SPACING_SHARES: dict[str, dict[str, tuple[float, float]]] = {
-    "trunks": {"cluster_radius": (0.32, 0.8), "satellite_radius": (0.8, 2.0)},
-    "segment": {"unreached_radius": (0.24, 0.6)},
+#: Radii left unset (None) follow the block's in-row tree spacing s [m] (measured as the
+#: median distance to the nearest neighbouring tree, below the planting distance): each
+#: is ``cap * min(1, s / FULL_SPACING) ** power``, by field: (cap [m], power). The caps
+#: are the values measured on free-standing trees, kept from FULL_SPACING up, so blocks
+#: planted 2.5 m apart or wider keep them. The satellite radius shrinks faster: a dense
+#: row's trees are trained narrow, while a free tree's drooping foliage reaches out.
+FULL_SPACING = 2.2
+SPACING_RADII: dict[str, dict[str, tuple[float, float]]] = {
+    "trunks": {"cluster_radius": (0.8, 1.0), "satellite_radius": (2.0, 2.0)},
+    "segment": {"unreached_radius": (0.6, 1.0)},
 }
 
 
 def _from_spacing(model: _Model, group: str, spacing: float | None) -> dict[str, float]:
-    """The radii of ``model`` left unset, from ``spacing`` [m] by SPACING_SHARES."""
+    """The radii of ``model`` left unset, from ``spacing`` [m] by SPACING_RADII."""
     out = {}
-    for field, (share, cap) in SPACING_SHARES[group].items():
+    for field, (cap, power) in SPACING_RADII[group].items():
         if getattr(model, field) is None:
-            out[field] = cap if spacing is None else min(cap, share * spacing)
+            out[field] = cap if spacing is None else cap * min(1.0, spacing / FULL_SPACING) ** power
     return out
 
 

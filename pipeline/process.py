@@ -32,6 +32,7 @@ from pipeline.segment import (
     hard_surfaces,
     planar_patches,
     segment_nodes,
+    standing,
     trunk_feet,
 )
 from pipeline.trunks import (
@@ -116,6 +117,9 @@ class BlockResult:
         (a confidence, used to break ties when tiles disagree).
     trunk_diameter : (k,) float64
         Trunk diameter at ``params.metrics.trunk_height`` [m]; NaN when not measurable.
+    spacing : float or None
+        The in-row tree spacing the radii left unset followed [m]
+        (:meth:`pipeline.params.TrunkParams.at_spacing`); None: not measured.
     """
 
     tree_id: np.ndarray
@@ -126,6 +130,7 @@ class BlockResult:
     trunks: np.ndarray
     trunk_support: np.ndarray
     trunk_diameter: np.ndarray
+    spacing: float | None = None
 
     @property
     def n_trees(self) -> int:
@@ -238,13 +243,15 @@ def analyse_nodes(
     # box tests: planar nodes in patches of MIN_FACE_NODES or more; the catchment's test
     # also counts blurred faces on noisy scans (cutting surfaces out of the graph needs
     # the strict test)
-    face = faces(patch, size, MIN_FACE_NODES)
+    # only faces standing above the grass: flat grass tops beside a thin trunk (a
+    # spindle's leader) made up most of its little low material
+    face = faces(patch, size, MIN_FACE_NODES) & standing(patch, size, node_height, min_top=params.segment.floating_height)
     box_planar = face | noisy_planar(feats, noise=gm.noise)
     ground_top = gm.tolerance(params.ground)
     stem_points = _stem_points(xyz, height, is_ground, ground_top, on=params.trunks.stem_ratio > 0)
     foot_xy = xyz[is_ground & (height > 0.5 * ground_top), :2] if params.trunks.min_foot_ratio > 0 else None
 
-    def detect(drainage: sparse.csr_matrix) -> TrunkDetection:
+    def detect(drainage: sparse.csr_matrix, spacing: float | None = None) -> TrunkDetection:
         return detect_trunks(
             nodes,
             node_height,
@@ -254,6 +261,7 @@ def analyse_nodes(
             ground_top=ground_top,
             foot_xy=foot_xy,
             **stem_points,
+            spacing=spacing,
             params=params.trunks,
         )
 
@@ -269,7 +277,7 @@ def analyse_nodes(
         )
         on_post = on_posts(nodes, node_height, posts, margin=POST_NODE_MARGIN)
         if on_post.any():
-            det = detect(without_nodes(drainage, on_post))
+            det = detect(without_nodes(drainage, on_post))  # the spacing measured again, without the posts
     surfaces = on_post | hard_surfaces(
         nodes,
         patch,
@@ -291,7 +299,7 @@ def analyse_nodes(
             source_trunk=det.source_trunk,
             trunk_xy=det.xy,
             node_height=node_height,
-            params=params.segment,
+            params=params.segment.at_spacing(det.spacing),
             exclude=surfaces,
         )
 
@@ -438,4 +446,5 @@ def block_result(xyz: np.ndarray, a: NodeAnalysis, *, params: PipelineParams) ->
         trunks=trunks,
         trunk_support=a.trunks.support.astype(np.float64),
         trunk_diameter=diameter,
+        spacing=a.trunks.spacing,
     )

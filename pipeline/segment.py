@@ -69,7 +69,8 @@ def segment_nodes(
     source_trunk : (s,) int64 — 0-based trunk of each seed
     trunk_xy : (k, 2) float64 [m]
     node_height : (m,) float64 — height above ground [m]
-    params : SegmentParams
+    params : SegmentParams — radii set from the block's spacing
+        (:meth:`SegmentParams.at_spacing`); any still unset take their caps
     exclude : (m,) bool, optional — nodes that are never tree material (see
         ``hard_surfaces``): no path passes through them and they stay 0
 
@@ -78,6 +79,7 @@ def segment_nodes(
     Segmentation
     """
     m = nodes.shape[0]
+    params = params.at_spacing(None)  # radii still unset: the free-standing trees' values
     if exclude is not None and exclude.any():
         exclude = exclude.copy()
         exclude[source_nodes] = False  # a trunk's seeds stay, whatever stands beside it
@@ -230,6 +232,22 @@ def faces(patch: np.ndarray, size: np.ndarray, min_nodes: int) -> np.ndarray:
     if size.size == 0:
         return np.zeros(patch.shape[0], bool)
     return (patch >= 0) & (size[np.maximum(patch, 0)] >= min_nodes)
+
+
+def standing(patch: np.ndarray, size: np.ndarray, node_height: np.ndarray, *, min_top: float) -> np.ndarray:
+    """Nodes in patches whose highest node stands above ``min_top`` [m], (m,) bool.
+
+    ``patch``, ``size`` from :func:`planar_patches`; ``node_height`` above the ground [m].
+    A box's or a vehicle's faces stand up from the ground; flat grass tops lie below.
+    """
+    out = np.zeros(patch.shape[0], bool)
+    idx = np.flatnonzero(patch >= 0)
+    if idx.size == 0:
+        return out
+    top = np.full(size.shape[0], -np.inf)
+    np.maximum.at(top, patch[idx], node_height[idx])
+    out[idx] = top[patch[idx]] > min_top
+    return out
 
 
 def hard_surfaces(

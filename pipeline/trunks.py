@@ -25,6 +25,7 @@ from scipy.spatial import cKDTree
 
 from pipeline.graph import shortest_paths, subtree_sizes
 from pipeline.params import TrunkParams
+from pipeline.spacing import SPACING_PROBE_RADIUS, estimate_spacing
 
 
 @dataclass(frozen=True)
@@ -38,6 +39,8 @@ class TrunkDetection:
     width : (k,) float64 — flow-weighted cross-section width near the ground [m]
     source_nodes : (s,) int64 — graph nodes that seed each trunk in segmentation
     source_trunk : (s,) int64 — trunk (0-based) of each source node
+    candidates : dict or None — every contact group's measurements (diagnostics)
+    spacing : float or None — the in-row tree spacing the radii followed [m]
     """
 
     xy: np.ndarray
@@ -46,6 +49,7 @@ class TrunkDetection:
     source_nodes: np.ndarray
     source_trunk: np.ndarray
     candidates: dict | None = None
+    spacing: float | None = None
 
     @property
     def k(self) -> int:
@@ -298,6 +302,87 @@ def _accept(
     return ok, pooled
 
 
+@dataclass(frozen=True)
+class _Drained:
+    """The drainage to the ground contacts, shared by every clustering radius.
+
+    cand : (c,) int64 — contact nodes draining 3 or more nodes; size : (m,) subtree size
+    of each node; source : (m,) contact each node drains to (-1: none); reached : (m,)
+    bool; n_planar, n_low : (m,) planar and all nodes below tree height draining to each
+    contact; contact_top : float — top of the contact band [m].
+    """
+
+    cand: np.ndarray
+    size: np.ndarray
+    source: np.ndarray
+    reached: np.ndarray
+    n_planar: np.ndarray
+    n_low: np.ndarray
+    contact_top: float
+
+
+def _groups(
+    nodes: np.ndarray, node_height: np.ndarray, d: _Drained, scattering: np.ndarray | None, *, radius: float, params: TrunkParams
+) -> tuple[np.ndarray, np.ndarray, dict]:
+    """Contact groups of one clustering ``radius`` [m] and each group's own measurements.
+
+    Returns
+    -------
+    groups : (g,) int64 — each group's leader (index into ``d.cand``)
+    gidx : (c,) int64 — the group of each contact of ``d.cand``
+    candidates : dict of (g,) arrays — centre ``x``, ``y`` [m], ``support``, ``top``,
+        ``planar``, ``width`` [m], ``fits`` (the size, height and box tests) and flow
+        diagnostics
+    """
+    m = nodes.shape[0]
+    cand, size, reached = d.cand, d.size, d.reached
+    contact_top = d.contact_top
+    leader = _suppress(nodes[cand, :2], size[cand], radius)
+    groups, gidx = np.unique(leader, return_inverse=True)
+    g_support = np.bincount(gidx, weights=size[cand])
+    # robust height of each group's material: 95th percentile of its nodes' heights
+    # (the maximum would follow single noisy points above a fence post)
+    group_of_contact = np.full(m, -1, np.int64)
+    group_of_contact[cand] = gidx
+    node_group = np.where(reached, group_of_contact[np.maximum(d.source, 0)], -1)
+    g_top = _group_percentile(node_height, node_group, groups.size, 95.0)
+    g_planar = np.bincount(gidx, weights=d.n_planar[cand]) / np.maximum(np.bincount(gidx, weights=d.n_low[cand]), 1)
+    fits = (g_support >= params.min_canopy_voxels) & (g_top >= params.min_tree_height) & (g_planar <= params.max_planar_fraction)
+
+    # cross-section of the flow just above the contact band: nodes whose path ends in the
+    # group, in the band [contact_top, contact_top + 0.4 m], weighted by the flow
+    # (subtree size) they carry
+    band = reached & (node_height >= contact_top) & (node_height < contact_top + 0.4)
+    bn = np.flatnonzero(band)
+    bg = group_of_contact[d.source[bn]]
+    keep = bg >= 0
+    bn, bg = bn[keep], bg[keep]
+    wgt = size[bn]
+    wsum = np.bincount(bg, weights=wgt, minlength=groups.size)
+    cx = np.bincount(bg, weights=wgt * nodes[bn, 0], minlength=groups.size) / np.maximum(wsum, 1e-12)
+    cy = np.bincount(bg, weights=wgt * nodes[bn, 1], minlength=groups.size) / np.maximum(wsum, 1e-12)
+    r2 = (nodes[bn, 0] - cx[bg]) ** 2 + (nodes[bn, 1] - cy[bg]) ** 2
+    rms = np.sqrt(np.bincount(bg, weights=wgt * r2, minlength=groups.size) / np.maximum(wsum, 1e-12))
+    width = 2.0 * rms + 0.1  # + one voxel: the centroids sit inside the bark surface
+    has_band = wsum > 0
+    # trees whose flow has no band nodes (tiny trunks under the contact height): use the leader
+    lx = nodes[cand[groups], 0]
+    ly = nodes[cand[groups], 1]
+    cx = np.where(has_band, cx, lx)
+    cy = np.where(has_band, cy, ly)
+    width = np.where(has_band, width, 0.1)
+    sc = scattering if scattering is not None else np.zeros(m)
+    band_scatter = np.bincount(bg, weights=wgt * sc[bn], minlength=groups.size) / np.maximum(wsum, 1e-12)
+    band_max = np.zeros(groups.size)
+    np.maximum.at(band_max, bg, wgt)
+    candidates = {
+        "x": cx, "y": cy, "support": g_support, "top": g_top, "planar": g_planar, "width": width,
+        "band_flow": wsum, "band_scatter": band_scatter,
+        "band_nodes": np.bincount(bg, minlength=groups.size), "band_max": band_max, "fits": fits,
+    }
+    return groups, gidx, candidates
+
+
 def detect_trunks(
     nodes: np.ndarray,
     node_height: np.ndarray,
@@ -309,9 +394,15 @@ def detect_trunks(
     foot_xy: np.ndarray | None = None,
     stem_xy: np.ndarray | None = None,
     stem_slice: np.ndarray | None = None,
+    spacing: float | None = None,
     params: TrunkParams,
 ) -> TrunkDetection:
     """Find one trunk per tree.
+
+    The radii of ``params`` left unset follow the block's in-row tree spacing
+    (:meth:`TrunkParams.at_spacing`): the given ``spacing``, else the one measured
+    (:func:`pipeline.spacing.estimate_spacing`) on the trunk-like contact groups of a
+    first grouping at SPACING_PROBE_RADIUS.
 
     Parameters
     ----------
@@ -327,11 +418,14 @@ def detect_trunks(
     stem_xy : (p, 2) float64, optional — non-ground points in the STEM_SLICES slices
         above the ground layer [m], and stem_slice : (p,) int64 their slice, for the stem
         test (``params.stem_ratio``); without them the test is off
+    spacing : float, optional — the block's in-row tree spacing [m], if known (a tile
+        passes the one measured before); None: measured here when a radius needs it
     params : TrunkParams
 
     Returns
     -------
-    TrunkDetection, with ``candidates`` holding every contact group's measurements.
+    TrunkDetection, with ``candidates`` holding every contact group's measurements and
+    ``spacing`` the spacing the radii followed (None: none measured).
     """
     m = nodes.shape[0]
     empty = TrunkDetection(np.zeros((0, 2)), np.zeros(0), np.zeros(0), np.zeros(0, np.int64), np.zeros(0, np.int64))
@@ -354,51 +448,16 @@ def detect_trunks(
     cand = contact[catch >= 3]
     if cand.size == 0:
         return empty
-    leader = _suppress(nodes[cand, :2], size[cand], params.cluster_radius)
-    groups, gidx = np.unique(leader, return_inverse=True)
-    g_support = np.bincount(gidx, weights=size[cand])
-    # robust height of each group's material: 95th percentile of its nodes' heights
-    # (the maximum would follow single noisy points above a fence post)
-    group_of_contact = np.full(m, -1, np.int64)
-    group_of_contact[cand] = gidx
-    node_group = np.where(reached, group_of_contact[np.maximum(sp.source, 0)], -1)
-    g_top = _group_percentile(node_height, node_group, groups.size, 95.0)
-    g_planar = np.bincount(gidx, weights=n_planar[cand]) / np.maximum(np.bincount(gidx, weights=n_low[cand]), 1)
-    fits = (g_support >= params.min_canopy_voxels) & (g_top >= params.min_tree_height) & (g_planar <= params.max_planar_fraction)
-
-    # cross-section of the flow just above the contact band: nodes whose path ends in the
-    # group, in the band [contact_top, contact_top + 0.4 m], weighted by the flow
-    # (subtree size) they carry
-    band = reached & (node_height >= contact_top) & (node_height < contact_top + 0.4)
-    bn = np.flatnonzero(band)
-    bg = group_of_contact[sp.source[bn]]
-    keep = bg >= 0
-    bn, bg = bn[keep], bg[keep]
-    wgt = size[bn]
-    wsum = np.bincount(bg, weights=wgt, minlength=groups.size)
-    cx = np.bincount(bg, weights=wgt * nodes[bn, 0], minlength=groups.size) / np.maximum(wsum, 1e-12)
-    cy = np.bincount(bg, weights=wgt * nodes[bn, 1], minlength=groups.size) / np.maximum(wsum, 1e-12)
-    r2 = (nodes[bn, 0] - cx[bg]) ** 2 + (nodes[bn, 1] - cy[bg]) ** 2
-    rms = np.sqrt(np.bincount(bg, weights=wgt * r2, minlength=groups.size) / np.maximum(wsum, 1e-12))
-    width = 2.0 * rms + 0.1  # + one voxel: the centroids sit inside the bark surface
-    has_band = wsum > 0
-    # trees whose flow has no band nodes (tiny trunks under the contact height): use the leader
-    lx = nodes[cand[groups], 0]
-    ly = nodes[cand[groups], 1]
-    cx = np.where(has_band, cx, lx)
-    cy = np.where(has_band, cy, ly)
-    width = np.where(has_band, width, 0.1)
+    drained = _Drained(cand, size, sp.source, reached, n_planar, n_low, contact_top)
+    if spacing is None and params.needs_spacing():
+        # a first grouping at the probe radius: its trunk-like groups give the spacing
+        _, _, probe = _groups(nodes, node_height, drained, scattering, radius=SPACING_PROBE_RADIUS, params=params)
+        strong = probe["fits"] & (probe["width"] <= params.max_trunk_width)
+        spacing = estimate_spacing(np.column_stack([probe["x"], probe["y"]])[strong], probe["support"][strong])
+    params = params.at_spacing(spacing)
+    groups, gidx, candidates = _groups(nodes, node_height, drained, scattering, radius=params.cluster_radius, params=params)
+    cx, cy, width, g_support, fits = (candidates[k] for k in ("x", "y", "width", "support", "fits"))
     ok = fits & (width <= params.max_trunk_width)
-    sc = scattering if scattering is not None else np.zeros(m)
-    band_scatter = np.bincount(bg, weights=wgt * sc[bn], minlength=groups.size) / np.maximum(wsum, 1e-12)
-    band_max = np.zeros(groups.size)
-    np.maximum.at(band_max, bg, wgt)
-    candidates = {
-        "x": cx, "y": cy, "support": g_support, "top": g_top, "planar": g_planar, "width": width,
-        "band_flow": wsum, "band_scatter": band_scatter,
-        "band_nodes": np.bincount(bg, minlength=groups.size), "band_max": band_max,
-    }
-
     centre = np.column_stack([cx, cy])
     foot = foot_ratio(centre, foot_xy)
     candidates["foot"] = foot
@@ -427,7 +486,7 @@ def detect_trunks(
     src_t = np.concatenate([src_t, np.arange(sel.size)])
     src, first = np.unique(src, return_index=True)
     src_t = src_t[first]
-    return TrunkDetection(xy, support[sel], width[sel], src, src_t, candidates)
+    return TrunkDetection(xy, support[sel], width[sel], src, src_t, candidates, spacing)
 
 
 def box_like_trees(
@@ -491,4 +550,5 @@ def drop_trunks(det: TrunkDetection, drop: np.ndarray) -> TrunkDetection:
         det.source_nodes[src_keep],
         remap[det.source_trunk[src_keep]],
         det.candidates,
+        det.spacing,
     )

@@ -181,7 +181,7 @@ def _row_of_two():
 
 def test_accept_pools_the_catchment_beside_a_trunk_by_hand():
     xy, support, stem, ok, wide = _row_of_two()
-    params = TrunkParams()
+    params = TrunkParams().at_spacing(None)  # free-standing trees' radii
     assert POOL_REACH * params.cluster_radius == 1.0
     # the option's help states the reach
     assert f"within {POOL_REACH:g} times this" in TrunkParams.model_fields["cluster_radius"].description
@@ -201,12 +201,12 @@ def test_accept_pools_the_catchment_beside_a_trunk_by_hand():
 def test_accept_pools_only_within_the_reach_of_the_cluster_radius():
     xy, support, stem, ok, wide = _row_of_two()
     # with a 0.5 m cluster radius neither neighbour is within 0.625 m: no pooling, A goes
-    accepted, pooled = _accept(xy, support, stem, ok, wide, TrunkParams(cluster_radius=0.5))
+    accepted, pooled = _accept(xy, support, stem, ok, wide, TrunkParams(cluster_radius=0.5).at_spacing(None))
     assert pooled.tolist() == support.tolist()
     assert accepted.tolist() == [False, False, True, False]
     # without the stem test the shoots give nothing; they are B's satellite instead
     # (2500 >= 1.5 * 1500 within 2 m)
-    accepted, pooled = _accept(xy, support, stem, ok, wide, TrunkParams(stem_ratio=0))
+    accepted, pooled = _accept(xy, support, stem, ok, wide, TrunkParams(stem_ratio=0).at_spacing(None))
     assert pooled.tolist() == [3000.0, 2000.0, 2500.0, 1500.0]
     assert accepted.tolist() == [True, False, True, False]
 
@@ -311,3 +311,85 @@ def test_low_trees_by_hand():
     tree = np.array([1, 1, 1, 1, 1, 2, 2, 2] + [3] * 19 + [3])
     assert low_trees(tree, h, 4, params=TrunkParams()).tolist() == [1, 2, 3]
     assert low_trees(tree, h, 4, params=TrunkParams(min_tree_height=0.1)).tolist() == [3]
+
+
+# ------------------------------------------------------------------ spacing
+
+
+def test_comparable_distance_by_hand():
+    from pipeline.spacing import comparable_distance
+
+    xy = np.array([[0.0, 0.0], [1.0, 0.0], [0.3, 0.0], [3.0, 0.0]])
+    support = np.array([100.0, 50.0, 10.0, 50.0])
+    # 0 passes over the weak 2 (10 < 50) to 1; 2 counts 0 (100 >= 5); 3 reaches 1 at 2 m
+    assert comparable_distance(xy, support).tolist() == [1.0, 1.0, pytest.approx(0.3), 2.0]
+    # with a share of 1, 1 and 3 have only each other and 0 at or above their own
+    assert comparable_distance(xy, support, share=1.0).tolist() == [np.inf, 1.0, pytest.approx(0.3), 2.0]
+    assert comparable_distance(xy[:1], support[:1]).tolist() == [np.inf]
+
+
+def _hedgerow(spacing, n=12, rows=2, jitter=0.05, seed=0):
+    """Trunk candidates of ``rows`` rows of ``n`` trees, each with two weak shoots beside
+    it; the rows 3.5 m apart, or 1 m more than the spacing in them."""
+    rng = np.random.default_rng(seed)
+    row_spacing = max(3.5, spacing + 1.0)
+    x, y = np.meshgrid(np.arange(n) * spacing, np.arange(rows) * row_spacing)
+    trunks = np.column_stack([x.ravel(), y.ravel()]) + rng.normal(0, jitter, (n * rows, 2))
+    strong = rng.uniform(800, 2000, n * rows)
+    shoots = np.repeat(trunks, 2, axis=0) + rng.uniform(-0.3, 0.3, (2 * n * rows, 2))
+    weak = rng.uniform(150, 400, 2 * n * rows)
+    return np.vstack([trunks, shoots]), np.concatenate([strong, weak])
+
+
+@pytest.mark.parametrize("spacing", [0.8, 1.0, 1.5, 2.5, 5.0])
+def test_estimate_spacing_finds_the_in_row_spacing_among_false_candidates(spacing):
+    from pipeline.spacing import estimate_spacing
+
+    xy, support = _hedgerow(spacing)
+    # two thirds of the candidates are shoots 0-0.4 m from their trunk: the plain median
+    # nearest-neighbour distance is theirs, the catchment-weighted one the trees'
+    from scipy.spatial import cKDTree
+
+    assert np.median(cKDTree(xy).query(xy, k=2)[0][:, 1]) < 0.5 * spacing
+    assert estimate_spacing(xy, support) == pytest.approx(spacing, rel=0.15)
+
+
+def test_estimate_spacing_needs_two_candidates():
+    from pipeline.spacing import estimate_spacing
+
+    assert estimate_spacing(np.zeros((0, 2)), np.zeros(0)) is None
+    assert estimate_spacing(np.zeros((1, 2)), np.ones(1)) is None
+    assert estimate_spacing(np.array([[0.0, 0.0], [2.0, 0.0]]), np.array([1.0, 2.0])) == 2.0
+
+
+def test_radii_follow_the_spacing_and_a_given_value_wins():
+    from pipeline.params import FULL_SPACING, SegmentParams
+
+    p = TrunkParams()
+    assert p.needs_spacing()
+    free = p.at_spacing(None)  # nothing measured: the free-standing trees' radii
+    assert (free.cluster_radius, free.satellite_radius) == (0.8, 2.0)
+    dense = p.at_spacing(1.1)  # half the full spacing: the cluster radius halves, the satellite radius quarters
+    assert dense.cluster_radius == pytest.approx(0.4) and dense.satellite_radius == pytest.approx(0.5)
+    assert FULL_SPACING <= 2.5
+    for wide in (FULL_SPACING, 2.5, 5.0, 8.0):  # vase blocks keep the free-standing trees' radii
+        assert p.at_spacing(wide) == free
+    given = TrunkParams(satellite_radius=1.0)
+    assert given.at_spacing(5.0).satellite_radius == 1.0 and given.at_spacing(0.8).satellite_radius == 1.0
+    assert not TrunkParams(cluster_radius=0.5, satellite_radius=1.0).needs_spacing()
+    assert SegmentParams().at_spacing(None).unreached_radius == 0.6
+    assert SegmentParams().at_spacing(1.1).unreached_radius == pytest.approx(0.3)
+    assert SegmentParams(unreached_radius=0.1).at_spacing(1.1).unreached_radius == 0.1
+
+
+def test_detect_trunks_reports_the_spacing_it_followed():
+    nodes, part, names = _orchard_scene()
+    det = _detect(nodes, part == names.index("box"))
+    assert det.spacing == pytest.approx(5.0, abs=0.05)  # the two trees, 5 m apart
+    # a given spacing is followed, not measured
+    from pipeline.graph import build_graph
+    from pipeline.trunks import detect_trunks
+
+    graph = build_graph(nodes, radius=0.15)
+    det = detect_trunks(nodes, nodes[:, 2], graph, planar=part == names.index("box"), spacing=3.0, params=TrunkParams())
+    assert det.spacing == 3.0 and det.k == 2
