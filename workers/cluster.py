@@ -208,9 +208,10 @@ def check_workers(client: Client, *, scheduler: str = "", expected: dict | None 
     Each worker runs :func:`workers.identity.identity` (``Client.run``, at most
     ``seconds`` [s] each, all at once): the project must import there, in the version
     and with the pipeline parameters of this process (``expected``, by default
-    :func:`expected_identity`). A worker missing the project died at its first task and
-    left the job waiting for workers; this says so before any task is sent. A worker
-    that does not answer in time is logged, not refused (a busy event loop is no proof).
+    :func:`expected_identity`). A worker missing the project would die at its first
+    task and leave the job waiting for workers; this says so before any task is sent. A
+    worker that does not answer in time is logged, not refused (a busy event loop is no
+    proof).
 
     Raises
     ------

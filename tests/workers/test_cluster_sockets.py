@@ -11,6 +11,7 @@
 
 from __future__ import annotations
 
+import contextlib
 import os
 import signal
 import site
@@ -174,18 +175,33 @@ _BARE_WORKER = (
 )
 
 
-@pytest.mark.slow
-def test_a_worker_without_the_project_is_named_at_once(tiny_block, tmp_path):
+@contextlib.contextmanager
+def one_worker_cluster(folder: Path, *, bare: bool = False):
+    """``dask scheduler`` and one ``dask worker`` (without the project if ``bare``) on
+    loopback: yields the scheduler's address, the worker's address and the worker process."""
     port = _free_port()
     address = f"tcp://127.0.0.1:{port}"
-    logs = open(tmp_path / "cluster.log", "ab")  # noqa: SIM115 - closed below
+    logs = open(folder / "cluster.log", "ab")  # noqa: SIM115 - closed below
     procs = [_start(logs, "-m", "distributed.cli.dask_scheduler", *_SCHEDULER_ARGS, str(port))]
     try:
-        paths = ":".join(site.getsitepackages())
-        procs.append(_start(logs, "-I", "-S", "-c", _BARE_WORKER, paths, address, *_WORKER_ARGS, cwd=tmp_path))
+        if bare:
+            paths = ":".join(site.getsitepackages())
+            procs.append(_start(logs, "-I", "-S", "-c", _BARE_WORKER, paths, address, *_WORKER_ARGS, cwd=folder))
+        else:
+            procs.append(_start(logs, "-m", "distributed.cli.dask_worker", address, *_WORKER_ARGS))
         with Client(address, timeout="60s") as c:
             c.wait_for_workers(1, timeout=120)
             (worker,) = c.ncores()
+        yield address, worker, procs[1]
+    finally:
+        for proc in reversed(procs):
+            _stop(proc)
+        logs.close()
+
+
+@pytest.mark.slow
+def test_a_worker_without_the_project_is_named_at_once(tiny_block, tmp_path):
+    with one_worker_cluster(tmp_path, bare=True) as (address, worker, worker_proc):
         proc = subprocess.run(
             [sys.executable, "-m", "service.cli", "process", str(tiny_block), "--out", str(tmp_path / "out"),
              "--tile-size", "6", "--scheduler", address],
@@ -195,38 +211,42 @@ def test_a_worker_without_the_project_is_named_at_once(tiny_block, tmp_path):
         assert f"1 of 1 dask worker(s) of {address} cannot run orchard tiles: {worker} cannot import the project " \
                "(ModuleNotFoundError: No module named 'workers')" in proc.stderr
         assert f"Install orchard-trees {identity()['version']}" in proc.stderr and "Traceback" not in proc.stderr
-        assert procs[1].poll() is None  # told before any task was sent: the worker is still there
-    finally:
-        for p in reversed(procs):
-            _stop(p)
-        logs.close()
+        assert worker_proc.poll() is None  # told before any task was sent: the worker is still there
+
+
+@pytest.mark.slow
+def test_the_service_fails_a_job_on_a_worker_without_the_project_saying_why(tiny_block, tmp_path):
+    with one_worker_cluster(tmp_path, bare=True) as (address, worker, _):
+        srv = ServerProcess(tmp_path / "data", ORCHARD_SCHEDULER=address, ORCHARD_JOB_RETRIES="0",
+                            ORCHARD_SCHEDULING="false").start()
+        try:
+            token = make_token(srv.data_dir, "farm")
+            with httpx.Client(base_url=srv.url, headers={"Authorization": f"Bearer {token}"}, timeout=60) as c:
+                up = c.post("/v1/blocks", files={"file": ("tiny.laz", tiny_block.read_bytes())})
+                job = c.post("/v1/jobs", json={"block_id": up.json()["id"], "tiling": {"tile_size": 6}}).json()
+                failed = wait_for_job(c, job["id"], timeout=120)
+        finally:
+            srv.stop()
+    assert failed["state"] == "failed", failed
+    assert f"{worker} cannot import the project (ModuleNotFoundError: No module named 'workers')" in failed["error"]
+    assert failed["error"].endswith("into the Python of each of those workers, then restart them"), failed["error"]
 
 
 @pytest.mark.slow
 def test_a_job_whose_workers_all_die_stops_saying_so(tiny_block, tmp_path, monkeypatch):
-    port = _free_port()
-    address = f"tcp://127.0.0.1:{port}"
-    logs = open(tmp_path / "cluster.log", "ab")  # noqa: SIM115 - closed below
-    procs = [_start(logs, "-m", "distributed.cli.dask_scheduler", *_SCHEDULER_ARGS, str(port))]
-    try:
-        procs.append(_start(logs, "-m", "distributed.cli.dask_worker", address, *_WORKER_ARGS))
-        monkeypatch.setattr(job_module, "NO_WORKER_TIMEOUT", 1.0)
+    monkeypatch.setattr(job_module, "NO_WORKER_TIMEOUT", 1.0)
+    with one_worker_cluster(tmp_path) as (address, _, worker_proc):
 
         def kill_the_worker(done: int, total: int) -> None:
             if done == 1:  # the rest of the tiles wait for a worker that will not come back
-                os.killpg(procs[1].pid, signal.SIGKILL)
+                os.killpg(worker_proc.pid, signal.SIGKILL)
 
         with Client(address, timeout="60s") as client:
-            client.wait_for_workers(1, timeout=120)
             with pytest.raises(ClusterLost, match=r"no dask worker for 1 s \(they died or left; their logs say why\) "
                                                   r"with \d+ tiles to go"):
                 run_job(JobSpec(str(tiny_block), str(tmp_path / "out"), tile_size=4.0), client=client,
                         progress=kill_the_worker)
-        assert procs[1].wait(10) == -signal.SIGKILL
-    finally:
-        for p in reversed(procs):
-            _stop(p)
-        logs.close()
+        assert worker_proc.wait(10) == -signal.SIGKILL
 
 
 @pytest.fixture
