@@ -200,8 +200,29 @@ def _node(name: str) -> str:
     return name.replace(".", "_")
 
 
-def render(layout: Layout, *, top: int = 5) -> str:
-    """The Markdown report: package graph, module graph, checks, largest modules."""
+def _module_graph(layout: Layout, pkgs: list[str]) -> list[str]:
+    """The mermaid graph of module imports, one box per package."""
+    out = ["## Modules", "",
+           ("Every module of a package in one box; an arrow is an import of one module by another, "
+            "dotted where it is made inside a function."), "",
+           "```mermaid", "flowchart LR"]
+    for p in pkgs:
+        out.append(f'    subgraph {_node(p)}_box["{p}"]')
+        for m in sorted(m for m in layout.lines if layout.package_of(m) == p):
+            label = m.rpartition(".")[2] if m != p else "__init__"
+            out.append(f'        {_node(m)}["{label}"]')
+        out.append("    end")
+    for src in sorted(layout.imports):
+        for dst in sorted(layout.imports[src]):
+            arrow = "-.->" if dst in layout.deferred.get(src, ()) else "-->"
+            out.append(f"    {_node(src)} {arrow} {_node(dst)}")
+    out += ["```", ""]
+    return out
+
+
+def render(layout: Layout, *, top: int = 5, modules: bool = True) -> str:
+    """The Markdown report: package graph, module graph (unless ``modules`` is False),
+    checks, largest modules."""
     out = []
     pkgs = sorted(layout.packages)
     out += ["## Packages", "",
@@ -215,22 +236,8 @@ def render(layout: Layout, *, top: int = 5) -> str:
         out.append(f"    {_node(a)} -->|{k}| {_node(b)}")
     out += ["```", ""]
 
-    out += ["## Modules", "",
-            ("Every module of a package in one box; an arrow is an import of one module by another, "
-             "dotted where it is made inside a function."), "",
-            "```mermaid", "flowchart LR"]
-    for p in pkgs:
-        out.append(f'    subgraph {_node(p)}_box["{p}"]')
-        for m in sorted(m for m in layout.lines if layout.package_of(m) == p):
-            label = m.rpartition(".")[2] if m != p else "__init__"
-            out.append(f'        {_node(m)}["{label}"]')
-        out.append("    end")
-    for src in sorted(layout.imports):
-        for dst in sorted(layout.imports[src]):
-            arrow = "-.->" if dst in layout.deferred.get(src, ()) else "-->"
-            out.append(f"    {_node(src)} {arrow} {_node(dst)}")
-    out += ["```", ""]
-
+    if modules:
+        out += _module_graph(layout, pkgs)
     out += ["## Checks", ""]
     bad = against_direction(layout)
     out.append("- Imports against the direction " + " ← ".join(reversed(LAYERS)) + ": "
@@ -275,6 +282,7 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--packages", default=",".join(PACKAGES),
                         help=f"comma-separated top-level packages (default {','.join(PACKAGES)})")
     parser.add_argument("--top", type=int, default=5, help="how many of the largest modules to list (default 5)")
+    parser.add_argument("--no-modules", action="store_true", help="leave out the module graph (packages only)")
     parser.add_argument("--write", type=Path, metavar="PAGE",
                         help=f"write the report into PAGE between {START} and {END} instead of printing it "
                              "(docs/architecture.md)")
@@ -289,7 +297,7 @@ def main(argv: list[str] | None = None) -> int:
     except SyntaxError as exc:
         print(f"python -m bench.layout: cannot parse {exc.filename}: {exc.msg} (line {exc.lineno})", file=sys.stderr)
         return 2
-    text = stamp(args.root) + render(layout, top=args.top)
+    text = stamp(args.root) + render(layout, top=args.top, modules=not args.no_modules)
     if args.write is None:
         sys.stdout.write(text)
         return 0

@@ -68,6 +68,8 @@ def test_package_edges_direction_and_cycles(tmp_path):
     assert "pipeline_trunks -.-> pipeline_graph" in text
     assert "`pipeline.bad` → `workers.job`" in text
     assert "| `workers.job` | 6 |" in text
+    short = render(lay, top=2, modules=False)
+    assert "## Modules" not in short and "pipeline -->|1| workers" in short and "## Checks" in short
 
 
 def test_this_project_keeps_its_direction(capsys):
