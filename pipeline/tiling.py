@@ -141,6 +141,104 @@ def min_tile_size(buffer: float) -> float:
     return math.ceil(2.0 * buffer / (per_axis - 1) * 100.0) / 100.0
 
 
+#: peak memory of processing points in one piece, per point [bytes]: reading, the
+#: pipeline and writing the outputs (about 270 measured on generated blocks of 1.6-3.4 M
+#: points at mobile density, above :data:`FIXED_BYTES`; docs/performance.md)
+BYTES_PER_POINT = 400
+
+#: memory of a worker process whatever it processes [bytes]: the interpreter and its
+#: libraries (130 MB measured) and fixed-size buffers
+FIXED_BYTES = 200e6
+
+#: a tile's points are estimated from the block's mean density over its bounding box;
+#: tree rows and a crowded tile hold more than the mean
+DENSITY_HEADROOM = 2.0
+
+
+#: smallest tile core chosen for a budget, in buffer widths: a smaller core processes
+#: more than four times its own points (its buffer's too), and time grows with them
+MIN_CORE_PER_BUFFER = 2.0
+
+
+class BudgetError(ParameterError):
+    """No tile size keeps a worker within the memory budget: at the smallest tile the
+    buffer allows, a tile's estimated points still need more.
+
+    Attributes
+    ----------
+    budget : float — bytes one worker may use
+    density : float — the block's mean point density [points/m^2]
+    tile_size, buffer : float — the smallest tile tried and its buffer [m]
+    need : float — estimated bytes of processing such a tile
+    """
+
+    def __init__(self, budget: float, density: float, tile_size: float, buffer: float, need: float):
+        super().__init__(
+            f"a memory budget of {budget / 1e9:.3g} GB per worker is too small for this block: at "
+            f"{density:.0f} points/m^2 the smallest tile ({tile_size:g} m with a {buffer:g} m buffer) needs about "
+            f"{need / 1e9:.3g} GB; raise the budget"
+        )
+        self.budget, self.density, self.tile_size, self.buffer, self.need = budget, density, tile_size, buffer, need
+
+
+def tile_size_for_budget(
+    n_points: int,
+    mins,
+    maxs,
+    *,
+    budget: float,
+    buffer: float,
+    bytes_per_point: float = BYTES_PER_POINT,
+) -> float | None:
+    """The tile size that keeps processing one tile within ``budget``, or None when the
+    whole block fits in it.
+
+    Parameters
+    ----------
+    n_points : int
+        Points of the block (its header's count).
+    mins, maxs : (2,) or (3,) float
+        The block's bounds [m]; its mean density is ``n_points`` over their x-y area.
+    budget : float
+        Bytes one worker process may use, :data:`FIXED_BYTES` included.
+    buffer : float
+        Tile buffer [m]; a tile holds its core and the buffer around it.
+    bytes_per_point : float
+        Peak memory per point processed [bytes].
+
+    Returns
+    -------
+    float or None
+        Whole metres, at least twice the buffer (:data:`MIN_CORE_PER_BUFFER`),
+        :func:`min_tile_size` of the buffer and 1 m.
+
+    Raises
+    ------
+    BudgetError
+        Even the smallest tile would need more than the budget.
+    """
+    if FIXED_BYTES + n_points * bytes_per_point <= budget:
+        return None
+    # a block thinner than a metre in x or y still spreads its points over a metre
+    area = max(float(maxs[0]) - float(mins[0]), 1.0) * max(float(maxs[1]) - float(mins[1]), 1.0)
+    density = n_points / area * DENSITY_HEADROOM
+    most = max(budget - FIXED_BYTES, 0.0) / bytes_per_point  # points one buffered tile may hold
+    side = math.floor(math.sqrt(most / density) - 2.0 * buffer)
+    smallest = max(MIN_CORE_PER_BUFFER * buffer, min_tile_size(buffer), 1.0)
+    if side < smallest:
+        need = FIXED_BYTES + density * (smallest + 2.0 * buffer) ** 2 * bytes_per_point
+        raise BudgetError(budget, n_points / area, smallest, buffer, need)
+    return float(side)
+
+
+def tile_points(tile_size: float, buffer: float, n_points: int, mins, maxs) -> float:
+    """Estimated points of one buffered tile: the block's mean density times
+    :data:`DENSITY_HEADROOM` over the tile and its buffer (never more than the block);
+    processing it needs ``FIXED_BYTES + BYTES_PER_POINT *`` that."""
+    area = max(float(maxs[0]) - float(mins[0]), 1.0) * max(float(maxs[1]) - float(mins[1]), 1.0)
+    return min(float(n_points), n_points / area * DENSITY_HEADROOM * (tile_size + 2.0 * buffer) ** 2)
+
+
 def check_tiling(tile_size: float, buffer: float | None, reach: float | None = None, *, copies: bool = True) -> None:
     """Raise ParameterError unless ``tile_size`` [m] is positive and finite and ``buffer``
     [m] (None = the reach) is non-negative, finite and at least ``reach`` (when given);

@@ -339,6 +339,7 @@ class Runner(threading.Thread):
                 tile_size=tiling.get("tile_size"),
                 buffer=tiling.get("buffer"),
                 work_dir=work_dir_of(self.settings, job["id"]),
+                memory_budget=self.settings.worker_memory_bytes,
             )
             out_dir.mkdir(parents=True, exist_ok=True)
             client = self._get_client()

@@ -32,6 +32,11 @@ class Settings(BaseSettings):
     )
     n_workers: int = Field(2, ge=1, le=256, description="workers of the embedded LocalCluster")
     threads_per_worker: int = Field(1, ge=1, le=64, description="threads per worker of the embedded LocalCluster")
+    worker_memory_gb: float = Field(
+        2.0, gt=0, le=4096, allow_inf_nan=False,
+        description="memory budget of one worker [GB]: a block without a tile size that would need more in one piece is "
+        "tiled, with tiles chosen to fit it",
+    )
     dashboard: bool = Field(False, description="start the dask dashboard of the embedded LocalCluster")
     dask_host: str = Field(
         "127.0.0.1", min_length=1,
@@ -111,6 +116,10 @@ class Settings(BaseSettings):
     @property
     def tmp_dir(self) -> Path:
         return self.data_dir / "tmp"
+
+    @property
+    def worker_memory_bytes(self) -> float:
+        return self.worker_memory_gb * 1e9
 
     @property
     def max_upload_bytes(self) -> int:

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import argparse
+import math
 import os
 import sys
 import time
@@ -14,8 +15,9 @@ from service.commands.options import add_pipeline_options, pipeline_params_from_
 NAME = "process"
 HELP = (
     "Process a LAS/LAZ block into trees.parquet (one row per tree, GeoParquet) and points.parquet "
-    "(one row per input point), with trees.csv and report.html (a page that opens from disk) beside them. Without --tile-size the block is processed in one piece in this "
-    "process; with it, the block is split into buffered tiles processed by dask workers and merged. "
+    "(one row per input point), with trees.csv and report.html (a page that opens from disk) beside them. A block that fits the memory budget of a worker "
+    "(--worker-memory) is processed in one piece in this process; a larger one, or any with --tile-size, is "
+    "split into buffered tiles processed by dask workers and merged. "
     "Exit codes: 0 done, 1 a tile failed or internal error, 2 bad input or parameters, "
     "3 no trees, 4 finished without some tiles (partial result; re-run them with --rerun-tile)."
 )
@@ -33,7 +35,15 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("input", metavar="INPUT", help="LAS or LAZ block (LAS 1.2-1.4, point formats 0-10)")
     parser.add_argument("--out", required=True, metavar="DIR", help="output folder for trees.parquet, points.parquet, trees.csv and report.html")
     g = parser.add_argument_group("tiling and workers")
-    g.add_argument("--tile-size", type=float, default=None, metavar="M", help="side of a square tile core [m]; default: one tile")
+    g.add_argument(
+        "--tile-size", type=float, default=None, metavar="M",
+        help="side of a square tile core [m]; default: one tile if the block fits --worker-memory, else tiles "
+        "chosen from its point density to fit it; 0: one tile whatever the block's size",
+    )
+    g.add_argument(
+        "--worker-memory", type=float, default=None, metavar="GB",
+        help="memory budget of one worker [GB] for choosing tiles (default: ORCHARD_WORKER_MEMORY_GB, or 2)",
+    )
     g.add_argument(
         "--buffer", type=float, default=None, metavar="M",
         help="tile buffer on every side [m]; default and minimum: the parameters' reach (max crown radius + 1 m + edge radius)",
@@ -105,6 +115,7 @@ def _check_cluster_options(args: argparse.Namespace) -> None:
         given = [flag for flag, value in (("--tile-size", args.tile_size), ("--buffer", args.buffer),
                                           ("--grid-origin", args.grid_origin), ("--engine", args.engine),
                                           ("--workers", args.workers), ("--dask-host", args.dask_host),
+                                          ("--worker-memory", args.worker_memory),
                                           ("--no-dashboard", None if args.dashboard else True)) if value is not None]
         if given:
             raise ParameterError(
@@ -112,7 +123,13 @@ def _check_cluster_options(args: argparse.Namespace) -> None:
                 "(its tiles, on --scheduler or in this process); start a new job to change them"
             )
         return
-    tiled = args.tile_size is not None or args.scheduler is not None
+    if args.worker_memory is not None and not (args.worker_memory > 0 and math.isfinite(args.worker_memory)):
+        raise ParameterError(f"--worker-memory must be a positive number of GB, not {args.worker_memory}")
+    if args.worker_memory is not None and args.tile_size is not None:
+        raise ParameterError("--worker-memory chooses the tile size: give it or --tile-size, not both")
+    if args.tile_size == 0 and args.scheduler is not None:
+        raise ParameterError("--tile-size 0 processes the block in this process; a cluster (--scheduler) needs tiles")
+    tiled = bool(args.tile_size) or args.scheduler is not None
     if args.workers is not None:
         most = 4 * (os.cpu_count() or 1)
         if not 1 <= args.workers <= most:
@@ -128,10 +145,19 @@ def _check_cluster_options(args: argparse.Namespace) -> None:
             raise ParameterError(f"{flag} is for the embedded cluster; a running one (--scheduler) was started with its own")
         if given and not tiled:
             raise ParameterError(f"{flag} needs --tile-size: a block processed in one piece runs in this process")
-    if args.grid_origin is not None and args.tile_size is None:
+    if args.grid_origin is not None and not args.tile_size:
         raise ParameterError("--grid-origin needs --tile-size: a block processed in one piece has no tile grid")
     if args.engine is not None and not tiled:
         raise ParameterError("--engine needs --tile-size: a block processed in one piece is not tiled")
+
+
+def _memory_budget(args: argparse.Namespace) -> float:
+    """Bytes one worker may use: --worker-memory, else the ORCHARD_WORKER_MEMORY_GB setting."""
+    if args.worker_memory is not None:
+        return args.worker_memory * 1e9
+    from service.settings import Settings
+
+    return Settings().worker_memory_bytes
 
 
 def _check_same_job(args: argparse.Namespace) -> None:
@@ -168,7 +194,8 @@ def _check_same_job(args: argparse.Namespace) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
-    from workers.job import JobSpec, check_job, finish_job, resume_job, run_job, run_tile
+    from pipeline.tiling import BudgetError
+    from workers.job import JobSpec, auto_tiled, check_job, finish_job, resume_job, run_job, run_tile
 
     params = pipeline_params_from_args(args)
     _check_cluster_options(args)
@@ -197,15 +224,28 @@ def run(args: argparse.Namespace) -> int:
         input_path=args.input,
         out_dir=args.out,
         params=params,
-        tile_size=args.tile_size,
+        tile_size=args.tile_size or None,
         buffer=args.buffer,
         grid_origin=args.grid_origin,
         work_dir=args.work,
         labelled_laz=args.labelled_laz,
         engine=args.engine or "laspy",
         inject_failure=tuple(args.inject_failure or ()),
+        memory_budget=None if args.tile_size is not None else _memory_budget(args),
     )
-    tiled = args.tile_size is not None or args.scheduler is not None
+    tiled = bool(args.tile_size) or args.scheduler is not None
+    if spec.tile_size is None and not tiled:
+        try:
+            spec = auto_tiled(spec)  # bad input fails here, before anything else
+        except BudgetError as exc:
+            raise ParameterError(f"{exc} (--worker-memory {math.ceil(exc.need / 1e8) / 10:g} or more)") from None
+        if spec.tile_size is not None:
+            tiled = True
+            print(
+                f"orchard process: the block would need more than {spec.memory_budget / 1e9:g} GB in one piece: "
+                f"tiles of {spec.tile_size:g} m (--tile-size 0: one piece)",
+                file=sys.stderr,
+            )
     if args.work and not tiled:  # it went unused, without a word
         raise ParameterError("--work needs --tile-size: a block processed in one piece has no tiles to keep")
     if args.work:
