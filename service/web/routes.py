@@ -25,7 +25,8 @@ from service.web import mapdata, render, sessions
 router = APIRouter(include_in_schema=False)
 _map_lock = threading.Lock()  # one footprint computation at a time (it reads the whole block)
 
-_NO_STORE = {"Cache-Control": "no-store"}  # pages name the farm and carry its CSRF token
+# pages name the farm and carry its CSRF token: not cached, not framed by another site (clickjacking)
+_NO_STORE = {"Cache-Control": "no-store", "X-Frame-Options": "DENY", "Content-Security-Policy": "frame-ancestors 'none'"}
 
 
 def _store(request: Request):
@@ -59,11 +60,11 @@ def signin_form(request: Request, next: str = "/blocks") -> HTMLResponse:
 def signin(request: Request, token: Annotated[str, Form(max_length=500)] = "",
            next: Annotated[str, Form(max_length=2000)] = "/blocks") -> Response:
     if not sessions.same_origin(request):  # another site signing this browser in as someone else
-        return HTMLResponse(render.signin_page(error="sign in from this server's own page"), status_code=403)
+        return HTMLResponse(render.signin_page(error="sign in from this server's own page"), status_code=403, headers=_NO_STORE)
     try:
         sid, sess, _ = sessions.sign_in(request, _store(request), token)
     except UnauthorizedError:
-        page = render.signin_page(error="That token is not known here (or was revoked). Check it and try again.",
+        page = render.signin_page(error="That token is not known here, or has expired or been revoked. Check it and try again.",
                                   next_path=_safe_next(next))
         return HTMLResponse(page, status_code=401, headers=_NO_STORE)
     resp = RedirectResponse(_safe_next(next), status_code=303)

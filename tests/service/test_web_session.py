@@ -48,6 +48,7 @@ def test_sign_in_sets_a_strict_httponly_expiring_cookie(api_server, tokens):
         assert to_signin.status_code == 303 and to_signin.headers["location"].startswith("/signin")
         form = c.get("/signin")
         assert form.status_code == 200 and 'method="post"' in form.text and form.headers["cache-control"] == "no-store"
+        assert form.headers["x-frame-options"] == "DENY"  # no other site frames the form
         resp = _sign_in(c, tokens["a"])
         assert resp.status_code == 303 and resp.headers["location"] == "/blocks"
         cookie = resp.headers["set-cookie"].lower()
