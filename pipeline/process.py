@@ -25,6 +25,7 @@ from pipeline.ground import GroundModel, classify_ground, ground_model
 from pipeline.metrics import trunk_circles
 from pipeline.params import PipelineParams
 from pipeline.posts import Posts, find_posts, on_posts
+from pipeline.replants import rescue_replants
 from pipeline.segment import (
     Segmentation,
     curved_patches,
@@ -159,6 +160,14 @@ class NodeAnalysis:
     on_post: np.ndarray | None = None
 
 
+def _not_replants(drop: np.ndarray, trunk_xy: np.ndarray, replant_xy: np.ndarray) -> np.ndarray:
+    """``drop`` less the trunks that are rescued replants (low by nature)."""
+    if not len(replant_xy) or not len(drop):
+        return drop
+    is_replant = (trunk_xy[drop, None, :] == replant_xy[None, :, :]).all(axis=2).any(axis=1)
+    return drop[~is_replant]
+
+
 def noisy_planar(feats: ShapeFeatures, *, noise: float) -> np.ndarray:
     """Nodes on a box face blurred by range noise, (m,) bool; all False unless the
     block's estimated ground ``noise`` [m] is in ``NOISY_BOX_NOISE``."""
@@ -278,6 +287,9 @@ def analyse_nodes(
         on_post = on_posts(nodes, node_height, posts, margin=POST_NODE_MARGIN)
         if on_post.any():
             det = detect(without_nodes(drainage, on_post))  # the spacing measured again, without the posts
+    # the row model as a prior: young trees on open planting slots, too low to pass alone
+    det, replant_xy = rescue_replants(det, nodes, node_height, contact_top=ground_top + params.trunks.contact_height,
+                                      params=params)
     surfaces = on_post | hard_surfaces(
         nodes,
         patch,
@@ -307,7 +319,7 @@ def analyse_nodes(
     for _ in range(3):  # dropping a box-like or low "tree" (a vehicle) re-segments its material
         drop = np.union1d(
             box_like_trees(seg.node_tree, node_height, nodes=nodes, trunk_xy=det.xy, planar=face, params=params.trunks),
-            low_trees(seg.node_tree, node_height, det.k, params=params.trunks),
+            _not_replants(low_trees(seg.node_tree, node_height, det.k, params=params.trunks), det.xy, replant_xy),
         )
         if drop.size == 0:
             break

@@ -444,71 +444,48 @@ def find_rows(xy: np.ndarray, height: np.ndarray | None = None, *, params: RowPa
     return RowLayout(row, position, young, rows, lines, gap_cols, off_row, between_rows)
 
 
-def row_prior(tree_xy: np.ndarray, cand_xy: np.ndarray, *, params: RowParams | None = None,
-              slot_reach: float = 0.3) -> tuple[np.ndarray, np.ndarray]:
-    """Where trunk candidates stand relative to the rows of the trees already found.
+def open_slots(layout: RowLayout) -> np.ndarray:
+    """(o, 2) float64 centres [m] of the slots a tree could still stand in: the empty
+    slots between two trees of a row, and the slot beyond each end of every row of three
+    or more trees."""
+    pts = [np.c_[layout.gaps["x"], layout.gaps["y"]]]
+    for line, s in zip(layout.lines, layout.rows["spacing_m"]):
+        if len(line) >= 3 and np.isfinite(s):
+            for end, inner in ((line[-1], line[-3]), (line[0], line[2])):
+                step = end - inner
+                pts.append((end + s * step / np.hypot(*step))[None, :])
+    return np.concatenate(pts).reshape(-1, 2)
 
-    A candidate on an empty planting slot of a row is more likely a tree (a replant, a
-    thin or hidden trunk); one between two rows is more likely a post, a vehicle or a
-    weed.
+
+def on_open_slot(tree_xy: np.ndarray, cand_xy: np.ndarray, *, params: RowParams | None = None,
+                 reach: float = 0.2) -> np.ndarray:
+    """Which open slot (:func:`open_slots`) of the rows of ``tree_xy`` each candidate
+    stands on: a candidate there is more likely a tree (a replant, a thin trunk) than
+    one elsewhere.
 
     Parameters
     ----------
     tree_xy : (k, 2) float64
         Trunks accepted so far [m].
     cand_xy : (c, 2) float64
-        Candidates to judge [m].
+        Candidates [m].
     params : RowParams, optional
-    slot_reach : float
-        A candidate is on an empty slot within this fraction of the row's spacing.
+    reach : float
+        A candidate stands on a slot within this fraction of the block's spacing.
 
     Returns
     -------
-    at_empty_slot : (c,) bool
-        Within ``slot_reach`` spacings of an empty slot between two trees of a row.
-    between_rows : (c,) bool
-        Farther to the side of every row line (through rows of at least three trees)
-        than ``params.lateral_tolerance`` times the distance between rows, and within
-        the rows' extent; False everywhere when the block has fewer than two such rows.
+    (c,) int64 index of the open slot, -1 where none (or fewer than three trees).
     """
-    params = params or RowParams()
     cand_xy = np.asarray(cand_xy, dtype=np.float64).reshape(-1, 2)
-    c = len(cand_xy)
-    at_slot = np.zeros(c, dtype=bool)
-    between = np.zeros(c, dtype=bool)
+    out = np.full(len(cand_xy), -1, dtype=np.int64)
     tree_xy = np.asarray(tree_xy, dtype=np.float64).reshape(-1, 2)
-    if c == 0 or len(tree_xy) < 3:
-        return at_slot, between
-    lay = find_rows(tree_xy, params=params)
-    if len(lay.gaps["row"]):
-        spacing = lay.rows["spacing_m"][lay.gaps["row"] - 1]
-        d, j = cKDTree(np.c_[lay.gaps["x"], lay.gaps["y"]]).query(cand_xy)
-        at_slot = d <= slot_reach * spacing[j]
-    long_rows = [line for line, n in zip(lay.lines, lay.rows["n_trees"]) if n >= 3]
-    if len(long_rows) >= 2:
-        step = 0.1 * float(np.nanmedian(lay.rows["spacing_m"]))
-        dense, which = [], []
-        for r, line in enumerate(long_rows):  # each row line sampled every tenth of a spacing
-            seg = np.diff(line, axis=0)
-            n = np.maximum(1, np.ceil(np.hypot(seg[:, 0], seg[:, 1]) / step)).astype(int)
-            t = np.concatenate([np.arange(k) / k for k in n])
-            base = np.repeat(np.arange(len(seg)), n)
-            dense.append(np.r_[line[base] + seg[base] * t[:, None], line[-1:]])
-            which.append(np.full(len(dense[-1]), r))
-        dense, which = np.concatenate(dense), np.concatenate(which)
-        # distance between rows: each row line's distance to its nearest other row line
-        tree = cKDTree(dense)
-        gaps = []
-        for r in range(len(long_rows)):
-            other = cKDTree(dense[which != r])
-            gaps.append(np.median(other.query(dense[which == r])[0]))
-        across = float(np.median(gaps))
-        d, j = tree.query(cand_xy)
-        # within the rows' extent: the nearest sample is not a row's end point
-        ends = np.zeros(len(dense), dtype=bool)
-        starts = np.flatnonzero(np.r_[True, np.diff(which) != 0])
-        ends[starts] = True
-        ends[np.r_[starts[1:] - 1, len(dense) - 1]] = True
-        between = (d > params.lateral_tolerance * across) & (d < (1 - params.lateral_tolerance) * across) & ~ends[j]
-    return at_slot, between
-
+    if len(cand_xy) == 0 or len(tree_xy) < 3:
+        return out
+    lay = find_rows(tree_xy, params=params or RowParams())
+    slots = open_slots(lay)
+    spacing = np.nanmedian(lay.rows["spacing_m"]) if np.isfinite(lay.rows["spacing_m"]).any() else np.nan
+    if not len(slots) or not np.isfinite(spacing):
+        return out
+    d, j = cKDTree(slots).query(cand_xy)
+    return np.where(d <= reach * spacing, j, -1)

@@ -192,27 +192,26 @@ def test_addresses_do_not_depend_on_the_order_of_the_trees(angle, dx, dy, seed):
     assert lay2.position.tolist() == lay.position[perm].tolist()
 
 
-def test_row_prior_finds_empty_slots_and_candidates_between_rows():
-    from pipeline.rows import row_prior
+def test_candidates_on_open_slots():
+    from pipeline.rows import on_open_slot
 
     xy, _, _, gaps = plan(n_rows=3, per_row=12, s=1.0, r=3.5, jitter=0.0, missing={(2, 6)})
     cands = np.array([
         gaps[0] + [0.1, 0.05],          # on the empty slot: a replant
         xy[3] + [0.5, 0.0],             # between two trees of a row, no empty slot there
-        xy[5] + [0.0, 1.75],            # half-way between rows 1 and 2: a post or a weed
-        xy[0] + [-3.0, 0.0],            # beyond the end of row 1: neither
-        xy[30] + [0.0, 0.1],            # on a row line
+        xy[5] + [0.0, 1.75],            # half-way between rows 1 and 2
+        xy[0] + [-1.0, 0.05],           # the slot beyond the west end of row 1
+        xy[0] + [-3.0, 0.0],            # farther beyond: no slot
     ])
-    at_slot, between = row_prior(xy, cands)
-    assert at_slot.tolist() == [True, False, False, False, False]
-    assert between.tolist() == [False, False, True, False, False]
+    slot = on_open_slot(xy, cands)
+    assert (slot >= 0).tolist() == [True, False, False, True, False]
+    assert slot[0] != slot[3]
 
 
-def test_row_prior_without_rows_judges_nothing():
-    from pipeline.rows import row_prior
+def test_on_open_slot_without_rows_judges_nothing():
+    from pipeline.rows import on_open_slot
 
-    at_slot, between = row_prior(np.array([[0.0, 0.0], [5.0, 0.0]]), np.array([[2.5, 0.0], [2.5, 2.0]]))
-    assert not at_slot.any() and not between.any()
+    assert (on_open_slot(np.array([[0.0, 0.0], [5.0, 0.0]]), np.array([[2.5, 0.0]])) == -1).all()
 
 
 def test_a_false_trunk_between_rows_does_not_renumber_the_rows():
