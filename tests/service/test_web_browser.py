@@ -271,3 +271,18 @@ def test_report_html_opens_from_disk_offline(browser, tmp_path):
         watch.clean()
     finally:
         context.close()
+
+
+@pytest.mark.slow
+def test_the_job_links_its_page_and_every_download(served):
+    srv, tokens, jobs, trees = served
+    job = jobs["a"]
+    assert job["links"]["page"] == f"/jobs/{job['id']}"
+    with httpx.Client(base_url=srv.url, headers={"Authorization": f"Bearer {tokens['a']}"}, timeout=60) as c:
+        for name, link in job["links"].items():
+            if name not in ("self", "page"):
+                assert c.get(link).status_code == 200, name
+        plain = c.get(f"/web/jobs/{job['id']}/map.json", headers={"Accept-Encoding": "identity"})
+        assert "content-encoding" not in plain.headers and plain.json()["n_trees"] == len(trees)
+        packed = c.get(f"/web/jobs/{job['id']}/map.json", headers={"Accept-Encoding": "gzip"})
+        assert packed.headers["content-encoding"] == "gzip" and packed.json() == plain.json()
