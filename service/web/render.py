@@ -9,6 +9,7 @@ file opens from disk without a server or a network).
 from __future__ import annotations
 
 import html
+import json
 import re
 from pathlib import Path
 
@@ -134,8 +135,6 @@ def job_page(*, job_id: str, tenant_name: str, csrf: str) -> str:
 
 
 def _js_string(text: str) -> str:
-    import json
-
     return json.dumps(text).replace("<", "\\u003c")
 
 
@@ -147,8 +146,6 @@ def report_page(*, title: str, data_json: str, facts: dict[str, str], downloads:
     label to a path relative to the report (the files beside it); ``fallback`` is HTML
     shown when scripts do not run (the static map and table).
     """
-    import json
-
     cfg = json.dumps({"title": title, "facts": facts, "downloads": downloads, "warning": warning}).replace("<", "\\u003c")
     return (
         _head(title, _JOB_STYLES, inline=True)
