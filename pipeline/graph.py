@@ -144,6 +144,7 @@ def voxel_pairs(keys: np.ndarray, nodes: np.ndarray, *, radius: float, voxel_siz
     columns, inverse = np.unique(off[:, :2], axis=0, return_inverse=True)
     if m < 2 or off.shape[0] == 0:
         return NodePairs(np.zeros((0, 2), np.int64), np.zeros(0), np.zeros(columns.shape[0] + 1, np.int64))
+    check_graph_size(m, 0)  # the search counts in int32
     reach = int(np.abs(off).max())
     pad = 2 * reach + 1
     kx = keys[:, 0] - keys[:, 0].min()
@@ -182,8 +183,9 @@ def voxel_pairs(keys: np.ndarray, nodes: np.ndarray, *, radius: float, voxel_siz
         lo = below[base + dz[0]]
         count = below[base + dz[-1] + 1] - lo
         ends = np.cumsum(count)
-        a = np.repeat(sel, count)
-        b = np.arange(int(ends[-1]) if ends.size else 0) + np.repeat(lo - (ends - count), count)
+        # int32 while candidates are many (csgraph indexes nodes with int32 anyway)
+        a = np.repeat(sel.astype(np.int32), count)
+        b = np.arange(int(ends[-1]) if ends.size else 0, dtype=np.int32) + np.repeat((lo - (ends - count)).astype(np.int32), count)
         # the distance as pair_lengths computes it, so lengths equal the k-d tree path's
         d2 = x[a] - x[b]
         d2 *= d2
@@ -261,8 +263,10 @@ def symmetric_csr(
     if groups is None:
         rows, cols, data = [a, b], [b, a], [weight, weight]
     else:
-        back = np.concatenate([np.arange(groups[k], groups[k + 1]) for k in range(len(groups) - 2, -1, -1)] or [np.zeros(0, np.int64)])
-        rows, cols, data = [b[back], a], [a[back], b], [weight[back], weight]
+        def backwards(v: np.ndarray) -> np.ndarray:
+            return np.concatenate([v[groups[k] : groups[k + 1]] for k in range(len(groups) - 2, -1, -1)] + [v[:0]])
+
+        rows, cols, data = [backwards(b), a], [backwards(a), b], [backwards(weight), weight]
     if diagonal is not None:
         rows.insert(1, np.arange(m))
         cols.insert(1, np.arange(m))
