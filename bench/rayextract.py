@@ -1,6 +1,6 @@
 """Ours against raycloudtools' ``rayextract trees`` on the same generated blocks.
 
-    python -m bench.rayextract --rayextract PATH [--seeds 0,1] [--work-dir DIR]
+    python -m bench.rayextract --rayextract PATH [--scenes default,hedgerows] [--seeds 0,1] [--work-dir DIR]
 
 raycloudtools (CSIRO, C++) is the reference the project measures itself against: its
 ``rayextract trees cloud.ply ground_mesh.ply`` finds trunks without priors and segments
@@ -8,8 +8,11 @@ every point by shortest paths from the ground. It is not on PyPI or in Debian, s
 module does not install it: give the path of a ``rayextract`` binary built from its
 sources (github.com/csiro-robotics/raycloudtools; it needs Eigen and libnabo).
 
-For each block of the issue's two accuracy settings (the same ``SETTINGS`` as
-:mod:`bench.oracles`) and each seed:
+``bench/build_rayextract.sh`` builds one from the two source trees.
+
+For each block of the chosen scene groups (``SCENES``: ``default``, the two accuracy
+settings of :mod:`bench.oracles`; ``hedgerows``, tall spindle at 1.0 m and 1.5 m in the
+row with 3.5 m between rows and hedge at 1.35 m x 4 m) and each evaluation seed 0..N-1:
 
 - **ours**: the block's LAZ through :func:`workers.job.run_job` (LAZ in, Parquet out),
   scored by :func:`pipeline.evaluate.evaluate_result`;
@@ -28,13 +31,17 @@ given its flat ground plane as the mesh for rayextract (read from ``../shared/da
 left out with a note when that folder is missing).
 
 Both are scored by :func:`pipeline.evaluate.score_labels` on the same truth: trunk F1
-with one-to-one matching within 1 m, v-measure on true tree points. ``rayextract`` has no
+with one-to-one matching within half the in-row spacing, at most 1 m (as
+:mod:`bench.hedgerows`), v-measure on true tree points. ``rayextract`` has no
 per-point wood flag, so wood F1 is left out. Seconds are wall-clock for the whole run of
 each (reading, processing, writing) on one core: ours in this process pinned to one core
-(:func:`bench.runner.one_core`; the LAZ decoder and the Parquet writer would otherwise
 use every core), after one untimed warm-up run (as a dask worker runs it); rayextract as
 a fresh process pinned to the same core, with ``OMP_NUM_THREADS=1``; the median of
-``--repeats`` timed runs of each (default 3). Prints a Markdown table.
+``--repeats`` timed runs of each (default 3). Ours runs in a fresh process too
+(:func:`bench.runner.measure`), so each tool's peak RSS is its own process's high-water
+mark (``getrusage``; ours includes the interpreter and its imports), also given per
+input point. Prints a Markdown table, then per scene the ratios rayextract / ours of
+time and of peak memory.
 """
 
 from __future__ import annotations
@@ -45,6 +52,7 @@ import shutil
 import statistics
 import subprocess
 import sys
+import threading
 import time
 from functools import partial
 from pathlib import Path
@@ -55,7 +63,8 @@ import numpy as np
 from bench.blocks import make_block
 from bench.oracles import SETTINGS
 from bench.real_data import REAL, adtree_row
-from bench.runner import SINGLE_THREAD_ENV, one_core, pinned_to
+from bench.hedgerows import match_distance
+from bench.runner import SINGLE_THREAD_ENV, measure, one_core, pinned_to
 from pipeline import evaluate
 from pipeline import io as blockio
 from pipeline.simulate import GROUND, LEAF, Orchard, SimulationParams, ground_height, read_truth, write_simulation
@@ -65,6 +74,16 @@ MESH_CELL = 0.25
 
 RAY_LENGTH = 1.0
 """Length of the vertical ray written for each point [m]."""
+
+SCENES: dict[str, dict[str, dict]] = {
+    "default": SETTINGS,
+    "hedgerows": {
+        "tall spindle 1.0 m × 3.5 m": dict(form="spindle", rows=2, trees_per_row=14, spacing=1.0, row_spacing=3.5),
+        "tall spindle 1.5 m × 3.5 m": dict(form="spindle", rows=2, trees_per_row=12, spacing=1.5, row_spacing=3.5),
+        "hedge 1.35 m × 4 m": dict(form="hedge", rows=2, trees_per_row=12, spacing=1.35, row_spacing=4.0),
+    },
+}
+"""Scene groups of ``--scenes``: setting name -> ``SimulationParams`` fields (no seed)."""
 
 
 def write_ray_cloud(path: Path, xyz: np.ndarray) -> None:
@@ -140,79 +159,96 @@ def read_tree_bases(path: Path) -> np.ndarray:
     return np.asarray(bases, dtype=np.float64).reshape(-1, 3)
 
 
+def _run_pinned(cmd: list[str], cwd: Path, env: dict, core: int, timeout: float) -> tuple[int, str, int]:
+    """Run ``cmd`` pinned to ``core``; returns (exit code, its output, its own peak RSS
+    [bytes]). ``os.wait4`` gives the child's own high-water mark, which
+    ``RUSAGE_CHILDREN`` would mix with every earlier child's."""
+    with open(cwd / "rayextract.log", "w+") as log:
+        proc = subprocess.Popen(cmd, cwd=cwd, env=env, stdout=log, stderr=subprocess.STDOUT,
+                                preexec_fn=pinned_to(core))
+        timer = threading.Timer(timeout, proc.kill)
+        timer.start()
+        try:
+            _, status, usage = os.wait4(proc.pid, 0)
+        finally:
+            timer.cancel()
+        proc.returncode = code = os.waitstatus_to_exitcode(status)
+        log.seek(0)
+        return code, log.read(), usage.ru_maxrss * 1024  # Linux: kB
+
+
 def run_rayextract(binary: str, folder: Path, xyz: np.ndarray, ground: Callable[[np.ndarray, np.ndarray], np.ndarray],
-                   *, repeats: int = 1, timeout: float = 3600.0) -> tuple[np.ndarray, np.ndarray, float]:
+                   *, repeats: int = 1, timeout: float = 3600.0) -> tuple[np.ndarray, np.ndarray, float, int]:
     """Write the ray cloud of ``xyz`` (local [m]) and the mesh of ``ground`` (see
     :func:`write_ground_mesh`) into ``folder``, run ``rayextract trees`` on them
     ``repeats`` times; returns (labels (n,), tree bases (k, 3) in local coordinates,
-    median wall time [s])."""
+    median wall time [s], largest peak RSS of a run [bytes])."""
     folder.mkdir(parents=True, exist_ok=True)
     cloud, mesh = folder / "cloud.ply", folder / "mesh.ply"
     write_ray_cloud(cloud, xyz)
     write_ground_mesh(mesh, ground, xyz[:, :2].min(axis=0), xyz[:, :2].max(axis=0))
     env = dict(os.environ, **SINGLE_THREAD_ENV)
-    walls = []
+    walls, peak = [], 0
     with one_core() as core:
         for _ in range(max(1, repeats)):
             t = time.perf_counter()
-            proc = subprocess.run([binary, "trees", cloud.name, mesh.name], cwd=folder, env=env, capture_output=True,
-                                  text=True, timeout=timeout, preexec_fn=pinned_to(core))
+            code, output, rss = _run_pinned([binary, "trees", cloud.name, mesh.name], folder, env, core, timeout)
             walls.append(time.perf_counter() - t)
-            if proc.returncode != 0:
-                tail = "\n".join((proc.stdout + proc.stderr).strip().splitlines()[-5:])
-                raise RuntimeError(f"rayextract exited {proc.returncode}: {tail}")
+            peak = max(peak, rss)
+            if code != 0:
+                tail = "\n".join(output.strip().splitlines()[-5:])
+                raise RuntimeError(f"rayextract exited {code}: {tail}")
     labels = read_segmented(folder / "cloud_segmented.ply", xyz)
-    return labels, read_tree_bases(folder / "cloud_trees.txt"), statistics.median(walls)
+    return labels, read_tree_bases(folder / "cloud_trees.txt"), statistics.median(walls), peak
 
 
-def _run_ours(las: str, result_dir: Path, repeats: int = 1) -> float:
-    """Our job on ``las`` (LAZ in, Parquet out into ``result_dir``) on one core: one
-    untimed warm-up run, as in the stand benchmark, then ``repeats`` timed runs; returns
-    their median wall time [s]."""
-    from pipeline.params import PipelineParams
-    from workers.job import JobSpec, run_job
-
-    walls = []
-    with one_core():
-        for i in range(1 + max(1, repeats)):
-            shutil.rmtree(result_dir, ignore_errors=True)
-            t = time.perf_counter()
-            run_job(JobSpec(input_path=las, out_dir=str(result_dir), params=PipelineParams()))
-            if i:
-                walls.append(time.perf_counter() - t)
-    return statistics.median(walls)
+def _run_ours(las: str, result_dir: Path, repeats: int = 1) -> tuple[float, int]:
+    """Our job on ``las`` (LAZ in, Parquet out) in a fresh process on one core
+    (:func:`bench.runner.measure`): one untimed warm-up run, as in the stand benchmark,
+    then ``repeats`` timed runs; returns (their median wall time [s], the process's peak
+    RSS [bytes]). The last run's outputs are left in ``result_dir / "run{repeats-1}"``."""
+    shutil.rmtree(result_dir, ignore_errors=True)
+    r = measure({"kind": "job", "input": las, "out": str(result_dir), "workers": 0, "warmup": 1,
+                 "repeats": max(1, repeats)}, timeout=3600)
+    return statistics.median(run["wall_s"] for run in r["runs"]), int(r["main_maxrss"])
 
 
 def compare_scene(binary: str, work: Path, las: str, truth_path: str,
-                  ground: Callable[[np.ndarray, np.ndarray], np.ndarray], repeats: int = 1) -> dict:
+                  ground: Callable[[np.ndarray, np.ndarray], np.ndarray], repeats: int = 1,
+                  match: float = 1.0) -> dict:
     """Ours and rayextract on one block with its truth file (``pipeline.simulate``'s
-    format): {method: scores and seconds}. ``ground(x, y) -> z`` is the true ground in the
-    block's absolute coordinates [m]."""
+    format): {method: scores, seconds and peak RSS [bytes]}. ``ground(x, y) -> z`` is the
+    true ground in the block's absolute coordinates [m]; trunks match within ``match`` [m]."""
     truth, true_trunks = read_truth(truth_path)
     name = Path(las).stem
     result_dir = work / "rayextract-results" / name
-    seconds = _run_ours(las, result_dir, repeats)
-    ours = evaluate.evaluate_result(truth_path, str(result_dir))
-    methods = {"ours": dict(ours, seconds=seconds, found=ours["n_found_trees"])}
+    seconds, rss = _run_ours(las, result_dir, repeats)
+    ours = evaluate.evaluate_result(truth_path, str(result_dir / f"run{max(1, repeats) - 1}"), match_distance=match)
+    methods = {"ours": dict(ours, seconds=seconds, found=ours["n_found_trees"], peak_rss=rss)}
 
     xyz, info = blockio.read_points(las)
     origin = np.asarray(info.origin, dtype=np.float64)
-    labels, bases, seconds = run_rayextract(binary, work / "rayextract-runs" / name, xyz,
-                                            lambda x, y: ground(x + origin[0], y + origin[1]) - origin[2],
-                                            repeats=repeats)
+    labels, bases, seconds, rss = run_rayextract(binary, work / "rayextract-runs" / name, xyz,
+                                                 lambda x, y: ground(x + origin[0], y + origin[1]) - origin[2],
+                                                 repeats=repeats)
     scores = evaluate.score_labels(
         true_tree_id=truth["tree_id"], true_is_wood=truth["is_wood"], true_trunks=true_trunks,
         pred_tree_id=labels, pred_is_wood=np.zeros(len(labels), bool), found_trunks=bases + origin,
+        match_distance=match,
     )
-    methods["rayextract trees"] = dict(scores, seconds=seconds, found=scores["n_found_trees"])
+    methods["rayextract trees"] = dict(scores, seconds=seconds, found=scores["n_found_trees"], peak_rss=rss)
     return methods
 
 
-def compare_block(binary: str, work: Path, setting: str, seed: int, repeats: int = 1) -> dict:
-    """Ours and rayextract on one generated block: {method: scores}, plus block facts."""
-    params = SimulationParams(seed=seed, **SETTINGS[setting])
+def compare_block(binary: str, work: Path, setting: str, seed: int, repeats: int = 1,
+                  sim: dict | None = None) -> dict:
+    """Ours and rayextract on one generated block of ``sim`` (simulator fields; default
+    ``SETTINGS[setting]``): {method: scores}, plus block facts."""
+    sim = SETTINGS[setting] if sim is None else sim
+    params = SimulationParams(seed=seed, **sim)
     block = make_block(work, f"rayextract-s{seed}", params)
-    methods = compare_scene(binary, work, block.las, block.truth, partial(ground_height, params), repeats)
+    methods = compare_scene(binary, work, block.las, block.truth, partial(ground_height, params), repeats,
+                            match=match_distance(params.spacing))
     return {"setting": setting, "seed": seed, "n_points": block.n_points, "n_trees": block.n_trees, "methods": methods}
 
 
@@ -235,18 +271,29 @@ def compare_adtree(binary: str, work: Path, overlap: float, repeats: int = 1) ->
 
 
 def table(rows: list[dict]) -> str:
-    lines = ["| setting | seed | points | method | trunks found (true) | trunk F1 | v-measure | seconds |",
-             "|---|---|---|---|---|---|---|---|"]
+    """Markdown table: one line per scene and method, then one per scene with the
+    ratios rayextract / ours of wall time and of peak RSS."""
+    lines = ["| setting | seed | points | method | trunks found (true) | trunk F1 | v-measure | seconds | peak RSS [MiB] "
+             "| bytes / point |",
+             "|---|---|---|---|---|---|---|---|---|---|"]
     for r in rows:
         for name, m in r["methods"].items():
             lines.append(f"| {r['setting']} | {r['seed']} | {r['n_points']:,} | {name} | {m['found']} ({r['n_trees']}) "
-                         f"| {m['trunk_f1']:.2f} | {m['v_measure']:.3f} | {m['seconds']:.1f} |")
+                         f"| {m['trunk_f1']:.2f} | {m['v_measure']:.3f} | {m['seconds']:.1f} "
+                         f"| {m['peak_rss'] / 2**20:,.0f} | {m['peak_rss'] / max(r['n_points'], 1):,.0f} |")
+    lines += ["", "| setting | seed | time rayextract / ours | peak RSS rayextract / ours |", "|---|---|---|---|"]
+    for r in rows:
+        ours, other = r["methods"]["ours"], r["methods"]["rayextract trees"]
+        lines.append(f"| {r['setting']} | {r['seed']} | {other['seconds'] / ours['seconds']:.2f} "
+                     f"| {other['peak_rss'] / ours['peak_rss']:.2f} |")
     return "\n".join(lines)
 
 
 def main(argv: list[str] | None = None) -> int:
     p = argparse.ArgumentParser(prog="python -m bench.rayextract", description=__doc__.splitlines()[0])
     p.add_argument("--rayextract", required=True, help="path of a rayextract binary (raycloudtools)")
+    p.add_argument("--scenes", default="default",
+                   help=f"scene groups, comma-separated, of: {', '.join(SCENES)} (default: default)")
     p.add_argument("--seeds", default="0,1", help="evaluation seeds, comma-separated (default 0,1)")
     p.add_argument("--work-dir", type=Path, default=Path(os.environ.get("ORCHARD_BENCH_WORK", "/tmp/orchard-bench")),
                    help="folder for the blocks and both tools' outputs (default /tmp/orchard-bench)")
@@ -259,8 +306,14 @@ def main(argv: list[str] | None = None) -> int:
     if not (os.path.isfile(binary) and os.access(binary, os.X_OK)):
         print(f"error: {args.rayextract} is not an executable file", file=sys.stderr)
         return 2
+    groups = [g.strip() for g in args.scenes.split(",") if g.strip()]
+    unknown = [g for g in groups if g not in SCENES]
+    if unknown:
+        print(f"error: unknown scene group {', '.join(unknown)}; choose from {', '.join(SCENES)}", file=sys.stderr)
+        return 2
     seeds = [int(s) for s in args.seeds.split(",") if s.strip()]
-    rows = [compare_block(binary, args.work_dir, setting, seed, args.repeats) for setting in SETTINGS for seed in seeds]
+    rows = [compare_block(binary, args.work_dir, setting, seed, args.repeats, sim)
+            for g in groups for setting, sim in SCENES[g].items() for seed in seeds]
     overlaps = [float(o) for o in args.adtree.split(",") if o.strip()]
     if overlaps and not (REAL / "AdTree").is_dir():
         print(f"note: {REAL / 'AdTree'} is missing; the real-tree rows are left out", file=sys.stderr)

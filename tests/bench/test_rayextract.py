@@ -14,10 +14,12 @@ from bench.rayextract import (
     compare_adtree,
     MESH_CELL,
     RAY_LENGTH,
+    SCENES,
     main,
     read_segmented,
     read_tree_bases,
     run_rayextract,
+    table,
     write_ground_mesh,
     write_ray_cloud,
 )
@@ -122,11 +124,14 @@ def test_run_feeds_the_tool_and_reads_back_its_answer(tmp_path):
     tool = tmp_path / "rayextract"
     tool.write_text(textwrap.dedent(STAND_IN).format(python=sys.executable))
     tool.chmod(tool.stat().st_mode | stat.S_IXUSR)
-    labels, bases, seconds = run_rayextract(str(tool), tmp_path / "run", XYZ, lambda x, y: np.zeros(len(x)))
+    labels, bases, seconds, peak = run_rayextract(str(tool), tmp_path / "run", XYZ, lambda x, y: np.zeros(len(x)))
     assert labels[0] == 0 and labels[3] == 0  # below 0.5 m
     assert labels[1] > 0 and labels[2] > 0 and labels[1] != labels[2]
     np.testing.assert_allclose(bases, [[-4.5, 2.25, 0.0], [1.0, 2.0, 0.0]])
     assert seconds > 0
+    # the stand-in's own peak, a Python process with numpy and plyfile loaded: well above
+    # 10 MB, well below this test process's
+    assert 10 * 2**20 < peak < 2**30
     assert (tmp_path / "run" / "mesh.ply").exists()
 
 
@@ -141,6 +146,32 @@ def test_a_failing_tool_is_reported_with_its_output(tmp_path):
 def test_main_refuses_a_missing_binary(tmp_path, capsys):
     assert main(["--rayextract", str(tmp_path / "nope")]) == 2
     assert "is not an executable file" in capsys.readouterr().err
+
+
+def test_main_refuses_an_unknown_scene_group(tmp_path, capsys):
+    tool = tmp_path / "rayextract"
+    tool.write_text("#!/bin/sh\n")
+    tool.chmod(tool.stat().st_mode | stat.S_IXUSR)
+    assert main(["--rayextract", str(tool), "--scenes", "default,orchard"]) == 2
+    assert "unknown scene group orchard" in capsys.readouterr().err
+
+
+def test_hedgerow_scenes_are_the_issue_layouts():
+    hedge = SCENES["hedgerows"]
+    assert {(s["form"], s["spacing"], s["row_spacing"]) for s in hedge.values()} == {
+        ("spindle", 1.0, 3.5), ("spindle", 1.5, 3.5), ("hedge", 1.35, 4.0)}
+    for sim in hedge.values():
+        SimulationParams(seed=0, **sim)  # valid simulator fields
+
+
+def test_table_gives_memory_per_point_and_the_ratios():
+    m = dict(found=3, trunk_f1=1.0, v_measure=0.9)
+    rows = [{"setting": "s", "seed": 0, "n_points": 2**20, "n_trees": 3,
+             "methods": {"ours": dict(m, seconds=2.0, peak_rss=200 * 2**20),
+                         "rayextract trees": dict(m, seconds=5.0, peak_rss=100 * 2**20)}}]
+    text = table(rows)
+    assert "| s | 0 | 1,048,576 | ours | 3 (3) | 1.00 | 0.900 | 2.0 | 200 | 200 |" in text
+    assert "| s | 0 | 2.50 | 0.50 |" in text
 
 
 @pytest.mark.skipif(not (REAL / "AdTree").is_dir(), reason="../shared/data/real/AdTree not present")
