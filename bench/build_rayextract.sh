@@ -50,7 +50,7 @@ mkdir -p "$build/libnabo" "$build/raycloudtools" "$prefix"
 
 # libnabo: the static library and its CMake config only (no tests, examples, Python).
 nice -n 10 cmake -S "$nabo_src" -B "$build/libnabo" -DCMAKE_BUILD_TYPE=Release \
-    -DCMAKE_INSTALL_PREFIX="$prefix" -DCMAKE_EXPORT_NO_PACKAGE_REGISTRY=ON -DUSE_OPEN_CL=FALSE >"$build/libnabo.cmake.log"
+    -DCMAKE_INSTALL_PREFIX="$prefix" -DCMAKE_EXPORT_NO_PACKAGE_REGISTRY=ON -DUSE_OPEN_CL=FALSE >"$build/libnabo.cmake.log" 2>&1
 nice -n 10 cmake --build "$build/libnabo" --target nabo -j "$jobs" >"$build/libnabo.build.log"
 # `install` would build every target (tests, python); copy what find_package needs instead
 nice -n 10 cmake --install "$build/libnabo" >"$build/libnabo.install.log" 2>&1 || {
@@ -63,10 +63,10 @@ nice -n 10 cmake --install "$build/libnabo" >"$build/libnabo.install.log" 2>&1 |
 nice -n 10 cmake -S "$rct_src" -B "$build/raycloudtools" -DCMAKE_BUILD_TYPE=Release \
     -DCMAKE_PREFIX_PATH="$prefix" -Dlibnabo_DIR="$build/libnabo" \
     -DRAYCLOUD_BUILD_TESTS=OFF -DRAYLIB_WITH_LAS=OFF -DRAYLIB_WITH_QHULL=OFF -DRAYLIB_WITH_TIFF=OFF \
-    -DRAYLIB_WITH_TBB=OFF -DRAYLIB_WITH_NORMAL_FIELD=ON >"$build/raycloudtools.cmake.log"
+    -DRAYLIB_WITH_TBB=OFF -DRAYLIB_WITH_NORMAL_FIELD=ON >"$build/raycloudtools.cmake.log" 2>&1
 nice -n 10 cmake --build "$build/raycloudtools" --target rayextract -j "$jobs" >"$build/raycloudtools.build.log"
 
-binary=$(find "$build/raycloudtools" -type f -name rayextract -perm -u+x | head -n 1)
+binary=$(find "$build/raycloudtools" -name rayextract -xtype f -perm -u+x | head -n 1)
 if [[ -z $binary ]]; then
     echo "error: the build finished without a rayextract binary; see $build/*.log" >&2
     exit 1
