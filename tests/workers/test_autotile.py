@@ -153,3 +153,49 @@ def test_a_process_running_the_budgets_tiles_stays_within_it(block, tmp_path):
     got = json.loads(p.stdout.strip().splitlines()[-1])
     assert got["tiles"] > 1
     assert got["peak"] <= budget, (got, budget / 1e6)
+
+
+# ---------------------------------------------------------------- orchard process
+
+
+def _process(capsys, *argv) -> tuple[int, str]:
+    from service.cli import main
+
+    code = main(["process", *map(str, argv)])
+    return code, capsys.readouterr().err
+
+
+def test_tile_size_0_keeps_a_block_whole_whatever_the_budget_says(block, tmp_path, capsys, monkeypatch):
+    path, _ = block
+    monkeypatch.setenv("ORCHARD_WORKER_MEMORY_GB", "0.21")  # tiles (or a refusal) without --tile-size 0
+    code, err = _process(capsys, path, "--out", tmp_path / "o", "--tile-size", 0, "--segment-max-crown-radius", 3)
+    assert code == 0, err
+    assert "1 tile(s)" in err and "tiles of" not in err
+
+
+@pytest.mark.parametrize(
+    "argv, words",
+    [
+        (["--worker-memory", "0.21"], "too small for this block"),
+        (["--worker-memory", "0"], "--worker-memory must be a positive number"),
+        (["--worker-memory", "nan"], "--worker-memory must be a positive number"),
+        (["--worker-memory", "1", "--tile-size", "10"], "not both"),
+        (["--tile-size", "0", "--scheduler", "tcp://127.0.0.1:1"], "--tile-size 0"),
+    ],
+)
+def test_a_budget_that_cannot_work_is_one_line_exit_2_before_any_output(block, tmp_path, capsys, argv, words):
+    path, _ = block
+    code, err = _process(capsys, path, "--out", tmp_path / "o", "--segment-max-crown-radius", 3, *argv)
+    assert code == 2 and len(err.strip().splitlines()) == 1 and words in err, err
+    assert not (tmp_path / "o").exists()
+    if "too small" in words:
+        assert "(--worker-memory 0.3 or more)" in err  # the smallest tile's need, rounded up
+
+
+@pytest.mark.slow
+def test_orchard_process_tiles_a_block_above_its_budget(block, tmp_path, capsys):
+    path, info = block
+    gb = _budget(info) / 1e9
+    code, err = _process(capsys, path, "--out", tmp_path / "o", "--segment-max-crown-radius", 3, "--worker-memory", gb)
+    assert code == 0, err
+    assert "tiles of 10 m" in err and "1 tile(s)" not in err
