@@ -252,9 +252,10 @@ def analyse_nodes(
     # box tests: planar nodes in patches of MIN_FACE_NODES or more; the catchment's test
     # also counts blurred faces on noisy scans (cutting surfaces out of the graph needs
     # the strict test)
-    # only faces standing above the grass: flat grass tops beside a thin trunk (a
-    # spindle's leader) made up most of its little low material
-    face = faces(patch, size, MIN_FACE_NODES) & standing(patch, size, node_height, min_top=params.segment.floating_height)
+    face = faces(patch, size, MIN_FACE_NODES)
+    # a segmented tree's box test counts only faces standing above the grass: flat grass
+    # tops under a thin trunk (a spindle's leader) made up most of its little low material
+    standing_face = face & standing(patch, size, node_height, min_top=params.segment.floating_height)
     box_planar = face | noisy_planar(feats, noise=gm.noise)
     ground_top = gm.tolerance(params.ground)
     stem_points = _stem_points(xyz, height, is_ground, ground_top, on=params.trunks.stem_ratio > 0)
@@ -318,7 +319,7 @@ def analyse_nodes(
     seg = segment(det)
     for _ in range(3):  # dropping a box-like or low "tree" (a vehicle) re-segments its material
         drop = np.union1d(
-            box_like_trees(seg.node_tree, node_height, nodes=nodes, trunk_xy=det.xy, planar=face, params=params.trunks),
+            box_like_trees(seg.node_tree, node_height, nodes=nodes, trunk_xy=det.xy, planar=standing_face, params=params.trunks),
             _not_replants(low_trees(seg.node_tree, node_height, det.k, params=params.trunks), det.xy, replant_xy),
         )
         if drop.size == 0:

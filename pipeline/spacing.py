@@ -17,6 +17,9 @@ SPACING_PROBE_RADIUS = 0.25
 #: a candidate's neighbour counts for the spacing when it drains at least this share of
 #: the candidate's catchment
 COMPARABLE_SHARE = 0.5
+#: fewest candidates that measure a spacing: one or two trees' worth may be the bark of
+#: a single thick trunk split into groups (aRchi's 0.6 m trunk: two groups 0.46 m apart)
+MIN_CANDIDATES = 4
 #: neighbours searched for the nearest comparable candidate
 _NEIGHBOURS = 16
 
@@ -54,10 +57,12 @@ def estimate_spacing(xy: np.ndarray, support: np.ndarray) -> float | None:
 
     Returns
     -------
-    float, or None when no candidate has a comparable one (fewer than two candidates).
+    float, or None with fewer than MIN_CANDIDATES candidates or none with a comparable one.
     """
     xy = np.asarray(xy, dtype=np.float64).reshape(-1, 2)
     support = np.asarray(support, dtype=np.float64)
+    if xy.shape[0] < MIN_CANDIDATES:
+        return None
     d = comparable_distance(xy, support)
     ok = np.isfinite(d)
     if not ok.any():
