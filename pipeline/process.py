@@ -121,6 +121,8 @@ class BlockResult:
     spacing : float or None
         The in-row tree spacing the radii left unset followed [m]
         (:meth:`pipeline.params.TrunkParams.at_spacing`); None: not measured.
+    trunk_young : (k,) bool or None
+        Trunks let in as replants: too low to pass as trees, on an open planting slot.
     """
 
     tree_id: np.ndarray
@@ -132,6 +134,7 @@ class BlockResult:
     trunk_support: np.ndarray
     trunk_diameter: np.ndarray
     spacing: float | None = None
+    trunk_young: np.ndarray | None = None
 
     @property
     def n_trees(self) -> int:
@@ -158,14 +161,19 @@ class NodeAnalysis:
     segmentation: Segmentation
     posts: Posts | None = None
     on_post: np.ndarray | None = None
+    replant_xy: np.ndarray | None = None  # trunks let in as replants (pipeline.replants)
+
+
+def _is_replant(trunk_xy: np.ndarray, replant_xy: np.ndarray | None) -> np.ndarray:
+    """(k,) bool: which trunks are rescued replants (their centres are kept as found)."""
+    if replant_xy is None or not len(replant_xy) or not len(trunk_xy):
+        return np.zeros(len(trunk_xy), dtype=bool)
+    return (trunk_xy[:, None, :] == replant_xy[None, :, :]).all(axis=2).any(axis=1)
 
 
 def _not_replants(drop: np.ndarray, trunk_xy: np.ndarray, replant_xy: np.ndarray) -> np.ndarray:
     """``drop`` less the trunks that are rescued replants (low by nature)."""
-    if not len(replant_xy) or not len(drop):
-        return drop
-    is_replant = (trunk_xy[drop, None, :] == replant_xy[None, :, :]).all(axis=2).any(axis=1)
-    return drop[~is_replant]
+    return drop[~_is_replant(trunk_xy[drop], replant_xy)] if len(drop) else drop
 
 
 def noisy_planar(feats: ShapeFeatures, *, noise: float) -> np.ndarray:
@@ -326,7 +334,8 @@ def analyse_nodes(
             break
         det = drop_trunks(det, drop)
         seg = segment(det)
-    return NodeAnalysis(gm, height, is_ground, veg_idx, vox, node_height, adjacency, feats, graph, det, seg, posts, on_post)
+    return NodeAnalysis(gm, height, is_ground, veg_idx, vox, node_height, adjacency, feats, graph, det, seg, posts, on_post,
+                        replant_xy)
 
 
 def node_wood_score(a: NodeAnalysis, *, params: PipelineParams) -> np.ndarray:
@@ -460,4 +469,5 @@ def block_result(xyz: np.ndarray, a: NodeAnalysis, *, params: PipelineParams) ->
         trunk_support=a.trunks.support.astype(np.float64),
         trunk_diameter=diameter,
         spacing=a.trunks.spacing,
+        trunk_young=_is_replant(a.trunks.xy, a.replant_xy),
     )

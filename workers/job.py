@@ -195,6 +195,7 @@ def _summarise(tile_id, xyz, core, result, grid: TileGrid | None, origin, params
         "support": np.asarray(result.trunk_support, dtype=np.float64),
         "diameter": np.asarray(result.trunk_diameter, dtype=np.float64),
         "owned": owned,
+        "young": np.zeros(len(trunks), bool) if result.trunk_young is None else np.asarray(result.trunk_young, bool),
         "cluster_radius": cluster_radius,
         "partials": partials,
         "n_core": int(core.sum()),
@@ -432,13 +433,30 @@ def _without_trunks_between_rows(merged: GlobalTrunks, params: PipelineParams) -
     )
 
 
-def _with_rows(trees: dict, params: RowParams) -> tuple[dict, RowLayout | None]:
+def _replanted(summaries: list[dict], merged: GlobalTrunks) -> np.ndarray:
+    """(K,) bool: trees that the tile owning their trunk let in as replants."""
+    young = np.zeros(merged.n_trees, dtype=bool)
+    for s in summaries:
+        flags = s.get("young")
+        if flags is None or not np.any(flags):
+            continue
+        glob = merged.id_maps[s["tile_id"]][1:]
+        local = np.flatnonzero(np.asarray(flags, bool) & (glob > 0))
+        g = glob[local] - 1
+        young[g[merged.owner[g] == s["tile_id"]]] = True
+    return young
+
+
+def _with_rows(trees: dict, params: RowParams, replanted: np.ndarray | None = None) -> tuple[dict, RowLayout | None]:
     """The trees table with each tree's address (``row``, ``position``, ``young``), and
-    the block's rows; computed on the merged trees, so tiled and untiled runs agree."""
+    the block's rows; computed on the merged trees, so tiled and untiled runs agree. A
+    tree is young when it is much lower than its row neighbours or was let in as a
+    replant."""
     if not params.enabled:
         return trees, None
     layout = find_rows(np.c_[trees["trunk_x"], trees["trunk_y"]], trees["height_m"], params=params)
-    return dict(trees, row=layout.row, position=layout.position, young=layout.young), layout
+    young = layout.young if replanted is None else layout.young | replanted
+    return dict(trees, row=layout.row, position=layout.position, young=young), layout
 
 
 def _write_outputs(out_dir: Path, info: BlockInfo, labels: _Labels, trees: dict, *, labelled_laz: bool, failed: list[int],
@@ -573,7 +591,7 @@ def _run_single(spec, info, t0, progress, cancel) -> JobOutcome:
     merged = _without_trunks_between_rows(merged, params)
     if merged.n_trees == 0:
         raise _no_trees(info)
-    trees, layout = _with_rows(_trees_table([summary], merged, info.origin), params.rows)
+    trees, layout = _with_rows(_trees_table([summary], merged, info.origin), params.rows, _replanted([summary], merged))
     labels = _Labels.single(result, merged.id_maps[0])
     outputs = _write_outputs(Path(spec.out_dir), info, labels, trees, labelled_laz=spec.labelled_laz, failed=[], layout=layout)
     timings["merge_write"] = time.perf_counter() - t
@@ -883,7 +901,7 @@ def _finish(store: WorkStore, record: dict, index: dict, summaries: list[dict], 
     merged = _without_trunks_between_rows(merged, params)
     if merged.n_trees == 0:
         raise _no_trees(info)
-    trees, layout = _with_rows(_trees_table(summaries, merged, info.origin), params.rows)
+    trees, layout = _with_rows(_trees_table(summaries, merged, info.origin), params.rows, _replanted(summaries, merged))
     fields = ("index",) + _Labels.FIELDS
     # each memory-mapped array holds a file descriptor: with hundreds of tiles the usual
     # limit of 1024 ran out after every tile was done ("Too many open files")

@@ -243,7 +243,7 @@ def test_work_store_removes_only_what_it_wrote(small_block, tmp_path):
     # the work folder is the output folder: after the job the outputs stay, the tiles go
     out = tmp_path / "out"
     run_job(JobSpec(str(small_block), str(out), tile_size=10.0, work_dir=str(out)))
-    assert sorted(p.name for p in out.iterdir()) == ["points.parquet", "trees.parquet"]
+    assert sorted(p.name for p in out.iterdir()) == ["gaps.parquet", "points.parquet", "rows.parquet", "trees.parquet"]
     store = WorkStore(str(tmp_path / "w"))
     store.claim()
     store.put_json("job.json", {})
@@ -294,7 +294,7 @@ def test_a_failed_write_leaves_the_previous_outputs_whole(small_block, tmp_path,
     out = tmp_path / "out"
     run_job(JobSpec(str(small_block), str(out), labelled_laz=True))
     before = {p.name: p.read_bytes() for p in out.iterdir()}
-    assert sorted(before) == ["labelled.laz", "points.parquet", "trees.parquet"]
+    assert sorted(before) == ["gaps.parquet", "labelled.laz", "points.parquet", "rows.parquet", "trees.parquet"]
 
     def disk_full(*a, **k):
         raise OSError(28, "No space left on device")
@@ -308,7 +308,7 @@ def test_a_failed_write_leaves_the_previous_outputs_whole(small_block, tmp_path,
     monkeypatch.undo()
     # a run without --labelled-laz removes the earlier run's labelled.laz with the rest
     run_job(JobSpec(str(small_block), str(out)))
-    assert sorted(p.name for p in out.iterdir()) == ["points.parquet", "trees.parquet"]
+    assert sorted(p.name for p in out.iterdir()) == ["gaps.parquet", "points.parquet", "rows.parquet", "trees.parquet"]
 
 
 def test_a_partial_result_gives_no_tree_the_points_of_a_failed_tiles_tree(small_block, tmp_path):
