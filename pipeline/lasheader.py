@@ -170,6 +170,7 @@ def check_header(path) -> HeaderLayout:
 
 
 def _check_public(p: Path, f: BinaryIO, head: bytes, minor: int, size: int) -> HeaderLayout:
+    """The layout of a file whose signature, version and header length were checked."""
     fields = _PUBLIC.unpack_from(head)
     header_size, offset, n_vlrs, raw_format, record_length, legacy_count = fields[10:16]
     if header_size < HEADER_SIZES[minor]:
