@@ -347,15 +347,17 @@
       if (!c.row) return;
       const groups = new Map();
       c.row.forEach((r, i) => { if (r === null) return; if (!groups.has(r)) groups.set(r, []); groups.get(r).push(i); });
-      const gapsPerRow = new Map();
-      (this.d.gaps || []).forEach((g) => gapsPerRow.set(g.row, (gapsPerRow.get(g.row) || 0) + 1));
+      const gapsPerRow = new Map();  // row -> positions of its empty slots
+      (this.d.gaps || []).forEach((g) => { if (!gapsPerRow.has(g.row)) gapsPerRow.set(g.row, []); gapsPerRow.get(g.row).push(g.position); });
       const pick = (k, idx) => idx.map((i) => (c[k] || [])[i]).filter((v) => v !== null && v !== undefined);
-      const head = ["Row", "Trees", "Young", "Empty slots", "Height, mean [m]", "Crown diameter, mean [m]", "Crown area, total [m²]"];
+      const head = ["Row", "Trees", "Young", "Empty slots", "Height, mean [m]", "Crown diameter, mean [m]", "Crown area, total [m²]", "Empty slots at"];
       const rows = [...groups.keys()].sort((a, b) => a - b).map((r) => {
         const idx = groups.get(r);
-        return el("tr", {}, [r, idx.length, c.young ? pick("young", idx).filter((v) => v).length : null, this.d.gaps ? gapsPerRow.get(r) || 0 : null,
+        const empty = (gapsPerRow.get(r) || []).sort((a, b) => a - b);
+        return el("tr", {}, [r, idx.length, c.young ? pick("young", idx).filter((v) => v).length : null, this.d.gaps ? empty.length : null,
           mean(pick("height_m", idx)), mean(pick("crown_diameter_m", idx)), sum(pick("crown_area_m2", idx))]
-          .map((v, k) => el("td", { text: k < 4 ? O.fmt(v) : O.fmt(v, k === 6 ? 1 : 2) })));
+          .map((v, k) => el("td", { text: k < 4 ? O.fmt(v) : O.fmt(v, k === 6 ? 1 : 2) }))
+          .concat([el("td", { text: empty.length ? "tree " + empty.join(", ") : "" })]));
       });
       document.getElementById("rowstable").replaceChildren(el("thead", {}, [el("tr", {}, head.map((h) => el("th", { text: h })))]), el("tbody", {}, rows));
       document.getElementById("rowsection").hidden = false;
