@@ -259,7 +259,9 @@ def symmetric_csr(
     # built row by row).
     groups = pairs.groups if isinstance(pairs, NodePairs) else None
     p = pairs.pairs if isinstance(pairs, NodePairs) else pairs
-    a, b = p[:, 0], p[:, 1]
+    # scipy would copy int64 indices into its int32 index type; hand it int32 at once
+    index = np.int32 if m < INT32_MAX else np.int64
+    a, b = p[:, 0].astype(index), p[:, 1].astype(index)
     if groups is None:
         rows, cols, data = [a, b], [b, a], [weight, weight]
     else:
@@ -268,8 +270,8 @@ def symmetric_csr(
 
         rows, cols, data = [backwards(b), a], [backwards(a), b], [backwards(weight), weight]
     if diagonal is not None:
-        rows.insert(1, np.arange(m))
-        cols.insert(1, np.arange(m))
+        rows.insert(1, np.arange(m, dtype=index))
+        cols.insert(1, np.arange(m, dtype=index))
         data.insert(1, diagonal)
     g = sparse.coo_matrix((np.concatenate(data), (np.concatenate(rows), np.concatenate(cols))), shape=(m, m))
     g.has_canonical_format = True  # no duplicates: tocsr need not sum (and sort) them
