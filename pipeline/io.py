@@ -335,9 +335,9 @@ def iter_raw(path, *, chunk_points: int = 2_000_000, info: BlockInfo | None = No
                     break
                 yield start, _stored_xyz(arr)
                 start += m
-    except InputError:
+    except (InputError, KeyboardInterrupt, SystemExit, GeneratorExit):
         raise
-    except Exception as exc:
+    except BaseException as exc:  # lazrs panics (pyo3's PanicException is no Exception) on corrupt chunks
         raise _fail(info.path, f"corrupt or truncated point data after point {start} ({_one_line(exc)})") from None
     if start < info.n_points:
         raise _fail(info.path, f"truncated: the header announces {info.n_points} points but only {start} could be read")
@@ -376,7 +376,9 @@ def read_raw_range(path, start: int, count: int, *, info: BlockInfo | None = Non
                         break
                     skip -= got
             arr = reader.read_points(count).array
-    except Exception as exc:
+    except (KeyboardInterrupt, SystemExit):
+        raise
+    except BaseException as exc:  # lazrs panics (pyo3's PanicException is no Exception) on corrupt chunks
         raise _fail(info.path, f"corrupt or truncated point data after point {start} ({_one_line(exc)})") from None
     if len(arr) < count:
         raise _fail(info.path, f"truncated: the header announces {info.n_points} points but only {start + len(arr)} could be read")
