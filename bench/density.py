@@ -215,7 +215,7 @@ def main(argv: list[str] | None = None) -> int:
     densities = {}
     for name, sim in forms.items():
         densities[name] = mobile_density(sim, scanner)
-        print(block_row(measure_block(args.work_dir, name.split(" ")[0], sim, densities[name])), flush=True)
+        print(block_row(measure_block(args.work_dir, sim.get("form", "vase"), sim, densities[name])), flush=True)
     if sizes:
         density = densities.get(vase_name) or mobile_density(vase, scanner)
         per_tree = scanner.points_per_tree(vase["spacing"], vase["row_spacing"])
