@@ -174,6 +174,7 @@ def test_table_gives_memory_per_point_and_the_ratios():
     assert "| s | 0 | 2.50 | 0.50 |" in text
 
 
+@pytest.mark.slow  # our pipeline twice on 200 k points in a fresh process
 @pytest.mark.skipif(not (REAL / "AdTree").is_dir(), reason="../shared/data/real/AdTree not present")
 def test_real_tree_row_scores_both_tools_on_the_exact_tree_ids(tmp_path):
     tool = tmp_path / "rayextract"
