@@ -444,13 +444,20 @@ def find_rows(xy: np.ndarray, height: np.ndarray | None = None, *, params: RowPa
     return RowLayout(row, position, young, rows, lines, gap_cols, off_row, between_rows)
 
 
+#: a row is evidence of a planting lattice from this many trees on (two trees with a gap
+#: between them are as likely two trees of an irregular stand)
+MIN_LATTICE_TREES = 4
+
+
 def open_slots(layout: RowLayout) -> np.ndarray:
-    """(o, 2) float64 centres [m] of the slots a tree could still stand in: the empty
-    slots between two trees of a row, and the slot beyond each end of every row of three
-    or more trees."""
-    pts = [np.c_[layout.gaps["x"], layout.gaps["y"]]]
+    """(o, 2) float64 centres [m] of the slots a tree could still stand in, in rows of at
+    least :data:`MIN_LATTICE_TREES` trees: the empty slots between two trees of the row,
+    and the slot beyond each of its ends."""
+    long = layout.rows["row"][layout.rows["n_trees"] >= MIN_LATTICE_TREES]
+    in_long = np.isin(layout.gaps["row"], long)
+    pts = [np.c_[layout.gaps["x"][in_long], layout.gaps["y"][in_long]]]
     for line, s in zip(layout.lines, layout.rows["spacing_m"]):
-        if len(line) >= 3 and np.isfinite(s):
+        if len(line) >= MIN_LATTICE_TREES and np.isfinite(s):
             for end, inner in ((line[-1], line[-3]), (line[0], line[2])):
                 step = end - inner
                 pts.append((end + s * step / np.hypot(*step))[None, :])

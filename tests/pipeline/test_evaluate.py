@@ -274,7 +274,7 @@ def test_cli_simulate_then_evaluate_a_perfect_result(tmp_path, capsys):
                "--density", "0.05", "--seed", "3", "--no-vehicle"])
     assert rc == 0
     out = capsys.readouterr().out
-    assert "2 trees" in out and out.count("\n") == 1
+    assert "2 vase trees" in out and out.count("\n") == 1
     cols, trunks = read_truth(str(truth))
     _write_result(tmp_path / "res", trunks[:, :2], cols["point_index"], cols["tree_id"], cols["is_wood"])
     assert main(["evaluate", "--truth", str(truth), "--result", str(tmp_path / "res"), "--json"]) == 0
