@@ -120,14 +120,23 @@ def _wait(proc: subprocess.Popen, timeout: float) -> int:
         time.sleep(0.05)
 
 
-def run_cli(las: str, out: Path, *, timeout: float = 3600.0) -> dict:
-    """``orchard process LAS --out OUT`` with its defaults in a fresh process: wall time
-    [s], its own peak RSS and the sampled peak RSS of every process it started [bytes]."""
+class CliFailed(RuntimeError):
+    """``orchard process`` exited with an error; ``message`` is its last line."""
+
+    def __init__(self, code: int, message: str):
+        super().__init__(f"orchard process exited {code}: {message}")
+        self.code, self.message = code, message
+
+
+def run_cli(las: str, out: Path, *, extra: tuple[str, ...] = (), timeout: float = 3600.0) -> dict:
+    """``orchard process LAS --out OUT [extra]`` (its defaults otherwise) in a fresh
+    process: wall time [s], its own peak RSS and the sampled peak RSS of every process it
+    started [bytes]. Raises :class:`CliFailed` when it exits with an error."""
     shutil.rmtree(out, ignore_errors=True)
     env = dict(os.environ, **SINGLE_THREAD_ENV)
     with tempfile.TemporaryFile("w+") as log:
         t = time.perf_counter()
-        proc = subprocess.Popen([sys.executable, "-m", "service.cli", "process", las, "--out", str(out)],
+        proc = subprocess.Popen([sys.executable, "-m", "service.cli", "process", las, "--out", str(out), *extra],
                                 stdout=log, stderr=subprocess.STDOUT, env=env)
         with TreeSampler(proc.pid, interval=0.1) as sampler:
             main_rss = _wait(proc, timeout)
@@ -135,8 +144,8 @@ def run_cli(las: str, out: Path, *, timeout: float = 3600.0) -> dict:
         log.seek(0)
         text = log.read()
     if proc.returncode != 0:
-        tail = "\n".join(text.strip().splitlines()[-5:])
-        raise RuntimeError(f"orchard process exited {proc.returncode}: {tail}")
+        lines = text.strip().splitlines()
+        raise CliFailed(proc.returncode, lines[-1] if lines else "")
     peaks = sampler.by_label()
     peaks.pop("main", None)
     children = sorted((p for ps in peaks.values() for p in ps), reverse=True)
@@ -161,12 +170,17 @@ def read_whole(las: str) -> tuple[float, int]:
     return float(seconds), int(rss)
 
 
-def measure_block(work: Path, name: str, sim: dict, density: float) -> dict:
-    """Generate (or reuse) one block, run it end to end and decode it; one table row."""
+def measure_block(work: Path, name: str, sim: dict, density: float, extra: tuple[str, ...] = ()) -> dict | str:
+    """Generate (or reuse) one block, run it end to end (``orchard process`` options
+    ``extra``) and decode it; the figures of one table row, or a row saying why
+    ``orchard process`` refused the block."""
     params = SimulationParams(seed=SEED, density=density, **sim)
     block = make_block(work, f"density-{name}", params)
     print(f"  {name}: {block.n_points:,} points, {block.n_trees} trees", file=sys.stderr, flush=True)
-    e2e = run_cli(block.las, work / "density-out" / name)
+    try:
+        e2e = run_cli(block.las, work / "density-out" / name, extra=extra)
+    except CliFailed as exc:
+        return f"| {name} | {block.n_points:,} | {block.n_trees} | {planted_area(sim) / 1e4:.3f} | {exc} |"
     read_s, read_rss = read_whole(block.las)
     decode = measure({"kind": "decode", "input": block.las, "repeats": 1})
     area = planted_area(sim)
@@ -174,8 +188,10 @@ def measure_block(work: Path, name: str, sim: dict, density: float) -> dict:
             "decode_s": read_s, "decode_rss": read_rss, "decode_1core_s": decode["laspy_all_fields"]["seconds"], **e2e}
 
 
-def block_row(r: dict) -> str:
-    """One Markdown row of :data:`HEADER`."""
+def block_row(r: dict | str) -> str:
+    """One Markdown row of :data:`HEADER` (a string is a row already)."""
+    if isinstance(r, str):
+        return r
     wall, n, ha = r["wall_s"], r["n_points"], r["area_m2"] / 1e4
     rss = [r["main_maxrss"], *r["children_rss"]]
     procs = " + ".join(f"{x / 2**20:,.0f}" for x in rss)
@@ -216,6 +232,7 @@ def main(argv: list[str] | None = None) -> int:
                    help=f"share of pulses returning from inside the block (default {RETURN_FRACTION})")
     p.add_argument("--work-dir", type=Path, default=Path(os.environ.get("ORCHARD_BENCH_WORK", "/tmp/orchard-bench")),
                    help="folder for the blocks and outputs (default /tmp/orchard-bench)")
+    p.add_argument("--worker-memory", type=float, help="pass --worker-memory GB to orchard process (default: its own)")
     args = p.parse_args(argv)
     if args.pulse_rate <= 0 or args.speed <= 0 or not 0 < args.return_fraction <= 1:
         p.error("--pulse-rate and --speed must be positive, --return-fraction in (0, 1]")
@@ -226,6 +243,7 @@ def main(argv: list[str] | None = None) -> int:
     if any(s <= 0 for s in sizes):
         p.error("--sizes must be positive")
     scanner = Scanner(args.pulse_rate, args.speed, args.return_fraction)
+    extra = () if args.worker_memory is None else ("--worker-memory", f"{args.worker_memory:g}")
     wanted = [w.strip() for w in args.forms.split(",") if w.strip()]
     forms = {k: v for k, v in FORMS.items() if "all" in wanted or any(w in k for w in wanted)}
     print(f"Scanner: {scanner.pulse_rate:,.0f} pulses/s, {scanner.speed:g} m/s, "
@@ -236,13 +254,13 @@ def main(argv: list[str] | None = None) -> int:
     densities = {}
     for name, sim in forms.items():
         densities[name] = mobile_density(sim, scanner)
-        print(block_row(measure_block(args.work_dir, sim.get("form", "vase"), sim, densities[name])), flush=True)
+        print(block_row(measure_block(args.work_dir, sim.get("form", "vase"), sim, densities[name], extra)), flush=True)
     if sizes:
         density = densities.get(vase_name) or mobile_density(vase, scanner)
         per_tree = scanner.points_per_tree(vase["spacing"], vase["row_spacing"])
         for size in sizes:
             sim = grown(vase, max(1, round(size * 1e6 / per_tree)))
-            row = measure_block(args.work_dir, f"vase-{size:g}M", sim, density)
+            row = measure_block(args.work_dir, f"vase-{size:g}M", sim, density, extra)
             print(block_row(row), flush=True)
     return 0
 

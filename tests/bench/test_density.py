@@ -5,8 +5,8 @@ per-tree and per-point figures."""
 import pytest
 
 from bench.blocks import count_points
-from bench.density import (FORMS, HEADER, Scanner, block_row, density_table, grown, main, mobile_density, planted_area,
-                           read_whole)
+from bench.density import (CliFailed, FORMS, HEADER, Scanner, block_row, density_table, grown, main, mobile_density,
+                           planted_area, read_whole, run_cli)
 from pipeline.simulate import SimulationParams
 
 
@@ -79,3 +79,12 @@ def test_bad_assumptions_are_refused(capsys):
     with pytest.raises(SystemExit) as e:
         main(["--sizes", "1,x"])
     assert e.value.code == 2
+
+
+def test_a_refused_block_is_a_row_with_the_reason(tmp_path):
+    las = tmp_path / "not-a-block.laz"
+    las.write_bytes(b"not a LAS file")
+    with pytest.raises(CliFailed) as e:
+        run_cli(str(las), tmp_path / "out")
+    assert e.value.code != 0 and e.value.message
+    assert block_row("| b | refused |") == "| b | refused |"
