@@ -10,15 +10,12 @@ from __future__ import annotations
 import numpy as np
 from scipy.spatial import cKDTree
 
-#: clustering radius [m] of the first grouping of ground contacts, whose trunk-like
-#: groups give the spacing: the cluster radius at the densest planting the defaults were
-#: measured on (0.8 m), so no two trunks there fall into one group
-SPACING_PROBE_RADIUS = 0.25
 #: a candidate's neighbour counts for the spacing when it drains at least this share of
 #: the candidate's catchment
 COMPARABLE_SHARE = 0.5
-#: fewest candidates that measure a spacing: one or two trees' worth may be the bark of
-#: a single thick trunk split into groups (aRchi's 0.6 m trunk: two groups 0.46 m apart)
+#: fewest candidates that measure a spacing: two or three may be the bark of a single
+#: thick trunk split into groups (grouped at 0.25 m, aRchi's 0.6 m trunk made two groups
+#: 0.46 m apart)
 MIN_CANDIDATES = 4
 #: neighbours searched for the nearest comparable candidate
 _NEIGHBOURS = 16

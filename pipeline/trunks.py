@@ -25,7 +25,7 @@ from scipy.spatial import cKDTree
 
 from pipeline.graph import shortest_paths, subtree_sizes
 from pipeline.params import TrunkParams
-from pipeline.spacing import SPACING_PROBE_RADIUS, estimate_spacing
+from pipeline.spacing import estimate_spacing
 from pipeline.stems import (  # noqa: F401 (the stem and foot tests' constants, used beside detect_trunks)
     FOOT_ANNULUS,
     FOOT_RADIUS,
@@ -319,7 +319,8 @@ def detect_trunks(
     The radii of ``params`` left unset follow the block's in-row tree spacing
     (:meth:`TrunkParams.at_spacing`): the given ``spacing``, else the one measured
     (:func:`pipeline.spacing.estimate_spacing`) on the trunk-like contact groups of a
-    first grouping at SPACING_PROBE_RADIUS.
+    grouping with the free-standing trees' cluster radius (or the one given), grouped
+    again with a smaller radius where the spacing measured asks for one.
 
     Parameters
     ----------
@@ -367,10 +368,18 @@ def detect_trunks(
         return empty
     drained = _Drained(cand, size, sp.source, reached, n_planar, n_low, contact_top)
     if spacing is None and params.needs_spacing():
-        # a first grouping at the probe radius: its trunk-like groups give the spacing
-        _, _, probe = _groups(nodes, node_height, drained, scattering, radius=SPACING_PROBE_RADIUS, params=params)
-        strong = probe["fits"] & (probe["width"] <= params.max_trunk_width)
-        spacing = estimate_spacing(np.column_stack([probe["x"], probe["y"]])[strong], probe["support"][strong])
+        # a first grouping with the free-standing trees' (or the given) cluster radius
+        # keeps the bark of a trunk up to about that thick in one group; where it measures
+        # trees closer than that, trunks may share groups: group again with the radius
+        # that spacing gives, and measure once more
+        radius = params.at_spacing(None).cluster_radius
+        for _ in range(2):
+            _, _, probe = _groups(nodes, node_height, drained, scattering, radius=radius, params=params)
+            strong = probe["fits"] & (probe["width"] <= params.max_trunk_width)
+            spacing = estimate_spacing(np.column_stack([probe["x"], probe["y"]])[strong], probe["support"][strong])
+            if params.at_spacing(spacing).cluster_radius >= radius:
+                break
+            radius = params.at_spacing(spacing).cluster_radius
     params = params.at_spacing(spacing)
     groups, gidx, candidates = _groups(nodes, node_height, drained, scattering, radius=params.cluster_radius, params=params)
     cx, cy, width, g_support, fits = (candidates[k] for k in ("x", "y", "width", "support", "fits"))
