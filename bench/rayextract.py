@@ -12,7 +12,8 @@ sources (github.com/csiro-robotics/raycloudtools; it needs Eigen and libnabo).
 
 For each block of the chosen scene groups (``SCENES``: ``default``, the two accuracy
 settings of :mod:`bench.oracles`; ``hedgerows``, tall spindle at 1.0 m and 1.5 m in the
-row with 3.5 m between rows and hedge at 1.35 m x 4 m) and each evaluation seed 0..N-1:
+row with 3.5 m between rows and hedge at 1.35 m x 4 m; ``mobile``, the hedgerow blocks of
+:mod:`bench.density` at a mobile scan's density) and each evaluation seed 0..N-1:
 
 - **ours**: the block's LAZ through :func:`workers.job.run_job` (LAZ in, Parquet out),
   scored by :func:`pipeline.evaluate.evaluate_result`;
@@ -82,8 +83,16 @@ SCENES: dict[str, dict[str, dict]] = {
         "tall spindle 1.5 m × 3.5 m": dict(form="spindle", rows=2, trees_per_row=12, spacing=1.5, row_spacing=3.5),
         "hedge 1.35 m × 4 m": dict(form="hedge", rows=2, trees_per_row=12, spacing=1.35, row_spacing=4.0),
     },
+    # bench.density's blocks: `density` is its mobile_density() for the layout (seed 0)
+    "mobile": {
+        "tall spindle 1.0 m × 3.5 m, mobile density": dict(form="spindle", rows=2, trees_per_row=12, spacing=1.0,
+                                                          row_spacing=3.5, density=3.047),
+        "hedge 1.35 m × 4 m, mobile density": dict(form="hedge", rows=2, trees_per_row=10, spacing=1.35,
+                                                  row_spacing=4.0, density=3.077),
+    },
 }
-"""Scene groups of ``--scenes``: setting name -> ``SimulationParams`` fields (no seed)."""
+"""Scene groups of ``--scenes``: setting name -> ``SimulationParams`` fields (no seed).
+``mobile`` holds the hedgerow blocks of :mod:`bench.density` (2.4-2.7 M points)."""
 
 
 def write_ray_cloud(path: Path, xyz: np.ndarray) -> None:

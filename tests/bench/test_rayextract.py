@@ -164,6 +164,14 @@ def test_hedgerow_scenes_are_the_issue_layouts():
         SimulationParams(seed=0, **sim)  # valid simulator fields
 
 
+def test_mobile_scenes_are_the_density_benchmark_blocks():
+    from bench.density import FORMS
+
+    for sim in SCENES["mobile"].values():
+        assert {k: v for k, v in sim.items() if k != "density"} in FORMS.values()
+        assert sim["density"] > 1  # denser than the simulator's default
+
+
 def test_table_gives_memory_per_point_and_the_ratios():
     m = dict(found=3, trunk_f1=1.0, v_measure=0.9)
     rows = [{"setting": "s", "seed": 0, "n_points": 2**20, "n_trees": 3,
