@@ -35,11 +35,12 @@ Both are scored by :func:`pipeline.evaluate.score_labels` on the same truth: tru
 with one-to-one matching within half the in-row spacing, at most 1 m (as
 :mod:`bench.hedgerows`), v-measure on true tree points. ``rayextract`` has no
 per-point wood flag, so wood F1 is left out. Seconds are wall-clock for the whole run of
-each (reading, processing, writing) on one core: ours in this process pinned to one core
-use every core), after one untimed warm-up run (as a dask worker runs it); rayextract as
-a fresh process pinned to the same core, with ``OMP_NUM_THREADS=1``; the median of
-``--repeats`` timed runs of each (default 3). Ours runs in a fresh process too
-(:func:`bench.runner.measure`), so each tool's peak RSS is its own process's high-water
+each (reading, processing, writing) on one core: ours in a fresh process
+(:func:`bench.runner.measure`) pinned to one core (the LAZ decoder and the Parquet
+writer would otherwise use every core), after one untimed warm-up run (as a dask worker
+runs it); rayextract as a fresh process pinned to the same core, with
+``OMP_NUM_THREADS=1``; the median of ``--repeats`` timed runs of each (default 3). Each
+tool's peak RSS is its own process's high-water
 mark (``getrusage``; ours includes the interpreter and its imports), also given per
 input point. Prints a Markdown table, then per scene the ratios rayextract / ours of
 time and of peak memory.
