@@ -131,6 +131,7 @@ def test_thick_trunks_are_trees_not_boxes():
         ({"trunk_radius": 0.5}, 3, {"cluster_radius": 1.2, "max_trunk_width": 1.4}),
     ],
 )
+@pytest.mark.slow
 def test_options_for_very_thick_trunks(sim, seed, options):
     # the options docs/limits.md's "Very thick trunks" names; the defaults stay (they cost trunks
     # on noisy high-density scans)
@@ -155,6 +156,7 @@ def test_vehicle_on_a_noisy_scan_is_not_a_tree():
     assert _truth_scores(o, origin, r)["trunk_recall"] == 1.0
 
 
+@pytest.mark.slow
 def test_stem_and_foot_tests_remove_hanging_shoots_on_a_noisy_high_density_scan():
     # with 5 cm noise the ground layer is 0.2 m thick and bundles of shoots hanging into
     # the grass become ground contacts that drain as much of a crown as the trunk.

@@ -90,6 +90,7 @@ def _run(o, radius):
     return r, s, float((r.tree_id[in_rows] > 0).mean()) if in_rows.any() else 0.0
 
 
+@pytest.mark.slow
 def test_posts_of_a_trellised_high_density_row_are_no_trees():
     # seed 1: without the post test a row-end post is taken for a tree and the tree
     # beside it is dropped as its satellite (measured: 8 of 10 trunks, 1 false)

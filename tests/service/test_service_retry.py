@@ -37,6 +37,7 @@ def _stop(proc: subprocess.Popen) -> None:
             proc.wait(10)
 
 
+@pytest.mark.slow
 def test_a_job_waits_for_a_scheduler_that_comes_back(tmp_path):
     port = free_port()
     block = simulated_block(tmp_path / "b.laz", rows=1, trees_per_row=3, seed=7, density=0.3)

@@ -119,6 +119,7 @@ def test_outputs_contract(small_block, tmp_path):
     assert np.all((trees.column("trunk_x").to_numpy() >= src.mins[0] - 1) & (trees.column("trunk_x").to_numpy() <= src.maxs[0] + 1))
 
 
+@pytest.mark.slow
 def test_in_process_dask_with_memory_store(small_block, tmp_path):
     run_job(JobSpec(str(small_block), str(tmp_path / "ref"), tile_size=10.0))
     client = make_client(n_workers=2, dashboard=False, processes=False)
@@ -168,6 +169,7 @@ def test_first_tile_failure_stops_and_names_the_tile(small_block, tmp_path):
     assert not (tmp_path / "out" / "trees.parquet").exists()
 
 
+@pytest.mark.slow
 def test_later_tile_failure_gives_partial_result_then_replay(small_block, tmp_path):
     ref = run_job(JobSpec(str(small_block), str(tmp_path / "ref"), tile_size=10.0))
     work = tmp_path / "work"
@@ -189,6 +191,7 @@ def test_later_tile_failure_gives_partial_result_then_replay(small_block, tmp_pa
     assert not work.exists()
 
 
+@pytest.mark.slow
 def test_tile_tasks_read_the_frame_not_the_list_of_tiles(small_block, tmp_path, monkeypatch):
     # every tile's task used to read the whole index (all tiles' bounds and counts): with
     # thousands of tiles that cost grew with the square of their number
@@ -311,6 +314,7 @@ def test_a_failed_write_leaves_the_previous_outputs_whole(small_block, tmp_path,
     assert sorted(p.name for p in out.iterdir()) == ["gaps.parquet", "points.parquet", "rows.parquet", "trees.parquet"]
 
 
+@pytest.mark.slow
 def test_a_partial_result_gives_no_tree_the_points_of_a_failed_tiles_tree(small_block, tmp_path):
     from pipeline.io import read_info
     from pipeline.tiling import core_tile
@@ -357,6 +361,7 @@ def test_a_tile_that_finishes_after_its_job_was_cancelled_leaves_nothing(small_b
     assert not (work / "results").exists()  # its results are gone (the rest is the job's end to delete)
 
 
+@pytest.mark.slow
 def test_small_tiles_through_a_trunk_give_the_untiled_result(tmp_path):
     """4 m tiles with a tile border through a trunk (found by a probe of the merge): the
     tiles used to lift their ground models by their own noise estimates, so one trunk
@@ -379,6 +384,7 @@ def test_small_tiles_through_a_trunk_give_the_untiled_result(tmp_path):
     assert same_wood >= 0.999  # the per-tree wood normalisers see the tile (docs/limits.md)
 
 
+@pytest.mark.slow
 def test_trellis_post_test_gives_the_untiled_result_in_tiles(tmp_path):
     """8 m tiles over a trellised high-density block with the opt-in post test: a tile
     used to miss a post the untiled run found (its circle fits drew their trials from
@@ -457,6 +463,7 @@ def test_a_tile_whose_worker_does_not_see_the_work_store_fails_the_job_clearly(t
     assert _kept({"tile_id": 3}, store, tile) == {"tile_id": 3}
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("soft, hard", [(48, 48), (48, 4096)])
 def test_many_tiles_under_a_low_open_file_limit(small_block, tmp_path, soft, hard):
     # the merge memory-maps five arrays per tile and each map holds a file descriptor:

@@ -43,6 +43,7 @@ def test_process_prints_the_tree_table(small_block, tmp_path, capsys):
     assert pq.read_table(tmp_path / "o" / "trees.parquet").num_rows == 8
 
 
+@pytest.mark.slow
 def test_process_tiled_with_embedded_cluster(small_block, tmp_path, capsys):
     code, out, err = _run(capsys, small_block, "--out", tmp_path / "o", "--tile-size", 10, "--workers", 2, "--labelled-laz")
     assert code == 0, err
@@ -52,6 +53,7 @@ def test_process_tiled_with_embedded_cluster(small_block, tmp_path, capsys):
     assert names == {"labelled.laz", "points.parquet", "trees.parquet", "trees.csv", "report.html", "map.png"}
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("extra", [[], ["--tile-size", 10, "--workers", 1]])
 def test_process_a_block_with_stray_points_kilometres_away(small_block, tmp_path, capsys, extra):
     # a GNSS glitch: three returns 30-40 km from the orchard. Before, one ground raster
@@ -126,6 +128,7 @@ def test_bad_input(tmp_path, capsys, case, tiled):
     assert words in err
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("extra", [[], ["--tile-size", 5000]])
 def test_a_block_too_wide_for_one_ground_raster(tmp_path, capsys, extra):
     # a 1.5 km diagonal line of points with no gap: one raster would need 36 M cells
@@ -274,6 +277,7 @@ def test_buffer_without_tiles_is_refused(small_block, tmp_path, capsys, argv):
     assert "--buffer needs --tile-size" in err
 
 
+@pytest.mark.slow
 def test_a_failing_tile_prints_one_message_not_worker_tracebacks(tmp_path):
     # the dask workers are other processes writing to the same terminal: each attempt of
     # a failing tile used to print a "Compute Failed ... Traceback" block there
@@ -306,6 +310,7 @@ def _children(pid: int) -> list[int]:
     return kids
 
 
+@pytest.mark.slow
 @pytest.mark.skipif(not Path("/proc/self/stat").exists(), reason="needs Linux /proc")
 def test_ctrl_c_during_a_tiled_run_prints_one_line(orchard_block, tmp_path, default_sigint):
     # a terminal's Ctrl-C goes to the whole process group: the dask workers each printed
