@@ -12,6 +12,7 @@ from __future__ import annotations
 import argparse
 import csv
 import io
+import re
 import socket
 import sys
 import tempfile
@@ -24,6 +25,8 @@ HELP = "Run the service locally on a generated orchard block and print the per-t
 
 _TABLE = [
     ("tree_id", "tree", "{:>4}"),
+    ("row", "row", "{:>3}"),
+    ("position", "pos", "{:>3}"),
     ("trunk_x", "trunk x", "{:>12.2f}"),
     ("trunk_y", "trunk y", "{:>12.2f}"),
     ("height_m", "height m", "{:>8.2f}"),
@@ -63,7 +66,7 @@ def _format_value(fmt: str, raw: str) -> str:
             value = int(value)
         return fmt.format(value)
     except (TypeError, ValueError):
-        width = int("".join(c for c in fmt if c.isdigit()).split(".")[0] or 0)
+        width = int(re.match(r"\{:>(\d+)", fmt).group(1))  # "{:>12.2f}" -> 12
         return (raw or "–").rjust(width)
 
 
