@@ -63,9 +63,9 @@ from typing import Callable
 import numpy as np
 
 from bench.blocks import make_block
+from bench.hedgerows import match_distance
 from bench.oracles import SETTINGS
 from bench.real_data import REAL, adtree_row
-from bench.hedgerows import match_distance
 from bench.runner import SINGLE_THREAD_ENV, measure, one_core, pinned_to
 from pipeline import evaluate
 from pipeline import io as blockio

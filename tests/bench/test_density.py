@@ -5,8 +5,20 @@ per-tree and per-point figures."""
 import pytest
 
 from bench.blocks import count_points
-from bench.density import (CliFailed, FORMS, HEADER, Scanner, block_row, density_table, grown, main, mobile_density,
-                           planted_area, read_whole, run_cli)
+from bench.density import (
+    FORMS,
+    HEADER,
+    CliFailed,
+    Scanner,
+    block_row,
+    density_table,
+    grown,
+    main,
+    mobile_density,
+    planted_area,
+    read_whole,
+    run_cli,
+)
 from pipeline.simulate import SimulationParams
 
 

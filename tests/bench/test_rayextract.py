@@ -11,10 +11,10 @@ import pytest
 from plyfile import PlyData, PlyElement
 
 from bench.rayextract import (
-    compare_adtree,
     MESH_CELL,
     RAY_LENGTH,
     SCENES,
+    compare_adtree,
     main,
     read_segmented,
     read_tree_bases,
