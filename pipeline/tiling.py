@@ -210,7 +210,8 @@ def tile_size_for_budget(
     -------
     float or None
         Whole metres, at least twice the buffer (:data:`MIN_CORE_PER_BUFFER`),
-        :func:`min_tile_size` of the buffer and 1 m.
+        :func:`min_tile_size` of the buffer and 1 m; None also when the smallest such
+        tile with its buffer would hold the whole block (a small, dense block).
 
     Raises
     ------
@@ -224,7 +225,9 @@ def tile_size_for_budget(
     density = n_points / area * DENSITY_HEADROOM
     most = max(budget - FIXED_BYTES, 0.0) / bytes_per_point  # points one buffered tile may hold
     side = math.floor(math.sqrt(most / density) - 2.0 * buffer)
-    smallest = max(MIN_CORE_PER_BUFFER * buffer, min_tile_size(buffer), 1.0)
+    smallest = float(math.ceil(max(MIN_CORE_PER_BUFFER * buffer, min_tile_size(buffer), 1.0)))
+    if smallest + 2.0 * buffer >= max(float(maxs[0]) - float(mins[0]), float(maxs[1]) - float(mins[1])):
+        return None  # the smallest tile and its buffer hold the whole block: tiles would save nothing
     if side < smallest:
         need = FIXED_BYTES + density * (smallest + 2.0 * buffer) ** 2 * bytes_per_point
         raise BudgetError(budget, n_points / area, smallest, buffer, need)

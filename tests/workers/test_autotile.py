@@ -3,6 +3,8 @@ into tiles whose estimated need keeps the budget, and the result is the untiled 
 
 from __future__ import annotations
 
+import math
+
 import json
 import subprocess
 import sys
@@ -20,6 +22,7 @@ from pipeline.tiling import (
     FIXED_BYTES,
     MIN_CORE_PER_BUFFER,
     BudgetError,
+    min_tile_size,
     tile_points,
     tile_size_for_budget,
 )
@@ -39,6 +42,18 @@ def test_tile_size_by_hand():
     # the whole block needs 200 MB + 400 MB: 600 MB keeps it in one piece, a byte less does not
     assert tile_size_for_budget(1_000_000, (0, 0), (100, 100), budget=600e6, buffer=5.0) is None
     assert tile_size_for_budget(1_000_000, (0, 0), (100, 100), budget=600e6 - 1, buffer=5.0) is not None
+
+
+def test_a_small_dense_block_over_the_budget_stays_whole():
+    # 11 M points on 20 m x 20 m: the smallest tile with its buffer holds all of it
+    assert tile_size_for_budget(11_000_000, (0, 0), (20, 20), budget=2e9, buffer=6.25) is None
+
+
+def test_the_budget_named_in_the_refusal_is_enough():
+    with pytest.raises(BudgetError) as err:
+        tile_size_for_budget(50_000_000, (0, 0), (100, 100), budget=2e9, buffer=6.25)
+    enough = math.ceil(err.value.need / 1e8) / 10 * 1e9  # as the command line words it
+    assert tile_size_for_budget(50_000_000, (0, 0), (100, 100), budget=enough, buffer=6.25) is not None
 
 
 def test_a_budget_below_the_smallest_tile_is_refused_with_its_figures():
@@ -65,8 +80,9 @@ def test_the_chosen_tile_keeps_the_budget_and_is_the_largest_that_does(n, width,
     except BudgetError as e:
         assert e.need > budget
         return
-    if size is None:
-        assert _need(n) <= budget
+    smallest = math.ceil(max(MIN_CORE_PER_BUFFER * buffer, min_tile_size(buffer), 1.0))
+    if size is None:  # the block fits, or is no larger than the smallest tile and its buffer
+        assert _need(n) <= budget or smallest + 2 * buffer >= max(width, depth)
         return
     assert _need(n) > budget
     assert size == int(size) and size >= MIN_CORE_PER_BUFFER * buffer and size >= 1.0
