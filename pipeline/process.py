@@ -166,19 +166,11 @@ class NodeAnalysis:
     segmentation: Segmentation
     posts: Posts | None = None
     on_post: np.ndarray | None = None
-    replant_xy: np.ndarray | None = None  # trunks let in as replants (pipeline.replants)
 
 
-def _is_replant(trunk_xy: np.ndarray, replant_xy: np.ndarray | None) -> np.ndarray:
-    """(k,) bool: which trunks are rescued replants (their centres are kept as found)."""
-    if replant_xy is None or not len(replant_xy) or not len(trunk_xy):
-        return np.zeros(len(trunk_xy), dtype=bool)
-    return (trunk_xy[:, None, :] == replant_xy[None, :, :]).all(axis=2).any(axis=1)
-
-
-def _not_replants(drop: np.ndarray, trunk_xy: np.ndarray, replant_xy: np.ndarray) -> np.ndarray:
-    """``drop`` less the trunks that are rescued replants (low by nature)."""
-    return drop[~_is_replant(trunk_xy[drop], replant_xy)] if len(drop) else drop
+def _not_young(drop: np.ndarray, det: TrunkDetection) -> np.ndarray:
+    """``drop`` less the trunks let in as replants (low by nature)."""
+    return drop if det.young is None else drop[~det.young[drop]]
 
 
 def noisy_planar(feats: ShapeFeatures, *, noise: float) -> np.ndarray:
@@ -305,8 +297,7 @@ def analyse_nodes(
         if on_post.any():
             det = detect(without_nodes(drainage, on_post))  # the spacing measured again, without the posts
     # the row model as a prior: young trees on open planting slots, too low to pass alone
-    det, replant_xy = rescue_replants(det, nodes, node_height, contact_top=ground_top + params.trunks.contact_height,
-                                      params=params)
+    det = rescue_replants(det, nodes, node_height, contact_top=ground_top + params.trunks.contact_height, params=params)
     surfaces = on_post | hard_surfaces(
         nodes,
         patch,
@@ -336,14 +327,13 @@ def analyse_nodes(
     for _ in range(3):  # dropping a box-like or low "tree" (a vehicle) re-segments its material
         drop = np.union1d(
             box_like_trees(seg.node_tree, node_height, nodes=nodes, trunk_xy=det.xy, planar=standing_face, params=params.trunks),
-            _not_replants(low_trees(seg.node_tree, node_height, det.k, params=params.trunks), det.xy, replant_xy),
+            _not_young(low_trees(seg.node_tree, node_height, det.k, params=params.trunks), det),
         )
         if drop.size == 0:
             break
         det = drop_trunks(det, drop)
         seg = segment(det)
-    return NodeAnalysis(gm, height, is_ground, veg_idx, vox, node_height, adjacency, feats, graph, det, seg, posts, on_post,
-                        replant_xy)
+    return NodeAnalysis(gm, height, is_ground, veg_idx, vox, node_height, adjacency, feats, graph, det, seg, posts, on_post)
 
 
 def node_wood_score(a: NodeAnalysis, *, params: PipelineParams) -> np.ndarray:
@@ -477,5 +467,5 @@ def block_result(xyz: np.ndarray, a: NodeAnalysis, *, params: PipelineParams) ->
         trunk_support=a.trunks.support.astype(np.float64),
         trunk_diameter=diameter,
         spacing=a.trunks.spacing,
-        trunk_young=_is_replant(a.trunks.xy, a.replant_xy),
+        trunk_young=a.trunks.young,
     )

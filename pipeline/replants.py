@@ -32,7 +32,7 @@ def rescue_replants(
     *,
     contact_top: float,
     params: PipelineParams,
-) -> tuple[TrunkDetection, np.ndarray]:
+) -> TrunkDetection:
     """Add the replants among the rejected contact groups to a detection.
 
     Parameters
@@ -49,15 +49,14 @@ def rescue_replants(
 
     Returns
     -------
-    det : TrunkDetection
-        The detection with the replants appended (trunks ``k..``).
-    rescued_xy : (r, 2) float64
-        Their centres [m] (a replant is exempt from the height test after segmentation).
+    TrunkDetection
+        The detection with the replants appended (trunks ``k..``), marked in ``young``
+        (a replant is exempt from the height test after segmentation); ``det`` itself
+        when there is none.
     """
-    none = np.zeros((0, 2))
     cand = det.candidates
     if not params.rows.enabled or cand is None or det.k < 3 or not len(cand["x"]):
-        return det, none
+        return det
     tp = params.trunks
     low = (
         ~np.asarray(cand["accepted"], bool)
@@ -68,13 +67,13 @@ def rescue_replants(
     )
     idx = np.flatnonzero(low)
     if not idx.size:
-        return det, none
+        return det
     cxy = np.c_[cand["x"], cand["y"]][idx]
     slot = on_open_slot(det.xy, cxy, params=params.rows, reach=SLOT_REACH)
     on = slot >= 0
     idx, cxy, slot = idx[on], cxy[on], slot[on]
     if not idx.size:
-        return det, none
+        return det
     # one replant per slot: the group with the most material
     order = np.lexsort((-cand["support"][idx], slot))
     first = np.r_[True, np.diff(slot[order]) != 0]
@@ -82,7 +81,7 @@ def rescue_replants(
     idx, cxy = idx[pick], cxy[pick]
     contact = np.flatnonzero(node_height < contact_top)
     if not contact.size:
-        return det, none
+        return det
     tree = cKDTree(nodes[contact, :2])
     src, src_t, keep = [], [], []
     for j, c in enumerate(cxy):
@@ -95,7 +94,7 @@ def rescue_replants(
             src_t.append(np.full(len(near), det.k + len(keep), dtype=np.int64))
             keep.append(j)
     if not keep:
-        return det, none
+        return det
     keep = np.asarray(keep)
     idx, cxy = idx[keep], cxy[keep]
     nodes_new = np.concatenate(src)
@@ -109,5 +108,6 @@ def rescue_replants(
         np.r_[det.source_trunk, trunk_new[~taken]],
         det.candidates,
         det.spacing,
+        np.r_[np.zeros(det.k, bool) if det.young is None else det.young, np.ones(len(cxy), bool)],
     )
-    return out, cxy
+    return out

@@ -53,6 +53,7 @@ class TrunkDetection:
     source_trunk : (s,) int64 — trunk (0-based) of each source node
     candidates : dict or None — every contact group's measurements (diagnostics)
     spacing : float or None — the in-row tree spacing the radii followed [m]
+    young : (k,) bool or None — trunks let in as replants (:mod:`pipeline.replants`)
     """
 
     xy: np.ndarray
@@ -62,6 +63,7 @@ class TrunkDetection:
     source_trunk: np.ndarray
     candidates: dict | None = None
     spacing: float | None = None
+    young: np.ndarray | None = None
 
     @property
     def k(self) -> int:
@@ -477,4 +479,5 @@ def drop_trunks(det: TrunkDetection, drop: np.ndarray) -> TrunkDetection:
         remap[det.source_trunk[src_keep]],
         det.candidates,
         det.spacing,
+        None if det.young is None else det.young[keep],
     )

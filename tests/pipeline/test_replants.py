@@ -31,9 +31,9 @@ def test_a_low_tree_on_an_empty_slot_is_a_replant_and_others_are_not():
         [3.1, 0.9, 1.3],     # beside the row
     ])
     det, nodes = _detection(row, cands)
-    out, xy = rescue_replants(det, nodes, np.full(len(nodes), 0.05), contact_top=0.1, params=PipelineParams())
+    out = rescue_replants(det, nodes, np.full(len(nodes), 0.05), contact_top=0.1, params=PipelineParams())
     assert out.k == det.k + 2
-    np.testing.assert_allclose(xy, [[3.05, 0.02], [11.02, 0.0]])
+    np.testing.assert_allclose(out.xy[out.young], [[3.05, 0.02], [11.02, 0.0]])
     assert set(out.source_trunk[out.source_nodes >= det.k].tolist()) == {det.k, det.k + 1}
 
 
@@ -41,6 +41,6 @@ def test_nothing_is_rescued_with_rows_off_or_too_few_trees():
     row = np.array([[x, 0.0] for x in (0, 1, 2, 4, 5)], dtype=float)
     det, nodes = _detection(row, np.array([[3.0, 0.0, 1.2]]))
     off = PipelineParams(rows={"enabled": False})
-    assert rescue_replants(det, nodes, np.full(len(nodes), 0.05), contact_top=0.1, params=off)[0] is det
+    assert rescue_replants(det, nodes, np.full(len(nodes), 0.05), contact_top=0.1, params=off) is det
     det2, nodes2 = _detection(row[:2], np.array([[3.0, 0.0, 1.2]]))
-    assert rescue_replants(det2, nodes2, np.full(len(nodes2), 0.05), contact_top=0.1, params=PipelineParams())[0] is det2
+    assert rescue_replants(det2, nodes2, np.full(len(nodes2), 0.05), contact_top=0.1, params=PipelineParams()) is det2
