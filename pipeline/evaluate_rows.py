@@ -38,6 +38,7 @@ def address_scores(
     found_position: np.ndarray,
     *,
     match_distance: float = 1.0,
+    pairs: np.ndarray | None = None,
 ) -> dict:
     """Share of the found trees (matched to a true tree) that carry their true address.
 
@@ -49,6 +50,9 @@ def address_scores(
         Found trunk positions [m]; ``found_row``, ``found_position`` (m,) their addresses.
     match_distance : float
         Largest trunk match distance [m].
+    pairs : (p, 2) int64, optional
+        The trunk matching (true index, found index) when already made
+        (:func:`pipeline.evaluate.trunk_scores`); made here otherwise.
 
     Returns
     -------
@@ -56,7 +60,8 @@ def address_scores(
         ``address_accuracy`` (correct / matched, NaN without a match), ``n_matched``,
         ``n_correct``.
     """
-    pairs = trunk_scores(true_xy, found_xy, match_distance=match_distance)["pairs"]
+    if pairs is None:
+        pairs = trunk_scores(true_xy, found_xy, match_distance=match_distance)["pairs"]
     if not len(pairs):
         return {"address_accuracy": float("nan"), "n_matched": 0, "n_correct": 0}
     t_row = np.asarray(true_row)[pairs[:, 0]].astype(np.int64)
@@ -118,15 +123,15 @@ def score_layout(truth_path: str, result_dir: str, trees: dict, *, match_distanc
         return {}
     _, true_trunks = read_truth(truth_path)
     found = np.c_[np.asarray(trees["trunk_x"], np.float64), np.asarray(trees["trunk_y"], np.float64)]
+    pairs = trunk_scores(true_trunks[:, :2], found, match_distance=match_distance)["pairs"]
     out = address_scores(true_trunks[:, :2], plan["tree_row"], plan["tree_slot"], found, trees["row"], trees["position"],
-                         match_distance=match_distance)
+                         match_distance=match_distance, pairs=pairs)
     gaps_path = os.path.join(result_dir, "gaps.parquet")
     if os.path.exists(gaps_path):
         gaps, _ = read_parquet_columns(gaps_path, ["x", "y"], what="gaps.parquet")
         reach = 0.5 * (plan["spacing"] or 2.0 * match_distance)
         out.update(gap_scores(plan["empty_slots"][:, 2:4], np.c_[gaps["x"], gaps["y"]], match_distance=reach))
     if "young" in trees and plan["tree_young"] is not None:
-        pairs = trunk_scores(true_trunks[:, :2], found, match_distance=match_distance)["pairs"]
         t = np.asarray(plan["tree_young"], bool)[pairs[:, 0]]
         f = np.asarray(trees["young"], bool)[pairs[:, 1]]
         out["young_true"] = int(np.asarray(plan["tree_young"], bool).sum())

@@ -83,16 +83,12 @@ def _doubled(vec: np.ndarray) -> np.ndarray:
     return np.c_[np.cos(ang), np.sin(ang)]
 
 
-def _local_directions(xy: np.ndarray, tree: cKDTree) -> np.ndarray:
+def _local_directions(xy: np.ndarray, near: np.ndarray) -> np.ndarray:
     """(k, 2) unit row direction at each tree: its nearest-neighbour direction,
     averaged (as doubled angles) over its nearest trees, so that in a grid whose rows are
-    only a little wider than the in-row spacing the majority decides."""
-    k = len(xy)
-    _, nn = tree.query(xy, k=2)
-    d2 = _doubled(xy[nn[:, 1]] - xy)
-    m = min(k, _DIRECTION_NEIGHBOURS)
-    _, near = tree.query(xy, k=m)
-    near = near.reshape(k, m)
+    only a little wider than the in-row spacing the majority decides. ``near`` (k, m)
+    are each tree's nearest trees, itself first."""
+    d2 = _doubled(xy[near[:, 1]] - xy)
     mean = d2[near].mean(axis=1)
     ang = 0.5 * np.arctan2(mean[:, 1], mean[:, 0])
     return np.c_[np.cos(ang), np.sin(ang)]
@@ -171,7 +167,7 @@ def _link(xy, direction, u, members, spacing, tol, max_gap_slots):
         mid = mid / np.where(norm > 0, norm, 1.0)[:, None]
         lateral = np.abs(vec[:, 0] * mid[:, 1] - vec[:, 1] * mid[:, 0])
         dist = np.hypot(vec[:, 0], vec[:, 1])
-        ok = (lateral <= tol) & (np.abs(vec @ u) > 0)
+        ok = (lateral <= tol) & (along != 0)
         order = np.lexsort((j[ok], i[ok], dist[ok]))
         for a, b in zip(i[ok][order], j[ok][order]):
             if succ[a] < 0 and pred[b] < 0:  # links go forward along u: no loops
@@ -379,12 +375,13 @@ def find_rows(xy: np.ndarray, height: np.ndarray | None = None, *, params: RowPa
                     azimuth_deg=np.array([np.nan]))
         return RowLayout(row, position, np.zeros(1, bool), rows, [xy.copy()], empty_gaps, np.zeros(1, bool), np.zeros(1, bool))
 
-    tree = cKDTree(local)
-    direction = _local_directions(local, tree)
+    m = min(k, _DIRECTION_NEIGHBOURS)
+    dist, near = cKDTree(local).query(local, k=m)
+    direction = _local_directions(local, near.reshape(k, m))
     section = _sections(local, direction, params.max_section_angle)
-    nn_dist = tree.query(local, k=2)[0][:, 1]
+    nn_dist = dist.reshape(k, m)[:, 1]
 
-    found = []  # per row: (section key, across offset, trees in order along the row, slots, spacing, u)
+    found = []  # per row: (section key, across offset, trees in order along the row, slots, spacing)
     off_row = np.zeros(k, dtype=bool)
     between_rows = np.zeros(k, dtype=bool)
     for sec in np.unique(section):
@@ -398,9 +395,9 @@ def find_rows(xy: np.ndarray, height: np.ndarray | None = None, *, params: RowPa
         for offset, g in rows_here:
             slots, s, keep = _slots(local[g], direction[g], spacing)
             off_row[g[~keep]] = True  # a second tree in an occupied slot
-            found.append((sec_key, offset, g[keep], slots[keep], s, u))
+            found.append((sec_key, offset, g[keep], slots[keep], s))
     for i in np.flatnonzero(off_row):  # off every row line: one row each, after the rows
-        found.append(((np.inf,), float(xy[i, 0]), np.array([i]), np.zeros(1, np.int64), float("nan"), np.array([1.0, 0.0])))
+        found.append(((np.inf,), float(xy[i, 0]), np.array([i]), np.zeros(1, np.int64), float("nan")))
 
     # order: sections west to east (then south to north), rows across
     order = sorted(range(len(found)), key=lambda a: (found[a][0], found[a][1]))
@@ -409,7 +406,7 @@ def find_rows(xy: np.ndarray, height: np.ndarray | None = None, *, params: RowPa
     lines = []
     gaps = {key: [] for key in empty_gaps}
     for number, a in enumerate(order, start=1):
-        _, _, g, slots, s, u = found[a]
+        _, _, g, slots, s = found[a]
         slots = slots - slots[0]
         row[g] = number
         position[g] = slots + 1
