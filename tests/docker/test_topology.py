@@ -129,8 +129,9 @@ def _health(role: str, port: str) -> subprocess.CompletedProcess:
 
 
 def test_job_end_to_end_through_separate_processes(topology, tmp_path):
-    httpx = pytest.importorskip("httpx")
-    distributed = pytest.importorskip("distributed")
+    import distributed
+    import httpx
+
     from pipeline.evaluate import trunk_scores
     from pipeline.simulate import SimulationParams, read_truth, write_simulation
 

@@ -12,7 +12,6 @@ from pathlib import Path
 
 import httpx
 import numpy as np
-import pytest
 
 from service.auth import create_token
 from service.store import Store
@@ -124,8 +123,9 @@ def write_las(path: Path, n: int = 2000, *, seed: int = 0, compressed: bool | No
 
 
 def simulated_block(path: Path, *, rows: int = 2, trees_per_row: int = 4, seed: int = 7, **kwargs) -> Path:
-    """A generated orchard block (skips the test if the simulator has not landed)."""
-    simulate = pytest.importorskip("pipeline.simulate")
+    """A generated orchard block and its truth beside it."""
+    from pipeline import simulate
+
     params = simulate.SimulationParams(rows=rows, trees_per_row=trees_per_row, seed=seed, **kwargs)
     orchard = simulate.simulate_orchard(params)
     simulate.write_simulation(orchard, str(path), str(path.with_suffix(".truth.parquet")))

@@ -13,8 +13,6 @@ pytestmark = pytest.mark.slow
 
 
 def test_demo_runs_the_service_end_to_end(tmp_path):
-    pytest.importorskip("workers.job")
-    pytest.importorskip("pipeline.simulate")
     cmd = [sys.executable, "-m", "service.cli", "demo", "--data-dir", str(tmp_path / "data"),
            "--rows", "1", "--trees-per-row", "3", "--density", "0.3", "--tile-size", "20"]
     proc = subprocess.run(cmd, capture_output=True, text=True, timeout=300, cwd=tmp_path)

@@ -37,14 +37,12 @@ TREE_COLUMNS = ["tree_id", "trunk_x", "trunk_y", "trunk_z", "height_m", "crown_d
 
 @pytest.fixture(scope="module")
 def block_file(tmp_path_factory):
-    pytest.importorskip("workers.job")
     path = tmp_path_factory.mktemp("e2e") / "orchard.laz"
     return simulated_block(path, rows=2, trees_per_row=4, seed=7, density=0.3)
 
 
 @pytest.fixture(scope="module")
 def runner_server(tmp_path_factory):
-    pytest.importorskip("workers.job")
     srv = ServerProcess(tmp_path_factory.mktemp("e2e-server") / "data", ORCHARD_SCHEDULING="false")
     srv.start()
     try:
@@ -161,7 +159,6 @@ def test_job_that_finds_no_trees_fails_with_its_message(runner_server, tmp_path)
 
 @pytest.fixture(scope="module")
 def tiny_block(tmp_path_factory):
-    pytest.importorskip("workers.job")
     path = tmp_path_factory.mktemp("e2e") / "tiny.laz"
     return simulated_block(path, rows=1, trees_per_row=3, seed=7, density=0.3)
 

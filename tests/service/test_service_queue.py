@@ -17,7 +17,7 @@ from service.runner import Runner
 from service.settings import Settings
 from service.store import Store
 
-workers_job = pytest.importorskip("workers.job")
+import workers.job as workers_job
 
 
 @pytest.fixture()

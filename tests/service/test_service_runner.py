@@ -14,8 +14,8 @@ from service.settings import Settings
 from service import store as service_store
 from service.store import Store
 
-workers_job = pytest.importorskip("workers.job")
-workers_store = pytest.importorskip("workers.store")
+import workers.job as workers_job
+import workers.store as workers_store
 
 
 @pytest.fixture()
