@@ -612,7 +612,7 @@ def ensure_report(store: Store, settings: Settings, job: dict) -> Path:
 def create_app(settings: Settings) -> FastAPI:
     """The API app. Starting it (lifespan) re-queues interrupted jobs and starts the runner and the schedule clock."""
     if settings.work_dir and settings.runner:  # the runner's jobs would each fail on it
-        from workers.store import check_work_url
+        from workers.workstore import check_work_url
 
         try:
             check_work_url(settings.work_dir, shared=True)

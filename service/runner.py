@@ -97,7 +97,7 @@ def work_dir_of(settings: Settings, job_id: str) -> str:
 
 def drop_work(settings: Settings, job_id: str) -> None:
     """Delete a job's work store, and its result folder if that is left empty."""
-    from workers.store import WorkStore
+    from workers.workstore import WorkStore
 
     out_dir = job_dir(settings, job_id)
     try:

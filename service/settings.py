@@ -92,7 +92,7 @@ class Settings(BaseSettings):
     def _absolute_work_dir(cls, v: str | None) -> str | None:
         if not v:
             return None
-        from workers.store import absolute_url
+        from workers.workstore import absolute_url
 
         return absolute_url(v)
 

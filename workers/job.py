@@ -50,7 +50,7 @@ from pipeline.params import PipelineParams, RowParams
 from pipeline.process import process_points
 from pipeline.rows import RowLayout, find_rows
 from pipeline.tiling import TileGrid, core_tile, plan_grid, tile_size_for_budget
-from workers.store import WorkStore, absolute_url, default_work_dir, own_entry
+from workers.workstore import WorkStore, absolute_url, default_work_dir, own_entry
 from workers.tiler import INDEX_KEY, check_engine, read_frame, read_tile, tile_block
 
 JOB_KEY = "job.json"

@@ -22,7 +22,7 @@ from pipeline import io as blockio
 from pipeline.errors import ParameterError
 from pipeline.io import BlockInfo
 from pipeline.tiling import TileGrid, buffered_tiles, core_tile
-from workers.store import WorkStore
+from workers.workstore import WorkStore
 
 #: One record per (point, tile): stored integers, source index, core flag.
 TILE_DTYPE = np.dtype([("X", "<i4"), ("Y", "<i4"), ("Z", "<i4"), ("index", "<u8"), ("core", "u1")])

@@ -166,7 +166,7 @@ def _check_same_job(args: argparse.Namespace) -> None:
     were ignored without a word)."""
     from pipeline.params import PipelineParams
     from workers.job import JOB_KEY
-    from workers.store import WorkStore
+    from workers.workstore import WorkStore
 
     work, input_path = args.work, args.input
     store = WorkStore(work)
@@ -249,7 +249,7 @@ def run(args: argparse.Namespace) -> int:
     if args.work and not tiled:  # it went unused, without a word
         raise ParameterError("--work needs --tile-size: a block processed in one piece has no tiles to keep")
     if args.work:
-        from workers.store import check_work_url
+        from workers.workstore import check_work_url
 
         try:
             check_work_url(args.work, shared=tiled)

@@ -260,7 +260,7 @@ def test_a_job_cancelled_just_before_a_shutdown_loses_its_tiles_at_the_next_star
     # start cancelled it in the store, and its tiles stayed on disk for good
     from service.runner import work_dir_of
     from service.settings import Settings
-    from workers.store import WorkStore
+    from workers.workstore import WorkStore
 
     data = tmp_path / "data"
     store = Store(data / "orchard.sqlite")

@@ -15,7 +15,7 @@ from service import store as service_store
 from service.store import Store
 
 import workers.job as workers_job
-import workers.store as workers_store
+import workers.workstore as workers_workstore
 
 
 @pytest.fixture()
@@ -89,7 +89,7 @@ def test_failures_keep_a_one_line_message(env, monkeypatch, exc, expected):
     monkeypatch.setattr(workers_job, "run_job", fake)
     job = _queue(store, tenant, block)
     work = settings.jobs_dir / job["id"] / "_work"  # what a tiled job leaves when it stops
-    workers_store.WorkStore(str(work)).claim()
+    workers_workstore.WorkStore(str(work)).claim()
     (work / "tiles").mkdir(parents=True)
     (work / "job.json").write_text("{}")
     failed = Runner(store, settings, client_factory=lambda: None).run_job(job)

@@ -17,7 +17,7 @@ import pyarrow.parquet as pq
 import pytest
 
 from workers.job import JobSpec, run_job
-from workers.store import WorkStore
+from workers.workstore import WorkStore
 
 pytestmark = pytest.mark.slow
 TIMEOUT = 240

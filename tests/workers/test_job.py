@@ -27,7 +27,7 @@ from workers.job import (
     run_job,
     run_tile,
 )
-from workers.store import WorkStore
+from workers.workstore import WorkStore
 from workers.tiler import FRAME_KEY, INDEX_KEY
 
 
@@ -448,7 +448,7 @@ def test_a_tile_whose_worker_does_not_see_the_work_store_fails_the_job_clearly(t
     # still sees the job there, a worker with another view of the store; the second was
     # recorded as "cancelled on request"
     from workers.job import JOB_KEY, JobCancelled, TileFailed, _kept
-    from workers.store import WorkStore
+    from workers.workstore import WorkStore
 
     store = WorkStore(str(tmp_path / "work"))
     store.claim()

@@ -12,7 +12,7 @@ from pipeline import io as blockio
 from pipeline.errors import ParameterError
 from pipeline.io import LasBlockWriter, read_info, read_points
 from pipeline.tiling import plan_grid
-from workers.store import WorkStore
+from workers.workstore import WorkStore
 from workers.tiler import INDEX_KEY, pdal_available, read_tile, tile_block
 
 

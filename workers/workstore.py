@@ -50,7 +50,7 @@ def check_work_url(url: str, *, shared: bool) -> None:
     """ParameterError unless this process can use the work store at ``url``; ``shared``:
     dask worker processes must reach it too (``memory://`` lives in one process only).
     An fsspec URL whose file-system package is not installed (``s3://`` without s3fs)
-    failed every job with an ImportError; it is refused up front instead."""
+    is refused here, before any job starts."""
     url = os.fspath(url)
     if shared and url.startswith("memory://"):
         raise ParameterError(
