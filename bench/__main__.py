@@ -77,7 +77,7 @@ def main(argv: list[str] | None = None) -> int:
 
     import threading
 
-    from bench import machine, report
+    from bench import machine, results_page
 
     t_start = time.perf_counter()
     loads: list[float] = []
@@ -156,7 +156,7 @@ def main(argv: list[str] | None = None) -> int:
     if "peers" not in skip:
         from bench import peers
         from bench.blocks import accuracy_params, make_block
-        from bench.runner import one_core
+        from bench.isolation import one_core
 
         log("peers: dendromatics")
         status = peers.prepare(work, args.peers_venv, log=log)
@@ -194,20 +194,20 @@ def main(argv: list[str] | None = None) -> int:
 
 def write_outputs(data: dict, out: Path, *, page: Path | None, log) -> None:
     """results.md, the PNG plots and (unless ``page`` is None) its section of ``page``, from one run's data."""
-    from bench import report
+    from bench import results_page
 
     out.mkdir(parents=True, exist_ok=True)
     if data.get("accuracy"):
-        report.plot_accuracy(data["accuracy"]["blocks"], out / "accuracy.png")
+        results_page.plot_accuracy(data["accuracy"]["blocks"], out / "accuracy.png")
     if data.get("stand"):
-        report.plot_stages(data["stand"], out / "stages.png")
+        results_page.plot_stages(data["stand"], out / "stages.png")
     if data.get("scaling"):
-        report.plot_scaling(data["scaling"], out / "scaling.png")
-    text = report.render(data)
+        results_page.plot_scaling(data["scaling"], out / "scaling.png")
+    text = results_page.render(data)
     (out / "results.md").write_text(text)
     log(f"wrote {out / 'results.md'}")
     if page is not None:
-        if report.splice_section(page, text, image_prefix=_relative_prefix(page.parent, out)):
+        if results_page.splice_section(page, text, image_prefix=_relative_prefix(page.parent, out)):
             log(f"updated the section of {page} between the bench markers")
         else:
             log(f"{page} has no <!-- bench:start --> / <!-- bench:end --> markers; left it alone")

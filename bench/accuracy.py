@@ -1,10 +1,10 @@
 """Accuracy over noise and tree spacing: ours (the product path) and the baselines.
 
 Ours is scored the way a user would get it: ``run_job`` writes ``trees.parquet`` and
-``points.parquet`` and ``pipeline.evaluate.evaluate_result`` scores them against the
-truth. The baselines (``pipeline.baselines``: closest-trunk segmentation, the paper as
+``points.parquet`` and ``pipeline.evaluation.result.evaluate_result`` scores them against the
+truth. The baselines (``bench.baselines``: closest-trunk segmentation, the paper as
 published) return labels in memory and are scored by the same
-``pipeline.evaluate.score_labels`` on the same points. Blocks are scored in parallel
+``pipeline.evaluation.scores.score_labels`` on the same points. Blocks are scored in parallel
 processes (one per usable core).
 """
 
@@ -26,10 +26,12 @@ def score_block(work: str, noise: float, spacing: float, seed: int, baselines: b
     """All methods on one generated block; returns {method: metrics} plus block facts."""
     import numpy as np
 
-    from pipeline import evaluate, io as blockio
+    from pipeline import io as blockio
     from pipeline.errors import NoTreesError
+    from pipeline.evaluation.result import evaluate_result
+    from pipeline.evaluation.scores import score_labels
     from pipeline.params import PipelineParams
-    from pipeline.simulate import read_truth
+    from pipeline.synthetic.truth import read_truth
     from workers.job import JobSpec, run_job
 
     work_dir = Path(work)
@@ -41,12 +43,12 @@ def score_block(work: str, noise: float, spacing: float, seed: int, baselines: b
     t = time.perf_counter()
     try:
         run_job(JobSpec(input_path=block.las, out_dir=str(result_dir), params=params))
-        out["methods"]["ours"] = evaluate.evaluate_result(block.truth, str(result_dir))
+        out["methods"]["ours"] = evaluate_result(block.truth, str(result_dir))
     except NoTreesError as exc:
         # "no trees found" is an answer, scored as such: no trunks, every point tree 0.
         truth, true_trunks = read_truth(block.truth)
         n = len(truth["tree_id"])
-        out["methods"]["ours"] = evaluate.score_labels(
+        out["methods"]["ours"] = score_labels(
             true_tree_id=truth["tree_id"], true_is_wood=truth["is_wood"], true_trunks=true_trunks,
             pred_tree_id=np.zeros(n, np.int64), pred_is_wood=np.zeros(n, bool), found_trunks=np.zeros((0, 2)),
         )
@@ -58,7 +60,7 @@ def score_block(work: str, noise: float, spacing: float, seed: int, baselines: b
     if not baselines:
         return out
     try:
-        from pipeline import baselines as bl
+        from bench import baselines as bl
     except ImportError as exc:
         out["baselines_missing"] = str(exc)
         return out
@@ -68,13 +70,13 @@ def score_block(work: str, noise: float, spacing: float, seed: int, baselines: b
     for name in METHODS[1:]:
         fn = getattr(bl, name, None)
         if fn is None:
-            out["methods"][name] = {"error": f"pipeline.baselines.{name} not found"}
+            out["methods"][name] = {"error": f"bench.baselines.{name} not found"}
             continue
         t = time.perf_counter()
         try:
             res = fn(xyz, params=params)
             found = np.asarray(res.trunks, dtype=np.float64).reshape(-1, 3) + origin
-            out["methods"][name] = evaluate.score_labels(
+            out["methods"][name] = score_labels(
                 true_tree_id=truth["tree_id"], true_is_wood=truth["is_wood"], true_trunks=true_trunks,
                 pred_tree_id=res.tree_id, pred_is_wood=res.is_wood, found_trunks=found,
             )

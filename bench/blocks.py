@@ -12,7 +12,9 @@ import json
 from dataclasses import dataclass
 from pathlib import Path
 
-from pipeline.simulate import SimulationParams, iter_simulation, write_simulation
+from pipeline.synthetic.simparams import SimulationParams
+from pipeline.synthetic.simulate import iter_simulation
+from pipeline.synthetic.truth import write_simulation
 
 
 @dataclass(frozen=True)

@@ -47,9 +47,9 @@ from dataclasses import dataclass
 from pathlib import Path
 
 from bench.blocks import count_points, make_block
+from bench.isolation import SINGLE_THREAD_ENV, measure
 from bench.memory import TreeSampler
-from bench.runner import SINGLE_THREAD_ENV, measure
-from pipeline.simulate import SimulationParams
+from pipeline.synthetic.simparams import SimulationParams
 
 PULSE_RATE = 300_000.0
 """Pulses per second of the assumed scanner [1/s]."""

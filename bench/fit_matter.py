@@ -4,9 +4,9 @@
 
 Generates orchards with seeds 1000, 1001, ... (never used for evaluation, which uses
 seeds below 1000), runs the pipeline to the node level, and fits a logistic model of
-node wood fraction on :data:`pipeline.matter.FEATURES` (L2-regularised, points as
+node wood fraction on :data:`pipeline.woodleaf.FEATURES` (L2-regularised, points as
 weights). Prints the weights and the threshold that maximises point-level wood F1 on
-the training blocks, to paste into ``pipeline/matter.py`` / ``pipeline/params.py``.
+the training blocks, to paste into ``pipeline/woodleaf.py`` / ``pipeline/params.py``.
 """
 
 from __future__ import annotations
@@ -16,10 +16,11 @@ import argparse
 import numpy as np
 from scipy.optimize import minimize
 
-from pipeline import matter
+from pipeline import woodleaf
 from pipeline.params import PipelineParams
 from pipeline.process import analyse_nodes
-from pipeline.simulate import SimulationParams, simulate_orchard
+from pipeline.synthetic.simparams import SimulationParams
+from pipeline.synthetic.simulate import simulate_orchard
 
 TRAINING = [
     dict(rows=2, trees_per_row=4),
@@ -38,8 +39,8 @@ def node_table(seed: int, sim: dict, params: PipelineParams):
     tree = (o.tree_id[a.veg_idx] > 0).astype(float)
     n_wood = np.bincount(pv, weights=wood, minlength=a.vox.n)
     n_tree = np.bincount(pv, weights=tree, minlength=a.vox.n)
-    p = matter.path_counts(a.segmentation.paths.pred)
-    x = matter.wood_features(
+    p = woodleaf.path_counts(a.segmentation.paths.pred)
+    x = woodleaf.wood_features(
         p, a.segmentation.node_tree, a.trunks.xy, a.vox.centroids, a.node_height, a.vox.counts, a.features, a.adjacency
     )
     keep = (a.segmentation.node_tree > 0) & (n_tree > 0)
@@ -85,8 +86,8 @@ def main(argv: list[str] | None = None) -> int:
     nw = np.concatenate([r[1] for r in rows])
     na = np.concatenate([r[2] for r in rows])
     beta = fit(x, nw, na)
-    thr, f1 = best_threshold(matter.combined_score(x, weights=beta), nw, na)
-    print("features :", ", ".join(matter.FEATURES))
+    thr, f1 = best_threshold(woodleaf.combined_score(x, weights=beta), nw, na)
+    print("features :", ", ".join(woodleaf.FEATURES))
     print("weights  :", np.array2string(beta, precision=3, separator=", "))
     print(f"threshold: {thr:.2f}  (training point-level wood F1 {f1:.3f}, {len(x)} nodes)")
     return 0

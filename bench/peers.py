@@ -3,7 +3,7 @@
 dendromatics pins older laspy and scipy than this project uses, so it is installed
 in its own virtualenv (``--peers-venv``, by default under ``~/.cache/orchard-bench``)
 and run there as a subprocess on the block's points; its labels are scored here with
-the same ``pipeline.evaluate.score_labels`` as our method. Every step that fails is
+the same ``pipeline.evaluation.scores.score_labels`` as our method. Every step that fails is
 recorded with the reason, and the report says exactly why the peer did not run.
 """
 
@@ -16,7 +16,7 @@ import sys
 import time
 from pathlib import Path
 
-from bench.runner import one_core, pinned_to
+from bench.isolation import one_core, pinned_to
 
 PEER = "dendromatics"
 SCRIPT = Path(__file__).with_name("peer_dendromatics.py")
@@ -83,8 +83,9 @@ def run_on_block(status: dict, block, work: Path, *, config_name: str, timeout: 
     """Run the peer on ``block`` with a named configuration; returns metrics or an error."""
     import numpy as np
 
-    from pipeline import evaluate, io as blockio
-    from pipeline.simulate import read_truth
+    from pipeline import io as blockio
+    from pipeline.evaluation.scores import score_labels
+    from pipeline.synthetic.truth import read_truth
 
     cfg = FIN_DEFAULTS if config_name == "3DFin defaults" else FIN_ORCHARD
     folder = work / "peers" / Path(block.las).stem
@@ -115,7 +116,7 @@ def run_on_block(status: dict, block, work: Path, *, config_name: str, timeout: 
     truth, true_trunks = read_truth(block.truth)
     stems = res["stems"]
     found = stems[:, 1:3] + np.asarray(info.origin[:2]) if len(stems) else np.zeros((0, 2))
-    metrics = evaluate.score_labels(
+    metrics = score_labels(
         true_tree_id=truth["tree_id"], true_is_wood=truth["is_wood"], true_trunks=true_trunks,
         pred_tree_id=res["tree_id"], pred_is_wood=np.zeros(len(res["tree_id"]), bool), found_trunks=found,
     )

@@ -16,7 +16,7 @@ row with 3.5 m between rows and hedge at 1.35 m x 4 m; ``mobile``, the hedgerow 
 :mod:`bench.density` at a mobile scan's density) and each evaluation seed 0..N-1:
 
 - **ours**: the block's LAZ through :func:`workers.job.run_job` (LAZ in, Parquet out),
-  scored by :func:`pipeline.evaluate.evaluate_result`;
+  scored by :func:`pipeline.evaluation.result.evaluate_result`;
 - **rayextract trees**, defaults: the same points, in the same order, written as a ray
   cloud (``cloud.ply``: float x, y, z relative to the block's local origin, a time per
   point, and a 1 m vertical ray per point in the normal field, as
@@ -31,12 +31,12 @@ Then the same for real trees (``--adtree``): the row of four AdTree scans of
 given its flat ground plane as the mesh for rayextract (read from ``../shared/data/real/``;
 left out with a note when that folder is missing).
 
-Both are scored by :func:`pipeline.evaluate.score_labels` on the same truth: trunk F1
+Both are scored by :func:`pipeline.evaluation.scores.score_labels` on the same truth: trunk F1
 with one-to-one matching within half the in-row spacing, at most 1 m (as
 :mod:`bench.hedgerows`), v-measure on true tree points. ``rayextract`` has no
 per-point wood flag, so wood F1 is left out. Seconds are wall-clock for the whole run of
 each (reading, processing, writing) on one core: ours in a fresh process
-(:func:`bench.runner.measure`) pinned to one core (the LAZ decoder and the Parquet
+(:func:`bench.isolation.measure`) pinned to one core (the LAZ decoder and the Parquet
 writer would otherwise use every core), after one untimed warm-up run (as a dask worker
 runs it); rayextract as a fresh process pinned to the same core, with
 ``OMP_NUM_THREADS=1``; the median of ``--repeats`` timed runs of each (default 3). Each
@@ -64,12 +64,16 @@ import numpy as np
 
 from bench.blocks import make_block
 from bench.hedgerows import match_distance
+from bench.isolation import SINGLE_THREAD_ENV, measure, one_core, pinned_to
 from bench.oracles import SETTINGS
 from bench.real_data import REAL, adtree_row
-from bench.runner import SINGLE_THREAD_ENV, measure, one_core, pinned_to
-from pipeline import evaluate
 from pipeline import io as blockio
-from pipeline.simulate import GROUND, LEAF, Orchard, SimulationParams, ground_height, read_truth, write_simulation
+from pipeline.evaluation.result import evaluate_result
+from pipeline.evaluation.scores import score_labels
+from pipeline.synthetic.orchard import GROUND, LEAF, Orchard
+from pipeline.synthetic.simparams import SimulationParams
+from pipeline.synthetic.terrain import ground_height
+from pipeline.synthetic.truth import read_truth, write_simulation
 
 MESH_CELL = 0.25
 """Edge of the ground mesh's grid cells [m]."""
@@ -214,7 +218,7 @@ def run_rayextract(binary: str, folder: Path, xyz: np.ndarray, ground: Callable[
 
 def _run_ours(las: str, result_dir: Path, repeats: int = 1) -> tuple[float, int]:
     """Our job on ``las`` (LAZ in, Parquet out) in a fresh process on one core
-    (:func:`bench.runner.measure`): one untimed warm-up run, as in the stand benchmark,
+    (:func:`bench.isolation.measure`): one untimed warm-up run, as in the stand benchmark,
     then ``repeats`` timed runs; returns (their median wall time [s], the process's peak
     RSS [bytes]). The last run's outputs are left in ``result_dir / "run{repeats-1}"``."""
     shutil.rmtree(result_dir, ignore_errors=True)
@@ -226,14 +230,14 @@ def _run_ours(las: str, result_dir: Path, repeats: int = 1) -> tuple[float, int]
 def compare_scene(binary: str, work: Path, las: str, truth_path: str,
                   ground: Callable[[np.ndarray, np.ndarray], np.ndarray], repeats: int = 1,
                   match: float = 1.0) -> dict:
-    """Ours and rayextract on one block with its truth file (``pipeline.simulate``'s
+    """Ours and rayextract on one block with its truth file (``pipeline.synthetic.truth``'s
     format): {method: scores, seconds and peak RSS [bytes]}. ``ground(x, y) -> z`` is the
     true ground in the block's absolute coordinates [m]; trunks match within ``match`` [m]."""
     truth, true_trunks = read_truth(truth_path)
     name = Path(las).stem
     result_dir = work / "rayextract-results" / name
     seconds, rss = _run_ours(las, result_dir, repeats)
-    ours = evaluate.evaluate_result(truth_path, str(result_dir / f"run{max(1, repeats) - 1}"), match_distance=match)
+    ours = evaluate_result(truth_path, str(result_dir / f"run{max(1, repeats) - 1}"), match_distance=match)
     methods = {"ours": dict(ours, seconds=seconds, found=ours["n_found_trees"], peak_rss=rss)}
 
     xyz, info = blockio.read_points(las)
@@ -241,7 +245,7 @@ def compare_scene(binary: str, work: Path, las: str, truth_path: str,
     labels, bases, seconds, rss = run_rayextract(binary, work / "rayextract-runs" / name, xyz,
                                                  lambda x, y: ground(x + origin[0], y + origin[1]) - origin[2],
                                                  repeats=repeats)
-    scores = evaluate.score_labels(
+    scores = score_labels(
         true_tree_id=truth["tree_id"], true_is_wood=truth["is_wood"], true_trunks=true_trunks,
         pred_tree_id=labels, pred_is_wood=np.zeros(len(labels), bool), found_trunks=bases + origin,
         match_distance=match,

@@ -23,7 +23,7 @@ import numpy as np
 from scipy.io import loadmat
 
 from pipeline import io
-from pipeline.evaluate import score_labels, wood_scores
+from pipeline.evaluation.scores import score_labels, wood_scores
 from pipeline.params import PipelineParams
 from pipeline.process import process_points
 

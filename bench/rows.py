@@ -6,7 +6,7 @@ For each planting system it generates blocks (evaluation seeds ``first-seed`` ..
 ``first-seed + seeds - 1``; tune on other seeds) with 10 % of the planting slots empty
 and 5 % replanted, writes each as LAZ with its truth, runs the whole job as
 ``orchard process`` does (``workers.job.run_job``, untiled) and scores it with
-``orchard evaluate`` (``pipeline.evaluate.evaluate_result``). Prints a Markdown table:
+``orchard evaluate`` (``pipeline.evaluation.result.evaluate_result``). Prints a Markdown table:
 pooled trunk precision, recall and F1, mean v-measure, the share of found trees at their
 true address (up to the numbering rule, docs/rows.md), empty-slot precision and recall,
 and replants found and flagged young.
@@ -20,8 +20,9 @@ from pathlib import Path
 
 import numpy as np
 
-from pipeline.evaluate import evaluate_result
-from pipeline.simulate import SimulationParams, write_simulation
+from pipeline.evaluation.result import evaluate_result
+from pipeline.synthetic.simparams import SimulationParams
+from pipeline.synthetic.truth import write_simulation
 from workers.job import JobSpec, run_job
 
 #: planting systems: in-row spacing and row spacing [m] of each, and the tree form

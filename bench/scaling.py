@@ -13,7 +13,7 @@ from pathlib import Path
 import numpy as np
 
 from bench.blocks import make_block, orchard_params
-from bench.runner import measure
+from bench.isolation import measure
 
 
 def fit_exponent(points, seconds) -> float:

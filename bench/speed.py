@@ -6,7 +6,7 @@ import statistics
 from pathlib import Path
 
 from bench.blocks import make_block, stand_density, stand_params
-from bench.runner import measure
+from bench.isolation import measure
 
 #: the paper's average runtime for a 3-tree stand (matter classification, "49s against 1752s")
 PAPER_STAND_SECONDS = 49.0
@@ -14,7 +14,7 @@ PAPER_STAND_SECONDS = 49.0
 
 def run_stand(work: Path, *, min_points: int, repeats: int, log=print) -> dict:
     """LAZ in → Parquet out on a generated 3-tree stand of >= ``min_points`` points."""
-    from pipeline import evaluate
+    from pipeline.evaluation.result import evaluate_result
 
     density = stand_density(min_points)
     block = make_block(work, "stand", stand_params(density))
@@ -25,7 +25,7 @@ def run_stand(work: Path, *, min_points: int, repeats: int, log=print) -> dict:
     walls = [run["wall_s"] for run in r["runs"]]
     median = statistics.median(walls)
     best_run = min(r["runs"], key=lambda run: abs(run["wall_s"] - median))
-    accuracy = evaluate.evaluate_result(block.truth, str(out / f"run{repeats - 1}"))
+    accuracy = evaluate_result(block.truth, str(out / f"run{repeats - 1}"))
     decode = measure({"kind": "decode", "input": block.las, "repeats": 3})
     return {
         "block": block.__dict__,

@@ -21,10 +21,12 @@ import numpy as np
 
 from bench import shoots
 from bench.oracles import SETTINGS
-from pipeline.evaluate import score_labels
+from pipeline.evaluation.scores import score_labels
 from pipeline.params import PipelineParams
 from pipeline.process import process_points
-from pipeline.simulate import POST, SimulationParams, simulate_orchard
+from pipeline.synthetic.orchard import POST
+from pipeline.synthetic.simparams import SimulationParams
+from pipeline.synthetic.simulate import simulate_orchard
 
 #: the simulator's trellis setting of the blocks with a trellis
 TRELLIS = 2

@@ -142,7 +142,7 @@ def _from_spacing(model: _Model, group: str, spacing: float | None) -> dict[str,
 #: the wood threshold the paper selected on its real data
 PAPER_THRESHOLD = 0.216
 #: the combined score's threshold that maximises wood F1 on the training orchards
-#: (printed by ``python -m bench.fit_matter`` with the weights in pipeline.matter)
+#: (printed by ``python -m bench.fit_matter`` with the weights in pipeline.woodleaf)
 COMBINED_THRESHOLD = 0.34
 
 

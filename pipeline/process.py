@@ -12,7 +12,7 @@ import numpy as np
 from scipy import sparse
 from scipy.spatial import cKDTree
 
-from pipeline import matter
+from pipeline import woodleaf
 from pipeline.enrichment import ShapeFeatures, neighbourhood_matrix, shape_features
 from pipeline.graph import (
     bridge_floating,
@@ -243,7 +243,7 @@ def analyse_nodes(
         min_nodes=params.segment.min_fragment,
     )
     # drainage to the ground prefers woody paths: leafy (scattered) nodes cost more
-    leafiness = np.clip(matter.smooth(feats.scattering, adjacency) / LEAFY_SCATTERING, 0.0, 1.0)
+    leafiness = np.clip(woodleaf.smooth(feats.scattering, adjacency) / LEAFY_SCATTERING, 0.0, 1.0)
     drainage = reweight(graph, 1.0 + params.trunks.leaf_cost * leafiness)
     planar = (feats.planarity >= PLANAR_MIN) & (feats.scattering <= PLANAR_MAX_SCATTER)
     # flat patches: connected planar nodes, without the curved ones (bark of thick trunks)
@@ -341,10 +341,10 @@ def node_wood_score(a: NodeAnalysis, *, params: PipelineParams) -> np.ndarray:
     node_tree = a.segmentation.node_tree
     if not (node_tree > 0).any():  # no trees, no wood
         return np.zeros(node_tree.shape[0])
-    p = matter.path_counts(a.segmentation.paths.pred)
+    p = woodleaf.path_counts(a.segmentation.paths.pred)
     if params.matter.method == "paper":
-        return matter.smooth(matter.log_score(p), a.adjacency)
-    x = matter.wood_features(
+        return woodleaf.smooth(woodleaf.log_score(p), a.adjacency)
+    x = woodleaf.wood_features(
         p,
         a.segmentation.node_tree,
         a.trunks.xy,
@@ -354,7 +354,7 @@ def node_wood_score(a: NodeAnalysis, *, params: PipelineParams) -> np.ndarray:
         a.features,
         a.adjacency,
     )
-    return matter.combined_score(x)
+    return woodleaf.combined_score(x)
 
 
 def process_points(
@@ -404,7 +404,7 @@ def block_result(xyz: np.ndarray, a: NodeAnalysis, *, params: PipelineParams) ->
     """
     node_tree = a.segmentation.node_tree
     score = np.where(node_tree > 0, node_wood_score(a, params=params), 0.0)
-    node_wood = matter.classify(score, node_tree, params=params.matter)
+    node_wood = woodleaf.classify(score, node_tree, params=params.matter)
 
     n = xyz.shape[0]
     pv = a.vox.point_voxel

@@ -112,7 +112,9 @@ def run(args: argparse.Namespace) -> int:
     import uvicorn
 
     from pipeline.errors import OrchardError
-    from pipeline.simulate import SimulationParams, simulate_orchard, write_simulation
+    from pipeline.synthetic.simparams import SimulationParams
+    from pipeline.synthetic.simulate import simulate_orchard
+    from pipeline.synthetic.truth import write_simulation
     from service.app import create_app
     from service.auth import create_token
     from service.settings import build_settings

@@ -10,11 +10,13 @@ the test.
 import numpy as np
 import pytest
 
-from pipeline.baselines import closest_trunk
-from pipeline.evaluate import score_labels
+from bench.baselines import closest_trunk
+from pipeline.evaluation.scores import score_labels
 from pipeline.params import PipelineParams
 from pipeline.process import process_points
-from pipeline.simulate import KIND, SimulationParams, simulate_orchard
+from pipeline.synthetic.orchard import KIND
+from pipeline.synthetic.simparams import SimulationParams
+from pipeline.synthetic.simulate import simulate_orchard
 
 PAPER_SETTING = dict(rows=2, trees_per_row=4, noise=0.02, spacing=5.0, row_spacing=6.0)
 HIGH_DENSITY = dict(rows=2, trees_per_row=5, spacing=2.5, row_spacing=4.5, low_foliage=True)
@@ -205,7 +207,7 @@ def test_sparse_scan_crowns_broken_off_their_trunks_are_hung_back():
 
 
 def test_baselines_run_and_ours_beats_the_paper_steps():
-    from pipeline.baselines import paper_as_published, paper_with_our_trunks
+    from bench.baselines import paper_as_published, paper_with_our_trunks
 
     sim = dict(rows=1, trees_per_row=3, density=0.3)
     ours = _score(sim, 2)

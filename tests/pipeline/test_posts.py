@@ -5,11 +5,13 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from pipeline.evaluate import score_labels
+from pipeline.evaluation.scores import score_labels
 from pipeline.params import PipelineParams
 from pipeline.posts import Posts, find_posts, on_posts
 from pipeline.process import process_points
-from pipeline.simulate import POST, SimulationParams, simulate_orchard
+from pipeline.synthetic.orchard import POST
+from pipeline.synthetic.simparams import SimulationParams
+from pipeline.synthetic.simulate import simulate_orchard
 
 RNG = np.random.default_rng(3)
 

@@ -6,7 +6,7 @@ import pytest
 
 from bench.real_data import REAL, adtree_row
 from pipeline import io
-from pipeline.evaluate import score_labels
+from pipeline.evaluation.scores import score_labels
 from pipeline.params import PipelineParams
 from pipeline.process import process_points
 

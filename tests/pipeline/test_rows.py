@@ -7,7 +7,7 @@ import pytest
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
-from pipeline.evaluate_rows import address_scores, gap_scores
+from pipeline.evaluation.addresses import address_scores, gap_scores
 from pipeline.rows import RowParams, find_rows
 
 

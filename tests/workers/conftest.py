@@ -14,7 +14,8 @@ import numpy as np
 import pytest
 
 from pipeline.io import LasBlockWriter
-from pipeline.simulate import SimulationParams, write_simulation
+from pipeline.synthetic.simparams import SimulationParams
+from pipeline.synthetic.truth import write_simulation
 
 
 def _simulate(path: Path, **kw) -> Path:

@@ -25,7 +25,8 @@ import psutil
 import pytest
 from distributed import Client, LocalCluster
 
-from pipeline.simulate import SimulationParams, write_simulation
+from pipeline.synthetic.simparams import SimulationParams
+from pipeline.synthetic.truth import write_simulation
 from service.cli import main as orchard
 from tests.service.service_fixtures import ServerProcess, make_token, wait_for_job
 from workers import cluster as cluster_module

@@ -7,8 +7,9 @@ import numpy as np
 import pyarrow.parquet as pq
 import pytest
 
-from pipeline.evaluate import evaluate_result
-from pipeline.simulate import SimulationParams, write_simulation
+from pipeline.evaluation.result import evaluate_result
+from pipeline.synthetic.simparams import SimulationParams
+from pipeline.synthetic.truth import write_simulation
 from workers.job import JobSpec, run_job
 
 

@@ -6,7 +6,7 @@ import os
 import subprocess
 import sys
 
-from bench.runner import one_core, pinned_to
+from bench.isolation import one_core, pinned_to
 
 
 def test_one_core_pins_the_body_and_restores_the_affinity():
@@ -35,7 +35,7 @@ def test_pinned_to_pins_a_child_process():
 
 
 def test_pin_one_core_in_a_child_returns_its_core():
-    code = "from bench.runner import pin_one_core; import os; c = pin_one_core(); print(c, sorted(os.sched_getaffinity(0)))"
+    code = "from bench.isolation import pin_one_core; import os; c = pin_one_core(); print(c, sorted(os.sched_getaffinity(0)))"
     root = os.path.dirname(os.path.dirname(os.path.dirname(os.path.abspath(__file__))))
     out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True, cwd=root)
     core = min(os.sched_getaffinity(0))

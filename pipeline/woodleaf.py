@@ -5,11 +5,10 @@ node (from the trunk to every node) and p_max its maximum over the graph, thresh
 at a fixed value. Path counts are subtree sizes of the segmentation's shortest-path
 forest, so they cost one linear sweep instead of one search per target.
 
-Our method ("combined") adds what the measurements on generated orchards showed to
-help: the score is normalised per tree rather than over the whole block, averaged
-over a neighbourhood (a trunk wider than a voxel carries its paths down a narrow
-"highway" and the smoothing spreads it over the whole stem), and combined with local
-shape (branches are linear, foliage is scattered) in a fixed logistic model.
+Our method ("combined") normalises the score per tree rather than over the whole block,
+averages it over a neighbourhood (a trunk wider than a voxel carries its paths down a
+narrow "highway" and the smoothing spreads it over the whole stem), and combines it with
+local shape (branches are linear, foliage is scattered) in a fixed logistic model.
 """
 
 from __future__ import annotations
@@ -36,10 +35,10 @@ FEATURES = (
     "radial_frac",
 )
 
-# Logistic model of the "combined" score, one weight per FEATURES column. Fitted by
-# `python -m bench.fit_matter --seeds 4` on generated orchards with seeds 1000+ (never on
-# the blocks used for evaluation; training wood F1 0.758); refit and paste when the
-# features change. The matching threshold is params.COMBINED_THRESHOLD.
+# Logistic model of the "combined" score, one weight per FEATURES column, fitted by
+# `python -m bench.fit_matter --seeds 4` on generated orchards never used for evaluation
+# (seeds 1000+); refit and paste when the features change. The matching threshold is
+# params.COMBINED_THRESHOLD.
 COMBINED_WEIGHTS = np.array([-4.523, 1.337, 3.206, 5.642, 1.075, -1.547, 0.281, 0.045, -0.813, -2.692])
 
 

@@ -23,19 +23,19 @@ from dataclasses import dataclass, field
 import numpy as np
 
 
-def _unit(v: np.ndarray) -> np.ndarray:
+def unit(v: np.ndarray) -> np.ndarray:
     n = np.linalg.norm(v, axis=-1, keepdims=True)
     return v / np.maximum(n, 1e-12)
 
 
-def _perpendicular(u: np.ndarray, rng: np.random.Generator) -> np.ndarray:
+def perpendicular(u: np.ndarray, rng: np.random.Generator) -> np.ndarray:
     """Random unit vectors perpendicular to the unit vectors ``u`` (m, 3)."""
     r = rng.normal(size=u.shape)
     r -= np.sum(r * u, axis=1, keepdims=True) * u
     bad = np.linalg.norm(r, axis=1) < 1e-6
     if bad.any():
         r[bad] = np.cross(u[bad], [1.0, 0.0, 0.0])
-    return _unit(r)
+    return unit(r)
 
 
 
@@ -72,7 +72,7 @@ class _Envelope:
 
 
 @dataclass
-class _Tree:
+class Tree:
     """Surface elements of one tree (local frame)."""
 
     cyl_a: np.ndarray  # (m, 3) segment start
@@ -112,7 +112,7 @@ def _polylines(rng, p0, d, length, r0, r1, *, n_sub=3, bend=0.12, lift=0.0):
     cur = d.copy()
     step = (length / n_sub)[:, None]
     for k in range(n_sub):
-        cur = _unit(cur + bend * rng.normal(size=(m, 3)) + np.array([0.0, 0.0, lift]))
+        cur = unit(cur + bend * rng.normal(size=(m, 3)) + np.array([0.0, 0.0, lift]))
         nodes[:, k + 1] = nodes[:, k] + step * cur
     frac = np.linspace(0.0, 1.0, n_sub + 1)
     radii = r0[:, None] + (r1 - r0)[:, None] * frac[None, :]
@@ -138,7 +138,7 @@ def _points_on(nodes, radii, owner, t):
     b = nodes[owner, k + 1]
     pos = a + f * (b - a)
     rad = radii[owner, k] + f[:, 0] * (radii[owner, k + 1] - radii[owner, k])
-    return pos, _unit(b - a), rad
+    return pos, unit(b - a), rad
 
 
 def _children(rng, env, axis_xy, nodes, radii, *, n_lateral, t_min, angle, reach, radius_factor,
@@ -151,19 +151,19 @@ def _children(rng, env, axis_xy, nodes, radii, *, n_lateral, t_min, angle, reach
     n = len(owner)
     apical = np.arange(n) < m
     alpha = np.where(apical, np.deg2rad(rng.uniform(0, 15, n)), np.deg2rad(rng.uniform(*angle, n)))
-    w = _perpendicular(pdir, rng)
+    w = perpendicular(pdir, rng)
     d = np.cos(alpha)[:, None] * pdir + np.sin(alpha)[:, None] * w
     out = np.zeros((n, 3))
     out[:, :2] = pos[:, :2] - axis_xy
-    out = _unit(out)
-    d = _unit(d + out_bias * out + np.array([0.0, 0.0, up_bias]))
+    out = unit(out)
+    d = unit(d + out_bias * out + np.array([0.0, 0.0, up_bias]))
     dist = env.distance(pos, d)
     length = np.maximum(rng.uniform(*reach, n) * dist, min_len)
     r0 = np.maximum(prad * rng.uniform(*radius_factor, n), 0.004)
     return pos, d, length, r0
 
 
-def grow_tree(rng: np.random.Generator, p, base_xy: np.ndarray, ground, *, scale: float = 1.0) -> _Tree:
+def grow_tree(rng: np.random.Generator, p, base_xy: np.ndarray, ground, *, scale: float = 1.0) -> Tree:
     """Branching structure and leaves of one tree of form ``p.form`` (local frame).
 
     Parameters
@@ -221,7 +221,7 @@ def _grow_vase(rng, p, base_xy, ground, scale):
     p1 = top0[None] + d0[None] * rng.uniform(-0.08, 0.15, n_s)[:, None]
     r1 = rb_t * rng.uniform(0.55, 0.75, n_s)
     if rng.random() < 0.6:  # central leader
-        d1 = np.vstack([d1, _unit(np.array([[0, 0, 1.0]]) + rng.normal(0, 0.05, (1, 3)))])
+        d1 = np.vstack([d1, unit(np.array([[0, 0, 1.0]]) + rng.normal(0, 0.05, (1, 3)))])
         p1 = np.vstack([p1, top0[None]])
         r1 = np.append(r1, rb_t * rng.uniform(0.6, 0.75))
     len1 = np.maximum(env.distance(p1, d1) * rng.uniform(0.5, 0.7, len(p1)), 0.2)
@@ -275,8 +275,8 @@ def _fill_crown(rng, p, ground, env, axis_xy, br, nodes1, rad1, base, trunk_radi
             start = pos[pick]
             out = np.zeros((n_p, 3))
             out[:, :2] = start[:, :2] - axis_xy
-            out = _unit(out)
-            dd = _unit(out * rng.uniform(0.25, 0.6, (n_p, 1)) + np.array([0.0, 0.0, -1.0]) + rng.normal(0, 0.12, (n_p, 3)))
+            out = unit(out)
+            dd = unit(out * rng.uniform(0.25, 0.6, (n_p, 1)) + np.array([0.0, 0.0, -1.0]) + rng.normal(0, 0.12, (n_p, 3)))
             target = ground.z(start[:, 0], start[:, 1]) + rng.uniform(0.2, 0.5, n_p)
             length = np.maximum((start[:, 2] - target) / np.maximum(-dd[:, 2], 0.3), 0.1)
             pn, pr = _polylines(rng, start, dd, length, np.full(n_p, 0.009), np.full(n_p, 0.004), bend=0.08)
@@ -295,12 +295,12 @@ def _fill_crown(rng, p, ground, env, axis_xy, br, nodes1, rad1, base, trunk_radi
         t = rng.uniform(t0, 1.0, len(owner))
         pos, _, _ = _points_on(nd, rd, owner, t)
         lc.append(pos + rng.normal(0.0, 0.07, pos.shape))
-        ln.append(_unit(rng.normal(size=pos.shape) + np.array([0.0, 0.0, 0.4])))
+        ln.append(unit(rng.normal(size=pos.shape) + np.array([0.0, 0.0, 0.4])))
         lr.append(rng.uniform(0.03, 0.06, len(owner)))
     a, b, ra, rb = br.arrays()
     leaf_c = np.concatenate(lc)
     top = float(max(np.max(b[:, 2]), np.max(leaf_c[:, 2]) if len(leaf_c) else -np.inf))
-    return _Tree(a, b, ra, rb, leaf_c, np.concatenate(ln), np.concatenate(lr), base, float(trunk_radius), top)
+    return Tree(a, b, ra, rb, leaf_c, np.concatenate(ln), np.concatenate(lr), base, float(trunk_radius), top)
 
 
 
@@ -399,7 +399,7 @@ def _grow_spindle(rng, p, base_xy, ground, scale):
         n_sp = rng.poisson(length / 0.08)
         owner = np.repeat(np.arange(m), n_sp)
         sp_pos, sp_dir, _ = _points_on(lat, lat_r, owner, rng.uniform(0.1, 1.0, len(owner)))
-        sp_d = _unit(_perpendicular(sp_dir, rng) + np.array([0.0, 0.0, 0.3]))
+        sp_d = unit(perpendicular(sp_dir, rng) + np.array([0.0, 0.0, 0.3]))
         sp_len = rng.uniform(0.04, 0.12, len(owner)) * max(scale, 0.5)
         spur, spur_r = _polylines(rng, sp_pos, sp_d, sp_len, np.full(len(owner), 0.004), np.full(len(owner), 0.003),
                                   n_sub=1, bend=0.2)
@@ -415,9 +415,9 @@ def _grow_spindle(rng, p, base_xy, ground, scale):
         owner = np.repeat(np.arange(len(nd)), cnt)
         pos, _, _ = _points_on(nd, rd, owner, rng.uniform(t0, 1.0, len(owner)))
         lc.append(pos + rng.normal(0.0, 0.04, pos.shape))
-        ln.append(_unit(rng.normal(size=pos.shape) + np.array([0.0, 0.0, 0.4])))
+        ln.append(unit(rng.normal(size=pos.shape) + np.array([0.0, 0.0, 0.4])))
         lr.append(rng.uniform(0.025, 0.045, len(owner)))
     a, b, ra, rb = br.arrays()
     leaf_c = np.concatenate(lc)
     top = float(max(np.max(b[:, 2]), np.max(leaf_c[:, 2]) if len(leaf_c) else -np.inf))
-    return _Tree(a, b, ra, rb, leaf_c, np.concatenate(ln), np.concatenate(lr), base, float(trunk_radius_03), top)
+    return Tree(a, b, ra, rb, leaf_c, np.concatenate(ln), np.concatenate(lr), base, float(trunk_radius_03), top)

@@ -11,8 +11,8 @@ The simulator builds every block in a *straight frame*: rows along x, row ``r`` 
 
 A tree is carried rigidly by the bow (translated with its base and turned with the row's
 local direction), so its trunk stays round; the ground, posts and wires are bent point by
-point. The random draws use their own stream, so a block with every option at its default
-is the block the simulator made before these options existed. All lengths are metres.
+point. The random draws use their own stream, so these options leave the rest of a block
+(its ground, trees and points) unchanged. All lengths are metres.
 """
 
 from __future__ import annotations

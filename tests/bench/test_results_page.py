@@ -1,7 +1,7 @@
 """The benchmark report renders a run's raw data and splices it into docs/benchmarks.md."""
 
 from bench.__main__ import write_outputs
-from bench.report import END, START, render, splice_section
+from bench.results_page import END, START, render, splice_section
 
 MACHINE = {"date": "2026-01-01 00:00 UTC", "cpu": "test CPU", "logical_cores": 2, "usable_cores": 2, "ram_gib": 1.0,
            "os": "Linux", "python": "CPython 3.11", "versions": {"numpy": "2"}}

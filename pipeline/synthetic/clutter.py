@@ -1,0 +1,123 @@
+"""Things in the block that are not trees: fence posts and wire, trellises, a vehicle and a bin."""
+
+from __future__ import annotations
+
+import numpy as np
+
+from pipeline.synthetic.orchard import POST, VEHICLE, Orchard
+from pipeline.synthetic.plan import HEADLAND, Plan
+from pipeline.synthetic.scanner import Chunk, passes_for, sample_cylinders, sample_discs, sample_rects
+
+
+def _box_faces(centre, size, yaw=0.0, tile=0.25):
+    """Side and top faces of a box (bottom centre ``centre``, size (lx, ly, lz)) as
+    outward-facing rectangle tiles: (corner, u, v) arrays with u x v outward."""
+    lx, ly, lz = size
+    c, s = np.cos(yaw), np.sin(yaw)
+    ex, ey, ez = np.array([c, s, 0.0]), np.array([-s, c, 0.0]), np.array([0.0, 0.0, 1.0])
+    faces = [  # (origin offset in box frame, u, v) with u x v outward
+        ((lx / 2, -ly / 2, 0), ey * ly, ez * lz),  # +x
+        ((-lx / 2, ly / 2, 0), -ey * ly, ez * lz),  # -x
+        ((lx / 2, ly / 2, 0), -ex * lx, ez * lz),  # +y
+        ((-lx / 2, -ly / 2, 0), ex * lx, ez * lz),  # -y
+        ((-lx / 2, -ly / 2, lz), ex * lx, ey * ly),  # top
+    ]
+    corners, us, vs = [], [], []
+    for (ox, oy, oz), u, v in faces:
+        o = centre + ox * ex + oy * ey + oz * ez
+        nu = max(1, int(np.ceil(np.linalg.norm(u) / tile)))
+        nv = max(1, int(np.ceil(np.linalg.norm(v) / tile)))
+        ii, jj = np.meshgrid(np.arange(nu), np.arange(nv), indexing="ij")
+        corners.append(o + (ii.reshape(-1, 1) / nu) * u + (jj.reshape(-1, 1) / nv) * v)
+        us.append(np.tile(u / nu, (nu * nv, 1)))
+        vs.append(np.tile(v / nv, (nu * nv, 1)))
+    return np.concatenate(corners), np.concatenate(us), np.concatenate(vs)
+
+
+#: heights of a trellis's wires above the ground [m]
+TRELLIS_WIRES = (0.8, 1.6, 2.4)
+
+
+def _add_trellis(ch: Chunk, plan: Plan) -> None:
+    """Trellis posts and wires in every row (``params.trellis``), as points of kind post."""
+    p = plan.params
+    rng = np.random.default_rng([p.seed, 5])  # its own stream: blocks without a trellis are unchanged
+    for r in range(p.rows):
+        # the row's planted slots (an empty slot keeps its place in the trellis)
+        row = plan.tree_xy[r * p.trees_per_row : (r + 1) * p.trees_per_row][plan.layout.planted[plan.layout.row == r]]
+        gaps = np.arange(0, len(row) - 1, p.trellis)
+        xs = np.concatenate([[row[0, 0] - p.spacing / 2], (row[gaps, 0] + row[gaps + 1, 0]) / 2, [row[-1, 0] + p.spacing / 2]])
+        # on the row's line through its trees
+        ys = (np.interp(xs, row[:, 0], row[:, 1]) if len(row) > 1 else np.full(len(xs), row[0, 1]))
+        ys = ys + rng.normal(0, 0.03, len(xs))
+        ht = rng.uniform(2.8, 3.2, len(xs))
+        rp = rng.uniform(0.05, 0.065, len(xs))
+        _add_posts(ch, plan, rng, xs, ys, ht, rp, wires=TRELLIS_WIRES, y=float(np.mean(ys)))
+
+
+def _add_posts(ch: Chunk, plan: Plan, rng, xs, ys, height, radius, *, wires, y: float) -> None:
+    """Posts of ``height`` and ``radius`` (p,) [m] standing at ``xs``, ``ys`` (p,) (tops
+    leaning by about 2 cm), wires at ``wires`` [m] above the ground between consecutive
+    posts, seen from the passes near ``y``; points of kind post."""
+    g = plan.ground
+    zb = g.z(xs, ys)
+    a = np.c_[xs, ys, zb - 0.05]
+    b = np.c_[xs + rng.normal(0, 0.02, len(xs)), ys + rng.normal(0, 0.02, len(xs)), zb + height]
+    wa = np.vstack([np.c_[xs[:-1], ys[:-1], zb[:-1] + h] for h in wires])
+    wb = np.vstack([np.c_[xs[1:], ys[1:], zb[1:] + h] for h in wires])
+    ca, cb = np.vstack([a, wa]), np.vstack([b, wb])
+    cr = np.concatenate([radius, np.full(len(wa), 0.002)])
+    for k in passes_for(plan, y):
+        pts, _, _ = sample_cylinders(rng, plan, k, ca, cb, cr, cr)
+        pts = pts[pts[:, 2] >= g.z(pts[:, 0], pts[:, 1])]
+        ch.add(plan, rng, k, pts, 0, False, POST)
+
+
+def objects_chunk(plan: Plan) -> Orchard:
+    """Fence posts and wire, trellis posts and wires (when asked for), the vehicle and the bin."""
+    p = plan.params
+    rng = np.random.default_rng([p.seed, 4])
+    g = plan.ground
+    x0, x1, y0, y1 = plan.bounds
+    ch = Chunk()
+    if p.posts:
+        y_f = plan.pass_y[0] - 2.5
+        xs = np.arange(x0 + 1.0, x1 - 0.5, 3.0) + rng.normal(0, 0.08, len(np.arange(x0 + 1.0, x1 - 0.5, 3.0)))
+        ys = y_f + rng.normal(0, 0.03, len(xs))
+        ht = rng.uniform(1.2, 1.8, len(xs))
+        rp = rng.uniform(0.04, 0.06, len(xs))
+        _add_posts(ch, plan, rng, xs, ys, ht, rp, wires=(1.0,), y=y_f)  # one wire ~1.0 m high
+    if p.trellis:
+        _add_trellis(ch, plan)
+    boxes = []
+    if p.vehicle:  # parked in the far headland beside the first inner alley's path
+        k_al = min(1, len(plan.pass_y) - 1)
+        vx = x1 - HEADLAND / 2
+        vy = plan.pass_y[k_al] + 2.2
+        boxes.append((np.array([vx, vy]), (3.5, 1.7, 1.35), 0.45, True))
+    if p.bin:
+        bx = x0 + HEADLAND / 2
+        by = plan.pass_y[0] + 1.8
+        boxes.append((np.array([bx, by]), (1.2, 1.2, 1.2), 0.0, False))
+    for xy, size, lift, wheels in boxes:
+        yaw = rng.normal(0, 0.05)
+        zb = float(g.z(xy[0], xy[1]))
+        corner, u, v = _box_faces(np.array([xy[0], xy[1], zb + lift]), size, yaw)
+        if wheels:
+            wr, ww = 0.35, 0.22
+            c, s = np.cos(yaw), np.sin(yaw)
+            ex, ey = np.array([c, s, 0.0]), np.array([-s, c, 0.0])
+            centres = np.array([np.r_[xy, zb + wr] + sx * 1.2 * ex + sy * (size[1] / 2 - ww / 2 + 0.02) * ey
+                                for sx in (-1, 1) for sy in (-1, 1)])
+            axis_dir = np.array([sy * ey for sx in (-1, 1) for sy in (-1, 1)])
+            wa = centres - axis_dir * ww / 2
+            wb = centres + axis_dir * ww / 2
+        for k in passes_for(plan, xy[1]):
+            pts = sample_rects(rng, plan, k, corner, u, v)
+            ch.add(plan, rng, k, pts, 0, False, VEHICLE)
+            if wheels:
+                pts, _, _ = sample_cylinders(rng, plan, k, wa, wb, np.full(4, wr), np.full(4, wr))
+                ch.add(plan, rng, k, pts, 0, False, VEHICLE)
+                pts, _ = sample_discs(rng, plan, k, wb, axis_dir, np.full(4, wr), two_sided=False)
+                ch.add(plan, rng, k, pts, 0, False, VEHICLE)
+    return ch.finish(plan, rng)
