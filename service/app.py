@@ -35,7 +35,7 @@ from pipeline.params import PipelineParams
 from pipeline.tiling import check_tiling
 from service import report as reports
 from service import openapi as api_document
-from service import scratch
+from service import tempfiles
 from service import web
 from service.downloads import DownloadResponse
 from service.errors import ShuttingDownError, StalledUploadError, TooLargeError, api_wording, install_error_handlers
@@ -456,7 +456,7 @@ async def _receive_upload(request: Request, settings: Settings) -> _FilePart:
     boundary = opts.get(b"boundary")
     if ctype != b"multipart/form-data" or not boundary:
         raise InputError("send the block as multipart/form-data with the file in the field 'file' (curl -F file=@block.laz)")
-    part = _FilePart(scratch.scratch_dir(settings.tmp_dir) / f"upload-{uuid.uuid4().hex}.part", settings.max_upload_bytes)
+    part = _FilePart(tempfiles.process_dir(settings.tmp_dir) / f"upload-{uuid.uuid4().hex}.part", settings.max_upload_bytes)
     try:
         parser = MultipartParser(boundary, part.callbacks())
     except Exception:
@@ -637,7 +637,7 @@ def create_app(settings: Settings) -> FastAPI:
             private_dir(d)
         # a folder written by an earlier version, or copied in: the farms' inboxes stay as they are
         await run_in_threadpool(tighten, settings.data_dir, skip=[settings.http_inbox_root])
-        scratch.sweep(settings.tmp_dir)  # uploads a crash interrupted (not those of live processes)
+        tempfiles.sweep(settings.tmp_dir)  # uploads a crash interrupted (not those of live processes)
         if runner_lock is not None:  # no other process runs jobs here: a "running" job is an orphan
             for job_id in store.cancel_interrupted():  # asked to stop before the last shutdown
                 drop_work(settings, job_id)

@@ -30,9 +30,9 @@ from croniter.croniter import CroniterBadDateError
 
 from pipeline.errors import InputError, NotFoundError, ParameterError
 from service.quotas import QuotaExceeded
-from service.scratch import scratch_dir
 from service.settings import Settings
 from service.store import Store, accept_block
+from service.tempfiles import process_dir
 
 log = logging.getLogger("orchard.schedules")
 
@@ -362,7 +362,7 @@ def _take_capture(
     if error is not None:
         store.record_schedule_file(schedule_id=schedule["id"], sha256=sha, path=str(path), job_id=None, error=error)
         return "rejected", error
-    tmp = scratch_dir(settings.tmp_dir) / f"inbox-{uuid.uuid4().hex}.part"
+    tmp = process_dir(settings.tmp_dir) / f"inbox-{uuid.uuid4().hex}.part"
     try:
         if store.block_by_sha(schedule["tenant_id"], sha) is None:  # the same bytes uploaded before take no more room
             store.check_storage(schedule["tenant_id"], stat.st_size)

@@ -215,8 +215,8 @@ def test_a_second_service_on_one_data_folder_leaves_the_first_ones_work_alone(tm
         con.close()
         holder = subprocess.Popen(
             [sys.executable, "-c",
-             ("import sys, time; from pathlib import Path; from service.scratch import scratch_dir; "
-              "d = scratch_dir(Path(sys.argv[1])); (d / 'upload-x.part').write_bytes(b'half'); "
+             ("import sys, time; from pathlib import Path; from service.tempfiles import process_dir; "
+              "d = process_dir(Path(sys.argv[1])); (d / 'upload-x.part').write_bytes(b'half'); "
               "print(d, flush=True); time.sleep(120)"), str(data / "tmp")],
             stdout=subprocess.PIPE, text=True,
         )

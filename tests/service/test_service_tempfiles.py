@@ -7,14 +7,14 @@ import subprocess
 import sys
 from pathlib import Path
 
-from service.scratch import scratch_dir, sweep
+from service.tempfiles import process_dir, sweep
 
 
 def _holder(tmp: Path) -> tuple[subprocess.Popen, Path]:
     proc = subprocess.Popen(
         [sys.executable, "-c",
-         ("import sys, time; from pathlib import Path; from service.scratch import scratch_dir; "
-          "d = scratch_dir(Path(sys.argv[1])); (d / 'upload-1.part').write_bytes(b'x'); "
+         ("import sys, time; from pathlib import Path; from service.tempfiles import process_dir; "
+          "d = process_dir(Path(sys.argv[1])); (d / 'upload-1.part').write_bytes(b'x'); "
           "print(d, flush=True); time.sleep(120)"), str(tmp)],
         stdout=subprocess.PIPE, text=True,
     )
@@ -29,13 +29,13 @@ def test_sweep_removes_only_the_folders_of_stopped_processes(tmp_path):
         dead.kill()
         dead.wait()
         (tmp / "upload-old.part").write_bytes(b"from an older version")
-        mine = scratch_dir(tmp)
+        mine = process_dir(tmp)
         (mine / "inbox-2.part").write_bytes(b"y")
         assert sweep(tmp) == 1
         assert not dead_dir.exists() and not (tmp / "upload-old.part").exists()
         assert (live_dir / "upload-1.part").read_bytes() == b"x"
         assert (mine / "inbox-2.part").read_bytes() == b"y"
-        assert scratch_dir(tmp) == mine  # one folder per process
+        assert process_dir(tmp) == mine  # one folder per process
     finally:
         live.kill()
         live.wait()

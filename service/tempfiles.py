@@ -4,9 +4,8 @@ Several processes may share one data folder (an API-only process beside the one 
 runs jobs, or ``orchard schedules run`` from a shell). Each keeps its temporary files in
 a folder of its own, ``<tmp>/proc-<id>/``, holding an exclusive lock (flock) on a file in
 it for as long as it lives. `sweep` removes the folders whose lock is free: their
-process is gone (crashed mid-upload), while the files of live processes are never
-touched. Before, a starting service deleted every temporary file in the folder, and with
-them the upload another process was still receiving.
+process is gone (crashed mid-upload), while the files of live processes (an upload
+another process is still receiving) are never touched.
 """
 
 from __future__ import annotations
@@ -20,7 +19,7 @@ import uuid
 from pathlib import Path
 from typing import IO
 
-log = logging.getLogger("orchard.scratch")
+log = logging.getLogger("orchard.tempfiles")
 
 _PREFIX = "proc-"
 _LOCK = ".lock"
@@ -28,7 +27,7 @@ _held: dict[Path, tuple[Path, IO]] = {}
 _guard = threading.Lock()
 
 
-def scratch_dir(tmp_dir: Path) -> Path:
+def process_dir(tmp_dir: Path) -> Path:
     """This process's folder for temporary files under ``tmp_dir`` (created, and locked,
     at the first call; kept for the life of the process)."""
     tmp_dir = Path(tmp_dir)
