@@ -101,7 +101,7 @@ def run(args: argparse.Namespace) -> int:
             )
             print(rec["id"])
         elif args.action in ("update", "pause", "resume"):
-            from service.app import ScheduleUpdate, schedule_changes
+            from service.api.schemas import ScheduleUpdate, schedule_changes
 
             sched = _schedule(store, args.schedule_id)
             body = _update_body(args, sched) if args.action == "update" else {"paused": args.action == "pause"}

@@ -1,4 +1,4 @@
-"""The browser's routes: sign-in and sign-out, the pages, the map data, the offline API docs.
+"""The browser's routes: sign-in and sign-out, the pages (``/`` leads to them), the map data, the offline API docs.
 
 Pages need a session (else they send the browser to ``/signin``); the map data, like
 the ``/v1`` API, takes either a session or a bearer token. Another farm's job is a 404,
@@ -18,6 +18,7 @@ from fastapi.openapi.docs import get_redoc_html, get_swagger_ui_html
 from fastapi.responses import HTMLResponse, RedirectResponse, Response
 
 from pipeline.errors import NotFoundError
+from service.api.results import job_output, require_output
 from service.errors import UnauthorizedError
 from service.runner import job_dir
 from service.web import mapdata, render, sessions
@@ -47,6 +48,11 @@ def _safe_next(path: str | None) -> str:
     if not path or not path.startswith("/") or path.startswith("//") or "\\" in path:
         return "/blocks"
     return path
+
+
+@router.get("/")
+def root() -> RedirectResponse:
+    return RedirectResponse("/blocks")
 
 
 @router.get("/signin")
@@ -114,15 +120,13 @@ def job_map_data(job_id: str, request: Request) -> Response:
     gzipped as ``map.json.gz`` beside the job's outputs."""
     store, settings = _store(request), request.app.state.settings
     tenant = sessions.request_tenant(request, store)
-    from service.app import _require, _results  # (the app's rule for where a job's outputs are)
-
-    job_rec, trees = _results(store, settings, tenant, job_id, "trees.parquet")
-    trees = _require(trees, "trees.parquet")
+    job_rec, trees = job_output(store, settings, tenant, job_id, "trees.parquet")
+    trees = require_output(trees, "trees.parquet")
     cached = job_dir(settings, job_id) / "map.json"
     packed = cached.with_name("map.json.gz")  # a quarter of the bytes over a farm's slow link
     with _map_lock:
         if not packed.exists() or packed.stat().st_mtime < trees.stat().st_mtime:
-            _, points = _results(store, settings, tenant, job_id, "points.parquet")
+            _, points = job_output(store, settings, tenant, job_id, "points.parquet")
             block = store.get_block(None, job_rec["block_id"])
             data = mapdata.build_map_data(trees, block_path=block.get("path"), points_parquet=points)
             cached.parent.mkdir(parents=True, exist_ok=True)

@@ -604,7 +604,7 @@ def test_links_in_an_inbox_are_not_followed(local, tmp_path):
 
 
 def test_a_paused_schedule_is_skipped_by_the_clock_and_resumes_at_its_next_cron_time(local):
-    from service.app import ScheduleUpdate, schedule_changes
+    from service.api.schemas import ScheduleUpdate, schedule_changes
 
     settings, store, tenant, inbox = local
     write_las(inbox / "a.laz", 500, seed=1)
@@ -796,7 +796,7 @@ def test_two_changes_at_once_cannot_store_a_buffer_below_the_reach(local):
     # stored, and every night's job then failed at planning
     import threading
 
-    from service.app import ScheduleUpdate, schedule_changes
+    from service.api.schemas import ScheduleUpdate, schedule_changes
 
     settings, store, tenant, inbox = local
     sched = store.create_schedule(tenant_id=tenant["id"], inbox=str(inbox), cron="0 1 * * *",

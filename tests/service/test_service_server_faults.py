@@ -12,7 +12,8 @@ import httpx
 import pytest
 from service_fixtures import free_port, make_token, write_las
 
-from service.app import _FilePart, create_app
+from service.api.uploads import FilePart
+from service.app import create_app
 from service.settings import Settings
 from service.store import Store
 
@@ -45,14 +46,14 @@ def test_an_upload_to_a_full_disk_is_507_and_leaves_nothing(server, tmp_path, mo
     # own, and the operator heard nothing
     settings, c = server
     block = write_las(tmp_path / "b.laz", 3000, seed=3)
-    real = _FilePart._data
+    real = FilePart._data
 
     def full(self, data, start, end):
         real(self, data, start, min(end, start + 1000))  # the first kilobyte fits
         if self.size:
             raise OSError(errno.ENOSPC, "No space left on device")
 
-    monkeypatch.setattr(_FilePart, "_data", full)
+    monkeypatch.setattr(FilePart, "_data", full)
     with caplog.at_level("ERROR", logger="orchard.service"):
         r = c.post("/v1/blocks", files={"file": ("b.laz", block.read_bytes())})
     assert r.status_code == 507, r.text
@@ -60,7 +61,7 @@ def test_an_upload_to_a_full_disk_is_507_and_leaves_nothing(server, tmp_path, mo
     assert any("disk is full" in rec.getMessage() for rec in caplog.records)
     assert c.get("/v1/blocks").json() == []
     assert not any(p.is_file() for p in settings.data_dir.rglob("*") if p.suffix in (".laz", ".part"))
-    monkeypatch.setattr(_FilePart, "_data", real)  # space again: the same upload goes through
+    monkeypatch.setattr(FilePart, "_data", real)  # space again: the same upload goes through
     assert c.post("/v1/blocks", files={"file": ("b.laz", block.read_bytes())}).status_code == 201
 
 

@@ -1,0 +1,21 @@
+"""The HTTP API under ``/v1``: blocks, jobs, results and schedules, plus ``/healthz``.
+
+One module per resource (`routes_blocks`, `routes_jobs`, `routes_results`,
+`routes_schedules`, `routes_health`), the bodies in `schemas`, the dependencies in
+`deps`, upload streaming in `uploads`; `service.app.create_app` wires them into an app.
+"""
+
+from __future__ import annotations
+
+from fastapi import APIRouter
+
+from service.api import routes_blocks, routes_jobs, routes_results, routes_schedules
+from service.api.schemas import ERRORS
+
+
+def v1_router() -> APIRouter:
+    """The ``/v1`` routes, each documented with the error answers in `schemas.ERRORS`."""
+    v1 = APIRouter(prefix="/v1", responses=ERRORS)
+    for routes in (routes_blocks, routes_jobs, routes_results, routes_schedules):
+        v1.include_router(routes.router)
+    return v1

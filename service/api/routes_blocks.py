@@ -1,0 +1,58 @@
+"""``/v1/blocks``: upload a LAS/LAZ block (streamed, deduplicated by content), list and read blocks."""
+
+from __future__ import annotations
+
+from typing import Annotated
+
+from fastapi import APIRouter, Query, Request, Response
+from fastapi.concurrency import run_in_threadpool
+
+from service.api.deps import SettingsDep, StoreDep, TenantDep
+from service.api.schemas import Block, block_out
+from service.api.uploads import UPLOAD_BODY, UPLOAD_SLACK, receive_upload
+from service.store import accept_block
+
+router = APIRouter()
+
+
+@router.post(
+    "/blocks",
+    response_model=Block,
+    status_code=201,
+    tags=["blocks"],
+    openapi_extra=UPLOAD_BODY,
+    responses={200: {"model": Block, "description": "this file was uploaded before: the existing block"}},
+    summary="Upload a LAS/LAZ block (multipart field 'file')",
+)
+async def upload_block(request: Request, response: Response, tenant: TenantDep, store: StoreDep, settings: SettingsDep):
+    declared = request.headers.get("content-length", "")  # refused before the body is read; checked again after
+    await run_in_threadpool(store.check_storage, tenant["id"], max(int(declared) - UPLOAD_SLACK if declared.isdigit() else 0, 1))
+    part = await receive_upload(request, settings)
+    block, created = await run_in_threadpool(
+        accept_block,
+        store,
+        blocks_dir=settings.blocks_dir,
+        tenant_id=tenant["id"],
+        tmp_path=part.tmp_path,
+        sha256=part.sha.hexdigest(),
+        size_bytes=part.size,
+        filename=part.filename,
+    )
+    response.status_code = 201 if created else 200
+    response.headers["Location"] = f"/v1/blocks/{block['id']}"
+    return block_out(block)
+
+
+@router.get("/blocks", response_model=list[Block], tags=["blocks"])
+def list_blocks(
+    tenant: TenantDep,
+    store: StoreDep,
+    limit: Annotated[int, Query(ge=1, le=1000)] = 100,
+    offset: Annotated[int, Query(ge=0, le=1_000_000_000)] = 0,
+):
+    return [block_out(b) for b in store.list_blocks(tenant["id"], limit=limit, offset=offset)]
+
+
+@router.get("/blocks/{block_id}", response_model=Block, tags=["blocks"])
+def get_block(block_id: str, tenant: TenantDep, store: StoreDep):
+    return block_out(store.get_block(tenant["id"], block_id))

@@ -1,0 +1,258 @@
+"""Request bodies as they arrive: the size limit of every body, and block uploads
+streamed to a temporary file.
+
+`BodyLimit` answers 413 for a body above its limit (an upload has its own, larger one).
+`receive_upload` parses a multipart upload as it arrives, writing its ``file`` field to a
+temporary file of this process (`service.tempfiles`) while hashing it; an upload that
+stalls, is cut off, is malformed or grows past the limit leaves no file behind.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import contextlib
+import hashlib
+import os
+import uuid
+from pathlib import Path
+
+from fastapi import Request
+from fastapi.responses import JSONResponse
+from python_multipart.multipart import MultipartParser, parse_options_header
+from starlette.requests import ClientDisconnect
+
+from pipeline.errors import InputError
+from service import tempfiles
+from service.errors import ShuttingDownError, StalledUploadError, TooLargeError
+from service.permissions import FILE_MODE
+from service.schedules import printable
+from service.settings import Settings
+
+UPLOAD_SLACK = 1 << 20  # multipart overhead allowed on top of the file size limit
+_DRAIN_LIMIT = 64 << 20  # after a too-large upload, read at most this much more before answering
+
+
+class BodyLimit:
+    """ASGI middleware: 413 for request bodies above the limit (uploads get their own, larger one)."""
+
+    def __init__(self, app, *, default: int, upload: int, upload_mb: float, upload_path: str = "/v1/blocks") -> None:
+        self.app = app
+        self.upload_mb = upload_mb
+        self.default = default
+        self.upload = upload
+        self.upload_path = upload_path
+
+    async def __call__(self, scope, receive, send) -> None:
+        if scope["type"] != "http":
+            await self.app(scope, receive, send)
+            return
+        is_upload = scope.get("method") == "POST" and scope.get("path", "").rstrip("/") == self.upload_path
+        limit = self.upload if is_upload else self.default
+        length = None
+        for key, value in scope.get("headers", ()):
+            if key == b"content-length":
+                with contextlib.suppress(ValueError):
+                    length = int(value)
+        if length is not None and length > limit:
+            if is_upload:
+                detail = f"upload of {length} bytes is above the upload limit of {self.upload_mb:g} MB (ORCHARD_MAX_UPLOAD_MB)"
+            else:
+                detail = f"request body of {length} bytes is above the limit of {limit} bytes"
+            resp = JSONResponse(
+                {"detail": detail},
+                status_code=413,
+                headers={"Connection": "close"},
+            )
+            await resp(scope, receive, send)
+            return
+        total = 0
+
+        async def limited_receive():
+            nonlocal total
+            message = await receive()
+            if message["type"] == "http.request":
+                total += len(message.get("body", b""))
+                if total > limit:
+                    raise TooLargeError(f"request body is above the limit of {limit} bytes")
+            return message
+
+        await self.app(scope, limited_receive, send)
+
+
+def display_filename(name: str | None) -> str | None:
+    """A client file name reduced to something safe to show (never used as a path)."""
+    if not name:
+        return None
+    base = name.replace("\\", "/").rsplit("/", 1)[-1]
+    base = printable(base).strip()
+    return base[:200] or None
+
+
+
+class FilePart:
+    """Receives the multipart callbacks; writes the ``file`` field to a temporary file, hashing it."""
+
+    def __init__(self, tmp_path: Path, limit: int) -> None:
+        self.tmp_path = tmp_path
+        self.limit = limit
+        self.fh = None
+        self.sha = hashlib.sha256()
+        self.size = 0
+        self.filename: str | None = None
+        self.found = False
+        self.complete = False  # the file's part ended at a boundary (not cut off)
+        self.too_large = False
+        self._in_file = False
+        self._field = bytearray()
+        self._value = bytearray()
+        self._headers: dict[bytes, bytes] = {}
+
+    def callbacks(self) -> dict:
+        return {
+            "on_part_begin": self._part_begin,
+            "on_header_field": lambda d, s, e: self._field.extend(d[s:e]),
+            "on_header_value": lambda d, s, e: self._value.extend(d[s:e]),
+            "on_header_end": self._header_end,
+            "on_headers_finished": self._headers_finished,
+            "on_part_data": self._data,
+            "on_part_end": self._part_end,
+        }
+
+    def _part_begin(self) -> None:
+        self._headers = {}
+        self._in_file = False
+
+    def _header_end(self) -> None:
+        self._headers[bytes(self._field).lower()] = bytes(self._value)
+        self._field.clear()
+        self._value.clear()
+
+    def _headers_finished(self) -> None:
+        _, opts = parse_options_header(self._headers.get(b"content-disposition", b""))
+        if opts.get(b"name") == b"file" and not self.found:
+            self.found = True
+            self._in_file = True
+            raw = opts.get(b"filename")
+            self.filename = display_filename(raw.decode("utf-8", "replace")) if raw else None
+            self.fh = open(self.tmp_path, "wb")
+            os.fchmod(self.fh.fileno(), FILE_MODE)  # a farm's file, whatever the process umask
+
+    def _data(self, data: bytes, start: int, end: int) -> None:
+        if not self._in_file or self.too_large:
+            return
+        n = end - start
+        self.size += n
+        if self.size > self.limit:
+            self.too_large = True
+            return
+        chunk = data[start:end]
+        self.sha.update(chunk)
+        self.fh.write(chunk)
+
+    def _part_end(self) -> None:
+        if self._in_file and self.fh is not None:
+            self.fh.close()
+            self.complete = True
+        self._in_file = False
+
+    @property
+    def header_name(self) -> bytes:
+        """The name of the part header being read (empty between headers)."""
+        return bytes(self._field)
+
+    def close(self) -> None:
+        if self.fh is not None and not self.fh.closed:
+            self.fh.close()
+
+
+async def receive_upload(request: Request, settings: Settings) -> FilePart:
+    ctype, opts = parse_options_header(request.headers.get("content-type", "").encode("latin-1", "replace"))
+    boundary = opts.get(b"boundary")
+    if ctype != b"multipart/form-data" or not boundary:
+        raise InputError("send the block as multipart/form-data with the file in the field 'file' (curl -F file=@block.laz)")
+    part = FilePart(tempfiles.process_dir(settings.tmp_dir) / f"upload-{uuid.uuid4().hex}.part", settings.max_upload_bytes)
+    try:
+        parser = MultipartParser(boundary, part.callbacks())
+    except Exception:
+        raise InputError("the multipart boundary is invalid") from None
+    stream = request.stream()
+    stopping = getattr(request.app.state, "stopping", None)  # set when the server is told to stop
+    stop = asyncio.ensure_future(stopping.wait()) if stopping is not None else None
+    try:
+        while True:
+            # a client that stops sending would hold the request and its partial file for good,
+            # and a stopping server waited for it, then cut the connection without a reply
+            nxt = asyncio.ensure_future(anext(stream))
+            done, _ = await asyncio.wait({nxt} | ({stop} if stop else set()), timeout=settings.upload_idle_s,
+                                         return_when=asyncio.FIRST_COMPLETED)
+            if nxt not in done:
+                nxt.cancel()
+                if stop is not None and stop in done:
+                    raise ShuttingDownError("the server is stopping and cannot take this upload; send it again "
+                                            "once it is back (nothing of it was kept)")
+                raise StalledUploadError(
+                    f"the upload sent nothing for {settings.upload_idle_s:g} s (ORCHARD_UPLOAD_IDLE_S); send it again"
+                )
+            try:
+                chunk = nxt.result()
+            except StopAsyncIteration:
+                break
+            try:
+                parser.write(chunk)
+            except OSError:  # writing the file (a full disk): the server's fault, not the body's
+                raise
+            except Exception:
+                if part.header_name.lower() == b"content-disposition":  # (python-multipart's 4,224-byte line limit)
+                    raise InputError("the file name of the upload is too long; rename the file (a name is kept "
+                                     "to 200 characters) and send it again") from None
+                raise InputError("the multipart body is malformed; send the file as field 'file'") from None
+            if part.too_large:
+                break
+        if part.too_large:
+            drained = 0
+            with contextlib.suppress(TooLargeError, ClientDisconnect):
+                async for chunk in stream:
+                    drained += len(chunk)
+                    if drained > _DRAIN_LIMIT:
+                        break
+            raise TooLargeError(
+                f"the file is larger than the upload limit of {settings.max_upload_mb:g} MB (ORCHARD_MAX_UPLOAD_MB)"
+            )
+        try:
+            parser.finalize()  # (it does not check that the body ended at a boundary)
+        except OSError:  # closing the file (a full disk)
+            raise
+        except Exception:
+            raise InputError("the multipart body is incomplete") from None
+        if part.found and not part.complete:
+            raise InputError("the multipart body is incomplete: the file's part has no closing boundary (upload cut off?)")
+    except BaseException:
+        with contextlib.suppress(OSError):  # (its last write may fail again: a full disk)
+            part.close()
+        part.tmp_path.unlink(missing_ok=True)
+        raise
+    finally:
+        if stop is not None:
+            stop.cancel()
+    part.close()
+    if not part.found:
+        part.tmp_path.unlink(missing_ok=True)
+        raise InputError("no field 'file' in the upload; send the block as multipart field 'file' (curl -F file=@block.laz)")
+    return part
+
+
+#: the upload route's request body in the API document (the route reads the stream itself)
+UPLOAD_BODY = {
+    "requestBody": {
+        "required": True,
+        "content": {
+            "multipart/form-data": {
+                "schema": {
+                    "type": "object",
+                    "required": ["file"],
+                    "properties": {"file": {"type": "string", "format": "binary", "description": "a LAS or LAZ file"}},
+                }
+            }
+        },
+    }
+}
