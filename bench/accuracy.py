@@ -26,11 +26,11 @@ def score_block(work: str, noise: float, spacing: float, seed: int, baselines: b
     """All methods on one generated block; returns {method: metrics} plus block facts."""
     import numpy as np
 
-    from pipeline import io as blockio
     from pipeline.errors import NoTreesError
     from pipeline.evaluation.result import evaluate_result
     from pipeline.evaluation.scores import score_labels
     from pipeline.params import PipelineParams
+    from pipeline.reading import read_points
     from pipeline.synthetic.truth import read_truth
     from workers.job import JobSpec, run_job
 
@@ -65,7 +65,7 @@ def score_block(work: str, noise: float, spacing: float, seed: int, baselines: b
         out["baselines_missing"] = str(exc)
         return out
     truth, true_trunks = read_truth(block.truth)
-    xyz, info = blockio.read_points(block.las)
+    xyz, info = read_points(block.las)
     origin = np.asarray(info.origin, dtype=np.float64)
     for name in METHODS[1:]:
         fn = getattr(bl, name, None)

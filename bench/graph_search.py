@@ -33,7 +33,7 @@ def main(argv: list[str] | None = None) -> None:
     from pipeline.enrichment import neighbourhood_matrix
     from pipeline.graph import build_graph, node_pairs
     from pipeline.ground import classify_ground, ground_model
-    from pipeline.io import read_points
+    from pipeline.reading import read_points
     from pipeline.params import PipelineParams
     from pipeline.synthetic.simparams import SimulationParams
     from pipeline.synthetic.truth import write_simulation

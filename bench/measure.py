@@ -8,7 +8,7 @@ Prints one JSON line (prefixed ``BENCH-RESULT ``) with what it measured. Kinds:
   time (after ``warmup`` untimed runs), the job's own timings, and exact peak RSS (``getrusage``) of this process
   and of every dask worker.
 - ``decode``: raw LAZ decode throughput of a file with laspy chunk iteration, all
-  point fields and x/y/z only, plus ``pipeline.io.iter_points``.
+  point fields and x/y/z only, plus ``pipeline.reading.iter_points``.
 """
 
 from __future__ import annotations
@@ -120,7 +120,7 @@ def run_job_measure(cfg: dict) -> dict:
 def run_decode_measure(cfg: dict) -> dict:
     import laspy
 
-    from pipeline import io as blockio
+    from pipeline.reading import iter_points
 
     path = cfg["input"]
     chunk = int(cfg.get("chunk_points", 2_000_000))
@@ -147,7 +147,7 @@ def run_decode_measure(cfg: dict) -> dict:
 
     def pipeline_reader():
         n = 0
-        for _, xyz in blockio.iter_points(path, chunk_points=chunk):
+        for _, xyz in iter_points(path, chunk_points=chunk):
             n += len(xyz)
         return n
 

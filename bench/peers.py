@@ -83,14 +83,14 @@ def run_on_block(status: dict, block, work: Path, *, config_name: str, timeout: 
     """Run the peer on ``block`` with a named configuration; returns metrics or an error."""
     import numpy as np
 
-    from pipeline import io as blockio
     from pipeline.evaluation.scores import score_labels
+    from pipeline.reading import read_points
     from pipeline.synthetic.truth import read_truth
 
     cfg = FIN_DEFAULTS if config_name == "3DFin defaults" else FIN_ORCHARD
     folder = work / "peers" / Path(block.las).stem
     folder.mkdir(parents=True, exist_ok=True)
-    xyz, info = blockio.read_points(block.las)
+    xyz, info = read_points(block.las)
     pts = folder / "points.npy"
     np.save(pts, xyz)
     del xyz

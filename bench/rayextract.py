@@ -67,9 +67,9 @@ from bench.hedgerows import match_distance
 from bench.isolation import SINGLE_THREAD_ENV, measure, one_core, pinned_to
 from bench.oracles import SETTINGS
 from bench.real_data import REAL, adtree_row
-from pipeline import io as blockio
 from pipeline.evaluation.result import evaluate_result
 from pipeline.evaluation.scores import score_labels
+from pipeline.reading import read_points
 from pipeline.synthetic.orchard import GROUND, LEAF, Orchard
 from pipeline.synthetic.simparams import SimulationParams
 from pipeline.synthetic.terrain import ground_height
@@ -240,7 +240,7 @@ def compare_scene(binary: str, work: Path, las: str, truth_path: str,
     ours = evaluate_result(truth_path, str(result_dir / f"run{max(1, repeats) - 1}"), match_distance=match)
     methods = {"ours": dict(ours, seconds=seconds, found=ours["n_found_trees"], peak_rss=rss)}
 
-    xyz, info = blockio.read_points(las)
+    xyz, info = read_points(las)
     origin = np.asarray(info.origin, dtype=np.float64)
     labels, bases, seconds, rss = run_rayextract(binary, work / "rayextract-runs" / name, xyz,
                                                  lambda x, y: ground(x + origin[0], y + origin[1]) - origin[2],

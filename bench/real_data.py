@@ -22,10 +22,10 @@ from pathlib import Path
 import numpy as np
 from scipy.io import loadmat
 
-from pipeline import io
 from pipeline.evaluation.scores import score_labels, wood_scores
 from pipeline.params import PipelineParams
 from pipeline.process import process_points
+from pipeline.reading import read_points
 
 REAL = Path(__file__).resolve().parents[1].parent / "shared" / "data" / "real"
 ADTREE = ("tree1", "tree7", "tree13", "tree33")
@@ -109,7 +109,7 @@ def run() -> str:
         f"{s['trunk_fp']} false), v-measure {s['v_measure']:.3f} |"
     )
 
-    pts, info = io.read_points(REAL / "TreeLS" / "pine_plot.laz")
+    pts, info = read_points(REAL / "TreeLS" / "pine_plot.laz")
     r, dt = _timed(pts, params)
     d = r.trunk_diameter[np.isfinite(r.trunk_diameter)]
     lines.append(
@@ -117,7 +117,7 @@ def run() -> str:
         f"| {r.n_trees} stems; diameters {np.min(d):.2f}-{np.max(d):.2f} m (median {np.median(d):.2f}) |"
     )
 
-    pts, info = io.read_points(REAL / "aRchi" / "Tree_1_point_cloud.las")
+    pts, info = read_points(REAL / "aRchi" / "Tree_1_point_cloud.las")
     r, dt = _timed(pts, params)
     tree = r.tree_id > 0
     lines.append(

@@ -264,7 +264,7 @@ def render(data: dict) -> str:
         out += ["", "Raw LAZ decode of the same file (laspy chunk iteration, one core) and the end-to-end ratio:", "",
                 "| reader | points/s | end-to-end ÷ decode |", "| --- | --- | --- |"]
         for key, label in (("laspy_all_fields", "laspy, all point fields"), ("laspy_xyz_only", "laspy, x/y/z only (what the pipeline decodes)"),
-                           ("pipeline_iter_points", "`pipeline.io.iter_points` (checks + local frame)")):
+                           ("pipeline_iter_points", "`pipeline.reading.iter_points` (checks + local frame)")):
             out.append(f"| {label} | {_mpts(d[key]['points_per_s'])} | {st['points_per_s'] / d[key]['points_per_s']:.3f} |")
         out += ["", "![stages](stages.png)"]
 

@@ -2,7 +2,7 @@
 
 The kernels never time themselves (STYLE.md). To split a run by stage, the names
 that the orchestration code calls (`pipeline.process`, `workers.job` and the
-modules they call through, such as `pipeline.woodleaf` and `pipeline.io`) are
+modules they call through, such as `pipeline.woodleaf` and `pipeline.reading`) are
 temporarily replaced by timing wrappers, keyed by the module the function comes
 from. Only the outermost wrapped call is timed, so a kernel calling another kernel
 is not counted twice. Whatever is not inside a wrapped call is reported as "other"
@@ -29,7 +29,10 @@ STAGE_OF_MODULE = {
     "pipeline.segment": "segmentation",
     "pipeline.woodleaf": "matter",
     "pipeline.metrics": "metrics",
-    "pipeline.io": "IO",
+    "pipeline.blockinfo": "IO",
+    "pipeline.reading": "IO",
+    "pipeline.laswriting": "IO",
+    "pipeline.parquet": "IO",
 }
 #: the order stages are reported in
 STAGES = ("IO", "ground", "graph", "trunks", "segmentation", "matter", "metrics", "other")

@@ -121,10 +121,10 @@ def check_buffer(buffer: float, reach: float) -> None:
 MAX_COPIES = 64
 
 
-#: widest tile buffer [m]: a block spans at most 1e5 m (``pipeline.io.MAX_EXTENT``)
+#: widest tile buffer [m]: a block spans at most 1e5 m (``pipeline.blockinfo.MAX_EXTENT``)
 MAX_BUFFER = 1e5
 
-#: farthest a grid origin may lie from 0 [m], like a block's coordinates (``pipeline.io.MAX_ABS_COORD``)
+#: farthest a grid origin may lie from 0 [m], like a block's coordinates (``pipeline.blockinfo.MAX_ABS_COORD``)
 MAX_ORIGIN = 1e8
 
 

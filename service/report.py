@@ -107,7 +107,8 @@ def sample_points(
     tree_id : (m,) int64
     origin : (3,) float64
     """
-    from pipeline.io import iter_points, read_info
+    from pipeline.blockinfo import read_info
+    from pipeline.reading import iter_points
 
     info = read_info(block_path)
     stride = max(1, -(-int(info.n_points) // max_points))

@@ -401,7 +401,7 @@ def _header_problem(path: Path, name: str) -> str | None:
     """Why an inbox file is no usable LAS/LAZ file, read from its signature and header
     where it lies (the header and VLRs only); None if it looks usable. The copy taken
     afterwards is checked again, as any upload."""
-    from pipeline.io import read_info
+    from pipeline.blockinfo import read_info
 
     try:
         with open(path, "rb") as fh:

@@ -837,12 +837,12 @@ def accept_block(
 ) -> tuple[dict[str, Any], bool]:
     """Validate a fully written temporary file and land it as a block of ``tenant_id``.
 
-    The header is checked with `pipeline.io.read_info` (InputError if not a usable
+    The header is checked with `pipeline.blockinfo.read_info` (InputError if not a usable
     LAS/LAZ file). The file is stored under its checksum, fsynced, renamed into place,
     and only then recorded. The temporary file is always gone afterwards. Returns
     ``(block, created)``; the same file twice gives the same block.
     """
-    from pipeline.io import read_info
+    from pipeline.blockinfo import read_info
 
     tmp_path = Path(tmp_path)
     try:

@@ -35,7 +35,7 @@ from typing import Callable
 import numpy as np
 from scipy.spatial import cKDTree
 
-from pipeline import io as blockio
+from pipeline.blockinfo import BlockInfo, read_info
 from pipeline.errors import InputError, NoTreesError, OrchardError, ParameterError
 from pipeline.ground import (
     ground_residuals,
@@ -43,11 +43,13 @@ from pipeline.ground import (
     raw_ground_model,
     stats_stride,
 )
-from pipeline.io import BlockInfo
+from pipeline.laswriting import write_labelled_las
 from pipeline.merge import GlobalTrunks, TileTrunks, reconcile_trunks
 from pipeline.metrics import combine_partials, finalize_metrics, tree_partials
 from pipeline.params import PipelineParams, RowParams
+from pipeline.parquet import PointsParquetWriter, write_gaps_parquet, write_rows_parquet, write_trees_parquet
 from pipeline.process import process_points
+from pipeline.reading import read_points, to_local
 from pipeline.rows import RowLayout, find_rows
 from pipeline.tiling import TileGrid, core_tile, plan_grid, tile_size_for_budget
 from workers.workstore import WorkStore, absolute_url, default_work_dir, own_entry
@@ -220,7 +222,7 @@ def _tile_points(store: WorkStore, tile_id: int, frame: dict) -> tuple[dict, np.
     (``frame``: the tile index, or its frame from :func:`workers.tiler.read_frame`)."""
     rec = read_tile(store, tile_id)
     ints = np.column_stack([rec["X"], rec["Y"], rec["Z"]])
-    return rec, blockio.to_local(ints, _frame(frame))
+    return rec, to_local(ints, _frame(frame))
 
 
 def ground_sample(work_url: str, tile_id: int, params_json: str, stride: int) -> np.ndarray:
@@ -479,7 +481,7 @@ def _write_outputs(out_dir: Path, info: BlockInfo, labels: _Labels, trees: dict,
         meta["orchard:failed_tiles"] = json.dumps(failed)
     try:
         path = stage / "points.parquet"
-        with blockio.PointsParquetWriter(path, metadata=meta) as w:
+        with PointsParquetWriter(path, metadata=meta) as w:
             for a in range(0, labels.n_points, WINDOW_POINTS):
                 b = min(labels.n_points, a + WINDOW_POINTS)
                 filled, lab = labels.window(a, b)
@@ -491,21 +493,21 @@ def _write_outputs(out_dir: Path, info: BlockInfo, labels: _Labels, trees: dict,
         written["points"] = path
         if labelled_laz:
             path = stage / "labelled.laz"
-            blockio.write_labelled_las(
+            write_labelled_las(
                 info.path,
                 path,
                 labels=lambda a, b: {k: v for k, v in labels.window(a, b)[1].items() if k != "is_ground"},
             )
             written["labelled"] = path
         path = stage / "trees.parquet"
-        blockio.write_trees_parquet(path, trees, crs_wkt=info.crs_wkt, metadata=meta)
+        write_trees_parquet(path, trees, crs_wkt=info.crs_wkt, metadata=meta)
         written["trees"] = path
         if layout is not None:
             path = stage / "rows.parquet"
-            blockio.write_rows_parquet(path, layout.rows, layout.lines, crs_wkt=info.crs_wkt)
+            write_rows_parquet(path, layout.rows, layout.lines, crs_wkt=info.crs_wkt)
             written["rows"] = path
             path = stage / "gaps.parquet"
-            blockio.write_gaps_parquet(path, layout.gaps, crs_wkt=info.crs_wkt)
+            write_gaps_parquet(path, layout.gaps, crs_wkt=info.crs_wkt)
             written["gaps"] = path
         outputs = {}
         for key, staged in written.items():  # complete: publish (each rename is atomic)
@@ -561,7 +563,7 @@ def run_job(
     InputError, ParameterError, NoTreesError, TileFailed, JobCancelled
     """
     t0 = time.perf_counter()
-    info = blockio.read_info(spec.input_path)
+    info = read_info(spec.input_path)
     spec = auto_tiled(spec, info)
     if spec.tile_size is None and client is None:
         return _run_single(spec, info, t0, progress, cancel)
@@ -573,7 +575,7 @@ def _run_single(spec, info, t0, progress, cancel) -> JobOutcome:
     params = spec.params
     if progress:
         progress(0, 1)
-    xyz, _ = blockio.read_points(info.path, chunk_points=spec.chunk_points)
+    xyz, _ = read_points(info.path, chunk_points=spec.chunk_points)
     timings["read"] = time.perf_counter() - t0
     _check_cancel(cancel)
     t = time.perf_counter()
@@ -611,7 +613,7 @@ def check_job(spec: JobSpec, *, tiled: bool | None = None) -> tuple[BlockInfo, T
     Returns the block's header information and, for a tiled job, the planned grid.
     Raises InputError or ParameterError.
     """
-    info = blockio.read_info(spec.input_path)
+    info = read_info(spec.input_path)
     check_out_dir(spec.out_dir)
     if tiled is None:
         tiled = spec.tile_size is not None
@@ -649,7 +651,7 @@ def auto_tiled(spec: JobSpec, info: BlockInfo | None = None) -> JobSpec:
     """
     if spec.tile_size is not None or spec.memory_budget is None:
         return spec
-    info = info or blockio.read_info(spec.input_path)
+    info = info or read_info(spec.input_path)
     buffer = spec.params.reach() if spec.buffer is None else float(spec.buffer)
     size = tile_size_for_budget(info.n_points, info.mins, info.maxs, budget=spec.memory_budget, buffer=buffer)
     return spec if size is None else dataclasses.replace(spec, tile_size=size)

@@ -18,9 +18,9 @@ import json
 
 import numpy as np
 
-from pipeline import io as blockio
+from pipeline.blockinfo import BlockInfo
 from pipeline.errors import ParameterError
-from pipeline.io import BlockInfo
+from pipeline.reading import check_bounds, iter_raw, read_raw_range, to_local
 from pipeline.tiling import TileGrid, buffered_tiles, core_tile
 from workers.workstore import WorkStore
 
@@ -98,7 +98,7 @@ def _index(info: BlockInfo, grid: TileGrid, counts: dict, engine: str) -> dict:
 
 
 def _split_chunk(info, grid, store, start, ints, counts: dict) -> None:
-    blockio.check_bounds(blockio.to_local(ints, info), info, start=start)
+    check_bounds(to_local(ints, info), info, start=start)
     index = np.arange(start, start + len(ints), dtype=np.uint64)
     _write_parts(store, f"part-{start:012d}", ints, index, _absolute_xy(ints, info), grid, counts)
 
@@ -109,7 +109,7 @@ def tile_range(info: BlockInfo, grid: TileGrid, store: WorkStore, start: int, co
     Returns the point counts this range contributed, {tile id: [core, buffered]}.
     """
     counts = {}
-    ints = blockio.read_raw_range(info.path, start, count, info=info)
+    ints = read_raw_range(info.path, start, count, info=info)
     _split_chunk(info, grid, store, start, ints, counts)
     return counts
 
@@ -166,7 +166,7 @@ def tile_block(
         for part in (gather or client.gather)(futures):
             _merge_counts(counts, part)
     else:
-        for start, ints in blockio.iter_raw(info.path, chunk_points=chunk_points, info=info):
+        for start, ints in iter_raw(info.path, chunk_points=chunk_points, info=info):
             _split_chunk(info, grid, store, start, ints, counts)
     idx = _index(info, grid, counts, "laspy")
     put_index(store, idx)

@@ -115,7 +115,7 @@ def score_layout(truth_path: str, result_dir: str, trees: dict, *, match_distanc
     """
     import os
 
-    from pipeline.io import read_parquet_columns
+    from pipeline.parquet import read_parquet_columns
     from pipeline.synthetic.truth import read_truth, read_truth_layout
 
     plan = read_truth_layout(truth_path)

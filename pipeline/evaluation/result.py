@@ -14,7 +14,7 @@ from pipeline.evaluation.scores import diameter_errors, score_labels
 def _read_points_labels(path: str, n: int) -> tuple[np.ndarray, np.ndarray, int]:
     """tree_id and is_wood of points.parquet scattered to (n,) arrays by point_index;
     points absent from the file are tree 0, not wood. Also returns how many are absent."""
-    from pipeline.io import read_parquet_columns
+    from pipeline.parquet import read_parquet_columns
 
     table, meta = read_parquet_columns(path, ["point_index", "tree_id", "is_wood"], what="points.parquet")
     idx = table["point_index"].astype(np.int64)
@@ -63,7 +63,7 @@ def evaluate_result(truth_path: str, result_dir: str, *, match_distance: float =
     InputError
         Missing or unreadable files, or point indices that do not fit the truth.
     """
-    from pipeline.io import read_trees_parquet
+    from pipeline.parquet import read_trees_parquet
     from pipeline.synthetic.truth import read_truth
 
     trees_path = os.path.join(result_dir, "trees.parquet")

@@ -41,7 +41,8 @@ def write_simulation(source: Orchard | SimulationParams | Iterable[Orchard], las
     ``orchard:tree_young``, ``orchard:empty_slots``, ``orchard:spacing`` and
     ``orchard:row_spacing``.
     """
-    from pipeline.io import LasBlockWriter, TruthParquetWriter
+    from pipeline.laswriting import LasBlockWriter
+    from pipeline.parquet import TruthParquetWriter
 
     if isinstance(source, Orchard):
         chunks: Iterable[Orchard] = [source]
@@ -105,7 +106,7 @@ def read_truth(path: str) -> tuple[dict[str, np.ndarray], np.ndarray]:
         Absolute trunk base centres [m]; tree ``k`` is ``trunks[k-1]``.
     """
     from pipeline.errors import InputError
-    from pipeline.io import read_parquet_columns
+    from pipeline.parquet import read_parquet_columns
 
     table, meta = read_parquet_columns(path, what="truth file")
     if b"orchard:trunks" not in meta or any(c not in table for c in TRUTH_COLUMNS):
@@ -156,7 +157,7 @@ def read_truth_layout(path: str) -> dict:
         The file is missing, not Parquet, or not a truth file.
     """
     from pipeline.errors import InputError
-    from pipeline.io import read_parquet_columns
+    from pipeline.parquet import read_parquet_columns
 
     _, meta = read_parquet_columns(path, [], what="truth file")
     if b"orchard:trunks" not in meta:

@@ -59,7 +59,7 @@ def _check_crs(epsg: int) -> None:
         crs = pyproj.CRS.from_epsg(epsg)
     except pyproj.exceptions.CRSError:
         raise ParameterError(f"--epsg {epsg}: not a known EPSG code") from None
-    from pipeline.io import crs_units_problem
+    from pipeline.crs import crs_units_problem
 
     if not crs.is_projected or crs_units_problem(crs):
         raise ParameterError(f"--epsg {epsg} ({crs.name}): give a projected CRS in metres, e.g. a UTM zone (28356)")

@@ -24,7 +24,7 @@ from bench.rayextract import (
     write_ray_cloud,
 )
 from bench.real_data import REAL
-from pipeline.io import read_info
+from pipeline.blockinfo import read_info
 from pipeline.synthetic.simparams import SimulationParams
 from pipeline.synthetic.terrain import ground_height
 

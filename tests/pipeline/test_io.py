@@ -14,8 +14,11 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 from hypothesis.extra import numpy as hnp
 
-from pipeline import io
+from pipeline.blockinfo import read_info
 from pipeline.errors import InputError
+from pipeline.laswriting import LasBlockWriter, write_labelled_las
+from pipeline.parquet import PointsParquetWriter, read_trees_parquet, write_trees_parquet
+from pipeline.reading import iter_points, read_points
 
 EASTING, NORTHING = 512_345.0, 6_234_567.0
 
@@ -27,7 +30,7 @@ def _cloud(n=5000, seed=0):
 
 def _write(path, xyz, **kw):
     kw.setdefault("offsets", (EASTING, NORTHING, 0.0))
-    with io.LasBlockWriter(path, **kw) as w:
+    with LasBlockWriter(path, **kw) as w:
         half = len(xyz) // 2
         w.write(xyz[:half])
         w.write(xyz[half:])
@@ -51,11 +54,11 @@ def _write(path, xyz, **kw):
 def test_round_trip_versions_and_formats(tmp_path, version, fmt, suffix):
     xyz = _cloud()
     path = _write(tmp_path / f"b{suffix}", xyz, version=version, point_format=fmt, crs_epsg=28356)
-    info = io.read_info(path)
+    info = read_info(path)
     assert (info.version, info.point_format, info.compressed) == (version, fmt, suffix == ".laz")
     assert info.n_points == len(xyz)
     assert info.origin == tuple(np.floor(xyz.min(axis=0)))
-    pts, info2 = io.read_points(path)
+    pts, info2 = read_points(path)
     assert info2 == info
     assert np.abs(pts + info.origin - xyz).max() <= 0.0005 + 1e-9  # half the 1 mm scale
     assert pyproj.CRS.from_wkt(info.crs_wkt).to_epsg() == 28356
@@ -69,13 +72,13 @@ def test_crs_is_kept(tmp_path, version, fmt, wkt):
         kinds = {type(v).__name__ for v in r.header.vlrs}
     assert ("WktCoordinateSystemVlr" in kinds) == wkt
     assert ("GeoKeyDirectoryVlr" in kinds) == (not wkt)
-    assert pyproj.CRS.from_wkt(io.read_info(path).crs_wkt).to_epsg() == 32755
+    assert pyproj.CRS.from_wkt(read_info(path).crs_wkt).to_epsg() == 32755
 
 
 def test_custom_crs_without_geotiff_encoding(tmp_path):
     custom = pyproj.CRS.from_proj4("+proj=tmerc +lat_0=0 +lon_0=151.1 +k=1 +x_0=50000 +y_0=0 +ellps=GRS80 +units=m")
     path = _write(tmp_path / "b.las", _cloud(100), version="1.2", point_format=3, crs_wkt=custom.to_wkt())
-    assert pyproj.CRS.from_wkt(io.read_info(path).crs_wkt).equals(custom)
+    assert pyproj.CRS.from_wkt(read_info(path).crs_wkt).equals(custom)
 
 
 @pytest.mark.parametrize("suffix", [".las", ".laz"])
@@ -88,7 +91,7 @@ def test_crs_in_an_extended_vlr_is_read(tmp_path, suffix):
     las.header.global_encoding.wkt = True
     path = tmp_path / f"evlr{suffix}"
     las.write(path)
-    assert pyproj.CRS.from_wkt(io.read_info(path).crs_wkt).to_epsg() == 32633
+    assert pyproj.CRS.from_wkt(read_info(path).crs_wkt).to_epsg() == 32633
 
 
 @pytest.mark.parametrize(
@@ -101,13 +104,13 @@ def test_a_crs_not_in_metres_is_refused(tmp_path, epsg, words):
     path = _write(tmp_path / "b.las", _cloud(100), version="1.4", point_format=6,
                   crs_wkt=pyproj.CRS.from_epsg(epsg).to_wkt())
     with pytest.raises(InputError, match=f"{words}.*reproject"):
-        io.read_info(path)
+        read_info(path)
 
 
 def test_a_compound_crs_in_metres_is_fine(tmp_path):
     crs = pyproj.CRS.from_user_input("EPSG:28355+5711")  # GDA94 / MGA 55 + AHD height
     path = _write(tmp_path / "b.las", _cloud(100), version="1.4", point_format=6, crs_wkt=crs.to_wkt())
-    assert pyproj.CRS.from_wkt(io.read_info(path).crs_wkt).equals(crs)
+    assert pyproj.CRS.from_wkt(read_info(path).crs_wkt).equals(crs)
 
 
 def _with_geo_keys(path, keys):
@@ -141,35 +144,35 @@ def _with_geo_keys(path, keys):
 def test_geotiff_keys_in_feet_are_refused(tmp_path, keys, words):
     # laspy reads only the CRS codes of GeoTIFF keys: both files passed as metres
     with pytest.raises(InputError, match=f"{words}.*reproject"):
-        io.read_info(_with_geo_keys(tmp_path / "b.las", keys))
+        read_info(_with_geo_keys(tmp_path / "b.las", keys))
 
 
 def test_geotiff_keys_keep_the_vertical_crs(tmp_path):
-    info = io.read_info(_with_geo_keys(tmp_path / "b.las", {3072: 28356, 4096: 5711, 4099: 9001}))
+    info = read_info(_with_geo_keys(tmp_path / "b.las", {3072: 28356, 4096: 5711, 4099: 9001}))
     crs = pyproj.CRS.from_wkt(info.crs_wkt)
     assert crs.is_compound and [c.to_epsg() for c in crs.sub_crs_list] == [28356, 5711]
-    assert io.read_info(_with_geo_keys(tmp_path / "c.las", {3072: 28356})).crs_wkt == pyproj.CRS.from_epsg(28356).to_wkt()
+    assert read_info(_with_geo_keys(tmp_path / "c.las", {3072: 28356})).crs_wkt == pyproj.CRS.from_epsg(28356).to_wkt()
 
 
 def test_a_geocentric_crs_is_refused(tmp_path):
     path = _write(tmp_path / "b.las", _cloud(100), version="1.4", point_format=6,
                   crs_wkt=pyproj.CRS.from_epsg(4978).to_wkt())
     with pytest.raises(InputError, match="Earth-centred.*reproject"):
-        io.read_info(path)
+        read_info(path)
 
 
 def test_no_crs_is_none(tmp_path):
-    assert io.read_info(_write(tmp_path / "b.las", _cloud(10))).crs_wkt is None
+    assert read_info(_write(tmp_path / "b.las", _cloud(10))).crs_wkt is None
 
 
 def test_utm_coordinates_lose_nothing(tmp_path):
     """Local float64 coordinates equal the stored integers times the scale exactly (to 1e-9 m)."""
     xyz = _cloud(20_000) + [0.0, 3_000_000.0, 0.0]  # a northing near 9.2e6 m
     path = _write(tmp_path / "b.laz", xyz, offsets=(EASTING, NORTHING + 3e6, 0.0), scales=(0.0001, 0.0001, 0.0001))
-    info = io.read_info(path)
+    info = read_info(path)
     las = laspy.read(path)
     exact = np.column_stack([las.X * 0.0001 + info.offsets[0], las.Y * 0.0001 + info.offsets[1], las.Z * 0.0001])
-    pts, _ = io.read_points(path)
+    pts, _ = read_points(path)
     assert np.abs(pts + info.origin - exact).max() < 1e-6
     assert np.abs(pts + info.origin - xyz).max() < 1e-3
 
@@ -187,21 +190,21 @@ def test_the_same_points_read_the_same_whatever_the_offset_and_scale(tmp_path):
         _write(tmp_path / "c.laz", mm, offsets=(500_000.0, 6_000_000.0, 0.0)),
         _write(tmp_path / "d.laz", mm, scales=(0.0001, 0.0001, 0.0001)),
     ]
-    local = [io.read_points(p)[0] for p in paths]
-    assert len({io.read_info(p).origin for p in paths}) == 1
-    naive = [(laspy.read(p).X * 0.001 + io.read_info(p).offsets[0] - io.read_info(p).origin[0]) for p in paths[:3]]
+    local = [read_points(p)[0] for p in paths]
+    assert len({read_info(p).origin for p in paths}) == 1
+    naive = [(laspy.read(p).X * 0.001 + read_info(p).offsets[0] - read_info(p).origin[0]) for p in paths[:3]]
     assert not all(np.array_equal(naive[0], n) for n in naive[1:])  # what the rounding is for
     for other in local[1:]:
         assert np.array_equal(local[0], other)
-    assert np.abs(local[0] + io.read_info(paths[0]).origin - mm).max() < 1e-6
+    assert np.abs(local[0] + read_info(paths[0]).origin - mm).max() < 1e-6
 
 
 def test_iter_points_chunks_cover_the_file_in_order(tmp_path):
     xyz = _cloud(10_001)
     path = _write(tmp_path / "b.laz", xyz)
     starts, total = [], 0
-    whole, info = io.read_points(path)
-    for start, chunk in io.iter_points(path, chunk_points=3000):
+    whole, info = read_points(path)
+    for start, chunk in iter_points(path, chunk_points=3000):
         assert chunk.shape[1] == 3 and chunk.dtype == np.float64 and len(chunk) <= 3000
         assert np.array_equal(chunk, whole[start : start + len(chunk)])
         starts.append(start)
@@ -211,8 +214,8 @@ def test_iter_points_chunks_cover_the_file_in_order(tmp_path):
 
 def test_custom_origin(tmp_path):
     path = _write(tmp_path / "b.las", _cloud(100))
-    pts, info = io.read_points(path, origin=(EASTING, NORTHING, 0.0))
-    pts2, _ = io.read_points(path)
+    pts, info = read_points(path, origin=(EASTING, NORTHING, 0.0))
+    pts2, _ = read_points(path)
     assert np.allclose(pts + [EASTING, NORTHING, 0.0], pts2 + info.origin, atol=1e-9)
 
 
@@ -229,7 +232,7 @@ def test_not_las(tmp_path):
     p = tmp_path / "notes.laz"
     p.write_text("hello, this is a text file\n")
     with pytest.raises(InputError) as e:
-        io.read_info(p)
+        read_info(p)
     assert "not a LAS/LAZ file" in _one_line(e)
 
 
@@ -237,7 +240,7 @@ def test_garbage_after_magic(tmp_path):
     p = tmp_path / "g.las"
     p.write_bytes(b"LASF" + np.random.default_rng(1).bytes(400))
     with pytest.raises(InputError) as e:
-        io.read_info(p)
+        read_info(p)
     _one_line(e)
 
 
@@ -245,13 +248,13 @@ def test_tiny_file(tmp_path):
     p = tmp_path / "t.las"
     p.write_bytes(b"LASF\x00")
     with pytest.raises(InputError) as e:
-        io.read_info(p)
+        read_info(p)
     assert "truncated" in _one_line(e)
 
 
 def test_missing_file(tmp_path):
     with pytest.raises(InputError, match="no such file"):
-        io.read_info(tmp_path / "nope.las")
+        read_info(tmp_path / "nope.las")
 
 
 @pytest.mark.parametrize("suffix", [".las", ".laz"])
@@ -261,7 +264,7 @@ def test_truncated(tmp_path, suffix):
     cut = tmp_path / f"cut{suffix}"
     cut.write_bytes(data[: len(data) // 2])
     with pytest.raises(InputError) as e:
-        io.read_points(cut)
+        read_points(cut)
     assert "truncated" in _one_line(e)
 
 
@@ -269,14 +272,14 @@ def test_truncated(tmp_path, suffix):
 def test_a_laz_whose_header_claims_more_points_than_its_chunks_hold(tmp_path, table):
     # a forged count (1e12 points in a file of 50,000) had the tiler plan 500,000 tasks
     path = _write(tmp_path / "b.laz", _cloud(50_000), version="1.4", point_format=6)
-    assert io.read_info(path).n_points == 50_000
+    assert read_info(path).n_points == 50_000
     _patch(path, 247, "<Q", 10**12)  # LAS 1.4: number of point records
     if table == "unknown":  # a LAZ written without a chunk table: bounded by its size
         with laspy.open(path) as reader:
             start = reader.header.offset_to_point_data
         _patch(path, start, "<q", -1)
     with pytest.raises(InputError) as e:
-        io.read_info(path)
+        read_info(path)
     assert "corrupt: the header announces 1,000,000,000,000 points but its compressed data holds at most" in _one_line(e)
 
 
@@ -285,7 +288,7 @@ def test_empty_header_only(tmp_path):
     with laspy.open(tmp_path / "e.las", mode="w", header=header):
         pass
     with pytest.raises(InputError) as e:
-        io.read_info(tmp_path / "e.las")
+        read_info(tmp_path / "e.las")
     assert "empty" in _one_line(e)
 
 
@@ -300,7 +303,7 @@ def test_bad_scale(tmp_path, value):
     path = _write(tmp_path / "b.las", _cloud(100))
     _patch(path, 131, "<d", value)  # x scale factor
     with pytest.raises(InputError) as e:
-        io.read_info(path)
+        read_info(path)
     assert "scale" in _one_line(e)
 
 
@@ -308,7 +311,7 @@ def test_absurd_offsets(tmp_path):
     path = _write(tmp_path / "b.las", _cloud(100))
     _patch(path, 155, "<d", 1e12)  # x offset
     with pytest.raises(InputError) as e:
-        io.read_info(path)
+        read_info(path)
     assert "absurd" in _one_line(e)
 
 
@@ -316,7 +319,7 @@ def test_nan_bounds(tmp_path):
     path = _write(tmp_path / "b.las", _cloud(100))
     _patch(path, 179, "<d", float("nan"))  # max x
     with pytest.raises(InputError) as e:
-        io.read_info(path)
+        read_info(path)
     assert "NaN" in _one_line(e)
 
 
@@ -325,7 +328,7 @@ def test_absurd_extent(tmp_path):
     xyz[0, 0] += 150_000.0
     path = _write(tmp_path / "b.las", xyz)
     with pytest.raises(InputError) as e:
-        io.read_info(path)
+        read_info(path)
     assert "absurd" in _one_line(e)
 
 
@@ -333,7 +336,7 @@ def test_points_outside_header_bounds(tmp_path):
     path = _write(tmp_path / "b.las", _cloud(100))
     _patch(path, 187, "<d", EASTING + 30.0)  # min x: many points now lie outside
     with pytest.raises(InputError) as e:
-        io.read_points(path)
+        read_points(path)
     assert "outside" in _one_line(e)
 
 
@@ -341,7 +344,7 @@ def test_unsupported_version(tmp_path):
     path = _write(tmp_path / "b.las", _cloud(100))
     _patch(path, 24, "<BB", 2, 0)
     with pytest.raises(InputError) as e:
-        io.read_info(path)
+        read_info(path)
     assert "version 2.0" in _one_line(e)
 
 
@@ -350,7 +353,7 @@ def test_unsupported_version(tmp_path):
 
 def test_writer_leaves_nothing_on_error(tmp_path):
     with pytest.raises(RuntimeError):
-        with io.LasBlockWriter(tmp_path / "x.laz") as w:
+        with LasBlockWriter(tmp_path / "x.laz") as w:
             w.write(_cloud(10))
             raise RuntimeError("boom")
     assert list(tmp_path.iterdir()) == []
@@ -358,7 +361,7 @@ def test_writer_leaves_nothing_on_error(tmp_path):
 
 def test_writer_extra_dims(tmp_path):
     xyz = _cloud(1000)
-    with io.LasBlockWriter(tmp_path / "x.laz", offsets=(EASTING, NORTHING, 0), extra_dims={"tree_id": np.int32, "flag": bool}) as w:
+    with LasBlockWriter(tmp_path / "x.laz", offsets=(EASTING, NORTHING, 0), extra_dims={"tree_id": np.int32, "flag": bool}) as w:
         w.write(xyz, tree_id=np.arange(1000), flag=np.arange(1000) % 2 == 0)
     las = laspy.read(tmp_path / "x.laz")
     assert np.array_equal(las.tree_id, np.arange(1000))
@@ -370,7 +373,7 @@ def test_labelled_las(tmp_path):
     src = _write(tmp_path / "b.las", xyz, point_format=3, crs_epsg=28356)
     n = len(xyz)
     labels = {"tree_id": np.arange(n) % 7, "is_wood": np.arange(n) % 3 == 0, "wood_score": np.linspace(0, 1, n, dtype=np.float32)}
-    io.write_labelled_las(src, tmp_path / "out.laz", labels=labels, chunk_points=1000)
+    write_labelled_las(src, tmp_path / "out.laz", labels=labels, chunk_points=1000)
     las = laspy.read(tmp_path / "out.laz")
     assert np.array_equal(las.tree_id, labels["tree_id"])
     assert np.array_equal(las.is_wood.astype(bool), labels["is_wood"])
@@ -397,7 +400,7 @@ def _tree_columns(k, rng):
 def test_trees_geoparquet(tmp_path, epsg):
     cols = _tree_columns(12, np.random.default_rng(3))
     wkt = pyproj.CRS.from_epsg(epsg).to_wkt() if epsg else None
-    io.write_trees_parquet(tmp_path / "trees.parquet", cols, crs_wkt=wkt)
+    write_trees_parquet(tmp_path / "trees.parquet", cols, crs_wkt=wkt)
     table = pq.read_table(tmp_path / "trees.parquet")
     geo = json.loads(table.schema.metadata[b"geo"])
     assert geo["version"] == "1.1.0" and geo["primary_column"] == "geometry"
@@ -410,13 +413,13 @@ def test_trees_geoparquet(tmp_path, epsg):
     assert col["bbox"] == [cols["trunk_x"].min(), cols["trunk_y"].min(), cols["trunk_x"].max(), cols["trunk_y"].max()]
     for wkb, x, y in zip(table.column("geometry").to_pylist(), cols["trunk_x"], cols["trunk_y"]):
         assert struct.unpack("<BIdd", wkb) == (1, 1, x, y)
-    back, _ = io.read_trees_parquet(tmp_path / "trees.parquet")
+    back, _ = read_trees_parquet(tmp_path / "trees.parquet")
     for name, values in cols.items():
         assert back[name].dtype == values.dtype and np.array_equal(back[name], values)
 
 
 def test_trees_geoparquet_empty(tmp_path):
-    io.write_trees_parquet(tmp_path / "t.parquet", _tree_columns(0, np.random.default_rng(0)), crs_wkt=None)
+    write_trees_parquet(tmp_path / "t.parquet", _tree_columns(0, np.random.default_rng(0)), crs_wkt=None)
     assert pq.read_table(tmp_path / "t.parquet").num_rows == 0
 
 
@@ -433,8 +436,8 @@ def test_trees_parquet_round_trip_property(tmp_path_factory, k, seed, xs):
     path = tmp_path_factory.mktemp("trees") / "trees.parquet"
     cols = _tree_columns(k, np.random.default_rng(seed))
     cols["trunk_x"] = xs[:k]
-    io.write_trees_parquet(path, cols, crs_wkt=None)
-    back, geo = io.read_trees_parquet(path)
+    write_trees_parquet(path, cols, crs_wkt=None)
+    back, geo = read_trees_parquet(path)
     for name, values in cols.items():
         assert np.array_equal(back[name], values)
     wkb = pq.read_table(path).column("geometry").to_pylist()
@@ -451,7 +454,7 @@ def test_points_parquet_round_trip_property(tmp_path_factory, sizes, seed, score
     path = tmp_path_factory.mktemp("points") / "points.parquet"
     rng = np.random.default_rng(seed)
     parts = []
-    with io.PointsParquetWriter(path, row_group_size=64) as w:
+    with PointsParquetWriter(path, row_group_size=64) as w:
         for i, m in enumerate(sizes):
             part = (
                 rng.integers(0, 2**64 - 1, m, dtype=np.uint64, endpoint=True),
@@ -472,7 +475,7 @@ def test_points_parquet_round_trip_property(tmp_path_factory, sizes, seed, score
 
 def test_points_writer_aborts_cleanly(tmp_path):
     with pytest.raises(ValueError):
-        with io.PointsParquetWriter(tmp_path / "points.parquet") as w:
+        with PointsParquetWriter(tmp_path / "points.parquet") as w:
             w.write([1], [1], [True], [False], [0.5])
             raise ValueError("stop")
     assert list(tmp_path.iterdir()) == []
@@ -481,7 +484,7 @@ def test_points_writer_aborts_cleanly(tmp_path):
 def test_points_parquet_stores_the_point_index_delta_encoded(tmp_path):
     path = tmp_path / "points.parquet"
     n = 100_000
-    with io.PointsParquetWriter(path) as w:
+    with PointsParquetWriter(path) as w:
         w.write(np.arange(n), np.zeros(n, np.int64), np.zeros(n, bool), np.zeros(n, bool), np.zeros(n, np.float32))
     column = pq.ParquetFile(path).metadata.row_group(0).column(0)
     assert column.path_in_schema == "point_index" and "DELTA_BINARY_PACKED" in column.encodings
@@ -510,7 +513,7 @@ def test_labelled_las_keeps_scaled_extra_dimensions(tmp_path):
     las.plain = np.arange(n, dtype=np.uint16)
     src = tmp_path / "extra.laz"
     las.write(src)
-    io.write_labelled_las(src, tmp_path / "out.laz", labels=_labels(n), chunk_points=700)
+    write_labelled_las(src, tmp_path / "out.laz", labels=_labels(n), chunk_points=700)
     out, orig = laspy.read(tmp_path / "out.laz"), laspy.read(src)
     assert np.array_equal(out.points.array["scaled"], orig.points.array["scaled"])  # the stored integers
     np.testing.assert_allclose(out.scaled, orig.scaled)  # and what they mean
@@ -539,7 +542,7 @@ def test_labelled_las_keeps_an_inputs_own_tree_id_and_the_files_identity(tmp_pat
     las.input_tree_id = np.arange(n)
     src = tmp_path / "own.laz"
     las.write(src)
-    io.write_labelled_las(src, tmp_path / "out.laz", labels=_labels(n), chunk_points=600)
+    write_labelled_las(src, tmp_path / "out.laz", labels=_labels(n), chunk_points=600)
     out = laspy.read(tmp_path / "out.laz")
     assert np.array_equal(out.tree_id, _labels(n)["tree_id"])  # ours
     assert np.array_equal(out.input_tree_id_2, np.arange(n) % 200)  # theirs, under a free name
@@ -557,8 +560,8 @@ def test_labelled_las_of_a_las_1_0_or_1_1_block(tmp_path, minor):
     with open(src, "r+b") as fh:
         fh.seek(25)  # version minor
         fh.write(bytes([minor]))
-    assert io.read_info(src).version == f"1.{minor}"
-    io.write_labelled_las(src, tmp_path / "out.laz", labels=_labels(len(xyz)))
+    assert read_info(src).version == f"1.{minor}"
+    write_labelled_las(src, tmp_path / "out.laz", labels=_labels(len(xyz)))
     out = laspy.read(tmp_path / "out.laz")
     assert str(out.header.version) == "1.2"
     orig = laspy.read(src)
@@ -587,7 +590,7 @@ def test_labelled_las_of_a_block_with_undocumented_extra_bytes(tmp_path):
     src.write_bytes(bytes(raw))
     orig = laspy.read(src)
     assert "ExtraBytes" in list(orig.point_format.extra_dimension_names)
-    io.write_labelled_las(src, tmp_path / "out.laz", labels=_labels(n))
+    write_labelled_las(src, tmp_path / "out.laz", labels=_labels(n))
     out = laspy.read(tmp_path / "out.laz")
     for i in range(10):
         assert np.array_equal(out[f"ExtraBytes_{i}"], orig.points.array["ExtraBytes"][:, i])

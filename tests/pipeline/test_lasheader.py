@@ -16,8 +16,10 @@ import pytest
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
-from pipeline import io, lasheader
+from pipeline import lasheader
+from pipeline.blockinfo import read_info
 from pipeline.errors import InputError
+from pipeline.reading import read_points
 
 EASTING, NORTHING = 512_345.0, 6_234_567.0
 REAL = Path(__file__).resolve().parents[3] / "shared" / "data" / "real"
@@ -57,7 +59,7 @@ def _refused(path: Path) -> str:
     tracemalloc.start()
     try:
         with pytest.raises(InputError) as e:
-            io.read_info(path)
+            read_info(path)
         peak = tracemalloc.get_traced_memory()[1]
     finally:
         tracemalloc.stop()
@@ -192,12 +194,12 @@ def test_a_forged_laz_chunk_table_offset(tmp_path, where, words):
 def test_a_laz_whose_chunk_table_offset_is_in_its_last_8_bytes(tmp_path):
     # what a LAZ writer that could not seek back leaves: -1 first, the offset at the end
     path = _block(tmp_path / "b.laz", version="1.2", fmt=1, n=3000)
-    expected, _ = io.read_points(path)
+    expected, _ = read_points(path)
     start, table = lasheader.check_header(path).offset_to_point_data, _chunk_table(path)
     _patch(path, start, "q", -1)
     path.write_bytes(path.read_bytes() + struct.pack("<q", table))
     assert lasheader.check_header(path).chunk_table == table
-    points, info = io.read_points(path)
+    points, info = read_points(path)
     assert info.n_points == 3000 and np.array_equal(points, expected)
 
 
@@ -249,7 +251,7 @@ def test_valid_blocks_pass_and_agree_with_laspy(tmp_path, version, fmt, suffix, 
     assert layout.offset_to_point_data == header.offset_to_point_data
     assert [(r.user_id, r.record_id) for r in layout.vlrs] == [(v.user_id, v.record_id) for v in header.vlrs]
     assert len(layout.evlrs) == int(evlr)
-    info = io.read_info(path)
+    info = read_info(path)
     assert info.n_points == 300
     assert (info.crs_wkt is not None) == evlr  # the CRS is still found in its EVLR
 
@@ -260,7 +262,7 @@ def test_real_blocks_pass(path):
     layout = lasheader.check_header(path)
     with laspy.open(path) as reader:
         assert layout.point_count == reader.header.point_count > 0
-    assert io.read_info(path).n_points == layout.point_count
+    assert read_info(path).n_points == layout.point_count
 
 
 def test_the_check_reads_a_bounded_number_of_bytes(tmp_path, monkeypatch):
@@ -372,7 +374,7 @@ def _fuzz_one(tmp_dir: Path, blob: bytes) -> None:
     tracemalloc.start()
     try:
         try:
-            info = io.read_info(path)
+            info = read_info(path)
         except InputError as exc:
             msg = str(exc)
             assert "\n" not in msg and msg.startswith("fuzz.laz: "), msg

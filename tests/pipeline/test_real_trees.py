@@ -5,10 +5,10 @@ import numpy as np
 import pytest
 
 from bench.real_data import REAL, adtree_row
-from pipeline import io
 from pipeline.evaluation.scores import score_labels
 from pipeline.params import PipelineParams
 from pipeline.process import process_points
+from pipeline.reading import read_points
 
 pytestmark = pytest.mark.skipif(not (REAL / "AdTree").is_dir(), reason="../shared/data/real/AdTree not present")
 
@@ -32,7 +32,7 @@ def test_archi_thick_trunk_is_found():
     # aRchi Tree_1's 0.6 m trunk is one smooth planar patch of 188 voxels, 58 % of its
     # low material; counted as a box face, the tree was dropped and only branches
     # touching the ground became trunks
-    pts, _ = io.read_points(REAL / "aRchi" / "Tree_1_point_cloud.las")
+    pts, _ = read_points(REAL / "aRchi" / "Tree_1_point_cloud.las")
     low = pts[:, 2] < pts[:, 2].min() + 1.0
     stem = np.median(pts[low, :2], axis=0)
     r = process_points(pts, params=PipelineParams())
@@ -65,7 +65,7 @@ def test_pine_boles_are_no_trellis_posts():
     # the pines of TreeLS's plot stand straight, unbranched and 7-8 cm thick to 3 m: the
     # post test took two of them for posts (10 -> 9 stems) while it followed a bole only
     # on a fixed vertical axis; a leaning bole goes on into the crown (pipeline.posts)
-    pts, _ = io.read_points(REAL / "TreeLS" / "pine_plot.laz")
+    pts, _ = read_points(REAL / "TreeLS" / "pine_plot.laz")
     plain = process_points(pts, params=PipelineParams())
     with_posts = process_points(pts, params=PipelineParams.model_validate({"trunks": {"max_post_radius": 0.08}}))
     assert plain.n_trees == with_posts.n_trees == 10

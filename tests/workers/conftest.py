@@ -13,7 +13,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from pipeline.io import LasBlockWriter
+from pipeline.laswriting import LasBlockWriter
 from pipeline.synthetic.simparams import SimulationParams
 from pipeline.synthetic.truth import write_simulation
 

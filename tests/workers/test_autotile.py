@@ -99,7 +99,7 @@ PARAMS = {"segment": {"max_crown_radius": 3.0}}
 
 @pytest.fixture(scope="module")
 def block(tmp_path_factory):
-    from pipeline.io import read_info
+    from pipeline.blockinfo import read_info
     from pipeline.synthetic.simparams import SimulationParams
     from pipeline.synthetic.truth import write_simulation
 

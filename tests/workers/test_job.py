@@ -304,7 +304,7 @@ def test_a_failed_write_leaves_the_previous_outputs_whole(small_block, tmp_path,
 
     from workers import job
 
-    monkeypatch.setattr(job.blockio, "write_trees_parquet", disk_full)
+    monkeypatch.setattr(job, "write_trees_parquet", disk_full)
     with pytest.raises(ParameterError, match="cannot write the outputs .* No space left"):
         run_job(JobSpec(str(small_block), str(out), params=PipelineParams.model_validate({"matter": {"threshold": 0.9}})))
     assert {p.name: p.read_bytes() for p in out.iterdir()} == before  # no staging folder left either
@@ -316,7 +316,7 @@ def test_a_failed_write_leaves_the_previous_outputs_whole(small_block, tmp_path,
 
 @pytest.mark.slow
 def test_a_partial_result_gives_no_tree_the_points_of_a_failed_tiles_tree(small_block, tmp_path):
-    from pipeline.io import read_info
+    from pipeline.blockinfo import read_info
     from pipeline.tiling import core_tile
     from workers.job import _plan
 

@@ -59,7 +59,8 @@ def test_process_a_block_with_stray_points_kilometres_away(small_block, tmp_path
     # a GNSS glitch: three returns 30-40 km from the orchard. Before, one ground raster
     # spanning them needed hundreds of GiB (MemoryError), and 10 m tiles over the 40 km
     # box (12 M, a few dozen of them holding points) were refused as more than 1 M tiles
-    from pipeline.io import LasBlockWriter, read_points
+    from pipeline.laswriting import LasBlockWriter
+    from pipeline.reading import read_points
 
     xyz, info = read_points(small_block)
     xyz = xyz + info.origin
@@ -75,7 +76,7 @@ def test_process_a_block_with_stray_points_kilometres_away(small_block, tmp_path
 
 
 def _las(path, n=1000, **kw):
-    from pipeline.io import LasBlockWriter
+    from pipeline.laswriting import LasBlockWriter
 
     rng = np.random.default_rng(0)
     with LasBlockWriter(path, offsets=(500_000.0, 6_950_000.0, 0.0), **kw) as w:
@@ -132,7 +133,7 @@ def test_bad_input(tmp_path, capsys, case, tiled):
 @pytest.mark.parametrize("extra", [[], ["--tile-size", 5000]])
 def test_a_block_too_wide_for_one_ground_raster(tmp_path, capsys, extra):
     # a 1.5 km diagonal line of points with no gap: one raster would need 36 M cells
-    from pipeline.io import LasBlockWriter
+    from pipeline.laswriting import LasBlockWriter
 
     t = np.arange(0.0, 1500.0, 2.0)
     path = tmp_path / "line.laz"
@@ -281,7 +282,7 @@ def test_buffer_without_tiles_is_refused(small_block, tmp_path, capsys, argv):
 def test_a_failing_tile_prints_one_message_not_worker_tracebacks(tmp_path):
     # the dask workers are other processes writing to the same terminal: each attempt of
     # a failing tile used to print a "Compute Failed ... Traceback" block there
-    from pipeline.io import LasBlockWriter
+    from pipeline.laswriting import LasBlockWriter
 
     t = np.arange(0.0, 1500.0, 2.0)
     path = tmp_path / "line.laz"

@@ -8,9 +8,10 @@ import laspy
 import numpy as np
 import pytest
 
-from pipeline import io as blockio
+from pipeline.blockinfo import read_info
 from pipeline.errors import ParameterError
-from pipeline.io import LasBlockWriter, read_info, read_points
+from pipeline.laswriting import LasBlockWriter
+from pipeline.reading import read_points, read_raw_range, to_local
 from pipeline.tiling import plan_grid
 from workers.workstore import WorkStore
 from workers.tiler import INDEX_KEY, pdal_available, read_tile, tile_block
@@ -40,7 +41,7 @@ def test_tiles_are_exact(small_block, tmp_path, url):
         idx = rec["index"].astype(np.int64)
         assert np.all(np.diff(idx) > 0)
         # the stored integers give exactly the coordinates of an untiled read
-        local = blockio.to_local(np.column_stack([rec["X"], rec["Y"], rec["Z"]]), info)
+        local = to_local(np.column_stack([rec["X"], rec["Y"], rec["Z"]]), info)
         assert np.array_equal(local, xyz[idx])
         # core flags: half-open core bounds
         x0, y0, x1, y1 = t["core"]
@@ -118,13 +119,13 @@ def test_parallel_tiling_on_dask_gives_the_same_tiles(tmp_path):
     rng = np.random.default_rng(4)
     xyz = np.column_stack([rng.uniform(0, 30, 50_000), rng.uniform(0, 20, 50_000), rng.uniform(0, 3, 50_000)]) + [500000, 6950000, 100]
     fixed = tmp_path / "b.laz"
-    with blockio.LasBlockWriter(fixed, crs_epsg=28356) as w:
+    with LasBlockWriter(fixed, crs_epsg=28356) as w:
         w.write(xyz)
     variable = write_variable_chunk_laz(fixed, tmp_path / "v.laz", [9_000, 1, 17_000, 4_999, 19_000])
     assert read_info(fixed).seekable and not read_info(variable).seekable
     with LocalCluster(n_workers=2, threads_per_worker=1, processes=True, dashboard_address=None) as cluster, Client(cluster) as client:
         for path in (fixed, variable):
-            info = blockio.read_info(path)
+            info = read_info(path)
             grid = plan_grid(info.mins, info.maxs, tile_size=10.0, buffer=2.0, grid_origin=(500000.0, 6950000.0), reach=1.0)
             seq = WorkStore(str(tmp_path / f"seq-{path.stem}"))
             par = WorkStore(str(tmp_path / f"par-{path.stem}"))
@@ -147,6 +148,6 @@ def test_a_range_of_a_laz_with_variable_size_chunks_is_the_same_points(small_blo
     assert not info.seekable
     stored = laspy.read(path).points.array
     for start in (0, 39_999, 40_001, 65_003, n - 10):
-        got = blockio.read_raw_range(path, start, 20_000, info=info)
+        got = read_raw_range(path, start, 20_000, info=info)
         assert np.array_equal(got[:, 0], stored["X"][start : start + 20_000]), start
         assert np.array_equal(got[:, 2], stored["Z"][start : start + 20_000]), start

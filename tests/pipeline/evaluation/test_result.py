@@ -13,7 +13,7 @@ from pipeline.evaluation.scores import v_measure, wood_f1
 
 
 def _write_result(folder, trunks_xy, point_index, tree_id, is_wood, diameters=None):
-    from pipeline.io import PointsParquetWriter, write_trees_parquet
+    from pipeline.parquet import PointsParquetWriter, write_trees_parquet
     from pipeline.metrics import TREE_COLUMNS
 
     folder.mkdir()

@@ -27,7 +27,8 @@ def gappy():
 
 
 def test_las_and_truth_round_trip(tmp_path, small):
-    from pipeline.io import read_info, read_points
+    from pipeline.blockinfo import read_info
+    from pipeline.reading import read_points
 
     las, truth = tmp_path / "block.laz", tmp_path / "truth.parquet"
     summary = write_simulation(small, str(las), str(truth))
@@ -48,7 +49,7 @@ def test_las_and_truth_round_trip(tmp_path, small):
 
 
 def test_streamed_write_equals_in_memory_write(tmp_path, small):
-    from pipeline.io import read_points
+    from pipeline.reading import read_points
 
     write_simulation(SMALL, str(tmp_path / "s.laz"), str(tmp_path / "s.parquet"))
     write_simulation(small, str(tmp_path / "m.laz"), str(tmp_path / "m.parquet"))

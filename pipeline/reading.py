@@ -1,0 +1,193 @@
+"""Reading the points of a LAS/LAZ block in bounded-memory chunks.
+
+Points are returned in float64 relative to a local origin (``floor`` of the header
+minimum), so UTM-sized coordinates lose nothing: ``local = X * scale + (offset - origin)``
+where ``X`` is the stored integer, rounded to whole micrometres
+(:data:`LOCAL_STEPS_PER_M`), so that a point gets the same float whatever scale and
+offset its file stores it with.
+"""
+
+from __future__ import annotations
+
+from typing import Iterator
+
+import laspy
+import numpy as np
+
+from pipeline.blockinfo import BlockInfo, input_error, one_line, read_info
+from pipeline.errors import InputError
+
+#: decode only X, Y, Z of LAZ points (the other fields' layers are skipped)
+_XYZ_ONLY = laspy.DecompressionSelection.XY_RETURNS_CHANNEL | laspy.DecompressionSelection.Z
+
+
+def iter_raw(path, *, chunk_points: int = 2_000_000, info: BlockInfo | None = None) -> Iterator[tuple[int, np.ndarray]]:
+    """Stream the stored integer coordinates of a block in chunks.
+
+    Yields
+    ------
+    start : int
+        Index of the chunk's first point in the file.
+    ints : (m, 3) int32
+        The stored X, Y, Z; coordinates are ``ints * scales + offsets``.
+
+    Raises
+    ------
+    InputError
+        The point data is truncated or corrupt.
+    """
+    info = info or read_info(path)
+    start = 0
+    try:
+        with laspy.open(info.path, read_evlrs=False, decompression_selection=_XYZ_ONLY) as reader:
+            for chunk in reader.chunk_iterator(int(chunk_points)):
+                arr = chunk.array
+                m = len(arr)
+                if m == 0:
+                    break
+                yield start, _stored_xyz(arr)
+                start += m
+    except (InputError, KeyboardInterrupt, SystemExit, GeneratorExit):
+        raise
+    except BaseException as exc:  # lazrs panics (pyo3's PanicException is no Exception) on corrupt chunks
+        raise input_error(info.path, f"corrupt or truncated point data after point {start} ({one_line(exc)})") from None
+    if start < info.n_points:
+        raise input_error(info.path, f"truncated: the header announces {info.n_points} points but only {start} could be read")
+
+
+def _stored_xyz(arr) -> np.ndarray:
+    ints = np.empty((len(arr), 3), dtype=np.int32)
+    ints[:, 0] = arr["X"]
+    ints[:, 1] = arr["Y"]
+    ints[:, 2] = arr["Z"]
+    return ints
+
+
+def read_raw_range(path, start: int, count: int, *, info: BlockInfo | None = None) -> np.ndarray:
+    """The stored integer X, Y, Z of points ``[start, start + count)``, shape (m, 3) int32.
+
+    Seeks in the file (LAZ chunk table), so workers can each read their own range of one
+    block in parallel; a file that is not ``info.seekable`` is decoded from its start.
+
+    Raises
+    ------
+    InputError
+        The range lies beyond the points the file holds, or its data is corrupt.
+    """
+    info = info or read_info(path)
+    count = max(0, min(int(count), info.n_points - int(start)))
+    try:
+        with laspy.open(info.path, read_evlrs=False, decompression_selection=_XYZ_ONLY) as reader:
+            if info.seekable:
+                reader.seek(int(start))
+            else:  # decode and drop the points before the range
+                skip = int(start)
+                while skip > 0:
+                    got = len(reader.read_points(min(skip, 1_000_000)))
+                    if got == 0:
+                        break
+                    skip -= got
+            arr = reader.read_points(count).array
+    except (KeyboardInterrupt, SystemExit):
+        raise
+    except BaseException as exc:  # lazrs panics (pyo3's PanicException is no Exception) on corrupt chunks
+        raise input_error(info.path, f"corrupt or truncated point data after point {start} ({one_line(exc)})") from None
+    if len(arr) < count:
+        raise input_error(info.path, f"truncated: the header announces {info.n_points} points but only {start + len(arr)} could be read")
+    return _stored_xyz(arr)
+
+
+LOCAL_STEPS_PER_M = 1e6
+"""Local coordinates are whole multiples of ``1 / LOCAL_STEPS_PER_M`` [m] (1 µm).
+``X * scale + (offset - origin)`` alone depends in its last bit on how a file stores a
+point, so the same point re-saved with another offset or scale could fall on the other
+side of a voxel or ground-cell boundary. Rounding to 1 µm gives one float per point;
+no scale in use comes near it."""
+
+
+def to_local(ints: np.ndarray, info: BlockInfo, origin=None, *, out: np.ndarray | None = None) -> np.ndarray:
+    """Local float64 coordinates (m, 3) [m] of stored integers: ``X * scale + (offset - origin)``
+    rounded to whole micrometres (:data:`LOCAL_STEPS_PER_M`; written into ``out``, an (m, 3)
+    float64 array, when given)."""
+    org = np.asarray(info.origin if origin is None else origin, dtype=np.float64)
+    scale = np.asarray(info.scales, dtype=np.float64)
+    shift = np.asarray(info.offsets, dtype=np.float64) - org
+    xyz = np.empty(ints.shape, dtype=np.float64) if out is None else out
+    for j in range(3):
+        col = xyz[:, j]
+        np.multiply(ints[:, j], scale[j], out=col, casting="unsafe")
+        col += shift[j]
+        col *= LOCAL_STEPS_PER_M
+        np.rint(col, out=col)
+        col /= LOCAL_STEPS_PER_M
+    return xyz
+
+
+def check_bounds(xyz: np.ndarray, info: BlockInfo, *, start: int = 0, origin=None) -> None:
+    """Raise InputError if local points (m, 3) lie more than 1 m outside the header's bounds."""
+    org = np.asarray(info.origin if origin is None else origin, dtype=np.float64)
+    lo = np.asarray(info.mins) - org - 1.0
+    hi = np.asarray(info.maxs) - org + 1.0
+    if xyz.shape[0] == 0 or all(xyz[:, d].min() >= lo[d] and xyz[:, d].max() <= hi[d] for d in range(3)):
+        return  # the common case, in two passes per column instead of a full mask
+    bad = (xyz < lo) | (xyz > hi)
+    if bad.any():
+        i = int(np.flatnonzero(bad.any(axis=1))[0])
+        raise input_error(
+            info.path,
+            f"point {start + i} lies outside the header's bounds ({(xyz[i] + org).tolist()}); the file is corrupt",
+        )
+
+
+def iter_points(path, *, chunk_points: int = 2_000_000, origin=None, info: BlockInfo | None = None) -> Iterator[tuple[int, np.ndarray]]:
+    """Stream the points of a block in chunks.
+
+    Parameters
+    ----------
+    path : str or Path
+    chunk_points : int
+        Points per chunk; memory is bounded by this, not by the file size.
+    origin : (3,) float, optional
+        Local origin [m]; default ``read_info(path).origin``.
+    info : BlockInfo, optional
+        Already-read header information (skips a second header check).
+
+    Yields
+    ------
+    start : int
+        Index of the chunk's first point in the file.
+    xyz : (m, 3) float64
+        Local coordinates [m]: ``X * scale + (offset - origin)``.
+
+    Raises
+    ------
+    InputError
+        The file is broken, the point data is truncated or corrupt, or points lie at
+        absurd coordinates (outside the header's bounds).
+    """
+    info = info or read_info(path)
+    for start, ints in iter_raw(path, chunk_points=chunk_points, info=info):
+        yield start, _checked_local(ints, info, start, origin)
+
+
+def _checked_local(ints: np.ndarray, info: BlockInfo, start: int, origin, out: np.ndarray | None = None) -> np.ndarray:
+    xyz = to_local(ints, info, origin, out=out)
+    check_bounds(xyz, info, start=start, origin=origin)
+    return xyz
+
+
+def read_points(path, *, origin=None, chunk_points: int = 2_000_000) -> tuple[np.ndarray, BlockInfo]:
+    """Read a whole block.
+
+    Returns
+    -------
+    xyz : (n, 3) float64
+        Local coordinates [m] (``xyz + info.origin`` when ``origin`` is None).
+    info : BlockInfo
+    """
+    info = read_info(path)
+    out = np.empty((info.n_points, 3), dtype=np.float64)
+    for start, ints in iter_raw(path, chunk_points=chunk_points, info=info):
+        _checked_local(ints, info, start, origin, out=out[start : start + len(ints)])
+    return out, info
+
