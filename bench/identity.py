@@ -6,13 +6,15 @@
 Generates a few blocks with the command line (a vase block in the paper's setting, a
 tall-spindle hedgerow with missing trees and replants, a hedge with a trellis), runs
 ``orchard process`` on each untiled and tiled (in-process and on the embedded dask
-cluster), and records the SHA-256 of every file each run writes. Blocks are reused from
-``--work`` between runs, so both sides read the same input bytes.
+cluster), and records the SHA-256 of every file each run writes. The blocks live in one
+shared folder (``BLOCKS``, made once under a lock) whatever ``--work`` is: outputs record
+their input's path, so both sides must read the same file.
 """
 
 from __future__ import annotations
 
 import argparse
+import fcntl
 import hashlib
 import json
 import shutil
@@ -36,6 +38,9 @@ RUNS: dict[str, list[str]] = {
 }
 """``orchard process`` options of each run."""
 
+BLOCKS = Path("/tmp/orchard-identity")
+"""Where the generated blocks are (outputs store their input's path)."""
+
 
 def _sha256(path: Path) -> str:
     return hashlib.sha256(path.read_bytes()).hexdigest()
@@ -44,12 +49,17 @@ def _sha256(path: Path) -> str:
 def measure(work: Path) -> dict[str, dict[str, str]]:
     """Run every scene under every run; the hash of each output file by ``scene/run``."""
     work.mkdir(parents=True, exist_ok=True)
+    BLOCKS.mkdir(parents=True, exist_ok=True)
     manifest: dict[str, dict[str, str]] = {}
     for scene, options in SCENES.items():
-        block = work / f"{scene}.laz"
-        if not block.exists():
-            subprocess.run(["orchard", "simulate", "--out", str(block), "--truth", str(work / f"{scene}.truth.parquet"),
-                            *options], check=True, stdout=subprocess.DEVNULL)
+        block = BLOCKS / f"{scene}.laz"
+        with open(BLOCKS / ".lock", "w") as lock:
+            fcntl.flock(lock, fcntl.LOCK_EX)
+            if not block.exists():
+                tmp = BLOCKS / f".{scene}.tmp.laz"
+                subprocess.run(["orchard", "simulate", "--out", str(tmp), "--truth", str(BLOCKS / f"{scene}.truth.parquet"),
+                                *options], check=True, stdout=subprocess.DEVNULL)
+                tmp.rename(block)
         for run, extra in RUNS.items():
             out = work / f"{scene}-{run}"
             shutil.rmtree(out, ignore_errors=True)
@@ -80,7 +90,7 @@ def main(argv: list[str] | None = None) -> int:
     g = p.add_mutually_exclusive_group(required=True)
     g.add_argument("--write", type=Path, metavar="MANIFEST", help="write the hashes to this JSON file")
     g.add_argument("--compare", type=Path, metavar="MANIFEST", help="compare with the hashes in this JSON file")
-    p.add_argument("--work", type=Path, default=Path("/tmp/orchard-identity"), help="blocks and outputs (reused)")
+    p.add_argument("--work", type=Path, default=Path("/tmp/orchard-identity-out"), help="folder for the outputs")
     args = p.parse_args(argv)
     manifest = measure(args.work)
     if args.write:
