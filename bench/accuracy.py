@@ -32,7 +32,8 @@ def score_block(work: str, noise: float, spacing: float, seed: int, baselines: b
     from pipeline.params import PipelineParams
     from pipeline.reading import read_points
     from pipeline.synthetic.truth import read_truth
-    from workers.job import JobSpec, run_job
+    from workers.job import run_job
+    from workers.jobspec import JobSpec
 
     work_dir = Path(work)
     block = make_block(work_dir, f"acc-n{noise:g}-s{spacing:g}", accuracy_params(noise, spacing, seed))

@@ -50,7 +50,8 @@ def _warm_up() -> bool:
 
 def run_job_measure(cfg: dict) -> dict:
     from pipeline.params import PipelineParams
-    from workers.job import JobSpec, run_job
+    from workers.job import run_job
+    from workers.jobspec import JobSpec
 
     params = PipelineParams.model_validate(cfg.get("params") or {})
     repeats = int(cfg.get("repeats", 1))

@@ -23,7 +23,8 @@ import numpy as np
 from pipeline.evaluation.result import evaluate_result
 from pipeline.synthetic.simparams import SimulationParams
 from pipeline.synthetic.truth import write_simulation
-from workers.job import JobSpec, run_job
+from workers.job import run_job
+from workers.jobspec import JobSpec
 
 #: planting systems: in-row spacing and row spacing [m] of each, and the tree form
 SYSTEMS: dict[str, dict] = {

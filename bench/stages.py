@@ -1,7 +1,7 @@
 """Time the pipeline's stages from the outside.
 
 The kernels never time themselves (STYLE.md). To split a run by stage, the names
-that the orchestration code calls (`pipeline.process`, `workers.job` and the
+that the orchestration code calls (`pipeline.process`, `workers.job` and its rooms, and the
 modules they call through, such as `pipeline.woodleaf` and `pipeline.reading`) are
 temporarily replaced by timing wrappers, keyed by the module the function comes
 from. Only the outermost wrapped call is timed, so a kernel calling another kernel
@@ -37,9 +37,9 @@ STAGE_OF_MODULE = {
 #: the order stages are reported in
 STAGES = ("IO", "ground", "graph", "trunks", "segmentation", "matter", "metrics", "other")
 #: namespaces whose references are wrapped
-CALLERS = ("pipeline.process", "workers.job")
+CALLERS = ("pipeline.process", "workers.job", "workers.tasks", "workers.outputs", "workers.replay")
 #: functions of the callers that are pure I/O
-EXTRA_IO = {("workers.job", "_write_outputs")}
+EXTRA_IO = {("workers.outputs", "write_outputs")}
 
 
 class StageTimer:

@@ -43,9 +43,9 @@ class _Parser(argparse.ArgumentParser):
 
 def _run_failed(exc: BaseException) -> bool:
     """True for a run that failed rather than its input (a tile that kept failing, a lost
-    cluster, a cancel). Only a job run raises these, and it has imported workers.job:
+    cluster, a cancel). Only a job run raises these, and it has imported workers.jobspec:
     the command line need not import it (and dask) to tell."""
-    job = sys.modules.get("workers.job")
+    job = sys.modules.get("workers.jobspec")
     return job is not None and isinstance(exc, (job.TileFailed, job.ClusterLost, job.JobCancelled))
 
 

@@ -328,7 +328,8 @@ class Runner(threading.Thread):
         t0 = time.perf_counter()
         block = None
         try:
-            from workers.job import JobSpec, run_job
+            from workers.job import run_job
+            from workers.jobspec import JobSpec
 
             block = self.store.get_block(None, job["block_id"])
             tiling = job.get("tiling") or {}

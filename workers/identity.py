@@ -34,7 +34,7 @@ def identity() -> dict:
 
     answer: dict = {"host": platform.node(), "python": sys.executable}
     try:
-        import workers.job  # noqa: F401 - the tasks' module, and everything it imports
+        import workers.tasks  # noqa: F401 - the tasks' module, and everything it imports
         from pipeline.params import PipelineParams
     except Exception as exc:  # noqa: BLE001 - any failure to load is the answer
         answer["error"] = f"{type(exc).__name__}: {exc}"

@@ -20,10 +20,13 @@ import numpy as np
 
 from pipeline.errors import ParameterError
 
+#: The job record: what the job was given, its plan and its failed tiles.
+JOB_KEY = "job.json"
+
 #: What a work store writes at its root: the job record, the tiles, the tile results and
 #: the attempt log (plus hidden temporary files of writes in progress). Nothing else
 #: there is the store's to delete, and these only in a folder the store has marked.
-OWN_ENTRIES = ("job.json", "tiles", "results", "attempts")
+OWN_ENTRIES = (JOB_KEY, "tiles", "results", "attempts")
 
 #: The mark a work store leaves in its root folder: only a marked folder's entries of the
 #: names above are the store's (a user's own "tiles" folder is not).

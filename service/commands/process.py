@@ -165,8 +165,7 @@ def _check_same_job(args: argparse.Namespace) -> None:
     job in ``work`` was started with (--rerun-tile and --resume go on with that job: they
     were ignored without a word)."""
     from pipeline.params import PipelineParams
-    from workers.job import JOB_KEY
-    from workers.workstore import WorkStore
+    from workers.workstore import JOB_KEY, WorkStore
 
     work, input_path = args.work, args.input
     store = WorkStore(work)
@@ -195,7 +194,9 @@ def _check_same_job(args: argparse.Namespace) -> None:
 
 def run(args: argparse.Namespace) -> int:
     from pipeline.tiling import BudgetError
-    from workers.job import JobSpec, auto_tiled, check_job, finish_job, resume_job, run_job, run_tile
+    from workers.job import run_job
+    from workers.jobspec import JobSpec, auto_tiled, check_job
+    from workers.replay import finish_job, resume_job, run_tile
 
     params = pipeline_params_from_args(args)
     _check_cluster_options(args)

@@ -253,15 +253,15 @@ def test_a_long_empty_stretch_is_no_run_of_empty_slots():
 def test_trunks_between_rows_give_their_material_to_the_nearest_tree():
     from pipeline.merge import GlobalTrunks
     from pipeline.params import PipelineParams
-    from workers.job import _without_trunks_between_rows
+    from workers.outputs import without_trunks_between_rows
 
     xy, *_ = plan(n_rows=3, per_row=6, s=2.5, r=4.5, jitter=0.0, origin=(0.0, 0.0))
     false = xy[8] + [0.2, 1.3]
     trunks = np.c_[np.r_[xy, [false]], np.zeros(len(xy) + 1)]
     k = len(trunks)
     merged = GlobalTrunks(trunks, np.full(k, 0.1), np.ones(k), np.zeros(k, np.int64), {0: np.arange(k + 1)})
-    out = _without_trunks_between_rows(merged, PipelineParams())
+    out = without_trunks_between_rows(merged, PipelineParams())
     assert out.n_trees == k - 1
     assert out.id_maps[0].tolist() == list(range(k)) + [9]  # the false tree's points → tree 9 (xy[8])
-    off = _without_trunks_between_rows(merged, PipelineParams(rows={"drop_between_rows": False}))
+    off = without_trunks_between_rows(merged, PipelineParams(rows={"drop_between_rows": False}))
     assert off is merged

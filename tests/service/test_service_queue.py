@@ -18,6 +18,7 @@ from service.settings import Settings
 from service.store import Store
 
 import workers.job as workers_job
+import workers.jobspec as workers_jobspec
 
 
 @pytest.fixture()
@@ -129,7 +130,7 @@ def test_the_runner_starts_the_other_tenants_job_next(tmp_path, monkeypatch):
         started.append(spec.out_dir.rsplit("/", 1)[-1])
         first_running.set()
         assert release.wait(30)
-        return workers_job.JobOutcome(0, 1, 1, [], False, {}, {}, trees={})
+        return workers_jobspec.JobOutcome(0, 1, 1, [], False, {}, {}, trees={})
 
     monkeypatch.setattr(workers_job, "run_job", fake)
     flood = _jobs(store, a, 15)

@@ -15,6 +15,7 @@ from service import store as service_store
 from service.store import Store
 
 import workers.job as workers_job
+import workers.jobspec as workers_jobspec
 import workers.workstore as workers_workstore
 
 
@@ -43,7 +44,7 @@ def test_done_records_outcome_and_progress(env, monkeypatch):
         for i in range(4):
             progress(i, 3)
             seen.append(store.get_job(None, job["id"])["tiles_done"])
-        return workers_job.JobOutcome(100, 3, 3, [], False, {"process": 1.0}, {"trees": "t"}, trees={"x": [1]})
+        return workers_jobspec.JobOutcome(100, 3, 3, [], False, {"process": 1.0}, {"trees": "t"}, trees={"x": [1]})
 
     monkeypatch.setattr(workers_job, "run_job", fake)
     job = _queue(store, tenant, block, {"tile_size": 20.0, "buffer": None})
@@ -63,10 +64,10 @@ def test_done_records_outcome_and_progress(env, monkeypatch):
         (ZeroDivisionError("division by zero"), "internal error (ZeroDivisionError): division by zero"),
         # the command line's advice to resume from the work store does not apply: the
         # service deletes a failed job's work store
-        (workers_job.ClusterLost("no dask worker for 120 s with 6 tiles to go",
+        (workers_jobspec.ClusterLost("no dask worker for 120 s with 6 tiles to go",
                                  hint="; start workers and resume with --work /srv/work/abc --resume"),
          "no dask worker for 120 s with 6 tiles to go; start dask workers and submit the job again"),
-        (workers_job.TileFailed("tile 3 (core x 0.00..10.00, y 0.00..10.00, 99 points) failed after 3 attempts: "
+        (workers_jobspec.TileFailed("tile 3 (core x 0.00..10.00, y 0.00..10.00, 99 points) failed after 3 attempts: "
                                 "MemoryError: ", 3, hint="; its data is kept in /srv/work/abc (run the job's tiles "
                                 "again with --work /srv/work/abc --resume)"),
          "tile 3 (core x 0.00..10.00, y 0.00..10.00, 99 points) failed after 3 attempts: MemoryError: "),
@@ -111,7 +112,7 @@ def test_a_client_that_lost_its_scheduler_is_replaced(env, monkeypatch):
             self.status = "closed"
 
     monkeypatch.setattr(workers_job, "run_job", lambda spec, *, client, progress, cancel: pytest.fail("x")
-                        if client is not made[-1] else workers_job.JobOutcome(1, 1, 1, [], False, {}, {}))
+                        if client is not made[-1] else workers_jobspec.JobOutcome(1, 1, 1, [], False, {}, {}))
     runner = Runner(store, Settings(data_dir=settings.data_dir, scheduler="tcp://127.0.0.1:1"), client_factory=Client)
     assert runner.cluster_state() == "not started"
     assert runner.run_job(_queue(store, tenant, block))["state"] == "done"
@@ -148,7 +149,7 @@ def test_a_job_the_cluster_failed_is_queued_again_later(env, monkeypatch):
             raise OSError("Timed out trying to connect to tcp://10.0.0.1:8786")
         return None
 
-    monkeypatch.setattr(workers_job, "run_job", lambda spec, **kw: workers_job.JobOutcome(9, 1, 1, [], False, {}, {}))
+    monkeypatch.setattr(workers_job, "run_job", lambda spec, **kw: workers_jobspec.JobOutcome(9, 1, 1, [], False, {}, {}))
     runner = Runner(store, settings, client_factory=flaky)
     job = _queue(store, tenant, block)
     for attempt in (1, 2):
@@ -167,7 +168,7 @@ def test_a_job_the_cluster_failed_is_queued_again_later(env, monkeypatch):
 def test_the_last_attempt_fails_for_good_and_other_failures_at_once(env, monkeypatch):
     settings, store, tenant, block = env
     settings = Settings(data_dir=settings.data_dir, job_retries=1, retry_delay_s=0.0)
-    lost = workers_job.ClusterLost("no dask worker for 120 s with 6 tiles to go", hint="; resume with --work x")
+    lost = workers_jobspec.ClusterLost("no dask worker for 120 s with 6 tiles to go", hint="; resume with --work x")
     monkeypatch.setattr(workers_job, "run_job", lambda spec, **kw: (_ for _ in ()).throw(lost))
     runner = Runner(store, settings, client_factory=lambda: None)
     assert runner.run_job(_queue(store, tenant, block))["state"] == "queued"
@@ -222,7 +223,7 @@ def test_cancel_a_running_job_and_stop(env, monkeypatch):
         started.set()
         while not cancel.wait(0.01):
             pass
-        raise workers_job.JobCancelled("job cancelled")
+        raise workers_jobspec.JobCancelled("job cancelled")
 
     monkeypatch.setattr(workers_job, "run_job", slow)
     store.create_job(tenant_id=tenant["id"], block_id=block["id"], params={}, tiling=None)
@@ -309,7 +310,7 @@ def test_a_cancel_stored_by_another_process_stops_a_job_that_makes_no_progress(e
         started.set()
         while not cancel.wait(0.01):  # no tile ever finishes
             pass
-        raise workers_job.JobCancelled("job cancelled")
+        raise workers_jobspec.JobCancelled("job cancelled")
 
     monkeypatch.setattr(workers_job, "run_job", stuck)
     job = store.create_job(tenant_id=tenant["id"], block_id=block["id"], params={}, tiling=None)

@@ -26,7 +26,8 @@ from pipeline.tiling import (
     tile_points,
     tile_size_for_budget,
 )
-from workers.job import JobSpec, auto_tiled, run_job
+from workers.job import run_job
+from workers.jobspec import JobSpec, auto_tiled
 
 
 def _need(points: float) -> float:
@@ -147,7 +148,8 @@ def test_the_tiles_chosen_for_a_budget_give_the_untiled_result(block, tmp_path):
 _RUN = """
 import json, re, sys
 from pipeline.params import PipelineParams
-from workers.job import JobSpec, run_job
+from workers.job import run_job
+from workers.jobspec import JobSpec
 spec = JobSpec(sys.argv[1], sys.argv[2], params=PipelineParams.model_validate_json(sys.argv[3]), memory_budget=float(sys.argv[4]))
 outcome = run_job(spec)
 peak = int(re.search(r"VmHWM:\\s+(\\d+) kB", open("/proc/self/status").read()).group(1)) * 1024

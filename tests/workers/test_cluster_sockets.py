@@ -30,10 +30,11 @@ from pipeline.synthetic.truth import write_simulation
 from service.cli import main as orchard
 from tests.service.service_fixtures import ServerProcess, make_token, wait_for_job
 from workers import cluster as cluster_module
-from workers import job as job_module
+from workers import dispatch
 from workers.cluster import WorkersUnfit, check_workers, close_client, dashboard_address, make_client
 from workers.identity import identity
-from workers.job import ClusterLost, JobSpec, run_job
+from workers.job import run_job
+from workers.jobspec import ClusterLost, JobSpec
 
 LOOPBACK_IPS = {"127.0.0.1", "::1"}
 
@@ -235,7 +236,7 @@ def test_the_service_fails_a_job_on_a_worker_without_the_project_saying_why(tiny
 
 @pytest.mark.slow
 def test_a_job_whose_workers_all_die_stops_saying_so(tiny_block, tmp_path, monkeypatch):
-    monkeypatch.setattr(job_module, "NO_WORKER_TIMEOUT", 1.0)
+    monkeypatch.setattr(dispatch, "NO_WORKER_TIMEOUT", 1.0)
     with one_worker_cluster(tmp_path) as (address, _, worker_proc):
 
         def kill_the_worker(done: int, total: int) -> None:

@@ -16,7 +16,8 @@ from pathlib import Path
 import pyarrow.parquet as pq
 import pytest
 
-from workers.job import JobSpec, run_job
+from workers.job import run_job
+from workers.jobspec import JobSpec
 from workers.workstore import WorkStore
 
 pytestmark = pytest.mark.slow

@@ -17,16 +17,10 @@ from pipeline.errors import InputError, NoTreesError, ParameterError
 from pipeline.evaluation.scores import v_measure
 from pipeline.params import PipelineParams
 from workers.cluster import close_client, make_client
-from workers.job import (
-    JobSpec,
-    TileFailed,
-    finish_job,
-    ground_sample,
-    process_tile,
-    result_key,
-    run_job,
-    run_tile,
-)
+from workers.job import run_job
+from workers.jobspec import JobSpec, TileFailed
+from workers.replay import finish_job, run_tile
+from workers.tasks import ground_sample, process_tile, result_key
 from workers.workstore import WorkStore
 from workers.tiler import FRAME_KEY, INDEX_KEY
 
@@ -302,9 +296,9 @@ def test_a_failed_write_leaves_the_previous_outputs_whole(small_block, tmp_path,
     def disk_full(*a, **k):
         raise OSError(28, "No space left on device")
 
-    from workers import job
+    from workers import outputs
 
-    monkeypatch.setattr(job, "write_trees_parquet", disk_full)
+    monkeypatch.setattr(outputs, "write_trees_parquet", disk_full)
     with pytest.raises(ParameterError, match="cannot write the outputs .* No space left"):
         run_job(JobSpec(str(small_block), str(out), params=PipelineParams.model_validate({"matter": {"threshold": 0.9}})))
     assert {p.name: p.read_bytes() for p in out.iterdir()} == before  # no staging folder left either
@@ -318,11 +312,11 @@ def test_a_failed_write_leaves_the_previous_outputs_whole(small_block, tmp_path,
 def test_a_partial_result_gives_no_tree_the_points_of_a_failed_tiles_tree(small_block, tmp_path):
     from pipeline.blockinfo import read_info
     from pipeline.tiling import core_tile
-    from workers.job import _plan
+    from workers.jobspec import plan_tiles
 
     full = tmp_path / "full"
     run_job(JobSpec(str(small_block), str(full), tile_size=10.0, work_dir=str(tmp_path / "w0")))
-    index_grid = _plan(JobSpec(str(small_block), str(full), tile_size=10.0), read_info(str(small_block)))
+    index_grid = plan_tiles(JobSpec(str(small_block), str(full), tile_size=10.0), read_info(str(small_block)))
     trees = _trees(full).to_pydict()
     owner = core_tile(np.c_[trees["trunk_x"], trees["trunk_y"]], index_grid)
     first = int(core_tile(np.c_[trees["trunk_x"], trees["trunk_y"]][:1], index_grid)[0])
@@ -350,8 +344,6 @@ def test_a_partial_result_gives_no_tree_the_points_of_a_failed_tiles_tree(small_
 def test_a_tile_that_finishes_after_its_job_was_cancelled_leaves_nothing(small_block, tmp_path):
     # a tile already running on a worker when the job is cancelled carries on; it must not
     # write its results into the work store the job's end deleted
-    from workers.job import process_tile
-
     work = tmp_path / "work"
     outcome = run_job(JobSpec(str(small_block), str(tmp_path / "out"), tile_size=10.0, work_dir=str(work), inject_failure=(3,)))
     assert outcome.partial and (work / "job.json").exists()
@@ -450,20 +442,21 @@ def test_a_tile_whose_worker_does_not_see_the_work_store_fails_the_job_clearly(t
     # the task finds no job in the store: deleted under it (a cancel), or, if this process
     # still sees the job there, a worker with another view of the store; the second was
     # recorded as "cancelled on request"
-    from workers.job import JOB_KEY, JobCancelled, TileFailed, _kept
-    from workers.workstore import WorkStore
+    from workers.dispatch import kept
+    from workers.jobspec import JobCancelled
+    from workers.workstore import JOB_KEY
 
     store = WorkStore(str(tmp_path / "work"))
     store.claim()
     tile = {"id": 3, "core": (0.0, 0.0, 6.0, 6.0), "n_buffered": 10}
     store.put_json(JOB_KEY, {"tiles": []})
     with pytest.raises(TileFailed, match="tile 3 .*does not see the job's work store") as err:
-        _kept({"abandoned": True}, store, tile)
+        kept({"abandoned": True}, store, tile)
     assert "same address" in err.value.hint
     store.remove(JOB_KEY)
     with pytest.raises(JobCancelled):
-        _kept({"abandoned": True}, store, tile)
-    assert _kept({"tile_id": 3}, store, tile) == {"tile_id": 3}
+        kept({"abandoned": True}, store, tile)
+    assert kept({"tile_id": 3}, store, tile) == {"tile_id": 3}
 
 
 @pytest.mark.slow
@@ -473,7 +466,7 @@ def test_many_tiles_under_a_low_open_file_limit(small_block, tmp_path, soft, har
     # with some hundred tiles the common limit of 1024 ran out after every tile was done
     script = (
         "import resource, sys; resource.setrlimit(resource.RLIMIT_NOFILE, (int(sys.argv[3]), int(sys.argv[4])));"
-        "from workers.job import JobSpec, run_job;"
+        "from workers.job import run_job; from workers.jobspec import JobSpec;"
         "o = run_job(JobSpec(sys.argv[1], sys.argv[2], tile_size=5.0)); print(o.n_tiles, o.n_trees)"  # 34 tiles
     )
     run = subprocess.run([sys.executable, "-c", script, str(small_block), str(tmp_path / "out"), str(soft), str(hard)],
@@ -490,7 +483,7 @@ def test_a_cancel_while_the_file_is_tiled_on_a_cluster_without_workers_stops_the
 
     from distributed import Client, LocalCluster
 
-    from workers.job import JobCancelled
+    from workers.jobspec import JobCancelled
 
     cancel = threading.Event()
     with LocalCluster(n_workers=0, processes=False, dashboard_address=None) as cluster, Client(cluster) as client:

@@ -245,8 +245,7 @@ def test_outputs_that_would_destroy_the_input_or_be_deleted_are_refused(small_bl
 
 def test_resume_and_rerun_take_only_the_block_the_job_was_started_on(small_block, ground_block, tmp_path, capsys):
     # INPUT was ignored: another block given with --resume merged the first block's tiles
-    from workers.job import JOB_KEY
-    from workers.workstore import WorkStore
+    from workers.workstore import JOB_KEY, WorkStore
 
     work = WorkStore(str(tmp_path / "work"))
     work.claim()

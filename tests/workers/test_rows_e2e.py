@@ -10,7 +10,8 @@ import pytest
 from pipeline.evaluation.result import evaluate_result
 from pipeline.synthetic.simparams import SimulationParams
 from pipeline.synthetic.truth import write_simulation
-from workers.job import JobSpec, run_job
+from workers.job import run_job
+from workers.jobspec import JobSpec
 
 
 @pytest.fixture(scope="module")

@@ -1,0 +1,178 @@
+"""A job's contract: what to process (:class:`JobSpec`), what came of it
+(:class:`JobOutcome`), how a run can stop, and the checks made before any work."""
+
+from __future__ import annotations
+
+import dataclasses
+import os
+from dataclasses import dataclass, field
+from pathlib import Path
+
+from pipeline.blockinfo import BlockInfo, read_info
+from pipeline.errors import OrchardError, ParameterError
+from pipeline.params import PipelineParams
+from pipeline.tiling import TileGrid, plan_grid, tile_size_for_budget
+from workers.outputs import OUTPUT_NAMES
+from workers.tiler import check_engine
+from workers.workstore import WorkStore, absolute_url, default_work_dir, own_entry
+
+
+class _Stopped(OrchardError):
+    """A tiled job stopped with its work store kept: ``reason`` says why, ``hint`` (for
+    the command line) how to go on from that store; the message is both."""
+
+    def __init__(self, reason: str, hint: str = ""):
+        super().__init__(reason + hint)
+        self.reason, self.hint = reason, hint
+
+
+class TileFailed(_Stopped):
+    """A tile's processing failed after its retries (the message names the tile)."""
+
+    def __init__(self, reason: str, tile_id: int, hint: str = ""):
+        super().__init__(reason, hint)
+        self.tile_id = tile_id
+
+
+class JobCancelled(OrchardError):
+    """The job was cancelled before it finished."""
+
+
+class ClusterLost(_Stopped):
+    """The dask cluster had no workers for too long; the job stopped (it can be resumed)."""
+
+
+@dataclass
+class JobSpec:
+    """What to process and how.
+
+    ``tile_size`` None processes the block as one tile, unless it would need more than
+    ``memory_budget`` bytes in one piece: then :func:`auto_tiled` chooses tiles that fit
+    it (None: no budget). ``buffer`` None uses ``params.reach()``; ``grid_origin`` None uses the block origin (floor of the header
+    minimum), in the input CRS; ``work_dir`` None uses ``out_dir/_work``.
+    ``inject_failure`` lists tiles whose task raises (testing the failure policy only).
+    """
+
+    input_path: str
+    out_dir: str
+    params: PipelineParams = field(default_factory=PipelineParams)
+    tile_size: float | None = None
+    buffer: float | None = None
+    grid_origin: tuple[float, float] | None = None
+    work_dir: str | None = None
+    labelled_laz: bool = False
+    engine: str = "laspy"
+    chunk_points: int = 2_000_000
+    inject_failure: tuple[int, ...] = ()
+    memory_budget: float | None = None
+
+    def __post_init__(self) -> None:
+        # dask workers run in folders of their own: a relative path would name another
+        # file there (or none), so every local path is made absolute here (an empty one
+        # would become the current folder)
+        for what, value in (("input file", self.input_path), ("output folder", self.out_dir)):
+            if not os.fspath(value):
+                raise ParameterError(f"no {what} given (an empty path)")
+        self.input_path = os.path.abspath(os.fspath(self.input_path))
+        self.out_dir = os.path.abspath(os.fspath(self.out_dir))
+        if self.work_dir is not None:
+            self.work_dir = absolute_url(self.work_dir)
+        check_job_paths(self.input_path, self.out_dir, self.work_dir)
+
+
+def check_job_paths(input_path: str, out_dir: str, work_dir: str | None) -> None:
+    """ParameterError when the outputs would destroy the input or be destroyed: an input
+    lying in the output folder under an output's name is replaced (or deleted, as an
+    earlier run's ``labelled.laz``), and outputs inside the work folder are deleted with
+    it when the job is done (the work store removes its ``results``, ``tiles``...; a
+    folder of the user's in the work folder, or the work folder itself, are kept)."""
+    out = Path(out_dir).resolve()
+    source = Path(input_path).resolve()
+    if source.parent == out and source.name in OUTPUT_NAMES:
+        raise ParameterError(
+            f"the input {source.name} lies in the output folder {out_dir} under the name of an output, "
+            "which the run replaces: choose another --out"
+        )
+    if work_dir is not None and (work_dir.startswith("file://") or "://" not in work_dir):
+        work = Path(work_dir.removeprefix("file://")).resolve()
+        if work in out.parents and own_entry(out.relative_to(work).parts[0]):
+            raise ParameterError(
+                f"--out {out_dir} lies inside the folder {out.relative_to(work).parts[0]} of --work {work_dir}, "
+                "which is deleted when the job is done: put the outputs elsewhere"
+            )
+
+
+@dataclass
+class JobOutcome:
+    n_points: int
+    n_trees: int
+    n_tiles: int
+    failed_tiles: list[int]
+    partial: bool
+    timings: dict[str, float]
+    outputs: dict[str, str]
+    trees: dict | None = None  # the per-tree table (column → array), for summaries
+
+
+def check_job(spec: JobSpec, *, tiled: bool | None = None) -> tuple[BlockInfo, TileGrid | None]:
+    """Check the input and the tiling parameters of a job without writing anything.
+
+    Returns the block's header information and, for a tiled job, the planned grid.
+    Raises InputError or ParameterError.
+    """
+    info = read_info(spec.input_path)
+    check_out_dir(spec.out_dir)
+    if tiled is None:
+        tiled = spec.tile_size is not None
+    if not tiled:
+        if spec.buffer is not None:
+            raise ParameterError("--buffer needs --tile-size: a block processed in one piece has no tile buffer")
+        return info, None
+    grid = plan_tiles(spec, info)
+    check_engine(spec.engine, grid)
+    WorkStore(spec.work_dir or default_work_dir(spec.out_dir)).check_free()  # before any cluster starts
+    return info, grid
+
+
+def check_out_dir(out_dir) -> None:
+    """ParameterError unless ``out_dir`` is a folder, or can be made one, that this
+    process may write to (checked before any work; nothing is created)."""
+    out = Path(out_dir)
+    if out.exists() and not out.is_dir():
+        raise ParameterError(f"output folder {out} is a file, not a folder")
+    parent = out
+    while not parent.exists() and parent != parent.parent:
+        parent = parent.parent
+    if not parent.is_dir():
+        raise ParameterError(f"cannot make output folder {out}: {parent} is a file, not a folder")
+    if not os.access(parent, os.W_OK | os.X_OK):
+        raise ParameterError(f"cannot write to output folder {out}: {parent} is not writable")
+
+
+def auto_tiled(spec: JobSpec, info: BlockInfo | None = None) -> JobSpec:
+    """``spec`` with the tile size :func:`pipeline.tiling.tile_size_for_budget` chooses
+    when it has none and a memory budget the whole block would not fit (else ``spec``).
+
+    ``info``: the block's header, read from ``spec.input_path`` when not given.
+    Raises ParameterError (a :class:`pipeline.tiling.BudgetError` when no tile fits).
+    """
+    if spec.tile_size is not None or spec.memory_budget is None:
+        return spec
+    info = info or read_info(spec.input_path)
+    buffer = spec.params.reach() if spec.buffer is None else float(spec.buffer)
+    size = tile_size_for_budget(info.n_points, info.mins, info.maxs, budget=spec.memory_budget, buffer=buffer)
+    return spec if size is None else dataclasses.replace(spec, tile_size=size)
+
+
+def plan_tiles(spec: JobSpec, info: BlockInfo) -> TileGrid:
+    """The tile grid of a job over the block ``info`` (one tile holding the whole block
+    when ``spec`` has no tile size)."""
+    reach = spec.params.reach()
+    buffer = reach if spec.buffer is None else float(spec.buffer)
+    origin = spec.grid_origin if spec.grid_origin is not None else info.origin[:2]
+    if spec.tile_size is None:  # one tile holding the whole block
+        size = max(info.maxs[0] - origin[0], info.maxs[1] - origin[1]) + 1.0
+        if origin[0] > info.mins[0] or origin[1] > info.mins[1]:
+            raise ParameterError("with no --tile-size the grid origin must lie below the block's minimum x and y")
+        return plan_grid(info.mins, info.maxs, tile_size=size, buffer=buffer, grid_origin=origin, reach=reach)
+    return plan_grid(info.mins, info.maxs, tile_size=spec.tile_size, buffer=buffer, grid_origin=origin, reach=reach)

@@ -1,0 +1,275 @@
+"""A job's outputs: the merged trees, their rows, and the files written as one set.
+
+The per-tile summaries are reconciled into one set of trunks, the trees table and the
+row layout are computed on the whole block (so tiled and untiled runs agree), and the
+per-point labels are streamed window by window from the tiles' core results.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import shutil
+import uuid
+from collections.abc import Callable
+from pathlib import Path
+
+import numpy as np
+from scipy.spatial import cKDTree
+
+from pipeline.blockinfo import BlockInfo
+from pipeline.errors import NoTreesError, ParameterError
+from pipeline.laswriting import write_labelled_las
+from pipeline.merge import GlobalTrunks, TileTrunks, reconcile_trunks
+from pipeline.metrics import combine_partials, finalize_metrics
+from pipeline.params import PipelineParams, RowParams
+from pipeline.parquet import (
+    PointsParquetWriter,
+    write_gaps_parquet,
+    write_rows_parquet,
+    write_trees_parquet,
+)
+from pipeline.rows import RowLayout, find_rows
+
+#: Points per output window when streaming labels (bounded memory).
+WINDOW_POINTS = 2_000_000
+
+OUTPUT_NAMES = ("points.parquet", "labelled.laz", "trees.parquet", "rows.parquet", "gaps.parquet")
+
+
+class Labels:
+    """Per-point labels of the block assembled from per-tile core results (bounded memory)."""
+
+    FIELDS = ("tree_id", "is_ground", "is_wood", "wood_score")
+
+    def __init__(self, parts: list[dict], n_points: int):
+        self.parts = parts  # each: index (sorted), tree_id (global), is_ground, is_wood, wood_score
+        self.n_points = n_points
+
+    @classmethod
+    def single(cls, result, id_map: np.ndarray) -> Labels:
+        """The labels of a block processed in one piece (``result`` of every point)."""
+        n = len(result.tree_id)
+        part = {
+            "index": np.arange(n, dtype=np.uint64),
+            "tree_id": id_map[result.tree_id],
+            "is_ground": result.is_ground,
+            "is_wood": result.is_wood,
+            "wood_score": result.wood_score,
+            "map": None,
+        }
+        return cls([part], n)
+
+    def window(self, a: int, b: int) -> tuple[np.ndarray, dict[str, np.ndarray]]:
+        """Labels of points a..b-1: (filled mask, dict of arrays)."""
+        m = b - a
+        out = {
+            "tree_id": np.zeros(m, np.int64),
+            "is_ground": np.zeros(m, bool),
+            "is_wood": np.zeros(m, bool),
+            "wood_score": np.zeros(m, np.float32),
+        }
+        filled = np.zeros(m, bool)
+        for p in self.parts:
+            idx = p["index"]
+            lo, hi = np.searchsorted(idx, np.array([a, b], dtype=np.uint64))
+            if hi <= lo:
+                continue
+            pos = (np.asarray(idx[lo:hi]) - np.uint64(a)).astype(np.int64)
+            tree = np.asarray(p["tree_id"][lo:hi])
+            out["tree_id"][pos] = tree if p.get("map") is None else p["map"][tree]
+            out["is_ground"][pos] = p["is_ground"][lo:hi]
+            out["is_wood"][pos] = p["is_wood"][lo:hi]
+            out["wood_score"][pos] = p["wood_score"][lo:hi]
+            filled[pos] = True
+        not_tree = out["tree_id"] == 0  # e.g. of a tree a failed tile owned, in a partial result
+        out["is_wood"][not_tree] = False
+        out["wood_score"][not_tree] = 0.0
+        return filled, out
+
+
+def trees_table(summaries: list[dict], merged: GlobalTrunks, origin) -> dict:
+    """The per-tree table (column → array) of the merged trees, in the input CRS."""
+    parts = [s["partials"] for s in summaries]
+    maps = [merged.id_maps[s["tile_id"]] for s in summaries]
+    partials = combine_partials(parts, maps)
+    cols = finalize_metrics(partials, merged.trunks, merged.diameter)
+    org = np.asarray(origin, dtype=np.float64)
+    cols["trunk_x"] = cols["trunk_x"] + org[0]
+    cols["trunk_y"] = cols["trunk_y"] + org[1]
+    cols["trunk_z"] = cols["trunk_z"] + org[2]
+    return cols
+
+
+def without_trunks_between_rows(merged: GlobalTrunks, params: PipelineParams) -> GlobalTrunks:
+    """The merged trunks less those that stand between two rows (the row model as a
+    prior: off both row lines is foliage or a weed touching down, not a tree); the
+    material of each goes to the nearest remaining tree within the crown radius.
+    Decided on the whole block's trunks, so tiled and untiled runs agree."""
+    if not (params.rows.enabled and params.rows.drop_between_rows) or merged.n_trees < 3:
+        return merged
+    xy = merged.trunks[:, :2]
+    drop = find_rows(xy, params=params.rows).between_rows
+    if not drop.any() or drop.all():
+        return merged
+    keep = ~drop
+    new_id = np.zeros(merged.n_trees + 1, dtype=np.int64)
+    new_id[1:][keep] = np.arange(1, int(keep.sum()) + 1)
+    dist, nearest = cKDTree(xy[keep]).query(xy[drop])
+    new_id[1:][drop] = np.where(dist <= params.segment.max_crown_radius, nearest + 1, 0)
+    return GlobalTrunks(
+        merged.trunks[keep], merged.diameter[keep], merged.support[keep], merged.owner[keep],
+        {t: new_id[m] for t, m in merged.id_maps.items()},
+    )
+
+
+def replanted(summaries: list[dict], merged: GlobalTrunks) -> np.ndarray:
+    """(K,) bool: trees that the tile owning their trunk let in as replants."""
+    young = np.zeros(merged.n_trees, dtype=bool)
+    for s in summaries:
+        flags = s.get("young")
+        if flags is None or not np.any(flags):
+            continue
+        glob = merged.id_maps[s["tile_id"]][1:]
+        local = np.flatnonzero(np.asarray(flags, bool) & (glob > 0))
+        g = glob[local] - 1
+        young[g[merged.owner[g] == s["tile_id"]]] = True
+    return young
+
+
+def with_rows(trees: dict, params: RowParams, replants: np.ndarray | None = None) -> tuple[dict, RowLayout | None]:
+    """The trees table with each tree's address (``row``, ``position``, ``young``), and
+    the block's rows; computed on the merged trees, so tiled and untiled runs agree. A
+    tree is young when it is much lower than its row neighbours or was let in as a
+    replant."""
+    if not params.enabled:
+        return trees, None
+    layout = find_rows(np.c_[trees["trunk_x"], trees["trunk_y"]], trees["height_m"], params=params)
+    young = layout.young if replants is None else layout.young | replants
+    return dict(trees, row=layout.row, position=layout.position, young=young), layout
+
+
+def no_trees(info: BlockInfo) -> NoTreesError:
+    return NoTreesError(
+        f"{Path(info.path).name}: no trees found in {info.n_points} points "
+        "(only ground or clutter?); check the block, or lower --trunks-min-tree-height / --trunks-min-canopy-voxels"
+    )
+
+
+def _tile_trunks(summary: dict) -> TileTrunks:
+    return TileTrunks(summary["tile_id"], summary["trunks"], summary["support"], summary["diameter"], summary["owned"])
+
+
+def merge_and_write(
+    summaries: list[dict],
+    info: BlockInfo,
+    params: PipelineParams,
+    out_dir: Path,
+    *,
+    labels: Callable[[GlobalTrunks], Labels],
+    labelled_laz: bool,
+    failed: list[int],
+    dead_zones: np.ndarray | None = None,
+) -> tuple[int, dict, dict]:
+    """Merge the tiles' summaries into trees and write the job's outputs.
+
+    Parameters
+    ----------
+    summaries : list of dict
+        Per-tile summaries (:func:`workers.tasks.summarise`) in tile-id order.
+    info : BlockInfo
+    params : PipelineParams
+    out_dir : Path
+    labels : callable
+        The per-point labels given the merged trunks (their id maps).
+    labelled_laz : bool
+    failed : list of int
+        Tiles without a result (recorded in the outputs' metadata).
+    dead_zones : (f, 4) float64, optional
+        Cores of the failed tiles in the block's local frame [m].
+
+    Returns
+    -------
+    (number of trees, trees table, output name → path)
+
+    Raises
+    ------
+    NoTreesError, ParameterError (the outputs cannot be written)
+    """
+    default_radius = params.trunks.at_spacing(None).cluster_radius
+    merged = reconcile_trunks(
+        [_tile_trunks(s) for s in summaries],
+        # the tiles' own clustering radii (they follow the trees' spacing): the smallest
+        cluster_radius=min((s.get("cluster_radius", default_radius) for s in summaries), default=default_radius),
+        fallback_radius=params.segment.max_crown_radius,
+        dead_zones=dead_zones,
+    )
+    merged = without_trunks_between_rows(merged, params)
+    if merged.n_trees == 0:
+        raise no_trees(info)
+    trees, layout = with_rows(trees_table(summaries, merged, info.origin), params.rows, replanted(summaries, merged))
+    outputs = write_outputs(out_dir, info, labels(merged), trees, labelled_laz=labelled_laz, failed=failed, layout=layout)
+    return merged.n_trees, trees, outputs
+
+
+def write_outputs(out_dir: Path, info: BlockInfo, labels: Labels, trees: dict, *, labelled_laz: bool, failed: list[int],
+                  layout: RowLayout | None = None) -> dict:
+    """Write the outputs of a job into ``out_dir`` as one set.
+
+    Every file is written into a hidden staging folder first; only when all are complete
+    do they replace the folder's outputs, and an output of an earlier run that this run
+    does not write (``labelled.laz``) is removed, so ``out_dir`` never mixes two runs.
+    A failure leaves ``out_dir`` as it was.
+    """
+    stage = out_dir / f".staging-{uuid.uuid4().hex[:12]}"
+    try:
+        stage.mkdir(parents=True)
+    except OSError as exc:
+        raise ParameterError(f"cannot write the outputs to {out_dir}: {exc.strerror or exc}") from None
+    written: dict[str, Path] = {}
+    meta = {"orchard:input": info.path}
+    if failed:
+        meta["orchard:failed_tiles"] = json.dumps(failed)
+    try:
+        path = stage / "points.parquet"
+        with PointsParquetWriter(path, metadata=meta) as w:
+            for a in range(0, labels.n_points, WINDOW_POINTS):
+                b = min(labels.n_points, a + WINDOW_POINTS)
+                filled, lab = labels.window(a, b)
+                idx = np.arange(a, b, dtype=np.uint64)
+                if not filled.all():
+                    idx = idx[filled]
+                    lab = {k: v[filled] for k, v in lab.items()}
+                w.write(idx, lab["tree_id"], lab["is_ground"], lab["is_wood"], lab["wood_score"])
+        written["points"] = path
+        if labelled_laz:
+            path = stage / "labelled.laz"
+            write_labelled_las(
+                info.path,
+                path,
+                labels=lambda a, b: {k: v for k, v in labels.window(a, b)[1].items() if k != "is_ground"},
+            )
+            written["labelled"] = path
+        path = stage / "trees.parquet"
+        write_trees_parquet(path, trees, crs_wkt=info.crs_wkt, metadata=meta)
+        written["trees"] = path
+        if layout is not None:
+            path = stage / "rows.parquet"
+            write_rows_parquet(path, layout.rows, layout.lines, crs_wkt=info.crs_wkt)
+            written["rows"] = path
+            path = stage / "gaps.parquet"
+            write_gaps_parquet(path, layout.gaps, crs_wkt=info.crs_wkt)
+            written["gaps"] = path
+        outputs = {}
+        for key, staged in written.items():  # complete: publish (each rename is atomic)
+            final = out_dir / staged.name
+            os.replace(staged, final)
+            outputs[key] = str(final)
+        for name in OUTPUT_NAMES:
+            if name not in {p.name for p in written.values()}:
+                (out_dir / name).unlink(missing_ok=True)  # an earlier run's, not this run's
+        return outputs
+    except OSError as exc:  # a full disk, a folder that turned read-only: one line, nothing half-written
+        raise ParameterError(f"cannot write the outputs to {out_dir}: {exc.strerror or exc}") from None
+    finally:
+        shutil.rmtree(stage, ignore_errors=True)

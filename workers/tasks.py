@@ -1,0 +1,161 @@
+"""The task bodies a worker runs on one tile of the work store.
+
+:func:`process_tile` runs the pipeline on a buffered tile, crops to its core, writes the
+core points' labels under ``results/<tile>/`` and returns a small summary (trunks,
+ownership, partial metrics); :func:`ground_sample` gives the residuals the block's
+ground statistics are taken from. Both take the store's URL and plain values, so dask
+ships them to any worker that reaches the store.
+"""
+
+from __future__ import annotations
+
+import time
+import uuid
+from types import SimpleNamespace
+
+import numpy as np
+
+from pipeline.errors import InputError
+from pipeline.ground import ground_residuals, raw_ground_model
+from pipeline.metrics import tree_partials
+from pipeline.params import PipelineParams
+from pipeline.process import process_points
+from pipeline.reading import to_local
+from pipeline.tiling import TileGrid, core_tile
+from workers.tiler import read_frame, read_tile
+from workers.workstore import JOB_KEY, WorkStore
+
+#: how far beyond its core a tile claims a trunk, in cluster radii
+OWNERSHIP_MARGIN = 0.5
+
+
+def result_key(tile_id: int) -> str:
+    """The work-store folder of a tile's results."""
+    return f"results/{tile_id:06d}"
+
+
+def _frame(index: dict) -> SimpleNamespace:
+    return SimpleNamespace(scales=tuple(index["scales"]), offsets=tuple(index["offsets"]), origin=tuple(index["origin"]))
+
+
+def summarise(tile_id, xyz, core, result, grid: TileGrid | None, origin, params: PipelineParams) -> dict:
+    """Small per-tile summary: trunks, ownership and partial metrics of the core points.
+
+    ``grid`` None: the tile is the whole block and owns every trunk.
+    """
+    trunks = np.asarray(result.trunks, dtype=np.float64).reshape(-1, 3)
+    cluster_radius = params.trunks.at_spacing(result.spacing).cluster_radius  # the radius the tile used
+    if grid is None:
+        owned = np.ones(len(trunks), dtype=bool)
+    else:
+        # a tile claims trunks up to half a cluster radius beyond its core: two tiles may
+        # place one trunk a few cm apart (their ground models differ slightly), each in the
+        # other's core, and it must not be owned by neither (the merge keeps one of two)
+        xy = trunks[:, :2] + np.asarray(origin[:2])
+        x0, y0, x1, y1 = grid.tile(int(tile_id)).core
+        m = OWNERSHIP_MARGIN * cluster_radius
+        near = (x0 - m <= xy[:, 0]) & (xy[:, 0] < x1 + m) & (y0 - m <= xy[:, 1]) & (xy[:, 1] < y1 + m)
+        owned = (core_tile(xy, grid) == tile_id) | near
+    sel = slice(None) if core.all() else core  # a whole block: no copies
+    partials = tree_partials(
+        xyz[sel], result.tree_id[sel], result.is_wood[sel], trunks[:, 2], params=params.metrics
+    )
+    return {
+        "tile_id": int(tile_id),
+        "trunks": trunks,
+        "support": np.asarray(result.trunk_support, dtype=np.float64),
+        "diameter": np.asarray(result.trunk_diameter, dtype=np.float64),
+        "owned": owned,
+        "young": np.zeros(len(trunks), bool) if result.trunk_young is None else np.asarray(result.trunk_young, bool),
+        "cluster_radius": cluster_radius,
+        "partials": partials,
+        "n_core": int(core.sum()),
+    }
+
+
+def process(xyz: np.ndarray, params: PipelineParams, where: str, ground: tuple[float, float] | None = None):
+    """``process_points`` on a block or tile; an InputError (e.g. points spread too wide
+    for one ground model) names ``where``, the file or the tile."""
+    try:
+        return process_points(xyz, params=params, grid_origin=(0.0, 0.0, 0.0), ground_stats=ground)
+    except InputError as exc:
+        raise InputError(f"{where}: {exc}") from None
+
+
+def _tile_points(store: WorkStore, tile_id: int, frame: dict) -> tuple[dict, np.ndarray]:
+    """A buffered tile's record array and its points in the block's local frame
+    (``frame``: the tile index, or its frame from :func:`workers.tiler.read_frame`)."""
+    rec = read_tile(store, tile_id)
+    ints = np.column_stack([rec["X"], rec["Y"], rec["Z"]])
+    return rec, to_local(ints, _frame(frame))
+
+
+def ground_sample(work_url: str, tile_id: int, params_json: str, stride: int) -> np.ndarray:
+    """Task body: heights above the tile's raw ground model of the core points whose
+    position in the block is a multiple of ``stride``.
+
+    Over all tiles these are the very points an untiled run samples for the ground noise
+    (every ``stride``-th point of the file), measured against the same terrain, so the
+    block's statistics (and with them every tile's ground) come out as untiled.
+    """
+    store = WorkStore(work_url)
+    frame = read_frame(store)
+    params = PipelineParams.model_validate_json(params_json)
+    rec, xyz = _tile_points(store, tile_id, frame)
+    pick = rec["core"].astype(bool) & (rec["index"] % np.uint64(stride) == 0)
+    try:
+        model = raw_ground_model(xyz, params=params.ground)
+    except InputError as exc:
+        raise InputError(f"tile {tile_id}: {exc}") from None
+    return ground_residuals(model, xyz[pick])
+
+
+def process_tile(work_url: str, tile_id: int, params_json: str, fail: bool = False) -> dict:
+    """Task body: process one buffered tile from the work store.
+
+    Writes the core points' labels (``index`` sorted, ``tree_id`` local, ``is_ground``,
+    ``is_wood``, ``wood_score``) and the summary under ``results/<tile>/``, and returns
+    the summary (trunks, support, diameter, owned, partials); ``{"abandoned": True}``
+    when the job's store went away before the tile was done. ``fail``: raise instead
+    (testing the failure policy only).
+    """
+    store = WorkStore(work_url)
+    if fail:  # testing the failure policy: leave a trace of each attempt, then fail
+        store.put_json(f"attempts/{tile_id:06d}/{uuid.uuid4().hex}.json", {"tile": tile_id, "time": time.time()})
+        raise RuntimeError(f"injected failure in tile {tile_id} (testing)")
+    if not store.exists(JOB_KEY):  # the job ended (its store deleted) before this tile started
+        return _abandon(store)
+    stats = store.get_json(JOB_KEY).get("ground_stats")  # the block's, shared by every tile
+    frame = read_frame(store)
+    params = PipelineParams.model_validate_json(params_json)
+    grid = TileGrid.from_dict(frame["grid"])
+    rec, xyz = _tile_points(store, tile_id, frame)
+    core = rec["core"].astype(bool)
+    result = process(xyz, params, f"tile {tile_id}", tuple(stats) if stats else None)
+    key = result_key(tile_id)
+    if not store.exists(JOB_KEY):  # the job was cancelled (its store deleted) while this tile ran
+        return _abandon(store, tile_id)
+    store.put_array(f"{key}/index.npy", rec["index"][core])
+    store.put_array(f"{key}/tree_id.npy", np.asarray(result.tree_id[core], dtype=np.int64))
+    store.put_array(f"{key}/is_ground.npy", np.asarray(result.is_ground[core], dtype=bool))
+    store.put_array(f"{key}/is_wood.npy", np.asarray(result.is_wood[core], dtype=bool))
+    store.put_array(f"{key}/wood_score.npy", np.asarray(result.wood_score[core], dtype=np.float32))
+    summary = summarise(tile_id, xyz, core, result, grid, frame["origin"], params)
+    store.put_object(f"{key}/summary.pkl", summary)
+    if not store.exists(JOB_KEY):  # deleted while these were written: take them back
+        return _abandon(store, tile_id)
+    return summary
+
+
+def _abandon(store: WorkStore, tile_id: int | None = None) -> dict:
+    """A tile that finished after its job ended: what it wrote goes (its results, and the
+    folders they leave empty)."""
+    if tile_id is not None:
+        store.remove(result_key(tile_id))
+        for folder in (store.path("results"), store.root):
+            try:
+                if store.fs.exists(folder) and not store.fs.ls(folder, detail=False):
+                    store.fs.rmdir(folder)
+            except OSError:
+                pass
+    return {"abandoned": True}
