@@ -92,11 +92,12 @@ def prepare(data_dir: Path, sizes: list[int]) -> tuple[str, dict[int, str], dict
     import laspy
 
     from service.auth import create_token
+    from service.db.block_files import accept_block
+    from service.db.jobstore import Store
     from service.report import _atomic_write
     from service.runner import job_dir
     from service.schedules import file_sha256
     from service.settings import Settings
-    from service.store import Store, accept_block
     from service.web.mapdata import to_json
 
     settings = Settings(data_dir=data_dir)

@@ -16,11 +16,3 @@ class ParameterError(OrchardError):
 
 class NoTreesError(OrchardError):
     """The block was read and processed but holds no trees (e.g. only ground)."""
-
-
-class NotFoundError(OrchardError):
-    """An id (block, job, schedule, tile) that does not exist for this caller."""
-
-
-class ConflictError(OrchardError):
-    """The request conflicts with the state of a resource (e.g. results of an unfinished job)."""

@@ -19,8 +19,8 @@ import time
 from datetime import datetime, timezone
 from typing import Any
 
+from service.db.jobstore import Store
 from service.errors import UnauthorizedError
-from service.store import Store
 
 TOKEN_PREFIX = "orch_"
 _PREFIX_CHARS = string.ascii_lowercase + string.digits

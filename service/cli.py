@@ -13,8 +13,9 @@ import importlib
 import os
 import sys
 
-from pipeline.errors import NoTreesError, NotFoundError, OrchardError
+from pipeline.errors import NoTreesError, OrchardError
 from service.commands import COMMANDS
+from service.db.errors import NotFoundError
 
 
 def _validation_error(exc: BaseException) -> bool:

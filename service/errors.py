@@ -21,7 +21,8 @@ from pydantic import ValidationError
 from starlette.exceptions import HTTPException as StarletteHTTPException
 from starlette.requests import ClientDisconnect
 
-from pipeline.errors import ConflictError, InputError, NoTreesError, NotFoundError, OrchardError, ParameterError
+from pipeline.errors import InputError, NoTreesError, OrchardError, ParameterError
+from service.db.errors import ConflictError, NotFoundError
 from service.quotas import QueueQuotaExceeded, StorageQuotaExceeded
 
 log = logging.getLogger("orchard.service")

@@ -33,9 +33,9 @@ import numpy as np
 
 from pipeline.errors import OrchardError, ParameterError
 from pipeline.params import PipelineParams
+from service.db.jobstore import Store
 from service.errors import api_wording, disk_full
 from service.settings import Settings
-from service.store import Store
 
 log = logging.getLogger("orchard.runner")
 

@@ -28,10 +28,12 @@ from typing import Any
 from croniter import croniter
 from croniter.croniter import CroniterBadDateError
 
-from pipeline.errors import InputError, NotFoundError, ParameterError
+from pipeline.errors import InputError, ParameterError
+from service.db.block_files import accept_block
+from service.db.errors import NotFoundError
+from service.db.jobstore import Store
 from service.quotas import QuotaExceeded
 from service.settings import Settings
-from service.store import Store, accept_block
 from service.tempfiles import process_dir
 
 log = logging.getLogger("orchard.schedules")

@@ -11,8 +11,8 @@ from typing import Annotated
 from fastapi import Depends, FastAPI, Request
 from fastapi.security import HTTPAuthorizationCredentials, HTTPBearer
 
+from service.db.jobstore import Store
 from service.settings import Settings
-from service.store import Store
 from service.web import sessions as web_sessions
 
 

@@ -10,11 +10,11 @@ from __future__ import annotations
 from datetime import datetime
 from pathlib import Path
 
-from pipeline.errors import ConflictError, NotFoundError
 from service import report as reports
+from service.db.errors import ConflictError, NotFoundError
+from service.db.jobstore import Store
 from service.runner import job_block_name, job_dir
 from service.settings import Settings
-from service.store import Store
 
 
 def job_output(store: Store, settings: Settings, tenant: dict, job_id: str, name: str) -> tuple[dict, Path]:

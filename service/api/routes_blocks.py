@@ -10,7 +10,7 @@ from fastapi.concurrency import run_in_threadpool
 from service.api.deps import SettingsDep, StoreDep, TenantDep
 from service.api.schemas import Block, block_out
 from service.api.uploads import UPLOAD_BODY, UPLOAD_SLACK, receive_upload
-from service.store import accept_block
+from service.db.block_files import accept_block
 
 router = APIRouter()
 

@@ -62,9 +62,9 @@ def run(args: argparse.Namespace) -> int:
 
     from pipeline.errors import ParameterError
     from pipeline.tiling import check_tiling
+    from service.db.jobstore import Store
     from service.schedules import check_inbox_use, next_run_time, run_schedule, validate_cron, validate_inbox
     from service.settings import build_settings
-    from service.store import Store
 
     settings = build_settings(data_dir=args.data_dir)
     store = Store(settings.store_path)
@@ -133,7 +133,7 @@ _OPTION = {("tiling", "tile_size"): "--tile-size", ("tiling", "buffer"): "--buff
 
 def _schedule(store, schedule_id: str) -> dict:
     """The schedule, or NotFoundError naming the command that lists them."""
-    from pipeline.errors import NotFoundError
+    from service.db.errors import NotFoundError
 
     try:
         return store.get_schedule(None, schedule_id)

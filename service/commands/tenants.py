@@ -57,9 +57,9 @@ def _row(name: str, quota: dict) -> str:
 
 
 def run(args: argparse.Namespace) -> int:
+    from service.db.jobstore import Store
     from service.quotas import GB
     from service.settings import build_settings
-    from service.store import Store
 
     settings = build_settings(data_dir=args.data_dir)
     store = Store(settings.store_path)

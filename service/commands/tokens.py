@@ -50,10 +50,11 @@ def _when(ts: float | None, never: str) -> str:
 
 
 def run(args: argparse.Namespace) -> int:
-    from pipeline.errors import NotFoundError, ParameterError
+    from pipeline.errors import ParameterError
     from service.auth import hash_token, issue_token
+    from service.db.errors import NotFoundError
+    from service.db.jobstore import Store
     from service.settings import build_settings
-    from service.store import Store
 
     settings = build_settings(data_dir=args.data_dir)
     store = Store(settings.store_path)

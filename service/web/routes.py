@@ -17,8 +17,8 @@ from fastapi import APIRouter, Form, Request
 from fastapi.openapi.docs import get_redoc_html, get_swagger_ui_html
 from fastapi.responses import HTMLResponse, RedirectResponse, Response
 
-from pipeline.errors import NotFoundError
 from service.api.results import job_output, require_output
+from service.db.errors import NotFoundError
 from service.errors import UnauthorizedError
 from service.runner import job_dir
 from service.web import mapdata, render, sessions

@@ -30,8 +30,8 @@ from fastapi import Request
 from starlette.exceptions import HTTPException
 
 from service.auth import authenticate, hash_token
+from service.db.jobstore import Store
 from service.errors import UnauthorizedError
-from service.store import Store
 
 COOKIE = "orchard_session"
 CSRF_HEADER = "x-csrf-token"

@@ -14,7 +14,7 @@ import httpx
 import numpy as np
 
 from service.auth import create_token
-from service.store import Store
+from service.db.jobstore import Store
 
 
 def free_port() -> int:

@@ -16,10 +16,10 @@ from app_thread import app_in_thread
 from service_fixtures import make_token, temp_files, write_las
 
 from service.app import create_app
+from service.db.jobstore import Store
 from service.openapi import unique_operation_ids
 from service.runner import job_dir
 from service.settings import Settings
-from service.store import Store
 
 _METHODS = {"get", "put", "post", "delete", "options", "head", "patch", "trace"}
 

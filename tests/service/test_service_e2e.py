@@ -26,8 +26,9 @@ from service_fixtures import (
     write_las,
 )
 
+from service.db.block_files import accept_block
+from service.db.jobstore import Store
 from service.schedules import file_sha256
-from service.store import Store, accept_block
 
 pytestmark = pytest.mark.slow
 

@@ -11,11 +11,11 @@ from pathlib import Path
 import pytest
 from hypothesis import given, settings as hsettings, strategies as st
 
-from service import store as service_store
+from service.db.database import SCHEMA
+from service.db.jobstore import Store
 from service.quotas import GB, QueueQuotaExceeded, StorageQuotaExceeded
 from service.runner import Runner
 from service.settings import Settings
-from service.store import Store
 
 import workers.job as workers_job
 import workers.jobspec as workers_jobspec
@@ -215,7 +215,7 @@ def test_a_graceful_stop_is_no_crash(store):
 
 def test_a_store_of_an_earlier_version_gains_the_crash_column_in_place(tmp_path):
     path = tmp_path / "old.sqlite"
-    old_schema = service_store._SCHEMA.replace("    crashes INTEGER NOT NULL DEFAULT 0,\n", "")
+    old_schema = SCHEMA.replace("    crashes INTEGER NOT NULL DEFAULT 0,\n", "")
     old_schema = old_schema.split("CREATE INDEX IF NOT EXISTS jobs_by_tenant_started")[0]
     assert "crashes" not in old_schema and "tenant_quotas" not in old_schema
     con = sqlite3.connect(path)

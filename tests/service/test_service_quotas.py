@@ -12,9 +12,9 @@ from service_fixtures import make_token, temp_files, write_las
 
 from service import schedules
 from service.app import create_app
+from service.db.jobstore import Store
 from service.schedules import run_schedule, scan_lock
 from service.settings import Settings
-from service.store import Store
 
 
 @pytest.fixture()
@@ -207,8 +207,8 @@ def test_a_farms_scan_does_not_wait_for_another_farms_copy(farms, monkeypatch):
 def test_a_block_refused_when_recorded_leaves_no_file(tmp_path, monkeypatch):
     # two uploads of a farm at once both pass the early check; the store's own check,
     # made when the block is recorded, refuses the second and its landed file goes
+    from service.db.block_files import accept_block
     from service.quotas import StorageQuotaExceeded
-    from service.store import accept_block
 
     store = Store(tmp_path / "data" / "orchard.sqlite")
     tenant = store.ensure_tenant("farm")

@@ -93,10 +93,11 @@ def test_a_title_with_dollar_signs_is_text_and_a_partial_result_says_so(tmp_path
 def finished_job(tmp_path):
     """A store holding one uploaded block and a job of it marked done with the given
     outcome (and result files): ``make(filename, outcome) -> (settings, store, job)``."""
+    from service.db.block_files import accept_block
+    from service.db.jobstore import Store
     from service.runner import job_dir
     from service.schedules import file_sha256
     from service.settings import Settings
-    from service.store import Store, accept_block
 
     settings = Settings(data_dir=tmp_path / "data")
     settings.blocks_dir.mkdir(parents=True)
@@ -136,8 +137,8 @@ def test_the_report_of_a_partial_result_says_which_tiles_are_missing(finished_jo
 def test_a_lost_map_is_drawn_again_and_a_lost_block_is_a_clear_404(finished_job):
     # map.png lost beside its report.html: every request for it was a 500 (and the map was
     # never drawn again); the block file lost: a 422 naming the server's checksum file
-    from pipeline.errors import NotFoundError
     from service.api.results import ensure_report
+    from service.db.errors import NotFoundError
     from service.runner import job_dir
 
     settings, store, job = finished_job("north.las", {"n_trees": 2})

@@ -9,10 +9,10 @@ import pytest
 from distributed.comm.core import CommClosedError
 
 from pipeline.errors import InputError, NoTreesError
+from service.db.database import SCHEMA
+from service.db.jobstore import Store
 from service.runner import Runner
 from service.settings import Settings
-from service import store as service_store
-from service.store import Store
 
 import workers.job as workers_job
 import workers.jobspec as workers_jobspec
@@ -197,7 +197,7 @@ def test_a_store_of_an_earlier_version_gains_the_retry_column(tmp_path):
 
     path = tmp_path / "old.sqlite"
     con = sqlite3.connect(path)
-    old_schema = service_store._SCHEMA.replace("    retry_at REAL,\n", "")
+    old_schema = SCHEMA.replace("    retry_at REAL,\n", "")
     assert "retry_at" not in old_schema
     con.executescript(old_schema)
     con.execute("INSERT INTO tenants (id, name, created_at) VALUES ('t', 'farm', 0)")

@@ -15,6 +15,7 @@ import pytest
 from service_fixtures import tenant_inbox, write_las
 
 from pipeline.errors import InputError, ParameterError
+from service.db.jobstore import Store
 from service.errors import api_wording
 from service.schedules import (
     ScheduleClock,
@@ -26,7 +27,6 @@ from service.schedules import (
     validate_inbox,
 )
 from service.settings import Settings
-from service.store import Store
 
 
 def test_next_run_default_is_one_in_the_morning_local_time():

@@ -14,8 +14,8 @@ from service_fixtures import free_port, make_token, write_las
 
 from service.api.uploads import FilePart
 from service.app import create_app
+from service.db.jobstore import Store
 from service.settings import Settings
-from service.store import Store
 
 
 @pytest.fixture()

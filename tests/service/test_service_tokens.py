@@ -18,10 +18,10 @@ from service_fixtures import write_las
 
 from service.auth import TOUCH_INTERVAL_S, authenticate, create_token, hash_token, issue_token
 from service.cli import main
+from service.db.jobstore import Store
 from service.errors import UnauthorizedError
 from service.permissions import tighten
 from service.settings import Settings
-from service.store import Store
 
 
 @pytest.fixture()

@@ -1,0 +1,226 @@
+"""The job store's SQLite database: schema, migrations, connections and transactions.
+
+One connection per thread, every state change in one ``BEGIN IMMEDIATE`` transaction,
+so the HTTP threads, the job runner and the schedule clock (and a second process such
+as ``orchard tokens create``) can share the file (WAL mode). Records are returned as
+plain dicts with JSON columns decoded.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import json
+import os
+import sqlite3
+import threading
+import uuid
+from pathlib import Path
+from typing import Any, Iterator
+
+from service.permissions import private_dir, private_file
+
+#: every table as the current version creates it; a store written by an earlier version
+#: gets the columns it lacks from `Database._migrate`
+SCHEMA = """
+CREATE TABLE IF NOT EXISTS tenants (
+    id TEXT PRIMARY KEY,
+    name TEXT NOT NULL UNIQUE,
+    created_at REAL NOT NULL
+);
+CREATE TABLE IF NOT EXISTS tokens (
+    hash TEXT PRIMARY KEY,
+    tenant_id TEXT NOT NULL REFERENCES tenants(id),
+    created_at REAL NOT NULL,
+    id TEXT,
+    prefix TEXT,
+    last_used_at REAL,
+    expires_at REAL
+);
+CREATE TABLE IF NOT EXISTS blocks (
+    id TEXT PRIMARY KEY,
+    tenant_id TEXT NOT NULL REFERENCES tenants(id),
+    sha256 TEXT NOT NULL,
+    path TEXT NOT NULL,
+    filename TEXT,
+    size_bytes INTEGER NOT NULL,
+    info TEXT NOT NULL,
+    created_at REAL NOT NULL,
+    UNIQUE (tenant_id, sha256)
+);
+CREATE TABLE IF NOT EXISTS jobs (
+    id TEXT PRIMARY KEY,
+    tenant_id TEXT NOT NULL REFERENCES tenants(id),
+    block_id TEXT NOT NULL REFERENCES blocks(id),
+    schedule_id TEXT,
+    params TEXT NOT NULL,
+    tiling TEXT,
+    state TEXT NOT NULL,
+    tiles_done INTEGER NOT NULL DEFAULT 0,
+    tiles_total INTEGER NOT NULL DEFAULT 0,
+    timings TEXT NOT NULL DEFAULT '{}',
+    outcome TEXT,
+    error TEXT,
+    cancel_requested INTEGER NOT NULL DEFAULT 0,
+    attempts INTEGER NOT NULL DEFAULT 0,
+    crashes INTEGER NOT NULL DEFAULT 0,
+    retry_at REAL,
+    created_at REAL NOT NULL,
+    started_at REAL,
+    finished_at REAL,
+    capture TEXT
+);
+CREATE INDEX IF NOT EXISTS jobs_by_state ON jobs(state, created_at);
+CREATE INDEX IF NOT EXISTS jobs_by_tenant ON jobs(tenant_id, created_at);
+CREATE INDEX IF NOT EXISTS jobs_by_block ON jobs(block_id);
+CREATE INDEX IF NOT EXISTS jobs_by_tenant_started ON jobs(tenant_id, started_at);
+CREATE INDEX IF NOT EXISTS jobs_by_tenant_state ON jobs(tenant_id, state, created_at);
+CREATE TABLE IF NOT EXISTS tenant_quotas (
+    tenant_id TEXT PRIMARY KEY REFERENCES tenants(id),
+    storage_bytes INTEGER,
+    queued_jobs INTEGER,
+    updated_at REAL NOT NULL
+);
+CREATE TABLE IF NOT EXISTS schedules (
+    id TEXT PRIMARY KEY,
+    tenant_id TEXT NOT NULL REFERENCES tenants(id),
+    inbox TEXT NOT NULL,
+    cron TEXT NOT NULL,
+    params TEXT NOT NULL,
+    tiling TEXT,
+    created_at REAL NOT NULL,
+    last_run_at REAL,
+    next_run_at REAL,
+    paused INTEGER NOT NULL DEFAULT 0
+);
+CREATE TABLE IF NOT EXISTS schedule_files (
+    schedule_id TEXT NOT NULL,
+    sha256 TEXT NOT NULL,
+    path TEXT NOT NULL,
+    job_id TEXT,
+    error TEXT,
+    seen_at REAL NOT NULL,
+    PRIMARY KEY (schedule_id, sha256)
+);
+CREATE TABLE IF NOT EXISTS capture_hashes (
+    path TEXT PRIMARY KEY,
+    size INTEGER NOT NULL,
+    mtime_ns INTEGER NOT NULL,
+    ctime_ns INTEGER NOT NULL,
+    inode INTEGER NOT NULL,
+    sha256 TEXT NOT NULL
+);
+"""
+
+#: columns stored as JSON text, decoded by `record`
+JSON_COLUMNS = ("info", "params", "tiling", "timings", "outcome")
+
+
+def new_id() -> str:
+    """A random, unguessable resource id (32 hex digits)."""
+    return uuid.uuid4().hex
+
+
+def new_token_id() -> str:
+    """A token's id: 12 hex digits, shown in listings and used to revoke it (not a secret)."""
+    return uuid.uuid4().hex[:12]
+
+
+def record(row: sqlite3.Row | None) -> dict[str, Any] | None:
+    """A row as a plain dict with its JSON columns decoded (None stays None)."""
+    if row is None:
+        return None
+    rec = dict(row)
+    for key in JSON_COLUMNS:
+        if key in rec and rec[key] is not None:
+            rec[key] = json.loads(rec[key])
+    return rec
+
+
+class Database:
+    """The SQLite file under ``path`` (created if missing, brought up to the schema),
+    with one connection per thread."""
+
+    def __init__(self, path: str | os.PathLike) -> None:
+        self.path = Path(path)
+        private_dir(self.path.parent)
+        private_file(self.path)  # before SQLite opens it: its -wal and -shm files take this file's mode
+        self._local = threading.local()
+        self._all: list[sqlite3.Connection] = []
+        self._all_lock = threading.Lock()
+        self._con().executescript(SCHEMA)
+        self._migrate()
+
+    def _migrate(self) -> None:
+        """Bring a store written by an earlier version up to the schema (added columns)."""
+        self._add_column("jobs", "retry_at", "REAL")
+        self._add_column("jobs", "capture", "TEXT")
+        self._add_column("jobs", "crashes", "INTEGER NOT NULL DEFAULT 0")
+        self._add_column("schedules", "paused", "INTEGER NOT NULL DEFAULT 0")
+        self._migrate_tokens()
+
+    def _migrate_tokens(self) -> None:
+        """Tokens stored before they had ids get one; their visible prefix stays unknown
+        (only their hash was kept), and they never expire."""
+        for column, decl in (("id", "TEXT"), ("prefix", "TEXT"), ("last_used_at", "REAL"), ("expires_at", "REAL")):
+            self._add_column("tokens", column, decl)
+        if self._one("SELECT 1 AS x FROM tokens WHERE id IS NULL LIMIT 1") is not None:
+            with self._tx() as con:
+                for row in con.execute("SELECT hash FROM tokens WHERE id IS NULL").fetchall():
+                    con.execute("UPDATE tokens SET id = ? WHERE hash = ?", (new_token_id(), row["hash"]))
+        self._con().execute("CREATE UNIQUE INDEX IF NOT EXISTS tokens_by_id ON tokens(id)")
+
+    def _add_column(self, table: str, column: str, decl: str) -> None:
+        def present() -> bool:
+            return any(r["name"] == column for r in self._con().execute(f"PRAGMA table_info({table})"))
+
+        if not present():
+            try:
+                self._con().execute(f"ALTER TABLE {table} ADD COLUMN {column} {decl}")
+            except sqlite3.OperationalError:  # another process added it meanwhile
+                if not present():
+                    raise
+
+    # -- connections and transactions ------------------------------------------------
+
+    def _con(self) -> sqlite3.Connection:
+        """This thread's connection, opened on first use."""
+        con = getattr(self._local, "con", None)
+        if con is None:
+            con = sqlite3.connect(self.path, timeout=30.0, isolation_level=None, check_same_thread=False)
+            con.row_factory = sqlite3.Row
+            con.execute("PRAGMA journal_mode=WAL")
+            con.execute("PRAGMA synchronous=FULL")
+            con.execute("PRAGMA foreign_keys=ON")
+            con.execute("PRAGMA busy_timeout=30000")
+            self._local.con = con
+            with self._all_lock:
+                self._all.append(con)
+        return con
+
+    @contextlib.contextmanager
+    def _tx(self) -> Iterator[sqlite3.Connection]:
+        """One write transaction (``BEGIN IMMEDIATE`` … ``COMMIT``, rolled back on error)."""
+        con = self._con()
+        con.execute("BEGIN IMMEDIATE")
+        try:
+            yield con
+        except BaseException:
+            con.execute("ROLLBACK")
+            raise
+        con.execute("COMMIT")
+
+    def _one(self, sql: str, params: tuple = ()) -> dict[str, Any] | None:
+        return record(self._con().execute(sql, params).fetchone())
+
+    def _all_rows(self, sql: str, params: tuple = ()) -> list[dict[str, Any]]:
+        return [record(r) for r in self._con().execute(sql, params).fetchall()]
+
+    def close(self) -> None:
+        """Close every thread's connection; a later call opens new ones."""
+        with self._all_lock:
+            for con in self._all:
+                with contextlib.suppress(sqlite3.Error):
+                    con.close()
+            self._all.clear()
+        self._local = threading.local()
+

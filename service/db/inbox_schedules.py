@@ -1,0 +1,178 @@
+"""Schedules that scan an inbox folder (``schedules``), the captures they handled
+(``schedule_files``) and the checksums of inbox files already read (``capture_hashes``)."""
+
+from __future__ import annotations
+
+import json
+import sqlite3
+import time
+from collections.abc import Callable
+from typing import Any
+
+from pipeline.errors import ParameterError
+from service.db.database import new_id, record
+from service.db.errors import NotFoundError
+from service.db.job_queue import JobQueue
+
+
+class InboxSchedules(JobQueue):
+    """The ``schedules``, ``schedule_files`` and ``capture_hashes`` tables (a scheduled
+    capture's job is queued with its record, in one transaction)."""
+
+    def create_schedule(
+        self, *, tenant_id: str, inbox: str, cron: str, params: dict, tiling: dict | None, next_run_at: float | None
+    ) -> dict[str, Any]:
+        sid = new_id()
+        with self._tx() as con:
+            # one schedule per inbox, checked inside the write transaction: requests at the
+            # same moment cannot both pass (BEGIN IMMEDIATE serialises them)
+            other = con.execute("SELECT id, tenant_id FROM schedules WHERE inbox = ?", (inbox,)).fetchone()
+            if other is not None:
+                whose = "this tenant's" if other[1] == tenant_id else "another tenant's"
+                raise ParameterError(f"inbox {inbox!r} already has a schedule ({whose}); one schedule per inbox")
+            con.execute(
+                "INSERT INTO schedules (id, tenant_id, inbox, cron, params, tiling, created_at, next_run_at) "
+                "VALUES (?, ?, ?, ?, ?, ?, ?, ?)",
+                (sid, tenant_id, inbox, cron, json.dumps(params), json.dumps(tiling) if tiling else None, time.time(), next_run_at),
+            )
+        return self.get_schedule(None, sid)
+
+    def get_schedule(self, tenant_id: str | None, schedule_id: str) -> dict[str, Any]:
+        if tenant_id is None:
+            rec = self._one("SELECT * FROM schedules WHERE id = ?", (schedule_id,))
+        else:
+            rec = self._one("SELECT * FROM schedules WHERE id = ? AND tenant_id = ?", (schedule_id, tenant_id))
+        if rec is None:
+            raise NotFoundError(f"no schedule {schedule_id!r}; list yours with GET /v1/schedules")
+        return rec
+
+    def list_schedules(self, tenant_id: str | None = None) -> list[dict[str, Any]]:
+        if tenant_id is None:
+            return self._all_rows("SELECT * FROM schedules ORDER BY created_at, id")
+        return self._all_rows("SELECT * FROM schedules WHERE tenant_id = ? ORDER BY created_at, id", (tenant_id,))
+
+    def delete_schedule(self, tenant_id: str, schedule_id: str) -> None:
+        with self._tx() as con:
+            n = con.execute("DELETE FROM schedules WHERE id = ? AND tenant_id = ?", (schedule_id, tenant_id)).rowcount
+            if n == 0:
+                raise NotFoundError(f"no schedule {schedule_id!r}; list yours with GET /v1/schedules")
+            con.execute("DELETE FROM schedule_files WHERE schedule_id = ?", (schedule_id,))
+
+    def set_schedule_times(self, schedule_id: str, *, cron: str, last_run_at: float | None, next_run_at: float | None) -> None:
+        """Record a run and the next one, computed from ``cron``: left alone if the
+        schedule was paused or given another cron meanwhile (that change set its own)."""
+        with self._tx() as con:
+            con.execute(
+                "UPDATE schedules SET last_run_at = COALESCE(?, last_run_at), next_run_at = ? "
+                "WHERE id = ? AND cron = ? AND paused = 0",
+                (last_run_at, next_run_at, schedule_id, cron),
+            )
+
+    def bring_schedule_forward(self, schedule_id: str, at: float) -> None:
+        """Run a schedule at ``at`` if its next run is later (or not set) and it is not paused."""
+        with self._tx() as con:
+            con.execute(
+                "UPDATE schedules SET next_run_at = ? WHERE id = ? AND paused = 0 AND (next_run_at IS NULL OR next_run_at > ?)",
+                (at, schedule_id, at),
+            )
+
+    def update_schedule(
+        self, tenant_id: str | None, schedule_id: str, changes: dict[str, Any] | Callable[[dict[str, Any]], dict[str, Any]]
+    ) -> dict[str, Any]:
+        """Change a schedule's ``cron``, ``params``, ``tiling``, ``paused`` and
+        ``next_run_at`` (the keys given) in one transaction. ``changes`` may be a function
+        of the schedule as stored, called inside that transaction, so that what it checks
+        (a tiling against the parameters) cannot be changed by another request meanwhile."""
+        allowed = {"cron", "params", "tiling", "paused", "next_run_at"}
+        where, args = "id = ?", [schedule_id]
+        if tenant_id is not None:
+            where, args = "id = ? AND tenant_id = ?", [schedule_id, tenant_id]
+        with self._tx() as con:
+            current = record(con.execute(f"SELECT * FROM schedules WHERE {where}", args).fetchone())
+            if current is None:
+                raise NotFoundError(f"no schedule {schedule_id!r}; list yours with GET /v1/schedules")
+            if callable(changes):
+                changes = changes(current)
+            if not changes.keys() <= allowed:
+                raise ValueError(f"not a schedule setting: {sorted(changes.keys() - allowed)}")
+            values = {k: (json.dumps(v) if k in ("params", "tiling") and v is not None else v) for k, v in changes.items()}
+            if "paused" in values:
+                values["paused"] = int(bool(values["paused"]))
+            if values:
+                con.execute(f"UPDATE schedules SET {', '.join(f'{k} = ?' for k in values)} WHERE {where}",
+                            [*values.values(), *args])
+        return self.get_schedule(tenant_id, schedule_id)
+
+    def known_hash(self, path: str, state: tuple[int, int, int, int]) -> str | None:
+        """The sha256 of an inbox file hashed before and unchanged since (``state``: size,
+        mtime_ns, ctime_ns, inode), or None: scans re-read every capture left in an inbox
+        every night."""
+        row = self._one(
+            "SELECT sha256 FROM capture_hashes WHERE path = ? AND size = ? AND mtime_ns = ? AND ctime_ns = ? AND inode = ?",
+            (path, *state),
+        )
+        return None if row is None else row["sha256"]
+
+    def remember_hash(self, path: str, state: tuple[int, int, int, int], sha256: str) -> None:
+        with self._tx() as con:
+            con.execute(
+                "INSERT OR REPLACE INTO capture_hashes (path, size, mtime_ns, ctime_ns, inode, sha256) VALUES (?, ?, ?, ?, ?, ?)",
+                (path, *state, sha256),
+            )
+
+    def schedule_file_seen(self, schedule_id: str, sha256: str) -> bool:
+        return self._one(
+            "SELECT 1 AS seen FROM schedule_files WHERE schedule_id = ? AND sha256 = ?", (schedule_id, sha256)
+        ) is not None
+
+    def record_schedule_file(
+        self, *, schedule_id: str, sha256: str, path: str, job_id: str | None, error: str | None
+    ) -> bool:
+        """Record that a capture was handled; False if it already was (another scan got there first)."""
+        with self._tx() as con:
+            try:
+                con.execute(
+                    "INSERT INTO schedule_files (schedule_id, sha256, path, job_id, error, seen_at) VALUES (?, ?, ?, ?, ?, ?)",
+                    (schedule_id, sha256, path, job_id, error, time.time()),
+                )
+            except sqlite3.IntegrityError:
+                return False
+        return True
+
+    def create_scheduled_job(
+        self, *, schedule: dict[str, Any], block_id: str, sha256: str, path: str, capture: str | None = None
+    ) -> dict[str, Any] | None:
+        """Queue the job of a capture a schedule found and record the capture as handled,
+        in one transaction; None (nothing queued) if the capture was handled already,
+        e.g. by a scan of the same inbox running at the same moment in another process.
+        ``capture`` is the file's name as shown to the farm (the block may be an earlier
+        upload of the same bytes under another name)."""
+        jid = new_id()
+        with self._tx() as con:
+            try:
+                con.execute(
+                    "INSERT INTO schedule_files (schedule_id, sha256, path, job_id, error, seen_at) VALUES (?, ?, ?, ?, ?, ?)",
+                    (schedule["id"], sha256, path, jid, None, time.time()),
+                )
+            except sqlite3.IntegrityError:
+                return None
+            self._check_queue(con, schedule["tenant_id"])  # rolls the capture's record back too
+            con.execute(
+                "INSERT INTO jobs (id, tenant_id, block_id, schedule_id, params, tiling, state, created_at, capture) "
+                "VALUES (?, ?, ?, ?, ?, ?, 'queued', ?, ?)",
+                (jid, schedule["tenant_id"], block_id, schedule["id"], json.dumps(schedule["params"]),
+                 json.dumps(schedule["tiling"]) if schedule["tiling"] else None, time.time(), capture),
+            )
+        return self.get_job(None, jid)
+
+    def capture_scheduled(self, tenant_id: str, sha256: str) -> bool:
+        """Whether a schedule of this tenant (any, deleted ones too) already queued a job
+        for the capture with this sha256."""
+        return self._one(
+            "SELECT 1 AS seen FROM jobs j JOIN blocks b ON b.id = j.block_id "
+            "WHERE b.tenant_id = ? AND b.sha256 = ? AND j.schedule_id IS NOT NULL LIMIT 1",
+            (tenant_id, sha256),
+        ) is not None
+
+    def schedule_files(self, schedule_id: str) -> list[dict[str, Any]]:
+        return self._all_rows("SELECT * FROM schedule_files WHERE schedule_id = ? ORDER BY seen_at", (schedule_id,))

@@ -1,0 +1,227 @@
+"""The job queue (``jobs``): submitting, fair-share claiming, progress, retries,
+cancellation and recovery after the service died."""
+
+from __future__ import annotations
+
+import json
+import logging
+import time
+from typing import Any
+
+from service.db.database import new_id, record
+from service.db.errors import ConflictError, NotFoundError
+from service.db.tenant_quotas import TenantQuotas
+
+log = logging.getLogger("orchard.store")
+
+JOB_STATES = ("queued", "running", "done", "failed", "cancelled")
+FINAL_STATES = ("done", "failed", "cancelled")
+
+
+class JobQueue(TenantQuotas):
+    """The ``jobs`` table (a job is queued within its tenant's queue quota)."""
+
+    def create_job(
+        self, *, tenant_id: str, block_id: str, params: dict, tiling: dict | None, schedule_id: str | None = None
+    ) -> dict[str, Any]:
+        jid = new_id()
+        with self._tx() as con:
+            self._check_queue(con, tenant_id)
+            con.execute(
+                "INSERT INTO jobs (id, tenant_id, block_id, schedule_id, params, tiling, state, created_at) "
+                "VALUES (?, ?, ?, ?, ?, ?, 'queued', ?)",
+                (jid, tenant_id, block_id, schedule_id, json.dumps(params), json.dumps(tiling) if tiling else None, time.time()),
+            )
+        return self.get_job(None, jid)
+
+    def get_job(self, tenant_id: str | None, job_id: str) -> dict[str, Any]:
+        if tenant_id is None:
+            rec = self._one("SELECT * FROM jobs WHERE id = ?", (job_id,))
+        else:
+            rec = self._one("SELECT * FROM jobs WHERE id = ? AND tenant_id = ?", (job_id, tenant_id))
+        if rec is None:
+            raise NotFoundError(f"no job {job_id!r}; list yours with GET /v1/jobs")
+        return rec
+
+    def list_jobs(
+        self,
+        tenant_id: str,
+        *,
+        state: str | None = None,
+        block_id: str | None = None,
+        schedule_id: str | None = None,
+        limit: int = 100,
+        offset: int = 0,
+    ) -> list[dict[str, Any]]:
+        sql = "SELECT * FROM jobs WHERE tenant_id = ?"
+        params: list[Any] = [tenant_id]
+        for column, value in (("state", state), ("block_id", block_id), ("schedule_id", schedule_id)):
+            if value is not None:
+                sql += f" AND {column} = ?"
+                params.append(value)
+        sql += " ORDER BY created_at DESC, id DESC LIMIT ? OFFSET ?"  # newest first: last night's jobs on the first page
+        params += [limit, offset]
+        return self._all_rows(sql, tuple(params))
+
+    def count_jobs(
+        self, tenant_id: str, *, state: str | None = None, block_id: str | None = None, schedule_id: str | None = None
+    ) -> int:
+        """How many jobs `list_jobs` with these filters lists over all its pages."""
+        sql = "SELECT COUNT(*) AS n FROM jobs WHERE tenant_id = ?"
+        params: list[Any] = [tenant_id]
+        for column, value in (("state", state), ("block_id", block_id), ("schedule_id", schedule_id)):
+            if value is not None:
+                sql += f" AND {column} = ?"
+                params.append(value)
+        return self._one(sql, tuple(params))["n"]
+
+    def claim_next_job(self) -> dict[str, Any] | None:
+        """Move the next queued job to ``running`` and return it (None if the queue is
+        empty, or holds only jobs waiting for their retry time).
+
+        Fair share between tenants: the job comes from the tenant with a job ready that
+        has the fewest jobs running, then the one served least recently (its latest
+        job's start; never served first), then the one whose oldest ready job is
+        oldest; within a tenant, oldest first. One farm's hundred queued jobs delay
+        another's by at most one job each.
+        """
+        now = time.time()
+        with self._tx() as con:
+            row = con.execute(
+                "WITH ready AS (SELECT tenant_id, MIN(created_at) AS oldest FROM jobs "
+                "  WHERE state = 'queued' AND (retry_at IS NULL OR retry_at <= :now) GROUP BY tenant_id), "
+                "pick AS (SELECT r.tenant_id FROM ready r ORDER BY "
+                "  (SELECT COUNT(*) FROM jobs x WHERE x.tenant_id = r.tenant_id AND x.state = 'running'), "
+                "  COALESCE((SELECT MAX(x.started_at) FROM jobs x WHERE x.tenant_id = r.tenant_id), 0), "
+                "  r.oldest, r.tenant_id LIMIT 1) "
+                "SELECT id FROM jobs WHERE tenant_id = (SELECT tenant_id FROM pick) AND state = 'queued' "
+                "AND (retry_at IS NULL OR retry_at <= :now) ORDER BY created_at, id LIMIT 1",
+                {"now": now},
+            ).fetchone()
+            if row is None:
+                return None
+            con.execute(
+                "UPDATE jobs SET state = 'running', started_at = ?, attempts = attempts + 1, error = NULL, "
+                "retry_at = NULL WHERE id = ?",
+                (now, row["id"]),
+            )
+            job = con.execute("SELECT * FROM jobs WHERE id = ?", (row["id"],)).fetchone()
+        return record(job)
+
+    def set_progress(self, job_id: str, done: int, total: int) -> None:
+        with self._tx() as con:
+            con.execute(
+                "UPDATE jobs SET tiles_done = ?, tiles_total = ? WHERE id = ? AND state = 'running'", (done, total, job_id)
+            )
+
+    def finish_job(
+        self,
+        job_id: str,
+        state: str,
+        *,
+        error: str | None = None,
+        outcome: dict | None = None,
+        timings: dict | None = None,
+    ) -> dict[str, Any]:
+        """Move a running job to a final state (``done``, ``failed`` or ``cancelled``)."""
+        if state not in FINAL_STATES:
+            raise ValueError(f"not a final state: {state}")
+        with self._tx() as con:
+            sets = "state = ?, error = ?, finished_at = ?"
+            params: list[Any] = [state, error, time.time()]
+            if outcome is not None:
+                sets += ", outcome = ?"
+                params.append(json.dumps(outcome))
+            if timings is not None:
+                sets += ", timings = ?"
+                params.append(json.dumps(timings))
+            if state == "done":
+                sets += ", tiles_done = tiles_total"
+            con.execute(f"UPDATE jobs SET {sets} WHERE id = ? AND state = 'running'", (*params, job_id))
+        return self.get_job(None, job_id)
+
+    def retry_job(self, job_id: str, *, error: str, retry_at: float) -> dict[str, Any]:
+        """Put a running job back in the queue, to be taken again from ``retry_at`` (epoch
+        seconds); ``error`` says why its last attempt failed."""
+        with self._tx() as con:
+            con.execute(
+                "UPDATE jobs SET state = 'queued', error = ?, retry_at = ?, tiles_done = 0, tiles_total = 0 "
+                "WHERE id = ? AND state = 'running'",
+                (error, retry_at, job_id),
+            )
+        return self.get_job(None, job_id)
+
+    def request_cancel(self, tenant_id: str, job_id: str) -> dict[str, Any]:
+        """Cancel a job: a queued one at once, a running one as soon as the runner sees the request."""
+        with self._tx() as con:
+            row = con.execute("SELECT state FROM jobs WHERE id = ? AND tenant_id = ?", (job_id, tenant_id)).fetchone()
+            if row is None:
+                raise NotFoundError(f"no job {job_id!r}; list yours with GET /v1/jobs")
+            if row["state"] == "queued":
+                con.execute(
+                    "UPDATE jobs SET state = 'cancelled', cancel_requested = 1, finished_at = ?, error = ? WHERE id = ?",
+                    (time.time(), "cancelled before it started", job_id),
+                )
+            elif row["state"] == "running":
+                con.execute("UPDATE jobs SET cancel_requested = 1 WHERE id = ?", (job_id,))
+            else:
+                raise ConflictError(f"job {job_id} is already {row['state']}; only queued or running jobs can be cancelled")
+        return self.get_job(None, job_id)
+
+    def cancel_requested(self, job_id: str) -> bool:
+        rec = self._one("SELECT cancel_requested FROM jobs WHERE id = ?", (job_id,))
+        return bool(rec and rec["cancel_requested"])
+
+    def cancel_interrupted(self) -> list[str]:
+        """Cancel the jobs left ``running`` by a dead service that had been asked to stop;
+        returns their ids (their work stores are the caller's to delete)."""
+        with self._tx() as con:
+            ids = [r["id"] for r in con.execute("SELECT id FROM jobs WHERE state = 'running' AND cancel_requested = 1")]
+            con.executemany(
+                "UPDATE jobs SET state = 'cancelled', finished_at = ?, error = 'cancelled on request' WHERE id = ?",
+                [(time.time(), jid) for jid in ids],
+            )
+        return ids
+
+    def release_job(self, job_id: str) -> None:
+        """Put a running job back in the queue as if it had not been claimed (the service
+        is stopping): a restart is no attempt of the job's, and must not use up the
+        retries meant for a lost cluster."""
+        with self._tx() as con:
+            con.execute(
+                "UPDATE jobs SET state = 'queued', tiles_done = 0, tiles_total = 0, attempts = MAX(attempts - 1, 0) "
+                "WHERE id = ? AND state = 'running'",
+                (job_id,),
+            )
+
+    def requeue_running(self, *, max_crashes: int | None = None) -> int:
+        """Put jobs left ``running`` by a dead service back in the queue (those asked to
+        stop are cancelled instead, see `cancel_interrupted`).
+
+        The service's death is counted in the job's ``crashes``, not its ``attempts``
+        (those are for a lost cluster, `Runner` retries). A job during which the service
+        has now died ``max_crashes`` times is failed instead (a poison job: it would take
+        the service down at every start, and the rest of the queue with it).
+
+        Called once at start-up, before the runner takes jobs. Returns the number re-queued.
+        """
+        self.cancel_interrupted()
+        with self._tx() as con:
+            con.execute(
+                "UPDATE jobs SET crashes = crashes + 1, attempts = MAX(attempts - 1, 0), tiles_done = 0, "
+                "tiles_total = 0 WHERE state = 'running'"
+            )
+            poisoned = []
+            if max_crashes is not None:
+                poisoned = [(r["id"], r["crashes"]) for r in con.execute(
+                    "SELECT id, crashes FROM jobs WHERE state = 'running' AND crashes >= ?", (max_crashes,))]
+                con.executemany(
+                    "UPDATE jobs SET state = 'failed', finished_at = ?, retry_at = NULL, error = 'the service stopped ' "
+                    "|| crashes || ' times while running this job; it is not retried (it may be what stops the "
+                    "service: see the service log; submit it again to retry)' WHERE id = ?",
+                    [(time.time(), jid) for jid, _ in poisoned],
+                )
+            n = con.execute("UPDATE jobs SET state = 'queued' WHERE state = 'running'").rowcount
+        for jid, crashes in poisoned:
+            log.warning("job %s failed: the service stopped %d times while running it", jid, crashes)
+        return n
