@@ -1,0 +1,86 @@
+"""Reading points: local coordinates that lose nothing and do not depend on how a file
+stores them, chunks in order, truncated or out-of-bounds point data."""
+
+from __future__ import annotations
+
+import laspy
+import numpy as np
+import pytest
+
+from pipeline.blockinfo import read_info
+from pipeline.errors import InputError
+from pipeline.reading import iter_points, read_points
+from las_blocks import EASTING, NORTHING, cloud, one_line, patch, write_block
+
+
+def test_utm_coordinates_lose_nothing(tmp_path):
+    """Local float64 coordinates equal the stored integers times the scale exactly (to 1e-9 m)."""
+    xyz = cloud(20_000) + [0.0, 3_000_000.0, 0.0]  # a northing near 9.2e6 m
+    path = write_block(tmp_path / "b.laz", xyz, offsets=(EASTING, NORTHING + 3e6, 0.0), scales=(0.0001, 0.0001, 0.0001))
+    info = read_info(path)
+    las = laspy.read(path)
+    exact = np.column_stack([las.X * 0.0001 + info.offsets[0], las.Y * 0.0001 + info.offsets[1], las.Z * 0.0001])
+    pts, _ = read_points(path)
+    assert np.abs(pts + info.origin - exact).max() < 1e-6
+    assert np.abs(pts + info.origin - xyz).max() < 1e-3
+
+
+def test_the_same_points_read_the_same_whatever_the_offset_and_scale(tmp_path):
+    """A block re-saved by another tool with another offset (or a finer scale) holds the
+    same millimetre points; ``X * scale + (offset - origin)`` differed in its last bit for
+    most of them, enough to move points on a 0.1 m voxel boundary into the next voxel."""
+    mm = np.round(cloud(50_000), 3)
+    mm[:5000, 0] = EASTING + np.round(np.arange(5000) * 0.1, 1)  # on the 0.1 m planes
+    mm[:5000, 2] = 100.0 + np.round(np.arange(5000) % 300 * 0.1, 1)
+    paths = [
+        write_block(tmp_path / "a.laz", mm),
+        write_block(tmp_path / "b.laz", mm, offsets=(EASTING - 999.0, NORTHING + 123.456, 99.0)),
+        write_block(tmp_path / "c.laz", mm, offsets=(500_000.0, 6_000_000.0, 0.0)),
+        write_block(tmp_path / "d.laz", mm, scales=(0.0001, 0.0001, 0.0001)),
+    ]
+    local = [read_points(p)[0] for p in paths]
+    assert len({read_info(p).origin for p in paths}) == 1
+    naive = [(laspy.read(p).X * 0.001 + read_info(p).offsets[0] - read_info(p).origin[0]) for p in paths[:3]]
+    assert not all(np.array_equal(naive[0], n) for n in naive[1:])  # what the rounding is for
+    for other in local[1:]:
+        assert np.array_equal(local[0], other)
+    assert np.abs(local[0] + read_info(paths[0]).origin - mm).max() < 1e-6
+
+
+def test_iter_points_chunks_cover_the_file_in_order(tmp_path):
+    xyz = cloud(10_001)
+    path = write_block(tmp_path / "b.laz", xyz)
+    starts, total = [], 0
+    whole, info = read_points(path)
+    for start, chunk in iter_points(path, chunk_points=3000):
+        assert chunk.shape[1] == 3 and chunk.dtype == np.float64 and len(chunk) <= 3000
+        assert np.array_equal(chunk, whole[start : start + len(chunk)])
+        starts.append(start)
+        total += len(chunk)
+    assert total == len(xyz) and starts[0] == 0 and starts == sorted(starts)
+
+
+def test_custom_origin(tmp_path):
+    path = write_block(tmp_path / "b.las", cloud(100))
+    pts, info = read_points(path, origin=(EASTING, NORTHING, 0.0))
+    pts2, _ = read_points(path)
+    assert np.allclose(pts + [EASTING, NORTHING, 0.0], pts2 + info.origin, atol=1e-9)
+
+
+@pytest.mark.parametrize("suffix", [".las", ".laz"])
+def test_truncated(tmp_path, suffix):
+    path = write_block(tmp_path / f"b{suffix}", cloud(50_000))
+    data = path.read_bytes()
+    cut = tmp_path / f"cut{suffix}"
+    cut.write_bytes(data[: len(data) // 2])
+    with pytest.raises(InputError) as e:
+        read_points(cut)
+    assert "truncated" in one_line(e)
+
+
+def test_points_outside_header_bounds(tmp_path):
+    path = write_block(tmp_path / "b.las", cloud(100))
+    patch(path, 187, "<d", EASTING + 30.0)  # min x: many points now lie outside
+    with pytest.raises(InputError) as e:
+        read_points(path)
+    assert "outside" in one_line(e)
