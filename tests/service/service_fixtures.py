@@ -1,26 +1,66 @@
-"""Helpers of the service tests: a real `orchard serve` on loopback, tokens, small blocks."""
+"""Helpers of the service tests: clients of an app started in this process, the app
+served by uvicorn in a thread, a real `orchard serve` on loopback, tokens, small blocks."""
 
 from __future__ import annotations
 
+import contextlib
 import os
 import signal
 import socket
 import subprocess
 import sys
+import threading
 import time
+from collections.abc import Iterator
 from pathlib import Path
 
 import httpx
 import numpy as np
+from fastapi.testclient import TestClient
 
+from service.app import create_app
 from service.auth import create_token
 from service.db.jobstore import Store
+from service.settings import Settings
+
+
+def client_of(started: TestClient, *, token: str | None = None, **kwargs) -> TestClient:
+    """Another client of the app ``started`` (a TestClient whose context is entered),
+    sending ``token`` as its bearer token if given: its requests run on the event loop
+    the app started on, as those of a second client of one server would. Not to be
+    entered itself (that would start the app again); close it when done."""
+    client = TestClient(started.app, headers={"Authorization": f"Bearer {token}"} if token else None, **kwargs)
+    client.portal = started.portal
+    return client
 
 
 def free_port() -> int:
     with socket.socket() as s:
         s.bind(("127.0.0.1", 0))
         return s.getsockname()[1]
+
+
+@contextlib.contextmanager
+def app_in_thread(settings: Settings) -> Iterator[str]:
+    """`create_app(settings)` served by uvicorn on a loopback port in a thread of this
+    process (its lifespan runs; faults can be injected into it with monkeypatch); yields
+    its base URL, stops it afterwards."""
+    import uvicorn
+
+    app = create_app(settings)
+    port = free_port()
+    srv = uvicorn.Server(uvicorn.Config(app, host="127.0.0.1", port=port, log_level="warning", lifespan="on"))
+    thread = threading.Thread(target=srv.run, daemon=True)
+    thread.start()
+    deadline = time.monotonic() + 30
+    while not srv.started and thread.is_alive() and time.monotonic() < deadline:
+        time.sleep(0.02)
+    assert srv.started, "the app did not start"
+    try:
+        yield f"http://127.0.0.1:{port}"
+    finally:
+        srv.should_exit = True
+        thread.join(30)
 
 
 class ServerProcess:

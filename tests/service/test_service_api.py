@@ -1,4 +1,5 @@
-"""API tests against a real `orchard serve` on loopback (runner off: jobs stay queued)."""
+"""API tests on the app in this process (runner off: jobs stay queued); those that hold
+a socket open, hang up or signal the server run against a real `orchard serve` on loopback."""
 
 from __future__ import annotations
 
@@ -18,18 +19,18 @@ def upload(client: httpx.Client, path, name: str | None = None) -> httpx.Respons
 # -- health, docs, auth -------------------------------------------------------------------
 
 
-def test_healthz_needs_no_token(api_server):
-    r = httpx.get(api_server.url + "/healthz")
+def test_healthz_needs_no_token(api):
+    r = api.get("/healthz")
     assert r.status_code == 200
     assert r.json()["status"] == "ok" and r.json()["cluster"] == "disabled"  # this server runs no jobs
 
 
-def test_openapi_and_docs(api_server):
-    spec = httpx.get(api_server.url + "/openapi.json").json()
+def test_openapi_and_docs(api):
+    spec = api.get("/openapi.json").json()
     for path in ("/v1/blocks", "/v1/jobs", "/v1/jobs/{job_id}/report", "/v1/schedules/{schedule_id}/run"):
         assert path in spec["paths"]
     assert "multipart/form-data" in spec["paths"]["/v1/blocks"]["post"]["requestBody"]["content"]
-    assert httpx.get(api_server.url + "/docs").status_code == 200
+    assert api.get("/docs").status_code == 200
 
 
 @pytest.mark.parametrize(
@@ -38,16 +39,16 @@ def test_openapi_and_docs(api_server):
     ids=["missing", "unknown", "basic", "empty"],
 )
 @pytest.mark.parametrize("path", ["/v1/blocks", "/v1/jobs", "/v1/schedules", "/v1/jobs/x/report"])
-def test_missing_or_bad_token_is_401(api_server, headers, path):
-    r = httpx.get(api_server.url + path, headers=headers)
+def test_missing_or_bad_token_is_401(api, headers, path):
+    r = api.get(path, headers=headers)
     assert r.status_code == 401
     assert r.headers["www-authenticate"] == "Bearer"
     assert "token" in r.json()["detail"]
 
 
-def test_upload_without_token_is_401(api_server, small_las):
+def test_upload_without_token_is_401(api, small_las):
     with open(small_las, "rb") as fh:
-        r = httpx.post(api_server.url + "/v1/blocks", files={"file": ("a.laz", fh)})
+        r = api.post("/v1/blocks", files={"file": ("a.laz", fh)})
     assert r.status_code == 401
 
 
@@ -69,15 +70,15 @@ def test_upload_block_and_same_file_twice(client_a, small_las):
     assert block["id"] in [b["id"] for b in client_a.get("/v1/blocks").json()]
 
 
-def test_uploaded_file_lands_under_its_checksum(api_server, client_a, tmp_path):
+def test_uploaded_file_lands_under_its_checksum(api_data, client_a, tmp_path):
     path = write_las(tmp_path / "evil.las", 500, seed=11)
     r = upload(client_a, path, name="../../../etc/passwd.las")
     assert r.status_code == 201, r.text
     block = r.json()
     assert block["filename"] == "passwd.las"
-    stored = api_server.data_dir / "blocks" / f"{block['sha256']}.las"
+    stored = api_data / "blocks" / f"{block['sha256']}.las"
     assert stored.read_bytes() == path.read_bytes()
-    assert not temp_files(api_server.data_dir)
+    assert not temp_files(api_data)
 
 
 @pytest.mark.parametrize(
@@ -103,7 +104,7 @@ def test_truncated_upload_is_422(client_a, tmp_path):
     assert "truncated" in r.json()["detail"]
 
 
-def test_upload_without_its_closing_boundary_is_422_and_stores_nothing(api_server, client_a, tmp_path):
+def test_upload_without_its_closing_boundary_is_422_and_stores_nothing(client_a, tmp_path):
     # a whole LAS file in the part, but the body stops before the part's boundary: the
     # parser's finalize() does not notice, and the block was stored (201)
     data = write_las(tmp_path / "u.las", 2000, seed=11).read_bytes()
@@ -135,18 +136,18 @@ def test_upload_not_multipart_is_422(client_a):
     assert "multipart" in r.json()["detail"]
 
 
-def test_too_big_upload_is_413(api_server, client_a, tmp_path):
-    # the test server's limit is 1 MB: a 1.3 MB file passes the Content-Length check
+def test_too_big_upload_is_413(api_data, client_a, tmp_path):
+    # the test app's limit is 1 MB: a 1.3 MB file passes the Content-Length check
     # (1 MB multipart slack), is streamed, counted and refused
     path = write_las(tmp_path / "big.las", 45_000, seed=5)
     assert 1.1e6 < path.stat().st_size < 1.9e6
     r = upload(client_a, path)
     assert r.status_code == 413, r.text
     assert "limit" in r.json()["detail"]
-    assert not temp_files(api_server.data_dir)
+    assert not temp_files(api_data)
 
 
-def test_far_too_big_upload_is_413_before_reading(api_server, tokens):
+def test_far_too_big_upload_is_413_before_reading(api_server, server_tokens):
     # Content-Length far above the limit: refused at once, without reading the body. Sent
     # by hand, headers only: a client still sending the body may see the connection close
     # before it reads the answer.
@@ -157,7 +158,7 @@ def test_far_too_big_upload_is_413_before_reading(api_server, tokens):
     url = urlsplit(api_server.url)
     head = (
         f"POST /v1/blocks HTTP/1.1\r\nHost: {url.hostname}:{url.port}\r\n"
-        f"Authorization: Bearer {tokens['a']}\r\n"
+        f"Authorization: Bearer {server_tokens['a']}\r\n"
         "Content-Type: multipart/form-data; boundary=x\r\nContent-Length: 8000200\r\nConnection: close\r\n\r\n"
     )
     with socket.create_connection((url.hostname, url.port), timeout=30) as sock:
@@ -235,7 +236,7 @@ def test_unknown_ids_are_404(client_a, path):
     assert "detail" in r.json()
 
 
-def test_cross_tenant_access_is_404(client_a, client_b, block_a, api_server):
+def test_cross_tenant_access_is_404(client_a, client_b, block_a, api_data):
     job = client_a.post("/v1/jobs", json={"block_id": block_a["id"]}).json()
     assert client_b.get(f"/v1/blocks/{block_a['id']}").status_code == 404
     assert client_b.get(f"/v1/jobs/{job['id']}").status_code == 404
@@ -245,7 +246,7 @@ def test_cross_tenant_access_is_404(client_a, client_b, block_a, api_server):
     assert client_b.post("/v1/jobs", json={"block_id": block_a["id"]}).status_code == 404
     assert block_a["id"] not in [b["id"] for b in client_b.get("/v1/blocks").json()]
     assert job["id"] not in [j["id"] for j in client_b.get("/v1/jobs").json()["items"]]
-    inbox = tenant_inbox(api_server.data_dir, "farm-a", "cross-tenant")
+    inbox = tenant_inbox(api_data, "farm-a", "cross-tenant")
     sched = client_a.post("/v1/schedules", json={"inbox": str(inbox)}).json()
     assert client_b.get(f"/v1/schedules/{sched['id']}").status_code == 404
     assert client_b.post(f"/v1/schedules/{sched['id']}/run").status_code == 404
@@ -283,7 +284,7 @@ def _read_response(sock) -> str:
     return data.decode(errors="replace")
 
 
-def test_an_upload_that_stops_sending_is_dropped_with_408(api_server, tokens, small_las):
+def test_an_upload_that_stops_sending_is_dropped_with_408(api_server, server_tokens, small_las):
     """A client that sends half its body and then nothing, keeping the connection open,
     held the request and its partial file for good (ORCHARD_UPLOAD_IDLE_S is 3 s here)."""
     import socket
@@ -292,7 +293,7 @@ def test_an_upload_that_stops_sending_is_dropped_with_408(api_server, tokens, sm
     body = small_las.read_bytes()
     head = (b'--b0\r\nContent-Disposition: form-data; name="file"; filename="slow.laz"\r\n\r\n')
     with socket.create_connection(("127.0.0.1", api_server.port), timeout=20) as sock:
-        sock.sendall((f"POST /v1/blocks HTTP/1.1\r\nHost: 127.0.0.1\r\nAuthorization: Bearer {tokens['a']}\r\n"
+        sock.sendall((f"POST /v1/blocks HTTP/1.1\r\nHost: 127.0.0.1\r\nAuthorization: Bearer {server_tokens['a']}\r\n"
                       f"Content-Type: multipart/form-data; boundary=b0\r\nContent-Length: {len(head) + len(body) + 8}"
                       "\r\n\r\n").encode() + head + body[: len(body) // 2])
         time.sleep(1.0)
@@ -340,7 +341,7 @@ def test_an_upload_arriving_when_the_server_is_told_to_stop_gets_503_at_once(tmp
         srv.stop()
 
 
-def test_client_hanging_up_mid_upload_is_not_a_server_error(api_server, tokens, small_las):
+def test_client_hanging_up_mid_upload_is_not_a_server_error(api_server, server_tokens, small_las):
     """A capture upload cut short by the client (a dropped connection) leaves no
     temporary file and no error with a traceback in the server's log."""
     import socket
@@ -353,7 +354,7 @@ def test_client_hanging_up_mid_upload_is_not_a_server_error(api_server, tokens, 
     total = len(head) + len(body) + len(f"\r\n--{boundary}--\r\n")
     before = api_server.log_path.stat().st_size
     with socket.create_connection(("127.0.0.1", api_server.port), timeout=10) as sock:
-        sock.sendall((f"POST /v1/blocks HTTP/1.1\r\nHost: 127.0.0.1\r\nAuthorization: Bearer {tokens['a']}\r\n"
+        sock.sendall((f"POST /v1/blocks HTTP/1.1\r\nHost: 127.0.0.1\r\nAuthorization: Bearer {server_tokens['a']}\r\n"
                       f"Content-Type: multipart/form-data; boundary={boundary}\r\nContent-Length: {total}\r\n\r\n").encode()
                      + head + body[: len(body) // 2])
         time.sleep(0.5)

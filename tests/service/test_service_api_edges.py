@@ -10,10 +10,9 @@ import socket
 import subprocess
 import sys
 
-import httpx
 import pytest
-from app_thread import app_in_thread
-from service_fixtures import make_token, temp_files, write_las
+from fastapi.testclient import TestClient
+from service_fixtures import client_of, make_token, temp_files, write_las
 
 from service.app import create_app
 from service.db.jobstore import Store
@@ -25,18 +24,18 @@ _METHODS = {"get", "put", "post", "delete", "options", "head", "patch", "trace"}
 
 
 @pytest.fixture(scope="module")
-def api(tmp_path_factory):
-    """An app without runner (jobs stay queued) served in this process, and a client of one tenant."""
+def edges(tmp_path_factory):
+    """An app without runner (jobs stay queued) started in this process, and a client of one tenant."""
     settings = Settings(data_dir=tmp_path_factory.mktemp("edges") / "data", runner=False, scheduling=False)
-    with app_in_thread(settings) as url:
-        token = make_token(settings.data_dir, "farm")
-        with httpx.Client(base_url=url, headers={"Authorization": f"Bearer {token}"}, timeout=30) as c:
-            yield settings, c
+    with TestClient(create_app(settings)) as started:
+        c = client_of(started, token=make_token(settings.data_dir, "farm"))
+        yield settings, c
+        c.close()
 
 
 @pytest.fixture(scope="module")
-def block(api, tmp_path_factory):
-    _, c = api
+def block(edges, tmp_path_factory):
+    _, c = edges
     path = write_las(tmp_path_factory.mktemp("las") / "b.laz", 500, seed=5)
     r = c.post("/v1/blocks", files={"file": ("b.laz", path.read_bytes())})
     assert r.status_code == 201, r.text
@@ -88,8 +87,8 @@ def test_unique_operation_ids_renames_only_the_shared_ones():
 
 
 @pytest.mark.parametrize("headers", [{}, {"Content-Type": "text/plain"}, {"Content-Type": "application/x-www-form-urlencoded"}])
-def test_a_json_body_without_its_content_type_is_415_in_our_words(api, block, headers):
-    _, c = api
+def test_a_json_body_without_its_content_type_is_415_in_our_words(edges, block, headers):
+    _, c = edges
     r = c.post("/v1/jobs", content=json.dumps({"block_id": block["id"]}).encode(), headers=headers)
     assert r.status_code == 415, r.text
     detail = r.json()["detail"]
@@ -101,20 +100,20 @@ def test_a_json_body_without_its_content_type_is_415_in_our_words(api, block, he
     (b'["a list"]', "must be a JSON object"),
     (b"", "no body"),
 ])
-def test_a_body_that_is_not_a_json_object_is_422_in_our_words(api, body, says):
-    _, c = api
+def test_a_body_that_is_not_a_json_object_is_422_in_our_words(edges, body, says):
+    _, c = edges
     r = c.post("/v1/jobs", content=body, headers={"Content-Type": "application/json"})
     assert r.status_code == 422 and says in r.json()["detail"], r.text
 
 
-def test_field_errors_keep_their_list(api):
-    _, c = api
+def test_field_errors_keep_their_list(edges):
+    _, c = edges
     r = c.post("/v1/jobs", json={"block_id": "x", "nope": 1})
     assert r.status_code == 422 and r.json()["errors"][0]["loc"] == ["body", "nope"], r.text
 
 
-def test_jobs_are_listed_a_page_at_a_time_like_trees(api, block):
-    settings, c = api
+def test_jobs_are_listed_a_page_at_a_time_like_trees(edges, block):
+    settings, c = edges
     made = [c.post("/v1/jobs", json={"block_id": block["id"]}).json()["id"] for _ in range(3)]
     first = c.get("/v1/jobs", params={"block_id": block["id"], "limit": 2}).json()
     assert set(first) == {"items", "total", "limit", "offset"}
@@ -127,8 +126,8 @@ def test_jobs_are_listed_a_page_at_a_time_like_trees(api, block):
     assert [j["id"] for j in bare] == made[::-1]
 
 
-def test_an_over_long_file_name_is_refused_as_such(api):
-    settings, c = api
+def test_an_over_long_file_name_is_refused_as_such(edges):
+    settings, c = edges
     data = write_las(settings.data_dir.parent / "long.laz", 300, seed=6).read_bytes()
     r = c.post("/v1/blocks", files={"file": ("a" * 5000 + ".laz", data)})
     assert r.status_code == 422 and "file name of the upload is too long" in r.json()["detail"], r.text
@@ -139,24 +138,24 @@ def test_an_over_long_file_name_is_refused_as_such(api):
 
 def test_healthz_is_not_ok_when_the_disk_is_below_the_threshold(tmp_path):
     low = Settings(data_dir=tmp_path / "data", runner=False, scheduling=False, min_free_mb=1e12)  # an exabyte
-    with app_in_thread(low) as url:
-        r = httpx.get(url + "/healthz", timeout=30)
+    with TestClient(create_app(low)) as c:
+        r = c.get("/healthz")
     assert r.status_code == 503, r.text
     body = r.json()
     assert body["status"] == "not ok" and body["disk_free_mb"] > 0
     assert "MB free, below 1e+12 MB (ORCHARD_MIN_FREE_MB)" in body["problems"][0]
 
 
-def test_healthz_is_ok_with_room(api):
-    _, c = api
+def test_healthz_is_ok_with_room(edges):
+    _, c = edges
     body = c.get("/healthz").json()
     assert body["status"] == "ok" and body["problems"] == [] and body["disk_free_mb"] > 512
 
 
 @pytest.fixture(scope="module")
-def done_job(api, block):
+def done_job(edges, block):
     """A job marked done with a 100-byte trees.parquet (the download routes serve files)."""
-    settings, c = api
+    settings, c = edges
     job_id = c.post("/v1/jobs", json={"block_id": block["id"]}).json()["id"]
     store = Store(settings.store_path)
     try:
@@ -175,8 +174,8 @@ def done_job(api, block):
 @pytest.mark.parametrize(("range_", "status"), [
     ("bytes=abc", 400), ("bytes=5-2", 400), ("bytes", 400), ("bytes=100-", 416), ("bytes=500-600", 416),
 ])
-def test_a_range_that_cannot_be_served_is_a_json_error(api, done_job, method, range_, status):
-    _, c = api
+def test_a_range_that_cannot_be_served_is_a_json_error(edges, done_job, method, range_, status):
+    _, c = edges
     r = c.request(method, f"/v1/jobs/{done_job}/trees.parquet", headers={"Range": range_})
     assert r.status_code == status, r.text
     assert r.headers["content-type"] == "application/json"
@@ -186,8 +185,8 @@ def test_a_range_that_cannot_be_served_is_a_json_error(api, done_job, method, ra
         assert r.headers["content-range"] == "bytes */100"
 
 
-def test_ranges_that_can_be_served_are(api, done_job):
-    _, c = api
+def test_ranges_that_can_be_served_are(edges, done_job):
+    _, c = edges
     url = f"/v1/jobs/{done_job}/trees.parquet"
     r = c.get(url, headers={"Range": "bytes=10-13"})
     assert r.status_code == 206 and r.content == bytes(range(10, 14)) and r.headers["content-range"] == "bytes 10-13/100"

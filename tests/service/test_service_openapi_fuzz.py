@@ -16,14 +16,14 @@ from service_fixtures import tenant_inbox, write_las
 pytestmark = pytest.mark.slow
 
 
-def test_no_server_errors(api_server, tokens, client_a, small_las, tmp_path):
+def test_no_server_errors(api_server, server_tokens, server_client_a, small_las, tmp_path):
     # real ids, so that generated requests also reach the code behind the 404s
     with open(small_las, "rb") as fh:
-        block = client_a.post("/v1/blocks", files={"file": ("small.laz", fh)}).json()
-    job = client_a.post("/v1/jobs", json={"block_id": block["id"]}).json()
+        block = server_client_a.post("/v1/blocks", files={"file": ("small.laz", fh)}).json()
+    job = server_client_a.post("/v1/jobs", json={"block_id": block["id"]}).json()
     inbox = tenant_inbox(api_server.data_dir, "farm-a", "fuzz")
     write_las(inbox / "capture.laz", 500, seed=31)
-    sched = client_a.post("/v1/schedules", json={"inbox": str(inbox)}).json()
+    sched = server_client_a.post("/v1/schedules", json={"inbox": str(inbox)}).json()
     (tmp_path / "schemathesis.toml").write_text(
         "[parameters]\n"
         f'block_id = "{block["id"]}"\n'
@@ -33,7 +33,7 @@ def test_no_server_errors(api_server, tokens, client_a, small_las, tmp_path):
     cmd = [
         sys.executable, "-c", "from schemathesis.cli import schemathesis; schemathesis()",
         "run", f"{api_server.url}/openapi.json",
-        "--header", f"Authorization: Bearer {tokens['a']}",
+        "--header", f"Authorization: Bearer {server_tokens['a']}",
         "--checks", "not_a_server_error",
         "--max-examples", "10",
         "--seed", "2",

@@ -438,8 +438,8 @@ def test_clock_runs_due_schedules_and_sets_next_run(local):
     assert rec2["next_run_at"] > rec["next_run_at"]
 
 
-def test_api_schedules_run_now(client_a, api_server):
-    inbox = tenant_inbox(api_server.data_dir, "farm-a", "run-now")
+def test_api_schedules_run_now(client_a, api_data):
+    inbox = tenant_inbox(api_data, "farm-a", "run-now")
     write_las(inbox / "one.laz", 800, seed=21)
     write_las(inbox / "two.las", 900, seed=22)
     r = client_a.post("/v1/schedules", json={"inbox": str(inbox), "tiling": {"tile_size": 20}})
@@ -477,8 +477,8 @@ def test_api_schedules_run_now(client_a, api_server):
         ({"inbox": "{farm-a}", "tiling": {"tile_size": 1}}, "use a tiling.tile_size of at least 1.76 m"),  # 196 copies a point
     ],
 )
-def test_api_bad_schedule_is_422(client_a, api_server, body, fragment):
-    own = str(tenant_inbox(api_server.data_dir, "farm-a", "bad-schedule"))
+def test_api_bad_schedule_is_422(client_a, api_data, body, fragment):
+    own = str(tenant_inbox(api_data, "farm-a", "bad-schedule"))
     body = {k: v.replace("{farm-a}", own) if isinstance(v, str) else v for k, v in body.items()}
     r = client_a.post("/v1/schedules", content=json.dumps(body), headers={"content-type": "application/json"})
     assert r.status_code == 422, r.text
@@ -486,11 +486,11 @@ def test_api_bad_schedule_is_422(client_a, api_server, body, fragment):
     assert all(s["inbox"] != own for s in client_a.get("/v1/schedules").json())  # nothing stored
 
 
-def test_api_inbox_is_confined_to_the_tenants_folder(client_a, client_b, api_server):
+def test_api_inbox_is_confined_to_the_tenants_folder(client_a, client_b, api_data):
     """A farm cannot watch the service's uploads, server folders or another farm's
     inbox: each would hand it files that are not its own."""
-    data = api_server.data_dir.resolve()
-    own_b = tenant_inbox(api_server.data_dir, "farm-b", "captures")
+    data = api_data.resolve()
+    own_b = tenant_inbox(api_data, "farm-b", "captures")
     for outside in (data / "blocks", data, Path("/etc"), Path("/root"), data / "inboxes",
                     data / "inboxes" / "farm-a", own_b / ".." / ".." / "farm-a"):
         r = client_b.post("/v1/schedules", json={"inbox": str(outside)})
@@ -665,8 +665,8 @@ def test_a_store_from_before_pausing_gains_the_column(tmp_path):
     store.close()
 
 
-def test_api_pause_resume_and_change_a_schedule(client_a, client_b, api_server):
-    inbox = tenant_inbox(api_server.data_dir, "farm-a", "patch-me")
+def test_api_pause_resume_and_change_a_schedule(client_a, client_b, api_data):
+    inbox = tenant_inbox(api_data, "farm-a", "patch-me")
     sched = client_a.post("/v1/schedules", json={"inbox": str(inbox)}).json()
     assert sched["paused"] is False and sched["next_run_at"]
     url = f"/v1/schedules/{sched['id']}"

@@ -5,40 +5,23 @@ from __future__ import annotations
 
 import errno
 import sqlite3
-import threading
-import time
 
 import httpx
 import pytest
-from service_fixtures import free_port, make_token, write_las
+from service_fixtures import app_in_thread, make_token, write_las
 
 from service.api.uploads import FilePart
-from service.app import create_app
 from service.db.jobstore import Store
 from service.settings import Settings
 
 
 @pytest.fixture()
 def server(tmp_path):
-    import uvicorn
-
     settings = Settings(data_dir=tmp_path / "data", runner=False, scheduling=False)
-    app = create_app(settings)
-    port = free_port()
-    srv = uvicorn.Server(uvicorn.Config(app, host="127.0.0.1", port=port, log_level="warning", lifespan="on"))
-    thread = threading.Thread(target=srv.run, daemon=True)
-    thread.start()
-    deadline = time.monotonic() + 30
-    while not srv.started and time.monotonic() < deadline:
-        time.sleep(0.05)
-    assert srv.started
-    token = make_token(settings.data_dir, "farm")
-    try:
-        with httpx.Client(base_url=f"http://127.0.0.1:{port}", headers={"Authorization": f"Bearer {token}"}, timeout=30) as c:
+    with app_in_thread(settings) as url:
+        token = make_token(settings.data_dir, "farm")
+        with httpx.Client(base_url=url, headers={"Authorization": f"Bearer {token}"}, timeout=30) as c:
             yield settings, c
-    finally:
-        srv.should_exit = True
-        thread.join(30)
 
 
 def test_an_upload_to_a_full_disk_is_507_and_leaves_nothing(server, tmp_path, monkeypatch, caplog):

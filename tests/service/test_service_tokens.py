@@ -11,11 +11,11 @@ import subprocess
 import sys
 import time
 
-import httpx
 import pytest
-from app_thread import app_in_thread
-from service_fixtures import write_las
+from fastapi.testclient import TestClient
+from service_fixtures import client_of, write_las
 
+from service.app import create_app
 from service.auth import TOUCH_INTERVAL_S, authenticate, create_token, hash_token, issue_token
 from service.cli import main
 from service.db.jobstore import Store
@@ -170,11 +170,10 @@ def test_the_service_tightens_its_data_folder_at_start_and_leaves_inboxes_alone(
         p.chmod(0o644)
     os.symlink("/etc/hostname", data / "jobs" / "link")
     settings = Settings(data_dir=data, runner=False, scheduling=False)
-    with app_in_thread(settings) as url:
-        token = create_token(Store(settings.store_path), "farm")
-        with httpx.Client(base_url=url, headers={"Authorization": f"Bearer {token}"}, timeout=30) as c:
-            up = c.post("/v1/blocks", files={"file": ("b.laz", write_las(tmp_path / "b.laz", 300, seed=2).read_bytes())})
-            assert up.status_code == 201, up.text
+    with TestClient(create_app(settings)) as started:
+        c = client_of(started, token=create_token(Store(settings.store_path), "farm"))
+        up = c.post("/v1/blocks", files={"file": ("b.laz", write_las(tmp_path / "b.laz", 300, seed=2).read_bytes())})
+        assert up.status_code == 201, up.text
     for p in (data, data / "jobs", data / "jobs" / "j1", data / "blocks", data / "tmp"):
         assert _mode(p) == 0o700, p
     blocks = list((data / "blocks").iterdir())
@@ -193,8 +192,8 @@ def test_the_service_tightens_its_data_folder_at_start_and_leaves_inboxes_alone(
 def test_the_401_of_a_token_from_another_data_folder_says_how_to_make_one_for_this_server(tmp_path):
     settings = Settings(data_dir=tmp_path / "served", runner=False, scheduling=False)
     elsewhere = create_token(Store(tmp_path / "elsewhere" / "orchard.sqlite"), "farm")
-    with app_in_thread(settings) as url:
-        r = httpx.get(url + "/v1/jobs", headers={"Authorization": f"Bearer {elsewhere}"}, timeout=30)
+    with TestClient(create_app(settings)) as c:
+        r = c.get("/v1/jobs", headers={"Authorization": f"Bearer {elsewhere}"})
     assert r.status_code == 401 and r.headers["www-authenticate"] == "Bearer"
     detail = r.json()["detail"]
     assert "unknown or revoked token" in detail and "--data-dir DIR" in detail and "on the server" in detail
@@ -204,7 +203,7 @@ def test_the_401_of_a_token_from_another_data_folder_says_how_to_make_one_for_th
 def test_the_server_log_names_its_data_folder(tmp_path, caplog):
     settings = Settings(data_dir=tmp_path / "data", runner=False, scheduling=False)
     with caplog.at_level("INFO", logger="orchard.service"):
-        with app_in_thread(settings):
+        with TestClient(create_app(settings)):
             pass
     assert any(f"data folder {settings.data_dir}" in rec.getMessage() for rec in caplog.records)
 
@@ -215,7 +214,7 @@ def test_an_expired_token_is_a_401_over_http(tmp_path):
     token, rec = issue_token(store, "farm", expires_in_s=3600)
     store._con().execute("UPDATE tokens SET expires_at = ? WHERE id = ?", (time.time() - 1, rec["id"]))
     store.close()
-    with app_in_thread(settings) as url:
-        r = httpx.get(url + "/v1/jobs", headers={"Authorization": f"Bearer {token}"}, timeout=30)
+    with TestClient(create_app(settings)) as c:
+        r = c.get("/v1/jobs", headers={"Authorization": f"Bearer {token}"})
     assert r.status_code == 401 and "expired at" in r.json()["detail"], r.text
     assert hash_token(token) not in r.text
