@@ -232,7 +232,9 @@ def _check_fits(cells_xy: np.ndarray, cell: float, *, cells: float) -> None:
         tile = np.floor(0.8 * np.sqrt(cells) * cell / 100.0) * 100.0  # a tile and its buffers fit
         raise InputError(
             f"points spread over {cells_xy[0] * cell:.0f} x {cells_xy[1] * cell:.0f} m without a gap: too wide to "
-            f"model the ground in one piece; process the block in tiles (--tile-size) of at most {tile:.0f} m"
+            "model the ground in one piece; ",
+            hint=f"process the block in tiles ({{tiling.tile_size}}) of at most {tile:.0f} m",
+            param="tiling.tile_size", limit=float(tile),
         )
 
 

@@ -110,8 +110,9 @@ def check_buffer(buffer: float, reach: float) -> None:
     if buffer < reach:
         raise ParameterError(
             f"tile buffer {buffer:g} m is smaller than the reach of the parameters ({reach:g} m = "
-            "segment.max_crown_radius + 1 m + graph.edge_radius): tiles would cut crowns; "
-            f"use --buffer {math.ceil(reach * 100) / 100:g} or more, or a smaller --segment-max-crown-radius"
+            "segment.max_crown_radius + 1 m + graph.edge_radius): tiles would cut crowns; ",
+            hint=f"use {{tiling.buffer}} {math.ceil(reach * 100) / 100:g} or more, or a smaller {{segment.max_crown_radius}}",
+            param="tiling.buffer", value=buffer, limit=reach,
         )
 
 
@@ -249,13 +250,16 @@ def check_tiling(tile_size: float, buffer: float | None, reach: float | None = N
     (whatever the block: :func:`plan_grid` checks that against the block's grid instead)."""
     s = float(tile_size)
     if not (math.isfinite(s) and s > 0):
-        raise ParameterError(f"tile size must be a positive number of metres, not {tile_size}")
+        raise ParameterError(f"tile size must be a positive number of metres, not {tile_size}",
+                             param="tiling.tile_size", value=tile_size, limit=0.0)
     if buffer is not None:
         b = float(buffer)
         if not (math.isfinite(b) and b >= 0):
-            raise ParameterError(f"tile buffer must be a non-negative number of metres, not {buffer}")
+            raise ParameterError(f"tile buffer must be a non-negative number of metres, not {buffer}",
+                                 param="tiling.buffer", value=buffer, limit=0.0)
         if b > MAX_BUFFER:
-            raise ParameterError(f"tile buffer {buffer:g} m is wider than any block ({MAX_BUFFER:g} m at most)")
+            raise ParameterError(f"tile buffer {buffer:g} m is wider than any block ({MAX_BUFFER:g} m at most)",
+                                 param="tiling.buffer", value=buffer, limit=MAX_BUFFER)
         if reach is not None:
             check_buffer(b, reach)
     width = buffer if buffer is not None else reach
@@ -267,7 +271,30 @@ def _check_copies(tile_size: float, buffer: float, copies: int) -> None:
     if copies > MAX_COPIES:
         raise ParameterError(
             f"tile size {tile_size:g} m with a {buffer:g} m buffer would copy each point into up to {copies} tiles "
-            f"(at most {MAX_COPIES}); use a --tile-size of at least {min_tile_size(buffer):g} m"
+            f"(at most {MAX_COPIES}); ",
+            hint=f"use a {{tiling.tile_size}} of at least {min_tile_size(buffer):g} m",
+            param="tiling.tile_size", value=tile_size, limit=min_tile_size(buffer),
+        )
+
+
+def check_grid_origin(grid_origin) -> tuple[float, float]:
+    """The grid origin as two floats [m]; ParameterError unless both are finite and
+    within :data:`MAX_ORIGIN` of 0."""
+    gx, gy = (float(v) for v in grid_origin)
+    if not (math.isfinite(gx) and math.isfinite(gy)) or max(abs(gx), abs(gy)) > MAX_ORIGIN:
+        raise ParameterError(f"grid origin must be finite and within {MAX_ORIGIN:g} m of 0, not {tuple(grid_origin)}",
+                             param="tiling.grid_origin", value=tuple(grid_origin), limit=MAX_ORIGIN)
+    return gx, gy
+
+
+def check_split_buffer(tile_size: float, buffer: float) -> None:
+    """ParameterError unless ``buffer`` [m] is below half ``tile_size`` [m]: PDAL's
+    ``filters.splitter`` takes a buffer only that narrow."""
+    if buffer >= tile_size / 2:
+        raise ParameterError(
+            f"the PDAL engine needs a buffer ({buffer:g} m) below half the tile size ({tile_size:g} m); ",
+            hint="use a larger {tiling.tile_size} or the laspy engine",
+            param="tiling.tile_size", value=tile_size, limit=2 * buffer,
         )
 
 
@@ -310,29 +337,24 @@ def plan_grid(
     """
     check_tiling(tile_size, buffer, reach, copies=False)
     s, b = float(tile_size), float(buffer)
-    gx, gy = (float(v) for v in grid_origin)
-    if not (math.isfinite(gx) and math.isfinite(gy)) or max(abs(gx), abs(gy)) > MAX_ORIGIN:
-        raise ParameterError(f"grid origin must be finite and within {MAX_ORIGIN:g} m of 0, not {tuple(grid_origin)}")
+    gx, gy = check_grid_origin(grid_origin)
     spans = [(float(maxs[d]) - float(mins[d])) / s + 2.0 for d in range(2)]
     if spans[0] * spans[1] > max_tiles:  # before any cell number is cast to an integer
-        raise ParameterError(
-            f"tile size {s:g} m gives more than {max_tiles} tiles over the block; use a larger --tile-size"
-        )
+        raise ParameterError(f"tile size {s:g} m gives more than {max_tiles} tiles over the block; ",
+                             hint="use a larger {tiling.tile_size}", param="tiling.tile_size", value=s)
     far = max(abs(float(v) - o) for v, o in ((mins[0], gx), (maxs[0], gx), (mins[1], gy), (maxs[1], gy))) / s
     if not far < 2.0**52:  # tile numbers counted from the origin stay exact integers
-        raise ParameterError(
-            f"the grid origin {(gx, gy)} lies {far:.3g} tiles of {s:g} m from the block; use a larger --tile-size "
-            "or an origin nearer the block"
-        )
+        raise ParameterError(f"the grid origin {(gx, gy)} lies {far:.3g} tiles of {s:g} m from the block; ",
+                             hint="use a larger {tiling.tile_size} or an origin nearer the block",
+                             param="tiling.grid_origin", value=(gx, gy))
     (c0, c1), (r0, r1) = (
         (_cell(np.asarray([mins[0]]), gx, s)[0], _cell(np.asarray([maxs[0]]), gx, s)[0]),
         (_cell(np.asarray([mins[1]]), gy, s)[0], _cell(np.asarray([maxs[1]]), gy, s)[0]),
     )
     ncols, nrows = int(c1 - c0 + 1), int(r1 - r0 + 1)
     if ncols * nrows > max_tiles:
-        raise ParameterError(
-            f"tile size {s:g} m gives {ncols * nrows} tiles (more than {max_tiles}); use a larger --tile-size"
-        )
+        raise ParameterError(f"tile size {s:g} m gives {ncols * nrows} tiles (more than {max_tiles}); ",
+                             hint="use a larger {tiling.tile_size}", param="tiling.tile_size", value=s, limit=max_tiles)
     _check_copies(s, b, copies_per_point(s, b, ncols, nrows))
     return TileGrid(origin=(gx, gy), tile_size=s, buffer=b, col0=int(c0), row0=int(r0), ncols=ncols, nrows=nrows)
 

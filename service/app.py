@@ -44,7 +44,7 @@ def create_app(settings: Settings) -> FastAPI:
         try:
             check_work_url(settings.work_dir, shared=True)
         except ParameterError as exc:
-            raise ParameterError(f"ORCHARD_WORK_DIR: {exc}") from None
+            raise ParameterError("ORCHARD_WORK_DIR: " + exc.message, hint=exc.hint, param=exc.param, value=exc.value) from None
     private_dir(settings.data_dir)
     # the one process that runs this folder's jobs and schedules (a second one is refused)
     runner_lock = hold_runner_lock(settings.data_dir) if settings.runner or settings.scheduling else None

@@ -16,6 +16,7 @@ import sys
 from pipeline.errors import NoTreesError, OrchardError
 from service.commands import COMMANDS
 from service.db.errors import NotFoundError
+from service.wording import cli_words
 
 
 def _validation_error(exc: BaseException) -> bool:
@@ -26,12 +27,9 @@ def _validation_error(exc: BaseException) -> bool:
 
 
 def _validation_message(err) -> str:
-    parts = []
-    for e in err.errors():
-        loc = ".".join(str(p) for p in e.get("loc", ()) if p != "__root__")
-        msg = e.get("msg", "invalid value")
-        parts.append(f"{loc}: {msg}" if loc else msg)
-    return "invalid parameters: " + "; ".join(parts)
+    from service.wording import validation_words
+
+    return "invalid parameters: " + "; ".join(validation_words(err.errors()))
 
 
 class _Parser(argparse.ArgumentParser):
@@ -92,10 +90,10 @@ def main(argv: list[str] | None = None) -> int:
         print("orchard: interrupted", file=sys.stderr)
         return 130
     except (NoTreesError, NotFoundError) as exc:
-        print(f"orchard {args.command}: {exc}", file=sys.stderr)
+        print(f"orchard {args.command}: {cli_words(exc)}", file=sys.stderr)
         return 3
     except OrchardError as exc:
-        print(f"orchard {args.command}: {exc}", file=sys.stderr)
+        print(f"orchard {args.command}: {cli_words(exc)}", file=sys.stderr)
         return 1 if _run_failed(exc) else 2
     except Exception as exc:  # noqa: BLE001 - last line of defence: no tracebacks
         if _validation_error(exc):
@@ -103,7 +101,7 @@ def main(argv: list[str] | None = None) -> int:
             return 2
         if os.environ.get("ORCHARD_DEBUG") == "1":
             raise
-        from service.errors import disk_full
+        from service.wording import disk_full
 
         if disk_full(exc):  # the machine's trouble, said as such
             print(f"orchard {args.command}: the disk is full ({exc}); free some space and run it again", file=sys.stderr)

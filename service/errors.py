@@ -1,18 +1,16 @@
 """The one place where errors become HTTP responses.
 
-Domain errors (`pipeline.errors`) carry no status code; `STATUS` maps them here. Every
-error response is JSON ``{"detail": "<one line saying what was wrong and what to do>"}``
+Domain errors (`pipeline.errors`) carry no status code; `STATUS` maps them here, and
+`service.wording` words them (a parameter as its request field; ``errors`` gives its
+location in the body). Every error response is JSON ``{"detail": "<one line saying what was wrong and what to do>"}``
 (validation errors add ``errors``, the list of fields). An unexpected exception becomes
 a 500 with a short message: clients never see a traceback (it goes to the server log).
 """
 
 from __future__ import annotations
 
-import errno
 import logging
-import re
 import sqlite3
-from pathlib import Path
 
 from fastapi import FastAPI, Request
 from fastapi.exceptions import RequestValidationError
@@ -24,6 +22,7 @@ from starlette.requests import ClientDisconnect
 from pipeline.errors import InputError, NoTreesError, OrchardError, ParameterError
 from service.db.errors import ConflictError, NotFoundError
 from service.quotas import QueueQuotaExceeded, StorageQuotaExceeded
+from service.wording import api_errors, api_words, disk_full
 
 log = logging.getLogger("orchard.service")
 
@@ -53,19 +52,8 @@ class ShuttingDownError(StarletteHTTPException):
         super().__init__(status_code=503, detail=detail)
 
 
-#: errno values of a full disk or an exhausted quota
-DISK_FULL = (errno.ENOSPC, errno.EDQUOT)
-
 DISK_FULL_DETAIL = ("the server has no disk space left for this request; nothing of it was kept: try again "
                     "later (the operator has been told in the service log)")
-
-
-def disk_full(exc: BaseException) -> bool:
-    """Whether ``exc`` says the disk (or the quota) is full: an OSError's errno, or
-    SQLite's "database or disk is full"."""
-    if isinstance(exc, sqlite3.OperationalError):
-        return "disk is full" in str(exc)
-    return isinstance(exc, OSError) and exc.errno in DISK_FULL
 
 
 STATUS: dict[type[Exception], int] = {
@@ -131,31 +119,6 @@ def _json_safe_errors(errors) -> list[dict]:
     return out
 
 
-def _request_fields() -> dict[str, str]:
-    from pipeline.params import GROUPS
-
-    fields = {"tile-size": "tiling.tile_size", "buffer": "tiling.buffer"}
-    for group, model in GROUPS.items():
-        for name in model.model_fields:
-            fields[f"{group}-{name}".replace("_", "-")] = f"params.{group}.{name}"
-    return fields
-
-
-_FLAG = re.compile(r"--([a-z][a-z0-9-]*)")
-
-
-def api_wording(message: str, *, block_path: str | None = None, filename: str | None = None) -> str:
-    """A job's error message as an API client reads it: the block named by the file name
-    it was uploaded as, not the server's stored file, and parameters by their request
-    fields (``params.trunks.min_tree_height``, ``tiling.buffer``), not the command line's
-    options (``--trunks-min-tree-height``, ``--buffer``). Other text is unchanged."""
-    if block_path:
-        name = filename or "the block"
-        message = message.replace(str(block_path), name).replace(Path(block_path).name, name)
-    fields = _request_fields()
-    return _FLAG.sub(lambda m: fields.get(m.group(1), m.group(0)), message)
-
-
 def error_response(status: int, detail: str, **extra) -> JSONResponse:
     headers = {"WWW-Authenticate": "Bearer"} if status == 401 else None
     return JSONResponse({"detail": detail, **extra}, status_code=status, headers=headers)
@@ -166,7 +129,9 @@ def install_error_handlers(app: FastAPI) -> None:
 
     @app.exception_handler(OrchardError)
     async def _domain(request: Request, exc: OrchardError) -> JSONResponse:
-        return error_response(status_for(exc), str(exc) or type(exc).__name__)
+        errors = api_errors(exc)
+        extra = {} if errors is None else {"errors": errors}
+        return error_response(status_for(exc), api_words(exc) or type(exc).__name__, **extra)
 
     @app.exception_handler(RequestValidationError)
     async def _request_validation(request: Request, exc: RequestValidationError) -> JSONResponse:

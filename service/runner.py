@@ -34,8 +34,8 @@ import numpy as np
 from pipeline.errors import OrchardError, ParameterError
 from pipeline.params import PipelineParams
 from service.db.jobstore import Store
-from service.errors import api_wording, disk_full
 from service.settings import Settings
+from service.wording import api_words, disk_full
 
 log = logging.getLogger("orchard.runner")
 
@@ -123,7 +123,7 @@ def _lost_scheduler(exc: BaseException) -> bool:
 
 
 def _short(exc: BaseException, limit: int = 300) -> str:
-    text = " ".join(str(exc).split())
+    text = " ".join((api_words(exc) if isinstance(exc, OrchardError) else str(exc)).split())
     return text if len(text) <= limit else text[: limit - 3] + "..."
 
 
@@ -232,7 +232,7 @@ class Runner(threading.Thread):
                 client = self._client_factory()
             except Exception as exc:  # noqa: BLE001 - becomes the job's error; the next job tries again
                 self._unreachable = True
-                why = _short(exc, 600).replace("or fix --scheduler", "or fix ORCHARD_SCHEDULER")
+                why = _short(exc, 600)
                 raise ClusterUnavailable(f"cannot start or reach the dask cluster ({where}): {why}") from exc
             self._client = client
             self._unreachable = False
@@ -371,11 +371,10 @@ class Runner(threading.Thread):
             if isinstance(exc, OrchardError):
                 # without the command line's advice to resume from the work store: the
                 # service deletes a failed job's work store and never resumes it
-                message = getattr(exc, "reason", None) or str(exc) or type(exc).__name__
+                named = {} if block is None else {"block_path": block["path"], "filename": job_block_name(job, block)}
+                message = api_words(exc, hint=not hasattr(exc, "reason"), **named) or type(exc).__name__
                 if type(exc).__name__ == "ClusterLost":
                     retry_advice = "; start dask workers and submit the job again"
-                if block is not None:
-                    message = api_wording(message, block_path=block["path"], filename=job_block_name(job, block))
             elif isinstance(exc, (KeyboardInterrupt, SystemExit)):
                 raise
             elif isinstance(exc, ClusterUnavailable):

@@ -12,7 +12,18 @@ import os
 from pathlib import Path
 
 from pydantic import Field, field_validator
+from pydantic.fields import FieldInfo
+from pydantic.types import AllowInfNan
 from pydantic_settings import BaseSettings, SettingsConfigDict
+
+from pipeline.jobparams import TilingParams
+
+
+def _tiling_field(name: str, description: str):
+    """A setting that stands for a tiling parameter: the model's default and bounds."""
+    field = FieldInfo.merge_field_infos(TilingParams.model_fields[name], description=description)
+    field.metadata.append(AllowInfNan(False))  # the model's config says it for all its fields
+    return field
 
 
 class Settings(BaseSettings):
@@ -30,12 +41,11 @@ class Settings(BaseSettings):
     scheduler_timeout_s: float = Field(
         20.0, gt=0, le=600, description="how long a job waits to reach the dask scheduler before that attempt fails [s]"
     )
-    n_workers: int = Field(2, ge=1, le=256, description="workers of the embedded LocalCluster")
+    n_workers: int = _tiling_field("workers", "workers of the embedded LocalCluster")
     threads_per_worker: int = Field(1, ge=1, le=64, description="threads per worker of the embedded LocalCluster")
-    worker_memory_gb: float = Field(
-        2.0, gt=0, le=4096, allow_inf_nan=False,
-        description="memory budget of one worker [GB]: a block without a tile size that would need more in one piece is "
-        "tiled, with tiles chosen to fit it",
+    worker_memory_gb: float = _tiling_field(
+        "worker_memory", "memory budget of one worker [GB]: a block without a tile size that would need more in one "
+        "piece is tiled, with tiles chosen to fit it",
     )
     dashboard: bool = Field(False, description="start the dask dashboard of the embedded LocalCluster")
     dask_host: str = Field(

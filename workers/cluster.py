@@ -127,13 +127,13 @@ def make_client(
         except TimeoutError:
             raise ParameterError(
                 f"no dask scheduler answered at {scheduler} within {parse_timedelta(timeout):g} s (TimeoutError); "
-                "start one with `dask scheduler`, or fix --scheduler (its port, 8786 by default, not the "
-                "dashboard's 8787)"
+                "start one with `dask scheduler`, or fix {job.scheduler} (its port, 8786 by default, not the "
+                "dashboard's 8787)", param="job.scheduler", value=scheduler,
             ) from None
         except (OSError, ValueError) as exc:
             raise ParameterError(
                 f"cannot reach the dask scheduler at {scheduler} ({type(exc).__name__}); "
-                "start one with `dask scheduler` or fix --scheduler"
+                "start one with `dask scheduler` or fix {job.scheduler}", param="job.scheduler", value=scheduler,
             ) from None
         try:
             check_workers(client, scheduler=scheduler, seconds=parse_timedelta(timeout))

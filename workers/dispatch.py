@@ -173,7 +173,8 @@ def process_tiles(store: WorkStore, tiles: list[dict], spec: JobSpec, client, pr
         return TileFailed(
             f"{describe(tile)} failed after {state.retries + 1} attempts: {error}",
             tile["id"],
-            hint=f"; its data is kept in {store.url} (run the job's tiles again with --work {store.url} --resume)",
+            hint=f"; its data is kept in {store.url} (run the job's tiles again with {{job.work_dir}} {store.url} "
+            "{job.resume})",
         )
 
     dispatch(process_tile, tiles, state, store=store, client=client, cancel=cancel, key="orchard-tile",
@@ -191,8 +192,8 @@ def kept(summary: dict, store: WorkStore, tile: dict) -> dict:
             raise TileFailed(
                 f"{describe(tile)}: the dask worker that ran it does not see the job's work store {store.url}",
                 tile["id"],
-                hint="; every worker must reach the work store at the same address (--work or ORCHARD_WORK_DIR "
-                "on a folder all of them share, or an fsspec URL)",
+                hint="; every worker must reach the work store at the same address ({job.work_dir} or "
+                "ORCHARD_WORK_DIR on a folder all of them share, or an fsspec URL)",
             )
         raise JobCancelled("job cancelled: its work store was deleted")
     return summary
@@ -232,7 +233,7 @@ def _completed(client, futures: dict, cancel, store: WorkStore):
                         raise ClusterLost(
                             f"no dask worker for {NO_WORKER_TIMEOUT:.0f} s (they died or left; their logs say why) "
                             f"with {len(pending)} tiles to go",
-                            hint=f"; start workers and resume with --work {store.url} --resume",
+                            hint=f"; start workers and resume with {{job.work_dir}} {store.url} {{job.resume}}",
                         ) from None
                 continue
             for fut in res.done:

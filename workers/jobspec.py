@@ -18,12 +18,12 @@ from workers.workstore import WorkStore, absolute_url, default_work_dir, own_ent
 
 
 class _Stopped(OrchardError):
-    """A tiled job stopped with its work store kept: ``reason`` says why, ``hint`` (for
-    the command line) how to go on from that store; the message is both."""
+    """A tiled job stopped with its work store kept: ``reason`` says why, ``hint`` how to
+    go on from that store (the command line's advice: the service never resumes a job)."""
 
     def __init__(self, reason: str, hint: str = ""):
-        super().__init__(reason + hint)
-        self.reason, self.hint = reason, hint
+        super().__init__(reason, hint=hint)
+        self.reason = reason
 
 
 class TileFailed(_Stopped):
@@ -91,14 +91,15 @@ def check_job_paths(input_path: str, out_dir: str, work_dir: str | None) -> None
     if source.parent == out and source.name in OUTPUT_NAMES:
         raise ParameterError(
             f"the input {source.name} lies in the output folder {out_dir} under the name of an output, "
-            "which the run replaces: choose another --out"
+            "which the run replaces: ", hint="choose another {job.out_dir}", param="job.out_dir", value=out_dir,
         )
     if work_dir is not None and (work_dir.startswith("file://") or "://" not in work_dir):
         work = Path(work_dir.removeprefix("file://")).resolve()
         if work in out.parents and own_entry(out.relative_to(work).parts[0]):
             raise ParameterError(
-                f"--out {out_dir} lies inside the folder {out.relative_to(work).parts[0]} of --work {work_dir}, "
-                "which is deleted when the job is done: put the outputs elsewhere"
+                f"{{job.out_dir}} {out_dir} lies inside the folder {out.relative_to(work).parts[0]} of {{job.work_dir}} "
+                f"{work_dir}, which is deleted when the job is done: ", hint="put the outputs elsewhere",
+                param="job.out_dir", value=out_dir,
             )
 
 
@@ -126,7 +127,8 @@ def check_job(spec: JobSpec, *, tiled: bool | None = None) -> tuple[BlockInfo, T
         tiled = spec.tile_size is not None
     if not tiled:
         if spec.buffer is not None:
-            raise ParameterError("--buffer needs --tile-size: a block processed in one piece has no tile buffer")
+            raise ParameterError("{tiling.buffer} needs {tiling.tile_size}: a block processed in one piece has no tile buffer",
+                                 param="tiling.buffer", value=spec.buffer)
         return info, None
     grid = plan_tiles(spec, info)
     check_engine(spec.engine, grid)
@@ -173,6 +175,7 @@ def plan_tiles(spec: JobSpec, info: BlockInfo) -> TileGrid:
     if spec.tile_size is None:  # one tile holding the whole block
         size = max(info.maxs[0] - origin[0], info.maxs[1] - origin[1]) + 1.0
         if origin[0] > info.mins[0] or origin[1] > info.mins[1]:
-            raise ParameterError("with no --tile-size the grid origin must lie below the block's minimum x and y")
+            raise ParameterError("with no {tiling.tile_size} the grid origin must lie below the block's minimum x and y",
+                                 param="tiling.grid_origin", value=tuple(origin))
         return plan_grid(info.mins, info.maxs, tile_size=size, buffer=buffer, grid_origin=origin, reach=reach)
     return plan_grid(info.mins, info.maxs, tile_size=spec.tile_size, buffer=buffer, grid_origin=origin, reach=reach)

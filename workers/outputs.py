@@ -151,8 +151,8 @@ def with_rows(trees: dict, params: RowParams, replants: np.ndarray | None = None
 
 def no_trees(info: BlockInfo) -> NoTreesError:
     return NoTreesError(
-        f"{Path(info.path).name}: no trees found in {info.n_points} points "
-        "(only ground or clutter?); check the block, or lower --trunks-min-tree-height / --trunks-min-canopy-voxels"
+        f"{Path(info.path).name}: no trees found in {info.n_points} points (only ground or clutter?); ",
+        hint="check the block, or lower {trunks.min_tree_height} / {trunks.min_canopy_voxels}",
     )
 
 

@@ -83,7 +83,7 @@ def run_tile(work_dir: str, tile_id: int) -> dict:
     """Re-run one tile alone, in this process, from the work store of an earlier job."""
     store = WorkStore(work_dir)
     if not store.exists(JOB_KEY):
-        raise ParameterError(f"{work_dir} holds no job (no {JOB_KEY}); give the --work folder of a tiled run")
+        raise ParameterError(f"{work_dir} holds no job (no {JOB_KEY}); ", hint="give the {job.work_dir} folder of a tiled run")
     record = store.get_json(JOB_KEY)
     index = store.get_json(INDEX_KEY)
     if tile_id not in {t["id"] for t in index["tiles"] if t["n_core"] > 0}:
@@ -108,7 +108,7 @@ def resume_job(
     """
     store = WorkStore(work_dir)
     if not store.exists(JOB_KEY):
-        raise ParameterError(f"{work_dir} holds no job (no {JOB_KEY}); give the --work folder of a tiled run")
+        raise ParameterError(f"{work_dir} holds no job (no {JOB_KEY}); ", hint="give the {job.work_dir} folder of a tiled run")
     with store.lock():
         return _resume(store, out_dir, client, progress, cancel)
 
@@ -138,7 +138,7 @@ def finish_job(work_dir: str, *, out_dir: str | None = None) -> JobOutcome:
     """
     store = WorkStore(work_dir)
     if not store.exists(JOB_KEY):
-        raise ParameterError(f"{work_dir} holds no job (no {JOB_KEY}); give the --work folder of a tiled run")
+        raise ParameterError(f"{work_dir} holds no job (no {JOB_KEY}); ", hint="give the {job.work_dir} folder of a tiled run")
     with store.lock():
         return _finish_job(store, out_dir)
 
@@ -167,8 +167,8 @@ def _finish_job(store: WorkStore, out_dir: str | None) -> JobOutcome:
             raise
         n = len([t for t in index["tiles"] if t["n_core"] > 0])
         raise ParameterError(  # not "no trees": most of the block has not been processed
-            f"{len(missing)} of the job's {n} tiles have no result yet, and the others hold no tree; "
-            f"process them with --work {store.url} --resume"
+            f"{len(missing)} of the job's {n} tiles have no result yet, and the others hold no tree; ",
+            hint=f"process them with {{job.work_dir}} {store.url} {{job.resume}}",
         ) from None
     record["failed_tiles"] = missing
     if missing:

@@ -79,7 +79,7 @@ def process(xyz: np.ndarray, params: PipelineParams, where: str, ground: tuple[f
     try:
         return process_points(xyz, params=params, grid_origin=(0.0, 0.0, 0.0), ground_stats=ground)
     except InputError as exc:
-        raise InputError(f"{where}: {exc}") from None
+        raise exc.prefixed(f"{where}: ") from None
 
 
 def _tile_points(store: WorkStore, tile_id: int, frame: dict) -> tuple[dict, np.ndarray]:
@@ -106,7 +106,7 @@ def ground_sample(work_url: str, tile_id: int, params_json: str, stride: int) ->
     try:
         model = raw_ground_model(xyz, params=params.ground)
     except InputError as exc:
-        raise InputError(f"tile {tile_id}: {exc}") from None
+        raise exc.prefixed(f"tile {tile_id}: ") from None
     return ground_residuals(model, xyz[pick])
 
 

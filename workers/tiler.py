@@ -21,7 +21,7 @@ import numpy as np
 from pipeline.blockinfo import BlockInfo
 from pipeline.errors import ParameterError
 from pipeline.reading import check_bounds, iter_raw, read_raw_range, to_local
-from pipeline.tiling import TileGrid, buffered_tiles, core_tile
+from pipeline.tiling import TileGrid, buffered_tiles, check_split_buffer, core_tile
 from workers.workstore import WorkStore
 
 #: One record per (point, tile): stored integers, source index, core flag.
@@ -186,14 +186,11 @@ def check_engine(engine: str, grid: TileGrid) -> None:
     if engine == "laspy":
         return
     if engine != "pdal":
-        raise ParameterError(f"unknown tiling engine {engine!r}; use 'laspy' or 'pdal'")
-    if grid.buffer >= grid.tile_size / 2:
-        raise ParameterError(
-            f"the PDAL engine needs a buffer ({grid.buffer:g} m) below half the tile size ({grid.tile_size:g} m); "
-            "use a larger --tile-size or the laspy engine"
-        )
+        raise ParameterError(f"unknown tiling engine {engine!r}; use 'laspy' or 'pdal'", param="tiling.engine", value=engine)
+    check_split_buffer(grid.tile_size, grid.buffer)
     if not pdal_available():
-        raise ParameterError("the PDAL engine needs PDAL's Python bindings (import pdal failed); use --engine laspy")
+        raise ParameterError("the PDAL engine needs PDAL's Python bindings (import pdal failed); ",
+                             hint="use {tiling.engine} laspy", param="tiling.engine", value=engine)
 
 
 def tile_block_pdal(info: BlockInfo, grid: TileGrid, store: WorkStore) -> dict:

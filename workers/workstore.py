@@ -162,8 +162,8 @@ class WorkStore:
         if foreign:
             shown = ", ".join(foreign[:3]) + (", ..." if len(foreign) > 3 else "")
             raise ParameterError(
-                f"work folder {self.url} holds files that are not a work store's ({shown}); "
-                "give --work a new or empty folder"
+                f"work folder {self.url} holds files that are not a work store's ({shown}); ",
+                hint="give {job.work_dir} a new or empty folder", param="job.work_dir", value=self.url,
             )
 
     def claim(self) -> None:
@@ -191,7 +191,8 @@ class WorkStore:
                 fcntl.flock(fh, fcntl.LOCK_EX | fcntl.LOCK_NB)
             except BlockingIOError:
                 raise ParameterError(
-                    f"work folder {self.url} is in use by another run; give each run its own --out or --work"
+                    f"work folder {self.url} is in use by another run; ",
+                    hint="give each run its own {job.out_dir} or {job.work_dir}", param="job.work_dir", value=self.url,
                 ) from None
             yield
         finally:

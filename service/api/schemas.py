@@ -9,16 +9,17 @@ may give.
 
 from __future__ import annotations
 
+import copy
 from datetime import datetime, timezone
 from typing import Any, Literal
 
-from pydantic import BaseModel, ConfigDict, Field, StrictBool
+from pydantic import BaseModel, ConfigDict, Field, StrictBool, create_model
+from pydantic_core import PydanticUndefined
 
-from pipeline.errors import ParameterError
+from pipeline.jobparams import JobParams, TilingParams
 from pipeline.params import PipelineParams
-from pipeline.tiling import check_tiling
-from service.errors import api_wording
 from service.schedules import DEFAULT_CRON, next_run_time, validate_cron
+from service.wording import API_TILING
 
 # -- bodies --------------------------------------------------------------------------------
 
@@ -28,12 +29,22 @@ class ErrorBody(BaseModel):
     errors: list[dict[str, Any]] | None = Field(None, description="validation errors per field (422 only)")
 
 
-class Tiling(BaseModel):
-    """Split the block into square tiles processed on the dask workers."""
+def _tiling_body() -> type[BaseModel]:
+    """The tiling of a request: `TilingParams`' fields that a client sets (its tile size
+    required), with the model's bounds, defaults and descriptions; the service's settings
+    give the others."""
+    fields = {}
+    for name in API_TILING:
+        field = copy.copy(TilingParams.model_fields[name])
+        annotation = field.annotation
+        if name == "tile_size":  # a body that tiles names its tile size
+            field.default, annotation = PydanticUndefined, float
+        fields[name] = (annotation, field)
+    config = ConfigDict(extra="forbid", allow_inf_nan=False)
+    return create_model("Tiling", __config__=config, __doc__=TilingParams.__doc__, __module__=__name__, **fields)
 
-    model_config = ConfigDict(extra="forbid")
-    tile_size: float = Field(ge=1.0, le=100_000.0, allow_inf_nan=False, description="tile edge length [m]")
-    buffer: float | None = Field(None, ge=0.0, le=1_000.0, allow_inf_nan=False, description="overlap on every side [m]; default = the parameters' reach")
+
+Tiling = _tiling_body()
 
 
 class JobCreate(BaseModel):
@@ -261,25 +272,19 @@ def schedule_out(rec: dict) -> Schedule:
 # -- request bodies to store records -------------------------------------------------------
 
 
-def checked_tiling(params: PipelineParams, tiling: Tiling | None, *, api: bool = True) -> dict | None:
-    """The tiling of a job or schedule as stored; ParameterError (422) when its buffer is
-    below the parameters' reach or its tiles so small that each point would be copied
-    into too many of them (the command line's check, in the request's words unless
-    ``api`` is False)."""
+def checked_tiling(params: PipelineParams, tiling: Tiling | None) -> dict | None:
+    """The tiling of a job or schedule as stored; ParameterError (422) when the job model
+    refuses it with these parameters (a buffer below their reach, tiles so small that
+    each point would be copied into too many of them)."""
     if tiling is None:
         return None
-    try:
-        check_tiling(tiling.tile_size, tiling.buffer, params.reach())
-    except ParameterError as exc:
-        if not api:
-            raise
-        raise ParameterError(api_wording(str(exc))) from None
+    JobParams(pipeline=params, tiling=TilingParams(**tiling.model_dump()))
     return tiling.model_dump()
 
 
-def schedule_changes(sched: dict, body: ScheduleUpdate, *, now: datetime | None = None, api: bool = True) -> dict[str, Any]:
+def schedule_changes(sched: dict, body: ScheduleUpdate, *, now: datetime | None = None) -> dict[str, Any]:
     """The store changes of a PATCH of ``sched``, checked as at creation (ParameterError:
-    422; in the command line's words unless ``api``). A new cron, or a resume, starts
+    422). A new cron, or a resume, starts
     from the next cron time after ``now``: runs missed while paused are not made up."""
     given = body.model_fields_set
     changes: dict[str, Any] = {}
@@ -292,7 +297,7 @@ def schedule_changes(sched: dict, body: ScheduleUpdate, *, now: datetime | None 
         changes["params"] = params.model_dump()
     if "tiling" in given or "params" in given:
         tiling = body.tiling if "tiling" in given else (Tiling(**sched["tiling"]) if sched["tiling"] else None)
-        changes["tiling"] = checked_tiling(params, tiling, api=api)
+        changes["tiling"] = checked_tiling(params, tiling)
     if "paused" in given:
         changes["paused"] = body.paused
     paused = changes.get("paused", bool(sched["paused"]))

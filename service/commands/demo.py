@@ -40,13 +40,16 @@ _TABLE = [
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
+    from service.commands.options import tiling_default
+
     parser.add_argument("--data-dir", default=None, help="service data folder (default: a new temporary folder, kept afterwards)")
     parser.add_argument("--rows", type=int, default=2, help="tree rows of the generated orchard (default 2)")
     parser.add_argument("--trees-per-row", type=int, default=5, help="trees in each row (default 5)")
     parser.add_argument("--density", type=float, default=0.5, help="point density scale of the simulator (default 0.5)")
     parser.add_argument("--seed", type=int, default=1, help="random seed of the generated orchard (default 1)")
     parser.add_argument("--tile-size", type=float, default=20.0, help="tile size [m] for the dask workers (default 20; 0 = one tile)")
-    parser.add_argument("--workers", type=int, default=2, help="dask workers of the embedded LocalCluster (default 2)")
+    workers = tiling_default("workers")
+    parser.add_argument("--workers", type=int, default=workers, help=f"dask workers of the embedded LocalCluster (default {workers})")
 
 
 def _free_port() -> int:

@@ -1,5 +1,6 @@
-"""Command-line options generated from the pipeline's parameter models, so that
-``orchard process --help`` documents every parameter with its unit and default."""
+"""Command-line options generated from the job's parameter models (the pipeline's
+groups and the tiling), so that ``orchard process --help`` documents every parameter
+with its unit and default, and a bound or a default is written only in the model."""
 
 from __future__ import annotations
 
@@ -17,8 +18,9 @@ def base_type(annotation):
 
 
 def metavar(kind, description: str | None) -> str:
-    """Placeholder of a numeric option in --help: N (a count), M (metres) or X."""
-    return "N" if kind is int else ("M" if "[m]" in (description or "") else "X")
+    """Placeholder of a numeric option in --help: N (a count), M (metres), GB or X."""
+    units = {"[m]": "M", "[GB]": "GB"}
+    return "N" if kind is int else next((v for k, v in units.items() if k in (description or "")), "X")
 
 
 def add_pipeline_options(parser: argparse.ArgumentParser) -> None:
@@ -52,3 +54,40 @@ def pipeline_params_from_args(args: argparse.Namespace, base: PipelineParams | N
             _, group, field_name = key.split("__")
             data[group][field_name] = value
     return PipelineParams.model_validate(data)
+
+
+def _origin(text: str) -> tuple[float, float]:
+    try:
+        x, y = (float(v) for v in text.split(","))
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"expected X,Y in metres, not {text!r}") from None
+    return x, y
+
+
+def add_tiling_options(group, names: tuple[str, ...], notes: dict[str, str] | None = None) -> None:
+    """An option ``--<field>`` for each named field of `TilingParams` (default None: the
+    command applies the model's, or a setting's, at its edge). Its help is the field's
+    description, then the command's ``notes`` on it, else the model's default."""
+    from pipeline.jobparams import TilingParams
+
+    notes = notes or {}
+    for name in names:
+        field = TilingParams.model_fields[name]
+        ann = base_type(field.annotation)
+        kwargs: dict = {"dest": name, "default": None}
+        if typing.get_origin(ann) is typing.Literal:
+            kwargs["choices"] = list(typing.get_args(ann))
+        elif typing.get_origin(ann) is tuple:
+            kwargs.update(type=_origin, metavar="X,Y")
+        else:
+            kwargs.update(type=ann, metavar=metavar(ann, field.description))
+        note = notes.get(name, f"default {field.default}")
+        kwargs["help"] = f"{field.description} ({note})".replace("%", "%%")
+        group.add_argument("--" + name.replace("_", "-"), **kwargs)
+
+
+def tiling_default(name: str):
+    """The model's default of a `TilingParams` field."""
+    from pipeline.jobparams import TilingParams
+
+    return TilingParams.model_fields[name].default

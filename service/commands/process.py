@@ -10,7 +10,7 @@ import time
 from pathlib import Path
 
 from pipeline.errors import ParameterError
-from service.commands.options import add_pipeline_options, pipeline_params_from_args
+from service.commands.options import add_pipeline_options, add_tiling_options, pipeline_params_from_args, tiling_default
 
 NAME = "process"
 HELP = (
@@ -23,38 +23,22 @@ HELP = (
 )
 
 
-def _origin(text: str) -> tuple[float, float]:
-    try:
-        x, y = (float(v) for v in text.split(","))
-    except ValueError:
-        raise argparse.ArgumentTypeError(f"expected X,Y in metres, not {text!r}") from None
-    return x, y
-
-
 def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("input", metavar="INPUT", help="LAS or LAZ block (LAS 1.2-1.4, point formats 0-10)")
     parser.add_argument("--out", required=True, metavar="DIR", help="output folder for trees.parquet, points.parquet, trees.csv and report.html")
     g = parser.add_argument_group("tiling and workers")
-    g.add_argument(
-        "--tile-size", type=float, default=None, metavar="M",
-        help="side of a square tile core [m]; default: one tile if the block fits --worker-memory, else tiles "
-        "chosen from its point density to fit it; 0: one tile whatever the block's size",
-    )
-    g.add_argument(
-        "--worker-memory", type=float, default=None, metavar="GB",
-        help="memory budget of one worker [GB] for choosing tiles (default: ORCHARD_WORKER_MEMORY_GB, or 2)",
-    )
-    g.add_argument(
-        "--buffer", type=float, default=None, metavar="M",
-        help="tile buffer on every side [m]; default and minimum: the parameters' reach (max crown radius + 1 m + edge radius)",
-    )
-    g.add_argument("--grid-origin", type=_origin, default=None, metavar="X,Y", help="a corner of the tile grid, input CRS [m]; default: the block's minimum, rounded down (negative: --grid-origin=-1000,-2000)")
-    g.add_argument("--workers", type=int, default=None, metavar="N", help=f"workers of the embedded dask cluster (default {DEFAULT_WORKERS}, at most 4 per CPU)")
+    add_tiling_options(g, ("tile_size", "buffer", "grid_origin", "engine", "workers", "worker_memory"), {
+        "tile_size": "default: one tile if the block fits --worker-memory, else tiles chosen from its point density "
+                     "to fit it; 0: one tile whatever the block's size",
+        "buffer": "max crown radius + 1 m + edge radius; also the minimum",
+        "grid_origin": "negative: --grid-origin=-1000,-2000",
+        "workers": f"default {tiling_default('workers')}, at most 4 per CPU",
+        "worker_memory": f"default: ORCHARD_WORKER_MEMORY_GB, or {tiling_default('worker_memory'):g}",
+    })
     g.add_argument("--scheduler", default=None, metavar="tcp://HOST:PORT", help="use a running dask cluster instead of an embedded one")
     g.add_argument("--dask-host", default=None, metavar="HOST", help="address the embedded dask cluster and its dashboard listen on (default 127.0.0.1: this machine only)")
     g.add_argument("--no-dashboard", dest="dashboard", action="store_false", help="start the embedded dask cluster without its dashboard")
     g.add_argument("--work", default=None, metavar="DIR_OR_URL", help="work store for tiles (folder or fsspec URL); default OUT/_work")
-    g.add_argument("--engine", choices=["laspy", "pdal"], default=None, help="tiler engine (default laspy; pdal needs PDAL's Python bindings)")
     g.add_argument("--rerun-tile", type=int, action="append", default=None, metavar="ID", help="re-run this failed tile of the job in --work alone, then merge again (repeatable)")
     g.add_argument("--resume", action="store_true", help="process the tiles of the job in --work that have no result yet, then merge")
     g.add_argument("--labelled-laz", action="store_true", help="also write labelled.laz: the input with extra dimensions tree_id, is_wood, wood_score")
@@ -103,9 +87,6 @@ def _print_trees(trees: dict, stream=None) -> None:
         stream.write("  ".join(c.rjust(w) for c, w in zip(r, widths)) + "\n")
 
 
-DEFAULT_WORKERS = 2
-
-
 def _check_cluster_options(args: argparse.Namespace) -> None:
     """ParameterError for tiling and cluster options that would go unused without a
     word (a block processed in one piece has no grid, tiler or embedded workers; a job
@@ -123,8 +104,6 @@ def _check_cluster_options(args: argparse.Namespace) -> None:
                 "(its tiles, on --scheduler or in this process); start a new job to change them"
             )
         return
-    if args.worker_memory is not None and not (args.worker_memory > 0 and math.isfinite(args.worker_memory)):
-        raise ParameterError(f"--worker-memory must be a positive number of GB, not {args.worker_memory}")
     if args.worker_memory is not None and args.tile_size is not None:
         raise ParameterError("--worker-memory chooses the tile size: give it or --tile-size, not both")
     if args.tile_size == 0 and args.scheduler is not None:
@@ -138,8 +117,6 @@ def _check_cluster_options(args: argparse.Namespace) -> None:
             raise ParameterError("--workers is for the embedded cluster; a running one (--scheduler) brings its own workers")
         if not tiled:
             raise ParameterError("--workers needs --tile-size: a block processed in one piece runs in this process")
-    else:
-        args.workers = DEFAULT_WORKERS
     for flag, given in (("--dask-host", args.dask_host is not None), ("--no-dashboard", not args.dashboard)):
         if given and args.scheduler is not None:
             raise ParameterError(f"{flag} is for the embedded cluster; a running one (--scheduler) was started with its own")
@@ -151,13 +128,22 @@ def _check_cluster_options(args: argparse.Namespace) -> None:
         raise ParameterError("--engine needs --tile-size: a block processed in one piece is not tiled")
 
 
-def _memory_budget(args: argparse.Namespace) -> float:
-    """Bytes one worker may use: --worker-memory, else the ORCHARD_WORKER_MEMORY_GB setting."""
-    if args.worker_memory is not None:
-        return args.worker_memory * 1e9
-    from service.settings import Settings
+def _tiling(args: argparse.Namespace):
+    """The tiling options as the job's `TilingParams`: ``--tile-size 0`` is one piece
+    whatever the block's size (no budget); without ``--tile-size`` tiles are chosen to fit
+    ``--worker-memory``, else the ORCHARD_WORKER_MEMORY_GB setting."""
+    from pipeline.jobparams import TilingParams
 
-    return Settings().worker_memory_bytes
+    given = {k: getattr(args, k) for k in ("buffer", "grid_origin", "engine", "workers") if getattr(args, k) is not None}
+    if args.tile_size is not None:
+        given.update(tile_size=args.tile_size or None, worker_memory=None)
+    elif args.worker_memory is not None:
+        given["worker_memory"] = args.worker_memory
+    else:
+        from service.settings import Settings
+
+        given["worker_memory"] = Settings().worker_memory_gb
+    return TilingParams(**given)
 
 
 def _check_same_job(args: argparse.Namespace) -> None:
@@ -221,25 +207,28 @@ def run(args: argparse.Namespace) -> int:
                 close_client(client)
         return _report(outcome, args)
 
+    tiling = _tiling(args)
     spec = JobSpec(
         input_path=args.input,
         out_dir=args.out,
         params=params,
-        tile_size=args.tile_size or None,
-        buffer=args.buffer,
-        grid_origin=args.grid_origin,
+        tile_size=tiling.tile_size,
+        buffer=tiling.buffer,
+        grid_origin=tiling.grid_origin,
         work_dir=args.work,
         labelled_laz=args.labelled_laz,
-        engine=args.engine or "laspy",
+        engine=tiling.engine,
         inject_failure=tuple(args.inject_failure or ()),
-        memory_budget=None if args.tile_size is not None else _memory_budget(args),
+        memory_budget=tiling.memory_budget,
     )
     tiled = bool(args.tile_size) or args.scheduler is not None
     if spec.tile_size is None and not tiled:
         try:
             spec = auto_tiled(spec)  # bad input fails here, before anything else
         except BudgetError as exc:
-            raise ParameterError(f"{exc} (--worker-memory {math.ceil(exc.need / 1e8) / 10:g} or more)") from None
+            need = math.ceil(exc.need / 1e8) / 10  # GB, rounded up
+            raise ParameterError(exc.message, hint=f"{exc.hint} ({{tiling.worker_memory}} {need:g} or more)",
+                                 param="tiling.worker_memory", value=tiling.worker_memory, limit=need) from None
         if spec.tile_size is not None:
             tiled = True
             print(
@@ -255,14 +244,14 @@ def run(args: argparse.Namespace) -> int:
         try:
             check_work_url(args.work, shared=tiled)
         except ParameterError as exc:
-            raise ParameterError(f"--work: {exc}") from None
+            raise ParameterError("{job.work_dir}: " + exc.message, hint=exc.hint, param="job.work_dir", value=args.work) from None
     client = None
     try:
         check_job(spec, tiled=tiled)  # bad input or parameters fail before a cluster starts
         if tiled:
             from workers.cluster import LOOPBACK, close_client, dashboard_address, make_client
 
-            client = make_client(args.scheduler, n_workers=args.workers, quiet=True, dashboard=args.dashboard,
+            client = make_client(args.scheduler, n_workers=tiling.workers, quiet=True, dashboard=args.dashboard,
                                  host=args.dask_host or LOOPBACK)
             link = dashboard_address(client)
             print(f"dask dashboard: {link or 'none'}", file=sys.stderr)

@@ -7,7 +7,7 @@ import json
 from datetime import datetime
 from pathlib import Path
 
-from service.commands.options import add_pipeline_options, pipeline_params_from_args
+from service.commands.options import add_pipeline_options, add_tiling_options, pipeline_params_from_args
 
 NAME = "schedules"
 HELP = "List, create, change, pause, resume, run or delete overnight schedules (an inbox folder scanned on a cron schedule)."
@@ -27,16 +27,18 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     c = sub.add_parser("create", help="register an inbox folder and a schedule for a tenant")
     c.add_argument("--tenant", required=True, help="tenant (farm) name; created if new")
     c.add_argument("--inbox", required=True, help="folder where the mobile captures (LAS/LAZ) land")
-    c.add_argument("--cron", default="0 1 * * *", help="cron expression in local time (default '0 1 * * *' = 01:00 nightly)")
-    c.add_argument("--tile-size", type=float, default=None, help="process in square tiles of this size [m] on the dask workers")
-    c.add_argument("--buffer", type=float, default=None, help="tile overlap [m] (default: the parameters' reach)")
+    from service.schedules import DEFAULT_CRON
+
+    c.add_argument("--cron", default=DEFAULT_CRON, help=f"cron expression in local time (default '{DEFAULT_CRON}' = 01:00 nightly)")
+    add_tiling_options(c, ("tile_size", "buffer"), {"tile_size": "default: each capture in one piece",
+                                                    "buffer": "at least the reach"})
     _data_dir(c)
     add_pipeline_options(c)
     u = sub.add_parser("update", help="change a schedule's cron or tiling (what is not given stays)")
     u.add_argument("schedule_id")
     u.add_argument("--cron", default=None, help="new cron expression in local time")
-    u.add_argument("--tile-size", type=float, default=None, help="process in square tiles of this size [m] (the buffer stays as it is unless --buffer is given)")
-    u.add_argument("--buffer", type=float, default=None, help="tile overlap [m]; alone, it changes a tiled schedule's buffer")
+    add_tiling_options(u, ("tile_size", "buffer"), {"tile_size": "the buffer stays as it is unless --buffer is given",
+                                                    "buffer": "alone, it changes a tiled schedule's buffer"})
     u.add_argument("--untiled", action="store_true", help="process each capture as one tile")
     _data_dir(u)
     add_pipeline_options(u)  # each given option changes that parameter; the others stay
@@ -61,7 +63,7 @@ def run(args: argparse.Namespace) -> int:
     from pydantic import ValidationError
 
     from pipeline.errors import ParameterError
-    from pipeline.tiling import check_tiling
+    from pipeline.jobparams import JobParams, TilingParams
     from service.db.jobstore import Store
     from service.schedules import check_inbox_use, next_run_time, run_schedule, validate_cron, validate_inbox
     from service.settings import build_settings
@@ -85,8 +87,8 @@ def run(args: argparse.Namespace) -> int:
             params = pipeline_params_from_args(args)
             tiling = None
             if args.tile_size is not None:
-                check_tiling(args.tile_size, args.buffer, params.reach())
                 tiling = {"tile_size": args.tile_size, "buffer": args.buffer}
+                JobParams(pipeline=params, tiling=TilingParams(**tiling))  # as a job would: refused now, not every night
             elif args.buffer is not None:
                 raise ParameterError("--buffer needs --tile-size")
             tenant = store.ensure_tenant(args.tenant)
@@ -111,7 +113,7 @@ def run(args: argparse.Namespace) -> int:
                 raise ParameterError("; ".join(
                     f"{_OPTION.get(tuple(map(str, e['loc'])), '.'.join(map(str, e['loc'])))}: {e['msg']}"
                     for e in exc.errors())) from None
-            rec = store.update_schedule(None, sched["id"], lambda current: schedule_changes(current, update, api=False))
+            rec = store.update_schedule(None, sched["id"], lambda current: schedule_changes(current, update))
             state = "paused" if rec["paused"] else f"next run {_when(rec['next_run_at'])}"
             print(f"{rec['id']}\t{rec['cron']}\t{state}")
         elif args.action == "run":

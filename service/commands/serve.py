@@ -14,6 +14,8 @@ HELP = "Run the HTTP service (API under /v1, docs at /docs) with its job runner 
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
+    from service.commands.options import tiling_default
+
     parser.add_argument("--host", default=None, help="address to bind (default 127.0.0.1; env ORCHARD_HOST)")
     parser.add_argument("--port", type=int, default=None, help="port to bind (default 8000; env ORCHARD_PORT)")
     parser.add_argument("--data-dir", default=None, help="job store, uploads and results (env ORCHARD_DATA_DIR)")
@@ -21,7 +23,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         "--scheduler", default=None, metavar="ADDR",
         help="dask scheduler address tcp://HOST:PORT (default: an embedded LocalCluster; env ORCHARD_SCHEDULER)",
     )
-    parser.add_argument("--workers", type=int, default=None, help="workers of the embedded LocalCluster (default 2; env ORCHARD_N_WORKERS)")
+    parser.add_argument("--workers", type=int, default=None, help=f"workers of the embedded LocalCluster (default {tiling_default('workers')}; env ORCHARD_N_WORKERS)")
     parser.add_argument("--dashboard", action="store_true", default=None,
                         help="serve the embedded LocalCluster's dask dashboard (default off; env ORCHARD_DASHBOARD)")
     parser.add_argument("--dask-host", default=None, metavar="HOST",

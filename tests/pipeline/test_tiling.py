@@ -99,7 +99,8 @@ def test_buffer_must_cover_reach():
     with pytest.raises(ParameterError) as e:
         plan_grid((0, 0), (50, 50), tile_size=10.0, buffer=2.0, reach=reach)
     msg = str(e.value)
-    assert "2 m" in msg and f"{reach:g} m" in msg and "--buffer" in msg
+    assert "2 m" in msg and f"{reach:g} m" in msg and "{tiling.buffer}" in e.value.hint
+    assert (e.value.param, e.value.value, e.value.limit) == ("tiling.buffer", 2.0, reach)
     with pytest.raises(ParameterError):
         check_buffer(1.0, 1.5)
 
@@ -132,8 +133,9 @@ def test_absurd_buffer_and_grid_origin_are_parameter_errors():
 
 
 def test_too_many_tiles():
-    with pytest.raises(ParameterError, match="larger --tile-size"):
+    with pytest.raises(ParameterError, match="larger tiling.tile_size") as e:
         plan_grid((0, 0), (10_000, 10_000), tile_size=0.5, buffer=0.0)
+    assert e.value.param == "tiling.tile_size"
 
 
 def test_grid_round_trips_through_dict():
@@ -168,7 +170,7 @@ def test_absurdly_small_tile_size_is_refused_without_overflow(size):
 
     with warnings.catch_warnings():
         warnings.simplefilter("error")  # no "invalid value encountered in cast"
-        with pytest.raises(ParameterError, match="larger --tile-size"):
+        with pytest.raises(ParameterError, match="larger tiling.tile_size"):
             plan_grid((0, 0), (50, 50), tile_size=size, buffer=0.0)
 
 

@@ -30,7 +30,7 @@ def test_process_help_lists_every_parameter_with_a_unit():
 @pytest.mark.parametrize(
     "option, message",
     [
-        (["--graph-voxel-size", "-1"], "graph.voxel_size"),
+        (["--graph-voxel-size", "-1"], "--graph-voxel-size: Input should be greater than or equal to 0.02"),
         # allowed one by one, together hours of filtering and gigabytes on a worker
         (["--ground-cell-size", "0.0101"], "search_radius (1.0 m) spans more than 20 cells of cell_size (0.0101 m)"),
         (["--matter-threshold", "high"], "argument --matter-threshold: invalid float value: 'high' (see orchard process --help)"),

@@ -16,7 +16,6 @@ from service_fixtures import tenant_inbox, write_las
 
 from pipeline.errors import InputError, ParameterError
 from service.db.jobstore import Store
-from service.errors import api_wording
 from service.schedules import (
     ScheduleClock,
     check_inbox_use,
@@ -194,16 +193,6 @@ def test_inbox_use_refuses_service_folders_and_other_tenants_inboxes(tmp_path):
         check_inbox_use(data / "inboxes" / "b", settings=settings, store=store, tenant_id=b["id"])
     finally:
         store.close()
-
-
-def test_api_wording_names_the_upload_and_the_request_fields():
-    msg = ("/srv/data/blocks/ab12cd.laz: no trees found in 50000 points; lower --trunks-min-tree-height / "
-           "--trunks-min-canopy-voxels, or use --buffer 6.15 with --tile-size 20 (--resume is the operator's)")
-    out = api_wording(msg, block_path="/srv/data/blocks/ab12cd.laz", filename="north-block.laz")
-    assert out == ("north-block.laz: no trees found in 50000 points; lower params.trunks.min_tree_height / "
-                   "params.trunks.min_canopy_voxels, or use tiling.buffer 6.15 with tiling.tile_size 20 "
-                   "(--resume is the operator's)")
-    assert api_wording("tile 3 of ab12cd.laz failed", block_path="/x/ab12cd.laz") == "tile 3 of the block failed"
 
 
 @pytest.fixture()

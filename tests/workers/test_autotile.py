@@ -196,8 +196,8 @@ def test_tile_size_0_keeps_a_block_whole_whatever_the_budget_says(block, tmp_pat
     "argv, words",
     [
         (["--worker-memory", "0.21"], "too small for this block"),
-        (["--worker-memory", "0"], "--worker-memory must be a positive number"),
-        (["--worker-memory", "nan"], "--worker-memory must be a positive number"),
+        (["--worker-memory", "0"], "--worker-memory: Input should be greater than 0"),
+        (["--worker-memory", "nan"], "--worker-memory: Input should be a finite number"),
         (["--worker-memory", "1", "--tile-size", "10"], "not both"),
         (["--tile-size", "0", "--scheduler", "tcp://127.0.0.1:1"], "--tile-size 0"),
     ],

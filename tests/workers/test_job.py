@@ -157,7 +157,8 @@ def test_first_tile_failure_stops_and_names_the_tile(small_block, tmp_path):
         run_job(JobSpec(str(small_block), str(tmp_path / "out"), tile_size=10.0, work_dir=str(work), inject_failure=(0,)))
     assert e.value.tile_id == 0
     msg = str(e.value)
-    assert msg.startswith("tile 0 (core x") and "after 3 attempts" in msg and f"--work {work} --resume" in msg
+    assert msg.startswith("tile 0 (core x") and "after 3 attempts" in msg
+    assert f"{{job.work_dir}} {work} {{job.resume}}" in e.value.hint  # worded by each edge
     assert "\n" not in msg
     assert len(WorkStore(str(work)).list("attempts/000000")) == 3
     assert not (tmp_path / "out" / "trees.parquet").exists()
