@@ -98,7 +98,7 @@ def test_every_tiling_default_is_the_model_s():
 
 
 def test_the_api_tiling_body_has_the_model_s_bounds_and_defaults():
-    from service.app import Tiling, create_app
+    from service.api.schemas import Tiling
 
     for name, field in Tiling.model_fields.items():
         ours = TilingParams.model_fields[name]
