@@ -13,6 +13,10 @@ from scipy import sparse
 
 from pipeline.graph import NodePairs, node_pairs, symmetric_csr
 
+#: fewest nodes (the node included) whose spread gives shape features: fewer leave the
+#: covariance degenerate, and such nodes count as fully scattered
+MIN_NEIGHBOURS = 4
+
 
 @dataclass(frozen=True)
 class ShapeFeatures:
@@ -83,7 +87,7 @@ def shape_features(nodes: np.ndarray, *, radius: float, adjacency: sparse.csr_ma
     )
     (l3, l2, l1), normal, axis = symmetric_eigen3(*cov)
     l3, l2, l1 = np.clip(l3, 0.0, None), np.clip(l2, 0.0, None), np.clip(l1, 0.0, None)
-    few = n < 4
+    few = n < MIN_NEIGHBOURS
     safe = np.where(l1 > 1e-12, l1, 1.0)
     lin = np.where(few, 0.0, (l1 - l2) / safe)
     pla = np.where(few, 0.0, (l2 - l3) / safe)
@@ -107,10 +111,9 @@ def symmetric_eigen3(a00, a11, a22, a01, a02, a12):
     """
     # Strategy: the trigonometric solution of the characteristic cubic (Smith 1961) for
     # the eigenvalues; each eigenvector is the longest cross product of two rows of
-    # A - λI (orthogonal to every row). Three to four times faster than numpy's batched
-    # eigh (one LAPACK call per 3x3 matrix); the eigenvalues agree with it to ~1e-12 of
-    # the largest, ~1e-8 where two of them (nearly) coincide, far below any feature
-    # threshold (the pipeline's outputs were identical on 11 generated blocks).
+    # A - λI (orthogonal to every row). Faster than numpy's batched eigh (one LAPACK call
+    # per 3x3 matrix), and its eigenvalues agree with eigh's far below any feature
+    # threshold (to ~1e-8 of the largest where two nearly coincide).
     q = (a00 + a11 + a22) / 3.0
     b00, b11, b22 = a00 - q, a11 - q, a22 - q
     p = np.sqrt((b00 * b00 + b11 * b11 + b22 * b22 + 2.0 * (a01 * a01 + a02 * a02 + a12 * a12)) / 6.0)

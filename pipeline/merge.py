@@ -15,6 +15,10 @@ from dataclasses import dataclass
 import numpy as np
 from scipy.spatial import cKDTree
 
+#: a tile's local trunk takes the id of the nearest global trunk within this distance [m]
+#: (one detection of a trunk by two tiles differs by far less; neighbouring trees are farther)
+MATCH_DISTANCE = 1.0
+
 
 @dataclass(frozen=True)
 class TileTrunks:
@@ -81,8 +85,8 @@ def reconcile_trunks(
     tiles: list[TileTrunks],
     *,
     cluster_radius: float,
-    match_distance: float = 1.0,
-    fallback_radius: float = 3.5,
+    fallback_radius: float,
+    match_distance: float = MATCH_DISTANCE,
     dead_zones: np.ndarray | None = None,
 ) -> GlobalTrunks:
     """Reconcile the trunks of all tiles and map local tree ids to global ones.
@@ -93,11 +97,12 @@ def reconcile_trunks(
     cluster_radius : float
         Owned trunks of *different* tiles closer than this [m] are one trunk: the
         detection with the higher support is kept (tie → lower tile id).
+    fallback_radius : float
+        A tile's local trunk with no global trunk within ``match_distance`` takes the id
+        of the nearest one within this distance [m] (the widest crown); else 0.
     match_distance : float
         A tile's local trunk (owned or in its buffer) takes the id of the nearest global
         trunk within this distance [m].
-    fallback_radius : float
-        Else the nearest global trunk within this distance [m] (the widest crown); else 0.
     dead_zones : (f, 4) float64, optional
         Boxes ``(x0, y0, x1, y1)`` (same frame) where no tile reported: the cores of
         failed tiles. A local trunk there with no global trunk within ``match_distance``

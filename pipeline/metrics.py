@@ -272,12 +272,30 @@ def finalize_metrics(
     }
 
 
+# Fixed tuning of the circle fits (lengths in metres).
+
 #: points of one cross-section a circle fit uses at most (evenly spaced in input order)
 MAX_FIT_POINTS = 100_000
 _FIT_CHUNK = 1 << 21  # residuals computed per block of trials (elements)
+#: fewest points (and inliers) a circle is fitted to
+MIN_FIT_POINTS = 5
+#: residual [m] under which a point supports a circle: bark roughness on a clean scan
+FIT_INLIER = 0.02
+#: RANSAC triples tried per circle
+FIT_TRIALS = 256
+#: radial residuals within this distance [m] of a first circle estimate the scan's noise
+#: at the trunk (see :func:`trunk_circle`)
+NOISE_WINDOW = 0.15
+#: the refit's inlier band, in noise sigmas (a fixed 2 cm band keeps only part of a noisy trunk)
+NOISE_INLIER_SIGMAS = 2.5
+#: a stem circle of a smaller radius [m] is a fit to a few close points, not a trunk
+MIN_TRUNK_RADIUS = 0.005
+#: the slice is first picked by height above the ground, this much wider [m] than by
+#: height above the trunk base (the two differ on sloping ground)
+SLICE_PRESELECT_MARGIN = 0.1
 
 
-def fit_circle(xy: np.ndarray, *, inlier: float = 0.02, trials: int = 256) -> tuple[np.ndarray, float]:
+def fit_circle(xy: np.ndarray, *, inlier: float = FIT_INLIER, trials: int = FIT_TRIALS) -> tuple[np.ndarray, float]:
     """Robust circle through 2D points: RANSAC over point triples, then least squares.
 
     Parameters
@@ -288,10 +306,10 @@ def fit_circle(xy: np.ndarray, *, inlier: float = 0.02, trials: int = 256) -> tu
 
     Returns
     -------
-    centre (2,), radius [m]; radius NaN when fewer than 5 points.
+    centre (2,), radius [m]; radius NaN when fewer than MIN_FIT_POINTS points.
     """
     n = len(xy)
-    if n < 5:
+    if n < MIN_FIT_POINTS:
         return np.full(2, np.nan), float("nan")
     if n > MAX_FIT_POINTS:  # a cross-section scanned at sub-millimetre spacing: every k-th point
         xy = xy[:: -(-n // MAX_FIT_POINTS)]
@@ -305,8 +323,8 @@ def fit_circle(xy: np.ndarray, *, inlier: float = 0.02, trials: int = 256) -> tu
     ux = (a2 * (b[:, 1] - c[:, 1]) + b2 * (c[:, 1] - a[:, 1]) + c2 * (a[:, 1] - b[:, 1])) / np.where(ok, d, 1)
     uy = (a2 * (c[:, 0] - b[:, 0]) + b2 * (a[:, 0] - c[:, 0]) + c2 * (b[:, 0] - a[:, 0])) / np.where(ok, d, 1)
     r = np.hypot(a[:, 0] - ux, a[:, 1] - uy)
-    # residuals of all points to the trials' circles, a few trials at a time (a trials x n
-    # matrix took 6 KB per point: gigabytes on a densely scanned trunk)
+    # residuals of all points to the trials' circles, a few trials at a time (a whole
+    # trials x n matrix would take gigabytes on a densely scanned trunk)
     support = np.full(trials, -1)
     step = max(1, _FIT_CHUNK // n)
     for s0 in range(0, trials, step):
@@ -315,7 +333,7 @@ def fit_circle(xy: np.ndarray, *, inlier: float = 0.02, trials: int = 256) -> tu
         support[s0:s1] = np.where(ok[s0:s1], (resid < inlier).sum(1), -1)
     best = int(np.argmax(support))
     keep = np.abs(np.hypot(xy[:, 0] - ux[best], xy[:, 1] - uy[best]) - r[best]) < inlier
-    if keep.sum() < 5:
+    if keep.sum() < MIN_FIT_POINTS:
         return np.full(2, np.nan), float("nan")
     # algebraic least squares on the inliers
     p = xy[keep]
@@ -326,23 +344,16 @@ def fit_circle(xy: np.ndarray, *, inlier: float = 0.02, trials: int = 256) -> tu
     return centre, float(np.sqrt(max(sol[2] + (sol[:2] ** 2).sum(), 0.0)))
 
 
-#: radial residuals within this distance [m] of a first circle estimate the scan's noise
-#: at the trunk (see :func:`trunk_circle`)
-NOISE_WINDOW = 0.15
-
-
-def trunk_circle(xy: np.ndarray, *, inlier: float = 0.02, trials: int = 256) -> tuple[np.ndarray, float]:
+def trunk_circle(xy: np.ndarray, *, inlier: float = FIT_INLIER, trials: int = FIT_TRIALS) -> tuple[np.ndarray, float]:
     """A circle through a trunk's cross-section, corrected for the scan's noise.
 
     Range noise scatters the bark's points on both sides of the circle, and a circle fit
     to them comes out too large: with noise sigma per axis the mean squared distance
     from the centre is r² + 2 sigma². This fits :func:`fit_circle`, estimates sigma from
-    the points' radial residuals (1.4826 x their median absolute deviation, within
+    the points' radial residuals (their median absolute deviation, within
     ``NOISE_WINDOW`` of that circle), refits with the inlier band widened to
-    2.5 sigma (a 2 cm band keeps only part of a noisy trunk) and returns the radius
-    sqrt(R² - 2 sigma²), at least R / 2. On the generated trunks of ``python -m bench``
-    (about 0.12-0.30 m thick) the mean absolute diameter error falls from 1.0 to 0.7 cm
-    at sigma 0.02 m, 4.1 to 2.1 cm at 0.05 m and 7.2 to 5.3 cm at 0.1 m.
+    ``NOISE_INLIER_SIGMAS`` sigma and returns the radius sqrt(R² - 2 sigma²), at least
+    R / 2 (the effect on diameters: docs/method.md).
 
     Returns
     -------
@@ -353,8 +364,8 @@ def trunk_circle(xy: np.ndarray, *, inlier: float = 0.02, trials: int = 256) -> 
         return centre, r
     res = np.hypot(xy[:, 0] - centre[0], xy[:, 1] - centre[1]) - r
     res = res[np.abs(res) < NOISE_WINDOW]
-    sigma = 1.4826 * float(np.median(np.abs(res - np.median(res))))
-    c2, r2 = fit_circle(xy, inlier=max(inlier, 2.5 * sigma), trials=trials)
+    sigma = 1.4826 * float(np.median(np.abs(res - np.median(res))))  # a normal sigma per MAD
+    c2, r2 = fit_circle(xy, inlier=max(inlier, NOISE_INLIER_SIGMAS * sigma), trials=trials)
     if not np.isfinite(r2):
         return centre, r
     return c2, float(np.sqrt(max(r2 * r2 - 2.0 * sigma * sigma, 0.25 * r2 * r2)))
@@ -366,30 +377,30 @@ def trunk_circles(
     trunks: np.ndarray,
     *,
     params: MetricsParams,
-    max_radius: float = 0.5,
     height: np.ndarray | None = None,
 ) -> tuple[np.ndarray, np.ndarray]:
     """The stem of each tree at ``params.trunk_height`` above its base: centre and diameter.
 
     Fits a circle (:func:`trunk_circle`, corrected for noise) to the tree's points in a
-    horizontal slice of thickness ``params.trunk_slice`` within ``max_radius`` of the
-    trunk. ``height`` (n,), the points' height above ground [m], only speeds up the
-    selection.
+    horizontal slice of thickness ``params.trunk_slice`` within ``params.max_trunk_radius``
+    of the trunk. ``height`` (n,), the points' height above ground [m], only speeds up
+    the selection.
 
     Returns
     -------
     centres : (k, 2) float64 [m]
         Centre of each fitted circle (same frame as ``xyz``); NaN where not measurable.
     diameters : (k,) float64 [m]
-        NaN where fewer than 5 points or the fit is implausible.
+        NaN where fewer than MIN_FIT_POINTS points or the fit is implausible.
     """
+    max_radius = params.max_trunk_radius
     k = trunks.shape[0]
     out = np.full(k, np.nan)
     centres = np.full((k, 2), np.nan)
     if k == 0:
         return centres, out
     if height is not None:  # pre-select the slice by height above ground (cheap)
-        mask = (np.abs(height - params.trunk_height) <= params.trunk_slice / 2 + 0.1) & (tree_id > 0)
+        mask = (np.abs(height - params.trunk_height) <= params.trunk_slice / 2 + SLICE_PRESELECT_MARGIN) & (tree_id > 0)
     else:
         mask = tree_id > 0
     pts, ids = xyz[mask], tree_id[mask]
@@ -398,7 +409,7 @@ def trunk_circles(
     d2 = ((pts[:, :2] - trunks[ids - 1, :2]) ** 2).sum(1)
     sel = in_slice & (d2 <= max_radius**2)
     c, r = tree_circles(pts[sel, :2], ids[sel], k, fit=trunk_circle)
-    ok = np.isfinite(r) & (r > 0.005) & (r <= max_radius)
+    ok = np.isfinite(r) & (r > MIN_TRUNK_RADIUS) & (r <= max_radius)
     out[ok] = 2 * r[ok]
     centres[ok] = c[ok]
     return centres, out
@@ -415,7 +426,7 @@ def tree_circles(xy: np.ndarray, tree_id: np.ndarray, k: int, *, fit=fit_circle)
 
     Returns
     -------
-    centres (k, 2) and radii (k,) [m]; NaN for trees with no fit (fewer than 5 points).
+    centres (k, 2) and radii (k,) [m]; NaN for trees with no fit (fewer than MIN_FIT_POINTS points).
     """
     centres = np.full((k, 2), np.nan)
     radii = np.full(k, np.nan)

@@ -14,8 +14,7 @@ from pydantic import BaseModel, ConfigDict, Field, model_validator
 
 
 class _Model(BaseModel):
-    # NaN passed every bound check's message wrongly ("should be less than or equal to
-    # 100000"): non-finite numbers are refused as such
+    # non-finite numbers are refused as such (NaN would fail a bound with a misleading message)
     model_config = ConfigDict(extra="forbid", frozen=True, allow_inf_nan=False)
 
 
@@ -31,8 +30,7 @@ class GroundParams(_Model):
     @model_validator(mode="after")
     def _radius_in_cells(self) -> "GroundParams":
         # the filters' footprint is a disk of search_radius / cell_size cells: their time
-        # grows with its square (1 M points: 0.2 s at 4 cells, 6 s at 20, 23 s at 40) and
-        # a worker's memory with it
+        # and a worker's memory grow with its square
         if self.search_radius > MAX_RADIUS_CELLS * self.cell_size:
             raise ValueError(
                 f"search_radius ({self.search_radius} m) spans more than {MAX_RADIUS_CELLS} cells of cell_size "
@@ -42,7 +40,8 @@ class GroundParams(_Model):
         return self
 
 
-#: most cells of ``GroundParams.cell_size`` that ``search_radius`` may span
+#: most cells of ``GroundParams.cell_size`` that ``search_radius`` may span (the ground
+#: filters take seconds per million points there)
 MAX_RADIUS_CELLS = 20
 
 
@@ -65,28 +64,34 @@ class GraphParams(_Model):
                 f"edge_radius ({self.edge_radius} m) must be at least voxel_size ({self.voxel_size} m), "
                 "or neighbouring voxels are never joined"
             )
-        if self.edge_radius > 6 * self.voxel_size:
+        if self.edge_radius > MAX_EDGE_VOXELS * self.voxel_size:
             raise ValueError(
-                f"edge_radius ({self.edge_radius} m) above 6 x voxel_size ({self.voxel_size} m) makes the graph too dense"
+                f"edge_radius ({self.edge_radius} m) above {MAX_EDGE_VOXELS} x voxel_size ({self.voxel_size} m) makes "
+                "the graph too dense"
             )
         return self
+
+
+#: widest edge radius in voxel sizes: a node's edges grow with the cube of the ratio
+MAX_EDGE_VOXELS = 6
 
 
 class TrunkParams(_Model):
     """Trunk detection without priors: where the canopy's shortest paths reach the ground."""
 
     contact_height: float = Field(0.08, gt=0.0, le=3.0, description="graph nodes this far above the top of the ground layer (the ground tolerance) can be a tree's ground contact [m]")
-    cluster_radius: float | None = Field(None, gt=0.0, le=5.0, description="ground contacts closer than this are one trunk; a group of contacts that is no trunk (too wide, or shoots beside a clearer stem) counts towards a trunk within 1.25 times this; default: from the block's measured in-row tree spacing s, 0.8 x min(1, s / 2.2 m) [m]")
-    min_tree_height: float = Field(2.0, gt=0.0, le=50.0, description="95 % of a tree's material must lie below a height of at least this (fence posts, bins and vehicles stay lower) [m]")
+    cluster_radius: float | None = Field(None, gt=0.0, le=5.0, description="ground contacts closer than this are one trunk (and a group that is no trunk counts towards one within 1.25 times this); default: from the block's measured in-row tree spacing s, 0.8 x min(1, s / 2.2 m) [m]")
+    min_tree_height: float = Field(2.0, gt=0.0, le=50.0, description="a tree's material reaches at least this height (its 95th height percentile; fence posts, bins and vehicles stay lower) [m]")
     min_canopy_voxels: int = Field(150, ge=1, le=10_000_000, description="least number of voxels whose shortest path ends in a trunk [voxels]")
     leaf_cost: float = Field(4.0, ge=0.0, le=100.0, description="drainage paths through fully scattered (leafy) nodes cost this much more, so canopies drain down their branches [x]")
-    satellite_radius: float | None = Field(None, ge=0.0, le=10.0, description="a contact this close to a stronger trunk is that tree's branch or foliage touching the ground; up to twice as far when the trunk is much stronger (see satellite_ratio); also the reach of the stem test (stem_ratio); default: from the block's measured in-row tree spacing s, 2.0 x min(1, s / 2.2 m)^2 [m]")
-    satellite_ratio: float = Field(1.5, ge=1.0, le=100.0, description="... when the trunk drains this many times more material, times (distance/satellite_radius)^2 beyond satellite_radius [x]")
+    satellite_radius: float | None = Field(None, ge=0.0, le=10.0, description="a contact this close to a stronger trunk (up to twice as far to a much stronger one, see satellite_ratio) is that tree's foliage touching the ground; also the reach of the stem test; default: from the block's measured in-row tree spacing s, 2.0 x min(1, s / 2.2 m)^2 [m]")
+    satellite_ratio: float = Field(1.5, ge=1.0, le=100.0, description="a contact near a trunk is its satellite when the trunk drains this many times more material, times (distance / satellite_radius)^2 beyond satellite_radius [x]")
     max_trunk_width: float = Field(1.0, gt=0.0, le=5.0, description="widest trunk cross-section accepted near the ground [m]")
     max_planar_fraction: float = Field(0.15, ge=0.0, le=1.0, description="objects whose material below min_tree_height is more planar (box-like) than this are not trees [fraction]")
-    stem_ratio: float = Field(3.0, ge=0.0, le=1000.0, description="a contact group within satellite_radius of a trunk that drains at least half as much and whose stem stands out this many times more clearly in the 0.3 m above the ground layer is that tree's shoots or foliage touching down, not a trunk; 0 = off [x]")
-    max_post_radius: float = Field(0.0, ge=0.0, le=1.0, description="for trellised rows: a contact group standing on a straight vertical pole of one thickness, at most this radius, from 0.3 to 2.2 m above the ground and ending below 4.5 m (a trellis post) is no trunk; the post is cut out of the graph and is not tree material. Looked for on scans whose estimated ground noise is under 0.05 m (about 0.03 m of range noise). Off by default: a trunk with a straight central leader can pass for a post (docs/limits.md); 0.08 is the measured setting; 0 = off [m]")
-    min_foot_ratio: float = Field(0.0, ge=0.0, le=100.0, description="a trunk continues into the ground layer: the density of points in the upper half of the ground layer within 0.2 m of a trunk's centre must be at least this many times that 0.2-0.8 m around it (a shoot hanging into the grass has no foot). Off by default: it removes about half the false trunks of noisy high-density scans but also drops trunks on clean ones (docs/limits.md); 1.0 is the measured setting; 0 = off [x]")
+    stem_ratio: float = Field(3.0, ge=0.0, le=1000.0, description="a contact group is shoots touching down, not a trunk, when a trunk within satellite_radius drains at least half as much and its stem stands out this many times more clearly in the 0.3 m above the ground layer; 0 = off [x]")
+    max_post_radius: float = Field(0.0, ge=0.0, le=1.0, description="for trellised rows: a contact group standing on a straight vertical pole of one thickness up to this radius, from 0.3 to 2.2 m above the ground and ending below max_post_height, is a trellis post and no tree material (looked for on scans with under 0.05 m of ground noise); off by default, as a straight central leader can pass for a post (docs/limits.md); try 0.08; 0 = off [m]")
+    max_post_height: float = Field(4.5, gt=2.5, le=20.0, description="a trellis post ends below this height; a pole still going on at it is a tree's bole (see max_post_radius) [m]")
+    min_foot_ratio: float = Field(0.0, ge=0.0, le=100.0, description="a trunk continues into the ground layer: the density of points in the upper half of the ground layer within 0.2 m of its centre must be at least this many times that 0.2-0.8 m around it (a shoot hanging into the grass has no foot); off by default, as it also drops trunks on clean scans (docs/limits.md); try 1.0; 0 = off [x]")
 
     def needs_spacing(self) -> bool:
         """Whether a radius is left to follow the block's tree spacing."""
@@ -117,12 +122,10 @@ class SegmentParams(_Model):
         return self.model_copy(update=_from_spacing(self, "segment", spacing))
 
 
-#: Radii left unset (None) follow the block's in-row tree spacing s [m] (measured as the
-#: median distance to the nearest neighbouring tree, below the planting distance): each
-#: is ``cap * min(1, s / FULL_SPACING) ** power``, by field: (cap [m], power). The caps
-#: are the values measured on free-standing trees, kept from FULL_SPACING up, so blocks
-#: planted 2.5 m apart or wider keep them. The satellite radius shrinks faster: a dense
-#: row's trees are trained narrow, while a free tree's drooping foliage reaches out.
+#: Radii left unset (None) follow the block's in-row tree spacing s [m]
+#: (:mod:`pipeline.spacing`): each is ``cap * min(1, s / FULL_SPACING) ** power``, by
+#: field: (cap [m], power). The caps suit free-standing trees and hold from FULL_SPACING
+#: up; the satellite radius shrinks faster, as a dense row's trees are trained narrow.
 FULL_SPACING = 2.2
 SPACING_RADII: dict[str, dict[str, tuple[float, float]]] = {
     "trunks": {"cluster_radius": (0.8, 1.0), "satellite_radius": (2.0, 2.0)},
@@ -171,6 +174,7 @@ class MetricsParams(_Model):
     trunk_height: float = Field(0.3, gt=0.0, le=5.0, description="height above the trunk base where the trunk diameter is measured [m]")
     trunk_slice: float = Field(0.1, gt=0.0, le=1.0, description="thickness of the slice used for the trunk diameter [m]")
     crown_base: float = Field(0.5, ge=0.0, le=20.0, description="tree material above this height counts as crown [m]")
+    max_trunk_radius: float = Field(0.5, gt=0.0, le=5.0, description="thickest trunk: a stem circle (for the diameter, or the trunk's foot in the ground layer) of a larger radius, or centred farther from the trunk, fits something else and is ignored [m]")
 
 
 class RowParams(_Model):
@@ -202,10 +206,14 @@ class PipelineParams(_Model):
         A tile's buffer must be at least this wide for tiled results to equal untiled
         ones: a tree with material in the core has its trunk within
         ``max_crown_radius`` of it, and the paths from that trunk to the core run
-        close to the line between them. One metre beyond the crown radius holds them
-        (tested: 10 m tiles against one tile, v-measure >= 0.99, trunks within 5 cm).
+        close to the line between them, within PATH_MARGIN of the crown radius.
         """
-        return self.segment.max_crown_radius + 1.0 + self.graph.edge_radius
+        return self.segment.max_crown_radius + PATH_MARGIN + self.graph.edge_radius
+
+
+#: how far beyond the crown radius [m] the paths from a trunk to its crown run (the
+#: tiled-equals-untiled tests of tests/workers hold with it)
+PATH_MARGIN = 1.0
 
 
 GROUPS: dict[str, type[_Model]] = {

@@ -21,19 +21,22 @@ from scipy.spatial import cKDTree
 
 from pipeline.metrics import trunk_circle
 
+# Fixed tuning of the post test (lengths in metres; the tallest post is
+# TrunkParams.max_post_height).
+
 #: heights above the ground [m] of the cross-sections that must all show the same circle
 POST_HEIGHTS = (0.3, 0.7, 1.2, 1.7, 2.2)
 #: above POST_HEIGHTS the column is followed in steps of this [m] to find the post's
 #: top, then in steps of POST_FINE_STEP [m]
 POST_STEP = 0.5
 POST_FINE_STEP = 0.1
-#: a column still going on at this height [m] is a tree's bole, not a post; followed up
-#: to there with an axis drifting up to POST_FOLLOW_SHIFT [m] per POST_STEP and a radius
-#: within POST_FOLLOW_TOL of the post's (pine boles on TreeLS's plot lean 5-10 cm per
-#: 1.5 m and their sections swell and shrink by up to 40 %)
-POST_MAX_TOP = 4.5
+#: a column still going on at the tallest post's height is a tree's bole: it is followed
+#: with an axis drifting up to POST_FOLLOW_SHIFT [m] per POST_STEP and a radius within
+#: POST_FOLLOW_TOL of the post's (a bole leans, tapers and swells at whorls) ...
 POST_FOLLOW_SHIFT = 0.08
 POST_FOLLOW_TOL = 0.5
+#: ... until this many sections in a row show no such circle (one may be sparsely scanned)
+POST_FOLLOW_MISSES = 2
 #: half the thickness of each cross-section [m]
 POST_SLAB = 0.05
 #: points at most this far out from the radius found at the lowest section count in the
@@ -47,8 +50,12 @@ POST_MIN_RADIUS_TOL = 0.015
 #: fewest points in a cross-section
 POST_MIN_POINTS = 8
 #: RANSAC trials of each section's circle fit: foliage touching the post crowds its
-#: sections, and with the trunk fit's 256 a post could pass or fail by the draw
+#: sections, and with fewer trials a post could pass or fail by the draw
 POST_TRIALS = 1024
+#: the lowest section is looked for within this [m] of a candidate
+POST_REACH = 0.25
+#: most grid cells of :func:`_near_centres` (candidates spread wider take the bounding box)
+MAX_NEAR_CELLS = 4_000_000
 
 
 @dataclass(frozen=True)
@@ -73,7 +80,8 @@ def find_posts(
     centres: np.ndarray,
     *,
     max_radius: float,
-    reach: float = 0.25,
+    max_height: float,
+    reach: float = POST_REACH,
 ) -> Posts:
     """The candidate positions that stand on a trellis post.
 
@@ -84,7 +92,7 @@ def find_posts(
     axis (centres within ``POST_MAX_SHIFT`` of their median) with one radius (within
     ``POST_RADIUS_TOL`` of the median, at most ``max_radius``). The column is then
     followed upwards while the same circle is found (steps of ``POST_STEP``, then of
-    ``POST_FINE_STEP``); a column still found at ``POST_MAX_TOP``, on that axis or on
+    ``POST_FINE_STEP``); a column still found at ``max_height``, on that axis or on
     one drifting as a leaning bole's does (``_Column.goes_on``), is a tree's bole, not a
     post.
 
@@ -94,6 +102,7 @@ def find_posts(
     height : (n,) float64 — height above the ground [m]
     centres : (c, 2) float64 — candidate positions (contact groups) [m]
     max_radius : float — thickest post [m]; 0 finds none
+    max_height : float — tallest post [m]; a column going on to this height is a bole
     reach : float — radius of the lowest section around a candidate [m]
 
     Returns
@@ -108,7 +117,7 @@ def find_posts(
         return none
     column_reach = reach + max_radius + POST_MARGIN + POST_FOLLOW_SHIFT
     near = _near_centres(xyz[:, :2], centres, column_reach)
-    near = near[(height[near] >= POST_HEIGHTS[0] - POST_SLAB) & (height[near] <= POST_MAX_TOP + POST_SLAB)]
+    near = near[(height[near] >= POST_HEIGHTS[0] - POST_SLAB) & (height[near] <= max_height + POST_SLAB)]
     xyz, height = xyz[near], height[near]
     tree = cKDTree(xyz[:, :2])
     found_xy, found_r, found_top = [], [], []
@@ -120,7 +129,7 @@ def find_posts(
         idx = np.sort(np.asarray(tree.query_ball_point(c, column_reach), dtype=np.int64))
         if idx.size < POST_MIN_POINTS * len(POST_HEIGHTS):
             continue
-        column = _Column(xyz[idx, :2], height[idx])
+        column = _Column(xyz[idx, :2], height[idx], max_height)
         c0, r0 = column.section(POST_HEIGHTS[0], c, reach)
         if not 0 < r0 <= max_radius:
             continue
@@ -133,9 +142,9 @@ def find_posts(
             continue
         top = POST_HEIGHTS[-1]
         for step in (POST_STEP, POST_FINE_STEP):  # the post's top: coarse steps up, then fine ones
-            while top < POST_MAX_TOP and _same(*column.section(top + step, axis, r_med + POST_MARGIN), axis, r_med):
+            while top < max_height and _same(*column.section(top + step, axis, r_med + POST_MARGIN), axis, r_med):
                 top += step
-        if top >= POST_MAX_TOP or column.goes_on(axis, r_med):
+        if top >= max_height or column.goes_on(axis, r_med):
             continue  # a bole going on into a crown
         found_xy.append(axis)
         found_r.append(r_med)
@@ -148,12 +157,12 @@ def find_posts(
 def _near_centres(xy: np.ndarray, centres: np.ndarray, reach: float) -> np.ndarray:
     """Indices of the points ``xy`` (n, 2) in the grid cells of side ``reach`` [m] at and
     around each centre: a superset of those within ``reach`` of a centre, found without
-    a k-d tree over all the points (building one took 0.1 s on a 1 M-point stand)."""
+    the cost of a k-d tree over all the points."""
     lo = centres.min(axis=0) - reach
     hi = centres.max(axis=0) + reach
     inside = np.flatnonzero((xy[:, 0] >= lo[0]) & (xy[:, 0] <= hi[0]) & (xy[:, 1] >= lo[1]) & (xy[:, 1] <= hi[1]))
     shape = (np.floor((hi - lo) / reach).astype(np.int64) + 1)
-    if shape[0] * shape[1] > 4_000_000:  # candidates spread over a huge extent: the box alone
+    if shape[0] * shape[1] > MAX_NEAR_CELLS:  # candidates spread over a huge extent: the box alone
         return inside
     grid = np.zeros(shape, bool)
     cell = np.floor((centres - lo) / reach).astype(np.int64)
@@ -175,10 +184,11 @@ def _same(centre: np.ndarray, radius: float, axis: np.ndarray, r_med: float) -> 
 
 
 class _Column:
-    """The points around one candidate: xy (n, 2) [m] and height above the ground (n,) [m]."""
+    """The points around one candidate: xy (n, 2) [m] and height above the ground (n,) [m],
+    followed up to ``max_height`` [m]."""
 
-    def __init__(self, xy: np.ndarray, height: np.ndarray) -> None:
-        self.xy, self.height = xy, height
+    def __init__(self, xy: np.ndarray, height: np.ndarray, max_height: float) -> None:
+        self.xy, self.height, self.max_height = xy, height, max_height
 
     def section(self, at: float, centre: np.ndarray, within: float) -> tuple[np.ndarray, float]:
         """The circle through the points within POST_SLAB of height ``at`` and ``within``
@@ -189,16 +199,15 @@ class _Column:
         return trunk_circle(self.xy[sel], trials=POST_TRIALS)
 
     def goes_on(self, axis: np.ndarray, radius: float) -> bool:
-        """The column above POST_HEIGHTS goes on to POST_MAX_TOP: a tree's bole.
+        """The column above POST_HEIGHTS goes on to ``max_height``: a tree's bole.
 
         Followed in steps of POST_STEP, each section centred on the last circle found
         (a bole leans: its axis drifts up to POST_FOLLOW_SHIFT per step) with a radius
-        within POST_FOLLOW_TOL of ``radius`` (a bole tapers and swells at whorls). One
-        section without such a circle is passed over (a sparsely scanned stretch); two
-        end it.
+        within POST_FOLLOW_TOL of ``radius`` (a bole tapers and swells at whorls), until
+        POST_FOLLOW_MISSES sections in a row show no such circle.
         """
         at, centre, missed = POST_HEIGHTS[-1], axis, 0
-        while at < POST_MAX_TOP:
+        while at < self.max_height:
             at += POST_STEP
             c, r = self.section(at, centre, radius + POST_MARGIN + POST_FOLLOW_SHIFT)
             if (np.isfinite(r) and abs(r - radius) <= POST_FOLLOW_TOL * radius
@@ -206,7 +215,7 @@ class _Column:
                 centre, missed = c, 0
             else:
                 missed += 1
-                if missed == 2:
+                if missed == POST_FOLLOW_MISSES:
                     return False
         return True
 

@@ -36,9 +36,8 @@ from pipeline.segment import (
     standing,
     trunk_feet,
 )
+from pipeline.stems import STEM_SLICE_HEIGHT, STEM_SLICES
 from pipeline.trunks import (
-    STEM_SLICE_HEIGHT,
-    STEM_SLICES,
     TrunkDetection,
     box_like_trees,
     detect_trunks,
@@ -47,58 +46,55 @@ from pipeline.trunks import (
 )
 from pipeline.voxels import Voxels, voxelize
 
-#: a node is on a planar surface (box, vehicle, wall) above this planarity ...
+# Fixed tuning of the box, bark, post and spacing tests, set on generated orchards (the
+# evidence: docs/method.md, "Fixed constants"). Lengths in metres; eigenvalues λ1 >= λ2 >= λ3.
+
+#: a node is on a planar surface (box, vehicle, wall) at this planarity or more ...
 PLANAR_MIN = 0.55
-#: ... and below this scattering
+#: ... and this scattering or less
 PLANAR_MAX_SCATTER = 0.06
-#: On scans whose estimated ground noise lies in this range [m] (about 0.04-0.075 m of
-#: range noise), a box face spreads over several voxel layers and fails the test above;
-#: the box tests of trunk detection then also count as planar a node whose neighbourhood
-#: is spread in two directions (λ2/λ1 at least NOISY_PLANAR_MIN_SPREAD) and thin enough
-#: in the third (λ3/λ1 at most NOISY_PLANAR_MAX_SCATTER). Measured on generated blocks:
-#: σ = 0.05 m, seeds 0-7, false trunks on the vehicle or bin 10 → 3 at 8 m spacing and
-#: 1 → 0 at 5 m, no trunk lost. Above the range no such test separated faces from
-#: foliage (σ = 0.07 m: 8 → 8; σ = 0.1 m: face and foliage scattering both 0.5), so it
-#: is not applied there.
+#: ground noise [m] in which box faces blur over several voxel layers and the box tests
+#: of trunk detection take a looser planar test (above it no test tells faces from foliage)
 NOISY_BOX_NOISE = (0.055, 0.085)
+#: the looser test: spread in two directions (λ2/λ1) at least this ...
 NOISY_PLANAR_MIN_SPREAD = 0.7
+#: ... and thin in the third (λ3/λ1) at most this
 NOISY_PLANAR_MAX_SCATTER = 0.35
-#: the box tests count a planar node only in a connected planar patch of at least this
-#: many nodes (0.1 m voxels: about 0.1 m² of surface). Box faces form patches of 90-670
-#: nodes; the sparsely scanned bark of AdTree's tree13 shows patches of at most 7, which
-#: made up 21 % of its low material and failed the tree. Measured on 48 generated blocks
-#: (σ 0-0.1 m, 2.5-8 m spacing, sparse scans, vehicles and bins): trunks found, false
-#: trunks and v-measure all unchanged. The noise-aware test (:func:`noisy_planar`) stays
-#: unfiltered: at σ 0.05 m its faces break into small patches (filtering them added 2
-#: false trunks).
-MIN_FACE_NODES = 10
-#: A thick trunk's bark (radius 0.3-0.5 m) is flat at the 0.25 m scale of the features and
-#: forms planar patches of 30-190 nodes, as large as a box's face; such a patch is bark,
-#: not a face, when it is part of a cylinder of at most BARK_MAX_RADIUS [m] (see
-#: :func:`pipeline.segment.curved_patches`). Measured: the normals of generated bark
-#: (radius 0.4 m) spread by 0.37-0.46 (middle eigenvalue of their mean outer product)
-#: with residuals of 4-5 % of the radius, aRchi's 0.6 m trunk by 0.11-0.22 at 7-13 %;
-#: vehicle and bin faces (σ 0-0.1 m, 20 blocks) by at most 0.003. Before, the box test
-#: dropped trees of trunk radius 0.4 m and aRchi's trunk.
+#: the box tests count planar nodes only in connected patches of at least this surface
+#: [m²] (a box face is far larger; sparsely scanned bark is planar only in small patches)
+MIN_FACE_AREA = 0.1
+#: a planar patch is bark, not a face, when its normals spread at least this (middle
+#: eigenvalue of their mean outer product) around an axis ...
 BARK_MIN_SPREAD = 0.05
+#: ... at most this far away [m] (the thickest trunk's radius, with room) ...
 BARK_MAX_RADIUS = 0.75
+#: ... and its normal lines pass within this fraction of that radius of the axis
 BARK_MAX_RESIDUAL = 0.25
-#: scattering (λ3/λ1) of fully leafy material; woody nodes measure about 0.05-0.1
+#: scattering (λ3/λ1) of fully leafy material (woody nodes measure about 0.05-0.1)
 LEAFY_SCATTERING = 0.3
-#: Trellis posts (:mod:`pipeline.posts`) are looked for on scans whose estimated ground
-#: noise [m] is below this (about 0.03 m of range noise). Noisier scans blur a 5-10 cm
-#: post into a column of foliage-like points: at 0.05 m of range noise the post test
-#: took 1-2 true trunks per 4 generated blocks for posts.
+#: trellis posts are looked for only on scans whose ground noise [m] is below this (about
+#: 0.03 m of range noise): noisier scans blur a post into a column of foliage
 POST_MAX_NOISE = 0.05
-#: The trees' spacing (:mod:`pipeline.spacing`) is measured on scans whose estimated
-#: ground noise [m] is below this; noisier ones keep the free-standing trees' radii. On
-#: high-density blocks at 0.05 m of range noise, bundles of shoots hanging into the
-#: grass drain as much as trunks, and the spacing measured was 1.1-1.3 m for 2.5 m rows.
+#: the trees' spacing is measured only on scans whose ground noise [m] is below this: on
+#: noisier ones shoot bundles drain like trunks and the spacing comes out too short
 SPACING_MAX_NOISE = 0.05
 #: graph nodes within a post's radius plus this [m] of its axis are the post's ...
 POST_NODE_MARGIN = 0.05
 #: ... and of their points, those within its radius plus this [m] (range noise) are
 POST_SURFACE_MARGIN = 0.03
+#: rounds of dropping box-like or low "trees" and segmenting their material again
+DROP_ROUNDS = 3
+#: the foot test reads the ground points above this share of the ground layer's height
+FOOT_LAYER_SHARE = 0.5
+#: a stem circle's centre replaces the detected trunk position when it lies within a
+#: diameter of it, and at least this [m] (farther, the fit found something else)
+MIN_RECENTRE = 0.15
+
+
+def face_nodes(voxel_size: float) -> int:
+    """Least nodes of a planar patch the box tests count: MIN_FACE_AREA in voxels of
+    ``voxel_size`` [m] (10 at 0.1 m)."""
+    return int(round(MIN_FACE_AREA / voxel_size**2))
 
 
 @dataclass(frozen=True)
@@ -248,23 +244,24 @@ def analyse_nodes(
     planar = (feats.planarity >= PLANAR_MIN) & (feats.scattering <= PLANAR_MAX_SCATTER)
     # flat patches: connected planar nodes, without the curved ones (bark of thick trunks)
     patch, size = planar_patches(graph, planar)
+    min_face = face_nodes(params.graph.voxel_size)
     bark = curved_patches(
         nodes, feats.normal, patch, size,
-        min_nodes=MIN_FACE_NODES, min_spread=BARK_MIN_SPREAD, max_radius=BARK_MAX_RADIUS, max_residual=BARK_MAX_RESIDUAL,
+        min_nodes=min_face, min_spread=BARK_MIN_SPREAD, max_radius=BARK_MAX_RADIUS, max_residual=BARK_MAX_RESIDUAL,
     )
     if bark.any():
         patch = np.where((patch >= 0) & bark[np.maximum(patch, 0)], -1, patch)
-    # box tests: planar nodes in patches of MIN_FACE_NODES or more; the catchment's test
-    # also counts blurred faces on noisy scans (cutting surfaces out of the graph needs
-    # the strict test)
-    face = faces(patch, size, MIN_FACE_NODES)
+    # box tests: planar nodes in patches of MIN_FACE_AREA or more; the catchment's test
+    # also counts blurred faces on noisy scans, whatever their patches (they break into
+    # small ones), and cutting surfaces out of the graph needs the strict test
+    face = faces(patch, size, min_face)
     # a segmented tree's box test counts only faces standing above the grass: flat grass
     # tops under a thin trunk (a spindle's leader) made up most of its little low material
     standing_face = face & standing(patch, size, node_height, min_top=params.segment.floating_height)
     box_planar = face | noisy_planar(feats, noise=gm.noise)
     ground_top = gm.tolerance(params.ground)
     stem_points = _stem_points(xyz, height, is_ground, ground_top, on=params.trunks.stem_ratio > 0)
-    foot_xy = xyz[is_ground & (height > 0.5 * ground_top), :2] if params.trunks.min_foot_ratio > 0 else None
+    foot_xy = xyz[is_ground & (height > FOOT_LAYER_SHARE * ground_top), :2] if params.trunks.min_foot_ratio > 0 else None
 
     # radii left unset follow the spacing only where it can be measured
     trunk_params = params.trunks if gm.noise < SPACING_MAX_NOISE else params.trunks.at_spacing(None)
@@ -280,6 +277,7 @@ def analyse_nodes(
             foot_xy=foot_xy,
             **stem_points,
             spacing=spacing,
+            voxel_size=params.graph.voxel_size,
             params=trunk_params,
         )
 
@@ -291,7 +289,8 @@ def analyse_nodes(
         cand = det.candidates
         tall = cand["top"] >= params.trunks.min_tree_height
         posts = find_posts(
-            xyz[veg_idx], height[veg_idx], np.c_[cand["x"], cand["y"]][tall], max_radius=params.trunks.max_post_radius
+            xyz[veg_idx], height[veg_idx], np.c_[cand["x"], cand["y"]][tall], max_radius=params.trunks.max_post_radius,
+            max_height=params.trunks.max_post_height,
         )
         on_post = on_posts(nodes, node_height, posts, margin=POST_NODE_MARGIN)
         if on_post.any():
@@ -324,7 +323,7 @@ def analyse_nodes(
         )
 
     seg = segment(det)
-    for _ in range(3):  # dropping a box-like or low "tree" (a vehicle) re-segments its material
+    for _ in range(DROP_ROUNDS):  # dropping a box-like or low "tree" (a vehicle) re-segments its material
         drop = np.union1d(
             box_like_trees(seg.node_tree, node_height, nodes=nodes, trunk_xy=det.xy, planar=standing_face, params=params.trunks),
             _not_young(low_trees(seg.node_tree, node_height, det.k, params=params.trunks), det),
@@ -437,6 +436,7 @@ def block_result(xyz: np.ndarray, a: NodeAnalysis, *, params: PipelineParams) ->
         a.trunks.xy,
         ground_top=a.ground.tolerance(params.ground),
         margin=params.segment.foot_margin,
+        max_radius=params.metrics.max_trunk_radius,
     )
     tree_id[foot] = tree_id[src]
     is_wood[foot] = is_wood[src]
@@ -448,12 +448,10 @@ def block_result(xyz: np.ndarray, a: NodeAnalysis, *, params: PipelineParams) ->
     trunks[:, :2] = a.trunks.xy
     trunks[:, 2] = a.ground.height_at(a.trunks.xy) if k else np.zeros(0)
     centres, diameter = trunk_circles(xyz, tree_id, trunks, params=params.metrics, height=a.height)
-    # where the stem's circle was measured, its centre is the trunk's position: the
-    # detection's flow-weighted centroid of voxels lies 2-7 cm off on clean stems, and
-    # up to a radius where the crown joins the trunk across a gap. A centre more than a
-    # diameter (at least 0.15 m) away is a fit to something else and is not used.
+    # where the stem's circle was measured, its centre is the trunk's position (the
+    # detection's flow-weighted centroid of voxels sits off the stem by a few cm)
     shift = np.hypot(*(centres - trunks[:, :2]).T) if k else np.zeros(0)
-    moved = np.isfinite(diameter) & (shift <= np.maximum(diameter, 0.15))
+    moved = np.isfinite(diameter) & (shift <= np.maximum(diameter, MIN_RECENTRE))
     if moved.any():
         trunks[moved, :2] = centres[moved]
         trunks[moved, 2] = a.ground.height_at(centres[moved])

@@ -13,9 +13,14 @@ from pipeline.graph import ShortestPaths, shortest_paths, without_nodes
 from pipeline.metrics import group_runs, tree_circles
 from pipeline.params import SegmentParams
 
+# Fixed tuning of segmentation (lengths in metres).
+
 #: rounds in which small floating fragments may join a tree through fragments that joined
 #: the round before (each round reaches ``fragment_reach`` farther into a sparse rim)
 RIM_ROUNDS = 10
+#: a trunk's circle for its foot is fitted to its points in a slice this thick [m] just
+#: above the ground layer
+FOOT_SLICE = 0.25
 
 
 @dataclass(frozen=True)
@@ -226,8 +231,7 @@ def faces(patch: np.ndarray, size: np.ndarray, min_nodes: int) -> np.ndarray:
     """Nodes in patches of at least ``min_nodes`` nodes, (m,) bool.
 
     ``patch``, ``size`` from :func:`planar_patches`. A box's face is one large patch; the
-    bark of a sparsely scanned trunk looks planar only in small patches (at most 9 nodes
-    on the AdTree trees).
+    bark of a sparsely scanned trunk looks planar only in small patches.
     """
     if size.size == 0:
         return np.zeros(patch.shape[0], bool)
@@ -263,11 +267,9 @@ def hard_surfaces(
     """Nodes of large planar surfaces standing above the grass, and those next to them.
 
     A vehicle parked under a crown, a bin or a wall touches the foliage, so shortest
-    paths from the trunk run over it. Trees have no large flat parts: on generated
-    orchards no connected set of planar tree nodes exceeds 13 voxels, while a vehicle's
-    or a bin's faces form sets of 90-670 (a thick trunk's bark does, but it is curved:
-    leave it out of ``patch``, see :func:`curved_patches`). Grass patches are planar too
-    but stay below ``min_top``.
+    paths from the trunk run over it. Trees have no large flat parts (a thick trunk's
+    bark does, but it is curved: leave it out of ``patch``, see :func:`curved_patches`).
+    Grass patches are planar too but stay below ``min_top``.
 
     Parameters
     ----------
@@ -316,8 +318,8 @@ def trunk_feet(
     *,
     ground_top: float,
     margin: float,
-    slice_height: float = 0.25,
-    max_radius: float = 0.5,
+    max_radius: float,
+    slice_height: float = FOOT_SLICE,
 ) -> tuple[np.ndarray, np.ndarray]:
     """Ground points that are the foot of a trunk.
 
@@ -335,9 +337,9 @@ def trunk_feet(
     trunk_xy : (k, 2) float64 [m]
     ground_top : float — ground points lie below this height [m]
     margin : float — widening of the fitted circle (noise, the flare at the base) [m]
-    slice_height : float — thickness of the slice the circle is fitted to [m]
     max_radius : float — a fitted circle larger than this, or centred farther than this
         from the trunk, is not a trunk's and is ignored [m]
+    slice_height : float — thickness of the slice the circle is fitted to [m]
 
     Returns
     -------
@@ -355,8 +357,8 @@ def trunk_feet(
     if cand.size == 0:
         return empty
     # only ground points within 2 max_radius + margin of some trunk in x and in y can be
-    # a foot; each trunk then looks at its own disc of them through one k-d tree (a
-    # window sorted by x spanned every row: time grew with the square of the trees)
+    # a foot; each trunk then looks at its own disc of them through one k-d tree (time
+    # linear in the trees, where a window sorted by x would span every row)
     reach_any = 2.0 * max_radius + margin
     for d in (0, 1):
         gidx = gidx[_near_any(xyz[gidx, d], trunk_xy[:, d], reach_any)]

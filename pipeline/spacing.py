@@ -14,8 +14,7 @@ from scipy.spatial import cKDTree
 #: the candidate's catchment
 COMPARABLE_SHARE = 0.5
 #: fewest candidates that measure a spacing: two or three may be the bark of a single
-#: thick trunk split into groups (grouped at 0.25 m, aRchi's 0.6 m trunk made two groups
-#: 0.46 m apart)
+#: thick trunk split into groups
 MIN_CANDIDATES = 4
 #: neighbours searched for the nearest comparable candidate
 _NEIGHBOURS = 16

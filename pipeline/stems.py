@@ -10,7 +10,10 @@ from __future__ import annotations
 import numpy as np
 from scipy.spatial import cKDTree
 
+#: the foot test (:func:`foot_ratio`): ground-layer points within this radius [m] of a
+#: trunk's centre (a trunk's foot) ...
 FOOT_RADIUS = 0.2
+#: ... against those out to this radius [m] around it (the grass)
 FOOT_ANNULUS = 0.8
 
 
@@ -35,8 +38,8 @@ STEM_RING = (0.25, 0.4)
 #: probes on a STEM_STEP lattice [m] within STEM_SEARCH [m] of a group's centre
 STEM_SEARCH = 0.4
 STEM_STEP = 0.05
-#: slices of this height [m] stacked from the top of the ground layer (0-0.3 m above it:
-#: every generated trunk branches at 0.4 m or higher; drooping shoots end 0.2-0.5 m up)
+#: STEM_SLICES slices of STEM_SLICE_HEIGHT [m] stacked from the top of the ground layer:
+#: below a trunk's first branches, where drooping shoots are thinning out
 STEM_SLICES = 3
 STEM_SLICE_HEIGHT = 0.1
 

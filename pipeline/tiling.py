@@ -143,12 +143,11 @@ def min_tile_size(buffer: float) -> float:
 
 
 #: peak memory of processing points in one piece, per point [bytes]: reading, the
-#: pipeline and writing the outputs (about 270 measured on generated blocks of 1.6-3.4 M
-#: points at mobile density, above :data:`FIXED_BYTES`; docs/performance.md)
+#: pipeline and writing the outputs, with headroom over the measured (docs/performance.md)
 BYTES_PER_POINT = 400
 
 #: memory of a worker process whatever it processes [bytes]: the interpreter and its
-#: libraries (130 MB measured) and fixed-size buffers
+#: libraries and fixed-size buffers (docs/performance.md)
 FIXED_BYTES = 200e6
 
 #: a tile's points are estimated from the block's mean density over its bounding box;

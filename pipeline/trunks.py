@@ -26,18 +26,44 @@ from scipy.spatial import cKDTree
 from pipeline.graph import shortest_paths, subtree_sizes
 from pipeline.params import TrunkParams
 from pipeline.spacing import estimate_spacing
-from pipeline.stems import (  # noqa: F401 (the stem and foot tests' constants, used beside detect_trunks)
-    FOOT_ANNULUS,
-    FOOT_RADIUS,
-    STEM_RADIUS,
-    STEM_RING,
-    STEM_SEARCH,
-    STEM_SLICE_HEIGHT,
-    STEM_SLICES,
-    STEM_STEP,
-    foot_ratio,
-    stem_contrast,
-)
+from pipeline.stems import STEM_SLICES, foot_ratio, stem_contrast
+
+# Fixed tuning of trunk detection (lengths in metres; node counts scale with the voxel size).
+
+#: a ground contact is a candidate when it drains a path at least this long (3 nodes at
+#: 0.1 m voxels): single stray contacts drain nothing
+MIN_CONTACT_DRAIN = 0.3
+#: the flow's cross-section is measured in this band [m] above the contact band (a
+#: trunk's flow passes it compactly, hanging foliage's as a wide curtain)
+FLOW_BAND = 0.4
+#: a group's height is this percentile of its nodes' heights (the maximum would follow
+#: single noisy points above a fence post)
+TOP_PERCENTILE = 95.0
+#: groups that are no trunks (too wide, or shoots beside a clearer stem) pass their
+#: catchment to the accepted group they lie beside, up to this many cluster radii away
+#: (stated in the help of TrunkParams.cluster_radius)
+POOL_REACH = 1.25
+#: a satellite lies at most this many satellite radii from its trunk (stated in the help
+#: of TrunkParams.satellite_radius)
+SATELLITE_REACH = 2.0
+#: a clearer stem drops a group only if it drains at least this share of that group's
+#: catchment (a grass tuft under a shoot tip makes a sharp little column that drains little)
+SHOOT_MIN_SUPPORT = 0.5
+#: groupings with a radius from the measured spacing: the spacing is measured again on
+#: the finer grouping, at most this many times
+SPACING_ROUNDS = 2
+#: a trunk's segmentation sources are its contact nodes within half its width, at least
+#: SOURCE_MIN_RADIUS [m], plus SOURCE_MARGIN [m] of its centre
+SOURCE_MIN_RADIUS = 0.15
+SOURCE_MARGIN = 0.1
+#: the box test of a segmented tree counts its material within this [m] of the trunk (a
+#: crown overhanging a vehicle stays a tree)
+BOX_TEST_RADIUS = 1.0
+
+
+def min_contact_drain(voxel_size: float) -> int:
+    """MIN_CONTACT_DRAIN in graph nodes of ``voxel_size`` [m]."""
+    return int(round(MIN_CONTACT_DRAIN / voxel_size))
 
 
 @dataclass(frozen=True)
@@ -125,12 +151,6 @@ def _suppressed(xy: np.ndarray, strength: np.ndarray, ok: np.ndarray, reach: flo
     return by
 
 
-#: groups that are no trunks (too wide, or shoots beside a clearer stem) pass their
-#: catchment to the accepted group they lie beside, up to this many cluster radii away
-#: (stated in the help of TrunkParams.cluster_radius)
-POOL_REACH = 1.25
-
-
 def _nearest(xy: np.ndarray, ok: np.ndarray, which: np.ndarray, reach: float) -> np.ndarray:
     """For the groups ``which``, the nearest group in ``ok`` within ``reach`` [m] (-1: none)."""
     out = np.full(which.size, -1, np.int64)
@@ -152,17 +172,12 @@ def _satellites(xy: np.ndarray, support: np.ndarray, ok: np.ndarray, radius: flo
 
     Strongest first: a group at distance d from an accepted group is its satellite when
     that group drains ``ratio * max(1, d / radius)**2`` times more material, up to
-    ``2 * radius`` away (the farther, the weaker a satellite must be).
+    ``SATELLITE_REACH * radius`` away (the farther, the weaker a satellite must be).
     """
     if radius <= 0:
         return np.zeros(xy.shape[0], bool)
-    return _suppressed(xy, support, ok, 2.0 * radius,
+    return _suppressed(xy, support, ok, SATELLITE_REACH * radius,
                        lambda i, other, d: support[i] >= ratio * max(1.0, d / radius) ** 2 * support[other]) >= 0
-
-
-#: a clearer stem drops a group only if it drains at least this share of that group's
-#: catchment (a grass tuft under a shoot tip makes a sharp little column that drains little)
-SHOOT_MIN_SUPPORT = 0.5
 
 
 def _shoots(xy: np.ndarray, stem: np.ndarray, support: np.ndarray, ok: np.ndarray, radius: float, ratio: float) -> np.ndarray:
@@ -189,9 +204,9 @@ def _accept(
     themselves: a curtain too wide for a trunk (``wide``: groups that failed only the
     width test) and shoots beside a clearer stem. Each passes its catchment to the group
     it lies beside (the nearest accepted one, or the stem that made it a shoot), up to
-    POOL_REACH cluster radii away, before the satellite test compares catchments. (On
-    noisy high-density scans a shoot bundle next to a trunk can otherwise take most of
-    its catchment, and the trunk is dropped as a satellite of its neighbour in the row.)
+    POOL_REACH cluster radii away, before the satellite test compares catchments (else
+    a shoot bundle beside a trunk can take most of its catchment, and the trunk is
+    dropped as a satellite of its neighbour in the row).
 
     Parameters
     ----------
@@ -225,7 +240,7 @@ def _accept(
 class _Drained:
     """The drainage to the ground contacts, shared by every clustering radius.
 
-    cand : (c,) int64 — contact nodes draining 3 or more nodes; size : (m,) subtree size
+    cand : (c,) int64 — contact nodes draining MIN_CONTACT_DRAIN or more; size : (m,) subtree size
     of each node; source : (m,) contact each node drains to (-1: none); reached : (m,)
     bool; n_planar, n_low : (m,) planar and all nodes below tree height draining to each
     contact; contact_top : float — top of the contact band [m].
@@ -238,6 +253,7 @@ class _Drained:
     n_planar: np.ndarray
     n_low: np.ndarray
     contact_top: float
+    voxel_size: float
 
 
 def _groups(
@@ -259,19 +275,17 @@ def _groups(
     leader = _suppress(nodes[cand, :2], size[cand], radius)
     groups, gidx = np.unique(leader, return_inverse=True)
     g_support = np.bincount(gidx, weights=size[cand])
-    # robust height of each group's material: 95th percentile of its nodes' heights
-    # (the maximum would follow single noisy points above a fence post)
     group_of_contact = np.full(m, -1, np.int64)
     group_of_contact[cand] = gidx
     node_group = np.where(reached, group_of_contact[np.maximum(d.source, 0)], -1)
-    g_top = _group_percentile(node_height, node_group, groups.size, 95.0)
+    g_top = _group_percentile(node_height, node_group, groups.size, TOP_PERCENTILE)
     g_planar = np.bincount(gidx, weights=d.n_planar[cand]) / np.maximum(np.bincount(gidx, weights=d.n_low[cand]), 1)
     fits = (g_support >= params.min_canopy_voxels) & (g_top >= params.min_tree_height) & (g_planar <= params.max_planar_fraction)
 
     # cross-section of the flow just above the contact band: nodes whose path ends in the
-    # group, in the band [contact_top, contact_top + 0.4 m], weighted by the flow
+    # group, in the band [contact_top, contact_top + FLOW_BAND], weighted by the flow
     # (subtree size) they carry
-    band = reached & (node_height >= contact_top) & (node_height < contact_top + 0.4)
+    band = reached & (node_height >= contact_top) & (node_height < contact_top + FLOW_BAND)
     bn = np.flatnonzero(band)
     bg = group_of_contact[d.source[bn]]
     keep = bg >= 0
@@ -282,14 +296,14 @@ def _groups(
     cy = np.bincount(bg, weights=wgt * nodes[bn, 1], minlength=groups.size) / np.maximum(wsum, 1e-12)
     r2 = (nodes[bn, 0] - cx[bg]) ** 2 + (nodes[bn, 1] - cy[bg]) ** 2
     rms = np.sqrt(np.bincount(bg, weights=wgt * r2, minlength=groups.size) / np.maximum(wsum, 1e-12))
-    width = 2.0 * rms + 0.1  # + one voxel: the centroids sit inside the bark surface
+    width = 2.0 * rms + d.voxel_size  # + one voxel: the centroids sit inside the bark surface
     has_band = wsum > 0
     # trees whose flow has no band nodes (tiny trunks under the contact height): use the leader
     lx = nodes[cand[groups], 0]
     ly = nodes[cand[groups], 1]
     cx = np.where(has_band, cx, lx)
     cy = np.where(has_band, cy, ly)
-    width = np.where(has_band, width, 0.1)
+    width = np.where(has_band, width, d.voxel_size)
     sc = scattering if scattering is not None else np.zeros(m)
     band_scatter = np.bincount(bg, weights=wgt * sc[bn], minlength=groups.size) / np.maximum(wsum, 1e-12)
     band_max = np.zeros(groups.size)
@@ -314,6 +328,7 @@ def detect_trunks(
     stem_xy: np.ndarray | None = None,
     stem_slice: np.ndarray | None = None,
     spacing: float | None = None,
+    voxel_size: float,
     params: TrunkParams,
 ) -> TrunkDetection:
     """Find one trunk per tree.
@@ -340,6 +355,7 @@ def detect_trunks(
         test (``params.stem_ratio``); without them the test is off
     spacing : float, optional — the block's in-row tree spacing [m], if known (a tile
         passes the one measured before); None: measured here when a radius needs it
+    voxel_size : float — edge of the voxels the nodes are centroids of [m]
     params : TrunkParams
 
     Returns
@@ -365,17 +381,17 @@ def detect_trunks(
     n_planar = np.bincount(sp.source[low], weights=planar[low].astype(np.float64), minlength=m)
     n_low = np.bincount(sp.source[low], minlength=m).astype(np.float64)
 
-    cand = contact[catch >= 3]
+    cand = contact[catch >= min_contact_drain(voxel_size)]
     if cand.size == 0:
         return empty
-    drained = _Drained(cand, size, sp.source, reached, n_planar, n_low, contact_top)
+    drained = _Drained(cand, size, sp.source, reached, n_planar, n_low, contact_top, voxel_size)
     if spacing is None and params.needs_spacing():
         # a first grouping with the free-standing trees' (or the given) cluster radius
         # keeps the bark of a trunk up to about that thick in one group; where it measures
         # trees closer than that, trunks may share groups: group again with the radius
         # that spacing gives, and measure once more
         radius = params.at_spacing(None).cluster_radius
-        for _ in range(2):
+        for _ in range(SPACING_ROUNDS):
             _, _, probe = _groups(nodes, node_height, drained, scattering, radius=radius, params=params)
             strong = probe["fits"] & (probe["width"] <= params.max_trunk_width)
             spacing = estimate_spacing(np.column_stack([probe["x"], probe["y"]])[strong], probe["support"][strong])
@@ -405,7 +421,7 @@ def detect_trunks(
     t_of_cand = remap[gidx]
     near = t_of_cand >= 0
     d2 = ((nodes[cand, :2] - centre[gidx]) ** 2).sum(1)
-    near &= d2 <= (np.maximum(width[gidx] / 2, 0.15) + 0.1) ** 2
+    near &= d2 <= (np.maximum(width[gidx] / 2, SOURCE_MIN_RADIUS) + SOURCE_MARGIN) ** 2
     src = cand[near]
     src_t = t_of_cand[near]
     # the leader always seeds its trunk
@@ -425,7 +441,7 @@ def box_like_trees(
     trunk_xy: np.ndarray,
     planar: np.ndarray,
     params: TrunkParams,
-    radius: float = 1.0,
+    radius: float = BOX_TEST_RADIUS,
 ) -> np.ndarray:
     """Trees (0-based) whose segmented material near the trunk and low down is too planar.
 
@@ -451,17 +467,17 @@ def box_like_trees(
 
 def low_trees(node_tree: np.ndarray, node_height: np.ndarray, k: int, *, params: TrunkParams) -> np.ndarray:
     """Trees (0-based) whose segmented material fails the height test of
-    :func:`detect_trunks`: its 95th percentile lies below ``min_tree_height``.
+    :func:`detect_trunks`: its TOP_PERCENTILE lies below ``min_tree_height``.
 
     The catchment passed the test, but segmentation can leave a "tree" much lower: the
     surfaces of a vehicle under a crown are cut out of the graph after detection, and
-    what is left of such a trunk's catchment is grass and a wheel (0.2 m tall).
+    what is left of such a trunk's catchment is grass and a wheel.
 
     Returns
     -------
     (j,) int64 indices of trunks to drop.
     """
-    top = _group_percentile(node_height, np.asarray(node_tree, dtype=np.int64) - 1, k, 95.0)
+    top = _group_percentile(node_height, np.asarray(node_tree, dtype=np.int64) - 1, k, TOP_PERCENTILE)
     return np.flatnonzero(top < params.min_tree_height)
 
 

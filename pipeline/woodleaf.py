@@ -149,7 +149,7 @@ def wood_features(
 
 def combined_score(features: np.ndarray, *, weights: np.ndarray = COMBINED_WEIGHTS) -> np.ndarray:
     """Wood probability per node from :func:`wood_features`, (m,) float64 in [0, 1]."""
-    return 1.0 / (1.0 + np.exp(-np.clip(features @ weights, -50, 50)))
+    return 1.0 / (1.0 + np.exp(-np.clip(features @ weights, -50, 50)))  # clipped: no overflow in exp
 
 
 def classify(

@@ -25,7 +25,7 @@ def test_duplicate_on_a_border_keeps_the_higher_support():
     # tile 0 owns a trunk at x=9.98, tile 1 the same trunk at x=10.03 with more support
     a = _tile(0, [[9.98, 5.0, 0.0], [3.0, 5.0, 0.0]], [100, 80], [True, True], diameter=[0.20, 0.30])
     b = _tile(1, [[10.03, 5.0, 0.1], [15.0, 5.0, 0.0]], [120, 90], [True, True], diameter=[0.25, 0.35])
-    g = reconcile_trunks([a, b], cluster_radius=0.8)
+    g = reconcile_trunks([a, b], cluster_radius=0.8, fallback_radius=3.5)
     assert g.n_trees == 3
     assert np.allclose(g.trunks[:, 0], [3.0, 10.03, 15.0])
     assert g.owner.tolist() == [0, 1, 1]
@@ -37,13 +37,13 @@ def test_duplicate_on_a_border_keeps_the_higher_support():
 def test_tie_goes_to_the_lower_tile_id():
     a = _tile(4, [[9.9, 0.0, 0.0]], [50], [True])
     b = _tile(2, [[10.1, 0.0, 0.0]], [50], [True])
-    g = reconcile_trunks([a, b], cluster_radius=0.8)
+    g = reconcile_trunks([a, b], cluster_radius=0.8, fallback_radius=3.5)
     assert g.owner.tolist() == [2] and np.allclose(g.trunks[0, 0], 10.1)
 
 
 def test_trunks_of_one_tile_are_never_merged():
     a = _tile(0, [[1.0, 1.0, 0.0], [1.5, 1.0, 0.0]], [10, 20], [True, True])
-    assert reconcile_trunks([a], cluster_radius=0.8).n_trees == 2
+    assert reconcile_trunks([a], cluster_radius=0.8, fallback_radius=3.5).n_trees == 2
 
 
 def test_buffer_trunks_map_to_the_owner_or_fallback_or_nothing():
@@ -55,7 +55,7 @@ def test_buffer_trunks_map_to_the_owner_or_fallback_or_nothing():
 
 
 def test_no_trunks():
-    g = reconcile_trunks([_tile(0, np.zeros((0, 3)), [], [])], cluster_radius=0.8)
+    g = reconcile_trunks([_tile(0, np.zeros((0, 3)), [], [])], cluster_radius=0.8, fallback_radius=3.5)
     assert g.n_trees == 0 and g.id_maps[0].tolist() == [0]
 
 
@@ -73,9 +73,9 @@ def test_ids_do_not_depend_on_tile_order(seed, perm_seed):
         k = int(rng.integers(0, 5))
         trunks = np.column_stack([rng.uniform(0, 30, k), rng.uniform(0, 20, k), rng.uniform(0, 1, k)])
         tiles.append(_tile(tid, trunks, rng.integers(1, 5, k), rng.random(k) < 0.7))
-    g1 = reconcile_trunks(tiles, cluster_radius=0.8)
+    g1 = reconcile_trunks(tiles, cluster_radius=0.8, fallback_radius=3.5)
     order = np.random.default_rng(perm_seed).permutation(len(tiles))
-    g2 = reconcile_trunks([tiles[i] for i in order], cluster_radius=0.8)
+    g2 = reconcile_trunks([tiles[i] for i in order], cluster_radius=0.8, fallback_radius=3.5)
     assert np.array_equal(g1.trunks, g2.trunks)
     assert all(np.array_equal(g1.id_maps[t], g2.id_maps[t]) for t in g1.id_maps)
     # kept trunks of different tiles are never within the cluster radius of each other

@@ -14,6 +14,7 @@ from pipeline.synthetic.simparams import SimulationParams
 from pipeline.synthetic.simulate import simulate_orchard
 
 RNG = np.random.default_rng(3)
+MAX_HEIGHT = PipelineParams().trunks.max_post_height
 
 
 def _cylinder(a, b, r, per_m2=3000, noise=0.01):
@@ -52,7 +53,7 @@ CENTRES = np.array([[0.02, -0.01], [3.0, 0.03], [6.0, 0.0]])
 
 def test_the_post_is_found_and_the_tree_and_the_bole_are_not():
     xyz, height = _scene()
-    posts = find_posts(xyz, height, CENTRES, max_radius=0.08)
+    posts = find_posts(xyz, height, CENTRES, max_radius=0.08, max_height=MAX_HEIGHT)
     assert posts.xy.shape == (1, 2)
     assert np.hypot(*posts.xy[0]) < 0.02
     assert posts.radius[0] == pytest.approx(0.06, abs=0.01)
@@ -61,14 +62,14 @@ def test_the_post_is_found_and_the_tree_and_the_bole_are_not():
 
 def test_no_posts_when_off_or_thinner_than_the_post():
     xyz, height = _scene()
-    assert find_posts(xyz, height, CENTRES, max_radius=0.0).xy.shape == (0, 2)
-    assert find_posts(xyz, height, CENTRES, max_radius=0.04).xy.shape == (0, 2)
-    assert find_posts(xyz, height, np.zeros((0, 2)), max_radius=0.08).xy.shape == (0, 2)
+    assert find_posts(xyz, height, CENTRES, max_radius=0.0, max_height=MAX_HEIGHT).xy.shape == (0, 2)
+    assert find_posts(xyz, height, CENTRES, max_radius=0.04, max_height=MAX_HEIGHT).xy.shape == (0, 2)
+    assert find_posts(xyz, height, np.zeros((0, 2)), max_radius=0.08, max_height=MAX_HEIGHT).xy.shape == (0, 2)
 
 
 def test_two_candidates_on_one_post_give_one_post():
     xyz, height = _scene()
-    posts = find_posts(xyz, height, np.array([[0.02, 0.0], [-0.03, 0.02]]), max_radius=0.08)
+    posts = find_posts(xyz, height, np.array([[0.02, 0.0], [-0.03, 0.02]]), max_radius=0.08, max_height=MAX_HEIGHT)
     assert posts.xy.shape == (1, 2)
 
 

@@ -197,7 +197,8 @@ def _trunk_on_ground(radius=0.1, noise=0.0, seed=0):
 
 def test_trunk_feet_are_the_ground_points_inside_the_trunk_circle():
     xyz, is_trunk, is_ground, height, tree_id = _trunk_on_ground()
-    idx, src = trunk_feet(xyz, tree_id, is_ground, height, np.array([[0.02, -0.01]]), ground_top=0.12, margin=0.03)
+    idx, src = trunk_feet(xyz, tree_id, is_ground, height, np.array([[0.02, -0.01]]), ground_top=0.12, margin=0.03,
+                          max_radius=0.5)
     got = np.zeros(len(xyz), bool)
     got[idx] = True
     assert got[is_trunk & is_ground].all()  # the whole bottom of the trunk comes back
@@ -215,16 +216,17 @@ def test_trunk_feet_need_a_plausible_trunk():
     xyz, _, is_ground, height, tree_id = _trunk_on_ground()
     empty = np.zeros(0, np.int64)
     kw = dict(ground_top=0.12, margin=0.03)
-    assert trunk_feet(xyz, tree_id, is_ground, height, np.zeros((0, 2)), **kw)[0].size == 0  # no trunks
-    assert trunk_feet(xyz, np.zeros_like(tree_id), is_ground, height, np.zeros((1, 2)), **kw)[0].size == 0
+    at = dict(kw, max_radius=0.5)
+    assert trunk_feet(xyz, tree_id, is_ground, height, np.zeros((0, 2)), **at)[0].size == 0  # no trunks
+    assert trunk_feet(xyz, np.zeros_like(tree_id), is_ground, height, np.zeros((1, 2)), **at)[0].size == 0
     # the trunk is 2 m from where its tree's trunk was detected: not its foot
-    assert trunk_feet(xyz, tree_id, is_ground, height, np.array([[2.0, 0.0]]), **kw)[0].size == 0
+    assert trunk_feet(xyz, tree_id, is_ground, height, np.array([[2.0, 0.0]]), **at)[0].size == 0
     # a wide ring (a 1.5 m hedge skirt) is no trunk: radius above max_radius
     wide = xyz.copy()
     wide[tree_id == 1, :2] *= 15.0
     far_ok = trunk_feet(wide, tree_id, is_ground, height, np.zeros((1, 2)), max_radius=2.0, **kw)[0]
     assert far_ok.size > 0  # allowed when max_radius allows it
-    assert np.array_equal(trunk_feet(wide, tree_id, is_ground, height, np.zeros((1, 2)), **kw)[0], empty)
+    assert np.array_equal(trunk_feet(wide, tree_id, is_ground, height, np.zeros((1, 2)), **at)[0], empty)
 
 
 def test_near_any_by_hand():

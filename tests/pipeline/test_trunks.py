@@ -4,17 +4,8 @@ import numpy as np
 import pytest
 
 from pipeline.params import TrunkParams
-from pipeline.trunks import (
-    FOOT_ANNULUS,
-    FOOT_RADIUS,
-    POOL_REACH,
-    STEM_RADIUS,
-    _accept,
-    _shoots,
-    foot_ratio,
-    low_trees,
-    stem_contrast,
-)
+from pipeline.stems import FOOT_ANNULUS, FOOT_RADIUS, STEM_RADIUS, foot_ratio, stem_contrast
+from pipeline.trunks import POOL_REACH, _accept, _shoots, low_trees
 
 
 def _ground(rng, n=20000, half=2.0):
@@ -110,7 +101,7 @@ def _stem_contrast_in_full(xy, stem_xy, stem_slice, n_slices):
     """Every probe in every slice, no pruning: what stem_contrast's search must equal."""
     from scipy.spatial import cKDTree
 
-    from pipeline.trunks import STEM_RING, STEM_SEARCH, STEM_STEP
+    from pipeline.stems import STEM_RING, STEM_SEARCH, STEM_STEP
 
     g = np.arange(-STEM_SEARCH, STEM_SEARCH + 1e-9, STEM_STEP)
     off = np.stack(np.meshgrid(g, g, indexing="ij"), axis=-1).reshape(-1, 2)
@@ -261,7 +252,7 @@ def _detect(nodes, planar, **overrides):
     from pipeline.trunks import detect_trunks
 
     graph = build_graph(nodes, radius=0.15)
-    return detect_trunks(nodes, nodes[:, 2], graph, planar=planar, params=TrunkParams(**overrides))
+    return detect_trunks(nodes, nodes[:, 2], graph, planar=planar, voxel_size=STEP, params=TrunkParams(**overrides))
 
 
 def test_detect_trunks_finds_each_tree_and_rejects_a_post_and_a_box():
@@ -394,7 +385,8 @@ def test_detect_trunks_reports_the_spacing_it_followed():
     from pipeline.trunks import detect_trunks
 
     graph = build_graph(nodes, radius=0.15)
-    det = detect_trunks(nodes, nodes[:, 2], graph, planar=part == names.index("box"), spacing=3.0, params=TrunkParams())
+    det = detect_trunks(nodes, nodes[:, 2], graph, planar=part == names.index("box"), spacing=3.0, voxel_size=STEP,
+                        params=TrunkParams())
     assert det.spacing == 3.0 and det.k == 2
 
 
