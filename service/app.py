@@ -20,9 +20,8 @@ from fastapi import FastAPI
 from fastapi.concurrency import run_in_threadpool
 
 from pipeline.errors import ParameterError
-from service import openapi as api_document
 from service import tempfiles, web
-from service.api import routes_health, v1_router
+from service.api import openapi, routes_health, v1_router
 from service.api.deps import wake_runner
 from service.api.results import ensure_report
 from service.api.uploads import UPLOAD_SLACK, BodyLimit
@@ -107,7 +106,7 @@ def create_app(settings: Settings) -> FastAPI:
     app.state.clock = None
     app.state.report_lock = report_lock
     install_error_handlers(app)
-    api_document.install(app)
+    openapi.install(app)
     app.add_middleware(
         BodyLimit,
         default=settings.max_request_kb * 1024,

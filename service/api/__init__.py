@@ -2,7 +2,8 @@
 
 One module per resource (`routes_blocks`, `routes_jobs`, `routes_results`,
 `routes_schedules`, `routes_health`), the bodies in `schemas`, the dependencies in
-`deps`, upload streaming in `uploads`; `service.app.create_app` wires them into an app.
+`deps`, upload streaming in `uploads`, result files with byte ranges in `downloads`, the
+API document's operationIds in `openapi`; `service.app.create_app` wires them into an app.
 """
 
 from __future__ import annotations

@@ -11,9 +11,9 @@ from fastapi.responses import FileResponse, HTMLResponse
 
 from service import report as reports
 from service.api.deps import SettingsDep, StoreDep, TenantDep
+from service.api.downloads import DownloadResponse
 from service.api.results import ensure_report, job_output, require_output
 from service.api.schemas import UNFINISHED, TreesPage
-from service.downloads import DownloadResponse
 from service.runner import job_dir
 
 router = APIRouter()

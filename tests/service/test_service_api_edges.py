@@ -14,9 +14,9 @@ import pytest
 from fastapi.testclient import TestClient
 from service_fixtures import client_of, make_token, temp_files, write_las
 
+from service.api.openapi import unique_operation_ids
 from service.app import create_app
 from service.db.jobstore import Store
-from service.openapi import unique_operation_ids
 from service.runner import job_dir
 from service.settings import Settings
 
