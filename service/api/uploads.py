@@ -180,8 +180,8 @@ async def receive_upload(request: Request, settings: Settings) -> FilePart:
     stop = asyncio.ensure_future(stopping.wait()) if stopping is not None else None
     try:
         while True:
-            # a client that stops sending would hold the request and its partial file for good,
-            # and a stopping server waited for it, then cut the connection without a reply
+            # wait for the next chunk, the idle limit or the server stopping: a client that stops
+            # sending would hold the request and its partial file for good, and delay a shutdown
             nxt = asyncio.ensure_future(anext(stream))
             done, _ = await asyncio.wait({nxt} | ({stop} if stop else set()), timeout=settings.upload_idle_s,
                                          return_when=asyncio.FIRST_COMPLETED)
