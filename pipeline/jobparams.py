@@ -5,7 +5,8 @@ Every tiling default and bound is written here once: the command line's tiling
 options and the API's tiling body are generated from `TilingParams`, and a job's
 parameters are checked by `JobParams` wherever it is made. Defaults that a deployment
 sets (the workers, the memory budget) are applied at the edge from its settings, whose
-own defaults are these. All lengths are metres.
+own defaults are these (the memory budget's is the settings': a model has none). All
+lengths are metres.
 """
 
 from __future__ import annotations
@@ -41,10 +42,10 @@ class TilingParams(_Model):
     )
     workers: int = Field(2, ge=1, le=256, description="workers of the embedded dask cluster")
     worker_memory: float | None = Field(
-        2.0, gt=0.0, le=4096.0,
+        None, gt=0.0, le=4096.0,
         description="memory budget of one worker [GB]: a block without a tile size that would need more in one piece "
         "is tiled, with tiles chosen to fit it",
-    )  # None: no budget, a block without a tile size is one piece
+    )  # None: no budget, a block without a tile size is one piece (a deployment sets one: ORCHARD_WORKER_MEMORY_GB)
     chunk_points: int = Field(CHUNK_POINTS, ge=1, le=1_000_000_000, description="points read at a time when tiling [points]")
 
     @model_validator(mode="after")

@@ -12,6 +12,7 @@ import numpy as np
 from pipeline.atomic import AtomicWriter, temp_name
 from pipeline.blockinfo import read_info
 from pipeline.crs import add_crs, crs_from
+from pipeline.jobparams import CHUNK_POINTS
 
 
 def _extra_type(dtype) -> np.dtype:
@@ -115,7 +116,7 @@ def write_labelled_las(
     dst_path,
     *,
     labels: Callable[[int, int], dict[str, np.ndarray]] | dict[str, np.ndarray],
-    chunk_points: int = 2_000_000,
+    chunk_points: int = CHUNK_POINTS,
 ) -> None:
     """Copy a block with extra dimensions ``tree_id``, ``is_wood``, ``wood_score``.
 

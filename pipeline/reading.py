@@ -16,12 +16,13 @@ import numpy as np
 
 from pipeline.blockinfo import BlockInfo, input_error, one_line, read_info
 from pipeline.errors import InputError
+from pipeline.jobparams import CHUNK_POINTS
 
 #: decode only X, Y, Z of LAZ points (the other fields' layers are skipped)
 _XYZ_ONLY = laspy.DecompressionSelection.XY_RETURNS_CHANNEL | laspy.DecompressionSelection.Z
 
 
-def iter_raw(path, *, chunk_points: int = 2_000_000, info: BlockInfo | None = None) -> Iterator[tuple[int, np.ndarray]]:
+def iter_raw(path, *, chunk_points: int = CHUNK_POINTS, info: BlockInfo | None = None) -> Iterator[tuple[int, np.ndarray]]:
     """Stream the stored integer coordinates of a block in chunks.
 
     Yields
@@ -139,7 +140,7 @@ def check_bounds(xyz: np.ndarray, info: BlockInfo, *, start: int = 0, origin=Non
         )
 
 
-def iter_points(path, *, chunk_points: int = 2_000_000, origin=None, info: BlockInfo | None = None) -> Iterator[tuple[int, np.ndarray]]:
+def iter_points(path, *, chunk_points: int = CHUNK_POINTS, origin=None, info: BlockInfo | None = None) -> Iterator[tuple[int, np.ndarray]]:
     """Stream the points of a block in chunks.
 
     Parameters
@@ -176,7 +177,7 @@ def _checked_local(ints: np.ndarray, info: BlockInfo, start: int, origin, out: n
     return xyz
 
 
-def read_points(path, *, origin=None, chunk_points: int = 2_000_000) -> tuple[np.ndarray, BlockInfo]:
+def read_points(path, *, origin=None, chunk_points: int = CHUNK_POINTS) -> tuple[np.ndarray, BlockInfo]:
     """Read a whole block.
 
     Returns

@@ -32,6 +32,7 @@ from typing import IO, Any, Callable
 import numpy as np
 
 from pipeline.errors import OrchardError, ParameterError
+from pipeline.jobparams import TilingParams
 from pipeline.params import PipelineParams
 from service.db.jobstore import Store
 from service.settings import Settings
@@ -332,15 +333,13 @@ class Runner(threading.Thread):
             from workers.jobspec import JobSpec
 
             block = self.store.get_block(None, job["block_id"])
-            tiling = job.get("tiling") or {}
             spec = JobSpec(
                 input_path=block["path"],
                 out_dir=str(out_dir),
                 params=PipelineParams.model_validate(job["params"]),
-                tile_size=tiling.get("tile_size"),
-                buffer=tiling.get("buffer"),
+                # the request's tiling; the service's settings give the rest
+                tiling=TilingParams(**(job.get("tiling") or {}), worker_memory=self.settings.worker_memory_gb),
                 work_dir=work_dir_of(self.settings, job["id"]),
-                memory_budget=self.settings.worker_memory_bytes,
             )
             out_dir.mkdir(parents=True, exist_ok=True)
             client = self._get_client()

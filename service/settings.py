@@ -19,9 +19,10 @@ from pydantic_settings import BaseSettings, SettingsConfigDict
 from pipeline.jobparams import TilingParams
 
 
-def _tiling_field(name: str, description: str):
-    """A setting that stands for a tiling parameter: the model's default and bounds."""
-    field = FieldInfo.merge_field_infos(TilingParams.model_fields[name], description=description)
+def _tiling_field(name: str, description: str, **default):
+    """A setting that stands for a tiling parameter: the model's bounds, and its default
+    unless ``default`` gives the deployment's."""
+    field = FieldInfo.merge_field_infos(TilingParams.model_fields[name], description=description, **default)
     field.metadata.append(AllowInfNan(False))  # the model's config says it for all its fields
     return field
 
@@ -45,7 +46,7 @@ class Settings(BaseSettings):
     threads_per_worker: int = Field(1, ge=1, le=64, description="threads per worker of the embedded LocalCluster")
     worker_memory_gb: float = _tiling_field(
         "worker_memory", "memory budget of one worker [GB]: a block without a tile size that would need more in one "
-        "piece is tiled, with tiles chosen to fit it",
+        "piece is tiled, with tiles chosen to fit it", default=2.0,
     )
     dashboard: bool = Field(False, description="start the dask dashboard of the embedded LocalCluster")
     dask_host: str = Field(

@@ -1,7 +1,8 @@
 """Domain errors worded at the two edges: the command line and the API.
 
 A domain error (`pipeline.errors.OrchardError`) names parameters by their path in the
-job's parameters (``tiling.tile_size``, ``trunks.cluster_radius``, ``job.work_dir``).
+job's parameters (``tiling.tile_size``, ``trunks.cluster_radius``, ``job.work_dir``), and
+how to list a kind of resource as ``list.<kind>`` (``list.schedules``).
 The command line words a path as its option (``--tile-size``,
 ``--trunks-cluster-radius``, ``--work``), the API as its request field
 (``tiling.tile_size``, ``params.trunks.cluster_radius``) and, for the response's
@@ -31,11 +32,19 @@ _RUN = {
     "scheduler": ("--scheduler", "ORCHARD_SCHEDULER"),
 }
 
+#: how to list a kind of resource, said by each edge: (command line, API)
+_LISTS = {
+    "blocks": ("list yours with GET /v1/blocks", "list yours with GET /v1/blocks"),  # the API alone lists them
+    "jobs": ("list yours with GET /v1/jobs", "list yours with GET /v1/jobs"),
+    "schedules": ("list them with 'orchard schedules list'", "list yours with GET /v1/schedules"),
+}
+
 #: tiling fields that are no option of the command line
 _NOT_OPTIONS = {"chunk_points"}
 
-#: the tiling fields of the API's request bodies (the others are the service's settings)
-API_TILING = ("tile_size", "buffer")
+#: the fields of `TilingParams` that a job or schedule request sets (the service's
+#: settings give the others)
+REQUEST_TILING = ("tile_size", "buffer")
 
 #: tiling fields the service takes from its settings
 _TILING_SETTINGS = {"workers": "ORCHARD_N_WORKERS", "worker_memory": "ORCHARD_WORKER_MEMORY_GB"}
@@ -62,6 +71,8 @@ def cli_name(path: str | Sequence) -> str | None:
     parts = _split(path)
     if len(parts) == 2 and parts[0] == "job" and parts[1] in _RUN:
         return _RUN[parts[1]][0]
+    if len(parts) == 2 and parts[0] == "list" and parts[1] in _LISTS:
+        return _LISTS[parts[1]][0]
     if len(parts) == 2 and parts[0] == "tiling" and parts[1] not in _NOT_OPTIONS:
         return "--" + parts[1].replace("_", "-")
     if len(parts) == 2 and parts[0] in _groups():
@@ -76,7 +87,7 @@ def api_location(path: str | Sequence) -> list[str] | None:
     ``["body", "params", "trunks", "cluster_radius"]``); None when it is none of the
     body's fields."""
     parts = _split(path)
-    if len(parts) == 2 and parts[0] == "tiling" and parts[1] in API_TILING:
+    if len(parts) == 2 and parts[0] == "tiling" and parts[1] in REQUEST_TILING:
         return ["body", *parts]
     if len(parts) == 2 and parts[0] in _groups():
         return ["body", "params", *parts]
@@ -93,6 +104,8 @@ def api_name(path: str | Sequence) -> str | None:
     parts = _split(path)
     if len(parts) == 2 and parts[0] == "job" and parts[1] in _RUN:
         return _RUN[parts[1]][1]
+    if len(parts) == 2 and parts[0] == "list" and parts[1] in _LISTS:
+        return _LISTS[parts[1]][1]
     if len(parts) == 2 and parts[0] == "tiling":
         return _TILING_SETTINGS.get(parts[1])
     return None

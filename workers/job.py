@@ -73,7 +73,7 @@ def run_job(
     t0 = time.perf_counter()
     info = read_info(spec.input_path)
     spec = auto_tiled(spec, info)
-    if spec.tile_size is None and client is None:
+    if spec.tiling.tile_size is None and client is None:
         return _run_single(spec, info, t0, progress, cancel)
     return _run_tiled(spec, info, client, t0, progress, cancel)
 
@@ -83,7 +83,7 @@ def _run_single(spec, info, t0, progress, cancel) -> JobOutcome:
     params = spec.params
     if progress:
         progress(0, 1)
-    xyz, _ = read_points(info.path, chunk_points=spec.chunk_points)
+    xyz, _ = read_points(info.path, chunk_points=spec.tiling.chunk_points)
     timings["read"] = time.perf_counter() - t0
     check_cancel(cancel)
     t = time.perf_counter()
@@ -109,7 +109,7 @@ def _job_record(spec: JobSpec, info: BlockInfo, grid: TileGrid, work: str) -> di
         "input_path": spec.input_path,
         "out_dir": spec.out_dir,
         "params": spec.params.model_dump(mode="json"),
-        "tile_size": spec.tile_size,
+        "tile_size": spec.tiling.tile_size,
         "buffer": grid.buffer,
         "grid": grid.to_dict(),
         "work_dir": work,
@@ -122,7 +122,7 @@ def _job_record(spec: JobSpec, info: BlockInfo, grid: TileGrid, work: str) -> di
 def _run_tiled(spec, info, client, t0, progress, cancel) -> JobOutcome:
     timings = {}
     grid = plan_tiles(spec, info)
-    check_engine(spec.engine, grid)
+    check_engine(spec.tiling.engine, grid)
     out_dir = Path(spec.out_dir)
     made = [d for d in (out_dir, *out_dir.parents) if not d.exists()]  # deepest first
     work = spec.work_dir or default_work_dir(spec.out_dir)
@@ -145,7 +145,7 @@ def _run_tiled_locked(spec, info, client, t0, progress, cancel, grid, store, tim
     try:
         store.put_json(JOB_KEY, record)
         check_cancel(cancel)
-        index = tile_block(info, grid, store, chunk_points=spec.chunk_points, engine=spec.engine, client=client,
+        index = tile_block(info, grid, store, chunk_points=spec.tiling.chunk_points, engine=spec.tiling.engine, client=client,
                            gather=lambda futures: gather(client, futures, cancel, store))
         timings["tile"] = time.perf_counter() - t0
         tiles = [t for t in index["tiles"] if t["n_core"] > 0]

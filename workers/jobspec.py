@@ -10,6 +10,7 @@ from pathlib import Path
 
 from pipeline.blockinfo import BlockInfo, read_info
 from pipeline.errors import OrchardError, ParameterError
+from pipeline.jobparams import JobParams, TilingParams
 from pipeline.params import PipelineParams
 from pipeline.tiling import TileGrid, plan_grid, tile_size_for_budget
 from workers.outputs import OUTPUT_NAMES
@@ -44,27 +45,24 @@ class ClusterLost(_Stopped):
 
 @dataclass
 class JobSpec:
-    """What to process and how.
+    """What to process and how: the block, the outputs' folder and the job's parameters,
+    ``params`` and ``tiling`` (checked together as a :class:`pipeline.jobparams.JobParams`).
 
-    ``tile_size`` None processes the block as one tile, unless it would need more than
-    ``memory_budget`` bytes in one piece: then :func:`auto_tiled` chooses tiles that fit
-    it (None: no budget). ``buffer`` None uses ``params.reach()``; ``grid_origin`` None uses the block origin (floor of the header
-    minimum), in the input CRS; ``work_dir`` None uses ``out_dir/_work``.
-    ``inject_failure`` lists tiles whose task raises (testing the failure policy only).
+    ``tiling.tile_size`` None processes the block as one tile, unless it would need more
+    than ``tiling.worker_memory`` in one piece: then :func:`auto_tiled` chooses tiles that
+    fit it (None: no budget). ``tiling.buffer`` None uses ``params.reach()``;
+    ``tiling.grid_origin`` None uses the block origin (floor of the header minimum), in
+    the input CRS; ``work_dir`` None uses ``out_dir/_work``. ``inject_failure`` lists
+    tiles whose task raises (testing the failure policy only).
     """
 
     input_path: str
     out_dir: str
     params: PipelineParams = field(default_factory=PipelineParams)
-    tile_size: float | None = None
-    buffer: float | None = None
-    grid_origin: tuple[float, float] | None = None
+    tiling: TilingParams = field(default_factory=TilingParams)
     work_dir: str | None = None
     labelled_laz: bool = False
-    engine: str = "laspy"
-    chunk_points: int = 2_000_000
     inject_failure: tuple[int, ...] = ()
-    memory_budget: float | None = None
 
     def __post_init__(self) -> None:
         # dask workers run in folders of their own: a relative path would name another
@@ -78,6 +76,7 @@ class JobSpec:
         if self.work_dir is not None:
             self.work_dir = absolute_url(self.work_dir)
         check_job_paths(self.input_path, self.out_dir, self.work_dir)
+        JobParams(pipeline=self.params, tiling=self.tiling)  # ParameterError: a buffer below the reach...
 
 
 def check_job_paths(input_path: str, out_dir: str, work_dir: str | None) -> None:
@@ -124,14 +123,14 @@ def check_job(spec: JobSpec, *, tiled: bool | None = None) -> tuple[BlockInfo, T
     info = read_info(spec.input_path)
     check_out_dir(spec.out_dir)
     if tiled is None:
-        tiled = spec.tile_size is not None
+        tiled = spec.tiling.tile_size is not None
     if not tiled:
-        if spec.buffer is not None:
+        if spec.tiling.buffer is not None:
             raise ParameterError("{tiling.buffer} needs {tiling.tile_size}: a block processed in one piece has no tile buffer",
-                                 param="tiling.buffer", value=spec.buffer)
+                                 param="tiling.buffer", value=spec.tiling.buffer)
         return info, None
     grid = plan_tiles(spec, info)
-    check_engine(spec.engine, grid)
+    check_engine(spec.tiling.engine, grid)
     WorkStore(spec.work_dir or default_work_dir(spec.out_dir)).check_free()  # before any cluster starts
     return info, grid
 
@@ -158,24 +157,25 @@ def auto_tiled(spec: JobSpec, info: BlockInfo | None = None) -> JobSpec:
     ``info``: the block's header, read from ``spec.input_path`` when not given.
     Raises ParameterError (a :class:`pipeline.tiling.BudgetError` when no tile fits).
     """
-    if spec.tile_size is not None or spec.memory_budget is None:
+    tiling = spec.tiling
+    if tiling.tile_size is not None or tiling.memory_budget is None:
         return spec
     info = info or read_info(spec.input_path)
-    buffer = spec.params.reach() if spec.buffer is None else float(spec.buffer)
-    size = tile_size_for_budget(info.n_points, info.mins, info.maxs, budget=spec.memory_budget, buffer=buffer)
-    return spec if size is None else dataclasses.replace(spec, tile_size=size)
+    buffer = JobParams(pipeline=spec.params, tiling=tiling).buffer()
+    size = tile_size_for_budget(info.n_points, info.mins, info.maxs, budget=tiling.memory_budget, buffer=buffer)
+    return spec if size is None else dataclasses.replace(spec, tiling=tiling.model_copy(update={"tile_size": size}))
 
 
 def plan_tiles(spec: JobSpec, info: BlockInfo) -> TileGrid:
     """The tile grid of a job over the block ``info`` (one tile holding the whole block
     when ``spec`` has no tile size)."""
-    reach = spec.params.reach()
-    buffer = reach if spec.buffer is None else float(spec.buffer)
-    origin = spec.grid_origin if spec.grid_origin is not None else info.origin[:2]
-    if spec.tile_size is None:  # one tile holding the whole block
+    reach, tiling = spec.params.reach(), spec.tiling
+    buffer = JobParams(pipeline=spec.params, tiling=tiling).buffer()
+    origin = tiling.grid_origin if tiling.grid_origin is not None else info.origin[:2]
+    if tiling.tile_size is None:  # one tile holding the whole block
         size = max(info.maxs[0] - origin[0], info.maxs[1] - origin[1]) + 1.0
         if origin[0] > info.mins[0] or origin[1] > info.mins[1]:
             raise ParameterError("with no {tiling.tile_size} the grid origin must lie below the block's minimum x and y",
                                  param="tiling.grid_origin", value=tuple(origin))
         return plan_grid(info.mins, info.maxs, tile_size=size, buffer=buffer, grid_origin=origin, reach=reach)
-    return plan_grid(info.mins, info.maxs, tile_size=spec.tile_size, buffer=buffer, grid_origin=origin, reach=reach)
+    return plan_grid(info.mins, info.maxs, tile_size=tiling.tile_size, buffer=buffer, grid_origin=origin, reach=reach)

@@ -20,6 +20,7 @@ import numpy as np
 
 from pipeline.blockinfo import BlockInfo
 from pipeline.errors import ParameterError
+from pipeline.jobparams import CHUNK_POINTS
 from pipeline.reading import check_bounds, iter_raw, read_raw_range, to_local
 from pipeline.tiling import TileGrid, buffered_tiles, check_split_buffer, core_tile
 from workers.workstore import WorkStore
@@ -119,7 +120,7 @@ def tile_block(
     grid: TileGrid,
     store: WorkStore,
     *,
-    chunk_points: int = 2_000_000,
+    chunk_points: int = CHUNK_POINTS,
     engine: str = "laspy",
     client=None,
     gather=None,

@@ -13,10 +13,9 @@ from service.api.schemas import (
     ScheduleCreate,
     ScheduleRun,
     ScheduleUpdate,
-    checked_tiling,
-    schedule_changes,
     schedule_out,
 )
+from service.jobrequests import schedule_changes, stored_tiling
 from service.schedules import check_inbox_use, next_run_time, run_schedule, tenant_inbox_root, validate_cron, validate_inbox
 
 router = APIRouter()
@@ -29,7 +28,7 @@ def create_schedule(body: ScheduleCreate, request: Request, response: Response, 
     # a tenant's inboxes lie in its own folder: no other farm's captures, no server files
     inbox = validate_inbox(body.inbox, root=tenant_inbox_root(settings, tenant["name"]), root_label="this tenant's inbox folder")
     check_inbox_use(inbox, settings=settings, store=store, tenant_id=tenant["id"])
-    tiling = checked_tiling(body.params, body.tiling)  # as a job would: refused now, not every night
+    tiling = stored_tiling(body.params, body.tiling and body.tiling.model_dump())  # as a job would: refused now, not every night
     rec = store.create_schedule(
         tenant_id=tenant["id"],
         inbox=str(inbox),
@@ -58,7 +57,7 @@ def get_schedule(schedule_id: str, tenant: TenantDep, store: StoreDep):
 @router.patch("/schedules/{schedule_id}", response_model=Schedule, tags=["schedules"], summary="Pause, resume or change a schedule",
           responses=JSON_BODY)
 def update_schedule(schedule_id: str, body: ScheduleUpdate, request: Request, tenant: TenantDep, store: StoreDep):
-    rec = store.update_schedule(tenant["id"], schedule_id, lambda current: schedule_changes(current, body))
+    rec = store.update_schedule(tenant["id"], schedule_id, lambda current: schedule_changes(current, body.model_dump(exclude_unset=True)))
     clock = request.app.state.clock
     if clock is not None:
         clock.wake()

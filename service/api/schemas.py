@@ -1,8 +1,7 @@
 """The API's request and response bodies, and how they meet the job store's records.
 
 Request bodies (`JobCreate`, `ScheduleCreate`, `ScheduleUpdate` with their `Tiling`) are
-checked here into the records the store keeps (`checked_tiling`, `schedule_changes`);
-store records become response bodies (`Block`, `Job`, `Schedule`) through `block_out`,
+checked into the records the store keeps by `service.jobrequests`; store records become response bodies (`Block`, `Job`, `Schedule`) through `block_out`,
 `job_out` and `schedule_out`. `ERRORS` documents the error answers every ``/v1`` route
 may give.
 """
@@ -16,10 +15,10 @@ from typing import Any, Literal
 from pydantic import BaseModel, ConfigDict, Field, StrictBool, create_model
 from pydantic_core import PydanticUndefined
 
-from pipeline.jobparams import JobParams, TilingParams
+from pipeline.jobparams import TilingParams
 from pipeline.params import PipelineParams
-from service.schedules import DEFAULT_CRON, next_run_time, validate_cron
-from service.wording import API_TILING
+from service.schedules import DEFAULT_CRON
+from service.wording import REQUEST_TILING
 
 # -- bodies --------------------------------------------------------------------------------
 
@@ -34,7 +33,7 @@ def _tiling_body() -> type[BaseModel]:
     required), with the model's bounds, defaults and descriptions; the service's settings
     give the others."""
     fields = {}
-    for name in API_TILING:
+    for name in REQUEST_TILING:
         field = copy.copy(TilingParams.model_fields[name])
         annotation = field.annotation
         if name == "tile_size":  # a body that tiles names its tile size
@@ -267,42 +266,3 @@ def schedule_out(rec: dict) -> Schedule:
         last_run_at=_iso(rec.get("last_run_at"), local=True),
         next_run_at=None if rec.get("paused") else _iso(rec.get("next_run_at"), local=True),
     )
-
-
-# -- request bodies to store records -------------------------------------------------------
-
-
-def checked_tiling(params: PipelineParams, tiling: Tiling | None) -> dict | None:
-    """The tiling of a job or schedule as stored; ParameterError (422) when the job model
-    refuses it with these parameters (a buffer below their reach, tiles so small that
-    each point would be copied into too many of them)."""
-    if tiling is None:
-        return None
-    JobParams(pipeline=params, tiling=TilingParams(**tiling.model_dump()))
-    return tiling.model_dump()
-
-
-def schedule_changes(sched: dict, body: ScheduleUpdate, *, now: datetime | None = None) -> dict[str, Any]:
-    """The store changes of a PATCH of ``sched``, checked as at creation (ParameterError:
-    422). A new cron, or a resume, starts
-    from the next cron time after ``now``: runs missed while paused are not made up."""
-    given = body.model_fields_set
-    changes: dict[str, Any] = {}
-    cron = sched["cron"]
-    if "cron" in given:
-        cron = changes["cron"] = validate_cron(body.cron)
-    params = PipelineParams(**sched["params"])
-    if "params" in given:
-        params = body.params
-        changes["params"] = params.model_dump()
-    if "tiling" in given or "params" in given:
-        tiling = body.tiling if "tiling" in given else (Tiling(**sched["tiling"]) if sched["tiling"] else None)
-        changes["tiling"] = checked_tiling(params, tiling)
-    if "paused" in given:
-        changes["paused"] = body.paused
-    paused = changes.get("paused", bool(sched["paused"]))
-    if paused:
-        changes["next_run_at"] = None
-    elif "cron" in changes or bool(sched["paused"]):
-        changes["next_run_at"] = next_run_time(cron, now or datetime.now().astimezone()).timestamp()
-    return changes

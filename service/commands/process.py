@@ -23,6 +23,12 @@ HELP = (
 )
 
 
+def _settings_default(name: str):
+    from service.settings import Settings
+
+    return Settings.model_fields[name].default
+
+
 def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("input", metavar="INPUT", help="LAS or LAZ block (LAS 1.2-1.4, point formats 0-10)")
     parser.add_argument("--out", required=True, metavar="DIR", help="output folder for trees.parquet, points.parquet, trees.csv and report.html")
@@ -33,7 +39,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         "buffer": "max crown radius + 1 m + edge radius; also the minimum",
         "grid_origin": "negative: --grid-origin=-1000,-2000",
         "workers": f"default {tiling_default('workers')}, at most 4 per CPU",
-        "worker_memory": f"default: ORCHARD_WORKER_MEMORY_GB, or {tiling_default('worker_memory'):g}",
+        "worker_memory": f"default: ORCHARD_WORKER_MEMORY_GB, or {_settings_default('worker_memory_gb'):g}",
     })
     g.add_argument("--scheduler", default=None, metavar="tcp://HOST:PORT", help="use a running dask cluster instead of an embedded one")
     g.add_argument("--dask-host", default=None, metavar="HOST", help="address the embedded dask cluster and its dashboard listen on (default 127.0.0.1: this machine only)")
@@ -212,28 +218,24 @@ def run(args: argparse.Namespace) -> int:
         input_path=args.input,
         out_dir=args.out,
         params=params,
-        tile_size=tiling.tile_size,
-        buffer=tiling.buffer,
-        grid_origin=tiling.grid_origin,
+        tiling=tiling,
         work_dir=args.work,
         labelled_laz=args.labelled_laz,
-        engine=tiling.engine,
         inject_failure=tuple(args.inject_failure or ()),
-        memory_budget=tiling.memory_budget,
     )
     tiled = bool(args.tile_size) or args.scheduler is not None
-    if spec.tile_size is None and not tiled:
+    if spec.tiling.tile_size is None and not tiled:
         try:
             spec = auto_tiled(spec)  # bad input fails here, before anything else
         except BudgetError as exc:
             need = math.ceil(exc.need / 1e8) / 10  # GB, rounded up
             raise ParameterError(exc.message, hint=f"{exc.hint} ({{tiling.worker_memory}} {need:g} or more)",
                                  param="tiling.worker_memory", value=tiling.worker_memory, limit=need) from None
-        if spec.tile_size is not None:
+        if spec.tiling.tile_size is not None:
             tiled = True
             print(
-                f"orchard process: the block would need more than {spec.memory_budget / 1e9:g} GB in one piece: "
-                f"tiles of {spec.tile_size:g} m (--tile-size 0: one piece)",
+                f"orchard process: the block would need more than {tiling.worker_memory:g} GB in one piece: "
+                f"tiles of {spec.tiling.tile_size:g} m (--tile-size 0: one piece)",
                 file=sys.stderr,
             )
     if args.work and not tiled:  # it went unused, without a word

@@ -60,11 +60,9 @@ def _when(ts: float | None) -> str:
 
 
 def run(args: argparse.Namespace) -> int:
-    from pydantic import ValidationError
-
     from pipeline.errors import ParameterError
-    from pipeline.jobparams import JobParams, TilingParams
     from service.db.jobstore import Store
+    from service.jobrequests import schedule_changes, stored_tiling
     from service.schedules import check_inbox_use, next_run_time, run_schedule, validate_cron, validate_inbox
     from service.settings import build_settings
 
@@ -86,9 +84,8 @@ def run(args: argparse.Namespace) -> int:
             inbox = validate_inbox(args.inbox, root=settings.inbox_root, base=Path.cwd())
             params = pipeline_params_from_args(args)
             tiling = None
-            if args.tile_size is not None:
-                tiling = {"tile_size": args.tile_size, "buffer": args.buffer}
-                JobParams(pipeline=params, tiling=TilingParams(**tiling))  # as a job would: refused now, not every night
+            if args.tile_size is not None:  # as a job would: refused now, not every night
+                tiling = stored_tiling(params, {"tile_size": args.tile_size, "buffer": args.buffer})
             elif args.buffer is not None:
                 raise ParameterError("--buffer needs --tile-size")
             tenant = store.ensure_tenant(args.tenant)
@@ -103,25 +100,17 @@ def run(args: argparse.Namespace) -> int:
             )
             print(rec["id"])
         elif args.action in ("update", "pause", "resume"):
-            from service.api.schemas import ScheduleUpdate, schedule_changes
-
-            sched = _schedule(store, args.schedule_id)
-            body = _update_body(args, sched) if args.action == "update" else {"paused": args.action == "pause"}
-            try:
-                update = ScheduleUpdate(**body)
-            except ValidationError as exc:  # in the command line's words, not the API's
-                raise ParameterError("; ".join(
-                    f"{_OPTION.get(tuple(map(str, e['loc'])), '.'.join(map(str, e['loc'])))}: {e['msg']}"
-                    for e in exc.errors())) from None
-            rec = store.update_schedule(None, sched["id"], lambda current: schedule_changes(current, update))
+            sched = store.get_schedule(None, args.schedule_id)
+            given = _update_body(args, sched) if args.action == "update" else {"paused": args.action == "pause"}
+            rec = store.update_schedule(None, sched["id"], lambda current: schedule_changes(current, given))
             state = "paused" if rec["paused"] else f"next run {_when(rec['next_run_at'])}"
             print(f"{rec['id']}\t{rec['cron']}\t{state}")
         elif args.action == "run":
-            sched = _schedule(store, args.schedule_id)
+            sched = store.get_schedule(None, args.schedule_id)
             res = run_schedule(store, settings, sched)
             print(json.dumps(res, indent=2))
         elif args.action == "delete":
-            sched = _schedule(store, args.schedule_id)
+            sched = store.get_schedule(None, args.schedule_id)
             store.delete_schedule(sched["tenant_id"], sched["id"])
             print("deleted")
     finally:
@@ -129,22 +118,8 @@ def run(args: argparse.Namespace) -> int:
     return 0
 
 
-#: request fields of a schedule update → the options that set them
-_OPTION = {("tiling", "tile_size"): "--tile-size", ("tiling", "buffer"): "--buffer", ("cron",): "--cron"}
-
-
-def _schedule(store, schedule_id: str) -> dict:
-    """The schedule, or NotFoundError naming the command that lists them."""
-    from service.db.errors import NotFoundError
-
-    try:
-        return store.get_schedule(None, schedule_id)
-    except NotFoundError:
-        raise NotFoundError(f"no schedule {schedule_id!r}; list them with 'orchard schedules list'") from None
-
-
 def _update_body(args: argparse.Namespace, sched: dict) -> dict:
-    """The PATCH body of ``orchard schedules update``'s options (``--buffer`` alone
+    """The changes ``orchard schedules update``'s options ask for (``--buffer`` alone
     changes a tiled schedule's buffer; a pipeline option changes that parameter and
     leaves the schedule's others as they are)."""
     from pipeline.errors import ParameterError

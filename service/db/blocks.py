@@ -67,7 +67,7 @@ class Blocks(TenantQuotas):
         else:
             rec = self._one("SELECT * FROM blocks WHERE id = ? AND tenant_id = ?", (block_id, tenant_id))
         if rec is None:
-            raise NotFoundError(f"no block {block_id!r}; list yours with GET /v1/blocks")
+            raise NotFoundError(f"no block {block_id!r}; ", hint="{list.blocks}")
         return self._located(rec)
 
     def list_blocks(self, tenant_id: str, *, limit: int = 100, offset: int = 0) -> list[dict[str, Any]]:

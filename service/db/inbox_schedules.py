@@ -43,7 +43,7 @@ class InboxSchedules(JobQueue):
         else:
             rec = self._one("SELECT * FROM schedules WHERE id = ? AND tenant_id = ?", (schedule_id, tenant_id))
         if rec is None:
-            raise NotFoundError(f"no schedule {schedule_id!r}; list yours with GET /v1/schedules")
+            raise NotFoundError(f"no schedule {schedule_id!r}; ", hint="{list.schedules}")
         return rec
 
     def list_schedules(self, tenant_id: str | None = None) -> list[dict[str, Any]]:
@@ -55,7 +55,7 @@ class InboxSchedules(JobQueue):
         with self._tx() as con:
             n = con.execute("DELETE FROM schedules WHERE id = ? AND tenant_id = ?", (schedule_id, tenant_id)).rowcount
             if n == 0:
-                raise NotFoundError(f"no schedule {schedule_id!r}; list yours with GET /v1/schedules")
+                raise NotFoundError(f"no schedule {schedule_id!r}; ", hint="{list.schedules}")
             con.execute("DELETE FROM schedule_files WHERE schedule_id = ?", (schedule_id,))
 
     def set_schedule_times(self, schedule_id: str, *, cron: str, last_run_at: float | None, next_run_at: float | None) -> None:
@@ -90,7 +90,7 @@ class InboxSchedules(JobQueue):
         with self._tx() as con:
             current = record(con.execute(f"SELECT * FROM schedules WHERE {where}", args).fetchone())
             if current is None:
-                raise NotFoundError(f"no schedule {schedule_id!r}; list yours with GET /v1/schedules")
+                raise NotFoundError(f"no schedule {schedule_id!r}; ", hint="{list.schedules}")
             if callable(changes):
                 changes = changes(current)
             if not changes.keys() <= allowed:

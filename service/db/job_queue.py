@@ -40,7 +40,7 @@ class JobQueue(TenantQuotas):
         else:
             rec = self._one("SELECT * FROM jobs WHERE id = ? AND tenant_id = ?", (job_id, tenant_id))
         if rec is None:
-            raise NotFoundError(f"no job {job_id!r}; list yours with GET /v1/jobs")
+            raise NotFoundError(f"no job {job_id!r}; ", hint="{list.jobs}")
         return rec
 
     def list_jobs(
@@ -156,7 +156,7 @@ class JobQueue(TenantQuotas):
         with self._tx() as con:
             row = con.execute("SELECT state FROM jobs WHERE id = ? AND tenant_id = ?", (job_id, tenant_id)).fetchone()
             if row is None:
-                raise NotFoundError(f"no job {job_id!r}; list yours with GET /v1/jobs")
+                raise NotFoundError(f"no job {job_id!r}; ", hint="{list.jobs}")
             if row["state"] == "queued":
                 con.execute(
                     "UPDATE jobs SET state = 'cancelled', cancel_requested = 1, finished_at = ?, error = ? WHERE id = ?",

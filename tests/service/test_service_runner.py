@@ -40,7 +40,7 @@ def test_done_records_outcome_and_progress(env, monkeypatch):
     seen = []
 
     def fake(spec, *, client, progress, cancel):
-        assert spec.tile_size == 20.0 and spec.input_path == block["path"]
+        assert spec.tiling.tile_size == 20.0 and spec.input_path == block["path"]
         for i in range(4):
             progress(i, 3)
             seen.append(store.get_job(None, job["id"])["tiles_done"])

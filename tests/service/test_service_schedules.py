@@ -593,7 +593,7 @@ def test_links_in_an_inbox_are_not_followed(local, tmp_path):
 
 
 def test_a_paused_schedule_is_skipped_by_the_clock_and_resumes_at_its_next_cron_time(local):
-    from service.api.schemas import ScheduleUpdate, schedule_changes
+    from service.jobrequests import schedule_changes
 
     settings, store, tenant, inbox = local
     write_las(inbox / "a.laz", 500, seed=1)
@@ -603,7 +603,7 @@ def test_a_paused_schedule_is_skipped_by_the_clock_and_resumes_at_its_next_cron_
     clock.tick(now)
     due = store.get_schedule(None, sched["id"])["next_run_at"]
     sched = store.get_schedule(None, sched["id"])
-    store.update_schedule(tenant["id"], sched["id"], schedule_changes(sched, ScheduleUpdate(paused=True)))
+    store.update_schedule(tenant["id"], sched["id"], schedule_changes(sched, {"paused": True}))
     paused = store.get_schedule(None, sched["id"])
     assert paused["paused"] == 1 and paused["next_run_at"] is None
     for night in range(3):  # three nights pass: nothing is scanned, nothing is set
@@ -615,7 +615,7 @@ def test_a_paused_schedule_is_skipped_by_the_clock_and_resumes_at_its_next_cron_
     assert store.get_schedule(None, sched["id"])["next_run_at"] is None
     # resumed three nights later: from the next cron time, the missed nights not made up
     later = datetime.fromtimestamp(due + 3 * 86400 + 3600).astimezone()
-    changes = schedule_changes(paused, ScheduleUpdate(paused=False), now=later)
+    changes = schedule_changes(paused, {"paused": False}, now=later)
     assert changes == {"paused": False, "next_run_at": next_run_time("0 1 * * *", later).timestamp()}
     store.update_schedule(tenant["id"], sched["id"], changes)
     rec = store.get_schedule(None, sched["id"])
@@ -785,7 +785,7 @@ def test_two_changes_at_once_cannot_store_a_buffer_below_the_reach(local):
     # stored, and every night's job then failed at planning
     import threading
 
-    from service.api.schemas import ScheduleUpdate, schedule_changes
+    from service.jobrequests import schedule_changes
 
     settings, store, tenant, inbox = local
     sched = store.create_schedule(tenant_id=tenant["id"], inbox=str(inbox), cron="0 1 * * *",
@@ -794,7 +794,7 @@ def test_two_changes_at_once_cannot_store_a_buffer_below_the_reach(local):
     inside = threading.Event()
 
     def slow_params(current):
-        changes = schedule_changes(current, ScheduleUpdate(params={}))
+        changes = schedule_changes(current, {"params": {}})
         inside.set()
         time.sleep(0.5)  # still in its write transaction
         return changes
@@ -806,7 +806,7 @@ def test_two_changes_at_once_cannot_store_a_buffer_below_the_reach(local):
     try:
         with pytest.raises(ParameterError, match="buffer"):
             other.update_schedule(tenant["id"], sched["id"],
-                                  lambda current: schedule_changes(current, ScheduleUpdate(tiling={"tile_size": 30, "buffer": 3.5})))
+                                  lambda current: schedule_changes(current, {"tiling": {"tile_size": 30, "buffer": 3.5}}))
     finally:
         first.join(10)
         other.close()

@@ -79,22 +79,25 @@ def _defaults(add, *argv) -> dict:
 
 def test_every_tiling_default_is_the_model_s():
     model = {name: f.default for name, f in TilingParams.model_fields.items()}
-    # the command line's options are unset (None): the command applies the model's or a setting's at its edge
+    assert model["worker_memory"] is None  # a model has no budget: a deployment's settings give one
+    # the command line's options are unset (None): the command applies the model's, or a setting's, at its edge
     actions = _defaults(process.add_arguments)
     for name in ("tile_size", "buffer", "grid_origin", "engine", "workers", "worker_memory"):
         assert actions[name].default is None, name
         assert f"--{name.replace('_', '-')}" in actions[name].option_strings
-    assert f"default {model['workers']}," in actions["workers"].help
-    assert f"or {model['worker_memory']:g})" in actions["worker_memory"].help
-    assert f"(default {model['engine']})" in actions["engine"].help
-    # the settings that stand for them
     settings = Settings.model_fields
+    assert f"default {model['workers']}," in actions["workers"].help
+    assert f"or {settings['worker_memory_gb'].default:g})" in actions["worker_memory"].help
+    assert f"(default {model['engine']})" in actions["engine"].help
+    # the settings that stand for them: the model's default and bounds
     assert settings["n_workers"].default == model["workers"]
-    assert settings["worker_memory_gb"].default == model["worker_memory"]
-    # a tiling built from no options is the model's
-    args = argparse.Namespace(tile_size=None, buffer=None, grid_origin=None, engine=None, workers=None,
-                              worker_memory=model["worker_memory"])
-    assert process._tiling(args) == TilingParams()
+    for setting, name in (("n_workers", "workers"), ("worker_memory_gb", "worker_memory")):
+        assert TilingParams.model_fields[name].metadata == settings[setting].metadata[:2], setting
+    # a tiling built from no options is the model's, with the setting's budget
+    args = argparse.Namespace(tile_size=None, buffer=None, grid_origin=None, engine=None, workers=None, worker_memory=None)
+    assert process._tiling(args) == TilingParams(worker_memory=Settings().worker_memory_gb)
+    # --tile-size 0: one piece, no budget
+    assert process._tiling(argparse.Namespace(**{**vars(args), "tile_size": 0.0})) == TilingParams()
 
 
 def test_the_api_tiling_body_has_the_model_s_bounds_and_defaults():
@@ -111,7 +114,8 @@ def test_the_cli_does_not_import_the_http_app():
     import subprocess
 
     code = ("import sys; from service.cli import build_parser; "
-            "[build_parser([c]) for c in ('process', 'schedules')]; import service.runner, service.wording; "
+            "[build_parser([c]) for c in ('process', 'schedules')]; "
+            "import service.runner, service.wording, service.jobrequests, service.db.jobstore, workers.job; "
             "print(sorted(m for m in ('fastapi', 'starlette', 'service.app', 'service.errors') if m in sys.modules))")
     out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True).stdout
     assert json.loads(out.replace("'", '"')) == []

@@ -15,6 +15,7 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
+from pipeline.jobparams import TilingParams
 from pipeline.params import PipelineParams
 from pipeline.tiling import (
     BYTES_PER_POINT,
@@ -118,13 +119,13 @@ def _budget(info) -> float:
 def test_a_block_within_the_budget_is_left_whole_and_one_above_it_is_tiled(block, tmp_path):
     path, info = block
     params = PipelineParams.model_validate(PARAMS)
-    whole = JobSpec(str(path), str(tmp_path / "o"), params=params, memory_budget=_need(info.n_points))
+    whole = JobSpec(str(path), str(tmp_path / "o"), params=params, tiling=TilingParams(worker_memory=_need(info.n_points) / 1e9))
     assert auto_tiled(whole, info) is whole
-    assert auto_tiled(JobSpec(str(path), str(tmp_path / "o"), params=params), info).tile_size is None  # no budget
-    assert auto_tiled(JobSpec(str(path), str(tmp_path / "o"), params=params, tile_size=7.0, memory_budget=1.0), info).tile_size == 7.0
-    spec = auto_tiled(JobSpec(str(path), str(tmp_path / "o"), params=params, memory_budget=_budget(info)), info)
-    assert spec.tile_size is not None and spec.tile_size >= MIN_CORE_PER_BUFFER * params.reach()
-    assert _need(tile_points(spec.tile_size, params.reach(), info.n_points, info.mins, info.maxs)) <= _budget(info)
+    assert auto_tiled(JobSpec(str(path), str(tmp_path / "o"), params=params), info).tiling.tile_size is None  # no budget
+    assert auto_tiled(JobSpec(str(path), str(tmp_path / "o"), params=params, tiling=TilingParams(tile_size=7.0, worker_memory=1.0 / 1e9)), info).tiling.tile_size == 7.0
+    spec = auto_tiled(JobSpec(str(path), str(tmp_path / "o"), params=params, tiling=TilingParams(worker_memory=_budget(info) / 1e9)), info)
+    assert spec.tiling.tile_size is not None and spec.tiling.tile_size >= MIN_CORE_PER_BUFFER * params.reach()
+    assert _need(tile_points(spec.tiling.tile_size, params.reach(), info.n_points, info.mins, info.maxs)) <= _budget(info)
 
 
 @pytest.mark.slow
@@ -132,7 +133,7 @@ def test_the_tiles_chosen_for_a_budget_give_the_untiled_result(block, tmp_path):
     path, info = block
     params = PipelineParams.model_validate(PARAMS)
     single = run_job(JobSpec(str(path), str(tmp_path / "single"), params=params))
-    tiled = run_job(JobSpec(str(path), str(tmp_path / "tiled"), params=params, memory_budget=_budget(info)))
+    tiled = run_job(JobSpec(str(path), str(tmp_path / "tiled"), params=params, tiling=TilingParams(worker_memory=_budget(info) / 1e9)))
     assert single.n_tiles == 1 and tiled.n_tiles >= 6
     assert tiled.n_trees == single.n_trees >= 15
     for col in ("tree_id", "trunk_x", "trunk_y", "height_m", "n_points"):
@@ -147,10 +148,12 @@ def test_the_tiles_chosen_for_a_budget_give_the_untiled_result(block, tmp_path):
 # VmHWM, not getrusage: ru_maxrss survives exec, and would count the forking pytest's memory
 _RUN = """
 import json, re, sys
+from pipeline.jobparams import TilingParams
 from pipeline.params import PipelineParams
 from workers.job import run_job
 from workers.jobspec import JobSpec
-spec = JobSpec(sys.argv[1], sys.argv[2], params=PipelineParams.model_validate_json(sys.argv[3]), memory_budget=float(sys.argv[4]))
+spec = JobSpec(sys.argv[1], sys.argv[2], params=PipelineParams.model_validate_json(sys.argv[3]),
+               tiling=TilingParams(worker_memory=float(sys.argv[4]) / 1e9))
 outcome = run_job(spec)
 peak = int(re.search(r"VmHWM:\\s+(\\d+) kB", open("/proc/self/status").read()).group(1)) * 1024
 print(json.dumps({"tiles": outcome.n_tiles, "peak": peak}))

@@ -8,6 +8,7 @@ import pyarrow.parquet as pq
 import pytest
 
 from pipeline.evaluation.result import evaluate_result
+from pipeline.jobparams import TilingParams
 from pipeline.synthetic.simparams import SimulationParams
 from pipeline.synthetic.truth import write_simulation
 from workers.job import run_job
@@ -40,7 +41,7 @@ def test_a_hedgerow_gets_its_trunks_and_addresses(hedgerow, tmp_path):
     az = np.asarray(rows["azimuth_deg"])
     np.testing.assert_allclose(az, 90.0 - 25.0, atol=3.0)  # rotated 25° from east: positions run east-north-east
 
-    tiled = run_job(JobSpec(str(las), str(tmp_path / "tiled"), tile_size=8.0))
+    tiled = run_job(JobSpec(str(las), str(tmp_path / "tiled"), tiling=TilingParams(tile_size=8.0)))
     untiled = pq.read_table(out / "trees.parquet").to_pydict()
     assert tiled.trees["row"].tolist() == untiled["row"] and tiled.trees["position"].tolist() == untiled["position"]
     assert tiled.trees["young"].tolist() == untiled["young"]
