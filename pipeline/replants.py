@@ -1,11 +1,16 @@
-"""Replants: young trees in a row's open slots, too low to pass as trees on their own.
+"""The row model as a prior: trees on a row's open planting slots that the trunk tests
+alone reject.
 
-A tree planted into a gap of an old row stands a third to half as tall as its
-neighbours, below the height that tells a tree from a post, a bin or foliage touching
-the ground (``min_tree_height``). The row model is the prior that lets it in: a
-trunk-like contact group that stands on an open planting slot (an empty slot between two
-trees of a row, or the slot beyond a row's end) is a tree when it is tall enough to be a
-nursery tree and passes the tests of a trunk but its height.
+Two kinds stand there. A replant, a young tree planted into a gap of an old row, stands
+a third to half as tall as its neighbours, below the height that tells a tree from a
+post, a bin or foliage touching the ground (``min_tree_height``). And a full-grown tree
+whose contact group passed every test of its own but was taken for a satellite or a
+shoot of a stronger neighbour, or found too wide (on dense rows with foliage to the
+ground, one tree may drain two or three times what its neighbour does). A trunk-like
+contact group standing on an open slot (an empty slot between two trees of a row, or
+for a replant also the slot beyond a row's end) is a tree: a replant when it is tall
+enough to be a nursery tree and passes the tests of a trunk but its height, a full tree
+when it is tall enough and has a trunk's foot.
 """
 
 from __future__ import annotations
@@ -33,7 +38,7 @@ def rescue_replants(
     contact_top: float,
     params: PipelineParams,
 ) -> TrunkDetection:
-    """Add the replants among the rejected contact groups to a detection.
+    """Add the trees on open slots among the rejected contact groups to a detection.
 
     Parameters
     ----------
@@ -50,32 +55,37 @@ def rescue_replants(
     Returns
     -------
     TrunkDetection
-        The detection with the replants appended (trunks ``k..``), marked in ``young``
-        (a replant is exempt from the height test after segmentation); ``det`` itself
-        when there is none.
+        The detection with those trees appended (trunks ``k..``), the replants marked in
+        ``young`` (a replant is exempt from the height test after segmentation); ``det``
+        itself when there is none.
     """
     cand = det.candidates
     if not params.rows.enabled or cand is None or det.k < 3 or not len(cand["x"]):
         return det
     tp = params.trunks
+    rejected = ~np.asarray(cand["accepted"], bool)
     low = (
-        ~np.asarray(cand["accepted"], bool)
+        rejected
         & (cand["top"] >= MIN_REPLANT_HEIGHT)
         & (cand["top"] < tp.min_tree_height)
         & (cand["planar"] <= tp.max_planar_fraction)
         & (cand["width"] <= tp.max_trunk_width)
     )
-    idx = np.flatnonzero(low)
+    # tall enough and a trunk's foot, of any width (foliage to the ground widens it)
+    full = rejected & np.asarray(cand["fits"], bool) & (np.asarray(cand["foot"]) >= tp.min_foot_ratio)
+    idx = np.flatnonzero(low | full)
     if not idx.size:
         return det
     cxy = np.c_[cand["x"], cand["y"]][idx]
     slot = on_open_slot(det.xy, cxy, params=params.rows, reach=SLOT_REACH)
-    on = slot >= 0
+    # a full tree only between two trees: beyond a row's end stand posts, bins, vehicles
+    inner = on_open_slot(det.xy, cxy, params=params.rows, reach=SLOT_REACH, ends=False) >= 0
+    on = (slot >= 0) & (inner | ~full[idx])
     idx, cxy, slot = idx[on], cxy[on], slot[on]
     if not idx.size:
         return det
-    # one replant per slot: the group with the most material
-    order = np.lexsort((-cand["support"][idx], slot))
+    # one tree per slot: a full-grown one before a replant, then the most material
+    order = np.lexsort((-cand["support"][idx], ~full[idx], slot))
     first = np.r_[True, np.diff(slot[order]) != 0]
     pick = order[first]
     idx, cxy = idx[pick], cxy[pick]
@@ -108,6 +118,6 @@ def rescue_replants(
         np.r_[det.source_trunk, trunk_new[~taken]],
         det.candidates,
         det.spacing,
-        np.r_[np.zeros(det.k, bool) if det.young is None else det.young, np.ones(len(cxy), bool)],
+        np.r_[np.zeros(det.k, bool) if det.young is None else det.young, ~full[idx]],
     )
     return out

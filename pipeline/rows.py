@@ -34,6 +34,8 @@ from pipeline.params import RowParams
 _DIRECTION_NEIGHBOURS = 12
 #: first-pass links reach this many slots (one empty slot between two trees)
 _SHORT_LINK_SLOTS = 2.5
+#: an off-row trunk this many row spacings beyond an outer row is no row of its own yet
+_OUTER_REACH = 0.5
 #: a row's planting distance differs from the block's by at most this fraction ...
 _SPACING_SLACK = 0.1
 #: ... and is looked for in this many steps (0.1 % of the spacing)
@@ -63,8 +65,9 @@ class RowLayout:
         Trees off every row line, or a second tree in an occupied slot; each is a row of
         its own, numbered after the rows.
     between_rows : (k,) bool
-        Those off-row trees that stand between two rows, within the rows' extent: more
-        likely a false trunk (foliage or a weed touching down) than a tree.
+        Those off-row trees that stand between two rows, or less than half a row spacing
+        beyond an outer row, within the rows' extent: more likely a false trunk (foliage
+        or a weed touching down) than a tree.
     """
 
     row: np.ndarray
@@ -282,7 +285,9 @@ def _section_rows(local, direction, members, u, v, spacing, params):
         sel = np.flatnonzero(on & (nearest == r))
         if len(sel):
             rows.append((float(centre), members[sel[np.argsort(a[sel], kind="stable")]]))
-    inside = (flat > centres.min()) & (flat < centres.max())
+    # between two rows, or beside an outer row nearer than an unseen next row could stand
+    reach = _OUTER_REACH * across if np.isfinite(across) and len(centres) > 1 else 0.0
+    inside = (flat > centres.min() - reach) & (flat < centres.max() + reach)
     if on.any():
         inside &= (a >= a[on].min() - spacing) & (a <= a[on].max() + spacing)
     return rows, members[~on], members[~on & inside], spacing
@@ -446,14 +451,14 @@ def find_rows(xy: np.ndarray, height: np.ndarray | None = None, *, params: RowPa
 MIN_LATTICE_TREES = 4
 
 
-def open_slots(layout: RowLayout) -> np.ndarray:
+def open_slots(layout: RowLayout, *, ends: bool = True) -> np.ndarray:
     """(o, 2) float64 centres [m] of the slots a tree could still stand in, in rows of at
     least :data:`MIN_LATTICE_TREES` trees: the empty slots between two trees of the row,
-    and the slot beyond each of its ends."""
+    and (``ends``) the slot beyond each of its ends."""
     long = layout.rows["row"][layout.rows["n_trees"] >= MIN_LATTICE_TREES]
     in_long = np.isin(layout.gaps["row"], long)
     pts = [np.c_[layout.gaps["x"][in_long], layout.gaps["y"][in_long]]]
-    for line, s in zip(layout.lines, layout.rows["spacing_m"]):
+    for line, s in zip(layout.lines if ends else [], layout.rows["spacing_m"]):
         if len(line) >= MIN_LATTICE_TREES and np.isfinite(s):
             for end, inner in ((line[-1], line[-3]), (line[0], line[2])):
                 step = end - inner
@@ -462,7 +467,7 @@ def open_slots(layout: RowLayout) -> np.ndarray:
 
 
 def on_open_slot(tree_xy: np.ndarray, cand_xy: np.ndarray, *, params: RowParams | None = None,
-                 reach: float = 0.2) -> np.ndarray:
+                 reach: float = 0.2, ends: bool = True) -> np.ndarray:
     """Which open slot (:func:`open_slots`) of the rows of ``tree_xy`` each candidate
     stands on: a candidate there is more likely a tree (a replant, a thin trunk) than
     one elsewhere.
@@ -476,6 +481,8 @@ def on_open_slot(tree_xy: np.ndarray, cand_xy: np.ndarray, *, params: RowParams 
     params : RowParams, optional
     reach : float
         A candidate stands on a slot within this fraction of the block's spacing.
+    ends : bool
+        Count the slot beyond each row's end (else only the gaps between two trees).
 
     Returns
     -------
@@ -487,7 +494,7 @@ def on_open_slot(tree_xy: np.ndarray, cand_xy: np.ndarray, *, params: RowParams 
     if len(cand_xy) == 0 or len(tree_xy) < 3:
         return out
     lay = find_rows(tree_xy, params=params or RowParams())
-    slots = open_slots(lay)
+    slots = open_slots(lay, ends=ends)
     spacing = np.nanmedian(lay.rows["spacing_m"]) if np.isfinite(lay.rows["spacing_m"]).any() else np.nan
     if not len(slots) or not np.isfinite(spacing):
         return out
