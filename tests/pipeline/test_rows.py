@@ -233,6 +233,17 @@ def test_a_lone_tree_beyond_the_rows_is_not_between_them():
     assert lay.row[:-1].tolist() == true_row.tolist() and lay.row[-1] == 4  # a row of its own
 
 
+def test_a_false_trunk_just_beyond_an_outer_row_goes_like_one_between_rows():
+    xy, true_row, _, _ = plan(n_rows=3, per_row=10, s=2.5, r=4.5, jitter=0.03)
+    near = xy[25] + [0.4, 1.3]   # foliage of the outer row 3 touching down on the alley side
+    lay = find_rows(np.r_[xy, [near]])
+    assert lay.row[:-1].tolist() == true_row.tolist()
+    assert lay.off_row[-1] and lay.between_rows[-1]
+    far = xy[25] + [0.4, 3.5]    # 0.78 row spacings out: could be the start of a row
+    lay = find_rows(np.r_[xy, [far]])
+    assert not lay.between_rows[-1] and lay.row[-1] == 4
+
+
 def test_a_second_trunk_in_one_slot_is_off_the_row():
     xy, true_row, true_slot, _ = plan(n_rows=2, per_row=12, s=1.5, r=3.5, jitter=0.02)
     twin = xy[5] + [0.15, 0.05]  # a split trunk, a sucker
