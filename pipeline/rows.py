@@ -27,6 +27,7 @@ from scipy.sparse import coo_matrix
 from scipy.sparse.csgraph import connected_components
 from scipy.spatial import cKDTree
 
+from pipeline.canopy import canopy_rows
 from pipeline.params import RowParams
 
 #: neighbours whose smoothed direction defines a tree's local row direction: enough to
@@ -227,7 +228,7 @@ def _steps(p: np.ndarray, d: np.ndarray) -> np.ndarray:
     return np.abs(np.einsum("ij,ij->i", np.diff(p, axis=0), mid))
 
 
-def _section_rows(local, direction, members, u, v, spacing, params):
+def _section_rows(local, direction, members, u, v, spacing, params, canopy=None):
     """Rows of one section of the block.
 
     Strategy: trees linked into chains (:func:`_link`) give the rows' course; the
@@ -236,12 +237,15 @@ def _section_rows(local, direction, members, u, v, spacing, params):
     that each row is one across offset. Chains of three or more trees, and shorter ones
     half a row spacing from all of those, are rows; those whose offsets lie within half
     the lateral tolerance of each other are one row (fragments on both sides of a run of
-    empty slots). Every tree goes to its nearest row, unless it lies farther from it
-    than ``params.max_offset`` times the distance between rows.
+    empty slots). Strips of ``canopy`` (cell centres, local frame) half a row spacing
+    from all of those are rows whose trunks are hidden (:mod:`pipeline.canopy`). Every
+    tree goes to its nearest row, unless it lies farther from it than
+    ``params.max_offset`` times the distance between rows.
 
     Returns
     -------
-    rows : list of (offset, (n,) int64 tree indices in order along the row)
+    rows : list of (offset, (n,) int64 tree indices in order along the row, line): the
+        line (local frame) only for a canopy row without trees, else None
     off : (o,) int64 — trees off every row
     between : (b,) int64 — those of them between two rows, within the rows' extent
     spacing : float — the typical step between neighbours in a row [m]
@@ -277,14 +281,27 @@ def _section_rows(local, direction, members, u, v, spacing, params):
     merge = 0.5 * tol if np.isfinite(across) else np.inf
     cut = np.r_[0, np.flatnonzero(np.diff(offs) > merge) + 1, len(offs)]
     centres = np.array([np.average(offs[i:j], weights=weight[i:j]) for i, j in zip(cut[:-1], cut[1:])])
+    bowed = lambda along: (along - a.mean()) / scale  # noqa: E731
+    shown = []
+    if canopy is not None and len(canopy) and np.isfinite(across):
+        tc = bowed(canopy @ u)
+        shown = canopy_rows(canopy @ v - curve[0] * tc - curve[1] * tc**2, canopy @ u, centres,
+                            row_spacing=across, spacing=spacing)
+        centres = np.sort(np.r_[centres, [off for off, _, _ in shown]])
     nearest = np.abs(flat[:, None] - centres[None, :]).argmin(axis=1)
     dist = np.abs(flat - centres[nearest])
     on = dist <= params.max_offset * across if np.isfinite(across) else np.ones(len(p), dtype=bool)
     rows = []
+    strips = {off: (start, end) for off, start, end in shown}
     for r, centre in enumerate(centres):
         sel = np.flatnonzero(on & (nearest == r))
         if len(sel):
-            rows.append((float(centre), members[sel[np.argsort(a[sel], kind="stable")]]))
+            rows.append((float(centre), members[sel[np.argsort(a[sel], kind="stable")]], None))
+        elif centre in strips:  # the canopy's row, its trunks all hidden: a line along its strip
+            along = np.linspace(*strips[centre], 5)
+            tc = bowed(along)
+            across_c = centre + curve[0] * tc + curve[1] * tc**2
+            rows.append((float(centre), np.zeros(0, np.int64), along[:, None] * u + across_c[:, None] * v))
     # between two rows, or beside an outer row nearer than an unseen next row could stand
     reach = _OUTER_REACH * across if np.isfinite(across) and len(centres) > 1 else 0.0
     inside = (flat > centres.min() - reach) & (flat < centres.max() + reach)
@@ -339,11 +356,20 @@ def _young(height: np.ndarray, chains: list[np.ndarray], ratio: float) -> np.nda
     return young
 
 
+def _oriented_line(line: np.ndarray) -> tuple[bool, np.ndarray]:
+    """A canopy row's line in the order positions run (east, or north for rows closer
+    to north-south): (whether it was reversed, the line)."""
+    step = line[-1] - line[0]
+    flip = step[1] < 0 if abs(step[1]) > abs(step[0]) else step[0] < 0
+    return bool(flip), line[::-1].copy() if flip else line.copy()
+
+
 def _azimuth(v: np.ndarray) -> float:
     return float(np.degrees(np.arctan2(v[0], v[1])) % 360.0)
 
 
-def find_rows(xy: np.ndarray, height: np.ndarray | None = None, *, params: RowParams | None = None) -> RowLayout:
+def find_rows(xy: np.ndarray, height: np.ndarray | None = None, *, params: RowParams | None = None,
+              canopy: np.ndarray | None = None) -> RowLayout:
     """Find the rows of a block and give every tree its address.
 
     Parameters
@@ -353,6 +379,10 @@ def find_rows(xy: np.ndarray, height: np.ndarray | None = None, *, params: RowPa
     height : (k,) float64, optional
         Tree heights [m], for telling replants (``young``); without, no tree is young.
     params : RowParams, optional
+    canopy : (c, 2) float64, optional
+        Canopy cell centres [m] in the frame of ``xy`` (:func:`pipeline.canopy.canopy_cells`):
+        a strip of canopy between or beside the rows the trunks give is a row whose
+        trunks are hidden, numbered with the others (``n_trees`` 0).
 
     Returns
     -------
@@ -385,6 +415,9 @@ def find_rows(xy: np.ndarray, height: np.ndarray | None = None, *, params: RowPa
     direction = _local_directions(local, near.reshape(k, m))
     section = _sections(local, direction, params.max_section_angle)
     nn_dist = dist.reshape(k, m)[:, 1]
+    if canopy is not None and len(canopy):  # each canopy cell goes with its nearest tree's section
+        can_local = np.asarray(canopy, dtype=np.float64).reshape(-1, 2) - centre
+        can_section = section[cKDTree(local).query(can_local)[1]]
 
     found = []  # per row: (section key, across offset, trees in order along the row, slots, spacing)
     off_row = np.zeros(k, dtype=bool)
@@ -394,15 +427,20 @@ def find_rows(xy: np.ndarray, height: np.ndarray | None = None, *, params: RowPa
         sec_key = tuple(np.round(local[members].mean(axis=0), 3))
         u = _section_direction(direction[members]) if len(members) > 1 else np.array([1.0, 0.0])
         v = np.array([u[1], -u[0]]) if abs(u[1]) > abs(u[0]) else np.array([-u[1], u[0]])  # numbering: east or north
-        rows_here, off, between, spacing = _section_rows(local, direction, members, u, v, float(np.median(nn_dist[members])), params)
+        sec_canopy = can_local[can_section == sec] if canopy is not None and len(canopy) else None
+        rows_here, off, between, spacing = _section_rows(local, direction, members, u, v, float(np.median(nn_dist[members])),
+                                                         params, sec_canopy)
         off_row[off] = True
         between_rows[between] = True
-        for offset, g in rows_here:
+        for offset, g, line in rows_here:
+            if line is not None:  # trunks hidden: the canopy's line
+                found.append((sec_key, offset, g, np.zeros(0, np.int64), float("nan"), line + centre))
+                continue
             slots, s, keep = _slots(local[g], direction[g], spacing)
             off_row[g[~keep]] = True  # a second tree in an occupied slot
-            found.append((sec_key, offset, g[keep], slots[keep], s))
+            found.append((sec_key, offset, g[keep], slots[keep], s, None))
     for i in np.flatnonzero(off_row):  # off every row line: one row each, after the rows
-        found.append(((np.inf,), float(xy[i, 0]), np.array([i]), np.zeros(1, np.int64), float("nan")))
+        found.append(((np.inf,), float(xy[i, 0]), np.array([i]), np.zeros(1, np.int64), float("nan"), None))
 
     # order: sections west to east (then south to north), rows across
     order = sorted(range(len(found)), key=lambda a: (found[a][0], found[a][1]))
@@ -411,7 +449,17 @@ def find_rows(xy: np.ndarray, height: np.ndarray | None = None, *, params: RowPa
     lines = []
     gaps = {key: [] for key in empty_gaps}
     for number, a in enumerate(order, start=1):
-        _, _, g, slots, s = found[a]
+        _, _, g, slots, s, canopy_line = found[a]
+        if canopy_line is not None:
+            _, pos = _oriented_line(canopy_line)
+            lines.append(pos)
+            rows_out["row"].append(number)
+            rows_out["n_trees"].append(0)
+            rows_out["n_gaps"].append(0)
+            rows_out["spacing_m"].append(np.nan)
+            rows_out["length_m"].append(float(np.hypot(*np.diff(pos, axis=0).T).sum()))
+            rows_out["azimuth_deg"].append(_azimuth(pos[-1] - pos[0]))
+            continue
         slots = slots - slots[0]
         row[g] = number
         position[g] = slots + 1
