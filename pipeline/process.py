@@ -25,7 +25,7 @@ from pipeline.ground import GroundModel, classify_ground, ground_model
 from pipeline.metrics import trunk_circles
 from pipeline.params import PipelineParams
 from pipeline.posts import Posts, find_posts, on_posts
-from pipeline.replants import rescue_replants
+from pipeline.slots import rescue_on_open_slots
 from pipeline.segment import (
     Segmentation,
     curved_patches,
@@ -296,7 +296,7 @@ def analyse_nodes(
         if on_post.any():
             det = detect(without_nodes(drainage, on_post))  # the spacing measured again, without the posts
     # the row model as a prior: young trees on open planting slots, too low to pass alone
-    det = rescue_replants(det, nodes, node_height, contact_top=ground_top + params.trunks.contact_height, params=params)
+    det = rescue_on_open_slots(det, nodes, node_height, contact_top=ground_top + params.trunks.contact_height, params=params)
     surfaces = on_post | hard_surfaces(
         nodes,
         patch,

@@ -79,7 +79,7 @@ class TrunkDetection:
     source_trunk : (s,) int64 — trunk (0-based) of each source node
     candidates : dict or None — every contact group's measurements (diagnostics)
     spacing : float or None — the in-row tree spacing the radii followed [m]
-    young : (k,) bool or None — trunks let in as replants (:mod:`pipeline.replants`)
+    young : (k,) bool or None — trunks let in as replants (:mod:`pipeline.slots`)
     """
 
     xy: np.ndarray

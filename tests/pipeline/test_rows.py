@@ -193,7 +193,7 @@ def test_addresses_do_not_depend_on_the_order_of_the_trees(angle, dx, dy, seed):
 
 
 def test_candidates_on_open_slots():
-    from pipeline.rows import on_open_slot
+    from pipeline.slots import on_open_slot
 
     xy, _, _, gaps = plan(n_rows=3, per_row=12, s=1.0, r=3.5, jitter=0.0, missing={(2, 6)})
     cands = np.array([
@@ -209,7 +209,7 @@ def test_candidates_on_open_slots():
 
 
 def test_on_open_slot_without_rows_judges_nothing():
-    from pipeline.rows import on_open_slot
+    from pipeline.slots import on_open_slot
 
     assert (on_open_slot(np.array([[0.0, 0.0], [5.0, 0.0]]), np.array([[2.5, 0.0]])) == -1).all()
 

@@ -1,11 +1,11 @@
-"""Replants on open planting slots (pipeline.replants)."""
+"""Open planting slots and the trees let in on them (pipeline.slots)."""
 
 from __future__ import annotations
 
 import numpy as np
 
 from pipeline.params import PipelineParams
-from pipeline.replants import rescue_replants
+from pipeline.slots import rescue_on_open_slots
 from pipeline.trunks import TrunkDetection
 
 
@@ -32,7 +32,7 @@ def test_a_low_tree_on_an_empty_slot_is_a_replant_and_others_are_not():
         [3.1, 0.9, 1.3],     # beside the row
     ])
     det, nodes = _detection(row, cands)
-    out = rescue_replants(det, nodes, np.full(len(nodes), 0.05), contact_top=0.1, params=PipelineParams())
+    out = rescue_on_open_slots(det, nodes, np.full(len(nodes), 0.05), contact_top=0.1, params=PipelineParams())
     assert out.k == det.k + 2
     np.testing.assert_allclose(out.xy[out.young], [[3.05, 0.02], [11.02, 0.0]])
     assert set(out.source_trunk[out.source_nodes >= det.k].tolist()) == {det.k, det.k + 1}
@@ -42,9 +42,9 @@ def test_nothing_is_rescued_with_rows_off_or_too_few_trees():
     row = np.array([[x, 0.0] for x in (0, 1, 2, 4, 5)], dtype=float)
     det, nodes = _detection(row, np.array([[3.0, 0.0, 1.2]]))
     off = PipelineParams(rows={"enabled": False})
-    assert rescue_replants(det, nodes, np.full(len(nodes), 0.05), contact_top=0.1, params=off) is det
+    assert rescue_on_open_slots(det, nodes, np.full(len(nodes), 0.05), contact_top=0.1, params=off) is det
     det2, nodes2 = _detection(row[:2], np.array([[3.0, 0.0, 1.2]]))
-    assert rescue_replants(det2, nodes2, np.full(len(nodes2), 0.05), contact_top=0.1, params=PipelineParams()) is det2
+    assert rescue_on_open_slots(det2, nodes2, np.full(len(nodes2), 0.05), contact_top=0.1, params=PipelineParams()) is det2
 
 
 def test_a_full_tree_taken_for_a_satellite_stands_on_an_inner_empty_slot_only():
@@ -56,7 +56,7 @@ def test_a_full_tree_taken_for_a_satellite_stands_on_an_inner_empty_slot_only():
         [6.5, 0.0, 3.0],     # between two trees
     ])
     det, nodes = _detection(row, cands)
-    out = rescue_replants(det, nodes, np.full(len(nodes), 0.05), contact_top=0.1, params=PipelineParams())
+    out = rescue_on_open_slots(det, nodes, np.full(len(nodes), 0.05), contact_top=0.1, params=PipelineParams())
     assert out.k == det.k + 1
     np.testing.assert_allclose(out.xy[-1], [2.95, 0.05])
     assert not out.young.any()
@@ -66,7 +66,7 @@ def test_a_full_tree_goes_before_a_replant_on_the_same_slot():
     row = np.array([[x, 0.0] for x in (0, 1, 2, 4, 5, 6)], dtype=float)
     cands = np.array([[3.0, 0.1, 1.2], [3.05, -0.05, 3.0]])
     det, nodes = _detection(row, cands)
-    out = rescue_replants(det, nodes, np.full(len(nodes), 0.05), contact_top=0.1, params=PipelineParams())
+    out = rescue_on_open_slots(det, nodes, np.full(len(nodes), 0.05), contact_top=0.1, params=PipelineParams())
     assert out.k == det.k + 1
     np.testing.assert_allclose(out.xy[-1], [3.05, -0.05])
     assert not out.young[-1]

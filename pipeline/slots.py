@@ -18,8 +18,8 @@ from __future__ import annotations
 import numpy as np
 from scipy.spatial import cKDTree
 
-from pipeline.params import PipelineParams
-from pipeline.rows import on_open_slot
+from pipeline.params import PipelineParams, RowParams
+from pipeline.rows import RowLayout, find_rows
 from pipeline.trunks import TrunkDetection
 
 #: a nursery tree planted into a gap stands at least this tall [m]; grass and weeds stay lower
@@ -30,7 +30,63 @@ SLOT_REACH = 0.2
 SOURCE_RADIUS = 0.2
 
 
-def rescue_replants(
+#: a row is evidence of a planting lattice from this many trees on (two trees with a gap
+#: between them are as likely two trees of an irregular stand)
+MIN_LATTICE_TREES = 4
+
+
+def open_slots(layout: RowLayout, *, ends: bool = True) -> np.ndarray:
+    """(o, 2) float64 centres [m] of the slots a tree could still stand in, in rows of at
+    least :data:`MIN_LATTICE_TREES` trees: the empty slots between two trees of the row,
+    and (``ends``) the slot beyond each of its ends."""
+    long = layout.rows["row"][layout.rows["n_trees"] >= MIN_LATTICE_TREES]
+    in_long = np.isin(layout.gaps["row"], long)
+    pts = [np.c_[layout.gaps["x"][in_long], layout.gaps["y"][in_long]]]
+    for line, s in zip(layout.lines if ends else [], layout.rows["spacing_m"]):
+        if len(line) >= MIN_LATTICE_TREES and np.isfinite(s):
+            for end, inner in ((line[-1], line[-3]), (line[0], line[2])):
+                step = end - inner
+                pts.append((end + s * step / np.hypot(*step))[None, :])
+    return np.concatenate(pts).reshape(-1, 2)
+
+
+def on_open_slot(tree_xy: np.ndarray, cand_xy: np.ndarray, *, params: RowParams | None = None,
+                 reach: float = 0.2, ends: bool = True) -> np.ndarray:
+    """Which open slot (:func:`open_slots`) of the rows of ``tree_xy`` each candidate
+    stands on: a candidate there is more likely a tree (a replant, a thin trunk) than
+    one elsewhere.
+
+    Parameters
+    ----------
+    tree_xy : (k, 2) float64
+        Trunks accepted so far [m].
+    cand_xy : (c, 2) float64
+        Candidates [m].
+    params : RowParams, optional
+    reach : float
+        A candidate stands on a slot within this fraction of the block's spacing.
+    ends : bool
+        Count the slot beyond each row's end (else only the gaps between two trees).
+
+    Returns
+    -------
+    (c,) int64 index of the open slot, -1 where none (or fewer than three trees).
+    """
+    cand_xy = np.asarray(cand_xy, dtype=np.float64).reshape(-1, 2)
+    out = np.full(len(cand_xy), -1, dtype=np.int64)
+    tree_xy = np.asarray(tree_xy, dtype=np.float64).reshape(-1, 2)
+    if len(cand_xy) == 0 or len(tree_xy) < 3:
+        return out
+    lay = find_rows(tree_xy, params=params or RowParams())
+    slots = open_slots(lay, ends=ends)
+    spacing = np.nanmedian(lay.rows["spacing_m"]) if np.isfinite(lay.rows["spacing_m"]).any() else np.nan
+    if not len(slots) or not np.isfinite(spacing):
+        return out
+    d, j = cKDTree(slots).query(cand_xy)
+    return np.where(d <= reach * spacing, j, -1)
+
+
+def rescue_on_open_slots(
     det: TrunkDetection,
     nodes: np.ndarray,
     node_height: np.ndarray,
