@@ -9,7 +9,8 @@ and 5 % replanted, writes each as LAZ with its truth, runs the whole job as
 ``orchard evaluate`` (``pipeline.evaluation.result.evaluate_result``). Prints a Markdown table:
 pooled trunk precision, recall and F1, mean v-measure, the share of found trees at their
 true address (up to the numbering rule, docs/rows.md), empty-slot precision and recall,
-and replants found and flagged young.
+replants found and flagged young, and the rows found (those from the canopy alone, with
+no trunk found, in brackets).
 """
 
 from __future__ import annotations
@@ -19,6 +20,7 @@ import tempfile
 from pathlib import Path
 
 import numpy as np
+import pyarrow.parquet as pq
 
 from pipeline.evaluation.result import evaluate_result
 from pipeline.synthetic.simparams import SimulationParams
@@ -47,7 +49,9 @@ def score(system: dict, seed: int, work: Path) -> dict:
     write_simulation(sim, str(las), str(truth))
     out = work / f"out{seed}"
     run_job(JobSpec(str(las), str(out)))
-    return evaluate_result(str(truth), str(out), match_distance=min(1.0, MATCH_FRACTION * sim.spacing))
+    scores = evaluate_result(str(truth), str(out), match_distance=min(1.0, MATCH_FRACTION * sim.spacing))
+    rows = pq.read_table(out / "rows.parquet", columns=["n_trees"]).column("n_trees").to_numpy()
+    return dict(scores, rows_true=sim.rows, rows_found=int(len(rows)), rows_without_trees=int((rows == 0).sum()))
 
 
 def table_row(name: str, scores: list[dict]) -> str:
@@ -62,14 +66,16 @@ def table_row(name: str, scores: list[dict]) -> str:
     gr = gtp / max(gtp + gfn, 1)
     young = f"{sum(s.get('young_correct', 0) for s in scores)} / {sum(s.get('young_true', 0) for s in scores)}"
     flagged = sum(s.get("young_found", 0) for s in scores)
+    rows = f"{sum(s['rows_found'] for s in scores)} / {sum(s['rows_true'] for s in scores)}"
+    canopy = sum(s["rows_without_trees"] for s in scores)
     return (f"| {name} | {len(scores)} | {p:.3f} | {r:.3f} | {f1:.3f} | {vm:.3f} | {addr:.3f} | {gp:.2f} | {gr:.2f} "
-            f"| {young} ({flagged} flagged) |")
+            f"| {young} ({flagged} flagged) | {rows} ({canopy}) |")
 
 
 HEADER = (
     "| planting system | blocks | trunk precision | trunk recall | trunk F1 | v-measure | address accuracy "
-    "| empty-slot precision | empty-slot recall | replants flagged young / true |\n"
-    "|---|---|---|---|---|---|---|---|---|---|"
+    "| empty-slot precision | empty-slot recall | replants flagged young / true | rows found / true (from the canopy only) |\n"
+    "|---|---|---|---|---|---|---|---|---|---|---|"
 )
 
 

@@ -21,8 +21,13 @@ MIN_HEIGHT = 1.0
 MIN_ROW_SLOTS = 3.0
 #: ... covered by canopy over at least this share of its length (a vehicle or a bin is short)
 MIN_FILL = 0.6
-#: ... and at least this dense across, relative to the rows the trunks give
+#: ... at least this dense across, relative to the rows the trunks give ...
 MIN_PEAK_RATIO = 0.4
+#: ... and at least this thick, relative to them (a fence's wire is one cell thick)
+MIN_THICKNESS_RATIO = 0.5
+#: the canopy's rows may stand this close, relative to the trunks' rows (two hidden rows
+#: in a row); closer peaks are the two sides of one crown wall
+MIN_SPACING_RATIO = 0.3
 
 
 def canopy_cells(xy: np.ndarray, height: np.ndarray, *, cell: float = CELL, min_height: float = MIN_HEIGHT) -> np.ndarray:
@@ -54,7 +59,7 @@ def cell_centres(cells: np.ndarray, *, cell: float = CELL, origin=(0.0, 0.0)) ->
 
 
 def canopy_rows(across: np.ndarray, along: np.ndarray, known: np.ndarray, *, row_spacing: float,
-                spacing: float) -> list[tuple[float, float, float]]:
+                spacing: float, extent: tuple[float, float] | None = None) -> list[tuple[float, float, float]]:
     """Rows the canopy shows beside those the trunks give.
 
     Parameters
@@ -65,9 +70,14 @@ def canopy_rows(across: np.ndarray, along: np.ndarray, known: np.ndarray, *, row
     known : (r,) float64
         Across offsets of the rows the trunks give [m].
     row_spacing : float
-        Distance between rows [m].
+        Distance between the rows the trunks give [m] (twice the true one where every
+        other row is hidden: the canopy's own is measured here).
     spacing : float
         Planting distance in a row [m].
+    extent : (start, end), optional
+        Along range of the trees of the known rows [m]: a canopy row reaches at most
+        half a row spacing and one planting distance past it at either end (a fence
+        around the block runs on into the headlands).
 
     Returns
     -------
@@ -76,29 +86,48 @@ def canopy_rows(across: np.ndarray, along: np.ndarray, known: np.ndarray, *, row
     """
     across = np.asarray(across, dtype=np.float64)
     along = np.asarray(along, dtype=np.float64)
+    known = np.asarray(known, dtype=np.float64)
     if len(across) == 0 or not len(known) or not (np.isfinite(row_spacing) and row_spacing > 0):
         return []
-    step = row_spacing / 20.0
-    lo, hi = across.min() - row_spacing, across.max() + row_spacing
-    counts = np.bincount(((across - lo) / step).astype(np.int64), minlength=int((hi - lo) / step) + 1).astype(float)
-    density = gaussian_filter1d(counts, sigma=2.0)
-    at = lambda off: density[np.clip(((np.asarray(off) - lo) / step).astype(np.int64), 0, len(density) - 1)]  # noqa: E731
-    floor = MIN_PEAK_RATIO * float(np.median(at(known)))
-    peaks, _ = find_peaks(density, height=floor, distance=max(1, int(0.6 * row_spacing / step)))
+    step = CELL / 2
+    lo = across.min() - 1.0
+    counts = np.bincount(((across - lo) / step).astype(np.int64)).astype(float)
+    density = gaussian_filter1d(np.r_[counts, np.zeros(int(2.0 / step))], sigma=2.0)
+    floor = MIN_PEAK_RATIO * float(np.median(density[np.clip(((known - lo) / step).astype(np.int64), 0, len(density) - 1)]))
+    # crowns of neighbouring rows stand at least a quarter of the trunks' row spacing apart
+    peaks, _ = find_peaks(density, height=floor, distance=max(1, int(0.25 * row_spacing / step)))
+    offsets = lo + (peaks + 0.5) * step
+    if len(offsets) > 1:  # the canopy's own row spacing, where every other row (or two) is hidden
+        gap = float(np.median(np.diff(offsets)))
+        if MIN_SPACING_RATIO * row_spacing <= gap < 0.9 * row_spacing:
+            row_spacing = gap
+    thick = MIN_THICKNESS_RATIO * float(np.median([_thickness(across, along, off, row_spacing) for off in known]))
     out = []
-    for pk in peaks:
-        off = lo + (pk + 0.5) * step
-        if np.abs(np.asarray(known) - off).min() < 0.5 * row_spacing:
+    for off in offsets:
+        if np.abs(known - off).min() < 0.5 * row_spacing:
             continue
         strip = np.abs(across - off) <= 0.25 * row_spacing
         if not strip.any():
             continue
+        off = float(np.median(across[strip]))  # the strip's middle, finer than the histogram
         a = np.sort(along[strip])
         length = a[-1] - a[0]
         if length < MIN_ROW_SLOTS * spacing:
             continue
         covered = np.unique(np.floor((a - a[0]) / CELL)).size * CELL
-        if covered < MIN_FILL * length:
+        if covered < MIN_FILL * length or _thickness(across, along, off, row_spacing) < thick:
             continue
-        out.append((float(off), float(a[0]), float(a[-1])))
+        overhang = 0.5 * row_spacing + spacing
+        if extent is not None and (a[0] < extent[0] - overhang or a[-1] > extent[1] + overhang):
+            continue
+        out.append((off, float(a[0]), float(a[-1])))
     return out
+
+
+def _thickness(across: np.ndarray, along: np.ndarray, off: float, row_spacing: float) -> float:
+    """Median thickness [m] across the strip of canopy at ``off``: cells per along step."""
+    strip = np.abs(across - off) <= 0.25 * row_spacing
+    if not strip.any():
+        return 0.0
+    _, per_step = np.unique(np.floor(along[strip] / CELL), return_counts=True)
+    return float(np.median(per_step)) * CELL

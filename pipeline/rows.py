@@ -286,7 +286,7 @@ def _section_rows(local, direction, members, u, v, spacing, params, canopy=None)
     if canopy is not None and len(canopy) and np.isfinite(across):
         tc = bowed(canopy @ u)
         shown = canopy_rows(canopy @ v - curve[0] * tc - curve[1] * tc**2, canopy @ u, centres,
-                            row_spacing=across, spacing=spacing)
+                            row_spacing=across, spacing=spacing, extent=(float(a.min()), float(a.max())))
         centres = np.sort(np.r_[centres, [off for off, _, _ in shown]])
     nearest = np.abs(flat[:, None] - centres[None, :]).argmin(axis=1)
     dist = np.abs(flat - centres[nearest])

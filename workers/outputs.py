@@ -18,6 +18,7 @@ import numpy as np
 from scipy.spatial import cKDTree
 
 from pipeline.blockinfo import BlockInfo
+from pipeline.canopy import cell_centres
 from pipeline.errors import NoTreesError, ParameterError
 from pipeline.laswriting import write_labelled_las
 from pipeline.merge import GlobalTrunks, TileTrunks, reconcile_trunks
@@ -101,15 +102,24 @@ def trees_table(summaries: list[dict], merged: GlobalTrunks, origin) -> dict:
     return cols
 
 
-def without_trunks_between_rows(merged: GlobalTrunks, params: PipelineParams) -> GlobalTrunks:
+def block_canopy(summaries: list[dict]) -> np.ndarray:
+    """(c, 2) float64 centres of the canopy cells of every tile's core, in the input CRS [m]."""
+    cells = [s["canopy"] for s in summaries if s.get("canopy") is not None]
+    if not cells:
+        return np.zeros((0, 2))
+    return cell_centres(np.unique(np.concatenate(cells), axis=0))
+
+
+def without_trunks_between_rows(merged: GlobalTrunks, params: PipelineParams, canopy: np.ndarray | None = None) -> GlobalTrunks:
     """The merged trunks less those that stand between two rows (the row model as a
     prior: off both row lines is foliage or a weed touching down, not a tree); the
     material of each goes to the nearest remaining tree within the crown radius.
-    Decided on the whole block's trunks, so tiled and untiled runs agree."""
+    Decided on the whole block's trunks (and ``canopy``, cell centres in the trunks'
+    frame), so tiled and untiled runs agree."""
     if not (params.rows.enabled and params.rows.drop_between_rows) or merged.n_trees < 3:
         return merged
     xy = merged.trunks[:, :2]
-    drop = find_rows(xy, params=params.rows).between_rows
+    drop = find_rows(xy, params=params.rows, canopy=canopy).between_rows
     if not drop.any() or drop.all():
         return merged
     keep = ~drop
@@ -137,14 +147,15 @@ def replanted(summaries: list[dict], merged: GlobalTrunks) -> np.ndarray:
     return young
 
 
-def with_rows(trees: dict, params: RowParams, replants: np.ndarray | None = None) -> tuple[dict, RowLayout | None]:
+def with_rows(trees: dict, params: RowParams, replants: np.ndarray | None = None,
+              canopy: np.ndarray | None = None) -> tuple[dict, RowLayout | None]:
     """The trees table with each tree's address (``row``, ``position``, ``young``), and
-    the block's rows; computed on the merged trees, so tiled and untiled runs agree. A
-    tree is young when it is much lower than its row neighbours or was let in as a
-    replant."""
+    the block's rows (with those only the ``canopy`` shows: cell centres, input CRS);
+    computed on the merged trees, so tiled and untiled runs agree. A tree is young when
+    it is much lower than its row neighbours or was let in as a replant."""
     if not params.enabled:
         return trees, None
-    layout = find_rows(np.c_[trees["trunk_x"], trees["trunk_y"]], trees["height_m"], params=params)
+    layout = find_rows(np.c_[trees["trunk_x"], trees["trunk_y"]], trees["height_m"], params=params, canopy=canopy)
     young = layout.young if replants is None else layout.young | replants
     return dict(trees, row=layout.row, position=layout.position, young=young), layout
 
@@ -204,10 +215,12 @@ def merge_and_write(
         fallback_radius=params.segment.max_crown_radius,
         dead_zones=dead_zones,
     )
-    merged = without_trunks_between_rows(merged, params)
+    canopy = block_canopy(summaries) if params.rows.enabled else None
+    local_canopy = None if canopy is None else canopy - np.asarray(info.origin[:2], dtype=np.float64)
+    merged = without_trunks_between_rows(merged, params, local_canopy)
     if merged.n_trees == 0:
         raise no_trees(info)
-    trees, layout = with_rows(trees_table(summaries, merged, info.origin), params.rows, replanted(summaries, merged))
+    trees, layout = with_rows(trees_table(summaries, merged, info.origin), params.rows, replanted(summaries, merged), canopy)
     outputs = write_outputs(out_dir, info, labels(merged), trees, labelled_laz=labelled_laz, failed=failed, layout=layout)
     return merged.n_trees, trees, outputs
 

@@ -15,6 +15,7 @@ from types import SimpleNamespace
 
 import numpy as np
 
+from pipeline.canopy import canopy_cells
 from pipeline.errors import InputError
 from pipeline.ground import ground_residuals, raw_ground_model
 from pipeline.metrics import tree_partials
@@ -70,6 +71,9 @@ def summarise(tile_id, xyz, core, result, grid: TileGrid | None, origin, params:
         "cluster_radius": cluster_radius,
         "partials": partials,
         "n_core": int(core.sum()),
+        # the canopy of the core, for rows whose trunks are hidden (cells in the input CRS)
+        "canopy": canopy_cells(xyz[sel, :2][~result.is_ground[sel]] + np.asarray(origin[:2]),
+                               result.height[sel][~result.is_ground[sel]]),
     }
 
 

@@ -11,7 +11,7 @@ from pipeline.rows import find_rows
 
 def hedgerows(n_rows=4, per_row=12, s=1.0, r=3.5, hidden=(3,), seed=0):
     """Trunks of a hedgerow block (rows along x, ``hidden`` rows without any trunk found)
-    and its canopy cells: a 1 m wide wall over every row."""
+    and its canopy cells: a 1.5 m wide wall over every row."""
     rng = np.random.default_rng(seed)
     trunks, row = [], []
     for i in range(n_rows):
@@ -20,7 +20,7 @@ def hedgerows(n_rows=4, per_row=12, s=1.0, r=3.5, hidden=(3,), seed=0):
         for j in range(per_row):
             trunks.append([j * s + rng.normal(0, 0.03), i * r + rng.normal(0, 0.03)])
             row.append(i + 1)
-    x, y = np.meshgrid(np.arange(-0.4, (per_row - 1) * s + 0.4, 0.05), np.arange(-0.5, 0.5, 0.05))
+    x, y = np.meshgrid(np.arange(-0.4, (per_row - 1) * s + 0.4, 0.05), np.arange(-0.75, 0.75, 0.05))
     wall = np.c_[x.ravel(), y.ravel()]
     canopy = np.concatenate([wall + [0, i * r] for i in range(n_rows)])
     return np.asarray(trunks), np.asarray(row), canopy
@@ -75,3 +75,21 @@ def test_a_hidden_row_of_a_rotated_block(angle):
     lay = find_rows(trunks @ rot.T + [300.0, 700.0], canopy=cells + [300.0, 700.0])
     assert lay.rows["n_trees"].tolist() in ([12, 0, 12, 12, 12], [12, 12, 12, 0, 12])  # numbered from either side
     assert len(np.unique(lay.row)) == 4 and len(lay.rows["row"]) == 5
+
+
+def test_a_fence_wire_beside_the_block_is_no_row():
+    trunks, row, canopy = hedgerows(hidden=())
+    x = np.arange(-1.0, 12.0, 0.05)
+    wire = np.c_[np.r_[x, x], np.r_[np.full(260, -2.6), np.full(260, -2.45)]]  # a fence along the block's edge
+    cells = cell_centres(canopy_cells(np.r_[canopy, wire], np.full(len(canopy) + len(wire), 2.0)))
+    lay = find_rows(trunks, canopy=cells)
+    assert lay.rows["n_trees"].tolist() == [12, 12, 12, 12]
+
+
+def test_a_fence_running_on_past_the_rows_is_no_row():
+    trunks, row, canopy = hedgerows(hidden=())
+    x, y = np.meshgrid(np.arange(-6.0, 17.0, 0.05), np.arange(-2.8, -2.0, 0.05))  # thick, dense, but 6 m past each end
+    fence = np.c_[x.ravel(), y.ravel()]
+    cells = cell_centres(canopy_cells(np.r_[canopy, fence], np.full(len(canopy) + len(fence), 2.0)))
+    lay = find_rows(trunks, canopy=cells)
+    assert lay.rows["n_trees"].tolist() == [12, 12, 12, 12]

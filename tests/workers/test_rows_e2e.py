@@ -45,3 +45,33 @@ def test_a_hedgerow_gets_its_trunks_and_addresses(hedgerow, tmp_path):
     untiled = pq.read_table(out / "trees.parquet").to_pydict()
     assert tiled.trees["row"].tolist() == untiled["row"] and tiled.trees["position"].tolist() == untiled["position"]
     assert tiled.trees["young"].tolist() == untiled["young"]
+
+
+@pytest.mark.slow
+def test_a_row_whose_trunks_are_all_hidden_is_found_from_its_canopy(tmp_path):
+    """The lowest 1.2 m of every tree of row 2 cut out of a generated hedge: no trunk
+    there, but the canopy shows the row, and row 3 keeps its number."""
+    import laspy
+
+    from pipeline.synthetic.truth import read_truth, read_truth_layout
+
+    las, truth = tmp_path / "hedge.laz", tmp_path / "hedge.truth.parquet"
+    sim = SimulationParams(form="hedge", rows=3, trees_per_row=10, spacing=1.35, row_spacing=4.0, density=0.4, seed=12,
+                           vehicle=False, bin=False)
+    write_simulation(sim, str(las), str(truth))
+    cols, trunks = read_truth(str(truth))
+    row_of_tree = np.r_[0, read_truth_layout(str(truth))["tree_row"]]
+    data = laspy.read(str(las))
+    in_row2 = row_of_tree[cols["tree_id"]] == 2
+    low = np.asarray(data.z) < trunks[:, 2].max() + 1.2
+    cut = tmp_path / "hidden.laz"
+    data.points = data.points[~(in_row2 & low)]
+    data.write(str(cut))
+    out = tmp_path / "out"
+    run_job(JobSpec(str(cut), str(out)))
+    rows = pq.read_table(out / "rows.parquet").to_pydict()
+    trees = pq.read_table(out / "trees.parquet").to_pydict()
+    assert rows["row"] == [1, 2, 3] and rows["n_trees"][1] == 0
+    assert rows["n_trees"][0] >= 9 and rows["n_trees"][2] >= 9
+    ys = np.asarray(trees["trunk_y"])
+    assert set(np.asarray(trees["row"])[ys > np.median(trunks[:, 1]) + 1.0].tolist()) == {3}
