@@ -110,7 +110,7 @@ def canopy_rows(across: np.ndarray, along: np.ndarray, known: np.ndarray, *, row
         if not strip.any():
             continue
         off = float(np.median(across[strip]))  # the strip's middle, finer than the histogram
-        a = np.sort(along[strip])
+        a = _longest_run(_solid(along[strip]), max_gap=spacing)  # stray outliers do not lengthen it
         length = a[-1] - a[0]
         if length < MIN_ROW_SLOTS * spacing:
             continue
@@ -122,6 +122,20 @@ def canopy_rows(across: np.ndarray, along: np.ndarray, known: np.ndarray, *, row
             continue
         out.append((off, float(a[0]), float(a[-1])))
     return out
+
+
+def _solid(along: np.ndarray) -> np.ndarray:
+    """Sorted along positions [m] of the strip's cells, less those where the strip is
+    under half its median thickness (stray points beyond a crown wall's ends)."""
+    step, inverse, counts = np.unique(np.floor(along / CELL), return_inverse=True, return_counts=True)
+    return np.sort(along[counts[inverse] >= 0.5 * np.median(counts)])
+
+
+def _longest_run(a: np.ndarray, *, max_gap: float) -> np.ndarray:
+    """The longest stretch of sorted ``a`` without a gap wider than ``max_gap`` [m]."""
+    cuts = np.r_[0, np.flatnonzero(np.diff(a) > max_gap) + 1, len(a)]
+    i = int(np.argmax(a[cuts[1:] - 1] - a[cuts[:-1]]))
+    return a[cuts[i]:cuts[i + 1]]
 
 
 def _thickness(across: np.ndarray, along: np.ndarray, off: float, row_spacing: float) -> float:
