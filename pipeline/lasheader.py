@@ -1,8 +1,7 @@
 """The structure of a LAS/LAZ file, checked with ``struct`` before any library parses it.
 
-laspy and lazrs trust the counts and offsets a header gives: a 30 KB file claiming 2^31
-variable-length records (VLRs) had laspy build records until memory ran out, and a
-forged LAZ chunk count had lazrs allocate 32 GB and abort the process. This module
+laspy and lazrs trust the counts and offsets a header gives, so a small forged file can
+make them allocate without bound (docs/hostile-input.md). This module
 reads the public header (LAS 1.0–1.4, ASPRS LAS 1.4 R15 §2.4), walks the VLR and EVLR
 headers itself and reads the LAZ chunk table's header, and checks every size, count and
 offset against the file's size and against each other. It reads a bounded number of
