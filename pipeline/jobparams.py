@@ -18,8 +18,10 @@ from pydantic import Field, model_validator
 from pipeline.params import PipelineParams, _Model
 from pipeline.tiling import check_buffer, check_grid_origin, check_split_buffer, check_tiling
 
-#: points read from the block at a time when tiling it (bounded memory)
+#: points read from a block at a time (bounded memory)
 CHUNK_POINTS = 2_000_000
+#: workers of an embedded dask cluster unless a command or setting says otherwise
+WORKERS = 2
 
 
 class TilingParams(_Model):
@@ -28,7 +30,7 @@ class TilingParams(_Model):
     tile_size: float | None = Field(
         None, ge=1.0, le=100_000.0,
         description="tile edge length [m]",
-    )
+    )  # None: one tile, unless the block would not fit worker_memory (then tiles chosen to fit it)
     buffer: float | None = Field(
         None, ge=0.0, le=1_000.0,
         description="overlap on every side [m]; default = the parameters' reach",
@@ -40,7 +42,7 @@ class TilingParams(_Model):
     engine: Literal["laspy", "pdal"] = Field(
         "laspy", description="tiler engine (pdal needs PDAL's Python bindings)",
     )
-    workers: int = Field(2, ge=1, le=256, description="workers of the embedded dask cluster")
+    workers: int = Field(WORKERS, ge=1, le=256, description="workers of the embedded dask cluster")
     worker_memory: float | None = Field(
         None, gt=0.0, le=4096.0,
         description="memory budget of one worker [GB]: a block without a tile size that would need more in one piece "

@@ -15,6 +15,7 @@ from dask.utils import parse_timedelta
 from distributed import Client, LocalCluster
 
 from pipeline.errors import ParameterError
+from pipeline.jobparams import WORKERS
 from workers.identity import DISTRIBUTION, identity
 
 log = logging.getLogger(__name__)
@@ -77,7 +78,7 @@ def _check_answers(address: str, seconds: float) -> None:
 
 def make_client(
     scheduler: str | None = None,
-    n_workers: int = 2,
+    n_workers: int = WORKERS,
     threads_per_worker: int = 1,
     dashboard: bool = True,
     *,

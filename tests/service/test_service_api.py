@@ -221,6 +221,15 @@ def test_bad_job_params_are_422(client_a, block_a, body, fragment):
     assert fragment in r.json()["detail"]
 
 
+def test_a_parameter_error_names_its_request_field_and_location(client_a, block_a):
+    r = client_a.post("/v1/jobs", json={"block_id": block_a["id"], "tiling": {"tile_size": 20, "buffer": 0.5}})
+    assert r.status_code == 422
+    body = r.json()
+    assert body["detail"].endswith("use tiling.buffer 6.15 or more, or a smaller params.segment.max_crown_radius")
+    assert body["errors"] == [{"loc": ["body", "tiling", "buffer"], "msg": body["detail"], "type": "parameter",
+                               "input": 0.5, "limit": 6.15}]
+
+
 def test_job_for_unknown_block_is_404(client_a):
     assert client_a.post("/v1/jobs", json={"block_id": "0" * 32}).status_code == 404
 
