@@ -11,7 +11,6 @@ from __future__ import annotations
 
 import numpy as np
 from scipy.ndimage import gaussian_filter1d
-from scipy.signal import find_peaks
 
 #: side of a canopy cell [m]: fine enough to resolve a 1 m hedgerow wall
 CELL = 0.25
@@ -95,7 +94,7 @@ def canopy_rows(across: np.ndarray, along: np.ndarray, known: np.ndarray, *, row
     density = gaussian_filter1d(np.r_[counts, np.zeros(int(2.0 / step))], sigma=2.0)
     floor = MIN_PEAK_RATIO * float(np.median(density[np.clip(((known - lo) / step).astype(np.int64), 0, len(density) - 1)]))
     # crowns of neighbouring rows stand at least a quarter of the trunks' row spacing apart
-    peaks, _ = find_peaks(density, height=floor, distance=max(1, int(0.25 * row_spacing / step)))
+    peaks = _peaks(density, floor, max(1, int(0.25 * row_spacing / step)))
     offsets = lo + (peaks + 0.5) * step
     if len(offsets) > 1:  # the canopy's own row spacing, where every other row (or two) is hidden
         gap = float(np.median(np.diff(offsets)))
@@ -122,6 +121,17 @@ def canopy_rows(across: np.ndarray, along: np.ndarray, known: np.ndarray, *, row
             continue
         out.append((off, float(a[0]), float(a[-1])))
     return out
+
+
+def _peaks(y: np.ndarray, floor: float, distance: int) -> np.ndarray:
+    """Indices of the local maxima of ``y`` at least ``floor`` high, highest first kept
+    where two lie closer than ``distance`` samples; sorted."""
+    inner = np.flatnonzero((y[1:-1] > y[:-2]) & (y[1:-1] >= y[2:]) & (y[1:-1] >= floor)) + 1
+    kept: list[int] = []
+    for i in inner[np.argsort(-y[inner], kind="stable")]:
+        if all(abs(i - k) >= distance for k in kept):
+            kept.append(int(i))
+    return np.asarray(sorted(kept), dtype=np.int64)
 
 
 def _solid(along: np.ndarray) -> np.ndarray:

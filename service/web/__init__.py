@@ -6,12 +6,16 @@
 
 from __future__ import annotations
 
-from fastapi import FastAPI
-from fastapi.staticfiles import StaticFiles
+from typing import TYPE_CHECKING
+
+if TYPE_CHECKING:  # the report of `orchard process` uses this package without FastAPI
+    from fastapi import FastAPI
 
 
 def install(app: FastAPI) -> None:
     """Add the browser pages and their static files to the service's app."""
+    from fastapi.staticfiles import StaticFiles
+
     from service.web import render, routes
 
     app.include_router(routes.router)
