@@ -83,7 +83,7 @@ def write_simulation(source: Orchard | SimulationParams | Iterable[Orchard], las
         if n == 0:  # a file no command reads (`orchard process` refuses it as empty)
             from pipeline.errors import ParameterError
 
-            raise ParameterError("the simulation made no points (density too low); raise --density")
+            raise ParameterError("the simulation made no points: its point density is too low", param="simulation.density")
         truth.close()
         las.close()
     except BaseException:
@@ -110,7 +110,7 @@ def read_truth(path: str) -> tuple[dict[str, np.ndarray], np.ndarray]:
 
     table, meta = read_parquet_columns(path, what="truth file")
     if b"orchard:trunks" not in meta or any(c not in table for c in TRUTH_COLUMNS):
-        raise InputError(f"{path} is not an orchard truth file (run `orchard simulate --truth ...`)")
+        raise InputError(f"{path} is not an orchard truth file (the per-point truth written beside a simulated block)")
     cols = {c: table[c] for c in TRUTH_COLUMNS}
     if len(cols["point_index"]) and np.any(np.diff(cols["point_index"].astype(np.int64)) < 0):
         order = np.argsort(cols["point_index"], kind="stable")
@@ -161,7 +161,7 @@ def read_truth_layout(path: str) -> dict:
 
     _, meta = read_parquet_columns(path, [], what="truth file")
     if b"orchard:trunks" not in meta:
-        raise InputError(f"{path} is not an orchard truth file (run `orchard simulate --truth ...`)")
+        raise InputError(f"{path} is not an orchard truth file (the per-point truth written beside a simulated block)")
 
     def get(key, dtype):
         raw = meta.get(key.encode())

@@ -24,7 +24,7 @@ class Accounts(Database):
     def tenant_by_name(self, name: str) -> dict[str, Any]:
         rec = self._one("SELECT * FROM tenants WHERE name = ?", (name,))
         if rec is None:
-            raise NotFoundError(f"no tenant called {name!r}; create one with `orchard tokens create --tenant {name}`")
+            raise NotFoundError(f"no tenant called {name!r} (a tenant is made with its first token)")
         return rec
 
     def list_tenants(self) -> list[dict[str, Any]]:
