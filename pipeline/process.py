@@ -23,7 +23,7 @@ from pipeline.graph import (
 )
 from pipeline.ground import GroundModel, classify_ground, ground_model
 from pipeline.metrics import trunk_circles
-from pipeline.params import PipelineParams
+from pipeline.params import FULL_SPACING, PipelineParams
 from pipeline.posts import Posts, find_posts, on_posts
 from pipeline.slots import rescue_on_open_slots
 from pipeline.segment import (
@@ -75,6 +75,11 @@ LEAFY_SCATTERING = 0.3
 #: trellis posts are looked for only on scans whose ground noise [m] is below this (about
 #: 0.03 m of range noise): noisier scans blur a post into a column of foliage
 POST_MAX_NOISE = 0.05
+#: the post test's radius [m] where ``max_post_radius`` is left unset (a trellis post is
+#: 5-7 cm in radius); its posts are kept only where, without them, the trees stand at
+#: least FULL_SPACING apart in the row (closer rows are tall spindles, whose straight
+#: leaders can pass for posts)
+AUTO_POST_RADIUS = 0.08
 #: the trees' spacing is measured only on scans whose ground noise [m] is below this: on
 #: noisier ones shoot bundles drain like trunks and the spacing comes out too short
 SPACING_MAX_NOISE = 0.05
@@ -285,16 +290,23 @@ def analyse_nodes(
     # trellis posts drain crowns like trunks: cut them out of the graph and detect again
     on_post = np.zeros(vox.n, bool)
     posts = None
-    if params.trunks.max_post_radius > 0 and gm.noise < POST_MAX_NOISE and det.candidates is not None:
+    auto = params.trunks.max_post_radius is None
+    post_radius = AUTO_POST_RADIUS if auto else params.trunks.max_post_radius
+    if post_radius > 0 and gm.noise < POST_MAX_NOISE and det.candidates is not None:
         cand = det.candidates
         tall = cand["top"] >= params.trunks.min_tree_height
         posts = find_posts(
-            xyz[veg_idx], height[veg_idx], np.c_[cand["x"], cand["y"]][tall], max_radius=params.trunks.max_post_radius,
+            xyz[veg_idx], height[veg_idx], np.c_[cand["x"], cand["y"]][tall], max_radius=post_radius,
             max_height=params.trunks.max_post_height,
         )
         on_post = on_posts(nodes, node_height, posts, margin=POST_NODE_MARGIN)
         if on_post.any():
-            det = detect(without_nodes(drainage, on_post))  # the spacing measured again, without the posts
+            again = detect(without_nodes(drainage, on_post))  # the spacing measured again, without the posts
+            wide = again.spacing is not None and again.spacing >= FULL_SPACING
+            if auto and not wide:  # close rows: the "posts" may be tall spindles' straight leaders
+                posts, on_post = None, np.zeros(vox.n, bool)
+            else:
+                det = again
     # the row model as a prior: young trees on open planting slots, too low to pass alone
     det = rescue_on_open_slots(det, nodes, node_height, contact_top=ground_top + params.trunks.contact_height, params=params)
     surfaces = on_post | hard_surfaces(

@@ -100,10 +100,24 @@ def test_posts_of_a_trellised_high_density_row_are_no_trees():
     o = simulate_orchard(SimulationParams(seed=1, trellis=2, **HIGH_DENSITY))
     _, off, off_share = _run(o, 0.0)
     _, on, on_share = _run(o, 0.08)
+    _, auto, auto_share = _run(o, None)  # the default: on at 2.5 m spacing
     assert off["trunk_tp"] < 10 or off["trunk_fp"] > 0, off  # the weakness the test exists for
     assert on["trunk_tp"] == 10 and on["trunk_fp"] == 0, on
     assert on["v_measure"] > off["v_measure"] + 0.01
     assert on_share < 0.5 * off_share
+    assert (auto["trunk_tp"], auto["trunk_fp"], auto_share) == (on["trunk_tp"], on["trunk_fp"], on_share)
+
+
+@pytest.mark.slow
+def test_by_default_the_post_test_stays_off_in_tall_spindle_rows():
+    # a spindle's straight central leader can pass for a post: at 1 m spacing the
+    # default leaves the test off, so the trellised block comes out as with it off
+    o = simulate_orchard(SimulationParams(seed=3, trellis=2, form="spindle", rows=2, trees_per_row=10, spacing=1.0,
+                                          row_spacing=3.5))
+    r_off, _, _ = _run(o, 0.0)
+    r_auto, _, _ = _run(o, None)
+    assert np.array_equal(r_off.tree_id, r_auto.tree_id)
+    np.testing.assert_array_equal(r_off.trunks, r_auto.trunks)
 
 
 def test_the_post_test_changes_nothing_without_posts():
