@@ -6,7 +6,7 @@ On the issue's two accuracy settings (``bench.oracles.SETTINGS``) it generates e
 block without and with a trellis (``--trellis 2``: a post 2.8-3.2 m tall at both row
 ends and in every second gap between trees, wires at 0.8, 1.6 and 2.4 m) and scores the
 pipeline with the post test off, at its default (on where the measured in-row spacing
-is 2.2 m or more) and on (``--trunks-max-post-radius``), over evaluation seeds 0..N-1
+is 1.8 m or more) and on (``--trunks-max-post-radius``), over evaluation seeds 0..N-1
 (2 rows each). Prints a
 Markdown table: true trunks found, false trunks, pooled trunk F1, the mean v-measure on
 true tree points with the lowest and highest block in brackets, and the share of the
@@ -82,7 +82,7 @@ def main(argv: list[str] | None = None) -> None:
     if not 0 < args.radius <= 1:
         ap.error(f"--radius must be above 0 and at most 1 m, got {args.radius}")
     radii = (0.0, None, args.radius)
-    tests = ("off", "default (on where the spacing is 2.2 m or more)", f"on, radius {args.radius:g} m")
+    tests = ("off", "default (on where the spacing is 1.8 m or more)", f"on, radius {args.radius:g} m")
     print(HEADER, flush=True)
     for setting, sim in SETTINGS.items():
         for trellis, label in ((0, "none"), (TRELLIS, f"post every {TRELLIS} gaps")):

@@ -9,7 +9,7 @@ splits into scaffolds below about 1 m (a central leader goes on thinner and bend
 while a post keeps one thickness on one vertical axis from the ground to its top, and
 ends there (a forest tree's bole goes on into its crown, far above any post). A trunk
 whose straight central leader is about as thick as itself can look like a post too,
-so the test is opt-in (``TrunkParams.max_post_radius``).
+so by default the posts are kept only in wide rows (:mod:`pipeline.process`).
 """
 
 from __future__ import annotations

@@ -23,7 +23,7 @@ from pipeline.graph import (
 )
 from pipeline.ground import GroundModel, classify_ground, ground_model
 from pipeline.metrics import trunk_circles
-from pipeline.params import FULL_SPACING, PipelineParams
+from pipeline.params import PipelineParams
 from pipeline.posts import Posts, find_posts, on_posts
 from pipeline.slots import rescue_on_open_slots
 from pipeline.segment import (
@@ -76,10 +76,12 @@ LEAFY_SCATTERING = 0.3
 #: 0.03 m of range noise): noisier scans blur a post into a column of foliage
 POST_MAX_NOISE = 0.05
 #: the post test's radius [m] where ``max_post_radius`` is left unset (a trellis post is
-#: 5-7 cm in radius); its posts are kept only where, without them, the trees stand at
-#: least FULL_SPACING apart in the row (closer rows are tall spindles, whose straight
-#: leaders can pass for posts)
+#: 5-7 cm in radius) ...
 AUTO_POST_RADIUS = 0.08
+#: ... its posts kept only where, without them, the trees stand at least this far apart
+#: in the row [m]: between tall spindles and SHD hedges (0.8-1.5 m, whose straight
+#: leaders can pass for posts) and the closest vase rows (2.5 m)
+AUTO_POST_MIN_SPACING = 1.8
 #: the trees' spacing is measured only on scans whose ground noise [m] is below this: on
 #: noisier ones shoot bundles drain like trunks and the spacing comes out too short
 SPACING_MAX_NOISE = 0.05
@@ -302,7 +304,7 @@ def analyse_nodes(
         on_post = on_posts(nodes, node_height, posts, margin=POST_NODE_MARGIN)
         if on_post.any():
             again = detect(without_nodes(drainage, on_post))  # the spacing measured again, without the posts
-            wide = again.spacing is not None and again.spacing >= FULL_SPACING
+            wide = again.spacing is not None and again.spacing >= AUTO_POST_MIN_SPACING
             if auto and not wide:  # close rows: the "posts" may be tall spindles' straight leaders
                 posts, on_post = None, np.zeros(vox.n, bool)
             else:
