@@ -12,22 +12,7 @@ from pipeline.synthetic.orchard import GROUND, POST
 from pipeline.synthetic.simparams import SimulationParams
 from pipeline.synthetic.simulate import simulate_orchard
 from pipeline.synthetic.terrain import ground_height
-
-SMALL = SimulationParams(rows=2, trees_per_row=3, density=0.15, seed=11)
-
-
-@pytest.fixture(scope="module")
-def small():
-    return simulate_orchard(SMALL)
-
-
-LAYOUT = SimulationParams(form="spindle", rows=3, trees_per_row=10, spacing=1.0, row_spacing=3.5, density=0.05,
-                          seed=7, missing=0.1, replants=0.1, posts=False, vehicle=False, bin=False)
-
-
-@pytest.fixture(scope="module")
-def gappy():
-    return simulate_orchard(LAYOUT)
+from synthetic_blocks import LAYOUT, SMALL
 
 
 def _tree_points(o, k):

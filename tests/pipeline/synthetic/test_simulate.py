@@ -11,13 +11,7 @@ from pipeline.synthetic.orchard import GROUND, KIND, LEAF, OUTLIER, POST, TWIG, 
 from pipeline.synthetic.simparams import SimulationParams
 from pipeline.synthetic.simulate import iter_simulation, simulate_orchard
 from pipeline.synthetic.terrain import ground_height
-
-SMALL = SimulationParams(rows=2, trees_per_row=3, density=0.15, seed=11)
-
-
-@pytest.fixture(scope="module")
-def small():
-    return simulate_orchard(SMALL)
+from synthetic_blocks import SMALL
 
 
 def test_same_seed_same_block_other_seed_other_block(small):
