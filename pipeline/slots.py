@@ -1,16 +1,12 @@
-"""The row model as a prior: trees on a row's open planting slots that the trunk tests
-alone reject.
+"""Open planting slots, and the replants let in on them: the row model as a prior.
 
-Two kinds stand there. A replant, a young tree planted into a gap of an old row, stands
-a third to half as tall as its neighbours, below the height that tells a tree from a
-post, a bin or foliage touching the ground (``min_tree_height``). And a full-grown tree
-whose contact group passed every test of its own but was taken for a satellite or a
-shoot of a stronger neighbour, or found too wide (on dense rows with foliage to the
-ground, one tree may drain two or three times what its neighbour does). A trunk-like
-contact group standing on an open slot (an empty slot between two trees of a row, or
-for a replant also the slot beyond a row's end) is a tree: a replant when it is tall
-enough to be a nursery tree and passes the tests of a trunk but its height, a full tree
-when it is tall enough and has a trunk's foot.
+A replant, a young tree planted into a gap of an old row, stands a third to half as
+tall as its neighbours, below the height that tells a tree from a post, a bin or
+foliage touching the ground (``min_tree_height``). A trunk-like contact group that
+stands on an open slot (an empty slot between two trees of a row, or the slot beyond a
+row's end), is tall enough to be a nursery tree and passes the tests of a trunk but its
+height, is a tree. This runs in each tile on the rows of the tile's trunks; a tile sees
+the rows around each of its trunks far enough for a replant's two neighbours.
 """
 
 from __future__ import annotations
@@ -94,7 +90,7 @@ def rescue_on_open_slots(
     contact_top: float,
     params: PipelineParams,
 ) -> TrunkDetection:
-    """Add the trees on open slots among the rejected contact groups to a detection.
+    """Add the replants among the rejected contact groups to a detection.
 
     Parameters
     ----------
@@ -111,9 +107,9 @@ def rescue_on_open_slots(
     Returns
     -------
     TrunkDetection
-        The detection with those trees appended (trunks ``k..``), the replants marked in
-        ``young`` (a replant is exempt from the height test after segmentation); ``det``
-        itself when there is none.
+        The detection with the replants appended (trunks ``k..``), marked in ``young`` (a
+        replant is exempt from the height test after segmentation); ``det`` itself when
+        there is none.
     """
     cand = det.candidates
     if not params.rows.enabled or cand is None or det.k < 3 or not len(cand["x"]):
@@ -127,21 +123,17 @@ def rescue_on_open_slots(
         & (cand["planar"] <= tp.max_planar_fraction)
         & (cand["width"] <= tp.max_trunk_width)
     )
-    # tall enough and a trunk's foot, of any width (foliage to the ground widens it)
-    full = rejected & np.asarray(cand["fits"], bool) & (np.asarray(cand["foot"]) >= tp.min_foot_ratio)
-    idx = np.flatnonzero(low | full)
+    idx = np.flatnonzero(low)
     if not idx.size:
         return det
     cxy = np.c_[cand["x"], cand["y"]][idx]
     slot = on_open_slot(det.xy, cxy, params=params.rows, reach=SLOT_REACH)
-    # a full tree only between two trees: beyond a row's end stand posts, bins, vehicles
-    inner = on_open_slot(det.xy, cxy, params=params.rows, reach=SLOT_REACH, ends=False) >= 0
-    on = (slot >= 0) & (inner | ~full[idx])
+    on = slot >= 0
     idx, cxy, slot = idx[on], cxy[on], slot[on]
     if not idx.size:
         return det
-    # one tree per slot: a full-grown one before a replant, then the most material
-    order = np.lexsort((-cand["support"][idx], ~full[idx], slot))
+    # one replant per slot: the group with the most material
+    order = np.lexsort((-cand["support"][idx], slot))
     first = np.r_[True, np.diff(slot[order]) != 0]
     pick = order[first]
     idx, cxy = idx[pick], cxy[pick]
@@ -174,6 +166,6 @@ def rescue_on_open_slots(
         np.r_[det.source_trunk, trunk_new[~taken]],
         det.candidates,
         det.spacing,
-        np.r_[np.zeros(det.k, bool) if det.young is None else det.young, ~full[idx]],
+        np.r_[np.zeros(det.k, bool) if det.young is None else det.young, np.ones(len(cxy), bool)],
     )
     return out

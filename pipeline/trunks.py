@@ -410,7 +410,6 @@ def detect_trunks(
     if params.stem_ratio > 0:
         stem[ok] = stem_contrast(centre[ok], stem_xy, stem_slice, n_slices=STEM_SLICES)
     candidates["stem"] = stem
-    candidates["passed"] = ok.copy()  # every test of its own; the row prior may let it in
     ok, support = _accept(centre, g_support, stem, ok, fits & (width > params.max_trunk_width), params)
     candidates["pooled_support"] = support
     candidates["accepted"] = ok.copy()

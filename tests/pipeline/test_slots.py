@@ -45,28 +45,3 @@ def test_nothing_is_rescued_with_rows_off_or_too_few_trees():
     assert rescue_on_open_slots(det, nodes, np.full(len(nodes), 0.05), contact_top=0.1, params=off) is det
     det2, nodes2 = _detection(row[:2], np.array([[3.0, 0.0, 1.2]]))
     assert rescue_on_open_slots(det2, nodes2, np.full(len(nodes2), 0.05), contact_top=0.1, params=PipelineParams()) is det2
-
-
-def test_a_full_tree_taken_for_a_satellite_stands_on_an_inner_empty_slot_only():
-    row = np.array([[x, 0.0] for x in (0, 1, 2, 4, 5, 6, 7, 9, 10)], dtype=float)  # slots 4 and 9 empty
-    cands = np.array([
-        [2.95, 0.05, 3.0],   # on the empty slot 4, tree height: a tree (not young)
-        [8.3, 0.0, 3.0],     # 0.3 slots off the empty slot 9: foliage touching down
-        [11.0, 0.0, 3.0],    # beyond the row's end: posts and bins stand there
-        [6.5, 0.0, 3.0],     # between two trees
-    ])
-    det, nodes = _detection(row, cands)
-    out = rescue_on_open_slots(det, nodes, np.full(len(nodes), 0.05), contact_top=0.1, params=PipelineParams())
-    assert out.k == det.k + 1
-    np.testing.assert_allclose(out.xy[-1], [2.95, 0.05])
-    assert not out.young.any()
-
-
-def test_a_full_tree_goes_before_a_replant_on_the_same_slot():
-    row = np.array([[x, 0.0] for x in (0, 1, 2, 4, 5, 6)], dtype=float)
-    cands = np.array([[3.0, 0.1, 1.2], [3.05, -0.05, 3.0]])
-    det, nodes = _detection(row, cands)
-    out = rescue_on_open_slots(det, nodes, np.full(len(nodes), 0.05), contact_top=0.1, params=PipelineParams())
-    assert out.k == det.k + 1
-    np.testing.assert_allclose(out.xy[-1], [3.05, -0.05])
-    assert not out.young[-1]
