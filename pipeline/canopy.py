@@ -134,10 +134,17 @@ def _peaks(y: np.ndarray, floor: float, distance: int) -> np.ndarray:
     return np.asarray(sorted(kept), dtype=np.int64)
 
 
+def _per_step(along: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Cells across a strip at each of its along steps: (the step of each cell, the count
+    of each step)."""
+    _, inverse, counts = np.unique(np.floor(along / CELL), return_inverse=True, return_counts=True)
+    return inverse, counts
+
+
 def _solid(along: np.ndarray) -> np.ndarray:
     """Sorted along positions [m] of the strip's cells, less those where the strip is
     under half its median thickness (stray points beyond a crown wall's ends)."""
-    step, inverse, counts = np.unique(np.floor(along / CELL), return_inverse=True, return_counts=True)
+    inverse, counts = _per_step(along)
     return np.sort(along[counts[inverse] >= 0.5 * np.median(counts)])
 
 
@@ -153,5 +160,4 @@ def _thickness(across: np.ndarray, along: np.ndarray, off: float, row_spacing: f
     strip = np.abs(across - off) <= 0.25 * row_spacing
     if not strip.any():
         return 0.0
-    _, per_step = np.unique(np.floor(along[strip] / CELL), return_counts=True)
-    return float(np.median(per_step)) * CELL
+    return float(np.median(_per_step(along[strip])[1])) * CELL

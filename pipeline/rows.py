@@ -356,14 +356,6 @@ def _young(height: np.ndarray, chains: list[np.ndarray], ratio: float) -> np.nda
     return young
 
 
-def _oriented_line(line: np.ndarray) -> tuple[bool, np.ndarray]:
-    """A canopy row's line in the order positions run (east, or north for rows closer
-    to north-south): (whether it was reversed, the line)."""
-    step = line[-1] - line[0]
-    flip = step[1] < 0 if abs(step[1]) > abs(step[0]) else step[0] < 0
-    return bool(flip), line[::-1].copy() if flip else line.copy()
-
-
 def _azimuth(v: np.ndarray) -> float:
     return float(np.degrees(np.arctan2(v[0], v[1])) % 360.0)
 
@@ -411,13 +403,14 @@ def find_rows(xy: np.ndarray, height: np.ndarray | None = None, *, params: RowPa
         return RowLayout(row, position, np.zeros(1, bool), rows, [xy.copy()], empty_gaps, np.zeros(1, bool), np.zeros(1, bool))
 
     m = min(k, _DIRECTION_NEIGHBOURS)
-    dist, near = cKDTree(local).query(local, k=m)
+    tree = cKDTree(local)
+    dist, near = tree.query(local, k=m)
     direction = _local_directions(local, near.reshape(k, m))
     section = _sections(local, direction, params.max_section_angle)
     nn_dist = dist.reshape(k, m)[:, 1]
     if canopy is not None and len(canopy):  # each canopy cell goes with its nearest tree's section
         can_local = np.asarray(canopy, dtype=np.float64).reshape(-1, 2) - centre
-        can_section = section[cKDTree(local).query(can_local)[1]]
+        can_section = section[tree.query(can_local)[1]]
 
     found = []  # per row: (section key, across offset, trees in order along the row, slots, spacing)
     off_row = np.zeros(k, dtype=bool)
@@ -450,15 +443,14 @@ def find_rows(xy: np.ndarray, height: np.ndarray | None = None, *, params: RowPa
     gaps = {key: [] for key in empty_gaps}
     for number, a in enumerate(order, start=1):
         _, _, g, slots, s, canopy_line = found[a]
-        if canopy_line is not None:
-            _, pos = _oriented_line(canopy_line)
-            lines.append(pos)
+        if canopy_line is not None:  # along the section's direction: the way positions run
+            lines.append(canopy_line)
             rows_out["row"].append(number)
             rows_out["n_trees"].append(0)
             rows_out["n_gaps"].append(0)
             rows_out["spacing_m"].append(np.nan)
-            rows_out["length_m"].append(float(np.hypot(*np.diff(pos, axis=0).T).sum()))
-            rows_out["azimuth_deg"].append(_azimuth(pos[-1] - pos[0]))
+            rows_out["length_m"].append(float(np.hypot(*np.diff(canopy_line, axis=0).T).sum()))
+            rows_out["azimuth_deg"].append(_azimuth(canopy_line[-1] - canopy_line[0]))
             continue
         slots = slots - slots[0]
         row[g] = number

@@ -31,15 +31,16 @@ SOURCE_RADIUS = 0.2
 MIN_LATTICE_TREES = 4
 
 
-def open_slots(layout: RowLayout, *, ends: bool = True) -> np.ndarray:
+def open_slots(layout: RowLayout) -> np.ndarray:
     """(o, 2) float64 centres [m] of the slots a tree could still stand in, in rows of at
     least :data:`MIN_LATTICE_TREES` trees: the empty slots between two trees of the row,
-    and (``ends``) the slot beyond each of its ends."""
-    long = layout.rows["row"][layout.rows["n_trees"] >= MIN_LATTICE_TREES]
-    in_long = np.isin(layout.gaps["row"], long)
+    and the slot beyond each of its ends."""
+    long = layout.rows["n_trees"] >= MIN_LATTICE_TREES
+    in_long = np.isin(layout.gaps["row"], layout.rows["row"][long])
     pts = [np.c_[layout.gaps["x"][in_long], layout.gaps["y"][in_long]]]
-    for line, s in zip(layout.lines if ends else [], layout.rows["spacing_m"]):
-        if len(line) >= MIN_LATTICE_TREES and np.isfinite(s):
+    # a row's line runs through its trees (a canopy row's, without trees, is no lattice)
+    for line, s, is_long in zip(layout.lines, layout.rows["spacing_m"], long):
+        if is_long and np.isfinite(s):
             for end, inner in ((line[-1], line[-3]), (line[0], line[2])):
                 step = end - inner
                 pts.append((end + s * step / np.hypot(*step))[None, :])
@@ -47,7 +48,7 @@ def open_slots(layout: RowLayout, *, ends: bool = True) -> np.ndarray:
 
 
 def on_open_slot(tree_xy: np.ndarray, cand_xy: np.ndarray, *, params: RowParams | None = None,
-                 reach: float = 0.2, ends: bool = True) -> np.ndarray:
+                 reach: float = 0.2) -> np.ndarray:
     """Which open slot (:func:`open_slots`) of the rows of ``tree_xy`` each candidate
     stands on: a candidate there is more likely a tree (a replant, a thin trunk) than
     one elsewhere.
@@ -61,8 +62,6 @@ def on_open_slot(tree_xy: np.ndarray, cand_xy: np.ndarray, *, params: RowParams 
     params : RowParams, optional
     reach : float
         A candidate stands on a slot within this fraction of the block's spacing.
-    ends : bool
-        Count the slot beyond each row's end (else only the gaps between two trees).
 
     Returns
     -------
@@ -74,7 +73,7 @@ def on_open_slot(tree_xy: np.ndarray, cand_xy: np.ndarray, *, params: RowParams 
     if len(cand_xy) == 0 or len(tree_xy) < 3:
         return out
     lay = find_rows(tree_xy, params=params or RowParams())
-    slots = open_slots(lay, ends=ends)
+    slots = open_slots(lay)
     spacing = np.nanmedian(lay.rows["spacing_m"]) if np.isfinite(lay.rows["spacing_m"]).any() else np.nan
     if not len(slots) or not np.isfinite(spacing):
         return out

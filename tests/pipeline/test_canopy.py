@@ -75,6 +75,8 @@ def test_a_hidden_row_of_a_rotated_block(angle):
     lay = find_rows(trunks @ rot.T + [300.0, 700.0], canopy=cells + [300.0, 700.0])
     assert lay.rows["n_trees"].tolist() in ([12, 0, 12, 12, 12], [12, 12, 12, 0, 12])  # numbered from either side
     assert len(np.unique(lay.row)) == 4 and len(lay.rows["row"]) == 5
+    az = lay.rows["azimuth_deg"]  # the hidden row's line runs the way the others' positions do
+    assert np.ptp(az) < 1.0, az
 
 
 def test_a_fence_wire_beside_the_block_is_no_row():
