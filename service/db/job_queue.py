@@ -53,27 +53,17 @@ class JobQueue(TenantQuotas):
         limit: int = 100,
         offset: int = 0,
     ) -> list[dict[str, Any]]:
-        sql = "SELECT * FROM jobs WHERE tenant_id = ?"
-        params: list[Any] = [tenant_id]
-        for column, value in (("state", state), ("block_id", block_id), ("schedule_id", schedule_id)):
-            if value is not None:
-                sql += f" AND {column} = ?"
-                params.append(value)
-        sql += " ORDER BY created_at DESC, id DESC LIMIT ? OFFSET ?"  # newest first: last night's jobs on the first page
-        params += [limit, offset]
-        return self._all_rows(sql, tuple(params))
+        where, params = _job_filter(tenant_id, state=state, block_id=block_id, schedule_id=schedule_id)
+        # newest first: last night's jobs on the first page
+        sql = f"SELECT * FROM jobs WHERE {where} ORDER BY created_at DESC, id DESC LIMIT ? OFFSET ?"
+        return self._all_rows(sql, (*params, limit, offset))
 
     def count_jobs(
         self, tenant_id: str, *, state: str | None = None, block_id: str | None = None, schedule_id: str | None = None
     ) -> int:
         """How many jobs `list_jobs` with these filters lists over all its pages."""
-        sql = "SELECT COUNT(*) AS n FROM jobs WHERE tenant_id = ?"
-        params: list[Any] = [tenant_id]
-        for column, value in (("state", state), ("block_id", block_id), ("schedule_id", schedule_id)):
-            if value is not None:
-                sql += f" AND {column} = ?"
-                params.append(value)
-        return self._one(sql, tuple(params))["n"]
+        where, params = _job_filter(tenant_id, state=state, block_id=block_id, schedule_id=schedule_id)
+        return self._one(f"SELECT COUNT(*) AS n FROM jobs WHERE {where}", params)["n"]
 
     def claim_next_job(self) -> dict[str, Any] | None:
         """Move the next queued job to ``running`` and return it (None if the queue is
@@ -225,3 +215,14 @@ class JobQueue(TenantQuotas):
         for jid, crashes in poisoned:
             log.warning("job %s failed: the service stopped %d times while running it", jid, crashes)
         return n
+
+
+def _job_filter(tenant_id: str, **equal: str | None) -> tuple[str, tuple[Any, ...]]:
+    """The WHERE clause (and its parameters) of a tenant's jobs with the given columns
+    equal to the values that are not None, for `list_jobs` and `count_jobs` alike."""
+    where, params = "tenant_id = ?", [tenant_id]
+    for column, value in equal.items():
+        if value is not None:
+            where += f" AND {column} = ?"
+            params.append(value)
+    return where, tuple(params)
