@@ -276,7 +276,7 @@ def finalize_metrics(
 
 #: points of one cross-section a circle fit uses at most (evenly spaced in input order)
 MAX_FIT_POINTS = 100_000
-_FIT_CHUNK = 1 << 21  # residuals computed per block of trials (elements)
+_FIT_CHUNK = 1 << 16  # residuals computed per block of trials (elements; cache-sized)
 #: fewest points (and inliers) a circle is fitted to
 MIN_FIT_POINTS = 5
 #: residual [m] under which a point supports a circle: bark roughness on a clean scan
@@ -323,14 +323,7 @@ def fit_circle(xy: np.ndarray, *, inlier: float = FIT_INLIER, trials: int = FIT_
     ux = (a2 * (b[:, 1] - c[:, 1]) + b2 * (c[:, 1] - a[:, 1]) + c2 * (a[:, 1] - b[:, 1])) / np.where(ok, d, 1)
     uy = (a2 * (c[:, 0] - b[:, 0]) + b2 * (a[:, 0] - c[:, 0]) + c2 * (b[:, 0] - a[:, 0])) / np.where(ok, d, 1)
     r = np.hypot(a[:, 0] - ux, a[:, 1] - uy)
-    # residuals of all points to the trials' circles, a few trials at a time (a whole
-    # trials x n matrix would take gigabytes on a densely scanned trunk)
-    support = np.full(trials, -1)
-    step = max(1, _FIT_CHUNK // n)
-    for s0 in range(0, trials, step):
-        s1 = s0 + step
-        resid = np.abs(np.hypot(xy[None, :, 0] - ux[s0:s1, None], xy[None, :, 1] - uy[s0:s1, None]) - r[s0:s1, None])
-        support[s0:s1] = np.where(ok[s0:s1], (resid < inlier).sum(1), -1)
+    support = np.where(ok, circle_support(xy, ux, uy, r, inlier), -1)
     best = int(np.argmax(support))
     keep = np.abs(np.hypot(xy[:, 0] - ux[best], xy[:, 1] - uy[best]) - r[best]) < inlier
     if keep.sum() < MIN_FIT_POINTS:
@@ -342,6 +335,39 @@ def fit_circle(xy: np.ndarray, *, inlier: float = FIT_INLIER, trials: int = FIT_
     sol, *_ = np.linalg.lstsq(np.column_stack([2 * q, np.ones(len(q))]), (q**2).sum(1), rcond=None)
     centre = sol[:2] + mu
     return centre, float(np.sqrt(max(sol[2] + (sol[:2] ** 2).sum(), 0.0)))
+
+
+def circle_support(xy: np.ndarray, ux: np.ndarray, uy: np.ndarray, r: np.ndarray, inlier: float) -> np.ndarray:
+    """Points of ``xy`` (n, 2) [m] supporting each circle (``ux``, ``uy``, ``r``), (t,) int:
+    those with ``abs(hypot(x - ux, y - uy) - r) < inlier`` [m], counted exactly so.
+
+    ``np.hypot`` costs several times ``sqrt(dx² + dy²)``, which is within a few ulps of
+    it: the sum of squares decides every point but those within a rounding margin of the
+    band's edges (or not finite), which ``np.hypot`` decides as the definition does.
+    """
+    # Strategy: a few trials at a time, small enough to stay in cache (a whole trials x n
+    # matrix would take gigabytes on a densely scanned trunk).
+    x, y = xy[:, 0], xy[:, 1]
+    n, t = x.shape[0], ux.shape[0]
+    out = np.zeros(t, np.int64)
+    step = max(1, _FIT_CHUNK // max(n, 1))
+    for s0 in range(0, t, step):
+        s1 = min(t, s0 + step)
+        dx = x[None, :] - ux[s0:s1, None]
+        dy = y[None, :] - uy[s0:s1, None]
+        rr = r[s0:s1, None]
+        d = np.sqrt(dx * dx + dy * dy)
+        resid = np.abs(d - rr)
+        inside = resid < inlier
+        # sqrt of the rounded squares is within 3 ulps of hypot: 16 ulps of the largest
+        # distance at the band's edge is a safe margin
+        margin = 16 * np.finfo(np.float64).eps * (np.abs(rr) + 2 * inlier)
+        unsure = ~(np.abs(resid - inlier) > margin)
+        if unsure.any():
+            i, j = np.nonzero(unsure)
+            inside[i, j] = np.abs(np.hypot(dx[i, j], dy[i, j]) - rr[i, 0]) < inlier
+        out[s0:s1] = inside.sum(1)
+    return out
 
 
 def trunk_circle(xy: np.ndarray, *, inlier: float = FIT_INLIER, trials: int = FIT_TRIALS) -> tuple[np.ndarray, float]:

@@ -17,7 +17,6 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 import numpy as np
-from scipy.spatial import cKDTree
 
 from pipeline.metrics import trunk_circle
 
@@ -109,7 +108,7 @@ def find_posts(
     -------
     Posts (one per candidate that is a post; nearby candidates on one post give one)
     """
-    # Strategy: a grid picks the points near any candidate, one k-d tree over their xy
+    # Strategy: a grid picks the points near any candidate, a finer one sorted by cell
     # finds each candidate's column; per candidate, a handful of circle fits on the few
     # hundred points of its column.
     none = Posts(np.zeros((0, 2)), np.zeros(0), np.zeros(0))
@@ -119,14 +118,13 @@ def find_posts(
     near = _near_centres(xyz[:, :2], centres, column_reach)
     near = near[(height[near] >= POST_HEIGHTS[0] - POST_SLAB) & (height[near] <= max_height + POST_SLAB)]
     xyz, height = xyz[near], height[near]
-    tree = cKDTree(xyz[:, :2])
+    columns = _CellIndex(xyz[:, :2], column_reach)
     found_xy, found_r, found_top = [], [], []
     for c in np.asarray(centres, dtype=np.float64):
         if found_xy and np.min(np.hypot(*(np.asarray(found_xy) - c).T)) <= 2 * max_radius:
             continue  # on a post already found
-        # in input order: the circle fits draw their trials by position, and the k-d
-        # tree's order depends on which points it holds (a tile's, or the block's)
-        idx = np.sort(np.asarray(tree.query_ball_point(c, column_reach), dtype=np.int64))
+        # in input order: the circle fits draw their trials by position
+        idx = columns.ball(c)
         if idx.size < POST_MIN_POINTS * len(POST_HEIGHTS):
             continue
         column = _Column(xyz[idx, :2], height[idx], max_height)
@@ -171,6 +169,42 @@ def _near_centres(xy: np.ndarray, centres: np.ndarray, reach: float) -> np.ndarr
             grid[np.clip(cell[:, 0] + dx, 0, shape[0] - 1), np.clip(cell[:, 1] + dy, 0, shape[1] - 1)] = True
     at = np.floor((xy[inside] - lo) / reach).astype(np.int64)
     return inside[grid[np.minimum(at[:, 0], shape[0] - 1), np.minimum(at[:, 1], shape[1] - 1)]]
+
+
+class _CellIndex:
+    """Points ``xy`` (n, 2) [m] sorted into square cells of side ``reach`` [m], to find
+    those within ``reach`` of a position among the 3 x 3 cells around it.
+
+    One sort of cell keys costs a fraction of a k-d tree over the same points, and a
+    column query needs no more than a k-d tree's ball query gives.
+    """
+
+    def __init__(self, xy: np.ndarray, reach: float) -> None:
+        self.xy, self.reach = xy, reach
+        self.cell = reach * (1 + 1e-6)  # a point within reach is never two cells off by rounding
+        self.lo = xy.min(axis=0) if xy.shape[0] else np.zeros(2)
+        ij = np.floor((xy - self.lo) / self.cell).astype(np.int64)
+        self.ny = int(ij[:, 1].max()) + 3 if xy.shape[0] else 3  # keys of a row of cells never reach the next row's
+        key = (ij[:, 0] + 1) * self.ny + (ij[:, 1] + 1)
+        self.order = np.argsort(key, kind="stable")
+        self.key = key[self.order]
+
+    def ball(self, c: np.ndarray) -> np.ndarray:
+        """Indices (sorted) of the points within ``reach`` of ``c`` (2,) [m]: those whose
+        squared distance, summed as ``scipy.spatial.cKDTree.query_ball_point`` sums it, is
+        at most ``reach**2``."""
+        i, j = np.floor((np.asarray(c, dtype=np.float64) - self.lo) / self.cell).astype(np.int64)
+        # cells i-1..i+1 by j-1..j+1, whose keys are (i + 1 + di) * ny + (j + 1 + dj), dj in -1..1;
+        # j clipped to the keys' columns 1..ny-2, so that a range never runs into the next row
+        j0, j1 = max(j, 1), min(j + 2, self.ny - 2)
+        if j0 > j1:
+            return np.zeros(0, np.int64)
+        rows = (i + np.arange(3)) * self.ny
+        bounds = np.searchsorted(self.key, np.r_[rows + j0, rows + j1 + 1])
+        idx = np.concatenate([self.order[a:b] for a, b in zip(bounds[:3], bounds[3:])])
+        dx = c[0] - self.xy[idx, 0]
+        dy = c[1] - self.xy[idx, 1]
+        return np.sort(idx[dx * dx + dy * dy <= self.reach * self.reach])
 
 
 def _same(centre: np.ndarray, radius: float, axis: np.ndarray, r_med: float) -> bool:

@@ -244,16 +244,22 @@ def write_report(
     summary: dict[str, str] | None = None,
     warning: str | None = None,
     max_points: int = 150_000,
+    sample: dict | None = None,
 ) -> Path:
     """Write ``report.html`` and ``map.png`` into ``out_dir``; returns the HTML path.
 
     The report is the job page of the service (`service.web.render.report_page`) with its
     scripts, styles and data inlined: it opens from disk, offline. Where scripts do not
     run it shows the static map (``map.png``, embedded) and table. ``warning`` is shown
-    above everything else (a partial result).
+    above everything else (a partial result). ``sample``: the points :func:`sample_points`
+    would read, already in memory (``workers.job.report_sample``), used when taken for
+    the same ``max_points``.
     """
     out = Path(out_dir)
-    xy, tree_id, origin = sample_points(block_path, points_parquet, max_points=max_points)
+    if sample is not None and sample["max_points"] == max_points:
+        xy, tree_id, origin = sample["xy"], sample["tree_id"], sample["origin"]
+    else:
+        xy, tree_id, origin = sample_points(block_path, points_parquet, max_points=max_points)
     rows = trees_records(trees_parquet)
     if rows:
         trunks_xy = np.array([[r["trunk_x"], r["trunk_y"]] for r in rows], dtype=np.float64) - origin[:2]

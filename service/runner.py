@@ -346,6 +346,7 @@ class Runner(threading.Thread):
             outcome = run_job(spec, client=client, progress=progress, cancel=cancel)
             record = _jsonable(outcome)
             record.pop("trees", None)  # the per-tree table is in trees.parquet
+            record.pop("sample", None)  # points for a report's map, not a record
             timings = dict(record.get("timings") or {})
             timings.setdefault("total", round(time.perf_counter() - t0, 3))
             drop_work(self.settings, job["id"])  # tiles of a finished job are not needed again

@@ -46,6 +46,9 @@ from workers.tasks import process, summarise
 from workers.tiler import check_engine, tile_block
 from workers.workstore import JOB_KEY, WorkStore, default_work_dir
 
+#: points of the report's map (``service.report.write_report``'s default ``max_points``)
+REPORT_POINTS = 150_000
+
 
 def run_job(
     spec: JobSpec,
@@ -93,15 +96,42 @@ def _run_single(spec, info, t0, progress, cancel) -> JobOutcome:
     t = time.perf_counter()
     core = np.ones(len(xyz), dtype=bool)
     summary = summarise(0, xyz, core, result, None, info.origin, params)
+    final_ids = []
+
+    def labels(merged):
+        single = Labels.single(result, merged.id_maps[0])
+        final_ids.append(single.parts[0]["tree_id"])
+        return single
+
     n_trees, trees, outputs = merge_and_write(
-        [summary], info, params, Path(spec.out_dir), labels=lambda merged: Labels.single(result, merged.id_maps[0]),
-        labelled_laz=spec.labelled_laz, failed=[],
+        [summary], info, params, Path(spec.out_dir), labels=labels, labelled_laz=spec.labelled_laz, failed=[],
     )
     timings["merge_write"] = time.perf_counter() - t
     timings["total"] = time.perf_counter() - t0
     if progress:
         progress(1, 1)
-    return JobOutcome(info.n_points, n_trees, 1, [], False, timings, outputs, trees)
+    return JobOutcome(info.n_points, n_trees, 1, [], False, timings, outputs, trees,
+                      report_sample(xyz, final_ids[0], info.origin))
+
+
+def report_sample(xyz: np.ndarray, tree_id: np.ndarray, origin, max_points: int = REPORT_POINTS) -> dict:
+    """Every ``stride``-th point of a whole block (the first, then every stride-th), with
+    ``stride`` = ceil(n / ``max_points``): the points ``service.report.sample_points``
+    takes from the block's file and ``points.parquet``, from memory.
+
+    Parameters
+    ----------
+    xyz : (n, 3) float64 — the block's points, local [m]
+    tree_id : (n,) int — their final tree ids (``points.parquet``'s)
+    origin : (3,) float — the block's origin [m]
+
+    Returns
+    -------
+    dict: ``xy`` (m, 2) float64 [m], ``tree_id`` (m,) int64, ``origin`` (3,) float64, ``max_points``
+    """
+    stride = max(1, -(-len(xyz) // max_points))
+    return {"xy": xyz[::stride, :2].copy(), "tree_id": np.asarray(tree_id[::stride], dtype=np.int64),
+            "origin": np.asarray(origin, dtype=np.float64), "max_points": max_points}
 
 
 def _job_record(spec: JobSpec, info: BlockInfo, grid: TileGrid, work: str) -> dict:

@@ -112,6 +112,10 @@ class JobOutcome:
     timings: dict[str, float]
     outputs: dict[str, str]
     trees: dict | None = None  # the per-tree table (column → array), for summaries
+    # every stride-th point of the block for the report's map, when the job had them in
+    # memory (``xy`` local [m], final ``tree_id``, ``origin``, ``max_points``): the report
+    # then need not decode the block again
+    sample: dict | None = None
 
 
 def check_job(spec: JobSpec, *, tiled: bool | None = None) -> tuple[BlockInfo, TileGrid | None]:

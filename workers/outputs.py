@@ -18,7 +18,7 @@ import numpy as np
 from scipy.spatial import cKDTree
 
 from pipeline.blockinfo import BlockInfo
-from pipeline.canopy import cell_centres
+from pipeline.canopy import cell_centres, unique_cells
 from pipeline.errors import NoTreesError, ParameterError
 from pipeline.laswriting import write_labelled_las
 from pipeline.merge import GlobalTrunks, TileTrunks, reconcile_trunks
@@ -107,7 +107,7 @@ def block_canopy(summaries: list[dict]) -> np.ndarray:
     cells = [s["canopy"] for s in summaries if s.get("canopy") is not None]
     if not cells:
         return np.zeros((0, 2))
-    return cell_centres(np.unique(np.concatenate(cells), axis=0))
+    return cell_centres(unique_cells(np.concatenate(cells)))
 
 
 def without_trunks_between_rows(merged: GlobalTrunks, params: PipelineParams, canopy: np.ndarray | None = None) -> GlobalTrunks:

@@ -283,7 +283,7 @@ def _write_views(outcome, args) -> None:
         warning = (f"Partial result: tile(s) {', '.join(map(str, outcome.failed_tiles))} of this block failed. Trees "
                    "standing in them are missing from this report, and their points are in no tree.")
     write_report(block_path=args.input, trees_parquet=trees, points_parquet=points, out_dir=out,
-                 title=f"Orchard report — {name}", summary=summary, warning=warning)
+                 title=f"Orchard report — {name}", summary=summary, warning=warning, sample=outcome.sample)
 
 
 def _report(outcome, args) -> int:

@@ -1,0 +1,39 @@
+"""pipeline.canopy.unique_cells: np.unique(cells, axis=0) by one int64 key per cell."""
+
+from __future__ import annotations
+
+import numpy as np
+from hypothesis import given, settings
+from hypothesis import strategies as st
+
+from pipeline.canopy import unique_cells
+
+
+def test_unique_cells_by_hand():
+    cells = np.array([[2, 1], [0, 5], [2, 1], [0, -3], [-1, 7]])
+    got = unique_cells(cells)
+    assert got.dtype == np.int64
+    np.testing.assert_array_equal(got, [[-1, 7], [0, -3], [0, 5], [2, 1]])
+
+
+def test_no_cells():
+    got = unique_cells(np.zeros((0, 2), np.int64))
+    assert got.shape == (0, 2) and got.dtype == np.int64
+
+
+def test_cells_too_far_apart_for_one_key_still_come_out_sorted():
+    cells = np.array([[2**40, 0], [-(2**40), 2**40], [2**40, 0], [0, -(2**40)]])
+    np.testing.assert_array_equal(unique_cells(cells), np.unique(cells, axis=0))
+
+
+@settings(max_examples=200, deadline=None)
+@given(
+    n=st.integers(1, 400),
+    span=st.sampled_from([1, 3, 50, 10**4, 10**9]),
+    offset=st.integers(-(10**9), 10**9),
+    seed=st.integers(0, 2**32 - 1),
+)
+def test_unique_cells_equals_numpy_unique_by_rows(n, span, offset, seed):
+    """Dense grids (occupancy path) and sparse ones (sorted keys) alike."""
+    cells = np.random.default_rng(seed).integers(-span, span + 1, (n, 2)) + offset
+    np.testing.assert_array_equal(unique_cells(cells), np.unique(cells, axis=0))

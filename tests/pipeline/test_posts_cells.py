@@ -1,0 +1,51 @@
+"""pipeline.posts._CellIndex: a post's column is what a k-d tree's ball query gives."""
+
+from __future__ import annotations
+
+import numpy as np
+from hypothesis import given, settings
+from hypothesis import strategies as st
+from scipy.spatial import cKDTree
+
+from pipeline.posts import _CellIndex
+
+
+def _kdtree_ball(xy, c, reach):
+    return np.sort(np.asarray(cKDTree(xy).query_ball_point(c, reach), dtype=np.int64))
+
+
+def test_points_on_the_circle_and_an_ulp_either_side():
+    c, reach = np.array([10.0, 20.0]), 0.49
+    pts = [c + d * np.array([np.cos(a), np.sin(a)])
+           for a in np.linspace(0, 2 * np.pi, 500) for d in (np.nextafter(reach, 0), reach, np.nextafter(reach, 1))]
+    pts = np.array(pts + [[10.49, 20.0], [10.0, 19.51], [9.51, 20.0]])
+    got = _CellIndex(pts, reach).ball(c)
+    np.testing.assert_array_equal(got, _kdtree_ball(pts, c, reach))
+    assert 0 < len(got) < len(pts)
+
+
+def test_a_position_off_the_points_finds_none():
+    xy = np.array([[0.0, 0.0], [1.0, 1.0]])
+    index = _CellIndex(xy, 0.3)
+    assert index.ball(np.array([-5.0, 0.0])).size == 0
+    assert index.ball(np.array([0.5, 9.0])).size == 0
+    np.testing.assert_array_equal(index.ball(np.array([0.9, 1.1])), [1])
+
+
+@settings(max_examples=150, deadline=None)
+@given(
+    n=st.integers(1, 2000),
+    extent=st.sampled_from([0.3, 3.0, 40.0]),
+    reach=st.sampled_from([0.25, 0.41, 0.49]),
+    quantum=st.sampled_from([0.0, 0.001, 0.01]),
+    seed=st.integers(0, 2**32 - 1),
+)
+def test_equals_the_kdtree_ball_query(n, extent, reach, quantum, seed):
+    rng = np.random.default_rng(seed)
+    xy = rng.uniform(0, extent, (n, 2)) + rng.uniform(-1e5, 1e5, 2)
+    if quantum:  # LAS coordinates: many points at equal distances
+        xy = np.round(xy / quantum) * quantum
+    index = _CellIndex(xy, reach)
+    centres = np.r_[xy[rng.integers(0, n, 4)], xy[rng.integers(0, n, 4)] + rng.normal(0, reach, (4, 2))]
+    for c in centres:
+        np.testing.assert_array_equal(index.ball(c), _kdtree_ball(xy, c, reach))
