@@ -209,3 +209,28 @@ def test_a_port_in_use_is_exit_2_naming_it_and_creates_nothing(tmp_path):
     assert f"cannot listen on 127.0.0.1:{port}: the address is already in use" in r.stderr
     assert "--port" in r.stderr and "Traceback" not in r.stderr
     assert not (tmp_path / "data").exists()
+
+
+def test_the_servers_connections_send_small_responses_at_once():
+    # without TCP_NODELAY a keep-alive response's last segment waited for the client's
+    # delayed ACK: every request on a reused connection took about 40 ms
+    import asyncio
+
+    from service.commands.serve import bind
+
+    async def accepted_nodelay() -> int:
+        seen = asyncio.get_running_loop().create_future()
+
+        async def on_connect(reader, writer):
+            seen.set_result(writer.get_extra_info("socket").getsockopt(socket.IPPROTO_TCP, socket.TCP_NODELAY))
+            writer.close()
+
+        listening = bind("127.0.0.1", 0)
+        server = await asyncio.start_server(on_connect, sock=listening)  # as uvicorn serves it
+        async with server:
+            _, writer = await asyncio.open_connection("127.0.0.1", listening.getsockname()[1])
+            value = await asyncio.wait_for(seen, 10)
+            writer.close()
+        return value
+
+    assert asyncio.run(accepted_nodelay()) != 0
