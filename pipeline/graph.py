@@ -59,6 +59,8 @@ class NodePairs:
     def within(self, radius: float) -> "NodePairs":
         """The pairs at most ``radius`` [m] long, in the same order and groups."""
         near = self.length <= radius
+        if near.all():  # the same pairs: no copy
+            return self
         groups = None
         if self.groups is not None:
             groups = np.r_[0, np.cumsum(near)][self.groups]
@@ -279,10 +281,12 @@ def symmetric_csr(
         cols.insert(1, np.arange(m, dtype=index))
         data.insert(1, diagonal)
     g = sparse.coo_matrix((np.concatenate(data), (np.concatenate(rows), np.concatenate(cols))), shape=(m, m))
+    del a, b, rows, cols, data  # each conversion below allocates a matrix's worth: free what is done with
     g.has_canonical_format = True  # no duplicates: tocsr need not sum (and sort) them
-    if groups is None:
-        return g.tocsr().T.tocsr()
     out = g.tocsr()
+    del g
+    if groups is None:
+        return out.T.tocsr()
     out.has_sorted_indices = True
     return out
 

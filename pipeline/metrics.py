@@ -347,26 +347,38 @@ def circle_support(xy: np.ndarray, ux: np.ndarray, uy: np.ndarray, r: np.ndarray
     """
     # Strategy: a few trials at a time, small enough to stay in cache (a whole trials x n
     # matrix would take gigabytes on a densely scanned trunk).
-    x, y = xy[:, 0], xy[:, 1]
-    n, t = x.shape[0], ux.shape[0]
+    x, y = xy[None, :, 0], xy[None, :, 1]
+    n, t = xy.shape[0], ux.shape[0]
     out = np.zeros(t, np.int64)
-    step = max(1, _FIT_CHUNK // max(n, 1))
+    step = min(t, max(1, _FIT_CHUNK // max(n, 1)))
+    # buffers reused by every block of trials: fresh temporaries of this size cost page faults
+    dx, dy, d, tmp = (np.empty((step, n)) for _ in range(4))
+    inside, unsure = np.empty((step, n), bool), np.empty((step, n), bool)
+    # sqrt of the rounded squares is within 3 ulps of hypot: 16 ulps of the largest
+    # distance at the band's edge is a safe margin
+    margin = 16 * np.finfo(np.float64).eps * (np.abs(r) + 2 * inlier)
     for s0 in range(0, t, step):
         s1 = min(t, s0 + step)
-        dx = x[None, :] - ux[s0:s1, None]
-        dy = y[None, :] - uy[s0:s1, None]
+        k = s1 - s0
+        dx_, dy_, d_, tmp_, in_, un_ = dx[:k], dy[:k], d[:k], tmp[:k], inside[:k], unsure[:k]
         rr = r[s0:s1, None]
-        d = np.sqrt(dx * dx + dy * dy)
-        resid = np.abs(d - rr)
-        inside = resid < inlier
-        # sqrt of the rounded squares is within 3 ulps of hypot: 16 ulps of the largest
-        # distance at the band's edge is a safe margin
-        margin = 16 * np.finfo(np.float64).eps * (np.abs(rr) + 2 * inlier)
-        unsure = ~(np.abs(resid - inlier) > margin)
-        if unsure.any():
-            i, j = np.nonzero(unsure)
-            inside[i, j] = np.abs(np.hypot(dx[i, j], dy[i, j]) - rr[i, 0]) < inlier
-        out[s0:s1] = inside.sum(1)
+        np.subtract(x, ux[s0:s1, None], out=dx_)
+        np.subtract(y, uy[s0:s1, None], out=dy_)
+        np.multiply(dx_, dx_, out=d_)
+        np.multiply(dy_, dy_, out=tmp_)
+        np.add(d_, tmp_, out=d_)
+        np.sqrt(d_, out=d_)
+        np.subtract(d_, rr, out=d_)
+        np.abs(d_, out=d_)  # the residual
+        np.less(d_, inlier, out=in_)
+        np.subtract(d_, inlier, out=tmp_)
+        np.abs(tmp_, out=tmp_)
+        np.greater(tmp_, margin[s0:s1, None], out=un_)
+        np.logical_not(un_, out=un_)  # near an edge, or not finite
+        if un_.any():
+            i, j = np.nonzero(un_)
+            in_[i, j] = np.abs(np.hypot(dx_[i, j], dy_[i, j]) - rr[i, 0]) < inlier
+        out[s0:s1] = np.count_nonzero(in_, axis=1)
     return out
 
 
