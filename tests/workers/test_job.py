@@ -34,6 +34,13 @@ def _trees(out):
     return pq.read_table(out / "trees.parquet")
 
 
+@pytest.fixture(scope="module")
+def tiled_ref(small_block, tmp_path_factory):
+    """An undisturbed run of the small block in 10 m tiles and its output folder (read only)."""
+    out = tmp_path_factory.mktemp("tiled-ref")
+    return run_job(JobSpec(str(small_block), str(out), tiling=TilingParams(tile_size=10.0))), out
+
+
 @pytest.mark.slow
 def test_tiling_invariance_on_a_40_tree_block(orchard_block, tmp_path):
     """10 m tiles (tasks run in this process; the dask paths are tested on the small block)."""
@@ -115,8 +122,8 @@ def test_outputs_contract(small_block, tmp_path):
 
 
 @pytest.mark.slow
-def test_in_process_dask_with_memory_store(small_block, tmp_path):
-    run_job(JobSpec(str(small_block), str(tmp_path / "ref"), tiling=TilingParams(tile_size=10.0)))
+def test_in_process_dask_with_memory_store(small_block, tiled_ref, tmp_path):
+    _, ref_out = tiled_ref
     client = make_client(n_workers=2, dashboard=False, processes=False)
     try:
         seen = []
@@ -128,8 +135,8 @@ def test_in_process_dask_with_memory_store(small_block, tmp_path):
     finally:
         close_client(client)
     assert seen[0] == (0, out.n_tiles) and seen[-1] == (out.n_tiles, out.n_tiles)
-    assert _points(tmp_path / "ref") == _points(tmp_path / "mem")
-    assert _trees(tmp_path / "ref").equals(_trees(tmp_path / "mem"))
+    assert _points(ref_out) == _points(tmp_path / "mem")
+    assert _trees(ref_out).equals(_trees(tmp_path / "mem"))
 
 
 def test_buffer_below_reach_is_refused_before_any_output(small_block, tmp_path):
@@ -166,8 +173,8 @@ def test_first_tile_failure_stops_and_names_the_tile(small_block, tmp_path):
 
 
 @pytest.mark.slow
-def test_later_tile_failure_gives_partial_result_then_replay(small_block, tmp_path):
-    ref = run_job(JobSpec(str(small_block), str(tmp_path / "ref"), tiling=TilingParams(tile_size=10.0)))
+def test_later_tile_failure_gives_partial_result_then_replay(small_block, tiled_ref, tmp_path):
+    ref, ref_out = tiled_ref
     work = tmp_path / "work"
     out = tmp_path / "out"
     # the tile ids with points: take the third one
@@ -182,16 +189,16 @@ def test_later_tile_failure_gives_partial_result_then_replay(small_block, tmp_pa
     run_tile(str(work), victim)
     again = finish_job(str(work))
     assert not again.partial
-    assert _points(out) == _points(tmp_path / "ref")
-    assert _trees(out).equals(_trees(tmp_path / "ref"))
+    assert _points(out) == _points(ref_out)
+    assert _trees(out).equals(_trees(ref_out))
     assert not work.exists()
 
 
 @pytest.mark.slow
-def test_tile_tasks_read_the_frame_not_the_list_of_tiles(small_block, tmp_path, monkeypatch):
+def test_tile_tasks_read_the_frame_not_the_list_of_tiles(small_block, tiled_ref, tmp_path, monkeypatch):
     # every tile's task used to read the whole index (all tiles' bounds and counts): with
     # thousands of tiles that cost grew with the square of their number
-    ref = run_job(JobSpec(str(small_block), str(tmp_path / "ref"), tiling=TilingParams(tile_size=10.0)))
+    ref, ref_out = tiled_ref
     work, out = tmp_path / "work", tmp_path / "out"
     victim = 3
     run_job(JobSpec(str(small_block), str(out), tiling=TilingParams(tile_size=10.0), work_dir=str(work), inject_failure=(victim,)))
@@ -210,8 +217,8 @@ def test_tile_tasks_read_the_frame_not_the_list_of_tiles(small_block, tmp_path, 
     store.remove(FRAME_KEY)
     run_tile(str(work), victim)
     assert finish_job(str(work)).n_trees == ref.n_trees
-    assert _points(out) == _points(tmp_path / "ref")
-    assert _trees(out).equals(_trees(tmp_path / "ref"))
+    assert _points(out) == _points(ref_out)
+    assert _trees(out).equals(_trees(ref_out))
 
 
 def test_run_tile_needs_a_job(tmp_path):
@@ -223,7 +230,7 @@ def test_params_reach_the_tiles(small_block, tmp_path):
     # a huge minimum canopy removes every tree, tiled or not
     params = PipelineParams.model_validate({"trunks": {"min_canopy_voxels": 10_000_000}})
     with pytest.raises(NoTreesError):
-        run_job(JobSpec(str(small_block), str(tmp_path / "o"), params=params, tiling=TilingParams(tile_size=10.0)))
+        run_job(JobSpec(str(small_block), str(tmp_path / "o"), params=params, tiling=TilingParams(tile_size=20.0)))
 
 
 def test_work_folder_holding_other_files_is_refused_and_left_alone(small_block, tmp_path):
@@ -241,7 +248,7 @@ def test_work_folder_holding_other_files_is_refused_and_left_alone(small_block, 
 def test_work_store_removes_only_what_it_wrote(small_block, tmp_path):
     # the work folder is the output folder: after the job the outputs stay, the tiles go
     out = tmp_path / "out"
-    run_job(JobSpec(str(small_block), str(out), tiling=TilingParams(tile_size=10.0), work_dir=str(out)))
+    run_job(JobSpec(str(small_block), str(out), tiling=TilingParams(tile_size=20.0), work_dir=str(out)))
     assert sorted(p.name for p in out.iterdir()) == ["gaps.parquet", "points.parquet", "rows.parquet", "trees.parquet"]
     store = WorkStore(str(tmp_path / "w"))
     store.claim()
@@ -311,13 +318,12 @@ def test_a_failed_write_leaves_the_previous_outputs_whole(small_block, tmp_path,
 
 
 @pytest.mark.slow
-def test_a_partial_result_gives_no_tree_the_points_of_a_failed_tiles_tree(small_block, tmp_path):
+def test_a_partial_result_gives_no_tree_the_points_of_a_failed_tiles_tree(small_block, tiled_ref, tmp_path):
     from pipeline.blockinfo import read_info
     from pipeline.tiling import core_tile
     from workers.jobspec import plan_tiles
 
-    full = tmp_path / "full"
-    run_job(JobSpec(str(small_block), str(full), tiling=TilingParams(tile_size=10.0), work_dir=str(tmp_path / "w0")))
+    _, full = tiled_ref
     index_grid = plan_tiles(JobSpec(str(small_block), str(full), tiling=TilingParams(tile_size=10.0)), read_info(str(small_block)))
     trees = _trees(full).to_pydict()
     owner = core_tile(np.c_[trees["trunk_x"], trees["trunk_y"]], index_grid)
@@ -435,8 +441,8 @@ def test_two_runs_cannot_share_a_work_store(small_block, tmp_path):
     work = tmp_path / "work"
     with WorkStore(str(work)).lock():  # a run holding it
         with pytest.raises(ParameterError, match="in use by another run"):
-            run_job(JobSpec(str(small_block), str(tmp_path / "out"), tiling=TilingParams(tile_size=10.0), work_dir=str(work)))
-    run_job(JobSpec(str(small_block), str(tmp_path / "out"), tiling=TilingParams(tile_size=10.0), work_dir=str(work)))  # free again
+            run_job(JobSpec(str(small_block), str(tmp_path / "out"), tiling=TilingParams(tile_size=20.0), work_dir=str(work)))
+    run_job(JobSpec(str(small_block), str(tmp_path / "out"), tiling=TilingParams(tile_size=20.0), work_dir=str(work)))  # free again
     assert not work.exists()
 
 
