@@ -32,7 +32,7 @@ def _orchard(*args) -> list[str]:
 @pytest.fixture(scope="module")
 def reference(small_block, tmp_path_factory) -> Path:
     out = tmp_path_factory.mktemp("reference")
-    run_job(JobSpec(str(small_block), str(out), tiling=TilingParams(tile_size=6.0)))
+    run_job(JobSpec(str(small_block), str(out), tiling=TilingParams(tile_size=10.0)))
     return out
 
 
@@ -44,7 +44,7 @@ def _same_outputs(a: Path, b: Path) -> None:
 def test_worker_killed_mid_job(small_block, reference, loopback_cluster, tmp_path):
     out, work = tmp_path / "out", tmp_path / "work"
     proc = subprocess.Popen(
-        _orchard(small_block, "--out", out, "--tile-size", 6, "--scheduler", loopback_cluster.address, "--work", work),
+        _orchard(small_block, "--out", out, "--tile-size", 10, "--scheduler", loopback_cluster.address, "--work", work),
         stdout=subprocess.PIPE,
         stderr=subprocess.PIPE,
     )
@@ -74,11 +74,11 @@ def test_worker_killed_mid_job(small_block, reference, loopback_cluster, tmp_pat
 
 
 def _run_failing_tile(small_block, out: Path, work: Path, cluster, tile: int) -> subprocess.CompletedProcess:
-    """``orchard process`` on the loopback cluster, 6 m tiles, with ``tile`` made to fail."""
+    """``orchard process`` on the loopback cluster, 10 m tiles, with ``tile`` made to fail."""
     cluster.ensure_workers(2)
     return subprocess.run(
         _orchard(
-            small_block, "--out", out, "--tile-size", 6, "--scheduler", cluster.address,
+            small_block, "--out", out, "--tile-size", 10, "--scheduler", cluster.address,
             "--work", work, "--inject-failure", tile,
         ),
         capture_output=True,
@@ -138,7 +138,7 @@ def test_relative_paths_mean_the_same_on_workers_in_other_folders(small_block, r
     assert Path(os.getcwd()).resolve() != here.resolve()
     loopback_cluster.ensure_workers(2)
     run = subprocess.run(
-        _orchard("block.laz", "--out", "out", "--tile-size", 6, "--scheduler", loopback_cluster.address),
+        _orchard("block.laz", "--out", "out", "--tile-size", 10, "--scheduler", loopback_cluster.address),
         cwd=here, capture_output=True, text=True, timeout=TIMEOUT, check=False,
     )
     assert run.returncode == 0, run.stderr
