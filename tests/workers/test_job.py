@@ -284,7 +284,7 @@ def test_a_lock_file_left_by_a_killed_run_goes_with_its_store(tmp_path):
 
 def test_a_new_job_does_not_reuse_an_earlier_jobs_tile_results(small_block, tmp_path):
     work = tmp_path / "work"
-    first = run_job(JobSpec(str(small_block), str(tmp_path / "a"), tiling=TilingParams(tile_size=10.0), work_dir=str(work), inject_failure=(3,)))
+    first = run_job(JobSpec(str(small_block), str(tmp_path / "a"), tiling=TilingParams(tile_size=20.0), work_dir=str(work), inject_failure=(3,)))
     assert first.partial and WorkStore(str(work)).list("results")  # kept for a re-run
     with pytest.raises(TileFailed):
         run_job(JobSpec(str(small_block), str(tmp_path / "b"), tiling=TilingParams(tile_size=12.0), work_dir=str(work), inject_failure=(0,)))
@@ -353,7 +353,7 @@ def test_a_tile_that_finishes_after_its_job_was_cancelled_leaves_nothing(small_b
     # a tile already running on a worker when the job is cancelled carries on; it must not
     # write its results into the work store the job's end deleted
     work = tmp_path / "work"
-    outcome = run_job(JobSpec(str(small_block), str(tmp_path / "out"), tiling=TilingParams(tile_size=10.0), work_dir=str(work), inject_failure=(3,)))
+    outcome = run_job(JobSpec(str(small_block), str(tmp_path / "out"), tiling=TilingParams(tile_size=20.0), work_dir=str(work), inject_failure=(3,)))
     assert outcome.partial and (work / "job.json").exists()
     (work / "job.json").unlink()  # the job's end took the store away (job record first)
     shutil.rmtree(work / "results", ignore_errors=True)
