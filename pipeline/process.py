@@ -25,7 +25,7 @@ from pipeline.ground import GroundModel, classify_ground, ground_model
 from pipeline.metrics import trunk_circles
 from pipeline.params import PipelineParams
 from pipeline.posts import Posts, find_posts, on_posts
-from pipeline.slots import rescue_on_open_slots
+from pipeline.slots import let_in, slot_evidence, trees_on_slots
 from pipeline.segment import (
     Segmentation,
     curved_patches,
@@ -131,6 +131,12 @@ class BlockResult:
         (:meth:`pipeline.params.TrunkParams.at_spacing`); None: not measured.
     trunk_young : (k,) bool or None
         Trunks let in as replants: too low to pass as trees, on an open planting slot.
+    slot_evidence : dict or None
+        What the block's decision on trees on open slots needs of this run
+        (:func:`pipeline.slots.slot_evidence`), in the frame of the input xyz.
+    slot_trees : (f, 3) float64 or None
+        The trees on open slots this run let in (x, y, young;
+        :func:`pipeline.slots.trees_on_slots`).
     """
 
     tree_id: np.ndarray
@@ -143,6 +149,8 @@ class BlockResult:
     trunk_diameter: np.ndarray
     spacing: float | None = None
     trunk_young: np.ndarray | None = None
+    slot_evidence: dict | None = None
+    slot_trees: np.ndarray | None = None
 
     @property
     def n_trees(self) -> int:
@@ -169,6 +177,8 @@ class NodeAnalysis:
     segmentation: Segmentation
     posts: Posts | None = None
     on_post: np.ndarray | None = None
+    slot_evidence: dict | None = None
+    slot_trees: np.ndarray | None = None
 
 
 def _not_young(drop: np.ndarray, det: TrunkDetection) -> np.ndarray:
@@ -202,6 +212,7 @@ def analyse_nodes(
     params: PipelineParams,
     grid_origin: tuple[float, float, float] = (0.0, 0.0, 0.0),
     ground_stats: tuple[float, float] | None = None,
+    slot_trees: np.ndarray | None = None,
 ) -> NodeAnalysis:
     """Ground, voxel graph, trunks and segmentation at the node level.
 
@@ -212,6 +223,10 @@ def analyse_nodes(
     grid_origin : (3,) float
     ground_stats : (shift, noise), optional
         The block's ground statistics (:func:`pipeline.ground.ground_stats`) for a tile.
+    slot_trees : (f, 3) float64, optional
+        The trees on open planting slots the whole block's rows let in (x, y [m],
+        young; :func:`pipeline.slots.trees_on_slots`), given to a tile run again with
+        them. None: decided on the rows of ``xyz`` itself.
 
     Returns
     -------
@@ -309,8 +324,11 @@ def analyse_nodes(
                 posts, on_post = None, np.zeros(vox.n, bool)
             else:
                 det = again
-    # the row model as a prior: young trees on open planting slots, too low to pass alone
-    det = rescue_on_open_slots(det, nodes, node_height, contact_top=ground_top + params.trunks.contact_height, params=params)
+    # the row model as a prior: replants and full trees on open planting slots
+    evidence = slot_evidence(det, params=params)
+    if slot_trees is None:
+        slot_trees = trees_on_slots(evidence, params=params.rows)
+    det = let_in(det, slot_trees, nodes, node_height, contact_top=ground_top + params.trunks.contact_height)
     surfaces = on_post | hard_surfaces(
         nodes,
         patch,
@@ -346,7 +364,8 @@ def analyse_nodes(
             break
         det = drop_trunks(det, drop)
         seg = segment(det)
-    return NodeAnalysis(gm, height, is_ground, veg_idx, vox, node_height, adjacency, feats, graph, det, seg, posts, on_post)
+    return NodeAnalysis(gm, height, is_ground, veg_idx, vox, node_height, adjacency, feats, graph, det, seg, posts, on_post,
+                        evidence, np.asarray(slot_trees, np.float64).reshape(-1, 3))
 
 
 def node_wood_score(a: NodeAnalysis, *, params: PipelineParams) -> np.ndarray:
@@ -376,6 +395,7 @@ def process_points(
     params: PipelineParams,
     grid_origin: tuple[float, float, float] = (0.0, 0.0, 0.0),
     ground_stats: tuple[float, float] | None = None,
+    slot_trees: np.ndarray | None = None,
 ) -> BlockResult:
     """Run the whole per-block pipeline on one point cloud.
 
@@ -390,12 +410,15 @@ def process_points(
     ground_stats : (shift, noise), optional
         The whole block's ground statistics; tiles of one block pass the same values, so
         that their ground models are lifted alike. Default: estimated from ``xyz``.
+    slot_trees : (f, 3) float64, optional
+        For a tile run again: the trees on open slots the block's rows let in (see
+        :func:`analyse_nodes`). None: decided on the rows of ``xyz``.
 
     Returns
     -------
     BlockResult
     """
-    a = analyse_nodes(xyz, params=params, grid_origin=grid_origin, ground_stats=ground_stats)
+    a = analyse_nodes(xyz, params=params, grid_origin=grid_origin, ground_stats=ground_stats, slot_trees=slot_trees)
     return block_result(xyz, a, params=params)
 
 
@@ -480,4 +503,6 @@ def block_result(xyz: np.ndarray, a: NodeAnalysis, *, params: PipelineParams) ->
         trunk_diameter=diameter,
         spacing=a.trunks.spacing,
         trunk_young=a.trunks.young,
+        slot_evidence=a.slot_evidence,
+        slot_trees=a.slot_trees,
     )

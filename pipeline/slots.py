@@ -1,12 +1,21 @@
-"""Open planting slots, and the replants let in on them: the row model as a prior.
+"""Open planting slots, and the trees let in on them: the row model as a prior.
 
-A replant, a young tree planted into a gap of an old row, stands a third to half as
-tall as its neighbours, below the height that tells a tree from a post, a bin or
-foliage touching the ground (``min_tree_height``). A trunk-like contact group that
-stands on an open slot (an empty slot between two trees of a row, or the slot beyond a
-row's end), is tall enough to be a nursery tree and passes the tests of a trunk but its
-height, is a tree. This runs in each tile on the rows of the tile's trunks; a tile sees
-the rows around each of its trunks far enough for a replant's two neighbours.
+Two kinds of tree stand on a row's open slots that the trunk tests alone turn down.
+
+- A replant, a young tree planted into a gap of an old row, stands a third to half as
+  tall as its neighbours, below the height that tells a tree from a post, a bin or
+  foliage touching the ground (``min_tree_height``): a contact group on an open slot (an
+  empty slot between two trees of a row, or the slot beyond a row's end) that is tall
+  enough for a nursery tree and passes the tests of a trunk but its height.
+- A full-grown tree whose contact group passed the tests of its own but was taken for
+  a satellite of a stronger neighbour, or found too wide (on dense rows with foliage to
+  the ground one tree may drain two or three times what its neighbour does), on an
+  empty slot between two trees of a row.
+
+The decision takes the block's rows: a tile's own rows end at its buffer. A tile first
+decides on its own rows and reports its core's evidence (:func:`slot_evidence`); the
+job decides once on the whole block (:func:`trees_on_slots`) and runs again the tiles
+that decided otherwise, giving them the block's trees (:func:`let_in`).
 """
 
 from __future__ import annotations
@@ -22,8 +31,11 @@ from pipeline.trunks import TrunkDetection
 MIN_REPLANT_HEIGHT = 0.7
 #: a replant stands within this fraction of the in-row spacing of its slot's centre
 SLOT_REACH = 0.2
-#: contact nodes within this distance [m] of a replant's centre seed it in segmentation
+#: contact nodes within this distance [m] of a tree let in seed it in segmentation
 SOURCE_RADIUS = 0.2
+#: a tile's contact group is the block's group a tree was let in as when their centres
+#: lie this close [m] (the same voxels; tiles' ground models differ by mm)
+SAME_GROUP = 0.05
 
 
 #: a row is evidence of a planting lattice from this many trees on (two trees with a gap
@@ -31,16 +43,16 @@ SOURCE_RADIUS = 0.2
 MIN_LATTICE_TREES = 4
 
 
-def open_slots(layout: RowLayout) -> np.ndarray:
+def open_slots(layout: RowLayout, *, ends: bool = True) -> np.ndarray:
     """(o, 2) float64 centres [m] of the slots a tree could still stand in, in rows of at
     least :data:`MIN_LATTICE_TREES` trees: the empty slots between two trees of the row,
-    and the slot beyond each of its ends."""
+    and (``ends``) the slot beyond each of its ends."""
     long = layout.rows["n_trees"] >= MIN_LATTICE_TREES
     in_long = np.isin(layout.gaps["row"], layout.rows["row"][long])
     pts = [np.c_[layout.gaps["x"][in_long], layout.gaps["y"][in_long]]]
     # a row's line runs through its trees (a canopy row's, without trees, is no lattice)
     for line, s, is_long in zip(layout.lines, layout.rows["spacing_m"], long):
-        if is_long and np.isfinite(s):
+        if ends and is_long and np.isfinite(s):
             for end, inner in ((line[-1], line[-3]), (line[0], line[2])):
                 step = end - inner
                 pts.append((end + s * step / np.hypot(*step))[None, :])
@@ -48,7 +60,7 @@ def open_slots(layout: RowLayout) -> np.ndarray:
 
 
 def on_open_slot(tree_xy: np.ndarray, cand_xy: np.ndarray, *, params: RowParams | None = None,
-                 reach: float = 0.2) -> np.ndarray:
+                 reach: float = 0.2, ends: bool = True) -> np.ndarray:
     """Which open slot (:func:`open_slots`) of the rows of ``tree_xy`` each candidate
     stands on: a candidate there is more likely a tree (a replant, a thin trunk) than
     one elsewhere.
@@ -62,6 +74,8 @@ def on_open_slot(tree_xy: np.ndarray, cand_xy: np.ndarray, *, params: RowParams 
     params : RowParams, optional
     reach : float
         A candidate stands on a slot within this fraction of the block's spacing.
+    ends : bool
+        Count the slots beyond the rows' ends (else only the empty slots between trees).
 
     Returns
     -------
@@ -73,7 +87,7 @@ def on_open_slot(tree_xy: np.ndarray, cand_xy: np.ndarray, *, params: RowParams 
     if len(cand_xy) == 0 or len(tree_xy) < 3:
         return out
     lay = find_rows(tree_xy, params=params or RowParams())
-    slots = open_slots(lay)
+    slots = open_slots(lay, ends=ends)
     spacing = np.nanmedian(lay.rows["spacing_m"]) if np.isfinite(lay.rows["spacing_m"]).any() else np.nan
     if not len(slots) or not np.isfinite(spacing):
         return out
@@ -81,67 +95,116 @@ def on_open_slot(tree_xy: np.ndarray, cand_xy: np.ndarray, *, params: RowParams 
     return np.where(d <= reach * spacing, j, -1)
 
 
-def rescue_on_open_slots(
-    det: TrunkDetection,
-    nodes: np.ndarray,
-    node_height: np.ndarray,
-    *,
-    contact_top: float,
-    params: PipelineParams,
-) -> TrunkDetection:
-    """Add the replants among the rejected contact groups to a detection.
+def slot_evidence(det: TrunkDetection, *, params: PipelineParams) -> dict:
+    """What the decision on trees on open slots (:func:`trees_on_slots`) needs of one
+    detection: its trunks, and the contact groups it turned down that may be trees there.
 
-    Parameters
-    ----------
-    det : TrunkDetection
-        With ``candidates`` (every contact group's measurements).
-    nodes : (m, 3) float64
-        Node positions [m].
-    node_height : (m,) float64
-        Height of each node above the ground [m].
-    contact_top : float
-        Nodes below this height [m] are ground contacts.
-    params : PipelineParams
+    A replant candidate is tall enough for a nursery tree and passes the tests of a
+    trunk but its height; a full-tree candidate has a tree's height and a trunk's foot
+    (``fits``, ``foot``) but was taken for a neighbour's satellite or found too wide.
 
     Returns
     -------
-    TrunkDetection
-        The detection with the replants appended (trunks ``k..``), marked in ``young`` (a
-        replant is exempt from the height test after segmentation); ``det`` itself when
-        there is none.
+    dict with ``trunks`` (k, 2), ``xy`` (c, 2) [m], ``support`` (c,) float64 and
+    ``full`` (c,) bool (a full-tree candidate; else a replant candidate).
     """
+    trunks = np.asarray(det.xy, np.float64).reshape(-1, 2)
     cand = det.candidates
-    if not params.rows.enabled or cand is None or det.k < 3 or not len(cand["x"]):
-        return det
+    none = {"trunks": trunks, "xy": np.zeros((0, 2)), "support": np.zeros(0), "full": np.zeros(0, bool)}
+    if not params.rows.enabled or cand is None or not len(cand["x"]):
+        return none
     tp = params.trunks
     rejected = ~np.asarray(cand["accepted"], bool)
-    low = (
+    replant = (
         rejected
         & (cand["top"] >= MIN_REPLANT_HEIGHT)
         & (cand["top"] < tp.min_tree_height)
         & (cand["planar"] <= tp.max_planar_fraction)
         & (cand["width"] <= tp.max_trunk_width)
     )
-    idx = np.flatnonzero(low)
-    if not idx.size:
+    full = rejected & np.asarray(cand["fits"], bool) & (np.asarray(cand["foot"]) >= tp.min_foot_ratio) & ~replant
+    pick = replant | full
+    return {
+        "trunks": trunks,
+        "xy": np.c_[cand["x"], cand["y"]][pick].astype(np.float64),
+        "support": np.asarray(cand["support"], np.float64)[pick],
+        "full": full[pick],
+    }
+
+
+def trees_on_slots(evidence: dict, *, params: RowParams) -> np.ndarray:
+    """The trees the rows let in: the evidence's candidates on an open slot of the rows
+    of its trunks, one per slot. A replant may stand on any open slot, a full tree only
+    on an empty slot between two trees (beyond a row's end stand posts, bins, vehicles).
+    In a slot, a full tree comes before a replant, then the group with the most material.
+
+    Parameters
+    ----------
+    evidence : dict
+        :func:`slot_evidence` of the block (or the tile deciding for itself).
+    params : RowParams
+
+    Returns
+    -------
+    (f, 3) float64: x, y [m] and young (1.0 a replant, 0.0 a full tree), by slot.
+    """
+    trunks, xy, support, full = evidence["trunks"], evidence["xy"], evidence["support"], evidence["full"]
+    if not params.enabled or not len(xy) or len(trunks) < 3:
+        return np.zeros((0, 3))
+    # the slots between trees come first in open_slots' list, with or without the ends
+    slot = np.where(full, on_open_slot(trunks, xy, params=params, reach=SLOT_REACH, ends=False),
+                    on_open_slot(trunks, xy, params=params, reach=SLOT_REACH))
+    on = np.flatnonzero(slot >= 0)
+    if not on.size:
+        return np.zeros((0, 3))
+    order = on[np.lexsort((-support[on], ~full[on], slot[on]))]
+    first = order[np.r_[True, np.diff(slot[order]) != 0]]
+    return np.c_[xy[first], (~full[first]).astype(np.float64)]
+
+
+def let_in(det: TrunkDetection, trees: np.ndarray, nodes: np.ndarray, node_height: np.ndarray, *,
+           contact_top: float) -> TrunkDetection:
+    """``det`` with the trees on open slots (:func:`trees_on_slots`) appended (trunks
+    ``k..``), replants marked ``young`` (exempt from the height test after segmentation).
+    Each takes the measurements of the contact group it was found as where this
+    detection has it (a tile's buffer may cut a group at its edge).
+
+    Parameters
+    ----------
+    det : TrunkDetection
+    trees : (f, 3) float64 — x, y [m], young (1.0 / 0.0)
+    nodes : (m, 3) float64 — node positions [m]
+    node_height : (m,) float64 — height of each node above the ground [m]
+    contact_top : float — nodes below this height [m] are ground contacts
+
+    Returns
+    -------
+    TrunkDetection; ``det`` itself when no tree is added.
+    """
+    trees = np.asarray(trees, np.float64).reshape(-1, 3)
+    if not len(trees):
         return det
-    cxy = np.c_[cand["x"], cand["y"]][idx]
-    slot = on_open_slot(det.xy, cxy, params=params.rows, reach=SLOT_REACH)
-    on = slot >= 0
-    idx, cxy, slot = idx[on], cxy[on], slot[on]
-    if not idx.size:
-        return det
-    # one replant per slot: the group with the most material
-    order = np.lexsort((-cand["support"][idx], slot))
-    first = np.r_[True, np.diff(slot[order]) != 0]
-    pick = order[first]
-    idx, cxy = idx[pick], cxy[pick]
+    xy = trees[:, :2]
+    support, width = np.zeros(len(xy)), np.zeros(len(xy))
+    cand = det.candidates
+    if cand is not None and len(cand["x"]):
+        d, j = cKDTree(np.c_[cand["x"], cand["y"]]).query(xy)
+        same = d <= SAME_GROUP
+        support[same] = np.asarray(cand["support"], np.float64)[j[same]]
+        width[same] = np.asarray(cand["width"], np.float64)[j[same]]
+    return _append(det, xy, support, width, trees[:, 2] > 0, nodes=nodes, node_height=node_height, contact_top=contact_top)
+
+
+def _append(det: TrunkDetection, xy, support, width, young, *, nodes, node_height, contact_top) -> TrunkDetection:
+    """``det`` with trunks at ``xy`` appended (trunks ``k..``), each seeded by the contact
+    nodes within SOURCE_RADIUS of it (else the nearest within twice that; a trunk
+    without any is left out); ``det`` itself when none is added."""
     contact = np.flatnonzero(node_height < contact_top)
-    if not contact.size:
+    if not contact.size or not len(xy):
         return det
     tree = cKDTree(nodes[contact, :2])
     src, src_t, keep = [], [], []
-    for j, c in enumerate(cxy):
+    for j, c in enumerate(xy):
         near = tree.query_ball_point(c, SOURCE_RADIUS)
         if not near:
             d, n = tree.query(c)
@@ -153,18 +216,18 @@ def rescue_on_open_slots(
     if not keep:
         return det
     keep = np.asarray(keep)
-    idx, cxy = idx[keep], cxy[keep]
     nodes_new = np.concatenate(src)
     trunk_new = np.concatenate(src_t)
     taken = np.isin(nodes_new, det.source_nodes)  # a node seeds one trunk
-    out = TrunkDetection(
-        np.r_[det.xy, cxy],
-        np.r_[det.support, cand["support"][idx]],
-        np.r_[det.width, cand["width"][idx]],
+    return TrunkDetection(
+        np.r_[det.xy, xy[keep]],
+        np.r_[det.support, support[keep]],
+        np.r_[det.width, width[keep]],
         np.r_[det.source_nodes, nodes_new[~taken]],
         np.r_[det.source_trunk, trunk_new[~taken]],
         det.candidates,
         det.spacing,
-        np.r_[np.zeros(det.k, bool) if det.young is None else det.young, np.ones(len(cxy), bool)],
+        np.r_[np.zeros(det.k, bool) if det.young is None else det.young, np.asarray(young, bool)[keep]],
     )
-    return out
+
+

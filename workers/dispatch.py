@@ -3,7 +3,8 @@
 :func:`dispatch` submits one task per tile (a dask task when a client is given, else a
 call in this process), feeds what happens to a :class:`workers.tilestate.TileState` and
 acts on its decisions: keep a result, run a tile again, go on without it, or stop. The
-job's two tile stages use it: :func:`block_ground_stats` and :func:`process_tiles`.
+job's tile stages use it: :func:`block_ground_stats`, :func:`process_tiles` and
+:func:`settle_slot_trees`.
 """
 
 from __future__ import annotations
@@ -19,7 +20,8 @@ import numpy as np
 from pipeline.errors import OrchardError
 from pipeline.ground import ground_stats, stats_stride
 from workers.jobspec import ClusterLost, JobCancelled, JobSpec, TileFailed
-from workers.tasks import ground_sample, process_tile
+from workers.slottrees import SLOT_KEY, block_slot_trees, tiles_to_run_again
+from workers.tasks import ground_sample, process_tile, result_key
 from workers.tilestate import Decision, TileState
 from workers.workstore import JOB_KEY, WorkStore
 
@@ -181,6 +183,32 @@ def process_tiles(store: WorkStore, tiles: list[dict], spec: JobSpec, client, pr
              args=lambda tid: (params_json, tid in inject), stop=stop,
              accept=lambda tile, summary: kept(summary, store, tile), progress=progress)
     return state.ordered_results(), state.failed
+
+
+def settle_slot_trees(store: WorkStore, record: dict, index: dict, summaries: list[dict], spec: JobSpec, client,
+                      progress, cancel) -> tuple[list[dict], dict[int, str]]:
+    """Decide the block's full trees on empty slots from the tiles' summaries
+    (:mod:`workers.slottrees`), keep them in the job record, and run again the tiles
+    they change.
+
+    Returns
+    -------
+    (every summary, the changed tiles' new ones in place; given-up tile → its last error line)
+    """
+    trees = block_slot_trees(summaries, spec.params)
+    record[SLOT_KEY] = trees.tolist()
+    store.put_json(JOB_KEY, record)
+    again = tiles_to_run_again([t for t in index["tiles"] if t["n_core"] > 0], summaries, trees, index["origin"])
+    if not again:
+        return summaries, {}
+    total = len(summaries)
+    # progress goes on from where the first run ended (each tile run again counts once more)
+    step = (lambda done, n: progress(total - n + done, total)) if progress else None
+    for t in again:  # a tile given up now has no result, not the one made without the trees
+        store.remove(result_key(t["id"]))
+    new, failed = process_tiles(store, again, spec, client, step, cancel)
+    by_id = {s["tile_id"]: s for s in summaries} | {s["tile_id"]: s for s in new}
+    return [by_id[k] for k in sorted(by_id) if k not in failed], failed
 
 
 def kept(summary: dict, store: WorkStore, tile: dict) -> dict:

@@ -30,7 +30,7 @@ import numpy as np
 from pipeline.blockinfo import BlockInfo, read_info
 from pipeline.reading import read_points
 from pipeline.tiling import TileGrid
-from workers.dispatch import block_ground_stats, check_cancel, gather, process_tiles
+from workers.dispatch import block_ground_stats, check_cancel, gather, process_tiles, settle_slot_trees
 from workers.jobspec import (
     ClusterLost,
     JobCancelled,
@@ -186,6 +186,8 @@ def _run_tiled_locked(spec, info, client, t0, progress, cancel, grid, store, tim
             timings["ground"] = time.perf_counter() - t
             t = time.perf_counter()
             summaries, failed = process_tiles(store, tiles, spec, client, progress, cancel)
+            if not failed:  # the block's rows let in full trees on empty slots: their tiles run again
+                summaries, failed = settle_slot_trees(store, record, index, summaries, spec, client, progress, cancel)
         except (TileFailed, JobCancelled, ClusterLost):
             keep_work = True  # everything needed to re-run or resume stays in the work store
             raise

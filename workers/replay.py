@@ -19,7 +19,7 @@ import numpy as np
 from pipeline.blockinfo import BlockInfo
 from pipeline.errors import NoTreesError, ParameterError
 from pipeline.params import PipelineParams
-from workers.dispatch import block_ground_stats, process_tiles
+from workers.dispatch import block_ground_stats, process_tiles, settle_slot_trees
 from workers.jobspec import JobOutcome, JobSpec, check_job_paths
 from workers.outputs import Labels, merge_and_write
 from workers.tasks import process_tile, result_key
@@ -127,7 +127,22 @@ def _resume(store: WorkStore, out_dir, client, progress, cancel) -> JobOutcome:
         store.put_json(JOB_KEY, record)
     if todo:
         process_tiles(store, todo, spec, client, progress, cancel)
+    _settle_stored(store, record, index, spec, client, progress, cancel)
     return _finish_job(store, out_dir)
+
+
+def _settle_stored(store: WorkStore, record: dict, index: dict, spec: JobSpec, client, progress, cancel) -> None:
+    """The block's full trees on empty slots, once every tile has a result: the tiles
+    run without them (or with others) run again."""
+    summaries = []
+    for t in index["tiles"]:
+        if t["n_core"] == 0:
+            continue
+        key = f"{result_key(t['id'])}/summary.pkl"
+        if not store.exists(key):
+            return  # a partial job: the block's rows are not all known
+        summaries.append(store.get_object(key))
+    settle_slot_trees(store, record, index, summaries, spec, client, progress, cancel)
 
 
 def finish_job(work_dir: str, *, out_dir: str | None = None) -> JobOutcome:

@@ -23,6 +23,7 @@ from pipeline.params import PipelineParams
 from pipeline.process import process_points
 from pipeline.reading import to_local
 from pipeline.tiling import TileGrid, core_tile
+from workers.slottrees import SLOT_KEY, trees_in_tile
 from workers.tiler import read_frame, read_tile
 from workers.workstore import JOB_KEY, WorkStore
 
@@ -40,7 +41,9 @@ def _frame(index: dict) -> SimpleNamespace:
 
 
 def summarise(tile_id, xyz, core, result, grid: TileGrid | None, origin, params: PipelineParams) -> dict:
-    """Small per-tile summary: trunks, ownership and partial metrics of the core points.
+    """Small per-tile summary: trunks, ownership and partial metrics of the core points,
+    the core's evidence for the block's trees on open slots and the ones the tile let in
+    (:mod:`workers.slottrees`).
 
     ``grid`` None: the tile is the whole block and owns every trunk.
     """
@@ -57,6 +60,12 @@ def summarise(tile_id, xyz, core, result, grid: TileGrid | None, origin, params:
         m = OWNERSHIP_MARGIN * cluster_radius
         near = (x0 - m <= xy[:, 0]) & (xy[:, 0] < x1 + m) & (y0 - m <= xy[:, 1]) & (xy[:, 1] < y1 + m)
         owned = (core_tile(xy, grid) == tile_id) | near
+    evidence = result.slot_evidence
+    if grid is not None and evidence is not None:  # the core's only: each position in one tile
+        def in_core(xy):
+            return core_tile(np.asarray(xy).reshape(-1, 2) + np.asarray(origin[:2]), grid) == tile_id
+        t_in, c_in = in_core(evidence["trunks"]), in_core(evidence["xy"])
+        evidence = {k: v[t_in] if k == "trunks" else v[c_in] for k, v in evidence.items()}
     sel = slice(None) if core.all() else core  # a whole block: no copies
     partials = tree_partials(
         xyz[sel], result.tree_id[sel], result.is_wood[sel], trunks[:, 2], params=params.metrics
@@ -74,14 +83,18 @@ def summarise(tile_id, xyz, core, result, grid: TileGrid | None, origin, params:
         # the canopy of the core, for rows whose trunks are hidden (cells in the input CRS)
         "canopy": canopy_cells(xyz[sel, :2][~result.is_ground[sel]] + np.asarray(origin[:2]),
                                result.height[sel][~result.is_ground[sel]]),
+        "slot_evidence": evidence,
+        SLOT_KEY: np.zeros((0, 3)) if result.slot_trees is None else np.asarray(result.slot_trees, np.float64).reshape(-1, 3),
     }
 
 
-def process(xyz: np.ndarray, params: PipelineParams, where: str, ground: tuple[float, float] | None = None):
+def process(xyz: np.ndarray, params: PipelineParams, where: str, ground: tuple[float, float] | None = None,
+            slot_trees: np.ndarray | None = None):
     """``process_points`` on a block or tile; an InputError (e.g. points spread too wide
-    for one ground model) names ``where``, the file or the tile."""
+    for one ground model) names ``where``, the file or the tile. ``slot_trees``: the
+    block's trees on open slots, for a tile run again with them."""
     try:
-        return process_points(xyz, params=params, grid_origin=(0.0, 0.0, 0.0), ground_stats=ground)
+        return process_points(xyz, params=params, grid_origin=(0.0, 0.0, 0.0), ground_stats=ground, slot_trees=slot_trees)
     except InputError as exc:
         raise exc.prefixed(f"{where}: ") from None
 
@@ -129,13 +142,17 @@ def process_tile(work_url: str, tile_id: int, params_json: str, fail: bool = Fal
         raise RuntimeError(f"injected failure in tile {tile_id} (testing)")
     if not store.exists(JOB_KEY):  # the job ended (its store deleted) before this tile started
         return _abandon(store)
-    stats = store.get_json(JOB_KEY).get("ground_stats")  # the block's, shared by every tile
+    record = store.get_json(JOB_KEY)
+    stats = record.get("ground_stats")  # the block's, shared by every tile
     frame = read_frame(store)
     params = PipelineParams.model_validate_json(params_json)
     grid = TileGrid.from_dict(frame["grid"])
+    # none yet: the tile decides on its own rows; after the block's decision, the block's
+    given = record.get(SLOT_KEY)
+    slot_trees = None if given is None else trees_in_tile(given, {"buffered": grid.tile(int(tile_id)).buffered}, frame["origin"])
     rec, xyz = _tile_points(store, tile_id, frame)
     core = rec["core"].astype(bool)
-    result = process(xyz, params, f"tile {tile_id}", tuple(stats) if stats else None)
+    result = process(xyz, params, f"tile {tile_id}", tuple(stats) if stats else None, slot_trees)
     key = result_key(tile_id)
     if not store.exists(JOB_KEY):  # the job was cancelled (its store deleted) while this tile ran
         return _abandon(store, tile_id)

@@ -5,7 +5,7 @@ from __future__ import annotations
 import numpy as np
 
 from pipeline.params import PipelineParams
-from pipeline.slots import rescue_on_open_slots
+from pipeline.slots import let_in, slot_evidence, trees_on_slots
 from pipeline.trunks import TrunkDetection
 
 
@@ -22,6 +22,13 @@ def _detection(trunks, cands):
     return det, nodes
 
 
+def _let_in(det, nodes, params=None):
+    """The whole-block path of the pipeline: decide on the detection's own rows, let in."""
+    params = params or PipelineParams()
+    trees = trees_on_slots(slot_evidence(det, params=params), params=params.rows)
+    return let_in(det, trees, nodes, np.full(len(nodes), 0.05), contact_top=0.1)
+
+
 def test_a_low_tree_on_an_empty_slot_is_a_replant_and_others_are_not():
     row = np.array([[x, 0.0] for x in (0, 1, 2, 4, 5, 6, 7, 9, 10)], dtype=float)  # slots 4 and 9 empty
     cands = np.array([
@@ -32,16 +39,49 @@ def test_a_low_tree_on_an_empty_slot_is_a_replant_and_others_are_not():
         [3.1, 0.9, 1.3],     # beside the row
     ])
     det, nodes = _detection(row, cands)
-    out = rescue_on_open_slots(det, nodes, np.full(len(nodes), 0.05), contact_top=0.1, params=PipelineParams())
+    out = _let_in(det, nodes)
     assert out.k == det.k + 2
     np.testing.assert_allclose(out.xy[out.young], [[3.05, 0.02], [11.02, 0.0]])
     assert set(out.source_trunk[out.source_nodes >= det.k].tolist()) == {det.k, det.k + 1}
 
 
-def test_nothing_is_rescued_with_rows_off_or_too_few_trees():
+def test_a_full_tree_turned_down_on_an_empty_slot_between_two_trees_is_let_in_not_young():
+    row = np.array([[x, 0.0] for x in (0, 1, 2, 4, 5, 6, 7, 9, 10)], dtype=float)
+    cands = np.array([
+        [3.02, 0.05, 3.0],   # tree height on the empty slot 4 (a neighbour's "satellite")
+        [8.0, 0.0, 3.0],     # and on slot 9
+        [5.5, 0.0, 3.0],     # between two trees: foliage touching down
+        [3.0, 0.9, 3.0],     # beside the row
+    ])
+    det, nodes = _detection(row, cands)
+    out = _let_in(det, nodes)
+    assert out.k == det.k + 2 and not out.young.any()
+    np.testing.assert_allclose(out.xy[det.k:], [[3.02, 0.05], [8.0, 0.0]])
+
+
+def test_one_tree_per_slot_a_full_tree_before_a_replant():
+    row = np.array([[x, 0.0] for x in (0, 1, 2, 4, 5, 6)], dtype=float)
+    det, nodes = _detection(row, np.array([[3.1, 0.0, 1.2], [2.95, 0.02, 3.0]]))
+    out = _let_in(det, nodes)
+    assert out.k == det.k + 1 and not out.young[-1]
+    np.testing.assert_allclose(out.xy[-1], [2.95, 0.02])
+
+
+def test_the_trees_given_by_the_block_are_let_in_whatever_the_tile_sees():
+    # a tile run again gets the block's decision: a tree on a slot of a row it sees two trees of
+    row = np.array([[0.0, 0.0], [1.0, 0.0]])
+    det, nodes = _detection(row, np.array([[2.0, 0.0, 3.0]]))
+    assert _let_in(det, nodes) is det  # two trees: no row of its own
+    out = let_in(det, np.array([[2.0, 0.0, 0.0]]), nodes, np.full(len(nodes), 0.05), contact_top=0.1)
+    assert out.k == 3 and out.support[-1] == 80.0 and not out.young[-1]
+    # a tree given where this detection has no contact node is left out
+    assert let_in(det, np.array([[9.0, 9.0, 0.0]]), nodes, np.full(len(nodes), 0.05), contact_top=0.1) is det
+
+
+def test_nothing_is_let_in_with_rows_off_or_too_few_trees():
     row = np.array([[x, 0.0] for x in (0, 1, 2, 4, 5)], dtype=float)
     det, nodes = _detection(row, np.array([[3.0, 0.0, 1.2]]))
     off = PipelineParams(rows={"enabled": False})
-    assert rescue_on_open_slots(det, nodes, np.full(len(nodes), 0.05), contact_top=0.1, params=off) is det
+    assert _let_in(det, nodes, off) is det
     det2, nodes2 = _detection(row[:2], np.array([[3.0, 0.0, 1.2]]))
-    assert rescue_on_open_slots(det2, nodes2, np.full(len(nodes2), 0.05), contact_top=0.1, params=PipelineParams()) is det2
+    assert _let_in(det2, nodes2) is det2

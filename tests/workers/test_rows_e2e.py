@@ -75,3 +75,36 @@ def test_a_row_whose_trunks_are_all_hidden_is_found_from_its_canopy(tmp_path):
     assert rows["n_trees"][0] >= 9 and rows["n_trees"][2] >= 9
     ys = np.asarray(trees["trunk_y"])
     assert set(np.asarray(trees["row"])[ys > np.median(trunks[:, 1]) + 1.0].tolist()) == {3}
+
+
+@pytest.mark.slow
+def test_trees_on_open_slots_are_decided_on_the_block_and_tiled_equals_untiled(tmp_path, monkeypatch):
+    """High density with foliage to the ground: some trees are turned down as a
+    neighbour's satellite and let in on their empty slot, a replant on the slot before
+    a row's first tree. A tile's own rows decided these otherwise near its edges (tiled
+    21 trees, untiled 22, on this block); the block's decision runs those tiles again."""
+    import workers.dispatch
+
+    las, truth = tmp_path / "hd.laz", tmp_path / "hd.truth.parquet"
+    sim = SimulationParams(spacing=2.5, row_spacing=4.5, low_foliage=True, rows=3, trees_per_row=8, missing=0.1,
+                           replants=0.05, density=0.5, seed=100)
+    write_simulation(sim, str(las), str(truth))
+    single = run_job(JobSpec(str(las), str(tmp_path / "single")))
+    again = []
+    first = workers.dispatch.process_tiles
+
+    def counting(store, tiles, *args, **kwargs):
+        again.append([t["id"] for t in tiles])
+        return first(store, tiles, *args, **kwargs)
+
+    monkeypatch.setattr(workers.dispatch, "process_tiles", counting)  # the block's second round only
+    tiled = run_job(JobSpec(str(las), str(tmp_path / "tiled"), tiling=TilingParams(tile_size=14.0)))
+    assert tiled.n_tiles == 6 and again and 0 < len(again[0]) < 6
+    assert tiled.n_trees == single.n_trees
+    for col in ("trunk_x", "trunk_y", "row", "position", "young"):
+        np.testing.assert_allclose(np.asarray(tiled.trees[col], float), np.asarray(single.trees[col], float), err_msg=col)
+    a = pq.read_table(tmp_path / "single" / "points.parquet", columns=["tree_id"]).column(0).to_numpy()
+    b = pq.read_table(tmp_path / "tiled" / "points.parquet", columns=["tree_id"]).column(0).to_numpy()
+    assert np.array_equal(a, b)
+    s = evaluate_result(str(truth), str(tmp_path / "single"), match_distance=1.0)
+    assert s["trunk_recall"] >= 21 / 22
