@@ -181,9 +181,10 @@ class NodeAnalysis:
     slot_trees: np.ndarray | None = None
 
 
-def _not_young(drop: np.ndarray, det: TrunkDetection) -> np.ndarray:
-    """``drop`` less the trunks let in as replants (low by nature)."""
-    return drop if det.young is None else drop[~det.young[drop]]
+def _not_on_slot(drop: np.ndarray, det: TrunkDetection) -> np.ndarray:
+    """``drop`` less the trunks let in on open planting slots: a replant is low by nature,
+    and a full tree let in beside a stronger neighbour may keep little of its height."""
+    return drop if det.on_slot is None else drop[~det.on_slot[drop]]
 
 
 def noisy_planar(feats: ShapeFeatures, *, noise: float) -> np.ndarray:
@@ -358,7 +359,7 @@ def analyse_nodes(
     for _ in range(DROP_ROUNDS):  # dropping a box-like or low "tree" (a vehicle) re-segments its material
         drop = np.union1d(
             box_like_trees(seg.node_tree, node_height, nodes=nodes, trunk_xy=det.xy, planar=standing_face, params=params.trunks),
-            _not_young(low_trees(seg.node_tree, node_height, det.k, params=params.trunks), det),
+            _not_on_slot(low_trees(seg.node_tree, node_height, det.k, params=params.trunks), det),
         )
         if drop.size == 0:
             break

@@ -7,10 +7,10 @@ Two kinds of tree stand on a row's open slots that the trunk tests alone turn do
   foliage touching the ground (``min_tree_height``): a contact group on an open slot (an
   empty slot between two trees of a row, or the slot beyond a row's end) that is tall
   enough for a nursery tree and passes the tests of a trunk but its height.
-- A full-grown tree whose contact group passed the tests of its own but was taken for
-  a satellite of a stronger neighbour, or found too wide (on dense rows with foliage to
-  the ground one tree may drain two or three times what its neighbour does), on an
-  empty slot between two trees of a row.
+- A full-grown tree whose contact group has a tree's height and a trunk's foot but was
+  taken for a satellite of a stronger neighbour, or found too wide (on dense rows with
+  foliage to the ground one tree may drain two or three times what its neighbour does),
+  on an open slot.
 
 The decision takes the block's rows: a tile's own rows end at its buffer. A tile first
 decides on its own rows and reports its core's evidence (:func:`slot_evidence`); the
@@ -43,16 +43,16 @@ SAME_GROUP = 0.05
 MIN_LATTICE_TREES = 4
 
 
-def open_slots(layout: RowLayout, *, ends: bool = True) -> np.ndarray:
+def open_slots(layout: RowLayout) -> np.ndarray:
     """(o, 2) float64 centres [m] of the slots a tree could still stand in, in rows of at
     least :data:`MIN_LATTICE_TREES` trees: the empty slots between two trees of the row,
-    and (``ends``) the slot beyond each of its ends."""
+    and the slot beyond each of its ends."""
     long = layout.rows["n_trees"] >= MIN_LATTICE_TREES
     in_long = np.isin(layout.gaps["row"], layout.rows["row"][long])
     pts = [np.c_[layout.gaps["x"][in_long], layout.gaps["y"][in_long]]]
     # a row's line runs through its trees (a canopy row's, without trees, is no lattice)
     for line, s, is_long in zip(layout.lines, layout.rows["spacing_m"], long):
-        if ends and is_long and np.isfinite(s):
+        if is_long and np.isfinite(s):
             for end, inner in ((line[-1], line[-3]), (line[0], line[2])):
                 step = end - inner
                 pts.append((end + s * step / np.hypot(*step))[None, :])
@@ -60,7 +60,7 @@ def open_slots(layout: RowLayout, *, ends: bool = True) -> np.ndarray:
 
 
 def on_open_slot(tree_xy: np.ndarray, cand_xy: np.ndarray, *, params: RowParams | None = None,
-                 reach: float = 0.2, ends: bool = True) -> np.ndarray:
+                 reach: float = 0.2) -> np.ndarray:
     """Which open slot (:func:`open_slots`) of the rows of ``tree_xy`` each candidate
     stands on: a candidate there is more likely a tree (a replant, a thin trunk) than
     one elsewhere.
@@ -74,8 +74,6 @@ def on_open_slot(tree_xy: np.ndarray, cand_xy: np.ndarray, *, params: RowParams 
     params : RowParams, optional
     reach : float
         A candidate stands on a slot within this fraction of the block's spacing.
-    ends : bool
-        Count the slots beyond the rows' ends (else only the empty slots between trees).
 
     Returns
     -------
@@ -87,7 +85,7 @@ def on_open_slot(tree_xy: np.ndarray, cand_xy: np.ndarray, *, params: RowParams 
     if len(cand_xy) == 0 or len(tree_xy) < 3:
         return out
     lay = find_rows(tree_xy, params=params or RowParams())
-    slots = open_slots(lay, ends=ends)
+    slots = open_slots(lay)
     spacing = np.nanmedian(lay.rows["spacing_m"]) if np.isfinite(lay.rows["spacing_m"]).any() else np.nan
     if not len(slots) or not np.isfinite(spacing):
         return out
@@ -134,9 +132,8 @@ def slot_evidence(det: TrunkDetection, *, params: PipelineParams) -> dict:
 
 def trees_on_slots(evidence: dict, *, params: RowParams) -> np.ndarray:
     """The trees the rows let in: the evidence's candidates on an open slot of the rows
-    of its trunks, one per slot. A replant may stand on any open slot, a full tree only
-    on an empty slot between two trees (beyond a row's end stand posts, bins, vehicles).
-    In a slot, a full tree comes before a replant, then the group with the most material.
+    of its trunks (an empty slot between two trees, or the slot beyond a row's end), one
+    per slot: a full tree before a replant, then the group with the most material.
 
     Parameters
     ----------
@@ -151,9 +148,7 @@ def trees_on_slots(evidence: dict, *, params: RowParams) -> np.ndarray:
     trunks, xy, support, full = evidence["trunks"], evidence["xy"], evidence["support"], evidence["full"]
     if not params.enabled or not len(xy) or len(trunks) < 3:
         return np.zeros((0, 3))
-    # the slots between trees come first in open_slots' list, with or without the ends
-    slot = np.where(full, on_open_slot(trunks, xy, params=params, reach=SLOT_REACH, ends=False),
-                    on_open_slot(trunks, xy, params=params, reach=SLOT_REACH))
+    slot = on_open_slot(trunks, xy, params=params, reach=SLOT_REACH)
     on = np.flatnonzero(slot >= 0)
     if not on.size:
         return np.zeros((0, 3))
@@ -228,6 +223,7 @@ def _append(det: TrunkDetection, xy, support, width, young, *, nodes, node_heigh
         det.candidates,
         det.spacing,
         np.r_[np.zeros(det.k, bool) if det.young is None else det.young, np.asarray(young, bool)[keep]],
+        np.r_[np.zeros(det.k, bool) if det.on_slot is None else det.on_slot, np.ones(len(keep), bool)],
     )
 
 

@@ -80,6 +80,8 @@ class TrunkDetection:
     candidates : dict or None — every contact group's measurements (diagnostics)
     spacing : float or None — the in-row tree spacing the radii followed [m]
     young : (k,) bool or None — trunks let in as replants (:mod:`pipeline.slots`)
+    on_slot : (k,) bool or None — trunks let in on an open planting slot, replants or
+        full-grown (:mod:`pipeline.slots`): the rows vouch for them
     """
 
     xy: np.ndarray
@@ -90,6 +92,7 @@ class TrunkDetection:
     candidates: dict | None = None
     spacing: float | None = None
     young: np.ndarray | None = None
+    on_slot: np.ndarray | None = None
 
     @property
     def k(self) -> int:
@@ -496,4 +499,5 @@ def drop_trunks(det: TrunkDetection, drop: np.ndarray) -> TrunkDetection:
         det.candidates,
         det.spacing,
         None if det.young is None else det.young[keep],
+        None if det.on_slot is None else det.on_slot[keep],
     )
