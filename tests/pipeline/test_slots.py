@@ -45,18 +45,20 @@ def test_a_low_tree_on_an_empty_slot_is_a_replant_and_others_are_not():
     assert set(out.source_trunk[out.source_nodes >= det.k].tolist()) == {det.k, det.k + 1}
 
 
-def test_a_full_tree_turned_down_on_an_empty_slot_between_two_trees_is_let_in_not_young():
+def test_a_full_tree_turned_down_on_an_open_slot_is_let_in_not_young():
     row = np.array([[x, 0.0] for x in (0, 1, 2, 4, 5, 6, 7, 9, 10)], dtype=float)
     cands = np.array([
         [3.02, 0.05, 3.0],   # tree height on the empty slot 4 (a neighbour's "satellite")
         [8.0, 0.0, 3.0],     # and on slot 9
         [5.5, 0.0, 3.0],     # between two trees: foliage touching down
         [3.0, 0.9, 3.0],     # beside the row
+        [-1.05, 0.0, 3.0],   # the slot beyond the row's west end
+        [-1.6, 0.0, 3.0],    # half a slot farther out
     ])
     det, nodes = _detection(row, cands)
     out = _let_in(det, nodes)
-    assert out.k == det.k + 2 and not out.young.any()
-    np.testing.assert_allclose(out.xy[det.k:], [[3.02, 0.05], [8.0, 0.0]])
+    assert out.k == det.k + 3 and not out.young.any() and out.on_slot[det.k:].all() and not out.on_slot[:det.k].any()
+    np.testing.assert_allclose(sorted(out.xy[det.k:].tolist()), [[-1.05, 0.0], [3.02, 0.05], [8.0, 0.0]])
 
 
 def test_one_tree_per_slot_a_full_tree_before_a_replant():
