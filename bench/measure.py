@@ -24,6 +24,19 @@ from bench.isolation import pin_one_core
 
 
 def _maxrss_bytes() -> int:
+    """Peak resident memory of this process since it started [bytes].
+
+    Linux's VmHWM belongs to the process's own address space, made anew by ``exec``;
+    ``getrusage``'s ``ru_maxrss`` keeps the high-water mark of the process it was forked
+    from (a benchmark's parent holding a few hundred MB would show as this process's peak).
+    """
+    try:
+        with open("/proc/self/status") as f:
+            for line in f:
+                if line.startswith("VmHWM:"):
+                    return int(line.split()[1]) * 1024  # kB
+    except OSError:
+        pass
     return resource.getrusage(resource.RUSAGE_SELF).ru_maxrss * 1024  # Linux: kB
 
 
