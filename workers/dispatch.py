@@ -187,9 +187,9 @@ def process_tiles(store: WorkStore, tiles: list[dict], spec: JobSpec, client, pr
 
 def settle_slot_trees(store: WorkStore, record: dict, index: dict, summaries: list[dict], spec: JobSpec, client,
                       progress, cancel) -> tuple[list[dict], dict[int, str]]:
-    """Decide the block's full trees on empty slots from the tiles' summaries
-    (:mod:`workers.slottrees`), keep them in the job record, and run again the tiles
-    they change.
+    """Decide the block's trees on open slots (replants and full-grown trees) from the
+    tiles' summaries (:mod:`workers.slottrees`), keep them in the job record, and run
+    again the tiles that let in others.
 
     Returns
     -------

@@ -186,7 +186,7 @@ def _run_tiled_locked(spec, info, client, t0, progress, cancel, grid, store, tim
             timings["ground"] = time.perf_counter() - t
             t = time.perf_counter()
             summaries, failed = process_tiles(store, tiles, spec, client, progress, cancel)
-            if not failed:  # the block's rows let in full trees on empty slots: their tiles run again
+            if not failed:  # trees on open slots, decided on the block's rows: tiles that differ run again
                 summaries, failed = settle_slot_trees(store, record, index, summaries, spec, client, progress, cancel)
         except (TileFailed, JobCancelled, ClusterLost):
             keep_work = True  # everything needed to re-run or resume stays in the work store
