@@ -20,6 +20,8 @@ from pipeline.tiling import check_buffer, check_grid_origin, check_split_buffer,
 
 #: points read from a block at a time (bounded memory)
 CHUNK_POINTS = 2_000_000
+#: points of a report's map at most: every stride-th point of the block (:func:`sample_stride`)
+REPORT_POINTS = 150_000
 #: workers of an embedded dask cluster unless a command or setting says otherwise
 WORKERS = 2
 
@@ -88,3 +90,9 @@ class JobParams(_Model):
     def buffer(self) -> float:
         """The tile buffer [m]: the one given, else the parameters' reach."""
         return self.pipeline.reach() if self.tiling.buffer is None else float(self.tiling.buffer)
+
+
+def sample_stride(n_points: int, max_points: int = REPORT_POINTS) -> int:
+    """Every how-many-th point a sample of at most ``max_points`` of ``n_points`` takes
+    (the first, then every stride-th): ceil(n_points / max_points), at least 1."""
+    return max(1, -(-int(n_points) // max_points))

@@ -26,6 +26,7 @@ import pyarrow.compute as pc
 import pyarrow.csv as pacsv
 import pyarrow.parquet as pq
 
+from pipeline.jobparams import REPORT_POINTS, sample_stride
 from service.web import mapdata, render
 
 #: the outputs the report links to, beside it (relative links)
@@ -96,7 +97,7 @@ def write_trees_csv(trees_parquet: str | os.PathLike, csv_path: str | os.PathLik
 
 
 def sample_points(
-    block_path: str, points_parquet: str | os.PathLike, *, max_points: int = 150_000
+    block_path: str, points_parquet: str | os.PathLike, *, max_points: int = REPORT_POINTS
 ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Every ``stride``-th point of the block with its tree id.
 
@@ -111,7 +112,7 @@ def sample_points(
     from pipeline.reading import iter_points
 
     info = read_info(block_path)
-    stride = max(1, -(-int(info.n_points) // max_points))
+    stride = sample_stride(info.n_points, max_points)
     xy_parts, idx_parts = [], []
     for start, xyz in iter_points(block_path, info=info):
         first = (-start) % stride
@@ -243,7 +244,7 @@ def write_report(
     title: str,
     summary: dict[str, str] | None = None,
     warning: str | None = None,
-    max_points: int = 150_000,
+    max_points: int = REPORT_POINTS,
     sample: dict | None = None,
 ) -> Path:
     """Write ``report.html`` and ``map.png`` into ``out_dir``; returns the HTML path.

@@ -28,6 +28,7 @@ from pathlib import Path
 import numpy as np
 
 from pipeline.blockinfo import BlockInfo, read_info
+from pipeline.jobparams import REPORT_POINTS, sample_stride
 from pipeline.reading import read_points
 from pipeline.tiling import TileGrid
 from workers.dispatch import block_ground_stats, check_cancel, gather, process_tiles, settle_slot_trees
@@ -45,9 +46,6 @@ from workers.replay import merge_stored
 from workers.tasks import process, summarise
 from workers.tiler import check_engine, tile_block
 from workers.workstore import JOB_KEY, WorkStore, default_work_dir
-
-#: points of the report's map (``service.report.write_report``'s default ``max_points``)
-REPORT_POINTS = 150_000
 
 
 def run_job(
@@ -115,9 +113,9 @@ def _run_single(spec, info, t0, progress, cancel) -> JobOutcome:
 
 
 def report_sample(xyz: np.ndarray, tree_id: np.ndarray, origin, max_points: int = REPORT_POINTS) -> dict:
-    """Every ``stride``-th point of a whole block (the first, then every stride-th), with
-    ``stride`` = ceil(n / ``max_points``): the points ``service.report.sample_points``
-    takes from the block's file and ``points.parquet``, from memory.
+    """Every :func:`pipeline.jobparams.sample_stride`-th point of a whole block: the
+    points ``service.report.sample_points`` takes from the block's file and
+    ``points.parquet``, from memory.
 
     Parameters
     ----------
@@ -129,7 +127,7 @@ def report_sample(xyz: np.ndarray, tree_id: np.ndarray, origin, max_points: int 
     -------
     dict: ``xy`` (m, 2) float64 [m], ``tree_id`` (m,) int64, ``origin`` (3,) float64, ``max_points``
     """
-    stride = max(1, -(-len(xyz) // max_points))
+    stride = sample_stride(len(xyz), max_points)
     return {"xy": xyz[::stride, :2].copy(), "tree_id": np.asarray(tree_id[::stride], dtype=np.int64),
             "origin": np.asarray(origin, dtype=np.float64), "max_points": max_points}
 
