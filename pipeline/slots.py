@@ -187,15 +187,10 @@ def let_in(det: TrunkDetection, trees: np.ndarray, nodes: np.ndarray, node_heigh
         same = d <= SAME_GROUP
         support[same] = np.asarray(cand["support"], np.float64)[j[same]]
         width[same] = np.asarray(cand["width"], np.float64)[j[same]]
-    return _append(det, xy, support, width, trees[:, 2] > 0, nodes=nodes, node_height=node_height, contact_top=contact_top)
-
-
-def _append(det: TrunkDetection, xy, support, width, young, *, nodes, node_height, contact_top) -> TrunkDetection:
-    """``det`` with trunks at ``xy`` appended (trunks ``k..``), each seeded by the contact
-    nodes within SOURCE_RADIUS of it (else the nearest within twice that; a trunk
-    without any is left out); ``det`` itself when none is added."""
+    # each seeded by the contact nodes within SOURCE_RADIUS of it (else the nearest within
+    # twice that; a tree without any is left out)
     contact = np.flatnonzero(node_height < contact_top)
-    if not contact.size or not len(xy):
+    if not contact.size:
         return det
     tree = cKDTree(nodes[contact, :2])
     src, src_t, keep = [], [], []
@@ -222,8 +217,6 @@ def _append(det: TrunkDetection, xy, support, width, young, *, nodes, node_heigh
         np.r_[det.source_trunk, trunk_new[~taken]],
         det.candidates,
         det.spacing,
-        np.r_[np.zeros(det.k, bool) if det.young is None else det.young, np.asarray(young, bool)[keep]],
+        np.r_[np.zeros(det.k, bool) if det.young is None else det.young, trees[keep, 2] > 0],
         np.r_[np.zeros(det.k, bool) if det.on_slot is None else det.on_slot, np.ones(len(keep), bool)],
     )
-
-

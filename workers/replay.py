@@ -134,15 +134,23 @@ def _resume(store: WorkStore, out_dir, client, progress, cancel) -> JobOutcome:
 def _settle_stored(store: WorkStore, record: dict, index: dict, spec: JobSpec, client, progress, cancel) -> None:
     """The block's full trees on empty slots, once every tile has a result: the tiles
     run without them (or with others) run again."""
-    summaries = []
+    summaries, missing = _stored_summaries(store, index)
+    if not missing:  # else a partial job: the block's rows are not all known
+        settle_slot_trees(store, record, index, summaries, spec, client, progress, cancel)
+
+
+def _stored_summaries(store: WorkStore, index: dict) -> tuple[list[dict], list[int]]:
+    """The summaries of the tiles with a result in ``store``, and the tiles without one."""
+    summaries, missing = [], []
     for t in index["tiles"]:
         if t["n_core"] == 0:
             continue
         key = f"{result_key(t['id'])}/summary.pkl"
-        if not store.exists(key):
-            return  # a partial job: the block's rows are not all known
-        summaries.append(store.get_object(key))
-    settle_slot_trees(store, record, index, summaries, spec, client, progress, cancel)
+        if store.exists(key):
+            summaries.append(store.get_object(key))
+        else:
+            missing.append(t["id"])
+    return summaries, missing
 
 
 def finish_job(work_dir: str, *, out_dir: str | None = None) -> JobOutcome:
@@ -166,15 +174,7 @@ def _finish_job(store: WorkStore, out_dir: str | None) -> JobOutcome:
         check_job_paths(record["input_path"], out_dir, store.url)
         record["out_dir"] = out_dir
     index = store.get_json(INDEX_KEY)
-    summaries, missing = [], []
-    for t in index["tiles"]:
-        if t["n_core"] == 0:
-            continue
-        key = f"{result_key(t['id'])}/summary.pkl"
-        if store.exists(key):
-            summaries.append(store.get_object(key))
-        else:
-            missing.append(t["id"])
+    summaries, missing = _stored_summaries(store, index)
     try:
         outcome = merge_stored(store, record, index, summaries, missing)
     except NoTreesError:
