@@ -27,7 +27,8 @@ TIMED = (
     "pipeline.process:ground_model pipeline.process:classify_ground pipeline.process:voxelize "
     "pipeline.process:node_pairs pipeline.process:neighbourhood_matrix pipeline.process:shape_features "
     "pipeline.process:build_graph pipeline.process:bridge_floating pipeline.process:detect_trunks "
-    "pipeline.process:find_posts pipeline.process:rescue_on_open_slots pipeline.process:segment_nodes "
+    "pipeline.process:find_posts pipeline.process:slot_evidence pipeline.process:trees_on_slots "
+    "pipeline.process:let_in pipeline.process:segment_nodes "
     "pipeline.process:analyse_nodes pipeline.process:node_wood_score pipeline.process:trunk_feet "
     "pipeline.process:trunk_circles pipeline.process:block_result workers.tasks:summarise "
     "workers.job:merge_and_write workers.outputs:write_outputs service.report:write_report "
@@ -53,7 +54,8 @@ def categories(s: dict[str, float], start_up: float, total: float) -> dict[str, 
         "voxels": s["voxelize"],
         "graph": s["node_pairs"] + s["neighbourhood_matrix"] + s["shape_features"] + s["build_graph"]
         + s["bridge_floating"],
-        "trunks and posts": s["detect_trunks"] + s["find_posts"] + s["rescue_on_open_slots"],
+        "trunks and posts": s["detect_trunks"] + s["find_posts"] + s["slot_evidence"]
+        + s["trees_on_slots"] + s["let_in"],
         "segmentation": s["segment_nodes"],
     }
     out["other node work"] = s["analyse_nodes"] - sum(out[k] for k in CATEGORIES[2:7])

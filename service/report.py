@@ -4,8 +4,8 @@ The page is interactive (`service.web.render.report_page`: pan, zoom, colour by 
 metric, search, a sortable table) and self-contained; the static map and table below
 are what it shows where scripts do not run.
 
-The map (PNG, matplotlib's Agg backend, embedded in the page as base64 and also saved
-as ``map.png``) shows a subsample of the block's points seen from above, tree points
+The map (PNG drawn with numpy and Pillow, :mod:`service.mapimage`; embedded in the page
+as base64 and also saved as ``map.png``) shows a subsample of the block's points seen from above, tree points
 coloured by tree id, other points grey, and each trunk as a marker with its number. The
 table has one row per tree from ``trees.parquet``. Memory stays bounded: the block and
 ``points.parquet`` are read in chunks and only every ``stride``-th point is kept.
@@ -141,47 +141,14 @@ def sample_points(
 
 
 def render_map(xy: np.ndarray, tree_id: np.ndarray, trunks_xy: np.ndarray, trunk_ids: np.ndarray, *, title: str) -> bytes:
-    """PNG of the block from above: tree points coloured by id, trunk markers with numbers.
+    """PNG of the block from above: tree points coloured by id, trunk markers with numbers
+    (:func:`service.mapimage.render_map_png`).
 
     ``xy`` and ``trunks_xy`` are in the same local frame [m].
     """
-    import matplotlib
+    from service.mapimage import render_map_png
 
-    matplotlib.use("Agg", force=False)
-    from matplotlib.backends.backend_agg import FigureCanvasAgg
-    from matplotlib.figure import Figure
-
-    pts = np.vstack([xy, trunks_xy]) if len(trunks_xy) else xy
-    if len(pts):
-        lo, hi = pts.min(axis=0), pts.max(axis=0)
-    else:
-        lo, hi = np.zeros(2), np.ones(2)
-    span = np.maximum(hi - lo, 1.0)
-    width = 10.0
-    height = float(np.clip(width * span[1] / span[0], 3.0, 14.0))
-    fig = Figure(figsize=(width, height + 0.8), dpi=100)
-    FigureCanvasAgg(fig)
-    ax = fig.add_subplot(1, 1, 1)
-    other = tree_id <= 0
-    ax.scatter(xy[other, 0], xy[other, 1], s=0.3, c="#c8c8c8", linewidths=0, rasterized=True)
-    tab20 = matplotlib.colormaps["tab20"]
-    palette = np.array([tab20(i) for i in range(20) if i not in (14, 15)])  # no greys: grey is "not a tree"
-    trees = ~other
-    if trees.any():
-        colours = palette[(tree_id[trees] * 7) % len(palette)]
-        ax.scatter(xy[trees, 0], xy[trees, 1], s=0.6, c=colours, linewidths=0, rasterized=True)
-    if len(trunks_xy):
-        ax.scatter(trunks_xy[:, 0], trunks_xy[:, 1], s=40, marker="o", facecolors="white", edgecolors="black", linewidths=1.2, zorder=3)
-        for (x, y), k in zip(trunks_xy, trunk_ids):
-            ax.annotate(str(int(k)), (x, y), xytext=(4, 4), textcoords="offset points", fontsize=9, fontweight="bold", zorder=4)
-    ax.set_aspect("equal")
-    ax.set_xlabel("x [m] (local)")
-    ax.set_ylabel("y [m] (local)")
-    ax.set_title(title, parse_math=False)  # a file name with "$...$" is text, not a formula
-    fig.tight_layout()
-    buf = io.BytesIO()
-    fig.savefig(buf, format="png")
-    return buf.getvalue()
+    return render_map_png(xy, tree_id, trunks_xy, trunk_ids, title=title)
 
 
 def _cell(value, fmt: str) -> str:
