@@ -76,8 +76,8 @@ def voxelize(
     if float(span[0]) * float(span[1]) * float(span[2]) >= 2**62:
         raise ValueError("block extent too large for the voxel size; tile it")
     packed = (rel[:, 0] * span[1] + rel[:, 1]) * span[2] + rel[:, 2]
-    uniq, inverse, counts = np.unique(packed, return_inverse=True, return_counts=True)
-    inverse = inverse.reshape(-1)
+    del keys, rel
+    uniq, inverse, counts = _group_keys(packed, int(span[0]) * int(span[1]) * int(span[2]))
     m = uniq.shape[0]
     cent = np.empty((m, 3))
     for d in range(3):
@@ -87,4 +87,23 @@ def voxelize(
     rest = uniq // span[2]
     uk[:, 1] = rest % span[1]
     uk[:, 0] = rest // span[1]
-    return Voxels(inverse.astype(np.int64), uk + lo, cent, counts.astype(np.int64))
+    return Voxels(inverse.astype(np.int64, copy=False), uk + lo, cent, counts.astype(np.int64, copy=False))
+
+
+#: voxelize counts keys in a dense array (no sort) when the grid has at most this many
+#: cells per point: its transient memory (12 bytes a cell) stays near the sort's
+DENSE_CELLS_PER_POINT = 4
+
+
+def _group_keys(packed: np.ndarray, n_keys: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """``np.unique(packed, return_inverse=True, return_counts=True)`` of keys in
+    ``[0, n_keys)``: sorted distinct keys, index of each key among them (int64), counts."""
+    if n_keys > DENSE_CELLS_PER_POINT * packed.shape[0] or packed.shape[0] >= 2**31:
+        uniq, inverse, counts = np.unique(packed, return_inverse=True, return_counts=True)
+        return uniq, inverse.reshape(-1), counts
+    # a dense grid: count each cell and rank the occupied ones, where a sort costs ten times more
+    counts = np.bincount(packed, minlength=n_keys)
+    uniq = np.flatnonzero(counts)
+    rank = np.empty(n_keys, np.int32)
+    rank[uniq] = np.arange(uniq.shape[0], dtype=np.int32)
+    return uniq, rank[packed].astype(np.int64), counts[uniq]

@@ -5,7 +5,7 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 from hypothesis.extra.numpy import arrays
 
-from pipeline.voxels import column_max, column_min, voxelize
+from pipeline.voxels import _group_keys, column_max, column_min, voxelize
 
 coords = arrays(np.float64, st.tuples(st.integers(1, 300), st.just(3)), elements=st.floats(-50, 50, allow_nan=False))
 
@@ -46,3 +46,14 @@ def test_column_min_and_max_equal_numpys_reductions(a):
     np.testing.assert_array_equal(column_min(a), a.min(axis=0))
     np.testing.assert_array_equal(column_max(a), a.max(axis=0))
     assert column_min(a).dtype == a.dtype
+
+
+@settings(max_examples=60, deadline=None)
+@given(st.lists(st.integers(0, 199), min_size=60, max_size=400), st.sampled_from([200, 10_000]))
+def test_grouping_keys_equals_numpys_unique_on_dense_and_sparse_grids(keys, n_keys):
+    # 200 cells for 60 to 400 keys are counted in a dense grid, 10,000 sorted
+    packed = np.asarray(keys, dtype=np.int64)
+    uniq, inverse, counts = _group_keys(packed, n_keys)
+    u, i, c = np.unique(packed, return_inverse=True, return_counts=True)
+    assert np.array_equal(uniq, u) and np.array_equal(inverse, i) and np.array_equal(counts, c)
+    assert inverse.dtype == np.int64 and uniq.dtype == np.int64 and counts.dtype == np.int64
