@@ -9,17 +9,22 @@ offset its file stores it with.
 
 from __future__ import annotations
 
+import math
 from typing import Iterator
 
 import laspy
 import numpy as np
 
+from pipeline import lasheader
 from pipeline.blockinfo import BlockInfo, input_error, one_line, read_info
+from pipeline.budget import DensitySample, count_cells
 from pipeline.errors import InputError
 from pipeline.jobparams import CHUNK_POINTS
 
 #: decode only X, Y, Z of LAZ points (the other fields' layers are skipped)
 _XYZ_ONLY = laspy.DecompressionSelection.XY_RETURNS_CHANNEL | laspy.DecompressionSelection.Z
+#: decode only X and Y (with the returns and channel, stored in the same layer)
+_XY_ONLY = laspy.DecompressionSelection.XY_RETURNS_CHANNEL
 
 
 def iter_raw(path, *, chunk_points: int = CHUNK_POINTS, info: BlockInfo | None = None) -> Iterator[tuple[int, np.ndarray]]:
@@ -192,3 +197,78 @@ def read_points(path, *, origin=None, chunk_points: int = CHUNK_POINTS) -> tuple
         _checked_local(ints, info, start, origin, out=out[start : start + len(ints)])
     return out, info
 
+
+
+#: runs of points :func:`sample_density` reads, evenly spread over the file, at least:
+#: each run is one LAZ chunk (decoded from its start, so nothing is decoded twice), or
+#: :data:`LAS_RUN_POINTS` points of a LAS file; a file of no more runs is counted whole
+SAMPLE_RUNS = 256
+
+#: share of a larger file's runs :func:`sample_density` reads: a LAZ file's points
+#: follow the scanner's path, so a run holds a patch of the block, not a spread of it,
+#: and fewer runs leave tiles short of their points (docs/performance.md)
+SAMPLE_FRACTION = 0.25
+
+#: points per run of a LAS file (as LAZ's default chunk)
+LAS_RUN_POINTS = 50_000
+
+#: most cells along either axis of a density sample: 1 m cells up to this extent [m],
+#: coarser ones beyond it (at most 2048^2 counts, 32 MB)
+MAX_SAMPLE_CELLS = 2048
+
+
+def sample_density(path, *, info: BlockInfo | None = None, runs: int = SAMPLE_RUNS,
+                   fraction: float = SAMPLE_FRACTION, las_run: int = LAS_RUN_POINTS) -> DensitySample | None:
+    """Count the points of a block per square cell, from evenly spread runs of its
+    points: ``runs`` or the ``fraction`` of them, whichever is more (all of them when the
+    file holds no more runs than ``runs``, or half of them are to be read). A run is one
+    LAZ chunk, or ``las_run`` points of a LAS file.
+
+    Cells are 1 m (coarser for a block wider than :data:`MAX_SAMPLE_CELLS` m), their
+    corner at the block origin (``floor`` of the header minimum). Only X and Y are
+    decoded; memory is one run and the counts.
+
+    Returns
+    -------
+    DensitySample or None
+        None when the file cannot be sampled without decoding every point: a LAZ file
+        that is not ``info.seekable`` (its chunks are reached only by decoding the ones
+        before them).
+
+    Raises
+    ------
+    InputError
+        The point data is truncated or corrupt.
+    """
+    info = info or read_info(path)
+    if not info.seekable:
+        return None
+    run = int(lasheader.check_header(info.path).chunk_size) if info.compressed else int(las_run)
+    n_runs = -(-info.n_points // run)
+    n_read = min(max(int(runs), math.ceil(n_runs * fraction)), n_runs)
+    if 2 * n_read >= n_runs:  # half the file or more: count it all, exactly, for little more
+        n_read = n_runs
+    picked = np.unique(np.linspace(0, n_runs - 1, n_read).round().astype(np.int64))
+    extent = max(info.maxs[0] - info.origin[0], info.maxs[1] - info.origin[1])
+    cell = float(max(1, math.ceil(extent / MAX_SAMPLE_CELLS)))
+    nx = int(math.floor((info.maxs[0] - info.origin[0]) / cell)) + 1
+    ny = int(math.floor((info.maxs[1] - info.origin[1]) / cell)) + 1
+    counts = np.zeros((ny, nx), dtype=np.int64)
+    scale, shift = info.scales, np.asarray(info.offsets) - np.asarray(info.origin)
+    start = sampled = 0
+    try:
+        with laspy.open(info.path, read_evlrs=False, decompression_selection=_XY_ONLY) as reader:
+            for k in picked:
+                start = int(k) * run
+                reader.seek(start)
+                arr = reader.read_points(min(run, info.n_points - start)).array
+                # local coordinates (the origin's cell corner at 0): no UTM-sized sums
+                counts += count_cells(arr["X"] * scale[0] + shift[0], arr["Y"] * scale[1] + shift[1],
+                                      origin=(0.0, 0.0), cell=cell, shape=(ny, nx))
+                sampled += len(arr)
+    except (KeyboardInterrupt, SystemExit):
+        raise
+    except BaseException as exc:  # lazrs panics (pyo3's PanicException is no Exception) on corrupt chunks
+        raise input_error(info.path, f"corrupt or truncated point data after point {start} ({one_line(exc)})") from None
+    return DensitySample(counts=counts, origin=(float(info.origin[0]), float(info.origin[1])),
+                         cell=cell, sampled=sampled, n_points=info.n_points)

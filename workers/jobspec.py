@@ -12,7 +12,9 @@ from pipeline.blockinfo import BlockInfo, read_info
 from pipeline.errors import OrchardError, ParameterError
 from pipeline.jobparams import JobParams, TilingParams
 from pipeline.params import PipelineParams
-from pipeline.tiling import TileGrid, plan_grid, tile_size_for_budget
+from pipeline.budget import fits_whole, tile_size_for_budget, tile_size_for_sample
+from pipeline.reading import sample_density
+from pipeline.tiling import TileGrid, plan_grid
 from workers.outputs import OUTPUT_NAMES
 from workers.tiler import check_engine
 from workers.workstore import WorkStore, absolute_url, default_work_dir, own_entry
@@ -155,18 +157,32 @@ def check_out_dir(out_dir) -> None:
 
 
 def auto_tiled(spec: JobSpec, info: BlockInfo | None = None) -> JobSpec:
-    """``spec`` with the tile size :func:`pipeline.tiling.tile_size_for_budget` chooses
-    when it has none and a memory budget the whole block would not fit (else ``spec``).
+    """``spec`` with a tile size chosen for its memory budget when it has none and the
+    whole block would not fit the budget (else ``spec``).
 
-    ``info``: the block's header, read from ``spec.input_path`` when not given.
-    Raises ParameterError (a :class:`pipeline.tiling.BudgetError` when no tile fits).
+    The size comes from the block's points counted per square metre
+    (:func:`pipeline.reading.sample_density`, read only for a block that does not fit
+    whole) and the job's actual grid (:func:`pipeline.budget.tile_size_for_sample`); from
+    the header alone (:func:`pipeline.budget.tile_size_for_budget`) for a file that cannot
+    be sampled without decoding it all. ``info``: the block's header, read from
+    ``spec.input_path`` when not given.
+    Raises ParameterError (a :class:`pipeline.budget.BudgetError` when no tile fits),
+    InputError (corrupt point data met while sampling).
     """
     tiling = spec.tiling
     if tiling.tile_size is not None or tiling.memory_budget is None:
         return spec
     info = info or read_info(spec.input_path)
+    if fits_whole(info.n_points, tiling.memory_budget):
+        return spec
     buffer = JobParams(pipeline=spec.params, tiling=tiling).buffer()
-    size = tile_size_for_budget(info.n_points, info.mins, info.maxs, budget=tiling.memory_budget, buffer=buffer)
+    sample = sample_density(info.path, info=info)
+    if sample is None:
+        size = tile_size_for_budget(info.n_points, info.mins, info.maxs, budget=tiling.memory_budget, buffer=buffer)
+    else:
+        origin = tiling.grid_origin if tiling.grid_origin is not None else info.origin[:2]
+        size = tile_size_for_sample(sample, info.mins, info.maxs, budget=tiling.memory_budget, buffer=buffer,
+                                    grid_origin=origin)
     return spec if size is None else dataclasses.replace(spec, tiling=tiling.model_copy(update={"tile_size": size}))
 
 

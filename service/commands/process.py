@@ -185,7 +185,7 @@ def _check_same_job(args: argparse.Namespace) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
-    from pipeline.tiling import BudgetError
+    from pipeline.budget import BudgetError
     from workers.job import run_job
     from workers.jobspec import JobSpec, auto_tiled, check_job
     from workers.replay import finish_job, resume_job, run_tile

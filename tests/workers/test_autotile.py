@@ -17,16 +17,16 @@ from hypothesis import strategies as st
 
 from pipeline.jobparams import TilingParams
 from pipeline.params import PipelineParams
-from pipeline.tiling import (
+from pipeline.budget import (
     BYTES_PER_POINT,
     DENSITY_HEADROOM,
     FIXED_BYTES,
     MIN_CORE_PER_BUFFER,
     BudgetError,
-    min_tile_size,
     tile_points,
     tile_size_for_budget,
 )
+from pipeline.tiling import min_tile_size
 from workers.job import run_job
 from workers.jobspec import JobSpec, auto_tiled
 
@@ -36,14 +36,15 @@ def _need(points: float) -> float:
 
 
 def test_tile_size_by_hand():
-    # 1 M points over 100 x 100 m: 100 points/m^2, 200 with the headroom. 400 MB leaves
-    # 200 MB = 500 k points for a buffered tile: sqrt(500 k / 200) = 50 m, less 2 x 5 m
-    assert DENSITY_HEADROOM == 2.0 and BYTES_PER_POINT == 400 and FIXED_BYTES == 200e6
-    assert tile_size_for_budget(1_000_000, (0, 0), (100, 100), budget=400e6, buffer=5.0) == 40.0
+    # 1 M points over 100 x 100 m: 100 points/m^2, 200 with the headroom. At 400 bytes a
+    # point, 400 MB leaves 200 MB = 500 k points for a buffered tile: sqrt(500 k / 200) =
+    # 50 m, less 2 x 5 m
+    assert DENSITY_HEADROOM == 2.0 and FIXED_BYTES == 200e6
+    assert tile_size_for_budget(1_000_000, (0, 0), (100, 100), budget=400e6, buffer=5.0, bytes_per_point=400) == 40.0
     assert tile_points(40.0, 5.0, 1_000_000, (0, 0), (100, 100)) == 500_000
     # the whole block needs 200 MB + 400 MB: 600 MB keeps it in one piece, a byte less does not
-    assert tile_size_for_budget(1_000_000, (0, 0), (100, 100), budget=600e6, buffer=5.0) is None
-    assert tile_size_for_budget(1_000_000, (0, 0), (100, 100), budget=600e6 - 1, buffer=5.0) is not None
+    assert tile_size_for_budget(1_000_000, (0, 0), (100, 100), budget=600e6, buffer=5.0, bytes_per_point=400) is None
+    assert tile_size_for_budget(1_000_000, (0, 0), (100, 100), budget=600e6 - 1, buffer=5.0, bytes_per_point=400) is not None
 
 
 def test_a_small_dense_block_over_the_budget_stays_whole():
@@ -112,8 +113,20 @@ def block(tmp_path_factory):
 
 
 def _budget(info) -> float:
-    """A budget the whole block does not fit, with room for a few tiles of 10 m or so."""
-    return FIXED_BYTES + 0.7 * info.n_points * BYTES_PER_POINT
+    """A budget the whole block does not fit, with room for a few tiles of 15 m or so:
+    the header-only rule refuses it (its smallest tile at twice the mean density needs
+    more), the densest tile the block really has does not."""
+    return FIXED_BYTES + 0.575 * info.n_points * BYTES_PER_POINT
+
+
+def _densest_tile(path, info, size: float, buffer: float) -> int:
+    from pipeline.reading import read_points
+    from pipeline.tiling import buffered_tiles, plan_grid
+
+    xyz, _ = read_points(path, origin=(0.0, 0.0, 0.0))
+    grid = plan_grid(info.mins, info.maxs, tile_size=size, buffer=buffer, grid_origin=info.origin[:2])
+    _, tile = buffered_tiles(xyz, grid)
+    return int(np.bincount(tile).max())
 
 
 def test_a_block_within_the_budget_is_left_whole_and_one_above_it_is_tiled(block, tmp_path):
@@ -124,8 +137,26 @@ def test_a_block_within_the_budget_is_left_whole_and_one_above_it_is_tiled(block
     assert auto_tiled(JobSpec(str(path), str(tmp_path / "o"), params=params), info).tiling.tile_size is None  # no budget
     assert auto_tiled(JobSpec(str(path), str(tmp_path / "o"), params=params, tiling=TilingParams(tile_size=7.0, worker_memory=1.0 / 1e9)), info).tiling.tile_size == 7.0
     spec = auto_tiled(JobSpec(str(path), str(tmp_path / "o"), params=params, tiling=TilingParams(worker_memory=_budget(info) / 1e9)), info)
-    assert spec.tiling.tile_size is not None and spec.tiling.tile_size >= MIN_CORE_PER_BUFFER * params.reach()
-    assert _need(tile_points(spec.tiling.tile_size, params.reach(), info.n_points, info.mins, info.maxs)) <= _budget(info)
+    size = spec.tiling.tile_size
+    assert size is not None and size >= MIN_CORE_PER_BUFFER * params.reach()
+    # every buffered tile of the job's grid holds no more points than the budget allows
+    assert _need(_densest_tile(str(path), info, size, params.reach())) <= _budget(info)
+    # the header alone (a file that cannot be sampled) refuses this budget for this block
+    with pytest.raises(BudgetError):
+        tile_size_for_budget(info.n_points, info.mins, info.maxs, budget=_budget(info), buffer=params.reach())
+
+
+def test_a_block_that_cannot_be_sampled_is_tiled_from_its_header(block, tmp_path):
+    import dataclasses
+
+    path, info = block
+    params = PipelineParams.model_validate(PARAMS)
+    budget = FIXED_BYTES + 0.7 * info.n_points * BYTES_PER_POINT
+    spec = JobSpec(str(path), str(tmp_path / "o"), params=params, tiling=TilingParams(worker_memory=budget / 1e9))
+    unsampled = dataclasses.replace(info, seekable=False)  # as a LAZ file of variable-size chunks
+    expected = tile_size_for_budget(info.n_points, info.mins, info.maxs, budget=budget, buffer=params.reach())
+    assert auto_tiled(spec, unsampled).tiling.tile_size == expected
+    assert auto_tiled(spec, info).tiling.tile_size > expected  # sampled: the block's real tiles are less dense
 
 
 @pytest.mark.slow
@@ -163,7 +194,8 @@ print(json.dumps({"tiles": outcome.n_tiles, "peak": peak}))
 @pytest.mark.slow
 def test_a_process_running_the_budgets_tiles_stays_within_it(block, tmp_path):
     # a sanity bound on the estimate, not a measurement: the peak resident memory of a
-    # process running the whole job (its tiles one after the other, then the merge)
+    # process running the whole job (its tiles one after the other, then the merge), at a
+    # budget the header-only rule refuses for this block
     path, info = block
     budget = _budget(info)
     params = PipelineParams.model_validate(PARAMS).model_dump_json()
@@ -220,4 +252,4 @@ def test_orchard_process_tiles_a_block_above_its_budget(block, tmp_path, capsys)
     gb = _budget(info) / 1e9
     code, err = _process(capsys, path, "--out", tmp_path / "o", "--segment-max-crown-radius", 3, "--worker-memory", gb)
     assert code == 0, err
-    assert "tiles of 10 m" in err and "1 tile(s)" not in err
+    assert "tiles of 15 m" in err and "1 tile(s)" not in err

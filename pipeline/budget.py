@@ -1,0 +1,276 @@
+"""The memory budget of one worker: whether a block fits it whole, and otherwise the
+largest tile core whose buffered tiles each fit it.
+
+Two rules choose the tile size. :func:`tile_size_for_sample` counts the points of every
+buffered tile of the actual grid from a :class:`DensitySample` (point counts per square
+cell, read from the file by :func:`pipeline.reading.sample_density`), so dense rows, a
+rotated block's empty corners and a crowded headland are seen as they are.
+:func:`tile_size_for_budget` needs the header only (count and bounds) and assumes
+:data:`DENSITY_HEADROOM` times the mean density over the bounding box everywhere: the
+fallback for files whose points cannot be sampled without decoding all of them.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import numpy as np
+
+from pipeline.errors import ParameterError
+from pipeline.tiling import min_tile_size
+
+#: peak memory of processing points in one piece, per point [bytes]: reading, the
+#: pipeline and writing the outputs, with headroom over the measured (docs/performance.md)
+BYTES_PER_POINT = 300
+
+#: memory of a worker process whatever it processes [bytes]: the interpreter and its
+#: libraries and fixed-size buffers (docs/performance.md)
+FIXED_BYTES = 200e6
+
+#: header-only rule: a tile's points are estimated from the block's mean density over
+#: its bounding box; tree rows and a crowded tile hold more than the mean
+DENSITY_HEADROOM = 2.0
+
+#: sampled rule: a count read from part of the file's points is scaled to all of them
+#: and raised by this factor for the sampling error (none when every point was counted);
+#: tests/pipeline/test_budget.py bounds the error on generated blocks
+SAMPLE_MARGIN = 1.25
+
+#: smallest tile core chosen for a budget, in buffer widths: a smaller core processes
+#: more than four times its own points (its buffer's too), and time grows with them
+MIN_CORE_PER_BUFFER = 2.0
+
+
+class BudgetError(ParameterError):
+    """No tile size keeps a worker within the memory budget: at the smallest tile the
+    buffer allows, a tile's estimated points still need more.
+
+    Attributes
+    ----------
+    budget : float — bytes one worker may use
+    density : float — the point density the refusal is based on [points/m^2]: the
+        block's mean (header-only rule) or its densest buffered tile's (sampled rule)
+    tile_size, buffer : float — the smallest tile tried and its buffer [m]
+    need : float — estimated bytes of processing such a tile
+    """
+
+    def __init__(self, budget: float, density: float, tile_size: float, buffer: float, need: float):
+        super().__init__(
+            f"a memory budget of {budget / 1e9:.3g} GB per worker is too small for this block: at "
+            f"{density:.0f} points/m^2 the smallest tile ({tile_size:g} m with a {buffer:g} m buffer) needs about "
+            f"{need / 1e9:.3g} GB; raise the budget"
+        )
+        self.budget, self.density, self.tile_size, self.buffer, self.need = budget, density, tile_size, buffer, need
+
+
+def fits_whole(n_points: int, budget: float, bytes_per_point: float = BYTES_PER_POINT) -> bool:
+    """Whether processing ``n_points`` in one piece needs no more than ``budget`` [bytes]."""
+    return FIXED_BYTES + n_points * bytes_per_point <= budget
+
+
+def smallest_tile(buffer: float) -> float:
+    """Smallest tile core chosen for a budget [m]: whole metres, at least
+    :data:`MIN_CORE_PER_BUFFER` buffers, :func:`pipeline.tiling.min_tile_size` and 1 m."""
+    return float(math.ceil(max(MIN_CORE_PER_BUFFER * buffer, min_tile_size(buffer), 1.0)))
+
+
+def _no_gain(smallest: float, buffer: float, mins, maxs) -> bool:
+    # the smallest tile and its buffer hold the whole block: tiles would save nothing
+    return smallest + 2.0 * buffer >= max(float(maxs[0]) - float(mins[0]), float(maxs[1]) - float(mins[1]))
+
+
+def tile_size_for_budget(
+    n_points: int,
+    mins,
+    maxs,
+    *,
+    budget: float,
+    buffer: float,
+    bytes_per_point: float = BYTES_PER_POINT,
+) -> float | None:
+    """The tile size that keeps processing one tile within ``budget``, or None when the
+    whole block fits in it, from the header only.
+
+    Parameters
+    ----------
+    n_points : int
+        Points of the block (its header's count).
+    mins, maxs : (2,) or (3,) float
+        The block's bounds [m]; its mean density is ``n_points`` over their x-y area.
+    budget : float
+        Bytes one worker process may use, :data:`FIXED_BYTES` included.
+    buffer : float
+        Tile buffer [m]; a tile holds its core and the buffer around it.
+    bytes_per_point : float
+        Peak memory per point processed [bytes].
+
+    Returns
+    -------
+    float or None
+        Whole metres, at least :func:`smallest_tile`; None also when the smallest such
+        tile with its buffer would hold the whole block (a small, dense block).
+
+    Raises
+    ------
+    BudgetError
+        Even the smallest tile would need more than the budget.
+    """
+    if fits_whole(n_points, budget, bytes_per_point):
+        return None
+    # a block thinner than a metre in x or y still spreads its points over a metre
+    area = max(float(maxs[0]) - float(mins[0]), 1.0) * max(float(maxs[1]) - float(mins[1]), 1.0)
+    density = n_points / area * DENSITY_HEADROOM
+    most = max(budget - FIXED_BYTES, 0.0) / bytes_per_point  # points one buffered tile may hold
+    side = math.floor(math.sqrt(most / density) - 2.0 * buffer)
+    smallest = smallest_tile(buffer)
+    if _no_gain(smallest, buffer, mins, maxs):
+        return None
+    if side < smallest:
+        need = FIXED_BYTES + density * (smallest + 2.0 * buffer) ** 2 * bytes_per_point
+        raise BudgetError(budget, n_points / area, smallest, buffer, need)
+    return float(side)
+
+
+def tile_points(tile_size: float, buffer: float, n_points: int, mins, maxs) -> float:
+    """Header-only estimate of the points of one buffered tile: the block's mean density
+    times :data:`DENSITY_HEADROOM` over the tile and its buffer (never more than the
+    block); processing it needs ``FIXED_BYTES + BYTES_PER_POINT *`` that."""
+    area = max(float(maxs[0]) - float(mins[0]), 1.0) * max(float(maxs[1]) - float(mins[1]), 1.0)
+    return min(float(n_points), n_points / area * DENSITY_HEADROOM * (tile_size + 2.0 * buffer) ** 2)
+
+
+# ---------------------------------------------------------------- from a sample of the points
+
+
+@dataclass(frozen=True)
+class DensitySample:
+    """Points counted per square cell over part (or all) of a block.
+
+    Attributes
+    ----------
+    counts : (ny, nx) int64
+        Points counted in each cell; row ``j``, column ``i`` is the cell
+        ``[ox + i*cell, ox + (i+1)*cell) x [oy + j*cell, oy + (j+1)*cell)`` (points just
+        outside the header's bounds are counted in the edge cells).
+    origin : (ox, oy) float
+        Corner of cell (0, 0) [m], in the block's coordinates.
+    cell : float
+        Cell side [m].
+    sampled : int
+        Points counted (the sum of ``counts``).
+    n_points : int
+        Points of the block (its header's count).
+    """
+
+    counts: np.ndarray
+    origin: tuple[float, float]
+    cell: float
+    sampled: int
+    n_points: int
+
+    @property
+    def exact(self) -> bool:
+        """Every point of the block was counted."""
+        return self.sampled >= self.n_points
+
+    def weight(self) -> float:
+        """Points of the block one counted point stands for, with :data:`SAMPLE_MARGIN`
+        unless every point was counted."""
+        scale = self.n_points / max(self.sampled, 1)
+        return scale if self.exact else scale * SAMPLE_MARGIN
+
+
+def count_cells(x: np.ndarray, y: np.ndarray, *, origin, cell: float, shape: tuple[int, int]) -> np.ndarray:
+    """Points per cell of a grid of ``shape`` (ny, nx) square cells of side ``cell`` [m]
+    with its corner at ``origin`` [m], shape ``shape`` int64; points beyond the grid are
+    counted in its edge cells. ``x``, ``y``: (n,) coordinates [m] in the same frame."""
+    ny, nx = shape
+    i = np.clip(np.floor((x - origin[0]) / cell), 0, nx - 1).astype(np.int64)
+    j = np.clip(np.floor((y - origin[1]) / cell), 0, ny - 1).astype(np.int64)
+    return np.bincount(j * nx + i, minlength=nx * ny).reshape(ny, nx)
+
+
+def sampled_tile_points(sample: DensitySample, tile_size: float, buffer: float, mins, maxs, grid_origin) -> np.ndarray:
+    """Estimated points of every buffered tile of the grid over ``mins``–``maxs`` with
+    core ``tile_size`` [m], ``buffer`` [m] and ``grid_origin`` (as
+    :func:`pipeline.tiling.plan_grid`), shape (nrows, ncols).
+
+    A tile's estimate counts every cell its open buffered box overlaps (never fewer
+    points than it holds, when every point was counted) times :meth:`DensitySample.weight`,
+    and is at most the block's count.
+    """
+    # Strategy: a summed-area table of the counts gives any run of cells in four
+    # look-ups; the grid's column and row boxes map to cell ranges once per axis.
+    s, b, c = float(tile_size), float(buffer), sample.cell
+    table = np.zeros((sample.counts.shape[0] + 1, sample.counts.shape[1] + 1), dtype=np.int64)
+    np.cumsum(np.cumsum(sample.counts, axis=0), axis=1, out=table[1:, 1:])
+    ranges = []
+    for d in range(2):
+        k0 = math.floor((float(mins[d]) - grid_origin[d]) / s)
+        k1 = math.floor((float(maxs[d]) - grid_origin[d]) / s)
+        lo = grid_origin[d] + np.arange(k0, k1 + 1, dtype=np.float64) * s - b
+        n_cells = sample.counts.shape[1 - d]
+        first = np.clip(np.floor((lo - sample.origin[d]) / c), 0, n_cells).astype(np.int64)
+        stop = np.clip(np.ceil((lo + s + 2 * b - sample.origin[d]) / c), 0, n_cells).astype(np.int64)
+        ranges.append((first, stop))
+    (x0, x1), (y0, y1) = ranges
+    held = table[y1][:, x1] - table[y0][:, x1] - table[y1][:, x0] + table[y0][:, x0]
+    return np.minimum(held * sample.weight(), float(sample.n_points))
+
+
+def tile_size_for_sample(
+    sample: DensitySample,
+    mins,
+    maxs,
+    *,
+    budget: float,
+    buffer: float,
+    grid_origin,
+    bytes_per_point: float = BYTES_PER_POINT,
+) -> float | None:
+    """The largest tile core whose every buffered tile keeps processing within ``budget``,
+    counted from a sample of the block's points, or None when the whole block fits.
+
+    Parameters
+    ----------
+    sample : DensitySample
+        The block's points counted per cell (:func:`pipeline.reading.sample_density`).
+    mins, maxs : (2,) or (3,) float
+        The block's bounds [m].
+    budget : float
+        Bytes one worker process may use, :data:`FIXED_BYTES` included.
+    buffer : float
+        Tile buffer [m].
+    grid_origin : (2,) float
+        The grid's corner [m], as the job will plan it.
+    bytes_per_point : float
+        Peak memory per point processed [bytes].
+
+    Returns
+    -------
+    float or None
+        Whole metres, at least :func:`smallest_tile`; None also when the smallest tile
+        with its buffer would hold the whole block.
+
+    Raises
+    ------
+    BudgetError
+        Even at the smallest tile some buffered tile's estimate needs more than the budget.
+    """
+    if fits_whole(sample.n_points, budget, bytes_per_point):
+        return None
+    smallest = smallest_tile(buffer)
+    if _no_gain(smallest, buffer, mins, maxs):
+        return None
+    most = max(budget - FIXED_BYTES, 0.0) / bytes_per_point  # points one buffered tile may hold
+    gx, gy = float(grid_origin[0]), float(grid_origin[1])
+    widest = math.ceil(max(float(maxs[0]) - float(mins[0]), float(maxs[1]) - float(mins[1]))) + 1
+    # the densest tile is not monotone in the size (the grid shifts against the rows):
+    # every whole metre is tried from the largest down
+    for size in range(int(widest), int(smallest) - 1, -1):
+        if sampled_tile_points(sample, float(size), buffer, mins, maxs, (gx, gy)).max() <= most:
+            return float(size)
+    worst = float(sampled_tile_points(sample, smallest, buffer, mins, maxs, (gx, gy)).max())
+    raise BudgetError(budget, worst / (smallest + 2.0 * buffer) ** 2, smallest, buffer,
+                      FIXED_BYTES + worst * bytes_per_point)
