@@ -8,6 +8,7 @@ per-point labels are streamed window by window from the tiles' core results.
 from __future__ import annotations
 
 import json
+import mmap
 import os
 import shutil
 import uuid
@@ -86,7 +87,19 @@ class Labels:
         not_tree = out["tree_id"] == 0  # e.g. of a tree a failed tile owned, in a partial result
         out["is_wood"][not_tree] = False
         out["wood_score"][not_tree] = 0.0
+        self._release()
         return filled, out
+
+    def _release(self) -> None:
+        """Drop the pages of memory-mapped tile results from this process's resident
+        memory: read once per window, they would otherwise stay resident until the merge
+        ends and grow it by the block's labels (about 19 bytes a point)."""
+        if not hasattr(mmap, "MADV_DONTNEED"):
+            return
+        for p in self.parts:
+            for v in p.values():
+                if isinstance(v, np.memmap) and isinstance(v.base, mmap.mmap) and len(v.base):
+                    v.base.madvise(mmap.MADV_DONTNEED)
 
 
 def trees_table(summaries: list[dict], merged: GlobalTrunks, origin) -> dict:
