@@ -4,9 +4,9 @@ The block from above in the local frame [m]: points not in a tree light grey, tr
 in a colour of their tree id, each trunk a white disc with a black edge and its number, a
 framed plot with ticks, axis labels and a title. The layout follows the matplotlib figure
 the report used to draw (10 in wide at 100 dpi, equal aspect, 5 % margins around the
-data, tab20 colours without its greys, DejaVu Sans), so the map reads the same; drawing it
-here costs a few tens of milliseconds where matplotlib's import and draw cost about a
-second of every ``orchard process`` run.
+data, tab20 colours without its greys, DejaVu Sans), so the map reads the same; drawn
+here, a run never imports matplotlib, whose import and drawing of a few hundred thousand
+markers were the report's main cost.
 """
 
 from __future__ import annotations
@@ -116,8 +116,21 @@ def _layout(width: int, height: int, lo: np.ndarray, hi: np.ndarray, title: str)
     top = pad + title_h + _px(6.0)
     bottom = pad + label_h + label_pad + digit_h + tick_pad + tick_len
     left, right = pad + 60.0, pad
-    for _ in range(2):  # the y tick labels' width depends on the box's height, and back
-        box_w, box_h = width - left - right, height - top - bottom
+    ratio = (hi[1] - lo[1]) / (hi[0] - lo[0])
+
+    def fit(left: float, right: float) -> tuple[float, float, float, float]:
+        # the subplot area within the margins, shrunk to an equal aspect, centred
+        box_l, box_t, box_w, box_h = left, top, width - left - right, height - top - bottom
+        if box_h > box_w * ratio:
+            box_t += (box_h - box_w * ratio) / 2
+            box_h = box_w * ratio
+        else:
+            box_l += (box_w - box_h / ratio) / 2
+            box_w = box_h / ratio
+        return box_l, box_t, box_w, box_h
+
+    for _ in range(3):  # ticks follow the box's size, the margins the ticks' labels
+        box_l, box_t, box_w, box_h = fit(left, right)
         xt = nice_ticks(lo[0], hi[0], int(np.clip(math.floor(box_w * 72 / DPI / 30.0), 1, 9)))
         yt = nice_ticks(lo[1], hi[1], int(np.clip(math.floor(box_h * 72 / DPI / 20.0), 1, 9)))
         y_w = max(_text_size(f10, s)[0] for s in tick_labels(yt))
@@ -125,14 +138,8 @@ def _layout(width: int, height: int, lo: np.ndarray, hi: np.ndarray, title: str)
         # the last x tick label may reach past the box's right edge
         x_over = _text_size(f10, tick_labels(xt)[-1])[0] / 2 - box_w * (hi[0] - xt[-1]) / (hi[0] - lo[0])
         right = pad + max(0.0, x_over)
-    box_w, box_h = width - left - right, height - top - bottom
-    ratio = (hi[1] - lo[1]) / (hi[0] - lo[0])
-    if box_h > box_w * ratio:
-        top += (box_h - box_w * ratio) / 2
-        box_h = box_w * ratio
-    else:
-        left += (box_w - box_h / ratio) / 2
-        box_w = box_h / ratio
+    box_l, box_t, box_w, box_h = fit(left, right)
+    left, top = box_l, box_t
     return dict(left=left, top=top, w=box_w, h=box_h, xticks=xt, yticks=yt, y_label_w=y_w, digit_h=digit_h,
                 tick_len=tick_len, tick_pad=tick_pad, label_pad=label_pad)
 
