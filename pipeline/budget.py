@@ -1,13 +1,12 @@
 """The memory budget of one worker: whether a block fits it whole, and otherwise the
 largest tile core whose buffered tiles each fit it.
 
-Two rules choose the tile size. :func:`tile_size_for_sample` counts the points of every
-buffered tile of the actual grid from a :class:`DensitySample` (point counts per square
-cell, read from the file by :func:`pipeline.reading.sample_density`), so dense rows, a
-rotated block's empty corners and a crowded headland are seen as they are.
-:func:`tile_size_for_budget` needs the header only (count and bounds) and assumes
-:data:`DENSITY_HEADROOM` times the mean density over the bounding box everywhere: the
-fallback for files whose points cannot be sampled without decoding all of them.
+Whether the block fits whole needs its header's count only (:func:`fits_whole`). The
+tile size counts the points of every buffered tile of the actual grid from a
+:class:`DensitySample` (points per square cell, counted in the file by
+:func:`pipeline.reading.sample_density`): :func:`tile_size_for_sample`. Dense rows, a
+turned block's empty corners and a crowded headland are seen as they are, where the
+header's mean density over the bounding box would hide them.
 """
 
 from __future__ import annotations
@@ -28,12 +27,8 @@ BYTES_PER_POINT = 300
 #: libraries and fixed-size buffers (docs/performance.md)
 FIXED_BYTES = 200e6
 
-#: header-only rule: a tile's points are estimated from the block's mean density over
-#: its bounding box; tree rows and a crowded tile hold more than the mean
-DENSITY_HEADROOM = 2.0
-
-#: sampled rule: a count read from part of the file's points is scaled to all of them
-#: and raised by this factor for the sampling error (none when every point was counted);
+#: a count read from part of the file's points is scaled to all of them and raised by
+#: this factor for the sampling error (none when every point was counted);
 #: tests/pipeline/test_budget.py bounds the error on generated blocks
 SAMPLE_MARGIN = 1.25
 
@@ -49,8 +44,7 @@ class BudgetError(ParameterError):
     Attributes
     ----------
     budget : float — bytes one worker may use
-    density : float — the point density the refusal is based on [points/m^2]: the
-        block's mean (header-only rule) or its densest buffered tile's (sampled rule)
+    density : float — the densest buffered tile's point density [points/m^2]
     tile_size, buffer : float — the smallest tile tried and its buffer [m]
     need : float — estimated bytes of processing such a tile
     """
@@ -73,74 +67,6 @@ def smallest_tile(buffer: float) -> float:
     """Smallest tile core chosen for a budget [m]: whole metres, at least
     :data:`MIN_CORE_PER_BUFFER` buffers, :func:`pipeline.tiling.min_tile_size` and 1 m."""
     return float(math.ceil(max(MIN_CORE_PER_BUFFER * buffer, min_tile_size(buffer), 1.0)))
-
-
-def _no_gain(smallest: float, buffer: float, mins, maxs) -> bool:
-    # the smallest tile and its buffer hold the whole block: tiles would save nothing
-    return smallest + 2.0 * buffer >= max(float(maxs[0]) - float(mins[0]), float(maxs[1]) - float(mins[1]))
-
-
-def tile_size_for_budget(
-    n_points: int,
-    mins,
-    maxs,
-    *,
-    budget: float,
-    buffer: float,
-    bytes_per_point: float = BYTES_PER_POINT,
-) -> float | None:
-    """The tile size that keeps processing one tile within ``budget``, or None when the
-    whole block fits in it, from the header only.
-
-    Parameters
-    ----------
-    n_points : int
-        Points of the block (its header's count).
-    mins, maxs : (2,) or (3,) float
-        The block's bounds [m]; its mean density is ``n_points`` over their x-y area.
-    budget : float
-        Bytes one worker process may use, :data:`FIXED_BYTES` included.
-    buffer : float
-        Tile buffer [m]; a tile holds its core and the buffer around it.
-    bytes_per_point : float
-        Peak memory per point processed [bytes].
-
-    Returns
-    -------
-    float or None
-        Whole metres, at least :func:`smallest_tile`; None also when the smallest such
-        tile with its buffer would hold the whole block (a small, dense block).
-
-    Raises
-    ------
-    BudgetError
-        Even the smallest tile would need more than the budget.
-    """
-    if fits_whole(n_points, budget, bytes_per_point):
-        return None
-    # a block thinner than a metre in x or y still spreads its points over a metre
-    area = max(float(maxs[0]) - float(mins[0]), 1.0) * max(float(maxs[1]) - float(mins[1]), 1.0)
-    density = n_points / area * DENSITY_HEADROOM
-    most = max(budget - FIXED_BYTES, 0.0) / bytes_per_point  # points one buffered tile may hold
-    side = math.floor(math.sqrt(most / density) - 2.0 * buffer)
-    smallest = smallest_tile(buffer)
-    if _no_gain(smallest, buffer, mins, maxs):
-        return None
-    if side < smallest:
-        need = FIXED_BYTES + density * (smallest + 2.0 * buffer) ** 2 * bytes_per_point
-        raise BudgetError(budget, n_points / area, smallest, buffer, need)
-    return float(side)
-
-
-def tile_points(tile_size: float, buffer: float, n_points: int, mins, maxs) -> float:
-    """Header-only estimate of the points of one buffered tile: the block's mean density
-    times :data:`DENSITY_HEADROOM` over the tile and its buffer (never more than the
-    block); processing it needs ``FIXED_BYTES + BYTES_PER_POINT *`` that."""
-    area = max(float(maxs[0]) - float(mins[0]), 1.0) * max(float(maxs[1]) - float(mins[1]), 1.0)
-    return min(float(n_points), n_points / area * DENSITY_HEADROOM * (tile_size + 2.0 * buffer) ** 2)
-
-
-# ---------------------------------------------------------------- from a sample of the points
 
 
 @dataclass(frozen=True)
@@ -261,8 +187,8 @@ def tile_size_for_sample(
     if fits_whole(sample.n_points, budget, bytes_per_point):
         return None
     smallest = smallest_tile(buffer)
-    if _no_gain(smallest, buffer, mins, maxs):
-        return None
+    if smallest + 2.0 * buffer >= max(float(maxs[0]) - float(mins[0]), float(maxs[1]) - float(mins[1])):
+        return None  # the smallest tile and its buffer hold the whole block: tiles would save nothing
     most = max(budget - FIXED_BYTES, 0.0) / bytes_per_point  # points one buffered tile may hold
     gx, gy = float(grid_origin[0]), float(grid_origin[1])
     widest = math.ceil(max(float(maxs[0]) - float(mins[0]), float(maxs[1]) - float(mins[1]))) + 1

@@ -199,15 +199,16 @@ def read_points(path, *, origin=None, chunk_points: int = CHUNK_POINTS) -> tuple
 
 
 
-#: runs of points :func:`sample_density` reads, evenly spread over the file, at least:
-#: each run is one LAZ chunk (decoded from its start, so nothing is decoded twice), or
-#: :data:`LAS_RUN_POINTS` points of a LAS file; a file of no more runs is counted whole
+#: runs of points :func:`sample_density` reads when it samples, at least: each run is one
+#: LAZ chunk (decoded from its start, so nothing is decoded twice), or ``las_run`` points
+#: of a LAS file; a file of no more runs is counted whole
 SAMPLE_RUNS = 256
 
-#: share of a larger file's runs :func:`sample_density` reads: a LAZ file's points
-#: follow the scanner's path, so a run holds a patch of the block, not a spread of it,
-#: and fewer runs leave tiles short of their points (docs/performance.md)
-SAMPLE_FRACTION = 0.25
+#: share of a file's runs :func:`sample_density` reads by default: all of them. A sample
+#: needs a margin for its error (:data:`pipeline.budget.SAMPLE_MARGIN`), and on blocks at
+#: mobile density the smaller tiles it then chooses cost more work than the full count
+#: saves (docs/performance.md)
+SAMPLE_FRACTION = 1.0
 
 #: points per run of a LAS file (as LAZ's default chunk)
 LAS_RUN_POINTS = 50_000
@@ -218,22 +219,17 @@ MAX_SAMPLE_CELLS = 2048
 
 
 def sample_density(path, *, info: BlockInfo | None = None, runs: int = SAMPLE_RUNS,
-                   fraction: float = SAMPLE_FRACTION, las_run: int = LAS_RUN_POINTS) -> DensitySample | None:
-    """Count the points of a block per square cell, from evenly spread runs of its
-    points: ``runs`` or the ``fraction`` of them, whichever is more (all of them when the
-    file holds no more runs than ``runs``, or half of them are to be read). A run is one
-    LAZ chunk, or ``las_run`` points of a LAS file.
+                   fraction: float = SAMPLE_FRACTION, las_run: int = LAS_RUN_POINTS) -> DensitySample:
+    """Count the points of a block per square cell: all of them, read in order, or with
+    ``fraction`` below 1, from evenly spread runs of its points (``runs`` or the
+    ``fraction`` of them, whichever is more). A run is one LAZ chunk, or ``las_run``
+    points of a LAS file. Every point is counted when the file holds no more runs than
+    ``runs``, when half of them or more would be read, and in a LAZ file that is not
+    ``info.seekable`` (a chunk there is reached only by decoding every one before it).
 
     Cells are 1 m (coarser for a block wider than :data:`MAX_SAMPLE_CELLS` m), their
     corner at the block origin (``floor`` of the header minimum). Only X and Y are
-    decoded; memory is one run and the counts.
-
-    Returns
-    -------
-    DensitySample or None
-        None when the file cannot be sampled without decoding every point: a LAZ file
-        that is not ``info.seekable`` (its chunks are reached only by decoding the ones
-        before them).
+    decoded where the point format stores them apart; memory is one run and the counts.
 
     Raises
     ------
@@ -241,27 +237,23 @@ def sample_density(path, *, info: BlockInfo | None = None, runs: int = SAMPLE_RU
         The point data is truncated or corrupt.
     """
     info = info or read_info(path)
-    if not info.seekable:
-        return None
-    run = int(lasheader.check_header(info.path).chunk_size) if info.compressed else int(las_run)
-    n_runs = -(-info.n_points // run)
-    n_read = min(max(int(runs), math.ceil(n_runs * fraction)), n_runs)
-    if 2 * n_read >= n_runs:  # half the file or more: count it all, exactly, for little more
-        n_read = n_runs
-    picked = np.unique(np.linspace(0, n_runs - 1, n_read).round().astype(np.int64))
     extent = max(info.maxs[0] - info.origin[0], info.maxs[1] - info.origin[1])
     cell = float(max(1, math.ceil(extent / MAX_SAMPLE_CELLS)))
     nx = int(math.floor((info.maxs[0] - info.origin[0]) / cell)) + 1
     ny = int(math.floor((info.maxs[1] - info.origin[1]) / cell)) + 1
     counts = np.zeros((ny, nx), dtype=np.int64)
     scale, shift = info.scales, np.asarray(info.offsets) - np.asarray(info.origin)
-    start = sampled = 0
+    run, picked = int(las_run), None  # None: every point, in order
+    if fraction < 1.0 and info.seekable:
+        run = int(lasheader.check_header(info.path).chunk_size) if info.compressed else run
+        n_runs = -(-info.n_points // run)
+        n_read = min(max(int(runs), math.ceil(n_runs * fraction)), n_runs)
+        if 2 * n_read < n_runs:  # else count it all, exactly, for little more
+            picked = np.unique(np.linspace(0, n_runs - 1, n_read).round().astype(np.int64))
+    sampled = 0
     try:
         with laspy.open(info.path, read_evlrs=False, decompression_selection=_XY_ONLY) as reader:
-            for k in picked:
-                start = int(k) * run
-                reader.seek(start)
-                arr = reader.read_points(min(run, info.n_points - start)).array
+            for arr in _runs(reader, info.n_points, run, picked):
                 # local coordinates (the origin's cell corner at 0): no UTM-sized sums
                 counts += count_cells(arr["X"] * scale[0] + shift[0], arr["Y"] * scale[1] + shift[1],
                                       origin=(0.0, 0.0), cell=cell, shape=(ny, nx))
@@ -269,6 +261,23 @@ def sample_density(path, *, info: BlockInfo | None = None, runs: int = SAMPLE_RU
     except (KeyboardInterrupt, SystemExit):
         raise
     except BaseException as exc:  # lazrs panics (pyo3's PanicException is no Exception) on corrupt chunks
-        raise input_error(info.path, f"corrupt or truncated point data after point {start} ({one_line(exc)})") from None
+        raise input_error(info.path, f"corrupt or truncated point data after {sampled} points counted ({one_line(exc)})") from None
+    if picked is None and sampled < info.n_points:
+        raise input_error(info.path, f"truncated: the header announces {info.n_points} points but only {sampled} could be read")
     return DensitySample(counts=counts, origin=(float(info.origin[0]), float(info.origin[1])),
                          cell=cell, sampled=sampled, n_points=info.n_points)
+
+
+def _runs(reader, n_points: int, run: int, picked) -> Iterator:
+    """The point records to count: every chunk of ``run`` points in order (``picked``
+    None), or the runs numbered ``picked``, each read from its first point."""
+    if picked is None:
+        for chunk in reader.chunk_iterator(run):
+            if len(chunk) == 0:
+                return
+            yield chunk.array
+        return
+    for k in picked:
+        start = int(k) * run
+        reader.seek(start)
+        yield reader.read_points(min(run, n_points - start)).array

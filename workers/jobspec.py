@@ -12,7 +12,7 @@ from pipeline.blockinfo import BlockInfo, read_info
 from pipeline.errors import OrchardError, ParameterError
 from pipeline.jobparams import JobParams, TilingParams
 from pipeline.params import PipelineParams
-from pipeline.budget import fits_whole, tile_size_for_budget, tile_size_for_sample
+from pipeline.budget import fits_whole, tile_size_for_sample
 from pipeline.reading import sample_density
 from pipeline.tiling import TileGrid, plan_grid
 from workers.outputs import OUTPUT_NAMES
@@ -162,12 +162,10 @@ def auto_tiled(spec: JobSpec, info: BlockInfo | None = None) -> JobSpec:
 
     The size comes from the block's points counted per square metre
     (:func:`pipeline.reading.sample_density`, read only for a block that does not fit
-    whole) and the job's actual grid (:func:`pipeline.budget.tile_size_for_sample`); from
-    the header alone (:func:`pipeline.budget.tile_size_for_budget`) for a file that cannot
-    be sampled without decoding it all. ``info``: the block's header, read from
-    ``spec.input_path`` when not given.
+    whole) and the job's actual grid (:func:`pipeline.budget.tile_size_for_sample`).
+    ``info``: the block's header, read from ``spec.input_path`` when not given.
     Raises ParameterError (a :class:`pipeline.budget.BudgetError` when no tile fits),
-    InputError (corrupt point data met while sampling).
+    InputError (truncated or corrupt point data met while counting).
     """
     tiling = spec.tiling
     if tiling.tile_size is not None or tiling.memory_budget is None:
@@ -176,13 +174,9 @@ def auto_tiled(spec: JobSpec, info: BlockInfo | None = None) -> JobSpec:
     if fits_whole(info.n_points, tiling.memory_budget):
         return spec
     buffer = JobParams(pipeline=spec.params, tiling=tiling).buffer()
-    sample = sample_density(info.path, info=info)
-    if sample is None:
-        size = tile_size_for_budget(info.n_points, info.mins, info.maxs, budget=tiling.memory_budget, buffer=buffer)
-    else:
-        origin = tiling.grid_origin if tiling.grid_origin is not None else info.origin[:2]
-        size = tile_size_for_sample(sample, info.mins, info.maxs, budget=tiling.memory_budget, buffer=buffer,
-                                    grid_origin=origin)
+    origin = tiling.grid_origin if tiling.grid_origin is not None else info.origin[:2]
+    size = tile_size_for_sample(sample_density(info.path, info=info), info.mins, info.maxs,
+                                budget=tiling.memory_budget, buffer=buffer, grid_origin=origin)
     return spec if size is None else dataclasses.replace(spec, tiling=tiling.model_copy(update={"tile_size": size}))
 
 

@@ -20,7 +20,6 @@ from pipeline.budget import (
     DensitySample,
     count_cells,
     sampled_tile_points,
-    tile_size_for_budget,
     tile_size_for_sample,
 )
 from pipeline.reading import read_points, sample_density
@@ -50,8 +49,8 @@ def test_the_sampled_rule_by_hand():
     assert tile_size_for_sample(sample, (0, 0), (300, 300), budget=budget, buffer=5.0, grid_origin=(0, 0)) == 60.0
     assert sampled_tile_points(sample, 60.0, 5.0, (0, 0), (300, 300), (0, 0)).max() == 100 * 70**2
     assert sampled_tile_points(sample, 61.0, 5.0, (0, 0), (300, 300), (0, 0)).max() == 100 * 71**2  # > 500 k
-    # the header-only rule doubles the mean density for rows it cannot see: 40 m
-    assert tile_size_for_budget(9_000_000, (0, 0), (300, 300), budget=budget, buffer=5.0) == 40.0
+    # the header-only rule used before doubled the mean density for rows it could not see
+    assert _header_rule(9_000_000, (300, 300), budget, 5.0) == 40.0
     # a box edge between cell edges counts the whole cell (never fewer points than held)
     assert sampled_tile_points(sample, 60.0, 4.5, (0, 0), (300, 300), (0, 0)).max() == 100 * 70**2
     # half of the points counted: each stands for two, with the margin for sampling error
@@ -69,6 +68,13 @@ def test_a_grid_origin_between_cell_edges_counts_every_cell_a_tile_touches():
                            sampled=9_000_000, n_points=9_000_000)
     # cores from 0.5 m: a 60 m core and 5 m buffer spans 71 cells per axis
     assert sampled_tile_points(sample, 60.0, 5.0, (0, 0), (300, 300), (0.5, 0.5)).max() == 100 * 71**2
+
+
+def _header_rule(n: int, maxs, budget: float, buffer: float) -> float:
+    """The tile core the rule used before chose [m]: from the header alone, twice the mean
+    density over the bounding box (from 0 to ``maxs``) everywhere."""
+    density = 2.0 * n / (float(maxs[0]) * float(maxs[1]))
+    return float(np.floor(np.sqrt((budget - FIXED_BYTES) / BYTES_PER_POINT / density) - 2.0 * buffer))
 
 
 def _rows(n: int, length: float, width: float, angle_deg: float, seed: int = 0) -> np.ndarray:
@@ -92,12 +98,12 @@ def _densest_tile(xy: np.ndarray, size: float, buffer: float) -> int:
 
 def test_a_turned_block_is_tiled_by_its_local_density_not_its_bounding_box():
     # 400 k points on 200 m x 40 m; turned 45 degrees its bounding box is 3.1 times its
-    # area, more than the header-only rule's doubled density covers
+    # area, more than the doubled density of the header-only rule used before covers
     n, most = 400_000, 60_000
     budget = _budget_for(most)
     for angle in (0.0, 45.0):
         xy = _rows(n, 200.0, 40.0, angle)
-        header = tile_size_for_budget(n, (0, 0), xy.max(axis=0), budget=budget, buffer=5.0)
+        header = _header_rule(n, xy.max(axis=0), budget, 5.0)
         side = int(np.ceil(xy.max())) + 1
         sample = DensitySample(count_cells(xy[:, 0], xy[:, 1], origin=(0, 0), cell=1.0, shape=(side, side)),
                                origin=(0.0, 0.0), cell=1.0, sampled=n, n_points=n)
@@ -139,9 +145,23 @@ def test_sampling_every_run_counts_every_point(blocks):
                                                      shape=sample.counts.shape))
 
 
-def test_a_file_that_cannot_be_sampled_gives_no_sample(blocks):
+def test_a_file_whose_chunks_cannot_be_reached_out_of_order_is_counted_whole(blocks):
     info, _ = blocks[0.0]
-    assert sample_density(info.path, info=dataclasses.replace(info, seekable=False)) is None
+    every = sample_density(info.path, info=info)
+    unseekable = sample_density(info.path, info=dataclasses.replace(info, seekable=False), runs=1, fraction=0.25,
+                                las_run=2_000)
+    assert unseekable.exact and np.array_equal(unseekable.counts, every.counts)
+
+
+def test_a_truncated_file_is_refused_while_counting(blocks, tmp_path):
+    from pipeline.errors import InputError
+
+    info, _ = blocks[0.0]
+    short = tmp_path / "short.las"
+    data = open(info.path, "rb").read()
+    short.write_bytes(data[: len(data) - 30 * 1000])  # the last thousand or so points gone
+    with pytest.raises(InputError):
+        sample_density(str(short), info=dataclasses.replace(info, path=str(short)))
 
 
 @settings(max_examples=25, deadline=None)
