@@ -32,9 +32,9 @@ FIXED_BYTES = 200e6
 #: tests/pipeline/test_budget.py bounds the error on generated blocks
 SAMPLE_MARGIN = 1.25
 
-#: smallest tile core chosen for a budget, in buffer widths: a smaller core processes
-#: more than four times its own points (its buffer's too), and time grows with them
-MIN_CORE_PER_BUFFER = 2.0
+#: smallest tile core chosen for a budget, in buffer widths: a core of one buffer
+#: processes nine times its own points (its buffer's too), and time grows with them
+MIN_CORE_PER_BUFFER = 1.0
 
 
 class BudgetError(ParameterError):

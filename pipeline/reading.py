@@ -224,13 +224,17 @@ SAMPLE_FRACTION = 1.0
 #: points per run of a LAS file (as LAZ's default chunk)
 LAS_RUN_POINTS = 50_000
 
-#: most cells along either axis of a density sample: 1 m cells up to this extent [m],
-#: coarser ones beyond it (at most 2048^2 counts, 32 MB)
+#: side of a density sample's cells [m]: a buffered tile's count takes every cell its box
+#: touches, so a cell this small overcounts a 25 m box by 2 %
+SAMPLE_CELL = 0.25
+
+#: most cells along either axis of a density sample: cells of :data:`SAMPLE_CELL` up to
+#: 512 m, coarser ones beyond (at most 2048^2 counts, 32 MB)
 MAX_SAMPLE_CELLS = 2048
 
 
-def sample_density(path, *, info: BlockInfo | None = None, runs: int = SAMPLE_RUNS,
-                   fraction: float = SAMPLE_FRACTION, las_run: int = LAS_RUN_POINTS) -> DensitySample:
+def sample_density(path, *, info: BlockInfo | None = None, runs: int = SAMPLE_RUNS, fraction: float = SAMPLE_FRACTION,
+                   las_run: int = LAS_RUN_POINTS, chunk_points: int = CHUNK_POINTS) -> DensitySample:
     """Count the points of a block per square cell: all of them, read in order, or with
     ``fraction`` below 1, from evenly spread runs of its points (``runs`` or the
     ``fraction`` of them, whichever is more). A run is one LAZ chunk, or ``las_run``
@@ -238,9 +242,11 @@ def sample_density(path, *, info: BlockInfo | None = None, runs: int = SAMPLE_RU
     ``runs``, when half of them or more would be read, and in a LAZ file that is not
     ``info.seekable`` (a chunk there is reached only by decoding every one before it).
 
-    Cells are 1 m (coarser for a block wider than :data:`MAX_SAMPLE_CELLS` m), their
-    corner at the block origin (``floor`` of the header minimum). Only X and Y are
-    decoded where the point format stores them apart; memory is one run and the counts.
+    Cells are :data:`SAMPLE_CELL` wide (whole multiples of it, for a block wider than
+    :data:`MAX_SAMPLE_CELLS` cells), their corner at the block origin (``floor`` of the
+    header minimum), so whole-metre tile edges from that origin fall on cell edges. Only
+    X and Y are decoded where the point format stores them apart; memory is one run
+    (``chunk_points`` when every point is counted) and the counts.
 
     Raises
     ------
@@ -249,14 +255,14 @@ def sample_density(path, *, info: BlockInfo | None = None, runs: int = SAMPLE_RU
     """
     info = info or read_info(path)
     extent = max(info.maxs[0] - info.origin[0], info.maxs[1] - info.origin[1])
-    cell = float(max(1, math.ceil(extent / MAX_SAMPLE_CELLS)))
+    cell = SAMPLE_CELL * max(1, math.ceil(extent / MAX_SAMPLE_CELLS / SAMPLE_CELL))
     nx = int(math.floor((info.maxs[0] - info.origin[0]) / cell)) + 1
     ny = int(math.floor((info.maxs[1] - info.origin[1]) / cell)) + 1
     counts = np.zeros((ny, nx), dtype=np.int64)
     scale, shift = info.scales, np.asarray(info.offsets) - np.asarray(info.origin)
-    run, picked = int(las_run), None  # None: every point, in order
+    run, picked = int(chunk_points), None  # None: every point, in order
     if fraction < 1.0 and info.seekable:
-        run = int(lasheader.check_header(info.path).chunk_size) if info.compressed else run
+        run = int(lasheader.check_header(info.path).chunk_size) if info.compressed else int(las_run)
         n_runs = -(-info.n_points // run)
         n_read = min(max(int(runs), math.ceil(n_runs * fraction)), n_runs)
         if 2 * n_read < n_runs:  # else count it all, exactly, for little more

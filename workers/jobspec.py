@@ -160,7 +160,7 @@ def auto_tiled(spec: JobSpec, info: BlockInfo | None = None) -> JobSpec:
     """``spec`` with a tile size chosen for its memory budget when it has none and the
     whole block would not fit the budget (else ``spec``).
 
-    The size comes from the block's points counted per square metre
+    The size comes from the block's points counted per square cell
     (:func:`pipeline.reading.sample_density`, read only for a block that does not fit
     whole) and the job's actual grid (:func:`pipeline.budget.tile_size_for_sample`).
     ``info``: the block's header, read from ``spec.input_path`` when not given.

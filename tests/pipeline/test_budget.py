@@ -58,9 +58,10 @@ def test_the_sampled_rule_by_hand():
     assert sampled_tile_points(half, 60.0, 5.0, (0, 0), (300, 300), (0, 0)).max() == 100 * 70**2 * SAMPLE_MARGIN
     # whole when the block fits; refused with the densest tile's figures when none does
     assert tile_size_for_sample(sample, (0, 0), (300, 300), budget=_budget_for(9_000_000), buffer=5.0, grid_origin=(0, 0)) is None
+    # (the smallest core is one buffer, 5 m: 15 x 15 cells with its buffer)
     with pytest.raises(BudgetError) as err:
-        tile_size_for_sample(sample, (0, 0), (300, 300), budget=_budget_for(39_999), buffer=5.0, grid_origin=(0, 0))
-    assert err.value.tile_size == 10.0 and err.value.need == _budget_for(100 * 20**2) and err.value.density == 100.0
+        tile_size_for_sample(sample, (0, 0), (300, 300), budget=_budget_for(22_499), buffer=5.0, grid_origin=(0, 0))
+    assert err.value.tile_size == 5.0 and err.value.need == _budget_for(100 * 15**2) and err.value.density == 100.0
 
 
 def test_a_grid_origin_between_cell_edges_counts_every_cell_a_tile_touches():
@@ -141,8 +142,8 @@ def test_sampling_every_run_counts_every_point(blocks):
     sample = sample_density(info.path, info=info, las_run=5_000)
     assert sample.exact and sample.sampled == info.n_points == sample.counts.sum()
     local = xyz[:, :2] - np.asarray(info.origin[:2])
-    assert np.array_equal(sample.counts, count_cells(local[:, 0], local[:, 1], origin=(0, 0), cell=1.0,
-                                                     shape=sample.counts.shape))
+    assert sample.cell == 0.25 and np.array_equal(
+        sample.counts, count_cells(local[:, 0], local[:, 1], origin=(0, 0), cell=0.25, shape=sample.counts.shape))
 
 
 def test_a_file_whose_chunks_cannot_be_reached_out_of_order_is_counted_whole(blocks):

@@ -42,27 +42,27 @@ def _uniform(n_points: int, width: int, depth: int) -> DensitySample:
 
 
 def test_a_small_dense_block_over_the_budget_stays_whole():
-    # 11 M points on 20 m x 20 m: the smallest tile with its buffer holds all of it
-    sample = _uniform(11_000_000, 20, 20)
-    assert tile_size_for_sample(sample, (0, 0), (20, 20), budget=2e9, buffer=6.25, grid_origin=(0, 0)) is None
+    # 11 M points on 15 m x 15 m: the smallest tile with its buffer (7 + 2 x 6.25 m) holds all of it
+    sample = _uniform(11_000_000, 15, 15)
+    assert tile_size_for_sample(sample, (0, 0), (15, 15), budget=2e9, buffer=6.25, grid_origin=(0, 0)) is None
 
 
 def test_the_budget_named_in_the_refusal_is_enough():
     sample = _uniform(50_000_000, 100, 100)
     with pytest.raises(BudgetError) as err:
-        tile_size_for_sample(sample, (0, 0), (100, 100), budget=1e9, buffer=6.25, grid_origin=(0, 0))
+        tile_size_for_sample(sample, (0, 0), (100, 100), budget=0.5e9, buffer=6.25, grid_origin=(0, 0))
     enough = math.ceil(err.value.need / 1e8) / 10 * 1e9  # as the command line words it
     assert tile_size_for_sample(sample, (0, 0), (100, 100), budget=enough, buffer=6.25, grid_origin=(0, 0)) is not None
 
 
 def test_a_budget_below_the_smallest_tile_is_refused_with_its_figures():
-    # 100 points a metre; the smallest core is 10 m, so a buffered tile inside the block
-    # covers 20 x 20 cells: 40,000 points
+    # 100 points a metre; the smallest core is one buffer, 5 m, so a buffered tile inside
+    # the block covers 15 x 15 cells: 22,500 points
     with pytest.raises(BudgetError) as err:
-        tile_size_for_sample(_uniform(1_000_000, 100, 100), (0, 0), (100, 100), budget=210e6, buffer=5.0, grid_origin=(0, 0))
+        tile_size_for_sample(_uniform(1_000_000, 100, 100), (0, 0), (100, 100), budget=205e6, buffer=5.0, grid_origin=(0, 0))
     e = err.value
-    assert e.budget == 210e6 and e.density == 100.0 and e.tile_size == 10.0 and e.buffer == 5.0
-    assert e.need == pytest.approx(_need(100 * 20.0**2)) and e.need > e.budget
+    assert e.budget == 205e6 and e.density == 100.0 and e.tile_size == 5.0 and e.buffer == 5.0
+    assert e.need == pytest.approx(_need(100 * 15.0**2)) and e.need > e.budget
     assert "GB" in str(e) and "--" not in str(e)  # no command-line wording in workers' errors
 
 
@@ -118,7 +118,7 @@ def block(tmp_path_factory):
 
 
 def _budget(info) -> float:
-    """A budget the whole block does not fit, with room for a few tiles of 15 m or so:
+    """A budget the whole block does not fit, with room for a few tiles of 16 m or so:
     the header-only rule used before refuses it (its smallest tile at twice the mean
     density needs more), the densest tiles the block really has do not."""
     return FIXED_BYTES + 0.575 * info.n_points * BYTES_PER_POINT
@@ -151,9 +151,10 @@ def test_a_block_within_the_budget_is_left_whole_and_one_above_it_is_tiled(block
 
 def _old_header_rule_refuses(info, budget: float, buffer: float) -> bool:
     """Whether the rule used before refused ``budget``: from the header alone, 400 bytes a
-    point at twice the mean density over the bounding box, for the smallest tile."""
+    point at twice the mean density over the bounding box, for its smallest tile (a core
+    of two buffers)."""
     area = (info.maxs[0] - info.mins[0]) * (info.maxs[1] - info.mins[1])
-    return FIXED_BYTES + 2.0 * info.n_points / area * (smallest_tile(buffer) + 2 * buffer) ** 2 * 400 > budget
+    return FIXED_BYTES + 2.0 * info.n_points / area * (math.ceil(2 * buffer) + 2 * buffer) ** 2 * 400 > budget
 
 
 @pytest.mark.slow
@@ -249,4 +250,4 @@ def test_orchard_process_tiles_a_block_above_its_budget(block, tmp_path, capsys)
     gb = _budget(info) / 1e9
     code, err = _process(capsys, path, "--out", tmp_path / "o", "--segment-max-crown-radius", 3, "--worker-memory", gb)
     assert code == 0, err
-    assert "tiles of 15 m" in err and "1 tile(s)" not in err
+    assert "tiles of 16 m" in err and "1 tile(s)" not in err
