@@ -41,7 +41,12 @@ _OUTER_REACH = 0.5
 _SPACING_SLACK = 0.1
 #: ... and is looked for in this many steps (0.1 % of the spacing)
 _SPACING_STEPS = 201
-
+#: an empty slot's centre is fitted by a quadratic (a gently curved row) to the row's
+#: trees within this many slots of it, so each tree's own offset from its slot averages out
+GAP_FIT_SLOTS = 8
+#: the slot beyond a row's end lies a planting distance on along the line through the
+#: trees within this many slots of it (a quadratic would swing out beyond the end)
+END_FIT_SLOTS = 3
 
 @dataclass(frozen=True)
 class RowLayout:
@@ -61,7 +66,7 @@ class RowLayout:
         Each row's line through its trees' positions, in position order [m].
     gaps : dict of str → ndarray
         One entry per empty slot between two trees of a row: ``row``, ``position``
-        (int32), ``x``, ``y`` (float64, the slot's centre on the row line) [m].
+        (int32), ``x``, ``y`` (float64, the slot's centre, :func:`slot_centres`) [m].
     off_row : (k,) bool
         Trees off every row line, or a second tree in an occupied slot; each is a row of
         its own, numbered after the rows.
@@ -343,6 +348,53 @@ def _slots(p: np.ndarray, d: np.ndarray, spacing: float) -> tuple[np.ndarray, fl
     return slot, s, keep
 
 
+def slot_centres(slots: np.ndarray, line: np.ndarray, query, spacing: float = float("nan")) -> np.ndarray:
+    """Centres [m] of planting slots of one row, fitted to its trees so that one tree's
+    own offset from its slot does not move them.
+
+    - A slot between the trees: least squares of x and y against the slot number, a
+      quadratic through the trees within :data:`GAP_FIT_SLOTS` slots (at least four;
+      else the straight line between its two neighbours).
+    - A slot beyond either end: the least-squares line through the trees within
+      :data:`END_FIT_SLOTS` slots gives the direction, and the centre steps ``spacing``
+      per slot along it from the trees' mean.
+
+    Parameters
+    ----------
+    slots : (m,) int — the trees' slots, increasing (at least two)
+    line : (m, 2) float64 — the trees' positions [m], in that order
+    query : (q,) int — slots whose centres are wanted
+    spacing : float — the row's planting distance [m]; NaN: the fitted line's own step
+
+    Returns
+    -------
+    (q, 2) float64
+    """
+    slots = np.asarray(slots, np.float64)
+    query = np.atleast_1d(np.asarray(query, np.float64))
+    out = np.empty((len(query), 2))
+    for i, q in enumerate(query):
+        d = np.abs(slots - q)
+        if slots[0] < q < slots[-1]:
+            near = np.flatnonzero(d <= GAP_FIT_SLOTS)
+            if len(near) < 4:
+                out[i] = [np.interp(q, slots, line[:, 0]), np.interp(q, slots, line[:, 1])]
+                continue
+            k = slots[near] - q
+            out[i] = np.linalg.lstsq(np.vander(k, 3, increasing=True), line[near], rcond=None)[0][0]
+            continue
+        near = np.flatnonzero(d <= END_FIT_SLOTS)
+        if len(near) < 2:
+            near = np.argsort(d, kind="stable")[:2]
+        k = slots[near] - q
+        p = line[near]
+        step = np.linalg.lstsq(np.c_[np.ones(len(near)), k], p, rcond=None)[0][1]  # per slot [m]
+        if np.isfinite(spacing) and np.hypot(*step) > 0:
+            step = step * (spacing / np.hypot(*step))
+        out[i] = (p - k[:, None] * step).mean(axis=0)
+    return out
+
+
 def _young(height: np.ndarray, chains: list[np.ndarray], ratio: float) -> np.ndarray:
     young = np.zeros(len(height), dtype=bool)
     for chain in chains:
@@ -465,8 +517,9 @@ def find_rows(xy: np.ndarray, height: np.ndarray | None = None, *, params: RowPa
         if len(missing):
             gaps["row"].append(np.full(len(missing), number, np.int32))
             gaps["position"].append((missing + 1).astype(np.int32))
-            gaps["x"].append(np.interp(missing, slots, line[:, 0]))
-            gaps["y"].append(np.interp(missing, slots, line[:, 1]))
+            centre = slot_centres(slots, line, missing, s)
+            gaps["x"].append(centre[:, 0])
+            gaps["y"].append(centre[:, 1])
         rows_out["row"].append(number)
         rows_out["n_trees"].append(len(g))
         rows_out["n_gaps"].append(len(missing))

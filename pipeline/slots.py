@@ -24,7 +24,7 @@ import numpy as np
 from scipy.spatial import cKDTree
 
 from pipeline.params import PipelineParams, RowParams
-from pipeline.rows import RowLayout, find_rows
+from pipeline.rows import RowLayout, find_rows, slot_centres
 from pipeline.trunks import TrunkDetection
 
 #: a nursery tree planted into a gap stands at least this tall [m]; grass and weeds stay lower
@@ -46,16 +46,15 @@ MIN_LATTICE_TREES = 4
 def open_slots(layout: RowLayout) -> np.ndarray:
     """(o, 2) float64 centres [m] of the slots a tree could still stand in, in rows of at
     least :data:`MIN_LATTICE_TREES` trees: the empty slots between two trees of the row,
-    and the slot beyond each of its ends."""
+    and the slot beyond each of its ends (:func:`pipeline.rows.slot_centres`)."""
     long = layout.rows["n_trees"] >= MIN_LATTICE_TREES
     in_long = np.isin(layout.gaps["row"], layout.rows["row"][long])
     pts = [np.c_[layout.gaps["x"][in_long], layout.gaps["y"][in_long]]]
-    # a row's line runs through its trees (a canopy row's, without trees, is no lattice)
-    for line, s, is_long in zip(layout.lines, layout.rows["spacing_m"], long):
-        if is_long and np.isfinite(s):
-            for end, inner in ((line[-1], line[-3]), (line[0], line[2])):
-                step = end - inner
-                pts.append((end + s * step / np.hypot(*step))[None, :])
+    # a row's line runs through its trees in slot order (a canopy row has no trees)
+    for number, line, s, is_long in zip(layout.rows["row"], layout.lines, layout.rows["spacing_m"], long):
+        if is_long:
+            slots = np.sort(layout.position[layout.row == number]).astype(np.int64)
+            pts.append(slot_centres(slots, line, [slots[-1] + 1, slots[0] - 1], s))
     return np.concatenate(pts).reshape(-1, 2)
 
 

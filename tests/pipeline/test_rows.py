@@ -276,3 +276,55 @@ def test_trunks_between_rows_give_their_material_to_the_nearest_tree():
     assert out.id_maps[0].tolist() == list(range(k)) + [9]  # the false tree's points → tree 9 (xy[8])
     off = without_trunks_between_rows(merged, PipelineParams(rows={"drop_between_rows": False}))
     assert off is merged
+
+
+def test_a_gap_centre_is_fitted_to_the_row_not_to_its_two_neighbours():
+    # slot 5 (0-based 4) empty; the tree before it stands 0.4 m off the row line, the
+    # others on it: the straight line between the two neighbours would put the slot
+    # 0.2 m off, the row's fit much nearer the line
+    from pipeline.rows import slot_centres
+
+    slots = np.array([0, 1, 2, 3, 5, 6, 7, 8])
+    line = np.c_[slots * 2.0, np.zeros(len(slots))]
+    line[3, 1] = 0.4
+    centre = slot_centres(slots, line, [4], spacing=2.0)[0]
+    assert centre[0] == pytest.approx(8.0, abs=0.05)
+    assert abs(centre[1]) < 0.15  # the neighbours' midpoint: 0.2
+
+
+def test_slot_centres_follow_a_curved_row_and_step_on_beyond_its_ends():
+    from pipeline.rows import slot_centres
+
+    # trees on a circle of 40 m radius, 2 m apart, slot 6 empty
+    angle = np.arange(12) * 2.0 / 40.0
+    ring = np.c_[40.0 * np.sin(angle), 40.0 * (1.0 - np.cos(angle))]
+    slots = np.r_[np.arange(6), np.arange(7, 12)]
+    got = slot_centres(slots, ring[slots], [6, 12, -1], spacing=2.0)
+    assert np.hypot(*(got[0] - ring[6])) < 0.02  # on the curve, not its chord's sagitta off
+    beyond = np.c_[40.0 * np.sin([12 * 0.05, -0.05]), 40.0 * (1.0 - np.cos([12 * 0.05, -0.05]))]
+    from pipeline.slots import SLOT_REACH
+
+    assert np.hypot(*(got[1:] - beyond).T).max() < SLOT_REACH * 2.0  # a tree there is let in
+    # a step of the row's spacing from its end tree
+    assert np.hypot(*(got[1] - ring[11])) == pytest.approx(2.0, abs=0.05)
+
+
+@settings(max_examples=40, deadline=None)
+@given(seed=st.integers(0, 10_000), angle=st.floats(0.0, 2 * np.pi))
+def test_slot_centres_average_out_the_trees_jitter(seed, angle):
+    # a straight row at any angle, trees jittered 0.15 m about their slots: the fitted
+    # centre of an empty inner slot lies nearer its true centre than the jitter allows
+    # the midpoint of its two neighbours to, on average over the row's gaps
+    from pipeline.rows import slot_centres
+
+    rng = np.random.default_rng(seed)
+    u = np.array([np.cos(angle), np.sin(angle)])
+    all_slots = np.arange(20)
+    true = all_slots[:, None] * 2.5 * u
+    empty = np.array([5, 11, 15])
+    slots = np.setdiff1d(all_slots, empty)
+    line = true[slots] + rng.normal(0.0, 0.15, (len(slots), 2))
+    got = slot_centres(slots, line, empty, spacing=2.5)
+    err = np.hypot(*(got - true[empty]).T)
+    assert err.max() < 0.45  # six sigma of a mean of at least four trees
+    assert np.isfinite(got).all()
