@@ -1,4 +1,4 @@
-"""The report's map drawn with numpy and Pillow: ticks, colours where the points are, markers."""
+"""The report's map: matplotlib axes over the points composed into one image; colours where the points are, markers."""
 
 from __future__ import annotations
 
@@ -7,23 +7,22 @@ import io
 import numpy as np
 from PIL import Image
 
-from service.mapimage import OTHER, PALETTE, nice_ticks, render_map_png, tick_labels
+from service.mapimage import OTHER, PALETTE, point_image, render_map_png
 
 
 def _image(png: bytes) -> np.ndarray:
     return np.asarray(Image.open(io.BytesIO(png)).convert("RGB")).astype(int)
 
 
-def test_ticks_are_round_and_inside_the_range():
-    assert list(nice_ticks(-1.4, 28.6, 9)) == [0, 5, 10, 15, 20, 25]
-    assert list(nice_ticks(0.3, 17.8, 9)) == [2, 4, 6, 8, 10, 12, 14, 16]
-    assert np.allclose(nice_ticks(0.0, 1.0, 9), [0.0, 0.2, 0.4, 0.6, 0.8, 1.0])
-    assert len(nice_ticks(0.1, 0.35, 1)) >= 2  # never a lone tick
-
-
-def test_tick_labels_use_as_few_decimals_as_tell_them_apart():
-    assert tick_labels(np.array([0.0, 2.5, 5.0])) == ["0.0", "2.5", "5.0"]
-    assert tick_labels(np.array([-5.0, 0.0, 5.0])) == ["\u22125", "0", "5"]
+def test_point_image_puts_each_point_in_its_pixel_and_leaves_the_rest_white():
+    # a 4 x 2 m box at 1 px per metre: (0.5, 1.5) is column 0 of the top row, (3.5, 0.5)
+    # column 3 of the bottom row; two points in one pixel cover more than one
+    xy = np.array([[0.5, 1.5], [3.5, 0.5], [3.6, 0.4]])
+    img = point_image(xy, np.array([0, 5, 5]), np.zeros(2), np.array([4.0, 2.0]), 4, 2)
+    assert img.shape == (2, 4, 3)
+    assert np.allclose(img[0, 0], 1.0 - 0.7 * (1.0 - OTHER))
+    assert np.allclose(img[1, 3], 1.0 - (1.0 - 0.1**2) * (1.0 - PALETTE[35 % len(PALETTE)]), atol=1e-6)
+    assert (img.min(axis=2) < 1.0).sum() == 2  # white elsewhere
 
 
 def test_points_are_drawn_in_their_tree_colour_and_others_grey():
