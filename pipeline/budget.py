@@ -58,9 +58,14 @@ class BudgetError(ParameterError):
         self.budget, self.density, self.tile_size, self.buffer, self.need = budget, density, tile_size, buffer, need
 
 
+def bytes_needed(n_points: float, bytes_per_point: float = BYTES_PER_POINT) -> float:
+    """Estimated peak memory [bytes] of a process that processes ``n_points`` at once."""
+    return FIXED_BYTES + n_points * bytes_per_point
+
+
 def fits_whole(n_points: int, budget: float, bytes_per_point: float = BYTES_PER_POINT) -> bool:
     """Whether processing ``n_points`` in one piece needs no more than ``budget`` [bytes]."""
-    return FIXED_BYTES + n_points * bytes_per_point <= budget
+    return bytes_needed(n_points, bytes_per_point) <= budget
 
 
 def smallest_tile(buffer: float) -> float:
@@ -199,4 +204,4 @@ def tile_size_for_sample(
             return float(size)
     worst = float(sampled_tile_points(sample, smallest, buffer, mins, maxs, (gx, gy)).max())
     raise BudgetError(budget, worst / (smallest + 2.0 * buffer) ** 2, smallest, buffer,
-                      FIXED_BYTES + worst * bytes_per_point)
+                      bytes_needed(worst, bytes_per_point))

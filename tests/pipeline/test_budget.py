@@ -5,6 +5,7 @@ a generated block."""
 from __future__ import annotations
 
 import dataclasses
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -18,17 +19,13 @@ from pipeline.budget import (
     SAMPLE_MARGIN,
     BudgetError,
     DensitySample,
+    bytes_needed,
     count_cells,
     sampled_tile_points,
     tile_size_for_sample,
 )
 from pipeline.reading import read_points, sample_density
 from pipeline.tiling import buffered_tiles, plan_grid
-
-
-def _budget_for(points: float) -> float:
-    """The budget at which a buffered tile may hold ``points``."""
-    return FIXED_BYTES + points * BYTES_PER_POINT
 
 
 def _exact(xy: np.ndarray, side: float) -> DensitySample:
@@ -45,7 +42,7 @@ def test_the_sampled_rule_by_hand():
     # from 148 m the first tile's buffer alone is too much)
     sample = DensitySample(counts=np.full((300, 300), 100), origin=(0.0, 0.0), cell=1.0,
                            sampled=9_000_000, n_points=9_000_000)
-    budget = _budget_for(500_000)
+    budget = bytes_needed(500_000)
     assert tile_size_for_sample(sample, (0, 0), (300, 300), budget=budget, buffer=5.0, grid_origin=(0, 0)) == 60.0
     assert sampled_tile_points(sample, 60.0, 5.0, (0, 0), (300, 300), (0, 0)).max() == 100 * 70**2
     assert sampled_tile_points(sample, 61.0, 5.0, (0, 0), (300, 300), (0, 0)).max() == 100 * 71**2  # > 500 k
@@ -57,11 +54,11 @@ def test_the_sampled_rule_by_hand():
     half = dataclasses.replace(sample, counts=sample.counts // 2, sampled=4_500_000)
     assert sampled_tile_points(half, 60.0, 5.0, (0, 0), (300, 300), (0, 0)).max() == 100 * 70**2 * SAMPLE_MARGIN
     # whole when the block fits; refused with the densest tile's figures when none does
-    assert tile_size_for_sample(sample, (0, 0), (300, 300), budget=_budget_for(9_000_000), buffer=5.0, grid_origin=(0, 0)) is None
+    assert tile_size_for_sample(sample, (0, 0), (300, 300), budget=bytes_needed(9_000_000), buffer=5.0, grid_origin=(0, 0)) is None
     # (the smallest core is one buffer, 5 m: 15 x 15 cells with its buffer)
     with pytest.raises(BudgetError) as err:
-        tile_size_for_sample(sample, (0, 0), (300, 300), budget=_budget_for(22_499), buffer=5.0, grid_origin=(0, 0))
-    assert err.value.tile_size == 5.0 and err.value.need == _budget_for(100 * 15**2) and err.value.density == 100.0
+        tile_size_for_sample(sample, (0, 0), (300, 300), budget=bytes_needed(22_499), buffer=5.0, grid_origin=(0, 0))
+    assert err.value.tile_size == 5.0 and err.value.need == bytes_needed(100 * 15**2) and err.value.density == 100.0
 
 
 def test_a_grid_origin_between_cell_edges_counts_every_cell_a_tile_touches():
@@ -101,7 +98,7 @@ def test_a_turned_block_is_tiled_by_its_local_density_not_its_bounding_box():
     # 400 k points on 200 m x 40 m; turned 45 degrees its bounding box is 3.1 times its
     # area, more than the doubled density of the header-only rule used before covers
     n, most = 400_000, 60_000
-    budget = _budget_for(most)
+    budget = bytes_needed(most)
     for angle in (0.0, 45.0):
         xy = _rows(n, 200.0, 40.0, angle)
         header = _header_rule(n, xy.max(axis=0), budget, 5.0)
@@ -159,7 +156,7 @@ def test_a_truncated_file_is_refused_while_counting(blocks, tmp_path):
 
     info, _ = blocks[0.0]
     short = tmp_path / "short.las"
-    data = open(info.path, "rb").read()
+    data = Path(info.path).read_bytes()
     short.write_bytes(data[: len(data) - 30 * 1000])  # the last thousand or so points gone
     with pytest.raises(InputError):
         sample_density(str(short), info=dataclasses.replace(info, path=str(short)))

@@ -3,9 +3,8 @@ into tiles whose counted points keep the budget, and the result is the untiled o
 
 from __future__ import annotations
 
-import math
-
 import json
+import math
 import subprocess
 import sys
 
@@ -21,6 +20,7 @@ from pipeline.budget import (
     MIN_CORE_PER_BUFFER,
     BudgetError,
     DensitySample,
+    bytes_needed,
     sampled_tile_points,
     smallest_tile,
     tile_size_for_sample,
@@ -29,10 +29,6 @@ from pipeline.jobparams import TilingParams
 from pipeline.params import PipelineParams
 from workers.job import run_job
 from workers.jobspec import JobSpec, auto_tiled
-
-
-def _need(points: float) -> float:
-    return FIXED_BYTES + points * BYTES_PER_POINT
 
 
 def _uniform(n_points: int, width: int, depth: int) -> DensitySample:
@@ -62,7 +58,7 @@ def test_a_budget_below_the_smallest_tile_is_refused_with_its_figures():
         tile_size_for_sample(_uniform(1_000_000, 100, 100), (0, 0), (100, 100), budget=205e6, buffer=5.0, grid_origin=(0, 0))
     e = err.value
     assert e.budget == 205e6 and e.density == 100.0 and e.tile_size == 5.0 and e.buffer == 5.0
-    assert e.need == pytest.approx(_need(100 * 15.0**2)) and e.need > e.budget
+    assert e.need == pytest.approx(bytes_needed(100 * 15.0**2)) and e.need > e.budget
     assert "GB" in str(e) and "--" not in str(e)  # no command-line wording in workers' errors
 
 
@@ -89,9 +85,9 @@ def test_the_chosen_tile_keeps_the_budget_and_is_the_largest_that_does(width, de
         assert sampled_tile_points(sample, e.tile_size, buffer, mins, maxs, origin).max() > most
         return
     if size is None:  # the block fits, or is no larger than the smallest tile and its buffer
-        assert _need(n) <= budget or smallest_tile(buffer) + 2 * buffer >= max(width, depth)
+        assert bytes_needed(n) <= budget or smallest_tile(buffer) + 2 * buffer >= max(width, depth)
         return
-    assert _need(n) > budget
+    assert bytes_needed(n) > budget
     assert size == int(size) and size >= MIN_CORE_PER_BUFFER * buffer and size >= smallest_tile(buffer)
     assert sampled_tile_points(sample, size, buffer, mins, maxs, origin).max() <= most
     for larger in range(int(size) + 1, max(width, depth) + 2):
@@ -137,7 +133,7 @@ def _densest_tile(path, info, size: float, buffer: float) -> int:
 def test_a_block_within_the_budget_is_left_whole_and_one_above_it_is_tiled(block, tmp_path):
     path, info = block
     params = PipelineParams.model_validate(PARAMS)
-    whole = JobSpec(str(path), str(tmp_path / "o"), params=params, tiling=TilingParams(worker_memory=_need(info.n_points) / 1e9))
+    whole = JobSpec(str(path), str(tmp_path / "o"), params=params, tiling=TilingParams(worker_memory=bytes_needed(info.n_points) / 1e9))
     assert auto_tiled(whole, info) is whole
     assert auto_tiled(JobSpec(str(path), str(tmp_path / "o"), params=params), info).tiling.tile_size is None  # no budget
     assert auto_tiled(JobSpec(str(path), str(tmp_path / "o"), params=params, tiling=TilingParams(tile_size=7.0, worker_memory=1.0 / 1e9)), info).tiling.tile_size == 7.0
@@ -145,7 +141,7 @@ def test_a_block_within_the_budget_is_left_whole_and_one_above_it_is_tiled(block
     size = spec.tiling.tile_size
     assert size is not None and size >= MIN_CORE_PER_BUFFER * params.reach()
     # every buffered tile of the job's grid holds no more points than the budget allows
-    assert _need(_densest_tile(str(path), info, size, params.reach())) <= _budget(info)
+    assert bytes_needed(_densest_tile(str(path), info, size, params.reach())) <= _budget(info)
     assert _old_header_rule_refuses(info, _budget(info), params.reach())
 
 
