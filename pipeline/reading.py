@@ -43,15 +43,23 @@ def iter_raw(path, *, chunk_points: int = CHUNK_POINTS, info: BlockInfo | None =
         The point data is truncated or corrupt.
     """
     info = info or read_info(path)
+    for start, arr in _records(info, int(chunk_points), _XYZ_ONLY):
+        yield start, _stored_xyz(arr)
+
+
+def _records(info: BlockInfo, chunk_points: int, selection) -> Iterator[tuple[int, np.ndarray]]:
+    """Every point record of a block in order, ``chunk_points`` at a time, decoding the
+    layers of ``selection``: (index of the chunk's first point, records). Raises
+    InputError on corrupt data or fewer points than the header announces."""
     start = 0
     try:
-        with laspy.open(info.path, read_evlrs=False, decompression_selection=_XYZ_ONLY) as reader:
-            for chunk in reader.chunk_iterator(int(chunk_points)):
+        with laspy.open(info.path, read_evlrs=False, decompression_selection=selection) as reader:
+            for chunk in reader.chunk_iterator(chunk_points):
                 arr = chunk.array
                 m = len(arr)
                 if m == 0:
                     break
-                yield start, _stored_xyz(arr)
+                yield start, arr
                 start += m
     except (InputError, KeyboardInterrupt, SystemExit, GeneratorExit):
         raise
@@ -111,6 +119,10 @@ side of a voxel or ground-cell boundary. Rounding to 1 µm gives one float per p
 no scale in use comes near it."""
 
 
+#: rows :func:`to_local` converts at a time (a 256 KiB buffer)
+TO_LOCAL_BLOCK = 32_768
+
+
 def to_local(ints: np.ndarray, info: BlockInfo, origin=None, *, out: np.ndarray | None = None) -> np.ndarray:
     """Local float64 coordinates (m, 3) [m] of stored integers: ``X * scale + (offset - origin)``
     rounded to whole micrometres (:data:`LOCAL_STEPS_PER_M`; written into ``out``, an (m, 3)
@@ -134,10 +146,6 @@ def to_local(ints: np.ndarray, info: BlockInfo, origin=None, *, out: np.ndarray 
             col /= LOCAL_STEPS_PER_M
             xyz[s:e, j] = col
     return xyz
-
-
-#: rows :func:`to_local` converts at a time (a 256 KiB buffer)
-TO_LOCAL_BLOCK = 32_768
 
 
 def check_bounds(xyz: np.ndarray, info: BlockInfo, *, start: int = 0, origin=None) -> None:
@@ -209,7 +217,6 @@ def read_points(path, *, origin=None, chunk_points: int = CHUNK_POINTS) -> tuple
     return out, info
 
 
-
 #: runs of points :func:`sample_density` reads when it samples, at least: each run is one
 #: LAZ chunk (decoded from its start, so nothing is decoded twice), or ``las_run`` points
 #: of a LAS file; a file of no more runs is counted whole
@@ -268,33 +275,27 @@ def sample_density(path, *, info: BlockInfo | None = None, runs: int = SAMPLE_RU
         if 2 * n_read < n_runs:  # else count it all, exactly, for little more
             picked = np.unique(np.linspace(0, n_runs - 1, n_read).round().astype(np.int64))
     sampled = 0
-    try:
-        with laspy.open(info.path, read_evlrs=False, decompression_selection=_XY_ONLY) as reader:
-            for arr in _runs(reader, info.n_points, run, picked):
-                # local coordinates (the origin's cell corner at 0): no UTM-sized sums
-                counts += count_cells(arr["X"] * scale[0] + shift[0], arr["Y"] * scale[1] + shift[1],
-                                      origin=(0.0, 0.0), cell=cell, shape=(ny, nx))
-                sampled += len(arr)
-    except (KeyboardInterrupt, SystemExit):
-        raise
-    except BaseException as exc:  # lazrs panics (pyo3's PanicException is no Exception) on corrupt chunks
-        raise input_error(info.path, f"corrupt or truncated point data after {sampled} points counted ({one_line(exc)})") from None
-    if picked is None and sampled < info.n_points:
-        raise input_error(info.path, f"truncated: the header announces {info.n_points} points but only {sampled} could be read")
+    # local coordinates (the origin's cell corner at 0): no UTM-sized sums
+    records = (arr for _, arr in _records(info, run, _XY_ONLY)) if picked is None else _picked_runs(info, run, picked)
+    for arr in records:
+        counts += count_cells(arr["X"] * scale[0] + shift[0], arr["Y"] * scale[1] + shift[1],
+                              origin=(0.0, 0.0), cell=cell, shape=(ny, nx))
+        sampled += len(arr)
     return DensitySample(counts=counts, origin=(float(info.origin[0]), float(info.origin[1])),
                          cell=cell, sampled=sampled, n_points=info.n_points)
 
 
-def _runs(reader, n_points: int, run: int, picked) -> Iterator:
-    """The point records to count: every chunk of ``run`` points in order (``picked``
-    None), or the runs numbered ``picked``, each read from its first point."""
-    if picked is None:
-        for chunk in reader.chunk_iterator(run):
-            if len(chunk) == 0:
-                return
-            yield chunk.array
-        return
-    for k in picked:
-        start = int(k) * run
-        reader.seek(start)
-        yield reader.read_points(min(run, n_points - start)).array
+def _picked_runs(info: BlockInfo, run: int, picked: np.ndarray) -> Iterator[np.ndarray]:
+    """X and Y of the runs of ``run`` points numbered ``picked``, each read from its
+    first point through the file's chunk table."""
+    start = 0
+    try:
+        with laspy.open(info.path, read_evlrs=False, decompression_selection=_XY_ONLY) as reader:
+            for k in picked:
+                start = int(k) * run
+                reader.seek(start)
+                yield reader.read_points(min(run, info.n_points - start)).array
+    except (KeyboardInterrupt, SystemExit, GeneratorExit):
+        raise
+    except BaseException as exc:  # lazrs panics (pyo3's PanicException is no Exception) on corrupt chunks
+        raise input_error(info.path, f"corrupt or truncated point data after point {start} ({one_line(exc)})") from None
