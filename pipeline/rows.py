@@ -48,6 +48,7 @@ GAP_FIT_SLOTS = 8
 #: trees within this many slots of it (a quadratic would swing out beyond the end)
 END_FIT_SLOTS = 3
 
+
 @dataclass(frozen=True)
 class RowLayout:
     """Rows of a block and every tree's address.

@@ -4,8 +4,9 @@ The page is interactive (`service.web.render.report_page`: pan, zoom, colour by 
 metric, search, a sortable table) and self-contained; the static map and table below
 are what it shows where scripts do not run.
 
-The map (PNG drawn with numpy and Pillow, :mod:`service.mapimage`; embedded in the page
-as base64 and also saved as ``map.png``) shows a subsample of the block's points seen from above, tree points
+The map (PNG, :mod:`service.mapimage`: matplotlib's axes over the points composed into one
+image; embedded in the page as base64 and also saved as ``map.png``) shows a subsample
+of the block's points seen from above, tree points
 coloured by tree id, other points grey, and each trunk as a marker with its number. The
 table has one row per tree from ``trees.parquet``. Memory stays bounded: the block and
 ``points.parquet`` are read in chunks and only every ``stride``-th point is kept.

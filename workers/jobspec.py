@@ -9,10 +9,10 @@ from dataclasses import dataclass, field
 from pathlib import Path
 
 from pipeline.blockinfo import BlockInfo, read_info
+from pipeline.budget import fits_whole, tile_size_for_sample
 from pipeline.errors import OrchardError, ParameterError
 from pipeline.jobparams import JobParams, TilingParams
 from pipeline.params import PipelineParams
-from pipeline.budget import fits_whole, tile_size_for_sample
 from pipeline.reading import sample_density
 from pipeline.tiling import TileGrid, plan_grid
 from workers.outputs import OUTPUT_NAMES
@@ -174,10 +174,15 @@ def auto_tiled(spec: JobSpec, info: BlockInfo | None = None) -> JobSpec:
     if fits_whole(info.n_points, tiling.memory_budget):
         return spec
     buffer = JobParams(pipeline=spec.params, tiling=tiling).buffer()
-    origin = tiling.grid_origin if tiling.grid_origin is not None else info.origin[:2]
     size = tile_size_for_sample(sample_density(info.path, info=info), info.mins, info.maxs,
-                                budget=tiling.memory_budget, buffer=buffer, grid_origin=origin)
+                                budget=tiling.memory_budget, buffer=buffer, grid_origin=grid_origin(tiling, info))
     return spec if size is None else dataclasses.replace(spec, tiling=tiling.model_copy(update={"tile_size": size}))
+
+
+def grid_origin(tiling: TilingParams, info: BlockInfo) -> tuple[float, float]:
+    """The corner [m] of a job's tile grid: the one given, else the block's origin (the
+    budget's tile size is chosen on the grid the job will plan)."""
+    return tiling.grid_origin if tiling.grid_origin is not None else info.origin[:2]
 
 
 def plan_tiles(spec: JobSpec, info: BlockInfo) -> TileGrid:
@@ -185,7 +190,7 @@ def plan_tiles(spec: JobSpec, info: BlockInfo) -> TileGrid:
     when ``spec`` has no tile size)."""
     reach, tiling = spec.params.reach(), spec.tiling
     buffer = JobParams(pipeline=spec.params, tiling=tiling).buffer()
-    origin = tiling.grid_origin if tiling.grid_origin is not None else info.origin[:2]
+    origin = grid_origin(tiling, info)
     if tiling.tile_size is None:  # one tile holding the whole block
         size = max(info.maxs[0] - origin[0], info.maxs[1] - origin[1]) + 1.0
         if origin[0] > info.mins[0] or origin[1] > info.mins[1]:

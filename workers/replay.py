@@ -132,8 +132,8 @@ def _resume(store: WorkStore, out_dir, client, progress, cancel) -> JobOutcome:
 
 
 def _settle_stored(store: WorkStore, record: dict, index: dict, spec: JobSpec, client, progress, cancel) -> None:
-    """The block's full trees on empty slots, once every tile has a result: the tiles
-    run without them (or with others) run again."""
+    """The block's trees on open slots, once every tile has a result: the tiles run
+    with other trees there run again."""
     summaries, missing = _stored_summaries(store, index)
     if not missing:  # else a partial job: the block's rows are not all known
         settle_slot_trees(store, record, index, summaries, spec, client, progress, cancel)
