@@ -37,6 +37,8 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--noises", type=_floats, help="noise levels σ [m], comma-separated (default 0,0.02,0.05,0.1; quick 0.02,0.1)")
     p.add_argument("--spacings", type=_floats, help="tree spacings [m], comma-separated (default 3,4,5,6,8; quick 4,6)")
     p.add_argument("--sizes", type=_floats, help="block sizes in millions of points (default 1,10,50; quick 1,10)")
+    p.add_argument("--large", action="store_true",
+                   help="add the 100 M-point block to the scaling table (not with --quick; about 10 minutes more on 2 cores)")
     p.add_argument("--stand-points", type=int, default=1_000_000, help="least points of the 3-tree stand (default 1000000)")
     p.add_argument("--repeats", type=int, help="timed runs of the stand (median reported; default 5, quick 3)")
     p.add_argument("--tile-size", type=float, default=20.0, help="tile core size for the tiled runs [m] (default 20)")
@@ -68,7 +70,6 @@ def main(argv: list[str] | None = None) -> int:
     quick = args.quick
     noises = args.noises or ([0.02, 0.1] if quick else [0.0, 0.02, 0.05, 0.1])
     spacings = args.spacings or ([4.0, 6.0] if quick else [3.0, 4.0, 5.0, 6.0, 8.0])
-    sizes = args.sizes or ([1.0, 10.0] if quick else [1.0, 10.0, 50.0])
     repeats = args.repeats or (3 if quick else 5)
     skip = {s.strip() for s in args.skip.split(",") if s.strip()}
     work: Path = args.work_dir
@@ -127,11 +128,9 @@ def main(argv: list[str] | None = None) -> int:
     if "scaling" not in skip:
         from bench import scaling
 
-        targets = [int(s * 1_000_000) for s in sizes]
-        if quick and any(t >= 50_000_000 for t in targets):
-            targets = [t for t in targets if t < 50_000_000]
-        if not any(t >= 50_000_000 for t in targets):
-            data["skipped_50m"] = "The 50 M point block is only run without --quick." if quick else "No 50 M point block in --sizes."
+        targets, notes = scaling.targets(args.sizes, quick=quick, large=args.large)
+        if notes:
+            data["scaling_notes"] = notes
         log(f"scaling: {', '.join(f'{t / 1e6:g} M' for t in targets)} points")
         data["scaling"] = scaling.run_sizes(work, targets, density=density, points_per_tree=points_per_tree,
                                             tile_size=args.tile_size, workers=args.workers, log=log)

@@ -46,6 +46,19 @@ def _gib(b) -> str:
     return "–" if not b else f"{b / 2**30:.2f} GiB"
 
 
+def _each_gib(peaks) -> str:
+    """Every process's peak [bytes], largest first: "1.20 / 1.18 GiB"."""
+    return "–" if not peaks else " / ".join(f"{b / 2**30:.2f}" for b in sorted(peaks, reverse=True)) + " GiB"
+
+
+def _other_processes(sampled: dict | None) -> str:
+    """Sampled peaks of the processes that are neither the submitting one nor a dask worker."""
+    if sampled is None:
+        return "–"
+    others = [(label, b) for label, peaks in sorted(sampled.items()) if label not in ("main", "dask-worker") for b in peaks]
+    return ", ".join(f"{label} {b / 2**30:.2f} GiB" for label, b in others) or "none"
+
+
 def _stage_split(run: dict) -> str:
     """"tiling / processing / merge+write" seconds of a tiled run."""
     t = run.get("timings") or {}
@@ -139,7 +152,7 @@ def plot_scaling(scaling: dict, path: Path) -> None:
     a1.set_title(f"time vs points ({scaling['workers']} workers, {scaling['tile_size']:g} m tiles)")
     a1.grid(alpha=0.3, which="both")
     a1.legend()
-    a2.plot(n / 1e6, [r["main_maxrss"] / 2**30 for r in rows], "o-", label="main process")
+    a2.plot(n / 1e6, [r["main_maxrss"] / 2**30 for r in rows], "o-", label="submitting process (scheduler in it)")
     a2.plot(n / 1e6, [max(r["worker_maxrss"] or [0]) / 2**30 for r in rows], "s-", label="largest worker")
     a2.plot(n / 1e6, [r["tree_peak_total"] / 2**30 for r in rows], "^--", label="all processes (sampled)")
     a2.axhline(2.0, color="red", lw=1, ls=":", label="2 GB target per worker")
@@ -273,18 +286,21 @@ def render(data: dict) -> str:
         out += ["", "## Throughput and memory against block size", ""]
         out.append(f"Generated orchard blocks at the stand's point density, tiled ({sc['tile_size']:g} m tiles, buffer = "
                    f"`params.reach()`), {sc['workers']} single-threaded dask worker processes of a `LocalCluster`, LAZ in → Parquet out. "
-                   "Peak RSS per process is its own high-water mark (`getrusage`); *all processes* is the largest "
-                   "sum over the process tree, sampled every 0.1 s.")
-        out += ["", "| points | trees (found) | tiles | wall time | CPU time | cores used | points/s | main peak | largest worker peak | all processes | LAZ decode (x/y/z) | end-to-end ÷ decode |",
-                "| --- | --- | --- | --- | --- | --- | --- | --- | --- | --- | --- | --- |"]
+                   "Memory of every process of the job: the *submitting process* (it reads the header, tiles, merges and writes; "
+                   "the `LocalCluster` runs its scheduler and the workers' nannies in this process, so there is no scheduler "
+                   "process of its own) and *each worker* process, by their own high-water mark (VmHWM, read in each process "
+                   "at the end); *other processes* (multiprocessing's resource tracker) by their largest RSS sampled every "
+                   "0.1 s; *all processes* is the largest sum over the process tree at one sample.")
+        out += ["", "| points | trees (found) | tiles | wall time | CPU time | cores used | points/s | submitting process | each worker | other processes | all processes | LAZ decode (x/y/z) | end-to-end ÷ decode |",
+                "| --- | --- | --- | --- | --- | --- | --- | --- | --- | --- | --- | --- | --- |"]
         for r in sc["rows"]:
             out.append(f"| {r['n_points']:,} | {r['n_trees']} ({r['n_found']}) | {r['n_tiles']} | {r['wall_s']:.1f} s | {r.get('cpu_s', float('nan')):.1f} s | {_cores(r)} | {_mpts(r['points_per_s'])} | "
-                       f"{_gib(r['main_maxrss'])} | {_gib(max(r['worker_maxrss'] or [0]))} | {_gib(r['tree_peak_total'])} | "
+                       f"{_gib(r['main_maxrss'])} | {_each_gib(r['worker_maxrss'])} | {_other_processes(r.get('sampled_peaks'))} | {_gib(r['tree_peak_total'])} | "
                        f"{_mpts(r['decode']['laspy_xyz_only']['points_per_s'])} | {r['ratio_vs_decode']:.3f} |")
         out += ["", f"Fitted scaling exponent (least squares of log time on log points): **{_f(sc['exponent'])}** "
                 "(1 = linear).", "", "![scaling](scaling.png)"]
-        if data.get("skipped_50m"):
-            out += ["", f"_{data['skipped_50m']}_"]
+        for note in data.get("scaling_notes") or ([data["skipped_50m"]] if data.get("skipped_50m") else []):
+            out += ["", f"_{note}_"]
 
     wk = data.get("workers")
     if wk:

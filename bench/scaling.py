@@ -1,8 +1,12 @@
 """Throughput and peak memory against block size, and 1 versus 2 workers.
 
 Every size runs tiled on a fresh ``LocalCluster`` (single-threaded worker processes),
-LAZ in → Parquet out, in a fresh process. Peak RSS is each process's own high-water
-mark (``getrusage``), plus the largest sum over the process tree sampled every 0.1 s.
+LAZ in → Parquet out, in a fresh process. The memory of every process of the job is
+kept: the submitting process's own high-water mark (VmHWM; the ``LocalCluster`` runs its
+scheduler and the workers' nannies in that process's event loop, so there is no
+scheduler process of its own), each dask worker process's (VmHWM, through
+``client.run``), the sampled peak of every other process of the tree (multiprocessing's
+resource tracker), and the largest sum over the tree, all sampled every 0.1 s.
 """
 
 from __future__ import annotations
@@ -14,6 +18,31 @@ import numpy as np
 
 from bench.blocks import make_block, orchard_params
 from bench.isolation import measure
+
+
+#: block sizes of the scaling table [points]: the default ones and the one ``large`` adds
+SIZES = (1_000_000, 10_000_000, 50_000_000)
+LARGE = 100_000_000
+
+
+def targets(sizes_m: list[float] | None, *, quick: bool, large: bool) -> tuple[list[int], list[str]]:
+    """The scaling table's block sizes [points] and notes on the sizes left out.
+
+    ``sizes_m``: sizes asked for [millions of points] (None: :data:`SIZES`, without the
+    50 M block when ``quick``); ``large`` adds :data:`LARGE` (never with ``quick``).
+    """
+    chosen = [int(s * 1_000_000) for s in sizes_m] if sizes_m else list(SIZES)
+    notes = []
+    if quick and any(t >= 50_000_000 for t in chosen):
+        chosen = [t for t in chosen if t < 50_000_000]
+    if large and not quick and LARGE not in chosen:
+        chosen.append(LARGE)
+    if not any(t >= 50_000_000 for t in chosen):
+        notes.append("The 50 M point block is only run without --quick." if quick else "No 50 M point block in --sizes.")
+    if not any(t >= LARGE for t in chosen):
+        notes.append("The 100 M point block is only run with --large, never with --quick (it adds its block's "
+                     "generation and several minutes of processing).")
+    return sorted(chosen), notes
 
 
 def fit_exponent(points, seconds) -> float:
@@ -44,12 +73,15 @@ def run_sizes(work: Path, targets: list[int], *, density: float, points_per_tree
             "n_tiles": run["n_tiles"], "wall_s": run["wall_s"], "cpu_s": run.get("cpu_s"), "timings": run["timings"],
             "points_per_s": block.n_points / run["wall_s"],
             "main_maxrss": r["main_maxrss"], "worker_maxrss": r.get("worker_maxrss", []),
-            "tree_peak_total": r["sampled_peak_total"],
+            "tree_peak_total": r["sampled_peak_total"], "sampled_peaks": r.get("sampled_peaks", {}),
+            "tile_size": tile_size,
             "decode": d, "ratio_vs_decode": (block.n_points / run["wall_s"]) / d["laspy_xyz_only"]["points_per_s"],
             "block": block.__dict__,
         })
-        log(f"    {run['wall_s']:.1f} s, {block.n_points / run['wall_s'] / 1e6:.2f} M points/s, "
-            f"worker peak {max(r.get('worker_maxrss', [0])) / 2**30:.2f} GiB")
+        log(f"    {run['wall_s']:.1f} s ({run.get('cpu_s', float('nan')):.1f} s CPU), "
+            f"{block.n_points / run['wall_s'] / 1e6:.2f} M points/s, submitting process {r['main_maxrss'] / 2**30:.2f} GiB, "
+            f"workers {' / '.join(f'{w / 2**30:.2f}' for w in r.get('worker_maxrss', []))} GiB, "
+            f"all processes {r['sampled_peak_total'] / 2**30:.2f} GiB")
     exponent = fit_exponent([r["n_points"] for r in rows], [r["wall_s"] for r in rows])
     return {"rows": rows, "exponent": exponent, "tile_size": tile_size, "workers": workers}
 

@@ -68,3 +68,23 @@ def test_write_outputs_fills_the_docs_page_not_the_readme(tmp_path):
     body = results.split("\n", 1)[1].strip()  # the page keeps its own title
     assert body and body in page.read_text() and "old figures" not in page.read_text()
     assert "keep" in readme.read_text()
+
+
+def test_scaling_table_gives_every_process_by_hand():
+    gib = 2**30
+    row = {"target": 100_000_000, "n_points": 100_000_000, "n_trees": 576, "n_found": 575, "n_tiles": 60, "wall_s": 400.0,
+           "cpu_s": 760.0, "points_per_s": 250_000.0, "main_maxrss": 0.8 * gib, "worker_maxrss": [1.18 * gib, 1.2 * gib],
+           "tree_peak_total": 3.1 * gib, "sampled_peaks": {"main": [int(0.79 * gib)], "dask-worker": [int(1.2 * gib)] * 2,
+                                                           "resource-tracker": [int(0.01 * gib)]},
+           "decode": {"laspy_xyz_only": {"points_per_s": 5_000_000.0}}, "ratio_vs_decode": 0.05}
+    data = {"machine": MACHINE, "command": "python -m bench --large", "elapsed_s": 60.0,
+            "scaling": {"rows": [row], "exponent": float("nan"), "tile_size": 20.0, "workers": 2},
+            "scaling_notes": ["a note"]}
+    text = render(data)
+    assert ("| 100,000,000 | 576 (575) | 60 | 400.0 s | 760.0 s | 1.90 | 0.25 M/s | 0.80 GiB | 1.20 / 1.18 GiB | "
+            "resource-tracker 0.01 GiB | 3.10 GiB | 5.00 M/s | 0.050 |") in text
+    assert "no scheduler process of its own" in text and "_a note_" in text
+    # a run recorded before the per-process samples: the column says so, the rest renders
+    old = dict(row, worker_maxrss=[1.2 * gib])
+    del old["sampled_peaks"]
+    assert "| 0.80 GiB | 1.20 GiB | – | 3.10 GiB |" in render(dict(data, scaling=dict(data["scaling"], rows=[old])))
