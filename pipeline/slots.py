@@ -6,11 +6,15 @@ Two kinds of tree stand on a row's open slots that the trunk tests alone turn do
   tall as its neighbours, below the height that tells a tree from a post, a bin or
   foliage touching the ground (``min_tree_height``): a contact group on an open slot (an
   empty slot between two trees of a row, or the slot beyond a row's end) that is tall
-  enough for a nursery tree and passes the tests of a trunk but its height.
+  enough for a nursery tree and passes the tests of a trunk but its height and width
+  (a young tree with foliage to the ground is as wide as its foliage).
 - A full-grown tree whose contact group has a tree's height and a trunk's foot but was
   taken for a satellite of a stronger neighbour, or found too wide (on dense rows with
   foliage to the ground one tree may drain two or three times what its neighbour does),
   on an open slot.
+
+Either must drain a share of what the block's typical trunk does: a crown fragment or a
+branch touching down near an empty slot, or a weed, drains far less.
 
 The decision takes the block's rows: a tile's own rows end at its buffer. A tile first
 decides on its own rows and reports its core's evidence (:func:`slot_evidence`); the
@@ -29,8 +33,19 @@ from pipeline.trunks import TrunkDetection
 
 #: a nursery tree planted into a gap stands at least this tall [m]; grass and weeds stay lower
 MIN_REPLANT_HEIGHT = 0.7
-#: a replant stands within this fraction of the in-row spacing of its slot's centre
+#: a tree let in stands within this fraction of the in-row spacing of its slot's centre
 SLOT_REACH = 0.2
+#: a replant (hand-planted into a gap), or a full tree draining much, may stand this far
+#: off: trees stand off their slots by their planting jitter, and the slot beyond a row's
+#: end is extrapolated
+FAR_REACH = 0.3
+#: a full-grown tree let in drains at least this share of the block's median trunk: a
+#: crown fragment or branch touching down near an empty slot drains far less
+MIN_FULL_SHARE = 0.2
+#: a full-grown tree beyond SLOT_REACH drains at least this share
+MIN_FAR_FULL_SHARE = 0.4
+#: a replant drains at least this share (a shoot or weed in the grass drains less)
+MIN_REPLANT_SHARE = 0.1
 #: contact nodes within this distance [m] of a tree let in seed it in segmentation
 SOURCE_RADIUS = 0.2
 #: a tile's contact group is the block's group a tree was let in as when their centres
@@ -59,7 +74,7 @@ def open_slots(layout: RowLayout) -> np.ndarray:
 
 
 def on_open_slot(tree_xy: np.ndarray, cand_xy: np.ndarray, *, params: RowParams | None = None,
-                 reach: float = 0.2) -> np.ndarray:
+                 reach: float | np.ndarray = SLOT_REACH) -> np.ndarray:
     """Which open slot (:func:`open_slots`) of the rows of ``tree_xy`` each candidate
     stands on: a candidate there is more likely a tree (a replant, a thin trunk) than
     one elsewhere.
@@ -71,8 +86,9 @@ def on_open_slot(tree_xy: np.ndarray, cand_xy: np.ndarray, *, params: RowParams 
     cand_xy : (c, 2) float64
         Candidates [m].
     params : RowParams, optional
-    reach : float
-        A candidate stands on a slot within this fraction of the block's spacing.
+    reach : float or (c,) float
+        A candidate stands on a slot within this fraction of the block's spacing (one
+        for all, or each candidate's own).
 
     Returns
     -------
@@ -97,17 +113,20 @@ def slot_evidence(det: TrunkDetection, *, params: PipelineParams) -> dict:
     detection: its trunks, and the contact groups it turned down that may be trees there.
 
     A replant candidate is tall enough for a nursery tree and passes the tests of a
-    trunk but its height; a full-tree candidate has a tree's height and a trunk's foot
+    trunk but its height and width; a full-tree candidate has a tree's height and a trunk's foot
     (``fits``, ``foot``) but was taken for a neighbour's satellite or found too wide.
 
     Returns
     -------
-    dict with ``trunks`` (k, 2), ``xy`` (c, 2) [m], ``support`` (c,) float64 and
-    ``full`` (c,) bool (a full-tree candidate; else a replant candidate).
+    dict with ``trunks`` (k, 2) [m] and ``trunk_support`` (k,) float64 (what each drains),
+    ``xy`` (c, 2) [m], ``support`` (c,) float64 and ``full`` (c,) bool (a full-tree
+    candidate; else a replant candidate).
     """
     trunks = np.asarray(det.xy, np.float64).reshape(-1, 2)
+    trunk_support = np.asarray(det.support, np.float64).reshape(-1)
     cand = det.candidates
-    none = {"trunks": trunks, "xy": np.zeros((0, 2)), "support": np.zeros(0), "full": np.zeros(0, bool)}
+    none = {"trunks": trunks, "trunk_support": trunk_support, "xy": np.zeros((0, 2)), "support": np.zeros(0),
+            "full": np.zeros(0, bool)}
     if not params.rows.enabled or cand is None or not len(cand["x"]):
         return none
     tp = params.trunks
@@ -117,12 +136,12 @@ def slot_evidence(det: TrunkDetection, *, params: PipelineParams) -> dict:
         & (cand["top"] >= MIN_REPLANT_HEIGHT)
         & (cand["top"] < tp.min_tree_height)
         & (cand["planar"] <= tp.max_planar_fraction)
-        & (cand["width"] <= tp.max_trunk_width)
-    )
+    )  # no width test: a young tree with foliage to the ground is as wide as its foliage
     full = rejected & np.asarray(cand["fits"], bool) & (np.asarray(cand["foot"]) >= tp.min_foot_ratio) & ~replant
     pick = replant | full
     return {
         "trunks": trunks,
+        "trunk_support": trunk_support,
         "xy": np.c_[cand["x"], cand["y"]][pick].astype(np.float64),
         "support": np.asarray(cand["support"], np.float64)[pick],
         "full": full[pick],
@@ -133,6 +152,11 @@ def trees_on_slots(evidence: dict, *, params: RowParams) -> np.ndarray:
     """The trees the rows let in: the evidence's candidates on an open slot of the rows
     of its trunks (an empty slot between two trees, or the slot beyond a row's end), one
     per slot: a full tree before a replant, then the group with the most material.
+
+    A full tree stands within :data:`SLOT_REACH` spacings of the slot's centre and drains
+    at least :data:`MIN_FULL_SHARE` of the median trunk, or within :data:`FAR_REACH`
+    draining :data:`MIN_FAR_FULL_SHARE`; a replant stands within :data:`FAR_REACH`,
+    draining :data:`MIN_REPLANT_SHARE` (no share is asked without trunk supports).
 
     Parameters
     ----------
@@ -147,7 +171,15 @@ def trees_on_slots(evidence: dict, *, params: RowParams) -> np.ndarray:
     trunks, xy, support, full = evidence["trunks"], evidence["xy"], evidence["support"], evidence["full"]
     if not params.enabled or not len(xy) or len(trunks) < 3:
         return np.zeros((0, 3))
-    slot = on_open_slot(trunks, xy, params=params, reach=SLOT_REACH)
+    full = np.asarray(full, bool)
+    ref = evidence.get("trunk_support")
+    share = np.full(len(xy), np.inf)
+    if ref is not None and len(ref) and np.median(ref) > 0:
+        share = np.asarray(support, np.float64) / np.median(ref)
+    enough = np.where(full, share >= MIN_FULL_SHARE, share >= MIN_REPLANT_SHARE)
+    xy, support, full, share = xy[enough], support[enough], full[enough], share[enough]
+    reach = np.where(full & (share < MIN_FAR_FULL_SHARE), SLOT_REACH, FAR_REACH)
+    slot = on_open_slot(trunks, xy, params=params, reach=reach)
     on = np.flatnonzero(slot >= 0)
     if not on.size:
         return np.zeros((0, 3))

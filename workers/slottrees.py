@@ -28,7 +28,8 @@ def block_slot_trees(summaries: list[dict], params: PipelineParams) -> np.ndarra
     ev = [s["slot_evidence"] for s in summaries if s.get("slot_evidence") is not None]
     if not ev:
         return np.zeros((0, 3))
-    joined = {k: np.concatenate([e[k] for e in ev]) for k in ("trunks", "xy", "support", "full")}
+    keys = ["trunks", "xy", "support", "full"] + (["trunk_support"] if all("trunk_support" in e for e in ev) else [])
+    joined = {k: np.concatenate([e[k] for e in ev]) for k in keys}
     joined["trunks"] = joined["trunks"].reshape(-1, 2)
     joined["xy"] = joined["xy"].reshape(-1, 2)
     return trees_on_slots(joined, params=params.rows)

@@ -65,7 +65,7 @@ def summarise(tile_id, xyz, core, result, grid: TileGrid | None, origin, params:
         def in_core(xy):
             return core_tile(np.asarray(xy).reshape(-1, 2) + np.asarray(origin[:2]), grid) == tile_id
         t_in, c_in = in_core(evidence["trunks"]), in_core(evidence["xy"])
-        evidence = {k: v[t_in] if k == "trunks" else v[c_in] for k, v in evidence.items()}
+        evidence = {k: v[t_in] if k.startswith("trunk") else v[c_in] for k, v in evidence.items()}
     sel = slice(None) if core.all() else core  # a whole block: no copies
     partials = tree_partials(
         xyz[sel], result.tree_id[sel], result.is_wood[sel], trunks[:, 2], params=params.metrics

@@ -5,17 +5,19 @@ from __future__ import annotations
 import numpy as np
 
 from pipeline.params import PipelineParams
-from pipeline.slots import let_in, slot_evidence, trees_on_slots
+from pipeline.slots import (FAR_REACH, MIN_FAR_FULL_SHARE, MIN_FULL_SHARE, MIN_REPLANT_SHARE, SLOT_REACH, let_in,
+                            slot_evidence, trees_on_slots)
 from pipeline.trunks import TrunkDetection
 
 
-def _detection(trunks, cands):
-    """Trunks of a row at 1 m with sources one node each, and rejected candidates."""
+def _detection(trunks, cands, support=150.0, width=0.2):
+    """Trunks of a row at 1 m with sources one node each (each draining 500), and
+    rejected candidates draining ``support``, ``width`` wide."""
     k = len(trunks)
     nodes = np.c_[np.r_[trunks, cands[:, :2]], np.full(k + len(cands), 0.05)]
     cand = {
-        "x": cands[:, 0], "y": cands[:, 1], "top": cands[:, 2], "support": np.full(len(cands), 80.0),
-        "planar": np.zeros(len(cands)), "width": np.full(len(cands), 0.2), "accepted": np.zeros(len(cands), bool),
+        "x": cands[:, 0], "y": cands[:, 1], "top": cands[:, 2], "support": np.broadcast_to(np.asarray(support, float), len(cands)).copy(),
+        "planar": np.zeros(len(cands)), "width": np.broadcast_to(np.asarray(width, float), len(cands)).copy(), "accepted": np.zeros(len(cands), bool),
         "fits": cands[:, 2] >= PipelineParams().trunks.min_tree_height, "foot": np.ones(len(cands)),
     }
     det = TrunkDetection(trunks, np.full(k, 500.0), np.full(k, 0.2), np.arange(k), np.arange(k), cand, 1.0)
@@ -69,13 +71,51 @@ def test_one_tree_per_slot_a_full_tree_before_a_replant():
     np.testing.assert_allclose(out.xy[-1], [2.95, 0.02])
 
 
+def test_a_group_on_a_slot_must_drain_a_share_of_a_trunk():
+    # a crown fragment touching down near an empty slot drains little: full height is not
+    # enough, nor a replant's height
+    row = np.array([[x, 0.0] for x in (0, 1, 2, 4, 5, 6, 7, 9, 10)], dtype=float)  # slots 4 and 9 empty
+    cands = np.array([[3.02, 0.0, 3.0], [8.02, 0.0, 1.2]])
+    full_share, replant_share = MIN_FULL_SHARE * 500.0, MIN_REPLANT_SHARE * 500.0
+    for support, n in (([full_share * 0.9, replant_share * 0.9], 0), ([full_share * 1.1, replant_share * 1.1], 2),
+                       ([full_share * 0.9, replant_share * 1.1], 1)):
+        det, nodes = _detection(row, cands, support=support)
+        out = _let_in(det, nodes)
+        assert out.k == det.k + n
+        if n == 1:
+            assert out.young[-1]
+
+
+def test_a_replant_or_a_full_tree_draining_much_may_stand_farther_off_its_slot():
+    row = np.array([[x, 0.0] for x in (0, 1, 2, 4, 5, 6, 7, 9, 10)], dtype=float)  # slots 4 and 9 empty
+    off = 0.5 * (SLOT_REACH + FAR_REACH)  # between the two reaches, in spacings (1 m)
+    cands = np.array([[3.0 + off, 0.0, 1.2], [8.0 - off, 0.0, 3.0]])
+    det, nodes = _detection(row, cands, support=[100.0, MIN_FAR_FULL_SHARE * 500.0 * 0.9])
+    out = _let_in(det, nodes)
+    assert out.k == det.k + 1 and out.young[-1]
+    np.testing.assert_allclose(out.xy[-1], [3.0 + off, 0.0])
+    det, nodes = _detection(row, cands, support=[100.0, MIN_FAR_FULL_SHARE * 500.0 * 1.1])
+    out = _let_in(det, nodes)
+    assert out.k == det.k + 2 and out.young.tolist()[-2:] == [True, False]
+    # farther than FAR_REACH nothing is
+    det, nodes = _detection(row, cands + [[FAR_REACH, 0, 0], [-FAR_REACH, 0, 0]], support=500.0)
+    assert _let_in(det, nodes) is det
+
+
+def test_a_replant_may_be_as_wide_as_its_foliage():
+    row = np.array([[x, 0.0] for x in (0, 1, 2, 4, 5, 6)], dtype=float)
+    det, nodes = _detection(row, np.array([[3.0, 0.0, 1.2]]), width=1.5 * PipelineParams().trunks.max_trunk_width)
+    out = _let_in(det, nodes)
+    assert out.k == det.k + 1 and out.young[-1]
+
+
 def test_the_trees_given_by_the_block_are_let_in_whatever_the_tile_sees():
     # a tile run again gets the block's decision: a tree on a slot of a row it sees two trees of
     row = np.array([[0.0, 0.0], [1.0, 0.0]])
     det, nodes = _detection(row, np.array([[2.0, 0.0, 3.0]]))
     assert _let_in(det, nodes) is det  # two trees: no row of its own
     out = let_in(det, np.array([[2.0, 0.0, 0.0]]), nodes, np.full(len(nodes), 0.05), contact_top=0.1)
-    assert out.k == 3 and out.support[-1] == 80.0 and not out.young[-1]
+    assert out.k == 3 and out.support[-1] == 150.0 and not out.young[-1]
     # a tree given where this detection has no contact node is left out
     assert let_in(det, np.array([[9.0, 9.0, 0.0]]), nodes, np.full(len(nodes), 0.05), contact_top=0.1) is det
 
