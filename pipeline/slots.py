@@ -35,15 +35,12 @@ from pipeline.trunks import TrunkDetection
 MIN_REPLANT_HEIGHT = 0.7
 #: a tree let in stands within this fraction of the in-row spacing of its slot's centre
 SLOT_REACH = 0.2
-#: a replant (hand-planted into a gap), or a full tree draining much, may stand this far
-#: off: trees stand off their slots by their planting jitter, and the slot beyond a row's
-#: end is extrapolated
+#: a replant may stand this far off: hand-planted into a gap, and the slot beyond a row's
+#: end is extrapolated (a full tree there is as likely a fragment of the end tree's crown)
 FAR_REACH = 0.3
 #: a full-grown tree let in drains at least this share of the block's median trunk: a
 #: crown fragment or branch touching down near an empty slot drains far less
 MIN_FULL_SHARE = 0.2
-#: a full-grown tree beyond SLOT_REACH drains at least this share
-MIN_FAR_FULL_SHARE = 0.4
 #: a replant drains at least this share (a shoot or weed in the grass drains less)
 MIN_REPLANT_SHARE = 0.1
 #: contact nodes within this distance [m] of a tree let in seed it in segmentation
@@ -154,9 +151,9 @@ def trees_on_slots(evidence: dict, *, params: RowParams) -> np.ndarray:
     per slot: a full tree before a replant, then the group with the most material.
 
     A full tree stands within :data:`SLOT_REACH` spacings of the slot's centre and drains
-    at least :data:`MIN_FULL_SHARE` of the median trunk, or within :data:`FAR_REACH`
-    draining :data:`MIN_FAR_FULL_SHARE`; a replant stands within :data:`FAR_REACH`,
-    draining :data:`MIN_REPLANT_SHARE` (no share is asked without trunk supports).
+    at least :data:`MIN_FULL_SHARE` of the median trunk; a replant stands within
+    :data:`FAR_REACH`, draining :data:`MIN_REPLANT_SHARE` (no share is asked without
+    trunk supports).
 
     Parameters
     ----------
@@ -177,9 +174,8 @@ def trees_on_slots(evidence: dict, *, params: RowParams) -> np.ndarray:
     if ref is not None and len(ref) and np.median(ref) > 0:
         share = np.asarray(support, np.float64) / np.median(ref)
     enough = np.where(full, share >= MIN_FULL_SHARE, share >= MIN_REPLANT_SHARE)
-    xy, support, full, share = xy[enough], support[enough], full[enough], share[enough]
-    reach = np.where(full & (share < MIN_FAR_FULL_SHARE), SLOT_REACH, FAR_REACH)
-    slot = on_open_slot(trunks, xy, params=params, reach=reach)
+    xy, support, full = xy[enough], support[enough], full[enough]
+    slot = on_open_slot(trunks, xy, params=params, reach=np.where(full, SLOT_REACH, FAR_REACH))
     on = np.flatnonzero(slot >= 0)
     if not on.size:
         return np.zeros((0, 3))
