@@ -35,12 +35,15 @@ from pipeline.trunks import TrunkDetection
 MIN_REPLANT_HEIGHT = 0.7
 #: a tree let in stands within this fraction of the in-row spacing of its slot's centre
 SLOT_REACH = 0.2
-#: a replant may stand this far off: hand-planted into a gap, and the slot beyond a row's
-#: end is extrapolated (a full tree there is as likely a fragment of the end tree's crown)
+#: a replant may stand this far off (hand-planted into a gap, and the slot beyond a row's
+#: end is extrapolated), and a full tree draining much on an empty slot between two trees
 FAR_REACH = 0.3
 #: a full-grown tree let in drains at least this share of the block's median trunk: a
 #: crown fragment or branch touching down near an empty slot drains far less
 MIN_FULL_SHARE = 0.2
+#: a full-grown tree beyond SLOT_REACH of a slot between two trees drains at least this
+#: share (beyond a row's end it is as likely a fragment of the end tree's crown)
+MIN_FAR_FULL_SHARE = 0.4
 #: a replant drains at least this share (a shoot or weed in the grass drains less)
 MIN_REPLANT_SHARE = 0.1
 #: contact nodes within this distance [m] of a tree let in seed it in segmentation
@@ -57,8 +60,8 @@ MIN_LATTICE_TREES = 4
 
 def open_slots(layout: RowLayout) -> np.ndarray:
     """(o, 2) float64 centres [m] of the slots a tree could still stand in, in rows of at
-    least :data:`MIN_LATTICE_TREES` trees: the empty slots between two trees of the row,
-    and the slot beyond each of its ends (:func:`pipeline.rows.slot_centres`)."""
+    least :data:`MIN_LATTICE_TREES` trees: the empty slots between two trees of the row
+    (first), and the slot beyond each of its ends (:func:`pipeline.rows.slot_centres`)."""
     long = layout.rows["n_trees"] >= MIN_LATTICE_TREES
     in_long = np.isin(layout.gaps["row"], layout.rows["row"][long])
     pts = [np.c_[layout.gaps["x"][in_long], layout.gaps["y"][in_long]]]
@@ -71,7 +74,7 @@ def open_slots(layout: RowLayout) -> np.ndarray:
 
 
 def on_open_slot(tree_xy: np.ndarray, cand_xy: np.ndarray, *, params: RowParams | None = None,
-                 reach: float | np.ndarray = SLOT_REACH) -> np.ndarray:
+                 reach: float | np.ndarray = SLOT_REACH, end_reach: float | np.ndarray | None = None) -> np.ndarray:
     """Which open slot (:func:`open_slots`) of the rows of ``tree_xy`` each candidate
     stands on: a candidate there is more likely a tree (a replant, a thin trunk) than
     one elsewhere.
@@ -86,6 +89,8 @@ def on_open_slot(tree_xy: np.ndarray, cand_xy: np.ndarray, *, params: RowParams 
     reach : float or (c,) float
         A candidate stands on a slot within this fraction of the block's spacing (one
         for all, or each candidate's own).
+    end_reach : float or (c,) float, optional
+        The same for the slots beyond a row's end (default ``reach``).
 
     Returns
     -------
@@ -102,7 +107,9 @@ def on_open_slot(tree_xy: np.ndarray, cand_xy: np.ndarray, *, params: RowParams 
     if not len(slots) or not np.isfinite(spacing):
         return out
     d, j = cKDTree(slots).query(cand_xy)
-    return np.where(d <= reach * spacing, j, -1)
+    n_gaps = int(np.isin(lay.gaps["row"], lay.rows["row"][lay.rows["n_trees"] >= MIN_LATTICE_TREES]).sum())
+    r = np.where(j >= n_gaps, reach if end_reach is None else end_reach, reach)
+    return np.where(d <= r * spacing, j, -1)
 
 
 def slot_evidence(det: TrunkDetection, *, params: PipelineParams) -> dict:
@@ -151,9 +158,10 @@ def trees_on_slots(evidence: dict, *, params: RowParams) -> np.ndarray:
     per slot: a full tree before a replant, then the group with the most material.
 
     A full tree stands within :data:`SLOT_REACH` spacings of the slot's centre and drains
-    at least :data:`MIN_FULL_SHARE` of the median trunk; a replant stands within
-    :data:`FAR_REACH`, draining :data:`MIN_REPLANT_SHARE` (no share is asked without
-    trunk supports).
+    at least :data:`MIN_FULL_SHARE` of the median trunk, or, on an empty slot between
+    two trees, within :data:`FAR_REACH` draining :data:`MIN_FAR_FULL_SHARE`; a replant
+    stands within :data:`FAR_REACH`, draining :data:`MIN_REPLANT_SHARE` (no share is
+    asked without trunk supports).
 
     Parameters
     ----------
@@ -174,8 +182,9 @@ def trees_on_slots(evidence: dict, *, params: RowParams) -> np.ndarray:
     if ref is not None and len(ref) and np.median(ref) > 0:
         share = np.asarray(support, np.float64) / np.median(ref)
     enough = np.where(full, share >= MIN_FULL_SHARE, share >= MIN_REPLANT_SHARE)
-    xy, support, full = xy[enough], support[enough], full[enough]
-    slot = on_open_slot(trunks, xy, params=params, reach=np.where(full, SLOT_REACH, FAR_REACH))
+    xy, support, full, share = xy[enough], support[enough], full[enough], share[enough]
+    slot = on_open_slot(trunks, xy, params=params, reach=np.where(full & (share < MIN_FAR_FULL_SHARE), SLOT_REACH, FAR_REACH),
+                        end_reach=np.where(full, SLOT_REACH, FAR_REACH))
     on = np.flatnonzero(slot >= 0)
     if not on.size:
         return np.zeros((0, 3))

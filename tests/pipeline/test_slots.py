@@ -5,8 +5,8 @@ from __future__ import annotations
 import numpy as np
 
 from pipeline.params import PipelineParams
-from pipeline.slots import (FAR_REACH, MIN_FULL_SHARE, MIN_REPLANT_SHARE, SLOT_REACH, let_in, slot_evidence,
-                            trees_on_slots)
+from pipeline.slots import (FAR_REACH, MIN_FAR_FULL_SHARE, MIN_FULL_SHARE, MIN_REPLANT_SHARE, SLOT_REACH, let_in,
+                            slot_evidence, trees_on_slots)
 from pipeline.trunks import TrunkDetection
 
 
@@ -86,16 +86,20 @@ def test_a_group_on_a_slot_must_drain_a_share_of_a_trunk():
             assert out.young[-1]
 
 
-def test_a_replant_may_stand_farther_off_its_slot_than_a_full_tree():
+def test_a_replant_or_a_full_tree_draining_much_between_two_trees_may_stand_farther_off():
     row = np.array([[x, 0.0] for x in (0, 1, 2, 4, 5, 6, 7, 9, 10)], dtype=float)  # slots 4 and 9 empty
     off = 0.5 * (SLOT_REACH + FAR_REACH)  # between the two reaches, in spacings (1 m)
-    cands = np.array([[3.0 + off, 0.0, 1.2], [8.0 - off, 0.0, 3.0]])
-    det, nodes = _detection(row, cands, support=500.0)
+    cands = np.array([[3.0 + off, 0.0, 1.2], [8.0 - off, 0.0, 3.0], [11.0 + off, 0.0, 3.0]])  # the last beyond the end
+    det, nodes = _detection(row, cands, support=[100.0, MIN_FAR_FULL_SHARE * 500.0 * 0.9, 500.0])
     out = _let_in(det, nodes)
     assert out.k == det.k + 1 and out.young[-1]
     np.testing.assert_allclose(out.xy[-1], [3.0 + off, 0.0])
+    det, nodes = _detection(row, cands, support=[100.0, MIN_FAR_FULL_SHARE * 500.0 * 1.1, 500.0])
+    out = _let_in(det, nodes)
+    assert out.k == det.k + 2 and out.young.tolist()[-2:] == [True, False]
+    np.testing.assert_allclose(out.xy[-1], [8.0 - off, 0.0])
     # farther than FAR_REACH nothing is
-    det, nodes = _detection(row, cands + [[FAR_REACH, 0, 0], [-FAR_REACH, 0, 0]], support=500.0)
+    det, nodes = _detection(row, cands[:2] + [[FAR_REACH, 0, 0], [-FAR_REACH, 0, 0]], support=500.0)
     assert _let_in(det, nodes) is det
 
 
