@@ -60,8 +60,13 @@ MIN_LATTICE_TREES = 4
 
 def open_slots(layout: RowLayout) -> np.ndarray:
     """(o, 2) float64 centres [m] of the slots a tree could still stand in, in rows of at
-    least :data:`MIN_LATTICE_TREES` trees: the empty slots between two trees of the row
-    (first), and the slot beyond each of its ends (:func:`pipeline.rows.slot_centres`)."""
+    least :data:`MIN_LATTICE_TREES` trees: the empty slots between two trees of the row,
+    and the slot beyond each of its ends (:func:`pipeline.rows.slot_centres`)."""
+    return _open_slots(layout)[0]
+
+
+def _open_slots(layout: RowLayout) -> tuple[np.ndarray, np.ndarray]:
+    """:func:`open_slots` and (o,) bool: which of them lie beyond a row's end."""
     long = layout.rows["n_trees"] >= MIN_LATTICE_TREES
     in_long = np.isin(layout.gaps["row"], layout.rows["row"][long])
     pts = [np.c_[layout.gaps["x"][in_long], layout.gaps["y"][in_long]]]
@@ -70,7 +75,8 @@ def open_slots(layout: RowLayout) -> np.ndarray:
         if is_long:
             slots = np.sort(layout.position[layout.row == number]).astype(np.int64)
             pts.append(slot_centres(slots, line, [slots[-1] + 1, slots[0] - 1], s))
-    return np.concatenate(pts).reshape(-1, 2)
+    pts = np.concatenate(pts).reshape(-1, 2)
+    return pts, np.arange(len(pts)) >= int(in_long.sum())
 
 
 def on_open_slot(tree_xy: np.ndarray, cand_xy: np.ndarray, *, params: RowParams | None = None,
@@ -102,13 +108,12 @@ def on_open_slot(tree_xy: np.ndarray, cand_xy: np.ndarray, *, params: RowParams 
     if len(cand_xy) == 0 or len(tree_xy) < 3:
         return out
     lay = find_rows(tree_xy, params=params or RowParams())
-    slots = open_slots(lay)
+    slots, beyond_end = _open_slots(lay)
     spacing = np.nanmedian(lay.rows["spacing_m"]) if np.isfinite(lay.rows["spacing_m"]).any() else np.nan
     if not len(slots) or not np.isfinite(spacing):
         return out
     d, j = cKDTree(slots).query(cand_xy)
-    n_gaps = int(np.isin(lay.gaps["row"], lay.rows["row"][lay.rows["n_trees"] >= MIN_LATTICE_TREES]).sum())
-    r = np.where(j >= n_gaps, reach if end_reach is None else end_reach, reach)
+    r = np.where(beyond_end[j], reach if end_reach is None else end_reach, reach)
     return np.where(d <= r * spacing, j, -1)
 
 
