@@ -8,7 +8,6 @@ per-point labels are streamed window by window from the tiles' core results.
 from __future__ import annotations
 
 import json
-import mmap
 import os
 import shutil
 import uuid
@@ -40,13 +39,20 @@ OUTPUT_NAMES = ("points.parquet", "labelled.laz", "trees.parquet", "rows.parquet
 
 
 class Labels:
-    """Per-point labels of the block assembled from per-tile core results (bounded memory)."""
+    """Per-point labels of the block assembled from per-tile core results (bounded memory).
+
+    A part's arrays are in memory (a block processed whole) or
+    :class:`workers.workstore.StoredArray` (a tile's stored results): each window reads
+    only the rows of each part that fall in it, found from every :data:`FENCE`-th index
+    value kept per part, so the process never holds more than a window of any part.
+    """
 
     FIELDS = ("tree_id", "is_ground", "is_wood", "wood_score")
 
     def __init__(self, parts: list[dict], n_points: int):
-        self.parts = parts  # each: index (sorted), tree_id (global), is_ground, is_wood, wood_score
+        self.parts = parts  # each: index (sorted), tree_id (local or global), is_ground, is_wood, wood_score, map
         self.n_points = n_points
+        self._fences = [_fence(p["index"]) for p in parts]
 
     @classmethod
     def single(cls, result, id_map: np.ndarray) -> Labels:
@@ -72,34 +78,46 @@ class Labels:
             "wood_score": np.zeros(m, np.float32),
         }
         filled = np.zeros(m, bool)
-        for p in self.parts:
-            idx = p["index"]
+        for p, fence in zip(self.parts, self._fences):
+            # rows before fence[s - 1]'s hold indices below a; rows from fence[t]'s on, b or more
+            s, t = np.searchsorted(fence, np.array([a, b], dtype=np.uint64))
+            r0, r1 = max(int(s) - 1, 0) * FENCE, min(int(t) * FENCE, len(p["index"]))
+            if r1 <= r0:
+                continue
+            idx = _rows(p["index"], r0, r1)
             lo, hi = np.searchsorted(idx, np.array([a, b], dtype=np.uint64))
             if hi <= lo:
                 continue
-            pos = (np.asarray(idx[lo:hi]) - np.uint64(a)).astype(np.int64)
-            tree = np.asarray(p["tree_id"][lo:hi])
+            pos = (idx[lo:hi] - np.uint64(a)).astype(np.int64)
+            lo, hi = r0 + int(lo), r0 + int(hi)
+            tree = _rows(p["tree_id"], lo, hi)
             out["tree_id"][pos] = tree if p.get("map") is None else p["map"][tree]
-            out["is_ground"][pos] = p["is_ground"][lo:hi]
-            out["is_wood"][pos] = p["is_wood"][lo:hi]
-            out["wood_score"][pos] = p["wood_score"][lo:hi]
+            for f in ("is_ground", "is_wood", "wood_score"):
+                out[f][pos] = _rows(p[f], lo, hi)
             filled[pos] = True
         not_tree = out["tree_id"] == 0  # e.g. of a tree a failed tile owned, in a partial result
         out["is_wood"][not_tree] = False
         out["wood_score"][not_tree] = 0.0
-        self._release()
         return filled, out
 
-    def _release(self) -> None:
-        """Drop the pages of memory-mapped tile results from this process's resident
-        memory: read once per window, they would otherwise stay resident until the merge
-        ends and grow it by the block's labels (about 19 bytes a point)."""
-        if not hasattr(mmap, "MADV_DONTNEED"):
-            return
-        for p in self.parts:
-            for v in p.values():
-                if isinstance(v, np.memmap) and isinstance(v.base, mmap.mmap) and len(v.base):
-                    v.base.madvise(mmap.MADV_DONTNEED)
+
+#: Rows of a part between two index values :class:`Labels` keeps to find a window's rows.
+FENCE = 4096
+#: Rows read at a time while taking a stored part's fence.
+_FENCE_READ = 256 * FENCE
+
+
+def _rows(values, lo: int, hi: int) -> np.ndarray:
+    """Rows lo..hi-1 of an array in memory or a :class:`workers.workstore.StoredArray`."""
+    return values[lo:hi] if isinstance(values, np.ndarray) else values.rows(lo, hi)
+
+
+def _fence(index) -> np.ndarray:
+    """Every :data:`FENCE`-th value of a sorted index (streamed from a stored one)."""
+    if isinstance(index, np.ndarray):
+        return np.ascontiguousarray(index[::FENCE], dtype=np.uint64)
+    parts = [index.rows(lo, lo + _FENCE_READ)[::FENCE] for lo in range(0, len(index), _FENCE_READ)]
+    return np.concatenate(parts).astype(np.uint64) if parts else np.zeros(0, np.uint64)
 
 
 def trees_table(summaries: list[dict], merged: GlobalTrunks, origin) -> dict:

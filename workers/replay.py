@@ -27,24 +27,6 @@ from workers.tiler import INDEX_KEY
 from workers.workstore import JOB_KEY, WorkStore
 
 
-def _open_files_allow(n: int) -> bool:
-    """Whether this process may hold ``n`` more open files, after raising its soft limit
-    towards the hard one if needed (False: read arrays into memory instead)."""
-    try:
-        import resource
-
-        soft, hard = resource.getrlimit(resource.RLIMIT_NOFILE)
-        in_use = len(os.listdir("/proc/self/fd")) if os.path.isdir("/proc/self/fd") else 64
-        need = in_use + n
-        if soft != resource.RLIM_INFINITY and soft < need:
-            target = need if hard == resource.RLIM_INFINITY else min(hard, need)
-            resource.setrlimit(resource.RLIMIT_NOFILE, (target, hard))
-            soft = target
-        return soft == resource.RLIM_INFINITY or soft >= need
-    except (ImportError, OSError, ValueError):
-        return False
-
-
 def merge_stored(store: WorkStore, record: dict, index: dict, summaries: list[dict], failed: list[int]) -> JobOutcome:
     """Merge the tile results kept in ``store`` and write the job's outputs.
 
@@ -60,13 +42,10 @@ def merge_stored(store: WorkStore, record: dict, index: dict, summaries: list[di
 
     def labels(merged) -> Labels:
         fields = ("index",) + Labels.FIELDS
-        # each memory-mapped array holds a file descriptor: hundreds of tiles can pass
-        # the usual limit of 1024
-        mmap = _open_files_allow(len(fields) * len(summaries) + 64)
         parts = []
         for s in summaries:
             key = result_key(s["tile_id"])
-            part = {f: store.get_array(f"{key}/{f}.npy", mmap=mmap) for f in fields}
+            part = {f: store.open_array(f"{key}/{f}.npy") for f in fields}
             part["map"] = merged.id_maps[s["tile_id"]]
             parts.append(part)
         return Labels(parts, info.n_points)

@@ -111,10 +111,12 @@ class WorkStore:
         np.save(buf, np.ascontiguousarray(arr), allow_pickle=False)
         self._put(key, buf.getvalue())
 
-    def get_array(self, key: str, *, mmap: bool = False) -> np.ndarray:
-        if mmap and self.local:
-            return np.load(self.path(key), mmap_mode="r", allow_pickle=False)
+    def get_array(self, key: str) -> np.ndarray:
         return np.load(io.BytesIO(self._get(key)), allow_pickle=False)
+
+    def open_array(self, key: str) -> StoredArray:
+        """A stored 1-d array, read later a range of rows at a time (never whole)."""
+        return StoredArray(self.fs, self.path(key))
 
     def put_json(self, key: str, obj) -> None:
         self._put(key, json.dumps(obj, indent=1).encode())
@@ -252,6 +254,41 @@ class WorkStore:
                 return
             except (OSError, ValueError):  # a writer added or took files meanwhile; or the working directory
                 time.sleep(0.05)
+
+
+class StoredArray:
+    """A 1-d ``.npy`` array of a work store whose rows are read by range.
+
+    Each read asks the file system for those bytes only (a local ``pread``-like read,
+    or a range request), so nothing stays mapped or resident after it: a memory map
+    would keep the kernel's read-ahead around every page it touched (8 MB each here),
+    and a store that is not a local folder could only be read whole.
+    """
+
+    def __init__(self, fs, path: str):
+        self.fs, self.path = fs, path
+        with fs.open(path, "rb") as f:
+            version = np.lib.format.read_magic(f)
+            fmt = np.lib.format
+            read_header = fmt.read_array_header_1_0 if version == (1, 0) else fmt.read_array_header_2_0
+            shape, fortran, dtype = read_header(f)
+            self._offset = f.tell()
+        if len(shape) != 1 or fortran or dtype.hasobject:
+            raise ValueError(f"{path}: not a 1-d array of plain values")
+        self.dtype = np.dtype(dtype)
+        self.shape = (int(shape[0]),)
+
+    def __len__(self) -> int:
+        return self.shape[0]
+
+    def rows(self, lo: int, hi: int) -> np.ndarray:
+        """Rows ``lo`` to ``hi - 1`` (clamped to the array) as a new array."""
+        lo, hi = max(int(lo), 0), min(int(hi), len(self))
+        if hi <= lo:
+            return np.zeros(0, self.dtype)
+        size = self.dtype.itemsize
+        data = self.fs.cat_file(self.path, start=self._offset + lo * size, end=self._offset + hi * size)
+        return np.frombuffer(data, dtype=self.dtype)
 
 
 def default_work_dir(out_dir: str) -> str:
