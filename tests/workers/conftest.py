@@ -71,8 +71,8 @@ class LoopbackCluster:
 
     def _start(self, args, name) -> subprocess.Popen:
         log = open(self.log_dir / f"{name}.log", "wb")
-        exe = str(Path(sys.executable).with_name("dask"))
-        proc = subprocess.Popen([exe, *args], stdout=log, stderr=subprocess.STDOUT, start_new_session=True)
+        # the dask command of this interpreter (a venv's own may have no ``dask`` script beside it)
+        proc = subprocess.Popen([sys.executable, "-m", "dask", *args], stdout=log, stderr=subprocess.STDOUT, start_new_session=True)
         self.procs.append(proc)
         return proc
 
