@@ -11,6 +11,7 @@ from concurrent.futures import ThreadPoolExecutor
 from contextlib import contextmanager
 from multiprocessing import resource_tracker
 
+import dask
 from dask.utils import parse_timedelta
 from distributed import Client, LocalCluster
 
@@ -23,6 +24,12 @@ log = logging.getLogger(__name__)
 #: Where an embedded cluster listens unless told otherwise: its scheduler, nannies,
 #: workers and dashboard answer anyone who can reach them, without a login.
 LOOPBACK = "127.0.0.1"
+#: glibc's allocator settings in the embedded cluster's worker processes [bytes], in
+#: place of dask's ``MALLOC_TRIM_THRESHOLD_=65536``: setting that fixes the mmap
+#: threshold at 128 KiB, so every mid-sized array (a tile's per-node arrays, 0.1-16 MB) is
+#: mapped afresh and page-faulted on each use. Arrays up to 16 MiB reuse the heap, and at
+#: most 32 MiB of free heap is kept (docs/performance.md, "The allocator of worker processes").
+WORKER_MALLOC_ENV = {"MALLOC_MMAP_THRESHOLD_": str(16 << 20), "MALLOC_TRIM_THRESHOLD_": str(32 << 20)}
 #: Workers of an external cluster named in a :class:`WorkersUnfit` message (the rest are counted).
 MAX_NAMED_WORKERS = 3
 
@@ -143,7 +150,9 @@ def make_client(
             raise
         return client
     _check_host(host)
-    with _workers_ignore_interrupt():
+    # each nanny takes these when it is made, for every worker process it starts (restarts too)
+    environ = {**dask.config.get("distributed.nanny.pre-spawn-environ", {}), **WORKER_MALLOC_ENV}
+    with _workers_ignore_interrupt(), dask.config.set({"distributed.nanny.pre-spawn-environ": environ}):
         cluster = LocalCluster(
             n_workers=int(n_workers),
             threads_per_worker=int(threads_per_worker),

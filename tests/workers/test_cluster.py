@@ -17,6 +17,7 @@ from workers.cluster import (
     dashboard_address,
     interrupts_deferred,
     make_client,
+    WORKER_MALLOC_ENV,
 )
 
 
@@ -28,6 +29,17 @@ def test_embedded_cluster_has_workers_and_a_dashboard():
         assert client.submit(sum, [1, 2, 3]).result(timeout=30) == 6
     finally:
         close_client(client)
+
+
+def test_embedded_worker_processes_get_the_allocator_settings_not_dasks_trim():
+    client = make_client(n_workers=1, dashboard=False, quiet=True)
+    try:
+        seen = client.run(lambda: {k: os.environ.get(k) for k in ("MALLOC_MMAP_THRESHOLD_", "MALLOC_TRIM_THRESHOLD_",
+                                                                  "OMP_NUM_THREADS")})
+    finally:
+        close_client(client)
+    (env,) = seen.values()
+    assert env == {**WORKER_MALLOC_ENV, "OMP_NUM_THREADS": "1"}  # dask's other settings kept
 
 
 def test_no_dashboard():
