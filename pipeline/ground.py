@@ -145,6 +145,7 @@ def ground_model(
     params: GroundParams,
     grid_origin: tuple[float, float, float] = (0.0, 0.0, 0.0),
     stats: tuple[float, float] | None = None,
+    raw: GroundModel | None = None,
 ) -> GroundModel:
     """Fit a terrain model from the lowest points.
 
@@ -158,6 +159,10 @@ def ground_model(
         :func:`ground_stats` of the whole block. A tile of a tiled job passes the block's,
         so that every tile lifts its surface alike; by default they are estimated from
         every :func:`stats_stride`-th point of ``xyz``.
+    raw : GroundModel, optional
+        :func:`raw_ground_model` of these very ``xyz``, ``params`` and ``grid_origin``,
+        already fitted (a tiled job's ground pass fits each tile's): used instead of
+        fitting it again.
 
     Returns
     -------
@@ -170,7 +175,7 @@ def ground_model(
         ``MAX_PART_CELLS`` cells): it has to be processed in tiles.
     """
     xyz = np.asarray(xyz, dtype=np.float64)
-    model = raw_ground_model(xyz, params=params, grid_origin=grid_origin)
+    model = raw_ground_model(xyz, params=params, grid_origin=grid_origin) if raw is None else raw
     if xyz.shape[0] == 0:
         return model
     if stats is None:

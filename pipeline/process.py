@@ -214,6 +214,7 @@ def analyse_nodes(
     grid_origin: tuple[float, float, float] = (0.0, 0.0, 0.0),
     ground_stats: tuple[float, float] | None = None,
     slot_trees: np.ndarray | None = None,
+    raw_ground: GroundModel | None = None,
 ) -> NodeAnalysis:
     """Ground, voxel graph, trunks and segmentation at the node level.
 
@@ -228,6 +229,9 @@ def analyse_nodes(
         The trees on open planting slots the whole block's rows let in (x, y [m],
         young; :func:`pipeline.slots.trees_on_slots`), given to a tile run again with
         them. None: decided on the rows of ``xyz`` itself.
+    raw_ground : GroundModel, optional
+        :func:`pipeline.ground.raw_ground_model` of ``xyz`` with ``params.ground`` and
+        ``grid_origin``, already fitted: not fitted again.
 
     Returns
     -------
@@ -239,7 +243,7 @@ def analyse_nodes(
     xyz = np.asarray(xyz, dtype=np.float64)
     if xyz.ndim != 2 or xyz.shape[1] != 3:
         raise ValueError("xyz must have shape (n, 3)")
-    gm = ground_model(xyz, params=params.ground, grid_origin=grid_origin, stats=ground_stats)
+    gm = ground_model(xyz, params=params.ground, grid_origin=grid_origin, stats=ground_stats, raw=raw_ground)
     height, is_ground = classify_ground(xyz, gm, params=params.ground)
     veg_idx = np.flatnonzero(~is_ground & (height > 0))
     vox = voxelize(xyz[veg_idx], voxel_size=params.graph.voxel_size, grid_origin=grid_origin)
@@ -397,6 +401,7 @@ def process_points(
     grid_origin: tuple[float, float, float] = (0.0, 0.0, 0.0),
     ground_stats: tuple[float, float] | None = None,
     slot_trees: np.ndarray | None = None,
+    raw_ground: GroundModel | None = None,
 ) -> BlockResult:
     """Run the whole per-block pipeline on one point cloud.
 
@@ -414,12 +419,15 @@ def process_points(
     slot_trees : (f, 3) float64, optional
         For a tile run again: the trees on open slots the block's rows let in (see
         :func:`analyse_nodes`). None: decided on the rows of ``xyz``.
+    raw_ground : GroundModel, optional
+        The raw terrain model of ``xyz``, already fitted (see :func:`analyse_nodes`).
 
     Returns
     -------
     BlockResult
     """
-    a = analyse_nodes(xyz, params=params, grid_origin=grid_origin, ground_stats=ground_stats, slot_trees=slot_trees)
+    a = analyse_nodes(xyz, params=params, grid_origin=grid_origin, ground_stats=ground_stats, slot_trees=slot_trees,
+                      raw_ground=raw_ground)
     return block_result(xyz, a, params=params)
 
 

@@ -17,14 +17,14 @@ import numpy as np
 
 from pipeline.canopy import canopy_cells
 from pipeline.errors import InputError
-from pipeline.ground import ground_residuals, raw_ground_model
+from pipeline.ground import GroundModel, ground_residuals, raw_ground_model
 from pipeline.metrics import tree_partials
 from pipeline.params import PipelineParams
 from pipeline.process import process_points
 from pipeline.reading import to_local
 from pipeline.tiling import TileGrid, core_tile
 from workers.slottrees import SLOT_KEY, trees_in_tile
-from workers.tiler import read_frame, read_tile
+from workers.tiler import read_frame, read_tile, tile_key
 from workers.workstore import JOB_KEY, WorkStore
 
 #: how far beyond its core a tile claims a trunk, in cluster radii
@@ -34,6 +34,12 @@ OWNERSHIP_MARGIN = 0.5
 def result_key(tile_id: int) -> str:
     """The work-store folder of a tile's results."""
     return f"results/{tile_id:06d}"
+
+
+def raw_ground_key(tile_id: int) -> str:
+    """Where the ground pass keeps a tile's raw terrain model: beside the tile's points,
+    so that tiling the block again (which removes them) removes it too."""
+    return f"{tile_key(tile_id)}/raw_ground.pkl"
 
 
 def _frame(index: dict) -> SimpleNamespace:
@@ -89,12 +95,14 @@ def summarise(tile_id, xyz, core, result, grid: TileGrid | None, origin, params:
 
 
 def process(xyz: np.ndarray, params: PipelineParams, where: str, ground: tuple[float, float] | None = None,
-            slot_trees: np.ndarray | None = None):
+            slot_trees: np.ndarray | None = None, raw_ground: GroundModel | None = None):
     """``process_points`` on a block or tile; an InputError (e.g. points spread too wide
     for one ground model) names ``where``, the file or the tile. ``slot_trees``: the
-    block's trees on open slots, for a tile run again with them."""
+    block's trees on open slots, for a tile run again with them; ``raw_ground``: the
+    tile's raw terrain model from the ground pass."""
     try:
-        return process_points(xyz, params=params, grid_origin=(0.0, 0.0, 0.0), ground_stats=ground, slot_trees=slot_trees)
+        return process_points(xyz, params=params, grid_origin=(0.0, 0.0, 0.0), ground_stats=ground, slot_trees=slot_trees,
+                              raw_ground=raw_ground)
     except InputError as exc:
         raise exc.prefixed(f"{where}: ") from None
 
@@ -114,6 +122,8 @@ def ground_sample(work_url: str, tile_id: int, params_json: str, stride: int) ->
     Over all tiles these are the very points an untiled run samples for the ground noise
     (every ``stride``-th point of the file), measured against the same terrain, so the
     block's statistics (and with them every tile's ground) come out as untiled.
+    The tile's raw model is kept in the work store (:func:`raw_ground_key`), where
+    :func:`process_tile` takes it instead of fitting it again.
     """
     store = WorkStore(work_url)
     frame = read_frame(store)
@@ -124,6 +134,7 @@ def ground_sample(work_url: str, tile_id: int, params_json: str, stride: int) ->
         model = raw_ground_model(xyz, params=params.ground)
     except InputError as exc:
         raise exc.prefixed(f"tile {tile_id}: ") from None
+    store.put_object(raw_ground_key(tile_id), model)
     return ground_residuals(model, xyz[pick])
 
 
@@ -152,7 +163,8 @@ def process_tile(work_url: str, tile_id: int, params_json: str, fail: bool = Fal
     slot_trees = None if given is None else trees_in_tile(given, {"buffered": grid.tile(int(tile_id)).buffered}, frame["origin"])
     rec, xyz = _tile_points(store, tile_id, frame)
     core = rec["core"].astype(bool)
-    result = process(xyz, params, f"tile {tile_id}", tuple(stats) if stats else None, slot_trees)
+    raw = store.get_object(raw_ground_key(tile_id)) if store.exists(raw_ground_key(tile_id)) else None
+    result = process(xyz, params, f"tile {tile_id}", tuple(stats) if stats else None, slot_trees, raw)
     key = result_key(tile_id)
     if not store.exists(JOB_KEY):  # the job was cancelled (its store deleted) while this tile ran
         return _abandon(store, tile_id)

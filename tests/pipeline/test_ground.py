@@ -266,3 +266,20 @@ def test_terrain_slope_sees_a_hillside_and_not_the_step_to_a_crown():
     flat[50:66, 30:46] = 1.5
     s = ground._terrain_slope(ground.ndimage.minimum_filter(flat, footprint=foot, mode="nearest"), c, foot, cap=1.0)
     assert s.max() <= ground.SLOPE_ALLOWANCE  # the fixed allowance, exactly as before
+
+
+def test_a_raw_model_fitted_beforehand_is_taken_as_it_is():
+    # a tiled job fits each tile's raw model in its ground pass and hands it to the
+    # tile's processing: the result must be the model fitted there, and it must be used
+    rng = np.random.default_rng(6)
+    g = _terrain(rng, n=30000, slope=0.05)
+    g[:, 2] += rng.normal(0.0, 0.02, len(g))
+    p = GroundParams()
+    raw = ground.raw_ground_model(g, params=p)
+    for stats in (None, (0.01, 0.02)):
+        fitted, given = ground_model(g, params=p, stats=stats), ground_model(g, params=p, stats=stats, raw=raw)
+        assert given.noise == fitted.noise
+        assert all(np.array_equal(a, b) for a, b in zip(given.dtms, fitted.dtms))
+    higher = ground.GroundModel(tuple(d + 1.0 for d in raw.dtms), raw.origins, raw.cell_size, 0.0)
+    lifted_by_one = ground_model(g, params=p, stats=(0.0, 0.0), raw=higher)
+    assert all(np.array_equal(a, b + 1.0) for a, b in zip(lifted_by_one.dtms, raw.dtms))

@@ -21,7 +21,9 @@ from workers.cluster import close_client, make_client
 from workers.job import run_job
 from workers.jobspec import JobSpec, TileFailed
 from workers.replay import finish_job, run_tile
-from workers.tasks import ground_sample, process_tile, result_key
+from pipeline.ground import raw_ground_model
+from workers.tasks import ground_sample, process_tile, raw_ground_key, result_key
+from workers.tiler import read_tile
 from workers.workstore import WorkStore
 from workers.tiler import FRAME_KEY, INDEX_KEY
 
@@ -219,6 +221,35 @@ def test_tile_tasks_read_the_frame_not_the_list_of_tiles(small_block, tiled_ref,
     assert finish_job(str(work)).n_trees == ref.n_trees
     assert _points(out) == _points(ref_out)
     assert _trees(out).equals(_trees(ref_out))
+
+
+def test_a_tile_takes_the_raw_ground_model_its_ground_pass_fitted(small_block, tmp_path):
+    work = tmp_path / "work"
+    victim = 2
+    run_job(JobSpec(str(small_block), str(tmp_path / "out"), tiling=TilingParams(tile_size=10.0), work_dir=str(work),
+                    inject_failure=(victim,)))  # a failed tile keeps the work store
+    store = WorkStore(str(work))
+    params = PipelineParams()
+    rec = read_tile(store, victim)
+    stored = store.get_object(raw_ground_key(victim))
+    frame = store.get_json(FRAME_KEY)
+    xyz = (np.column_stack([rec["X"], rec["Y"], rec["Z"]]) * frame["scales"] + frame["offsets"]) - frame["origin"]
+    refit = raw_ground_model(xyz, params=params.ground)
+    assert np.allclose(stored.dtms[0], refit.dtms[0], atol=1e-6)  # this tile's, not another's
+
+    def labels():
+        return {k: store.get_array(f"{result_key(victim)}/{k}.npy") for k in ("index", "tree_id", "is_ground", "wood_score")}
+
+    process_tile(store.url, victim, params.model_dump_json())
+    given = labels()
+    store.remove(raw_ground_key(victim))  # as a store written before the models were kept
+    process_tile(store.url, victim, params.model_dump_json())
+    assert all(np.array_equal(given[k], v) for k, v in labels().items())
+    # and the stored model is the one used: one a metre lower leaves no point on the ground
+    store.put_object(raw_ground_key(victim), type(stored)(tuple(d - 1.0 for d in stored.dtms), stored.origins,
+                                                          stored.cell_size, 0.0))
+    process_tile(store.url, victim, params.model_dump_json())
+    assert given["is_ground"].any() and not labels()["is_ground"].any()
 
 
 def test_run_tile_needs_a_job(tmp_path):
