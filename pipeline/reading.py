@@ -201,6 +201,40 @@ def _checked_local(ints: np.ndarray, info: BlockInfo, start: int, origin, out: n
     return xyz
 
 
+def sample_xy(path, stride: int, *, info: BlockInfo | None = None,
+              chunk_points: int = CHUNK_POINTS) -> tuple[np.ndarray, np.ndarray]:
+    """Every ``stride``-th point of a block (those whose index in the file is a multiple
+    of ``stride``): their local x, y as :func:`read_points` gives them, and their indices.
+
+    Only X and Y are decoded (LAZ point formats 6-10 store them apart from the other
+    fields) and only the sampled points are converted.
+
+    Returns
+    -------
+    xy : (m, 2) float64 [m], local frame (minus ``info.origin``)
+    index : (m,) int64
+
+    Raises
+    ------
+    InputError
+        The point data is truncated or corrupt.
+    """
+    info = info or read_info(path)
+    stride = max(1, int(stride))
+    xy_parts, idx_parts = [], []
+    for start, arr in _records(info, int(chunk_points), _XY_ONLY):
+        first = (-start) % stride
+        picked = arr[first::stride]
+        ints = np.zeros((len(picked), 3), dtype=np.int32)  # Z left 0: its column is dropped
+        ints[:, 0] = picked["X"]
+        ints[:, 1] = picked["Y"]
+        xy_parts.append(to_local(ints, info)[:, :2])
+        idx_parts.append(np.arange(start + first, start + len(arr), stride, dtype=np.int64))
+    if not xy_parts:
+        return np.zeros((0, 2)), np.zeros(0, np.int64)
+    return np.concatenate(xy_parts), np.concatenate(idx_parts)
+
+
 def read_points(path, *, origin=None, chunk_points: int = CHUNK_POINTS) -> tuple[np.ndarray, BlockInfo]:
     """Read a whole block.
 

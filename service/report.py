@@ -110,17 +110,11 @@ def sample_points(
     origin : (3,) float64
     """
     from pipeline.blockinfo import read_info
-    from pipeline.reading import iter_points
+    from pipeline.reading import sample_xy
 
     info = read_info(block_path)
     stride = sample_stride(info.n_points, max_points)
-    xy_parts, idx_parts = [], []
-    for start, xyz in iter_points(block_path, info=info):
-        first = (-start) % stride
-        xy_parts.append(xyz[first::stride, :2].copy())
-        idx_parts.append(np.arange(start + first, start + xyz.shape[0], stride, dtype=np.int64))
-    xy = np.concatenate(xy_parts) if xy_parts else np.zeros((0, 2))
-    idx = np.concatenate(idx_parts) if idx_parts else np.zeros(0, np.int64)
+    xy, idx = sample_xy(block_path, stride, info=info)
 
     pidx_parts, tid_parts = [], []
     pf = pq.ParquetFile(str(points_parquet))

@@ -9,7 +9,7 @@ import pytest
 
 from pipeline.blockinfo import read_info
 from pipeline.errors import InputError
-from pipeline.reading import LOCAL_STEPS_PER_M, TO_LOCAL_BLOCK, iter_points, read_points, to_local
+from pipeline.reading import LOCAL_STEPS_PER_M, TO_LOCAL_BLOCK, iter_points, read_points, sample_xy, to_local
 from las_blocks import EASTING, NORTHING, cloud, one_line, patch, write_block
 
 
@@ -103,3 +103,13 @@ def test_local_coordinates_in_blocks_equal_the_whole_column_arithmetic():
     assert np.array_equal(got.view(np.int64), want.view(np.int64))
     out = np.full((n, 3), np.nan)
     assert to_local(ints, info, out=out) is out and np.array_equal(out.view(np.int64), want.view(np.int64))
+
+
+@pytest.mark.parametrize("suffix", [".laz", ".las"])
+@pytest.mark.parametrize("stride", [1, 7, 3000, 20_000])
+def test_sample_xy_is_every_strideth_point_as_read_points_gives_it(tmp_path, suffix, stride):
+    path = write_block(tmp_path / f"b{suffix}", cloud(10_001, seed=3))
+    whole, info = read_points(path)
+    xy, index = sample_xy(path, stride, info=info, chunk_points=3000)  # chunks not multiples of the stride
+    assert np.array_equal(index, np.arange(0, len(whole), stride))
+    assert xy.dtype == np.float64 and np.array_equal(xy, whole[::stride, :2])
