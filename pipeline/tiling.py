@@ -122,6 +122,11 @@ def check_buffer(buffer: float, reach: float) -> None:
 MAX_COPIES = 64
 
 
+#: :func:`buffered_tiles` lists the points of each tile with a mask over the points
+#: (a pass per tile) when they fall in at most this many tiles, whose ids span fewer
+#: than MASK_SORT_SPAN; else it sorts the (tile, point) pairs
+MASK_SORT_TILES = 16
+MASK_SORT_SPAN = 1 << 20
 #: widest tile buffer [m]: a block spans at most 1e5 m (``pipeline.blockinfo.MAX_EXTENT``)
 MAX_BUFFER = 1e5
 
@@ -355,6 +360,19 @@ def buffered_tiles(xy: np.ndarray, grid: TileGrid, *, core: np.ndarray | None = 
     t = np.concatenate(tiles)
     if len(tiles) == 1:  # no point in any neighbour's buffer: already sorted by point
         order = np.argsort(t, kind="stable")
-    else:
+        return p[order], t[order]
+    lo, hi = int(t.min()), int(t.max())
+    present = np.flatnonzero(np.bincount(t - lo)) + lo if hi - lo < MASK_SORT_SPAN else None
+    if present is None or len(present) > MASK_SORT_TILES:
         order = np.argsort(t * np.int64(max(n, 1)) + p)  # keys are unique
-    return p[order], t[order]
+        return p[order], t[order]
+    # few tiles (a chunk of a mobile scan spans a handful): a mask of each one's points
+    # lists them in order, in passes over the points instead of a sort of the pairs
+    mask = np.empty(n, bool)
+    out_p = []
+    for tid in present:
+        mask[:] = False
+        mask[p[t == tid]] = True
+        out_p.append(np.flatnonzero(mask))
+    sizes = [len(q) for q in out_p]
+    return np.concatenate(out_p).astype(np.int64, copy=False), np.repeat(present.astype(np.int64), sizes)

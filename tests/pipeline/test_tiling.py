@@ -186,3 +186,27 @@ def test_huge_buffer_over_a_small_grid_is_cheap():
     # a block processed in one piece is one tile, however small next to the buffer
     one = plan_grid((0, 0), (0.5, 0.5), tile_size=1.5, buffer=6.15)
     assert one.ncols * one.nrows == 1
+
+
+@settings(max_examples=100, deadline=None)
+@given(
+    pts=st.lists(st.tuples(coord, coord), min_size=1, max_size=80),
+    size=st.sampled_from([0.3, 2.5, 10.0]),
+    buffer_frac=st.floats(min_value=0.05, max_value=2.5),
+    few=st.booleans(),
+)
+def test_pairs_come_sorted_by_tile_then_point_whether_masked_or_sorted(pts, size, buffer_frac, few):
+    # a tile's records are written in this order and read back as its points' order
+    import pipeline.tiling as tiling
+
+    xy = np.asarray(pts, dtype=np.float64) * size + 512_345.0
+    grid = plan_grid(xy.min(0), xy.max(0), tile_size=size, buffer=buffer_frac * size, grid_origin=(512_345.0 - size, 512_345.0))
+    expected = sorted((t, i) for i, t in _brute_force(xy, grid))
+    saved = tiling.MASK_SORT_TILES
+    tiling.MASK_SORT_TILES = saved if few else 0  # 0: always the sort of the pairs
+    try:
+        p, t = buffered_tiles(xy, grid)
+    finally:
+        tiling.MASK_SORT_TILES = saved
+    assert p.dtype == np.int64 and t.dtype == np.int64
+    assert list(zip(t.tolist(), p.tolist())) == expected
