@@ -291,6 +291,7 @@ def read_tile(store: WorkStore, tile_id: int) -> np.ndarray:
     if not parts:
         return np.zeros(0, dtype=TILE_DTYPE)
     rec = np.concatenate(parts)
-    if len(parts) > 1 and np.any(np.diff(rec["index"].astype(np.int64)) < 0):
-        rec = rec[np.argsort(rec["index"], kind="stable")]
+    index = rec["index"]
+    if len(parts) > 1 and (index[1:] < index[:-1]).any():  # no int64 copy and difference of every index
+        rec = rec[np.argsort(index, kind="stable")]
     return rec

@@ -14,7 +14,7 @@ from pipeline.laswriting import LasBlockWriter
 from pipeline.reading import read_points, read_raw_range, to_local
 from pipeline.tiling import plan_grid
 from workers.workstore import WorkStore
-from workers.tiler import INDEX_KEY, pdal_available, read_tile, tile_block
+from workers.tiler import INDEX_KEY, TILE_DTYPE, pdal_available, read_tile, tile_block
 
 
 def _tile(path, store, tile_size=10.0, buffer=3.0, origin=None, chunk_points=50_000, engine="laspy"):
@@ -151,3 +151,21 @@ def test_a_range_of_a_laz_with_variable_size_chunks_is_the_same_points(small_blo
         got = read_raw_range(path, start, 20_000, info=info)
         assert np.array_equal(got[:, 0], stored["X"][start : start + 20_000]), start
         assert np.array_equal(got[:, 2], stored["Z"][start : start + 20_000]), start
+
+@pytest.mark.parametrize("starts", [(0, 5, 9), (5, 0, 9), (0, 9, 5)])
+def test_a_tiles_parts_are_read_in_point_order_whatever_order_they_are_listed_in(tmp_path, starts):
+    # parts are named by the first point of their chunk; one listed out of order (or a
+    # part whose own records are out of order) is put back in order
+    store = WorkStore(str(tmp_path / "w"))
+    sizes = {0: 5, 5: 4, 9: 3}
+    for k, start in enumerate(starts):
+        rec = np.zeros(sizes[start], dtype=TILE_DTYPE)
+        rec["index"] = np.arange(start, start + sizes[start])
+        rec["X"] = rec["index"] * 10
+        store.put_array(f"tiles/000001/part-{k:012d}.npy", rec)
+    got = read_tile(store, 1)
+    assert got["index"].tolist() == list(range(12)) and got["X"].tolist() == [10 * i for i in range(12)]
+    shuffled = np.zeros(3, dtype=TILE_DTYPE)
+    shuffled["index"] = [20, 14, 17]
+    store.put_array("tiles/000001/part-000000000099.npy", shuffled)
+    assert read_tile(store, 1)["index"].tolist() == [*range(12), 14, 17, 20]
