@@ -244,3 +244,36 @@ def read_trees_parquet(path) -> tuple[dict[str, np.ndarray], dict]:
     meta = json.loads((table.schema.metadata or {}).get(b"geo", b"null"))
     cols = {n: table.column(n).to_numpy() for n in table.column_names if n != "geometry"}
     return cols, meta
+
+
+def sampled_tree_ids(points_parquet, index: np.ndarray, stride: int) -> np.ndarray:
+    """The ``tree_id`` of ``points.parquet`` at the point indices ``index`` (multiples of
+    ``stride``), 0 where the file has no such row (a tile left out of a partial result).
+
+    Parameters
+    ----------
+    points_parquet : path of a ``points.parquet``
+    index : (m,) int64, sorted — point indices in the block's file
+    stride : int — every index in ``index`` is a multiple of it (rows between are skipped)
+
+    Returns
+    -------
+    (m,) int64
+    """
+    pidx_parts, tid_parts = [], []
+    pf = pq.ParquetFile(str(points_parquet))
+    for batch in pf.iter_batches(columns=["point_index", "tree_id"], batch_size=1_000_000):
+        p = batch.column(0).to_numpy().astype(np.int64)
+        keep = p % stride == 0
+        pidx_parts.append(p[keep])
+        tid_parts.append(batch.column(1).to_numpy()[keep].astype(np.int64))
+    pidx = np.concatenate(pidx_parts) if pidx_parts else np.zeros(0, np.int64)
+    tids = np.concatenate(tid_parts) if tid_parts else np.zeros(0, np.int64)
+    order = np.argsort(pidx, kind="stable")
+    pidx, tids = pidx[order], tids[order]
+    pos = np.clip(np.searchsorted(pidx, index), 0, max(len(pidx) - 1, 0))
+    tree_id = np.zeros(len(index), np.int64)
+    if len(pidx):
+        hit = pidx[pos] == index
+        tree_id[hit] = tids[pos[hit]]
+    return tree_id

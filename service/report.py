@@ -110,28 +110,13 @@ def sample_points(
     origin : (3,) float64
     """
     from pipeline.blockinfo import read_info
+    from pipeline.parquet import sampled_tree_ids
     from pipeline.reading import sample_xy
 
     info = read_info(block_path)
     stride = sample_stride(info.n_points, max_points)
     xy, idx = sample_xy(block_path, stride, info=info)
-
-    pidx_parts, tid_parts = [], []
-    pf = pq.ParquetFile(str(points_parquet))
-    for batch in pf.iter_batches(columns=["point_index", "tree_id"], batch_size=1_000_000):
-        p = batch.column(0).to_numpy().astype(np.int64)
-        keep = p % stride == 0
-        pidx_parts.append(p[keep])
-        tid_parts.append(batch.column(1).to_numpy()[keep].astype(np.int64))
-    pidx = np.concatenate(pidx_parts) if pidx_parts else np.zeros(0, np.int64)
-    tids = np.concatenate(tid_parts) if tid_parts else np.zeros(0, np.int64)
-    order = np.argsort(pidx, kind="stable")
-    pidx, tids = pidx[order], tids[order]
-    pos = np.clip(np.searchsorted(pidx, idx), 0, max(len(pidx) - 1, 0))
-    tree_id = np.zeros(idx.shape[0], np.int64)
-    if len(pidx):
-        hit = pidx[pos] == idx
-        tree_id[hit] = tids[pos[hit]]
+    tree_id = sampled_tree_ids(points_parquet, idx, stride)
     return xy, tree_id, np.asarray(info.origin, dtype=np.float64)
 
 

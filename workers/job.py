@@ -29,6 +29,7 @@ import numpy as np
 
 from pipeline.blockinfo import BlockInfo, read_info
 from pipeline.jobparams import REPORT_POINTS, sample_stride
+from pipeline.parquet import sampled_tree_ids
 from pipeline.reading import read_points
 from pipeline.tiling import TileGrid
 from workers.dispatch import block_ground_stats, check_cancel, gather, process_tiles, settle_slot_trees
@@ -44,7 +45,7 @@ from workers.jobspec import (
 from workers.outputs import Labels, merge_and_write
 from workers.replay import merge_stored
 from workers.tasks import process, summarise
-from workers.tiler import check_engine, tile_block
+from workers.tiler import check_engine, read_sample, tile_block
 from workers.workstore import JOB_KEY, WorkStore, default_work_dir
 
 
@@ -132,6 +133,17 @@ def report_sample(xyz: np.ndarray, tree_id: np.ndarray, origin, max_points: int 
             "origin": np.asarray(origin, dtype=np.float64), "max_points": max_points}
 
 
+def _stored_sample(store: WorkStore, info: BlockInfo, points_parquet: str) -> dict | None:
+    """:func:`report_sample` of a tiled job: the points the tiler kept, with their tree
+    ids in ``points_parquet`` (None without a kept sample: the report reads the files)."""
+    kept = read_sample(store, info.n_points)
+    if kept is None:
+        return None
+    xy, index = kept
+    return {"xy": xy, "tree_id": sampled_tree_ids(points_parquet, index, sample_stride(info.n_points)),
+            "origin": np.asarray(info.origin, dtype=np.float64), "max_points": REPORT_POINTS}
+
+
 def _job_record(spec: JobSpec, info: BlockInfo, grid: TileGrid, work: str) -> dict:
     return {
         "input_path": spec.input_path,
@@ -196,6 +208,8 @@ def _run_tiled_locked(spec, info, client, t0, progress, cancel, grid, store, tim
             store.put_json(JOB_KEY, record)
         t = time.perf_counter()
         outcome = merge_stored(store, record, index, summaries, sorted(failed))
+        if outcome.sample is None and outcome.outputs.get("points"):
+            outcome.sample = _stored_sample(store, info, outcome.outputs["points"])
         timings["merge_write"] = time.perf_counter() - t
         timings["total"] = time.perf_counter() - t0
         outcome.timings = timings

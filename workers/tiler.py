@@ -20,7 +20,7 @@ import numpy as np
 
 from pipeline.blockinfo import BlockInfo
 from pipeline.errors import ParameterError
-from pipeline.jobparams import CHUNK_POINTS
+from pipeline.jobparams import CHUNK_POINTS, sample_stride
 from pipeline.reading import check_bounds, iter_raw, read_raw_range, to_local
 from pipeline.tiling import TileGrid, buffered_tiles, check_split_buffer, core_tile
 from workers.workstore import WorkStore
@@ -28,6 +28,9 @@ from workers.workstore import WorkStore
 #: One record per (point, tile): stored integers, source index, core flag.
 TILE_DTYPE = np.dtype([("X", "<i4"), ("Y", "<i4"), ("Z", "<i4"), ("index", "<u8"), ("core", "u1")])
 INDEX_KEY = "tiles/index.json"
+#: every :func:`pipeline.jobparams.sample_stride`-th point's local x, y, kept by the
+#: tiler for the report's map (one part per chunk, named by its first point)
+SAMPLE_KEY = "tiles/sample"
 #: the index without its list of tiles: what a tile's task needs (frame and grid), so
 #: that the tasks of a job of many tiles do not each read the whole list
 FRAME_KEY = "tiles/frame.json"
@@ -99,7 +102,10 @@ def _index(info: BlockInfo, grid: TileGrid, counts: dict, engine: str) -> dict:
 
 
 def _split_chunk(info, grid, store, start, ints, counts: dict) -> None:
-    check_bounds(to_local(ints, info), info, start=start)
+    local = to_local(ints, info)
+    check_bounds(local, info, start=start)
+    stride = sample_stride(info.n_points)
+    store.put_array(f"{SAMPLE_KEY}/part-{start:012d}.npy", local[(-start) % stride :: stride, :2])
     index = np.arange(start, start + len(ints), dtype=np.uint64)
     _write_parts(store, f"part-{start:012d}", ints, index, _absolute_xy(ints, info), grid, counts)
 
@@ -295,3 +301,22 @@ def read_tile(store: WorkStore, tile_id: int) -> np.ndarray:
     if len(parts) > 1 and (index[1:] < index[:-1]).any():  # no int64 copy and difference of every index
         rec = rec[np.argsort(index, kind="stable")]
     return rec
+
+
+def read_sample(store: WorkStore, n_points: int) -> tuple[np.ndarray, np.ndarray] | None:
+    """The sample the tiler kept: local x, y (m, 2) [m] of every
+    :func:`pipeline.jobparams.sample_stride`-th point of the block and those points'
+    indices (m,) int64; None when the tiles were made without it (the PDAL engine, a
+    work store of an earlier version)."""
+    keys = sorted(k for k in store.list(SAMPLE_KEY) if k.endswith(".npy"))
+    if not keys:
+        return None
+    stride = sample_stride(n_points)
+    xy, index = [], []
+    for k in keys:
+        start = int(k.rsplit("part-", 1)[1].split(".")[0])
+        part = store.get_array(k)
+        first = start + (-start) % stride
+        xy.append(part)
+        index.append(np.arange(first, first + len(part) * stride, stride, dtype=np.int64))
+    return np.concatenate(xy), np.concatenate(index)
