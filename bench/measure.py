@@ -77,10 +77,13 @@ def run_job_measure(cfg: dict) -> dict:
     if workers > 0:
         from distributed import Client, LocalCluster
 
-        cluster = LocalCluster(
-            n_workers=workers, threads_per_worker=1, processes=True,
-            dashboard_address=None, memory_limit=cfg.get("memory_limit", "4GiB"),
-        )
+        from workers.cluster import worker_allocator
+
+        with worker_allocator():  # the allocator settings of orchard's own embedded workers
+            cluster = LocalCluster(
+                n_workers=workers, threads_per_worker=1, processes=True,
+                dashboard_address=None, memory_limit=cfg.get("memory_limit", "4GiB"),
+            )
         client = Client(cluster)
         client.run(_warm_up)
     try:

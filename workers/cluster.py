@@ -150,9 +150,7 @@ def make_client(
             raise
         return client
     _check_host(host)
-    # each nanny takes these when it is made, for every worker process it starts (restarts too)
-    environ = {**dask.config.get("distributed.nanny.pre-spawn-environ", {}), **WORKER_MALLOC_ENV}
-    with _workers_ignore_interrupt(), dask.config.set({"distributed.nanny.pre-spawn-environ": environ}):
+    with _workers_ignore_interrupt(), worker_allocator():
         cluster = LocalCluster(
             n_workers=int(n_workers),
             threads_per_worker=int(threads_per_worker),
@@ -174,6 +172,16 @@ def make_client(
     client.orchard_dashboard = dashboard
     client.orchard_host = host
     return client
+
+
+@contextmanager
+def worker_allocator():
+    """Within it, the worker processes a dask ``LocalCluster`` starts get
+    :data:`WORKER_MALLOC_ENV` (dask's other pre-spawn settings kept): each nanny takes
+    them when it is made, for every worker process it starts (restarts too)."""
+    environ = {**dask.config.get("distributed.nanny.pre-spawn-environ", {}), **WORKER_MALLOC_ENV}
+    with dask.config.set({"distributed.nanny.pre-spawn-environ": environ}):
+        yield
 
 
 def _bracketed(host: str) -> str:

@@ -17,6 +17,7 @@ from workers.cluster import (
     dashboard_address,
     interrupts_deferred,
     make_client,
+    worker_allocator,
     WORKER_MALLOC_ENV,
 )
 
@@ -40,6 +41,16 @@ def test_embedded_worker_processes_get_the_allocator_settings_not_dasks_trim():
         close_client(client)
     (env,) = seen.values()
     assert env == {**WORKER_MALLOC_ENV, "OMP_NUM_THREADS": "1"}  # dask's other settings kept
+
+
+def test_the_allocator_settings_are_given_only_within_worker_allocator():
+    import dask
+
+    before = dict(dask.config.get("distributed.nanny.pre-spawn-environ"))
+    with worker_allocator():
+        inside = dask.config.get("distributed.nanny.pre-spawn-environ")
+    assert inside == {**before, **WORKER_MALLOC_ENV} and inside["OMP_NUM_THREADS"] == before["OMP_NUM_THREADS"]
+    assert dask.config.get("distributed.nanny.pre-spawn-environ") == before
 
 
 def test_no_dashboard():
