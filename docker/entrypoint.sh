@@ -41,6 +41,11 @@ case "$role" in
         ;;
     worker)
         : "${ORCHARD_SCHEDULER:?set ORCHARD_SCHEDULER=tcp://HOST:PORT for a worker}"
+        # dask's nanny starts each worker with MALLOC_TRIM_THRESHOLD_=65536, which maps and
+        # page-faults every array above 128 KiB afresh: the embedded cluster's allocator
+        # settings instead (workers.cluster.WORKER_MALLOC_ENV), dask's others kept
+        worker_environ="{'MALLOC_MMAP_THRESHOLD_': '16777216', 'MALLOC_TRIM_THRESHOLD_': '33554432', 'OMP_NUM_THREADS': 1, 'MKL_NUM_THREADS': 1, 'OPENBLAS_NUM_THREADS': 1}"
+        export DASK_DISTRIBUTED__NANNY__PRE_SPAWN_ENVIRON="${DASK_DISTRIBUTED__NANNY__PRE_SPAWN_ENVIRON:-$worker_environ}"
         exec dask worker "$ORCHARD_SCHEDULER" \
             --nworkers 1 \
             --nthreads "${ORCHARD_WORKER_THREADS:-1}" \

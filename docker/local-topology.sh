@@ -115,6 +115,11 @@ start scheduler dask scheduler --host "$host" --port "$scheduler_port" \
     --dashboard-address "$host:$dashboard_port"
 wait_http scheduler "http://$host:$dashboard_port/health" "${pids[0]}"
 
+# dask's nanny starts each worker with MALLOC_TRIM_THRESHOLD_=65536, which maps and
+# page-faults every array above 128 KiB afresh: the embedded cluster's allocator
+# settings instead (workers.cluster.WORKER_MALLOC_ENV), dask's others kept
+worker_environ="{'MALLOC_MMAP_THRESHOLD_': '16777216', 'MALLOC_TRIM_THRESHOLD_': '33554432', 'OMP_NUM_THREADS': 1, 'MKL_NUM_THREADS': 1, 'OPENBLAS_NUM_THREADS': 1}"
+export DASK_DISTRIBUTED__NANNY__PRE_SPAWN_ENVIRON="${DASK_DISTRIBUTED__NANNY__PRE_SPAWN_ENVIRON:-$worker_environ}"
 worker_ports=()
 for (( i=1; i<=n_workers; i++ )); do
     port="$(free_port)"

@@ -20,6 +20,8 @@ from pathlib import Path
 import numpy as np
 import pytest
 
+from workers.cluster import WORKER_MALLOC_ENV
+
 ROOT = Path(__file__).resolve().parents[2]
 SCRIPT = ROOT / "docker" / "local-topology.sh"
 ENTRYPOINT = ROOT / "docker" / "entrypoint.sh"
@@ -151,6 +153,9 @@ def test_job_end_to_end_through_separate_processes(topology, tmp_path):
         assert len(workers) == 2
         worker_pids = set(client.run(os.getpid).values())
         assert len(worker_pids) == 2 and pids[-1] not in worker_pids  # separate from the API process
+        # the workers run with the embedded cluster's allocator settings, not dask's trim
+        environ = client.run(lambda: {k: os.environ.get(k) for k in WORKER_MALLOC_ENV})
+        assert list(environ.values()) == [WORKER_MALLOC_ENV] * 2, environ
 
         # A token, the same way an operator gets one.
         tok = subprocess.run(
