@@ -15,17 +15,16 @@ import pytest
 
 from pipeline.errors import InputError, NoTreesError, ParameterError
 from pipeline.evaluation.scores import v_measure
+from pipeline.ground import raw_ground_model
 from pipeline.jobparams import TilingParams
 from pipeline.params import PipelineParams
 from workers.cluster import close_client, make_client
 from workers.job import run_job
 from workers.jobspec import JobSpec, TileFailed
 from workers.replay import finish_job, run_tile
-from pipeline.ground import raw_ground_model
 from workers.tasks import ground_sample, process_tile, raw_ground_key, result_key
-from workers.tiler import read_tile
+from workers.tiler import FRAME_KEY, INDEX_KEY, read_tile
 from workers.workstore import WorkStore
-from workers.tiler import FRAME_KEY, INDEX_KEY
 
 
 def _points(out):
