@@ -31,11 +31,10 @@ from pipeline.parquet import (
     write_trees_parquet,
 )
 from pipeline.rows import RowLayout, find_rows
+from workers.jobspec import OUTPUT_NAMES
 
 #: Points per output window when streaming labels (bounded memory).
 WINDOW_POINTS = 2_000_000
-
-OUTPUT_NAMES = ("points.parquet", "labelled.laz", "trees.parquet", "rows.parquet", "gaps.parquet")
 
 
 class Labels:

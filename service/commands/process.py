@@ -185,14 +185,16 @@ def _check_same_job(args: argparse.Namespace) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
+    # the pipeline (scipy, pyarrow) is imported once the input and options are checked:
+    # a bad input fails in a fraction of the time
     from pipeline.budget import BudgetError
-    from workers.job import run_job
     from workers.jobspec import JobSpec, auto_tiled, check_job
-    from workers.replay import finish_job, resume_job, run_tile
 
     params = pipeline_params_from_args(args)
     _check_cluster_options(args)
     if args.rerun_tile or args.resume:
+        from workers.replay import finish_job, resume_job, run_tile
+
         if not args.work:
             raise ParameterError("--rerun-tile and --resume need --work: the work folder of the tiled run that failed")
         _check_same_job(args)
@@ -257,6 +259,8 @@ def run(args: argparse.Namespace) -> int:
                                  host=args.dask_host or LOOPBACK)
             link = dashboard_address(client)
             print(f"dask dashboard: {link or 'none'}", file=sys.stderr)
+        from workers.job import run_job
+
         outcome = run_job(spec, client=client, progress=_Bar() if tiled else None)  # TileFailed: exit 1 (service.cli)
     finally:
         if client is not None:

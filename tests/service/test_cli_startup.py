@@ -42,3 +42,30 @@ def test_top_level_help_imports_no_numpy_pydantic_or_service_libraries():
 @pytest.mark.parametrize("command", ["process", "simulate", "evaluate", "schedules"])
 def test_command_help_imports_no_cluster_web_or_plotting_libraries(command):
     assert _imported_after([command, "--help"], HEAVY if command != "simulate" else HEAVY[:4]) == set()
+
+
+_BAD_INPUT_PROBE = """
+import sys
+from service.cli import main
+code = main({argv!r})
+print("exit:", code)
+print("imported:", *sorted(name for name in {names!r} if name in sys.modules))
+"""
+
+
+@pytest.mark.parametrize("kind", ["missing", "not LAS"])
+def test_process_refuses_a_bad_input_before_importing_the_pipeline(tmp_path, kind):
+    """A missing or unreadable input is refused from its header, before scipy, pyarrow
+    and the cluster and plotting libraries load (they take most of a run's start-up)."""
+    block = tmp_path / "block.laz"
+    if kind == "not LAS":
+        block.write_bytes(b"not a point cloud\n" * 10)
+    argv = ["process", str(block), "--out", str(tmp_path / "out")]
+    p = subprocess.run(
+        [sys.executable, "-c", _BAD_INPUT_PROBE.format(argv=argv, names=HEAVY)], capture_output=True, text=True, timeout=60
+    )
+    assert p.returncode == 0, p.stderr
+    lines = p.stdout.rstrip("\n").splitlines()
+    assert lines[-2] == "exit: 2", p.stdout + p.stderr
+    assert "block.laz" in p.stderr
+    assert set(lines[-1].split()[1:]) <= {"laspy", "pyproj"}  # the header reader and what laspy loads itself
