@@ -67,16 +67,28 @@ def voxelize(
     xyz = np.asarray(xyz, dtype=np.float64)
     if xyz.shape[0] == 0:
         return Voxels(np.zeros(0, np.int64), np.zeros((0, 3), np.int64), np.zeros((0, 3)), np.zeros(0, np.int64))
-    keys = np.empty(xyz.shape, np.int64)
-    for d in range(3):  # column by column: no (n, 3) float temporaries
-        keys[:, d] = np.floor((xyz[:, d] - float(grid_origin[d])) / voxel_size)
-    lo = column_min(keys)
-    rel = keys - lo
-    span = column_max(rel) + 1
+    # column by column, in place: each fresh temporary of a block's size costs its page
+    # faults again (no (n, 3) float temporaries, one float buffer for the three columns)
+    buf = np.empty(xyz.shape[0])
+    rel = []
+    for d in range(3):
+        np.subtract(xyz[:, d], float(grid_origin[d]), out=buf)
+        np.divide(buf, voxel_size, out=buf)
+        np.floor(buf, out=buf)
+        rel.append(buf.astype(np.int64))
+    del buf
+    lo = np.array([k.min() for k in rel], dtype=np.int64)
+    for k, low in zip(rel, lo):
+        k -= low
+    span = np.array([k.max() for k in rel], dtype=np.int64) + 1
     if float(span[0]) * float(span[1]) * float(span[2]) >= 2**62:
         raise ValueError("block extent too large for the voxel size; tile it")
-    packed = (rel[:, 0] * span[1] + rel[:, 1]) * span[2] + rel[:, 2]
-    del keys, rel
+    packed = rel[0]  # (x * ny + y) * nz + z, built in x's column
+    packed *= span[1]
+    packed += rel[1]
+    packed *= span[2]
+    packed += rel[2]
+    del rel
     uniq, inverse, counts = _group_keys(packed, int(span[0]) * int(span[1]) * int(span[2]))
     m = uniq.shape[0]
     cent = np.empty((m, 3))

@@ -223,6 +223,22 @@ def test_pair_lengths_by_hand():
     assert pair_lengths(pts, np.zeros((0, 2), np.int64)).shape == (0,)
 
 
+@settings(max_examples=100, deadline=None)
+@given(m=st.integers(1, 200), p=st.integers(0, 500), dims=st.sampled_from([2, 3]), seed=st.integers(0, 2**31 - 1))
+def test_pair_lengths_equal_the_definition_bit_for_bit(m, p, dims, seed):
+    """Pairs in any order, strided or not: the same floats as the square root of the
+    summed squared steps, coordinate by coordinate (the graphs' weights depend on them)."""
+    rng = np.random.default_rng(seed)
+    pts = rng.normal(size=(m, dims)) * 10.0 ** rng.integers(-2, 4)
+    pairs = rng.integers(0, m, (p, 2))
+    step = (pts[pairs[:, 0]] - pts[pairs[:, 1]]) ** 2
+    want = np.zeros(p)
+    for d in range(dims):
+        want += step[:, d]
+    np.testing.assert_array_equal(pair_lengths(pts, pairs), np.sqrt(want))
+    np.testing.assert_array_equal(pair_lengths(np.asfortranarray(pts), pairs[:, ::-1][:, ::-1]), np.sqrt(want))
+
+
 def test_reweight_keeps_the_structure_and_scales_each_edge():
     g = build_graph(np.array([[0.0, 0, 0], [0.1, 0, 0], [0.2, 0, 0]]), radius=0.15)
     r = reweight(g, np.array([1.0, 3.0, 5.0]))
