@@ -19,7 +19,7 @@ from pipeline import lasheader
 from pipeline.blockinfo import BlockInfo, input_error, one_line, read_info
 from pipeline.budget import DensitySample, count_cells
 from pipeline.errors import InputError
-from pipeline.jobparams import CHUNK_POINTS
+from pipeline.jobparams import CHUNK_POINTS, first_sampled
 
 #: decode only X, Y, Z of LAZ points (the other fields' layers are skipped)
 _XYZ_ONLY = laspy.DecompressionSelection.XY_RETURNS_CHANNEL | laspy.DecompressionSelection.Z
@@ -223,7 +223,7 @@ def sample_xy(path, stride: int, *, info: BlockInfo | None = None,
     stride = max(1, int(stride))
     xy_parts, idx_parts = [], []
     for start, arr in _records(info, int(chunk_points), _XY_ONLY):
-        first = (-start) % stride
+        first = first_sampled(start, stride)
         picked = arr[first::stride]
         ints = np.zeros((len(picked), 3), dtype=np.int32)  # Z left 0: its column is dropped
         ints[:, 0] = picked["X"]

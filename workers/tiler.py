@@ -20,7 +20,7 @@ import numpy as np
 
 from pipeline.blockinfo import BlockInfo
 from pipeline.errors import ParameterError
-from pipeline.jobparams import CHUNK_POINTS, sample_stride
+from pipeline.jobparams import CHUNK_POINTS, first_sampled, sample_stride
 from pipeline.reading import check_bounds, iter_raw, read_raw_range, to_local
 from pipeline.tiling import TileGrid, buffered_tiles, check_split_buffer, core_tile
 from workers.workstore import WorkStore
@@ -105,7 +105,7 @@ def _split_chunk(info, grid, store, start, ints, counts: dict) -> None:
     local = to_local(ints, info)
     check_bounds(local, info, start=start)
     stride = sample_stride(info.n_points)
-    store.put_array(f"{SAMPLE_KEY}/part-{start:012d}.npy", local[(-start) % stride :: stride, :2])
+    store.put_array(f"{SAMPLE_KEY}/part-{start:012d}.npy", local[first_sampled(start, stride) :: stride, :2])
     index = np.arange(start, start + len(ints), dtype=np.uint64)
     _write_parts(store, f"part-{start:012d}", ints, index, _absolute_xy(ints, info), grid, counts)
 
@@ -316,7 +316,7 @@ def read_sample(store: WorkStore, n_points: int) -> tuple[np.ndarray, np.ndarray
     for k in keys:
         start = int(k.rsplit("part-", 1)[1].split(".")[0])
         part = store.get_array(k)
-        first = start + (-start) % stride
+        first = start + first_sampled(start, stride)
         xy.append(part)
         index.append(np.arange(first, first + len(part) * stride, stride, dtype=np.int64))
     return np.concatenate(xy), np.concatenate(index)

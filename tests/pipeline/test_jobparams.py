@@ -80,3 +80,11 @@ def test_a_structured_error_survives_a_trip_to_a_dask_worker():
     back = pickle.loads(pickle.dumps(err.value))
     assert type(back) is ParameterError and str(back) == str(err.value)
     assert (back.param, back.value, back.limit, back.hint) == (err.value.param, 2.0, err.value.limit, err.value.hint)
+
+
+@pytest.mark.parametrize("start, stride, first", [(0, 5, 0), (1, 5, 4), (5, 5, 0), (7, 5, 3), (10, 1, 0), (3, 4, 1)])
+def test_first_sampled_is_the_runs_first_point_whose_index_is_a_multiple_of_the_stride(start, stride, first):
+    from pipeline.jobparams import first_sampled
+
+    assert first_sampled(start, stride) == first
+    assert (start + first) % stride == 0 and 0 <= first < stride
