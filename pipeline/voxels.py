@@ -67,6 +67,24 @@ def voxelize(
     xyz = np.asarray(xyz, dtype=np.float64)
     if xyz.shape[0] == 0:
         return Voxels(np.zeros(0, np.int64), np.zeros((0, 3), np.int64), np.zeros((0, 3)), np.zeros(0, np.int64))
+    packed, lo, span = packed_keys(xyz, voxel_size, grid_origin)
+    uniq, inverse, counts = _group_keys(packed, int(span[0]) * int(span[1]) * int(span[2]))
+    m = uniq.shape[0]
+    cent = np.empty((m, 3))
+    for d in range(3):
+        cent[:, d] = np.bincount(inverse, weights=xyz[:, d], minlength=m) / counts
+    uk = np.empty((m, 3), np.int64)
+    uk[:, 2] = uniq % span[2]
+    rest = uniq // span[2]
+    uk[:, 1] = rest % span[1]
+    uk[:, 0] = rest // span[1]
+    return Voxels(inverse.astype(np.int64, copy=False), uk + lo, cent, counts.astype(np.int64, copy=False))
+
+
+def packed_keys(xyz: np.ndarray, voxel_size: float, grid_origin) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Each point's voxel as one int64, ``(x * ny + y) * nz + z`` of its integer key
+    relative to the lowest key ``lo`` (3,), in a grid of ``span`` (3,) voxels: (packed
+    (n,), lo, span). ValueError when the grid has 2**62 voxels or more."""
     # column by column, in place: each fresh temporary of a block's size costs its page
     # faults again (no (n, 3) float temporaries, one float buffer for the three columns)
     buf = np.empty(xyz.shape[0])
@@ -83,23 +101,12 @@ def voxelize(
     span = np.array([k.max() for k in rel], dtype=np.int64) + 1
     if float(span[0]) * float(span[1]) * float(span[2]) >= 2**62:
         raise ValueError("block extent too large for the voxel size; tile it")
-    packed = rel[0]  # (x * ny + y) * nz + z, built in x's column
+    packed = rel[0]  # built in x's column
     packed *= span[1]
     packed += rel[1]
     packed *= span[2]
     packed += rel[2]
-    del rel
-    uniq, inverse, counts = _group_keys(packed, int(span[0]) * int(span[1]) * int(span[2]))
-    m = uniq.shape[0]
-    cent = np.empty((m, 3))
-    for d in range(3):
-        cent[:, d] = np.bincount(inverse, weights=xyz[:, d], minlength=m) / counts
-    uk = np.empty((m, 3), np.int64)
-    uk[:, 2] = uniq % span[2]
-    rest = uniq // span[2]
-    uk[:, 1] = rest % span[1]
-    uk[:, 0] = rest // span[1]
-    return Voxels(inverse.astype(np.int64, copy=False), uk + lo, cent, counts.astype(np.int64, copy=False))
+    return packed, lo, span
 
 
 #: voxelize counts keys in a dense array (no sort) when the grid has at most this many

@@ -5,7 +5,7 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 from hypothesis.extra.numpy import arrays
 
-from pipeline.voxels import _group_keys, column_max, column_min, voxelize
+from pipeline.voxels import _group_keys, column_max, column_min, packed_keys, voxelize
 
 coords = arrays(np.float64, st.tuples(st.integers(1, 300), st.just(3)), elements=st.floats(-50, 50, allow_nan=False))
 
@@ -25,6 +25,19 @@ def test_index_maps_round_trip(xyz, size):
         assert np.allclose(mean, vox.centroids[:, d])
     # keys are unique
     assert len({tuple(k) for k in vox.keys.tolist()}) == vox.n
+
+
+@settings(max_examples=40, deadline=None)
+@given(coords, st.sampled_from([0.05, 0.1, 0.5]))
+def test_packed_keys_pack_each_points_key_relative_to_the_lowest(xyz, size):
+    origin = (0.3, -1.0, 2.0)
+    keys = np.floor((xyz - np.array(origin)) / size).astype(np.int64)
+    packed, lo, span = packed_keys(xyz, size, origin)
+    rel = keys - keys.min(axis=0)
+    np.testing.assert_array_equal(lo, keys.min(axis=0))
+    np.testing.assert_array_equal(span, rel.max(axis=0) + 1)
+    np.testing.assert_array_equal(packed, (rel[:, 0] * span[1] + rel[:, 1]) * span[2] + rel[:, 2])
+    assert packed.dtype == np.int64
 
 
 def test_shared_grid_origin_gives_same_voxels_for_subsets():
