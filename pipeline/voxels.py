@@ -85,8 +85,8 @@ def packed_keys(xyz: np.ndarray, voxel_size: float, grid_origin) -> tuple[np.nda
     """Each point's voxel as one int64, ``(x * ny + y) * nz + z`` of its integer key
     relative to the lowest key ``lo`` (3,), in a grid of ``span`` (3,) voxels: (packed
     (n,), lo, span). ValueError when the grid has 2**62 voxels or more."""
-    # column by column, in place: each fresh temporary of a block's size costs its page
-    # faults again (no (n, 3) float temporaries, one float buffer for the three columns)
+    # column by column, in place (one float buffer, one int64 column per axis): half the
+    # time and 60 % of the memory of (n, 3) arrays of keys and offsets (bench.kernels)
     buf = np.empty(xyz.shape[0])
     rel = []
     for d in range(3):

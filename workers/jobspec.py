@@ -18,9 +18,9 @@ from pipeline.tiling import TileGrid, plan_grid
 from workers.tiler import check_engine
 from workers.workstore import WorkStore, absolute_url, default_work_dir, own_entry
 
-
 #: the files a job writes into its output folder (:mod:`workers.outputs` writes them)
 OUTPUT_NAMES = ("points.parquet", "labelled.laz", "trees.parquet", "rows.parquet", "gaps.parquet")
+
 
 class _Stopped(OrchardError):
     """A tiled job stopped with its work store kept: ``reason`` says why, ``hint`` how to
