@@ -4,7 +4,8 @@ import numpy as np
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from pipeline.enrichment import shape_features, symmetric_eigen3
+from pipeline.enrichment import neighbourhood_matrix, shape_features, symmetric_eigen3
+from pipeline.woodleaf import neighbourhood_max, smooth
 
 
 def _entries(a: np.ndarray):
@@ -70,3 +71,22 @@ def test_shape_features_of_a_line_a_plane_and_a_blob():
     assert f.planarity[i_plane] > 0.9 and f.scattering[i_plane] < 1e-9
     np.testing.assert_allclose(np.abs(f.normal[i_plane]), [0.0, 0.0, 1.0], atol=1e-9)
     assert f.scattering[i_blob] > 0.2
+
+
+@settings(max_examples=30, deadline=None)
+@given(m=st.integers(1, 400), seed=st.integers(0, 2**31 - 1))
+def test_the_int8_neighbourhood_matrix_gives_the_floats_of_a_float_one(m, seed):
+    """The neighbourhood matrix holds int8 ones (a quarter of a float64 matrix's bytes per
+    entry): every product, sum and maximum taken over it gives the floats a float64
+    matrix of the same entries gives."""
+    rng = np.random.default_rng(seed)
+    nodes = rng.random((m, 3)) * rng.uniform(0.2, 2.0)
+    a = neighbourhood_matrix(nodes, radius=0.15)
+    assert a.dtype == np.int8 and np.all(a.data == 1) and np.all(a.diagonal() == 1)
+    f = a.astype(np.float64)
+    values = rng.random(m)
+    np.testing.assert_array_equal(smooth(values, a), smooth(values, f))
+    np.testing.assert_array_equal(neighbourhood_max(values, a), neighbourhood_max(values, f))
+    got, want = shape_features(nodes, radius=0.15, adjacency=a), shape_features(nodes, radius=0.15, adjacency=f)
+    for name in ("linearity", "planarity", "scattering", "verticality", "neighbours", "normal"):
+        np.testing.assert_array_equal(getattr(got, name), getattr(want, name))
