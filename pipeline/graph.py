@@ -40,7 +40,8 @@ class NodePairs:
 
     Attributes
     ----------
-    pairs : (p, 2) int64, ``pairs[:, 0] < pairs[:, 1]``
+    pairs : (p, 2) int32 (int64 from :func:`voxel_pairs`, or for 2**31 nodes or more),
+        ``pairs[:, 0] < pairs[:, 1]``
     length : (p,) float64 — distance between the two nodes [m]
     groups : (g + 1,) int64 or None
         ``pairs[groups[k]:groups[k + 1]]`` is group k, sorted by (first, second). A
@@ -94,6 +95,8 @@ def node_pairs(
     if nodes.shape[0] == 0:
         return NodePairs(np.zeros((0, 2), np.int64), np.zeros(0))
     pairs = cKDTree(nodes).query_pairs(radius, output_type="ndarray")
+    if nodes.shape[0] < INT32_MAX:  # half the bytes: the pairs are held while the graphs are built
+        pairs = pairs.astype(np.int32)
     return NodePairs(pairs, pair_lengths(nodes, pairs))
 
 

@@ -167,8 +167,9 @@ def _near_centres(xy: np.ndarray, centres: np.ndarray, reach: float) -> np.ndarr
     for dx in (-1, 0, 1):
         for dy in (-1, 0, 1):
             grid[np.clip(cell[:, 0] + dx, 0, shape[0] - 1), np.clip(cell[:, 1] + dy, 0, shape[1] - 1)] = True
-    at = np.floor((xy[inside] - lo) / reach).astype(np.int64)
-    return inside[grid[np.minimum(at[:, 0], shape[0] - 1), np.minimum(at[:, 1], shape[1] - 1)]]
+    # column by column: (n, 2) float temporaries of every point of a tile were its peak
+    ix, iy = (np.minimum(np.floor((xy[inside, d] - lo[d]) / reach).astype(np.int64), shape[d] - 1) for d in (0, 1))
+    return inside[grid[ix, iy]]
 
 
 class _CellIndex:
