@@ -124,7 +124,9 @@ worker_ports=()
 for (( i=1; i<=n_workers; i++ )); do
     port="$(free_port)"
     worker_ports+=("$port")
-    start "worker-$i" dask worker "$scheduler" --host "$host" --name "local-worker-$i" \
+    # env -u: like a container's clean environment; the nanny lets an inherited
+    # MALLOC_* value override its pre-spawn setting
+    start "worker-$i" env -u MALLOC_TRIM_THRESHOLD_ -u MALLOC_MMAP_THRESHOLD_ dask worker "$scheduler" --host "$host" --name "local-worker-$i" \
         --nworkers 1 --nthreads "${ORCHARD_WORKER_THREADS:-1}" \
         --memory-limit "${ORCHARD_WORKER_MEMORY:-2GiB}" \
         --dashboard-address "$host:$port" --local-directory "$data_dir/dask-worker-$i"

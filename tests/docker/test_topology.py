@@ -89,7 +89,9 @@ def topology(tmp_path):
         proc = subprocess.Popen(
             ["bash", str(SCRIPT), "--data-dir", str(data), "--ready-file", str(ready)],
             stdout=logf, stderr=subprocess.STDOUT, start_new_session=True,
-            env=dict(os.environ, ORCHARD_TOPOLOGY_TIMEOUT="90"),
+            # dask's nanny leaves its trim setting in the parent's environment: a test
+            # process that started a LocalCluster passes it on, as here
+            env=dict(os.environ, ORCHARD_TOPOLOGY_TIMEOUT="90", MALLOC_TRIM_THRESHOLD_="65536"),
         )
     try:
         deadline = time.monotonic() + START_TIMEOUT
