@@ -1,12 +1,14 @@
 """The memory budget of one worker: whether a block fits it whole, and otherwise the
 largest tile core whose buffered tiles each fit it.
 
-Whether the block fits whole needs its header's count only (:func:`fits_whole`). The
-tile size counts the points of every buffered tile of the actual grid from a
-:class:`DensitySample` (points per square cell, counted in the file by
+A process's memory follows the points it holds and the nodes of its voxel graph (the
+occupied voxels): :func:`bytes_needed`. Whether the block surely fits whole needs its
+header's count only, every point taken as its own node (:func:`fits_whole`). The tile
+size counts the points and nodes of every buffered tile of the actual grid from a
+:class:`DensitySample` (both per square cell, counted in the file by
 :func:`pipeline.reading.sample_density`): :func:`tile_size_for_sample`. Dense rows, a
-turned block's empty corners and a crowded headland are seen as they are, where the
-header's mean density over the bounding box would hide them.
+turned block's empty corners, a crowded headland and a sparse scan's many nodes per
+point are seen as they are, where the header's mean density would hide them.
 """
 
 from __future__ import annotations
@@ -19,13 +21,17 @@ import numpy as np
 from pipeline.errors import ParameterError
 from pipeline.tiling import min_tile_size
 
-#: peak memory of processing points in one piece, per point [bytes]: reading, the
-#: pipeline and writing the outputs, with headroom over the measured (docs/performance.md)
-BYTES_PER_POINT = 300
+#: peak memory of processing points in one piece, per point [bytes]: reading, per-point
+#: labels and writing the outputs, with headroom over the measured (docs/performance.md)
+BYTES_PER_POINT = 120
 
-#: memory of a worker process whatever it processes [bytes]: the interpreter and its
-#: libraries and fixed-size buffers (docs/performance.md)
-FIXED_BYTES = 200e6
+#: peak memory per node of the voxel graph [bytes]: its edges, their analysis and the
+#: segmentation, with headroom over the measured (docs/performance.md)
+BYTES_PER_NODE = 550
+
+#: memory of a worker process whatever it processes [bytes]: the interpreter, dask and
+#: the libraries, and what the heap keeps between tiles (docs/performance.md)
+FIXED_BYTES = 300e6
 
 #: a count read from part of the file's points is scaled to all of them and raised by
 #: this factor for the sampling error (none when every point was counted);
@@ -39,12 +45,12 @@ MIN_CORE_PER_BUFFER = 1.0
 
 class BudgetError(ParameterError):
     """No tile size keeps a worker within the memory budget: at the smallest tile the
-    buffer allows, a tile's estimated points still need more.
+    buffer allows, a tile's estimated points and nodes still need more.
 
     Attributes
     ----------
     budget : float — bytes one worker may use
-    density : float — the densest buffered tile's point density [points/m^2]
+    density : float — the point density of the buffered tile that needs most [points/m^2]
     tile_size, buffer : float — the smallest tile tried and its buffer [m]
     need : float — estimated bytes of processing such a tile
     """
@@ -58,14 +64,18 @@ class BudgetError(ParameterError):
         self.budget, self.density, self.tile_size, self.buffer, self.need = budget, density, tile_size, buffer, need
 
 
-def bytes_needed(n_points: float, bytes_per_point: float = BYTES_PER_POINT) -> float:
-    """Estimated peak memory [bytes] of a process that processes ``n_points`` at once."""
-    return FIXED_BYTES + n_points * bytes_per_point
+def bytes_needed(n_points, n_nodes=None):
+    """Estimated peak memory [bytes] of a process that processes ``n_points`` at once,
+    whose voxel graph has ``n_nodes`` (at most one a point; None: one a point, the most
+    any ``n_points`` can need). Scalars or arrays alike."""
+    nodes = n_points if n_nodes is None else np.minimum(n_nodes, n_points)
+    return FIXED_BYTES + np.multiply(n_points, BYTES_PER_POINT) + np.multiply(nodes, BYTES_PER_NODE)
 
 
-def fits_whole(n_points: int, budget: float, bytes_per_point: float = BYTES_PER_POINT) -> bool:
-    """Whether processing ``n_points`` in one piece needs no more than ``budget`` [bytes]."""
-    return bytes_needed(n_points, bytes_per_point) <= budget
+def fits_whole(n_points: int, budget: float) -> bool:
+    """Whether processing ``n_points`` in one piece surely needs no more than ``budget``
+    [bytes], from the count alone (every point its own node)."""
+    return bool(bytes_needed(n_points) <= budget)
 
 
 def smallest_tile(buffer: float) -> float:
@@ -76,7 +86,7 @@ def smallest_tile(buffer: float) -> float:
 
 @dataclass(frozen=True)
 class DensitySample:
-    """Points counted per square cell over part (or all) of a block.
+    """Points and voxel-graph nodes counted per square cell over part (or all) of a block.
 
     Attributes
     ----------
@@ -92,6 +102,11 @@ class DensitySample:
         Points counted (the sum of ``counts``).
     n_points : int
         Points of the block (its header's count).
+    nodes : (ny, nx) int64 or None
+        Occupied voxels counted in each cell (by the voxel's centre), each run of points
+        read counting the voxels it occupies: a voxel that several runs reach counts in
+        each, so no tile's nodes are undercounted. None: not counted (every point is
+        taken as its own node, the most it can be).
     """
 
     counts: np.ndarray
@@ -99,6 +114,7 @@ class DensitySample:
     cell: float
     sampled: int
     n_points: int
+    nodes: np.ndarray | None = None
 
     @property
     def exact(self) -> bool:
@@ -122,6 +138,29 @@ def count_cells(x: np.ndarray, y: np.ndarray, *, origin, cell: float, shape: tup
     return np.bincount(j * nx + i, minlength=nx * ny).reshape(ny, nx)
 
 
+def _tile_sums(sample: DensitySample, counts: np.ndarray, tile_size: float, buffer: float, mins, maxs,
+               grid_origin) -> np.ndarray:
+    """``counts`` (cells of ``sample``) summed over every cell each buffered tile's open
+    box overlaps, times the sample's weight and at most the block's points."""
+    # Strategy: a summed-area table of the counts gives any run of cells in four
+    # look-ups; the grid's column and row boxes map to cell ranges once per axis.
+    s, b, c = float(tile_size), float(buffer), sample.cell
+    table = np.zeros((counts.shape[0] + 1, counts.shape[1] + 1), dtype=np.int64)
+    np.cumsum(np.cumsum(counts, axis=0), axis=1, out=table[1:, 1:])
+    ranges = []
+    for d in range(2):
+        k0 = math.floor((float(mins[d]) - grid_origin[d]) / s)
+        k1 = math.floor((float(maxs[d]) - grid_origin[d]) / s)
+        lo = grid_origin[d] + np.arange(k0, k1 + 1, dtype=np.float64) * s - b
+        n_cells = counts.shape[1 - d]
+        first = np.clip(np.floor((lo - sample.origin[d]) / c), 0, n_cells).astype(np.int64)
+        stop = np.clip(np.ceil((lo + s + 2 * b - sample.origin[d]) / c), 0, n_cells).astype(np.int64)
+        ranges.append((first, stop))
+    (x0, x1), (y0, y1) = ranges
+    held = table[y1][:, x1] - table[y0][:, x1] - table[y1][:, x0] + table[y0][:, x0]
+    return np.minimum(held * sample.weight(), float(sample.n_points))
+
+
 def sampled_tile_points(sample: DensitySample, tile_size: float, buffer: float, mins, maxs, grid_origin) -> np.ndarray:
     """Estimated points of every buffered tile of the grid over ``mins``–``maxs`` with
     core ``tile_size`` [m], ``buffer`` [m] and ``grid_origin`` (as
@@ -131,42 +170,42 @@ def sampled_tile_points(sample: DensitySample, tile_size: float, buffer: float, 
     points than it holds, when every point was counted) times :meth:`DensitySample.weight`,
     and is at most the block's count.
     """
-    # Strategy: a summed-area table of the counts gives any run of cells in four
-    # look-ups; the grid's column and row boxes map to cell ranges once per axis.
-    s, b, c = float(tile_size), float(buffer), sample.cell
-    table = np.zeros((sample.counts.shape[0] + 1, sample.counts.shape[1] + 1), dtype=np.int64)
-    np.cumsum(np.cumsum(sample.counts, axis=0), axis=1, out=table[1:, 1:])
-    ranges = []
-    for d in range(2):
-        k0 = math.floor((float(mins[d]) - grid_origin[d]) / s)
-        k1 = math.floor((float(maxs[d]) - grid_origin[d]) / s)
-        lo = grid_origin[d] + np.arange(k0, k1 + 1, dtype=np.float64) * s - b
-        n_cells = sample.counts.shape[1 - d]
-        first = np.clip(np.floor((lo - sample.origin[d]) / c), 0, n_cells).astype(np.int64)
-        stop = np.clip(np.ceil((lo + s + 2 * b - sample.origin[d]) / c), 0, n_cells).astype(np.int64)
-        ranges.append((first, stop))
-    (x0, x1), (y0, y1) = ranges
-    held = table[y1][:, x1] - table[y0][:, x1] - table[y1][:, x0] + table[y0][:, x0]
-    return np.minimum(held * sample.weight(), float(sample.n_points))
+    return _tile_sums(sample, sample.counts, tile_size, buffer, mins, maxs, grid_origin)
 
 
-def tile_size_for_sample(
-    sample: DensitySample,
-    mins,
-    maxs,
-    *,
-    budget: float,
-    buffer: float,
-    grid_origin,
-    bytes_per_point: float = BYTES_PER_POINT,
-) -> float | None:
+def sampled_tile_nodes(sample: DensitySample, tile_size: float, buffer: float, mins, maxs, grid_origin) -> np.ndarray:
+    """Estimated voxel-graph nodes of every buffered tile of the grid (as
+    :func:`sampled_tile_points`), shape (nrows, ncols): the counted nodes of every cell
+    its box overlaps, at most its points; its points when the sample has no node counts."""
+    points = sampled_tile_points(sample, tile_size, buffer, mins, maxs, grid_origin)
+    if sample.nodes is None:
+        return points
+    return np.minimum(_tile_sums(sample, sample.nodes, tile_size, buffer, mins, maxs, grid_origin), points)
+
+
+def sampled_tile_bytes(sample: DensitySample, tile_size: float, buffer: float, mins, maxs, grid_origin) -> np.ndarray:
+    """Estimated peak memory [bytes] of processing every buffered tile of the grid (as
+    :func:`sampled_tile_points`), shape (nrows, ncols): :func:`bytes_needed` of its points
+    and of its nodes (every point its own node when the sample has no node counts)."""
+    return bytes_needed(sampled_tile_points(sample, tile_size, buffer, mins, maxs, grid_origin),
+                        sampled_tile_nodes(sample, tile_size, buffer, mins, maxs, grid_origin))
+
+
+def block_bytes(sample: DensitySample) -> float:
+    """Estimated peak memory [bytes] of processing the whole block in one piece."""
+    nodes = None if sample.nodes is None else min(float(sample.nodes.sum()) * sample.weight(), sample.n_points)
+    return float(bytes_needed(sample.n_points, nodes))
+
+
+def tile_size_for_sample(sample: DensitySample, mins, maxs, *, budget: float, buffer: float, grid_origin) -> float | None:
     """The largest tile core whose every buffered tile keeps processing within ``budget``,
-    counted from a sample of the block's points, or None when the whole block fits.
+    counted from a sample of the block's points (and nodes), or None when the whole
+    block fits.
 
     Parameters
     ----------
     sample : DensitySample
-        The block's points counted per cell (:func:`pipeline.reading.sample_density`).
+        The block's points and nodes counted per cell (:func:`pipeline.reading.sample_density`).
     mins, maxs : (2,) or (3,) float
         The block's bounds [m].
     budget : float
@@ -175,8 +214,6 @@ def tile_size_for_sample(
         Tile buffer [m].
     grid_origin : (2,) float
         The grid's corner [m], as the job will plan it.
-    bytes_per_point : float
-        Peak memory per point processed [bytes].
 
     Returns
     -------
@@ -189,19 +226,19 @@ def tile_size_for_sample(
     BudgetError
         Even at the smallest tile some buffered tile's estimate needs more than the budget.
     """
-    if fits_whole(sample.n_points, budget, bytes_per_point):
+    if block_bytes(sample) <= budget:
         return None
     smallest = smallest_tile(buffer)
     if smallest + 2.0 * buffer >= max(float(maxs[0]) - float(mins[0]), float(maxs[1]) - float(mins[1])):
         return None  # the smallest tile and its buffer hold the whole block: tiles would save nothing
-    most = max(budget - FIXED_BYTES, 0.0) / bytes_per_point  # points one buffered tile may hold
     gx, gy = float(grid_origin[0]), float(grid_origin[1])
     widest = math.ceil(max(float(maxs[0]) - float(mins[0]), float(maxs[1]) - float(mins[1]))) + 1
     # the densest tile is not monotone in the size (the grid shifts against the rows):
     # every whole metre is tried from the largest down
     for size in range(int(widest), int(smallest) - 1, -1):
-        if sampled_tile_points(sample, float(size), buffer, mins, maxs, (gx, gy)).max() <= most:
+        if sampled_tile_bytes(sample, float(size), buffer, mins, maxs, (gx, gy)).max() <= budget:
             return float(size)
-    worst = float(sampled_tile_points(sample, smallest, buffer, mins, maxs, (gx, gy)).max())
-    raise BudgetError(budget, worst / (smallest + 2.0 * buffer) ** 2, smallest, buffer,
-                      bytes_needed(worst, bytes_per_point))
+    need = sampled_tile_bytes(sample, smallest, buffer, mins, maxs, (gx, gy))
+    worst = np.unravel_index(int(np.argmax(need)), need.shape)
+    points = float(sampled_tile_points(sample, smallest, buffer, mins, maxs, (gx, gy))[worst])
+    raise BudgetError(budget, points / (smallest + 2.0 * buffer) ** 2, smallest, buffer, float(need[worst]))

@@ -20,6 +20,7 @@ from pipeline.blockinfo import BlockInfo, input_error, one_line, read_info
 from pipeline.budget import DensitySample, count_cells
 from pipeline.errors import InputError
 from pipeline.jobparams import CHUNK_POINTS, first_sampled
+from pipeline.voxels import packed_keys
 
 #: decode only X, Y, Z of LAZ points (the other fields' layers are skipped)
 _XYZ_ONLY = laspy.DecompressionSelection.XY_RETURNS_CHANNEL | laspy.DecompressionSelection.Z
@@ -274,8 +275,9 @@ SAMPLE_CELL = 0.25
 MAX_SAMPLE_CELLS = 2048
 
 
-def sample_density(path, *, info: BlockInfo | None = None, runs: int = SAMPLE_RUNS, fraction: float = SAMPLE_FRACTION,
-                   las_run: int = LAS_RUN_POINTS, chunk_points: int = CHUNK_POINTS) -> DensitySample:
+def sample_density(path, *, info: BlockInfo | None = None, voxel_size: float | None = None, runs: int = SAMPLE_RUNS,
+                   fraction: float = SAMPLE_FRACTION, las_run: int = LAS_RUN_POINTS,
+                   chunk_points: int = CHUNK_POINTS) -> DensitySample:
     """Count the points of a block per square cell: all of them, read in order, or with
     ``fraction`` below 1, from evenly spread runs of its points (``runs`` or the
     ``fraction`` of them, whichever is more). A run is one LAZ chunk, or ``las_run``
@@ -283,11 +285,16 @@ def sample_density(path, *, info: BlockInfo | None = None, runs: int = SAMPLE_RU
     ``runs``, when half of them or more would be read, and in a LAZ file that is not
     ``info.seekable`` (a chunk there is reached only by decoding every one before it).
 
+    With a ``voxel_size`` [m] the voxels of that size (a grid from the block origin) the
+    points occupy are counted too, per cell of their centre: each run (``chunk_points``
+    when every point is counted) counts its own distinct voxels, so a voxel that several
+    runs reach counts in each (:attr:`DensitySample.nodes`).
+
     Cells are :data:`SAMPLE_CELL` wide (whole multiples of it, for a block wider than
     :data:`MAX_SAMPLE_CELLS` cells), their corner at the block origin (``floor`` of the
     header minimum), so whole-metre tile edges from that origin fall on cell edges. Only
-    X and Y are decoded where the point format stores them apart; memory is one run
-    (``chunk_points`` when every point is counted) and the counts.
+    X and Y (and Z, for the voxels) are decoded where the point format stores them apart;
+    memory is one run (``chunk_points`` when every point is counted) and the counts.
 
     Raises
     ------
@@ -300,6 +307,8 @@ def sample_density(path, *, info: BlockInfo | None = None, runs: int = SAMPLE_RU
     nx = int(math.floor((info.maxs[0] - info.origin[0]) / cell)) + 1
     ny = int(math.floor((info.maxs[1] - info.origin[1]) / cell)) + 1
     counts = np.zeros((ny, nx), dtype=np.int64)
+    nodes = None if voxel_size is None else np.zeros((ny, nx), dtype=np.int64)
+    selection = _XY_ONLY if voxel_size is None else _XYZ_ONLY
     scale, shift = info.scales, np.asarray(info.offsets) - np.asarray(info.origin)
     run, picked = int(chunk_points), None  # None: every point, in order
     if fraction < 1.0 and info.seekable:
@@ -310,21 +319,39 @@ def sample_density(path, *, info: BlockInfo | None = None, runs: int = SAMPLE_RU
             picked = np.unique(np.linspace(0, n_runs - 1, n_read).round().astype(np.int64))
     sampled = 0
     # local coordinates (the origin's cell corner at 0): no UTM-sized sums
-    records = (arr for _, arr in _records(info, run, _XY_ONLY)) if picked is None else _picked_runs(info, run, picked)
+    records = (arr for _, arr in _records(info, run, selection)) if picked is None else _picked_runs(info, run, picked,
+                                                                                                      selection)
     for arr in records:
-        counts += count_cells(arr["X"] * scale[0] + shift[0], arr["Y"] * scale[1] + shift[1],
-                              origin=(0.0, 0.0), cell=cell, shape=(ny, nx))
+        x, y = arr["X"] * scale[0] + shift[0], arr["Y"] * scale[1] + shift[1]
+        counts += count_cells(x, y, origin=(0.0, 0.0), cell=cell, shape=(ny, nx))
+        if nodes is not None:
+            nodes += _voxel_cells(np.column_stack([x, y, arr["Z"] * scale[2] + shift[2]]), voxel_size, cell, (ny, nx))
         sampled += len(arr)
     return DensitySample(counts=counts, origin=(float(info.origin[0]), float(info.origin[1])),
-                         cell=cell, sampled=sampled, n_points=info.n_points)
+                         cell=cell, sampled=sampled, n_points=info.n_points, nodes=nodes)
 
 
-def _picked_runs(info: BlockInfo, run: int, picked: np.ndarray) -> Iterator[np.ndarray]:
-    """X and Y of the runs of ``run`` points numbered ``picked``, each read from its
-    first point through the file's chunk table."""
+def _voxel_cells(xyz: np.ndarray, voxel_size: float, cell: float, shape: tuple[int, int]) -> np.ndarray:
+    """Distinct voxels of ``voxel_size`` that the points ``xyz`` (local frame, grid at 0)
+    occupy, counted per square cell of ``cell`` by their centres, shape ``shape``."""
+    import pyarrow as pa  # here: only the budget's count needs it, not every reader
+    import pyarrow.compute as pc
+
+    packed, lo, span = packed_keys(xyz, voxel_size, (0.0, 0.0, 0.0))
+    uniq = pc.unique(pa.array(packed)).to_numpy()  # a hash: no sort of the run
+    del packed
+    yz = span[1] * span[2]
+    centre_x = (uniq // yz + lo[0] + 0.5) * voxel_size
+    centre_y = ((uniq // span[2]) % span[1] + lo[1] + 0.5) * voxel_size
+    return count_cells(centre_x, centre_y, origin=(0.0, 0.0), cell=cell, shape=shape)
+
+
+def _picked_runs(info: BlockInfo, run: int, picked: np.ndarray, selection=_XY_ONLY) -> Iterator[np.ndarray]:
+    """The runs of ``run`` points numbered ``picked`` (decoding the layers of
+    ``selection``), each read from its first point through the file's chunk table."""
     start = 0
     try:
-        with laspy.open(info.path, read_evlrs=False, decompression_selection=_XY_ONLY) as reader:
+        with laspy.open(info.path, read_evlrs=False, decompression_selection=selection) as reader:
             for k in picked:
                 start = int(k) * run
                 reader.seek(start)

@@ -162,9 +162,9 @@ def auto_tiled(spec: JobSpec, info: BlockInfo | None = None) -> JobSpec:
     """``spec`` with a tile size chosen for its memory budget when it has none and the
     whole block would not fit the budget (else ``spec``).
 
-    The size comes from the block's points counted per square cell
-    (:func:`pipeline.reading.sample_density`, read only for a block that does not fit
-    whole) and the job's actual grid (:func:`pipeline.budget.tile_size_for_sample`).
+    The size comes from the block's points and voxel-graph nodes counted per square cell
+    (:func:`pipeline.reading.sample_density`, read only for a block that does not surely
+    fit whole) and the job's actual grid (:func:`pipeline.budget.tile_size_for_sample`).
     ``info``: the block's header, read from ``spec.input_path`` when not given.
     Raises ParameterError (a :class:`pipeline.budget.BudgetError` when no tile fits),
     InputError (truncated or corrupt point data met while counting).
@@ -176,7 +176,8 @@ def auto_tiled(spec: JobSpec, info: BlockInfo | None = None) -> JobSpec:
     if fits_whole(info.n_points, tiling.memory_budget):
         return spec
     buffer = JobParams(pipeline=spec.params, tiling=tiling).buffer()
-    size = tile_size_for_sample(sample_density(info.path, info=info), info.mins, info.maxs,
+    sample = sample_density(info.path, info=info, voxel_size=spec.params.graph.voxel_size)
+    size = tile_size_for_sample(sample, info.mins, info.maxs,
                                 budget=tiling.memory_budget, buffer=buffer, grid_origin=grid_origin(tiling, info))
     return spec if size is None else dataclasses.replace(spec, tiling=tiling.model_copy(update={"tile_size": size}))
 

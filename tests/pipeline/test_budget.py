@@ -1,6 +1,6 @@
 """The memory-budget rules: by hand on counted cells, against the header-only rule on a
-turned block, and the sampled counts against the true points of every buffered tile of
-a generated block."""
+turned block, and the sampled counts against the true points and voxels of every
+buffered tile of a generated block."""
 
 from __future__ import annotations
 
@@ -14,6 +14,7 @@ from hypothesis import strategies as st
 
 from pipeline.blockinfo import read_info
 from pipeline.budget import (
+    BYTES_PER_NODE,
     BYTES_PER_POINT,
     FIXED_BYTES,
     SAMPLE_MARGIN,
@@ -21,6 +22,8 @@ from pipeline.budget import (
     DensitySample,
     bytes_needed,
     count_cells,
+    sampled_tile_bytes,
+    sampled_tile_nodes,
     sampled_tile_points,
     tile_size_for_sample,
 )
@@ -47,7 +50,7 @@ def test_the_sampled_rule_by_hand():
     assert sampled_tile_points(sample, 60.0, 5.0, (0, 0), (300, 300), (0, 0)).max() == 100 * 70**2
     assert sampled_tile_points(sample, 61.0, 5.0, (0, 0), (300, 300), (0, 0)).max() == 100 * 71**2  # > 500 k
     # the header-only rule used before doubled the mean density for rows it could not see
-    assert _header_rule(9_000_000, (300, 300), budget, 5.0) == 40.0
+    assert _header_rule(9_000_000, (300, 300), 500_000, 5.0) == 40.0
     # a box edge between cell edges counts the whole cell (never fewer points than held)
     assert sampled_tile_points(sample, 60.0, 4.5, (0, 0), (300, 300), (0, 0)).max() == 100 * 70**2
     # half of the points counted: each stands for two, with the margin for sampling error
@@ -61,6 +64,34 @@ def test_the_sampled_rule_by_hand():
     assert err.value.tile_size == 5.0 and err.value.need == bytes_needed(100 * 15**2) and err.value.density == 100.0
 
 
+def test_nodes_per_point_set_the_tile_by_hand():
+    # 100 points a metre everywhere; as a sparse scan every point is its own voxel-graph
+    # node, as a dense one 10 points share a node. A budget of 100 * 70^2 points' worth at
+    # one node a point allows 70 m buffered tiles (a 60 m core) on the sparse block, and on
+    # the dense one (120 + 550) / (120 + 55) times the area: sqrt(18,760) = 136.97 m, a 126 m core
+    assert (BYTES_PER_POINT, BYTES_PER_NODE) == (120, 550)  # the figures below
+    points = np.full((300, 300), 100)
+    sparse = DensitySample(counts=points, origin=(0.0, 0.0), cell=1.0, sampled=9_000_000, n_points=9_000_000,
+                           nodes=points.copy())
+    dense = dataclasses.replace(sparse, nodes=points // 10)
+    budget = bytes_needed(100 * 70**2)
+    assert budget == FIXED_BYTES + 670 * 100 * 70**2
+    assert tile_size_for_sample(sparse, (0, 0), (300, 300), budget=budget, buffer=5.0, grid_origin=(0, 0)) == 60.0
+    assert tile_size_for_sample(dense, (0, 0), (300, 300), budget=budget, buffer=5.0, grid_origin=(0, 0)) == 126.0
+    assert sampled_tile_bytes(dense, 126.0, 5.0, (0, 0), (300, 300), (0, 0)).max() == FIXED_BYTES + 175 * 100 * 136**2
+    # no node counts: every point its own node, as the sparse block
+    unknown = dataclasses.replace(sparse, nodes=None)
+    assert tile_size_for_sample(unknown, (0, 0), (300, 300), budget=budget, buffer=5.0, grid_origin=(0, 0)) == 60.0
+    # more nodes than points counted (runs meeting the same voxels) count as one a point
+    doubled = dataclasses.replace(sparse, nodes=2 * points)
+    assert np.array_equal(sampled_tile_bytes(doubled, 60.0, 5.0, (0, 0), (300, 300), (0, 0)),
+                          sampled_tile_bytes(sparse, 60.0, 5.0, (0, 0), (300, 300), (0, 0)))
+    # the whole dense block fits what its nodes need, though not what its points alone would
+    whole = bytes_needed(9_000_000, 900_000)
+    assert tile_size_for_sample(dense, (0, 0), (300, 300), budget=whole, buffer=5.0, grid_origin=(0, 0)) is None
+    assert tile_size_for_sample(unknown, (0, 0), (300, 300), budget=whole, buffer=5.0, grid_origin=(0, 0)) is not None
+
+
 def test_a_grid_origin_between_cell_edges_counts_every_cell_a_tile_touches():
     sample = DensitySample(counts=np.full((300, 300), 100), origin=(0.0, 0.0), cell=1.0,
                            sampled=9_000_000, n_points=9_000_000)
@@ -68,11 +99,12 @@ def test_a_grid_origin_between_cell_edges_counts_every_cell_a_tile_touches():
     assert sampled_tile_points(sample, 60.0, 5.0, (0, 0), (300, 300), (0.5, 0.5)).max() == 100 * 71**2
 
 
-def _header_rule(n: int, maxs, budget: float, buffer: float) -> float:
-    """The tile core the rule used before chose [m]: from the header alone, twice the mean
-    density over the bounding box (from 0 to ``maxs``) everywhere."""
+def _header_rule(n: int, maxs, most: int, buffer: float) -> float:
+    """The tile core the rule used before chose [m] for buffered tiles of at most ``most``
+    points: from the header alone, twice the mean density over the bounding box (from 0
+    to ``maxs``) everywhere."""
     density = 2.0 * n / (float(maxs[0]) * float(maxs[1]))
-    return float(np.floor(np.sqrt((budget - FIXED_BYTES) / BYTES_PER_POINT / density) - 2.0 * buffer))
+    return float(np.floor(np.sqrt(most / density) - 2.0 * buffer))
 
 
 def _rows(n: int, length: float, width: float, angle_deg: float, seed: int = 0) -> np.ndarray:
@@ -101,7 +133,7 @@ def test_a_turned_block_is_tiled_by_its_local_density_not_its_bounding_box():
     budget = bytes_needed(most)
     for angle in (0.0, 45.0):
         xy = _rows(n, 200.0, 40.0, angle)
-        header = _header_rule(n, xy.max(axis=0), budget, 5.0)
+        header = _header_rule(n, xy.max(axis=0), most, 5.0)
         side = int(np.ceil(xy.max())) + 1
         sample = DensitySample(count_cells(xy[:, 0], xy[:, 1], origin=(0, 0), cell=1.0, shape=(side, side)),
                                origin=(0.0, 0.0), cell=1.0, sampled=n, n_points=n)
@@ -186,3 +218,52 @@ def test_the_sampled_counts_bound_the_true_tiles(blocks, rotation, size, shift, 
     if sample.exact:
         assert (est >= true).all()
     assert true.max() <= est.max() <= 2.5 * true.max()
+
+
+def _voxel_centres(xyz: np.ndarray, voxel_size: float) -> np.ndarray:
+    """Centres (x, y) of the distinct voxels of ``voxel_size`` (grid at 0) that ``xyz`` occupies."""
+    keys = np.unique(np.floor(xyz / voxel_size).astype(np.int64), axis=0)
+    return (keys[:, :2] + 0.5) * voxel_size
+
+
+def _stored_local(info) -> np.ndarray:
+    """The block's points in its local frame, by the stored integers' arithmetic (a point
+    on a voxel face falls on the same side as in the count)."""
+    import laspy
+
+    las = laspy.read(info.path)
+    ints = np.column_stack([las.X, las.Y, las.Z])
+    return ints * np.asarray(info.scales) + (np.asarray(info.offsets) - np.asarray(info.origin))
+
+
+def test_one_run_counts_every_cells_distinct_voxels(blocks):
+    info, _ = blocks[0.0]
+    local = _stored_local(info)
+    sample = sample_density(info.path, info=info, voxel_size=0.1, chunk_points=info.n_points)
+    centres = _voxel_centres(local, 0.1)
+    assert np.array_equal(sample.counts, sample_density(info.path, info=info).counts)
+    assert np.array_equal(sample.nodes, count_cells(centres[:, 0], centres[:, 1], origin=(0, 0), cell=0.25,
+                                                    shape=sample.counts.shape))
+    assert 0.3 * info.n_points < sample.nodes.sum() < info.n_points  # a sparse block: most points their own voxel
+
+
+@settings(max_examples=15, deadline=None)
+@given(rotation=st.sampled_from([0.0, 45.0]), size=st.integers(9, 30), run=st.sampled_from([3_000, 20_000]),
+       voxel=st.sampled_from([0.05, 0.1, 0.2]))
+def test_counted_nodes_bound_every_tiles_voxels(blocks, rotation, size, run, voxel):
+    # runs of a few thousand points each count their own voxels: a voxel two runs reach
+    # counts twice, so no buffered tile's voxels (by centre) are undercounted, and on a
+    # block written tree by tree the overcount stays small
+    info, _ = blocks[rotation]
+    local = _stored_local(info)
+    sample = sample_density(info.path, info=info, voxel_size=voxel, chunk_points=run)
+    centres = _voxel_centres(local, voxel) + np.asarray(info.origin[:2])
+    grid = plan_grid(info.mins, info.maxs, tile_size=float(size), buffer=4.15, grid_origin=info.origin[:2])
+    inside = np.zeros(grid.n_tiles, dtype=np.int64)
+    for t in grid.tiles():
+        x0, y0, x1, y1 = t.buffered
+        inside[t.id] = np.count_nonzero((centres[:, 0] > x0) & (centres[:, 0] < x1) & (centres[:, 1] > y0) & (centres[:, 1] < y1))
+    true = inside.reshape(grid.nrows, grid.ncols)
+    est = sampled_tile_nodes(sample, float(size), 4.15, info.mins, info.maxs, info.origin[:2])
+    assert (est >= true).all()
+    assert sample.nodes.sum() <= 1.5 * len(centres)

@@ -15,12 +15,16 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 
 from pipeline.budget import (
+    BYTES_PER_NODE,
     BYTES_PER_POINT,
     FIXED_BYTES,
     MIN_CORE_PER_BUFFER,
     BudgetError,
     DensitySample,
+    block_bytes,
     bytes_needed,
+    sampled_tile_bytes,
+    sampled_tile_nodes,
     sampled_tile_points,
     smallest_tile,
     tile_size_for_sample,
@@ -68,30 +72,38 @@ def test_a_budget_below_the_smallest_tile_is_refused_with_its_figures():
     st.integers(5, 120),
     st.integers(0, 2**32 - 1),
     st.floats(0.0, 10.0),
-    st.floats(2.1e8, 3e9),
+    st.floats(3.1e8, 3e9),
     st.tuples(st.floats(-3.0, 0.0), st.floats(-3.0, 0.0)),
+    st.sampled_from([None, 0.05, 0.3, 1.0]),
 )
-def test_the_chosen_tile_keeps_the_budget_and_is_the_largest_that_does(width, depth, seed, buffer, budget, origin):
+def test_the_chosen_tile_keeps_the_budget_and_is_the_largest_that_does(width, depth, seed, buffer, budget, origin,
+                                                                       nodes_per_point):
     rng = np.random.default_rng(seed)
     counts = rng.integers(0, 20_000, size=(depth, width)) * (rng.random((depth, width)) < 0.7)
     n = int(counts.sum())
-    sample = DensitySample(counts=counts, origin=(0.0, 0.0), cell=1.0, sampled=n, n_points=n)
+    # nodes per cell around the given share of its points (cells differ: rows against alleys)
+    nodes = None if nodes_per_point is None else np.round(counts * nodes_per_point * rng.uniform(0.2, 1.8, counts.shape)).astype(np.int64)
+    sample = DensitySample(counts=counts, origin=(0.0, 0.0), cell=1.0, sampled=n, n_points=n, nodes=nodes)
     mins, maxs = (0.0, 0.0), (float(width), float(depth))
-    most = (budget - FIXED_BYTES) / BYTES_PER_POINT
     try:
         size = tile_size_for_sample(sample, mins, maxs, budget=budget, buffer=buffer, grid_origin=origin)
     except BudgetError as e:
         assert e.need > budget and e.tile_size == smallest_tile(buffer)
-        assert sampled_tile_points(sample, e.tile_size, buffer, mins, maxs, origin).max() > most
+        assert sampled_tile_bytes(sample, e.tile_size, buffer, mins, maxs, origin).max() == e.need
         return
     if size is None:  # the block fits, or is no larger than the smallest tile and its buffer
-        assert bytes_needed(n) <= budget or smallest_tile(buffer) + 2 * buffer >= max(width, depth)
+        assert block_bytes(sample) <= budget or smallest_tile(buffer) + 2 * buffer >= max(width, depth)
         return
-    assert bytes_needed(n) > budget
+    assert block_bytes(sample) > budget
     assert size == int(size) and size >= MIN_CORE_PER_BUFFER * buffer and size >= smallest_tile(buffer)
-    assert sampled_tile_points(sample, size, buffer, mins, maxs, origin).max() <= most
+    assert sampled_tile_bytes(sample, size, buffer, mins, maxs, origin).max() <= budget
     for larger in range(int(size) + 1, max(width, depth) + 2):
-        assert sampled_tile_points(sample, float(larger), buffer, mins, maxs, origin).max() > most
+        assert sampled_tile_bytes(sample, float(larger), buffer, mins, maxs, origin).max() > budget
+    # each tile's bytes by the model, from its points and nodes (at most one a point)
+    points = sampled_tile_points(sample, size, buffer, mins, maxs, origin)
+    held = points if nodes is None else np.minimum(sampled_tile_nodes(sample, size, buffer, mins, maxs, origin), points)
+    assert np.allclose(sampled_tile_bytes(sample, size, buffer, mins, maxs, origin),
+                       FIXED_BYTES + BYTES_PER_POINT * points + BYTES_PER_NODE * held)
 
 
 # ---------------------------------------------------------------- on a generated block
@@ -115,19 +127,24 @@ def block(tmp_path_factory):
 
 def _budget(info) -> float:
     """A budget the whole block does not fit, with room for a few tiles of 16 m or so:
-    the header-only rule used before refuses it (its smallest tile at twice the mean
-    density needs more), the densest tiles the block really has do not."""
-    return FIXED_BYTES + 0.575 * info.n_points * BYTES_PER_POINT
+    a header-only rule refuses it (its smallest tile at twice the mean density needs
+    more), the densest tiles the block really has do not."""
+    from pipeline.reading import sample_density
+
+    return FIXED_BYTES + 0.575 * (block_bytes(sample_density(info.path, info=info, voxel_size=0.1)) - FIXED_BYTES)
 
 
-def _densest_tile(path, info, size: float, buffer: float) -> int:
+def _densest_tile(path, info, size: float, buffer: float) -> tuple[int, int]:
+    """Points and occupied 10 cm voxels of the buffered tile of the grid that holds most points."""
     from pipeline.reading import read_points
     from pipeline.tiling import buffered_tiles, plan_grid
 
     xyz, _ = read_points(path, origin=(0.0, 0.0, 0.0))
     grid = plan_grid(info.mins, info.maxs, tile_size=size, buffer=buffer, grid_origin=info.origin[:2])
-    _, tile = buffered_tiles(xyz, grid)
-    return int(np.bincount(tile).max())
+    point, tile = buffered_tiles(xyz, grid)
+    densest = int(np.argmax(np.bincount(tile)))
+    mine = xyz[point[tile == densest]]
+    return len(mine), len(np.unique(np.floor(mine / 0.1).astype(np.int64), axis=0))
 
 
 def test_a_block_within_the_budget_is_left_whole_and_one_above_it_is_tiled(block, tmp_path):
@@ -140,17 +157,18 @@ def test_a_block_within_the_budget_is_left_whole_and_one_above_it_is_tiled(block
     spec = auto_tiled(JobSpec(str(path), str(tmp_path / "o"), params=params, tiling=TilingParams(worker_memory=_budget(info) / 1e9)), info)
     size = spec.tiling.tile_size
     assert size is not None and size >= MIN_CORE_PER_BUFFER * params.reach()
-    # every buffered tile of the job's grid holds no more points than the budget allows
-    assert bytes_needed(_densest_tile(str(path), info, size, params.reach())) <= _budget(info)
-    assert _old_header_rule_refuses(info, _budget(info), params.reach())
+    # every buffered tile of the job's grid holds no more points and voxels than the budget allows
+    points, voxels = _densest_tile(str(path), info, size, params.reach())
+    assert bytes_needed(points, voxels) <= _budget(info)
+    assert _header_rule_refuses(info, _budget(info), params.reach())
 
 
-def _old_header_rule_refuses(info, budget: float, buffer: float) -> bool:
-    """Whether the rule used before refused ``budget``: from the header alone, 400 bytes a
-    point at twice the mean density over the bounding box, for its smallest tile (a core
-    of two buffers)."""
+def _header_rule_refuses(info, budget: float, buffer: float) -> bool:
+    """Whether a rule from the header alone refuses ``budget``: twice the mean density
+    over the bounding box, every point its own node, for its smallest tile (a core of
+    two buffers), as the rule before the counted one."""
     area = (info.maxs[0] - info.mins[0]) * (info.maxs[1] - info.mins[1])
-    return FIXED_BYTES + 2.0 * info.n_points / area * (math.ceil(2 * buffer) + 2 * buffer) ** 2 * 400 > budget
+    return bytes_needed(2.0 * info.n_points / area * (math.ceil(2 * buffer) + 2 * buffer) ** 2) > budget
 
 
 @pytest.mark.slow
@@ -237,7 +255,7 @@ def test_a_budget_that_cannot_work_is_one_line_exit_2_before_any_output(block, t
     assert code == 2 and len(err.strip().splitlines()) == 1 and words in err, err
     assert not (tmp_path / "o").exists()
     if "too small" in words:
-        assert "(--worker-memory 0.3 or more)" in err  # the smallest tile's need, rounded up
+        assert "(--worker-memory 0.4 or more)" in err  # the smallest tile's need, 0.322 GB, rounded up
 
 
 @pytest.mark.slow
