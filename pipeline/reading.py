@@ -334,12 +334,15 @@ def sample_density(path, *, info: BlockInfo | None = None, voxel_size: float | N
 def _voxel_cells(xyz: np.ndarray, voxel_size: float, cell: float, shape: tuple[int, int]) -> np.ndarray:
     """Distinct voxels of ``voxel_size`` that the points ``xyz`` (local frame, grid at 0)
     occupy, counted per square cell of ``cell`` by their centres, shape ``shape``."""
-    import pyarrow as pa  # here: only the budget's count needs it, not every reader
-    import pyarrow.compute as pc
-
     packed, lo, span = packed_keys(xyz, voxel_size, (0.0, 0.0, 0.0))
-    uniq = pc.unique(pa.array(packed)).to_numpy()  # a hash: no sort of the run
-    del packed
+    # sorted in place and kept where the key changes: a quarter of np.unique's time on a
+    # run of 2 M points, and half the memory of a hash of its keys (docs/performance.md)
+    packed.sort()
+    changes = np.empty(len(packed), dtype=bool)
+    changes[:1] = True
+    np.not_equal(packed[1:], packed[:-1], out=changes[1:])
+    uniq = packed[changes]
+    del packed, changes
     yz = span[1] * span[2]
     centre_x = (uniq // yz + lo[0] + 0.5) * voxel_size
     centre_y = ((uniq // span[2]) % span[1] + lo[1] + 0.5) * voxel_size
