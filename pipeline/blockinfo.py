@@ -143,14 +143,8 @@ def read_info(path) -> BlockInfo:
         or point format, a CRS whose unit is not the metre (feet, degrees).
     """
     p = Path(str(path))
-    if not str(path):
-        raise InputError("no input file given")
-    if not p.is_file():
-        if p.is_dir():
-            raise input_error(p, "is a folder; give a .las or .laz file")
-        raise input_error(p, "not a regular file (a device or pipe)" if p.exists() else "no such file")
     # every size, count and offset is checked against the file before laspy walks them
-    layout = lasheader.check_header(p)
+    layout = lasheader.check_file(p)
     size, version = layout.file_size, layout.version
     try:  # the header and VLRs only: no EVLRs, no LAZ decompressor (it reads the chunk table)
         with open(p, "rb") as f:

@@ -19,7 +19,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from pipeline.errors import ParameterError
-from pipeline.tiling import min_tile_size
+from pipeline.tilelimits import min_tile_size
 
 #: peak memory of processing points in one piece, per point [bytes]: reading, per-point
 #: labels and writing the outputs, with headroom over the measured (docs/performance.md)
@@ -80,7 +80,7 @@ def fits_whole(n_points: int, budget: float) -> bool:
 
 def smallest_tile(buffer: float) -> float:
     """Smallest tile core chosen for a budget [m]: whole metres, at least
-    :data:`MIN_CORE_PER_BUFFER` buffers, :func:`pipeline.tiling.min_tile_size` and 1 m."""
+    :data:`MIN_CORE_PER_BUFFER` buffers, :func:`pipeline.tilelimits.min_tile_size` and 1 m."""
     return float(math.ceil(max(MIN_CORE_PER_BUFFER * buffer, min_tile_size(buffer), 1.0)))
 
 

@@ -16,7 +16,7 @@ from typing import Literal
 from pydantic import Field, model_validator
 
 from pipeline.params import PipelineParams, _Model
-from pipeline.tiling import check_buffer, check_grid_origin, check_split_buffer, check_tiling
+from pipeline.tilelimits import check_buffer, check_grid_origin, check_split_buffer, check_tiling
 
 #: points read from a block at a time (bounded memory)
 CHUNK_POINTS = 2_000_000

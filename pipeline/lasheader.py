@@ -129,6 +129,25 @@ def _user_id(raw: bytes) -> str:
     return raw.split(b"\0", 1)[0].decode("latin-1")
 
 
+def check_file(path) -> HeaderLayout:
+    """:func:`check_header` of ``path`` once it is named and is a regular file.
+
+    Raises
+    ------
+    InputError
+        No path, a folder, a device or pipe, no such file, or a header
+        :func:`check_header` refuses.
+    """
+    p = Path(str(path))
+    if not str(path):
+        raise InputError("no input file given")
+    if not p.is_file():
+        if p.is_dir():
+            raise _fail(p, "is a folder; give a .las or .laz file")
+        raise _fail(p, "not a regular file (a device or pipe)" if p.exists() else "no such file")
+    return check_header(p)
+
+
 def check_header(path) -> HeaderLayout:
     """Check the structure of a LAS/LAZ file before any library parses it.
 

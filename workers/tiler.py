@@ -22,7 +22,8 @@ from pipeline.blockinfo import BlockInfo
 from pipeline.errors import ParameterError
 from pipeline.jobparams import CHUNK_POINTS, first_sampled, sample_stride
 from pipeline.reading import check_bounds, iter_raw, read_raw_range, to_local
-from pipeline.tiling import TileGrid, buffered_tiles, check_split_buffer, core_tile
+from pipeline.tilelimits import check_split_buffer
+from pipeline.tiling import TileGrid, buffered_tiles, core_tile
 from workers.workstore import WorkStore
 
 #: One record per (point, tile): stored integers, source index, core flag.

@@ -185,12 +185,16 @@ def _check_same_job(args: argparse.Namespace) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
-    # the pipeline (scipy, pyarrow) is imported once the input and options are checked:
-    # a bad input fails in a fraction of the time
+    # the pipeline (numpy, laspy, scipy, pyarrow) is imported once the input's header and
+    # the options are checked: a bad input fails in a fraction of the time
+    params = pipeline_params_from_args(args)
+    if not (args.rerun_tile or args.resume):
+        from pipeline.lasheader import check_file
+
+        check_file(args.input)
     from pipeline.budget import BudgetError
     from workers.jobspec import JobSpec, auto_tiled, check_job
 
-    params = pipeline_params_from_args(args)
     _check_cluster_options(args)
     if args.rerun_tile or args.resume:
         from workers.replay import finish_job, resume_job, run_tile

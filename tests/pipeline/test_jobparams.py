@@ -8,7 +8,7 @@ from pydantic import ValidationError
 from pipeline.errors import ParameterError
 from pipeline.jobparams import JobParams, TilingParams
 from pipeline.params import PipelineParams, SegmentParams
-from pipeline.tiling import MAX_COPIES, copies_per_point, min_tile_size
+from pipeline.tilelimits import MAX_COPIES, copies_per_point, min_tile_size
 
 
 def test_a_buffer_below_the_reach_says_which_parameter_its_value_and_limit():

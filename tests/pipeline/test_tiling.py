@@ -9,16 +9,8 @@ from hypothesis import strategies as st
 
 from pipeline.errors import ParameterError
 from pipeline.params import PipelineParams, SegmentParams
-from pipeline.tiling import (
-    MAX_COPIES,
-    buffered_tiles,
-    check_buffer,
-    check_tiling,
-    copies_per_point,
-    core_tile,
-    min_tile_size,
-    plan_grid,
-)
+from pipeline.tilelimits import MAX_COPIES, check_buffer, check_tiling, copies_per_point, min_tile_size
+from pipeline.tiling import buffered_tiles, core_tile, plan_grid
 
 
 def _brute_force(xy, grid):
