@@ -15,6 +15,7 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass
+from functools import cached_property
 
 import numpy as np
 
@@ -127,6 +128,22 @@ class DensitySample:
         scale = self.n_points / max(self.sampled, 1)
         return scale if self.exact else scale * SAMPLE_MARGIN
 
+    # summed-area tables, made once: the rule sums them for every tile size it tries
+    @cached_property
+    def point_table(self) -> np.ndarray:
+        return _summed_area(self.counts)
+
+    @cached_property
+    def node_table(self) -> np.ndarray | None:
+        return None if self.nodes is None else _summed_area(self.nodes)
+
+
+def _summed_area(counts: np.ndarray) -> np.ndarray:
+    """(ny + 1, nx + 1) int64: ``[j, i]`` is the sum of ``counts[:j, :i]``."""
+    table = np.zeros((counts.shape[0] + 1, counts.shape[1] + 1), dtype=np.int64)
+    np.cumsum(np.cumsum(counts, axis=0), axis=1, out=table[1:, 1:])
+    return table
+
 
 def count_cells(x: np.ndarray, y: np.ndarray, *, origin, cell: float, shape: tuple[int, int]) -> np.ndarray:
     """Points per cell of a grid of ``shape`` (ny, nx) square cells of side ``cell`` [m]
@@ -138,21 +155,20 @@ def count_cells(x: np.ndarray, y: np.ndarray, *, origin, cell: float, shape: tup
     return np.bincount(j * nx + i, minlength=nx * ny).reshape(ny, nx)
 
 
-def _tile_sums(sample: DensitySample, counts: np.ndarray, tile_size: float, buffer: float, mins, maxs,
+def _tile_sums(sample: DensitySample, table: np.ndarray, tile_size: float, buffer: float, mins, maxs,
                grid_origin) -> np.ndarray:
-    """``counts`` (cells of ``sample``) summed over every cell each buffered tile's open
-    box overlaps, times the sample's weight and at most the block's points."""
+    """Counts of the cells of ``sample`` (their summed-area ``table``) summed over every
+    cell each buffered tile's open box overlaps, times the sample's weight and at most
+    the block's points."""
     # Strategy: a summed-area table of the counts gives any run of cells in four
     # look-ups; the grid's column and row boxes map to cell ranges once per axis.
     s, b, c = float(tile_size), float(buffer), sample.cell
-    table = np.zeros((counts.shape[0] + 1, counts.shape[1] + 1), dtype=np.int64)
-    np.cumsum(np.cumsum(counts, axis=0), axis=1, out=table[1:, 1:])
     ranges = []
     for d in range(2):
         k0 = math.floor((float(mins[d]) - grid_origin[d]) / s)
         k1 = math.floor((float(maxs[d]) - grid_origin[d]) / s)
         lo = grid_origin[d] + np.arange(k0, k1 + 1, dtype=np.float64) * s - b
-        n_cells = counts.shape[1 - d]
+        n_cells = table.shape[1 - d] - 1
         first = np.clip(np.floor((lo - sample.origin[d]) / c), 0, n_cells).astype(np.int64)
         stop = np.clip(np.ceil((lo + s + 2 * b - sample.origin[d]) / c), 0, n_cells).astype(np.int64)
         ranges.append((first, stop))
@@ -170,7 +186,7 @@ def sampled_tile_points(sample: DensitySample, tile_size: float, buffer: float, 
     points than it holds, when every point was counted) times :meth:`DensitySample.weight`,
     and is at most the block's count.
     """
-    return _tile_sums(sample, sample.counts, tile_size, buffer, mins, maxs, grid_origin)
+    return _tile_sums(sample, sample.point_table, tile_size, buffer, mins, maxs, grid_origin)
 
 
 def sampled_tile_nodes(sample: DensitySample, tile_size: float, buffer: float, mins, maxs, grid_origin) -> np.ndarray:
@@ -180,7 +196,7 @@ def sampled_tile_nodes(sample: DensitySample, tile_size: float, buffer: float, m
     points = sampled_tile_points(sample, tile_size, buffer, mins, maxs, grid_origin)
     if sample.nodes is None:
         return points
-    return np.minimum(_tile_sums(sample, sample.nodes, tile_size, buffer, mins, maxs, grid_origin), points)
+    return np.minimum(_tile_sums(sample, sample.node_table, tile_size, buffer, mins, maxs, grid_origin), points)
 
 
 def sampled_tile_bytes(sample: DensitySample, tile_size: float, buffer: float, mins, maxs, grid_origin) -> np.ndarray:
