@@ -34,8 +34,8 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--out", required=True, metavar="DIR", help="output folder for trees.parquet, points.parquet, trees.csv and report.html")
     g = parser.add_argument_group("tiling and workers")
     add_tiling_options(g, ("tile_size", "buffer", "grid_origin", "engine", "workers", "worker_memory"), {
-        "tile_size": "default: one tile if the block fits --worker-memory, else tiles chosen from its point density "
-                     "to fit it; 0: one tile whatever the block's size",
+        "tile_size": "default: one tile if the block fits --worker-memory, else tiles chosen from its points and "
+                     "voxels to fit it; 0: one tile whatever the block's size",
         "buffer": "max crown radius + 1 m + edge radius; also the minimum",
         "grid_origin": "negative: --grid-origin=-1000,-2000",
         "workers": f"default {tiling_default('workers')}, at most 4 per CPU",
