@@ -114,24 +114,30 @@ def _check_cluster_options(args: argparse.Namespace) -> None:
         raise ParameterError("--worker-memory chooses the tile size: give it or --tile-size, not both")
     if args.tile_size == 0 and args.scheduler is not None:
         raise ParameterError("--tile-size 0 processes the block in this process; a cluster (--scheduler) needs tiles")
-    tiled = bool(args.tile_size) or args.scheduler is not None
     if args.workers is not None:
         most = 4 * (os.cpu_count() or 1)
         if not 1 <= args.workers <= most:
             raise ParameterError(f"--workers must be from 1 to {most} (4 per CPU of this machine), not {args.workers}")
         if args.scheduler is not None:
             raise ParameterError("--workers is for the embedded cluster; a running one (--scheduler) brings its own workers")
-        if not tiled:
-            raise ParameterError("--workers needs --tile-size: a block processed in one piece runs in this process")
     for flag, given in (("--dask-host", args.dask_host is not None), ("--no-dashboard", not args.dashboard)):
         if given and args.scheduler is not None:
             raise ParameterError(f"{flag} is for the embedded cluster; a running one (--scheduler) was started with its own")
-        if given and not tiled:
-            raise ParameterError(f"{flag} needs --tile-size: a block processed in one piece runs in this process")
-    if args.grid_origin is not None and not args.tile_size:
-        raise ParameterError("--grid-origin needs --tile-size: a block processed in one piece has no tile grid")
-    if args.engine is not None and not tiled:
-        raise ParameterError("--engine needs --tile-size: a block processed in one piece is not tiled")
+    if args.tile_size == 0:  # one piece for sure; without a tile size the budget decides (_check_tiled_options)
+        _check_tiled_options(args, tiled=False)
+
+
+def _check_tiled_options(args: argparse.Namespace, *, tiled: bool) -> None:
+    """ParameterError for options of a tiled run given to one processed in one piece."""
+    if tiled:
+        return
+    why = ("the block fits the memory budget (--worker-memory) and is processed in one piece in this process"
+           if args.tile_size is None else "--tile-size 0 processes the block in one piece in this process")
+    for flag, given in (("--workers", args.workers is not None), ("--dask-host", args.dask_host is not None),
+                        ("--no-dashboard", not args.dashboard), ("--grid-origin", args.grid_origin is not None),
+                        ("--engine", args.engine is not None), ("--work", args.work is not None)):
+        if given:
+            raise ParameterError(f"{flag} needs tiles: {why}; give --tile-size to tile it")
 
 
 def _tiling(args: argparse.Namespace):
@@ -244,8 +250,7 @@ def run(args: argparse.Namespace) -> int:
                 f"tiles of {spec.tiling.tile_size:g} m (--tile-size 0: one piece)",
                 file=sys.stderr,
             )
-    if args.work and not tiled:  # it went unused, without a word
-        raise ParameterError("--work needs --tile-size: a block processed in one piece has no tiles to keep")
+    _check_tiled_options(args, tiled=tiled)  # they went unused, without a word
     if args.work:
         from workers.workstore import check_work_url
 

@@ -262,6 +262,7 @@ def test_a_budget_that_cannot_work_is_one_line_exit_2_before_any_output(block, t
 def test_orchard_process_tiles_a_block_above_its_budget(block, tmp_path, capsys):
     path, info = block
     gb = _budget(info) / 1e9
-    code, err = _process(capsys, path, "--out", tmp_path / "o", "--segment-max-crown-radius", 3, "--worker-memory", gb)
+    code, err = _process(capsys, path, "--out", tmp_path / "o", "--segment-max-crown-radius", 3, "--worker-memory", gb,
+                         "--workers", 1, "--no-dashboard")  # options of a tiled run, taken when the budget tiles
     assert code == 0, err
-    assert "tiles of 16 m" in err and "1 tile(s)" not in err
+    assert "tiles of 16 m" in err and "1 tile(s)" not in err and "dask dashboard: none" in err

@@ -153,7 +153,7 @@ def test_a_block_too_wide_for_one_ground_raster(tmp_path, capsys, extra):
     [
         (["--graph-voxel-size", "-1"], "--graph-voxel-size"),
         (["--graph-voxel-size", "nan"], "--graph-voxel-size: Input should be a finite number"),
-        (["--work", "w"], "--work needs --tile-size"),
+        (["--work", "w"], "--work needs tiles: the block fits the memory budget"),
         (["--tile-size", "20", "--buffer", "1e308"], "--buffer: Input should be less than or equal to 1000"),  # was an internal OverflowError
         (["--tile-size", "20", "--grid-origin=1e21,1e21"], "grid origin must be finite and within"),
         (["--graph-edge-radius", "5", "--graph-voxel-size", "0.1"], "--graph-edge-radius: Input should be less than or equal to 2"),
@@ -162,11 +162,12 @@ def test_a_block_too_wide_for_one_ground_raster(tmp_path, capsys, extra):
         (["--tile-size", "20", "--workers", "0"], "--workers must be from 1 to"),
         (["--tile-size", "20", "--workers", "100000"], "--workers must be from 1 to"),
         # options that went unused without a word (and --engine pdal "worked" with no PDAL)
-        (["--workers", "2"], "--workers needs --tile-size"),
+        (["--workers", "2"], "--workers needs tiles: the block fits the memory budget"),
+        (["--tile-size", "0", "--workers", "2"], "--workers needs tiles: --tile-size 0 processes the block in one piece"),
         (["--tile-size", "20", "--workers", "2", "--scheduler", "tcp://127.0.0.1:1"], "brings its own workers"),
-        (["--grid-origin=0,0"], "--grid-origin needs --tile-size"),
-        (["--engine", "pdal"], "--engine needs --tile-size"),
-        (["--engine", "laspy"], "--engine needs --tile-size"),
+        (["--grid-origin=0,0"], "--grid-origin needs tiles"),
+        (["--engine", "pdal"], "--engine needs tiles"),
+        (["--engine", "laspy"], "--engine needs tiles"),
         (["--rerun-tile", "3"], "--work"),
         (["--tile-size", "20", "--engine", "pdal"], "pdal"),
         (["--tile-size", "20", "--work", "memory://w1"], "lives in this process only"),
