@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import argparse
+import dataclasses
 import math
 import os
 import sys
@@ -250,6 +251,8 @@ def run(args: argparse.Namespace) -> int:
                 f"tiles of {spec.tiling.tile_size:g} m (--tile-size 0: one piece)",
                 file=sys.stderr,
             )
+        else:  # the budget is decided: the job would count the block's points again
+            spec = dataclasses.replace(spec, tiling=spec.tiling.model_copy(update={"worker_memory": None}))
     _check_tiled_options(args, tiled=tiled)  # they went unused, without a word
     if args.work:
         from workers.workstore import check_work_url

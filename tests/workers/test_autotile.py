@@ -239,6 +239,22 @@ def test_tile_size_0_keeps_a_block_whole_whatever_the_budget_says(block, tmp_pat
     assert "1 tile(s)" in err and "tiles of" not in err
 
 
+def test_a_block_counted_and_kept_whole_is_counted_once(block, tmp_path, capsys, monkeypatch):
+    # between what the header surely allows (every point a node) and what its counted
+    # voxels need: the command counts it, keeps it whole, and the job must not count again
+    import workers.jobspec as jobspec
+    from pipeline.reading import sample_density
+
+    path, info = block
+    need = block_bytes(sample_density(str(path), info=info, voxel_size=0.1))
+    assert need < 0.39e9 < bytes_needed(info.n_points)
+    calls = []
+    monkeypatch.setattr(jobspec, "sample_density", lambda *a, **k: calls.append(1) or sample_density(*a, **k))
+    code, err = _process(capsys, path, "--out", tmp_path / "o", "--segment-max-crown-radius", 3, "--worker-memory", 0.39)
+    assert code == 0, err
+    assert "1 tile(s)" in err and len(calls) == 1
+
+
 @pytest.mark.parametrize(
     "argv, words",
     [
