@@ -16,6 +16,7 @@ import sys
 from pipeline.errors import NoTreesError, OrchardError
 from service.commands import COMMANDS
 from service.db.errors import NotFoundError
+from service.interrupts import ctrl_c
 from service.wording import cli_words
 
 
@@ -84,30 +85,35 @@ def main(argv: list[str] | None = None) -> int:
     if not args.command:
         parser.print_help()
         return 2
-    try:
-        return int(modules[args.command].run(args) or 0)
-    except KeyboardInterrupt:
-        print("orchard: interrupted", file=sys.stderr)
-        return 130
-    except (NoTreesError, NotFoundError) as exc:
-        print(f"orchard {args.command}: {cli_words(exc)}", file=sys.stderr)
-        return 3
-    except OrchardError as exc:
-        print(f"orchard {args.command}: {cli_words(exc)}", file=sys.stderr)
-        return 1 if _run_failed(exc) else 2
-    except Exception as exc:  # noqa: BLE001 - last line of defence: no tracebacks
-        if _validation_error(exc):
-            print(f"orchard {args.command}: {_validation_message(exc)}", file=sys.stderr)
-            return 2
-        if os.environ.get("ORCHARD_DEBUG") == "1":
-            raise
-        from service.wording import disk_full
+    with ctrl_c() as interrupted:
+        args.interrupted = interrupted  # a job run watches it as its cancel flag
+        try:
+            return int(modules[args.command].run(args) or 0)
+        except KeyboardInterrupt:
+            print("orchard: interrupted", file=sys.stderr)
+            return 130
+        except (NoTreesError, NotFoundError) as exc:
+            print(f"orchard {args.command}: {cli_words(exc)}", file=sys.stderr)
+            return 3
+        except OrchardError as exc:
+            if interrupted.is_set():  # the job stopped on it (a KeyboardInterrupt lost in a callback)
+                print("orchard: interrupted", file=sys.stderr)
+                return 130
+            print(f"orchard {args.command}: {cli_words(exc)}", file=sys.stderr)
+            return 1 if _run_failed(exc) else 2
+        except Exception as exc:  # noqa: BLE001 - last line of defence: no tracebacks
+            if _validation_error(exc):
+                print(f"orchard {args.command}: {_validation_message(exc)}", file=sys.stderr)
+                return 2
+            if os.environ.get("ORCHARD_DEBUG") == "1":
+                raise
+            from service.wording import disk_full
 
-        if disk_full(exc):  # the machine's trouble, said as such
-            print(f"orchard {args.command}: the disk is full ({exc}); free some space and run it again", file=sys.stderr)
+            if disk_full(exc):  # the machine's trouble, said as such
+                print(f"orchard {args.command}: the disk is full ({exc}); free some space and run it again", file=sys.stderr)
+                return 1
+            print(f"orchard {args.command}: internal error: {type(exc).__name__}: {exc}", file=sys.stderr)
             return 1
-        print(f"orchard {args.command}: internal error: {type(exc).__name__}: {exc}", file=sys.stderr)
-        return 1
 
 
 if __name__ == "__main__":

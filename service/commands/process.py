@@ -220,7 +220,8 @@ def run(args: argparse.Namespace) -> int:
                 from workers.cluster import close_client, make_client
 
                 client = make_client(args.scheduler)
-            outcome = resume_job(args.work, out_dir=args.out, client=client, progress=_Bar())
+            outcome = resume_job(args.work, out_dir=args.out, client=client, progress=_Bar(),
+                                 cancel=getattr(args, "interrupted", None))
         finally:
             if client is not None:
                 close_client(client)
@@ -273,7 +274,8 @@ def run(args: argparse.Namespace) -> int:
             print(f"dask dashboard: {link or 'none'}", file=sys.stderr)
         from workers.job import run_job
 
-        outcome = run_job(spec, client=client, progress=_Bar() if tiled else None)  # TileFailed: exit 1 (service.cli)
+        outcome = run_job(spec, client=client, progress=_Bar() if tiled else None,  # TileFailed: exit 1 (service.cli)
+                          cancel=getattr(args, "interrupted", None))
     finally:
         if client is not None:
             close_client(client)
