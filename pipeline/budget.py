@@ -203,8 +203,9 @@ def sampled_tile_bytes(sample: DensitySample, tile_size: float, buffer: float, m
     """Estimated peak memory [bytes] of processing every buffered tile of the grid (as
     :func:`sampled_tile_points`), shape (nrows, ncols): :func:`bytes_needed` of its points
     and of its nodes (every point its own node when the sample has no node counts)."""
-    return bytes_needed(sampled_tile_points(sample, tile_size, buffer, mins, maxs, grid_origin),
-                        sampled_tile_nodes(sample, tile_size, buffer, mins, maxs, grid_origin))
+    points = sampled_tile_points(sample, tile_size, buffer, mins, maxs, grid_origin)
+    nodes = None if sample.nodes is None else _tile_sums(sample, sample.node_table, tile_size, buffer, mins, maxs, grid_origin)
+    return bytes_needed(points, nodes)  # nodes at most the points: bytes_needed caps them
 
 
 def block_bytes(sample: DensitySample) -> float:
