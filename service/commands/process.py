@@ -95,10 +95,10 @@ def _print_trees(trees: dict, stream=None) -> None:
 
 
 def _check_cluster_options(args: argparse.Namespace) -> None:
-    """ParameterError for tiling and cluster options that would go unused without a
-    word (a block processed in one piece has no grid, tiler or embedded workers; a job
-    resumed from --work keeps the grid it was planned with and runs here or on
-    --scheduler)."""
+    """ParameterError for tiling and cluster options that contradict each other or would
+    go unused without a word (a job resumed from --work keeps the grid it was planned
+    with and runs here or on --scheduler). Those a block processed in one piece leaves
+    unused are refused once the budget has decided: :func:`_check_tiled_options`."""
     if args.rerun_tile or args.resume:
         given = [flag for flag, value in (("--tile-size", args.tile_size), ("--buffer", args.buffer),
                                           ("--grid-origin", args.grid_origin), ("--engine", args.engine),
@@ -124,8 +124,6 @@ def _check_cluster_options(args: argparse.Namespace) -> None:
     for flag, given in (("--dask-host", args.dask_host is not None), ("--no-dashboard", not args.dashboard)):
         if given and args.scheduler is not None:
             raise ParameterError(f"{flag} is for the embedded cluster; a running one (--scheduler) was started with its own")
-    if args.tile_size == 0:  # one piece for sure; without a tile size the budget decides (_check_tiled_options)
-        _check_tiled_options(args, tiled=False)
 
 
 def _check_tiled_options(args: argparse.Namespace, *, tiled: bool) -> None:
@@ -254,7 +252,7 @@ def run(args: argparse.Namespace) -> int:
             )
         else:  # the budget is decided: the job would count the block's points again
             spec = dataclasses.replace(spec, tiling=spec.tiling.model_copy(update={"worker_memory": None}))
-    _check_tiled_options(args, tiled=tiled)  # they went unused, without a word
+    _check_tiled_options(args, tiled=tiled)  # they went unused, without a word (the budget decided, or --tile-size 0)
     if args.work:
         from workers.workstore import check_work_url
 
