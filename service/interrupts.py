@@ -5,6 +5,10 @@ Inside a callback (the embedded dask scheduler's garbage-collection diagnostics 
 this process) the exception is only printed as "Exception ignored" and lost, and a tiled
 run went on to its end. Within :func:`ctrl_c`, a SIGINT also sets an event that a job
 watches as its cancel flag, and such a lost interrupt is not printed.
+
+An interrupt that leaves an ``exec`` of source text (dataclasses and namedtuples build
+their methods so, at import) makes CPython 3.11 end ``python -m ...`` by killing itself
+with SIGINT even where the interrupt was handled; :func:`ctrl_c` clears that mark.
 """
 
 from __future__ import annotations
@@ -43,3 +47,12 @@ def ctrl_c():
     finally:
         signal.signal(signal.SIGINT, signal.default_int_handler)
         sys.unraisablehook = previous_hook
+        if interrupted.is_set():
+            _forget_unhandled_interrupt()
+
+
+def _forget_unhandled_interrupt() -> None:
+    # CPython marks "unhandled KeyboardInterrupt" when one leaves any exec() of a string,
+    # caught or not, and Py_RunMain then exits with SIGINT instead of the status asked
+    # for; every exec() of a string clears the mark as it starts.
+    exec("")  # noqa: S102

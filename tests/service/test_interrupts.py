@@ -5,9 +5,11 @@ from __future__ import annotations
 import gc
 import os
 import signal
+import subprocess
 import sys
 import threading
 import time
+from pathlib import Path
 
 import pytest
 
@@ -16,7 +18,8 @@ from service.interrupts import ctrl_c
 
 @pytest.fixture
 def python_sigint():
-    """Python's own SIGINT handler, whatever the suite was started with."""
+    """Python's own SIGINT handler, whatever the suite was started with (and so the
+    default one in a command a test starts)."""
     previous = signal.signal(signal.SIGINT, signal.default_int_handler)
     try:
         yield
@@ -67,3 +70,30 @@ def test_an_ignored_sigint_stays_ignored():
         assert not interrupted.is_set()
     finally:
         signal.signal(signal.SIGINT, previous)
+
+
+_INTERRUPTED_IN_EXEC = """
+import os, signal, sys
+from service.interrupts import ctrl_c
+
+def main():
+    with ctrl_c():
+        try:  # as when the signal lands while an import builds a dataclass
+            exec("os.kill(os.getpid(), signal.SIGINT)\\nimport time\\ntime.sleep(5)")
+        except KeyboardInterrupt:
+            return 130
+    return 0
+
+if __name__ == "__main__":
+    sys.exit(main())
+"""
+
+
+def test_an_interrupt_handled_inside_an_exec_ends_with_the_status_asked_for(tmp_path, python_sigint):
+    # seen as a flaky "killed by SIGINT" of `python -m service.cli process` under load
+    (tmp_path / "interrupted_in_exec.py").write_text(_INTERRUPTED_IN_EXEC)
+    repo = Path(__file__).resolve().parents[2]
+    env = {**os.environ, "PYTHONPATH": os.pathsep.join([str(tmp_path), str(repo)])}
+    proc = subprocess.run([sys.executable, "-m", "interrupted_in_exec"], env=env, timeout=60,
+                          capture_output=True, text=True)
+    assert proc.returncode == 130, proc.stderr
