@@ -79,6 +79,12 @@ def fits_whole(n_points: int, budget: float) -> bool:
     return bool(bytes_needed(n_points) <= budget)
 
 
+def surely_tiled(n_points: int, budget: float | None) -> bool:
+    """Whether ``n_points`` in one piece need more than ``budget`` [bytes] even with no
+    voxel-graph node at all (None: no budget, never)."""
+    return budget is not None and bool(bytes_needed(n_points, 0) > budget)
+
+
 def smallest_tile(buffer: float) -> float:
     """Smallest tile core chosen for a budget [m]: whole metres, at least
     :data:`MIN_CORE_PER_BUFFER` buffers, :func:`pipeline.tilelimits.min_tile_size` and 1 m."""

@@ -302,10 +302,7 @@ def sample_density(path, *, info: BlockInfo | None = None, voxel_size: float | N
         The point data is truncated or corrupt.
     """
     info = info or read_info(path)
-    extent = max(info.maxs[0] - info.origin[0], info.maxs[1] - info.origin[1])
-    cell = SAMPLE_CELL * max(1, math.ceil(extent / MAX_SAMPLE_CELLS / SAMPLE_CELL))
-    nx = int(math.floor((info.maxs[0] - info.origin[0]) / cell)) + 1
-    ny = int(math.floor((info.maxs[1] - info.origin[1]) / cell)) + 1
+    cell, (ny, nx) = _density_grid(info)
     counts = np.zeros((ny, nx), dtype=np.int64)
     nodes = None if voxel_size is None else np.zeros((ny, nx), dtype=np.int64)
     selection = _XY_ONLY if voxel_size is None else _XYZ_ONLY
@@ -322,13 +319,72 @@ def sample_density(path, *, info: BlockInfo | None = None, voxel_size: float | N
     records = (arr for _, arr in _records(info, run, selection)) if picked is None else _picked_runs(info, run, picked,
                                                                                                       selection)
     for arr in records:
-        x, y = arr["X"] * scale[0] + shift[0], arr["Y"] * scale[1] + shift[1]
-        counts += count_cells(x, y, origin=(0.0, 0.0), cell=cell, shape=(ny, nx))
-        if nodes is not None:
-            nodes += _voxel_cells(np.column_stack([x, y, arr["Z"] * scale[2] + shift[2]]), voxel_size, cell, (ny, nx))
+        _count_run(arr["X"], arr["Y"], arr["Z"] if nodes is not None else None, scale, shift, voxel_size, cell,
+                   counts, nodes)
         sampled += len(arr)
     return DensitySample(counts=counts, origin=(float(info.origin[0]), float(info.origin[1])),
                          cell=cell, sampled=sampled, n_points=info.n_points, nodes=nodes)
+
+
+def _density_grid(info: BlockInfo) -> tuple[float, tuple[int, int]]:
+    """Cell side [m] and shape (ny, nx) of a block's density sample."""
+    extent = max(info.maxs[0] - info.origin[0], info.maxs[1] - info.origin[1])
+    cell = SAMPLE_CELL * max(1, math.ceil(extent / MAX_SAMPLE_CELLS / SAMPLE_CELL))
+    nx = int(math.floor((info.maxs[0] - info.origin[0]) / cell)) + 1
+    ny = int(math.floor((info.maxs[1] - info.origin[1]) / cell)) + 1
+    return cell, (ny, nx)
+
+
+def _count_run(X, Y, Z, scale, shift, voxel_size, cell, counts, nodes) -> None:
+    """Add one run's points (stored integers ``X``, ``Y``, ``Z``; ``Z`` None: points only)
+    to ``counts`` and its distinct voxels to ``nodes``, in place."""
+    x, y = X * scale[0] + shift[0], Y * scale[1] + shift[1]
+    counts += count_cells(x, y, origin=(0.0, 0.0), cell=cell, shape=counts.shape)
+    if Z is not None:
+        nodes += _voxel_cells(np.column_stack([x, y, Z * scale[2] + shift[2]]), voxel_size, cell, counts.shape)
+
+
+def count_range(path, start: int, count: int, *, info: BlockInfo | None = None,
+                voxel_size: float | None = None) -> tuple[np.ndarray, np.ndarray, np.ndarray | None]:
+    """Points ``[start, start + count)`` counted per cell of :func:`sample_density`'s grid
+    as one run (a task: workers count their own ranges of a file in parallel).
+
+    Ranges of ``CHUNK_POINTS`` from the first point give, summed with
+    :func:`sample_from_ranges`, the same sample as :func:`sample_density` counting every
+    point. Returns the cells holding points (flat indices into the grid), their points
+    and (with a ``voxel_size``) their voxels, or None.
+
+    Raises
+    ------
+    InputError
+        The range lies beyond the points the file holds, or its data is corrupt.
+    """
+    info = info or read_info(path)
+    cell, shape = _density_grid(info)
+    ints = read_raw_range(info.path, start, count, info=info)
+    counts = np.zeros(shape, dtype=np.int64)
+    nodes = None if voxel_size is None else np.zeros(shape, dtype=np.int64)
+    _count_run(ints[:, 0], ints[:, 1], ints[:, 2] if nodes is not None else None, info.scales,
+               np.asarray(info.offsets) - np.asarray(info.origin), voxel_size, cell, counts, nodes)
+    # a run covers a strip of the block: only its cells are returned (a voxel's centre can
+    # lie in a cell that holds none of its points)
+    held = np.flatnonzero(counts if nodes is None else (counts != 0) | (nodes != 0))
+    return held, counts.ravel()[held], None if nodes is None else nodes.ravel()[held]
+
+
+def sample_from_ranges(info: BlockInfo, parts) -> DensitySample:
+    """The :class:`DensitySample` of a block whose every point was counted by
+    :func:`count_range` tasks, from their results ``parts``."""
+    cell, shape = _density_grid(info)
+    counts = np.zeros(shape, dtype=np.int64)
+    nodes = None
+    for held, points, voxels in parts:  # a part's cells are distinct
+        counts.ravel()[held] += points
+        if voxels is not None:
+            nodes = np.zeros(shape, dtype=np.int64) if nodes is None else nodes
+            nodes.ravel()[held] += voxels
+    return DensitySample(counts=counts, origin=(float(info.origin[0]), float(info.origin[1])),
+                         cell=cell, sampled=int(counts.sum()), n_points=info.n_points, nodes=nodes)
 
 
 def _voxel_cells(xyz: np.ndarray, voxel_size: float, cell: float, shape: tuple[int, int]) -> np.ndarray:

@@ -227,9 +227,10 @@ def kept(summary: dict, store: WorkStore, tile: dict) -> dict:
     return summary
 
 
-def gather(client, futures: list, cancel, store: WorkStore) -> list:
+def gather(client, futures: list, cancel, store: WorkStore | None) -> list:
     """The results of dask ``futures`` as they finish (in that order), stopping like
-    :func:`_completed` on a cancel or a cluster left without workers."""
+    :func:`_completed` on a cancel or a cluster left without workers (``store``: the job's
+    work store, None before it has one)."""
     with contextlib.closing(_completed(client, dict.fromkeys(futures), cancel, store)) as done:
         return [fut.result() for _, fut in done]
 
@@ -258,6 +259,10 @@ def _completed(client, futures: dict, cancel, store: WorkStore):
                     if client.scheduler_info().get("workers"):
                         last_worker_seen = now
                     elif now - last_worker_seen > NO_WORKER_TIMEOUT:
+                        if store is None:  # nothing kept to resume from
+                            raise ClusterLost(f"no dask worker for {NO_WORKER_TIMEOUT:.0f} s (they died or left; "
+                                              f"their logs say why) with {len(pending)} tasks to go",
+                                              hint="; start workers and submit the job again") from None
                         raise ClusterLost(
                             f"no dask worker for {NO_WORKER_TIMEOUT:.0f} s (they died or left; their logs say why) "
                             f"with {len(pending)} tiles to go",

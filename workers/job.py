@@ -23,6 +23,7 @@ import dataclasses
 import threading
 import time
 from collections.abc import Callable
+from functools import partial
 from pathlib import Path
 
 import numpy as np
@@ -32,6 +33,7 @@ from pipeline.jobparams import REPORT_POINTS, sample_stride
 from pipeline.parquet import sampled_tree_ids
 from pipeline.reading import read_points
 from pipeline.tiling import TileGrid
+from workers.counting import count_block
 from workers.dispatch import block_ground_stats, check_cancel, gather, process_tiles, settle_slot_trees
 from workers.jobspec import (
     ClusterLost,
@@ -74,7 +76,10 @@ def run_job(
     """
     t0 = time.perf_counter()
     info = read_info(spec.input_path)
-    spec = auto_tiled(spec, info)
+    count = None  # with a cluster its workers count the block, each its own ranges of the file
+    if client is not None:
+        count = partial(count_block, client=client, gather=lambda futures: gather(client, futures, cancel, None))
+    spec = auto_tiled(spec, info, count=count)
     if spec.tiling.tile_size is None and client is None:
         return _run_single(spec, info, t0, progress, cancel)
     return _run_tiled(spec, info, client, t0, progress, cancel)

@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import dataclasses
 import os
+from collections.abc import Callable
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -158,7 +159,7 @@ def check_out_dir(out_dir) -> None:
         raise ParameterError(f"cannot write to output folder {out}: {parent} is not writable")
 
 
-def auto_tiled(spec: JobSpec, info: BlockInfo | None = None) -> JobSpec:
+def auto_tiled(spec: JobSpec, info: BlockInfo | None = None, *, count: Callable | None = None) -> JobSpec:
     """``spec`` with a tile size chosen for its memory budget when it has none and the
     whole block would not fit the budget (else ``spec``).
 
@@ -166,6 +167,8 @@ def auto_tiled(spec: JobSpec, info: BlockInfo | None = None) -> JobSpec:
     (:func:`pipeline.reading.sample_density`, read only for a block that does not surely
     fit whole) and the job's actual grid (:func:`pipeline.budget.tile_size_for_sample`).
     ``info``: the block's header, read from ``spec.input_path`` when not given.
+    ``count(info, voxel_size)`` → the density sample: how to count (default: in this
+    process; :func:`workers.counting.count_block` with a client counts on the cluster).
     Raises ParameterError (a :class:`pipeline.budget.BudgetError` when no tile fits),
     InputError (truncated or corrupt point data met while counting).
     """
@@ -176,7 +179,8 @@ def auto_tiled(spec: JobSpec, info: BlockInfo | None = None) -> JobSpec:
     if fits_whole(info.n_points, tiling.memory_budget):
         return spec
     buffer = JobParams(pipeline=spec.params, tiling=tiling).buffer()
-    sample = sample_density(info.path, info=info, voxel_size=spec.params.graph.voxel_size)
+    voxel_size = spec.params.graph.voxel_size
+    sample = count(info, voxel_size) if count else sample_density(info.path, info=info, voxel_size=voxel_size)
     size = tile_size_for_sample(sample, info.mins, info.maxs,
                                 budget=tiling.memory_budget, buffer=buffer, grid_origin=grid_origin(tiling, info))
     return spec if size is None else dataclasses.replace(spec, tiling=tiling.model_copy(update={"tile_size": size}))

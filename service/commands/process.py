@@ -8,6 +8,7 @@ import math
 import os
 import sys
 import time
+from functools import partial
 from pathlib import Path
 
 from pipeline.errors import ParameterError
@@ -196,9 +197,8 @@ def run(args: argparse.Namespace) -> int:
     if not (args.rerun_tile or args.resume):
         from pipeline.lasheader import check_file
 
-        check_file(args.input)
-    from pipeline.budget import BudgetError
-    from workers.jobspec import JobSpec, auto_tiled, check_job
+        n_points = check_file(args.input).point_count
+    from workers.jobspec import JobSpec, check_job
 
     _check_cluster_options(args)
     if args.rerun_tile or args.resume:
@@ -236,22 +236,17 @@ def run(args: argparse.Namespace) -> int:
         inject_failure=tuple(args.inject_failure or ()),
     )
     tiled = bool(args.tile_size) or args.scheduler is not None
+    count_on_cluster = False  # a block that surely needs tiles is counted by the workers
     if spec.tiling.tile_size is None and not tiled:
-        try:
-            spec = auto_tiled(spec)  # bad input fails here, before anything else
-        except BudgetError as exc:
-            need = math.ceil(exc.need / 1e8) / 10  # GB, rounded up
-            raise ParameterError(exc.message, hint=f"{exc.hint} ({{tiling.worker_memory}} {need:g} or more)",
-                                 param="tiling.worker_memory", value=tiling.worker_memory, limit=need) from None
-        if spec.tiling.tile_size is not None:
-            tiled = True
-            print(
-                f"orchard process: the block would need more than {tiling.worker_memory:g} GB in one piece: "
-                f"tiles of {spec.tiling.tile_size:g} m (--tile-size 0: one piece)",
-                file=sys.stderr,
-            )
-        else:  # the budget is decided: the job would count the block's points again
-            spec = dataclasses.replace(spec, tiling=spec.tiling.model_copy(update={"worker_memory": None}))
+        from pipeline.budget import surely_tiled
+
+        if surely_tiled(n_points, spec.tiling.memory_budget):
+            tiled = count_on_cluster = True
+        else:
+            spec = _budget_tiles(spec)  # bad input fails here, before anything else
+            tiled = spec.tiling.tile_size is not None
+            if not tiled:  # the budget is decided: the job would count the block's points again
+                spec = dataclasses.replace(spec, tiling=spec.tiling.model_copy(update={"worker_memory": None}))
     _check_tiled_options(args, tiled=tiled)  # they went unused, without a word (the budget decided, or --tile-size 0)
     if args.work:
         from workers.workstore import check_work_url
@@ -268,6 +263,13 @@ def run(args: argparse.Namespace) -> int:
 
             client = make_client(args.scheduler, n_workers=tiling.workers, quiet=True, dashboard=args.dashboard,
                                  host=args.dask_host or LOOPBACK)
+            if count_on_cluster:  # a budget that cannot work is still the only line
+                from workers.counting import count_block
+                from workers.dispatch import gather
+
+                cancel = getattr(args, "interrupted", None)
+                spec = _budget_tiles(spec, count=partial(count_block, client=client,
+                                                         gather=lambda futures: gather(client, futures, cancel, None)))
             link = dashboard_address(client)
             print(f"dask dashboard: {link or 'none'}", file=sys.stderr)
         from workers.job import run_job
@@ -278,6 +280,28 @@ def run(args: argparse.Namespace) -> int:
         if client is not None:
             close_client(client)
     return _report(outcome, args)
+
+
+def _budget_tiles(spec, count=None):
+    """``spec`` with the tiles its memory budget needs (:func:`workers.jobspec.auto_tiled`),
+    said on stderr when there are any."""
+    from pipeline.budget import BudgetError
+    from workers.jobspec import auto_tiled
+
+    tiling = spec.tiling
+    try:
+        spec = auto_tiled(spec, count=count)
+    except BudgetError as exc:
+        need = math.ceil(exc.need / 1e8) / 10  # GB, rounded up
+        raise ParameterError(exc.message, hint=f"{exc.hint} ({{tiling.worker_memory}} {need:g} or more)",
+                             param="tiling.worker_memory", value=tiling.worker_memory, limit=need) from None
+    if spec.tiling.tile_size is not None:
+        print(
+            f"orchard process: the block would need more than {tiling.worker_memory:g} GB in one piece: "
+            f"tiles of {spec.tiling.tile_size:g} m (--tile-size 0: one piece)",
+            file=sys.stderr,
+        )
+    return spec
 
 
 def _write_views(outcome, args) -> None:

@@ -22,12 +22,14 @@ from pipeline.budget import (
     DensitySample,
     bytes_needed,
     count_cells,
+    fits_whole,
     sampled_tile_bytes,
     sampled_tile_nodes,
     sampled_tile_points,
+    surely_tiled,
     tile_size_for_sample,
 )
-from pipeline.reading import read_points, sample_density
+from pipeline.reading import count_range, read_points, sample_density, sample_from_ranges
 from pipeline.tiling import buffered_tiles, plan_grid
 
 
@@ -267,3 +269,35 @@ def test_counted_nodes_bound_every_tiles_voxels(blocks, rotation, size, run, vox
     est = sampled_tile_nodes(sample, float(size), 4.15, info.mins, info.maxs, info.origin[:2])
     assert (est >= true).all()
     assert sample.nodes.sum() <= 1.5 * len(centres)
+
+
+@pytest.mark.parametrize("rotation", [0.0, 45.0])
+@pytest.mark.parametrize("run", [3_000, 20_000])
+def test_ranges_counted_apart_sum_to_the_sequential_count(blocks, rotation, run):
+    # workers count their own ranges; summed, the sample is the one a single pass over
+    # runs of the same length gives, voxel for voxel (a voxel's centre may lie in a cell
+    # none of its run's points do: those cells must come back too)
+    info, _ = blocks[rotation]
+    whole = sample_density(info.path, info=info, voxel_size=0.1, chunk_points=run)
+    parts = [count_range(info.path, start, run, info=info, voxel_size=0.1) for start in range(0, info.n_points, run)]
+    summed = sample_from_ranges(info, reversed(parts))  # tasks finish in any order
+    assert summed.exact and summed.sampled == whole.sampled == info.n_points
+    assert np.array_equal(summed.counts, whole.counts) and np.array_equal(summed.nodes, whole.nodes)
+    assert (summed.cell, summed.origin) == (whole.cell, whole.origin)
+    points_only = sample_from_ranges(info, [count_range(info.path, s, run, info=info) for s in range(0, info.n_points, run)])
+    assert points_only.nodes is None and np.array_equal(points_only.counts, whole.counts)
+
+
+def test_a_range_beyond_the_file_is_refused(blocks):
+    from pipeline.errors import InputError
+
+    info, _ = blocks[0.0]
+    with pytest.raises(InputError):
+        count_range(info.path, info.n_points - 10, 20, info=dataclasses.replace(info, n_points=info.n_points + 10))
+
+
+def test_surely_tiled_needs_more_than_the_budget_with_no_node_at_all():
+    n = 1_000_000
+    at = FIXED_BYTES + BYTES_PER_POINT * n  # what n points need with no graph
+    assert surely_tiled(n, at - 1) and not surely_tiled(n, at) and not surely_tiled(n, None)
+    assert not fits_whole(n, at)  # between the two rules: the block is counted

@@ -275,6 +275,29 @@ def test_a_budget_that_cannot_work_is_one_line_exit_2_before_any_output(block, t
 
 
 @pytest.mark.slow
+def test_a_block_that_surely_needs_tiles_is_counted_by_the_workers(block, tmp_path, capsys, monkeypatch):
+    # the header alone says so (a budget below its points with no graph at all): the
+    # command starts its cluster first and the workers count the block, not this process
+    import pipeline.budget
+    import pipeline.reading
+    import workers.jobspec
+
+    def not_here(*a, **k):
+        raise AssertionError("counted in the submitting process")
+
+    path, info = block
+    gb = _budget(info) / 1e9
+    monkeypatch.setattr(pipeline.budget, "surely_tiled", lambda n, budget: True)  # this small block is not
+    monkeypatch.setattr(workers.jobspec, "sample_density", not_here)
+    monkeypatch.setattr(pipeline.reading, "sample_density", not_here)
+    code, err = _process(capsys, path, "--out", tmp_path / "o", "--segment-max-crown-radius", 3, "--worker-memory", gb,
+                         "--workers", 2, "--no-dashboard")
+    assert code == 0, err
+    lines = err.splitlines()
+    assert "tiles of 16 m" in lines[0] and lines[1] == "dask dashboard: none", err  # the same tiles as counted here
+
+
+@pytest.mark.slow
 def test_orchard_process_tiles_a_block_above_its_budget(block, tmp_path, capsys):
     path, info = block
     gb = _budget(info) / 1e9

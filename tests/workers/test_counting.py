@@ -1,0 +1,65 @@
+"""The block counted for the memory budget by the cluster's workers, each its own ranges
+of the file: the same sample as the count in one process."""
+
+from __future__ import annotations
+
+import dataclasses
+import threading
+
+import numpy as np
+import pytest
+
+import workers.counting as counting
+from pipeline.reading import sample_density
+from workers.counting import count_block
+from workers.dispatch import gather
+from workers.jobspec import JobCancelled
+
+
+@pytest.fixture(scope="module")
+def block(tmp_path_factory):
+    from pipeline.blockinfo import read_info
+    from pipeline.synthetic.simparams import SimulationParams
+    from pipeline.synthetic.truth import write_simulation
+
+    folder = tmp_path_factory.mktemp("counting")
+    path = folder / "b.laz"
+    write_simulation(SimulationParams(rows=2, trees_per_row=4, density=0.1, seed=11), str(path), str(folder / "t.parquet"))
+    return read_info(str(path))
+
+
+@pytest.fixture(scope="module")
+def client():
+    from distributed import Client, LocalCluster
+
+    with LocalCluster(n_workers=2, threads_per_worker=1, processes=False, dashboard_address=None) as cluster, \
+            Client(cluster) as c:
+        yield c
+
+
+def test_the_workers_count_what_one_process_counts(block, client, monkeypatch):
+    run = 7_000
+    monkeypatch.setattr(counting, "CHUNK_POINTS", run)  # several ranges on a small block
+    assert block.seekable and block.n_points > 4 * run
+    here = sample_density(block.path, info=block, voxel_size=0.1, chunk_points=run)
+    there = count_block(block, 0.1, client=client)
+    assert there.exact and np.array_equal(there.counts, here.counts) and np.array_equal(there.nodes, here.nodes)
+    prefixes = client.run_on_scheduler(lambda dask_scheduler: list(dask_scheduler.task_prefixes))
+    assert "count-range" in prefixes  # counted by tasks, not here
+
+
+def test_without_a_cluster_or_a_seekable_file_the_block_is_counted_here(block, client, monkeypatch):
+    calls = []
+    monkeypatch.setattr(counting, "sample_density", lambda *a, **k: calls.append(k) or sample_density(*a, **k))
+    monkeypatch.setattr(counting, "CHUNK_POINTS", 7_000)
+    count_block(block, 0.1)
+    count_block(dataclasses.replace(block, seekable=False), 0.1, client=client)  # a LAZ of variable-size chunks
+    assert len(calls) == 2
+
+
+def test_a_cancel_stops_the_count(block, client, monkeypatch):
+    monkeypatch.setattr(counting, "CHUNK_POINTS", 7_000)
+    cancel = threading.Event()
+    cancel.set()
+    with pytest.raises(JobCancelled):
+        count_block(block, 0.1, client=client, gather=lambda futures: gather(client, futures, cancel, None))

@@ -1,0 +1,39 @@
+"""A block's points and voxels counted per cell by the cluster's workers, each reading
+its own ranges of the file, for the memory budget's choice of tiles
+(:func:`workers.jobspec.auto_tiled`). The sample is the one
+:func:`pipeline.reading.sample_density` gives counting every point in this process."""
+
+from __future__ import annotations
+
+import uuid
+from collections.abc import Callable
+
+from pipeline.blockinfo import BlockInfo
+from pipeline.budget import DensitySample
+from pipeline.jobparams import CHUNK_POINTS
+from pipeline.reading import count_range, sample_density, sample_from_ranges
+
+
+def count_block(info: BlockInfo, voxel_size: float | None, *, client=None, gather: Callable | None = None) -> DensitySample:
+    """The density sample of the block ``info``: one task per range of ``CHUNK_POINTS``
+    on ``client``'s workers (they must see the input path), or counted here without a
+    client, for a file no more than one range long, or one that cannot be entered in the
+    middle (a LAZ of variable-size chunks).
+
+    ``gather(futures)`` → their results in any order: how to wait for the tasks (default
+    ``client.gather``; a job passes one that stops on a cancel).
+
+    Raises
+    ------
+    InputError
+        The point data is truncated or corrupt.
+    """
+    if client is None or info.n_points <= CHUNK_POINTS or not info.seekable:
+        return sample_density(info.path, info=info, voxel_size=voxel_size)
+    token = uuid.uuid4().hex
+    futures = [
+        client.submit(count_range, info.path, start, CHUNK_POINTS, info=info, voxel_size=voxel_size,
+                      key=f"count-range-{start}-{token}", pure=False)
+        for start in range(0, info.n_points, CHUNK_POINTS)
+    ]
+    return sample_from_ranges(info, (gather or client.gather)(futures))
