@@ -231,7 +231,7 @@ class _Column:
         sel = (np.abs(self.height - at) <= POST_SLAB) & (((self.xy - centre) ** 2).sum(1) <= within**2)
         if np.count_nonzero(sel) < POST_MIN_POINTS:
             return np.full(2, np.nan), float("nan")
-        return trunk_circle(self.xy[sel], trials=POST_TRIALS)
+        return trunk_circle(self.xy[sel], trials=POST_TRIALS, solid=False)  # the fit its thresholds were set on
 
     def goes_on(self, axis: np.ndarray, radius: float) -> bool:
         """The column above POST_HEIGHTS goes on to ``max_height``: a tree's bole.
