@@ -67,15 +67,21 @@ class TaskPeaks(WorkerPlugin):
 
 def default_budget(path: str, gb: float) -> dict:
     spec = JobSpec(path, tempfile.mkdtemp(prefix="budget-"), params=PipelineParams(), tiling=TilingParams(worker_memory=gb))
+    counted = []  # the sample auto_tiled counts, kept for the estimate below
+
+    def count(info, voxel_size):
+        counted.append(sample_density(info.path, info=info, voxel_size=voxel_size))
+        return counted[-1]
+
     t = time.perf_counter()
-    chosen = auto_tiled(spec)
+    chosen = auto_tiled(spec, count=count)
     t_choose = time.perf_counter() - t
     out = {"block": path, "budget_gb": gb, "tile_size": chosen.tiling.tile_size, "choose_s": round(t_choose, 2)}
     if chosen.tiling.tile_size is not None:
         info = read_info(path)
         buffer = JobParams(pipeline=chosen.params, tiling=chosen.tiling).buffer()
-        sample = sample_density(path, info=info, voxel_size=chosen.params.graph.voxel_size)
-        est = sampled_tile_bytes(sample, chosen.tiling.tile_size, buffer, info.mins, info.maxs, grid_origin(chosen.tiling, info))
+        est = sampled_tile_bytes(counted[0], chosen.tiling.tile_size, buffer, info.mins, info.maxs,
+                                 grid_origin(chosen.tiling, info))
         out["estimate_largest_tile"] = float(est.max())
     client = make_client(None, n_workers=2, quiet=True)
     try:
