@@ -289,8 +289,8 @@ FIT_TRIALS = 256
 NOISE_WINDOW = 0.15
 #: the refit's inlier band, in noise sigmas (a fixed 2 cm band keeps only part of a noisy trunk)
 NOISE_INLIER_SIGMAS = 2.5
-#: most least-squares rounds of a stem circle's refit in its noise band (on 719 generated
-#: trunks it settled within 4 rounds but for 5, and within 7 for all)
+#: most least-squares rounds of a stem circle's refit in its noise band (on 706 slices of
+#: generated trunks it settled within 4 rounds for all but 7, and within 7 for all)
 REFIT_ROUNDS = 10
 #: depth inside a stem's circle, in inlier bands, beyond which a point counts against it
 #: (:func:`fit_circle`'s ``solid``). Chosen on blocks of seeds >= 1000 and a clean noisy
