@@ -63,3 +63,28 @@ def test_a_cancel_stops_the_count(block, client, monkeypatch):
     cancel.set()
     with pytest.raises(JobCancelled):
         count_block(block, 0.1, client=client, gather=lambda futures: gather(client, futures, cancel, None))
+
+
+def test_a_job_given_a_cluster_counts_its_block_there(block, client, monkeypatch, tmp_path):
+    # the service's runner hands run_job its cluster: the block is counted by tasks, and
+    # never in the submitting process
+    import workers.jobspec as jobspec
+    from pipeline.budget import FIXED_BYTES, block_bytes
+    from pipeline.jobparams import TilingParams
+    from pipeline.params import PipelineParams
+    from workers.job import run_job
+
+    def not_here(*a, **k):
+        raise AssertionError("counted in the submitting process")
+
+    need = block_bytes(sample_density(block.path, info=block, voxel_size=0.1))
+    monkeypatch.setattr(counting, "CHUNK_POINTS", 7_000)
+    monkeypatch.setattr(counting, "sample_density", not_here)
+    monkeypatch.setattr(jobspec, "sample_density", not_here)
+    budget = (FIXED_BYTES + 0.6 * (need - FIXED_BYTES)) / 1e9  # the whole block does not fit
+    spec = jobspec.JobSpec(block.path, str(tmp_path / "out"), params=PipelineParams.model_validate(
+        {"segment": {"max_crown_radius": 3.0}}), tiling=TilingParams(worker_memory=budget))
+    outcome = run_job(spec, client=client)
+    assert outcome.n_tiles > 1 and outcome.n_points == block.n_points and outcome.n_trees > 0
+    prefixes = client.run_on_scheduler(lambda dask_scheduler: list(dask_scheduler.task_prefixes))
+    assert "count-range" in prefixes
