@@ -5,28 +5,31 @@ its own ranges of the file, for the memory budget's choice of tiles
 
 from __future__ import annotations
 
+import threading
 import uuid
-from collections.abc import Callable
 
 from pipeline.blockinfo import BlockInfo
 from pipeline.budget import DensitySample
 from pipeline.jobparams import CHUNK_POINTS
 from pipeline.reading import count_range, sample_density, sample_from_ranges
+from workers.dispatch import gather
 
 
-def count_block(info: BlockInfo, voxel_size: float | None, *, client=None, gather: Callable | None = None) -> DensitySample:
+def count_block(info: BlockInfo, voxel_size: float | None, *, client=None,
+                cancel: threading.Event | None = None) -> DensitySample:
     """The density sample of the block ``info``: one task per range of ``CHUNK_POINTS``
     on ``client``'s workers (they must see the input path), or counted here without a
     client, for a file no more than one range long, or one that cannot be entered in the
     middle (a LAZ of variable-size chunks).
 
-    ``gather(futures)`` → their results in any order: how to wait for the tasks (default
-    ``client.gather``; a job passes one that stops on a cancel).
+    The tasks are awaited as a job's are (:func:`workers.dispatch.gather`): ``cancel``
+    set stops them.
 
     Raises
     ------
     InputError
         The point data is truncated or corrupt.
+    JobCancelled, ClusterLost
     """
     if client is None or info.n_points <= CHUNK_POINTS or not info.seekable:
         return sample_density(info.path, info=info, voxel_size=voxel_size)
@@ -36,4 +39,4 @@ def count_block(info: BlockInfo, voxel_size: float | None, *, client=None, gathe
                       key=f"count-range-{start}-{token}", pure=False)
         for start in range(0, info.n_points, CHUNK_POINTS)
     ]
-    return sample_from_ranges(info, (gather or client.gather)(futures))
+    return sample_from_ranges(info, gather(client, futures, cancel, None))

@@ -76,10 +76,8 @@ def run_job(
     """
     t0 = time.perf_counter()
     info = read_info(spec.input_path)
-    count = None  # with a cluster its workers count the block, each its own ranges of the file
-    if client is not None:
-        count = partial(count_block, client=client, gather=lambda futures: gather(client, futures, cancel, None))
-    spec = auto_tiled(spec, info, count=count)
+    # with a cluster its workers count the block, each its own ranges of the file
+    spec = auto_tiled(spec, info, count=partial(count_block, client=client, cancel=cancel) if client else None)
     if spec.tiling.tile_size is None and client is None:
         return _run_single(spec, info, t0, progress, cancel)
     return _run_tiled(spec, info, client, t0, progress, cancel)

@@ -265,11 +265,9 @@ def run(args: argparse.Namespace) -> int:
                                  host=args.dask_host or LOOPBACK)
             if count_on_cluster:  # a budget that cannot work is still the only line
                 from workers.counting import count_block
-                from workers.dispatch import gather
 
-                cancel = getattr(args, "interrupted", None)
                 spec = _budget_tiles(spec, count=partial(count_block, client=client,
-                                                         gather=lambda futures: gather(client, futures, cancel, None)))
+                                                         cancel=getattr(args, "interrupted", None)))
             link = dashboard_address(client)
             print(f"dask dashboard: {link or 'none'}", file=sys.stderr)
         from workers.job import run_job

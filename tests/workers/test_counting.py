@@ -12,7 +12,6 @@ import pytest
 import workers.counting as counting
 from pipeline.reading import sample_density
 from workers.counting import count_block
-from workers.dispatch import gather
 from workers.jobspec import JobCancelled
 
 
@@ -62,7 +61,7 @@ def test_a_cancel_stops_the_count(block, client, monkeypatch):
     cancel = threading.Event()
     cancel.set()
     with pytest.raises(JobCancelled):
-        count_block(block, 0.1, client=client, gather=lambda futures: gather(client, futures, cancel, None))
+        count_block(block, 0.1, client=client, cancel=cancel)
 
 
 def test_a_job_given_a_cluster_counts_its_block_there(block, client, monkeypatch, tmp_path):
