@@ -235,7 +235,7 @@ def gather(client, futures: list, cancel, store: WorkStore | None) -> list:
         return [fut.result() for _, fut in done]
 
 
-def _completed(client, futures: dict, cancel, store: WorkStore):
+def _completed(client, futures: dict, cancel, store: WorkStore | None):
     """Yield ``(futures[f], f)`` for each dask future ``f`` as it finishes.
 
     Raises JobCancelled when ``cancel`` is set, and ClusterLost after NO_WORKER_TIMEOUT
@@ -259,14 +259,12 @@ def _completed(client, futures: dict, cancel, store: WorkStore):
                     if client.scheduler_info().get("workers"):
                         last_worker_seen = now
                     elif now - last_worker_seen > NO_WORKER_TIMEOUT:
-                        if store is None:  # nothing kept to resume from
-                            raise ClusterLost(f"no dask worker for {NO_WORKER_TIMEOUT:.0f} s (they died or left; "
-                                              f"their logs say why) with {len(pending)} tasks to go",
-                                              hint="; start workers and submit the job again") from None
+                        # before the job has a work store there is nothing to resume from
                         raise ClusterLost(
                             f"no dask worker for {NO_WORKER_TIMEOUT:.0f} s (they died or left; their logs say why) "
-                            f"with {len(pending)} tiles to go",
-                            hint=f"; start workers and resume with {{job.work_dir}} {store.url} {{job.resume}}",
+                            f"with {len(pending)} {'tasks' if store is None else 'tiles'} to go",
+                            hint="; start workers and submit the job again" if store is None
+                            else f"; start workers and resume with {{job.work_dir}} {store.url} {{job.resume}}",
                         ) from None
                 continue
             for fut in res.done:
