@@ -306,7 +306,6 @@ def sample_density(path, *, info: BlockInfo | None = None, voxel_size: float | N
     counts = np.zeros((ny, nx), dtype=np.int64)
     nodes = None if voxel_size is None else np.zeros((ny, nx), dtype=np.int64)
     selection = _XY_ONLY if voxel_size is None else _XYZ_ONLY
-    scale, shift = info.scales, np.asarray(info.offsets) - np.asarray(info.origin)
     run, picked = int(chunk_points), None  # None: every point, in order
     if fraction < 1.0 and info.seekable:
         run = int(lasheader.check_header(info.path).chunk_size) if info.compressed else int(las_run)
@@ -315,12 +314,10 @@ def sample_density(path, *, info: BlockInfo | None = None, voxel_size: float | N
         if 2 * n_read < n_runs:  # else count it all, exactly, for little more
             picked = np.unique(np.linspace(0, n_runs - 1, n_read).round().astype(np.int64))
     sampled = 0
-    # local coordinates (the origin's cell corner at 0): no UTM-sized sums
     records = (arr for _, arr in _records(info, run, selection)) if picked is None else _picked_runs(info, run, picked,
                                                                                                       selection)
     for arr in records:
-        _count_run(arr["X"], arr["Y"], arr["Z"] if nodes is not None else None, scale, shift, voxel_size, cell,
-                   counts, nodes)
+        _count_run(info, arr["X"], arr["Y"], arr["Z"] if nodes is not None else None, voxel_size, cell, counts, nodes)
         sampled += len(arr)
     return DensitySample(counts=counts, origin=(float(info.origin[0]), float(info.origin[1])),
                          cell=cell, sampled=sampled, n_points=info.n_points, nodes=nodes)
@@ -335,9 +332,11 @@ def _density_grid(info: BlockInfo) -> tuple[float, tuple[int, int]]:
     return cell, (ny, nx)
 
 
-def _count_run(X, Y, Z, scale, shift, voxel_size, cell, counts, nodes) -> None:
+def _count_run(info: BlockInfo, X, Y, Z, voxel_size, cell, counts, nodes) -> None:
     """Add one run's points (stored integers ``X``, ``Y``, ``Z``; ``Z`` None: points only)
     to ``counts`` and its distinct voxels to ``nodes``, in place."""
+    # local coordinates (the origin's cell corner at 0): no UTM-sized sums
+    scale, shift = info.scales, np.asarray(info.offsets) - np.asarray(info.origin)
     x, y = X * scale[0] + shift[0], Y * scale[1] + shift[1]
     counts += count_cells(x, y, origin=(0.0, 0.0), cell=cell, shape=counts.shape)
     if Z is not None:
@@ -364,8 +363,7 @@ def count_range(path, start: int, count: int, *, info: BlockInfo | None = None,
     ints = read_raw_range(info.path, start, count, info=info)
     counts = np.zeros(shape, dtype=np.int64)
     nodes = None if voxel_size is None else np.zeros(shape, dtype=np.int64)
-    _count_run(ints[:, 0], ints[:, 1], ints[:, 2] if nodes is not None else None, info.scales,
-               np.asarray(info.offsets) - np.asarray(info.origin), voxel_size, cell, counts, nodes)
+    _count_run(info, ints[:, 0], ints[:, 1], ints[:, 2] if nodes is not None else None, voxel_size, cell, counts, nodes)
     # a run covers a strip of the block: only its cells are returned (a voxel's centre can
     # lie in a cell that holds none of its points)
     held = np.flatnonzero(counts if nodes is None else (counts != 0) | (nodes != 0))
