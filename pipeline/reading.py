@@ -319,6 +319,35 @@ def sample_density(path, *, info: BlockInfo | None = None, voxel_size: float | N
     for arr in records:
         _count_run(info, arr["X"], arr["Y"], arr["Z"] if nodes is not None else None, voxel_size, cell, counts, nodes)
         sampled += len(arr)
+    return _sample(info, cell, counts, nodes, sampled)
+
+
+def read_counted(path, *, info: BlockInfo | None = None, voxel_size: float | None = None,
+                 chunk_points: int = CHUNK_POINTS) -> tuple[np.ndarray, DensitySample]:
+    """:func:`read_points` and :func:`sample_density` counting every point, in one pass
+    over the file: the block's local coordinates (``xyz + info.origin``) and the same
+    count, cell for cell, as ``sample_density(path, voxel_size=voxel_size,
+    chunk_points=chunk_points)``. What a job that counts a block to choose its tiles and
+    then keeps it in one piece reads (the file is decoded once, not twice).
+
+    Raises
+    ------
+    InputError
+        The point data is truncated or corrupt, or a point lies outside the header's bounds.
+    """
+    info = info or read_info(path)
+    cell, shape = _density_grid(info)
+    counts = np.zeros(shape, dtype=np.int64)
+    nodes = None if voxel_size is None else np.zeros(shape, dtype=np.int64)
+    out = np.empty((info.n_points, 3), dtype=np.float64)
+    for start, ints in iter_raw(info.path, chunk_points=chunk_points, info=info):
+        _count_run(info, ints[:, 0], ints[:, 1], ints[:, 2] if nodes is not None else None, voxel_size, cell, counts,
+                   nodes)
+        _checked_local(ints, info, start, None, out=out[start : start + len(ints)])
+    return out, _sample(info, cell, counts, nodes, info.n_points)
+
+
+def _sample(info: BlockInfo, cell: float, counts: np.ndarray, nodes: np.ndarray | None, sampled: int) -> DensitySample:
     return DensitySample(counts=counts, origin=(float(info.origin[0]), float(info.origin[1])),
                          cell=cell, sampled=sampled, n_points=info.n_points, nodes=nodes)
 
@@ -381,8 +410,7 @@ def sample_from_ranges(info: BlockInfo, parts) -> DensitySample:
         if voxels is not None:
             nodes = np.zeros(shape, dtype=np.int64) if nodes is None else nodes
             nodes.ravel()[held] += voxels
-    return DensitySample(counts=counts, origin=(float(info.origin[0]), float(info.origin[1])),
-                         cell=cell, sampled=int(counts.sum()), n_points=info.n_points, nodes=nodes)
+    return _sample(info, cell, counts, nodes, int(counts.sum()))
 
 
 def _voxel_cells(xyz: np.ndarray, voxel_size: float, cell: float, shape: tuple[int, int]) -> np.ndarray:

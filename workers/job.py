@@ -42,6 +42,7 @@ from workers.jobspec import (
     JobSpec,
     TileFailed,
     auto_tiled,
+    budgeted,
     plan_tiles,
 )
 from workers.outputs import Labels, merge_and_write
@@ -57,6 +58,7 @@ def run_job(
     client=None,
     progress: Callable[[int, int], None] | None = None,
     cancel: threading.Event | None = None,
+    points: np.ndarray | None = None,
 ) -> JobOutcome:
     """Process one block.
 
@@ -69,6 +71,9 @@ def run_job(
     progress : callable (tiles done, tiles total), optional
     cancel : threading.Event, optional
         Set it to stop the job (raises JobCancelled).
+    points : (n, 3) float64, optional
+        The block's local coordinates, read already (:func:`workers.jobspec.budgeted`):
+        a job in one piece in this process uses them instead of reading the file again.
 
     Raises
     ------
@@ -76,19 +81,23 @@ def run_job(
     """
     t0 = time.perf_counter()
     info = read_info(spec.input_path)
-    # with a cluster its workers count the block, each its own ranges of the file
-    spec = auto_tiled(spec, info, count=partial(count_block, client=client, cancel=cancel) if client else None)
+    if client is not None:  # its workers count the block, each its own ranges of the file
+        spec = auto_tiled(spec, info, count=partial(count_block, client=client, cancel=cancel))
+    else:  # counted here: a block that stays whole is then decoded once, not twice
+        spec, counted = budgeted(spec, info)
+        points = counted if points is None else points
     if spec.tiling.tile_size is None and client is None:
-        return _run_single(spec, info, t0, progress, cancel)
+        return _run_single(spec, info, t0, progress, cancel, points)
     return _run_tiled(spec, info, client, t0, progress, cancel)
 
 
-def _run_single(spec, info, t0, progress, cancel) -> JobOutcome:
+def _run_single(spec, info, t0, progress, cancel, xyz=None) -> JobOutcome:
     timings = {}
     params = spec.params
     if progress:
         progress(0, 1)
-    xyz, _ = read_points(info.path, chunk_points=spec.tiling.chunk_points)
+    if xyz is None:
+        xyz, _ = read_points(info.path, chunk_points=spec.tiling.chunk_points)
     timings["read"] = time.perf_counter() - t0
     check_cancel(cancel)
     t = time.perf_counter()

@@ -9,12 +9,14 @@ from collections.abc import Callable
 from dataclasses import dataclass, field
 from pathlib import Path
 
+import numpy as np
+
 from pipeline.blockinfo import BlockInfo, read_info
 from pipeline.budget import fits_whole, tile_size_for_sample
 from pipeline.errors import OrchardError, ParameterError
 from pipeline.jobparams import JobParams, TilingParams
 from pipeline.params import PipelineParams
-from pipeline.reading import sample_density
+from pipeline.reading import read_counted, sample_density
 from pipeline.tiling import TileGrid, plan_grid
 from workers.tiler import check_engine
 from workers.workstore import WorkStore, absolute_url, default_work_dir, own_entry
@@ -184,6 +186,22 @@ def auto_tiled(spec: JobSpec, info: BlockInfo | None = None, *, count: Callable 
     size = tile_size_for_sample(sample, info.mins, info.maxs,
                                 budget=tiling.memory_budget, buffer=buffer, grid_origin=grid_origin(tiling, info))
     return spec if size is None else dataclasses.replace(spec, tiling=tiling.model_copy(update={"tile_size": size}))
+
+
+def budgeted(spec: JobSpec, info: BlockInfo | None = None) -> tuple[JobSpec, np.ndarray | None]:
+    """:func:`auto_tiled`, counting in this process, and the block's local coordinates
+    (:func:`pipeline.reading.read_points`) when it was read whole to be counted and stays
+    in one piece: a job given them (``run_job(points=...)``) does not decode it again.
+    None when it was not read or is tiled (its points are then let go before any tile)."""
+    kept = []
+
+    def count(info, voxel_size):
+        xyz, sample = read_counted(info.path, info=info, voxel_size=voxel_size)
+        kept.append(xyz)
+        return sample
+
+    spec = auto_tiled(spec, info, count=count)
+    return spec, (kept[0] if kept and spec.tiling.tile_size is None else None)
 
 
 def grid_origin(tiling: TilingParams, info: BlockInfo) -> tuple[float, float]:

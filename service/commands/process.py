@@ -237,13 +237,14 @@ def run(args: argparse.Namespace) -> int:
     )
     tiled = bool(args.tile_size) or args.scheduler is not None
     count_on_cluster = False  # a block that surely needs tiles is counted by the workers
+    points = None  # the block's points, when counting it read them and it stays whole
     if spec.tiling.tile_size is None and not tiled:
         from pipeline.budget import surely_tiled
 
         if surely_tiled(n_points, spec.tiling.memory_budget):
             tiled = count_on_cluster = True
         else:
-            spec = _budget_tiles(spec)  # bad input fails here, before anything else
+            spec, points = _budget_tiles(spec)  # bad input fails here, before anything else
             tiled = spec.tiling.tile_size is not None
             if not tiled:  # the budget is decided: the job would count the block's points again
                 spec = dataclasses.replace(spec, tiling=spec.tiling.model_copy(update={"worker_memory": None}))
@@ -266,14 +267,14 @@ def run(args: argparse.Namespace) -> int:
             if count_on_cluster:  # a budget that cannot work is still the only line
                 from workers.counting import count_block
 
-                spec = _budget_tiles(spec, count=partial(count_block, client=client,
-                                                         cancel=getattr(args, "interrupted", None)))
+                spec, _ = _budget_tiles(spec, count=partial(count_block, client=client,
+                                                            cancel=getattr(args, "interrupted", None)))
             link = dashboard_address(client)
             print(f"dask dashboard: {link or 'none'}", file=sys.stderr)
         from workers.job import run_job
 
         outcome = run_job(spec, client=client, progress=_Bar() if tiled else None,  # TileFailed: exit 1 (service.cli)
-                          cancel=getattr(args, "interrupted", None))
+                          cancel=getattr(args, "interrupted", None), points=points)
     finally:
         if client is not None:
             close_client(client)
@@ -282,13 +283,17 @@ def run(args: argparse.Namespace) -> int:
 
 def _budget_tiles(spec, count=None):
     """``spec`` with the tiles its memory budget needs (:func:`workers.jobspec.auto_tiled`),
-    said on stderr when there are any."""
+    said on stderr when there are any, and the block's points when they were read here to
+    count them and it stays whole (:func:`workers.jobspec.budgeted`; ``count`` None)."""
     from pipeline.budget import BudgetError
-    from workers.jobspec import auto_tiled
+    from workers.jobspec import auto_tiled, budgeted
 
-    tiling = spec.tiling
+    tiling, points = spec.tiling, None
     try:
-        spec = auto_tiled(spec, count=count)
+        if count is None:
+            spec, points = budgeted(spec)
+        else:
+            spec = auto_tiled(spec, count=count)
     except BudgetError as exc:
         need = math.ceil(exc.need / 1e8) / 10  # GB, rounded up
         raise ParameterError(exc.message, hint=f"{exc.hint} ({{tiling.worker_memory}} {need:g} or more)",
@@ -299,7 +304,7 @@ def _budget_tiles(spec, count=None):
             f"tiles of {spec.tiling.tile_size:g} m (--tile-size 0: one piece)",
             file=sys.stderr,
         )
-    return spec
+    return spec, points
 
 
 def _write_views(outcome, args) -> None:

@@ -29,7 +29,7 @@ from pipeline.budget import (
     surely_tiled,
     tile_size_for_sample,
 )
-from pipeline.reading import count_range, read_points, sample_density, sample_from_ranges
+from pipeline.reading import count_range, read_counted, read_points, sample_density, sample_from_ranges
 from pipeline.tiling import buffered_tiles, plan_grid
 
 
@@ -286,6 +286,32 @@ def test_ranges_counted_apart_sum_to_the_sequential_count(blocks, rotation, run)
     assert (summed.cell, summed.origin) == (whole.cell, whole.origin)
     points_only = sample_from_ranges(info, [count_range(info.path, s, run, info=info) for s in range(0, info.n_points, run)])
     assert points_only.nodes is None and np.array_equal(points_only.counts, whole.counts)
+
+
+@pytest.mark.parametrize("run", [3_000, 20_000])
+def test_reading_and_counting_in_one_pass_gives_the_read_and_the_count(blocks, run):
+    # a job that counts a block and keeps it whole reads it once: the points must be
+    # read_points' to the bit, and the count sample_density's, cell for cell
+    info, _ = blocks[45.0]
+    xyz, counted = read_counted(info.path, info=info, voxel_size=0.1, chunk_points=run)
+    assert np.array_equal(xyz, read_points(info.path)[0])
+    whole = sample_density(info.path, info=info, voxel_size=0.1, chunk_points=run)
+    assert counted.exact and counted.sampled == whole.sampled == info.n_points
+    assert np.array_equal(counted.counts, whole.counts) and np.array_equal(counted.nodes, whole.nodes)
+    assert (counted.cell, counted.origin) == (whole.cell, whole.origin)
+    _, points_only = read_counted(info.path, info=info, chunk_points=run)
+    assert points_only.nodes is None and np.array_equal(points_only.counts, whole.counts)
+
+
+def test_a_truncated_file_is_refused_while_reading_and_counting(blocks, tmp_path):
+    from pipeline.errors import InputError
+
+    info, _ = blocks[0.0]
+    short = tmp_path / "short.las"
+    data = Path(info.path).read_bytes()
+    short.write_bytes(data[: len(data) - 30 * 1000])
+    with pytest.raises(InputError):
+        read_counted(str(short), info=dataclasses.replace(info, path=str(short)), voxel_size=0.1)
 
 
 def test_a_range_beyond_the_file_is_refused(blocks):

@@ -23,6 +23,7 @@ from pipeline.budget import (
     DensitySample,
     block_bytes,
     bytes_needed,
+    fits_whole,
     sampled_tile_bytes,
     sampled_tile_nodes,
     sampled_tile_points,
@@ -32,7 +33,7 @@ from pipeline.budget import (
 from pipeline.jobparams import TilingParams
 from pipeline.params import PipelineParams
 from workers.job import run_job
-from workers.jobspec import JobSpec, auto_tiled
+from workers.jobspec import JobSpec, auto_tiled, budgeted
 
 
 def _uniform(n_points: int, width: int, depth: int) -> DensitySample:
@@ -163,6 +164,36 @@ def test_a_block_within_the_budget_is_left_whole_and_one_above_it_is_tiled(block
     assert _header_rule_refuses(info, _budget(info), params.reach())
 
 
+def test_a_block_counted_and_kept_whole_is_decoded_once(block, tmp_path, monkeypatch):
+    # a block that may not fit is counted; kept whole, the job processes the points read
+    # for the count instead of decoding the file a second time
+    import workers.job
+    from pipeline.reading import read_points, sample_density
+
+    path, info = block
+    params = PipelineParams.model_validate(PARAMS)
+    budget = block_bytes(sample_density(info.path, info=info, voxel_size=0.1))  # what it needs whole, as counted
+    assert not fits_whole(info.n_points, budget)  # so it is counted
+    spec = JobSpec(str(path), str(tmp_path / "counted"), params=params, tiling=TilingParams(worker_memory=budget / 1e9))
+    kept, points = budgeted(spec, info)
+    assert kept.tiling.tile_size is None and np.array_equal(points, read_points(str(path))[0])
+    tiled, none = budgeted(JobSpec(str(path), str(tmp_path / "t"), params=params,
+                                   tiling=TilingParams(worker_memory=_budget(info) / 1e9)), info)
+    assert tiled.tiling.tile_size is not None and none is None  # not held while tiles run
+
+    reads = []
+    monkeypatch.setattr(workers.job, "read_points", lambda *a, **k: reads.append(a) or read_points(*a, **k))
+    counted = run_job(spec)
+    assert reads == [] and counted.n_tiles == 1
+    plain = run_job(JobSpec(str(path), str(tmp_path / "plain"), params=params))  # no budget: read by the job
+    assert len(reads) == 1 and counted.n_trees == plain.n_trees >= 15
+    for name in ("trees.parquet", "points.parquet"):
+        a, b = pq.read_table(tmp_path / "counted" / name), pq.read_table(tmp_path / "plain" / name)
+        assert a.column_names == b.column_names
+        for col in a.column_names:  # NaN where a trunk has no circle: equal here
+            np.testing.assert_array_equal(a[col].to_numpy(), b[col].to_numpy(), err_msg=f"{name}: {col}")
+
+
 def _header_rule_refuses(info, budget: float, buffer: float) -> bool:
     """Whether a rule from the header alone refuses ``budget``: twice the mean density
     over the bounding box, every point its own node, for its smallest tile (a core of
@@ -241,18 +272,22 @@ def test_tile_size_0_keeps_a_block_whole_whatever_the_budget_says(block, tmp_pat
 
 def test_a_block_counted_and_kept_whole_is_counted_once(block, tmp_path, capsys, monkeypatch):
     # between what the header surely allows (every point a node) and what its counted
-    # voxels need: the command counts it, keeps it whole, and the job must not count again
+    # voxels need: the command counts it, keeps it whole, and the job must neither count
+    # it again nor decode it again (it processes the points read for the count)
+    import workers.job
     import workers.jobspec as jobspec
-    from pipeline.reading import sample_density
+    from pipeline.reading import read_counted, sample_density
 
     path, info = block
     need = block_bytes(sample_density(str(path), info=info, voxel_size=0.1))
     assert need < 0.39e9 < bytes_needed(info.n_points)
     calls = []
-    monkeypatch.setattr(jobspec, "sample_density", lambda *a, **k: calls.append(1) or sample_density(*a, **k))
+    monkeypatch.setattr(jobspec, "sample_density", lambda *a, **k: calls.append("count") or sample_density(*a, **k))
+    monkeypatch.setattr(jobspec, "read_counted", lambda *a, **k: calls.append("read and count") or read_counted(*a, **k))
+    monkeypatch.setattr(workers.job, "read_points", lambda *a, **k: calls.append("read"))
     code, err = _process(capsys, path, "--out", tmp_path / "o", "--segment-max-crown-radius", 3, "--worker-memory", 0.39)
     assert code == 0, err
-    assert "1 tile(s)" in err and len(calls) == 1
+    assert "1 tile(s)" in err and calls == ["read and count"]
 
 
 @pytest.mark.parametrize(
