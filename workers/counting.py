@@ -7,6 +7,7 @@ from __future__ import annotations
 
 import threading
 import uuid
+from collections.abc import Callable
 
 from pipeline.blockinfo import BlockInfo
 from pipeline.budget import DensitySample
@@ -16,14 +17,15 @@ from workers.dispatch import gather
 
 
 def count_block(info: BlockInfo, voxel_size: float | None, *, client=None,
-                cancel: threading.Event | None = None) -> DensitySample:
+                cancel: threading.Event | None = None,
+                progress: Callable[[int, int], None] | None = None) -> DensitySample:
     """The density sample of the block ``info``: one task per range of ``CHUNK_POINTS``
     on ``client``'s workers (they must see the input path), or counted here without a
     client, for a file no more than one range long, or one that cannot be entered in the
     middle (a LAZ of variable-size chunks).
 
     The tasks are awaited as a job's are (:func:`workers.dispatch.gather`): ``cancel``
-    set stops them.
+    set stops them; ``progress(ranges counted, ranges)`` as each is (on the cluster only).
 
     Raises
     ------
@@ -39,4 +41,4 @@ def count_block(info: BlockInfo, voxel_size: float | None, *, client=None,
                       key=f"count-range-{start}-{token}", pure=False)
         for start in range(0, info.n_points, CHUNK_POINTS)
     ]
-    return sample_from_ranges(info, gather(client, futures, cancel, None))
+    return sample_from_ranges(info, gather(client, futures, cancel, None, progress))

@@ -227,12 +227,20 @@ def kept(summary: dict, store: WorkStore, tile: dict) -> dict:
     return summary
 
 
-def gather(client, futures: list, cancel, store: WorkStore | None) -> list:
+def gather(client, futures: list, cancel, store: WorkStore | None,
+           progress: Callable[[int, int], None] | None = None) -> list:
     """The results of dask ``futures`` as they finish (in that order), stopping like
     :func:`_completed` on a cancel or a cluster left without workers (``store``: the job's
-    work store, None before it has one)."""
+    work store, None before it has one); ``progress(done, total)`` as each finishes."""
+    results = []
+    if progress:
+        progress(0, len(futures))
     with contextlib.closing(_completed(client, dict.fromkeys(futures), cancel, store)) as done:
-        return [fut.result() for _, fut in done]
+        for _, fut in done:
+            results.append(fut.result())
+            if progress:
+                progress(len(results), len(futures))
+    return results
 
 
 def _completed(client, futures: dict, cancel, store: WorkStore | None):

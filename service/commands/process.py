@@ -55,10 +55,10 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 
 
 class _Bar:
-    """A plain-text progress bar over tiles on stderr."""
+    """A plain-text progress bar on stderr: over tiles, or what ``what`` names."""
 
-    def __init__(self, stream=None):
-        self.stream = stream
+    def __init__(self, stream=None, what: str = "tiles"):
+        self.stream, self.what = stream, what
         self.start = time.perf_counter()
 
     def __call__(self, done: int, total: int) -> None:
@@ -66,7 +66,7 @@ class _Bar:
         fill = int(width * done / total) if total else width
         elapsed = time.perf_counter() - self.start
         stream = self.stream or sys.stderr
-        stream.write(f"tiles [{'#' * fill}{'.' * (width - fill)}] {done}/{total}  {elapsed:6.1f} s\n")
+        stream.write(f"{self.what} [{'#' * fill}{'.' * (width - fill)}] {done}/{total}  {elapsed:6.1f} s\n")
         stream.flush()
 
 
@@ -268,7 +268,8 @@ def run(args: argparse.Namespace) -> int:
                 from workers.counting import count_block
 
                 spec, _ = _budget_tiles(spec, count=partial(count_block, client=client,
-                                                            cancel=getattr(args, "interrupted", None)))
+                                                            cancel=getattr(args, "interrupted", None),
+                                                            progress=_Bar(what="counting")))
             link = dashboard_address(client)
             print(f"dask dashboard: {link or 'none'}", file=sys.stderr)
         from workers.job import run_job

@@ -315,6 +315,7 @@ def test_a_block_that_surely_needs_tiles_is_counted_by_the_workers(block, tmp_pa
     # command starts its cluster first and the workers count the block, not this process
     import pipeline.budget
     import pipeline.reading
+    import workers.counting
     import workers.jobspec
 
     def not_here(*a, **k):
@@ -323,13 +324,19 @@ def test_a_block_that_surely_needs_tiles_is_counted_by_the_workers(block, tmp_pa
     path, info = block
     gb = _budget(info) / 1e9
     monkeypatch.setattr(pipeline.budget, "surely_tiled", lambda n, budget: True)  # this small block is not
-    monkeypatch.setattr(workers.jobspec, "sample_density", not_here)
-    monkeypatch.setattr(pipeline.reading, "sample_density", not_here)
+    monkeypatch.setattr(workers.counting, "CHUNK_POINTS", 40_000)  # several ranges, as a large block has
+    for module in (workers.jobspec, pipeline.reading, workers.counting):
+        monkeypatch.setattr(module, "sample_density", not_here)
+    monkeypatch.setattr(workers.jobspec, "read_counted", not_here)
     code, err = _process(capsys, path, "--out", tmp_path / "o", "--segment-max-crown-radius", 3, "--worker-memory", gb,
                          "--workers", 2, "--no-dashboard")
     assert code == 0, err
     lines = err.splitlines()
-    assert "tiles of 16 m" in lines[0] and lines[1] == "dask dashboard: none", err  # the same tiles as counted here
+    ranges = -(-info.n_points // 40_000)
+    # a progress line as each range is counted, then the tiles the count chose and the cluster
+    assert [line.split("]")[1].split()[0] for line in lines[: ranges + 1]] == [f"{k}/{ranges}" for k in range(ranges + 1)]
+    assert all(line.startswith("counting [") for line in lines[: ranges + 1]), err
+    assert "tiles of 16 m" in lines[ranges + 1] and lines[ranges + 2] == "dask dashboard: none", err
 
 
 @pytest.mark.slow
