@@ -264,7 +264,7 @@ def run(args: argparse.Namespace) -> int:
 
             client = make_client(args.scheduler, n_workers=tiling.workers, quiet=True, dashboard=args.dashboard,
                                  host=args.dask_host or LOOPBACK)
-            if count_on_cluster:  # a budget that cannot work is still the only line
+            if count_on_cluster:  # before the dashboard line: a budget that cannot work ends the count's lines
                 from workers.counting import count_block
 
                 spec, _ = _budget_tiles(spec, count=partial(count_block, client=client,
