@@ -19,6 +19,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from pipeline.metrics import trunk_circle
+from pipeline.voxels import column_min
 
 # Fixed tuning of the post test (lengths in metres; the tallest post is
 # TrunkParams.max_post_height).
@@ -183,11 +184,13 @@ class _CellIndex:
     def __init__(self, xy: np.ndarray, reach: float) -> None:
         self.xy, self.reach = xy, reach
         self.cell = reach * (1 + 1e-6)  # a point within reach is never two cells off by rounding
-        self.lo = xy.min(axis=0) if xy.shape[0] else np.zeros(2)
+        self.lo = column_min(xy) if xy.shape[0] else np.zeros(2)
         ij = np.floor((xy - self.lo) / self.cell).astype(np.int64)
         self.ny = int(ij[:, 1].max()) + 3 if xy.shape[0] else 3  # keys of a row of cells never reach the next row's
         key = (ij[:, 0] + 1) * self.ny + (ij[:, 1] + 1)
-        self.order = np.argsort(key, kind="stable")
+        # the same stable order from 16-bit keys where they fit: numpy sorts those by radix
+        small = key.size and int(key.max()) < 1 << 16
+        self.order = np.argsort(key.astype(np.uint16) if small else key, kind="stable")
         self.key = key[self.order]
 
     def ball(self, c: np.ndarray) -> np.ndarray:

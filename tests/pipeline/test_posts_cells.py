@@ -35,7 +35,7 @@ def test_a_position_off_the_points_finds_none():
 @settings(max_examples=150, deadline=None)
 @given(
     n=st.integers(1, 2000),
-    extent=st.sampled_from([0.3, 3.0, 40.0]),
+    extent=st.sampled_from([0.3, 3.0, 40.0, 300.0]),  # 300 m: cell keys beyond 16 bits
     reach=st.sampled_from([0.25, 0.41, 0.49]),
     quantum=st.sampled_from([0.0, 0.001, 0.01]),
     seed=st.integers(0, 2**32 - 1),
