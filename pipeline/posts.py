@@ -132,13 +132,15 @@ def find_posts(
         c0, r0 = column.section(POST_HEIGHTS[0], c, reach)
         if not 0 < r0 <= max_radius:
             continue
-        circles = [(c0, r0)] + [column.section(at, c0, r0 + POST_MARGIN) for at in POST_HEIGHTS[1:]]
-        if not all(np.isfinite(r) for _, r in circles):
+        circles = [(c0, r0)]
+        for at in POST_HEIGHTS[1:]:  # the sections up to where those found already rule a post out
+            circles.append(column.section(at, c0, r0 + POST_MARGIN))
+            if _ruled_out(circles, max_radius):
+                break
+        post = _one_axis(circles, max_radius)
+        if post is None:
             continue
-        axis = np.median([cc for cc, _ in circles], axis=0)
-        r_med = float(np.median([r for _, r in circles]))
-        if r_med > max_radius or not all(_same(cc, r, axis, r_med) for cc, r in circles):
-            continue
+        axis, r_med = post
         top = POST_HEIGHTS[-1]
         for step in (POST_STEP, POST_FINE_STEP):  # the post's top: coarse steps up, then fine ones
             while top < max_height and _same(*column.section(top + step, axis, r_med + POST_MARGIN), axis, r_med):
@@ -209,6 +211,40 @@ class _CellIndex:
         dx = c[0] - self.xy[idx, 0]
         dy = c[1] - self.xy[idx, 1]
         return np.sort(idx[dx * dx + dy * dy <= self.reach * self.reach])
+
+
+def _one_axis(circles: list, max_radius: float) -> tuple[np.ndarray, float] | None:
+    """The axis (centres' median) and radius (radii's median) of a post whose section
+    circles at every one of POST_HEIGHTS are ``circles`` [(centre (2,), radius)], or None:
+    a circle missing or not on that axis with that radius (:func:`_same`), or a radius
+    over ``max_radius``."""
+    if len(circles) < len(POST_HEIGHTS) or not all(np.isfinite(r) for _, r in circles):
+        return None
+    axis = np.median([cc for cc, _ in circles], axis=0)
+    r_med = float(np.median([r for _, r in circles]))
+    if r_med > max_radius or not all(_same(cc, r, axis, r_med) for cc, r in circles):
+        return None
+    return axis, r_med
+
+
+def _ruled_out(circles: list, max_radius: float) -> bool:
+    """Whether the first of a candidate's section circles already make :func:`_one_axis`
+    None whatever the others are: one is missing; more than half of them are over
+    ``max_radius`` (so is the median); or two are farther apart than two of the
+    tolerances :func:`_same` allows around one axis and radius (the radius tolerance at
+    most that of ``max_radius``, as the median may be no larger). A margin of 1e-9 m keeps
+    rounding on the side of going on."""
+    if not all(np.isfinite(r) for _, r in circles):
+        return True
+    radii = np.array([r for _, r in circles])
+    if np.count_nonzero(radii > max_radius) > len(POST_HEIGHTS) // 2:
+        return True
+    tol = max(POST_MIN_RADIUS_TOL, POST_RADIUS_TOL * max_radius)
+    if radii.max() - radii.min() > 2 * tol + 1e-9:
+        return True
+    centres = np.array([cc for cc, _ in circles])
+    apart = np.hypot(*(centres[:, None, :] - centres[None, :, :]).transpose(2, 0, 1))
+    return bool(apart.max() > 2 * POST_MAX_SHIFT + 1e-9)
 
 
 def _same(centre: np.ndarray, radius: float, axis: np.ndarray, r_med: float) -> bool:

@@ -4,10 +4,12 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
+from hypothesis import given, settings
+from hypothesis import strategies as st
 
 from pipeline.evaluation.scores import score_labels
 from pipeline.params import PipelineParams
-from pipeline.posts import Posts, find_posts, on_posts
+from pipeline.posts import POST_HEIGHTS, Posts, _one_axis, _ruled_out, find_posts, on_posts
 from pipeline.process import process_points
 from pipeline.synthetic.orchard import POST
 from pipeline.synthetic.simparams import SimulationParams
@@ -126,3 +128,42 @@ def test_the_post_test_changes_nothing_without_posts():
     on, _, _ = _run(o, 0.08)
     assert np.array_equal(off.tree_id, on.tree_id) and np.array_equal(off.is_wood, on.is_wood)
     assert np.array_equal(off.trunks, on.trunks)
+
+
+def _circles(centres, radii):
+    return [(np.asarray(c, float), float(r)) for c, r in zip(centres, radii)]
+
+
+def test_sections_rule_a_post_out_by_hand():
+    on_axis = [(0.0, 0.0)] * len(POST_HEIGHTS)
+    # one axis and radius: a post, never ruled out on the way
+    good = _circles([(0.01, 0.0), (0.0, 0.01), (0.0, 0.0), (-0.01, 0.0), (0.0, -0.01)], [0.05, 0.055, 0.05, 0.045, 0.05])
+    assert not any(_ruled_out(good[:k], 0.08) for k in range(1, 6))
+    axis, r = _one_axis(good, 0.08)
+    assert np.allclose(axis, 0) and r == 0.05
+    # a missing section; more than half over the radius; radii or centres too far apart
+    assert _ruled_out(_circles(on_axis[:2], [0.05, np.nan]), 0.08)
+    assert _ruled_out(_circles(on_axis[:3], [0.09, 0.09, 0.09]), 0.08)
+    assert not _ruled_out(_circles(on_axis[:3], [0.09, 0.09, 0.07]), 0.08)
+    assert _ruled_out(_circles(on_axis[:2], [0.01, 0.0595]), 0.08)  # 2 x max(0.015, 0.3 x 0.08) = 0.048 apart
+    assert not _ruled_out(_circles(on_axis[:2], [0.02, 0.0675]), 0.08)
+    assert _ruled_out(_circles([(0, 0), (0.101, 0)], [0.05, 0.05]), 0.08)  # 2 x 0.05 apart
+    assert not _ruled_out(_circles([(0, 0), (0.099, 0)], [0.05, 0.05]), 0.08)
+
+
+@settings(max_examples=400, deadline=None)
+@given(seed=st.integers(0, 2**32 - 1), shift=st.sampled_from([0.0, 0.01, 0.05, 0.06]),
+       spread=st.sampled_from([0.0, 0.005, 0.02, 0.024, 0.04]), radius=st.floats(0.005, 0.12), missing=st.booleans())
+def test_sections_that_rule_a_post_out_leave_no_axis(seed, shift, spread, radius, missing):
+    # find_posts stops fitting a candidate's sections once those found rule a post out:
+    # only where all of them would have found none (offsets up to the tolerances' edges)
+    rng = np.random.default_rng(seed)
+    centre = rng.uniform(-5, 5, 2)
+    circles = [(centre + rng.uniform(-shift, shift, 2) / np.sqrt(2), radius + rng.uniform(-spread, spread))
+               for _ in POST_HEIGHTS]
+    if missing:
+        circles[int(rng.integers(len(POST_HEIGHTS)))] = (np.full(2, np.nan), float("nan"))
+    for k in range(1, len(POST_HEIGHTS) + 1):
+        if _ruled_out(circles[:k], 0.08):
+            assert _one_axis(circles, 0.08) is None, (k, circles)
+
