@@ -128,7 +128,10 @@ def find_posts(
         idx = columns.ball(c)
         if idx.size < POST_MIN_POINTS * len(POST_HEIGHTS):
             continue
-        column = _Column(xyz[idx, :2], height[idx], max_height)
+        # the sections at POST_HEIGHTS hold none of the points above them (with a margin
+        # for rounding): they select from the column's foot, the column is followed up after
+        foot = idx[height[idx] <= POST_HEIGHTS[-1] + 2 * POST_SLAB]
+        column = _Column(xyz[foot, :2], height[foot], max_height)
         c0, r0 = column.section(POST_HEIGHTS[0], c, reach)
         if not 0 < r0 <= max_radius:
             continue
@@ -141,6 +144,7 @@ def find_posts(
         if post is None:
             continue
         axis, r_med = post
+        column = _Column(xyz[idx, :2], height[idx], max_height)
         top = POST_HEIGHTS[-1]
         for step in (POST_STEP, POST_FINE_STEP):  # the post's top: coarse steps up, then fine ones
             while top < max_height and _same(*column.section(top + step, axis, r_med + POST_MARGIN), axis, r_med):
