@@ -23,7 +23,7 @@ T0 = time.perf_counter()
 
 #: module:function pairs timed, as the command's modules call them
 TIMED = (
-    "pipeline.blockinfo:read_info pipeline.reading:read_points "
+    "pipeline.blockinfo:read_info pipeline.reading:read_points workers.jobspec:read_counted "
     "pipeline.process:ground_model pipeline.process:classify_ground pipeline.process:voxelize "
     "pipeline.process:node_pairs pipeline.process:neighbourhood_matrix pipeline.process:shape_features "
     "pipeline.process:build_graph pipeline.process:bridge_floating pipeline.process:detect_trunks "
@@ -49,7 +49,7 @@ def categories(s: dict[str, float], start_up: float, total: float) -> dict[str, 
     s = defaultdict(float, s)
     out = {
         "start-up + imports": start_up,
-        "read": s["read_points"],
+        "read": s["read_points"] + s["read_counted"],  # a block counted for its budget is read with the count
         "ground": s["ground_model"] + s["classify_ground"],
         "voxels": s["voxelize"],
         "graph": s["node_pairs"] + s["neighbourhood_matrix"] + s["shape_features"] + s["build_graph"]
