@@ -233,8 +233,8 @@ def _one_axis(circles: list, max_radius: float) -> tuple[np.ndarray, float] | No
 
 def _ruled_out(circles: list, max_radius: float) -> bool:
     """Whether the first of a candidate's section circles already make :func:`_one_axis`
-    None whatever the others are: one is missing; more than half of them are over
-    ``max_radius`` (so is the median); or two are farther apart than two of the
+    None whatever the others are: one is missing; more than half of the POST_HEIGHTS
+    sections' radii are over ``max_radius`` already (so is their median); or two are farther apart than two of the
     tolerances :func:`_same` allows around one axis and radius (the radius tolerance at
     most that of ``max_radius``, as the median may be no larger). A margin of 1e-9 m keeps
     rounding on the side of going on."""
