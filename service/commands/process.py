@@ -276,6 +276,7 @@ def run(args: argparse.Namespace) -> int:
 
         outcome = run_job(spec, client=client, progress=_Bar() if tiled else None,  # TileFailed: exit 1 (service.cli)
                           cancel=getattr(args, "interrupted", None), points=points)
+        points = None  # not held through the report
     finally:
         if client is not None:
             close_client(client)
