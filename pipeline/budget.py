@@ -34,6 +34,15 @@ BYTES_PER_NODE = 550
 #: the libraries, and what the heap keeps between tiles (docs/performance.md)
 FIXED_BYTES = 300e6
 
+#: peak memory of reading and splitting a range of the file's points into tile parts,
+#: per point of the range [bytes]: 214-225 measured on 0.5 and 2 M points of a hedge at
+#: mobile density (docs/performance.md), with headroom (counting a range takes 88-99:
+#: its ranges stay at CHUNK_POINTS, the single pass's runs)
+RANGE_BYTES_PER_POINT = 250
+
+#: fewest points a task reads as one range of the file, whatever the budget
+MIN_RANGE_POINTS = 50_000
+
 #: a count read from part of the file's points is scaled to all of them and raised by
 #: this factor for the sampling error (none when every point was counted);
 #: tests/pipeline/test_budget.py bounds the error on generated blocks
@@ -83,6 +92,15 @@ def surely_tiled(n_points: int, budget: float | None) -> bool:
     """Whether ``n_points`` in one piece need more than ``budget`` [bytes] even with no
     voxel-graph node at all (None: no budget, never)."""
     return budget is not None and bool(bytes_needed(n_points, 0) > budget)
+
+
+def range_points(budget: float | None, most: int) -> int:
+    """Points a worker reads as one range of the file to split it into tiles: ``most``, or
+    fewer where the budget [bytes] (None: none) allows fewer above the fixed part (but
+    not below :data:`MIN_RANGE_POINTS`)."""
+    if budget is None:
+        return int(most)
+    return int(min(most, max(MIN_RANGE_POINTS, (budget - FIXED_BYTES) // RANGE_BYTES_PER_POINT)))
 
 
 def smallest_tile(buffer: float) -> float:

@@ -29,6 +29,7 @@ from pathlib import Path
 import numpy as np
 
 from pipeline.blockinfo import BlockInfo, read_info
+from pipeline.budget import range_points
 from pipeline.jobparams import REPORT_POINTS, sample_stride
 from pipeline.parquet import sampled_tree_ids
 from pipeline.reading import read_points
@@ -197,7 +198,9 @@ def _run_tiled_locked(spec, info, client, t0, progress, cancel, grid, store, tim
     try:
         store.put_json(JOB_KEY, record)
         check_cancel(cancel)
-        index = tile_block(info, grid, store, chunk_points=spec.tiling.chunk_points, engine=spec.tiling.engine, client=client,
+        # a worker's range of the file follows the memory budget, as its tiles do
+        chunk = range_points(spec.tiling.memory_budget, spec.tiling.chunk_points)
+        index = tile_block(info, grid, store, chunk_points=chunk, engine=spec.tiling.engine, client=client,
                            gather=lambda futures: gather(client, futures, cancel, store))
         timings["tile"] = time.perf_counter() - t0
         tiles = [t for t in index["tiles"] if t["n_core"] > 0]

@@ -327,3 +327,15 @@ def test_surely_tiled_needs_more_than_the_budget_with_no_node_at_all():
     at = FIXED_BYTES + BYTES_PER_POINT * n  # what n points need with no graph
     assert surely_tiled(n, at - 1) and not surely_tiled(n, at) and not surely_tiled(n, None)
     assert not fits_whole(n, at)  # between the two rules: the block is counted
+
+
+def test_a_workers_range_of_the_file_follows_its_budget():
+    from pipeline.budget import FIXED_BYTES, MIN_RANGE_POINTS, RANGE_BYTES_PER_POINT, range_points
+
+    assert range_points(None, 2_000_000) == 2_000_000  # no budget
+    assert range_points(2e9, 2_000_000) == 2_000_000  # the default budget keeps the default range
+    at = FIXED_BYTES + 1_000_000 * RANGE_BYTES_PER_POINT
+    assert range_points(at, 2_000_000) == 1_000_000 and range_points(at - RANGE_BYTES_PER_POINT, 2_000_000) == 999_999
+    assert range_points(0.31e9, 2_000_000) == MIN_RANGE_POINTS  # never below the floor ...
+    assert range_points(0.31e9, 20_000) == 20_000  # ... nor above the range asked for
+

@@ -203,11 +203,19 @@ def _header_rule_refuses(info, budget: float, buffer: float) -> bool:
 
 
 @pytest.mark.slow
-def test_the_tiles_chosen_for_a_budget_give_the_untiled_result(block, tmp_path):
+def test_the_tiles_chosen_for_a_budget_give_the_untiled_result(block, tmp_path, monkeypatch):
+    import workers.job
+    from pipeline.budget import range_points
+    from pipeline.jobparams import CHUNK_POINTS
+
     path, info = block
     params = PipelineParams.model_validate(PARAMS)
     single = run_job(JobSpec(str(path), str(tmp_path / "single"), params=params))
+    ranges = []  # the tiler's ranges of the file follow the budget too
+    tile_block = workers.job.tile_block
+    monkeypatch.setattr(workers.job, "tile_block", lambda *a, **k: ranges.append(k["chunk_points"]) or tile_block(*a, **k))
     tiled = run_job(JobSpec(str(path), str(tmp_path / "tiled"), params=params, tiling=TilingParams(worker_memory=_budget(info) / 1e9)))
+    assert ranges == [range_points(_budget(info), CHUNK_POINTS)] and ranges[0] < CHUNK_POINTS
     assert single.n_tiles == 1 and tiled.n_tiles >= 6
     assert tiled.n_trees == single.n_trees >= 15
     for col in ("tree_id", "trunk_x", "trunk_y", "height_m", "n_points"):
