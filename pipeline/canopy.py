@@ -12,6 +12,8 @@ from __future__ import annotations
 import numpy as np
 from scipy.ndimage import gaussian_filter1d
 
+from pipeline.voxels import column_max, column_min
+
 #: side of a canopy cell [m]: fine enough to resolve a 1 m hedgerow wall
 CELL = 0.25
 #: material this high above the ground [m] is canopy (grass and weeds stay lower)
@@ -63,8 +65,8 @@ def unique_cells(cells: np.ndarray) -> np.ndarray:
     cells = np.asarray(cells, dtype=np.int64).reshape(-1, 2)
     if cells.shape[0] == 0:
         return cells.copy()
-    lo = cells.min(axis=0)
-    span = cells.max(axis=0) - lo + 1
+    lo = column_min(cells)
+    span = column_max(cells) - lo + 1
     if int(span[0]) * int(span[1]) >= 2**62:  # the key would overflow: far-apart cells
         return np.unique(cells, axis=0)
     # x-major key: its order is the rows' lexicographic order
