@@ -302,9 +302,7 @@ def sample_density(path, *, info: BlockInfo | None = None, voxel_size: float | N
         The point data is truncated or corrupt.
     """
     info = info or read_info(path)
-    cell, (ny, nx) = _density_grid(info)
-    counts = np.zeros((ny, nx), dtype=np.int64)
-    nodes = None if voxel_size is None else np.zeros((ny, nx), dtype=np.int64)
+    cell, counts, nodes = _empty_counts(info, voxel_size)
     selection = _XY_ONLY if voxel_size is None else _XYZ_ONLY
     run, picked = int(chunk_points), None  # None: every point, in order
     if fraction < 1.0 and info.seekable:
@@ -336,9 +334,7 @@ def read_counted(path, *, info: BlockInfo | None = None, voxel_size: float | Non
         The point data is truncated or corrupt, or a point lies outside the header's bounds.
     """
     info = info or read_info(path)
-    cell, shape = _density_grid(info)
-    counts = np.zeros(shape, dtype=np.int64)
-    nodes = None if voxel_size is None else np.zeros(shape, dtype=np.int64)
+    cell, counts, nodes = _empty_counts(info, voxel_size)
     out = np.empty((info.n_points, 3), dtype=np.float64)
     for start, ints in iter_raw(info.path, chunk_points=chunk_points, info=info):
         _count_run(info, ints[:, 0], ints[:, 1], ints[:, 2] if nodes is not None else None, voxel_size, cell, counts,
@@ -359,6 +355,13 @@ def _density_grid(info: BlockInfo) -> tuple[float, tuple[int, int]]:
     nx = int(math.floor((info.maxs[0] - info.origin[0]) / cell)) + 1
     ny = int(math.floor((info.maxs[1] - info.origin[1]) / cell)) + 1
     return cell, (ny, nx)
+
+
+def _empty_counts(info: BlockInfo, voxel_size: float | None) -> tuple[float, np.ndarray, np.ndarray | None]:
+    """The density grid's cell side [m] and its zeroed point counts, and voxel counts
+    (None without a ``voxel_size``)."""
+    cell, shape = _density_grid(info)
+    return cell, np.zeros(shape, dtype=np.int64), None if voxel_size is None else np.zeros(shape, dtype=np.int64)
 
 
 def _count_run(info: BlockInfo, X, Y, Z, voxel_size, cell, counts, nodes) -> None:
@@ -388,10 +391,8 @@ def count_range(path, start: int, count: int, *, info: BlockInfo | None = None,
         The range lies beyond the points the file holds, or its data is corrupt.
     """
     info = info or read_info(path)
-    cell, shape = _density_grid(info)
+    cell, counts, nodes = _empty_counts(info, voxel_size)
     ints = read_raw_range(info.path, start, count, info=info)
-    counts = np.zeros(shape, dtype=np.int64)
-    nodes = None if voxel_size is None else np.zeros(shape, dtype=np.int64)
     _count_run(info, ints[:, 0], ints[:, 1], ints[:, 2] if nodes is not None else None, voxel_size, cell, counts, nodes)
     # a run covers a strip of the block: only its cells are returned (a voxel's centre can
     # lie in a cell that holds none of its points)
