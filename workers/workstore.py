@@ -15,7 +15,6 @@ import time
 import uuid
 from pathlib import Path
 
-import fsspec
 import numpy as np
 
 from pipeline.errors import ParameterError
@@ -60,6 +59,8 @@ def check_work_url(url: str, *, shared: bool) -> None:
             f"work store {url} lives in this process only, and the dask workers are other processes: "
             "give a folder all of them share or a shared URL (s3://...)"
         )
+    import fsspec  # with asyncio, only where a store is used: a run in one piece needs none
+
     try:
         fsspec.core.url_to_fs(url)
     except ImportError as exc:
@@ -76,6 +77,8 @@ class WorkStore:
     """
 
     def __init__(self, url: str):
+        import fsspec
+
         self.url = absolute_url(url)
         self.fs, root = fsspec.core.url_to_fs(self.url)
         self.root = root.rstrip("/")
