@@ -84,9 +84,10 @@ def run_job(
     info = read_info(spec.input_path)
     if client is not None:  # its workers count the block, each its own ranges of the file
         spec = auto_tiled(spec, info, count=partial(count_block, client=client, cancel=cancel))
-    else:  # counted here: a block that stays whole is then decoded once, not twice
-        spec, counted = budgeted(spec, info)
-        points = counted if points is None else points
+    elif points is None:  # counted here: a block that stays whole is then decoded once, not twice
+        spec, points = budgeted(spec, info)
+    else:
+        spec = auto_tiled(spec, info)
     if spec.tiling.tile_size is None and client is None:
         return _run_single(spec, info, t0, progress, cancel, points)
     return _run_tiled(spec, info, client, t0, progress, cancel)

@@ -16,7 +16,7 @@ from pipeline.budget import fits_whole, tile_size_for_sample
 from pipeline.errors import OrchardError, ParameterError
 from pipeline.jobparams import JobParams, TilingParams
 from pipeline.params import PipelineParams
-from pipeline.reading import read_counted, sample_density
+from pipeline.reading import read_counted, read_points, sample_density
 from pipeline.tiling import TileGrid, plan_grid
 from workers.tiler import check_engine
 from workers.workstore import WorkStore, absolute_url, default_work_dir, own_entry
@@ -190,9 +190,11 @@ def auto_tiled(spec: JobSpec, info: BlockInfo | None = None, *, count: Callable 
 
 def budgeted(spec: JobSpec, info: BlockInfo | None = None) -> tuple[JobSpec, np.ndarray | None]:
     """:func:`auto_tiled`, counting in this process, and the block's local coordinates
-    (:func:`pipeline.reading.read_points`) when it was read whole to be counted and stays
-    in one piece: a job given them (``run_job(points=...)``) does not decode it again.
-    None when it was not read or is tiled (its points are then let go before any tile)."""
+    (:func:`pipeline.reading.read_points`) when it stays in one piece: read with the
+    count when it was counted, else here, before the job imports the pipeline (a damaged
+    block fails in a fraction of the time). A job given them (``run_job(points=...)``)
+    does not decode the block again. None when it is tiled (points read to count it are
+    let go before any tile)."""
     kept = []
 
     def count(info, voxel_size):
@@ -201,7 +203,11 @@ def budgeted(spec: JobSpec, info: BlockInfo | None = None) -> tuple[JobSpec, np.
         return sample
 
     spec = auto_tiled(spec, info, count=count)
-    return spec, (kept[0] if kept and spec.tiling.tile_size is None else None)
+    if spec.tiling.tile_size is not None:
+        return spec, None
+    if not kept:
+        kept.append(read_points(spec.input_path, chunk_points=spec.tiling.chunk_points)[0])
+    return spec, kept[0]
 
 
 def grid_origin(tiling: TilingParams, info: BlockInfo) -> tuple[float, float]:

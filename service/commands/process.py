@@ -237,7 +237,7 @@ def run(args: argparse.Namespace) -> int:
     )
     tiled = bool(args.tile_size) or args.scheduler is not None
     count_on_cluster = False  # a block that surely needs tiles is counted by the workers
-    points = None  # the block's points, when counting it read them and it stays whole
+    points = None  # the block's points, read here when it stays whole
     if spec.tiling.tile_size is None and not tiled:
         from pipeline.budget import surely_tiled
 
@@ -285,8 +285,8 @@ def run(args: argparse.Namespace) -> int:
 
 def _budget_tiles(spec, count=None):
     """``spec`` with the tiles its memory budget needs (:func:`workers.jobspec.auto_tiled`),
-    said on stderr when there are any, and the block's points when they were read here to
-    count them and it stays whole (:func:`workers.jobspec.budgeted`; ``count`` None)."""
+    said on stderr when there are any, and the block's points when it stays whole and
+    they were read here (:func:`workers.jobspec.budgeted`; ``count`` None)."""
     from pipeline.budget import BudgetError
     from workers.jobspec import auto_tiled, budgeted
 

@@ -76,3 +76,40 @@ def test_process_refuses_a_bad_input_before_importing_the_pipeline(tmp_path, kin
     assert lines[-2] == "exit: 2", p.stdout + p.stderr
     assert "block.laz" in p.stderr
     assert set(lines[-1].split()[1:]) == set()  # the header is checked by struct alone
+
+
+_FIRST_READ_PROBE = """
+import sys
+import pipeline.reading
+
+def first_read(*args, **kwargs):
+    print("imported:", *sorted(name for name in {names!r} if name in sys.modules))
+    raise SystemExit(0)
+
+pipeline.reading.read_points = pipeline.reading.read_counted = first_read  # before anything imports them
+from service.cli import main
+main({argv!r})
+"""
+
+
+@pytest.mark.parametrize("n_points, budget", [(2_000, []), (200_000, ["--worker-memory", "0.4"])])
+def test_process_reads_a_valid_block_before_importing_the_job(tmp_path, n_points, budget):
+    """A block that surely fits the budget, and one counted for it (200,000 points may
+    not fit 0.4 GB), are both read before scipy, pyarrow, the work store's fsspec and
+    the cluster and plotting libraries load: the pipeline's imports come after."""
+    import laspy
+    import numpy as np
+
+    block = tmp_path / "block.las"
+    header = laspy.LasHeader(point_format=0, version="1.2")
+    header.scales = [0.01] * 3
+    las = laspy.LasData(header)
+    rng = np.random.default_rng(0)
+    las.x, las.y, las.z = rng.uniform(0, 10, n_points), rng.uniform(0, 10, n_points), rng.uniform(0, 3, n_points)
+    las.write(block)
+    names = ("scipy", "pyarrow", "fsspec", "dask", "distributed", "fastapi", "matplotlib", "laspy", "numpy")
+    argv = ["process", str(block), "--out", str(tmp_path / "out"), *budget]
+    p = subprocess.run([sys.executable, "-c", _FIRST_READ_PROBE.format(argv=argv, names=names)],
+                       capture_output=True, text=True, timeout=120)
+    assert p.returncode == 0, p.stderr
+    assert set(p.stdout.rstrip("\n").splitlines()[-1].split()[1:]) == {"laspy", "numpy"}

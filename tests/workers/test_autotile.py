@@ -168,6 +168,7 @@ def test_a_block_counted_and_kept_whole_is_decoded_once(block, tmp_path, monkeyp
     # a block that may not fit is counted; kept whole, the job processes the points read
     # for the count instead of decoding the file a second time
     import workers.job
+    import workers.jobspec
     from pipeline.reading import read_points, sample_density
 
     path, info = block
@@ -181,12 +182,16 @@ def test_a_block_counted_and_kept_whole_is_decoded_once(block, tmp_path, monkeyp
                                    tiling=TilingParams(worker_memory=_budget(info) / 1e9)), info)
     assert tiled.tiling.tile_size is not None and none is None  # not held while tiles run
 
-    reads = []
-    monkeypatch.setattr(workers.job, "read_points", lambda *a, **k: reads.append(a) or read_points(*a, **k))
+    reads = []  # every decode of the block, by the name it is called through
+    for module, name in ((workers.job, "read_points"), (workers.jobspec, "read_points"), (workers.jobspec, "read_counted")):
+        original = getattr(module, name)
+        monkeypatch.setattr(module, name, lambda *a, _f=original, _n=f"{module.__name__}.{name}", **k:
+                            reads.append(_n) or _f(*a, **k))
     counted = run_job(spec)
-    assert reads == [] and counted.n_tiles == 1
-    plain = run_job(JobSpec(str(path), str(tmp_path / "plain"), params=params))  # no budget: read by the job
-    assert len(reads) == 1 and counted.n_trees == plain.n_trees >= 15
+    assert reads == ["workers.jobspec.read_counted"] and counted.n_tiles == 1
+    plain = run_job(JobSpec(str(path), str(tmp_path / "plain"), params=params))  # fits the default budget surely
+    assert reads[1:] == ["workers.jobspec.read_points"]  # read before the job's work, once
+    assert counted.n_trees == plain.n_trees >= 15
     for name in ("trees.parquet", "points.parquet"):
         a, b = pq.read_table(tmp_path / "counted" / name), pq.read_table(tmp_path / "plain" / name)
         assert a.column_names == b.column_names
