@@ -18,7 +18,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from pipeline.metrics import trunk_circle
+from pipeline.circles import trunk_circle
 from pipeline.voxels import column_min
 
 # Fixed tuning of the post test (lengths in metres; the tallest post is
@@ -85,7 +85,7 @@ def find_posts(
 ) -> Posts:
     """The candidate positions that stand on a trellis post.
 
-    At each candidate, circles (:func:`pipeline.metrics.trunk_circle`) are fitted to
+    At each candidate, circles (:func:`pipeline.circles.trunk_circle`) are fitted to
     the points in thin horizontal sections at ``POST_HEIGHTS`` above the ground: the
     lowest within ``reach`` of the candidate, the others within the lowest circle's
     radius plus ``POST_MARGIN`` of its centre. A post's circles all lie on one vertical

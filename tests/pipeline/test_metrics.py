@@ -1,4 +1,4 @@
-"""Per-tree metrics: circle fits, hulls, and merging partials equals computing at once."""
+"""Per-tree metrics: hulls, and merging partials equals computing at once."""
 
 import numpy as np
 import pytest
@@ -7,26 +7,13 @@ from hypothesis import strategies as st
 
 from pipeline.metrics import (
     TREE_COLUMNS,
-    circle_support,
     combine_partials,
     finalize_metrics,
-    fit_circle,
     group_runs,
     tree_partials,
-    trunk_circle,
     trunk_circles,
 )
 from pipeline.params import MetricsParams
-
-
-def test_circle_fit_recovers_radius_from_a_half_arc_with_outliers():
-    rng = np.random.default_rng(0)
-    th = rng.uniform(0, np.pi, 200)
-    xy = np.column_stack([3 + 0.15 * np.cos(th), -2 + 0.15 * np.sin(th)]) + rng.normal(0, 0.003, (200, 2))
-    xy = np.concatenate([xy, rng.uniform(2.5, 3.5, (10, 2))])
-    c, r = fit_circle(xy)
-    assert r == pytest.approx(0.15, abs=0.01)
-    assert np.allclose(c, [3, -2], atol=0.01)
 
 
 def _cone_tree(rng, x0, y0, n=3000, h=4.0, r=2.0):
@@ -34,60 +21,6 @@ def _cone_tree(rng, x0, y0, n=3000, h=4.0, r=2.0):
     rad = r * (1 - z / h) * np.sqrt(rng.uniform(0, 1, n))
     a = rng.uniform(0, 2 * np.pi, n)
     return np.column_stack([x0 + rad * np.cos(a), y0 + rad * np.sin(a), z])
-
-
-@pytest.mark.parametrize("sigma", [0.02, 0.05])
-def test_trunk_circle_corrects_for_noise(sigma):
-    # a 0.2 m trunk seen from two alleys (two 120-degree arcs), each point off by Gaussian
-    # noise sigma per axis: a plain fit comes out too large (mean squared radius
-    # r^2 + 2 sigma^2), the corrected one not; averaged over 20 draws
-    plain, corrected = [], []
-    for seed in range(20):
-        rng = np.random.default_rng(seed)
-        a = np.concatenate([rng.uniform(np.pi / 6, 5 * np.pi / 6, 150), rng.uniform(-5 * np.pi / 6, -np.pi / 6, 150)])
-        xy = np.c_[0.1 * np.cos(a), 0.1 * np.sin(a)] + rng.normal(0, sigma, (300, 2)) + [3.0, -2.0]
-        plain.append(fit_circle(xy)[1] - 0.1)
-        centre, r = trunk_circle(xy)
-        corrected.append(r - 0.1)
-        assert np.allclose(centre, [3.0, -2.0], atol=0.03)
-    plain, corrected = np.array(plain), np.array(corrected)
-    assert plain.mean() > 0.002  # plain: radius 2.3 and 11.6 mm too large on average (sigma 0.02, 0.05)
-    assert abs(corrected.mean()) < 0.003 and np.abs(corrected).mean() < 0.5 * np.abs(plain).mean()
-
-
-def test_a_thin_stem_among_leaves_and_grass_keeps_its_own_circle():
-    # a 4 cm stem seen from two alleys, 30 points of clutter scattered within 0.5 m: any
-    # circle through the stem holds all of it in its 2 cm band, and the plain fit takes
-    # whichever also gathers most clutter (docs/method.md); points deep inside a circle
-    # count against it, and the refit stays with the circle found
-    plain_wrong = solid_wrong = 0
-    for seed in range(30):
-        rng = np.random.default_rng(seed)
-        a = np.concatenate([rng.uniform(np.pi / 6, 5 * np.pi / 6, 30), rng.uniform(-5 * np.pi / 6, -np.pi / 6, 30)])
-        stem = np.c_[0.02 * np.cos(a), 0.02 * np.sin(a)] + rng.normal(0, 0.005, (60, 2))
-        rr, th = 0.5 * np.sqrt(rng.uniform(0, 1, 30)), rng.uniform(0, 2 * np.pi, 30)
-        xy = np.concatenate([stem, np.c_[rr * np.cos(th), rr * np.sin(th)]]) + [3.0, -2.0]
-        plain_wrong += abs(trunk_circle(xy, solid=False)[1] - 0.02) > 0.01
-        centre, r = trunk_circle(xy)
-        solid_wrong += abs(r - 0.02) > 0.01 or np.hypot(*(centre - [3.0, -2.0])) > 0.01
-    assert plain_wrong >= 15 and solid_wrong <= 4, (plain_wrong, solid_wrong)
-
-
-def test_points_deep_inside_a_solid_circle_count_against_it():
-    # circle r 0.1 at 0, band 0.02: three points on it, one 0.015 inside (in the band),
-    # one 0.025 inside (not in the band, not deep), one 0.05 inside and one at the centre
-    # (deep), one far outside
-    xy = np.array([[0.1, 0], [0, 0.1], [-0.1, 0], [0.085, 0], [0, 0.075], [0.05, 0], [0, 0], [0.5, 0]])
-    one = (np.zeros(1), np.zeros(1), np.array([0.1]))
-    assert circle_support(xy, *one, 0.02)[0] == 4
-    assert circle_support(xy, *one, 0.02, inside_depth=0.03)[0] == 4 - 2
-
-
-def test_trunk_circle_leaves_a_clean_circle_alone():
-    a = np.linspace(0, 2 * np.pi, 200, endpoint=False)
-    xy = np.c_[0.15 * np.cos(a), 0.15 * np.sin(a)]
-    assert trunk_circle(xy)[1] == pytest.approx(0.15, abs=1e-6)
-    assert np.isnan(trunk_circle(xy[:4])[1])
 
 
 def test_metrics_of_a_known_shape():
