@@ -16,6 +16,12 @@ import numpy as np
 #: points of one cross-section a circle fit uses at most (evenly spaced in input order)
 MAX_FIT_POINTS = 100_000
 _FIT_CHUNK = 1 << 16  # residuals computed per block of trials (elements; cache-sized)
+#: ulps of a squared distance's largest term that bound its rounding in
+#: :func:`circle_support`'s product and in the definition's own distance (4 terms, each
+#: within a few ulps; the definition's sqrt and hypot within 3 ulps of each other)
+_BAND_ROUNDING = 64
+#: a circle whose rounding bound is this share of its band or more is counted point by point
+_MAX_BAND_MARGIN = 1e-9
 #: fewest points (and inliers) a circle is fitted to
 MIN_FIT_POINTS = 5
 #: residual [m] under which a point supports a circle: bark roughness on a clean scan
@@ -56,9 +62,19 @@ def fit_circle(xy: np.ndarray, *, inlier: float = FIT_INLIER, trials: int = FIT_
     -------
     centre (2,), radius [m]; radius NaN when fewer than MIN_FIT_POINTS points.
     """
-    n = len(xy)
-    if n < MIN_FIT_POINTS:
+    if len(xy) < MIN_FIT_POINTS:
         return np.full(2, np.nan), float("nan")
+    xy, ux, uy, r, ok = _circle_trials(xy, trials)
+    inside = SOLID_INSIDE_BANDS * inlier if solid else None
+    return _best_circle(xy, ux, uy, r, ok, circle_support(xy, ux, uy, r, inlier, inside_depth=inside), inlier)
+
+
+def _circle_trials(xy: np.ndarray, trials: int) -> tuple[np.ndarray, ...]:
+    """The points a fit uses (at most MAX_FIT_POINTS of ``xy``) and the circles through
+    ``trials`` random triples of them: (xy, ux, uy, r, ok), ``ok`` False where a triple
+    is degenerate. The draw has a fixed seed: two fits to the same points try the same
+    circles."""
+    n = len(xy)
     if n > MAX_FIT_POINTS:  # a cross-section scanned at sub-millimetre spacing: every k-th point
         xy = xy[:: -(-n // MAX_FIT_POINTS)]
         n = len(xy)
@@ -71,9 +87,14 @@ def fit_circle(xy: np.ndarray, *, inlier: float = FIT_INLIER, trials: int = FIT_
     ux = (a2 * (b[:, 1] - c[:, 1]) + b2 * (c[:, 1] - a[:, 1]) + c2 * (a[:, 1] - b[:, 1])) / np.where(ok, d, 1)
     uy = (a2 * (c[:, 0] - b[:, 0]) + b2 * (a[:, 0] - c[:, 0]) + c2 * (b[:, 0] - a[:, 0])) / np.where(ok, d, 1)
     r = np.hypot(a[:, 0] - ux, a[:, 1] - uy)
-    inside = SOLID_INSIDE_BANDS * inlier if solid else None
-    support = np.where(ok, circle_support(xy, ux, uy, r, inlier, inside_depth=inside), -(n + 1))
-    best = int(np.argmax(support))
+    return xy, ux, uy, r, ok
+
+
+def _best_circle(xy: np.ndarray, ux: np.ndarray, uy: np.ndarray, r: np.ndarray, ok: np.ndarray,
+                 support: np.ndarray, inlier: float) -> tuple[np.ndarray, float]:
+    """Least squares on the points within ``inlier`` of the best supported of the tried
+    circles (the first of equals); NaN radius with fewer than MIN_FIT_POINTS of them."""
+    best = int(np.argmax(np.where(ok, support, -(len(xy) + 1))))
     keep = np.abs(np.hypot(xy[:, 0] - ux[best], xy[:, 1] - uy[best]) - r[best]) < inlier
     if keep.sum() < MIN_FIT_POINTS:
         return np.full(2, np.nan), float("nan")
@@ -95,9 +116,83 @@ def circle_support(xy: np.ndarray, ux: np.ndarray, uy: np.ndarray, r: np.ndarray
     those with ``abs(hypot(x - ux, y - uy) - r) < inlier`` [m], counted exactly so. Given
     ``inside_depth`` [m], less those more than that inside the circle (by ``sqrt(dx² + dy²)``).
 
-    ``np.hypot`` costs several times ``sqrt(dx² + dy²)``, which is within a few ulps of
-    it: the sum of squares decides every point but those within a rounding margin of the
-    band's edges (or not finite), which ``np.hypot`` decides as the definition does.
+    Each circle's band is a band of squared distances, and the squared distances of all
+    points to a few circles are one matrix product of the points' coordinates and squares
+    with the circles' (scaled so that the band is ``|.| < 1``). Each circle's points are
+    counted twice, with the band narrowed and widened by a bound on the rounding of that
+    product and of the definition; a circle whose two counts differ (a point within that
+    bound of an edge) is counted again point by point (:func:`_support_pointwise`).
+    """
+    # Strategy: a few circles at a time, small enough to stay in cache (a whole trials x n
+    # matrix would take gigabytes on a densely scanned trunk); per block of circles one
+    # product, one abs and two comparisons with two row sums, instead of the dozen passes
+    # of a point-by-point residual.
+    n, t = xy.shape[0], ux.shape[0]
+    if n == 0 or t == 0 or not np.isfinite(xy).all():
+        return _support_pointwise(xy, ux, uy, r, inlier, inside_depth=inside_depth)
+    mean = xy.mean(axis=0)  # centred, the squares stay small and so does their rounding
+    p = xy - mean
+    vx, vy = ux - mean[0], uy - mean[1]
+    points = np.empty((4, n))
+    points[0], points[1] = p[:, 0], p[:, 1]
+    points[2] = p[:, 0] ** 2 + p[:, 1] ** 2
+    points[3] = 1.0
+    reach = float(np.sqrt(points[2].max()))
+    u2 = vx * vx + vy * vy
+    bound = (reach + np.sqrt(u2)) ** 2  # of every term of a squared distance
+
+    def band(lo: np.ndarray, hi: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        # lo < d < hi as |d² - c| < w (for lo <= 0, d² < hi²), with the product divided by w
+        wide = lo > 0
+        c = np.where(wide, (hi * hi + lo * lo) / 2, 0.0)
+        w = np.where(wide, (hi * hi - lo * lo) / 2, hi * hi)
+        with np.errstate(divide="ignore", invalid="ignore", over="ignore"):
+            rows = np.column_stack([-2 * vx, -2 * vy, np.ones(t), u2 - c]) / w[:, None]
+            rel = _BAND_ROUNDING * np.finfo(np.float64).eps * (bound + hi * hi + c) / w
+        unsure = ~((rel < _MAX_BAND_MARGIN) & np.isfinite(rows).all(axis=1))
+        rows[unsure] = 0.0
+        return rows, unsure
+
+    rows, unsure = band(r - inlier, r + inlier)
+    if inside_depth is not None:  # d - r < -depth: d < r - depth, never where that is 0 or less
+        deep_rows, deep_unsure = band(np.full(t, -1.0), r - inside_depth)
+        unsure |= deep_unsure & (r - inside_depth > 0)
+        can_be_inside = r - inside_depth > 0
+    out = np.zeros(t, np.int64)
+    step = min(t, max(1, _FIT_CHUNK // n))
+    e, hits = np.empty((step, n)), np.empty((step, n), np.uint8)
+    count = np.uint16 if n < 1 << 16 else np.int64  # row sums of bytes: a narrow sum is several times faster
+    narrow, widened = 1.0 - _MAX_BAND_MARGIN, 1.0 + _MAX_BAND_MARGIN
+
+    def in_band(block_rows: np.ndarray, k: int) -> tuple[np.ndarray, np.ndarray]:
+        np.matmul(block_rows, points, out=e[:k])
+        np.abs(e[:k], out=e[:k])
+        np.less(e[:k], narrow, out=hits[:k])
+        surely = hits[:k].sum(axis=1, dtype=count).astype(np.int64)
+        np.less_equal(e[:k], widened, out=hits[:k])
+        return surely, hits[:k].sum(axis=1, dtype=count).astype(np.int64) != surely
+
+    for s0 in range(0, t, step):
+        s1 = min(t, s0 + step)
+        if inside_depth is not None:
+            deep, undecided = in_band(deep_rows[s0:s1], s1 - s0)
+            out[s0:s1] = -np.where(can_be_inside[s0:s1], deep, 0)
+            unsure[s0:s1] |= undecided & can_be_inside[s0:s1]
+        got, undecided = in_band(rows[s0:s1], s1 - s0)
+        out[s0:s1] += got
+        unsure[s0:s1] |= undecided
+    if unsure.any():
+        again = np.flatnonzero(unsure)
+        out[again] = _support_pointwise(xy, ux[again], uy[again], r[again], inlier, inside_depth=inside_depth)
+    return out
+
+
+def _support_pointwise(xy: np.ndarray, ux: np.ndarray, uy: np.ndarray, r: np.ndarray, inlier: float, *,
+                       inside_depth: float | None = None) -> np.ndarray:
+    """:func:`circle_support` point by point, for the circles it cannot decide from its
+    bounds: each point's distance as ``sqrt(dx² + dy²)``, and ``np.hypot`` (several times
+    its cost, and within a few ulps of it) for the points within a rounding margin of
+    the band's edges (or not finite), as the definition decides them.
     """
     # Strategy: a few trials at a time, small enough to stay in cache (a whole trials x n
     # matrix would take gigabytes on a densely scanned trunk).
@@ -160,14 +255,18 @@ def trunk_circle(xy: np.ndarray, *, inlier: float = FIT_INLIER, trials: int = FI
     -------
     centre (2,), radius [m]; as :func:`fit_circle`.
     """
-    centre, r = fit_circle(xy, inlier=inlier, trials=trials, solid=solid)
+    if solid or len(xy) < MIN_FIT_POINTS:
+        centre, r = fit_circle(xy, inlier=inlier, trials=trials, solid=solid)
+    else:  # the second search tries the same circles: they are drawn once
+        tried = _circle_trials(xy, trials)
+        centre, r = _best_circle(*tried, circle_support(*tried[:4], inlier), inlier)
     if not np.isfinite(r):
         return centre, r
     res = np.hypot(xy[:, 0] - centre[0], xy[:, 1] - centre[1]) - r
     res = res[np.abs(res) < NOISE_WINDOW]
     sigma = 1.4826 * float(np.median(np.abs(res - np.median(res))))  # a normal sigma per MAD
     band = max(inlier, NOISE_INLIER_SIGMAS * sigma)
-    c2, r2 = _refit_in_band(xy, centre, r, band) if solid else fit_circle(xy, inlier=band, trials=trials)
+    c2, r2 = _refit_in_band(xy, centre, r, band) if solid else _best_circle(*tried, circle_support(*tried[:4], band), band)
     if not np.isfinite(r2):
         return centre, r
     return c2, float(np.sqrt(max(r2 * r2 - 2.0 * sigma * sigma, 0.25 * r2 * r2)))
