@@ -19,7 +19,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from pipeline.circles import trunk_circle
-from pipeline.voxels import column_min
+from pipeline.nearby import CellIndex, near_centres
 
 # Fixed tuning of the post test (lengths in metres; the tallest post is
 # TrunkParams.max_post_height).
@@ -54,8 +54,6 @@ POST_MIN_POINTS = 8
 POST_TRIALS = 1024
 #: the lowest section is looked for within this [m] of a candidate
 POST_REACH = 0.25
-#: most grid cells of :func:`_near_centres` (candidates spread wider take the bounding box)
-MAX_NEAR_CELLS = 4_000_000
 
 
 @dataclass(frozen=True)
@@ -116,10 +114,10 @@ def find_posts(
     if max_radius <= 0 or centres.shape[0] == 0 or xyz.shape[0] == 0:
         return none
     column_reach = reach + max_radius + POST_MARGIN + POST_FOLLOW_SHIFT
-    near = _near_centres(xyz[:, :2], centres, column_reach)
+    near = near_centres(xyz[:, :2], centres, column_reach)
     near = near[(height[near] >= POST_HEIGHTS[0] - POST_SLAB) & (height[near] <= max_height + POST_SLAB)]
     xyz, height = xyz[near], height[near]
-    columns = _CellIndex(xyz[:, :2], column_reach)
+    columns = CellIndex(xyz[:, :2], column_reach)
     found_xy, found_r, found_top = [], [], []
     for c in np.asarray(centres, dtype=np.float64):
         if found_xy and np.min(np.hypot(*(np.asarray(found_xy) - c).T)) <= 2 * max_radius:
@@ -157,64 +155,6 @@ def find_posts(
     if not found_xy:
         return none
     return Posts(np.asarray(found_xy), np.asarray(found_r), np.asarray(found_top))
-
-
-def _near_centres(xy: np.ndarray, centres: np.ndarray, reach: float) -> np.ndarray:
-    """Indices of the points ``xy`` (n, 2) in the grid cells of side ``reach`` [m] at and
-    around each centre: a superset of those within ``reach`` of a centre, found without
-    the cost of a k-d tree over all the points."""
-    lo = centres.min(axis=0) - reach
-    hi = centres.max(axis=0) + reach
-    inside = np.flatnonzero((xy[:, 0] >= lo[0]) & (xy[:, 0] <= hi[0]) & (xy[:, 1] >= lo[1]) & (xy[:, 1] <= hi[1]))
-    shape = (np.floor((hi - lo) / reach).astype(np.int64) + 1)
-    if shape[0] * shape[1] > MAX_NEAR_CELLS:  # candidates spread over a huge extent: the box alone
-        return inside
-    grid = np.zeros(shape, bool)
-    cell = np.floor((centres - lo) / reach).astype(np.int64)
-    for dx in (-1, 0, 1):
-        for dy in (-1, 0, 1):
-            grid[np.clip(cell[:, 0] + dx, 0, shape[0] - 1), np.clip(cell[:, 1] + dy, 0, shape[1] - 1)] = True
-    # column by column: (n, 2) float temporaries of every point of a tile were its peak
-    ix, iy = (np.minimum(np.floor((xy[inside, d] - lo[d]) / reach).astype(np.int64), shape[d] - 1) for d in (0, 1))
-    return inside[grid[ix, iy]]
-
-
-class _CellIndex:
-    """Points ``xy`` (n, 2) [m] sorted into square cells of side ``reach`` [m], to find
-    those within ``reach`` of a position among the 3 x 3 cells around it.
-
-    One sort of cell keys costs a fraction of a k-d tree over the same points, and a
-    column query needs no more than a k-d tree's ball query gives.
-    """
-
-    def __init__(self, xy: np.ndarray, reach: float) -> None:
-        self.xy, self.reach = xy, reach
-        self.cell = reach * (1 + 1e-6)  # a point within reach is never two cells off by rounding
-        self.lo = column_min(xy) if xy.shape[0] else np.zeros(2)
-        ij = np.floor((xy - self.lo) / self.cell).astype(np.int64)
-        self.ny = int(ij[:, 1].max()) + 3 if xy.shape[0] else 3  # keys of a row of cells never reach the next row's
-        key = (ij[:, 0] + 1) * self.ny + (ij[:, 1] + 1)
-        # the same stable order from 16-bit keys where they fit: numpy sorts those by radix
-        small = key.size and int(key.max()) < 1 << 16
-        self.order = np.argsort(key.astype(np.uint16) if small else key, kind="stable")
-        self.key = key[self.order]
-
-    def ball(self, c: np.ndarray) -> np.ndarray:
-        """Indices (sorted) of the points within ``reach`` of ``c`` (2,) [m]: those whose
-        squared distance, summed as ``scipy.spatial.cKDTree.query_ball_point`` sums it, is
-        at most ``reach**2``."""
-        i, j = np.floor((np.asarray(c, dtype=np.float64) - self.lo) / self.cell).astype(np.int64)
-        # cells i-1..i+1 by j-1..j+1, whose keys are (i + 1 + di) * ny + (j + 1 + dj), dj in -1..1;
-        # j clipped to the keys' columns 1..ny-2, so that a range never runs into the next row
-        j0, j1 = max(j, 1), min(j + 2, self.ny - 2)
-        if j0 > j1:
-            return np.zeros(0, np.int64)
-        rows = (i + np.arange(3)) * self.ny
-        bounds = np.searchsorted(self.key, np.r_[rows + j0, rows + j1 + 1])
-        idx = np.concatenate([self.order[a:b] for a, b in zip(bounds[:3], bounds[3:])])
-        dx = c[0] - self.xy[idx, 0]
-        dy = c[1] - self.xy[idx, 1]
-        return np.sort(idx[dx * dx + dy * dy <= self.reach * self.reach])
 
 
 def _one_axis(circles: list, max_radius: float) -> tuple[np.ndarray, float] | None:

@@ -11,6 +11,7 @@ from scipy.spatial import cKDTree
 
 from pipeline.graph import ShortestPaths, shortest_paths, without_nodes
 from pipeline.metrics import group_runs, tree_circles
+from pipeline.nearby import near_centres
 from pipeline.params import SegmentParams
 
 # Fixed tuning of segmentation (lengths in metres).
@@ -300,15 +301,6 @@ def hard_surfaces(
     return np.isfinite(d)
 
 
-def _near_any(values: np.ndarray, centres: np.ndarray, reach: float) -> np.ndarray:
-    """(n,) bool: each value within ``reach`` of at least one of ``centres`` (k >= 1)."""
-    c = np.sort(centres)
-    i = np.searchsorted(c, values)
-    below = np.abs(values - c[np.maximum(i - 1, 0)])
-    above = np.abs(c[np.minimum(i, c.size - 1)] - values)
-    return np.minimum(below, above) <= reach
-
-
 def trunk_feet(
     xyz: np.ndarray,
     tree_id: np.ndarray,
@@ -356,21 +348,21 @@ def trunk_feet(
     cand = cand[((xyz[cand, :2] - own) ** 2).sum(1) <= max_radius**2]
     if cand.size == 0:
         return empty
-    # only ground points within 2 max_radius + margin of some trunk in x and in y can be
-    # a foot; each trunk then looks at its own disc of them through one k-d tree (time
-    # linear in the trees, where a window sorted by x would span every row)
-    reach_any = 2.0 * max_radius + margin
-    for d in (0, 1):
-        gidx = gidx[_near_any(xyz[gidx, d], trunk_xy[:, d], reach_any)]
     centres, radii = tree_circles(xyz[cand, :2], tree_id[cand], k)
     off = np.hypot(*(centres - trunk_xy).T)
     trunk_like = np.flatnonzero(np.isfinite(radii) & (radii <= max_radius) & (off <= max_radius))
-    if gidx.size == 0 or trunk_like.size == 0:
+    if trunk_like.size == 0:
+        return empty
+    # the ground points in the cells around some trunk's circle can be a foot (one pass
+    # over them); each trunk then looks at its own disc of those through one k-d tree
+    reaches = radii[trunk_like] + margin
+    query = reaches * (1 + 1e-9) + 1e-12
+    gidx = gidx[near_centres(xyz[gidx, :2], centres[trunk_like], float(query.max()))]
+    if gidx.size == 0:
         return empty
     order, uniq, start, counts = group_runs(tree_id[cand])  # each tree's slice points, in input order
     first = dict(zip(uniq.tolist(), zip(start.tolist(), counts.tolist())))
-    reaches = radii[trunk_like] + margin
-    near = cKDTree(xyz[gidx, :2]).query_ball_point(centres[trunk_like], reaches * (1 + 1e-9) + 1e-12)
+    near = cKDTree(xyz[gidx, :2]).query_ball_point(centres[trunk_like], query)
     idx, src = [], []
     for t, reach, hits in zip(trunk_like, reaches, near):
         c = centres[t]

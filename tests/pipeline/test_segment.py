@@ -5,7 +5,6 @@ import numpy as np
 from pipeline.graph import build_graph
 from pipeline.params import SegmentParams
 from pipeline.segment import (
-    _near_any,
     curved_patches,
     faces,
     hard_surfaces,
@@ -227,9 +226,3 @@ def test_trunk_feet_need_a_plausible_trunk():
     far_ok = trunk_feet(wide, tree_id, is_ground, height, np.zeros((1, 2)), max_radius=2.0, **kw)[0]
     assert far_ok.size > 0  # allowed when max_radius allows it
     assert np.array_equal(trunk_feet(wide, tree_id, is_ground, height, np.zeros((1, 2)), **at)[0], empty)
-
-
-def test_near_any_by_hand():
-    values = np.array([-5.0, 0.0, 0.9, 1.1, 4.5, 9.0, 10.0, 12.5])
-    got = _near_any(values, np.array([10.0, 0.0, 4.0]), 1.0)
-    np.testing.assert_array_equal(got, [False, True, True, False, True, True, True, False])

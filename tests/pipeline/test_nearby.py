@@ -1,4 +1,5 @@
-"""pipeline.posts._CellIndex: a post's column is what a k-d tree's ball query gives."""
+"""pipeline.nearby: a cell index's ball is what a k-d tree's ball query gives; the cells
+around centres hold every point within reach of one."""
 
 from __future__ import annotations
 
@@ -7,7 +8,7 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 from scipy.spatial import cKDTree
 
-from pipeline.posts import _CellIndex
+from pipeline.nearby import CellIndex, near_centres
 
 
 def _kdtree_ball(xy, c, reach):
@@ -19,14 +20,14 @@ def test_points_on_the_circle_and_an_ulp_either_side():
     pts = [c + d * np.array([np.cos(a), np.sin(a)])
            for a in np.linspace(0, 2 * np.pi, 500) for d in (np.nextafter(reach, 0), reach, np.nextafter(reach, 1))]
     pts = np.array(pts + [[10.49, 20.0], [10.0, 19.51], [9.51, 20.0]])
-    got = _CellIndex(pts, reach).ball(c)
+    got = CellIndex(pts, reach).ball(c)
     np.testing.assert_array_equal(got, _kdtree_ball(pts, c, reach))
     assert 0 < len(got) < len(pts)
 
 
 def test_a_position_off_the_points_finds_none():
     xy = np.array([[0.0, 0.0], [1.0, 1.0]])
-    index = _CellIndex(xy, 0.3)
+    index = CellIndex(xy, 0.3)
     assert index.ball(np.array([-5.0, 0.0])).size == 0
     assert index.ball(np.array([0.5, 9.0])).size == 0
     np.testing.assert_array_equal(index.ball(np.array([0.9, 1.1])), [1])
@@ -45,7 +46,36 @@ def test_equals_the_kdtree_ball_query(n, extent, reach, quantum, seed):
     xy = rng.uniform(0, extent, (n, 2)) + rng.uniform(-1e5, 1e5, 2)
     if quantum:  # LAS coordinates: many points at equal distances
         xy = np.round(xy / quantum) * quantum
-    index = _CellIndex(xy, reach)
+    index = CellIndex(xy, reach)
     centres = np.r_[xy[rng.integers(0, n, 4)], xy[rng.integers(0, n, 4)] + rng.normal(0, reach, (4, 2))]
     for c in centres:
         np.testing.assert_array_equal(index.ball(c), _kdtree_ball(xy, c, reach))
+
+
+@settings(max_examples=150, deadline=None)
+@given(
+    n=st.integers(1, 2000),
+    c=st.integers(1, 30),
+    extent=st.sampled_from([0.3, 3.0, 40.0]),
+    reach=st.sampled_from([0.13, 0.41, 1.0]),
+    seed=st.integers(0, 2**32 - 1),
+)
+def test_near_centres_holds_every_point_within_reach(n, c, extent, reach, seed):
+    rng = np.random.default_rng(seed)
+    offset = rng.uniform(-1e5, 1e5, 2)
+    xy = rng.uniform(0, extent, (n, 2)) + offset
+    centres = rng.uniform(0, extent, (c, 2)) + offset
+    # and points exactly at reach from a centre, along the axes and diagonals
+    ring = centres[rng.integers(0, c, 8)] + reach * np.c_[[1, -1, 0, 0, 0.6, -0.6, 0.8, -0.8],
+                                                          [0, 0, 1, -1, 0.8, 0.8, -0.6, -0.6]]
+    xy = np.r_[xy, ring]
+    got = near_centres(xy, centres, reach)
+    within = np.flatnonzero((cKDTree(centres).query(xy)[0] <= reach))
+    assert np.all(np.diff(got) > 0)
+    assert np.isin(within, got).all()
+
+
+def test_near_centres_by_hand():
+    xy = np.array([[0.0, 0.0], [0.5, 0.0], [1.9, 0.0], [3.5, 0.0], [10.0, 10.0]])
+    got = near_centres(xy, np.array([[0.0, 0.0]]), 1.0)
+    assert {0, 1}.issubset(got) and not {3, 4} & set(got.tolist())
