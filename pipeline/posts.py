@@ -211,8 +211,9 @@ class _Column:
     def section(self, at: float, centre: np.ndarray, within: float) -> tuple[np.ndarray, float]:
         """The circle through the points within POST_SLAB of height ``at`` and ``within``
         [m] of ``centre``; NaN with fewer than POST_MIN_POINTS points."""
-        sel = (np.abs(self.height - at) <= POST_SLAB) & (((self.xy - centre) ** 2).sum(1) <= within**2)
-        if np.count_nonzero(sel) < POST_MIN_POINTS:
+        sel = np.flatnonzero(np.abs(self.height - at) <= POST_SLAB)  # the slab first: a few of the column's points
+        sel = sel[((self.xy[sel] - centre) ** 2).sum(1) <= within**2]
+        if sel.size < POST_MIN_POINTS:
             return np.full(2, np.nan), float("nan")
         return trunk_circle(self.xy[sel], trials=POST_TRIALS, solid=False)  # the fit its thresholds were set on
 
