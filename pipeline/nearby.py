@@ -32,7 +32,8 @@ def near_centres(xy: np.ndarray, centres: np.ndarray, reach: float) -> np.ndarra
         for dy in (-1, 0, 1):
             grid[np.clip(cell[:, 0] + dx, 0, shape[0] - 1), np.clip(cell[:, 1] + dy, 0, shape[1] - 1)] = True
     # column by column: (n, 2) float temporaries of every point of a tile were its peak
-    ix, iy = (np.minimum(np.floor((xy[inside, d] - lo[d]) / reach).astype(np.int64), shape[d] - 1) for d in (0, 1))
+    # (x - lo) / reach >= 0 inside the box: truncation is the floor, without a pass of its own
+    ix, iy = (np.minimum(((xy[inside, d] - lo[d]) / reach).astype(np.int64), shape[d] - 1) for d in (0, 1))
     return inside[grid[ix, iy]]
 
 
