@@ -123,8 +123,12 @@ class GroundModel:
         return out
 
     def _part_height(self, k: int, xy: np.ndarray) -> np.ndarray:
-        g = (xy - self.origins[k]) / self.cell_size - 0.5
-        return ndimage.map_coordinates(self.dtms[k], g.T, order=1, mode="nearest")
+        g = np.empty((2, xy.shape[0]))  # grid coordinates, row by row: map_coordinates reads (2, n)
+        for d in (0, 1):
+            np.subtract(xy[:, d], self.origins[k][d], out=g[d])
+            np.divide(g[d], self.cell_size, out=g[d])
+            np.subtract(g[d], 0.5, out=g[d])
+        return ndimage.map_coordinates(self.dtms[k], g, order=1, mode="nearest")
 
 
 def _disk(radius_cells: float) -> np.ndarray:
