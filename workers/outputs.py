@@ -87,7 +87,10 @@ class Labels:
             lo, hi = np.searchsorted(idx, np.array([a, b], dtype=np.uint64))
             if hi <= lo:
                 continue
-            pos = (idx[lo:hi] - np.uint64(a)).astype(np.int64)
+            if int(idx[hi - 1]) - int(idx[lo]) == hi - lo - 1:  # consecutive points (a whole block): copies, no scatter
+                pos = slice(int(idx[lo]) - a, int(idx[hi - 1]) - a + 1)
+            else:
+                pos = (idx[lo:hi] - np.uint64(a)).astype(np.int64)
             lo, hi = r0 + int(lo), r0 + int(hi)
             tree = _rows(p["tree_id"], lo, hi)
             out["tree_id"][pos] = tree if p.get("map") is None else p["map"][tree]
