@@ -174,21 +174,34 @@ def _one_axis(circles: list, max_radius: float) -> tuple[np.ndarray, float] | No
 def _ruled_out(circles: list, max_radius: float) -> bool:
     """Whether the first of a candidate's section circles already make :func:`_one_axis`
     None whatever the others are: one is missing; more than half of the POST_HEIGHTS
-    sections' radii are over ``max_radius`` already (so is their median); or two are farther apart than two of the
-    tolerances :func:`_same` allows around one axis and radius (the radius tolerance at
-    most that of ``max_radius``, as the median may be no larger). A margin of 1e-9 m keeps
-    rounding on the side of going on."""
+    sections' radii are over ``max_radius`` already (so is their median); no median
+    radius of at most ``max_radius`` has them all within the tolerance :func:`_same`
+    allows around it (:func:`_radius_range_fits`); or two centres are farther apart than
+    twice the shift it allows around one axis. A margin of 1e-9 m keeps rounding on the
+    side of going on."""
     if not all(np.isfinite(r) for _, r in circles):
         return True
     radii = np.array([r for _, r in circles])
     if np.count_nonzero(radii > max_radius) > len(POST_HEIGHTS) // 2:
         return True
-    tol = max(POST_MIN_RADIUS_TOL, POST_RADIUS_TOL * max_radius)
-    if radii.max() - radii.min() > 2 * tol + 1e-9:
+    if not _radius_range_fits(float(radii.min()), float(radii.max()), max_radius):
         return True
     centres = np.array([cc for cc, _ in circles])
     apart = np.hypot(*(centres[:, None, :] - centres[None, :, :]).transpose(2, 0, 1))
     return bool(apart.max() > 2 * POST_MAX_SHIFT + 1e-9)
+
+
+def _radius_range_fits(low: float, high: float, max_radius: float) -> bool:
+    """Whether some median radius m <= ``max_radius`` has radii ``low`` and ``high`` [m]
+    both within ``max(POST_MIN_RADIUS_TOL, POST_RADIUS_TOL * m)`` of it (:func:`_same`).
+
+    m + tol(m) and m - tol(m) both grow with m, so ``high`` sets the least such m and
+    ``low`` the largest; each piece is linear on either side of the knee where the
+    share takes over from the floor."""
+    knee = POST_MIN_RADIUS_TOL / POST_RADIUS_TOL
+    least = high - POST_MIN_RADIUS_TOL if high <= knee + POST_MIN_RADIUS_TOL else high / (1 + POST_RADIUS_TOL)
+    most = low + POST_MIN_RADIUS_TOL if low <= knee - POST_MIN_RADIUS_TOL else low / (1 - POST_RADIUS_TOL)
+    return least <= min(most, max_radius) + 1e-9
 
 
 def _same(centre: np.ndarray, radius: float, axis: np.ndarray, r_med: float) -> bool:

@@ -9,7 +9,17 @@ from hypothesis import strategies as st
 
 from pipeline.evaluation.scores import score_labels
 from pipeline.params import PipelineParams
-from pipeline.posts import POST_HEIGHTS, Posts, _one_axis, _ruled_out, find_posts, on_posts
+from pipeline.posts import (
+    POST_HEIGHTS,
+    POST_MIN_RADIUS_TOL,
+    POST_RADIUS_TOL,
+    Posts,
+    _one_axis,
+    _radius_range_fits,
+    _ruled_out,
+    find_posts,
+    on_posts,
+)
 from pipeline.process import process_points
 from pipeline.synthetic.orchard import POST
 from pipeline.synthetic.simparams import SimulationParams
@@ -146,7 +156,12 @@ def test_sections_rule_a_post_out_by_hand():
     assert _ruled_out(_circles(on_axis[:3], [0.09, 0.09, 0.09]), 0.08)
     assert not _ruled_out(_circles(on_axis[:3], [0.09, 0.09, 0.07]), 0.08)
     assert _ruled_out(_circles(on_axis[:2], [0.01, 0.0595]), 0.08)  # 2 x max(0.015, 0.3 x 0.08) = 0.048 apart
-    assert not _ruled_out(_circles(on_axis[:2], [0.02, 0.0675]), 0.08)
+    # radii that no one median holds: 0.02 needs it at most 0.035, 0.0675 at least 0.0525
+    assert _ruled_out(_circles(on_axis[:2], [0.02, 0.0675]), 0.08)
+    assert not _ruled_out(_circles(on_axis[:2], [0.02, 0.05]), 0.08)  # a median of 0.035 holds both, just
+    assert _ruled_out(_circles(on_axis[:2], [0.02, 0.0502]), 0.08)
+    assert not _ruled_out(_circles(on_axis[:2], [0.05, 0.0845]), 0.08)  # 0.065 holds both (tolerance 0.0195)
+    assert _ruled_out(_circles(on_axis[:2], [0.05, 0.0845]), 0.06)  # not with the median at most 0.06
     assert _ruled_out(_circles([(0, 0), (0.101, 0)], [0.05, 0.05]), 0.08)  # 2 x 0.05 apart
     assert not _ruled_out(_circles([(0, 0), (0.099, 0)], [0.05, 0.05]), 0.08)
 
@@ -167,3 +182,20 @@ def test_sections_that_rule_a_post_out_leave_no_axis(seed, shift, spread, radius
         if _ruled_out(circles[:k], 0.08):
             assert _one_axis(circles, 0.08) is None, (k, circles)
 
+
+@settings(max_examples=300, deadline=None)
+@given(median=st.floats(0.005, 0.12), below=st.sampled_from([0.0, 0.5, 0.97, 1.0, 1.03]),
+       above=st.sampled_from([0.0, 0.5, 0.97, 1.0, 1.03]), max_radius=st.sampled_from([0.04, 0.08, 0.12]))
+def test_radius_range_fits_where_a_search_over_medians_finds_one(median, below, above, max_radius):
+    """Radii at, inside and just outside the tolerance around a median, against every
+    median on a 0.6 µm grid up to the largest radius: they fit if one holds both within
+    its tolerance, and do not if none does even 1 µm more loosely."""
+    tol0 = max(POST_MIN_RADIUS_TOL, POST_RADIUS_TOL * median)
+    low, high = median - below * tol0, median + above * tol0
+    m = np.linspace(0.0, max_radius, 200_001)
+    tol = np.maximum(POST_MIN_RADIUS_TOL, POST_RADIUS_TOL * m)
+    got = _radius_range_fits(low, high, max_radius)
+    if np.any((np.abs(low - m) <= tol) & (np.abs(high - m) <= tol)):
+        assert got
+    if not np.any((np.abs(low - m) <= tol + 1e-6) & (np.abs(high - m) <= tol + 1e-6)):
+        assert not got
