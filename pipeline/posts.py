@@ -80,6 +80,7 @@ def find_posts(
     max_radius: float,
     max_height: float,
     reach: float = POST_REACH,
+    among: np.ndarray | None = None,
 ) -> Posts:
     """The candidate positions that stand on a trellis post.
 
@@ -102,6 +103,8 @@ def find_posts(
     max_radius : float — thickest post [m]; 0 finds none
     max_height : float — tallest post [m]; a column going on to this height is a bole
     reach : float — radius of the lowest section around a candidate [m]
+    among : (n,) bool, optional — the points to look at (default all): the same posts as
+        the points ``xyz[among]`` would give, without a copy of them all
 
     Returns
     -------
@@ -115,7 +118,8 @@ def find_posts(
         return none
     column_reach = reach + max_radius + POST_MARGIN + POST_FOLLOW_SHIFT
     near = near_centres(xyz[:, :2], centres, column_reach)
-    near = near[(height[near] >= POST_HEIGHTS[0] - POST_SLAB) & (height[near] <= max_height + POST_SLAB)]
+    keep = (height[near] >= POST_HEIGHTS[0] - POST_SLAB) & (height[near] <= max_height + POST_SLAB)
+    near = near[keep if among is None else keep & among[near]]  # in input order, as the fits need
     xyz, height = xyz[near], height[near]
     columns = CellIndex(xyz[:, :2], column_reach)
     found_xy, found_r, found_top = [], [], []

@@ -245,7 +245,8 @@ def analyse_nodes(
         raise ValueError("xyz must have shape (n, 3)")
     gm = ground_model(xyz, params=params.ground, grid_origin=grid_origin, stats=ground_stats, raw=raw_ground)
     height, is_ground = classify_ground(xyz, gm, params=params.ground)
-    veg_idx = np.flatnonzero(~is_ground & (height > 0))
+    vegetation = ~is_ground & (height > 0)
+    veg_idx = np.flatnonzero(vegetation)
     vox = voxelize(xyz[veg_idx], voxel_size=params.graph.voxel_size, grid_origin=grid_origin)
     nodes = vox.centroids
     node_height = np.bincount(vox.point_voxel, weights=height[veg_idx], minlength=vox.n) / np.maximum(vox.counts, 1)
@@ -318,8 +319,8 @@ def analyse_nodes(
         cand = det.candidates
         tall = cand["top"] >= params.trunks.min_tree_height
         posts = find_posts(
-            xyz[veg_idx], height[veg_idx], np.c_[cand["x"], cand["y"]][tall], max_radius=post_radius,
-            max_height=params.trunks.max_post_height,
+            xyz, height, np.c_[cand["x"], cand["y"]][tall], max_radius=post_radius,
+            max_height=params.trunks.max_post_height, among=vegetation,
         )
         on_post = on_posts(nodes, node_height, posts, margin=POST_NODE_MARGIN)
         if on_post.any():

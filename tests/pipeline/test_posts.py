@@ -79,6 +79,25 @@ def test_no_posts_when_off_or_thinner_than_the_post():
     assert find_posts(xyz, height, np.zeros((0, 2)), max_radius=0.08, max_height=MAX_HEIGHT).xy.shape == (0, 2)
 
 
+@pytest.mark.parametrize("drop", ["none", "post's foot", "every third point", "the post"])
+def test_among_gives_the_posts_of_those_points(drop):
+    """``among`` looks at a subset in place: the same posts, to the bit, as the subset's
+    points copied out (the circle fits draw their trials by the points' order)."""
+    xyz, height = _scene()
+    among = np.ones(len(xyz), bool)
+    if drop == "post's foot":
+        among[(height < 0.5) & (np.hypot(xyz[:, 0], xyz[:, 1]) < 0.2)] = False
+    elif drop == "every third point":
+        among[::3] = False
+    elif drop == "the post":
+        among[np.hypot(xyz[:, 0], xyz[:, 1]) < 0.2] = False
+    kw = dict(max_radius=0.08, max_height=MAX_HEIGHT)
+    got, want = find_posts(xyz, height, CENTRES, among=among, **kw), find_posts(xyz[among], height[among], CENTRES, **kw)
+    for field in ("xy", "radius", "top"):
+        np.testing.assert_array_equal(getattr(got, field), getattr(want, field))
+    assert len(got.xy) == (1 if drop in ("none", "every third point") else 0)  # a post needs its foot
+
+
 def test_two_candidates_on_one_post_give_one_post():
     xyz, height = _scene()
     posts = find_posts(xyz, height, np.array([[0.02, 0.0], [-0.03, 0.02]]), max_radius=0.08, max_height=MAX_HEIGHT)
