@@ -31,26 +31,37 @@ MIN_THICKNESS_RATIO = 0.5
 MIN_SPACING_RATIO = 0.3
 
 
-def canopy_cells(xy: np.ndarray, height: np.ndarray, *, cell: float = CELL, min_height: float = MIN_HEIGHT) -> np.ndarray:
+def canopy_cells(xy: np.ndarray, height: np.ndarray, *, cell: float = CELL, min_height: float = MIN_HEIGHT,
+                 offset=None, among: np.ndarray | None = None) -> np.ndarray:
     """The grid cells holding canopy.
 
     Parameters
     ----------
     xy : (n, 2) float64
         Point positions [m] (any frame whose origin is a multiple of ``cell``, so that
-        cells of different tiles line up).
+        cells of different tiles line up; with ``offset``, once it is added).
     height : (n,) float64
         Height of each point above the ground [m].
+    offset : (2,) float64, optional
+        Added to the positions first [m] (a block's origin: local points in its frame).
+    among : (n,) bool, optional
+        The points to look at (default all).
 
     Returns
     -------
-    (c, 2) int64 unique cell indices, ``floor(xy / cell)``, sorted.
+    (c, 2) int64 unique cell indices, ``floor((xy + offset) / cell)``, sorted.
     """
+    # Strategy: the canopy points are picked first, so that only they are copied and shifted.
     xy = np.asarray(xy, dtype=np.float64).reshape(-1, 2)
     keep = np.asarray(height) >= min_height
+    if among is not None:
+        keep &= among
     if not keep.any():
         return np.zeros((0, 2), np.int64)
-    return unique_cells(np.floor(xy[keep] / cell).astype(np.int64))
+    pts = xy[keep]
+    if offset is not None:
+        pts += np.asarray(offset, dtype=np.float64)[:2]
+    return unique_cells(np.floor(pts / cell).astype(np.int64))
 
 
 def unique_cells(cells: np.ndarray) -> np.ndarray:

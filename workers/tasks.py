@@ -87,8 +87,7 @@ def summarise(tile_id, xyz, core, result, grid: TileGrid | None, origin, params:
         "partials": partials,
         "n_core": int(core.sum()),
         # the canopy of the core, for rows whose trunks are hidden (cells in the input CRS)
-        "canopy": canopy_cells(xyz[sel, :2][~result.is_ground[sel]] + np.asarray(origin[:2]),
-                               result.height[sel][~result.is_ground[sel]]),
+        "canopy": canopy_cells(xyz[sel, :2], result.height[sel], offset=origin[:2], among=~result.is_ground[sel]),
         "slot_evidence": evidence,
         SLOT_KEY: np.zeros((0, 3)) if result.slot_trees is None else np.asarray(result.slot_trees, np.float64).reshape(-1, 3),
     }

@@ -95,3 +95,15 @@ def test_a_fence_running_on_past_the_rows_is_no_row():
     cells = cell_centres(canopy_cells(np.r_[canopy, fence], np.full(len(canopy) + len(fence), 2.0)))
     lay = find_rows(trunks, canopy=cells)
     assert lay.rows["n_trees"].tolist() == [12, 12, 12, 12]
+
+
+def test_offset_and_among_give_the_cells_of_the_points_shifted_and_picked():
+    rng = np.random.default_rng(3)
+    xy = rng.uniform(-20, 20, (5000, 2))
+    height = rng.uniform(0, 3, 5000)
+    among = rng.uniform(size=5000) < 0.6
+    origin = np.array([512_000.13, 6_950_000.37])
+    want = canopy_cells(xy[among] + origin, height[among])
+    got = canopy_cells(xy, height, offset=origin, among=among)
+    np.testing.assert_array_equal(got, want)
+    assert 0 < len(got) < len(canopy_cells(xy + origin, height))
