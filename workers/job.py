@@ -73,8 +73,9 @@ def run_job(
     cancel : threading.Event, optional
         Set it to stop the job (raises JobCancelled).
     points : (n, 3) float64, optional
-        The block's local coordinates, read already (:func:`workers.jobspec.budgeted`):
-        a job in one piece in this process uses them instead of reading the file again.
+        The block's local coordinates, read already by :func:`workers.jobspec.budgeted`,
+        which kept it whole: a job in this process uses them instead of reading the file
+        again, and does not run the memory budget a second time.
 
     Raises
     ------
@@ -86,8 +87,7 @@ def run_job(
         spec = auto_tiled(spec, info, count=partial(count_block, client=client, cancel=cancel))
     elif points is None:  # counted here: a block that stays whole is then decoded once, not twice
         spec, points = budgeted(spec, info)
-    else:
-        spec = auto_tiled(spec, info)
+    # given points, the caller's budget kept the block whole: it is not budgeted again
     if spec.tiling.tile_size is None and client is None:
         return _run_single(spec, info, t0, progress, cancel, points)
     return _run_tiled(spec, info, client, t0, progress, cancel)

@@ -3,7 +3,6 @@
 from __future__ import annotations
 
 import argparse
-import dataclasses
 import math
 import os
 import sys
@@ -246,8 +245,6 @@ def run(args: argparse.Namespace) -> int:
         else:
             spec, points = _budget_tiles(spec)  # bad input fails here, before anything else
             tiled = spec.tiling.tile_size is not None
-            if not tiled:  # the budget is decided: the job would count the block's points again
-                spec = dataclasses.replace(spec, tiling=spec.tiling.model_copy(update={"worker_memory": None}))
     _check_tiled_options(args, tiled=tiled)  # they went unused, without a word (the budget decided, or --tile-size 0)
     if args.work:
         from workers.workstore import check_work_url
