@@ -113,3 +113,43 @@ def test_process_reads_a_valid_block_before_importing_the_job(tmp_path, n_points
                        capture_output=True, text=True, timeout=120)
     assert p.returncode == 0, p.stderr
     assert set(p.stdout.rstrip("\n").splitlines()[-1].split()[1:]) == {"laspy", "numpy"}
+
+
+_WARM_PROBE = """
+import sys, threading
+import workers.job
+
+started = []
+real_start, real_run_job = threading.Thread.start, workers.job.run_job
+
+def start(self):
+    started.append((self.name, self.daemon))
+    real_start(self)
+
+def run_job(*args, **kwargs):
+    print("before the job:", *(name for name, daemon in started if daemon))
+    return real_run_job(*args, **kwargs)
+
+threading.Thread.start, workers.job.run_job = start, run_job
+from service.cli import main
+print("exit:", main({argv!r}))
+print("matplotlib:", "matplotlib.figure" in sys.modules and "matplotlib.backends.backend_agg" in sys.modules)
+"""
+
+
+def test_a_block_kept_whole_has_the_reports_plotting_library_imported_beside_the_job(tmp_path):
+    """matplotlib (the report's map) is imported in a daemon thread started before the
+    job, so its import overlaps the job's numpy work; the report still comes out."""
+    from pipeline.synthetic.simparams import SimulationParams
+    from pipeline.synthetic.truth import write_simulation
+
+    block = tmp_path / "block.laz"
+    write_simulation(SimulationParams(rows=1, trees_per_row=2, density=0.05, seed=3), str(block), str(tmp_path / "t.parquet"))
+    out = tmp_path / "out"
+    p = subprocess.run([sys.executable, "-c", _WARM_PROBE.format(argv=["process", str(block), "--out", str(out)])],
+                       capture_output=True, text=True, timeout=300)
+    assert p.returncode == 0, p.stderr
+    lines = p.stdout.rstrip("\n").splitlines()
+    assert "before the job: report-imports" in lines, p.stdout
+    assert lines[-2:] == ["exit: 0", "matplotlib: True"], p.stdout + p.stderr
+    assert (out / "report.html").stat().st_size > 0 and (out / "map.png").stat().st_size > 0
