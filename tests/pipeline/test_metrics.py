@@ -134,3 +134,71 @@ def test_a_flat_part_of_a_crown_in_another_tile_keeps_its_hull(flat):
     one, two = finalize_metrics(whole, trunks, diam), finalize_metrics(merged, trunks, diam)
     for key in ("crown_area_m2", "crown_volume_m3", "crown_diameter_m"):
         assert two[key][0] == pytest.approx(one[key][0], rel=1e-9), key
+
+
+def _cloud(seed: int, shape: str, n: int) -> np.ndarray:
+    rng = np.random.default_rng(seed)
+    if shape == "ball":
+        p = rng.normal(size=(n, 3))
+        p /= np.maximum(np.linalg.norm(p, axis=1), 1e-9)[:, None]
+        p *= rng.random(n)[:, None] ** (1 / 3)
+    elif shape == "shell":  # most points on the surface: many are vertices
+        p = rng.normal(size=(n, 3))
+        p /= np.maximum(np.linalg.norm(p, axis=1), 1e-9)[:, None]
+        p[: n // 4] *= rng.random(n // 4)[:, None]
+    elif shape == "box":
+        p = rng.random((n, 3)) * [3.0, 1.2, 2.0]
+    else:  # "lattice": coordinates on a 5 cm grid, many points sharing bins and faces
+        p = np.round(rng.random((n, 3)) * [1.0, 0.6, 0.8] / 0.05) * 0.05
+    return p * [1.5, 0.8, 1.0] + [500.0, 20.0, 3.0]
+
+
+@settings(max_examples=40, deadline=None)
+@given(seed=st.integers(0, 10_000), shape=st.sampled_from(["ball", "shell", "box", "lattice"]),
+       n=st.integers(2_000, 6_000))
+def test_hull_candidates_keep_every_vertex_and_the_hull(seed, shape, n):
+    from scipy.spatial import ConvexHull
+
+    from pipeline.metrics import _crown_hulls, _hull_candidates, _hull_vertices
+
+    pts = _cloud(seed, shape, n)
+    kept = _hull_candidates(pts)
+    rows = pts.view([("", pts.dtype)] * 3).ravel()
+    # a subset of the points, in their order, holding every vertex of the whole hull
+    picked = np.isin(rows, kept.view([("", kept.dtype)] * 3).ravel())
+    assert np.array_equal(kept, pts[picked]) if np.unique(rows).size == n else len(kept) <= picked.sum()
+    vertices = pts[ConvexHull(pts).vertices]
+    assert picked[ConvexHull(pts).vertices].all()
+    whole = (_hull_vertices(vertices[:, :2]), vertices)
+    got = _crown_hulls(pts)
+    if np.unique(rows).size == n:  # the same vertices in the same order
+        assert all(np.array_equal(a, b) for a, b in zip(got, whole))
+    else:  # qhull keeps any one of a vertex's duplicates: the same vertices, in some order
+        for a, b in zip(got, whole):
+            assert sorted(map(tuple, a.tolist())) == sorted(map(tuple, b.tolist()))
+    if shape in ("ball", "box"):
+        assert len(kept) < 0.8 * n  # the filter does drop the inside
+
+
+def test_hull_candidates_by_hand():
+    from pipeline.metrics import _hull_candidates
+
+    # a 16 x 16 x 16 lattice: its inner points are dropped, its 8 corners kept
+    g = np.arange(16, dtype=float) * 0.1
+    pts = np.stack(np.meshgrid(g, g, g, indexing="ij"), axis=-1).reshape(-1, 3)
+    kept = _hull_candidates(pts)
+    corners = {(x, y, z) for x in (0.0, 1.5) for y in (0.0, 1.5) for z in (0.0, 1.5)}
+    assert corners <= {tuple(np.round(r, 9)) for r in kept.tolist()}
+    assert len(kept) < len(pts) // 2
+    # an apex in the same height bin as the tops of the columns around it is a vertex:
+    # only a point in a lower bin than theirs is surely below them
+    rng = np.random.default_rng(2)
+    box = np.column_stack([rng.random(20_000), rng.random(20_000), 1.0 - 0.5 * rng.random(20_000) ** 3])
+    apex, tall = [0.5, 0.5, 1.0001], [0.0, 0.0, 2.0]  # the tall point widens the bins to 1/63.5 m
+    kept = _hull_candidates(np.vstack([box, apex, tall]))
+    assert any(np.array_equal(r, apex) for r in kept) and len(kept) < 10_000
+    # flat (one height) or a single column: nothing is inside, everything is kept
+    flat = pts.copy()
+    flat[:, 2] = 1.0
+    assert np.array_equal(_hull_candidates(flat), flat)
+    assert len(_hull_candidates(pts[:1_999])) == 1_999  # too few points to filter
