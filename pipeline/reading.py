@@ -10,6 +10,7 @@ offset its file stores it with.
 from __future__ import annotations
 
 import math
+import os
 from typing import Iterator
 
 import laspy
@@ -124,15 +125,17 @@ no scale in use comes near it."""
 TO_LOCAL_BLOCK = 32_768
 
 
-def to_local(ints: np.ndarray, info: BlockInfo, origin=None, *, out: np.ndarray | None = None) -> np.ndarray:
+def to_local(ints, info: BlockInfo, origin=None, *, out: np.ndarray | None = None) -> np.ndarray:
     """Local float64 coordinates (m, 3) [m] of stored integers: ``X * scale + (offset - origin)``
     rounded to whole micrometres (:data:`LOCAL_STEPS_PER_M`; written into ``out``, an (m, 3)
-    float64 array, when given)."""
+    float64 array, when given). ``ints``: an (m, 3) array, or its three columns (the
+    X, Y and Z fields of point records, converted where they lie)."""
     org = np.asarray(info.origin if origin is None else origin, dtype=np.float64)
     scale = np.asarray(info.scales, dtype=np.float64)
     shift = np.asarray(info.offsets, dtype=np.float64) - org
-    xyz = np.empty(ints.shape, dtype=np.float64) if out is None else out
-    n = ints.shape[0]
+    cols = tuple(ints) if isinstance(ints, (tuple, list)) else (ints[:, 0], ints[:, 1], ints[:, 2])
+    n = cols[0].shape[0]
+    xyz = np.empty((n, 3), dtype=np.float64) if out is None else out
     # a block of rows at a time in a cache-sized buffer: five passes over a strided column
     # of the whole array cost more memory traffic than the arithmetic
     tmp = np.empty(min(n, TO_LOCAL_BLOCK))
@@ -140,7 +143,7 @@ def to_local(ints: np.ndarray, info: BlockInfo, origin=None, *, out: np.ndarray 
         e = min(n, s + TO_LOCAL_BLOCK)
         col = tmp[: e - s]
         for j in range(3):
-            np.multiply(ints[s:e, j], scale[j], out=col, casting="unsafe")
+            np.multiply(cols[j][s:e], scale[j], out=col, casting="unsafe")
             col += shift[j]
             col *= LOCAL_STEPS_PER_M
             np.rint(col, out=col)
@@ -236,8 +239,21 @@ def sample_xy(path, stride: int, *, info: BlockInfo | None = None,
     return np.concatenate(xy_parts), np.concatenate(idx_parts)
 
 
+#: points the LAZ decoder fills per call and core when a whole block is read: a few of
+#: LAZ's 50,000-point chunks for each core, their records (30 bytes a point in format 6)
+#: still in cache when they are converted
+DECODE_POINTS_PER_CORE = 131_072
+
+
+def decode_points(chunk_points: int) -> int:
+    """Points decoded per call when a whole block is read ``chunk_points`` at most at a
+    time: :data:`DECODE_POINTS_PER_CORE` per core the process may run on."""
+    cores = len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else os.cpu_count() or 1
+    return max(1, min(int(chunk_points), DECODE_POINTS_PER_CORE * cores))
+
+
 def read_points(path, *, origin=None, chunk_points: int = CHUNK_POINTS) -> tuple[np.ndarray, BlockInfo]:
-    """Read a whole block.
+    """Read a whole block (decoding at most ``chunk_points``, fewer per core, at a time).
 
     Returns
     -------
@@ -247,8 +263,8 @@ def read_points(path, *, origin=None, chunk_points: int = CHUNK_POINTS) -> tuple
     """
     info = read_info(path)
     out = np.empty((info.n_points, 3), dtype=np.float64)
-    for start, ints in iter_raw(path, chunk_points=chunk_points, info=info):
-        _checked_local(ints, info, start, origin, out=out[start : start + len(ints)])
+    for start, arr in _records(info, decode_points(chunk_points), _XYZ_ONLY):
+        _checked_local((arr["X"], arr["Y"], arr["Z"]), info, start, origin, out=out[start : start + len(arr)])
     return out, info
 
 

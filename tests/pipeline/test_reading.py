@@ -113,3 +113,29 @@ def test_sample_xy_is_every_strideth_point_as_read_points_gives_it(tmp_path, suf
     xy, index = sample_xy(path, stride, info=info, chunk_points=3000)  # chunks not multiples of the stride
     assert np.array_equal(index, np.arange(0, len(whole), stride))
     assert xy.dtype == np.float64 and np.array_equal(xy, whole[::stride, :2])
+
+
+@pytest.mark.parametrize("per_core", [1_000, 4_096, 50_000])
+def test_a_block_decoded_in_small_pieces_reads_the_same(tmp_path, monkeypatch, per_core):
+    """A whole block is decoded a few LAZ chunks per core at a time and converted from the
+    records' X, Y and Z fields in place: the same points, to the bit, as chunks of 3,000
+    converted from a copy of the stored integers, and a point out of bounds is still found."""
+    import pipeline.reading
+
+    xyz = cloud(20_001)
+    xyz[15_000:, 0] += 50.0  # the last quarter east of the rest
+    path = write_block(tmp_path / "b.laz", xyz)
+    chunked = np.concatenate([c for _, c in iter_points(path, chunk_points=3000)])
+    monkeypatch.setattr(pipeline.reading, "DECODE_POINTS_PER_CORE", per_core)
+    monkeypatch.setattr(pipeline.reading.os, "sched_getaffinity", lambda pid: {0, 1}, raising=False)
+    assert pipeline.reading.decode_points(2_000_000) == 2 * per_core
+    assert pipeline.reading.decode_points(1_500) == 1_500  # never more than asked for
+    whole, info = read_points(path)
+    assert np.array_equal(whole, chunked)
+    ints = np.stack([laspy.read(path).X, laspy.read(path).Y, laspy.read(path).Z], axis=1).astype(np.int32)
+    assert np.array_equal(to_local((ints[:, 0], ints[:, 1], ints[:, 2]), info), to_local(ints, info))
+    # the header's max x lowered under the points of the last quarter: the first of them is named
+    patch(path, 179, "<d", xyz[:15_000, 0].max() + 1.5)
+    with pytest.raises(InputError) as e:
+        read_points(path)
+    assert "point 15000 lies outside" in one_line(e)
