@@ -49,7 +49,9 @@ class CellIndex:
         self.xy, self.reach = xy, reach
         self.cell = reach * (1 + 1e-6)  # a point within reach is never two cells off by rounding
         self.lo = column_min(xy) if xy.shape[0] else np.zeros(2)
-        ij = np.floor((xy - self.lo) / self.cell).astype(np.int64)
+        ij = xy - self.lo  # >= 0: truncation is the floor, without a pass of its own
+        ij /= self.cell
+        ij = ij.astype(np.int64)
         self.ny = int(ij[:, 1].max()) + 3 if xy.shape[0] else 3  # keys of a row of cells never reach the next row's
         key = (ij[:, 0] + 1) * self.ny + (ij[:, 1] + 1)
         # the same stable order from 16-bit keys where they fit: numpy sorts those by radix
@@ -72,4 +74,5 @@ class CellIndex:
         idx = np.concatenate([self.order[a:b] for a, b in zip(bounds[:3], bounds[3:])])
         dx = c[0] - self.xy[idx, 0]
         dy = c[1] - self.xy[idx, 1]
-        return np.sort(idx[dx * dx + dy * dy <= self.reach * self.reach])
+        # nine runs each in order: a merge sort ("stable") takes them as runs
+        return np.sort(idx[dx * dx + dy * dy <= self.reach * self.reach], kind="stable")
