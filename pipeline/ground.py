@@ -388,7 +388,8 @@ def _backed_minima(z: np.ndarray, flat: np.ndarray, zmin: np.ndarray, band: floa
         if not alone.any():
             break
         # pass over the unbacked minimum of those cells: their next point is checked next
-        rest = alone[fp] & (zp > cur[fp])
+        rest = np.flatnonzero(alone[fp])  # few cells are alone: their points first, then the test
+        rest = rest[zp[rest] > cur[fp[rest]]]
         zp, fp = zp[rest], fp[rest]
         cells = np.flatnonzero(alone)
         cur[cells] = np.inf
