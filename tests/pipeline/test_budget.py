@@ -303,6 +303,25 @@ def test_reading_and_counting_in_one_pass_gives_the_read_and_the_count(blocks, r
     assert points_only.nodes is None and np.array_equal(points_only.counts, whole.counts)
 
 
+@pytest.mark.parametrize("voxel", [0.1, 0.4])
+def test_voxels_counted_on_a_grid_or_by_a_sort_are_the_same(blocks, voxel, monkeypatch):
+    # a run whose voxel grid has at most a few cells a point marks them on the grid; the
+    # sort it replaces must give the same voxels (forced here by allowing no cell a point)
+    import pipeline.reading
+    from pipeline.voxels import packed_keys
+
+    info, xyz = blocks[45.0]
+    local = xyz - np.asarray(info.origin)
+    _, _, span = packed_keys(local, voxel, (0.0, 0.0, 0.0))
+    dense = int(np.prod(span)) <= pipeline.reading.DENSE_CELLS_PER_POINT * len(xyz)
+    assert dense == (voxel == 0.4)  # both paths are taken here
+    grid = sample_density(info.path, info=info, voxel_size=voxel)
+    monkeypatch.setattr(pipeline.reading, "DENSE_CELLS_PER_POINT", 0)
+    sorted_ = sample_density(info.path, info=info, voxel_size=voxel)
+    assert np.array_equal(grid.nodes, sorted_.nodes) and np.array_equal(grid.counts, sorted_.counts)
+    assert grid.nodes.sum() > 0
+
+
 def test_a_truncated_file_is_refused_while_reading_and_counting(blocks, tmp_path):
     from pipeline.errors import InputError
 
