@@ -271,8 +271,6 @@ def run(args: argparse.Namespace) -> int:
             print(f"dask dashboard: {link or 'none'}", file=sys.stderr)
         from workers.job import run_job
 
-        if not tiled:
-            _warm_report_imports()
         outcome = run_job(spec, client=client, progress=_Bar() if tiled else None,  # TileFailed: exit 1 (service.cli)
                           cancel=getattr(args, "interrupted", None), points=points)
         points = None  # not held through the report
@@ -280,22 +278,6 @@ def run(args: argparse.Namespace) -> int:
         if client is not None:
             close_client(client)
     return _report(outcome, args)
-
-
-def _warm_report_imports() -> None:
-    """Import matplotlib, which the report's map needs (0.3 s), in a thread while the job
-    runs in one piece: the job's numpy work leaves the second core and the interpreter
-    free much of the time. Nothing the job imports is imported there."""
-    import threading
-
-    def load():
-        try:
-            from matplotlib import figure  # noqa: F401
-            from matplotlib.backends import backend_agg  # noqa: F401
-        except Exception:  # the report imports it again, and says what is wrong
-            pass
-
-    threading.Thread(target=load, name="report-imports", daemon=True).start()
 
 
 def _budget_tiles(spec, count=None):
