@@ -114,6 +114,9 @@ CANDIDATES_MIN_POINTS = 2_000
 CANDIDATES_COLUMN_POINTS = 64
 #: height bins of :func:`_hull_candidates`' columns
 CANDIDATES_HEIGHT_BINS = 128
+#: most (column, bin) cells of :func:`_hull_candidates` per point (a compact crown has about
+#: two): their counts take 8 bytes a cell
+CANDIDATES_CELLS_PER_POINT = 4
 _AROUND = np.ones((3, 3), bool)
 _AROUND[1, 1] = False
 
@@ -141,8 +144,8 @@ def _hull_candidates(pts: np.ndarray) -> np.ndarray:
     kz = (CANDIDATES_HEIGHT_BINS - 1) / span[2]
     # the largest coordinate gives the largest index: the same arithmetic sizes the grid
     nx, ny, nz = int(span[0] * k) + 1, int(span[1] * k) + 1, int(span[2] * kz) + 1
-    if nx * ny > n:
-        return pts  # a crown this thin has no inner columns worth the grid
+    if nx * ny * nz > CANDIDATES_CELLS_PER_POINT * n:
+        return pts  # a crown this thin has few inner columns: not worth a grid this large
     cell = ((x - lo[0]) * k).astype(np.int32)
     cell *= ny
     cell += ((y - lo[1]) * k).astype(np.int32)

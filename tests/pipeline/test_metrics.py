@@ -202,3 +202,6 @@ def test_hull_candidates_by_hand():
     flat[:, 2] = 1.0
     assert np.array_equal(_hull_candidates(flat), flat)
     assert len(_hull_candidates(pts[:1_999])) == 1_999  # too few points to filter
+    # a long, thin crown would need a grid of many cells a point: it goes to qhull whole
+    thin = np.column_stack([rng.random(5_000) * 50.0, rng.random(5_000) * 0.05, rng.random(5_000)])
+    assert _hull_candidates(thin) is thin
