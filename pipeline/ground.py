@@ -10,7 +10,6 @@ from scipy.spatial import cKDTree
 
 from pipeline.errors import InputError
 from pipeline.params import GroundParams
-from pipeline.threads import map_in_threads, usable_cores
 from pipeline.voxels import column_max, column_min
 
 # Fixed tuning of the ground model (lengths in metres, slopes in m/m, sizes in cells of
@@ -36,8 +35,6 @@ TILE_HINT_SHARE = 0.8
 #: (at least 1): about this many points, enough for a median, in file order, so that the
 #: tiles of a tiled job can take the same points (see :func:`stats_stride`).
 STATS_SAMPLE = 200_000
-#: ground heights of at least this many points are interpolated a part per core
-SPLIT_HEIGHTS = 500_000
 #: residuals [m] above the raw model within this band are the near-ground points whose
 #: median is the model's shift and whose spread is the noise
 STATS_BAND = (-0.05, 0.5)
@@ -131,18 +128,7 @@ class GroundModel:
             np.subtract(xy[:, d], self.origins[k][d], out=g[d])
             np.divide(g[d], self.cell_size, out=g[d])
             np.subtract(g[d], 0.5, out=g[d])
-        n, cores = xy.shape[0], usable_cores()
-        if cores == 1 or n < SPLIT_HEIGHTS:
-            return ndimage.map_coordinates(self.dtms[k], g, order=1, mode="nearest")
-        # point by point, and map_coordinates lets go of the GIL: a part of the points per core
-        out = np.empty(n)
-        edges = np.linspace(0, n, cores + 1).astype(np.int64)
-
-        def interpolate(part: slice) -> None:
-            out[part] = ndimage.map_coordinates(self.dtms[k], g[:, part], order=1, mode="nearest")
-
-        map_in_threads(interpolate, [slice(a, b) for a, b in zip(edges[:-1], edges[1:])], threads=cores)
-        return out
+        return ndimage.map_coordinates(self.dtms[k], g, order=1, mode="nearest")
 
 
 def _disk(radius_cells: float) -> np.ndarray:

@@ -18,7 +18,6 @@ from scipy.spatial import ConvexHull, QhullError
 
 from pipeline.circles import fit_circle, trunk_circle
 from pipeline.params import MetricsParams
-from pipeline.threads import map_in_threads
 
 TREE_COLUMNS = (
     "tree_id",
@@ -207,14 +206,13 @@ def tree_partials(
     pts, wood = xyz[idx], is_wood[idx]
     n_wood = np.add.reduceat(wood.astype(np.int64), start) if uniq.size else np.zeros(0, np.int64)
     z_max = np.maximum.reduceat(pts[:, 2], start) if uniq.size else np.zeros(0)
-
-    def crowns():
-        for t, s, c in zip(uniq, start, counts):
-            p = pts[s : s + c]
-            yield p[p[:, 2] - trunk_z[t - 1] >= params.crown_base]
-
-    hulls = map_in_threads(_crown_hulls, crowns())  # qhull lets go of the GIL: crowns side by side
-    crown_xy, crown_xyz = [xy for xy, _ in hulls], [xyz for _, xyz in hulls]
+    crown_xy, crown_xyz = [], []
+    for t, s, c in zip(uniq, start, counts):
+        p = pts[s : s + c]
+        crown = p[p[:, 2] - trunk_z[t - 1] >= params.crown_base]
+        xy, xyz = _crown_hulls(crown)
+        crown_xy.append(xy)
+        crown_xyz.append(xyz)
     return TreePartials(uniq.astype(np.int64), counts.astype(np.int64), n_wood.astype(np.int64), z_max, crown_xy, crown_xyz)
 
 
@@ -233,7 +231,7 @@ def combine_partials(parts: list[TreePartials], id_maps: list[np.ndarray]) -> Tr
         for i in np.flatnonzero(g > 0):
             rows.append((int(g[i]), part, i))
     rows.sort(key=lambda r: r[0])
-    out_id, n, nw, zm, groups = [], [], [], [], []
+    out_id, n, nw, zm, cxy, cxyz = [], [], [], [], [], []
     j = 0
     while j < len(rows):
         gid = rows[j][0]
@@ -245,10 +243,9 @@ def combine_partials(parts: list[TreePartials], id_maps: list[np.ndarray]) -> Tr
         n.append(sum(int(p.n_points[i]) for _, p, i in group))
         nw.append(sum(int(p.n_wood[i]) for _, p, i in group))
         zm.append(max(float(p.z_max[i]) for _, p, i in group))
-        groups.append(group)
+        cxy.append(_hull_vertices(np.concatenate([p.crown_xy[i] for _, p, i in group])))
+        cxyz.append(_hull_vertices(np.concatenate([p.crown_xyz[i] for _, p, i in group])))
         j = k
-    hulls = map_in_threads(_merged_hulls, groups)
-    cxy, cxyz = [xy for xy, _ in hulls], [xyz for _, xyz in hulls]
     return TreePartials(
         np.asarray(out_id, dtype=np.int64),
         np.asarray(n, dtype=np.int64),
@@ -257,13 +254,6 @@ def combine_partials(parts: list[TreePartials], id_maps: list[np.ndarray]) -> Tr
         cxy,
         cxyz,
     )
-
-
-def _merged_hulls(group: list) -> tuple[np.ndarray, np.ndarray]:
-    """Plan-view and 3D hull vertices of one tree's crown over the partials of ``group``
-    [(id, partials, row)]."""
-    return (_hull_vertices(np.concatenate([p.crown_xy[i] for _, p, i in group])),
-            _hull_vertices(np.concatenate([p.crown_xyz[i] for _, p, i in group])))
 
 
 def _area_and_diameter(v: np.ndarray) -> tuple[float, float]:

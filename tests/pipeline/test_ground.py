@@ -283,19 +283,3 @@ def test_a_raw_model_fitted_beforehand_is_taken_as_it_is():
     higher = ground.GroundModel(tuple(d + 1.0 for d in raw.dtms), raw.origins, raw.cell_size, 0.0)
     lifted_by_one = ground_model(g, params=p, stats=(0.0, 0.0), raw=higher)
     assert all(np.array_equal(a, b + 1.0) for a, b in zip(lifted_by_one.dtms, raw.dtms))
-
-
-@pytest.mark.parametrize("cores", [2, 3])
-def test_heights_interpolated_a_part_per_core_are_the_ones_of_one_core(monkeypatch, cores):
-    rng = np.random.default_rng(8)
-    n = 4000
-    xyz = np.column_stack([rng.uniform(0, 30, n), rng.uniform(0, 20, n), rng.normal(0, 0.02, n)])
-    xyz[:, 2] += 0.1 * xyz[:, 0] + 0.05 * np.sin(xyz[:, 1])
-    model = ground_model(xyz, params=GroundParams())
-    query = rng.uniform(-2, 32, (1_000_003, 2))  # an odd count: parts of unequal size
-    monkeypatch.setattr(ground, "usable_cores", lambda: 1)
-    one = model.height_at(query)
-    monkeypatch.setattr(ground, "usable_cores", lambda: cores)
-    assert np.array_equal(model.height_at(query), one)
-    monkeypatch.setattr(ground, "SPLIT_HEIGHTS", 10**9)  # too few points to split: the one-core path
-    assert np.array_equal(model.height_at(query), one)
