@@ -64,9 +64,14 @@ def fit_circle(xy: np.ndarray, *, inlier: float = FIT_INLIER, trials: int = FIT_
     """
     if len(xy) < MIN_FIT_POINTS:
         return np.full(2, np.nan), float("nan")
-    xy, ux, uy, r, ok = _circle_trials(xy, trials)
-    inside = SOLID_INSIDE_BANDS * inlier if solid else None
-    return _best_circle(xy, ux, uy, r, ok, circle_support(xy, ux, uy, r, inlier, inside_depth=inside), inlier)
+    return _fit_tried(_circle_trials(xy, trials), inlier, SOLID_INSIDE_BANDS * inlier if solid else None)
+
+
+def _fit_tried(tried: tuple[np.ndarray, ...], inlier: float, inside_depth: float | None = None) -> tuple[np.ndarray, float]:
+    """The circle of :func:`fit_circle` from the circles ``tried`` (:func:`_circle_trials`):
+    the best supported within the band ``inlier`` [m] (less the points deeper inside than
+    ``inside_depth``, given one), refitted by least squares (:func:`_best_circle`)."""
+    return _best_circle(*tried, circle_support(*tried[:4], inlier, inside_depth=inside_depth), inlier)
 
 
 def _circle_trials(xy: np.ndarray, trials: int) -> tuple[np.ndarray, ...]:
@@ -255,18 +260,17 @@ def trunk_circle(xy: np.ndarray, *, inlier: float = FIT_INLIER, trials: int = FI
     -------
     centre (2,), radius [m]; as :func:`fit_circle`.
     """
-    if solid or len(xy) < MIN_FIT_POINTS:
-        centre, r = fit_circle(xy, inlier=inlier, trials=trials, solid=solid)
-    else:  # the second search tries the same circles: they are drawn once
-        tried = _circle_trials(xy, trials)
-        centre, r = _best_circle(*tried, circle_support(*tried[:4], inlier), inlier)
+    if len(xy) < MIN_FIT_POINTS:
+        return np.full(2, np.nan), float("nan")
+    tried = _circle_trials(xy, trials)  # drawn once: a second search tries the same circles
+    centre, r = _fit_tried(tried, inlier, SOLID_INSIDE_BANDS * inlier if solid else None)
     if not np.isfinite(r):
         return centre, r
     res = np.hypot(xy[:, 0] - centre[0], xy[:, 1] - centre[1]) - r
     res = res[np.abs(res) < NOISE_WINDOW]
     sigma = 1.4826 * float(np.median(np.abs(res - np.median(res))))  # a normal sigma per MAD
     band = max(inlier, NOISE_INLIER_SIGMAS * sigma)
-    c2, r2 = _refit_in_band(xy, centre, r, band) if solid else _best_circle(*tried, circle_support(*tried[:4], band), band)
+    c2, r2 = _refit_in_band(xy, centre, r, band) if solid else _fit_tried(tried, band)
     if not np.isfinite(r2):
         return centre, r
     return c2, float(np.sqrt(max(r2 * r2 - 2.0 * sigma * sigma, 0.25 * r2 * r2)))
