@@ -94,7 +94,10 @@ def node_pairs(
         return voxel_pairs(keys, nodes, radius=radius, voxel_size=voxel_size)
     if nodes.shape[0] == 0:
         return NodePairs(np.zeros((0, 2), np.int64), np.zeros(0))
-    pairs = cKDTree(nodes).query_pairs(radius, output_type="ndarray")
+    # any tree finds the same pairs (only their order differs, and symmetric_csr sorts
+    # it away): the unbalanced, uncompacted one builds in half the time, queries as fast
+    tree = cKDTree(nodes, balanced_tree=False, compact_nodes=False)
+    pairs = tree.query_pairs(radius, output_type="ndarray")
     if nodes.shape[0] < INT32_MAX:  # half the bytes: the pairs are held while the graphs are built
         pairs = pairs.astype(np.int32)
     return NodePairs(pairs, pair_lengths(nodes, pairs))
