@@ -64,14 +64,15 @@ def fit_circle(xy: np.ndarray, *, inlier: float = FIT_INLIER, trials: int = FIT_
     """
     if len(xy) < MIN_FIT_POINTS:
         return np.full(2, np.nan), float("nan")
-    return _fit_tried(_circle_trials(xy, trials), inlier, SOLID_INSIDE_BANDS * inlier if solid else None)
+    return _fit_tried(_circle_trials(xy, trials), inlier, solid=solid)
 
 
-def _fit_tried(tried: tuple[np.ndarray, ...], inlier: float, inside_depth: float | None = None) -> tuple[np.ndarray, float]:
+def _fit_tried(tried: tuple[np.ndarray, ...], inlier: float, *, solid: bool = False) -> tuple[np.ndarray, float]:
     """The circle of :func:`fit_circle` from the circles ``tried`` (:func:`_circle_trials`):
-    the best supported within the band ``inlier`` [m] (less the points deeper inside than
-    ``inside_depth``, given one), refitted by least squares (:func:`_best_circle`)."""
-    return _best_circle(*tried, circle_support(*tried[:4], inlier, inside_depth=inside_depth), inlier)
+    the best supported within the band ``inlier`` [m] (``solid``: less the points more than
+    SOLID_INSIDE_BANDS bands inside), refitted by least squares (:func:`_best_circle`)."""
+    inside = SOLID_INSIDE_BANDS * inlier if solid else None
+    return _best_circle(*tried, circle_support(*tried[:4], inlier, inside_depth=inside), inlier)
 
 
 def _circle_trials(xy: np.ndarray, trials: int) -> tuple[np.ndarray, ...]:
@@ -263,7 +264,7 @@ def trunk_circle(xy: np.ndarray, *, inlier: float = FIT_INLIER, trials: int = FI
     if len(xy) < MIN_FIT_POINTS:
         return np.full(2, np.nan), float("nan")
     tried = _circle_trials(xy, trials)  # drawn once: a second search tries the same circles
-    centre, r = _fit_tried(tried, inlier, SOLID_INSIDE_BANDS * inlier if solid else None)
+    centre, r = _fit_tried(tried, inlier, solid=solid)
     if not np.isfinite(r):
         return centre, r
     res = np.hypot(xy[:, 0] - centre[0], xy[:, 1] - centre[1]) - r
