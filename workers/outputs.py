@@ -193,6 +193,25 @@ def with_rows(trees: dict, params: RowParams, replants: np.ndarray | None = None
     return dict(trees, row=layout.row, position=layout.position, young=young), layout
 
 
+def in_address_order(merged: GlobalTrunks, trees: dict) -> tuple[GlobalTrunks, dict]:
+    """The merged trunks and the trees table renumbered so that ``tree_id`` runs in
+    address order (row, then position; the trees off the rows are rows numbered after
+    the rows, so they come last): growers name trees by address, and neighbouring ids
+    then stand side by side in a row. Without rows the (x, y) order stays."""
+    if "row" not in trees or merged.n_trees == 0:
+        return merged, trees
+    order = np.lexsort((np.asarray(trees["position"]), np.asarray(trees["row"])))
+    if np.array_equal(order, np.arange(len(order))):
+        return merged, trees
+    new_id = np.zeros(merged.n_trees + 1, dtype=np.int64)
+    new_id[1:][order] = np.arange(1, merged.n_trees + 1)
+    renumbered = {k: (np.asarray(v)[order] if k != "tree_id" else np.asarray(v)) for k, v in trees.items()}
+    return GlobalTrunks(
+        merged.trunks[order], merged.diameter[order], merged.support[order], merged.owner[order],
+        {t: new_id[m] for t, m in merged.id_maps.items()},
+    ), renumbered
+
+
 def no_trees(info: BlockInfo) -> NoTreesError:
     return NoTreesError(
         f"{Path(info.path).name}: no trees found in {info.n_points} points (only ground or clutter?); ",
@@ -254,6 +273,7 @@ def merge_and_write(
     if merged.n_trees == 0:
         raise no_trees(info)
     trees, layout = with_rows(trees_table(summaries, merged, info.origin), params.rows, replanted(summaries, merged), canopy)
+    merged, trees = in_address_order(merged, trees)
     outputs = write_outputs(out_dir, info, labels(merged), trees, labelled_laz=labelled_laz, failed=failed, layout=layout)
     return merged.n_trees, trees, outputs
 

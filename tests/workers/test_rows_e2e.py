@@ -41,8 +41,22 @@ def test_a_hedgerow_gets_its_trunks_and_addresses(hedgerow, tmp_path):
     az = np.asarray(rows["azimuth_deg"])
     np.testing.assert_allclose(az, 90.0 - 25.0, atol=3.0)  # rotated 25° from east: positions run east-north-east
 
-    tiled = run_job(JobSpec(str(las), str(tmp_path / "tiled"), tiling=TilingParams(tile_size=8.0)))
     untiled = pq.read_table(out / "trees.parquet").to_pydict()
+    # ids in address order: row by row, position by position
+    addr = list(zip(untiled["row"], untiled["position"]))
+    assert untiled["tree_id"] == list(range(1, len(addr) + 1)) and addr == sorted(addr)
+    # and the points follow the renumbering: each tree's points lie around its own trunk
+    labels = pq.read_table(out / "points.parquet", columns=["tree_id"]).column(0).to_numpy()
+    import laspy
+    pts = laspy.read(str(las))
+    xy = np.c_[np.asarray(pts.x), np.asarray(pts.y)]
+    for k in (1, len(addr) // 2, len(addr)):
+        centre = np.median(xy[labels == k], axis=0)
+        trunk = np.array([untiled["trunk_x"][k - 1], untiled["trunk_y"][k - 1]])
+        assert np.hypot(*(centre - trunk)) < 0.5, k
+
+    tiled = run_job(JobSpec(str(las), str(tmp_path / "tiled"), tiling=TilingParams(tile_size=8.0)))
+    assert tiled.trees["tree_id"].tolist() == untiled["tree_id"]
     assert tiled.trees["row"].tolist() == untiled["row"] and tiled.trees["position"].tolist() == untiled["position"]
     assert tiled.trees["young"].tolist() == untiled["young"]
 
