@@ -48,6 +48,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     g.add_argument("--work", default=None, metavar="DIR_OR_URL", help="work store for tiles (folder or fsspec URL); default OUT/_work")
     g.add_argument("--rerun-tile", type=int, action="append", default=None, metavar="ID", help="re-run this failed tile of the job in --work alone, then merge again (repeatable)")
     g.add_argument("--resume", action="store_true", help="process the tiles of the job in --work that have no result yet, then merge")
+    parser.add_argument("--trees", action="store_true", help="print the per-tree table (address first) instead of the block summary and its rows")
     g.add_argument("--labelled-laz", action="store_true", help="also write labelled.laz: the input with extra dimensions tree_id, is_wood, wood_score")
     g.add_argument("--inject-failure", type=int, action="append", default=None, help=argparse.SUPPRESS)
     add_pipeline_options(parser)
@@ -67,31 +68,6 @@ class _Bar:
         stream = self.stream or sys.stderr
         stream.write(f"{self.what} [{'#' * fill}{'.' * (width - fill)}] {done}/{total}  {elapsed:6.1f} s\n")
         stream.flush()
-
-
-def _print_trees(trees: dict, stream=None) -> None:
-    stream = stream or sys.stdout
-    cols = [
-        ("tree_id", "tree", "{:d}"),
-        ("trunk_x", "trunk_x", "{:.2f}"),
-        ("trunk_y", "trunk_y", "{:.2f}"),
-        ("height_m", "height_m", "{:.2f}"),
-        ("crown_diameter_m", "crown_d_m", "{:.2f}"),
-        ("crown_area_m2", "crown_m2", "{:.1f}"),
-        ("trunk_diameter_m", "trunk_d_m", "{:.3f}"),
-        ("n_points", "points", "{:d}"),
-        ("wood_fraction", "wood", "{:.2f}"),
-    ]
-    rows = [[h for _, h, _ in cols]]
-    for i in range(len(trees["tree_id"])):
-        row = []
-        for name, _, fmt in cols:
-            v = trees[name][i]
-            row.append("nan" if isinstance(v, float) and v != v else fmt.format(v.item() if hasattr(v, "item") else v))
-        rows.append(row)
-    widths = [max(len(r[j]) for r in rows) for j in range(len(cols))]
-    for r in rows:
-        stream.write("  ".join(c.rjust(w) for c, w in zip(r, widths)) + "\n")
 
 
 def _check_cluster_options(args: argparse.Namespace) -> None:
@@ -329,16 +305,23 @@ def _write_views(outcome, args) -> None:
 
 
 def _report(outcome, args) -> int:
+    import pyarrow.parquet as pq  # here, not at the top: `orchard --help` stays fast
+
+    from service.commands.printout import print_summary, print_trees
+
     if outcome.trees is not None:
-        _print_trees(outcome.trees)
+        rows_path = outcome.outputs.get("rows")
+        rows = pq.read_table(rows_path, columns=["row", "n_gaps"]).to_pydict() if rows_path else None
+        if args.trees:
+            print_trees(outcome.trees)
+        else:
+            print_summary(outcome.trees, rows)
     _write_views(outcome, args)
     out = Path(args.out)
     points = f"{outcome.n_points} points"
     if outcome.partial and outcome.outputs.get("points"):
-        import pyarrow.parquet as pq
-
-        rows = pq.ParquetFile(outcome.outputs["points"]).metadata.num_rows
-        points = f"{outcome.n_points} points ({rows} of them in points.parquet)"
+        stored = pq.ParquetFile(outcome.outputs["points"]).metadata.num_rows
+        points = f"{outcome.n_points} points ({stored} of them in points.parquet)"
     print(
         f"{outcome.n_trees} trees, {points}, {outcome.n_tiles} tile(s) "
         f"in {outcome.timings.get('total', 0.0):.1f} s -> {out}",

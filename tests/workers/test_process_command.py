@@ -34,13 +34,24 @@ def _assert_clean_failure(code, err, out_dir, expect_code=2):
     assert not out_dir.exists() or not any(out_dir.rglob("*"))
 
 
-def test_process_prints_the_tree_table(small_block, tmp_path, capsys):
+def test_process_prints_a_summary_and_its_rows(small_block, tmp_path, capsys):
     code, out, err = _run(capsys, small_block, "--out", tmp_path / "o")
     assert code == 0, err
-    assert out.splitlines()[0].split()[:3] == ["tree", "trunk_x", "trunk_y"]
-    assert len(out.splitlines()) == 1 + 8
+    lines = out.splitlines()
+    assert lines[0].startswith("8 trees, 2 rows, 0 empty slots, 0 young, mean height ")
+    assert lines[1].split() == ["row", "trees", "empty", "young", "height_m"]
+    assert [ln.split()[:4] for ln in lines[2:]] == [["1", "4", "0", "0"], ["2", "4", "0", "0"]]
     assert "8 trees" in err
     assert pq.read_table(tmp_path / "o" / "trees.parquet").num_rows == 8
+
+
+def test_process_prints_the_tree_table_on_request(small_block, tmp_path, capsys):
+    code, out, err = _run(capsys, small_block, "--out", tmp_path / "o", "--trees")
+    assert code == 0, err
+    lines = out.splitlines()
+    assert lines[0].split()[:5] == ["row", "pos", "tree", "young", "trunk_x"]
+    assert len(lines) == 1 + 8
+    assert [ln.split()[:4] for ln in lines[1:3]] == [["1", "1", "1", "no"], ["1", "2", "2", "no"]]
 
 
 @pytest.mark.slow
