@@ -8,15 +8,16 @@ API document's operationIds in `openapi`; `service.app.create_app` wires them in
 
 from __future__ import annotations
 
-from fastapi import APIRouter
+from fastapi import APIRouter, Depends
 
 from service.api import routes_blocks, routes_jobs, routes_results, routes_schedules
+from service.api.queryparams import no_unknown_query
 from service.api.schemas import ERRORS
 
 
 def v1_router() -> APIRouter:
     """The ``/v1`` routes, each documented with the error answers in `schemas.ERRORS`."""
-    v1 = APIRouter(prefix="/v1", responses=ERRORS)
+    v1 = APIRouter(prefix="/v1", responses=ERRORS, dependencies=[Depends(no_unknown_query)])
     for routes in (routes_blocks, routes_jobs, routes_results, routes_schedules):
         v1.include_router(routes.router)
     return v1

@@ -27,10 +27,27 @@ def job_trees(
     settings: SettingsDep,
     limit: Annotated[int, Query(ge=1, le=1000)] = 100,
     offset: Annotated[int, Query(ge=0, le=1_000_000_000)] = 0,
+    row: Annotated[int | None, Query(ge=1, le=1_000_000, description="only the trees of this row")] = None,
+    position_min: Annotated[int | None, Query(ge=1, le=1_000_000, description="only trees at this position or later")] = None,
+    position_max: Annotated[int | None, Query(ge=1, le=1_000_000, description="only trees at this position or earlier")] = None,
+    young: Annotated[bool | None, Query(description="only young trees (true) or only the others (false)")] = None,
 ):
+    """The job's trees as JSON pages, in address order, optionally filtered by row,
+    position range and young; ``total`` counts the trees that pass the filters."""
     _, path = job_output(store, settings, tenant, job_id, "trees.parquet")
-    rows = reports.trees_records(require_output(path, "trees.parquet"))
+    rows = [t for t in reports.trees_records(require_output(path, "trees.parquet"))
+            if _wanted(t, row=row, position_min=position_min, position_max=position_max, young=young)]
     return TreesPage(items=rows[offset : offset + limit], total=len(rows), limit=limit, offset=offset)
+
+
+def _wanted(tree: dict, *, row, position_min, position_max, young) -> bool:
+    """Whether a tree passes the filters (a block without rows has no address: an
+    address filter then keeps no tree)."""
+    pos = tree.get("position")
+    return ((row is None or tree.get("row") == row)
+            and (position_min is None or (pos is not None and pos >= position_min))
+            and (position_max is None or (pos is not None and pos <= position_max))
+            and (young is None or bool(tree.get("young")) == young))
 
 
 def _file(path: Path, media_type: str, filename: str) -> FileResponse:

@@ -234,3 +234,71 @@ def test_the_servers_connections_send_small_responses_at_once():
         return value
 
     assert asyncio.run(accepted_nodelay()) != 0
+
+
+@pytest.fixture(scope="module")
+def addressed_job(edges, block):
+    """A job marked done whose trees.parquet holds 6 trees in 2 rows, one young."""
+    import numpy as np
+
+    from pipeline.parquet import write_trees_parquet
+
+    settings, c = edges
+    job_id = c.post("/v1/jobs", json={"block_id": block["id"]}).json()["id"]
+    store = Store(settings.store_path)
+    try:
+        while (claimed := store.claim_next_job()) is not None and claimed["id"] != job_id:
+            pass
+        out = job_dir(settings, job_id)
+        out.mkdir(parents=True, exist_ok=True)
+        k = 6
+        trees = {
+            "tree_id": np.arange(1, k + 1), "trunk_x": np.arange(k, dtype=float), "trunk_y": np.zeros(k),
+            "trunk_z": np.zeros(k), "height_m": np.full(k, 3.0), "crown_diameter_m": np.ones(k),
+            "crown_area_m2": np.ones(k), "crown_volume_m3": np.ones(k), "trunk_diameter_m": np.full(k, 0.1),
+            "n_points": np.full(k, 100), "wood_fraction": np.full(k, 0.2),
+            "row": np.array([1, 1, 1, 2, 2, 2], np.int32), "position": np.array([1, 2, 4, 1, 2, 3], np.int32),
+            "young": np.array([False, False, True, False, False, False]),
+        }
+        write_trees_parquet(out / "trees.parquet", trees, crs_wkt=None)
+        store.finish_job(job_id, "done", outcome={"n_trees": k})
+    finally:
+        store.close()
+    return job_id
+
+
+@pytest.mark.parametrize(("query", "ids"), [
+    ({}, [1, 2, 3, 4, 5, 6]),
+    ({"row": 2}, [4, 5, 6]),
+    ({"row": 1, "position_min": 2}, [2, 3]),
+    ({"position_min": 2, "position_max": 3}, [2, 5, 6]),
+    ({"young": "true"}, [3]),
+    ({"young": "false", "row": 1}, [1, 2]),
+    ({"row": 9}, []),
+])
+def test_trees_filter_by_row_position_and_young(edges, addressed_job, query, ids):
+    _, c = edges
+    page = c.get(f"/v1/jobs/{addressed_job}/trees", params=query).json()
+    assert [t["tree_id"] for t in page["items"]] == ids and page["total"] == len(ids)
+
+
+@pytest.mark.parametrize("query", [{"rows": 2}, {"row": 1, "colour": "red"}, {"": ""}])
+def test_an_unknown_query_parameter_is_refused_by_name(edges, addressed_job, query):
+    _, c = edges
+    r = c.get(f"/v1/jobs/{addressed_job}/trees", params=query)
+    assert r.status_code == 422, r.text
+    unknown = [k for k in query if k not in ("row",)]
+    assert all(repr(u) in r.json()["detail"] for u in unknown)
+    assert "row" in r.json()["detail"].split("takes:")[1]
+
+
+@pytest.mark.parametrize("query", [{"row": ""}, {"row": "0"}, {"young": "maybe"}])
+def test_an_empty_or_bad_filter_is_refused(edges, addressed_job, query):
+    _, c = edges
+    assert c.get(f"/v1/jobs/{addressed_job}/trees", params=query).status_code == 422
+
+
+def test_unknown_query_parameters_are_refused_on_every_v1_route(edges):
+    _, c = edges
+    r = c.get("/v1/jobs", params={"stat": "done"})
+    assert r.status_code == 422 and "'stat'" in r.json()["detail"]
