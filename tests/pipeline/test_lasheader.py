@@ -256,7 +256,7 @@ def test_valid_blocks_pass_and_agree_with_laspy(tmp_path, version, fmt, suffix, 
     assert (info.crs_wkt is not None) == evlr  # the CRS is still found in its EVLR
 
 
-@pytest.mark.skipif(not REAL_BLOCKS, reason="no real blocks in /work/shared/data/real")
+@pytest.mark.skipif(not REAL_BLOCKS, reason=f"no real LAS/LAZ blocks in {REAL}")
 @pytest.mark.parametrize("path", REAL_BLOCKS, ids=lambda p: f"{p.parent.name}/{p.name}")
 def test_real_blocks_pass(path):
     layout = lasheader.check_header(path)
