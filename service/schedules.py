@@ -204,6 +204,12 @@ def check_inbox_use(inbox: Path, *, settings: Settings, store: Store, tenant_id:
         )
 
 
+def accepted_suffixes() -> tuple[str, ...]:
+    """The file types an inbox takes (lower case, with the dot); a file of any other type
+    is ignored, and `ignored_files` says so."""
+    return CAPTURE_SUFFIXES
+
+
 def captures(inbox: Path) -> list[Path]:
     """LAS/LAZ files directly in ``inbox`` (not in sub-folders), sorted by name.
 
@@ -216,8 +222,42 @@ def captures(inbox: Path) -> list[Path]:
     except OSError as exc:
         raise InputError(f"cannot read inbox {str(inbox)!r}: {exc.strerror}") from None
     for p in entries:
-        if p.suffix.lower() in CAPTURE_SUFFIXES and not p.name.startswith(".") and not p.is_symlink() and p.is_file():
+        if p.suffix.lower() in accepted_suffixes() and not p.name.startswith(".") and not p.is_symlink() and p.is_file():
             out.append(p)
+    return out
+
+
+def ignored_why(path: Path) -> str | None:
+    """Why a scan passes over an entry of an inbox, or None if it is a capture it takes
+    (or a hidden file, not shown: copies in progress, ``.DS_Store``)."""
+    if path.name.startswith("."):
+        return None
+    if path.is_symlink():
+        return "a link: only files really in the inbox are taken"
+    if path.is_dir():
+        return "a folder: only files directly in the inbox are taken"
+    suffix = path.suffix.lower()
+    if suffix in accepted_suffixes():
+        return None if path.is_file() else "not a regular file"
+    kind = f"a {suffix} file" if suffix else "a file without a type suffix"
+    return f"{kind}: the inbox takes {', '.join(accepted_suffixes())} files only"
+
+
+def ignored_files(inbox: Path) -> list[dict[str, str]]:
+    """The entries of ``inbox`` a scan passes over, ``[{"file", "reason"}]`` by name
+    (hidden files left out); a grower who drops a ``.xyz`` file learns why nothing came of it."""
+    try:
+        entries = sorted(inbox.iterdir())
+    except OSError:
+        return []
+    out = []
+    for p in entries:
+        try:
+            why = ignored_why(p)
+        except OSError:
+            continue
+        if why is not None:
+            out.append({"file": display_name(p), "reason": why})
     return out
 
 
@@ -258,7 +298,8 @@ def run_schedule(
     """Submit a job for every new capture in the schedule's inbox; returns what was done.
 
     Returns ``{"schedule_id", "jobs": [job ids], "skipped": n already handled,
-    "rejected": [{"file", "error"}], "waiting": [file names]}``. Unusable files are
+    "rejected": [{"file", "error"}], "waiting": [file names], "ignored": [{"file",
+    "reason"}]}`` (files of other types, see `ignored_files`). Unusable files are
     recorded as handled (with their error) so they are not retried every night. A
     capture written to within ``settings.capture_settle_s`` of ``now`` (or changed while
     it was read) is still arriving: it is left as *waiting*, not recorded, for a later
@@ -272,7 +313,7 @@ def run_schedule(
     a long scan applies to the jobs queued after it, and a pause (``by_clock``: the
     clock's scan; a scan by hand runs on) or a deletion ends the scan there.
     """
-    result: dict[str, Any] = {"schedule_id": schedule["id"], "jobs": [], "skipped": 0, "rejected": [], "waiting": []}
+    result: dict[str, Any] = {"schedule_id": schedule["id"], "jobs": [], "skipped": 0, "rejected": [], "waiting": [], "ignored": []}
     inbox = Path(schedule["inbox"])
     if not inbox.is_dir():
         raise InputError(f"inbox {str(inbox)!r} of schedule {schedule['id']} no longer exists")
@@ -303,6 +344,7 @@ def run_schedule(
                 result["waiting"].append(name)
             else:
                 result["rejected"].append({"file": name, "error": detail})
+    result["ignored"] = ignored_files(inbox)
     if result["waiting"]:
         store.bring_schedule_forward(schedule["id"], settled_at(settings, now))
     return result
@@ -462,8 +504,9 @@ class ScheduleClock(threading.Thread):
                     again = None
                     try:
                         res = run_schedule(self.store, self.settings, sched, now=now, by_clock=True)
-                        log.info("schedule %s: %d new jobs, %d already handled, %d still arriving",
-                                 sched["id"], len(res["jobs"]), res["skipped"], len(res["waiting"]))
+                        log.info("schedule %s: %d new jobs, %d already handled, %d rejected, %d ignored, %d still arriving",
+                                 sched["id"], len(res["jobs"]), res["skipped"], len(res["rejected"]),
+                                 len(res["ignored"]), len(res["waiting"]))
                         if res["jobs"] and self.on_jobs:
                             self.on_jobs()
                         if res["waiting"]:  # look again once they have settled, not a day later

@@ -15,6 +15,7 @@ from service.api.schemas import (
     ScheduleUpdate,
     schedule_out,
 )
+from service.capturefates import capture_fates
 from service.jobrequests import schedule_changes, stored_tiling
 from service.schedules import check_inbox_use, next_run_time, run_schedule, tenant_inbox_root, validate_cron, validate_inbox
 
@@ -50,8 +51,9 @@ def list_schedules(tenant: TenantDep, store: StoreDep):
 
 
 @router.get("/schedules/{schedule_id}", response_model=Schedule, tags=["schedules"])
-def get_schedule(schedule_id: str, tenant: TenantDep, store: StoreDep):
-    return schedule_out(store.get_schedule(tenant["id"], schedule_id))
+def get_schedule(schedule_id: str, tenant: TenantDep, store: StoreDep, settings: SettingsDep):
+    sched = store.get_schedule(tenant["id"], schedule_id)
+    return schedule_out(sched, capture_fates(store, settings, sched))
 
 
 @router.patch("/schedules/{schedule_id}", response_model=Schedule, tags=["schedules"], summary="Pause, resume or change a schedule",

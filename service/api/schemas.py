@@ -132,6 +132,20 @@ class ScheduleUpdate(BaseModel):
     tiling: Tiling | None = Field(None, description="tiling of the jobs it queues from now on; null: one tile")
 
 
+class Capture(BaseModel):
+    """A file of a schedule's inbox and what became of it."""
+
+    file: str = Field(description="the file's name in the inbox")
+    fate: Literal["arriving", "new", "rejected", "processed", "ignored"] = Field(
+        description="processed: a job was queued (job_id); rejected: unusable (reason); arriving: still being "
+        "written to; new: settled, taken at the next scan; ignored: not a capture (another file type, a folder, a link: reason)"
+    )
+    job_id: str | None = Field(None, description="the job of a processed capture")
+    job_state: str | None = Field(None, description="that job's state ('deleted' if the job was deleted)")
+    reason: str | None = Field(None, description="why it was rejected or ignored; a failed job's error")
+    seen_at: str | None = Field(None, description="when a scan handled it")
+
+
 class Schedule(BaseModel):
     id: str
     inbox: str
@@ -142,6 +156,15 @@ class Schedule(BaseModel):
     created_at: str | None
     last_run_at: str | None
     next_run_at: str | None = Field(description="the next scan by the clock; null while paused")
+    captures: list[Capture] | None = Field(
+        None, description="every capture's fate, files in the inbox now first, then those handled, newest first "
+        "(at most 200; only on GET /v1/schedules/ID)")
+    capture_counts: dict[str, int] | None = Field(None, description="how many captures have each fate (all of them)")
+
+
+class IgnoredFile(BaseModel):
+    file: str
+    reason: str
 
 
 class RejectedFile(BaseModel):
@@ -158,6 +181,7 @@ class ScheduleRun(BaseModel):
         default_factory=list,
         description="captures still being copied in (written to within ORCHARD_CAPTURE_SETTLE_S): the schedule looks at them again once they have settled",
     )
+    ignored: list[IgnoredFile] = Field(default_factory=list, description="files in the inbox that are not captures, and why")
 
 
 class Health(BaseModel):
@@ -254,8 +278,15 @@ def job_out(rec: dict) -> Job:
     )
 
 
-def schedule_out(rec: dict) -> Schedule:
+def schedule_out(rec: dict, fates: dict | None = None) -> Schedule:
+    """A stored schedule as a response body; ``fates`` (`service.capturefates.capture_fates`)
+    adds its captures."""
+    captures = None
+    if fates is not None:
+        captures = [Capture(**{**c, "seen_at": _iso(c["seen_at"])}) for c in fates["captures"]]
     return Schedule(
+        captures=captures,
+        capture_counts=None if fates is None else fates["counts"],
         id=rec["id"],
         inbox=rec["inbox"],
         cron=rec["cron"],

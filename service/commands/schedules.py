@@ -73,12 +73,7 @@ def run(args: argparse.Namespace) -> int:
             tenants = {t["id"]: t["name"] for t in store.list_tenants()}
             tenant_id = store.tenant_by_name(args.tenant)["id"] if args.tenant else None
             rows = store.list_schedules(tenant_id)
-            if args.json:
-                print(json.dumps([{**s, "paused": bool(s["paused"]), "tenant": tenants.get(s["tenant_id"])} for s in rows], indent=2))
-            else:
-                print("id\ttenant\tcron\tnext run\tinbox")
-                for s in rows:
-                    print(f"{s['id']}\t{tenants.get(s['tenant_id'])}\t{s['cron']}\t{'paused' if s['paused'] else _when(s['next_run_at'])}\t{s['inbox']}")
+            _print_list(rows, tenants, store, settings, as_json=args.json)
         elif args.action == "create":
             cron = validate_cron(args.cron)
             inbox = validate_inbox(args.inbox, root=settings.inbox_root, base=Path.cwd())
@@ -116,6 +111,24 @@ def run(args: argparse.Namespace) -> int:
     finally:
         store.close()
     return 0
+
+
+def _print_list(rows: list[dict], tenants: dict, store, settings, *, as_json: bool) -> None:
+    """The schedules, each followed by its captures' fates (one line each)."""
+    from service.capturefates import capture_fates, fate_line
+
+    fates = [capture_fates(store, settings, s) for s in rows]
+    if as_json:
+        print(json.dumps([{**s, "paused": bool(s["paused"]), "tenant": tenants.get(s["tenant_id"]), **f}
+                          for s, f in zip(rows, fates)], indent=2))
+        return
+    print("id\ttenant\tcron\tnext run\tinbox")
+    for s, f in zip(rows, fates):
+        print(f"{s['id']}\t{tenants.get(s['tenant_id'])}\t{s['cron']}\t{'paused' if s['paused'] else _when(s['next_run_at'])}\t{s['inbox']}")
+        counts = ", ".join(f"{n} {fate}" for fate, n in f["counts"].items() if n)
+        print(f"  captures: {counts or 'none yet'}")
+        for c in f["captures"]:
+            print("    " + fate_line(c))
 
 
 def _update_body(args: argparse.Namespace, sched: dict) -> dict:

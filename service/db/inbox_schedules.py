@@ -176,3 +176,19 @@ class InboxSchedules(JobQueue):
 
     def schedule_files(self, schedule_id: str) -> list[dict[str, Any]]:
         return self._all_rows("SELECT * FROM schedule_files WHERE schedule_id = ? ORDER BY seen_at", (schedule_id,))
+
+    def schedule_captures(self, schedule_id: str, *, limit: int) -> tuple[list[dict[str, Any]], dict[str, int]]:
+        """The captures a schedule handled, newest first (at most ``limit``), each with its
+        job's state (``job_state``, None if rejected or the job was deleted), and how many
+        it handled in all: ``{"processed": n, "rejected": n}``."""
+        rows = self._all_rows(
+            "SELECT f.sha256, f.path, f.job_id, f.error, f.seen_at, j.state AS job_state, j.error AS job_error "
+            "FROM schedule_files f LEFT JOIN jobs j ON j.id = f.job_id "
+            "WHERE f.schedule_id = ? ORDER BY f.seen_at DESC, f.path LIMIT ?",
+            (schedule_id, int(limit)),
+        )
+        counts = self._one(
+            "SELECT SUM(job_id IS NOT NULL) AS processed, SUM(job_id IS NULL) AS rejected FROM schedule_files WHERE schedule_id = ?",
+            (schedule_id,),
+        )
+        return rows, {k: int(counts[k] or 0) for k in ("processed", "rejected")}
