@@ -31,6 +31,7 @@ from service.permissions import private_dir, tighten
 from service.runner import Runner, drop_work, hold_runner_lock, job_dir
 from service.schedules import ScheduleClock
 from service.settings import Settings
+from service.webhooks import WebhookSender, job_event
 
 log = logging.getLogger("orchard.service")
 
@@ -71,8 +72,11 @@ def create_app(settings: Settings) -> FastAPI:
             if n:
                 log.info("re-queued %d job(s) interrupted by the last shutdown", n)
         if settings.runner:
-            app.state.runner = Runner(store, settings, after_done=after_done)
+            app.state.runner = Runner(store, settings, after_done=after_done, on_final=app.state.notify_job)
             app.state.runner.start()
+        if settings.runner or settings.scheduling:  # the process whose threads make the events delivers them
+            app.state.webhooks = WebhookSender(store, settings)
+            app.state.webhooks.start()
         if settings.scheduling:
             app.state.clock = ScheduleClock(store, settings, on_jobs=lambda: wake_runner(app))
             app.state.clock.start()
@@ -87,6 +91,8 @@ def create_app(settings: Settings) -> FastAPI:
                 await run_in_threadpool(app.state.clock.stop)
             if app.state.runner is not None:
                 await run_in_threadpool(app.state.runner.stop)
+            if app.state.webhooks is not None:
+                await run_in_threadpool(app.state.webhooks.stop)
             store.close()
             if runner_lock is not None:
                 runner_lock.close()
@@ -104,6 +110,13 @@ def create_app(settings: Settings) -> FastAPI:
     app.state.store = store
     app.state.runner = None
     app.state.clock = None
+    app.state.webhooks = None
+
+    def notify_job(job: dict) -> None:
+        if job_event(store, job) and app.state.webhooks is not None:
+            app.state.webhooks.wake()
+
+    app.state.notify_job = notify_job
     app.state.report_lock = report_lock
     install_error_handlers(app)
     openapi.install(app)

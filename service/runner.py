@@ -154,12 +154,14 @@ class Runner(threading.Thread):
         *,
         client_factory: Callable[[], Any] | None = None,
         after_done: Callable[[dict], None] | None = None,
+        on_final: Callable[[dict], None] | None = None,
     ) -> None:
         super().__init__(name="orchard-runner", daemon=True)
         self.store = store
         self.settings = settings
         self._client_factory = client_factory or self._default_client
         self._after_done = after_done
+        self._on_final = on_final  # told every job the runner took, as it left it (webhooks)
         self._client = None
         self._unreachable = False  # the last attempt to start or reach the cluster failed
         self._stopping = threading.Event()
@@ -269,7 +271,9 @@ class Runner(threading.Thread):
                     self._wake.clear()
                     continue
                 try:
-                    self.run_job(job)
+                    left = self.run_job(job)
+                    if self._on_final is not None:
+                        self._on_final(left)
                 except Exception as exc:  # e.g. the store failed while recording (logged); keep running
                     log.error("runner: job %s could not be recorded", job["id"], exc_info=exc)
                     try:  # not left "running" (and waited on) for good

@@ -35,6 +35,7 @@ from service.db.jobstore import Store
 from service.quotas import QuotaExceeded
 from service.settings import Settings
 from service.tempfiles import process_dir
+from service.webhooks import rejected_event
 
 log = logging.getLogger("orchard.schedules")
 
@@ -320,7 +321,8 @@ def run_schedule(
     if inbox.resolve() != inbox:  # checked when the schedule was made: it must still be that folder
         raise InputError(f"inbox {str(inbox)!r} of schedule {schedule['id']} is now a link to another folder; not scanned")
     now = time.time() if now is None else now
-    with scan_lock(schedule["tenant_id"]):
+    tenant_id = schedule["tenant_id"]
+    with scan_lock(tenant_id):
         for path in captures(inbox):
             schedule = _current(store, schedule["id"], by_clock=by_clock)
             if schedule is None:
@@ -345,6 +347,8 @@ def run_schedule(
             else:
                 result["rejected"].append({"file": name, "error": detail})
     result["ignored"] = ignored_files(inbox)
+    if result["rejected"]:  # told to the farm's webhooks (a scan by hand's rejections too)
+        rejected_event(store, tenant_id=tenant_id, schedule_id=result["schedule_id"], rejected=result["rejected"])
     if result["waiting"]:
         store.bring_schedule_forward(schedule["id"], settled_at(settings, now))
     return result

@@ -90,6 +90,16 @@ class Settings(BaseSettings):
         description="a job during which the service process died (killed, out of memory, power cut) this many times "
         "is failed at the next start instead of run again: it may be what kills the service",
     )
+    webhook_hosts: str = Field(
+        "*", max_length=4000,
+        description="host names a farm's webhook may call, comma-separated ('*': any); allow only hosts you trust "
+        "(a webhook is a request made from the server)",
+    )
+    webhook_attempts: int = Field(6, ge=1, le=20, description="attempts to deliver a webhook call before it is given up")
+    webhook_backoff_s: float = Field(
+        30.0, ge=0, le=3600, description="wait after a webhook call's first failed attempt, doubled after each next one [s]")
+    webhook_timeout_s: float = Field(10.0, gt=0, le=120, description="longest wait for a webhook receiver's answer [s]")
+    webhook_poll_s: float = Field(5.0, gt=0, le=3600, description="longest sleep of the webhook sender between looks [s]")
 
     @field_validator("data_dir", "inbox_root")
     @classmethod

@@ -10,8 +10,9 @@ from __future__ import annotations
 from service.db.accounts import Accounts
 from service.db.blocks import Blocks
 from service.db.inbox_schedules import InboxSchedules
+from service.db.webhooks import Webhooks
 
 
-class Store(Accounts, Blocks, InboxSchedules):
+class Store(Accounts, Blocks, InboxSchedules, Webhooks):
     """SQLite job store under ``path`` (created if missing): tenants and tokens, quotas,
-    blocks, jobs and schedules."""
+    blocks, jobs, schedules and webhooks."""
