@@ -83,15 +83,16 @@ def signin_page(*, error: str | None = None, next_path: str = "/blocks") -> str:
 
 
 def blocks_page(*, tenant_name: str, csrf: str) -> str:
-    """The tenant's blocks with their jobs (filled and refreshed by ``blocks.js``)."""
+    """The tenant's blocks with their jobs (filled and refreshed by ``blocks.js``), and its
+    schedules' inboxes with every capture's fate (``inbox.js``)."""
     return (
         _head("Blocks and jobs — Orchard", ("app.css",), csrf=csrf)
         + "<body>"
         + _nav(tenant_name, csrf)
         + '<main><h1>Blocks and jobs</h1>'
         '<p class="small" id="updated" aria-live="polite">Loading…</p>'
-        '<div id="blocks"></div></main>\n'
-        + _scripts(("orchard.js", "blocks.js"))
+        '<div id="blocks"></div><div id="inboxes"></div></main>\n'
+        + _scripts(("orchard.js", "blocks.js", "inbox.js"))
         + "<script>Orchard.blocks();</script></body></html>\n"
     )
 

@@ -32,15 +32,35 @@
     return "rgb(" + a.map((v, k) => Math.round(v + (b[k] - v) * f)).join(",") + ")";
   }
 
-  /* "12/37", "row 12 tree 37", "r12 t37", "12 37" → {row, position}; "37" → {id}. */
+  /* "12/37", "row 12 tree 37", "r12 p37", "12 37" → {row, position}; "row 12", "r12" →
+     {row}; "37", "tree 37", "id 37", "#37" → {id}. */
   function parseQuery(text) {
-    const q = text.trim().toLowerCase();
-    let m = q.match(/^(?:row|r)?\s*(\d+)\s*(?:\/|,|\s+|\s*(?:tree|t|position|pos|p)\s*)\s*(\d+)$/);
+    const q = text.trim().toLowerCase().replace(/\s+/g, " ");
+    let m = q.match(/^(?:row|r) ?(\d+)$/);
+    if (m) return { row: +m[1] };
+    m = q.match(/^(?:row|r)? ?(\d+) ?(?:\/|,|\s|,? ?(?:tree|t|position|pos|p)) ?(\d+)$/);
     if (m && /\D/.test(q)) return { row: +m[1], position: +m[2] };
-    m = q.match(/^(?:tree|id|#)?\s*(\d+)$/);
-    if (m) return { id: +m[1] };
+    m = q.match(/^(?:tree|id|#)? ?(\d+)$/);
+    if (m) return { id: +m[1], bare: /^\d+$/.test(q) };
     return null;
   }
+
+  /* A table or details cell: young as yes/no, numbers with the column's digits. */
+  function cell(name, v) {
+    if (name === "young" && v !== null && v !== undefined) return v ? "yes" : "no";
+    return O.fmt(v, digits(name));
+  }
+
+  /* The table's columns: the address first, then the id and the measures; the trunk's
+     height (in the details) left out so that the table fits the page. */
+  function tableKeys(cols) {
+    const first = ["row", "position", "tree_id"].filter((k) => k in cols);
+    const last = ["young", "trunk_x", "trunk_y"].filter((k) => k in cols);
+    const rest = Object.keys(cols).filter((k) => !first.includes(k) && !last.includes(k) && k !== "trunk_z");
+    return first.concat(rest, last);
+  }
+
+  const MARK = "#e8590c";
 
   function insidePolygon(ring, x, y) {
     let inside = false;
@@ -101,6 +121,7 @@
       this.sort = { key: "tree_id", dir: 1 };
       this.page = 0;
       this.selected = -1;
+      this.mark = null; // what a find or a click outlines: {tree: i}, {gap: g} or {row: r, idx: [i...]}; one at a time
       this.byId = new Map();
       (this.cols.tree_id || []).forEach((id, i) => this.byId.set(id, i));
     }
@@ -155,6 +176,7 @@
       (d.gaps || []).forEach((g) => { if (g.x !== undefined && g.x !== null) bounds.extend([g.y, g.x]); });
       if (bounds.isValid()) map.fitBounds(bounds.pad(0.05));
       else map.setView([0, 0], 0);
+      this.rowLabels = this.rowStarts();
       this.layer = new TreeCanvas(this).addTo(map);
       map.on("click", (e) => this.clicked(e.latlng.lng, e.latlng.lat));
     }
@@ -218,11 +240,99 @@
         for (const g of this.d.gaps) if (g.x !== null && g.x !== undefined) { ctx.moveTo(X(g.x) + Math.max(0.5 * s, 3), Y(g.y)); ctx.arc(X(g.x), Y(g.y), Math.max(0.5 * s, 3), 0, 2 * Math.PI); }
         ctx.setLineDash([3, 3]); ctx.strokeStyle = "#b3261e"; ctx.lineWidth = 1.5; ctx.stroke(); ctx.setLineDash([]);
       }
-      if (this.selected >= 0 && this.shape[this.selected] !== undefined) {
-        ctx.beginPath(); trace(this.selected);
-        ctx.strokeStyle = "#e8590c"; ctx.lineWidth = 3; ctx.stroke();
-      }
+      this.paintRowLabels(ctx, X, Y, w, h);
+      this.paintMark(ctx, trace, X, Y, s);
       this.drawn = shown.length;
+    }
+
+    /* Where each row begins: beyond its first tree (position 1 end), away from the
+       second, in local metres; from the trees' addresses (and the empty slots). */
+    rowStarts() {
+      const r = this.cols.row, p = this.cols.position;
+      if (!r || !p) return [];
+      const byRow = new Map();
+      const add = (row, pos, x, y, rad) => {
+        if (row === null || pos === null || x === null || x === undefined || y === null || y === undefined) return;
+        if (!byRow.has(row)) byRow.set(row, []);
+        byRow.get(row).push({ pos, x, y, rad });
+      };
+      for (let i = 0; i < this.n; i++) add(r[i], p[i], this.d.x[i], this.d.y[i], typeof this.shape[i] === "number" ? this.shape[i] : 1.5);
+      (this.d.gaps || []).forEach((g) => add(g.row, g.position, g.x, g.y, 1));
+      const out = [];
+      for (const [row, pts] of byRow) {
+        pts.sort((a, b) => a.pos - b.pos);
+        const a = pts[0], b = pts[1];
+        let ux = -1, uy = 0;
+        if (b) { const len = Math.hypot(b.x - a.x, b.y - a.y) || 1; ux = (a.x - b.x) / len; uy = (a.y - b.y) / len; }
+        out.push({ row, x: a.x, y: a.y, ux, uy, rad: a.rad });
+      }
+      return out.sort((a, b) => a.row - b.row);
+    }
+
+    /* Row numbers at the rows' starts; a label that would overlap one drawn already is left out. */
+    paintRowLabels(ctx, X, Y, w, h) {
+      if (!this.rowLabels || !this.rowLabels.length) return;
+      const s = this.layer ? this.layer.scale() : 1, placed = [];
+      ctx.font = "bold 12px system-ui, sans-serif"; ctx.textAlign = "center"; ctx.textBaseline = "middle";
+      ctx.lineJoin = "round"; ctx.lineWidth = 3; ctx.strokeStyle = "#fff"; ctx.fillStyle = "#4a3f22";
+      this.labelsDrawn = 0;
+      for (const l of this.rowLabels) {
+        const off = l.rad * s + 12;
+        const px = X(l.x) + l.ux * off, py = Y(l.y) - l.uy * off;
+        if (px < -20 || py < -20 || px > w + 20 || py > h + 20) continue;
+        if (placed.some(([qx, qy]) => Math.abs(qx - px) < 22 && Math.abs(qy - py) < 13)) continue;
+        placed.push([px, py]);
+        ctx.strokeText(String(l.row), px, py); ctx.fillText(String(l.row), px, py);
+        this.labelsDrawn++;
+      }
+    }
+
+    /* The one thing found or clicked: a tree's outline, an empty slot's ring, a row's trees. */
+    paintMark(ctx, trace, X, Y, s) {
+      const m = this.mark;
+      if (!m) return;
+      ctx.strokeStyle = MARK; ctx.lineWidth = 3; ctx.beginPath();
+      if (m.tree !== undefined && this.shape[m.tree] !== undefined) trace(m.tree);
+      else if (m.gap) { const r = Math.max(0.9 * s, 9); ctx.moveTo(X(m.gap.x) + r, Y(m.gap.y)); ctx.arc(X(m.gap.x), Y(m.gap.y), r, 0, 2 * Math.PI); }
+      else if (m.idx) for (const i of m.idx) if (this.shape[i] !== undefined) trace(i);
+      ctx.stroke();
+    }
+
+    /* Zoom so that the box (local metres) fills a good part of the map, a tree with its
+       neighbours around it: a tree of a 1,000-tree block is a few pixels when the whole block shows. */
+    zoomTo(x0, y0, x1, y1) {
+      const m = Math.max(4, 0.25 * Math.max(x1 - x0, y1 - y0));
+      this.map.fitBounds([[y0 - m, x0 - m], [y1 + m, x1 + m]], { animate: false, maxZoom: 6 });
+      this.layer.redraw();
+    }
+
+    /* Clear what was outlined before (on the map and in the tables). */
+    unmark() {
+      this.mark = null;
+      this.selected = -1;
+      document.querySelectorAll("#treestable tr.selected").forEach((r) => r.classList.remove("selected"));
+    }
+
+    selectRow(row) {
+      const r = this.cols.row;
+      const idx = [];
+      for (let i = 0; i < this.n; i++) if (r[i] === row) idx.push(i);
+      const gaps = (this.d.gaps || []).filter((g) => g.row === row);
+      if (!idx.length && !gaps.length) return false;
+      this.unmark();
+      this.mark = { row, idx };
+      let x0 = Infinity, y0 = Infinity, x1 = -Infinity, y1 = -Infinity;
+      for (const i of idx) if (this.shape[i] !== undefined) { const b = 4 * i; x0 = Math.min(x0, this.box[b]); y0 = Math.min(y0, this.box[b + 1]); x1 = Math.max(x1, this.box[b + 2]); y1 = Math.max(y1, this.box[b + 3]); }
+      for (const g of gaps) if (g.x !== null && g.x !== undefined) { x0 = Math.min(x0, g.x); y0 = Math.min(y0, g.y); x1 = Math.max(x1, g.x); y1 = Math.max(y1, g.y); }
+      if (x0 <= x1) this.zoomTo(x0, y0, x1, y1); else this.layer.redraw();
+      const young = this.cols.young ? idx.filter((i) => this.cols.young[i]).length : null;
+      const facts = [["Trees", O.fmt(idx.length)]];
+      if (this.d.gaps) facts.push(["Empty slots", O.fmt(gaps.length)]);
+      if (young !== null) facts.push(["Young", O.fmt(young)]);
+      document.getElementById("details").replaceChildren(el("h3", { id: "selected-row", text: "Row " + row }),
+        el("dl", {}, facts.flatMap(([k, v]) => [el("dt", { text: k }), el("dd", { text: v })])));
+      idx.forEach((i) => { const tr = document.querySelector(`#treestable tr[data-i="${i}"]`); if (tr) tr.classList.add("selected"); });
+      return true;
     }
 
     /* The tree under a click: the crowns holding the point, the one whose trunk is nearest. */
@@ -238,7 +348,7 @@
       }
       if (best >= 0) { this.select(best, false); return; }
       const gap = (this.d.gaps || []).find((g) => Math.hypot(g.x - x, g.y - y) <= 0.5 + tol);
-      if (gap) this.showGap(gap);
+      if (gap) this.showGap(gap, false);
     }
 
     fillMetricChoice() {
@@ -275,12 +385,13 @@
       parts.push(el("span", { class: "swatch", style: "background:" + NO_VALUE }), "not measured");
       if (this.d.gaps && this.d.gaps.length) parts.push(el("span", { class: "swatch", style: "border:1.5px dashed #b3261e;border-radius:50%" }), "empty slot");
       if (this.d.rows && this.d.rows.length) parts.push(el("span", { class: "swatch", style: "border:0;border-top:2px dashed #8a7f62;height:2px" }), "row");
+      if (this.cols.row && this.cols.position) parts.push(el("strong", { text: "7", style: "color:#4a3f22" }), "row number, at its first tree");
       legend.replaceChildren(...parts);
     }
 
     details(i) {
       const items = [];
-      for (const k of Object.keys(this.cols)) items.push(el("dt", { text: label(k) }), el("dd", { text: O.fmt(this.cols[k][i], digits(k)) }));
+      for (const k of Object.keys(this.cols)) items.push(el("dt", { text: label(k) }), el("dd", { text: cell(k, this.cols[k][i]) }));
       return el("dl", {}, items);
     }
 
@@ -290,10 +401,12 @@
     }
 
     select(i, pan) {
+      this.unmark();
       this.selected = i;
+      this.mark = { tree: i };
       if (this.shape[i] !== undefined) {
-        if (pan) this.map.setView([this.d.y[i], this.d.x[i]], Math.max(this.map.getZoom(), 3));
-        this.layer.redraw();
+        if (pan) { const b = 4 * i; this.zoomTo(this.box[b], this.box[b + 1], this.box[b + 2], this.box[b + 3]); }
+        else this.layer.redraw();
       }
       const box = document.getElementById("details");
       box.replaceChildren(el("h3", { id: "selected-tree", text: "Tree " + this.cols.tree_id[i] + this.address(i) }), this.details(i));
@@ -302,20 +415,30 @@
       if (row) row.classList.add("selected");
     }
 
-    showGap(g) {
+    showGap(g, zoom = true) {
       const items = [];
       for (const [k, v] of Object.entries(g)) if (k !== "line" && k !== "x" && k !== "y") items.push(el("dt", { text: label(k) }), el("dd", { text: O.fmt(v) }));
-      document.getElementById("details").replaceChildren(el("h3", { text: "Empty slot" }), el("dl", {}, items));
-      this.map.setView([g.y, g.x], Math.max(this.map.getZoom(), 3));
+      this.unmark();
+      this.mark = { gap: g };
+      const where = g.row !== undefined && g.position !== undefined ? ` (row ${g.row} tree ${g.position})` : "";
+      document.getElementById("details").replaceChildren(el("h3", { id: "selected-slot", text: "Empty slot" + where }), el("dl", {}, items));
+      if (zoom && g.x !== null && g.x !== undefined) this.zoomTo(g.x - 1, g.y - 1, g.x + 1, g.y + 1);
+      else this.layer.redraw();
     }
 
     search(text) {
       const out = document.getElementById("searchresult");
       const q = parseQuery(text);
       let i;
-      if (!q) { out.textContent = "Type a tree id, or an address such as row 12 tree 37 (or 12/37)."; return; }
+      if (!q) { out.textContent = "Type a tree id (12, tree 12), an address (row 5 tree 3, 5/3, r5 p3) or a row (row 5)."; return; }
       if (q.id !== undefined) i = this.byId.get(q.id);
-      else if (this.cols.row && this.cols.position) {
+      else if (q.position === undefined) {
+        if (!this.cols.row) { out.textContent = "This job's trees have no row addresses; search by tree id."; return; }
+        const found = this.selectRow(q.row);
+        const n = found ? this.mark.idx.length : 0;
+        out.textContent = found ? `Row ${q.row}: ${n} tree${n === 1 ? "" : "s"}.` : `No row ${q.row}.`;
+        return;
+      } else if (this.cols.row && this.cols.position) {
         i = this.cols.row.findIndex((r, k) => r === q.row && this.cols.position[k] === q.position);
         if (i < 0) {
           const gap = (this.d.gaps || []).find((g) => g.row === q.row && g.position === q.position);
@@ -323,7 +446,9 @@
         }
       } else { out.textContent = "This job's trees have no row addresses; search by tree id."; return; }
       if (i === undefined || i < 0) { out.textContent = "No such tree."; return; }
-      out.textContent = "Found tree " + this.cols.tree_id[i] + this.address(i) + ".";
+      // a bare number is an id: say how to ask for a row, which a grower may have meant
+      const hint = q.bare && this.cols.row ? ` For row ${q.id}, type "row ${q.id}".` : "";
+      out.textContent = "Found tree " + this.cols.tree_id[i] + this.address(i) + "." + hint;
       this.select(i, true);
     }
 
@@ -364,7 +489,7 @@
     }
 
     table() {
-      const keys = Object.keys(this.cols);
+      const keys = tableKeys(this.cols);
       const order = [...Array(this.n).keys()];
       const col = this.cols[this.sort.key] || [];
       const dir = this.sort.dir;
@@ -383,8 +508,9 @@
         "data-key": k, text: label(k), title: "sort",
         onclick: () => { this.sort = { key: k, dir: k === this.sort.key ? -dir : 1 }; this.page = 0; this.table(); },
       })));
-      const body = shown.map((i) => el("tr", { "data-i": String(i), class: i === this.selected ? "selected" : null, onclick: () => this.select(i, true) },
-        keys.map((k) => el("td", { text: O.fmt(this.cols[k][i], digits(k)) }))));
+      const marked = (i) => i === this.selected || (this.mark && this.mark.idx && this.cols.row[i] === this.mark.row);
+      const body = shown.map((i) => el("tr", { "data-i": String(i), class: marked(i) ? "selected" : null, onclick: () => this.select(i, true) },
+        keys.map((k) => el("td", { text: cell(k, this.cols[k][i]) }))));
       document.getElementById("treestable").replaceChildren(el("thead", {}, [head]), el("tbody", {}, body));
       const pager = document.getElementById("pager");
       const go = (p) => { this.page = p; this.table(); };
