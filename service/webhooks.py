@@ -68,8 +68,8 @@ def check_url(url: str, settings: Settings) -> str:
         raise ParameterError(f"webhook url {url!r} is not a valid URL") from None
     if parts.scheme not in ("http", "https") or not host:
         raise ParameterError(f"webhook url {url!r} must be an http:// or https:// URL with a host")
-    if any(c.isspace() for c in url):
-        raise ParameterError("webhook url must not contain spaces")
+    if any(c.isspace() or not c.isprintable() for c in url):
+        raise ParameterError("webhook url must not contain spaces or control characters")
     allowed = [h.strip().lower() for h in settings.webhook_hosts.split(",") if h.strip()]
     if "*" not in allowed and host.lower() not in allowed:
         raise ParameterError(

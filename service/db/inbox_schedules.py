@@ -57,6 +57,9 @@ class InboxSchedules(JobQueue):
             if n == 0:
                 raise NotFoundError(f"no schedule {schedule_id!r}; ", hint="{list.schedules}")
             con.execute("DELETE FROM schedule_files WHERE schedule_id = ?", (schedule_id,))
+            # its webhooks would never be called again
+            con.execute("DELETE FROM webhook_deliveries WHERE webhook_id IN (SELECT id FROM webhooks WHERE schedule_id = ?)", (schedule_id,))
+            con.execute("DELETE FROM webhooks WHERE schedule_id = ?", (schedule_id,))
 
     def set_schedule_times(self, schedule_id: str, *, cron: str, last_run_at: float | None, next_run_at: float | None) -> None:
         """Record a run and the next one, computed from ``cron``: left alone if the

@@ -243,3 +243,15 @@ def test_api_webhooks(client_a, client_b, api, api_data, receiver):
         client_a.delete(f"/v1/schedules/{sid}")
         assert client_a.delete(f"/v1/webhooks/{hook['id']}").status_code == 204
     assert client_a.get(f"/v1/webhooks/{hook['id']}").status_code == 404
+
+
+def test_a_deleted_schedules_webhooks_go_with_it(env, tmp_path):
+    _, store, tenant, _ = env
+    inbox = tmp_path / "inbox"
+    inbox.mkdir()
+    sched = store.create_schedule(tenant_id=tenant["id"], inbox=str(inbox), cron="0 1 * * *", params={}, tiling=None,
+                                  next_run_at=None)
+    farm = store.create_webhook(tenant_id=tenant["id"], url="http://127.0.0.1:9/", secret=SECRET, schedule_id=None, events=["job.done"])
+    store.create_webhook(tenant_id=tenant["id"], url="http://127.0.0.1:9/", secret=SECRET, schedule_id=sched["id"], events=["job.done"])
+    store.delete_schedule(tenant["id"], sched["id"])
+    assert [w["id"] for w in store.list_webhooks(tenant["id"])] == [farm["id"]]
