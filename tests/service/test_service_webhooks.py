@@ -255,3 +255,43 @@ def test_a_deleted_schedules_webhooks_go_with_it(env, tmp_path):
     store.create_webhook(tenant_id=tenant["id"], url="http://127.0.0.1:9/", secret=SECRET, schedule_id=sched["id"], events=["job.done"])
     store.delete_schedule(tenant["id"], sched["id"])
     assert [w["id"] for w in store.list_webhooks(tenant["id"])] == [farm["id"]]
+
+
+@pytest.mark.slow
+def test_a_real_server_calls_the_webhook_when_its_jobs_finish_or_fail(tmp_path, receiver):
+    """`orchard serve` with its runner: a job on a generated block (done) and one on a
+    block of random points (no trees: failed) each give one signed call."""
+    import httpx
+    from service_fixtures import ServerProcess, make_token, simulated_block, wait_for_job, write_las
+
+    receiver.answers = [500]  # the first call is answered 500: tried again
+    srv = ServerProcess(tmp_path / "data", ORCHARD_SCHEDULING="false", ORCHARD_WEBHOOK_HOSTS="127.0.0.1",
+                        ORCHARD_WEBHOOK_BACKOFF_S="0.2")
+    srv.start()
+    try:
+        token = make_token(srv.data_dir, "farm-a")
+        block = simulated_block(tmp_path / "orchard.laz", rows=2, trees_per_row=3, density=0.4, seed=3)
+        noise = write_las(tmp_path / "noise.laz", 2000, seed=5)
+        with httpx.Client(base_url=srv.url, headers={"Authorization": f"Bearer {token}"}, timeout=60) as c:
+            hook = c.post("/v1/webhooks", json={"url": receiver.url, "secret": SECRET}).json()
+            assert c.post("/v1/webhooks", json={"url": "http://intranet.example/", "secret": SECRET}).status_code == 422
+            jobs = []
+            for path in (block, noise):
+                b = c.post("/v1/blocks", files={"file": (path.name, path.read_bytes())}).json()
+                jobs.append(wait_for_job(c, c.post("/v1/jobs", json={"block_id": b["id"]}).json()["id"], timeout=240))
+            assert [j["state"] for j in jobs] == ["done", "failed"]
+            calls = receiver.wait_for(3, timeout=60)
+            per_job: dict = {}
+            for call in calls:  # (the failed job's call may come before the done job's retry)
+                body = _checked(call)
+                per_job.setdefault((body["event"], body["job"]["id"]), []).append((call["status"], body))
+            assert sorted(per_job) == sorted([("job.done", jobs[0]["id"]), ("job.failed", jobs[1]["id"])])
+            done, failed = per_job[("job.done", jobs[0]["id"])], per_job[("job.failed", jobs[1]["id"])]
+            assert [st for st, _ in done] == [500, 200] and done[0][1] == done[1][1]  # the same delivery again
+            assert [st for st, _ in failed] == [200]
+            assert done[0][1]["job"]["n_trees"] == jobs[0]["n_trees"] and failed[0][1]["job"]["error"] == jobs[1]["error"]
+            shown = {d["event"]: d for d in c.get(hook["links"]["deliveries"]).json()}
+            assert [t["status_code"] for t in shown["job.done"]["tries"]] == [500, 200]
+            assert shown["job.failed"]["state"] == "delivered"
+    finally:
+        srv.stop()
