@@ -36,6 +36,7 @@ TIMESTAMP_HEADER = "X-Orchard-Timestamp"
 EVENT_HEADER = "X-Orchard-Event"
 DELIVERY_HEADER = "X-Orchard-Delivery"
 _JOB_EVENTS = {"done": "job.done", "failed": "job.failed"}
+KEEP_DELIVERIES_S = 30 * 86400  #: how long a delivery that ended stays listed
 
 
 def sign(secret: str, timestamp: int, body: bytes) -> str:
@@ -189,8 +190,12 @@ class WebhookSender(threading.Thread):
                      "; given up" if wait is None else f"; tried again in {wait:.0f} s")
 
     def run(self) -> None:
+        pruned_at = 0.0
         while not self._stopping.is_set():
             try:
+                if time.time() - pruned_at > 3600:
+                    pruned_at = time.time()
+                    self.store.prune_deliveries_any_tenant(pruned_at - KEEP_DELIVERIES_S)
                 self.deliver_due()
                 nxt = self.store.next_delivery_at_any_tenant()
             except Exception as exc:  # noqa: BLE001 - keep the sender alive (e.g. store briefly locked)

@@ -174,6 +174,9 @@ def test_a_receiver_that_keeps_failing_is_given_up_after_the_attempts(env, recei
     (d,) = store.list_deliveries(tenant["id"], hook["id"])
     assert d["state"] == "failed" and d["attempts"] == 3 and d["status_code"] == 503
     assert len(receiver.calls) == 3 and sender.deliver_due() == 0
+    assert store.prune_deliveries_any_tenant(d["finished_at"]) == 0  # ended at, not before
+    assert store.prune_deliveries_any_tenant(d["finished_at"] + 1) == 1
+    assert store.list_deliveries(tenant["id"], hook["id"]) == []
 
 
 def test_a_receiver_that_is_not_there_is_recorded_as_no_answer(env):
