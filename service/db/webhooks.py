@@ -9,11 +9,14 @@ import json
 import time
 from typing import Any
 
+from pipeline.errors import ParameterError
 from service.db.database import Database, new_id
 from service.db.errors import NotFoundError
 
 #: what a webhook can be called for
 EVENTS = ("job.done", "job.failed", "capture.rejected")
+#: most webhooks of one tenant: each event is a call to every one of them
+MAX_WEBHOOKS = 20
 
 
 def _decoded(rec: dict[str, Any] | None, *keys: str) -> dict[str, Any] | None:
@@ -31,6 +34,9 @@ class Webhooks(Database):
                        events: list[str]) -> dict[str, Any]:
         wid = new_id()
         with self._tx() as con:
+            n = con.execute("SELECT COUNT(*) FROM webhooks WHERE tenant_id = ?", (tenant_id,)).fetchone()[0]
+            if n >= MAX_WEBHOOKS:
+                raise ParameterError(f"this farm has {n} webhooks, the most it may have; delete one first (DELETE /v1/webhooks/ID)")
             if schedule_id is not None and con.execute(
                 "SELECT 1 FROM schedules WHERE id = ? AND tenant_id = ?", (schedule_id, tenant_id)
             ).fetchone() is None:

@@ -248,7 +248,7 @@ def test_api_webhooks(client_a, client_b, api, api_data, receiver):
     assert client_a.get(f"/v1/webhooks/{hook['id']}").status_code == 404
 
 
-def test_a_deleted_schedules_webhooks_go_with_it(env, tmp_path):
+def test_a_deleted_schedules_webhooks_go_with_it_and_a_farm_has_at_most_20(env, tmp_path):
     _, store, tenant, _ = env
     inbox = tmp_path / "inbox"
     inbox.mkdir()
@@ -258,6 +258,13 @@ def test_a_deleted_schedules_webhooks_go_with_it(env, tmp_path):
     store.create_webhook(tenant_id=tenant["id"], url="http://127.0.0.1:9/", secret=SECRET, schedule_id=sched["id"], events=["job.done"])
     store.delete_schedule(tenant["id"], sched["id"])
     assert [w["id"] for w in store.list_webhooks(tenant["id"])] == [farm["id"]]
+
+    from service.db.webhooks import MAX_WEBHOOKS
+
+    for _ in range(MAX_WEBHOOKS - 1):
+        store.create_webhook(tenant_id=tenant["id"], url="http://127.0.0.1:9/", secret=SECRET, schedule_id=None, events=["job.done"])
+    with pytest.raises(ParameterError, match="the most it may have"):
+        store.create_webhook(tenant_id=tenant["id"], url="http://127.0.0.1:9/", secret=SECRET, schedule_id=None, events=["job.done"])
 
 
 @pytest.mark.slow
