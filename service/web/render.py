@@ -108,7 +108,7 @@ def _job_body(title: str) -> str:
         '<div class="mapbar">'
         '<label>Colour by <select id="metric"></select></label>'
         '<form id="searchform" role="search"><input id="search" type="search" '
-        'placeholder="tree id, or row 12 tree 37, or 12/37" aria-label="find a tree">'
+        'placeholder="tree 12, row 5 tree 3, 5/3 or row 5" aria-label="find a tree, an address or a row">'
         '<button type="submit">Find</button></form>'
         '<span id="searchresult" aria-live="polite"></span></div>'
         '<div class="mapwrap"><div id="map" aria-label="map of the block from above"></div>'

@@ -291,17 +291,19 @@
     paintMark(ctx, trace, X, Y, s) {
       const m = this.mark;
       if (!m) return;
-      ctx.strokeStyle = MARK; ctx.lineWidth = 3; ctx.beginPath();
+      ctx.beginPath();
       if (m.tree !== undefined && this.shape[m.tree] !== undefined) trace(m.tree);
       else if (m.gap) { const r = Math.max(0.9 * s, 9); ctx.moveTo(X(m.gap.x) + r, Y(m.gap.y)); ctx.arc(X(m.gap.x), Y(m.gap.y), r, 0, 2 * Math.PI); }
       else if (m.idx) for (const i of m.idx) if (this.shape[i] !== undefined) trace(i);
-      ctx.stroke();
+      // a white halo under the orange: it stands out on every colour of the ramp
+      ctx.strokeStyle = "#fff"; ctx.lineWidth = 7; ctx.stroke();
+      ctx.strokeStyle = MARK; ctx.lineWidth = 4; ctx.stroke();
     }
 
     /* Zoom so that the box (local metres) fills a good part of the map, a tree with its
        neighbours around it: a tree of a 1,000-tree block is a few pixels when the whole block shows. */
     zoomTo(x0, y0, x1, y1) {
-      const m = Math.max(4, 0.25 * Math.max(x1 - x0, y1 - y0));
+      const m = Math.max(4, 0.1 * Math.max(x1 - x0, y1 - y0));
       this.map.fitBounds([[y0 - m, x0 - m], [y1 + m, x1 + m]], { animate: false, maxZoom: 6 });
       this.layer.redraw();
     }
