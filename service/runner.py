@@ -272,15 +272,19 @@ class Runner(threading.Thread):
                     continue
                 try:
                     left = self.run_job(job)
-                    if self._on_final is not None:
-                        self._on_final(left)
                 except Exception as exc:  # e.g. the store failed while recording (logged); keep running
                     log.error("runner: job %s could not be recorded", job["id"], exc_info=exc)
                     try:  # not left "running" (and waited on) for good
-                        self.store.finish_job(job["id"], "failed", error=f"internal error ({type(exc).__name__}) "
+                        left = self.store.finish_job(job["id"], "failed", error=f"internal error ({type(exc).__name__}) "
                                               "while recording the job's outcome; see the service log")
                     except Exception as again:  # noqa: BLE001 - the store itself is failing; the next start re-queues it
                         log.error("runner: job %s stays running: %s", job["id"], again)
+                    continue
+                if self._on_final is not None:
+                    try:
+                        self._on_final(left)
+                    except Exception as exc:  # noqa: BLE001 - a webhook's bookkeeping does not stop the runner
+                        log.warning("runner: job %s: its webhooks could not be queued: %s", job["id"], exc)
         finally:
             self._close_client()
 
