@@ -37,6 +37,7 @@ _LISTS = {
     "blocks": ("list yours with GET /v1/blocks", "list yours with GET /v1/blocks"),  # the API alone lists them
     "jobs": ("list yours with GET /v1/jobs", "list yours with GET /v1/jobs"),
     "schedules": ("list them with 'orchard schedules list'", "list yours with GET /v1/schedules"),
+    "orchard_blocks": ("list them with 'orchard blocks list'", "list yours with GET /v1/orchard-blocks"),
 }
 
 #: tiling fields that are no option of the command line
