@@ -1,7 +1,7 @@
-"""The HTTP API under ``/v1``: blocks, jobs, results and schedules, plus ``/healthz``.
+"""The HTTP API under ``/v1``: blocks, jobs, results, schedules and orchard blocks, plus ``/healthz``.
 
 One module per resource (`routes_blocks`, `routes_jobs`, `routes_results`,
-`routes_schedules`, `routes_health`), the bodies in `schemas`, the dependencies in
+`routes_schedules`, `routes_orchard_blocks`, `routes_health`), the bodies in `schemas`, the dependencies in
 `deps`, upload streaming in `uploads`, result files with byte ranges in `downloads`, the
 API document's operationIds in `openapi`; `service.app.create_app` wires them into an app.
 """
@@ -10,13 +10,13 @@ from __future__ import annotations
 
 from fastapi import APIRouter
 
-from service.api import routes_blocks, routes_jobs, routes_results, routes_schedules
+from service.api import routes_blocks, routes_jobs, routes_orchard_blocks, routes_results, routes_schedules
 from service.api.schemas import ERRORS
 
 
 def v1_router() -> APIRouter:
     """The ``/v1`` routes, each documented with the error answers in `schemas.ERRORS`."""
     v1 = APIRouter(prefix="/v1", responses=ERRORS)
-    for routes in (routes_blocks, routes_jobs, routes_results, routes_schedules):
+    for routes in (routes_blocks, routes_jobs, routes_results, routes_schedules, routes_orchard_blocks):
         v1.include_router(routes.router)
     return v1

@@ -13,6 +13,7 @@ import asyncio
 import contextlib
 import hashlib
 import os
+import re
 import uuid
 from pathlib import Path
 
@@ -30,6 +31,8 @@ from service.settings import Settings
 
 UPLOAD_SLACK = 1 << 20  # multipart overhead allowed on top of the file size limit
 _DRAIN_LIMIT = 64 << 20  # after a too-large upload, read at most this much more before answering
+#: a capture sent to an orchard block is an upload too (`service.api.routes_orchard_blocks`)
+_CAPTURE_UPLOAD = re.compile(r"^/v1/orchard-blocks/[^/]+/captures$")
 
 
 class BodyLimit:
@@ -46,7 +49,8 @@ class BodyLimit:
         if scope["type"] != "http":
             await self.app(scope, receive, send)
             return
-        is_upload = scope.get("method") == "POST" and scope.get("path", "").rstrip("/") == self.upload_path
+        path = scope.get("path", "").rstrip("/")
+        is_upload = scope.get("method") == "POST" and (path == self.upload_path or _CAPTURE_UPLOAD.match(path) is not None)
         limit = self.upload if is_upload else self.default
         length = None
         for key, value in scope.get("headers", ()):
