@@ -29,6 +29,9 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     c.add_argument("--inbox", required=True, help="folder where the mobile captures (LAS/LAZ) land")
     from service.schedules import DEFAULT_CRON
 
+    c.add_argument("--orchard-block", default=None, metavar="NAME",
+                   help="the inbox of this orchard block of the tenant ('orchard blocks create'): each file landing in it "
+                   "is one more capture of the block")
     c.add_argument("--cron", default=DEFAULT_CRON, help=f"cron expression in local time (default '{DEFAULT_CRON}' = 01:00 nightly)")
     add_tiling_options(c, ("tile_size", "buffer"), {"tile_size": "default: each capture in one piece",
                                                     "buffer": "at least the reach"})
@@ -76,9 +79,11 @@ def run(args: argparse.Namespace) -> int:
             if args.json:
                 print(json.dumps([{**s, "paused": bool(s["paused"]), "tenant": tenants.get(s["tenant_id"])} for s in rows], indent=2))
             else:
-                print("id\ttenant\tcron\tnext run\tinbox")
+                blocks = {b["id"]: b["name"] for b in store.list_orchard_blocks(tenant_id)}
+                print("id\ttenant\tcron\tnext run\tinbox\torchard block")
                 for s in rows:
-                    print(f"{s['id']}\t{tenants.get(s['tenant_id'])}\t{s['cron']}\t{'paused' if s['paused'] else _when(s['next_run_at'])}\t{s['inbox']}")
+                    print(f"{s['id']}\t{tenants.get(s['tenant_id'])}\t{s['cron']}\t{'paused' if s['paused'] else _when(s['next_run_at'])}\t{s['inbox']}"
+                          f"\t{blocks.get(s.get('orchard_block_id'), '-')}")
         elif args.action == "create":
             cron = validate_cron(args.cron)
             inbox = validate_inbox(args.inbox, root=settings.inbox_root, base=Path.cwd())
@@ -90,6 +95,7 @@ def run(args: argparse.Namespace) -> int:
                 raise ParameterError("--buffer needs --tile-size")
             tenant = store.ensure_tenant(args.tenant)
             check_inbox_use(inbox, settings=settings, store=store, tenant_id=tenant["id"])
+            block_id = store.orchard_block_by_name(tenant["id"], args.orchard_block)["id"] if args.orchard_block else None
             rec = store.create_schedule(
                 tenant_id=tenant["id"],
                 inbox=str(inbox),
@@ -97,6 +103,7 @@ def run(args: argparse.Namespace) -> int:
                 params=params.model_dump(),
                 tiling=tiling,
                 next_run_at=next_run_time(cron, datetime.now().astimezone()).timestamp(),
+                orchard_block_id=block_id,
             )
             print(rec["id"])
         elif args.action in ("update", "pause", "resume"):
