@@ -93,6 +93,8 @@ def test_add_captures_as_files_and_as_uploaded_blocks_in_order(client_a, las, tm
     ({"json": {"block_id": "x", "captured_at": "2026-13-01"}}, 422),
     ({"json": {"block_id": "x", "extra": 1}}, 422),
     ({"content": b"block_id=x", "headers": {"Content-Type": "application/x-www-form-urlencoded"}}, 422),
+    # JSON is held in memory: the server's small body limit, not the upload limit of the route
+    ({"content": b'{"block_id": "' + b"x" * 1_200_000 + b'"}', "headers": {"Content-Type": "application/json"}}, 413),
 ])
 def test_a_bad_capture_is_refused_and_nothing_is_queued(client_a, las, how, expected):
     ob = client_a.post("/v1/orchard-blocks", json={"name": _name()}).json()
