@@ -4,7 +4,7 @@ A capture's job is an ordinary job plus the output folder of the block's latest 
 processed before it (``previous``), looked up when the job starts (not when it was
 queued: a capture before it may have failed meanwhile); the job registers its trees to
 that capture's and writes the block's cumulative ``history.parquet`` (see
-docs/seasons.md). After it is done, `capture_record` reads what its outputs say of the
+docs/orchard-blocks.md). After it is done, `capture_record` reads what its outputs say of the
 capture (date, registration, counts), which the store keeps with the capture.
 """
 

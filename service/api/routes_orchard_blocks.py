@@ -3,7 +3,7 @@ block's history (per tree, per capture).
 
 A capture is an uploaded file (as ``POST /v1/blocks`` lands it) processed by a job (as
 ``POST /v1/jobs`` queues it) that registers its trees to the block's previous capture;
-docs/seasons.md says how the routes map.
+docs/orchard-blocks.md says how the routes map.
 """
 
 from __future__ import annotations

@@ -1,6 +1,8 @@
-"""Outputs of captures of one orchard block, made by hand with the columns of the seasons
-contract (docs/seasons.md): what a capture job writes, for the tests of the service's
-routes and pages, which do not run the pipeline.
+"""Outputs of captures of one orchard block, made by hand with the columns a capture job
+writes (issue #55's contract between the pipeline and the service: the change columns of
+``trees.parquet``, ``tree_key``/``since`` in ``gaps.parquet``, ``history.parquet`` and the
+``orchard:capture`` record), for the tests of the service's routes and pages, which do
+not run the pipeline.
 
 The block has two rows of trees 4 m apart along y = 0 and y = 5 (input CRS, offset by
 ``X0``/``Y0``). Capture 1 (``c1``, 2026-04-01): keys 1–7, all new (row 1 trees 1–4,

@@ -4,7 +4,7 @@ on two nights. The second capture of each is the first one's block scanned again
 GNSS drift of 1.2 m east.
 
 It needs the capture fields of `workers.jobspec.JobSpec` (seasons-core's side of the
-contract, docs/seasons.md); until they exist it is skipped, naming the missing ones.
+contract, docs/orchard-blocks.md); until they exist it is skipped, naming the missing ones.
 """
 
 from __future__ import annotations
