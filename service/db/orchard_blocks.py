@@ -15,7 +15,7 @@ import time
 from datetime import datetime
 from typing import Any
 
-from service.db.database import new_id, record
+from service.db.database import new_id
 from service.db.errors import ConflictError, NotFoundError
 from service.db.job_queue import JobQueue
 
