@@ -95,6 +95,8 @@ class Job(BaseModel):
     started_at: str | None
     finished_at: str | None
     links: dict[str, str]
+    orchard_block: dict[str, Any] | None = Field(None, description="a capture of an orchard block (GET /v1/jobs/ID only): "
+                                                 "the block's id and name, the capture's id, seq and date")
 
 
 class TreesPage(BaseModel):
@@ -283,7 +285,8 @@ def block_out(rec: dict) -> Block:
     )
 
 
-def job_out(rec: dict) -> Job:
+def job_out(rec: dict, *, capture: dict | None = None) -> Job:
+    """The job's body; ``capture``: its capture of an orchard block, when it is one."""
     outcome = rec.get("outcome") or {}
     base = f"/v1/jobs/{rec['id']}"
     links = {"self": base, "page": f"/jobs/{rec['id']}"}
@@ -316,6 +319,9 @@ def job_out(rec: dict) -> Job:
         started_at=_iso(rec.get("started_at")),
         finished_at=_iso(rec.get("finished_at")),
         links=links,
+        orchard_block=None if capture is None else {
+            "id": capture["orchard_block_id"], "name": capture.get("orchard_block_name"), "capture_id": capture["id"],
+            "seq": capture["seq"], "captured_at": capture.get("captured_at")},
     )
 
 

@@ -74,6 +74,8 @@ def test_add_captures_as_files_and_as_uploaded_blocks_in_order(client_a, las, tm
     assert client_a.get(f"/v1/blocks/{first['block_id']}").json()["filename"] == "april.laz"
     job = client_a.get(f"/v1/jobs/{first['job_id']}").json()
     assert job["state"] == "queued" and job["block_id"] == first["block_id"]
+    assert job["orchard_block"] == {"id": ob["id"], "name": ob["name"], "capture_id": first["id"], "seq": 1,
+                                    "captured_at": "2026-04-01"}
     # an uploaded block, by its id, as JSON
     other = write_las(tmp_path / "july.laz", 400, seed=11)
     block = client_a.post("/v1/blocks", files={"file": ("july.laz", other.read_bytes())}).json()

@@ -193,6 +193,7 @@ def test_job_page_of_a_capture_shows_growth_changes_and_history(browser, served_
         page.wait_for_url("**/blocks")
         page.goto(f"{srv.url}/jobs/{cap['job_id']}")
         _check_capture_page(page)
+        assert page.text_content("#orchardblock").startswith("capture 1 of orchard block North, 2026-07-01")
         href = page.get_attribute("#downloads a:has-text('Block history')", "href")
         assert page.request.get(srv.url + href).status == 200
         watch.clean()

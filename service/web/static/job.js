@@ -562,6 +562,8 @@
     const facts = [O.stateBadge(job), O.progress(job)];
     facts.push(el("span", { text: "block " + job.block_id }));
     if (job.capture) facts.push(el("span", { text: "capture " + job.capture }));
+    const ob = job.orchard_block;
+    if (ob) facts.push(el("span", { id: "orchardblock", text: `capture ${ob.seq} of orchard block ${ob.name}` + (ob.captured_at ? `, ${ob.captured_at}` : "") }));
     facts.push(el("span", { text: "submitted " + O.when(job.created_at) }));
     if (job.finished_at) facts.push(el("span", { text: "finished " + O.when(job.finished_at) }));
     if (job.n_trees !== null && job.n_trees !== undefined) facts.push(el("span", { text: O.fmt(job.n_trees) + " trees" }));
