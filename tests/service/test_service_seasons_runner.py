@@ -2,20 +2,28 @@
 with `run_job` replaced by a fake that writes a capture's outputs by hand: a block's
 captures run one at a time in arrival order, each told the output folder of the latest
 capture done before it when it starts, and a failed capture leaves the block's history
-as it was."""
+as it was; and the report of a capture."""
 
 from __future__ import annotations
 
 import dataclasses
+import json
+import re
+import shutil
 import threading
 
 import pytest
 from seasons_fixtures import write_capture_outputs
+from service_fixtures import write_las
+from test_service_report import _outputs
 
 from pipeline.errors import ParameterError
 from service import seasons
+from service.api.results import ensure_report
+from service.db.block_files import accept_block
 from service.db.jobstore import Store
 from service.runner import Runner, job_dir
+from service.schedules import file_sha256
 from service.settings import Settings
 
 import workers.job as workers_job
@@ -133,3 +141,24 @@ def test_the_record_is_read_from_the_outputs(tmp_path):
     rec = seasons.capture_record(tmp_path / "out")
     assert rec["previous_capture_id"] == "c1" and rec["counts"]["removed"] == 1
     assert seasons.capture_record(tmp_path / "nothing") is None
+
+
+def test_the_report_of_a_capture_names_its_block_and_carries_its_history(env, tmp_path):
+    settings, store, tenant = env
+    ob = store.create_orchard_block(tenant["id"], "North")
+    src = write_las(tmp_path / "july.las", 2_000, seed=4)
+    block, _ = accept_block(store, blocks_dir=settings.blocks_dir, tenant_id=tenant["id"], tmp_path=src,
+                            sha256=file_sha256(src), size_bytes=src.stat().st_size, filename="july.las")
+    cap = store.create_capture(tenant_id=tenant["id"], orchard_block_id=ob["id"], block_id=block["id"], params={}, tiling=None)
+    assert store.claim_next_job()["id"] == cap["job_id"]
+    out = job_dir(settings, cap["job_id"])
+    write_capture_outputs(out, "c2")
+    points, _ = _outputs(tmp_path, 2_000)
+    shutil.copy(points, out / "points.parquet")
+    store.set_capture_record(cap["job_id"], seasons.capture_record(out))
+    job = store.finish_job(cap["job_id"], "done", outcome={"n_trees": 8})
+    text = ensure_report(store, settings, job).read_text()
+    assert "North (capture 1)" in text and "2026-07-01" in text
+    data = json.loads(re.search(r'<script type="application/json" id="orchard-data">(.*?)</script>', text, re.S).group(1))
+    assert data["history"]["dates"] == ["2026-04-01", "2026-07-01"] and data["text"]["status"].count("same") == 6
+    assert "Height change [m]" in text and "history.parquet" in text  # the static table's column, the download
