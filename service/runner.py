@@ -9,9 +9,10 @@ job's `threading.Event`. The outcome of every job is one store transaction: ``do
 with its outcome and timings, ``failed`` with a one-line error (a domain error's own
 message; for anything unexpected a short message, the traceback only in the log), or
 ``cancelled``. A capture of an orchard block is told its previous capture when it
-starts, and its record is kept before it is done (`service.seasons`). A job left ``running`` when the process dies is re-queued by
-`Store.requeue_running` at the next start, as a crash (not an attempt); one during
-which the process has died ``settings.max_crashes`` times is failed there instead.
+starts, and its record is kept before it is done (`service.seasons`). A job left
+``running`` when the process dies is re-queued by `Store.requeue_running` at the next
+start, as a crash (not an attempt); one during which the process has died
+``settings.max_crashes`` times is failed there instead.
 
 One process per data folder runs jobs and schedules: it holds `hold_runner_lock`'s
 lock for as long as it lives, and only it re-queues ``running`` jobs at its start
