@@ -5,6 +5,7 @@ an earlier version brought up to date in place."""
 from __future__ import annotations
 
 import sqlite3
+import threading
 
 import pytest
 
@@ -145,3 +146,32 @@ def test_a_store_of_an_earlier_version_gains_blocks_and_captures_in_place(tmp_pa
     finally:
         s.close()
     assert Store(path).list_captures("t1", ob["id"])[0]["id"] == cap["id"]  # opened again: nothing added twice
+
+
+def test_captures_sent_at_the_same_moment_each_get_their_own_place(tmp_path):
+    path = tmp_path / "orchard.sqlite"
+    s = Store(path)
+    t = s.ensure_tenant("farm")
+    ob = s.create_orchard_block(t["id"], "north")
+    files = [_file(s, t, i)["id"] for i in range(8)]
+    s.close()
+    errors, barrier = [], threading.Barrier(len(files))
+
+    def send(block_id):
+        store = Store(path)  # each its own connection, as requests of two processes
+        try:
+            barrier.wait()
+            store.create_capture(tenant_id=t["id"], orchard_block_id=ob["id"], block_id=block_id, params={}, tiling=None)
+        except Exception as exc:  # noqa: BLE001 - collected for the assertion
+            errors.append(exc)
+        finally:
+            store.close()
+
+    threads = [threading.Thread(target=send, args=(b,)) for b in files]
+    for th in threads:
+        th.start()
+    for th in threads:
+        th.join()
+    s = Store(path)
+    assert errors == [] and sorted(c["seq"] for c in s.list_captures(t["id"], ob["id"])) == list(range(1, 9))
+    s.close()
