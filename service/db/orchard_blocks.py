@@ -102,9 +102,11 @@ class OrchardBlocks(JobQueue):
         one transaction (the tenant's queue quota holds). ``captured_at`` is the date the
         sender gave (ISO ``YYYY-MM-DD``); the file's own date wins when it has one.
         NotFoundError if the orchard block or the uploaded block is not the tenant's."""
-        block = self.get_block(tenant_id, block_id)
         jid = new_id()
         with self._tx() as con:
+            block = con.execute("SELECT id, created_at FROM blocks WHERE id = ? AND tenant_id = ?", (block_id, tenant_id)).fetchone()
+            if block is None:
+                raise NotFoundError(f"no block {block_id!r}; ", hint="{list.blocks}")
             self._check_queue(con, tenant_id)
             now = time.time()
             con.execute(
@@ -112,7 +114,7 @@ class OrchardBlocks(JobQueue):
                 (jid, tenant_id, block["id"], json.dumps(params), json.dumps(tiling) if tiling else None, now),
             )
             cid = self._insert_capture(con, tenant_id=tenant_id, orchard_block_id=orchard_block_id, block_id=block["id"],
-                                       job_id=jid, captured_at=captured_at, arrived_at=block.get("created_at") or now)
+                                       job_id=jid, captured_at=captured_at, arrived_at=block["created_at"] or now)
         return self.get_capture(tenant_id, cid)
 
     def get_capture(self, tenant_id: str | None, capture_id: str) -> dict[str, Any]:
