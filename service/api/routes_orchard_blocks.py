@@ -17,8 +17,8 @@ import pyarrow.parquet as pq
 from fastapi import APIRouter, Path, Query, Request, Response
 from fastapi.concurrency import run_in_threadpool
 from fastapi.responses import FileResponse
+from starlette.exceptions import HTTPException
 
-from pipeline.errors import InputError
 from service.api.deps import SettingsDep, StoreDep, TenantDep, wake_runner
 from service.api.downloads import DownloadResponse
 from service.api.schemas import (
@@ -116,8 +116,9 @@ async def add_capture(
         body = CaptureCreate(block_id=block["id"], captured_at=captured_at)
     else:
         if "json" not in request.headers.get("content-type", "").lower():
-            raise InputError("send the capture as multipart/form-data with the file in the field 'file' "
-                             "(curl -F file=@scan.laz), or as JSON {\"block_id\": ...} of an uploaded block")
+            raise HTTPException(415, "send the capture as multipart/form-data with the file in the field 'file' "
+                                     "(curl -F file=@scan.laz), or as JSON {\"block_id\": ...} of an uploaded block with "
+                                     "the header 'Content-Type: application/json'")
         body = CaptureCreate.model_validate_json(await _small_body(request, settings.max_request_kb * 1024))
         if captured_at is not None and body.captured_at is None:
             body.captured_at = captured_at

@@ -94,7 +94,7 @@ def test_add_captures_as_files_and_as_uploaded_blocks_in_order(client_a, las, tm
     ({"json": {"block_id": "nope"}}, 404),
     ({"json": {"block_id": "x", "captured_at": "2026-13-01"}}, 422),
     ({"json": {"block_id": "x", "extra": 1}}, 422),
-    ({"content": b"block_id=x", "headers": {"Content-Type": "application/x-www-form-urlencoded"}}, 422),
+    ({"content": b"block_id=x", "headers": {"Content-Type": "application/x-www-form-urlencoded"}}, 415),
     # JSON is held in memory: the server's small body limit, not the upload limit of the route
     ({"content": b'{"block_id": "' + b"x" * 1_200_000 + b'"}', "headers": {"Content-Type": "application/json"}}, 413),
 ])
