@@ -12,7 +12,6 @@ from datetime import date
 from pathlib import Path as FilePath
 from typing import Annotated
 
-import pyarrow.compute as pc
 import pyarrow.parquet as pq
 from fastapi import APIRouter, Path, Query, Request, Response
 from fastapi.concurrency import run_in_threadpool
@@ -199,9 +198,7 @@ def tree_history(orchard_block_id: str, tree_key: Annotated[int, Path(ge=0, le=2
 
 def tree_history_rows(path: FilePath, tree_key: int) -> list[dict]:
     """The rows of one tree in a ``history.parquet``, oldest first (NaN as null)."""
-    table = pq.read_table(str(path))
-    table = table.filter(pc.equal(table.column("tree_key"), tree_key))
-    rows = table.to_pylist()
+    rows = pq.read_table(str(path), filters=[("tree_key", "=", tree_key)]).to_pylist()  # row groups of other keys skipped
     for r in rows:
         for k, v in r.items():
             if isinstance(v, float) and v != v:
