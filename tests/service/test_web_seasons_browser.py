@@ -190,7 +190,12 @@ def test_job_page_of_a_capture_shows_growth_changes_and_history(browser, served_
         page.fill("#token", token)
         page.click("#signin")
         page.wait_for_url("**/blocks")
-        page.goto(f"{srv.url}/jobs/{cap['job_id']}")
+        # the blocks page lists the orchard block with its capture, which leads to the job page
+        row = page.wait_for_selector(f"[data-orchard-block='{ob['id']}'] tr[data-capture='{cap['id']}']")
+        assert "2026-07-01 (from the file)" in row.inner_text() and "6 same, 1 new, 1 replanted, 1 removed" in row.inner_text()
+        assert "1 capture(s), 1 processed, latest 2026-07-01" in page.text_content(f"[data-orchard-block='{ob['id']}']")
+        page.click(f"tr[data-capture='{cap['id']}'] a")
+        page.wait_for_url(f"**/jobs/{cap['job_id']}")
         _check_capture_page(page)
         assert page.text_content("#orchardblock").startswith("capture 1 of orchard block North, 2026-07-01")
         href = page.get_attribute("#downloads a:has-text('Block history')", "href")
