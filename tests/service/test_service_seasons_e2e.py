@@ -67,6 +67,12 @@ def _check_second(client, ob_id: str, caps: list[dict]) -> None:
     key = history.column("tree_key").to_pylist()[0]
     items = client.get(f"/v1/orchard-blocks/{ob_id}/trees/{key}/history").json()["items"]
     assert [i["status"] for i in items] == ["new", "same"]
+    # the pages' data: the job page's map data and the report carry the history and the statuses
+    data = client.get(f"/web/jobs/{second['job_id']}/map.json").json()
+    assert data["history"]["captures"] == [first["id"], second["id"]] and set(data["text"]["status"]) == {"same"}
+    assert data["capture"]["previous_capture_id"] == first["id"] and "height_change_m" in data["columns"]
+    report = client.get(f"/v1/jobs/{second['job_id']}/report").text
+    assert f'"captures":["{first["id"]}","{second["id"]}"]' in report
 
 
 def test_two_uploads_to_one_block(server, scans):
