@@ -35,7 +35,6 @@ from service.api.uploads import UPLOAD_BODY, UPLOAD_SLACK, receive_upload
 from service.db.block_files import accept_block
 from service.db.errors import NotFoundError
 from service.db.jobstore import Store
-from service.errors import TooLargeError
 from service.jobrequests import stored_tiling
 from service.runner import job_dir
 from service.seasons import HISTORY
@@ -118,24 +117,13 @@ async def add_capture(
             raise HTTPException(415, "send the capture as multipart/form-data with the file in the field 'file' "
                                      "(curl -F file=@scan.laz), or as JSON {\"block_id\": ...} of an uploaded block with "
                                      "the header 'Content-Type: application/json'")
-        body = CaptureCreate.model_validate_json(await _small_body(request, settings.max_request_kb * 1024))
+        body = CaptureCreate.model_validate_json(await request.body())  # (held to the small body limit: BodyLimit)
         if captured_at is not None and body.captured_at is None:
             body.captured_at = captured_at
     rec = await run_in_threadpool(_queue_capture, store, tenant, orchard_block_id, body)
     wake_runner(request.app)
     response.headers["Location"] = f"/v1/orchard-blocks/{orchard_block_id}/captures/{rec['id']}"
     return capture_out(rec)
-
-
-async def _small_body(request: Request, limit: int) -> bytes:
-    """The request's body, TooLargeError past ``limit`` bytes: the route takes uploads, so
-    the server's body limit for it is the upload limit, far too much for JSON in memory."""
-    body = bytearray()
-    async for chunk in request.stream():
-        body += chunk
-        if len(body) > limit:
-            raise TooLargeError(f"request body is above the limit of {limit} bytes")
-    return bytes(body)
 
 
 def _queue_capture(store: Store, tenant: dict, orchard_block_id: str, body: CaptureCreate) -> dict:

@@ -50,13 +50,17 @@ class BodyLimit:
             await self.app(scope, receive, send)
             return
         path = scope.get("path", "").rstrip("/")
-        is_upload = scope.get("method") == "POST" and (path == self.upload_path or _CAPTURE_UPLOAD.match(path) is not None)
-        limit = self.upload if is_upload else self.default
-        length = None
+        length, multipart = None, False
         for key, value in scope.get("headers", ()):
             if key == b"content-length":
                 with contextlib.suppress(ValueError):
                     length = int(value)
+            elif key == b"content-type":
+                multipart = value.lower().startswith(b"multipart/")
+        # a capture is an upload when it brings its file; as JSON it is a request like any other
+        is_upload = scope.get("method") == "POST" and (
+            path == self.upload_path or (multipart and _CAPTURE_UPLOAD.match(path) is not None))
+        limit = self.upload if is_upload else self.default
         if length is not None and length > limit:
             if is_upload:
                 detail = f"upload of {length} bytes is above the upload limit of {self.upload_mb:g} MB (ORCHARD_MAX_UPLOAD_MB)"

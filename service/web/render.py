@@ -83,15 +83,14 @@ def signin_page(*, error: str | None = None, next_path: str = "/blocks") -> str:
 
 
 def blocks_page(*, tenant_name: str, csrf: str) -> str:
-    """The tenant's orchard blocks with their captures, and its uploaded blocks with their
-    jobs (filled and refreshed by ``blocks.js``)."""
+    """The tenant's blocks with their jobs (filled and refreshed by ``blocks.js``)."""
     return (
         _head("Blocks and jobs — Orchard", ("app.css",), csrf=csrf)
         + "<body>"
         + _nav(tenant_name, csrf)
         + '<main><h1>Blocks and jobs</h1>'
         '<p class="small" id="updated" aria-live="polite">Loading…</p>'
-        '<div id="orchardblocks"></div><div id="blocks"></div></main>\n'
+        '<div id="blocks"></div></main>\n'
         + _scripts(("orchard.js", "blocks.js"))
         + "<script>Orchard.blocks();</script></body></html>\n"
     )

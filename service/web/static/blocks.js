@@ -48,7 +48,12 @@
                   : el("p", { class: "small", text: "No captures yet." }),
       ]);
     });
-    document.getElementById("orchardblocks").replaceChildren(...parts);
+    let root = document.getElementById("orchardblocks");
+    if (!root) { // above the uploaded blocks
+      const blocksDiv = document.getElementById("blocks");
+      root = blocksDiv.parentNode.insertBefore(el("div", { id: "orchardblocks" }), blocksDiv);
+    }
+    root.replaceChildren(...parts);
   }
 
   async function refreshOrchard() {
