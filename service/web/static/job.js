@@ -332,7 +332,11 @@
       if (pts.length >= 2) {
         const W = 230, H = 70, P = 6;
         const vs = pts.map(([, v]) => v), lo = Math.min(...vs), hi = Math.max(...vs), span = hi > lo ? hi - lo : 1;
-        const X = (k) => P + (k * (W - 2 * P)) / Math.max(rows.length - 1, 1), Y = (v) => H - P - ((v - lo) * (H - 2 * P)) / span;
+        // along time when every capture has a date (captures weeks or months apart), else evenly
+        const t = rows.map((r) => Date.parse(r.date || ""));
+        const byTime = t.every((v) => !Number.isNaN(v)) && t[t.length - 1] > t[0];
+        const at = (k) => (byTime ? (t[k] - t[0]) / (t[t.length - 1] - t[0]) : k / Math.max(rows.length - 1, 1));
+        const X = (k) => P + at(k) * (W - 2 * P), Y = (v) => H - P - ((v - lo) * (H - 2 * P)) / span;
         const svg = document.createElementNS(SVG, "svg");
         svg.setAttribute("viewBox", `0 0 ${W} ${H}`); svg.setAttribute("class", "sparkline");
         svg.setAttribute("role", "img"); svg.setAttribute("aria-label", "height over the captures");
