@@ -79,11 +79,9 @@ def run(args: argparse.Namespace) -> int:
             if args.json:
                 print(json.dumps([{**s, "paused": bool(s["paused"]), "tenant": tenants.get(s["tenant_id"])} for s in rows], indent=2))
             else:
-                blocks = {b["id"]: b["name"] for b in store.list_orchard_blocks(tenant_id)}
-                print("id\ttenant\tcron\tnext run\tinbox\torchard block")
+                print("id\ttenant\tcron\tnext run\tinbox")
                 for s in rows:
-                    print(f"{s['id']}\t{tenants.get(s['tenant_id'])}\t{s['cron']}\t{'paused' if s['paused'] else _when(s['next_run_at'])}\t{s['inbox']}"
-                          f"\t{blocks.get(s.get('orchard_block_id'), '-')}")
+                    print(f"{s['id']}\t{tenants.get(s['tenant_id'])}\t{s['cron']}\t{'paused' if s['paused'] else _when(s['next_run_at'])}\t{s['inbox']}")
         elif args.action == "create":
             cron = validate_cron(args.cron)
             inbox = validate_inbox(args.inbox, root=settings.inbox_root, base=Path.cwd())

@@ -96,5 +96,5 @@ def test_cli_blocks_create_list_captures_and_a_blocks_schedule(tmp_path, monkeyp
     assert main(["blocks", "captures", "nope", "--tenant", "farm-x"]) == 3
     err = capsys.readouterr().err
     assert "no orchard block" in err and "orchard blocks list" in err and "Traceback" not in err
-    assert main(["schedules", "list"]) == 0
-    assert "North 12" in capsys.readouterr().out
+    assert main(["schedules", "list", "--json"]) == 0
+    assert [s["orchard_block_id"] for s in json.loads(capsys.readouterr().out)] == [block_id]
