@@ -22,13 +22,13 @@ from service.api.deps import SettingsDep, StoreDep, TenantDep, wake_runner
 from service.api.downloads import DownloadResponse
 from service.api.schemas import (
     JSON_BODY,
-    Capture,
-    CaptureCreate,
+    OrchardCapture,
+    OrchardCaptureCreate,
     ErrorBody,
     OrchardBlock,
     OrchardBlockCreate,
     TreeHistory,
-    capture_out,
+    orchard_capture_out,
     orchard_block_out,
 )
 from service.api.uploads import UPLOAD_BODY, UPLOAD_SLACK, receive_upload
@@ -64,9 +64,9 @@ def get_orchard_block(orchard_block_id: str, tenant: TenantDep, store: StoreDep)
 
 
 def _capture_json_schema() -> dict:
-    """`CaptureCreate`'s schema, its parts referring to the document's components (the
+    """`OrchardCaptureCreate`'s schema, its parts referring to the document's components (the
     parameters and the tiling, which ``POST /v1/jobs`` puts there)."""
-    schema = CaptureCreate.model_json_schema(ref_template="#/components/schemas/{model}")
+    schema = OrchardCaptureCreate.model_json_schema(ref_template="#/components/schemas/{model}")
     schema.pop("$defs", None)
     return schema
 
@@ -84,7 +84,7 @@ _CAPTURE_BODY = {
 
 @router.post(
     "/orchard-blocks/{orchard_block_id}/captures",
-    response_model=Capture,
+    response_model=OrchardCapture,
     status_code=201,
     tags=["orchard blocks"],
     summary="Add a capture: a LAS/LAZ file (multipart field 'file') or an uploaded block (JSON block_id)",
@@ -111,40 +111,40 @@ async def add_capture(
         block, _ = await run_in_threadpool(
             accept_block, store, blocks_dir=settings.blocks_dir, tenant_id=tenant["id"], tmp_path=part.tmp_path,
             sha256=part.sha.hexdigest(), size_bytes=part.size, filename=part.filename)
-        body = CaptureCreate(block_id=block["id"], captured_at=captured_at)
+        body = OrchardCaptureCreate(block_id=block["id"], captured_at=captured_at)
     else:
         if "json" not in request.headers.get("content-type", "").lower():
             raise HTTPException(415, "send the capture as multipart/form-data with the file in the field 'file' "
                                      "(curl -F file=@scan.laz), or as JSON {\"block_id\": ...} of an uploaded block with "
                                      "the header 'Content-Type: application/json'")
-        body = CaptureCreate.model_validate_json(await request.body())  # (held to the small body limit: BodyLimit)
+        body = OrchardCaptureCreate.model_validate_json(await request.body())  # (held to the small body limit: BodyLimit)
         if captured_at is not None and body.captured_at is None:
             body.captured_at = captured_at
     rec = await run_in_threadpool(_queue_capture, store, tenant, orchard_block_id, body)
     wake_runner(request.app)
     response.headers["Location"] = f"/v1/orchard-blocks/{orchard_block_id}/captures/{rec['id']}"
-    return capture_out(rec)
+    return orchard_capture_out(rec)
 
 
-def _queue_capture(store: Store, tenant: dict, orchard_block_id: str, body: CaptureCreate) -> dict:
+def _queue_capture(store: Store, tenant: dict, orchard_block_id: str, body: OrchardCaptureCreate) -> dict:
     tiling = stored_tiling(body.params, body.tiling and body.tiling.model_dump())
     return store.create_capture(tenant_id=tenant["id"], orchard_block_id=orchard_block_id, block_id=body.block_id,
                                 params=body.params.model_dump(), tiling=tiling,
                                 captured_at=body.captured_at.isoformat() if body.captured_at else None)
 
 
-@router.get("/orchard-blocks/{orchard_block_id}/captures", response_model=list[Capture], tags=["orchard blocks"],
+@router.get("/orchard-blocks/{orchard_block_id}/captures", response_model=list[OrchardCapture], tags=["orchard blocks"],
             summary="A block's captures in arrival order (the order they are processed in)")
 def list_captures(orchard_block_id: str, tenant: TenantDep, store: StoreDep):
-    return [capture_out(c) for c in store.list_captures(tenant["id"], orchard_block_id)]
+    return [orchard_capture_out(c) for c in store.list_captures(tenant["id"], orchard_block_id)]
 
 
-@router.get("/orchard-blocks/{orchard_block_id}/captures/{capture_id}", response_model=Capture, tags=["orchard blocks"])
+@router.get("/orchard-blocks/{orchard_block_id}/captures/{capture_id}", response_model=OrchardCapture, tags=["orchard blocks"])
 def get_capture(orchard_block_id: str, capture_id: str, tenant: TenantDep, store: StoreDep):
     rec = store.get_capture(tenant["id"], capture_id)
     if rec["orchard_block_id"] != orchard_block_id:
         raise NotFoundError(f"orchard block {orchard_block_id!r} has no capture {capture_id!r}")
-    return capture_out(rec)
+    return orchard_capture_out(rec)
 
 
 def block_history(store: Store, settings: Settings, tenant: dict, orchard_block_id: str) -> FilePath:

@@ -183,7 +183,7 @@ class OrchardBlock(BaseModel):
     links: dict[str, str]
 
 
-class CaptureCreate(BaseModel):
+class OrchardCaptureCreate(BaseModel):
     """A capture of an already uploaded block (POST /v1/blocks); a file may instead be
     sent as multipart field 'file' with ``captured_at`` as a query parameter."""
 
@@ -195,7 +195,7 @@ class CaptureCreate(BaseModel):
     tiling: Tiling | None = Field(None, description="tiled processing on the dask workers; omit for one tile")
 
 
-class Capture(BaseModel):
+class OrchardCapture(BaseModel):
     """One capture of an orchard block: its file, its job and what the job found."""
 
     id: str
@@ -350,11 +350,11 @@ def orchard_block_out(rec: dict) -> OrchardBlock:
                         created_at=_iso(rec.get("created_at")), links=links)
 
 
-def capture_out(rec: dict) -> Capture:
+def orchard_capture_out(rec: dict) -> OrchardCapture:
     record = rec.get("record") or {}
     links = {"self": f"/v1/orchard-blocks/{rec['orchard_block_id']}/captures/{rec['id']}",
              "job": f"/v1/jobs/{rec['job_id']}", "block": f"/v1/blocks/{rec['block_id']}", "page": f"/jobs/{rec['job_id']}"}
-    return Capture(id=rec["id"], orchard_block_id=rec["orchard_block_id"], seq=rec["seq"], block_id=rec["block_id"],
+    return OrchardCapture(id=rec["id"], orchard_block_id=rec["orchard_block_id"], seq=rec["seq"], block_id=rec["block_id"],
                    job_id=rec["job_id"], state=rec["state"], error=rec.get("error"), captured_at=rec.get("captured_at"),
                    captured_at_source=rec.get("captured_at_source"), previous_capture_id=record.get("previous_capture_id"),
                    registration=record.get("registration"), counts=record.get("counts"),
