@@ -202,3 +202,11 @@ def test_an_inbox_schedule_of_a_block_over_http(client_a, client_b, api_data, la
     # farm b cannot point an inbox at farm a's block
     inbox_b = tenant_inbox(api_data, "farm-b", f"inbox-{uuid.uuid4().hex[:6]}")
     assert client_b.post("/v1/schedules", json={"inbox": str(inbox_b), "orchard_block_id": ob["id"]}).status_code == 404
+
+
+def test_a_capture_file_has_the_upload_limit(client_a, api):
+    ob = client_a.post("/v1/orchard-blocks", json={"name": _name()}).json()
+    big = b"LASF" + b"\0" * (api.app.state.settings.max_upload_bytes + 10)
+    r = client_a.post(f"/v1/orchard-blocks/{ob['id']}/captures", files={"file": ("big.laz", big)})
+    assert r.status_code == 413 and "upload limit" in r.json()["detail"]
+    assert client_a.get(f"/v1/orchard-blocks/{ob['id']}/captures").json() == []
