@@ -1,7 +1,9 @@
 """The per-tree report a grower reads: one HTML page with a map of the block and a table.
 
 The page is interactive (`service.web.render.report_page`: pan, zoom, colour by a
-metric, search, a sortable table) and self-contained; the static map and table below
+metric, search, a sortable table; for a capture of an orchard block, growth colours, the
+changes since the previous capture and each tree's history, read from ``history.parquet``
+beside ``trees.parquet``) and self-contained; the static map and table below
 are what it shows where scripts do not run.
 
 The map (PNG, :mod:`service.mapimage`: matplotlib's axes over the points composed into one
@@ -31,7 +33,7 @@ from pipeline.jobparams import REPORT_POINTS, sample_stride
 from service.web import mapdata, render
 
 #: the outputs the report links to, beside it (relative links)
-DOWNLOADS = ("trees.csv", "trees.parquet", "points.parquet", "rows.parquet", "gaps.parquet", "map.png")
+DOWNLOADS = ("trees.csv", "trees.parquet", "points.parquet", "rows.parquet", "gaps.parquet", "history.parquet", "map.png")
 
 TABLE_COLUMNS = [
     ("tree_id", "Tree", "{:d}"),
@@ -44,6 +46,14 @@ TABLE_COLUMNS = [
     ("trunk_diameter_m", "Trunk diameter [m]", "{:.3f}"),
     ("n_points", "Points", "{:d}"),
     ("wood_fraction", "Wood fraction", "{:.2f}"),
+]
+#: the columns of a capture of an orchard block, shown when the trees have them
+CHANGE_COLUMNS = [
+    ("tree_key", "Tree key", "{:d}"),
+    ("status", "Status", "{}"),
+    ("height_change_m", "Height change [m]", "{:+.2f}"),
+    ("crown_volume_change_m3", "Crown volume change [m³]", "{:+.2f}"),
+    ("trunk_diameter_change_m", "Trunk diameter change [m]", "{:+.3f}"),
 ]
 
 
@@ -134,6 +144,8 @@ def render_map(xy: np.ndarray, tree_id: np.ndarray, trunks_xy: np.ndarray, trunk
 def _cell(value, fmt: str) -> str:
     if value is None:
         return "–"
+    if isinstance(value, str):
+        return html.escape(value)
     try:
         if isinstance(value, float) and not np.isfinite(value):
             return "–"
@@ -147,9 +159,10 @@ def _cell(value, fmt: str) -> str:
 def render_html(
     *, title: str, png: bytes, rows: list[dict], origin: np.ndarray, summary: dict[str, str], warning: str | None = None
 ) -> str:
-    head = "".join(f"<th>{html.escape(label)}</th>" for _, label, _ in TABLE_COLUMNS)
+    columns = TABLE_COLUMNS + [c for c in CHANGE_COLUMNS if rows and c[0] in rows[0]]
+    head = "".join(f"<th>{html.escape(label)}</th>" for _, label, _ in columns)
     body = "\n".join(
-        "<tr>" + "".join(f"<td>{_cell(r.get(key), fmt)}</td>" for key, _, fmt in TABLE_COLUMNS) + "</tr>" for r in rows
+        "<tr>" + "".join(f"<td>{_cell(r.get(key), fmt)}</td>" for key, _, fmt in columns) + "</tr>" for r in rows
     )
     facts = "".join(f"<li>{html.escape(k)}: {html.escape(v)}</li>" for k, v in summary.items())
     notice = f'<p class="warning"><strong>{html.escape(warning)}</strong></p>' if warning else ""

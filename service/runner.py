@@ -8,9 +8,11 @@ done / total go to the store through the progress callback; a cancel request set
 job's `threading.Event`. The outcome of every job is one store transaction: ``done``
 with its outcome and timings, ``failed`` with a one-line error (a domain error's own
 message; for anything unexpected a short message, the traceback only in the log), or
-``cancelled``. A job left ``running`` when the process dies is re-queued by
-`Store.requeue_running` at the next start, as a crash (not an attempt); one during
-which the process has died ``settings.max_crashes`` times is failed there instead.
+``cancelled``. A capture of an orchard block is told its previous capture when it
+starts, and its record is kept before it is done (`service.seasons`). A job left
+``running`` when the process dies is re-queued by `Store.requeue_running` at the next
+start, as a crash (not an attempt); one during which the process has died
+``settings.max_crashes`` times is failed there instead.
 
 One process per data folder runs jobs and schedules: it holds `hold_runner_lock`'s
 lock for as long as it lives, and only it re-queues ``running`` jobs at its start
@@ -34,6 +36,7 @@ import numpy as np
 from pipeline.errors import OrchardError, ParameterError
 from pipeline.jobparams import TilingParams
 from pipeline.params import PipelineParams
+from service import seasons
 from service.db.jobstore import Store
 from service.settings import Settings
 from service.wording import api_words, disk_full
@@ -348,6 +351,8 @@ class Runner(threading.Thread):
                 # the request's tiling; the service's settings give the rest
                 tiling=TilingParams(**(job.get("tiling") or {}), worker_memory=self.settings.worker_memory_gb),
                 work_dir=work_dir_of(self.settings, job["id"]),
+                # a capture of an orchard block: its previous capture, looked up now
+                **seasons.spec_fields(seasons.capture_job_fields(self.store, self.settings, job)),
             )
             out_dir.mkdir(parents=True, exist_ok=True)
             client = self._get_client()
@@ -358,6 +363,8 @@ class Runner(threading.Thread):
             timings = dict(record.get("timings") or {})
             timings.setdefault("total", round(time.perf_counter() - t0, 3))
             drop_work(self.settings, job["id"])  # tiles of a finished job are not needed again
+            if self.store.capture_of_job(job["id"]) is not None:
+                self.store.set_capture_record(job["id"], seasons.capture_record(out_dir))
             done = self.store.finish_job(job["id"], "done", outcome=record, timings=timings)
             if self._after_done is not None:
                 try:

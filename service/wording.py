@@ -38,6 +38,7 @@ _LISTS = {
     "jobs": ("list yours with GET /v1/jobs", "list yours with GET /v1/jobs"),
     "schedules": ("list them with 'orchard schedules list'", "list yours with GET /v1/schedules"),
     "webhooks": ("list yours with GET /v1/webhooks", "list yours with GET /v1/webhooks"),  # the API alone lists them
+    "orchard_blocks": ("list them with 'orchard blocks list'", "list yours with GET /v1/orchard-blocks"),
 }
 
 #: tiling fields that are no option of the command line

@@ -67,6 +67,10 @@ def ensure_report(store: Store, settings: Settings, job: dict) -> Path:
         "Points": str((block.get("info") or {}).get("n_points", "")),
         "Trees": str(rows_total if rows_total is not None else ""),
     }
+    capture = store.capture_of_job(job["id"])
+    if capture is not None:  # a capture of an orchard block: which, and when
+        summary["Orchard block"] = f"{capture['orchard_block_name']} (capture {capture['seq']})"
+        summary["Captured"] = capture.get("captured_at") or ""
     warning = None
     if outcome.get("partial"):
         failed = ", ".join(str(t) for t in outcome.get("failed_tiles") or []) or "some"

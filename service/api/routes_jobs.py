@@ -45,7 +45,8 @@ def list_jobs(
 
 @router.get("/jobs/{job_id}", response_model=Job, tags=["jobs"])
 def get_job(job_id: str, tenant: TenantDep, store: StoreDep):
-    return job_out(store.get_job(tenant["id"], job_id))
+    job = store.get_job(tenant["id"], job_id)
+    return job_out(job, capture=store.capture_of_job(job["id"]))
 
 
 @router.delete(

@@ -77,6 +77,13 @@ def job_gaps_parquet(job_id: str, tenant: TenantDep, store: StoreDep, settings: 
     return _file(require_output(path, "gaps.parquet"), "application/vnd.apache.parquet", f"gaps-{job_id}.parquet")
 
 
+@router.api_route("/jobs/{job_id}/history.parquet", methods=["GET", "HEAD"], tags=["results"], responses={**_PARQUET, **UNFINISHED}, response_class=FileResponse)
+def job_history_parquet(job_id: str, tenant: TenantDep, store: StoreDep, settings: SettingsDep):
+    """A capture's orchard block history up to this capture: one row per tree per capture (Parquet)."""
+    _, path = job_output(store, settings, tenant, job_id, "history.parquet")
+    return _file(require_output(path, "history.parquet"), "application/vnd.apache.parquet", f"history-{job_id}.parquet")
+
+
 @router.api_route("/jobs/{job_id}/points.parquet", methods=["GET", "HEAD"], tags=["results"], responses={**_PARQUET, **UNFINISHED}, response_class=FileResponse)
 def job_points_parquet(job_id: str, tenant: TenantDep, store: StoreDep, settings: SettingsDep):
     _, path = job_output(store, settings, tenant, job_id, "points.parquet")

@@ -37,6 +37,7 @@ def create_schedule(body: ScheduleCreate, request: Request, response: Response, 
         params=body.params.model_dump(),
         tiling=tiling,
         next_run_at=next_run_time(cron, datetime.now().astimezone()).timestamp(),
+        orchard_block_id=body.orchard_block_id,
     )
     clock = request.app.state.clock
     if clock is not None:

@@ -9,7 +9,7 @@ may give.
 from __future__ import annotations
 
 import copy
-from datetime import datetime, timezone
+from datetime import date, datetime, timezone
 from typing import Any, Literal
 
 from pydantic import BaseModel, ConfigDict, Field, StrictBool, create_model
@@ -95,6 +95,8 @@ class Job(BaseModel):
     started_at: str | None
     finished_at: str | None
     links: dict[str, str]
+    orchard_block: dict[str, Any] | None = Field(None, description="a capture of an orchard block (GET /v1/jobs/ID only): "
+                                                 "the block's id and name, the capture's id, seq and date")
 
 
 class TreesPage(BaseModel):
@@ -119,6 +121,8 @@ class ScheduleCreate(BaseModel):
     cron: str = Field(DEFAULT_CRON, max_length=200, description="cron expression, local time (default 01:00 every night)")
     params: PipelineParams = Field(default_factory=PipelineParams)
     tiling: Tiling | None = None
+    orchard_block_id: str | None = Field(None, max_length=200, description="the inbox of this orchard block: each file "
+                                         "landing in it is one more capture of the block (GET /v1/orchard-blocks)")
 
 
 class ScheduleUpdate(BaseModel):
@@ -156,6 +160,7 @@ class Schedule(BaseModel):
     created_at: str | None
     last_run_at: str | None
     next_run_at: str | None = Field(description="the next scan by the clock; null while paused")
+    orchard_block_id: str | None = Field(None, description="the orchard block whose captures land in the inbox")
     captures: list[Capture] | None = Field(
         None, description="every capture's fate, files in the inbox now first, then those handled, newest first "
         "(at most 200; only on GET /v1/schedules/ID)")
@@ -182,6 +187,66 @@ class ScheduleRun(BaseModel):
         description="captures still being copied in (written to within ORCHARD_CAPTURE_SETTLE_S): the schedule looks at them again once they have settled",
     )
     ignored: list[IgnoredFile] = Field(default_factory=list, description="files in the inbox that are not captures, and why")
+
+
+class OrchardBlockCreate(BaseModel):
+    model_config = ConfigDict(extra="forbid", str_strip_whitespace=True)
+    name: str = Field(min_length=1, max_length=200, pattern=r"^[^\x00-\x1f\x7f]+$",
+                      description="the block's name, unique within the farm (e.g. 'North 12 Gala')")
+
+
+class OrchardBlock(BaseModel):
+    """A named orchard block: the captures of the same piece of orchard, over the seasons."""
+
+    id: str
+    name: str
+    n_captures: int = Field(description="captures added, whatever their state")
+    n_done: int = Field(description="captures processed")
+    last_captured_at: str | None = Field(None, description="date of the latest processed capture (ISO)")
+    created_at: str | None
+    links: dict[str, str]
+
+
+class OrchardCaptureCreate(BaseModel):
+    """A capture of an already uploaded block (POST /v1/blocks); a file may instead be
+    sent as multipart field 'file' with ``captured_at`` as a query parameter."""
+
+    model_config = ConfigDict(extra="forbid")
+    block_id: str = Field(max_length=200, description="id of an uploaded block")
+    captured_at: date | None = Field(None, description="the day of the capture (YYYY-MM-DD), used when the file has no "
+                                     "date of its own; neither: the day it arrived")
+    params: PipelineParams = Field(default_factory=PipelineParams, description="pipeline parameters (defaults if omitted)")
+    tiling: Tiling | None = Field(None, description="tiled processing on the dask workers; omit for one tile")
+
+
+class OrchardCapture(BaseModel):
+    """One capture of an orchard block: its file, its job and what the job found."""
+
+    id: str
+    orchard_block_id: str
+    seq: int = Field(description="its place in the block's arrival order (1 first); captures are processed in it")
+    block_id: str = Field(description="the uploaded file (GET /v1/blocks/ID)")
+    job_id: str = Field(description="the job that processes it (GET /v1/jobs/ID)")
+    state: Literal["queued", "running", "done", "failed", "cancelled"]
+    error: str | None = None
+    captured_at: str | None = Field(description="the capture's day (ISO date)")
+    captured_at_source: Literal["file", "given", "upload"] | None = Field(
+        description="where the day comes from: the file's header, the sender (captured_at), or the day it arrived")
+    previous_capture_id: str | None = Field(None, description="the capture it was registered to (null: the block's first)")
+    registration: dict[str, Any] | None = Field(None, description="the transform onto the previous capture: dx, dy [m], "
+                                                "rotation_deg, residual_m, n_matched")
+    counts: dict[str, int] | None = Field(None, description="trees same, new, replanted and removed")
+    arrived_at: str | None
+    links: dict[str, str]
+
+
+class TreeHistory(BaseModel):
+    """One tree of an orchard block over its captures (from the block's history.parquet)."""
+
+    orchard_block_id: str
+    tree_key: int
+    items: list[dict[str, Any]] = Field(description="one row per capture, oldest first: capture, captured_at, row, "
+                                        "position, height_m, crown_volume_m3, trunk_diameter_m, status")
 
 
 class Health(BaseModel):
@@ -244,13 +309,16 @@ def block_out(rec: dict) -> Block:
     )
 
 
-def job_out(rec: dict) -> Job:
+def job_out(rec: dict, *, capture: dict | None = None) -> Job:
+    """The job's body; ``capture``: its capture of an orchard block, when it is one."""
     outcome = rec.get("outcome") or {}
     base = f"/v1/jobs/{rec['id']}"
     links = {"self": base, "page": f"/jobs/{rec['id']}"}
     if rec["state"] == "done":
         for name in ("trees", "trees.parquet", "trees.csv", "points.parquet", "rows.parquet", "gaps.parquet", "report", "map.png"):
             links[name] = f"{base}/{name}"
+        if any(str(v).endswith("/history.parquet") for v in (outcome.get("outputs") or {}).values()):
+            links["history.parquet"] = f"{base}/history.parquet"  # a capture of an orchard block
     return Job(
         id=rec["id"],
         block_id=rec["block_id"],
@@ -275,6 +343,9 @@ def job_out(rec: dict) -> Job:
         started_at=_iso(rec.get("started_at")),
         finished_at=_iso(rec.get("finished_at")),
         links=links,
+        orchard_block=None if capture is None else {
+            "id": capture["orchard_block_id"], "name": capture.get("orchard_block_name"), "capture_id": capture["id"],
+            "seq": capture["seq"], "captured_at": capture.get("captured_at")},
     )
 
 
@@ -296,4 +367,26 @@ def schedule_out(rec: dict, fates: dict | None = None) -> Schedule:
         created_at=_iso(rec.get("created_at")),
         last_run_at=_iso(rec.get("last_run_at"), local=True),
         next_run_at=None if rec.get("paused") else _iso(rec.get("next_run_at"), local=True),
+        orchard_block_id=rec.get("orchard_block_id"),
     )
+
+
+def orchard_block_out(rec: dict) -> OrchardBlock:
+    base = f"/v1/orchard-blocks/{rec['id']}"
+    links = {"self": base, "captures": f"{base}/captures"}
+    if rec.get("n_done"):
+        links["history.parquet"] = f"{base}/history.parquet"
+    return OrchardBlock(id=rec["id"], name=rec["name"], n_captures=int(rec.get("n_captures") or 0),
+                        n_done=int(rec.get("n_done") or 0), last_captured_at=rec.get("last_captured_at"),
+                        created_at=_iso(rec.get("created_at")), links=links)
+
+
+def orchard_capture_out(rec: dict) -> OrchardCapture:
+    record = rec.get("record") or {}
+    links = {"self": f"/v1/orchard-blocks/{rec['orchard_block_id']}/captures/{rec['id']}",
+             "job": f"/v1/jobs/{rec['job_id']}", "block": f"/v1/blocks/{rec['block_id']}", "page": f"/jobs/{rec['job_id']}"}
+    return OrchardCapture(id=rec["id"], orchard_block_id=rec["orchard_block_id"], seq=rec["seq"], block_id=rec["block_id"],
+                   job_id=rec["job_id"], state=rec["state"], error=rec.get("error"), captured_at=rec.get("captured_at"),
+                   captured_at_source=rec.get("captured_at_source"), previous_capture_id=record.get("previous_capture_id"),
+                   registration=record.get("registration"), counts=record.get("counts"),
+                   arrived_at=_iso(rec.get("arrived_at")), links=links)

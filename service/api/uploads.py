@@ -13,6 +13,7 @@ import asyncio
 import contextlib
 import hashlib
 import os
+import re
 import uuid
 from pathlib import Path
 
@@ -30,6 +31,8 @@ from service.settings import Settings
 
 UPLOAD_SLACK = 1 << 20  # multipart overhead allowed on top of the file size limit
 _DRAIN_LIMIT = 64 << 20  # after a too-large upload, read at most this much more before answering
+#: a capture sent to an orchard block is an upload too (`service.api.routes_orchard_blocks`)
+_CAPTURE_UPLOAD = re.compile(r"^/v1/orchard-blocks/[^/]+/captures$")
 
 
 class BodyLimit:
@@ -46,13 +49,18 @@ class BodyLimit:
         if scope["type"] != "http":
             await self.app(scope, receive, send)
             return
-        is_upload = scope.get("method") == "POST" and scope.get("path", "").rstrip("/") == self.upload_path
-        limit = self.upload if is_upload else self.default
-        length = None
+        path = scope.get("path", "").rstrip("/")
+        length, multipart = None, False
         for key, value in scope.get("headers", ()):
             if key == b"content-length":
                 with contextlib.suppress(ValueError):
                     length = int(value)
+            elif key == b"content-type":
+                multipart = value.lower().startswith(b"multipart/")
+        # a capture is an upload when it brings its file; as JSON it is a request like any other
+        is_upload = scope.get("method") == "POST" and (
+            path == self.upload_path or (multipart and _CAPTURE_UPLOAD.match(path) is not None))
+        limit = self.upload if is_upload else self.default
         if length is not None and length > limit:
             if is_upload:
                 detail = f"upload of {length} bytes is above the upload limit of {self.upload_mb:g} MB (ORCHARD_MAX_UPLOAD_MB)"

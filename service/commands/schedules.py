@@ -29,6 +29,9 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     c.add_argument("--inbox", required=True, help="folder where the mobile captures (LAS/LAZ) land")
     from service.schedules import DEFAULT_CRON
 
+    c.add_argument("--orchard-block", default=None, metavar="NAME",
+                   help="the inbox of this orchard block of the tenant ('orchard blocks create'): each file landing in it "
+                   "is one more capture of the block")
     c.add_argument("--cron", default=DEFAULT_CRON, help=f"cron expression in local time (default '{DEFAULT_CRON}' = 01:00 nightly)")
     add_tiling_options(c, ("tile_size", "buffer"), {"tile_size": "default: each capture in one piece",
                                                     "buffer": "at least the reach"})
@@ -85,6 +88,7 @@ def run(args: argparse.Namespace) -> int:
                 raise ParameterError("--buffer needs --tile-size")
             tenant = store.ensure_tenant(args.tenant)
             check_inbox_use(inbox, settings=settings, store=store, tenant_id=tenant["id"])
+            block_id = store.orchard_block_by_name(tenant["id"], args.orchard_block)["id"] if args.orchard_block else None
             rec = store.create_schedule(
                 tenant_id=tenant["id"],
                 inbox=str(inbox),
@@ -92,6 +96,7 @@ def run(args: argparse.Namespace) -> int:
                 params=params.model_dump(),
                 tiling=tiling,
                 next_run_at=next_run_time(cron, datetime.now().astimezone()).timestamp(),
+                orchard_block_id=block_id,
             )
             print(rec["id"])
         elif args.action in ("update", "pause", "resume"):

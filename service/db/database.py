@@ -90,7 +90,8 @@ CREATE TABLE IF NOT EXISTS schedules (
     created_at REAL NOT NULL,
     last_run_at REAL,
     next_run_at REAL,
-    paused INTEGER NOT NULL DEFAULT 0
+    paused INTEGER NOT NULL DEFAULT 0,
+    orchard_block_id TEXT
 );
 CREATE TABLE IF NOT EXISTS schedule_files (
     schedule_id TEXT NOT NULL,
@@ -101,6 +102,28 @@ CREATE TABLE IF NOT EXISTS schedule_files (
     seen_at REAL NOT NULL,
     PRIMARY KEY (schedule_id, sha256)
 );
+CREATE TABLE IF NOT EXISTS orchard_blocks (
+    id TEXT PRIMARY KEY,
+    tenant_id TEXT NOT NULL REFERENCES tenants(id),
+    name TEXT NOT NULL,
+    created_at REAL NOT NULL,
+    UNIQUE (tenant_id, name)
+);
+CREATE TABLE IF NOT EXISTS captures (
+    id TEXT PRIMARY KEY,
+    tenant_id TEXT NOT NULL REFERENCES tenants(id),
+    orchard_block_id TEXT NOT NULL REFERENCES orchard_blocks(id),
+    seq INTEGER NOT NULL,
+    block_id TEXT NOT NULL REFERENCES blocks(id),
+    job_id TEXT NOT NULL UNIQUE REFERENCES jobs(id),
+    captured_at TEXT,
+    captured_at_source TEXT,
+    given_captured_at TEXT,
+    arrived_at REAL NOT NULL,
+    record TEXT,
+    UNIQUE (orchard_block_id, seq)
+);
+CREATE INDEX IF NOT EXISTS captures_by_tenant ON captures(tenant_id, orchard_block_id, seq);
 CREATE TABLE IF NOT EXISTS capture_hashes (
     path TEXT PRIMARY KEY,
     size INTEGER NOT NULL,
@@ -137,7 +160,7 @@ CREATE INDEX IF NOT EXISTS webhook_deliveries_due ON webhook_deliveries(state, n
 """
 
 #: columns stored as JSON text, decoded by `record`
-JSON_COLUMNS = ("info", "params", "tiling", "timings", "outcome")
+JSON_COLUMNS = ("info", "params", "tiling", "timings", "outcome", "record")
 
 
 def new_id() -> str:
@@ -176,11 +199,13 @@ class Database:
         self._migrate()
 
     def _migrate(self) -> None:
-        """Bring a store written by an earlier version up to the schema (added columns)."""
+        """Bring a store written by an earlier version up to the schema (added columns; a
+        table it lacks was made by `SCHEMA`)."""
         self._add_column("jobs", "retry_at", "REAL")
         self._add_column("jobs", "capture", "TEXT")
         self._add_column("jobs", "crashes", "INTEGER NOT NULL DEFAULT 0")
         self._add_column("schedules", "paused", "INTEGER NOT NULL DEFAULT 0")
+        self._add_column("schedules", "orchard_block_id", "TEXT")  # (orchard_blocks and captures: new tables)
         self._migrate_tokens()
 
     def _migrate_tokens(self) -> None:

@@ -12,17 +12,21 @@ from typing import Any
 from pipeline.errors import ParameterError
 from service.db.database import new_id, record
 from service.db.errors import NotFoundError
-from service.db.job_queue import JobQueue
+from service.db.orchard_blocks import OrchardBlocks
 
 
-class InboxSchedules(JobQueue):
+class InboxSchedules(OrchardBlocks):
     """The ``schedules``, ``schedule_files`` and ``capture_hashes`` tables (a scheduled
-    capture's job is queued with its record, in one transaction)."""
+    capture's job is queued with its record, in one transaction; a schedule that names an
+    orchard block records each file as one more capture of it)."""
 
     def create_schedule(
-        self, *, tenant_id: str, inbox: str, cron: str, params: dict, tiling: dict | None, next_run_at: float | None
+        self, *, tenant_id: str, inbox: str, cron: str, params: dict, tiling: dict | None, next_run_at: float | None,
+        orchard_block_id: str | None = None,
     ) -> dict[str, Any]:
         sid = new_id()
+        if orchard_block_id is not None:
+            self.get_orchard_block(tenant_id, orchard_block_id)  # the tenant's own
         with self._tx() as con:
             # one schedule per inbox, checked inside the write transaction: requests at the
             # same moment cannot both pass (BEGIN IMMEDIATE serialises them)
@@ -31,9 +35,10 @@ class InboxSchedules(JobQueue):
                 whose = "this tenant's" if other[1] == tenant_id else "another tenant's"
                 raise ParameterError(f"inbox {inbox!r} already has a schedule ({whose}); one schedule per inbox")
             con.execute(
-                "INSERT INTO schedules (id, tenant_id, inbox, cron, params, tiling, created_at, next_run_at) "
-                "VALUES (?, ?, ?, ?, ?, ?, ?, ?)",
-                (sid, tenant_id, inbox, cron, json.dumps(params), json.dumps(tiling) if tiling else None, time.time(), next_run_at),
+                "INSERT INTO schedules (id, tenant_id, inbox, cron, params, tiling, created_at, next_run_at, orchard_block_id) "
+                "VALUES (?, ?, ?, ?, ?, ?, ?, ?, ?)",
+                (sid, tenant_id, inbox, cron, json.dumps(params), json.dumps(tiling) if tiling else None, time.time(),
+                 next_run_at, orchard_block_id),
             )
         return self.get_schedule(None, sid)
 
@@ -149,7 +154,8 @@ class InboxSchedules(JobQueue):
         in one transaction; None (nothing queued) if the capture was handled already,
         e.g. by a scan of the same inbox running at the same moment in another process.
         ``capture`` is the file's name as shown to the farm (the block may be an earlier
-        upload of the same bytes under another name)."""
+        upload of the same bytes under another name). A schedule of an orchard block records
+        the capture too (arrived now: dated today unless the file has a date)."""
         jid = new_id()
         with self._tx() as con:
             try:
@@ -166,6 +172,9 @@ class InboxSchedules(JobQueue):
                 (jid, schedule["tenant_id"], block_id, schedule["id"], json.dumps(schedule["params"]),
                  json.dumps(schedule["tiling"]) if schedule["tiling"] else None, time.time(), capture),
             )
+            if schedule.get("orchard_block_id"):  # the inbox of an orchard block: one more capture of it
+                self._insert_capture(con, tenant_id=schedule["tenant_id"], orchard_block_id=schedule["orchard_block_id"],
+                                     block_id=block_id, job_id=jid, captured_at=None, arrived_at=time.time())
         return self.get_job(None, jid)
 
     def capture_scheduled(self, tenant_id: str, sha256: str) -> bool:

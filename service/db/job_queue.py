@@ -17,6 +17,15 @@ log = logging.getLogger("orchard.store")
 JOB_STATES = ("queued", "running", "done", "failed", "cancelled")
 FINAL_STATES = ("done", "failed", "cancelled")
 
+#: a queued job that must wait: an earlier capture of its orchard block (`service.db.
+#: orchard_blocks`) is still queued or running, as a block's captures are processed one
+#: at a time in arrival order, each registered to the one before it (``jobs``: the
+#: candidate job's table)
+CAPTURE_WAITS = (
+    "EXISTS (SELECT 1 FROM captures c JOIN captures e ON e.orchard_block_id = c.orchard_block_id AND e.seq < c.seq "
+    "JOIN jobs ej ON ej.id = e.job_id WHERE c.job_id = jobs.id AND ej.state IN ('queued', 'running'))"
+)
+
 
 class JobQueue(TenantQuotas):
     """The ``jobs`` table (a job is queued within its tenant's queue quota)."""
@@ -73,19 +82,20 @@ class JobQueue(TenantQuotas):
         has the fewest jobs running, then the one served least recently (its latest
         job's start; never served first), then the one whose oldest ready job is
         oldest; within a tenant, oldest first. One farm's hundred queued jobs delay
-        another's by at most one job each.
+        another's by at most one job each. A capture of an orchard block waits while an
+        earlier capture of that block is queued or running (`CAPTURE_WAITS`).
         """
         now = time.time()
         with self._tx() as con:
             row = con.execute(
                 "WITH ready AS (SELECT tenant_id, MIN(created_at) AS oldest FROM jobs "
-                "  WHERE state = 'queued' AND (retry_at IS NULL OR retry_at <= :now) GROUP BY tenant_id), "
+                f"  WHERE state = 'queued' AND (retry_at IS NULL OR retry_at <= :now) AND NOT {CAPTURE_WAITS} GROUP BY tenant_id), "
                 "pick AS (SELECT r.tenant_id FROM ready r ORDER BY "
                 "  (SELECT COUNT(*) FROM jobs x WHERE x.tenant_id = r.tenant_id AND x.state = 'running'), "
                 "  COALESCE((SELECT MAX(x.started_at) FROM jobs x WHERE x.tenant_id = r.tenant_id), 0), "
                 "  r.oldest, r.tenant_id LIMIT 1) "
                 "SELECT id FROM jobs WHERE tenant_id = (SELECT tenant_id FROM pick) AND state = 'queued' "
-                "AND (retry_at IS NULL OR retry_at <= :now) ORDER BY created_at, id LIMIT 1",
+                f"AND (retry_at IS NULL OR retry_at <= :now) AND NOT {CAPTURE_WAITS} ORDER BY created_at, id LIMIT 1",
                 {"now": now},
             ).fetchone()
             if row is None:

@@ -5,7 +5,9 @@ every trunk) so that a browser's float arithmetic keeps centimetres. Every tree 
 trunk and, when the block and ``points.parquet`` are at hand, its footprint: the convex
 hull of a subsample of its points seen from above (else the page draws a circle of its
 crown diameter). Row lines (``rows.parquet``) and empty slots (``gaps.parquet``) are
-added when the job has them.
+added when the job has them; for a capture of an orchard block, each tree's status, the
+block's history (``history.parquet`` beside ``trees.parquet``) and the capture's record
+too (null for any other job: the pages then show no changes).
 """
 
 from __future__ import annotations
@@ -146,6 +148,55 @@ def _features(path: Path, origin: np.ndarray) -> list[dict[str, Any]] | None:
     return out
 
 
+#: the per-tree columns of a capture that are text (shown in lists and details, not as metrics)
+TEXT_COLUMNS = ("status",)
+#: what the pages show of a tree's history (``history.parquet``), besides its key and capture
+HISTORY_COLUMNS = ("row", "position", "height_m", "crown_volume_m3", "trunk_diameter_m")
+
+
+def history_data(path: Path) -> dict[str, Any] | None:
+    """A block's ``history.parquet`` as the pages draw it (None without one): the
+    captures in the file's order (``captures``: ids, ``dates``: ISO days), and one entry
+    per row: ``tree_key``, ``capture`` (an index into ``captures``), `HISTORY_COLUMNS`
+    and ``status``."""
+    if not path.is_file():
+        return None
+    table = pq.read_table(str(path))
+    names = set(table.column_names)
+    if not {"tree_key", "capture"} <= names:
+        return None
+    capture = [str(c) for c in table.column("capture").to_pylist()]
+    dates = table.column("captured_at").to_pylist() if "captured_at" in names else [None] * len(capture)
+    order: dict[str, int] = {}
+    for c in capture:
+        order.setdefault(c, len(order))
+    first_date: dict[str, Any] = {}
+    for c, d in zip(capture, dates):
+        first_date.setdefault(c, d)
+    out: dict[str, Any] = {
+        "captures": list(order),
+        "dates": [None if first_date[c] is None else str(first_date[c]) for c in order],
+        "tree_key": _clean(table.column("tree_key").to_numpy(zero_copy_only=False)),
+        "capture": [order[c] for c in capture],
+        "status": [None if v is None else str(v) for v in table.column("status").to_pylist()] if "status" in names else None,
+    }
+    for name in HISTORY_COLUMNS:
+        if name in names:
+            out[name] = _clean(table.column(name).to_numpy(zero_copy_only=False))
+    return out
+
+
+def capture_record(table_metadata: dict | None) -> dict[str, Any] | None:
+    """The ``orchard:capture`` record in ``trees.parquet``'s schema metadata (None without one)."""
+    raw = (table_metadata or {}).get(b"orchard:capture")
+    if not raw:
+        return None
+    try:
+        return json.loads(raw)
+    except ValueError:
+        return None
+
+
 def build_map_data(
     trees_parquet: str | os.PathLike,
     *,
@@ -188,6 +239,10 @@ def build_map_data(
         "rows": _features(folder / "rows.parquet", origin),
         "gaps": _features(folder / "gaps.parquet", origin),
         "partial": (table.schema.metadata or {}).get(b"orchard:failed_tiles") is not None,
+        # a capture of an orchard block: each tree's status, the block's history, the capture's record
+        "text": {k: [None if v is None else str(v) for v in table.column(k).to_pylist()] for k in TEXT_COLUMNS if k in names},
+        "history": history_data(folder / "history.parquet"),
+        "capture": capture_record(table.schema.metadata),
     }
 
 

@@ -114,6 +114,7 @@ def _job_body(title: str) -> str:
         '<div class="mapwrap"><div id="map" aria-label="map of the block from above"></div>'
         '<aside id="details"><p class="small">Click a tree for its details.</p></aside></div>'
         '<div id="legend" class="legend"></div>'
+        '<section id="changes" hidden></section>'
         '<h2>Block</h2><dl id="blocksummary" class="facts"></dl>'
         '<div id="rowsection" hidden><h2>Rows</h2><div class="scroll"><table id="rowstable" class="data"></table></div></div>'
         '<h2>Trees (<span id="tree-count">0</span>)</h2>'

@@ -24,11 +24,13 @@ def test_no_server_errors(api_server, server_tokens, server_client_a, small_las,
     inbox = tenant_inbox(api_server.data_dir, "farm-a", "fuzz")
     write_las(inbox / "capture.laz", 500, seed=31)
     sched = server_client_a.post("/v1/schedules", json={"inbox": str(inbox)}).json()
+    orchard = server_client_a.post("/v1/orchard-blocks", json={"name": "fuzz"}).json()
     (tmp_path / "schemathesis.toml").write_text(
         "[parameters]\n"
         f'block_id = "{block["id"]}"\n'
         f'job_id = "{job["id"]}"\n'
         f'schedule_id = "{sched["id"]}"\n'
+        f'orchard_block_id = "{orchard["id"]}"\n'
     )
     cmd = [
         sys.executable, "-c", "from schemathesis.cli import schemathesis; schemathesis()",

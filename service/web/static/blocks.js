@@ -1,4 +1,5 @@
-/* The blocks page: every block of the farm with its jobs, refreshed every few seconds. */
+/* The blocks page: the farm's orchard blocks with their captures in order, then every
+   uploaded block with its jobs, refreshed every few seconds. */
 (function () {
   "use strict";
   const O = window.Orchard;
@@ -19,6 +20,46 @@
       el("td", { class: "text", text: O.when(job.finished_at) }),
       el("td", { class: "text" }, [cancel]),
     ]);
+  }
+
+  const SOURCES = { file: "from the file", given: "as sent", upload: "day it arrived" };
+
+  function captureRow(c) {
+    const n = c.counts;
+    return el("tr", { "data-capture": c.id }, [
+      el("td", { text: String(c.seq) }),
+      el("td", { class: "text", text: (c.captured_at || "–") + (c.captured_at_source ? ` (${SOURCES[c.captured_at_source] || c.captured_at_source})` : "") }),
+      el("td", { class: "text" }, [el("span", { class: "state state-" + c.state, text: c.state })]),
+      el("td", { class: "text", text: n ? `${n.same} same, ${n.new} new, ${n.replanted} replanted, ${n.removed} removed` : (c.error || "–") }),
+      el("td", { class: "text" }, [el("a", { href: c.links.page, text: "job " + c.job_id.slice(0, 8) })]),
+    ]);
+  }
+
+  /* The orchard blocks (none: the section stays empty, as the page was before them). */
+  function renderOrchard(blocks, captures) {
+    const head = el("tr", {}, ["#", "Captured", "State", "Trees", "Job"].map((h) => el("th", { class: h === "#" ? "" : "text", text: h })));
+    const parts = blocks.map((b, k) => {
+      const cs = captures[k] || [];
+      const history = b.links["history.parquet"] ? [" · ", el("a", { href: b.links["history.parquet"], download: "", text: "history (Parquet)" })] : [];
+      return el("section", { class: "block", "data-orchard-block": b.id }, [
+        el("h2", { text: b.name }),
+        el("p", { class: "small" }, [`orchard block · ${b.n_captures} capture(s), ${b.n_done} processed` + (b.last_captured_at ? `, latest ${b.last_captured_at}` : ""), ...history]),
+        cs.length ? el("table", { class: "data" }, [el("thead", {}, [head]), el("tbody", {}, cs.map(captureRow))])
+                  : el("p", { class: "small", text: "No captures yet." }),
+      ]);
+    });
+    let root = document.getElementById("orchardblocks");
+    if (!root) { // above the uploaded blocks
+      const blocksDiv = document.getElementById("blocks");
+      root = blocksDiv.parentNode.insertBefore(el("div", { id: "orchardblocks" }), blocksDiv);
+    }
+    root.replaceChildren(...parts);
+  }
+
+  async function refreshOrchard() {
+    const blocks = await O.api("/v1/orchard-blocks");
+    const captures = await Promise.all(blocks.map((b) => O.api(b.links.captures)));
+    renderOrchard(blocks, captures);
   }
 
   async function cancelJob(id) {
@@ -62,6 +103,7 @@
       const items = (x) => (Array.isArray(x) ? x : x.items || []);
       const [blocks, jobs] = (await Promise.all([O.api("/v1/blocks?limit=1000"), O.api("/v1/jobs?limit=1000")])).map(items);
       render(blocks, jobs);
+      await refreshOrchard();
       const active = jobs.filter((j) => j.state === "queued" || j.state === "running").length;
       status.textContent = `${blocks.length} block(s), ${jobs.length} job(s), ${active} queued or running · updated ${new Date().toLocaleTimeString()}`;
     } catch (err) {

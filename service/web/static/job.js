@@ -1,5 +1,7 @@
 /* A job's page: state while it runs, then the block's map (Leaflet, canvas, local metres),
-   the per-row and block summaries, and the sortable per-tree table. The same script
+   the per-row and block summaries, the changes since the block's previous capture (a
+   capture of an orchard block: trees coloured by growth, removed / new / replanted trees,
+   lagging rows, a tree's history on click), and the sortable per-tree table. The same script
    drives report.html, where the data is inlined in the page. */
 (function () {
   "use strict";
@@ -13,9 +15,17 @@
     trunk_x: ["Trunk x", 2], trunk_y: ["Trunk y", 2], trunk_z: ["Trunk z", 2],
     height_m: ["Height [m]", 2], crown_diameter_m: ["Crown diameter [m]", 2], crown_area_m2: ["Crown area [m²]", 2],
     crown_volume_m3: ["Crown volume [m³]", 2], trunk_diameter_m: ["Trunk diameter [m]", 3], n_points: ["Points", 0],
-    wood_fraction: ["Wood fraction", 2],
+    wood_fraction: ["Wood fraction", 2], tree_key: ["Tree key", 0], status: ["Status", 0],
+    height_change_m: ["Height change [m]", 2], crown_volume_change_m3: ["Crown volume change [m³]", 2],
+    trunk_diameter_change_m: ["Trunk diameter change [m]", 3], days_since_previous: ["Days since previous", 0],
   };
-  const NOT_METRICS = new Set(["tree_id", "trunk_x", "trunk_y", "trunk_z", "row", "position"]);
+  const NOT_METRICS = new Set(["tree_id", "tree_key", "trunk_x", "trunk_y", "trunk_z", "row", "position"]);
+  // growth: shrank red, no change pale yellow, grew green (ColorBrewer RdYlGn, readable by most colour-blind eyes)
+  const DIVERGING = ["#a50026", "#d73027", "#f46d43", "#fdae61", "#fee08b", "#d9ef8b", "#a6d96a", "#66bd63", "#1a9850", "#006837"];
+  const isChange = (name) => /_change_/.test(name);
+  // a row lags when its trees' mean growth is below the block's by more than this share of it (and 1 cm)
+  const LAG_SHARE = 0.2;
+  const SVG = "http://www.w3.org/2000/svg";
   // viridis: ordered, readable by the colour-blind, prints in grey
   const RAMP = ["#440154", "#482878", "#3e4989", "#31688e", "#26828e", "#1f9e89", "#35b779", "#6ece58", "#b5de2b", "#fde725"];
   const NO_VALUE = "#bdbdbd";
@@ -24,11 +34,12 @@
   function digits(name) { return LABELS[name] ? LABELS[name][1] : 2; }
 
   function rgb(hex) { return [1, 3, 5].map((i) => parseInt(hex.slice(i, i + 2), 16)); }
-  const RAMP_RGB = RAMP.map(rgb);
-  function rampColour(t) {
-    const x = Math.min(Math.max(t, 0), 1) * (RAMP.length - 1);
-    const i = Math.min(Math.floor(x), RAMP.length - 2), f = x - i;
-    const a = RAMP_RGB[i], b = RAMP_RGB[i + 1];
+  const RAMP_RGB = RAMP.map(rgb), DIVERGING_RGB = DIVERGING.map(rgb);
+  function rampColour(t, ramp) {
+    const stops = ramp || RAMP_RGB;
+    const x = Math.min(Math.max(t, 0), 1) * (stops.length - 1);
+    const i = Math.min(Math.floor(x), stops.length - 2), f = x - i;
+    const a = stops[i], b = stops[i + 1];
     return "rgb(" + a.map((v, k) => Math.round(v + (b[k] - v) * f)).join(",") + ")";
   }
 
@@ -117,7 +128,10 @@
       this.n = data.n_trees;
       this.cols = data.columns;
       this.metrics = Object.keys(this.cols).filter((k) => !NOT_METRICS.has(k));
-      this.metric = this.metrics.includes("height_m") ? "height_m" : this.metrics[0];
+      this.text = data.text || {};
+      // a capture with a previous one opens coloured by growth
+      const grown = (this.cols.height_change_m || []).some((v) => v !== null);
+      this.metric = grown ? "height_change_m" : this.metrics.includes("height_m") ? "height_m" : this.metrics[0];
       this.sort = { key: "tree_id", dir: 1 };
       this.page = 0;
       this.selected = -1;
@@ -133,6 +147,7 @@
       this.recolour();
       this.drawMap();
       this.summaries();
+      this.changes();
       this.table();
       document.getElementById("searchform").addEventListener("submit", (ev) => {
         ev.preventDefault();
@@ -364,16 +379,20 @@
       const v = this.cols[this.metric] || [];
       let lo = Infinity, hi = -Infinity;
       for (const x of v) if (x !== null) { lo = Math.min(lo, x); hi = Math.max(hi, x); }
+      const diverging = isChange(this.metric) && lo <= hi;
+      if (diverging) { const m = Math.max(Math.abs(lo), Math.abs(hi)) || 1; lo = -m; hi = m; } // no change in the middle
       const span = hi > lo ? hi - lo : 1;
-      const binary = v.every((x) => x === null || x === 0 || x === 1);
+      const binary = !diverging && v.every((x) => x === null || x === 0 || x === 1);
       // colours in bins: one fill per bin when drawing
       const BINS = 48;
-      this.binColour = binary ? [NO_VALUE, RAMP[2], RAMP[8]] : [NO_VALUE].concat([...Array(BINS).keys()].map((k) => rampColour(k / (BINS - 1))));
+      const ramp = diverging ? DIVERGING_RGB : RAMP_RGB;
+      this.binColour = binary ? [NO_VALUE, RAMP[2], RAMP[8]] : [NO_VALUE].concat([...Array(BINS).keys()].map((k) => rampColour(k / (BINS - 1), ramp)));
       this.bin = new Uint8Array(this.n);
       for (let i = 0; i < this.n; i++) {
         const x = v[i];
         this.bin[i] = x === null || x === undefined ? 0 : binary ? 1 + (x ? 1 : 0) : 1 + Math.round(((x - lo) / span) * (BINS - 1));
       }
+      document.body.dataset.metric = this.metric;
       if (this.layer) this.layer.redraw();
       const legend = document.getElementById("legend");
       const parts = [el("strong", { text: label(this.metric) })];
@@ -381,10 +400,13 @@
         parts.push(el("span", { class: "swatch", style: "background:" + RAMP[2] }), "no",
                    el("span", { class: "swatch", style: "background:" + RAMP[8] }), "yes");
       } else if (lo <= hi) {
-        const stops = RAMP.map((c, k) => c + " " + Math.round((100 * k) / (RAMP.length - 1)) + "%").join(",");
-        parts.push(O.fmt(lo, digits(this.metric)), el("span", { class: "ramp", style: "background:linear-gradient(to right," + stops + ")" }), O.fmt(hi, digits(this.metric)));
+        const colours = diverging ? DIVERGING : RAMP;
+        const stops = colours.map((c, k) => c + " " + Math.round((100 * k) / (colours.length - 1)) + "%").join(",");
+        parts.push((diverging ? "shrank " : "") + O.fmt(lo, digits(this.metric)),
+                   el("span", { class: "ramp", style: "background:linear-gradient(to right," + stops + ")" }),
+                   (diverging ? "+" : "") + O.fmt(hi, digits(this.metric)) + (diverging ? " grew" : ""));
       }
-      parts.push(el("span", { class: "swatch", style: "background:" + NO_VALUE }), "not measured");
+      parts.push(el("span", { class: "swatch", style: "background:" + NO_VALUE }), diverging ? "no previous measure" : "not measured");
       if (this.d.gaps && this.d.gaps.length) parts.push(el("span", { class: "swatch", style: "border:1.5px dashed #b3261e;border-radius:50%" }), "empty slot");
       if (this.d.rows && this.d.rows.length) parts.push(el("span", { class: "swatch", style: "border:0;border-top:2px dashed #8a7f62;height:2px" }), "row");
       if (this.cols.row && this.cols.position) parts.push(el("strong", { text: "7", style: "color:#4a3f22" }), "row number, at its first tree");
@@ -394,7 +416,130 @@
     details(i) {
       const items = [];
       for (const k of Object.keys(this.cols)) items.push(el("dt", { text: label(k) }), el("dd", { text: cell(k, this.cols[k][i]) }));
+      for (const k of Object.keys(this.text)) items.push(el("dt", { text: label(k) }), el("dd", { text: O.fmt(this.text[k][i]) }));
       return el("dl", {}, items);
+    }
+
+    /* The rows of one tree in the block's history, oldest first (the file's order). */
+    historyOf(key) {
+      const h = this.d.history;
+      if (!h || key === null || key === undefined) return [];
+      if (!this.histIndex) {
+        this.histIndex = new Map();
+        h.tree_key.forEach((k, j) => { if (!this.histIndex.has(k)) this.histIndex.set(k, []); this.histIndex.get(k).push(j); });
+      }
+      return (this.histIndex.get(key) || []).map((j) => ({
+        capture: h.captures[h.capture[j]], date: h.dates[h.capture[j]], status: h.status ? h.status[j] : null,
+        row: h.row ? h.row[j] : null, position: h.position ? h.position[j] : null,
+        height_m: h.height_m ? h.height_m[j] : null, crown_volume_m3: h.crown_volume_m3 ? h.crown_volume_m3[j] : null,
+        trunk_diameter_m: h.trunk_diameter_m ? h.trunk_diameter_m[j] : null,
+      }));
+    }
+
+    /* A tree's history: its height over the captures (a small line chart) and a table. */
+    historyBlock(key) {
+      const rows = this.historyOf(key);
+      if (!rows.length) return null;
+      const parts = [el("h4", { text: "History (" + rows.length + " capture" + (rows.length > 1 ? "s" : "") + ")" })];
+      const pts = rows.map((r, k) => [k, r.height_m]).filter(([, v]) => v !== null);
+      if (pts.length >= 2) {
+        const W = 230, H = 70, P = 6;
+        const vs = pts.map(([, v]) => v), lo = Math.min(...vs), hi = Math.max(...vs), span = hi > lo ? hi - lo : 1;
+        // along time when every capture has a date (captures weeks or months apart), else evenly
+        const t = rows.map((r) => Date.parse(r.date || ""));
+        const byTime = t.every((v) => !Number.isNaN(v)) && t[t.length - 1] > t[0];
+        const at = (k) => (byTime ? (t[k] - t[0]) / (t[t.length - 1] - t[0]) : k / Math.max(rows.length - 1, 1));
+        const X = (k) => P + at(k) * (W - 2 * P), Y = (v) => H - P - ((v - lo) * (H - 2 * P)) / span;
+        const svg = document.createElementNS(SVG, "svg");
+        svg.setAttribute("viewBox", `0 0 ${W} ${H}`); svg.setAttribute("class", "sparkline");
+        svg.setAttribute("role", "img"); svg.setAttribute("aria-label", "height over the captures");
+        const line = document.createElementNS(SVG, "polyline");
+        line.setAttribute("points", pts.map(([k, v]) => X(k).toFixed(1) + "," + Y(v).toFixed(1)).join(" "));
+        svg.appendChild(line);
+        for (const [k, v] of pts) {
+          const c = document.createElementNS(SVG, "circle");
+          c.setAttribute("cx", X(k).toFixed(1)); c.setAttribute("cy", Y(v).toFixed(1)); c.setAttribute("r", "2.5");
+          svg.appendChild(c);
+        }
+        parts.push(svg);
+      }
+      const head = el("tr", {}, ["Captured", "Status", "Height [m]", "Crown volume [m³]", "Trunk diameter [m]"].map((t) => el("th", { text: t })));
+      const body = rows.map((r) => el("tr", {}, [
+        el("td", { class: "text", text: r.date || r.capture }), el("td", { class: "text", text: r.status || "–" }),
+        el("td", { text: O.fmt(r.height_m, 2) }), el("td", { text: O.fmt(r.crown_volume_m3, 2) }), el("td", { text: O.fmt(r.trunk_diameter_m, 3) }),
+      ]));
+      parts.push(el("table", { class: "data history", id: "tree-history" }, [el("thead", {}, [head]), el("tbody", {}, body)]));
+      return el("div", { class: "treehistory" }, parts);
+    }
+
+    /* Changes since the block's previous capture: removed, new and replanted trees, and
+       the rows whose trees grew less than the block's (shown only for a capture of an
+       orchard block that had a previous one). */
+    changes() {
+      const section = document.getElementById("changes");
+      const status = this.text.status, growth = this.cols.height_change_m;
+      const removed = (this.d.gaps || []).filter((g) => g.tree_key !== null && g.tree_key !== undefined);
+      const hadPrevious = (this.d.capture && this.d.capture.previous_capture_id) || removed.length ||
+        (growth || []).some((v) => v !== null) || (status || []).some((v) => v && v !== "new");
+      if (!section || !status) return;
+      section.hidden = false;
+      if (!hadPrevious) {
+        section.replaceChildren(el("h2", { text: "Changes" }),
+          el("p", { id: "firstcapture", class: "small", text: "The block's first capture: every tree has its key now; growth, and removed, new and replanted trees, show from the next capture." }));
+        return;
+      }
+      const treeItem = (i) => el("li", {}, [el("a", { href: "#", text: "Tree " + this.cols.tree_id[i] + this.address(i) + this.keyText(i),
+        onclick: (ev) => { ev.preventDefault(); this.select(i, true); } })]);
+      const listOf = (id, title, items, none) => el("div", { class: "changelist" }, [el("h3", { text: title + " (" + items.length + ")" }),
+        items.length ? el("ul", { id }, items) : el("p", { id, class: "small", text: none })]);
+      const byStatus = (s) => [...Array(this.n).keys()].filter((i) => status[i] === s);
+      const gone = removed.map((g) => el("li", {}, [el("a", { href: "#",
+        text: (g.row !== null && g.row !== undefined ? `row ${g.row} tree ${g.position}` : "slot") + ` (key ${g.tree_key}), last seen ${this.captureName(g.since)}`,
+        onclick: (ev) => { ev.preventDefault(); this.showGap(g); } })]));
+      const lists = [
+        listOf("removedtrees", "Removed", gone, "No tree is gone."),
+        listOf("newtrees", "New", byStatus("new").map(treeItem), "No new tree."),
+        listOf("replantedtrees", "Replanted", byStatus("replanted").map(treeItem), "No replanting."),
+      ];
+      const lag = this.laggingRows();
+      if (lag) {
+        const items = lag.rows.map((r) => el("li", {}, [
+          el("strong", { text: "Row " + r.row }), `: ${O.fmt(r.mean, 2)} m mean height change over ${r.n} tree${r.n > 1 ? "s" : ""} (block ${O.fmt(lag.block, 2)} m)`]));
+        lists.push(listOf("laggingrows", "Rows that lag", items, `No row grew less than the block's mean (${O.fmt(lag.block, 2)} m) by more than ${Math.round(LAG_SHARE * 100)} %.`));
+      }
+      const reg = this.d.capture && this.d.capture.registration;
+      const intro = [el("h2", { text: "Changes since the previous capture" })];
+      if (reg) intro.push(el("p", { class: "small", id: "registration", text: `Registered to the previous capture: shift ${O.fmt(reg.dx, 2)}, ${O.fmt(reg.dy, 2)} m, ` +
+        `rotation ${O.fmt(reg.rotation_deg, 2)}°, residual ${O.fmt(reg.residual_m * 100, 1)} cm over ${O.fmt(reg.n_matched)} trees.` }));
+      section.replaceChildren(...intro, el("div", { class: "changes" }, lists));
+    }
+
+    /* Rows whose mean height change is below the block's by more than LAG_SHARE of it
+       (and 1 cm), most lagging first; null without growth figures. */
+    laggingRows() {
+      const g = this.cols.height_change_m, r = this.cols.row;
+      if (!g || !r) return null;
+      const per = new Map();
+      let sum = 0, n = 0;
+      g.forEach((v, i) => {
+        if (v === null || r[i] === null) return;
+        sum += v; n += 1;
+        const e = per.get(r[i]) || { row: r[i], sum: 0, n: 0 };
+        e.sum += v; e.n += 1; per.set(r[i], e);
+      });
+      if (!n) return null;
+      const block = sum / n, margin = Math.max(LAG_SHARE * Math.abs(block), 0.01);
+      const rows = [...per.values()].map((e) => ({ row: e.row, n: e.n, mean: e.sum / e.n }))
+        .filter((e) => e.mean < block - margin).sort((a, b) => a.mean - b.mean);
+      return { block, rows };
+    }
+
+    keyText(i) { return this.cols.tree_key && this.cols.tree_key[i] !== null ? ` (key ${this.cols.tree_key[i]})` : ""; }
+
+    captureName(id) {
+      const h = this.d.history;
+      const k = h ? h.captures.indexOf(id) : -1;
+      return k >= 0 && h.dates[k] ? h.dates[k] : id || "–";
     }
 
     address(i) {
@@ -411,7 +556,9 @@
         else this.layer.redraw();
       }
       const box = document.getElementById("details");
-      box.replaceChildren(el("h3", { id: "selected-tree", text: "Tree " + this.cols.tree_id[i] + this.address(i) }), this.details(i));
+      const key = this.cols.tree_key ? this.cols.tree_key[i] : null;
+      box.replaceChildren(el("h3", { id: "selected-tree", text: "Tree " + this.cols.tree_id[i] + this.address(i) }), this.details(i),
+                          ...[this.historyBlock(key)].filter((b) => b));
       document.querySelectorAll("#treestable tr.selected").forEach((r) => r.classList.remove("selected"));
       const row = document.querySelector(`#treestable tr[data-i="${i}"]`);
       if (row) row.classList.add("selected");
@@ -422,8 +569,13 @@
       for (const [k, v] of Object.entries(g)) if (k !== "line" && k !== "x" && k !== "y") items.push(el("dt", { text: label(k) }), el("dd", { text: O.fmt(v) }));
       this.unmark();
       this.mark = { gap: g };
+      const removed = g.tree_key !== null && g.tree_key !== undefined;
       const where = g.row !== undefined && g.position !== undefined ? ` (row ${g.row} tree ${g.position})` : "";
-      document.getElementById("details").replaceChildren(el("h3", { id: "selected-slot", text: "Empty slot" + where }), el("dl", {}, items));
+      // a removed tree's slot keeps the tree's heading (its key and history follow)
+      const heading = removed ? el("h3", { id: "selected-tree", text: `Removed tree (key ${g.tree_key})` })
+                              : el("h3", { id: "selected-slot", text: "Empty slot" + where });
+      document.getElementById("details").replaceChildren(heading, el("dl", {}, items),
+                                                         ...[removed ? this.historyBlock(g.tree_key) : null].filter((b) => b));
       if (zoom && g.x !== null && g.x !== undefined) this.zoomTo(g.x - 1, g.y - 1, g.x + 1, g.y + 1);
       else this.layer.redraw();
     }
@@ -477,23 +629,26 @@
       const gapsPerRow = new Map();  // row -> positions of its empty slots
       (this.d.gaps || []).forEach((g) => { if (!gapsPerRow.has(g.row)) gapsPerRow.set(g.row, []); gapsPerRow.get(g.row).push(g.position); });
       const pick = (k, idx) => idx.map((i) => (c[k] || [])[i]).filter((v) => v !== null && v !== undefined);
-      const head = ["Row", "Trees", "Young", "Empty slots", "Height, mean [m]", "Crown diameter, mean [m]", "Crown area, total [m²]", "Empty slots at"];
+      const grew = c.height_change_m ? (idx) => mean(pick("height_change_m", idx)) : null;
+      const head = ["Row", "Trees", "Young", "Empty slots", "Height, mean [m]", "Crown diameter, mean [m]", "Crown area, total [m²]"]
+        .concat(grew ? ["Height change, mean [m]"] : [], ["Empty slots at"]);
       const rows = [...groups.keys()].sort((a, b) => a - b).map((r) => {
         const idx = groups.get(r);
         const empty = (gapsPerRow.get(r) || []).sort((a, b) => a - b);
         return el("tr", {}, [r, idx.length, c.young ? pick("young", idx).filter((v) => v).length : null, this.d.gaps ? empty.length : null,
           mean(pick("height_m", idx)), mean(pick("crown_diameter_m", idx)), sum(pick("crown_area_m2", idx))]
           .map((v, k) => el("td", { text: k < 4 ? O.fmt(v) : O.fmt(v, k === 6 ? 1 : 2) }))
-          .concat([el("td", { text: empty.length ? "tree " + empty.join(", ") : "" })]));
+          .concat(grew ? [el("td", { text: O.fmt(grew(idx), 2) })] : [], [el("td", { text: empty.length ? "tree " + empty.join(", ") : "" })]));
       });
       document.getElementById("rowstable").replaceChildren(el("thead", {}, [el("tr", {}, head.map((h) => el("th", { text: h })))]), el("tbody", {}, rows));
       document.getElementById("rowsection").hidden = false;
     }
 
     table() {
-      const keys = tableKeys(this.cols);
+      const keys = tableKeys(this.cols).concat(Object.keys(this.text));
+      const value = (k, i) => (k in this.cols ? this.cols[k] : this.text[k])[i];
       const order = [...Array(this.n).keys()];
-      const col = this.cols[this.sort.key] || [];
+      const col = this.cols[this.sort.key] || this.text[this.sort.key] || [];
       const dir = this.sort.dir;
       order.sort((a, b) => {
         const x = col[a], y = col[b];
@@ -512,7 +667,7 @@
       })));
       const marked = (i) => i === this.selected || (this.mark && this.mark.idx && this.cols.row[i] === this.mark.row);
       const body = shown.map((i) => el("tr", { "data-i": String(i), class: marked(i) ? "selected" : null, onclick: () => this.select(i, true) },
-        keys.map((k) => el("td", { text: cell(k, this.cols[k][i]) }))));
+        keys.map((k) => el("td", { class: k in this.text ? "text" : null, text: cell(k, value(k, i)) }))));
       document.getElementById("treestable").replaceChildren(el("thead", {}, [head]), el("tbody", {}, body));
       const pager = document.getElementById("pager");
       const go = (p) => { this.page = p; this.table(); };
@@ -526,7 +681,8 @@
 
   const DOWNLOADS = {
     "trees.csv": "Trees (CSV)", "trees.parquet": "Trees (GeoParquet)", "points.parquet": "Points (Parquet)",
-    "rows.parquet": "Rows (GeoParquet)", "gaps.parquet": "Empty slots (GeoParquet)", report: "Report (HTML)", "map.png": "Map (PNG)",
+    "rows.parquet": "Rows (GeoParquet)", "gaps.parquet": "Empty slots (GeoParquet)", "history.parquet": "Block history (Parquet)",
+    report: "Report (HTML)", "map.png": "Map (PNG)",
   };
   const NOT_DOWNLOADS = new Set(["self", "page", "trees"]); // the resource, this page, the JSON of the table
 
@@ -541,6 +697,8 @@
     const facts = [O.stateBadge(job), O.progress(job)];
     facts.push(el("span", { text: "block " + job.block_id }));
     if (job.capture) facts.push(el("span", { text: "capture " + job.capture }));
+    const ob = job.orchard_block;
+    if (ob) facts.push(el("span", { id: "orchardblock", text: `capture ${ob.seq} of orchard block ${ob.name}` + (ob.captured_at ? `, ${ob.captured_at}` : "") }));
     facts.push(el("span", { text: "submitted " + O.when(job.created_at) }));
     if (job.finished_at) facts.push(el("span", { text: "finished " + O.when(job.finished_at) }));
     if (job.n_trees !== null && job.n_trees !== undefined) facts.push(el("span", { text: O.fmt(job.n_trees) + " trees" }));
