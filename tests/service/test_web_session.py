@@ -88,6 +88,17 @@ def test_sign_in_from_another_site_is_refused(api, tokens):
         assert resp.status_code == 403 and "set-cookie" not in resp.headers
 
 
+def test_sign_in_from_this_host_with_another_scheme_or_port_is_refused(api, tokens):
+    own = str(api.base_url).rstrip("/")  # http://testserver
+    host = own.split("://", 1)[1]
+    for origin in (f"https://{host}", f"http://{host}:8443", f"https://{host}:80"):
+        with _browser(api) as c:
+            resp = _sign_in(c, tokens["a"], Origin=origin)
+            assert resp.status_code == 403 and "set-cookie" not in resp.headers, origin
+    with _browser(api) as c:  # the same origin, its default port written out
+        assert _sign_in(c, tokens["a"], Origin=f"http://{host}:80").status_code == 303
+
+
 def test_next_stays_on_this_server(api, tokens):
     with _browser(api) as c:
         resp = c.post("/signin", data={"token": tokens["a"], "next": "//evil.example/x"})
