@@ -28,7 +28,7 @@ from service.api.uploads import UPLOAD_SLACK, BodyLimit
 from service.db.jobstore import Store
 from service.errors import install_error_handlers
 from service.permissions import private_dir, tighten
-from service.runner import Runner, drop_work, hold_runner_lock, job_dir
+from service.runner import Runner, drop_work, hold_runner_lock, job_dir, sweep_work
 from service.schedules import ScheduleClock
 from service.settings import Settings
 
@@ -70,6 +70,7 @@ def create_app(settings: Settings) -> FastAPI:
             n = store.requeue_running(max_crashes=settings.max_crashes)
             if n:
                 log.info("re-queued %d job(s) interrupted by the last shutdown", n)
+            await run_in_threadpool(sweep_work, settings, store)  # failed just now, or a crash cut the deletion short
         if settings.runner:
             app.state.runner = Runner(store, settings, after_done=after_done)
             app.state.runner.start()

@@ -109,6 +109,36 @@ def drop_work(settings: Settings, job_id: str) -> None:
         log.warning("job %s: could not delete its tiles: %s", job_id, exc)
 
 
+def sweep_work(settings: Settings, store: Store) -> list[str]:
+    """Delete the work stores (tiles) left by jobs that have ended: failed at start-up
+    after too many crashes (`Store.requeue_running`), or whose deletion a crash cut
+    short. Only jobs this store knows as done, failed or cancelled are touched (a shared
+    work folder may hold other services' jobs). Returns the ids swept."""
+    from service.db.errors import NotFoundError
+    from workers.workstore import WorkStore
+
+    if settings.work_dir:
+        try:
+            candidates = WorkStore(settings.work_dir).entries()
+        except Exception as exc:  # noqa: BLE001 - an unreachable work store: the next start looks again
+            log.warning("cannot list the work store %s: %s", settings.work_dir, exc)
+            return []
+    else:
+        candidates = sorted(p.parent.name for p in settings.jobs_dir.glob("*/_work"))
+    swept = []
+    for job_id in candidates:
+        try:
+            state = store.get_job(None, job_id)["state"]
+        except NotFoundError:
+            continue
+        if state in ("done", "failed", "cancelled"):
+            drop_work(settings, job_id)
+            swept.append(job_id)
+    if swept:
+        log.info("deleted the tiles of %d ended job(s)", len(swept))
+    return swept
+
+
 def _is_cancel(exc: BaseException) -> bool:
     return type(exc).__name__ in ("JobCancelled", "CancelledError")
 
