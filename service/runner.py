@@ -48,6 +48,8 @@ class ClusterUnavailable(RuntimeError):
 RUNNER_LOCK = "runner.lock"
 #: how often [s] a running job looks in the store for a cancel made by another process
 CANCEL_POLL_S = 1.0
+#: how often [s] the runner looks at the dask cluster's workers (and replaces lost ones)
+DOCTOR_POLL_S = 2.0
 
 
 def hold_runner_lock(data_dir: Path) -> IO:
@@ -231,9 +233,45 @@ class Runner(threading.Thread):
         status = str(getattr(client, "status", "running"))
         return "connected" if status == "running" else status
 
+    def cluster_workers(self) -> tuple[int, int | None] | None:
+        """(workers connected, workers the cluster should have: None for an external
+        one), or None while there is no cluster."""
+        client = self._client
+        if client is None:
+            return None
+        from workers.cluster import cluster_workers
+
+        try:
+            return cluster_workers(client)
+        except Exception:  # noqa: BLE001 - a cluster closing meanwhile
+            return None
+
     @property
     def current_job(self) -> str | None:
         return self._current
+
+    def _doctor(self) -> None:
+        """Every `DOCTOR_POLL_S`: replace the embedded cluster's lost workers (without a
+        restart of the service), and say on the running job when it waits for workers."""
+        from workers.cluster import heal_cluster
+
+        noted: tuple[str, str | None] | None = None  # (job id, its error before the note)
+        while not self._stopping.wait(DOCTOR_POLL_S):
+            client = self._client
+            try:
+                if client is not None and self.settings.scheduler is None:
+                    heal_cluster(client, self.settings.n_workers)
+                counts, job_id = self.cluster_workers(), self._current
+                if noted is not None and (noted[0] != job_id or not counts or counts[0] > 0):
+                    self.store.set_job_note(noted[0], noted[1])
+                    noted = None
+                if noted is None and job_id is not None and counts is not None and counts[0] == 0:
+                    before = self.store.get_job(None, job_id).get("error")
+                    want = f" (it should have {counts[1]}; new ones are starting)" if counts[1] else ""
+                    self.store.set_job_note(job_id, f"waiting for dask workers: the cluster has none{want}")
+                    noted = (job_id, before)
+            except Exception as exc:  # noqa: BLE001 - look again next time
+                log.warning("runner: cannot look after the dask cluster: %s", exc)
 
     # -- the thread ------------------------------------------------------------------
 
@@ -287,6 +325,7 @@ class Runner(threading.Thread):
             log.debug("closing dask client: %s", exc)
 
     def run(self) -> None:
+        threading.Thread(target=self._doctor, name="orchard-cluster-doctor", daemon=True).start()
         try:
             while not self._stopping.is_set():
                 try:

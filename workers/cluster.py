@@ -196,6 +196,54 @@ def _temporary_security():
     return Security.temporary()
 
 
+def cluster_workers(client: Client) -> tuple[int, int | None]:
+    """(workers connected to the scheduler, workers it should have): the second is the
+    embedded cluster's size, None for an external cluster (its size is not ours to know)."""
+    cluster = getattr(client, "cluster", None)
+    if cluster is not None and getattr(cluster, "scheduler", None) is not None:
+        return len(cluster.scheduler.workers), len(cluster.worker_spec)
+    # the client's cached view (refreshed every few seconds): asking the scheduler could hang
+    ident = getattr(client, "_scheduler_identity", None) or {}
+    n = ident.get("n_workers")
+    return (int(n) if n is not None else len(ident.get("workers") or {})), None
+
+
+def heal_cluster(client: Client, n_workers: int, *, timeout: float = 120.0) -> int:
+    """Replace the embedded cluster's lost workers; returns how many it started.
+
+    A nanny restarts its worker process when that dies, but gives up (and leaves the
+    cluster) when the new one dies while it starts: killed five times about 4 s apart,
+    the cluster kept 0 of its 2 workers for good. A nanny that left, closed or failed is
+    replaced here by a new one (with the same allocator settings), until the cluster
+    has ``n_workers`` again. An external cluster, or an embedded one that is closing, is
+    left alone.
+    """
+    from distributed.core import Status
+
+    cluster = getattr(client, "cluster", None)
+    if cluster is None or getattr(cluster, "status", None) not in (Status.running,):
+        return 0
+    lost = [name for name, w in list(cluster.workers.items()) if getattr(w, "status", None) in (Status.closed, Status.failed)]
+    if not lost and len(cluster.worker_spec) >= n_workers and len(cluster.workers) >= n_workers:
+        return 0
+    missing = n_workers - (len(cluster.workers) - len(lost))
+    log.warning("the embedded dask cluster lost %d of its %d worker(s) for good; starting new ones", missing, n_workers)
+    cluster.sync(_replace_workers, cluster, lost, n_workers, callback_timeout=timeout)
+    return missing
+
+
+async def _replace_workers(cluster, lost: list, n_workers: int) -> None:
+    for name in lost:
+        cluster.worker_spec.pop(name, None)  # _correct_state closes and forgets it
+    while len(cluster.worker_spec) < n_workers:
+        cluster.worker_spec.update(cluster.new_worker_spec())
+    with worker_allocator():  # (each nanny reads the settings as it is made)
+        try:
+            await cluster._correct_state()
+        except Exception as exc:  # noqa: BLE001 - a new worker that failed to start: the next round replaces it
+            log.warning("a new dask worker failed to start: %s", exc)
+
+
 @contextmanager
 def worker_allocator():
     """Within it, the worker processes a dask ``LocalCluster`` starts get
