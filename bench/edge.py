@@ -171,7 +171,9 @@ def _summary(seen: list) -> dict:
     return {"healthz_asked": len(seen), "healthz_failed": len(seen) - len(times),
             "healthz_failures": sorted({s for s in seen if not isinstance(s, float)}),
             "healthz_median_ms": round(1000 * statistics.median(times), 1) if times else None,
-            "healthz_max_ms": round(1000 * max(times), 1) if times else None}
+            "healthz_p95_ms": round(1000 * sorted(times)[int(0.95 * (len(times) - 1))], 1) if times else None,
+            "healthz_max_ms": round(1000 * max(times), 1) if times else None,
+            "healthz_over_1s": sum(t > 1.0 for t in times)}
 
 
 def idle(server: Server, *, connections: int, clients: int, hold_s: float, reopen: bool = False) -> dict:

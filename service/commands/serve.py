@@ -127,7 +127,10 @@ def run(args: argparse.Namespace) -> int:
     )
     config = uvicorn.Config(app, host=settings.host, port=settings.port, log_level=args.log_level, timeout_graceful_shutdown=10,
                             http=edge_protocol(limits), log_config=None,  # uvicorn's records go through service.logs
-                            timeout_keep_alive=5)
+                            timeout_keep_alive=5,
+                            # (the kernel caps it at net.core.somaxconn): a burst of connections
+                            # that overflows the queue drops new ones, /healthz's too, for seconds
+                            backlog=4096)
     server = Server(config)
     with contextlib.suppress(KeyboardInterrupt):
         server.run(sockets=[sock])
