@@ -7,9 +7,9 @@ while this process asks ``/healthz`` every quarter second on fresh connections f
 127.0.0.1. Reports the slowest ``/healthz`` answer, how many failed, the connections
 the clients opened, and how much the server's log grew.
 
-``bodies``: ``--clients`` clients each send 1 MB JSON bodies of many keys to
+``bodies``: ``--clients`` client processes each send 1 MB JSON bodies of many keys to
 ``POST /v1/jobs`` (half with a token, half without) for ``--hold`` seconds while this
-process times ``/healthz``.
+process times ``/healthz``. ``quiet``: ``/healthz`` alone, the machine's baseline.
 
 Everything is bounded: the clients stop by themselves after ``--hold`` seconds, the
 server is stopped at the end, and nothing leaves loopback.
@@ -155,14 +155,18 @@ class Server:
 def _probe(url: str, stop: threading.Event, every_s: float = 0.25) -> list:
     """``/healthz`` latencies [s] (or the error's name) on a fresh connection each time, until ``stop``."""
     seen = []
+    # one client (making one per request costs tens of ms of its own), no kept-alive
+    # connection: each request connects afresh, through the same accept queue as everyone
+    probe = httpx.Client(timeout=10, limits=httpx.Limits(max_keepalive_connections=0))
     while not stop.is_set():
         t0 = time.perf_counter()
         try:
-            status = httpx.get(url + "/healthz", timeout=10).status_code
+            status = probe.get(url + "/healthz").status_code
             seen.append(time.perf_counter() - t0 if status == 200 else f"HTTP {status}")
         except httpx.HTTPError as exc:
             seen.append(type(exc).__name__)
         stop.wait(every_s)
+    probe.close()
     return seen
 
 
@@ -200,35 +204,57 @@ def idle(server: Server, *, connections: int, clients: int, hold_s: float, reope
             "log_growth_bytes": server.log_bytes() - log0}
 
 
-def bodies(server: Server, *, clients: int, hold_s: float, token: str | None) -> dict:
-    """``clients`` clients send 1 MB bodies of many keys for ``hold_s`` s while probing ``/healthz``."""
+def _body_client(url: str, token: str | None, hold_s: float, out) -> None:
+    """One flooding client (a process of its own: its work must not slow the probe's)."""
     params = {f"k{i:06d}": 1 for i in range(60_000)}
     body = json.dumps({"block_id": "x", "params": params}).encode()
     body += b" " * max(0, 1000 * 1024 - len(body))
-    end = time.monotonic() + hold_s
     statuses: list = []
-    threads = [threading.Thread(target=_flood_bodies, args=(server.url, token if i % 2 else None, body, end, statuses))
-               for i in range(clients)]
-    for t in threads:
-        t.start()
+    _flood_bodies(url, token, body, time.monotonic() + hold_s, statuses)
+    out.put((len(body), statuses))
+
+
+def bodies(server: Server, *, clients: int, hold_s: float, token: str | None) -> dict:
+    """``clients`` client processes send 1 MB bodies of many keys for ``hold_s`` s
+    (every other one with a token) while this process probes ``/healthz``."""
+    ctx = mp.get_context("spawn")
+    out = ctx.Queue()
+    procs = [ctx.Process(target=_body_client, args=(server.url, token if i % 2 else None, hold_s, out))
+             for i in range(clients)]
+    for p in procs:
+        p.start()
     stop = threading.Event()
     seen: list = []
     probe = threading.Thread(target=lambda: seen.extend(_probe(server.url, stop, every_s=0.1)))
-    time.sleep(0.5)
+    time.sleep(1.5)  # (the clients start)
     probe.start()
-    for t in threads:
-        t.join()
+    reports = [out.get(timeout=hold_s + 120) for _ in procs]
     stop.set()
     probe.join()
+    for p in procs:
+        p.join(30)
     counts: dict = {}
-    for s in statuses:
-        counts[str(s)] = counts.get(str(s), 0) + 1
-    return {"clients": clients, "body_bytes": len(body), "hold_s": hold_s, **_summary(seen), "answers": counts}
+    for _, statuses in reports:
+        for s in statuses:
+            counts[str(s)] = counts.get(str(s), 0) + 1
+    return {"clients": clients, "body_bytes": reports[0][0], "hold_s": hold_s, **_summary(seen), "answers": counts}
+
+
+def quiet(server: Server, *, hold_s: float) -> dict:
+    """``/healthz`` with nothing else going on: the machine's own baseline."""
+    stop = threading.Event()
+    seen: list = []
+    probe = threading.Thread(target=lambda: seen.extend(_probe(server.url, stop, every_s=0.1)))
+    probe.start()
+    time.sleep(hold_s)
+    stop.set()
+    probe.join()
+    return {"hold_s": hold_s, **_summary(seen)}
 
 
 def main(argv: list[str] | None = None) -> int:
     p = argparse.ArgumentParser(prog="python -m bench.edge", description=__doc__.splitlines()[0])
-    p.add_argument("what", choices=["idle", "bodies"])
+    p.add_argument("what", choices=["idle", "bodies", "quiet"])
     p.add_argument("--connections", type=int, default=20_000, help="idle connections in all (default 20000)")
     p.add_argument("--clients", type=int, default=None, help="client processes (idle: default 2) or threads (bodies: 16)")
     p.add_argument("--reopen", action="store_true", help="idle: open a connection again as soon as the server closes it")
@@ -237,7 +263,9 @@ def main(argv: list[str] | None = None) -> int:
     raise_nofile(4096)
     with tempfile.TemporaryDirectory(prefix="orchard-edge-") as tmp:
         with Server(Path(tmp)) as server:
-            if args.what == "idle":
+            if args.what == "quiet":
+                result = quiet(server, hold_s=args.hold)
+            elif args.what == "idle":
                 result = idle(server, connections=args.connections, clients=args.clients or 2, hold_s=args.hold,
                               reopen=args.reopen)
             else:
