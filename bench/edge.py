@@ -48,18 +48,21 @@ def raise_nofile(wanted: int) -> int:
     return resource.getrlimit(resource.RLIMIT_NOFILE)[0]
 
 
-def hold_idle(port: int, n: int, source: str, hold_s: float, out, reopen: bool = False) -> None:
+def hold_idle(port: int, n: int, source: str, hold_s: float, out, reopen: bool = False, rate: float = 0.0) -> None:
     """Open ``n`` idle connections to 127.0.0.1:``port`` from ``source`` and hold them for
     ``hold_s`` s; with ``reopen``, each one the server closes is opened again at once (a
-    flood of new connections, as fast as this process can make them)."""
+    flood of new connections, as fast as this process can make them). ``rate`` > 0 opens
+    at most that many a second (0: as fast as it can)."""
     limit = raise_nofile(n + 64)
     n = min(n, limit - 64)
     sel = selectors.DefaultSelector()
     opened = refused = 0
-    end = time.monotonic() + hold_s
+    start = time.monotonic()
+    end = start + hold_s
     live: set[socket.socket] = set()
     while time.monotonic() < end:
-        while len(live) < n and (reopen or opened < n) and time.monotonic() < end:
+        while len(live) < n and (reopen or opened < n) and time.monotonic() < end \
+                and (not rate or opened < rate * (time.monotonic() - start) + 1):
             s = socket.socket()
             s.setblocking(False)
             try:
@@ -180,11 +183,11 @@ def _summary(seen: list) -> dict:
             "healthz_over_1s": sum(t > 1.0 for t in times)}
 
 
-def idle(server: Server, *, connections: int, clients: int, hold_s: float, reopen: bool = False) -> dict:
+def idle(server: Server, *, connections: int, clients: int, hold_s: float, reopen: bool = False, rate: float = 0.0) -> dict:
     """Hold ``connections`` idle connections from ``clients`` loopback addresses while probing ``/healthz``."""
     log0 = server.log_bytes()
     out = mp.get_context("spawn").Queue()
-    procs = [mp.get_context("spawn").Process(target=hold_idle, args=(server.port, connections // clients, f"127.0.0.{2 + i}", hold_s, out, reopen))
+    procs = [mp.get_context("spawn").Process(target=hold_idle, args=(server.port, connections // clients, f"127.0.0.{2 + i}", hold_s, out, reopen, rate))
              for i in range(clients)]
     for p in procs:
         p.start()
@@ -198,7 +201,8 @@ def idle(server: Server, *, connections: int, clients: int, hold_s: float, reope
     probe.join()
     for p in procs:
         p.join(30)
-    return {"connections": connections, "clients": clients, "hold_s": hold_s, "reopen": reopen, **_summary(seen),
+    return {"connections": connections, "clients": clients, "hold_s": hold_s, "reopen": reopen,
+            "rate_per_client": rate or "unlimited", **_summary(seen),
             "opened": sum(r["opened"] for r in reports),
             "closed_by_server": sum(r["closed_by_server_or_failed"] for r in reports),
             "log_growth_bytes": server.log_bytes() - log0}
@@ -258,6 +262,7 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--connections", type=int, default=20_000, help="idle connections in all (default 20000)")
     p.add_argument("--clients", type=int, default=None, help="client processes (idle: default 2) or threads (bodies: 16)")
     p.add_argument("--reopen", action="store_true", help="idle: open a connection again as soon as the server closes it")
+    p.add_argument("--rate", type=float, default=0.0, help="idle: connections a second per client (default 0: as fast as it can)")
     p.add_argument("--hold", type=float, default=45.0, help="seconds the clients keep at it (default 45)")
     args = p.parse_args(argv)
     raise_nofile(4096)
@@ -267,7 +272,7 @@ def main(argv: list[str] | None = None) -> int:
                 result = quiet(server, hold_s=args.hold)
             elif args.what == "idle":
                 result = idle(server, connections=args.connections, clients=args.clients or 2, hold_s=args.hold,
-                              reopen=args.reopen)
+                              reopen=args.reopen, rate=args.rate)
             else:
                 from service.auth import create_token
                 from service.db.jobstore import Store
