@@ -131,9 +131,15 @@ class Server:
         if not self.url:
             self.__exit__()
             raise RuntimeError("orchard serve did not say where it listens")
-        while httpx.get(self.url + "/healthz", timeout=5).status_code != 200:
+        while time.monotonic() < deadline:  # (the socket is bound before the app starts: said, not yet listening)
+            try:
+                if httpx.get(self.url + "/healthz", timeout=5).status_code == 200:
+                    return self
+            except httpx.HTTPError:
+                pass
             time.sleep(0.1)
-        return self
+        self.__exit__()
+        raise RuntimeError(f"orchard serve did not answer /healthz: {self.log_text()[-2000:]}")
 
     @property
     def port(self) -> int:
