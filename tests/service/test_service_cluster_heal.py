@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import os
 import signal
+import threading
 import time
 
 import httpx
@@ -65,3 +66,47 @@ def test_five_worker_kills_in_a_row_and_the_next_job_runs_without_a_restart(tmp_
         print(f"killed {killed} worker processes; healthz saw no workers: {seen_none}")
     finally:
         srv.stop()
+
+
+class _Client:
+    """A client of an external cluster as the runner sees it: the workers it last heard of."""
+
+    def __init__(self, n_workers: int) -> None:
+        self._scheduler_identity = {"n_workers": n_workers}
+        self.status = "running"
+
+    def close(self) -> None:
+        pass
+
+
+def test_a_running_job_without_workers_says_so_until_some_connect(tmp_path, monkeypatch):
+    import service.runner as runner_module
+    from service.db.jobstore import Store
+    from service.runner import Runner
+    from service.settings import Settings
+
+    monkeypatch.setattr(runner_module, "DOCTOR_POLL_S", 0.05)
+    settings = Settings(data_dir=tmp_path, scheduler="tcp://127.0.0.1:1")
+    store = Store(settings.store_path)
+    tenant = store.ensure_tenant("farm")
+    block, _ = store.insert_block(tenant_id=tenant["id"], sha256="ab" * 32, path="/x.las", filename="b.las",
+                                  size_bytes=1, info={})
+    store.create_job(tenant_id=tenant["id"], block_id=block["id"], params={}, tiling=None)
+    job = store.claim_next_job()
+    runner = Runner(store, settings)
+    runner._client, runner._current = _Client(0), job["id"]
+    doctor = threading.Thread(target=runner._doctor)
+    doctor.start()
+    try:
+        deadline = time.monotonic() + 30
+        while time.monotonic() < deadline and not store.get_job(None, job["id"])["error"]:
+            time.sleep(0.05)
+        assert store.get_job(None, job["id"])["error"] == "waiting for dask workers: the cluster has none"
+        runner._client._scheduler_identity = {"n_workers": 1}
+        while time.monotonic() < deadline and store.get_job(None, job["id"])["error"]:
+            time.sleep(0.05)
+        assert store.get_job(None, job["id"])["error"] is None  # put back as it was
+    finally:
+        runner._stopping.set()
+        doctor.join(10)
+        store.close()
