@@ -147,6 +147,23 @@ def test_connections_past_the_cap_of_one_address_get_503_and_others_still_get_th
             s.close()
 
 
+def test_connections_past_the_cap_in_all_get_503(edge_server):
+    held = [_connect(edge_server, f"127.0.0.{10 + i // 8}") for i in range(40)]  # 5 addresses of 8: the cap of 40
+    try:
+        with _connect(edge_server, "127.0.0.20") as extra:
+            extra.sendall(b"GET /healthz HTTP/1.1\r\nHost: x\r\n\r\n")
+            reply = _reply(extra)
+        assert reply.startswith(b"HTTP/1.1 503") and b"at most 40 in all" in reply, reply
+    finally:
+        for s in held:
+            s.close()
+    deadline = time.monotonic() + 30  # (the server sees them close)
+    while time.monotonic() < deadline:
+        if httpx.get(edge_server.url + "/healthz", timeout=30).status_code == 200:
+            break
+        time.sleep(0.1)
+
+
 def test_a_json_body_that_trickles_is_cut_off(edge_server):
     with _connect(edge_server) as s:
         s.sendall(b"POST /v1/jobs HTTP/1.1\r\nHost: x\r\nContent-Type: application/json\r\nContent-Length: 100\r\n\r\n{")
