@@ -22,13 +22,15 @@ from fastapi.concurrency import run_in_threadpool
 from pipeline.errors import ParameterError
 from service import tempfiles, web
 from service.api import openapi, routes_health, v1_router
+from service.api.bodies import JsonShape
 from service.api.deps import wake_runner
 from service.api.results import ensure_report
 from service.api.uploads import UPLOAD_SLACK, BodyLimit
 from service.db.jobstore import Store
 from service.errors import install_error_handlers
+from service.headers import SecurityHeaders
 from service.permissions import private_dir, tighten
-from service.runner import Runner, drop_work, hold_runner_lock, job_dir
+from service.runner import Runner, drop_work, hold_runner_lock, job_dir, sweep_work
 from service.schedules import ScheduleClock
 from service.settings import Settings
 from service.webhooks import WebhookSender, job_event
@@ -71,6 +73,7 @@ def create_app(settings: Settings) -> FastAPI:
             n = store.requeue_running(max_crashes=settings.max_crashes)
             if n:
                 log.info("re-queued %d job(s) interrupted by the last shutdown", n)
+            await run_in_threadpool(sweep_work, settings, store)  # failed just now, or a crash cut the deletion short
         if settings.runner:
             app.state.runner = Runner(store, settings, after_done=after_done, on_final=app.state.notify_job)
             app.state.runner.start()
@@ -120,12 +123,14 @@ def create_app(settings: Settings) -> FastAPI:
     app.state.report_lock = report_lock
     install_error_handlers(app)
     openapi.install(app)
+    app.add_middleware(JsonShape)  # inside BodyLimit: it reads a body already bounded in size
     app.add_middleware(
         BodyLimit,
         default=settings.max_request_kb * 1024,
         upload=settings.max_upload_bytes + UPLOAD_SLACK,
         upload_mb=settings.max_upload_mb,
     )
+    app.add_middleware(SecurityHeaders)  # outermost: on every response, the errors of the others too
     app.include_router(routes_health.router)
     app.include_router(v1_router())
     web.install(app)

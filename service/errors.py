@@ -39,10 +39,11 @@ class TooLargeError(StarletteHTTPException):
 
 
 class StalledUploadError(StarletteHTTPException):
-    """An upload whose body stopped arriving for longer than the idle limit (408)."""
+    """An upload whose body stopped arriving, trickled, or outlasted its deadline (408);
+    the connection is closed with it (the rest of the body is not read)."""
 
     def __init__(self, detail: str) -> None:
-        super().__init__(status_code=408, detail=detail)
+        super().__init__(status_code=408, detail=detail, headers={"Connection": "close"})
 
 
 class ShuttingDownError(StarletteHTTPException):

@@ -51,6 +51,8 @@ class ClusterUnavailable(RuntimeError):
 RUNNER_LOCK = "runner.lock"
 #: how often [s] a running job looks in the store for a cancel made by another process
 CANCEL_POLL_S = 1.0
+#: how often [s] the runner looks at the dask cluster's workers (and replaces lost ones)
+DOCTOR_POLL_S = 2.0
 
 
 def hold_runner_lock(data_dir: Path) -> IO:
@@ -110,6 +112,36 @@ def drop_work(settings: Settings, job_id: str) -> None:
             out_dir.rmdir()
     except Exception as exc:  # noqa: BLE001 - leftover tiles must not change the job's outcome
         log.warning("job %s: could not delete its tiles: %s", job_id, exc)
+
+
+def sweep_work(settings: Settings, store: Store) -> list[str]:
+    """Delete the work stores (tiles) left by jobs that have ended: failed at start-up
+    after too many crashes (`Store.requeue_running`), or whose deletion a crash cut
+    short. Only jobs this store knows as done, failed or cancelled are touched (a shared
+    work folder may hold other services' jobs). Returns the ids swept."""
+    from service.db.errors import NotFoundError
+    from workers.workstore import WorkStore
+
+    if settings.work_dir:
+        try:
+            candidates = WorkStore(settings.work_dir).entries()
+        except Exception as exc:  # noqa: BLE001 - an unreachable work store: the next start looks again
+            log.warning("cannot list the work store %s: %s", settings.work_dir, exc)
+            return []
+    else:
+        candidates = sorted(p.parent.name for p in settings.jobs_dir.glob("*/_work"))
+    swept = []
+    for job_id in candidates:
+        try:
+            state = store.get_job(None, job_id)["state"]
+        except NotFoundError:
+            continue
+        if state in ("done", "failed", "cancelled"):
+            drop_work(settings, job_id)
+            swept.append(job_id)
+    if swept:
+        log.info("deleted the tiles of %d ended job(s)", len(swept))
+    return swept
 
 
 def _is_cancel(exc: BaseException) -> bool:
@@ -206,9 +238,45 @@ class Runner(threading.Thread):
         status = str(getattr(client, "status", "running"))
         return "connected" if status == "running" else status
 
+    def cluster_workers(self) -> tuple[int, int | None] | None:
+        """(workers connected, workers the cluster should have: None for an external
+        one), or None while there is no cluster."""
+        client = self._client
+        if client is None:
+            return None
+        from workers.cluster import cluster_workers
+
+        try:
+            return cluster_workers(client)
+        except Exception:  # noqa: BLE001 - a cluster closing meanwhile
+            return None
+
     @property
     def current_job(self) -> str | None:
         return self._current
+
+    def _doctor(self) -> None:
+        """Every `DOCTOR_POLL_S`: replace the embedded cluster's lost workers (without a
+        restart of the service), and say on the running job when it waits for workers."""
+        from workers.cluster import heal_cluster
+
+        noted: tuple[str, str | None] | None = None  # (job id, its error before the note)
+        while not self._stopping.wait(DOCTOR_POLL_S):
+            client = self._client
+            try:
+                if client is not None and self.settings.scheduler is None:
+                    heal_cluster(client, self.settings.n_workers)
+                counts, job_id = self.cluster_workers(), self._current
+                if noted is not None and (noted[0] != job_id or not counts or counts[0] > 0):
+                    self.store.set_job_note(noted[0], noted[1])
+                    noted = None
+                if noted is None and job_id is not None and counts is not None and counts[0] == 0:
+                    before = self.store.get_job(None, job_id).get("error")
+                    want = f" (it should have {counts[1]}; new ones are starting)" if counts[1] else ""
+                    self.store.set_job_note(job_id, f"waiting for dask workers: the cluster has none{want}")
+                    noted = (job_id, before)
+            except Exception as exc:  # noqa: BLE001 - look again next time
+                log.warning("runner: cannot look after the dask cluster: %s", exc)
 
     # -- the thread ------------------------------------------------------------------
 
@@ -262,6 +330,7 @@ class Runner(threading.Thread):
             log.debug("closing dask client: %s", exc)
 
     def run(self) -> None:
+        threading.Thread(target=self._doctor, name="orchard-cluster-doctor", daemon=True).start()
         try:
             while not self._stopping.is_set():
                 try:

@@ -66,6 +66,35 @@ class Settings(BaseSettings):
         300.0, gt=0, le=86400,
         description="an upload whose body sends nothing for this long is dropped (408) and its partial file deleted [s]",
     )
+    upload_deadline_s: float = Field(
+        3600.0, gt=0, le=7 * 86400,
+        description="an upload still arriving this long after it began is dropped (408) and its partial file deleted [s]",
+    )
+    upload_min_kbps: float = Field(
+        8.0, ge=0, description="an upload that has averaged less than this since it began is dropped (408), judged "
+        "from upload_idle_s on (0 = no minimum) [kB/s]",
+    )
+    header_timeout_s: float = Field(
+        10.0, gt=0, le=600, description="a request whose line and headers have not all arrived this long after the "
+        "connection opened (or its first byte on a kept-alive one) is answered 408 and closed [s]",
+    )
+    body_timeout_s: float = Field(
+        120.0, gt=0, le=86400, description="a request body other than an upload that has not all arrived this long "
+        "after its headers is cut off [s]",
+    )
+    max_connections: int = Field(
+        1000, ge=1, description="open HTTP connections in all; past it (or past the process's file-handle limit less "
+        "a reserve) a new one is answered 503 and closed",
+    )
+    max_connections_per_client: int = Field(
+        64, ge=1, description="open HTTP connections from one address (behind a reverse proxy: the proxy's); past it "
+        "a new one is answered 503 and closed",
+    )
+    log_file: Path | None = Field(
+        None, description="write the log to this file, rotated (unset: stderr); repeated warnings are rate-limited either way",
+    )
+    log_max_mb: float = Field(10.0, gt=0, description="size at which the log file is rotated [MB]")
+    log_backups: int = Field(5, ge=0, le=100, description="rotated log files kept beside the log file")
     runner: bool = Field(True, description="run queued jobs in this process (background runner thread)")
     scheduling: bool = Field(True, description="run overnight schedules in this process (schedule clock thread)")
     inbox_root: Path | None = Field(
@@ -101,7 +130,7 @@ class Settings(BaseSettings):
     webhook_timeout_s: float = Field(10.0, gt=0, le=120, description="longest wait for a webhook receiver's answer [s]")
     webhook_poll_s: float = Field(5.0, gt=0, le=3600, description="longest sleep of the webhook sender between looks [s]")
 
-    @field_validator("data_dir", "inbox_root")
+    @field_validator("data_dir", "inbox_root", "log_file")
     @classmethod
     def _absolute_path(cls, v: Path | None) -> Path | None:
         # the store records block paths, and dask workers resolve relative ones against

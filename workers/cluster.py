@@ -21,8 +21,8 @@ from workers.identity import DISTRIBUTION, identity
 
 log = logging.getLogger(__name__)
 
-#: Where an embedded cluster listens unless told otherwise: its scheduler, nannies,
-#: workers and dashboard answer anyone who can reach them, without a login.
+#: Where an embedded cluster listens unless told otherwise (its comms need the cluster's
+#: own TLS certificates; its dashboard, when on, answers anyone who can reach it).
 LOOPBACK = "127.0.0.1"
 #: glibc's allocator settings in the embedded cluster's worker processes [bytes], in
 #: place of dask's ``MALLOC_TRIM_THRESHOLD_=65536``: setting that fixes the mmap
@@ -76,8 +76,13 @@ def _check_answers(address: str, seconds: float) -> None:
 
     from distributed.comm import connect
 
+    from distributed.security import Security
+
+    # a tls:// scheduler: the credentials of dask's configuration (docs/cluster.md)
+    args = Security().get_connection_args("client")
+
     async def knock() -> None:
-        comm = await asyncio.wait_for(connect(address, timeout=seconds), seconds)
+        comm = await asyncio.wait_for(connect(address, timeout=seconds, **args), seconds)
         await comm.close()
 
     asyncio.run(knock())
@@ -119,7 +124,10 @@ def make_client(
         by the job, instead of as a worker traceback per attempt).
     host : str
         Embedded cluster only: the address its scheduler, nannies, workers and
-        dashboard listen on (loopback by default: none of them asks for a login).
+        dashboard listen on (loopback by default). With worker processes, every comm
+        of the cluster is mutual TLS with certificates made at start-up, held in
+        memory: a client without them is refused (the dashboard, off by default,
+        asks for no login).
 
     Raises
     ------
@@ -150,11 +158,16 @@ def make_client(
             raise
         return client
     _check_host(host)
+    # worker processes talk to the scheduler over TLS with certificates made here, for this
+    # cluster alone: a client without them (another local account) is refused
+    security = _temporary_security() if processes else None
     with _workers_ignore_interrupt(), worker_allocator():
         cluster = LocalCluster(
             n_workers=int(n_workers),
             threads_per_worker=int(threads_per_worker),
             processes=processes,
+            security=security,
+            protocol="tls://" if security is not None else None,
             host=host if processes else None,  # in-process workers talk over inproc://, no network
             # the scheduler's HTTP server starts even without a dashboard (None means 8787):
             # on a free port of ``host`` (a bare ":0" would mean every interface)
@@ -172,6 +185,63 @@ def make_client(
     client.orchard_dashboard = dashboard
     client.orchard_host = host
     return client
+
+
+def _temporary_security():
+    """Mutual TLS for an embedded cluster: a certificate made now, in memory only
+    (`distributed.security.Security.temporary`, which needs the ``cryptography``
+    package); every comm needs it, both ways, and nothing is sent in the clear."""
+    from distributed.security import Security
+
+    return Security.temporary()
+
+
+def cluster_workers(client: Client) -> tuple[int, int | None]:
+    """(workers connected to the scheduler, workers it should have): the second is the
+    embedded cluster's size, None for an external cluster (its size is not ours to know)."""
+    cluster = getattr(client, "cluster", None)
+    if cluster is not None and getattr(cluster, "scheduler", None) is not None:
+        return len(cluster.scheduler.workers), len(cluster.worker_spec)
+    # the client's cached view (refreshed every few seconds): asking the scheduler could hang
+    ident = getattr(client, "_scheduler_identity", None) or {}
+    n = ident.get("n_workers")
+    return (int(n) if n is not None else len(ident.get("workers") or {})), None
+
+
+def heal_cluster(client: Client, n_workers: int, *, timeout: float = 120.0) -> int:
+    """Replace the embedded cluster's lost workers; returns how many it started.
+
+    A nanny restarts its worker process when that dies, but gives up (and leaves the
+    cluster) when the new one dies while it starts: killed five times about 4 s apart,
+    the cluster kept 0 of its 2 workers for good. A nanny that left, closed or failed is
+    replaced here by a new one (with the same allocator settings), until the cluster
+    has ``n_workers`` again. An external cluster, or an embedded one that is closing, is
+    left alone.
+    """
+    from distributed.core import Status
+
+    cluster = getattr(client, "cluster", None)
+    if cluster is None or getattr(cluster, "status", None) not in (Status.running,):
+        return 0
+    lost = [name for name, w in list(cluster.workers.items()) if getattr(w, "status", None) in (Status.closed, Status.failed)]
+    if not lost and len(cluster.worker_spec) >= n_workers and len(cluster.workers) >= n_workers:
+        return 0
+    missing = n_workers - (len(cluster.workers) - len(lost))
+    log.warning("the embedded dask cluster lost %d of its %d worker(s) for good; starting new ones", missing, n_workers)
+    cluster.sync(_replace_workers, cluster, lost, n_workers, callback_timeout=timeout)
+    return missing
+
+
+async def _replace_workers(cluster, lost: list, n_workers: int) -> None:
+    for name in lost:
+        cluster.worker_spec.pop(name, None)  # _correct_state closes and forgets it
+    while len(cluster.worker_spec) < n_workers:
+        cluster.worker_spec.update(cluster.new_worker_spec())
+    with worker_allocator():  # (each nanny reads the settings as it is made)
+        try:
+            await cluster._correct_state()
+        except Exception as exc:  # noqa: BLE001 - a new worker that failed to start: the next round replaces it
+            log.warning("a new dask worker failed to start: %s", exc)
 
 
 @contextmanager

@@ -27,6 +27,10 @@ def healthz(request: Request, response: Response, settings: SettingsDep) -> Heal
     if free_mb is not None and free_mb < settings.min_free_mb:
         problems.append(f"the data folder's disk has {free_mb:.0f} MB free, below {settings.min_free_mb:g} MB "
                         "(ORCHARD_MIN_FREE_MB): uploads and jobs will fail until space is freed")
+    counts = runner.cluster_workers() if runner is not None else None
+    if counts is not None and counts[0] == 0:
+        want = f" of the {counts[1]} it should have (new ones are starting)" if counts[1] else ""
+        problems.append(f"the dask cluster has no workers{want}: jobs wait until some connect")
     if problems:
         response.status_code = 503
     return Health(
@@ -37,4 +41,6 @@ def healthz(request: Request, response: Response, settings: SettingsDep) -> Heal
         runner="disabled" if runner is None else ("alive" if runner.is_alive() else "stopped"),
         schedules="disabled" if clock is None else ("alive" if clock.is_alive() else "stopped"),
         cluster="disabled" if runner is None else runner.cluster_state(),
+        workers=None if counts is None else counts[0],
+        workers_expected=None if counts is None else counts[1],
     )

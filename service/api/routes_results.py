@@ -10,6 +10,7 @@ from fastapi import APIRouter, Query, Request
 from fastapi.responses import FileResponse, HTMLResponse
 
 from service import report as reports
+from service.headers import report_policy
 from service.api.deps import SettingsDep, StoreDep, TenantDep
 from service.api.downloads import DownloadResponse
 from service.api.results import ensure_report, job_output, require_output
@@ -115,7 +116,9 @@ def job_report(job_id: str, request: Request, tenant: TenantDep, store: StoreDep
     job, _ = job_output(store, settings, tenant, job_id, "trees.parquet")
     with request.app.state.report_lock:
         path = ensure_report(store, settings, job)
-    return HTMLResponse(path.read_text(encoding="utf-8"))
+    text = path.read_text(encoding="utf-8")
+    # its scripts are inlined (it opens from disk offline): the policy names them by hash
+    return HTMLResponse(text, headers={"Content-Security-Policy": report_policy(text)})
 
 
 @router.api_route(

@@ -261,6 +261,10 @@ class Health(BaseModel):
         "'unreachable' (the last attempt to reach the cluster failed; the next job tries again), "
         "or distributed's state of a client that lost its scheduler (e.g. 'connecting')"
     )
+    workers: int | None = Field(None, description="dask workers connected to the cluster's scheduler (none while "
+                                "the cluster is not started); 0 is 'not ok'")
+    workers_expected: int | None = Field(None, description="workers the embedded cluster should have (lost ones are "
+                                         "replaced); none for an external cluster")
 
 
 #: error answers of every ``/v1`` route (the router's default responses)

@@ -4,7 +4,9 @@ streamed to a temporary file.
 `BodyLimit` answers 413 for a body above its limit (an upload has its own, larger one).
 `receive_upload` parses a multipart upload as it arrives, writing its ``file`` field to a
 temporary file of this process (`service.tempfiles`) while hashing it; an upload that
-stalls, is cut off, is malformed or grows past the limit leaves no file behind.
+stalls (nothing for ``upload_idle_s``), trickles (below ``upload_min_kbps`` on average,
+or still arriving after ``upload_deadline_s``), is cut off, is malformed or grows past
+the limit leaves no file behind.
 """
 
 from __future__ import annotations
@@ -186,18 +188,24 @@ async def receive_upload(request: Request, settings: Settings) -> FilePart:
     stream = request.stream()
     stopping = getattr(request.app.state, "stopping", None)  # set when the server is told to stop
     stop = asyncio.ensure_future(stopping.wait()) if stopping is not None else None
+    loop = asyncio.get_running_loop()
+    began, received = loop.time(), 0
     try:
         while True:
-            # wait for the next chunk, the idle limit or the server stopping: a client that stops
-            # sending would hold the request and its partial file for good, and delay a shutdown
+            # wait for the next chunk, the idle limit, the overall deadline or the server stopping:
+            # a client that stops sending, or trickles, would hold the request and its partial
+            # file for good, and delay a shutdown
+            left = settings.upload_deadline_s - (loop.time() - began)
             nxt = asyncio.ensure_future(anext(stream))
-            done, _ = await asyncio.wait({nxt} | ({stop} if stop else set()), timeout=settings.upload_idle_s,
+            done, _ = await asyncio.wait({nxt} | ({stop} if stop else set()), timeout=max(0.0, min(settings.upload_idle_s, left)),
                                          return_when=asyncio.FIRST_COMPLETED)
             if nxt not in done:
                 nxt.cancel()
                 if stop is not None and stop in done:
                     raise ShuttingDownError("the server is stopping and cannot take this upload; send it again "
                                             "once it is back (nothing of it was kept)")
+                if loop.time() - began >= settings.upload_deadline_s:
+                    raise StalledUploadError(_late(settings))
                 raise StalledUploadError(
                     f"the upload sent nothing for {settings.upload_idle_s:g} s (ORCHARD_UPLOAD_IDLE_S); send it again"
                 )
@@ -205,6 +213,16 @@ async def receive_upload(request: Request, settings: Settings) -> FilePart:
                 chunk = nxt.result()
             except StopAsyncIteration:
                 break
+            received += len(chunk)
+            elapsed = loop.time() - began
+            if elapsed >= settings.upload_deadline_s:
+                raise StalledUploadError(_late(settings))
+            if settings.upload_min_kbps and elapsed >= settings.upload_idle_s \
+                    and received < settings.upload_min_kbps * 1024 * elapsed:
+                raise StalledUploadError(
+                    f"the upload averaged {received / 1024 / elapsed:.2f} kB/s over {elapsed:.0f} s, below the "
+                    f"minimum of {settings.upload_min_kbps:g} kB/s (ORCHARD_UPLOAD_MIN_KBPS); send it again over a faster link"
+                )
             try:
                 parser.write(chunk)
             except OSError:  # writing the file (a full disk): the server's fault, not the body's
@@ -247,6 +265,11 @@ async def receive_upload(request: Request, settings: Settings) -> FilePart:
         part.tmp_path.unlink(missing_ok=True)
         raise InputError("no field 'file' in the upload; send the block as multipart field 'file' (curl -F file=@block.laz)")
     return part
+
+
+def _late(settings: Settings) -> str:
+    return (f"the upload did not arrive within {settings.upload_deadline_s:g} s (ORCHARD_UPLOAD_DEADLINE_S); "
+            "send it again over a faster link")
 
 
 #: the upload route's request body in the API document (the route reads the stream itself)

@@ -59,6 +59,24 @@ def bind(host: str, port: int) -> socket.socket:
     return sock
 
 
+#: file handles kept for the job store, uploads, results and the dask cluster's sockets
+FD_RESERVE = 512
+
+
+def connection_cap(wanted: int) -> int:
+    """``wanted`` open connections, or fewer if the process's file-handle limit (raised to
+    its hard limit first) would not leave `FD_RESERVE` for the rest: past that limit
+    ``accept()`` fails, and asyncio stops accepting anyone for a second each time."""
+    import resource
+
+    soft, hard = resource.getrlimit(resource.RLIMIT_NOFILE)
+    if hard == resource.RLIM_INFINITY or hard > soft:
+        with contextlib.suppress(ValueError, OSError):
+            resource.setrlimit(resource.RLIMIT_NOFILE, (hard if hard != resource.RLIM_INFINITY else max(soft, 65536), hard))
+            soft = resource.getrlimit(resource.RLIMIT_NOFILE)[0]
+    return max(1, min(wanted, soft - FD_RESERVE))
+
+
 def run(args: argparse.Namespace) -> int:
     import uvicorn
 
@@ -75,7 +93,9 @@ def run(args: argparse.Namespace) -> int:
         dask_host=args.dask_host,
         max_upload_mb=args.max_upload_mb,
     )
-    logging.basicConfig(level=args.log_level.upper(), format="%(asctime)s %(levelname)s %(name)s: %(message)s")
+    from service import logs
+
+    logs.configure(args.log_level, log_file=settings.log_file, max_mb=settings.log_max_mb, backups=settings.log_backups)
     if args.log_level != "debug":
         logging.getLogger("distributed").setLevel(logging.WARNING)  # the cluster's own chatter
     from service.permissions import UMASK
@@ -97,7 +117,20 @@ def run(args: argparse.Namespace) -> int:
                 begin()
             super().handle_exit(sig, frame)
 
-    config = uvicorn.Config(app, host=settings.host, port=settings.port, log_level=args.log_level, timeout_graceful_shutdown=10)
+    from service.edge import EdgeLimits, edge_protocol
+
+    limits = EdgeLimits(
+        max_connections=connection_cap(settings.max_connections),
+        max_per_client=settings.max_connections_per_client,
+        header_timeout_s=settings.header_timeout_s,
+        body_timeout_s=settings.body_timeout_s,
+    )
+    config = uvicorn.Config(app, host=settings.host, port=settings.port, log_level=args.log_level, timeout_graceful_shutdown=10,
+                            http=edge_protocol(limits), log_config=None,  # uvicorn's records go through service.logs
+                            timeout_keep_alive=5,
+                            # (the kernel caps it at net.core.somaxconn): a burst of connections
+                            # that overflows the queue drops new ones, /healthz's too, for seconds
+                            backlog=4096)
     server = Server(config)
     with contextlib.suppress(KeyboardInterrupt):
         server.run(sockets=[sock])

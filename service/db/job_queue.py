@@ -114,6 +114,12 @@ class JobQueue(TenantQuotas):
                 "UPDATE jobs SET tiles_done = ?, tiles_total = ? WHERE id = ? AND state = 'running'", (done, total, job_id)
             )
 
+    def set_job_note(self, job_id: str, note: str | None) -> None:
+        """Say on a running job why it is not moving (its ``error`` while it runs), or
+        put back what was there (None clears it)."""
+        with self._tx() as con:
+            con.execute("UPDATE jobs SET error = ? WHERE id = ? AND state = 'running'", (note, job_id))
+
     def finish_job(
         self,
         job_id: str,

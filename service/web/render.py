@@ -4,6 +4,10 @@ The same job page serves two masters: the service (scripts and styles from
 ``/static``, data from the JSON API with the session cookie) and ``report.html``
 (everything inlined, the data in a ``<script type="application/json">`` element, so the
 file opens from disk without a server or a network).
+
+No page carries an inline script of its own (the served pages' Content-Security-Policy
+runs none, see `service.headers`): ``<body data-page=...>`` tells the page scripts what
+to start, and ``data-job-id`` which job.
 """
 
 from __future__ import annotations
@@ -87,13 +91,13 @@ def blocks_page(*, tenant_name: str, csrf: str) -> str:
     schedules' inboxes with every capture's fate (``inbox.js``)."""
     return (
         _head("Blocks and jobs — Orchard", ("app.css",), csrf=csrf)
-        + "<body>"
+        + '<body data-page="blocks">'
         + _nav(tenant_name, csrf)
         + '<main><h1>Blocks and jobs</h1>'
         '<p class="small" id="updated" aria-live="polite">Loading…</p>'
         '<div id="blocks"></div><div id="inboxes"></div></main>\n'
         + _scripts(("orchard.js", "blocks.js", "inbox.js"))
-        + "<script>Orchard.blocks();</script></body></html>\n"
+        + "</body></html>\n"
     )
 
 
@@ -128,16 +132,12 @@ def job_page(*, job_id: str, tenant_name: str, csrf: str) -> str:
     """A job's page in the service: the state while it runs, then the map and the tables."""
     return (
         _head(f"Job {job_id} — Orchard", _JOB_STYLES, csrf=csrf)
-        + "<body>"
+        + f'<body data-page="job" data-job-id="{_e(job_id)}">'
         + _nav(tenant_name, csrf)
         + _job_body(f"Job {job_id}")
         + _scripts(_JOB_SCRIPTS)
-        + f"<script>Orchard.job({{jobId: {_js_string(job_id)}}});</script></body></html>\n"
+        + "</body></html>\n"
     )
-
-
-def _js_string(text: str) -> str:
-    return json.dumps(text).replace("<", "\\u003c")
 
 
 def report_page(*, title: str, data_json: str, facts: dict[str, str], downloads: dict[str, str],
@@ -151,13 +151,13 @@ def report_page(*, title: str, data_json: str, facts: dict[str, str], downloads:
     cfg = json.dumps({"title": title, "facts": facts, "downloads": downloads, "warning": warning}).replace("<", "\\u003c")
     return (
         _head(title, _JOB_STYLES, inline=True)
-        + "<body>"
+        + '<body data-page="report">'
         + _job_body(title)
         + f'<script type="application/json" id="orchard-data">{data_json}</script>\n'
         + f'<script type="application/json" id="orchard-report">{cfg}</script>\n'
         + f'<noscript>{fallback}</noscript>\n'
         + _scripts(_JOB_SCRIPTS, inline=True)
-        + "<script>Orchard.report();</script></body></html>\n"
+        + "</body></html>\n"
     )
 
 

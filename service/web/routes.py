@@ -9,12 +9,13 @@ from __future__ import annotations
 
 import functools
 import gzip
+import html
 import threading
 from typing import Annotated
 from urllib.parse import quote
 
 from fastapi import APIRouter, Form, Request
-from fastapi.openapi.docs import get_redoc_html, get_swagger_ui_html
+from fastapi.openapi.docs import get_redoc_html
 from fastapi.responses import HTMLResponse, RedirectResponse, Response
 
 from service.api.results import job_output, require_output
@@ -26,8 +27,8 @@ from service.web import mapdata, render, sessions
 router = APIRouter(include_in_schema=False)
 _map_lock = threading.Lock()  # one footprint computation at a time (it reads the whole block)
 
-# pages name the farm and carry its CSRF token: not cached, not framed by another site (clickjacking)
-_NO_STORE = {"Cache-Control": "no-store", "X-Frame-Options": "DENY", "Content-Security-Policy": "frame-ancestors 'none'"}
+# pages name the farm and carry its CSRF token: not cached (nor framed: service.headers says that for every response)
+_NO_STORE = {"Cache-Control": "no-store"}
 
 
 def _store(request: Request):
@@ -142,13 +143,17 @@ def job_map_data(job_id: str, request: Request) -> Response:
 
 @router.get("/docs")
 def swagger(request: Request) -> HTMLResponse:
-    return get_swagger_ui_html(
-        openapi_url=request.app.openapi_url,
-        title=f"{request.app.title} — API",
-        swagger_js_url=f"{render.STATIC_URL}/vendor/swagger-ui/swagger-ui-bundle.js",
-        swagger_css_url=f"{render.STATIC_URL}/vendor/swagger-ui/swagger-ui.css",
-        swagger_favicon_url=render.FAVICON,
-        swagger_ui_parameters={"validatorUrl": None},  # its badge would ask a server on the internet
+    # FastAPI's own page starts Swagger UI with an inline script, which the CSP refuses
+    title = html.escape(f"{request.app.title} — API")
+    static = render.STATIC_URL
+    return HTMLResponse(
+        '<!doctype html>\n<html lang="en"><head><meta charset="utf-8">'
+        '<meta name="viewport" content="width=device-width, initial-scale=1">'
+        f'<title>{title}</title><link rel="icon" href="{render.FAVICON}" type="image/svg+xml">'
+        f'<link rel="stylesheet" href="{static}/vendor/swagger-ui/swagger-ui.css"></head>\n'
+        f'<body><div id="swagger-ui" data-openapi-url="{html.escape(request.app.openapi_url)}"></div>\n'
+        f'<script src="{static}/vendor/swagger-ui/swagger-ui-bundle.js"></script>\n'
+        f'<script src="{static}/swagger-init.js"></script>\n</body></html>\n'
     )
 
 

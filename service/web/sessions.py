@@ -126,15 +126,35 @@ def current_session(request: Request, store: Store) -> tuple[Session, dict[str, 
     return sess, rec["tenant"]
 
 
+_DEFAULT_PORTS = {"http": 80, "https": 443}
+
+
+def _origin(scheme: str, netloc: str) -> tuple[str, str, int | None] | None:
+    """(scheme, host, port) of an origin, the port filled in from the scheme; None if malformed."""
+    try:
+        parts = urlsplit(f"{scheme}://{netloc}")
+        port = parts.port
+    except ValueError:
+        return None
+    if not parts.hostname:
+        return None
+    return scheme.lower(), parts.hostname.lower(), port if port is not None else _DEFAULT_PORTS.get(scheme.lower())
+
+
 def same_origin(request: Request) -> bool:
     """False when the browser says the request comes from another origin (Origin, or
-    Referer without it); True when it says nothing (non-browser clients)."""
+    Referer without it): scheme, host and port must all be this server's (the scheme as
+    the server sees it: https behind a proxy that says so, see docs/operations.md); True
+    when it says nothing (non-browser clients)."""
     source = request.headers.get("origin") or request.headers.get("referer")
     if not source or source == "null":
         return source is None
     parts = urlsplit(source)
-    host = request.headers.get("host", "")
-    return parts.scheme in ("http", "https") and parts.netloc == host
+    if parts.scheme not in ("http", "https"):
+        return False
+    theirs = _origin(parts.scheme, parts.netloc)
+    ours = _origin(request.url.scheme, request.headers.get("host", ""))
+    return theirs is not None and theirs == ours
 
 
 def check_csrf(request: Request, sess: Session, form_token: str | None = None) -> None:

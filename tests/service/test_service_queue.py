@@ -290,3 +290,40 @@ def test_a_queue_quota_holds_under_simultaneous_submissions(store):
     for th in threads:
         th.join()
     assert len(made) == 3 and len(refused) == 9
+
+
+def test_no_work_folder_of_a_failed_job_survives_a_restart(tmp_path):
+    from fastapi.testclient import TestClient
+
+    from service.app import create_app
+    from workers.workstore import MARKER
+
+    settings = Settings(data_dir=tmp_path / "data", runner=False, scheduling=True)  # holds the runner lock, runs nothing
+    settings.data_dir.mkdir()
+    s = Store(settings.store_path)
+    t = s.ensure_tenant("farm")
+    poison, ended, waiting = _jobs(s, t, 3)
+    s.close()
+    for jid in (poison, ended, waiting):
+        tiles = settings.jobs_dir / jid / "_work" / "tiles"
+        tiles.mkdir(parents=True)
+        (tiles / "t0.npy").write_bytes(b"x" * 1000)
+        (tiles.parent / MARKER).touch()  # as a job's work store leaves it
+    _crash_during(settings.store_path, poison)
+    s = Store(settings.store_path)
+    assert s.requeue_running(max_crashes=2) == 1  # the first crash: queued again
+    s.claim_next_job()  # (the poison job again: it is the oldest)
+    s.close()
+    # a job that failed while its tiles were being deleted (a crash cut it short)
+    con = sqlite3.connect(settings.store_path)
+    with con:
+        con.execute("UPDATE jobs SET state = 'failed', finished_at = 1 WHERE id = ?", (ended,))
+    con.close()
+    with TestClient(create_app(settings)):  # the restart after the second crash
+        pass
+    s = Store(settings.store_path)
+    assert s.get_job(None, poison)["state"] == "failed" and s.get_job(None, ended)["state"] == "failed"
+    assert s.get_job(None, waiting)["state"] == "queued"
+    s.close()
+    assert not (settings.jobs_dir / poison).exists() and not (settings.jobs_dir / ended).exists()
+    assert (settings.jobs_dir / waiting / "_work" / "tiles" / "t0.npy").exists()  # still to run: kept

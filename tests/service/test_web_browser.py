@@ -52,6 +52,10 @@ class Watch:
         self.errors: list[str] = []
         self.allowed = allowed
         context.route("**/*", self._route)
+        # a Content-Security-Policy violation becomes a console error (Chromium logs most
+        # of them itself; this catches the report-only kinds too)
+        context.add_init_script("document.addEventListener('securitypolicyviolation', e => "
+                                "console.error('CSP violation: ' + e.violatedDirective + ' ' + e.blockedURI))")
         page.on("request", lambda r: None if self._local(r.url) else self.outside.append(r.url))
         page.on("console", lambda m: self.errors.append(m.text) if m.type == "error" else None)
         page.on("pageerror", lambda e: self.errors.append(str(e)))
@@ -202,6 +206,56 @@ def test_walk_through_sign_in_blocks_job_sign_out_and_docs(browser, served):
         page.wait_for_timeout(500)
         _shot(page, "redoc")
         watch.clean()
+    finally:
+        context.close()
+
+
+@pytest.mark.slow
+def test_served_pages_run_under_the_security_headers(browser, served):
+    srv, tokens, jobs, trees = served
+    job = jobs["a"]
+    context = browser.new_context(viewport={"width": 1000, "height": 700})
+    page = context.new_page()
+    watch = Watch(context, page, {"127.0.0.1"})
+    try:
+        page.goto(srv.url + "/signin")
+        page.fill("#token", tokens["a"])
+        page.click("#signin")
+        page.wait_for_url("**/blocks")
+        page.wait_for_selector(f"tr[data-job='{job['id']}']")  # blocks.js started without an inline script
+        resp = page.goto(f"{srv.url}/jobs/{job['id']}")
+        assert "script-src 'self';" in resp.headers["content-security-policy"]
+        page.wait_for_selector("body[data-drawn]", timeout=60_000)  # so did job.js
+        # the served report: its inlined scripts run, named by hash, and nothing else inline
+        resp = page.goto(f"{srv.url}/v1/jobs/{job['id']}/report")
+        assert "'sha256-" in resp.headers["content-security-policy"] and resp.headers["x-frame-options"] == "DENY"
+        page.wait_for_selector("body[data-drawn]", timeout=60_000)
+        assert page.text_content("#tree-count") == str(len(trees))
+        watch.clean()
+        for path in ("/docs", "/redoc"):
+            resp = page.goto(srv.url + path)
+            assert "frame-ancestors 'none'" in resp.headers["content-security-policy"], path
+        page.goto(srv.url + "/docs")
+        page.wait_for_selector(".swagger-ui .opblock", timeout=30_000)
+        page.goto(srv.url + "/redoc")
+        page.wait_for_selector("[role=search], .menu-content", timeout=30_000)
+        page.wait_for_timeout(500)
+        watch.clean()
+        # on the report, an inline script that was not in the file (as an injected one would be) does not run
+        page.goto(f"{srv.url}/v1/jobs/{job['id']}/report")
+        page.wait_for_selector("body[data-drawn]", timeout=60_000)
+        ran = page.evaluate("""() => { const s = document.createElement('script'); s.textContent = 'window.injected = 1';
+                                       document.body.appendChild(s); return window.injected === 1; }""")
+        assert ran is False
+        assert any("Content Security Policy" in e for e in watch.errors), watch.errors  # and the browser said so
+        page.goto(srv.url + "/signin")  # (leaves the report: its violation reports are in)
+        watch.errors = []
+        # another page (here: one made by the test) cannot frame the report
+        page.set_content(f'<iframe id="f" src="{srv.url}/v1/jobs/{job["id"]}/report"></iframe>')
+        page.wait_for_timeout(1500)
+        framed = page.frame_locator("#f").locator("body[data-page]")
+        assert framed.count() == 0
+        assert any("frame" in e.lower() for e in watch.errors), watch.errors  # Chromium says why it refused
     finally:
         context.close()
 

@@ -88,6 +88,17 @@ def test_sign_in_from_another_site_is_refused(api, tokens):
         assert resp.status_code == 403 and "set-cookie" not in resp.headers
 
 
+def test_sign_in_from_this_host_with_another_scheme_or_port_is_refused(api, tokens):
+    own = str(api.base_url).rstrip("/")  # http://testserver
+    host = own.split("://", 1)[1]
+    for origin in (f"https://{host}", f"http://{host}:8443", f"https://{host}:80"):
+        with _browser(api) as c:
+            resp = _sign_in(c, tokens["a"], Origin=origin)
+            assert resp.status_code == 403 and "set-cookie" not in resp.headers, origin
+    with _browser(api) as c:  # the same origin, its default port written out
+        assert _sign_in(c, tokens["a"], Origin=f"http://{host}:80").status_code == 303
+
+
 def test_next_stays_on_this_server(api, tokens):
     with _browser(api) as c:
         resp = c.post("/signin", data={"token": tokens["a"], "next": "//evil.example/x"})
@@ -151,3 +162,42 @@ def test_api_docs_load_only_files_of_this_server(api, path):
     if path == "/redoc":
         script = api.get("/redoc/redoc.standalone.js").text
         assert "cdn.redoc.ly" not in script
+
+
+def test_every_kind_of_response_carries_the_security_headers(api, tokens, queued_jobs):
+    with _browser(api) as c:
+        seen = {
+            "signin": c.get("/signin"),
+            "docs": c.get("/docs"),
+            "redoc": c.get("/redoc"),
+            "openapi": c.get("/openapi.json"),
+            "static": c.get("/static/orchard.js"),
+            "health": c.get("/healthz"),
+            "unauthorized": c.get("/v1/jobs"),
+            "not found": c.get("/nowhere"),
+            "too large": c.post("/v1/jobs", content=b"{}", headers={"Content-Length": str(1 << 30)}),
+        }
+        _sign_in(c, tokens["a"])
+        seen["blocks"] = c.get("/blocks")
+        seen["job"] = c.get(f"/jobs/{queued_jobs['a']['id']}")
+        seen["json"] = c.get("/v1/jobs")
+    for name, resp in seen.items():
+        h = resp.headers
+        csp = h.get("content-security-policy", "")
+        assert "frame-ancestors 'none'" in csp and "script-src 'self';" in csp and "unsafe-inline" not in csp.split(";")[0], name
+        assert "'unsafe-eval'" not in csp, name
+        assert h.get("x-frame-options") == "DENY" and h.get("x-content-type-options") == "nosniff", name
+        assert h.get("referrer-policy") == "same-origin", name
+    for name in ("signin", "docs", "redoc", "blocks", "job"):  # pages start their scripts from files
+        assert re.search(r"<script>(?!\s*</script>)", seen[name].text) is None, name
+    assert 'data-page="job"' in seen["job"].text and 'data-page="blocks"' in seen["blocks"].text
+
+
+def test_the_served_report_names_its_inline_scripts_by_hash():
+    from service.headers import report_policy
+
+    policy = report_policy('<script>a()</script><script type="application/json">{"x": 1}</script><script>b()</script>')
+    script_src = policy.split(";")[0]
+    # sha256 of "a()" and "b()": the data element is not a script and is not named
+    assert script_src.count("'sha256-") == 2 and "unsafe-inline" not in script_src and "frame-ancestors 'none'" in policy
+    assert report_policy("<p>no scripts</p>").startswith("script-src 'none';")

@@ -117,4 +117,6 @@
       if (!document.hidden) refresh();
     }, REFRESH_MS);
   };
+
+  if (document.body.dataset.page === "blocks") O.blocks();  // (no inline script starts it: the CSP runs none)
 })();

@@ -753,4 +753,9 @@
   };
 
   O.parseQuery = parseQuery;
+
+  // started by the page's data attributes, not an inline script (the served pages' CSP runs none)
+  const page = document.body.dataset.page;
+  if (page === "job") O.job({ jobId: document.body.dataset.jobId });
+  else if (page === "report") O.report();
 })();

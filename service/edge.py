@@ -1,0 +1,173 @@
+"""The HTTP server's edge: limits on connections and on the time a request takes to arrive.
+
+uvicorn times out an idle keep-alive connection, but not a request's line and headers
+while they arrive (uvicorn issue #157, "--timeout-request-start", is open), nor a
+request body, and it caps connections only by answering 503 to the requests of the
+connections past ``limit_concurrency``: it holds every connection it accepts. 20,000
+connections that sent nothing used every file handle of the process; asyncio then
+logged each failed ``accept()`` and paused accepting, and ``/healthz`` went unanswered.
+
+`edge_protocol` makes uvicorn's h11 protocol class with these limits (`EdgeLimits`):
+
+- a connection past ``max_connections`` open in all, or past ``max_per_client`` from
+  one address, is answered ``503`` (``Retry-After``) and closed; while more than
+  ``max_refusing`` such answers are pending, further ones are closed unanswered;
+- a request whose line and headers have not all arrived ``header_timeout_s`` after
+  the connection opened (or after the first byte of a later request on it) is
+  answered ``408`` and closed;
+- a request body other than an upload's that has not all arrived ``body_timeout_s``
+  after its headers is cut off (an upload has its own deadline and minimum rate, in
+  `service.api.uploads`).
+
+Each of these is logged through `service.logs`, which rate-limits repeated warnings.
+"""
+
+from __future__ import annotations
+
+import collections
+import dataclasses
+import json
+import logging
+
+import h11
+from uvicorn.protocols.http.h11_impl import H11Protocol
+
+log = logging.getLogger("orchard.edge")
+
+_PHRASES = {408: b"Request Timeout", 503: b"Service Unavailable"}
+
+
+@dataclasses.dataclass(frozen=True)
+class EdgeLimits:
+    """Limits of `edge_protocol` (see the module's docstring); times in seconds."""
+
+    max_connections: int = 1000
+    max_per_client: int = 64
+    header_timeout_s: float = 10.0
+    body_timeout_s: float = 120.0
+    max_refusing: int = 256
+    refuse_linger_s: float = 1.0
+    upload_path: str = "/v1/blocks"
+
+
+def _raw_response(status: int, detail: str, *, retry_after: int | None = None) -> bytes:
+    body = json.dumps({"detail": detail}).encode()
+    head = [b"HTTP/1.1 %d %s" % (status, _PHRASES[status]), b"content-type: application/json",
+            b"content-length: %d" % len(body), b"connection: close"]
+    if retry_after is not None:
+        head.append(b"retry-after: %d" % retry_after)
+    return b"\r\n".join(head) + b"\r\n\r\n" + body
+
+
+def edge_protocol(limits: EdgeLimits) -> type[H11Protocol]:
+    """uvicorn's h11 protocol with ``limits`` (pass it as ``uvicorn.Config(http=...)``).
+
+    The counts are those of one server: each call makes a class with counts of its own.
+    """
+    per_client: collections.Counter[str] = collections.Counter()
+    state = {"open": 0, "refusing": 0}
+    busy = _raw_response(503, f"too many open connections (at most {limits.max_connections} in all, "
+                              f"{limits.max_per_client} from one address); try again shortly", retry_after=5)
+    slow = _raw_response(408, f"the request's line and headers did not arrive within {limits.header_timeout_s:g} s")
+
+    class EdgeProtocol(H11Protocol):
+        def connection_made(self, transport) -> None:
+            super().connection_made(transport)
+            self._peer = self.client[0] if self.client else ""
+            self._counted = self._refused = self._lingering = False
+            self._head_timer = self._body_timer = None
+            if state["open"] >= limits.max_connections or per_client[self._peer] >= limits.max_per_client:
+                self._refuse()
+                return
+            state["open"] += 1
+            per_client[self._peer] += 1
+            self._counted = True
+            self._arm_head()
+
+        # -- refused connections ---------------------------------------------------
+
+        def _refuse(self) -> None:
+            self._refused = True
+            log.warning("connection refused: too many open connections (%d in all, %d from %s)",
+                        state["open"], per_client[self._peer], self._peer)
+            if state["refusing"] >= limits.max_refusing:  # a flood: no file handle held for it
+                self.transport.abort()
+                return
+            state["refusing"] += 1
+            self._lingering = True
+            # answered once its request arrives (closing with an unread request would reset
+            # the connection, and the client would never read the 503), or after a moment
+            self._head_timer = self.loop.call_later(limits.refuse_linger_s, self._answer_refused)
+
+        def _answer_refused(self) -> None:
+            if not self.transport.is_closing():
+                self.transport.write(busy)
+                self.transport.close()
+
+        # -- deadlines ----------------------------------------------------------------
+
+        def _arm_head(self) -> None:
+            self._head_timer = self.loop.call_later(limits.header_timeout_s, self._head_late)
+
+        def _disarm(self, name: str) -> None:
+            timer = getattr(self, name)
+            if timer is not None:
+                timer.cancel()
+                setattr(self, name, None)
+
+        def _head_late(self) -> None:
+            self._head_timer = None
+            if self.transport.is_closing() or self.conn.their_state is not h11.IDLE:
+                return
+            log.warning("request from %s: its line and headers did not arrive within %g s; closed",
+                        self._peer, limits.header_timeout_s)
+            self.transport.write(slow)
+            self.transport.close()
+
+        def _body_late(self) -> None:
+            self._body_timer = None
+            if self.transport.is_closing() or self.conn.their_state is not h11.SEND_BODY:
+                return
+            log.warning("request from %s: its body did not arrive within %g s; closed", self._peer, limits.body_timeout_s)
+            self.transport.close()  # the app sees a disconnect (the response may have begun: no 408 here)
+
+        def data_received(self, data: bytes) -> None:
+            if self._refused:
+                self._disarm("_head_timer")
+                self._answer_refused()
+                return
+            if self._head_timer is None and self.conn.their_state is h11.IDLE:
+                self._arm_head()  # the first byte of a later request on a kept-alive connection
+            super().data_received(data)
+            self._after_events()
+
+        def on_response_complete(self) -> None:
+            super().on_response_complete()
+            self._after_events()
+
+        def _after_events(self) -> None:
+            """Disarm or arm the deadlines as the request moved on: its headers in, its body in."""
+            theirs = self.conn.their_state
+            if theirs is not h11.IDLE:
+                self._disarm("_head_timer")
+            if theirs is h11.SEND_BODY and self._body_timer is None and self.scope is not None \
+                    and self.scope.get("path", "").rstrip("/") != limits.upload_path:
+                self._body_timer = self.loop.call_later(limits.body_timeout_s, self._body_late)
+            elif theirs is not h11.SEND_BODY:
+                self._disarm("_body_timer")
+
+        def connection_lost(self, exc) -> None:
+            self._disarm("_head_timer")
+            self._disarm("_body_timer")
+            if self._counted:
+                self._counted = False
+                state["open"] -= 1
+                per_client[self._peer] -= 1
+                if per_client[self._peer] <= 0:
+                    del per_client[self._peer]
+            elif self._lingering:
+                self._lingering = False
+                state["refusing"] -= 1
+            super().connection_lost(exc)
+
+    return EdgeProtocol

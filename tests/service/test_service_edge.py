@@ -1,0 +1,235 @@
+"""The service's edge under load and abuse, on loopback: JSON bodies bounded in shape
+before validation, idle and slow connections timed out, connections capped, trickling
+uploads stopped. Timings live in bench/edge.py; these tests assert outcomes only."""
+
+from __future__ import annotations
+
+import json
+import socket
+import threading
+import time
+
+import httpx
+import pytest
+from service_fixtures import client_of
+
+from service.api.bodies import MAX_DEPTH, MAX_KEYS, shape_problem
+
+
+def _many_keys(n: int, size: int | None = None) -> bytes:
+    params = {f"k{i:06d}": 1 for i in range(n)}
+    body = json.dumps({"block_id": "x", "params": params}).encode()
+    return body if size is None else body + b" " * max(0, size - len(body))
+
+
+def test_shape_limits_count_keys_values_and_depth():
+    assert shape_problem({"a": [1, 2, {"b": 3}]}) is None
+    assert "keys" in shape_problem({str(i): 0 for i in range(MAX_KEYS + 1)})
+    assert "values" in shape_problem({"a": list(range(20_000))})
+    deep = 0
+    for _ in range(MAX_DEPTH + 1):
+        deep = [deep]
+    assert "deep" in shape_problem(deep)
+    assert shape_problem(json.loads("[" * MAX_DEPTH + "]" * MAX_DEPTH)) is None
+
+
+def test_a_body_of_many_keys_is_refused_before_validation(api, client_a):
+    resp = client_a.post("/v1/jobs", content=_many_keys(90_000)[: 1000 * 1024],
+                         headers={"Content-Type": "application/json"})
+    assert resp.status_code in (413, 422), resp.text  # cut at the size limit: malformed, still refused by shape or size
+    resp = client_a.post("/v1/jobs", content=_many_keys(60_000), headers={"Content-Type": "application/json"})
+    assert resp.status_code == 422 and "more than 1000 keys" in resp.json()["detail"], resp.text
+    deep = ("[" * 5000 + "]" * 5000).encode()
+    resp = client_a.post("/v1/jobs", content=deep, headers={"Content-Type": "application/json"})
+    assert resp.status_code == 422 and "deep" in resp.json()["detail"]
+    with client_of(api) as anonymous:  # no token: refused all the same, before the sign-in is looked at
+        resp = anonymous.post("/v1/jobs", content=_many_keys(60_000), headers={"Content-Type": "application/json"})
+        assert resp.status_code == 422
+    # an ordinary request is untouched (its error is the usual one: no such block)
+    resp = client_a.post("/v1/jobs", json={"block_id": "nope", "params": {}})
+    assert resp.status_code == 404, resp.text
+
+
+@pytest.mark.slow
+def test_healthz_answers_while_sixteen_clients_send_1mb_bodies(api_server, server_tokens):
+    body = _many_keys(60_000, size=1000 * 1024)
+    assert len(body) <= 1024 * 1024
+    stop = threading.Event()
+    statuses: list[int] = []
+
+    def flood(token: str | None) -> None:
+        headers = {"Content-Type": "application/json", **({"Authorization": f"Bearer {token}"} if token else {})}
+        with httpx.Client(base_url=api_server.url, timeout=60) as c:
+            while not stop.is_set():
+                statuses.append(c.post("/v1/jobs", content=body, headers=headers).status_code)
+
+    threads = [threading.Thread(target=flood, args=(server_tokens["a"] if i % 2 else None,)) for i in range(16)]
+    for t in threads:
+        t.start()
+    try:
+        health = []
+        with httpx.Client(base_url=api_server.url, timeout=30) as c:
+            while len(health) < 20:
+                health.append(c.get("/healthz").status_code)
+    finally:
+        stop.set()
+        for t in threads:
+            t.join(60)
+    assert health == [200] * 20
+    assert statuses and set(statuses) == {422}, set(statuses)
+
+
+# -- connections and deadlines at the edge --------------------------------------------
+
+
+@pytest.fixture(scope="module")
+def edge_server(tmp_path_factory):
+    """A server with small edge limits, its log in a rotated file."""
+    from bench.edge import Server
+
+    root = tmp_path_factory.mktemp("edge")
+    with Server(root, ORCHARD_HEADER_TIMEOUT_S="2", ORCHARD_BODY_TIMEOUT_S="3", ORCHARD_MAX_CONNECTIONS_PER_CLIENT="8",
+                ORCHARD_MAX_CONNECTIONS="40", ORCHARD_UPLOAD_IDLE_S="3", ORCHARD_UPLOAD_MIN_KBPS="8",
+                ORCHARD_LOG_MAX_MB="0.05", ORCHARD_LOG_BACKUPS="2") as server:
+        yield server
+
+
+def _connect(server, source: str = "127.0.0.1") -> socket.socket:
+    s = socket.socket()
+    s.settimeout(30)
+    s.bind((source, 0))
+    s.connect(("127.0.0.1", server.port))
+    return s
+
+
+def _reply(s: socket.socket) -> bytes:
+    data = b""
+    while True:
+        try:
+            chunk = s.recv(65536)
+        except ConnectionResetError:
+            break
+        if not chunk:
+            break
+        data += chunk
+    return data
+
+
+def _token(server, tenant: str) -> str:
+    from service.auth import create_token
+    from service.db.jobstore import Store
+
+    store = Store(server.data_dir / "orchard.sqlite")
+    try:
+        return create_token(store, tenant)
+    finally:
+        store.close()
+
+
+def test_a_request_whose_headers_do_not_arrive_gets_408_and_is_closed(edge_server):
+    with _connect(edge_server) as silent, _connect(edge_server) as partial:
+        partial.sendall(b"GET /healthz HTTP/1.1\r\nHost: x\r\nX-Slow: ")
+        for s in (silent, partial):
+            reply = _reply(s)  # returns once the server has closed it
+            assert reply.startswith(b"HTTP/1.1 408") and b"did not arrive within 2 s" in reply, reply
+
+
+def test_connections_past_the_cap_of_one_address_get_503_and_others_still_get_through(edge_server):
+    held = [_connect(edge_server, "127.0.0.2") for _ in range(8)]
+    try:
+        with _connect(edge_server, "127.0.0.2") as extra:
+            extra.sendall(b"GET /healthz HTTP/1.1\r\nHost: x\r\n\r\n")
+            reply = _reply(extra)
+        assert reply.startswith(b"HTTP/1.1 503") and b"retry-after: 5" in reply.lower() and b"too many open connections" in reply
+        assert httpx.get(edge_server.url + "/healthz", timeout=30).status_code == 200  # another address: served
+    finally:
+        for s in held:
+            s.close()
+
+
+def test_connections_past_the_cap_in_all_get_503(edge_server):
+    held = [_connect(edge_server, f"127.0.0.{10 + i // 8}") for i in range(40)]  # 5 addresses of 8: the cap of 40
+    try:
+        with _connect(edge_server, "127.0.0.20") as extra:
+            extra.sendall(b"GET /healthz HTTP/1.1\r\nHost: x\r\n\r\n")
+            reply = _reply(extra)
+        assert reply.startswith(b"HTTP/1.1 503") and b"at most 40 in all" in reply, reply
+    finally:
+        for s in held:
+            s.close()
+    deadline = time.monotonic() + 30  # (the server sees them close)
+    while time.monotonic() < deadline:
+        if httpx.get(edge_server.url + "/healthz", timeout=30).status_code == 200:
+            break
+        time.sleep(0.1)
+
+
+def test_a_json_body_that_trickles_is_cut_off(edge_server):
+    with _connect(edge_server) as s:
+        s.sendall(b"POST /v1/jobs HTTP/1.1\r\nHost: x\r\nContent-Type: application/json\r\nContent-Length: 100\r\n\r\n{")
+        for _ in range(8):  # one byte a second: past the 3 s body deadline the server closes it
+            time.sleep(1)
+            try:
+                s.sendall(b" ")
+            except OSError:
+                break
+        assert b"200 OK" not in _reply(s)
+    assert "its body did not arrive within 3 s" in edge_server.log_text()
+
+
+def test_an_upload_below_the_minimum_rate_gets_408(edge_server):
+    token = _token(edge_server, "trickle")
+    head = b'--b0\r\nContent-Disposition: form-data; name="file"; filename="slow.laz"\r\n\r\n'
+    with _connect(edge_server) as s:
+        s.sendall((f"POST /v1/blocks HTTP/1.1\r\nHost: x\r\nAuthorization: Bearer {token}\r\n"
+                   f"Content-Type: multipart/form-data; boundary=b0\r\nContent-Length: 1000000\r\n\r\n").encode() + head)
+        for _ in range(15):  # a byte a second (the idle limit is 3 s, so never idle): below 8 kB/s from 3 s on
+            time.sleep(1)
+            try:
+                s.sendall(b"x")
+            except OSError:
+                break
+            s.setblocking(False)
+            try:
+                peek = s.recv(1, socket.MSG_PEEK)
+            except (BlockingIOError, ConnectionResetError):
+                peek = b""
+            s.setblocking(True)
+            if peek:
+                break
+        s.settimeout(30)
+        reply = _reply(s)
+    assert reply.startswith(b"HTTP/1.1 408") and b"below the minimum of 8 kB/s" in reply, reply[:300]
+
+
+@pytest.mark.slow
+def test_idle_connections_from_two_clients_leave_healthz_answering_and_the_log_small(edge_server):
+    """bench/edge.py's 20,000-connection run, smaller: 2 clients of 500 idle connections for 8 s."""
+    from bench.edge import idle
+
+    result = idle(edge_server, connections=1000, clients=2, hold_s=8)
+    assert result["healthz_failed"] == 0 and result["healthz_asked"] > 0, result
+    assert result["closed_by_server"] >= 1000 - 2 * 8  # all but each address's 8 answered 503 (or 408) and closed
+    assert result["log_growth_bytes"] < 1 << 20, result
+    assert edge_server.log_bytes() < 3 * (0.05 * 2**20) + 4096  # rotated: the file and 2 backups of 0.05 MB
+
+
+@pytest.mark.slow
+def test_an_upload_of_a_byte_every_10_s_hits_the_overall_deadline(tmp_path):
+    from bench.edge import Server
+
+    with Server(tmp_path, ORCHARD_UPLOAD_DEADLINE_S="15", ORCHARD_UPLOAD_IDLE_S="30", ORCHARD_UPLOAD_MIN_KBPS="0") as server:
+        token = _token(server, "trickle")
+        head = b'--b0\r\nContent-Disposition: form-data; name="file"; filename="slow.laz"\r\n\r\n'
+        with _connect(server) as s:
+            s.sendall((f"POST /v1/blocks HTTP/1.1\r\nHost: x\r\nAuthorization: Bearer {token}\r\n"
+                       f"Content-Type: multipart/form-data; boundary=b0\r\nContent-Length: 1000000\r\n\r\n").encode() + head)
+            for _ in range(4):  # a byte every 10 s: never idle for 30 s, and no minimum rate here
+                time.sleep(10)
+                try:
+                    s.sendall(b"x")
+                except OSError:
+                    break
+            reply = _reply(s)
+        assert reply.startswith(b"HTTP/1.1 408") and b"did not arrive within 15 s" in reply, reply[:300]
+        assert not list((server.data_dir / "tmp").rglob("upload-*"))
