@@ -28,10 +28,12 @@ from pipeline.parquet import (
     PointsParquetWriter,
     write_gaps_parquet,
     write_rows_parquet,
+    write_table_parquet,
     write_trees_parquet,
 )
 from pipeline.rows import RowLayout, find_rows
 from workers.jobspec import OUTPUT_NAMES
+from workers.seasons import Capture, SeasonOutputs, nullable, season
 
 #: Points per output window when streaming labels (bounded memory).
 WINDOW_POINTS = 2_000_000
@@ -214,6 +216,8 @@ def merge_and_write(
     labelled_laz: bool,
     failed: list[int],
     dead_zones: np.ndarray | None = None,
+    capture: Capture | None = None,
+    timings: dict | None = None,
 ) -> tuple[int, dict, dict]:
     """Merge the tiles' summaries into trees and write the job's outputs.
 
@@ -231,6 +235,11 @@ def merge_and_write(
         Tiles without a result (recorded in the outputs' metadata).
     dead_zones : (f, 4) float64, optional
         Cores of the failed tiles in the block's local frame [m].
+    capture : Capture, optional
+        The capture the block is (:mod:`workers.seasons`); None: the input's file stem,
+        its header's date, no previous capture.
+    timings : dict, optional
+        Gets ``seasons``: the seconds registration, matching and keys took.
 
     Returns
     -------
@@ -238,7 +247,8 @@ def merge_and_write(
 
     Raises
     ------
-    NoTreesError, ParameterError (the outputs cannot be written)
+    NoTreesError, ParameterError (the outputs cannot be written), NoOverlapError (the
+    capture does not overlap its previous capture: nothing is written)
     """
     default_radius = params.trunks.at_spacing(None).cluster_radius
     merged = reconcile_trunks(
@@ -254,18 +264,32 @@ def merge_and_write(
     if merged.n_trees == 0:
         raise no_trees(info)
     trees, layout = with_rows(trees_table(summaries, merged, info.origin), params.rows, replanted(summaries, merged), canopy)
-    outputs = write_outputs(out_dir, info, labels(merged), trees, labelled_laz=labelled_laz, failed=failed, layout=layout)
-    return merged.n_trees, trees, outputs
+    seasonal = season(trees, layout, block_coverage(summaries), capture or Capture.of(info.path))
+    if timings is not None:
+        timings["seasons"] = seasonal.seconds
+    outputs = write_outputs(out_dir, info, labels(merged), seasonal.trees, labelled_laz=labelled_laz, failed=failed,
+                            layout=seasonal.layout, seasonal=seasonal)
+    return merged.n_trees, seasonal.trees, outputs
+
+
+def block_coverage(summaries: list[dict]) -> np.ndarray | None:
+    """(c, 2) int64: the 1 m cells the tiles' cores saw (input CRS); None when a tile's
+    summary has none (a work store of an earlier release)."""
+    cells = [s.get("coverage") for s in summaries]
+    if not cells or any(c is None for c in cells):
+        return None
+    return np.unique(np.concatenate(cells), axis=0)
 
 
 def write_outputs(out_dir: Path, info: BlockInfo, labels: Labels, trees: dict, *, labelled_laz: bool, failed: list[int],
-                  layout: RowLayout | None = None) -> dict:
+                  layout: RowLayout | None = None, seasonal: SeasonOutputs | None = None) -> dict:
     """Write the outputs of a job into ``out_dir`` as one set.
 
     Every file is written into a hidden staging folder first; only when all are complete
     do they replace the folder's outputs, and an output of an earlier run that this run
     does not write (``labelled.laz``) is removed, so ``out_dir`` never mixes two runs.
-    A failure leaves ``out_dir`` as it was.
+    A failure leaves ``out_dir`` as it was. ``seasonal``: the capture's history
+    (``history.parquet``) and records (trees.parquet's metadata).
     """
     stage = out_dir / f".staging-{uuid.uuid4().hex[:12]}"
     try:
@@ -297,8 +321,13 @@ def write_outputs(out_dir: Path, info: BlockInfo, labels: Labels, trees: dict, *
             )
             written["labelled"] = path
         path = stage / "trees.parquet"
-        write_trees_parquet(path, trees, crs_wkt=info.crs_wkt, metadata=meta)
+        write_trees_parquet(path, nullable(trees), crs_wkt=info.crs_wkt,
+                            metadata=meta if seasonal is None else {**meta, **seasonal.metadata})
         written["trees"] = path
+        if seasonal is not None:
+            path = stage / "history.parquet"
+            write_table_parquet(path, seasonal.history)
+            written["history"] = path
         if layout is not None:
             path = stage / "rows.parquet"
             write_rows_parquet(path, layout.rows, layout.lines, crs_wkt=info.crs_wkt)

@@ -16,6 +16,7 @@ from types import SimpleNamespace
 import numpy as np
 
 from pipeline.canopy import canopy_cells
+from pipeline.coverage import occupied_cells
 from pipeline.errors import InputError
 from pipeline.ground import GroundModel, ground_residuals, raw_ground_model
 from pipeline.metrics import tree_partials
@@ -89,6 +90,8 @@ def summarise(tile_id, xyz, core, result, grid: TileGrid | None, origin, params:
         # the canopy of the core, for rows whose trunks are hidden (cells in the input CRS)
         "canopy": canopy_cells(xyz[sel, :2], result.height[sel], offset=origin[:2], among=~result.is_ground[sel]),
         "slot_evidence": evidence,
+        # the 1 m cells the core saw: the part of the block this capture covered (input CRS)
+        "coverage": occupied_cells(xyz[sel, :2], origin[:2]),
         SLOT_KEY: np.zeros((0, 3)) if result.slot_trees is None else np.asarray(result.slot_trees, np.float64).reshape(-1, 3),
     }
 
