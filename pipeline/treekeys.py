@@ -88,10 +88,10 @@ class RowMap:
 
     def address(self, row: np.ndarray, position: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """(row, position) arrays in the previous numbering (rows it cannot map: unchanged)."""
-        row = np.asarray(row, np.int64).copy()
-        position = np.asarray(position, np.int64).copy()
+        given = np.asarray(row, np.int64)
+        row, position = given.copy(), np.asarray(position, np.int64).copy()
         for r, (pr, sign, off) in self.rows.items():
-            at = row == r
+            at = given == r
             row[at], position[at] = pr, sign * position[at] + off
         return row, position
 

@@ -50,6 +50,13 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     g.add_argument("--resume", action="store_true", help="process the tiles of the job in --work that have no result yet, then merge")
     g.add_argument("--labelled-laz", action="store_true", help="also write labelled.laz: the input with extra dimensions tree_id, is_wood, wood_score")
     g.add_argument("--inject-failure", type=int, action="append", default=None, help=argparse.SUPPRESS)
+    c = parser.add_argument_group("captures of one block over the seasons (docs/seasons.md)")
+    c.add_argument("--previous", default=None, metavar="DIR_A",
+                   help="output folder of the block's previous capture: register onto its trees, keep their tree_key "
+                        "and addresses, and write the change columns and history.parquet against it")
+    c.add_argument("--captured-on", dest="captured_at", default=None, metavar="YYYY-MM-DD",
+                   help="the capture's date when the file's header has none (default: the file's modification day)")
+    c.add_argument("--capture-id", default=None, metavar="ID", help="the capture's id in history.parquet (default: INPUT's file stem)")
     add_pipeline_options(parser)
 
 
@@ -104,6 +111,8 @@ def _check_cluster_options(args: argparse.Namespace) -> None:
                                           ("--grid-origin", args.grid_origin), ("--engine", args.engine),
                                           ("--workers", args.workers), ("--dask-host", args.dask_host),
                                           ("--worker-memory", args.worker_memory),
+                                          ("--previous", args.previous), ("--captured-on", args.captured_at),
+                                          ("--capture-id", args.capture_id),
                                           ("--no-dashboard", None if args.dashboard else True)) if value is not None]
         if given:
             raise ParameterError(
@@ -233,6 +242,9 @@ def run(args: argparse.Namespace) -> int:
         work_dir=args.work,
         labelled_laz=args.labelled_laz,
         inject_failure=tuple(args.inject_failure or ()),
+        previous=args.previous,
+        capture_id=args.capture_id,
+        captured_at=args.captured_at,
     )
     tiled = bool(args.tile_size) or args.scheduler is not None
     count_on_cluster = False  # a block that surely needs tiles is counted by the workers

@@ -1,0 +1,18 @@
+"""The part of a block a capture saw."""
+
+import numpy as np
+
+from pipeline.coverage import Coverage, occupied_cells
+
+
+def test_cells_are_on_the_input_crs_whole_metre_grid():
+    cells = occupied_cells(np.array([[0.2, 0.3], [0.9, 0.1], [2.5, 1.0]]), (500000.0, 20.0))
+    assert sorted(map(tuple, cells.tolist())) == [(500000, 20), (500002, 21)]
+
+
+def test_narrow_holes_are_closed_and_the_edge_is_eroded():
+    xy = np.mgrid[0:20:0.5, 0:20:0.5].reshape(2, -1).T
+    xy = xy[np.abs(xy[:, 1] - 10.0) > 0.7]  # the strip the scanner's vehicle hides
+    cov = Coverage.from_cells(occupied_cells(xy, (0.0, 0.0)))
+    assert cov.covered(np.array([[10.0, 10.0]]))[0]  # in the closed strip
+    assert not cov.covered(np.array([[0.5, 10.0], [30.0, 10.0]])).any()  # at the edge, and beyond
