@@ -241,10 +241,12 @@ def register(
     _, _, deg, t = best
     transform = RigidTransform(float(t[0]), float(t[1]), float(deg), float(centre[0]), float(centre[1]))
     for _ in range(4):  # least squares on the mutual matches, which may change as it converges
-        i, j, _ = _pairs(prev_tree, transform.apply(cur_xy), gate)
+        i, j, d = _pairs(prev_tree, transform.apply(cur_xy), gate)
         if len(i) < 2:
             break
-        transform = kabsch_2d(cur_xy[i], prev_xy[j], centre)
+        # a trunk placed badly in one capture (a thin stem, a lean) would pull the fit: trimmed
+        core = d <= max(3.0 * float(np.median(d)), 0.02) if len(d) >= 6 else np.ones(len(d), bool)
+        transform = kabsch_2d(cur_xy[i[core]], prev_xy[j[core]], centre)
     i, j, d = _pairs(prev_tree, transform.apply(cur_xy), gate)
     if len(i) < need:
         raise _no_overlap(names, len(i), need)

@@ -264,7 +264,8 @@ def merge_and_write(
     if merged.n_trees == 0:
         raise no_trees(info)
     trees, layout = with_rows(trees_table(summaries, merged, info.origin), params.rows, replanted(summaries, merged), canopy)
-    seasonal = season(trees, layout, block_coverage(summaries), capture or Capture.of(info.path))
+    seasonal = season(trees, layout, block_coverage(summaries), capture or Capture.of(info.path),
+                      canopy=canopy if canopy is not None else block_canopy(summaries))
     if timings is not None:
         timings["seasons"] = seasonal.seconds
     outputs = write_outputs(out_dir, info, labels(merged), seasonal.trees, labelled_laz=labelled_laz, failed=failed,
@@ -326,7 +327,8 @@ def write_outputs(out_dir: Path, info: BlockInfo, labels: Labels, trees: dict, *
         written["trees"] = path
         if seasonal is not None:
             path = stage / "history.parquet"
-            write_table_parquet(path, seasonal.history)
+            write_table_parquet(path, {k: np.ma.masked_invalid(v) if v.dtype.kind == "f" else v
+                                       for k, v in seasonal.history.items()})
             written["history"] = path
         if layout is not None:
             path = stage / "rows.parquet"

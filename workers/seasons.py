@@ -21,6 +21,7 @@ from datetime import date, datetime, timezone
 from pathlib import Path
 
 import numpy as np
+from scipy.spatial import cKDTree
 
 from pipeline.blockinfo import creation_date
 from pipeline.coverage import Coverage
@@ -178,7 +179,8 @@ def current_trees(trees: dict) -> Trees:
                  np.asarray(trees["trunk_diameter_m"], np.float64))
 
 
-def season(trees: dict, layout, cells: np.ndarray | None, capture: Capture) -> SeasonOutputs:
+def season(trees: dict, layout, cells: np.ndarray | None, capture: Capture,
+           canopy: np.ndarray | None = None) -> SeasonOutputs:
     """The capture's keys, statuses, change, gaps and history against its previous capture.
 
     Parameters
@@ -187,6 +189,8 @@ def season(trees: dict, layout, cells: np.ndarray | None, capture: Capture) -> S
     layout : pipeline.rows.RowLayout or None
     cells : (c, 2) int64 or None — the 1 m cells the capture's points fall in (None: unknown, all covered)
     capture : Capture
+    canopy : (c, 2) float64, optional — centres of the capture's canopy cells (input CRS): a
+        previous tree with canopy still standing on its trunk was missed, not removed
 
     Raises
     ------
@@ -211,6 +215,7 @@ def season(trees: dict, layout, cells: np.ndarray | None, capture: Capture) -> S
                        covered=covered, names=(capture.capture_id, state.capture_id))
         back = reg.transform.inverse(state.trees.xy)  # the state's trees in this capture's frame
         covered_state = np.ones(len(back), bool) if covered is None else covered(back)
+        covered_state &= ~standing(back, canopy)
         keys = assign_keys(cur, state, transform=reg.transform, gate=reg.gate, covered=covered_state)
     out = dict(trees)
     out["tree_key"] = keys.key
@@ -248,6 +253,19 @@ def season(trees: dict, layout, cells: np.ndarray | None, capture: Capture) -> S
     }
     metadata = {CAPTURE_KEY: json.dumps(record), UNSEEN_KEY: json.dumps(_unseen(state, keys, reg))}
     return SeasonOutputs(out, layout, _concat([history, rows, removed]), metadata, reg, seconds)
+
+
+#: a previous tree with canopy this close to its trunk [m] still stands (found no trunk
+#: this time: merged with a neighbour, or hidden); a cut tree leaves at most a stump
+STANDING_RADIUS = 0.2
+
+
+def standing(xy: np.ndarray, canopy: np.ndarray | None) -> np.ndarray:
+    """(p,) bool: positions (input CRS) with canopy within :data:`STANDING_RADIUS`."""
+    if canopy is None or not len(canopy) or not len(xy):
+        return np.zeros(len(xy), bool)
+    d, _ = cKDTree(canopy).query(xy, distance_upper_bound=STANDING_RADIUS)
+    return np.isfinite(d)
 
 
 def _unseen(state: BlockState | None, keys: KeyAssignment, reg: Registration | None) -> list[dict]:
