@@ -41,6 +41,28 @@ def occupied_cells(xy: np.ndarray, origin_xy) -> np.ndarray:
     return np.c_[i + lo[0], j + lo[1]] + np.round(np.asarray(origin_xy[:2], np.float64)).astype(np.int64)
 
 
+#: side of a stem cell [m], and the band above the ground that holds stems but neither grass nor most crowns [m]
+STEM_CELL = 0.1
+STEM_BAND = (0.3, 0.9)
+
+
+def stem_cells(xy: np.ndarray, height: np.ndarray, among: np.ndarray, origin_xy) -> np.ndarray:
+    """(c, 2) int64: the distinct :data:`STEM_CELL` cells (input CRS) holding points in the
+    :data:`STEM_BAND` above the ground: where a trunk stands. A tree of an earlier capture
+    that this one found no trunk for, but whose stem is still there, was missed, not cut.
+
+    Parameters
+    ----------
+    xy : (n, 2) float64 — points in the block's local frame [m]
+    height : (n,) float64 — their height above the ground [m]
+    among : (n,) bool — the points to look at (not ground)
+    origin_xy : (2,) float — the block's local origin in the input CRS [m]
+    """
+    pick = among & (height >= STEM_BAND[0]) & (height < STEM_BAND[1])
+    pts = np.asarray(xy, np.float64)[pick, :2] + np.asarray(origin_xy[:2], np.float64)
+    return np.unique(np.floor(pts / STEM_CELL).astype(np.int64), axis=0)
+
+
 @dataclass(frozen=True)
 class Coverage:
     """Where a capture saw the block well enough to say a tree is gone.

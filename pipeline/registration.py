@@ -31,7 +31,7 @@ class RegistrationParams(BaseModel):
 
     max_shift: float = Field(2.5, gt=0.0, le=20.0, description="largest shift searched [m]")
     max_rotation_deg: float = Field(2.5, ge=0.0, le=20.0, description="largest heading change searched [degrees]")
-    rotation_step_deg: float = Field(0.25, gt=0.0, le=5.0, description="step of the rotations tried [degrees]")
+    rotation_step_deg: float = Field(0.5, gt=0.0, le=5.0, description="step of the rotations tried [degrees]")
     vote_bin: float = Field(0.2, gt=0.0, le=2.0, description="bin of the translation votes [m]")
     peaks: int = Field(6, ge=1, le=50, description="translations scored per rotation")
     gate_fraction: float = Field(0.35, gt=0.0, lt=0.5, description="match gate as a fraction of the in-row spacing")
@@ -123,15 +123,13 @@ def _similarity(a: np.ndarray, b: np.ndarray, sigma: np.ndarray) -> np.ndarray:
     r = a - b
     if len(r) == 0:
         return np.zeros(0)
-    with np.errstate(invalid="ignore"):
-        import warnings
-
-        with warnings.catch_warnings():
-            warnings.simplefilter("ignore", RuntimeWarning)  # a column with no known size
-            r = r - np.nanmedian(r, axis=0)
-            s = np.exp(-0.5 * (r / sigma) ** 2)
-            out = np.nanmean(s, axis=1)
-    return np.where(np.isfinite(out), out, 0.5)
+    known = np.isfinite(r)
+    for c in range(r.shape[1]):  # the common ratio: each size's median over the pairs that have it
+        if known[:, c].any():
+            r[:, c] -= np.median(r[known[:, c], c])
+    s = np.where(known, np.exp(-0.5 * (np.where(known, r, 0.0) / sigma) ** 2), 0.0)
+    n = known.sum(axis=1)
+    return np.where(n > 0, s.sum(axis=1) / np.maximum(n, 1), 0.5)
 
 
 def kabsch_2d(src: np.ndarray, dst: np.ndarray, centre: np.ndarray) -> RigidTransform:
@@ -217,7 +215,7 @@ def register(
     steps = int(round(params.max_rotation_deg / params.rotation_step_deg))
     angles = np.arange(-steps, steps + 1) * params.rotation_step_deg
 
-    best = None
+    candidates = []  # (inliers less uncovered trees, rotation, translation)
     for deg in angles:
         rc = _rotate(rel, deg) + centre
         pairs = prev_tree.sparse_distance_matrix(cKDTree(rc), params.max_shift, output_type="ndarray")
@@ -232,13 +230,26 @@ def register(
             if counts[u] < 2 and n > 2:
                 break
             t = diff[inv == u].mean(axis=0)
-            score, n_in = _score(rc + t, deg, t, prev_tree, prev_xy, cur_size, prev_size, sigma, gate, covered, centre,
-                                 params.uncovered_penalty)
-            if best is None or score > best[0]:
-                best = (score, n_in, deg, t)
-    if best is None or best[1] < need:
-        raise _no_overlap(names, 0 if best is None else best[1], need)
-    _, _, deg, t = best
+            i, j, _ = _pairs(prev_tree, rc + t, gate)
+            candidates.append((len(i) - _uncovered(j, deg, t, prev_xy, covered, centre, params.uncovered_penalty),
+                               len(i), deg, t))
+    if not candidates or max(c[1] for c in candidates) < need:
+        raise _no_overlap(names, max((c[1] for c in candidates), default=0), need)
+    # the sizes decide among the candidates close to the best count (a one-tree-off
+    # alignment matches about as many trunks as the true one)
+    top = max(c[0] for c in candidates)
+    best = None
+    for base, n_in, deg, t in candidates:
+        if base < top - max(3.0, 0.3 * abs(top)) or n_in < need:
+            continue
+        rc = _rotate(rel, deg) + centre + t
+        i, j, _ = _pairs(prev_tree, rc, gate)
+        score = float(_similarity(cur_size[i], prev_size[j], sigma).sum()) - (len(i) - base)
+        if best is None or score > best[0]:
+            best = (score, deg, t)
+    if best is None:
+        raise _no_overlap(names, 0, need)
+    _, deg, t = best
     transform = RigidTransform(float(t[0]), float(t[1]), float(deg), float(centre[0]), float(centre[1]))
     for _ in range(4):  # least squares on the mutual matches, which may change as it converges
         i, j, d = _pairs(prev_tree, transform.apply(cur_xy), gate)
@@ -253,16 +264,16 @@ def register(
     return Registration(transform, float(np.sqrt(np.mean(d**2))), int(len(i)), gate)
 
 
-def _score(moved, deg, t, prev_tree, prev_xy, cur_size, prev_size, sigma, gate, covered, centre, penalty):
-    i, j, _ = _pairs(prev_tree, moved, gate)
-    score = float(_similarity(cur_size[i], prev_size[j], sigma).sum())
-    if covered is not None and penalty > 0:
-        unmatched = np.ones(len(prev_xy), bool)
-        unmatched[j] = False
-        if unmatched.any():
-            back = _rotate(prev_xy[unmatched] - t - centre, -deg) + centre  # into this capture's frame
-            score -= penalty * float(np.count_nonzero(covered(back)))
-    return score, len(i)
+def _uncovered(j, deg, t, prev_xy, covered, centre, penalty) -> float:
+    """The penalty for previous trees inside this capture's coverage that matched nothing."""
+    if covered is None or penalty <= 0:
+        return 0.0
+    unmatched = np.ones(len(prev_xy), bool)
+    unmatched[j] = False
+    if not unmatched.any():
+        return 0.0
+    back = _rotate(prev_xy[unmatched] - t - centre, -deg) + centre  # into this capture's frame
+    return penalty * float(np.count_nonzero(covered(back)))
 
 
 def _no_overlap(names, matched: int, need: int) -> NoOverlapError:

@@ -19,6 +19,7 @@ from scipy.spatial import cKDTree
 
 from pipeline.blockinfo import BlockInfo
 from pipeline.canopy import cell_centres, unique_cells
+from pipeline.coverage import STEM_CELL
 from pipeline.errors import NoTreesError, ParameterError
 from pipeline.laswriting import write_labelled_las
 from pipeline.merge import GlobalTrunks, TileTrunks, reconcile_trunks
@@ -265,12 +266,20 @@ def merge_and_write(
         raise no_trees(info)
     trees, layout = with_rows(trees_table(summaries, merged, info.origin), params.rows, replanted(summaries, merged), canopy)
     seasonal = season(trees, layout, block_coverage(summaries), capture or Capture.of(info.path),
-                      canopy=canopy if canopy is not None else block_canopy(summaries))
+                      stems=block_stems(summaries))
     if timings is not None:
         timings["seasons"] = seasonal.seconds
     outputs = write_outputs(out_dir, info, labels(merged), seasonal.trees, labelled_laz=labelled_laz, failed=failed,
                             layout=seasonal.layout, seasonal=seasonal)
     return merged.n_trees, seasonal.trees, outputs
+
+
+def block_stems(summaries: list[dict]) -> np.ndarray | None:
+    """(c, 2) float64 centres of the cells holding stems (:func:`pipeline.coverage.stem_cells`) of every tile's core."""
+    cells = [s.get("stems") for s in summaries]
+    if not cells or any(c is None for c in cells):
+        return None
+    return (np.unique(np.concatenate(cells), axis=0) + 0.5) * STEM_CELL
 
 
 def block_coverage(summaries: list[dict]) -> np.ndarray | None:

@@ -103,7 +103,7 @@ class SeasonOutputs:
     history: dict  # history.parquet's columns
     metadata: dict  # trees.parquet's extra metadata (orchard:capture, orchard:unseen)
     registration: Registration | None
-    seconds: float  # registration, matching and keys (not reading the previous folder)
+    seconds: float  # reading the previous folder, registration, matching, keys and history (not writing)
 
 
 def read_state(previous: str) -> tuple[BlockState, dict]:
@@ -180,7 +180,7 @@ def current_trees(trees: dict) -> Trees:
 
 
 def season(trees: dict, layout, cells: np.ndarray | None, capture: Capture,
-           canopy: np.ndarray | None = None) -> SeasonOutputs:
+           stems: np.ndarray | None = None) -> SeasonOutputs:
     """The capture's keys, statuses, change, gaps and history against its previous capture.
 
     Parameters
@@ -189,19 +189,20 @@ def season(trees: dict, layout, cells: np.ndarray | None, capture: Capture,
     layout : pipeline.rows.RowLayout or None
     cells : (c, 2) int64 or None — the 1 m cells the capture's points fall in (None: unknown, all covered)
     capture : Capture
-    canopy : (c, 2) float64, optional — centres of the capture's canopy cells (input CRS): a
-        previous tree with canopy still standing on its trunk was missed, not removed
+    stems : (c, 2) float64, optional — centres of the capture's stem cells (input CRS,
+        :func:`pipeline.coverage.stem_cells`): a previous tree whose stem still stands was
+        missed, not removed
 
     Raises
     ------
     NoOverlapError (the captures do not overlap), InputError (the previous folder is unreadable)
     """
+    t0 = time.perf_counter()
     cur = current_trees(trees)
     history = None
     state = None
     if capture.previous is not None:
         state, history = read_state(capture.previous)
-    t0 = time.perf_counter()
     reg = None
     if state is None:
         keys = first_keys(cur)
@@ -215,7 +216,7 @@ def season(trees: dict, layout, cells: np.ndarray | None, capture: Capture,
                        covered=covered, names=(capture.capture_id, state.capture_id))
         back = reg.transform.inverse(state.trees.xy)  # the state's trees in this capture's frame
         covered_state = np.ones(len(back), bool) if covered is None else covered(back)
-        covered_state &= ~standing(back, canopy)
+        covered_state &= ~standing(back, stems)
         keys = assign_keys(cur, state, transform=reg.transform, gate=reg.gate, covered=covered_state)
     out = dict(trees)
     out["tree_key"] = keys.key
@@ -255,16 +256,17 @@ def season(trees: dict, layout, cells: np.ndarray | None, capture: Capture,
     return SeasonOutputs(out, layout, _concat([history, rows, removed]), metadata, reg, seconds)
 
 
-#: a previous tree with canopy this close to its trunk [m] still stands (found no trunk
-#: this time: merged with a neighbour, or hidden); a cut tree leaves at most a stump
+#: a previous tree with a stem cell this close to its trunk [m] still stands (no trunk
+#: was found for it this time: merged with a neighbour, or hidden); a cut tree leaves at
+#: most a stump, below the stems' band
 STANDING_RADIUS = 0.2
 
 
-def standing(xy: np.ndarray, canopy: np.ndarray | None) -> np.ndarray:
-    """(p,) bool: positions (input CRS) with canopy within :data:`STANDING_RADIUS`."""
-    if canopy is None or not len(canopy) or not len(xy):
+def standing(xy: np.ndarray, stems: np.ndarray | None) -> np.ndarray:
+    """(p,) bool: positions (input CRS) with a stem cell within :data:`STANDING_RADIUS`."""
+    if stems is None or not len(stems) or not len(xy):
         return np.zeros(len(xy), bool)
-    d, _ = cKDTree(canopy).query(xy, distance_upper_bound=STANDING_RADIUS)
+    d, _ = cKDTree(stems).query(xy, distance_upper_bound=STANDING_RADIUS)
     return np.isfinite(d)
 
 
