@@ -19,8 +19,9 @@ and scores every pair of consecutive captures against the truth:
 - growth sign: the share of those trees whose ``height_change_m`` is positive (every
   tree grew); height change error: ``height_change_m`` against the difference of the two
   captures' measured heights, and against the true change of the trees' tops;
-- registration: the residual recorded with the capture (RMS of the matched trunks) and
-  the true error (RMS distance of the true trunks after the recorded transform);
+- registration: the residual recorded with the capture (RMS of the matched trunks the
+  fit used), the RMS of all matched trunks, and the true error (RMS distance of the true
+  trunks after the recorded transform);
 - over the series, the share of the first capture's trees standing and found in the
   last that still carry their first key;
 - time: the seconds the seasons step took (reading the previous folder, registration,
@@ -38,7 +39,7 @@ from pathlib import Path
 import numpy as np
 import pyarrow.parquet as pq
 
-from pipeline.coverage import occupied_cells
+from pipeline.coverage import occupied_cells, stem_cells
 from pipeline.reading import read_points
 from pipeline.registration import RigidTransform
 from pipeline.synthetic.plan import make_plan
@@ -90,8 +91,11 @@ def run_series(system: dict, seed: int, captures: int, work: Path) -> dict:
         write_simulation(cap.params, str(las), str(work / f"s{seed}c{k}.truth.parquet"), creation_date=cap.captured_at)
         out = work / f"s{seed}out{k}"
         outcome = run_job(JobSpec(str(las), str(out), previous=str(outs[-1]) if outs else None))
+        xyz = read_points(str(las))[0]
+        height = xyz[:, 2] - xyz[:, 2].min()  # a stand-in: the time is the band test's, whatever the heights
         t = time.perf_counter()
-        occupied_cells(read_points(str(las))[0][::COVERAGE_STRIDE, :2], (0.0, 0.0))  # the job's coverage cells
+        occupied_cells(xyz[::COVERAGE_STRIDE, :2], (0.0, 0.0))  # what every job's tiles add: coverage and stem cells
+        stem_cells(xyz[:, :2], height, np.ones(len(xyz), bool), (0.0, 0.0))
         cells = time.perf_counter() - t
         total = outcome.timings["total"]
         times.append((outcome.timings.get("seasons", 0.0) + cells) / (total - outcome.timings.get("seasons", 0.0)))
@@ -130,13 +134,13 @@ def _score_pair(cap, truth_a, truth_b, found_a, found_b, out: Path) -> dict:
     return {"both": len(both), "kept": len(kept), "cut": len(cut), "reported": len(reported),
             "false_removed": len(false_removed), "grew": int(np.sum(change > 0)), "same": len(same),
             "err_measured": np.abs(change - measured), "err_true": np.abs(change - true),
-            "residual": reg["residual_m"], "true_error": true_err}
+            "residual": reg["residual_m"], "residual_all": reg["residual_all_m"], "true_error": true_err}
 
 
 HEADER = (
     "| planting system | series × captures | key + address kept (pairs) | removed reported at address (false removals) "
     "| growth sign right | height change within 5 cm of the measured / true difference (true: median, 95th pct) "
-    "| registration residual, max (true error, max) | keys kept first → last | seasons time / job, max |\n"
+    "| registration residual, max: fitted, all matches (true error, max) | keys kept first → last | seasons time / job, max |\n"
     "|---|---|---|---|---|---|---|---|---|"
 )
 
@@ -153,7 +157,8 @@ def table_row(name: str, results: list[dict], captures: int) -> str:
             f"| {s('reported')}/{s('cut')} ({s('false_removed')}) | {s('grew') / max(s('same'), 1):.3f} "
             f"| {np.mean(err_m <= 0.05):.3f} / {np.mean(err_t <= 0.05):.3f} ({np.median(err_t) * 100:.1f} cm, "
             f"{np.percentile(err_t, 95) * 100:.1f} cm) "
-            f"| {max(p['residual'] for p in pairs) * 100:.1f} cm ({max(p['true_error'] for p in pairs) * 100:.1f} cm) "
+            f"| {max(p['residual'] for p in pairs) * 100:.1f} cm, {max(p['residual_all'] for p in pairs) * 100:.1f} cm "
+            f"({max(p['true_error'] for p in pairs) * 100:.1f} cm) "
             f"| {series_kept}/{series_total} = {series_kept / max(series_total, 1):.3f} "
             f"| {np.mean(over) * 100:.1f} %, {np.max(over) * 100:.1f} % |")
 

@@ -75,9 +75,13 @@ class Registration:
     ----------
     transform : RigidTransform
     residual_m : float
-        RMS distance of the matched trunks after the transform [m].
+        RMS distance of the matched trunks the transform was fitted to [m] (the trimmed
+        pairs: a trunk placed more than three times the median distance off is left out
+        of the fit and of this figure).
+    residual_all_m : float
+        RMS distance of all matched trunks [m], the misplaced ones included.
     n_matched : int
-        Trunk pairs the transform was fitted to.
+        Trunk pairs matched within the gate.
     gate : float
         The match gate used [m] (a fraction of the in-row spacing).
     """
@@ -86,18 +90,19 @@ class Registration:
     residual_m: float
     n_matched: int
     gate: float
+    residual_all_m: float = float("nan")
 
     def record(self) -> dict:
         """The registration as stored with a capture (``orchard:capture``)."""
         t = self.transform
         return {"dx": t.dx, "dy": t.dy, "rotation_deg": t.rotation_deg, "cx": t.cx, "cy": t.cy,
-                "residual_m": self.residual_m, "n_matched": self.n_matched}
+                "residual_m": self.residual_m, "n_matched": self.n_matched, "residual_all_m": self.residual_all_m}
 
 
 def _rotate(xy: np.ndarray, deg: float) -> np.ndarray:
     a = np.deg2rad(deg)
     c, s = np.cos(a), np.sin(a)
-    return np.c_[c * xy[:, 0] - s * xy[:, 1], s * xy[:, 0] + c * xy[:, 1]]
+    return xy @ np.array([[c, s], [-s, c]])
 
 
 def in_row_spacing(xy: np.ndarray) -> float:
@@ -255,13 +260,20 @@ def register(
         i, j, d = _pairs(prev_tree, transform.apply(cur_xy), gate)
         if len(i) < 2:
             break
-        # a trunk placed badly in one capture (a thin stem, a lean) would pull the fit: trimmed
-        core = d <= max(3.0 * float(np.median(d)), 0.02) if len(d) >= 6 else np.ones(len(d), bool)
-        transform = kabsch_2d(cur_xy[i[core]], prev_xy[j[core]], centre)
+        transform = kabsch_2d(cur_xy[i[_fitted(d)]], prev_xy[j[_fitted(d)]], centre)
     i, j, d = _pairs(prev_tree, transform.apply(cur_xy), gate)
     if len(i) < need:
         raise _no_overlap(names, len(i), need)
-    return Registration(transform, float(np.sqrt(np.mean(d**2))), int(len(i)), gate)
+    return Registration(transform, float(np.sqrt(np.mean(d[_fitted(d)] ** 2))), int(len(i)), gate,
+                        float(np.sqrt(np.mean(d**2))))
+
+
+def _fitted(d: np.ndarray) -> np.ndarray:
+    """The pairs a fit uses: a trunk placed badly in one capture (a thin stem, a lean, two
+    trees merged) would pull it, so pairs beyond three median distances are trimmed."""
+    if len(d) < 6:
+        return np.ones(len(d), bool)
+    return d <= max(3.0 * float(np.median(d)), 0.02)
 
 
 def _uncovered(j, deg, t, prev_xy, covered, centre, penalty) -> float:
