@@ -44,12 +44,15 @@ def occupied_cells(xy: np.ndarray, origin_xy) -> np.ndarray:
 #: side of a stem cell [m], and the band above the ground that holds stems but neither grass nor most crowns [m]
 STEM_CELL = 0.1
 STEM_BAND = (0.3, 0.9)
+#: points a stem cell needs (a stray outlier point is no stem)
+STEM_MIN_POINTS = 3
 
 
 def stem_cells(xy: np.ndarray, height: np.ndarray, among: np.ndarray, origin_xy) -> np.ndarray:
-    """(c, 2) int64: the distinct :data:`STEM_CELL` cells (input CRS) holding points in the
-    :data:`STEM_BAND` above the ground: where a trunk stands. A tree of an earlier capture
-    that this one found no trunk for, but whose stem is still there, was missed, not cut.
+    """(c, 3) int64: the :data:`STEM_CELL` cells (input CRS) holding points in the
+    :data:`STEM_BAND` above the ground, and how many: where a trunk stands. A tree of an
+    earlier capture that this one found no trunk for, but whose stem is still there, was
+    missed, not cut. Tiles' counts add up (:func:`stems_of`).
 
     Parameters
     ----------
@@ -60,7 +63,18 @@ def stem_cells(xy: np.ndarray, height: np.ndarray, among: np.ndarray, origin_xy)
     """
     pick = among & (height >= STEM_BAND[0]) & (height < STEM_BAND[1])
     pts = np.asarray(xy, np.float64)[pick, :2] + np.asarray(origin_xy[:2], np.float64)
-    return np.unique(np.floor(pts / STEM_CELL).astype(np.int64), axis=0)
+    cells, counts = np.unique(np.floor(pts / STEM_CELL).astype(np.int64).reshape(-1, 2), axis=0, return_counts=True)
+    return np.c_[cells, counts]
+
+
+def stems_of(parts: list[np.ndarray]) -> np.ndarray:
+    """(s, 2) float64: centres (input CRS) of the stem cells of a block, from its tiles'
+    :func:`stem_cells` (a cell's counts added over the tiles), those with at least
+    :data:`STEM_MIN_POINTS` points."""
+    every = np.concatenate([np.asarray(p, np.int64).reshape(-1, 3) for p in parts]) if parts else np.zeros((0, 3), np.int64)
+    cells, inv = np.unique(every[:, :2], axis=0, return_inverse=True)
+    counts = np.bincount(inv.ravel(), weights=every[:, 2], minlength=len(cells))
+    return (cells[counts >= STEM_MIN_POINTS] + 0.5) * STEM_CELL
 
 
 @dataclass(frozen=True)

@@ -19,7 +19,7 @@ from scipy.spatial import cKDTree
 
 from pipeline.blockinfo import BlockInfo
 from pipeline.canopy import cell_centres, unique_cells
-from pipeline.coverage import STEM_CELL
+from pipeline.coverage import stems_of
 from pipeline.errors import NoTreesError, ParameterError
 from pipeline.laswriting import write_labelled_las
 from pipeline.merge import GlobalTrunks, TileTrunks, reconcile_trunks
@@ -279,7 +279,7 @@ def block_stems(summaries: list[dict]) -> np.ndarray | None:
     cells = [s.get("stems") for s in summaries]
     if not cells or any(c is None for c in cells):
         return None
-    return (np.unique(np.concatenate(cells), axis=0) + 0.5) * STEM_CELL
+    return stems_of(cells)
 
 
 def block_coverage(summaries: list[dict]) -> np.ndarray | None:

@@ -163,9 +163,7 @@ def _history_rows(key, capture, day, row, position, height, volume, trunk, statu
 
 
 def _concat(parts: list[dict]) -> dict:
-    parts = [p for p in parts if p is not None and len(p["tree_key"])]
-    if not parts:
-        return _history_rows(*([np.zeros(0)] * 2), np.zeros(0), *([np.zeros(0)] * 6))
+    parts = [p for p in parts if p is not None]
     return {c: np.concatenate([np.asarray(p[c]) for p in parts]).astype(parts[-1][c].dtype) for c in HISTORY_COLUMNS}
 
 

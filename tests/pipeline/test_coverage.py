@@ -16,3 +16,18 @@ def test_narrow_holes_are_closed_and_the_edge_is_eroded():
     cov = Coverage.from_cells(occupied_cells(xy, (0.0, 0.0)))
     assert cov.covered(np.array([[10.0, 10.0]]))[0]  # in the closed strip
     assert not cov.covered(np.array([[0.5, 10.0], [30.0, 10.0]])).any()  # at the edge, and beyond
+
+
+def test_a_stem_needs_a_few_points_and_tiles_add_up():
+    from pipeline.coverage import stem_cells, stems_of
+
+    stem = np.array([[2.03, 3.04], [2.05, 3.06], [2.06, 3.02], [2.04, 3.05]])
+    stray = np.array([[7.5, 1.5]])
+    xy = np.r_[stem, stray]
+    height = np.array([0.4, 0.5, 0.6, 1.5, 0.5])  # one stem point above the band
+    among = np.ones(len(xy), bool)
+    whole = stems_of([stem_cells(xy, height, among, (100.0, 0.0))])
+    assert np.allclose(whole, [[102.05, 3.05]])  # the stray point is no stem
+    split = stems_of([stem_cells(xy[:2], height[:2], among[:2], (100.0, 0.0)),
+                      stem_cells(xy[2:], height[2:], among[2:], (100.0, 0.0))])
+    assert np.allclose(split, whole)  # two tiles' points of one cell count together
