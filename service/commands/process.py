@@ -340,6 +340,22 @@ def _write_views(outcome, args) -> None:
                  title=f"Orchard report — {name}", summary=summary, warning=warning, sample=outcome.sample)
 
 
+def _report_capture(outcome) -> None:
+    """One line on stderr for a capture registered onto its previous capture."""
+    if not outcome.outputs.get("trees"):
+        return
+    from workers.seasons import capture_record
+
+    record = capture_record(Path(outcome.outputs["trees"]).parent)
+    reg, counts = record.get("registration"), record["counts"]
+    if reg is None:
+        return
+    print(f"capture {record['capture_id']} ({record['captured_at']}) onto {record['previous_capture_id']}: "
+          f"shifted {math.hypot(reg['dx'], reg['dy']):.2f} m, turned {reg['rotation_deg']:.2f} deg, "
+          f"residual {reg['residual_m'] * 100:.1f} cm; {counts['same']} same, {counts['new']} new, "
+          f"{counts['replanted']} replanted, {counts['removed']} removed", file=sys.stderr)
+
+
 def _report(outcome, args) -> int:
     if outcome.trees is not None:
         _print_trees(outcome.trees)
@@ -356,6 +372,7 @@ def _report(outcome, args) -> int:
         f"in {outcome.timings.get('total', 0.0):.1f} s -> {out}",
         file=sys.stderr,
     )
+    _report_capture(outcome)
     if outcome.partial:
         tiles = " ".join(f"--rerun-tile {t}" for t in outcome.failed_tiles)
         print(
