@@ -29,6 +29,10 @@ from pipeline.registration import RigidTransform
 #: :data:`REPLACED_TRUNK_RATIO` (or unmeasured), is a replant in a cut tree's slot.
 REPLACED_HEIGHT_RATIO = 0.65
 REPLACED_TRUNK_RATIO = 0.75
+#: a second pass matches trees both left unmatched within this many gates, when their
+#: heights agree (a trunk placed far off in one capture: a thin stem, a lean)
+SECOND_GATE = 1.4
+SECOND_HEIGHT_RATIO = (0.8, 1.5)
 
 
 @dataclass
@@ -195,7 +199,17 @@ def assign_keys(cur: Trees, state: BlockState, *, transform: RigidTransform, gat
     KeyAssignment
     """
     n = len(cur)
-    prev = match_trees(transform.apply(cur.xy), state.trees.xy, gate)
+    moved = transform.apply(cur.xy)
+    prev = match_trees(moved, state.trees.xy, gate)
+    left = np.flatnonzero(prev < 0)
+    free = np.setdiff1d(np.arange(len(state.key)), prev[prev >= 0])
+    if len(left) and len(free):
+        again = match_trees(moved[left], state.trees.xy[free], SECOND_GATE * gate)
+        ok = again >= 0
+        with np.errstate(divide="ignore", invalid="ignore"):
+            ratio = cur.height[left[ok]] / state.trees.height[free[again[ok]]]
+        agree = (ratio >= SECOND_HEIGHT_RATIO[0]) & (ratio <= SECOND_HEIGHT_RATIO[1])
+        prev[left[ok][agree]] = free[again[ok]][agree]
     has = prev >= 0
     replaced = np.zeros(n, bool)
     if has.any():

@@ -83,3 +83,15 @@ def test_half_coverage_removes_nothing_outside():
     k = assign_keys(cur, state, transform=IDENTITY, gate=0.5, covered=covered)
     assert len(k.removed) == 0
     assert sorted(state.key[k.unseen].tolist()) == sorted(state.key[~half].tolist())
+
+
+def test_a_trunk_placed_far_off_is_matched_again_when_its_height_agrees():
+    state = _state()
+    xy = state.trees.xy.copy()
+    xy[3] += [0.6, 0.0]  # beyond the gate (0.5 m), within 1.4 gates; a neighbour is 1.5 m away
+    cur = _trees(xy, state.trees.row, state.trees.position, height=np.full(12, 3.2))
+    k = assign_keys(cur, state, transform=IDENTITY, gate=0.5, covered=np.ones(12, bool))
+    assert k.key.tolist() == state.key.tolist() and len(k.removed) == 0
+    low = _trees(xy, state.trees.row, state.trees.position, height=np.r_[np.full(3, 3.2), [1.0], np.full(8, 3.2)])
+    k = assign_keys(low, state, transform=IDENTITY, gate=0.5, covered=np.ones(12, bool))
+    assert k.status[3] == "replanted" and state.key[k.removed].tolist() == [40]  # a young tree in a cut one's slot
