@@ -200,3 +200,14 @@ def read_info(path) -> BlockInfo:
         seekable=seekable,
     )
 
+
+
+def creation_date(path) -> str | None:
+    """The file creation day of a LAS/LAZ header as an ISO date (``YYYY-MM-DD``); None
+    when the header leaves it unset (day or year 0) or cannot be read."""
+    try:
+        with laspy.open(str(path)) as reader:
+            day = reader.header.creation_date
+    except Exception:  # noqa: BLE001 - a date is optional; read_info says what is wrong with the file
+        return None
+    return None if day is None else day.isoformat()

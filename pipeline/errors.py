@@ -78,3 +78,13 @@ class ParameterError(OrchardError):
 
 class NoTreesError(OrchardError):
     """The block was read and processed but holds no trees (e.g. only ground)."""
+
+
+class NoOverlapError(ParameterError):
+    """Two captures of a block do not overlap: no credible rigid transform maps the trees
+    of ``capture`` onto those of ``previous`` (both capture ids, as fields)."""
+
+    def __init__(self, message: str = "", *, capture: str | None = None, previous: str | None = None,
+                 n_matched: int = 0, hint: str = "", **fields) -> None:
+        super().__init__(message, hint=hint, **fields)
+        self.capture, self.previous, self.n_matched = capture, previous, n_matched

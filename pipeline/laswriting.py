@@ -42,6 +42,8 @@ class LasBlockWriter(AtomicWriter):
         ``"1.2"``, ``"1.3"`` or ``"1.4"`` (formats >= 6 need 1.4).
     extra_dims : dict name → numpy dtype, optional
         Extra-bytes dimensions (bool is stored as uint8).
+    creation_date : datetime.date, optional
+        The header's file creation day (default: today, laspy's).
     """
 
     def __init__(
@@ -55,12 +57,15 @@ class LasBlockWriter(AtomicWriter):
         point_format: int = 6,
         version: str | None = None,
         extra_dims: dict | None = None,
+        creation_date=None,
     ):
         self.path = Path(str(path))
         if version is None:
             version = "1.4" if point_format >= 6 else "1.2"
         header = laspy.LasHeader(version=version, point_format=int(point_format))
         header.scales = np.asarray(scales, dtype=np.float64)
+        if creation_date is not None:
+            header.creation_date = creation_date
         if offsets is not None:
             header.offsets = np.asarray(offsets, dtype=np.float64)
         self._extra = {k: _extra_type(v) for k, v in (extra_dims or {}).items()}

@@ -125,13 +125,35 @@ def write_gaps_parquet(path, columns: dict[str, np.ndarray], *, crs_wkt: str | N
 
 def _write_geoparquet(path, columns: dict, geometry: pa.Array, geometry_type: str, bbox, *, crs_wkt, metadata=None) -> None:
     dst = Path(str(path))
-    arrays = {name: pa.array(np.asarray(values)) for name, values in columns.items()}
+    arrays = {name: _arrow(values) for name, values in columns.items()}
     arrays["geometry"] = geometry
     table = pa.table(arrays)
     meta = dict(table.schema.metadata or {})
     meta[b"geo"] = json.dumps(geo_metadata(crs_wkt, bbox, geometry_type)).encode()
     meta.update({str(k).encode(): str(v).encode() for k, v in (metadata or {}).items()})
     table = table.replace_schema_metadata(meta)
+    tmp = temp_name(dst)
+    try:
+        pq.write_table(table, str(tmp))
+        os.replace(tmp, dst)
+    except BaseException:
+        tmp.unlink(missing_ok=True)
+        raise
+
+
+def _arrow(values) -> pa.Array:
+    """A column as Arrow: a masked array's masked entries (and an object array's Nones) are nulls."""
+    if isinstance(values, np.ma.MaskedArray):
+        return pa.array(values.data, mask=np.ma.getmaskarray(values))
+    return pa.array(np.asarray(values))
+
+
+def write_table_parquet(path, columns: dict, *, metadata: dict | None = None) -> None:
+    """Write a plain (non-geographic) table as Parquet (atomic); masked entries are nulls."""
+    dst = Path(str(path))
+    table = pa.table({name: _arrow(values) for name, values in columns.items()})
+    if metadata:
+        table = table.replace_schema_metadata({str(k).encode(): str(v).encode() for k, v in metadata.items()})
     tmp = temp_name(dst)
     try:
         pq.write_table(table, str(tmp))

@@ -30,6 +30,9 @@ _RUN = {
     "resume": ("--resume", None),
     "rerun_tile": ("--rerun-tile", None),
     "scheduler": ("--scheduler", "ORCHARD_SCHEDULER"),
+    "previous": ("--previous", None),
+    "captured_at": ("--captured-on", None),
+    "captured_at_fallback": ("the file's modification day", None),
 }
 
 #: how to list a kind of resource, said by each edge: (command line, API)

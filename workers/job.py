@@ -48,6 +48,7 @@ from workers.jobspec import (
 )
 from workers.outputs import Labels, merge_and_write
 from workers.replay import merge_stored
+from workers.seasons import capture_of
 from workers.tasks import process, summarise
 from workers.tiler import check_engine, read_sample, tile_block
 from workers.workstore import JOB_KEY, WorkStore, default_work_dir
@@ -118,6 +119,7 @@ def _run_single(spec, info, t0, progress, cancel, xyz=None) -> JobOutcome:
 
     n_trees, trees, outputs = merge_and_write(
         [summary], info, params, Path(spec.out_dir), labels=labels, labelled_laz=spec.labelled_laz, failed=[],
+        capture=capture_of(spec), timings=timings,
     )
     timings["merge_write"] = time.perf_counter() - t
     timings["total"] = time.perf_counter() - t0
@@ -170,6 +172,7 @@ def _job_record(spec: JobSpec, info: BlockInfo, grid: TileGrid, work: str) -> di
         "labelled_laz": spec.labelled_laz,
         "info": dataclasses.asdict(info),
         "failed_tiles": [],
+        "capture": dataclasses.asdict(capture_of(spec)),
     }
 
 
@@ -228,6 +231,7 @@ def _run_tiled_locked(spec, info, client, t0, progress, cancel, grid, store, tim
             outcome.sample = _stored_sample(store, info, outcome.outputs["points"])
         timings["merge_write"] = time.perf_counter() - t
         timings["total"] = time.perf_counter() - t0
+        timings.update(outcome.timings)  # the merge's own (seasons)
         outcome.timings = timings
         return outcome
     finally:

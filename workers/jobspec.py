@@ -18,11 +18,12 @@ from pipeline.jobparams import JobParams, TilingParams
 from pipeline.params import PipelineParams
 from pipeline.reading import read_counted, read_points, sample_density
 from pipeline.tiling import TileGrid, plan_grid
+from workers.seasons import check_date, check_previous
 from workers.tiler import check_engine
 from workers.workstore import WorkStore, absolute_url, default_work_dir, own_entry
 
 #: the files a job writes into its output folder (:mod:`workers.outputs` writes them)
-OUTPUT_NAMES = ("points.parquet", "labelled.laz", "trees.parquet", "rows.parquet", "gaps.parquet")
+OUTPUT_NAMES = ("points.parquet", "labelled.laz", "trees.parquet", "rows.parquet", "gaps.parquet", "history.parquet")
 
 
 class _Stopped(OrchardError):
@@ -61,6 +62,19 @@ class JobSpec:
     ``tiling.grid_origin`` None uses the block origin (floor of the header minimum), in
     the input CRS; ``work_dir`` None uses ``out_dir/_work``. ``inject_failure`` lists
     tiles whose task raises (testing the failure policy only).
+
+    A job processes one *capture* of an orchard block (:mod:`workers.seasons`):
+
+    - ``previous``: the output folder of the block's latest processed capture (made
+      absolute); the trees are registered onto its trees and keep their keys, and the
+      change columns and ``history.parquet`` continue its history. None: the block's
+      first capture (keys 1..K, every tree new).
+    - ``capture_id``: the capture's id in the history; None: the input's file stem.
+    - ``captured_at``: the capture's date (ISO ``YYYY-MM-DD``) given by the caller, used
+      when the file's header has no creation date.
+    - ``captured_at_fallback``: the date used when neither has one: the upload or
+      arrival day the service passes (the command line: the file's modification day,
+      which is also the default).
     """
 
     input_path: str
@@ -70,6 +84,10 @@ class JobSpec:
     work_dir: str | None = None
     labelled_laz: bool = False
     inject_failure: tuple[int, ...] = ()
+    previous: str | None = None
+    capture_id: str | None = None
+    captured_at: str | None = None
+    captured_at_fallback: str | None = None
 
     def __post_init__(self) -> None:
         # dask workers run in folders of their own: a relative path would name another
@@ -83,6 +101,10 @@ class JobSpec:
         if self.work_dir is not None:
             self.work_dir = absolute_url(self.work_dir)
         check_job_paths(self.input_path, self.out_dir, self.work_dir)
+        if self.previous is not None:
+            self.previous = check_previous(self.previous)
+        if self.captured_at is not None:
+            self.captured_at = check_date(self.captured_at, "job.captured_at")
         JobParams(pipeline=self.params, tiling=self.tiling)  # ParameterError: a buffer below the reach...
 
 

@@ -19,6 +19,7 @@ from scipy.spatial import cKDTree
 
 from pipeline.blockinfo import BlockInfo
 from pipeline.canopy import cell_centres, unique_cells
+from pipeline.coverage import stems_of
 from pipeline.errors import NoTreesError, ParameterError
 from pipeline.laswriting import write_labelled_las
 from pipeline.merge import GlobalTrunks, TileTrunks, reconcile_trunks
@@ -28,10 +29,12 @@ from pipeline.parquet import (
     PointsParquetWriter,
     write_gaps_parquet,
     write_rows_parquet,
+    write_table_parquet,
     write_trees_parquet,
 )
 from pipeline.rows import RowLayout, find_rows
 from workers.jobspec import OUTPUT_NAMES
+from workers.seasons import Capture, SeasonOutputs, nullable, season
 
 #: Points per output window when streaming labels (bounded memory).
 WINDOW_POINTS = 2_000_000
@@ -233,6 +236,8 @@ def merge_and_write(
     labelled_laz: bool,
     failed: list[int],
     dead_zones: np.ndarray | None = None,
+    capture: Capture | None = None,
+    timings: dict | None = None,
 ) -> tuple[int, dict, dict]:
     """Merge the tiles' summaries into trees and write the job's outputs.
 
@@ -250,6 +255,11 @@ def merge_and_write(
         Tiles without a result (recorded in the outputs' metadata).
     dead_zones : (f, 4) float64, optional
         Cores of the failed tiles in the block's local frame [m].
+    capture : Capture, optional
+        The capture the block is (:mod:`workers.seasons`); None: the input's file stem,
+        its header's date, no previous capture.
+    timings : dict, optional
+        Gets ``seasons``: the seconds registration, matching and keys took.
 
     Returns
     -------
@@ -257,7 +267,8 @@ def merge_and_write(
 
     Raises
     ------
-    NoTreesError, ParameterError (the outputs cannot be written)
+    NoTreesError, ParameterError (the outputs cannot be written), NoOverlapError (the
+    capture does not overlap its previous capture: nothing is written)
     """
     default_radius = params.trunks.at_spacing(None).cluster_radius
     merged = reconcile_trunks(
@@ -273,19 +284,26 @@ def merge_and_write(
     if merged.n_trees == 0:
         raise no_trees(info)
     trees, layout = with_rows(trees_table(summaries, merged, info.origin), params.rows, replanted(summaries, merged), canopy)
-    merged, trees = in_address_order(merged, trees)
-    outputs = write_outputs(out_dir, info, labels(merged), trees, labelled_laz=labelled_laz, failed=failed, layout=layout)
+    seasonal = season(trees, layout, block_coverage(summaries), capture or Capture.of(info.path),
+                      stems=block_stems(summaries))
+    if timings is not None:
+        timings["seasons"] = seasonal.seconds
+    # ids follow the block's addresses, which a capture may carry over from the previous one
+    merged, trees = in_address_order(merged, seasonal.trees)
+    outputs = write_outputs(out_dir, info, labels(merged), trees, labelled_laz=labelled_laz, failed=failed,
+                            layout=seasonal.layout, seasonal=seasonal)
     return merged.n_trees, trees, outputs
 
 
 def write_outputs(out_dir: Path, info: BlockInfo, labels: Labels, trees: dict, *, labelled_laz: bool, failed: list[int],
-                  layout: RowLayout | None = None) -> dict:
+                  layout: RowLayout | None = None, seasonal: SeasonOutputs | None = None) -> dict:
     """Write the outputs of a job into ``out_dir`` as one set.
 
     Every file is written into a hidden staging folder first; only when all are complete
     do they replace the folder's outputs, and an output of an earlier run that this run
     does not write (``labelled.laz``) is removed, so ``out_dir`` never mixes two runs.
-    A failure leaves ``out_dir`` as it was.
+    A failure leaves ``out_dir`` as it was. ``seasonal``: the capture's history
+    (``history.parquet``) and records (trees.parquet's metadata).
     """
     stage = out_dir / f".staging-{uuid.uuid4().hex[:12]}"
     try:
@@ -317,8 +335,14 @@ def write_outputs(out_dir: Path, info: BlockInfo, labels: Labels, trees: dict, *
             )
             written["labelled"] = path
         path = stage / "trees.parquet"
-        write_trees_parquet(path, trees, crs_wkt=info.crs_wkt, metadata=meta)
+        write_trees_parquet(path, nullable(trees), crs_wkt=info.crs_wkt,
+                            metadata=meta if seasonal is None else {**meta, **seasonal.metadata})
         written["trees"] = path
+        if seasonal is not None:
+            path = stage / "history.parquet"
+            write_table_parquet(path, {k: np.ma.masked_invalid(v) if v.dtype.kind == "f" else v
+                                       for k, v in seasonal.history.items()})
+            written["history"] = path
         if layout is not None:
             path = stage / "rows.parquet"
             write_rows_parquet(path, layout.rows, layout.lines, crs_wkt=info.crs_wkt)

@@ -22,6 +22,7 @@ from pipeline.params import PipelineParams
 from workers.dispatch import block_ground_stats, process_tiles, settle_slot_trees
 from workers.jobspec import JobOutcome, JobSpec, check_job_paths
 from workers.outputs import Labels, merge_and_write
+from workers.seasons import Capture
 from workers.tasks import process_tile, result_key
 from workers.tiler import INDEX_KEY
 from workers.workstore import JOB_KEY, WorkStore
@@ -32,7 +33,7 @@ def merge_stored(store: WorkStore, record: dict, index: dict, summaries: list[di
 
     ``record``: the job record; ``index``: the tile index; ``summaries``: the results'
     summaries; ``failed``: the tiles without a result (their cores are dead zones to
-    the merge). The outcome's timings are left empty.
+    the merge). The outcome's timings hold only ``seasons`` (registration and keys).
     """
     info = BlockInfo(**{k: tuple(v) if isinstance(v, list) else v for k, v in record["info"].items()})
     params = PipelineParams.model_validate(record["params"])
@@ -50,12 +51,14 @@ def merge_stored(store: WorkStore, record: dict, index: dict, summaries: list[di
             parts.append(part)
         return Labels(parts, info.n_points)
 
+    capture = Capture(**record["capture"]) if record.get("capture") else None
+    timings: dict = {}
     n_trees, trees, outputs = merge_and_write(
         summaries, info, params, Path(record["out_dir"]), labels=labels, labelled_laz=record["labelled_laz"],
-        failed=failed, dead_zones=np.array(dead).reshape(-1, 4),
+        failed=failed, dead_zones=np.array(dead).reshape(-1, 4), capture=capture, timings=timings,
     )
     n_tiles = len([t for t in index["tiles"] if t["n_core"] > 0])
-    return JobOutcome(info.n_points, n_trees, n_tiles, list(failed), bool(failed), {}, outputs, trees)
+    return JobOutcome(info.n_points, n_trees, n_tiles, list(failed), bool(failed), timings, outputs, trees)
 
 
 def run_tile(work_dir: str, tile_id: int) -> dict:

@@ -16,6 +16,7 @@ from types import SimpleNamespace
 import numpy as np
 
 from pipeline.canopy import canopy_cells
+from pipeline.coverage import occupied_cells, stem_cells
 from pipeline.errors import InputError
 from pipeline.ground import GroundModel, ground_residuals, raw_ground_model
 from pipeline.metrics import tree_partials
@@ -46,12 +47,14 @@ def _frame(index: dict) -> SimpleNamespace:
     return SimpleNamespace(scales=tuple(index["scales"]), offsets=tuple(index["offsets"]), origin=tuple(index["origin"]))
 
 
-def summarise(tile_id, xyz, core, result, grid: TileGrid | None, origin, params: PipelineParams) -> dict:
+def summarise(tile_id, xyz, core, result, grid: TileGrid | None, origin, params: PipelineParams,
+              index: np.ndarray | None = None) -> dict:
     """Small per-tile summary: trunks, ownership and partial metrics of the core points,
     the core's evidence for the block's trees on open slots and the ones the tile let in
-    (:mod:`workers.slottrees`).
+    (:mod:`workers.slottrees`), and the cells the core saw (:mod:`pipeline.coverage`).
 
-    ``grid`` None: the tile is the whole block and owns every trunk.
+    ``grid`` None: the tile is the whole block and owns every trunk. ``index``: the
+    points' positions in the block's file (None: the whole block, in file order).
     """
     trunks = np.asarray(result.trunks, dtype=np.float64).reshape(-1, 3)
     cluster_radius = params.trunks.at_spacing(result.spacing).cluster_radius  # the radius the tile used
@@ -89,8 +92,22 @@ def summarise(tile_id, xyz, core, result, grid: TileGrid | None, origin, params:
         # the canopy of the core, for rows whose trunks are hidden (cells in the input CRS)
         "canopy": canopy_cells(xyz[sel, :2], result.height[sel], offset=origin[:2], among=~result.is_ground[sel]),
         "slot_evidence": evidence,
+        # the 1 m cells the core saw: the part of the block this capture covered (input CRS)
+        "coverage": occupied_cells(_coverage_points(xyz, core, index), origin[:2]),
+        "stems": stem_cells(xyz[sel, :2], result.height[sel], ~result.is_ground[sel], origin[:2]),
         SLOT_KEY: np.zeros((0, 3)) if result.slot_trees is None else np.asarray(result.slot_trees, np.float64).reshape(-1, 3),
     }
+
+
+#: every this many-th point of the file (by its position) tells the coverage: 1 m cells
+#: hold hundreds of points, and tiles pick the same points as a whole block
+COVERAGE_STRIDE = 16
+
+
+def _coverage_points(xyz, core, index) -> np.ndarray:
+    if index is None:
+        return xyz[::COVERAGE_STRIDE, :2]  # a view: no copy of the block
+    return xyz[core & (index % np.uint64(COVERAGE_STRIDE) == 0), :2]
 
 
 def process(xyz: np.ndarray, params: PipelineParams, where: str, ground: tuple[float, float] | None = None,
@@ -172,7 +189,7 @@ def process_tile(work_url: str, tile_id: int, params_json: str, fail: bool = Fal
     store.put_array(f"{key}/is_ground.npy", np.asarray(result.is_ground[core], dtype=bool))
     store.put_array(f"{key}/is_wood.npy", np.asarray(result.is_wood[core], dtype=bool))
     store.put_array(f"{key}/wood_score.npy", np.asarray(result.wood_score[core], dtype=np.float32))
-    summary = summarise(tile_id, xyz, core, result, grid, frame["origin"], params)
+    summary = summarise(tile_id, xyz, core, result, grid, frame["origin"], params, index=rec["index"])
     store.put_object(f"{key}/summary.pkl", summary)
     if not store.exists(JOB_KEY):  # deleted while these were written: take them back
         return _abandon(store, tile_id)

@@ -76,7 +76,7 @@ def _add_posts(ch: Chunk, plan: Plan, rng, xs, ys, height, radius, *, wires, y: 
 def objects_chunk(plan: Plan) -> Orchard:
     """Fence posts and wire, trellis posts and wires (when asked for), the vehicle and the bin."""
     p = plan.params
-    rng = np.random.default_rng([p.seed, 4])
+    rng = p.stream(4)
     g = plan.ground
     x0, x1, y0, y1 = plan.bounds
     ch = Chunk()

@@ -47,6 +47,7 @@ class Plan:
     rho: float
     profile_x: np.ndarray  # (m,) along-track stations of the sensor height profiles
     pass_z: np.ndarray  # (q, m) sensor z of each pass at profile_x
+    heights: np.ndarray | None = None  # (k,) each tree's top above its trunk base [m]
 
     def offset(self) -> np.ndarray:
         """Absolute coordinates [m] of the local origin."""
@@ -101,6 +102,9 @@ def make_plan(p: SimulationParams) -> Plan:
     layout = make_layout(p)
     slots = layout.trees
     scale = np.array([young_scale(p, i) if layout.young[i] else 1.0 for i in slots])
+    if p.tree_scale:
+        scale = scale * np.asarray(p.tree_scale, np.float64)[slots]
+    heights = np.empty(len(slots))
     trunks = np.empty((len(slots), 3))
     trunk_r = np.empty(len(slots))
     z_top = 0.0
@@ -110,6 +114,7 @@ def make_plan(p: SimulationParams) -> Plan:
         trunks[k] = place(p, tree.base[None], tree.base[:2])[0]
         trunk_r[k] = tree.trunk_radius
         z_top = max(z_top, tree.top - tree.base[2])
+        heights[k] = tree.top - tree.base[2]
         c = tree.leaf_c
         h = c[:, 2] - ground.z(c[:, 0], c[:, 1])
         flat = _grid_index(np.c_[c[:, :2], h], origin, shape)
@@ -118,7 +123,7 @@ def make_plan(p: SimulationParams) -> Plan:
     profile_x = np.arange(x0 - 2.0, x1 + 2.0, 0.1)
     pass_z = np.stack([ground.z(profile_x, np.full(len(profile_x), yk)) + hk for yk, hk in zip(pass_y, pass_h)])
     return Plan(p, ground, tree_xy, layout, (x0, x1, y0, y1), pass_y, pass_h, shift, lad, shape, origin, trunks,
-                trunk_r, scale, z_top, _RHO * p.density, profile_x, pass_z)
+                trunk_r, scale, z_top, _RHO * p.density, profile_x, pass_z, heights)
 
 
 def _grid_index(q: np.ndarray, origin: np.ndarray, shape) -> np.ndarray:

@@ -78,7 +78,7 @@ def make_layout(p) -> Layout:
     first = np.zeros(p.rows, np.int64)
     young = np.zeros(n, bool)
     if not (p.ragged_rows or p.missing or p.replants):
-        return Layout(row, col, planted, planted.copy(), young, first)
+        return _season(p, Layout(row, col, planted, planted.copy(), young, first))
     rng = np.random.default_rng([p.seed, 6])
     last = np.full(p.rows, p.trees_per_row - 1, np.int64)
     if p.ragged_rows:
@@ -98,7 +98,19 @@ def make_layout(p) -> Layout:
     n_young = min(int(round(p.replants * n)), len(trees))
     if n_young:
         young[rng.choice(trees, n_young, replace=False)] = True
-    return Layout(row, col, planted, present, young, first)
+    return _season(p, Layout(row, col, planted, present, young, first))
+
+
+def _season(p, layout: Layout) -> Layout:
+    """``layout`` with the trees a series of captures cut (``cut``) and replanted (``young_slots``)."""
+    if not (p.cut or p.young_slots):
+        return layout
+    present, young = layout.present.copy(), layout.young.copy()
+    present[list(p.cut)] = False
+    young[list(p.cut)] = False
+    present[list(p.young_slots)] = True
+    young[list(p.young_slots)] = True
+    return Layout(layout.row, layout.col, layout.planted | present, present, young, layout.first_col)
 
 
 def young_scale(p, slot: int) -> float:

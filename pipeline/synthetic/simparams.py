@@ -47,9 +47,19 @@ class SimulationParams(BaseModel):
     rotation: float = Field(0.0, ge=-360.0, le=360.0, description="rotation of the whole block about the first slot [degrees, counterclockwise from east]")
     row_curvature: float = Field(0.0, ge=-20.0, le=20.0, description="sideways bow (sagitta) of every row over its length [m]")
     ragged_rows: bool = Field(False, description="rows of different length: each row loses 0-3 slots at either end at random")
+    scan: int = Field(0, ge=0, le=2**16, description="scan of the block: another number is another scan of the same "
+                      "planting (its own noise, sampling and occlusion draws); 0 is the block's first")
+    # a series of captures of one block (pipeline.synthetic.series): per grid slot, row-major
+    tree_scale: tuple[float, ...] = Field((), description="size of each slot's tree (growth since planting); empty: 1")
+    cut: tuple[int, ...] = Field((), description="grid slots whose tree was cut (empty slots)")
+    young_slots: tuple[int, ...] = Field((), description="grid slots holding a replant (a young tree)")
 
     @model_validator(mode="after")
     def _sizes(self) -> "SimulationParams":
+        if self.tree_scale and len(self.tree_scale) != self.rows * self.trees_per_row:
+            raise ValueError(f"tree_scale has {len(self.tree_scale)} sizes for {self.rows * self.trees_per_row} slots")
+        if any(not 0 <= s < self.rows * self.trees_per_row for s in (*self.cut, *self.young_slots)):
+            raise ValueError("cut and young_slots name grid slots 0..rows x trees_per_row - 1")
         if self.rows * self.trees_per_row > 200_000:
             raise ValueError(f"{self.rows * self.trees_per_row} trees is too many (at most 200000)")
         if self.crown_radius is not None and self.crown_radius > 2.0 * self.spacing:
@@ -65,6 +75,10 @@ class SimulationParams(BaseModel):
         if self.position_jitter is not None:
             return self.position_jitter
         return 0.15 if self.form == "vase" else 0.04
+
+    def stream(self, *keys: int) -> np.random.Generator:
+        """The random stream ``keys`` of this scan (the first scan's are the block's own)."""
+        return np.random.default_rng([self.seed, *keys] if self.scan == 0 else [self.seed, *keys, self.scan])
 
     @property
     def n_trees(self) -> int:

@@ -29,7 +29,7 @@ def _tree_chunk(plan: Plan, t: int) -> Orchard:
     p = plan.params
     i = int(plan.layout.trees[t])
     tree = grow_tree(tree_rng(p.seed, i), p, plan.tree_xy[i], plan.ground, scale=plan.scale[t])
-    rng = np.random.default_rng([p.seed, 2, i])
+    rng = p.stream(2, i)
     ch = Chunk()
     for k in passes_for(plan, tree.base[1]):
         pts, rad, _ = sample_cylinders(rng, plan, k, tree.cyl_a, tree.cyl_b, tree.cyl_ra, tree.cyl_rb)
@@ -51,7 +51,7 @@ def _ground_chunk(plan: Plan, k: int, xa: float, xb: float, j: int) -> Orchard:
     F(d) = d / (h sqrt(d^2 + h^2)) inverts in closed form, so offsets are drawn exactly.
     """
     p = plan.params
-    rng = np.random.default_rng([p.seed, 3, k, j])
+    rng = p.stream(3, k, j)
     x0, x1, y0, y1 = plan.bounds
     yk = plan.pass_y[k]
     h = plan.pass_h[k]

@@ -15,7 +15,8 @@ from pipeline.synthetic.simulate import iter_simulation
 TRUTH_COLUMNS = ("point_index", "tree_id", "is_wood", "kind")
 
 
-def write_simulation(source: Orchard | SimulationParams | Iterable[Orchard], las_path: str, truth_path: str) -> dict:
+def write_simulation(source: Orchard | SimulationParams | Iterable[Orchard], las_path: str, truth_path: str, *,
+                     creation_date=None) -> dict:
     """Write a block as LAS/LAZ (``.laz`` compresses) and its truth as Parquet.
 
     Parameters
@@ -24,6 +25,8 @@ def write_simulation(source: Orchard | SimulationParams | Iterable[Orchard], las
         A block in memory, or parameters / chunks to stream (bounded memory).
     las_path, truth_path : str
         Outputs; written to temporary names and renamed, so nothing partial is left.
+    creation_date : datetime.date, optional
+        The LAS header's creation day (a capture's date; default today).
 
     Returns
     -------
@@ -61,7 +64,7 @@ def write_simulation(source: Orchard | SimulationParams | Iterable[Orchard], las
                 epsg = ch.crs_epsg
                 n_trees = len(ch.trunks)
                 offsets = tuple(float(np.floor(v)) for v in ch.trunks.min(axis=0)) if n_trees else (0.0, 0.0, 0.0)
-                las = LasBlockWriter(las_path, crs_epsg=ch.crs_epsg, offsets=offsets)
+                las = LasBlockWriter(las_path, crs_epsg=ch.crs_epsg, offsets=offsets, creation_date=creation_date)
                 truth = TruthParquetWriter(
                     truth_path,
                     metadata={

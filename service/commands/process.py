@@ -51,6 +51,13 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--trees", action="store_true", help="print the per-tree table (address first) instead of the block summary and its rows")
     g.add_argument("--labelled-laz", action="store_true", help="also write labelled.laz: the input with extra dimensions tree_id, is_wood, wood_score")
     g.add_argument("--inject-failure", type=int, action="append", default=None, help=argparse.SUPPRESS)
+    c = parser.add_argument_group("captures of one block over the seasons (docs/seasons.md)")
+    c.add_argument("--previous", default=None, metavar="DIR_A",
+                   help="output folder of the block's previous capture: register onto its trees, keep their tree_key "
+                        "and addresses, and write the change columns and history.parquet against it")
+    c.add_argument("--captured-on", dest="captured_at", default=None, metavar="YYYY-MM-DD",
+                   help="the capture's date when the file's header has none (default: the file's modification day)")
+    c.add_argument("--capture-id", default=None, metavar="ID", help="the capture's id in history.parquet (default: INPUT's file stem)")
     add_pipeline_options(parser)
 
 
@@ -80,6 +87,8 @@ def _check_cluster_options(args: argparse.Namespace) -> None:
                                           ("--grid-origin", args.grid_origin), ("--engine", args.engine),
                                           ("--workers", args.workers), ("--dask-host", args.dask_host),
                                           ("--worker-memory", args.worker_memory),
+                                          ("--previous", args.previous), ("--captured-on", args.captured_at),
+                                          ("--capture-id", args.capture_id),
                                           ("--no-dashboard", None if args.dashboard else True)) if value is not None]
         if given:
             raise ParameterError(
@@ -209,6 +218,9 @@ def run(args: argparse.Namespace) -> int:
         work_dir=args.work,
         labelled_laz=args.labelled_laz,
         inject_failure=tuple(args.inject_failure or ()),
+        previous=args.previous,
+        capture_id=args.capture_id,
+        captured_at=args.captured_at,
     )
     tiled = bool(args.tile_size) or args.scheduler is not None
     count_on_cluster = False  # a block that surely needs tiles is counted by the workers
@@ -304,6 +316,22 @@ def _write_views(outcome, args) -> None:
                  title=f"Orchard report — {name}", summary=summary, warning=warning, sample=outcome.sample)
 
 
+def _report_capture(outcome) -> None:
+    """One line on stderr for a capture registered onto its previous capture."""
+    if not outcome.outputs.get("trees"):
+        return
+    from workers.seasons import capture_record
+
+    record = capture_record(Path(outcome.outputs["trees"]).parent)
+    reg, counts = record.get("registration"), record["counts"]
+    if reg is None:
+        return
+    print(f"capture {record['capture_id']} ({record['captured_at']}) onto {record['previous_capture_id']}: "
+          f"shifted {math.hypot(reg['dx'], reg['dy']):.2f} m, turned {reg['rotation_deg']:.2f} deg, "
+          f"residual {reg['residual_m'] * 100:.1f} cm; {counts['same']} same, {counts['new']} new, "
+          f"{counts['replanted']} replanted, {counts['removed']} removed", file=sys.stderr)
+
+
 def _report(outcome, args) -> int:
     import pyarrow.parquet as pq  # here, not at the top: `orchard --help` stays fast
 
@@ -327,6 +355,7 @@ def _report(outcome, args) -> int:
         f"in {outcome.timings.get('total', 0.0):.1f} s -> {out}",
         file=sys.stderr,
     )
+    _report_capture(outcome)
     if outcome.partial:
         tiles = " ".join(f"--rerun-tile {t}" for t in outcome.failed_tiles)
         print(

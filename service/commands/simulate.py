@@ -32,6 +32,8 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     for name, field in SimulationParams.model_fields.items():
         flag = "--" + name.replace("_", "-")
         kind = base_type(field.annotation)
+        if typing.get_origin(kind) is tuple:  # per-slot lists of a series of captures: from Python only
+            continue
         # a field without a fixed default says in its description what it defaults to
         help_text = field.description if field.default is None else f"{field.description} (default: {field.default})"
         if kind is bool:

@@ -90,14 +90,14 @@ def test_ids_do_not_depend_on_tiling(small_block, tmp_path):
 def test_rows_can_be_switched_off(small_block, tmp_path):
     out = tmp_path / "out"
     outcome = run_job(JobSpec(str(small_block), str(out), params=PipelineParams(rows={"enabled": False})))
-    assert sorted(p.name for p in out.iterdir()) == ["points.parquet", "trees.parquet"]
+    assert sorted(p.name for p in out.iterdir()) == ["history.parquet", "points.parquet", "trees.parquet"]
     assert "row" not in outcome.trees
 
 
 def test_outputs_contract(small_block, tmp_path):
     out = tmp_path / "out"
     outcome = run_job(JobSpec(str(small_block), str(out), labelled_laz=True))
-    assert sorted(p.name for p in out.iterdir()) == ["gaps.parquet", "labelled.laz", "points.parquet", "rows.parquet", "trees.parquet"]
+    assert sorted(p.name for p in out.iterdir()) == ["gaps.parquet", "history.parquet", "labelled.laz", "points.parquet", "rows.parquet", "trees.parquet"]
     trees = _trees(out)
     assert trees.schema.field("tree_id").type == "int64" and trees.schema.field("n_points").type == "int64"
     assert [str(trees.schema.field(n).type) for n in ("row", "position", "young")] == ["int32", "int32", "bool"]
@@ -279,7 +279,7 @@ def test_work_store_removes_only_what_it_wrote(small_block, tmp_path):
     # the work folder is the output folder: after the job the outputs stay, the tiles go
     out = tmp_path / "out"
     run_job(JobSpec(str(small_block), str(out), tiling=TilingParams(tile_size=20.0), work_dir=str(out)))
-    assert sorted(p.name for p in out.iterdir()) == ["gaps.parquet", "points.parquet", "rows.parquet", "trees.parquet"]
+    assert sorted(p.name for p in out.iterdir()) == ["gaps.parquet", "history.parquet", "points.parquet", "rows.parquet", "trees.parquet"]
     store = WorkStore(str(tmp_path / "w"))
     store.claim()
     store.put_json("job.json", {})
@@ -330,7 +330,7 @@ def test_a_failed_write_leaves_the_previous_outputs_whole(small_block, tmp_path,
     out = tmp_path / "out"
     run_job(JobSpec(str(small_block), str(out), labelled_laz=True))
     before = {p.name: p.read_bytes() for p in out.iterdir()}
-    assert sorted(before) == ["gaps.parquet", "labelled.laz", "points.parquet", "rows.parquet", "trees.parquet"]
+    assert sorted(before) == ["gaps.parquet", "history.parquet", "labelled.laz", "points.parquet", "rows.parquet", "trees.parquet"]
 
     def disk_full(*a, **k):
         raise OSError(28, "No space left on device")
@@ -344,7 +344,7 @@ def test_a_failed_write_leaves_the_previous_outputs_whole(small_block, tmp_path,
     monkeypatch.undo()
     # a run without --labelled-laz removes the earlier run's labelled.laz with the rest
     run_job(JobSpec(str(small_block), str(out)))
-    assert sorted(p.name for p in out.iterdir()) == ["gaps.parquet", "points.parquet", "rows.parquet", "trees.parquet"]
+    assert sorted(p.name for p in out.iterdir()) == ["gaps.parquet", "history.parquet", "points.parquet", "rows.parquet", "trees.parquet"]
 
 
 @pytest.mark.slow

@@ -252,7 +252,8 @@ def test_outputs_that_would_destroy_the_input_or_be_deleted_are_refused(small_bl
     code, _, err = _run(capsys, folder / "block.laz", "--out", folder, "--labelled-laz")
     assert code == 0, err
     names = {p.name for p in folder.iterdir()} - {"rows.parquet", "gaps.parquet"}
-    assert names == {"block.laz", "labelled.laz", "points.parquet", "trees.parquet", "trees.csv", "report.html", "map.png"}
+    assert names == {"block.laz", "labelled.laz", "points.parquet", "trees.parquet", "trees.csv", "report.html", "map.png",
+                     "history.parquet"}
 
 
 def test_resume_and_rerun_take_only_the_block_the_job_was_started_on(small_block, ground_block, tmp_path, capsys):

@@ -1,0 +1,33 @@
+"""The part of a block a capture saw."""
+
+import numpy as np
+
+from pipeline.coverage import Coverage, occupied_cells
+
+
+def test_cells_are_on_the_input_crs_whole_metre_grid():
+    cells = occupied_cells(np.array([[0.2, 0.3], [0.9, 0.1], [2.5, 1.0]]), (500000.0, 20.0))
+    assert sorted(map(tuple, cells.tolist())) == [(500000, 20), (500002, 21)]
+
+
+def test_narrow_holes_are_closed_and_the_edge_is_eroded():
+    xy = np.mgrid[0:20:0.5, 0:20:0.5].reshape(2, -1).T
+    xy = xy[np.abs(xy[:, 1] - 10.0) > 0.7]  # the strip the scanner's vehicle hides
+    cov = Coverage.from_cells(occupied_cells(xy, (0.0, 0.0)))
+    assert cov.covered(np.array([[10.0, 10.0]]))[0]  # in the closed strip
+    assert not cov.covered(np.array([[0.5, 10.0], [30.0, 10.0]])).any()  # at the edge, and beyond
+
+
+def test_a_stem_needs_a_few_points_and_tiles_add_up():
+    from pipeline.coverage import stem_cells, stems_of
+
+    stem = np.array([[2.03, 3.04], [2.05, 3.06], [2.06, 3.02], [2.04, 3.05]])
+    stray = np.array([[7.5, 1.5]])
+    xy = np.r_[stem, stray]
+    height = np.array([0.4, 0.5, 0.6, 1.5, 0.5])  # one stem point above the band
+    among = np.ones(len(xy), bool)
+    whole = stems_of([stem_cells(xy, height, among, (100.0, 0.0))])
+    assert np.allclose(whole, [[102.05, 3.05]])  # the stray point is no stem
+    split = stems_of([stem_cells(xy[:2], height[:2], among[:2], (100.0, 0.0)),
+                      stem_cells(xy[2:], height[2:], among[2:], (100.0, 0.0))])
+    assert np.allclose(split, whole)  # two tiles' points of one cell count together
