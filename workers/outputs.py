@@ -295,6 +295,23 @@ def merge_and_write(
     return merged.n_trees, trees, outputs
 
 
+def block_stems(summaries: list[dict]) -> np.ndarray | None:
+    """(c, 2) float64 centres of the cells holding stems (:func:`pipeline.coverage.stem_cells`) of every tile's core."""
+    cells = [s.get("stems") for s in summaries]
+    if not cells or any(c is None for c in cells):
+        return None
+    return stems_of(cells)
+
+
+def block_coverage(summaries: list[dict]) -> np.ndarray | None:
+    """(c, 2) int64: the 1 m cells the tiles' cores saw (input CRS); None when a tile's
+    summary has none (a work store of an earlier release)."""
+    cells = [s.get("coverage") for s in summaries]
+    if not cells or any(c is None for c in cells):
+        return None
+    return np.unique(np.concatenate(cells), axis=0)
+
+
 def write_outputs(out_dir: Path, info: BlockInfo, labels: Labels, trees: dict, *, labelled_laz: bool, failed: list[int],
                   layout: RowLayout | None = None, seasonal: SeasonOutputs | None = None) -> dict:
     """Write the outputs of a job into ``out_dir`` as one set.
