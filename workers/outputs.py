@@ -284,6 +284,7 @@ def merge_and_write(
     if merged.n_trees == 0:
         raise no_trees(info)
     trees, layout = with_rows(trees_table(summaries, merged, info.origin), params.rows, replanted(summaries, merged), canopy)
+    merged, trees = in_address_order(merged, trees)  # a first capture's keys follow its addresses
     seasonal = season(trees, layout, block_coverage(summaries), capture or Capture.of(info.path),
                       stems=block_stems(summaries))
     if timings is not None:

@@ -61,7 +61,8 @@ def test_process_tiled_with_embedded_cluster(small_block, tmp_path, capsys):
     assert "dask dashboard: http" in err
     assert "tiles [" in err and "] 0/" in err
     names = {p.name for p in (tmp_path / "o").iterdir()} - {"rows.parquet", "gaps.parquet"}  # (rows where found)
-    assert names == {"labelled.laz", "points.parquet", "trees.parquet", "trees.csv", "report.html", "map.png"}
+    assert names == {"labelled.laz", "points.parquet", "trees.parquet", "trees.csv", "report.html", "map.png",
+                     "history.parquet"}
 
 
 @pytest.mark.slow
