@@ -48,7 +48,7 @@ from workers.jobspec import (
 )
 from workers.outputs import Labels, merge_and_write
 from workers.replay import merge_stored
-from workers.seasons import capture_of
+from workers.captures import capture_of
 from workers.tasks import process, summarise
 from workers.tiler import check_engine, read_sample, tile_block
 from workers.workstore import JOB_KEY, WorkStore, default_work_dir

@@ -18,7 +18,7 @@ from pipeline.jobparams import JobParams, TilingParams
 from pipeline.params import PipelineParams
 from pipeline.reading import read_counted, read_points, sample_density
 from pipeline.tiling import TileGrid, plan_grid
-from workers.seasons import check_date, check_previous
+from workers.captures import check_date, check_previous
 from workers.tiler import check_engine
 from workers.workstore import WorkStore, absolute_url, default_work_dir, own_entry
 

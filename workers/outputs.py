@@ -34,7 +34,8 @@ from pipeline.parquet import (
 )
 from pipeline.rows import RowLayout, find_rows
 from workers.jobspec import OUTPUT_NAMES
-from workers.seasons import Capture, SeasonOutputs, nullable, season
+from workers.captures import Capture
+from workers.seasons import SeasonOutputs, nullable, season
 
 #: Points per output window when streaming labels (bounded memory).
 WINDOW_POINTS = 2_000_000

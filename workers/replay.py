@@ -22,7 +22,7 @@ from pipeline.params import PipelineParams
 from workers.dispatch import block_ground_stats, process_tiles, settle_slot_trees
 from workers.jobspec import JobOutcome, JobSpec, check_job_paths
 from workers.outputs import Labels, merge_and_write
-from workers.seasons import Capture
+from workers.captures import Capture
 from workers.tasks import process_tile, result_key
 from workers.tiler import INDEX_KEY
 from workers.workstore import JOB_KEY, WorkStore
