@@ -23,7 +23,7 @@ from pipeline.graph import (
 )
 from pipeline.ground import GroundModel, classify_ground, ground_model
 from pipeline.metrics import trunk_circles
-from pipeline.params import PipelineParams
+from pipeline.params import PipelineParams, TrunkParams
 from pipeline.posts import Posts, find_posts, on_posts
 from pipeline.slots import let_in, slot_evidence, trees_on_slots
 from pipeline.segment import (
@@ -187,6 +187,11 @@ def _not_on_slot(drop: np.ndarray, det: TrunkDetection) -> np.ndarray:
     return drop if det.on_slot is None else drop[~det.on_slot[drop]]
 
 
+def _floors(det: TrunkDetection, params: PipelineParams) -> TrunkParams:
+    """The trunk parameters with the size floors ``det`` used (the block's, where unset)."""
+    return params.trunks.at_floors(*(det.floors or (None, None)))
+
+
 def noisy_planar(feats: ShapeFeatures, *, noise: float) -> np.ndarray:
     """Nodes on a box face blurred by range noise, (m,) bool; all False unless the
     block's estimated ground ``noise`` [m] is in ``NOISY_BOX_NOISE``."""
@@ -317,7 +322,7 @@ def analyse_nodes(
     post_radius = AUTO_POST_RADIUS if auto else params.trunks.max_post_radius
     if post_radius > 0 and gm.noise < POST_MAX_NOISE and det.candidates is not None:
         cand = det.candidates
-        tall = cand["top"] >= params.trunks.min_tree_height
+        tall = cand["top"] >= _floors(det, params).min_tree_height
         posts = find_posts(
             xyz, height, np.c_[cand["x"], cand["y"]][tall], max_radius=post_radius,
             max_height=params.trunks.max_post_height, among=vegetation,
@@ -331,7 +336,7 @@ def analyse_nodes(
             else:
                 det = again
     # the row model as a prior: replants and full trees on open planting slots
-    evidence = slot_evidence(det, params=params)
+    evidence = slot_evidence(det, params=params.model_copy(update={"trunks": _floors(det, params)}))
     if slot_trees is None:
         slot_trees = trees_on_slots(evidence, params=params.rows)
     det = let_in(det, slot_trees, nodes, node_height, contact_top=ground_top + params.trunks.contact_height)
@@ -363,8 +368,10 @@ def analyse_nodes(
     seg = segment(det)
     for _ in range(DROP_ROUNDS):  # dropping a box-like or low "tree" (a vehicle) re-segments its material
         drop = np.union1d(
-            box_like_trees(seg.node_tree, node_height, nodes=nodes, trunk_xy=det.xy, planar=standing_face, params=params.trunks),
-            _not_on_slot(low_trees(seg.node_tree, node_height, det.k, params=params.trunks), det),
+            # the box test reads the material below a grown tree's height, where a vehicle's body is
+            box_like_trees(seg.node_tree, node_height, nodes=nodes, trunk_xy=det.xy, planar=standing_face,
+                           params=params.trunks.at_floors()),
+            _not_on_slot(low_trees(seg.node_tree, node_height, det.k, params=_floors(det, params)), det),
         )
         if drop.size == 0:
             break

@@ -11,7 +11,8 @@ Two kinds of tree stand on a row's open slots that the trunk tests alone turn do
 - A full-grown tree whose contact group has a tree's height and a trunk's foot but was
   taken for a satellite of a stronger neighbour, or found too wide (on dense rows with
   foliage to the ground one tree may drain two or three times what its neighbour does),
-  on an open slot.
+  on an open slot; or a young tree that fails only the branch test of a block whose size
+  floors follow its young trees (a whip whose few side shoots the scan missed).
 
 Either must drain a share of what the block's typical trunk does: a crown fragment or a
 branch touching down near an empty slot, or a weed, drains far less.
@@ -146,7 +147,9 @@ def slot_evidence(det: TrunkDetection, *, params: PipelineParams) -> dict:
         & (cand["top"] < tp.min_tree_height)
         & (cand["planar"] <= tp.max_planar_fraction)
     )  # no width test: a young tree with foliage to the ground is as wide as its foliage
-    full = rejected & np.asarray(cand["fits"], bool) & (np.asarray(cand["foot"]) >= tp.min_foot_ratio) & ~replant
+    # a young tree whose few side shoots the scan missed fails only the branch test: on an open slot the rows vouch for it
+    fits = np.asarray(cand["fits"], bool) | np.asarray(cand.get("unbranched", False), bool)
+    full = rejected & fits & (np.asarray(cand["foot"]) >= tp.min_foot_ratio) & ~replant
     pick = replant | full
     return {
         "trunks": trunks,
@@ -260,4 +263,5 @@ def let_in(det: TrunkDetection, trees: np.ndarray, nodes: np.ndarray, node_heigh
         det.spacing,
         np.r_[np.zeros(det.k, bool) if det.young is None else det.young, trees[keep, 2] > 0],
         np.r_[np.zeros(det.k, bool) if det.on_slot is None else det.on_slot, np.ones(len(keep), bool)],
+        det.floors,
     )
