@@ -11,8 +11,10 @@ Two kinds of tree stand on a row's open slots that the trunk tests alone turn do
 - A full-grown tree whose contact group has a tree's height and a trunk's foot but was
   taken for a satellite of a stronger neighbour, or found too wide (on dense rows with
   foliage to the ground one tree may drain two or three times what its neighbour does),
-  on an open slot; or a young tree that fails only the branch test of a block whose size
-  floors follow its young trees (a whip whose few side shoots the scan missed).
+  on an open slot.
+
+A young tree that fails only the branch test of a block whose size floors follow its
+young trees (a whip whose few side shoots the scan missed) counts as a replant.
 
 Either must drain a share of what the block's typical trunk does: a crown fragment or a
 branch touching down near an empty slot, or a weed, drains far less.
@@ -147,9 +149,9 @@ def slot_evidence(det: TrunkDetection, *, params: PipelineParams) -> dict:
         & (cand["top"] < tp.min_tree_height)
         & (cand["planar"] <= tp.max_planar_fraction)
     )  # no width test: a young tree with foliage to the ground is as wide as its foliage
-    # a young tree whose few side shoots the scan missed fails only the branch test: on an open slot the rows vouch for it
-    fits = np.asarray(cand["fits"], bool) | np.asarray(cand.get("unbranched", False), bool)
-    full = rejected & fits & (np.asarray(cand["foot"]) >= tp.min_foot_ratio) & ~replant
+    # a young tree whose few side shoots the scan missed fails only the branch test: a replant to the rows
+    replant |= rejected & np.asarray(cand.get("unbranched", False), bool)
+    full = rejected & np.asarray(cand["fits"], bool) & (np.asarray(cand["foot"]) >= tp.min_foot_ratio) & ~replant
     pick = replant | full
     return {
         "trunks": trunks,

@@ -1,0 +1,88 @@
+"""Young, dormant blocks with default settings: the size floors follow the block's trees.
+
+Generated blocks use evaluation seeds (< 100; the floors and the branch test were set on
+seeds 100-101); the real row is made of real trees scaled to a young tree's size
+(``bench.real_data.young_row``).
+"""
+
+import numpy as np
+import pytest
+
+from bench.real_data import REAL, young_row
+from pipeline.evaluation.scores import score_labels
+from pipeline.params import MATURE_FLOORS, PipelineParams, TrunkParams
+from pipeline.process import process_points
+from pipeline.synthetic.orchard import KIND
+from pipeline.synthetic.simparams import SimulationParams
+from pipeline.synthetic.simulate import simulate_orchard
+from pipeline.trunks import _branches, block_floors
+
+YOUNG = dict(form="young", rows=2, trees_per_row=8, spacing=1.0, row_spacing=3.5)
+
+
+def _run(o):
+    origin = np.floor(o.xyz.min(axis=0))
+    return origin, process_points(o.xyz - origin, params=PipelineParams())
+
+
+def test_young_dormant_block_with_defaults():
+    o = simulate_orchard(SimulationParams(seed=3, **YOUNG))
+    assert not (o.kind == KIND.index("leaf")).any()  # dormant
+    assert (o.kind == KIND.index("post")).sum() > 0  # the stakes (and the fence)
+    origin, r = _run(o)
+    s = score_labels(true_tree_id=o.tree_id, true_is_wood=o.is_wood, true_trunks=o.trunks[:, :2] - origin[:2],
+                     pred_tree_id=r.tree_id, pred_is_wood=r.is_wood, found_trunks=r.trunks[:, :2])
+    assert s["trunk_f1"] >= 0.97, s
+    assert s["v_measure"] >= 0.95, s
+
+
+def test_posts_stakes_and_boxes_without_trees_are_no_trees():
+    # a young block with its trees taken out: stakes, the fence with its wire, the vehicle and the bin
+    o = simulate_orchard(SimulationParams(seed=4, **YOUNG))
+    keep = o.tree_id == 0
+    origin = np.floor(o.xyz.min(axis=0))
+    r = process_points(o.xyz[keep] - origin, params=PipelineParams())
+    assert r.n_trees == 0
+
+
+@pytest.mark.skipif(not (REAL / "AdTree").is_dir() or not (REAL / "aRchi").is_dir(), reason="../shared/data/real absent")
+def test_real_trees_at_a_young_size_with_defaults():
+    xyz, tid, bases = young_row(0)
+    origin = np.floor(xyz.min(axis=0))
+    r = process_points(xyz - origin, params=PipelineParams())
+    s = score_labels(true_tree_id=tid, true_is_wood=np.zeros(len(tid), bool), true_trunks=bases[:, :2] - origin[:2],
+                     pred_tree_id=r.tree_id, pred_is_wood=r.is_wood, found_trunks=r.trunks[:, :2])
+    assert s["trunk_f1"] >= 0.95, s  # measured 1.00 (seeds 0, 1)
+    assert s["v_measure"] >= 0.90, s  # measured 0.93
+
+
+def test_floors_given_are_used_as_given_and_unset_ones_follow_the_block():
+    p = TrunkParams(min_tree_height=1.2)
+    assert p.needs_floors() and p.at_floors(0.8, 30).min_tree_height == 1.2
+    assert p.at_floors(0.8, 30).min_canopy_voxels == 30
+    assert TrunkParams().at_floors().min_tree_height == MATURE_FLOORS["min_tree_height"]
+    # half the median height, a quarter of the median catchment, within [least, mature]
+    top, support = np.array([1.6, 1.8, 2.0, 9.0]), np.array([100.0, 120.0, 140.0, 10.0])
+    ok = np.array([True, True, True, False])
+    assert block_floors(top, support, ok) == (0.9, 30)
+    assert block_floors(np.array([5.0]), np.array([4000.0]), np.array([True])) == (2.0, 150)
+    assert block_floors(np.array([0.5]), np.array([20.0]), np.array([True])) == (0.7, 20)
+    assert block_floors(top, support, np.zeros(4, bool)) == (None, None)
+
+
+def _column(x, y, z0, z1, step=0.1):
+    z = np.arange(z0, z1, step)
+    return np.c_[np.full_like(z, x), np.full_like(z, y), z]
+
+
+def test_branch_test_by_hand():
+    # group 0: a post with a wire at one height; group 1: a stem with two side shoots at
+    # different heights; group 2: a stem with a stake 8 cm beside it
+    post = np.r_[_column(0, 0, 0.1, 1.6), np.c_[np.arange(0.1, 1.5, 0.1), np.zeros(14), np.full(14, 1.0)]]
+    s = np.linspace(0.1, 0.5, 5)
+    tree = np.r_[_column(5, 0, 0.1, 1.8), np.c_[5 + s, np.zeros(5), 0.8 + s], np.c_[5 - s, np.zeros(5), 1.2 + 0.5 * s]]
+    staked = np.r_[_column(10, 0, 0.1, 1.8), _column(10.08, 0, 0.1, 1.5)]
+    nodes = np.r_[post, tree, staked]
+    group = np.r_[np.zeros(len(post)), np.ones(len(tree)), np.full(len(staked), 2)].astype(np.int64)
+    centre = np.array([[0.0, 0.0], [5.0, 0.0], [10.04, 0.0]])
+    assert _branches(nodes, nodes[:, 2], group, centre, 0.1).tolist() == [False, True, False]
