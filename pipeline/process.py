@@ -23,7 +23,7 @@ from pipeline.graph import (
 )
 from pipeline.ground import GroundModel, classify_ground, ground_model
 from pipeline.metrics import trunk_circles
-from pipeline.params import MATURE_FLOORS, PipelineParams, TrunkParams
+from pipeline.params import PipelineParams, TrunkParams
 from pipeline.posts import Posts, find_posts, on_posts
 from pipeline.slots import let_in, slot_evidence, trees_on_slots
 from pipeline.segment import (
@@ -38,7 +38,6 @@ from pipeline.segment import (
 )
 from pipeline.stems import STEM_SLICE_HEIGHT, STEM_SLICES
 from pipeline.trunks import (
-    MIN_FLOOR_HEIGHT,
     TrunkDetection,
     box_like_trees,
     detect_trunks,
@@ -191,17 +190,6 @@ def _not_on_slot(drop: np.ndarray, det: TrunkDetection) -> np.ndarray:
 def _floors(det: TrunkDetection, params: PipelineParams) -> TrunkParams:
     """The trunk parameters with the size floors ``det`` used (the block's, where unset)."""
     return params.trunks.at_floors(*(det.floors or (None, None)))
-
-
-def _low_floor(det: TrunkDetection, params: PipelineParams) -> TrunkParams:
-    """The trunk parameters for the height test of segmented trees: the floor ``det``
-    used, or the least floor where the block's floors were lowered (a young tree at a
-    row's end can lose its top to its neighbour; the vehicles this test is for are
-    turned down before, as box-like, under lowered floors)."""
-    tp = _floors(det, params)
-    if params.trunks.min_tree_height is None and tp.min_tree_height < MATURE_FLOORS["min_tree_height"]:
-        return tp.model_copy(update={"min_tree_height": MIN_FLOOR_HEIGHT})
-    return tp
 
 
 def noisy_planar(feats: ShapeFeatures, *, noise: float) -> np.ndarray:
@@ -383,7 +371,7 @@ def analyse_nodes(
             # the box test reads the material below a grown tree's height, where a vehicle's body is
             box_like_trees(seg.node_tree, node_height, nodes=nodes, trunk_xy=det.xy, planar=standing_face,
                            params=params.trunks.at_floors()),
-            _not_on_slot(low_trees(seg.node_tree, node_height, det.k, params=_low_floor(det, params)), det),
+            _not_on_slot(low_trees(seg.node_tree, node_height, det.k, params=_floors(det, params)), det),
         )
         if drop.size == 0:
             break
