@@ -336,7 +336,7 @@ def analyse_nodes(
             else:
                 det = again
     # the row model as a prior: replants and full trees on open planting slots
-    evidence = slot_evidence(det, params=params.model_copy(update={"trunks": _floors(det, params)}))
+    evidence = slot_evidence(det, params=params)
     if slot_trees is None:
         slot_trees = trees_on_slots(evidence, params=params.rows)
     det = let_in(det, slot_trees, nodes, node_height, contact_top=ground_top + params.trunks.contact_height)

@@ -141,7 +141,7 @@ def slot_evidence(det: TrunkDetection, *, params: PipelineParams) -> dict:
             "full": np.zeros(0, bool)}
     if not params.rows.enabled or cand is None or not len(cand["x"]):
         return none
-    tp = params.trunks
+    tp = params.trunks.at_floors(*(det.floors or (None, None)))  # the size floors the detection used
     rejected = ~np.asarray(cand["accepted"], bool)
     replant = (
         rejected

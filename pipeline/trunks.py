@@ -540,7 +540,7 @@ def box_like_trees(
     (j,) int64 indices of trunks to drop.
     """
     k = trunk_xy.shape[0]
-    low = (node_tree > 0) & (node_height < params.min_tree_height)
+    low = (node_tree > 0) & (node_height < params.at_floors().min_tree_height)
     idx = np.flatnonzero(low)
     t = node_tree[idx] - 1
     near = ((nodes[idx, :2] - trunk_xy[t]) ** 2).sum(1) <= radius**2
@@ -563,7 +563,7 @@ def low_trees(node_tree: np.ndarray, node_height: np.ndarray, k: int, *, params:
     (j,) int64 indices of trunks to drop.
     """
     top = _group_percentile(node_height, np.asarray(node_tree, dtype=np.int64) - 1, k, TOP_PERCENTILE)
-    return np.flatnonzero(top < params.min_tree_height)
+    return np.flatnonzero(top < params.at_floors().min_tree_height)  # unset: the mature trees' floor
 
 
 def drop_trunks(det: TrunkDetection, drop: np.ndarray) -> TrunkDetection:
