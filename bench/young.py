@@ -49,8 +49,9 @@ def main(argv: list[str] | None = None) -> int:
     print("|---|---|---|---|")
     for spacing, row_spacing in SETTINGS:
         rs = [score(args.work_dir, spacing, row_spacing, s) for s in range(args.seeds)]
-        print(f"| young, dormant, {spacing:g} m × {row_spacing:g} m, 20 trees | 0–{args.seeds - 1} | "
-              f"{', '.join(f'{r['trunk_f1']:.2f}' for r in rs)} | {', '.join(f'{r['v_measure']:.3f}' for r in rs)} |")
+        f1 = ", ".join(f"{r['trunk_f1']:.2f}" for r in rs)
+        vm = ", ".join(f"{r['v_measure']:.3f}" for r in rs)
+        print(f"| young, dormant, {spacing:g} m × {row_spacing:g} m, 20 trees | 0–{args.seeds - 1} | {f1} | {vm} |")
     from bench.real_data import REAL, _local, young_row
     from pipeline.evaluation.scores import score_labels
     from pipeline.params import PipelineParams

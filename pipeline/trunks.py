@@ -24,7 +24,7 @@ from scipy import sparse
 from scipy.spatial import cKDTree
 
 from pipeline.graph import shortest_paths, subtree_sizes
-from pipeline.params import MATURE_FLOORS, TrunkParams
+from pipeline.params import MATURE_FLOORS, SPACING_RADII, TrunkParams
 from pipeline.spacing import estimate_spacing
 from pipeline.stems import STEM_SLICES, foot_ratio, stem_contrast
 
@@ -74,6 +74,9 @@ BRANCH_EXTENT = 0.1
 #: ... and its low material is nearly free of box faces (a bin's corners branch out; the
 #: low material of young trees on generated blocks is 0 % planar, the bin's groups 12-65 %)
 BRANCH_MAX_PLANAR = 0.05
+#: ... and drains at most this many times the canopy floor (4 times the median catchment
+#: of the block's branching groups; young trees on generated blocks drain up to 2.2 times it)
+BRANCH_MAX_SIZE = 16
 #: floors from the block: the height floor is this share of the median height of the
 #: block's branching contact groups, at least MIN_FLOOR_HEIGHT [m] (irrigation risers,
 #: grass tufts) ...
@@ -344,8 +347,11 @@ def _groups(
     if branch_test:
         mature = (g_support >= MATURE_FLOORS["min_canopy_voxels"]) & (g_top >= MATURE_FLOORS["min_tree_height"])
         unbranched = fits & ~branches & ~mature
-        # and shows no box face: a bin's corners branch out, thin young stems form no planar patches
-        fits &= ~unbranched & (mature | (g_planar <= BRANCH_MAX_PLANAR))
+        # and shows no box face (a bin's corners branch out, thin young stems form no planar patches)
+        # and drains no more than a young tree of the block: a vehicle's underside drains
+        # like several (6 times the median young tree on generated blocks)
+        young = (g_planar <= BRANCH_MAX_PLANAR) & (g_support <= BRANCH_MAX_SIZE * params.min_canopy_voxels)
+        fits &= ~unbranched & (mature | young)
     candidates = {
         "x": cx, "y": cy, "support": g_support, "top": g_top, "planar": g_planar, "width": width, "branches": branches,
         "unbranched": unbranched,
@@ -380,8 +386,10 @@ def block_floors(top: np.ndarray, support: np.ndarray, ok: np.ndarray) -> tuple[
     branch and pass every test of their own at the lowest floors: FLOOR_HEIGHT_SHARE of
     their median ``top`` [m] and FLOOR_SIZE_SHARE of their median ``support`` [voxels],
     each between its least value and the mature trees' floor (MATURE_FLOORS). (None,
-    None) without such a group: the mature trees' floors hold."""
-    if not ok.any():
+    None) without such a group, or where their median height is the mature trees' floor
+    or more (a block of grown trees, replants among them or not): the mature trees'
+    floors hold."""
+    if not ok.any() or np.median(top[ok]) >= MATURE_FLOORS["min_tree_height"]:
         return None, None
     h = float(np.clip(FLOOR_HEIGHT_SHARE * np.median(top[ok]), MIN_FLOOR_HEIGHT, MATURE_FLOORS["min_tree_height"]))
     s = int(np.clip(round(FLOOR_SIZE_SHARE * np.median(support[ok])), MIN_FLOOR_VOXELS, MATURE_FLOORS["min_canopy_voxels"]))
@@ -466,7 +474,9 @@ def detect_trunks(
         _, _, probe = _groups(nodes, node_height, drained, scattering, radius=loose.at_spacing(None).cluster_radius,
                               params=loose)
         ok = probe["fits"] & probe["branches"] & (probe["width"] <= params.max_trunk_width)
-        params = params.at_floors(*block_floors(probe["top"], probe["support"], ok))
+        floors = block_floors(probe["top"], probe["support"], ok)
+        branch_test = floors[0] is not None  # a block of young trees
+        params = params.at_floors(*floors)
     if spacing is None and params.needs_spacing():
         # a first grouping with the free-standing trees' (or the given) cluster radius
         # keeps the bark of a trunk up to about that thick in one group; where it measures
@@ -481,7 +491,13 @@ def detect_trunks(
             if params.at_spacing(spacing).cluster_radius >= radius:
                 break
             radius = params.at_spacing(spacing).cluster_radius
+    young_satellites = branch_test and params.satellite_radius is None
     params = params.at_spacing(spacing)
+    if young_satellites:
+        # a satellite is a crown's foliage touching down: its reach follows the trees' size
+        # as well as their spacing (young, dormant trees have no foliage to reach 2 m out)
+        shrink = (params.min_tree_height / MATURE_FLOORS["min_tree_height"]) ** SPACING_RADII["trunks"]["satellite_radius"][1]
+        params = params.model_copy(update={"satellite_radius": params.satellite_radius * shrink})
     groups, gidx, candidates = _groups(nodes, node_height, drained, scattering, radius=params.cluster_radius, params=params,
                                        branch_test=branch_test)
     cx, cy, width, g_support, fits = (candidates[k] for k in ("x", "y", "width", "support", "fits"))
