@@ -38,6 +38,7 @@ from pipeline.segment import (
 )
 from pipeline.stems import STEM_SLICE_HEIGHT, STEM_SLICES
 from pipeline.trunks import (
+    MIN_FLOOR_HEIGHT,
     TrunkDetection,
     box_like_trees,
     detect_trunks,
@@ -190,6 +191,18 @@ def _not_on_slot(drop: np.ndarray, det: TrunkDetection) -> np.ndarray:
 def _floors(det: TrunkDetection, params: PipelineParams) -> TrunkParams:
     """The trunk parameters with the size floors ``det`` used (the block's, where unset)."""
     return params.trunks.at_floors(*(det.floors or (None, None)))
+
+
+def _low_floor(det: TrunkDetection, params: PipelineParams) -> TrunkParams:
+    """The trunk parameters for the height test of segmented trees: the height floor
+    ``det`` used, but on a block of young trees (its floors, left unset, below the
+    mature trees') the least floor: a short young tree's material sits just above the
+    block's floor, and segmentation can trim its top; the vehicles this test is for are
+    turned down before on such blocks (:func:`pipeline.trunks.detect_trunks`)."""
+    tp = _floors(det, params)
+    if params.trunks.min_tree_height is None and tp.min_tree_height < params.trunks.at_floors().min_tree_height:
+        return tp.model_copy(update={"min_tree_height": MIN_FLOOR_HEIGHT})
+    return tp
 
 
 def noisy_planar(feats: ShapeFeatures, *, noise: float) -> np.ndarray:
@@ -371,7 +384,7 @@ def analyse_nodes(
             # the box test reads the material below a grown tree's height, where a vehicle's body is
             box_like_trees(seg.node_tree, node_height, nodes=nodes, trunk_xy=det.xy, planar=standing_face,
                            params=params.trunks.at_floors()),
-            _not_on_slot(low_trees(seg.node_tree, node_height, det.k, params=_floors(det, params)), det),
+            _not_on_slot(low_trees(seg.node_tree, node_height, det.k, params=_low_floor(det, params)), det),
         )
         if drop.size == 0:
             break
