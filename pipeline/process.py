@@ -94,6 +94,9 @@ POST_SURFACE_MARGIN = 0.03
 DROP_ROUNDS = 3
 #: the foot test reads the ground points above this share of the ground layer's height
 FOOT_LAYER_SHARE = 0.5
+#: on a block of young trees, a trunk with a large planar surface (a bin's, a vehicle's, a
+#: wall's) within this [m] horizontally is that object's edge or wheel, not a tree
+YOUNG_SURFACE_REACH = 0.3
 #: a stem circle's centre replaces the detected trunk position when it lies within a
 #: diameter of it, and at least this [m] (farther, the fit found something else)
 MIN_RECENTRE = 0.15
@@ -203,6 +206,14 @@ def _low_floor(det: TrunkDetection, params: PipelineParams) -> TrunkParams:
     if params.trunks.min_tree_height is None and tp.min_tree_height < params.trunks.at_floors().min_tree_height:
         return tp.model_copy(update={"min_tree_height": MIN_FLOOR_HEIGHT})
     return tp
+
+
+def _beside(xy: np.ndarray, other: np.ndarray, reach: float) -> np.ndarray:
+    """Indices of the points ``xy`` (k, 2) with a point of ``other`` (o, 2) within ``reach`` [m]."""
+    if not len(xy) or not len(other):
+        return np.zeros(0, np.int64)
+    d, _ = cKDTree(other).query(xy, distance_upper_bound=reach)
+    return np.flatnonzero(np.isfinite(d))
 
 
 def noisy_planar(feats: ShapeFeatures, *, noise: float) -> np.ndarray:
@@ -362,6 +373,11 @@ def analyse_nodes(
         margin=params.segment.surface_margin,
         min_top=params.segment.floating_height,
     )
+    if _low_floor(det, params).min_tree_height < _floors(det, params).min_tree_height:
+        # on a block of young trees a bin's edges and a vehicle's wheels stand like young
+        # trees, and their faces are cut out (below) before the box test of segmented trees
+        # could see them: a young tree stands clear of such surfaces
+        det = drop_trunks(det, _beside(det.xy, nodes[surfaces & ~on_post, :2], YOUNG_SURFACE_REACH))
     seg_graph = graph
     if params.segment.leaf_cost > 0:
         seg_graph = reweight(graph, 1.0 + params.segment.leaf_cost * leafiness)
