@@ -195,7 +195,7 @@ def with_rows(trees: dict, params: RowParams, replants: np.ndarray | None = None
 
 def no_trees(info: BlockInfo) -> NoTreesError:
     return NoTreesError(
-        f"{Path(info.path).name}: no trees found in {info.n_points} points (only ground or clutter?); ",
+        f"{Path(info.path).name}: no trees found in {info.n_points} points (only ground or clutter: posts, stakes, boxes?); ",
         hint="check the block, or lower {trunks.min_tree_height} / {trunks.min_canopy_voxels}",
     )
 
