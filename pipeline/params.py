@@ -129,6 +129,8 @@ class SegmentParams(_Model):
     unreached_radius: float | None = Field(None, ge=0.0, le=10.0, description="points the graph does not reach go to the nearest trunk if a tree node lies this close; default: from the block's measured in-row tree spacing s, 0.6 x min(1, s / 2.2 m) [m]")
     surface_area: float = Field(0.4, ge=0.0, le=1000.0, description="a connected planar surface this large standing above floating_height (a vehicle's or a bin's side, a wall) is never tree material, nor is anything within surface_margin of it; 0 = off [m^2]")
     surface_margin: float = Field(0.3, ge=0.0, le=5.0, description="material this close to such a surface belongs to the object (its edges, wheels) [m]")
+    grass_height: float = Field(0.3, ge=0.0, le=2.0, description="graph nodes lower than this above the ground and farther than grass_clearance from every trunk are grass or the feet of clutter: never tree material, and no path runs through them (a crown at a row's end does not spread over the headland's grass); 0 = off [m]")
+    grass_clearance: float = Field(0.5, ge=0.0, le=5.0, description="low nodes this close to a trunk are its foot, not grass (see grass_height) [m]")
 
     def at_spacing(self, spacing: float | None) -> "SegmentParams":
         """These parameters with every radius left unset set from the in-row tree

@@ -208,6 +208,31 @@ def _low_floor(det: TrunkDetection, params: PipelineParams) -> TrunkParams:
     return tp
 
 
+def grass_nodes(nodes: np.ndarray, node_height: np.ndarray, trunk_xy: np.ndarray, *, params) -> np.ndarray:
+    """Nodes lower than ``params.grass_height`` [m] above the ground and farther than
+    ``params.grass_clearance`` [m] horizontally from every trunk ``trunk_xy`` (k, 2):
+    grass, weeds and the feet of clutter, (m,) bool. Shortest paths running over them
+    carried crowns out over the grass and into a vehicle's wheels; a tree's own material
+    reaches that low only at its foot (drooping shoots end above 0.2 m)."""
+    low = node_height < params.grass_height
+    if not low.any() or not len(trunk_xy):
+        return low
+    idx = np.flatnonzero(low)
+    near = np.isfinite(cKDTree(trunk_xy).query(nodes[idx, :2], distance_upper_bound=params.grass_clearance)[0])
+    low[idx[near]] = False
+    return low
+
+
+def _without_edges_within(graph: sparse.csr_matrix, mask: np.ndarray) -> sparse.csr_matrix:
+    """``graph`` without the edges whose two ends are both in ``mask`` (m,) bool: a path
+    may end in such a node but not run on through it."""
+    if not mask.any():
+        return graph
+    g = graph.tocoo()
+    keep = ~(mask[g.row] & mask[g.col])
+    return sparse.csr_matrix((g.data[keep], (g.row[keep], g.col[keep])), shape=graph.shape)
+
+
 def _beside(xy: np.ndarray, other: np.ndarray, reach: float) -> np.ndarray:
     """Indices of the points ``xy`` (k, 2) with a point of ``other`` (o, 2) within ``reach`` [m]."""
     if not len(xy) or not len(other):
@@ -385,7 +410,7 @@ def analyse_nodes(
     def segment(det: TrunkDetection) -> Segmentation:
         return segment_nodes(
             nodes,
-            seg_graph,
+            _without_edges_within(seg_graph, grass_nodes(nodes, node_height, det.xy, params=params.segment)),
             source_nodes=det.source_nodes,
             source_trunk=det.source_trunk,
             trunk_xy=det.xy,

@@ -105,3 +105,33 @@ def test_branch_test_by_hand():
     group = np.r_[np.zeros(len(post)), np.ones(len(tree)), np.full(len(staked), 2)].astype(np.int64)
     centre = np.array([[0.0, 0.0], [5.0, 0.0], [10.04, 0.0]])
     assert _branches(nodes, nodes[:, 2], group, centre, 0.1).tolist() == [False, True, False]
+
+
+def test_grass_carries_no_paths_beyond_a_trunks_foot():
+    # a stem with a crown, standing in a strip of grass running 3 m out along x: without
+    # the rule the grass joins the tree all along; with it, only at the stem's foot
+    from pipeline.graph import build_graph
+    from pipeline.params import SegmentParams
+    from pipeline.process import _without_edges_within, grass_nodes
+    from pipeline.segment import segment_nodes
+
+    stem = _column(0, 0, 0.15, 2.0)
+    crown = np.c_[np.linspace(-0.5, 0.5, 11), np.zeros(11), np.full(11, 2.0)]
+    x = np.arange(0.1, 3.0, 0.1)
+    grass = np.r_[np.c_[x, np.zeros_like(x), np.full_like(x, 0.15)], np.c_[x, np.full_like(x, 0.1), np.full_like(x, 0.18)]]
+    nodes = np.r_[stem, crown, grass]
+    height = nodes[:, 2]
+    graph = build_graph(nodes, radius=0.15)
+    params = SegmentParams()
+    trunk = np.zeros((1, 2))
+    on = dict(source_nodes=np.array([0]), source_trunk=np.array([0]), trunk_xy=trunk, node_height=height,
+              params=params.at_spacing(None))
+    is_grass = np.r_[np.zeros(len(stem) + len(crown), bool), np.ones(len(grass), bool)]
+    plain = segment_nodes(nodes, graph, **on).node_tree
+    assert (plain[is_grass] == 1).all()
+    low = grass_nodes(nodes, height, trunk, params=params)
+    assert not low[: len(stem)].any() and low[is_grass & (np.abs(nodes[:, 0]) > 0.55)].all()
+    ruled = segment_nodes(nodes, _without_edges_within(graph, low), **on).node_tree
+    assert (ruled[~is_grass] == 1).all()
+    far = is_grass & (nodes[:, 0] > 1.0)
+    assert (ruled[far] == 0).all() and (ruled[is_grass & (nodes[:, 0] < 0.45)] == 1).all()
