@@ -371,7 +371,8 @@ def analyse_nodes(
     post_radius = AUTO_POST_RADIUS if auto else params.trunks.max_post_radius
     if post_radius > 0 and gm.noise < POST_MAX_NOISE and det.candidates is not None:
         cand = det.candidates
-        tall = cand["top"] >= _floors(det, params).min_tree_height
+        # a post's catchment ends below the post height; a bole drains the crown above it
+        tall = (cand["top"] >= _floors(det, params).min_tree_height) & (cand["top"] < params.trunks.max_post_height)
         posts = find_posts(
             xyz, height, np.c_[cand["x"], cand["y"]][tall], max_radius=post_radius,
             max_height=params.trunks.max_post_height, among=vegetation,

@@ -13,10 +13,11 @@ class SimulationParams(BaseModel):
 
     model_config = ConfigDict(extra="forbid", frozen=True)
 
-    form: Literal["vase", "spindle", "hedge", "young"] = Field(
+    form: Literal["vase", "spindle", "hedge", "young", "conifer"] = Field(
         "vase", description="tree form: vase (open-centre trees), spindle (tall-spindle apple: thin leader, short "
         "laterals along the row) or hedge (super-high-density olive/almond: a continuous wall) or young (newly planted, dormant: a 1-2.5 m whip with a "
-        "few feathers, no leaves, tied to a stake)")
+        "few feathers, no leaves, tied to a stake) or conifer (a plantation conifer 5-8 m tall; planted 2-2.5 m apart, a "
+        "closed stand with fallen branches on its floor)")
     rows: int = Field(2, ge=1, le=500, description="number of tree rows (rows run along x before any rotation)")
     trees_per_row: int = Field(5, ge=1, le=2000, description="planting slots in each row")
     spacing: float = Field(5.0, ge=0.8, le=20.0, description="distance between trees in a row [m]")

@@ -135,3 +135,23 @@ def test_grass_carries_no_paths_beyond_a_trunks_foot():
     assert (ruled[~is_grass] == 1).all()
     far = is_grass & (nodes[:, 0] > 1.0)
     assert (ruled[far] == 0).all() and (ruled[is_grass & (nodes[:, 0] < 0.45)] == 1).all()
+
+
+def test_a_stem_of_its_own_is_never_a_neighbours_satellite():
+    # two groups 1.5 m apart, one draining a quarter of the other: a satellite by
+    # catchment, unless it stands on a stem of its own
+    from pipeline.trunks import _accept, _own_stems
+
+    xy = np.array([[0.0, 0.0], [1.5, 0.0]])
+    support = np.array([4000.0, 1000.0])
+    stem = np.array([100.0, 50.0])
+    ok = np.ones(2, bool)
+    params = TrunkParams().at_floors().at_spacing(None)
+    assert _accept(xy, support, stem, ok, np.zeros(2, bool), params)[0].tolist() == [True, False]
+    own = np.array([True, True])
+    assert _accept(xy, support, stem, ok, np.zeros(2, bool), params, own)[0].tolist() == [True, True]
+    # the column: nodes within 0.25 m in every 0.25 m slice from 0.3 to 2.5 m
+    bole = _column(1.5, 0.0, 0.05, 6.0)
+    broken = np.r_[_column(0.0, 0.0, 0.05, 1.0), _column(0.0, 0.0, 1.6, 6.0)]
+    nodes = np.r_[bole, broken]
+    assert _own_stems(xy[::-1], nodes, nodes[:, 2]).tolist() == [True, False]
