@@ -346,7 +346,7 @@ def analyse_nodes(
     foot_xy = xyz[is_ground & (height > FOOT_LAYER_SHARE * ground_top), :2] if params.trunks.min_foot_ratio > 0 else None
 
     # radii left unset follow the spacing only where it can be measured
-    trunk_params = params.trunks if gm.noise < SPACING_MAX_NOISE else params.trunks.at_spacing(None)
+    measure_spacing = gm.noise < SPACING_MAX_NOISE
 
     def detect(drainage: sparse.csr_matrix, spacing: float | None = None) -> TrunkDetection:
         return detect_trunks(
@@ -360,7 +360,8 @@ def analyse_nodes(
             **stem_points,
             spacing=spacing,
             voxel_size=params.graph.voxel_size,
-            params=trunk_params,
+            measure_spacing=measure_spacing,
+            params=params.trunks,
         )
 
     det = detect(drainage)

@@ -443,6 +443,7 @@ def detect_trunks(
     stem_xy: np.ndarray | None = None,
     stem_slice: np.ndarray | None = None,
     spacing: float | None = None,
+    measure_spacing: bool = True,
     voxel_size: float,
     params: TrunkParams,
 ) -> TrunkDetection:
@@ -470,6 +471,9 @@ def detect_trunks(
         test (``params.stem_ratio``); without them the test is off
     spacing : float, optional — the block's in-row tree spacing [m], if known (a tile
         passes the one measured before); None: measured here when a radius needs it
+    measure_spacing : bool — False: no spacing is measured (noisy scans), the radii left
+        unset take the free-standing trees' values (the satellite radius shrunk on a block
+        of young trees)
     voxel_size : float — edge of the voxels the nodes are centroids of [m]
     params : TrunkParams
 
@@ -512,7 +516,7 @@ def detect_trunks(
         floors = block_floors(probe["top"], probe["support"], ok)
         branch_test = floors[0] is not None  # a block of young trees
         params = params.at_floors(*floors)
-    if spacing is None and params.needs_spacing():
+    if spacing is None and measure_spacing and params.needs_spacing():
         # a first grouping with the free-standing trees' (or the given) cluster radius
         # keeps the bark of a trunk up to about that thick in one group; where it measures
         # trees closer than that, trunks may share groups: group again with the radius
