@@ -421,10 +421,11 @@ def block_floors(top: np.ndarray, support: np.ndarray, ok: np.ndarray) -> tuple[
     branch and pass every test of their own at the lowest floors: FLOOR_HEIGHT_SHARE of
     their median ``top`` [m] and FLOOR_SIZE_SHARE of their median ``support`` [voxels],
     each between its least value and the mature trees' floor (MATURE_FLOORS). (None,
-    None) without such a group, or where their median height is the mature trees' floor
-    or more (a block of grown trees, replants among them or not): the mature trees'
-    floors hold."""
-    if not ok.any() or np.median(top[ok]) >= MATURE_FLOORS["min_tree_height"]:
+    None) without such a group, or where their median height and median catchment are
+    both at the mature trees' floors or more (a block of grown trees, replants among them
+    or not): the mature trees' floors hold."""
+    if not ok.any() or (np.median(top[ok]) >= MATURE_FLOORS["min_tree_height"]
+                        and np.median(support[ok]) >= MATURE_FLOORS["min_canopy_voxels"]):
         return None, None
     h = float(np.clip(FLOOR_HEIGHT_SHARE * np.median(top[ok]), MIN_FLOOR_HEIGHT, MATURE_FLOORS["min_tree_height"]))
     s = int(np.clip(round(FLOOR_SIZE_SHARE * np.median(support[ok])), MIN_FLOOR_VOXELS, MATURE_FLOORS["min_canopy_voxels"]))

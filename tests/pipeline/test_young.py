@@ -85,6 +85,8 @@ def test_floors_given_are_used_as_given_and_unset_ones_follow_the_block():
     assert block_floors(top, support, ok) == (0.9, 30)
     # a block of grown trees (median 2 m or more) keeps the mature floors
     assert block_floors(np.array([1.9, 2.1, 5.0]), np.array([4000.0] * 3), np.ones(3, bool)) == (None, None)
+    # young trees a little over 2 m that drain little are young all the same
+    assert block_floors(np.array([1.96, 2.17, 2.19]), np.array([112.0, 120.0, 124.0]), np.ones(3, bool)) == (1.085, 30)
     assert block_floors(np.array([0.5]), np.array([20.0]), np.array([True])) == (0.7, 20)
     assert block_floors(top, support, np.zeros(4, bool)) == (None, None)
 
