@@ -27,7 +27,9 @@ from pipeline.params import PipelineParams
 from pipeline.process import process_points
 from pipeline.reading import read_points
 
-REAL = Path(__file__).resolve().parents[1].parent / "shared" / "data" / "real"
+#: ``../shared/data/real`` of the project root (of a git worktree under ``wt/``: one level up)
+REAL = next((p for p in (Path(__file__).resolve().parents[i] / "shared" / "data" / "real" for i in (2, 3)) if p.is_dir()),
+            Path(__file__).resolve().parents[2] / "shared" / "data" / "real")
 ADTREE = ("tree1", "tree7", "tree13", "tree33")
 
 
@@ -64,6 +66,62 @@ def adtree_row(seed: int = 0, overlap: float = 0.8) -> tuple[np.ndarray, np.ndar
     xyz = np.concatenate(pts + [g])
     tid = np.concatenate(ids + [np.zeros(n_ground, int)])
     return xyz, tid, np.array(bases)
+
+
+#: the real trees of the young row: AdTree's (with their leaves) and aRchi's leafless tree
+YOUNG_TREES = ("tree1", "tree7", "tree13", "tree33", "aRchi")
+
+
+def _real_tree(name: str) -> np.ndarray:
+    """One real tree's points [m], its base (median of its lowest 0.3 m, at its lowest
+    point) at the origin."""
+    if name == "aRchi":
+        import laspy  # bench only: the pipeline reads files in its IO modules
+
+        las = laspy.read(REAL / "aRchi" / "Tree_1_point_cloud.las")
+        p = np.column_stack([las.x, las.y, las.z])
+    else:
+        p = np.loadtxt(REAL / "AdTree" / f"{name}.xyz")[:, :3]
+    low = p[p[:, 2] < p[:, 2].min() + 0.3]
+    return p - np.r_[np.median(low[:, :2], axis=0), p[:, 2].min()]
+
+
+def young_row(seed: int = 0, *, spacing: float = 0.9, row_spacing: float = 3.2, rows: int = 2,
+              stakes: bool = True) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """A young block of real trees: the five real trees of YOUNG_TREES in each of
+    ``rows`` rows (shuffled, turned about their stems), each scaled whole to 1.4-2.2 m
+    (a real tree's shape at a young tree's size, its trunk 1.5-4 cm thick), ``spacing``
+    apart in rows ``row_spacing`` apart, on a noisy ground plane; with ``stakes``, a
+    stake (a 1.5-2 cm pole, 1.2-2 m tall, scanned at 20 points per cm of height) 6-10
+    cm beside every trunk, in no tree.
+
+    Returns xyz (n, 3), tree_id (n,) with 0 = ground and stakes, trunk bases (k, 3).
+    """
+    rng = np.random.default_rng(seed)
+    trees = {name: _real_tree(name) for name in YOUNG_TREES}
+    pts, ids, bases = [], [], []
+    for r in range(rows):
+        for c, name in enumerate(rng.permutation(YOUNG_TREES)):
+            p = trees[name]
+            p = p * (rng.uniform(1.4, 2.2) / p[:, 2].max())
+            a = rng.uniform(0, 2 * np.pi)
+            p = p @ np.array([[np.cos(a), np.sin(a), 0], [-np.sin(a), np.cos(a), 0], [0, 0, 1]])
+            xy = np.array([c * spacing, r * row_spacing])
+            pts.append(p + np.r_[xy, 0.0])
+            ids.append(np.full(len(p), len(bases) + 1))
+            bases.append([xy[0], xy[1], 0.0])
+            if stakes:
+                ang, off, ht, rad = rng.uniform(0, 2 * np.pi), rng.uniform(0.06, 0.1), rng.uniform(1.2, 2.0), rng.uniform(0.0075, 0.01)
+                n = int(ht * 2000)
+                phi, z = rng.uniform(0, 2 * np.pi, n), rng.uniform(0, ht, n)
+                centre = xy + off * np.r_[np.cos(ang), np.sin(ang)]
+                pts.append(np.column_stack([centre[0] + rad * np.cos(phi), centre[1] + rad * np.sin(phi), z]))
+                ids.append(np.zeros(n, int))
+    lo = np.min([q.min(axis=0) for q in pts], axis=0) - 2
+    hi = np.max([q.max(axis=0) for q in pts], axis=0) + 2
+    n_ground = int((hi[0] - lo[0]) * (hi[1] - lo[1]) * 400)  # 400 points / m^2
+    g = np.column_stack([rng.uniform(lo[0], hi[0], n_ground), rng.uniform(lo[1], hi[1], n_ground), rng.normal(0, 0.01, n_ground)])
+    return np.concatenate(pts + [g]), np.concatenate(ids + [np.zeros(n_ground, int)]), np.array(bases)
 
 
 def _cylinder_distance(xyz: np.ndarray, start: np.ndarray, axis: np.ndarray, length: np.ndarray, radius: np.ndarray) -> np.ndarray:
@@ -107,6 +165,19 @@ def run() -> str:
         f"| AdTree tree1+7+13+33 in a row, crowns overlapping (80 % of summed radii), generated ground | {len(xyz):,} | {dt:.2f} "
         f"| trunk F1 (1 m), v-measure on tree points | trunk F1 {s['trunk_f1']:.2f} ({s['trunk_tp']} of {len(bases)} found, "
         f"{s['trunk_fp']} false), v-measure {s['v_measure']:.3f} |"
+    )
+
+    xyz, tid, bases = young_row()
+    r, dt = _timed(_local(xyz), params)
+    org = np.floor(xyz.min(axis=0))
+    s = score_labels(
+        true_tree_id=tid, true_is_wood=np.zeros(len(tid), bool), true_trunks=bases[:, :2] - org[:2],
+        pred_tree_id=r.tree_id, pred_is_wood=r.is_wood, found_trunks=r.trunks[:, :2],
+    )
+    lines.append(
+        f"| young block: AdTree tree1+7+13+33 and aRchi Tree_1 scaled to 1.4-2.2 m, 2 rows 0.9 m x 3.2 m, a stake beside "
+        f"each, generated ground | {len(xyz):,} | {dt:.2f} | trunk F1 (1 m), v-measure on tree points, defaults "
+        f"| trunk F1 {s['trunk_f1']:.2f} ({s['trunk_tp']} of {len(bases)} found, {s['trunk_fp']} false), v-measure {s['v_measure']:.3f} |"
     )
 
     pts, info = read_points(REAL / "TreeLS" / "pine_plot.laz")

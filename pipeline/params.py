@@ -81,8 +81,8 @@ class TrunkParams(_Model):
 
     contact_height: float = Field(0.08, gt=0.0, le=3.0, description="graph nodes this far above the top of the ground layer (the ground tolerance) can be a tree's ground contact [m]")
     cluster_radius: float | None = Field(None, gt=0.0, le=5.0, description="ground contacts closer than this are one trunk (and a group that is no trunk counts towards one within 1.25 times this); default: from the block's measured in-row tree spacing s, 0.8 x min(1, s / 2.2 m) [m]")
-    min_tree_height: float = Field(2.0, gt=0.0, le=50.0, description="a tree's material reaches at least this height (its 95th height percentile; fence posts, bins and vehicles stay lower) [m]")
-    min_canopy_voxels: int = Field(150, ge=1, le=10_000_000, description="least number of voxels whose shortest path ends in a trunk [voxels]")
+    min_tree_height: float | None = Field(None, gt=0.0, le=50.0, description="a tree's material reaches at least this height (its 95th height percentile; fence posts, bins and vehicles stay lower); default: from the block, half the median height of its contact groups that branch, at most 2 m and at least 0.7 m, a group below 2 m passing only if it branches (docs/method.md) [m]")
+    min_canopy_voxels: int | None = Field(None, ge=1, le=10_000_000, description="least number of voxels whose shortest path ends in a trunk; default: from the block, a quarter of the median catchment of its contact groups that branch, at most 150 and at least 20, a group below 150 passing only if it branches [voxels]")
     leaf_cost: float = Field(4.0, ge=0.0, le=100.0, description="drainage paths through fully scattered (leafy) nodes cost this much more, so canopies drain down their branches [x]")
     satellite_radius: float | None = Field(None, ge=0.0, le=10.0, description="a contact this close to a stronger trunk (up to twice as far to a much stronger one, see satellite_ratio) is that tree's foliage touching the ground; also the reach of the stem test; default: from the block's measured in-row tree spacing s, 2.0 x min(1, s / 2.2 m)^2 [m]")
     satellite_ratio: float = Field(1.5, ge=1.0, le=100.0, description="a contact near a trunk is its satellite when the trunk drains this many times more material, times (distance / satellite_radius)^2 beyond satellite_radius [x]")
@@ -92,6 +92,20 @@ class TrunkParams(_Model):
     max_post_radius: float | None = Field(None, ge=0.0, le=1.0, description="for trellised rows: a contact group standing on a straight vertical pole of one thickness up to this radius, from 0.3 to 2.2 m above the ground and ending below max_post_height, is a trellis post and no tree material (looked for on scans with under 0.05 m of ground noise). Default: 0.08 m, its posts kept where without them the trees stand 1.8 m or more apart in the row (a straight central leader, as tall spindles at closer spacing have, can pass for a post; docs/limits.md); 0 = off [m]")
     max_post_height: float = Field(4.5, gt=2.5, le=20.0, description="a trellis post ends below this height; a pole still going on at it is a tree's bole (see max_post_radius) [m]")
     min_foot_ratio: float = Field(0.0, ge=0.0, le=100.0, description="a trunk continues into the ground layer: the density of points in the upper half of the ground layer within 0.2 m of its centre must be at least this many times that 0.2-0.8 m around it (a shoot hanging into the grass has no foot); off by default, as it also drops trunks on clean scans (docs/limits.md); try 1.0; 0 = off [x]")
+
+    def needs_floors(self) -> bool:
+        """Whether a size floor is left to follow the block's trees."""
+        return self.min_tree_height is None or self.min_canopy_voxels is None
+
+    def at_floors(self, height: float | None = None, size: float | None = None) -> "TrunkParams":
+        """These parameters with every size floor left unset set: ``height`` [m] and
+        ``size`` [voxels] measured on the block, or the mature trees' floors (None)."""
+        update = {}
+        if self.min_tree_height is None:
+            update["min_tree_height"] = MATURE_FLOORS["min_tree_height"] if height is None else float(height)
+        if self.min_canopy_voxels is None:
+            update["min_canopy_voxels"] = MATURE_FLOORS["min_canopy_voxels"] if size is None else int(size)
+        return self.model_copy(update=update)
 
     def needs_spacing(self) -> bool:
         """Whether a radius is left to follow the block's tree spacing."""
@@ -115,11 +129,18 @@ class SegmentParams(_Model):
     unreached_radius: float | None = Field(None, ge=0.0, le=10.0, description="points the graph does not reach go to the nearest trunk if a tree node lies this close; default: from the block's measured in-row tree spacing s, 0.6 x min(1, s / 2.2 m) [m]")
     surface_area: float = Field(0.4, ge=0.0, le=1000.0, description="a connected planar surface this large standing above floating_height (a vehicle's or a bin's side, a wall) is never tree material, nor is anything within surface_margin of it; 0 = off [m^2]")
     surface_margin: float = Field(0.3, ge=0.0, le=5.0, description="material this close to such a surface belongs to the object (its edges, wheels) [m]")
+    grass_height: float = Field(0.3, ge=0.0, le=2.0, description="graph nodes lower than this above the ground and farther than grass_clearance from every trunk are grass or the feet of clutter: never tree material, and no path runs through them (a crown at a row's end does not spread over the headland's grass); 0 = off [m]")
+    grass_clearance: float = Field(0.5, ge=0.0, le=5.0, description="low nodes this close to a trunk are its foot, not grass (see grass_height) [m]")
 
     def at_spacing(self, spacing: float | None) -> "SegmentParams":
         """These parameters with every radius left unset set from the in-row tree
         ``spacing`` [m] (None: not measured, the free-standing trees' values)."""
         return self.model_copy(update=_from_spacing(self, "segment", spacing))
+
+
+#: Size floors left unset (None) follow the block's trees (:func:`pipeline.trunks.block_floors`);
+#: these are their caps, the mature trees' floors, which hold on blocks of grown trees
+MATURE_FLOORS: dict[str, float] = {"min_tree_height": 2.0, "min_canopy_voxels": 150}
 
 
 #: Radii left unset (None) follow the block's in-row tree spacing s [m]

@@ -23,7 +23,7 @@ from pipeline.graph import (
 )
 from pipeline.ground import GroundModel, classify_ground, ground_model
 from pipeline.metrics import trunk_circles
-from pipeline.params import PipelineParams
+from pipeline.params import PipelineParams, TrunkParams
 from pipeline.posts import Posts, find_posts, on_posts
 from pipeline.slots import let_in, slot_evidence, trees_on_slots
 from pipeline.segment import (
@@ -38,6 +38,7 @@ from pipeline.segment import (
 )
 from pipeline.stems import STEM_SLICE_HEIGHT, STEM_SLICES
 from pipeline.trunks import (
+    MIN_FLOOR_HEIGHT,
     TrunkDetection,
     box_like_trees,
     detect_trunks,
@@ -93,6 +94,9 @@ POST_SURFACE_MARGIN = 0.03
 DROP_ROUNDS = 3
 #: the foot test reads the ground points above this share of the ground layer's height
 FOOT_LAYER_SHARE = 0.5
+#: on a block of young trees, a trunk with a large planar surface (a bin's, a vehicle's, a
+#: wall's) within this [m] horizontally is that object's edge or wheel, not a tree
+YOUNG_SURFACE_REACH = 0.3
 #: a stem circle's centre replaces the detected trunk position when it lies within a
 #: diameter of it, and at least this [m] (farther, the fit found something else)
 MIN_RECENTRE = 0.15
@@ -185,6 +189,56 @@ def _not_on_slot(drop: np.ndarray, det: TrunkDetection) -> np.ndarray:
     """``drop`` less the trunks let in on open planting slots: a replant is low by nature,
     and a full tree let in beside a stronger neighbour may keep little of its height."""
     return drop if det.on_slot is None else drop[~det.on_slot[drop]]
+
+
+def _floors(det: TrunkDetection, params: PipelineParams) -> TrunkParams:
+    """The trunk parameters with the size floors ``det`` used (the block's, where unset)."""
+    return params.trunks.at_floors(*(det.floors or (None, None)))
+
+
+def _low_floor(det: TrunkDetection, params: PipelineParams) -> TrunkParams:
+    """The trunk parameters for the height test of segmented trees: the height floor
+    ``det`` used, but on a block of young trees (its floors, left unset, below the
+    mature trees') the least floor: a short young tree's material sits just above the
+    block's floor, and segmentation can trim its top; the vehicles this test is for are
+    turned down before on such blocks (:func:`pipeline.trunks.detect_trunks`)."""
+    tp = _floors(det, params)
+    if params.trunks.min_tree_height is None and tp.min_tree_height < params.trunks.at_floors().min_tree_height:
+        return tp.model_copy(update={"min_tree_height": MIN_FLOOR_HEIGHT})
+    return tp
+
+
+def grass_nodes(nodes: np.ndarray, node_height: np.ndarray, trunk_xy: np.ndarray, *, params) -> np.ndarray:
+    """Nodes lower than ``params.grass_height`` [m] above the ground and farther than
+    ``params.grass_clearance`` [m] horizontally from every trunk ``trunk_xy`` (k, 2):
+    grass, weeds and the feet of clutter, (m,) bool. Shortest paths running over them
+    carried crowns out over the grass and into a vehicle's wheels; a tree's own material
+    reaches that low only at its foot (drooping shoots end above 0.2 m)."""
+    low = node_height < params.grass_height
+    if not low.any() or not len(trunk_xy):
+        return low
+    idx = np.flatnonzero(low)
+    near = np.isfinite(cKDTree(trunk_xy).query(nodes[idx, :2], distance_upper_bound=params.grass_clearance)[0])
+    low[idx[near]] = False
+    return low
+
+
+def _without_edges_within(graph: sparse.csr_matrix, mask: np.ndarray) -> sparse.csr_matrix:
+    """``graph`` without the edges whose two ends are both in ``mask`` (m,) bool: a path
+    may end in such a node but not run on through it."""
+    if not mask.any():
+        return graph
+    g = graph.tocoo()
+    keep = ~(mask[g.row] & mask[g.col])
+    return sparse.csr_matrix((g.data[keep], (g.row[keep], g.col[keep])), shape=graph.shape)
+
+
+def _beside(xy: np.ndarray, other: np.ndarray, reach: float) -> np.ndarray:
+    """Indices of the points ``xy`` (k, 2) with a point of ``other`` (o, 2) within ``reach`` [m]."""
+    if not len(xy) or not len(other):
+        return np.zeros(0, np.int64)
+    d, _ = cKDTree(other).query(xy, distance_upper_bound=reach)
+    return np.flatnonzero(np.isfinite(d))
 
 
 def noisy_planar(feats: ShapeFeatures, *, noise: float) -> np.ndarray:
@@ -292,7 +346,7 @@ def analyse_nodes(
     foot_xy = xyz[is_ground & (height > FOOT_LAYER_SHARE * ground_top), :2] if params.trunks.min_foot_ratio > 0 else None
 
     # radii left unset follow the spacing only where it can be measured
-    trunk_params = params.trunks if gm.noise < SPACING_MAX_NOISE else params.trunks.at_spacing(None)
+    measure_spacing = gm.noise < SPACING_MAX_NOISE
 
     def detect(drainage: sparse.csr_matrix, spacing: float | None = None) -> TrunkDetection:
         return detect_trunks(
@@ -306,7 +360,8 @@ def analyse_nodes(
             **stem_points,
             spacing=spacing,
             voxel_size=params.graph.voxel_size,
-            params=trunk_params,
+            measure_spacing=measure_spacing,
+            params=params.trunks,
         )
 
     det = detect(drainage)
@@ -317,7 +372,8 @@ def analyse_nodes(
     post_radius = AUTO_POST_RADIUS if auto else params.trunks.max_post_radius
     if post_radius > 0 and gm.noise < POST_MAX_NOISE and det.candidates is not None:
         cand = det.candidates
-        tall = cand["top"] >= params.trunks.min_tree_height
+        # a post's catchment ends below the post height; a bole drains the crown above it
+        tall = (cand["top"] >= _floors(det, params).min_tree_height) & (cand["top"] < params.trunks.max_post_height)
         posts = find_posts(
             xyz, height, np.c_[cand["x"], cand["y"]][tall], max_radius=post_radius,
             max_height=params.trunks.max_post_height, among=vegetation,
@@ -344,6 +400,11 @@ def analyse_nodes(
         margin=params.segment.surface_margin,
         min_top=params.segment.floating_height,
     )
+    if _low_floor(det, params).min_tree_height < _floors(det, params).min_tree_height:
+        # on a block of young trees a bin's edges and a vehicle's wheels stand like young
+        # trees, and their faces are cut out (below) before the box test of segmented trees
+        # could see them: a young tree stands clear of such surfaces
+        det = drop_trunks(det, _beside(det.xy, nodes[surfaces & ~on_post, :2], YOUNG_SURFACE_REACH))
     seg_graph = graph
     if params.segment.leaf_cost > 0:
         seg_graph = reweight(graph, 1.0 + params.segment.leaf_cost * leafiness)
@@ -351,7 +412,7 @@ def analyse_nodes(
     def segment(det: TrunkDetection) -> Segmentation:
         return segment_nodes(
             nodes,
-            seg_graph,
+            _without_edges_within(seg_graph, grass_nodes(nodes, node_height, det.xy, params=params.segment)),
             source_nodes=det.source_nodes,
             source_trunk=det.source_trunk,
             trunk_xy=det.xy,
@@ -363,8 +424,10 @@ def analyse_nodes(
     seg = segment(det)
     for _ in range(DROP_ROUNDS):  # dropping a box-like or low "tree" (a vehicle) re-segments its material
         drop = np.union1d(
-            box_like_trees(seg.node_tree, node_height, nodes=nodes, trunk_xy=det.xy, planar=standing_face, params=params.trunks),
-            _not_on_slot(low_trees(seg.node_tree, node_height, det.k, params=params.trunks), det),
+            # the box test reads the material below a grown tree's height, where a vehicle's body is
+            box_like_trees(seg.node_tree, node_height, nodes=nodes, trunk_xy=det.xy, planar=standing_face,
+                           params=params.trunks.at_floors()),
+            _not_on_slot(low_trees(seg.node_tree, node_height, det.k, params=_low_floor(det, params)), det),
         )
         if drop.size == 0:
             break

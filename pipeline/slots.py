@@ -13,6 +13,9 @@ Two kinds of tree stand on a row's open slots that the trunk tests alone turn do
   foliage to the ground one tree may drain two or three times what its neighbour does),
   on an open slot.
 
+A young tree that fails only the branch test of a block whose size floors follow its
+young trees (a whip whose few side shoots the scan missed) counts as a replant.
+
 Either must drain a share of what the block's typical trunk does: a crown fragment or a
 branch touching down near an empty slot, or a weed, drains far less.
 
@@ -138,7 +141,7 @@ def slot_evidence(det: TrunkDetection, *, params: PipelineParams) -> dict:
             "full": np.zeros(0, bool)}
     if not params.rows.enabled or cand is None or not len(cand["x"]):
         return none
-    tp = params.trunks
+    tp = params.trunks.at_floors(*(det.floors or (None, None)))  # the size floors the detection used
     rejected = ~np.asarray(cand["accepted"], bool)
     replant = (
         rejected
@@ -146,6 +149,8 @@ def slot_evidence(det: TrunkDetection, *, params: PipelineParams) -> dict:
         & (cand["top"] < tp.min_tree_height)
         & (cand["planar"] <= tp.max_planar_fraction)
     )  # no width test: a young tree with foliage to the ground is as wide as its foliage
+    # a young tree whose few side shoots the scan missed fails only the branch test: a replant to the rows
+    replant |= rejected & np.asarray(cand.get("unbranched", False), bool)
     full = rejected & np.asarray(cand["fits"], bool) & (np.asarray(cand["foot"]) >= tp.min_foot_ratio) & ~replant
     pick = replant | full
     return {
@@ -260,4 +265,5 @@ def let_in(det: TrunkDetection, trees: np.ndarray, nodes: np.ndarray, node_heigh
         det.spacing,
         np.r_[np.zeros(det.k, bool) if det.young is None else det.young, trees[keep, 2] > 0],
         np.r_[np.zeros(det.k, bool) if det.on_slot is None else det.on_slot, np.ones(len(keep), bool)],
+        det.floors,
     )

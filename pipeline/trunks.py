@@ -24,7 +24,7 @@ from scipy import sparse
 from scipy.spatial import cKDTree
 
 from pipeline.graph import shortest_paths, subtree_sizes
-from pipeline.params import TrunkParams
+from pipeline.params import MATURE_FLOORS, SPACING_RADII, TrunkParams
 from pipeline.spacing import estimate_spacing
 from pipeline.stems import STEM_SLICES, foot_ratio, stem_contrast
 
@@ -61,6 +61,49 @@ SOURCE_MARGIN = 0.1
 BOX_TEST_RADIUS = 1.0
 
 
+#: a contact group below the mature trees' floors is a tree only if it branches: some of
+#: its catchment above the grass (BRANCH_LOW [m]) lies between BRANCH_OFFSET and
+#: BRANCH_REACH [m] of its centre (a stake or a post beside the stem does not), at least
+#: BRANCH_LENGTH [m] of it in nodes, spread over BRANCH_EXTENT [m] of height (a fence's
+#: wire runs out at one height: 0.00-0.08 m on generated blocks, young trees 0.06-1.3 m)
+BRANCH_LOW = 0.3
+BRANCH_OFFSET = 0.2
+BRANCH_REACH = 0.8
+BRANCH_LENGTH = 0.3
+BRANCH_EXTENT = 0.1
+#: ... and its low material is nearly free of box faces (a bin's corners branch out; the
+#: low material of young trees on generated blocks is 0 % planar, the bin's groups 12-65 %)
+BRANCH_MAX_PLANAR = 0.05
+#: ... and drains at most this many times the canopy floor (4 times the median catchment
+#: of the block's branching groups; young trees on generated blocks drain up to 2.2 times it)
+BRANCH_MAX_SIZE = 16
+#: floors from the block: the height floor is this share of the median height of the
+#: block's branching contact groups, at least MIN_FLOOR_HEIGHT [m] (irrigation risers,
+#: grass tufts) ...
+FLOOR_HEIGHT_SHARE = 0.5
+MIN_FLOOR_HEIGHT = 0.7
+#: ... and the canopy floor this share of their median catchment, at least MIN_FLOOR_VOXELS
+FLOOR_SIZE_SHARE = 0.25
+MIN_FLOOR_VOXELS = 20
+
+
+#: a group with a stem of its own (:func:`_own_stems`): its catchment reaches above
+#: ``max_post_height`` (a bole, not a post or a shoot bundle), and graph nodes within COLUMN_RADIUS
+#: [m] of its centre in every COLUMN_SLICE [m] slice from COLUMN_BOTTOM (above the grass
+#: and the tips of drooping shoots) to COLUMN_TOP [m]: a bole standing in a closed stand.
+#: Such a group is never dropped as a neighbour's shoots or satellite (a weaker catchment
+#: in a closed canopy says who won the interlocking crowns, not that there is no tree)
+COLUMN_RADIUS = 0.25
+COLUMN_SLICE = 0.25
+COLUMN_BOTTOM = 0.3
+COLUMN_TOP = 2.5
+#: ... and whose stem stands out at least this clearly above the ground layer (stem
+#: score, :func:`stem_contrast`): drooping shoot bundles on high-density vase blocks fill
+#: such a column too, but score 1.7-11 (one 252 of 11), true trunks there 46-1005, the
+#: stems of TreeLS's pine plot 12-425
+COLUMN_MIN_STEM = 12.0
+
+
 def min_contact_drain(voxel_size: float) -> int:
     """MIN_CONTACT_DRAIN in graph nodes of ``voxel_size`` [m]."""
     return int(round(MIN_CONTACT_DRAIN / voxel_size))
@@ -82,6 +125,8 @@ class TrunkDetection:
     young : (k,) bool or None — trunks let in as replants (:mod:`pipeline.slots`)
     on_slot : (k,) bool or None — trunks let in on an open planting slot, replants or
         full-grown (:mod:`pipeline.slots`): the rows vouch for them
+    floors : (min_tree_height [m], min_canopy_voxels) or None — the size floors the
+        detection used (None: no detection ran)
     """
 
     xy: np.ndarray
@@ -93,6 +138,7 @@ class TrunkDetection:
     spacing: float | None = None
     young: np.ndarray | None = None
     on_slot: np.ndarray | None = None
+    floors: tuple[float, int] | None = None
 
     @property
     def k(self) -> int:
@@ -198,8 +244,23 @@ def _shoots(xy: np.ndarray, stem: np.ndarray, support: np.ndarray, ok: np.ndarra
         stem[i] >= ratio * stem[other] and support[i] >= SHOOT_MIN_SUPPORT * support[other]))
 
 
+def _own_stems(centre: np.ndarray, nodes: np.ndarray, node_height: np.ndarray) -> np.ndarray:
+    """Groups with a stem of their own: nodes within COLUMN_RADIUS of each ``centre``
+    (g, 2) in every COLUMN_SLICE slice from COLUMN_BOTTOM to COLUMN_TOP above the
+    ground. Returns (g,) bool."""
+    g = centre.shape[0]
+    sel = np.flatnonzero((node_height >= COLUMN_BOTTOM) & (node_height < COLUMN_TOP))
+    if g == 0 or sel.size == 0:
+        return np.zeros(g, bool)
+    n_slices = int(round((COLUMN_TOP - COLUMN_BOTTOM) / COLUMN_SLICE))
+    slc = np.minimum(((node_height[sel] - COLUMN_BOTTOM) // COLUMN_SLICE).astype(np.int64), n_slices - 1)
+    near = cKDTree(nodes[sel, :2]).query_ball_point(centre, COLUMN_RADIUS)
+    return np.array([np.unique(slc[np.asarray(j, np.int64)]).size == n_slices if j else False for j in near])
+
+
 def _accept(
-    xy: np.ndarray, support: np.ndarray, stem: np.ndarray, ok: np.ndarray, wide: np.ndarray, params: TrunkParams
+    xy: np.ndarray, support: np.ndarray, stem: np.ndarray, ok: np.ndarray, wide: np.ndarray, params: TrunkParams,
+    own: np.ndarray | None = None,
 ) -> tuple[np.ndarray, np.ndarray]:
     """The last trunk tests, between neighbouring groups: shoots, then satellites.
 
@@ -219,6 +280,8 @@ def _accept(
     ok : (g,) bool — groups that passed every test of their own
     wide : (g,) bool — groups that failed only the width test
     params : TrunkParams
+    own : (g,) bool, optional — groups with a stem of their own (:func:`_own_stems`):
+        never dropped as shoots or satellites
 
     Returns
     -------
@@ -233,9 +296,10 @@ def _accept(
     shoot = np.flatnonzero(shoot_of >= 0)
     beside = np.hypot(*(xy[shoot] - xy[shoot_of[shoot]]).T) <= reach
     _pool(pooled, shoot, np.where(beside, shoot_of[shoot], -1))
-    ok = ok & (shoot_of < 0)
+    own = np.zeros(xy.shape[0], bool) if own is None else own
+    ok = ok & ((shoot_of < 0) | own)
     # satellites: strongest first, a group near an accepted, much stronger one is not a tree
-    ok &= ~_satellites(xy, pooled, ok, params.satellite_radius, params.satellite_ratio)
+    ok &= ~(_satellites(xy, pooled, ok, params.satellite_radius, params.satellite_ratio) & ~own)
     return ok, pooled
 
 
@@ -260,7 +324,8 @@ class _Drained:
 
 
 def _groups(
-    nodes: np.ndarray, node_height: np.ndarray, d: _Drained, scattering: np.ndarray | None, *, radius: float, params: TrunkParams
+    nodes: np.ndarray, node_height: np.ndarray, d: _Drained, scattering: np.ndarray | None, *, radius: float, params: TrunkParams,
+    branch_test: bool = False,
 ) -> tuple[np.ndarray, np.ndarray, dict]:
     """Contact groups of one clustering ``radius`` [m] and each group's own measurements.
 
@@ -269,8 +334,9 @@ def _groups(
     groups : (g,) int64 — each group's leader (index into ``d.cand``)
     gidx : (c,) int64 — the group of each contact of ``d.cand``
     candidates : dict of (g,) arrays — centre ``x``, ``y`` [m], ``support``, ``top``,
-        ``planar``, ``width`` [m], ``fits`` (the size, height and box tests) and flow
-        diagnostics
+        ``planar``, ``width`` [m], ``branches`` (:func:`_branches`), ``fits`` (the size,
+        height and box tests; with ``branch_test``, a group below the mature trees'
+        floors must also branch), ``unbranched`` (failed only that) and flow diagnostics
     """
     m = nodes.shape[0]
     cand, size, reached = d.cand, d.size, d.reached
@@ -311,12 +377,59 @@ def _groups(
     band_scatter = np.bincount(bg, weights=wgt * sc[bn], minlength=groups.size) / np.maximum(wsum, 1e-12)
     band_max = np.zeros(groups.size)
     np.maximum.at(band_max, bg, wgt)
+    branches = _branches(nodes, node_height, node_group, np.column_stack([cx, cy]), d.voxel_size)
+    unbranched = np.zeros(groups.size, bool)
+    if branch_test:
+        mature = (g_support >= MATURE_FLOORS["min_canopy_voxels"]) & (g_top >= MATURE_FLOORS["min_tree_height"])
+        unbranched = fits & ~branches & ~mature
+        # and shows no box face (a bin's corners branch out, thin young stems form no planar patches)
+        # and drains no more than a young tree of the block: a vehicle's underside drains
+        # like several (6 times the median young tree on generated blocks)
+        young = (g_planar <= BRANCH_MAX_PLANAR) & (g_support <= BRANCH_MAX_SIZE * params.min_canopy_voxels)
+        fits &= ~unbranched & (mature | young)
     candidates = {
-        "x": cx, "y": cy, "support": g_support, "top": g_top, "planar": g_planar, "width": width,
+        "x": cx, "y": cy, "support": g_support, "top": g_top, "planar": g_planar, "width": width, "branches": branches,
+        "unbranched": unbranched,
         "band_flow": wsum, "band_scatter": band_scatter,
         "band_nodes": np.bincount(bg, minlength=groups.size), "band_max": band_max, "fits": fits,
     }
     return groups, gidx, candidates
+
+
+def _branches(nodes: np.ndarray, node_height: np.ndarray, node_group: np.ndarray, centre: np.ndarray,
+              voxel_size: float) -> np.ndarray:
+    """Groups whose catchment branches: at least BRANCH_LENGTH of nodes above BRANCH_LOW
+    lie BRANCH_OFFSET to BRANCH_REACH [m] from the group's ``centre`` (g, 2), spread over at least
+    BRANCH_EXTENT of height (10th to 90th percentile). A post, a stake or a riser is one
+    column; a fence's wire runs out at one height. Returns (g,) bool."""
+    g = centre.shape[0]
+    sel = np.flatnonzero((node_group >= 0) & (node_height >= BRANCH_LOW))
+    grp = node_group[sel]
+    r = np.hypot(*(nodes[sel, :2] - centre[grp]).T)
+    out = (r > BRANCH_OFFSET) & (r <= BRANCH_REACH)
+    sel, grp = sel[out], grp[out]
+    many = np.bincount(grp, minlength=g) >= max(1, int(round(BRANCH_LENGTH / voxel_size)))
+    hi = _group_percentile(node_height[sel], grp, g, 90.0)
+    lo = _group_percentile(node_height[sel], grp, g, 10.0)
+    extent = np.zeros(g)
+    extent[many] = hi[many] - lo[many]
+    return extent >= BRANCH_EXTENT
+
+
+def block_floors(top: np.ndarray, support: np.ndarray, ok: np.ndarray) -> tuple[float | None, int | None]:
+    """The size floors a block's trees ask for, from the contact groups ``ok`` that
+    branch and pass every test of their own at the lowest floors: FLOOR_HEIGHT_SHARE of
+    their median ``top`` [m] and FLOOR_SIZE_SHARE of their median ``support`` [voxels],
+    each between its least value and the mature trees' floor (MATURE_FLOORS). (None,
+    None) without such a group, or where their median height and median catchment are
+    both at the mature trees' floors or more (a block of grown trees, replants among them
+    or not): the mature trees' floors hold."""
+    if not ok.any() or (np.median(top[ok]) >= MATURE_FLOORS["min_tree_height"]
+                        and np.median(support[ok]) >= MATURE_FLOORS["min_canopy_voxels"]):
+        return None, None
+    h = float(np.clip(FLOOR_HEIGHT_SHARE * np.median(top[ok]), MIN_FLOOR_HEIGHT, MATURE_FLOORS["min_tree_height"]))
+    s = int(np.clip(round(FLOOR_SIZE_SHARE * np.median(support[ok])), MIN_FLOOR_VOXELS, MATURE_FLOORS["min_canopy_voxels"]))
+    return h, s
 
 
 def detect_trunks(
@@ -331,6 +444,7 @@ def detect_trunks(
     stem_xy: np.ndarray | None = None,
     stem_slice: np.ndarray | None = None,
     spacing: float | None = None,
+    measure_spacing: bool = True,
     voxel_size: float,
     params: TrunkParams,
 ) -> TrunkDetection:
@@ -358,6 +472,9 @@ def detect_trunks(
         test (``params.stem_ratio``); without them the test is off
     spacing : float, optional — the block's in-row tree spacing [m], if known (a tile
         passes the one measured before); None: measured here when a radius needs it
+    measure_spacing : bool — False: no spacing is measured (noisy scans), the radii left
+        unset take the free-standing trees' values (the satellite radius shrunk on a block
+        of young trees)
     voxel_size : float — edge of the voxels the nodes are centroids of [m]
     params : TrunkParams
 
@@ -380,7 +497,7 @@ def detect_trunks(
     catch = size[contact]
     # box-like objects: the planar share of the low part of the catchment (below tree
     # height, where a vehicle's body is and overhanging foliage mostly is not)
-    low = reached & (node_height < params.min_tree_height)
+    low = reached & (node_height < params.at_floors().min_tree_height)
     n_planar = np.bincount(sp.source[low], weights=planar[low].astype(np.float64), minlength=m)
     n_low = np.bincount(sp.source[low], minlength=m).astype(np.float64)
 
@@ -388,21 +505,41 @@ def detect_trunks(
     if cand.size == 0:
         return empty
     drained = _Drained(cand, size, sp.source, reached, n_planar, n_low, contact_top, voxel_size)
-    if spacing is None and params.needs_spacing():
+    branch_test = params.needs_floors()
+    if branch_test:
+        # the floors follow the block's trees: measured on the groups of the free-standing
+        # trees' (or the given) cluster radius that branch and pass every other test of
+        # their own at the lowest floors
+        loose = params.at_floors(MIN_FLOOR_HEIGHT, MIN_FLOOR_VOXELS)
+        _, _, probe = _groups(nodes, node_height, drained, scattering, radius=loose.at_spacing(None).cluster_radius,
+                              params=loose)
+        ok = probe["fits"] & probe["branches"] & (probe["width"] <= params.max_trunk_width)
+        floors = block_floors(probe["top"], probe["support"], ok)
+        branch_test = floors[0] is not None  # a block of young trees
+        params = params.at_floors(*floors)
+    if spacing is None and measure_spacing and params.needs_spacing():
         # a first grouping with the free-standing trees' (or the given) cluster radius
         # keeps the bark of a trunk up to about that thick in one group; where it measures
         # trees closer than that, trunks may share groups: group again with the radius
         # that spacing gives, and measure once more
         radius = params.at_spacing(None).cluster_radius
         for _ in range(SPACING_ROUNDS):
-            _, _, probe = _groups(nodes, node_height, drained, scattering, radius=radius, params=params)
+            _, _, probe = _groups(nodes, node_height, drained, scattering, radius=radius, params=params,
+                                  branch_test=branch_test)
             strong = probe["fits"] & (probe["width"] <= params.max_trunk_width)
             spacing = estimate_spacing(np.column_stack([probe["x"], probe["y"]])[strong], probe["support"][strong])
             if params.at_spacing(spacing).cluster_radius >= radius:
                 break
             radius = params.at_spacing(spacing).cluster_radius
+    young_satellites = branch_test and params.satellite_radius is None
     params = params.at_spacing(spacing)
-    groups, gidx, candidates = _groups(nodes, node_height, drained, scattering, radius=params.cluster_radius, params=params)
+    if young_satellites:
+        # a satellite is a crown's foliage touching down: its reach follows the trees' size
+        # as well as their spacing (young, dormant trees have no foliage to reach 2 m out)
+        shrink = (params.min_tree_height / MATURE_FLOORS["min_tree_height"]) ** SPACING_RADII["trunks"]["satellite_radius"][1]
+        params = params.model_copy(update={"satellite_radius": params.satellite_radius * shrink})
+    groups, gidx, candidates = _groups(nodes, node_height, drained, scattering, radius=params.cluster_radius, params=params,
+                                       branch_test=branch_test)
     cx, cy, width, g_support, fits = (candidates[k] for k in ("x", "y", "width", "support", "fits"))
     ok = fits & (width <= params.max_trunk_width)
     centre = np.column_stack([cx, cy])
@@ -413,7 +550,13 @@ def detect_trunks(
     if params.stem_ratio > 0:
         stem[ok] = stem_contrast(centre[ok], stem_xy, stem_slice, n_slices=STEM_SLICES)
     candidates["stem"] = stem
-    ok, support = _accept(centre, g_support, stem, ok, fits & (width > params.max_trunk_width), params)
+    own = np.zeros(groups.size, bool)
+    # a bole: its catchment goes on above where a trellis post would end (no orchard form
+    # of the simulator reaches that high: on orchards these tests are as before)
+    tall = ok & (candidates["top"] >= params.max_post_height)
+    own[tall] = _own_stems(centre[tall], nodes, node_height) & (stem[tall] >= COLUMN_MIN_STEM)
+    candidates["own_stem"] = own
+    ok, support = _accept(centre, g_support, stem, ok, fits & (width > params.max_trunk_width), params, own)
     candidates["pooled_support"] = support
     candidates["accepted"] = ok.copy()
     sel = np.flatnonzero(ok)
@@ -433,7 +576,8 @@ def detect_trunks(
     src_t = np.concatenate([src_t, np.arange(sel.size)])
     src, first = np.unique(src, return_index=True)
     src_t = src_t[first]
-    return TrunkDetection(xy, support[sel], width[sel], src, src_t, candidates, spacing)
+    return TrunkDetection(xy, support[sel], width[sel], src, src_t, candidates, spacing,
+                          floors=(params.min_tree_height, params.min_canopy_voxels))
 
 
 def box_like_trees(
@@ -458,7 +602,7 @@ def box_like_trees(
     (j,) int64 indices of trunks to drop.
     """
     k = trunk_xy.shape[0]
-    low = (node_tree > 0) & (node_height < params.min_tree_height)
+    low = (node_tree > 0) & (node_height < params.at_floors().min_tree_height)
     idx = np.flatnonzero(low)
     t = node_tree[idx] - 1
     near = ((nodes[idx, :2] - trunk_xy[t]) ** 2).sum(1) <= radius**2
@@ -481,7 +625,7 @@ def low_trees(node_tree: np.ndarray, node_height: np.ndarray, k: int, *, params:
     (j,) int64 indices of trunks to drop.
     """
     top = _group_percentile(node_height, np.asarray(node_tree, dtype=np.int64) - 1, k, TOP_PERCENTILE)
-    return np.flatnonzero(top < params.min_tree_height)
+    return np.flatnonzero(top < params.at_floors().min_tree_height)  # unset: the mature trees' floor
 
 
 def drop_trunks(det: TrunkDetection, drop: np.ndarray) -> TrunkDetection:
@@ -500,4 +644,5 @@ def drop_trunks(det: TrunkDetection, drop: np.ndarray) -> TrunkDetection:
         det.spacing,
         None if det.young is None else det.young[keep],
         None if det.on_slot is None else det.on_slot[keep],
+        det.floors,
     )

@@ -218,7 +218,7 @@ def in_address_order(merged: GlobalTrunks, trees: dict) -> tuple[GlobalTrunks, d
 
 def no_trees(info: BlockInfo) -> NoTreesError:
     return NoTreesError(
-        f"{Path(info.path).name}: no trees found in {info.n_points} points (only ground or clutter?); ",
+        f"{Path(info.path).name}: no trees found in {info.n_points} points (only ground or clutter: posts, stakes, boxes?); ",
         hint="check the block, or lower {trunks.min_tree_height} / {trunks.min_canopy_voxels}",
     )
 

@@ -4,9 +4,11 @@ from __future__ import annotations
 
 import numpy as np
 
-from pipeline.synthetic.orchard import POST, VEHICLE, Orchard
+from pipeline.synthetic.conifer import debris
+from pipeline.synthetic.orchard import GRASS, POST, VEHICLE, Orchard
 from pipeline.synthetic.plan import HEADLAND, Plan
 from pipeline.synthetic.scanner import Chunk, passes_for, sample_cylinders, sample_discs, sample_rects
+from pipeline.synthetic.young import stakes
 
 
 def _box_faces(centre, size, yaw=0.0, tile=0.25):
@@ -73,6 +75,31 @@ def _add_posts(ch: Chunk, plan: Plan, rng, xs, ys, height, radius, *, wires, y: 
         ch.add(plan, rng, k, pts, 0, False, POST)
 
 
+def _add_stakes(ch: Chunk, plan: Plan) -> None:
+    """The stake beside every young tree (:func:`pipeline.synthetic.young.stakes`), as points of kind post."""
+    a, b, r = stakes(plan)
+    rng = np.random.default_rng([plan.params.seed, 7])
+    for k in range(len(plan.pass_y)):
+        near = np.abs(a[:, 1] - plan.pass_y[k]) <= plan.params.row_spacing
+        if near.any():
+            pts, _, _ = sample_cylinders(rng, plan, k, a[near], b[near], r[near], r[near])
+            pts = pts[pts[:, 2] >= plan.ground.z(pts[:, 0], pts[:, 1])]
+            ch.add(plan, rng, k, pts, 0, False, POST)
+
+
+def _add_debris(ch: Chunk, plan: Plan) -> None:
+    """Fallen branches on a conifer block's floor (:func:`pipeline.synthetic.conifer.debris`),
+    as points of kind grass (low material in no tree)."""
+    a, b, r = debris(plan)
+    rng = np.random.default_rng([plan.params.seed, 9])
+    for k in range(len(plan.pass_y)):
+        near = np.abs(0.5 * (a[:, 1] + b[:, 1]) - plan.pass_y[k]) <= plan.params.row_spacing
+        if near.any():
+            pts, _, _ = sample_cylinders(rng, plan, k, a[near], b[near], r[near], r[near])
+            pts = pts[pts[:, 2] >= plan.ground.z(pts[:, 0], pts[:, 1])]
+            ch.add(plan, rng, k, pts, 0, False, GRASS)
+
+
 def objects_chunk(plan: Plan) -> Orchard:
     """Fence posts and wire, trellis posts and wires (when asked for), the vehicle and the bin."""
     p = plan.params
@@ -89,6 +116,10 @@ def objects_chunk(plan: Plan) -> Orchard:
         _add_posts(ch, plan, rng, xs, ys, ht, rp, wires=(1.0,), y=y_f)  # one wire ~1.0 m high
     if p.trellis:
         _add_trellis(ch, plan)
+    if p.form == "young":
+        _add_stakes(ch, plan)
+    if p.form == "conifer":
+        _add_debris(ch, plan)
     boxes = []
     if p.vehicle:  # parked in the far headland beside the first inner alley's path
         k_al = min(1, len(plan.pass_y) - 1)

@@ -90,7 +90,7 @@ def make_plan(p: SimulationParams) -> Plan:
     shift = unit(rng.normal(size=(p.rows + 1, 3)) * np.array([1.0, 1.0, 0.5]))
     shift *= p.ghosting * rng.uniform(0.5, 1.0, (p.rows + 1, 1))
 
-    h_max = (p.tree_height * 1.05 if p.tree_height else 4.5) + 1.5
+    h_max = (p.tree_height * 1.05 if p.tree_height else (8.0 if p.form == "conifer" else 4.5)) + 1.5
     h0 = -1.0
     shape = (
         int(np.ceil((x1 - x0) / VOXEL)) + 1,

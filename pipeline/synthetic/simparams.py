@@ -13,9 +13,11 @@ class SimulationParams(BaseModel):
 
     model_config = ConfigDict(extra="forbid", frozen=True)
 
-    form: Literal["vase", "spindle", "hedge"] = Field(
+    form: Literal["vase", "spindle", "hedge", "young", "conifer"] = Field(
         "vase", description="tree form: vase (open-centre trees), spindle (tall-spindle apple: thin leader, short "
-        "laterals along the row) or hedge (super-high-density olive/almond: a continuous wall)")
+        "laterals along the row) or hedge (super-high-density olive/almond: a continuous wall) or young (newly planted, dormant: a 1-2.5 m whip with a "
+        "few feathers, no leaves, tied to a stake) or conifer (a plantation conifer 5-8 m tall; planted 2-2.5 m apart, a "
+        "closed stand with fallen branches on its floor)")
     rows: int = Field(2, ge=1, le=500, description="number of tree rows (rows run along x before any rotation)")
     trees_per_row: int = Field(5, ge=1, le=2000, description="planting slots in each row")
     spacing: float = Field(5.0, ge=0.8, le=20.0, description="distance between trees in a row [m]")
@@ -25,8 +27,8 @@ class SimulationParams(BaseModel):
     seed: int = Field(0, ge=0, le=2**32 - 1, description="random seed; the same seed gives the same block")
     density: float = Field(1.0, gt=0.0, le=1000.0, description="scale of the point density (1 = about 40-80 k points per tree)")
     crown_radius: float | None = Field(None, gt=0.2, le=15.0, description="crown radius along the row [m] (spindle: the longest lateral); default vase 0.55 x spacing, spindle 0.7, hedge 0.8 x spacing up to 1.6")
-    tree_height: float | None = Field(None, gt=1.0, le=30.0, description="tree height [m]; default random per tree: vase 3.5-4.5, spindle 2.8-3.5, hedge 2.5-3.0")
-    trunk_radius: float | None = Field(None, gt=0.01, le=1.0, description="trunk radius [m]; default random per tree: vase 0.06-0.15, spindle 0.015-0.025, hedge 0.04-0.06")
+    tree_height: float | None = Field(None, gt=1.0, le=30.0, description="tree height [m]; default random per tree: vase 3.5-4.5, spindle 2.8-3.5, hedge 2.5-3.0, young 1.0-2.5")
+    trunk_radius: float | None = Field(None, gt=0.01, le=1.0, description="trunk radius [m]; default random per tree: vase 0.06-0.15, spindle 0.015-0.025, hedge 0.04-0.06, young 0.008-0.02")
     low_foliage: bool = Field(False, description="drooping outer branches, leaves down to 0.2-0.5 m above the ground (vase and hedge)")
     slope: float = Field(0.04, ge=0.0, le=0.5, description="ground slope [m/m], in a random direction")
     undulation: float = Field(0.15, ge=0.0, le=2.0, description="amplitude of gentle ground undulations [m]")

@@ -18,7 +18,7 @@ def _detection(trunks, cands, support=150.0, width=0.2):
     cand = {
         "x": cands[:, 0], "y": cands[:, 1], "top": cands[:, 2], "support": np.broadcast_to(np.asarray(support, float), len(cands)).copy(),
         "planar": np.zeros(len(cands)), "width": np.broadcast_to(np.asarray(width, float), len(cands)).copy(), "accepted": np.zeros(len(cands), bool),
-        "fits": cands[:, 2] >= PipelineParams().trunks.min_tree_height, "foot": np.ones(len(cands)),
+        "fits": cands[:, 2] >= PipelineParams().trunks.at_floors().min_tree_height, "foot": np.ones(len(cands)),
     }
     det = TrunkDetection(trunks, np.full(k, 500.0), np.full(k, 0.2), np.arange(k), np.arange(k), cand, 1.0)
     return det, nodes

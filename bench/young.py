@@ -1,0 +1,76 @@
+"""``python -m bench.young``: young, dormant blocks with default settings.
+
+Generated blocks of the ``young`` form (1-2.5 m whips, a stake beside each, no leaves)
+at three in-row spacings, scored the way a user gets them (``run_job`` writes the
+Parquet files, ``evaluate_result`` scores them), and the real young row of
+``bench.real_data.young_row``. Evaluation seeds 0-2 by default (the size floors and the
+branch test were set on seeds 100-101).
+"""
+
+from __future__ import annotations
+
+import argparse
+import shutil
+from pathlib import Path
+
+import numpy as np
+
+SETTINGS = ((1.0, 3.5), (1.5, 3.5), (2.0, 4.0))
+
+
+def score(work: Path, spacing: float, row_spacing: float, seed: int) -> dict:
+    from bench.blocks import make_block
+    from pipeline.errors import NoTreesError
+    from pipeline.evaluation.result import evaluate_result
+    from pipeline.params import PipelineParams
+    from pipeline.synthetic.simparams import SimulationParams
+    from workers.job import run_job
+    from workers.jobspec import JobSpec
+
+    sim = SimulationParams(form="young", rows=2, trees_per_row=10, spacing=spacing, row_spacing=row_spacing, seed=seed)
+    block = make_block(work, f"young-{spacing:g}", sim)
+    out = work / "young-results" / Path(block.las).stem
+    shutil.rmtree(out, ignore_errors=True)
+    try:
+        run_job(JobSpec(input_path=block.las, out_dir=str(out), params=PipelineParams()))
+        return evaluate_result(block.truth, str(out))
+    except NoTreesError:
+        return {"trunk_f1": 0.0, "v_measure": 0.0}
+    finally:
+        shutil.rmtree(out, ignore_errors=True)
+
+
+def main(argv: list[str] | None = None) -> int:
+    p = argparse.ArgumentParser(prog="python -m bench.young", description=__doc__.splitlines()[0])
+    p.add_argument("--seeds", type=int, default=3, help="evaluation seeds 0..N-1 (default 3)")
+    p.add_argument("--work-dir", type=Path, default=Path("/tmp/orchard-bench"))
+    args = p.parse_args(argv)
+    print("| block | seeds | trunk F1 per block | v-measure per block |")
+    print("|---|---|---|---|")
+    for spacing, row_spacing in SETTINGS:
+        rs = [score(args.work_dir, spacing, row_spacing, s) for s in range(args.seeds)]
+        f1 = ", ".join(f"{r['trunk_f1']:.2f}" for r in rs)
+        vm = ", ".join(f"{r['v_measure']:.3f}" for r in rs)
+        print(f"| young, dormant, {spacing:g} m × {row_spacing:g} m, 20 trees | 0–{args.seeds - 1} | {f1} | {vm} |")
+    from bench.real_data import REAL, _local, young_row
+    from pipeline.evaluation.scores import score_labels
+    from pipeline.params import PipelineParams
+    from pipeline.process import process_points
+
+    if (REAL / "AdTree").is_dir():
+        f1, vm = [], []
+        for seed in range(2):
+            xyz, tid, bases = young_row(seed)
+            org = np.floor(xyz.min(axis=0))
+            r = process_points(_local(xyz), params=PipelineParams())
+            s = score_labels(true_tree_id=tid, true_is_wood=np.zeros(len(tid), bool), true_trunks=bases[:, :2] - org[:2],
+                             pred_tree_id=r.tree_id, pred_is_wood=r.is_wood, found_trunks=r.trunks[:, :2])
+            f1.append(s["trunk_f1"])
+            vm.append(s["v_measure"])
+        print(f"| real trees scaled to 1.4–2.2 m, 0.9 m × 3.2 m, stakes (bench.real_data.young_row) | 0–1 | "
+              f"{', '.join(f'{x:.2f}' for x in f1)} | {', '.join(f'{x:.3f}' for x in vm)} |")
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())

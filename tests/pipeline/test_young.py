@@ -1,0 +1,159 @@
+"""Young, dormant blocks with default settings: the size floors follow the block's trees.
+
+Generated blocks use evaluation seeds (< 100; the floors and the branch test were set on
+seeds 100-101); the real row is made of real trees scaled to a young tree's size
+(``bench.real_data.young_row``).
+"""
+
+import numpy as np
+import pytest
+
+from bench.real_data import REAL, young_row
+from pipeline.evaluation.scores import score_labels
+from pipeline.params import MATURE_FLOORS, PipelineParams, TrunkParams
+from pipeline.process import process_points
+from pipeline.synthetic.orchard import KIND
+from pipeline.synthetic.simparams import SimulationParams
+from pipeline.synthetic.simulate import simulate_orchard
+from pipeline.trunks import _branches, block_floors
+
+YOUNG = dict(form="young", rows=2, trees_per_row=8, spacing=1.0, row_spacing=3.5)
+
+
+def _run(o):
+    origin = np.floor(o.xyz.min(axis=0))
+    return origin, process_points(o.xyz - origin, params=PipelineParams())
+
+
+def test_young_dormant_block_with_defaults():
+    o = simulate_orchard(SimulationParams(seed=3, **YOUNG))
+    assert not (o.kind == KIND.index("leaf")).any()  # dormant
+    assert (o.kind == KIND.index("post")).sum() > 0  # the stakes (and the fence)
+    origin, r = _run(o)
+    s = score_labels(true_tree_id=o.tree_id, true_is_wood=o.is_wood, true_trunks=o.trunks[:, :2] - origin[:2],
+                     pred_tree_id=r.tree_id, pred_is_wood=r.is_wood, found_trunks=r.trunks[:, :2])
+    assert s["trunk_f1"] >= 0.97, s
+    assert s["v_measure"] >= 0.95, s
+
+
+def test_posts_stakes_and_boxes_without_trees_are_no_trees():
+    # a young block with its trees taken out: stakes, the fence with its wire, the vehicle and the bin
+    o = simulate_orchard(SimulationParams(seed=4, **YOUNG))
+    keep = o.tree_id == 0
+    origin = np.floor(o.xyz.min(axis=0))
+    r = process_points(o.xyz[keep] - origin, params=PipelineParams())
+    assert r.n_trees == 0
+
+
+def test_a_block_of_posts_without_trees_stops_with_a_clear_message(tmp_path):
+    from dataclasses import replace
+
+    from pipeline.errors import NoTreesError
+    from pipeline.synthetic.truth import write_simulation
+    from workers.job import run_job
+    from workers.jobspec import JobSpec
+
+    o = simulate_orchard(SimulationParams(seed=5, **YOUNG))
+    keep = o.tree_id == 0
+    posts = replace(o, xyz=o.xyz[keep], tree_id=o.tree_id[keep], is_wood=o.is_wood[keep], kind=o.kind[keep])
+    las = tmp_path / "posts.laz"
+    write_simulation(posts, str(las), str(tmp_path / "truth.parquet"))
+    with pytest.raises(NoTreesError, match="no trees found .* posts, stakes"):
+        run_job(JobSpec(str(las), str(tmp_path / "out")))
+    assert not (tmp_path / "out").exists() or not any((tmp_path / "out").iterdir())
+
+
+@pytest.mark.skipif(not (REAL / "AdTree").is_dir() or not (REAL / "aRchi").is_dir(), reason="../shared/data/real absent")
+def test_real_trees_at_a_young_size_with_defaults():
+    xyz, tid, bases = young_row(0)
+    origin = np.floor(xyz.min(axis=0))
+    r = process_points(xyz - origin, params=PipelineParams())
+    s = score_labels(true_tree_id=tid, true_is_wood=np.zeros(len(tid), bool), true_trunks=bases[:, :2] - origin[:2],
+                     pred_tree_id=r.tree_id, pred_is_wood=r.is_wood, found_trunks=r.trunks[:, :2])
+    assert s["trunk_f1"] >= 0.95, s  # measured 1.00 (seeds 0, 1)
+    assert s["v_measure"] >= 0.90, s  # measured 0.93
+
+
+def test_floors_given_are_used_as_given_and_unset_ones_follow_the_block():
+    p = TrunkParams(min_tree_height=1.2)
+    assert p.needs_floors() and p.at_floors(0.8, 30).min_tree_height == 1.2
+    assert p.at_floors(0.8, 30).min_canopy_voxels == 30
+    assert TrunkParams().at_floors().min_tree_height == MATURE_FLOORS["min_tree_height"]
+    # half the median height, a quarter of the median catchment, within [least, mature]
+    top, support = np.array([1.6, 1.8, 2.0, 9.0]), np.array([100.0, 120.0, 140.0, 10.0])
+    ok = np.array([True, True, True, False])
+    assert block_floors(top, support, ok) == (0.9, 30)
+    # a block of grown trees (median 2 m or more) keeps the mature floors
+    assert block_floors(np.array([1.9, 2.1, 5.0]), np.array([4000.0] * 3), np.ones(3, bool)) == (None, None)
+    # young trees a little over 2 m that drain little are young all the same
+    assert block_floors(np.array([1.96, 2.17, 2.19]), np.array([112.0, 120.0, 124.0]), np.ones(3, bool)) == (1.085, 30)
+    assert block_floors(np.array([0.5]), np.array([20.0]), np.array([True])) == (0.7, 20)
+    assert block_floors(top, support, np.zeros(4, bool)) == (None, None)
+
+
+def _column(x, y, z0, z1, step=0.1):
+    z = np.arange(z0, z1, step)
+    return np.c_[np.full_like(z, x), np.full_like(z, y), z]
+
+
+def test_branch_test_by_hand():
+    # group 0: a post with a wire at one height; group 1: a stem with two side shoots at
+    # different heights; group 2: a stem with a stake 8 cm beside it
+    post = np.r_[_column(0, 0, 0.1, 1.6), np.c_[np.arange(0.1, 1.5, 0.1), np.zeros(14), np.full(14, 1.0)]]
+    s = np.linspace(0.1, 0.5, 5)
+    tree = np.r_[_column(5, 0, 0.1, 1.8), np.c_[5 + s, np.zeros(5), 0.8 + s], np.c_[5 - s, np.zeros(5), 1.2 + 0.5 * s]]
+    staked = np.r_[_column(10, 0, 0.1, 1.8), _column(10.08, 0, 0.1, 1.5)]
+    nodes = np.r_[post, tree, staked]
+    group = np.r_[np.zeros(len(post)), np.ones(len(tree)), np.full(len(staked), 2)].astype(np.int64)
+    centre = np.array([[0.0, 0.0], [5.0, 0.0], [10.04, 0.0]])
+    assert _branches(nodes, nodes[:, 2], group, centre, 0.1).tolist() == [False, True, False]
+
+
+def test_grass_carries_no_paths_beyond_a_trunks_foot():
+    # a stem with a crown, standing in a strip of grass running 3 m out along x: without
+    # the rule the grass joins the tree all along; with it, only at the stem's foot
+    from pipeline.graph import build_graph
+    from pipeline.params import SegmentParams
+    from pipeline.process import _without_edges_within, grass_nodes
+    from pipeline.segment import segment_nodes
+
+    stem = _column(0, 0, 0.15, 2.0)
+    crown = np.c_[np.linspace(-0.5, 0.5, 11), np.zeros(11), np.full(11, 2.0)]
+    x = np.arange(0.1, 3.0, 0.1)
+    grass = np.r_[np.c_[x, np.zeros_like(x), np.full_like(x, 0.15)], np.c_[x, np.full_like(x, 0.1), np.full_like(x, 0.18)]]
+    nodes = np.r_[stem, crown, grass]
+    height = nodes[:, 2]
+    graph = build_graph(nodes, radius=0.15)
+    params = SegmentParams()
+    trunk = np.zeros((1, 2))
+    on = dict(source_nodes=np.array([0]), source_trunk=np.array([0]), trunk_xy=trunk, node_height=height,
+              params=params.at_spacing(None))
+    is_grass = np.r_[np.zeros(len(stem) + len(crown), bool), np.ones(len(grass), bool)]
+    plain = segment_nodes(nodes, graph, **on).node_tree
+    assert (plain[is_grass] == 1).all()
+    low = grass_nodes(nodes, height, trunk, params=params)
+    assert not low[: len(stem)].any() and low[is_grass & (np.abs(nodes[:, 0]) > 0.55)].all()
+    ruled = segment_nodes(nodes, _without_edges_within(graph, low), **on).node_tree
+    assert (ruled[~is_grass] == 1).all()
+    far = is_grass & (nodes[:, 0] > 1.0)
+    assert (ruled[far] == 0).all() and (ruled[is_grass & (nodes[:, 0] < 0.45)] == 1).all()
+
+
+def test_a_stem_of_its_own_is_never_a_neighbours_satellite():
+    # two groups 1.5 m apart, one draining a quarter of the other: a satellite by
+    # catchment, unless it stands on a stem of its own
+    from pipeline.trunks import _accept, _own_stems
+
+    xy = np.array([[0.0, 0.0], [1.5, 0.0]])
+    support = np.array([4000.0, 1000.0])
+    stem = np.array([100.0, 50.0])
+    ok = np.ones(2, bool)
+    params = TrunkParams().at_floors().at_spacing(None)
+    assert _accept(xy, support, stem, ok, np.zeros(2, bool), params)[0].tolist() == [True, False]
+    own = np.array([True, True])
+    assert _accept(xy, support, stem, ok, np.zeros(2, bool), params, own)[0].tolist() == [True, True]
+    # the column: nodes within 0.25 m in every 0.25 m slice from 0.3 to 2.5 m
+    bole = _column(1.5, 0.0, 0.05, 6.0)
+    broken = np.r_[_column(0.0, 0.0, 0.05, 1.0), _column(0.0, 0.0, 1.6, 6.0)]
+    nodes = np.r_[bole, broken]
+    assert _own_stems(xy[::-1], nodes, nodes[:, 2]).tolist() == [True, False]
