@@ -61,7 +61,7 @@ class Settings(BaseSettings):
     min_free_mb: float = Field(
         512.0, ge=0, description="/healthz answers 'not ok' (503) while the data folder's disk has less free space [MB]"
     )
-    max_request_kb: int = Field(1024, ge=1, description="largest accepted request body other than an upload [kB]")
+    max_request_kb: int = Field(256, ge=1, description="largest accepted request body other than an upload [kB]; a job's JSON is a few kB, and a body past this is refused from its length before it is read")
     upload_idle_s: float = Field(
         300.0, gt=0, le=86400,
         description="an upload whose body sends nothing for this long is dropped (408) and its partial file deleted [s]",
