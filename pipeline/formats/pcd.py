@@ -118,6 +118,8 @@ def _ascii(path, body: int, n: int, cols, chunk_points: int) -> Iterator[np.ndar
                 xyz = np.loadtxt([ln.decode("ascii") for ln in lines], usecols=cols, dtype=np.float64, ndmin=2)
             except (ValueError, UnicodeDecodeError):
                 raise bad(path, f"a PCD point among rows {done + 1}-{done + len(lines)} is not a row of numbers") from None
+            if len(xyz) != len(lines):  # (loadtxt passes over blank lines)
+                raise bad(path, f"a PCD point among rows {done + 1}-{done + len(lines)} is a blank line (a corrupt file)")
             done += len(lines)
             yield xyz
 
