@@ -61,7 +61,7 @@ def parse_crs_option(text: str | None) -> int | None:
 
 
 def to_laz(src, dst, *, fmt: str | None = None, crs_epsg: int | None = None, columns: str | None = None,
-           chunk_points: int = CHUNK_POINTS) -> Converted:
+           chunk_points: int = CHUNK_POINTS, reader: str = "own") -> Converted:
     """Write the points of a PLY, PCD, E57 or text file ``src`` as the LAZ file ``dst``.
 
     Parameters
@@ -76,6 +76,9 @@ def to_laz(src, dst, *, fmt: str | None = None, crs_epsg: int | None = None, col
         A text file's column names (:func:`pipeline.formats.text.open_text`).
     chunk_points : int
         Points read at a time (bounds memory).
+    reader : "own" or "pdal"
+        The project's readers (:mod:`pipeline.formats`) or PDAL's
+        (:mod:`pipeline.formats.pdalreaders`).
 
     Raises
     ------
@@ -88,7 +91,12 @@ def to_laz(src, dst, *, fmt: str | None = None, crs_epsg: int | None = None, col
     fmt = fmt or sniff(src)
     if fmt == "las":
         raise bad(src, "is a LAS/LAZ file already")
-    source = open_points(src, fmt, columns=columns)
+    if reader == "pdal":
+        from pipeline.formats.pdalreaders import open_with_pdal
+
+        source = open_with_pdal(src, fmt, columns=columns)
+    else:
+        source = open_points(src, fmt, columns=columns)
     written = dropped = 0
     with LasBlockWriter(dst, crs_epsg=crs_epsg, crs_wkt=None if crs_epsg else source.crs_wkt,
                         scales=(SCALE, SCALE, SCALE)) as w:

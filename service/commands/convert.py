@@ -30,6 +30,8 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("input", metavar="INPUT", help="PLY, PCD, E57 or text point file")
     parser.add_argument("--out", required=True, metavar="FILE.laz", help="the LAZ file to write (refused if it exists)")
     add_input_options(parser)
+    parser.add_argument("--reader", choices=("own", "pdal"), default="own",
+                        help="the project's readers (default) or PDAL's (needs PDAL's Python bindings; docs/pdal.md)")
 
 
 def run(args: argparse.Namespace) -> int:
@@ -47,7 +49,7 @@ def run(args: argparse.Namespace) -> int:
     src = Path(args.input)
     if not src.is_file():
         check_file(src)  # says what it is instead: no such file, a folder, a device
-    done = to_laz(src, out, crs_epsg=crs, columns=args.columns)
+    done = to_laz(src, out, crs_epsg=crs, columns=args.columns, reader=args.reader)
     left = f" ({done.n_dropped} with a non-finite coordinate left out)" if done.n_dropped else ""
     print(f"{done.n_points} points{left} from {done.format.upper()} {src.name} -> {out}"
           f"{'' if done.has_crs else ' (no CRS: give --crs EPSG:NNNN)'}", file=sys.stderr)

@@ -24,11 +24,11 @@ from pipeline.synthetic.truth import write_simulation
 
 @pytest.fixture(scope="module")
 def block(tmp_path_factory):
-    """A small generated orchard (6 trees) in local metres at millimetres, as LAZ, and
+    """A small generated orchard (3 trees) in local metres at millimetres, as LAZ, and
     its points in every other format."""
     folder = tmp_path_factory.mktemp("formats")
     sim = folder / "sim.laz"
-    write_simulation(SimulationParams(rows=2, trees_per_row=3, density=0.12, seed=3), str(sim), str(folder / "t.parquet"))
+    write_simulation(SimulationParams(rows=1, trees_per_row=3, density=0.04, seed=3), str(sim), str(folder / "t.parquet"))
     las = laspy.read(sim)
     xyz = np.column_stack([las.x, las.y, las.z])
     xyz = np.round((xyz - np.floor(xyz.min(axis=0))) * 1000) / 1000  # local, mm: every format holds it
@@ -190,3 +190,30 @@ def test_mutated_files_are_read_or_refused_with_one_line(small_files, tmp_path, 
     finally:
         tracemalloc.stop()
     assert peak < 64 << 20, peak
+
+
+def _pdal():
+    from workers.tiler import pdal_available
+
+    return pdal_available()
+
+
+@pytest.mark.parametrize("kind", ["ply-binary", "ply-ascii", "pcd-ascii", "pcd-binary", "text-header", "e57"])
+def test_pdals_readers_give_the_same_points(block, tmp_path, kind):
+    """Where PDAL is installed, its readers are an alternative path to the same points."""
+    if not _pdal():
+        pytest.skip("PDAL's Python bindings are not installed")
+    import pdal
+
+    if kind == "e57" and "readers.e57" not in {d["name"] for d in pdal.drivers()}:
+        pytest.skip("PDAL was built without its E57 plugin")
+    to_laz(block["files"][kind], tmp_path / "p.laz", reader="pdal", chunk_points=7_000)
+    got, ref = _ints(tmp_path / "p.laz"), _ints(block["laz"])
+    assert got[1:] == ref[1:] and np.array_equal(got[0], ref[0])
+
+
+def test_pdals_readers_without_pdal_are_a_clear_error(block, tmp_path):
+    if _pdal():
+        pytest.skip("PDAL is installed")
+    with pytest.raises(ParameterError, match="import pdal failed"):
+        to_laz(block["files"]["ply-binary"], tmp_path / "p.laz", reader="pdal")
