@@ -223,8 +223,8 @@ def _input_format(args: argparse.Namespace) -> str:
     """The input's format ("las" for LAS/LAZ, and for a path that is no file: the
     LAS checks say what is wrong with it); ParameterError for options that go unused."""
     p = Path(args.input)
-    if args.rerun_tile or args.resume or not p.is_file():
-        fmt = "las"
+    if args.rerun_tile or args.resume or not p.is_file() or p.suffix.lower() in (".las", ".laz"):
+        fmt = "las"  # (a .las/.laz that is not LAS/LAZ: the LAS checks say why)
     else:
         from pipeline.formats import sniff
 

@@ -34,8 +34,9 @@ def _as_las(tmp_path: Path, size_bytes: int, filename: str | None, crs_epsg: int
     from pipeline.formats import sniff
     from pipeline.formats.convert import to_laz
 
+    named_las = (filename or "").lower().endswith((".las", ".laz"))  # said to be LAS: its checks say why it is not
     try:
-        fmt = sniff(tmp_path)
+        fmt = "las" if named_las else sniff(tmp_path)
         if fmt == "las":
             if crs_epsg is not None or columns is not None:
                 raise InputError("crs and columns are for PLY, PCD, E57 and text files; a LAS/LAZ file states its own CRS")
