@@ -259,3 +259,42 @@ def test_the_pdal_engine_through_a_model_of_pdal(tmp_path, monkeypatch):
     ia_tiles = ia["tiles"]
     assert ia_tiles == ib["tiles"] and len(ia_tiles) == 6
     _assert_same(ia, ref, got.get_json(INDEX_KEY), got)
+
+
+def test_a_point_the_splitter_puts_in_another_cell_stops_the_run(tmp_path):
+    # a grid origin inside the block: PDAL's rule for cells below the origin
+    # (truncate, then one less) puts a point exactly on such an edge one cell too far
+    # west; with no buffer to hold it in both cells, no view is then that tile, and the
+    # run says so instead of losing points (with a buffer, the views are the tiles)
+    rng = np.random.default_rng(6)
+    xyz = np.column_stack([rng.uniform(0.5, 39.5, 2000), rng.uniform(0.5, 19.5, 2000), rng.uniform(0, 5, 2000)])
+    xyz = np.vstack([xyz, [[10.0, 5.0, 1.0]]])  # x = origin - 10: on the edge of cell -1
+    path = _block(tmp_path / "b.las", xyz)
+    info = read_info(path)
+    origin = (OFFSET[0] + 20.0, OFFSET[1])
+    info, grid, (ia, ref), (ints, views, got) = _both(path, 10.0, 2.0, origin)
+    _assert_same(ia, ref, tiles_from_views(ints, views, info, grid, got), got)
+    info, grid, (ia, ref), (ints, views, got) = _both(path, 10.0, 0.0, origin)
+    with pytest.raises(TilesDoNotAddUp, match="no view equal to the buffered points"):
+        tiles_from_views(ints, views, info, grid, got)
+
+
+@pytest.mark.parametrize("buffer", [2.0, 0.0])
+def test_a_point_outside_the_headers_bounds(tmp_path, buffer):
+    # up to 1 m outside the header's bounds is read; the grid gives such a point its
+    # nearest edge tile, the splitter a cell off the grid, which the buffer covers
+    import struct
+
+    rng = np.random.default_rng(8)
+    xyz = np.column_stack([rng.uniform(0.5, 29.5, 2000), rng.uniform(0.5, 19.5, 2000), rng.uniform(0, 5, 2000)])
+    xyz = np.vstack([xyz, [[30.4, 5.0, 1.0]]])
+    path = _block(tmp_path / "b.las", xyz)
+    data = bytearray(path.read_bytes())
+    struct.pack_into("<d", data, 179, OFFSET[0] + 29.9)  # the header's max x, 0.5 m short
+    path.write_bytes(bytes(data))
+    info, grid, (ia, ref), (ints, views, got) = _both(path, 10.0, buffer, (OFFSET[0], OFFSET[1]))
+    if buffer:
+        _assert_same(ia, ref, tiles_from_views(ints, views, info, grid, got), got)
+    else:
+        with pytest.raises(TilesDoNotAddUp, match=r"tile\(s\) \[2\]"):
+            tiles_from_views(ints, views, info, grid, got)
