@@ -208,7 +208,7 @@ def check_inbox_use(inbox: Path, *, settings: Settings, store: Store, tenant_id:
 
 
 def captures(inbox: Path) -> list[Path]:
-    """LAS/LAZ files directly in ``inbox`` (not in sub-folders), sorted by name.
+    """Point files (:data:`CAPTURE_SUFFIXES`) directly in ``inbox`` (not in sub-folders), sorted by name.
 
     Symbolic links are not captures: a link could hand a farm a file outside its inbox
     (another farm's capture), so only files that are really in the folder are taken.
@@ -403,7 +403,7 @@ def _take_capture(
 
 
 def _header_problem(path: Path, name: str) -> str | None:
-    """Why an inbox file is no usable LAS/LAZ file, read from its signature and header
+    """Why an inbox file is no usable point file, read from its signature and header
     where it lies (the header and VLRs only); None if it looks usable. The copy taken
     afterwards is checked again, as any upload."""
     from pipeline.blockinfo import read_info
