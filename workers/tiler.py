@@ -207,26 +207,31 @@ def check_engine(engine: str, grid: TileGrid) -> None:
 def tile_block_pdal(info: BlockInfo, grid: TileGrid, store: WorkStore) -> dict:
     """The same tiles as :func:`tile_block`, made by a PDAL pipeline.
 
-    ``readers.las`` reads the block; a dimension ``OriginIndex`` (the point's position in
-    the file) is added; ``filters.splitter`` (``length`` = tile size, ``buffer``,
+    ``readers.las`` reads the block; its X, Y, Z and a dimension ``OriginIndex`` (the
+    point's position in the file) go to ``filters.splitter`` (``length`` = tile size, ``buffer``,
     ``origin_x``/``origin_y`` = grid origin) makes one view per cell; each view that is
     exactly a tile's buffered set is written to the work store (:func:`tiles_from_views`).
     PDAL holds the whole block in memory and needs a buffer smaller than half the tile size.
     """
     check_engine("pdal", grid)
     import pdal
-    from numpy.lib import recfunctions as rfn
 
     reader = pdal.Pipeline(json.dumps({"pipeline": [{"type": "readers.las", "filename": info.path}]}))
     reader.execute()
     arr = reader.arrays[0]
-    arr = rfn.append_fields(arr, "OriginIndex", np.arange(len(arr), dtype=np.uint64), usemask=False)
+    # the splitter gets X, Y, Z and the point's index alone: the tiles need no more, and
+    # its views are copies of what it gets
+    pts = np.empty(len(arr), dtype=[("X", "<f8"), ("Y", "<f8"), ("Z", "<f8"), ("OriginIndex", "<u8")])
+    for d in ("X", "Y", "Z"):
+        pts[d] = arr[d]
+    pts["OriginIndex"] = np.arange(len(arr), dtype=np.uint64)
+    del arr, reader
     stage = {"type": "filters.splitter", "length": grid.tile_size, "buffer": grid.buffer,
              "origin_x": grid.origin[0], "origin_y": grid.origin[1]}
-    splitter = pdal.Pipeline(json.dumps({"pipeline": [stage]}), arrays=[arr])
+    splitter = pdal.Pipeline(json.dumps({"pipeline": [stage]}), arrays=[pts])
     splitter.execute()
-    ints = _stored_ints(arr, info)
-    del arr, reader
+    ints = _stored_ints(pts, info)
+    del pts
     views = (v["OriginIndex"] for v in splitter.arrays)
     return tiles_from_views(ints, views, info, grid, store)
 
