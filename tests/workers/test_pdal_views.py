@@ -14,7 +14,7 @@ from pathlib import Path
 import laspy
 import numpy as np
 import pytest
-from hypothesis import HealthCheck, given, settings
+from hypothesis import HealthCheck, given, note, settings
 from hypothesis import strategies as st
 
 from pipeline.blockinfo import read_info
@@ -181,8 +181,12 @@ def blocks(draw):
 @given(blocks())
 def test_any_splitter_output_gives_the_laspy_engines_tiles(case):
     """Property: whatever block, grid and order of views, the views of the splitter
-    (with its off-grid and buffer-only cells) give the laspy engine's tiles exactly."""
+    (with its off-grid and buffer-only cells) give the laspy engine's tiles exactly. With
+    no buffer, a point within rounding of a cell edge may fall in the splitter's other
+    cell (its cell rule does not settle the division's rounding, the grid's does): then
+    the run stops loudly, and is never wrong. Every job has a buffer (at least the reach)."""
     xyz, size, buffer, shift, scale, shuffle = case
+    note(f"{len(xyz)} points, tile size {size}, buffer {buffer}, origin shift {shift}, scale {scale}")
     with tempfile.TemporaryDirectory() as tmp:
         path = _block(Path(tmp) / "b.las", xyz, scale)
         info = read_info(path)
@@ -193,7 +197,12 @@ def test_any_splitter_output_gives_the_laspy_engines_tiles(case):
             return [views[i] for i in order]
 
         info, grid, (ia, ref), (ints, views, got) = _both(path, size, buffer, origin, views_of=shuffled)
-        ib = tiles_from_views(ints, views, info, grid, got)
+        try:
+            ib = tiles_from_views(ints, views, info, grid, got)
+        except TilesDoNotAddUp:
+            assert buffer == 0
+            assert not got.exists(INDEX_KEY)
+            return
         _assert_same(ia, ref, ib, got)
 
 
