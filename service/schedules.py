@@ -3,7 +3,8 @@
 A schedule is ``{inbox, cron, params, tiling}`` owned by a tenant. The
 `ScheduleClock` thread sleeps until the earliest ``next_run_at`` (a local-time cron
 expression, default ``0 1 * * *`` = 01:00 every night), then `run_schedule` submits one
-job per new capture in the inbox: every ``*.las`` / ``*.laz`` file whose sha256 this
+job per new capture in the inbox: every ``*.las`` / ``*.laz`` file (and ``*.ply``, ``*.pcd``,
+``*.e57``, ``*.xyz``, ``*.pts``, converted to LAZ when taken) whose sha256 this
 schedule has not handled before. Handled files (accepted, or rejected as unusable) are
 recorded in the store, so a capture is never processed twice. A capture still being
 copied in (written to within ``capture_settle_s``) is left for a scan that follows
@@ -40,7 +41,9 @@ from service.webhooks import rejected_event
 log = logging.getLogger("orchard.schedules")
 
 DEFAULT_CRON = "0 1 * * *"
-CAPTURE_SUFFIXES = (".las", ".laz")
+#: LAS/LAZ and the point formats converted to LAZ (pipeline.formats); not .txt or .csv,
+#: which an inbox may hold for other reasons
+CAPTURE_SUFFIXES = (".las", ".laz", ".ply", ".pcd", ".e57", ".xyz", ".pts")
 _CHUNK = 1 << 20
 LAS_MAGIC = b"LASF"  #: the first 4 bytes of every LAS and LAZ file (file signature)
 _scan_locks: dict[str, threading.Lock] = {}
@@ -212,7 +215,7 @@ def accepted_suffixes() -> tuple[str, ...]:
 
 
 def captures(inbox: Path) -> list[Path]:
-    """LAS/LAZ files directly in ``inbox`` (not in sub-folders), sorted by name.
+    """Point files (:data:`CAPTURE_SUFFIXES`) directly in ``inbox`` (not in sub-folders), sorted by name.
 
     Symbolic links are not captures: a link could hand a farm a file outside its inbox
     (another farm's capture), so only files that are really in the folder are taken.
@@ -446,16 +449,22 @@ def _take_capture(
 
 
 def _header_problem(path: Path, name: str) -> str | None:
-    """Why an inbox file is no usable LAS/LAZ file, read from its signature and header
+    """Why an inbox file is no usable point file, read from its signature and header
     where it lies (the header and VLRs only); None if it looks usable. The copy taken
     afterwards is checked again, as any upload."""
     from pipeline.blockinfo import read_info
+    from pipeline.formats import open_points, sniff
 
     try:
-        with open(path, "rb") as fh:
-            if fh.read(len(LAS_MAGIC)) != LAS_MAGIC:
-                return f"{name}: not a LAS or LAZ file (it does not begin with the LAS signature 'LASF')"
-        read_info(str(path))
+        if path.suffix.lower() in (".las", ".laz"):
+            with open(path, "rb") as fh:
+                if fh.read(len(LAS_MAGIC)) != LAS_MAGIC:
+                    return f"{name}: not a LAS or LAZ file (it does not begin with the LAS signature 'LASF')"
+            read_info(str(path))
+        elif (fmt := sniff(path)) == "las":
+            read_info(str(path))
+        else:
+            open_points(path, fmt)  # its header: the points are read when the copy is converted
     except InputError as exc:
         return str(exc).replace(str(path), name).replace(path.name, name)
     except OSError:

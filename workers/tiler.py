@@ -9,12 +9,14 @@ untiled read), the point's index in the input file and whether it lies in the co
 
 Two engines produce the same tiles: ``laspy`` (default, streamed) and ``pdal``
 (``readers.las`` -> ``filters.splitter`` with length, buffer and origin), used when
-PDAL's Python bindings import.
+PDAL's Python bindings import. Whatever the engine, tiles whose core points do not add
+up to the block's points stop the run (:class:`TilesDoNotAddUp`) before the index is stored.
 """
 
 from __future__ import annotations
 
 import json
+import math
 
 import numpy as np
 
@@ -177,6 +179,7 @@ def tile_block(
         for start, ints in iter_raw(info.path, chunk_points=chunk_points, info=info):
             _split_chunk(info, grid, store, start, ints, counts)
     idx = _index(info, grid, counts, "laspy")
+    check_tiles_add_up(idx, info.n_points, "laspy")
     put_index(store, idx)
     return idx
 
@@ -204,73 +207,170 @@ def check_engine(engine: str, grid: TileGrid) -> None:
 def tile_block_pdal(info: BlockInfo, grid: TileGrid, store: WorkStore) -> dict:
     """The same tiles as :func:`tile_block`, made by a PDAL pipeline.
 
-    ``readers.las`` reads the block; a dimension ``OriginIndex`` (the point's position in
-    the file) is added; ``filters.splitter`` (``length`` = tile size, ``buffer``,
-    ``origin_x``/``origin_y`` = grid origin) makes one view per tile; each view is written
-    to the work store. PDAL holds the whole block in memory and needs a buffer smaller
-    than half the tile size.
+    ``readers.las`` reads the block; its X, Y, Z and a dimension ``OriginIndex`` (the
+    point's position in the file) go to ``filters.splitter`` (``length`` = tile size, ``buffer``,
+    ``origin_x``/``origin_y`` = grid origin) makes one view per cell; each view that is
+    exactly a tile's buffered set is written to the work store (:func:`tiles_from_views`).
+    PDAL holds the whole block in memory and needs a buffer smaller than half the tile size.
     """
     check_engine("pdal", grid)
     import pdal
-    from numpy.lib import recfunctions as rfn
 
-    s, b = grid.tile_size, grid.buffer
     reader = pdal.Pipeline(json.dumps({"pipeline": [{"type": "readers.las", "filename": info.path}]}))
     reader.execute()
     arr = reader.arrays[0]
-    arr = rfn.append_fields(arr, "OriginIndex", np.arange(len(arr), dtype=np.uint64), usemask=False)
-    splitter = pdal.Pipeline(
-        json.dumps(
-            {
-                "pipeline": [
-                    {
-                        "type": "filters.splitter",
-                        "length": s,
-                        "buffer": b,
-                        "origin_x": grid.origin[0],
-                        "origin_y": grid.origin[1],
-                    }
-                ]
-            }
-        ),
-        arrays=[arr],
-    )
+    # the splitter gets X, Y, Z and the point's index alone: the tiles need no more, and
+    # its views are copies of what it gets
+    pts = np.empty(len(arr), dtype=[("X", "<f8"), ("Y", "<f8"), ("Z", "<f8"), ("OriginIndex", "<u8")])
+    for d in ("X", "Y", "Z"):
+        pts[d] = arr[d]
+    pts["OriginIndex"] = np.arange(len(arr), dtype=np.uint64)
+    del arr, reader
+    stage = {"type": "filters.splitter", "length": grid.tile_size, "buffer": grid.buffer,
+             "origin_x": grid.origin[0], "origin_y": grid.origin[1]}
+    splitter = pdal.Pipeline(json.dumps({"pipeline": [stage]}), arrays=[pts])
     splitter.execute()
+    ints = _stored_ints(pts, info)
+    del pts
+    views = (v["OriginIndex"] for v in splitter.arrays)
+    return tiles_from_views(ints, views, info, grid, store)
+
+
+def _stored_ints(arr: np.ndarray, info: BlockInfo) -> np.ndarray:
+    """The file's integers (n, 3) int32 back from PDAL's scaled X, Y, Z."""
+    xyz = np.column_stack([arr["X"], arr["Y"], arr["Z"]]).astype(np.float64)
+    return np.round((xyz - np.asarray(info.offsets)) / np.asarray(info.scales)).astype(np.int32)
+
+
+class TilesDoNotAddUp(RuntimeError):
+    """The tiles' core points are not the block's points, each once: a tiling engine
+    lost or doubled points. Nothing is written from such tiles."""
+
+
+def check_tiles_add_up(idx: dict, n_points: int, engine: str) -> None:
+    """Raise :class:`TilesDoNotAddUp` unless the core points of the tiles in the index
+    ``idx`` add up to the block's ``n_points``."""
+    total = sum(int(t["n_core"]) for t in idx["tiles"])
+    if total != n_points:
+        raise TilesDoNotAddUp(
+            f"the tiles made by the {engine!r} engine hold {total} core points, the block has {n_points}: "
+            f"points were lost or doubled, so no result is written; tile with the 'laspy' engine")
+
+
+def tiles_from_views(ints: np.ndarray, views, info: BlockInfo, grid: TileGrid, store: WorkStore) -> dict:
+    """Write the tiles of a block from the views of PDAL's ``filters.splitter``.
+
+    Parameters
+    ----------
+    ints : (n, 3) int32
+        The block's stored integers, in file order.
+    views : iterable of (k,) integer arrays
+        Each view's points as indices into ``ints`` (PDAL's ``OriginIndex``), in any
+        order, one per splitter cell.
+    info, grid, store
+        As :func:`tile_block`.
+
+    Returns
+    -------
+    The tile index, equal to :func:`tile_block`'s with the laspy engine.
+
+    Raises
+    ------
+    TilesDoNotAddUp
+        When no view is exactly the buffered set of a tile holding points.
+    """
+    # Strategy: the splitter's cells follow the grid, but it also returns buffer-only
+    # views of cells off the grid, and its cell of a point on an edge or outside the
+    # header's bounds may differ from the grid's. So the grid's own counts are taken
+    # (the laspy engine's assignment, without writing), and a view is tile t only when it
+    # holds exactly t's buffered points; the rest are dropped.
     store.remove("tiles")
-    counts = {}
-    scales = np.asarray(info.scales)
-    offsets = np.asarray(info.offsets)
-    for view in splitter.arrays:
-        if len(view) == 0:
-            continue
-        order = np.argsort(view["OriginIndex"], kind="stable")
-        view = view[order]
-        xyz = np.column_stack([view["X"], view["Y"], view["Z"]]).astype(np.float64)
-        ints = np.round((xyz - offsets) / scales).astype(np.int32)
-        xy = _absolute_xy(ints, info)
+    stride = sample_stride(info.n_points)
+    xy_all = _absolute_xy(ints, info)
+    expected = {}
+    for a in range(0, len(ints), CHUNK_POINTS):
+        local = to_local(ints[a : a + CHUNK_POINTS], info)
+        check_bounds(local, info, start=a)
+        store.put_array(f"{SAMPLE_KEY}/part-{a:012d}.npy", local[first_sampled(a, stride) :: stride, :2])
+        xy = xy_all[a : a + CHUNK_POINTS]
         core = core_tile(xy, grid)
-        tid = _view_tile(xy, core, grid)
-        rec = np.empty(len(view), dtype=TILE_DTYPE)
-        rec["X"], rec["Y"], rec["Z"] = ints[:, 0], ints[:, 1], ints[:, 2]
-        rec["index"] = view["OriginIndex"].astype(np.uint64)
+        _, t = buffered_tiles(xy, grid, core=core)
+        tids, every = np.unique(t, return_counts=True)
+        part = {int(k): [0, int(m)] for k, m in zip(tids, every)}
+        for k, m in zip(*np.unique(core, return_counts=True)):
+            part[int(k)][0] = int(m)
+        _merge_counts(expected, part)
+    written = {}
+    for view in views:
+        sel = np.sort(np.asarray(view, dtype=np.int64))
+        if sel.size == 0 or (sel.size > 1 and not (np.diff(sel) > 0).all()):
+            continue  # empty, or a point twice: no tile's set
+        if sel[0] < 0 or sel[-1] >= len(ints):
+            raise TilesDoNotAddUp(f"a PDAL view names point {int(sel[-1])} of a block of {len(ints)}")
+        xy = xy_all[sel]
+        core = core_tile(xy, grid)
+        tid = _view_tile(xy, core, grid, expected, written)
+        if tid is None:
+            continue
+        rec = np.empty(sel.size, dtype=TILE_DTYPE)
+        rec["X"], rec["Y"], rec["Z"] = ints[sel, 0], ints[sel, 1], ints[sel, 2]
+        rec["index"] = sel.astype(np.uint64)
         rec["core"] = core == tid
         store.put_array(f"{tile_key(tid)}/part-pdal.npy", rec)
-        _merge_counts(counts, {int(tid): (int(rec["core"].sum()), len(rec))})
-    idx = _index(info, grid, counts, "pdal")
+        written[tid] = [int(rec["core"].sum()), len(rec)]
+    missing = sorted(set(expected) - set(written))
+    if missing:
+        raise TilesDoNotAddUp(
+            f"PDAL's splitter gave no view equal to the buffered points of tile(s) {missing[:5]}"
+            f"{' ...' if len(missing) > 5 else ''} (of {len(expected)}): points on the grid's edges or "
+            "outside the header's bounds fell in other cells; tile with the 'laspy' engine")
+    idx = _index(info, grid, written, "pdal")
+    check_tiles_add_up(idx, info.n_points, "pdal")
     put_index(store, idx)
     return idx
 
 
-def _view_tile(xy: np.ndarray, core: np.ndarray, grid: TileGrid) -> int:
-    """Which tile a PDAL view is: the core tile of its points whose buffered box holds them all."""
-    cands, counts = np.unique(core, return_counts=True)
-    for tid in cands[np.argsort(-counts, kind="stable")]:
-        t = grid.tile(int(tid))
-        x0, y0, x1, y1 = t.buffered
-        inside = ((x0 < xy[:, 0]) & (xy[:, 0] < x1) & (y0 < xy[:, 1]) & (xy[:, 1] < y1)) | (core == tid)
-        if inside.all():
-            return int(tid)
-    raise RuntimeError("a PDAL view matches no tile of the grid")
+def _view_tile(xy: np.ndarray, core: np.ndarray, grid: TileGrid, expected: dict, taken) -> int | None:
+    """The tile a PDAL view is, or None.
+
+    Parameters
+    ----------
+    xy : (k, 2) float64
+        The view's points, absolute [m].
+    core : (k,) int64
+        Their core tiles (:func:`pipeline.tiling.core_tile`).
+    expected : dict
+        {tile id: [core points, buffered points]} of the whole block.
+    taken : container of int
+        Tiles already written from another view.
+
+    Returns
+    -------
+    The id of a tile not in ``taken`` whose buffered set is exactly the view's points
+    (same count, every point inside), or None for a view that is no tile (a cell off the
+    grid, a cell the splitter drew differently).
+    """
+    s, b = grid.tile_size, grid.buffer
+    gx, gy = grid.origin
+    (x0, y0), (x1, y1) = xy.min(axis=0), xy.max(axis=0)
+
+    def span(lo, hi, g, first, n):
+        # cells whose open buffered box can hold [lo, hi]; one more on each side for rounding
+        a = math.floor((hi - g - s - b) / s) - 1
+        z = math.ceil((lo - g + b) / s) + 1
+        a, z = min(max(a, first), first + n - 1), min(max(z, first), first + n - 1)
+        return range(a - first, z - first + 1)
+
+    for row in span(y0, y1, gy, grid.row0, grid.nrows):
+        for col in span(x0, x1, gx, grid.col0, grid.ncols):
+            tid = row * grid.ncols + col
+            if tid in taken or expected.get(tid, (0, 0))[1] != len(xy):
+                continue
+            bx0, by0, bx1, by1 = grid.tile(tid).buffered
+            inside = ((bx0 < xy[:, 0]) & (xy[:, 0] < bx1) & (by0 < xy[:, 1]) & (xy[:, 1] < by1)) | (core == tid)
+            if inside.all():
+                return tid
+    return None
 
 
 def _frame_of(idx: dict) -> dict:

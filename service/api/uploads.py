@@ -281,7 +281,7 @@ UPLOAD_BODY = {
                 "schema": {
                     "type": "object",
                     "required": ["file"],
-                    "properties": {"file": {"type": "string", "format": "binary", "description": "a LAS or LAZ file"}},
+                    "properties": {"file": {"type": "string", "format": "binary", "description": "a LAS, LAZ, PLY, PCD, E57 or text (x y z) point file"}},
                 }
             }
         },

@@ -2,4 +2,4 @@
 ``add_arguments(parser)`` and ``run(args) -> int``; :mod:`service.cli` registers
 every module listed in ``COMMANDS``."""
 
-COMMANDS = ["demo", "process", "simulate", "evaluate", "serve", "tokens", "tenants", "schedules", "blocks"]
+COMMANDS = ["demo", "process", "convert", "simulate", "evaluate", "serve", "tokens", "tenants", "schedules", "blocks"]

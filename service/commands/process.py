@@ -31,7 +31,8 @@ def _settings_default(name: str):
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
-    parser.add_argument("input", metavar="INPUT", help="LAS or LAZ block (LAS 1.2-1.4, point formats 0-10)")
+    parser.add_argument("input", metavar="INPUT", help="LAS or LAZ block (LAS 1.2-1.4, point formats 0-10), or a PLY, PCD, "
+                        "E57 or text (x y z) point file, converted to LAZ first (docs/inputs.md)")
     parser.add_argument("--out", required=True, metavar="DIR", help="output folder for trees.parquet, points.parquet, trees.csv and report.html")
     g = parser.add_argument_group("tiling and workers")
     add_tiling_options(g, ("tile_size", "buffer", "grid_origin", "engine", "workers", "worker_memory"), {
@@ -58,6 +59,9 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     c.add_argument("--captured-on", dest="captured_at", default=None, metavar="YYYY-MM-DD",
                    help="the capture's date when the file's header has none (default: the file's modification day)")
     c.add_argument("--capture-id", default=None, metavar="ID", help="the capture's id in history.parquet (default: INPUT's file stem)")
+    from service.commands.convert import add_input_options
+
+    add_input_options(parser.add_argument_group("inputs other than LAS/LAZ"))
     add_pipeline_options(parser)
 
 
@@ -175,6 +179,58 @@ def _check_same_job(args: argparse.Namespace) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
+    fmt = _input_format(args)
+    if fmt == "las":
+        return _run(args)
+    import tempfile
+
+    from pipeline.formats.convert import parse_crs_option, to_laz
+
+    crs = parse_crs_option(args.crs)
+    pipeline_params_from_args(args)  # bad options fail before a long conversion
+    _check_cluster_options(args)
+    # beside the output folder, where a cluster's workers see it too; gone when the run ends
+    try:
+        folder = tempfile.TemporaryDirectory(prefix=".orchard-input-", dir=_existing_parent(Path(args.out).parent))
+    except OSError:  # a folder this user cannot write to: the system's temporary folder
+        folder = tempfile.TemporaryDirectory(prefix="orchard-input-")
+    with folder as tmp:
+        laz = Path(tmp) / (Path(args.input).name + ".laz")  # its messages name tree.ply.laz: the input, converted
+        done = to_laz(args.input, laz, fmt=fmt, crs_epsg=crs, columns=args.columns)
+        left = f", {done.n_dropped} with a non-finite coordinate left out" if done.n_dropped else ""
+        print(f"orchard process: {Path(args.input).name}: {fmt.upper()}, {done.n_points} points{left}, converted to LAZ",
+              file=sys.stderr)
+        args.input_name, args.input = Path(args.input).name, str(laz)
+        return _run(args)
+
+
+def _input_format(args: argparse.Namespace) -> str:
+    """The input's format ("las" for LAS/LAZ, and for a path that is no file: the
+    LAS checks say what is wrong with it); ParameterError for options that go unused."""
+    p = Path(args.input)
+    if args.rerun_tile or args.resume or not p.is_file() or p.suffix.lower() in (".las", ".laz"):
+        fmt = "las"  # (a .las/.laz that is not LAS/LAZ: the LAS checks say why)
+    else:
+        from pipeline.formats import sniff
+
+        fmt = sniff(p)
+    if fmt == "las" and args.crs is not None:
+        raise ParameterError("--crs is for PLY, PCD, E57 and text inputs; a LAS/LAZ file states its own CRS")
+    if fmt != "text" and args.columns is not None:
+        raise ParameterError("--columns names the columns of a text input" + ("" if fmt == "las" else f"; this is a {fmt.upper()} file"))
+    if fmt != "las" and (args.rerun_tile or args.resume):
+        raise ParameterError("--resume and --rerun-tile need the LAS/LAZ block the job ran on")
+    return fmt
+
+
+def _existing_parent(path: Path) -> Path:
+    path = path.resolve()
+    while not path.is_dir():
+        path = path.parent
+    return path
+
+
+def _run(args: argparse.Namespace) -> int:
     # the pipeline (numpy, laspy, scipy, pyarrow) is imported once the input's header and
     # the options are checked: a bad input fails in a fraction of the time
     params = pipeline_params_from_args(args)
@@ -306,7 +362,7 @@ def _write_views(outcome, args) -> None:
     write_trees_csv(trees, out / "trees.csv")
     if not points:
         return
-    name = Path(args.input).name
+    name = getattr(args, "input_name", None) or Path(args.input).name
     summary = {"Block": name, "Points": str(outcome.n_points), "Trees": str(outcome.n_trees)}
     warning = None
     if outcome.partial:
@@ -358,6 +414,10 @@ def _report(outcome, args) -> int:
     _report_capture(outcome)
     if outcome.partial:
         tiles = " ".join(f"--rerun-tile {t}" for t in outcome.failed_tiles)
+        if getattr(args, "input_name", None):  # the converted block is gone with the run
+            print(f"orchard process: partial result: tiles {outcome.failed_tiles} failed and are missing; to re-run "
+                  f"them, convert {args.input_name} with 'orchard convert' and process the LAZ", file=sys.stderr)
+            return 4
         print(
             f"orchard process: partial result: tiles {outcome.failed_tiles} failed and are missing; "
             f"re-run them with: orchard process {args.input} --out {args.out} --work {args.work or out / '_work'} {tiles}",

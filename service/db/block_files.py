@@ -27,6 +27,28 @@ def _sniff_suffix(path: Path) -> str:
     return ".las"
 
 
+def _as_las(tmp_path: Path, size_bytes: int, filename: str | None, crs_epsg: int | None,
+            columns: str | None) -> tuple[Path, int]:
+    """The LAS/LAZ file of an upload and its size: the upload itself, or the LAZ its
+    points were converted to (the upload is then removed)."""
+    from pipeline.formats import sniff
+    from pipeline.formats.convert import to_laz
+
+    named_las = (filename or "").lower().endswith((".las", ".laz"))  # said to be LAS: its checks say why it is not
+    try:
+        fmt = "las" if named_las else sniff(tmp_path)
+        if fmt == "las":
+            if crs_epsg is not None or columns is not None:
+                raise InputError("crs and columns are for PLY, PCD, E57 and text files; a LAS/LAZ file states its own CRS")
+            return tmp_path, size_bytes
+        laz = tmp_path.with_name(tmp_path.name + ".laz")
+        to_laz(tmp_path, laz, fmt=fmt, crs_epsg=crs_epsg, columns=columns)
+    except InputError as exc:
+        raise InputError(str(exc).replace(tmp_path.name, filename or "the upload")) from None
+    tmp_path.unlink()
+    return laz, laz.stat().st_size
+
+
 def _fsync_dir(path: Path) -> None:
     with contextlib.suppress(OSError):
         fd = os.open(path, os.O_RDONLY)
@@ -52,11 +74,16 @@ def accept_block(
     sha256: str,
     size_bytes: int,
     filename: str | None,
+    crs_epsg: int | None = None,
+    columns: str | None = None,
 ) -> tuple[dict[str, Any], bool]:
     """Validate a fully written temporary file and land it as a block of ``tenant_id``.
 
-    The header is checked with `pipeline.blockinfo.read_info` (InputError if not a usable
-    LAS/LAZ file). The file is stored under its checksum, fsynced, renamed into place,
+    A PLY, PCD, E57 or text file is first converted to LAZ
+    (`pipeline.formats.convert.to_laz`, with ``crs_epsg`` and a text file's ``columns``),
+    and the LAZ is the block's file. The header is checked with
+    `pipeline.blockinfo.read_info` (InputError if not a usable LAS/LAZ file). The file is
+    stored under the checksum of what was sent (``sha256``), fsynced, renamed into place,
     and only then recorded. The temporary file is always gone afterwards. Returns
     ``(block, created)``; the same file twice gives the same block.
     """
@@ -69,6 +96,7 @@ def accept_block(
             return existing, False
         if size_bytes == 0:
             raise InputError("the file is empty (0 bytes); upload a LAS or LAZ file")
+        tmp_path, size_bytes = _as_las(tmp_path, size_bytes, filename, crs_epsg, columns)
         store.check_storage(tenant_id, size_bytes)
         suffix = _sniff_suffix(tmp_path)
         typed = tmp_path.with_suffix(suffix)

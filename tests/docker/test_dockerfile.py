@@ -60,6 +60,15 @@ def test_base_image_is_conda_forge_micromamba_with_pdal():
     assert any("pip install" in a and "/opt/orchard" in a for i, a in ins if i == "RUN")
 
 
+def test_pdal_versions_are_the_build_scripts():
+    """The image installs the PDAL and python-pdal that bench/build_pdal.sh builds."""
+    script = (ROOT / "bench" / "build_pdal.sh").read_text()
+    tags = dict(re.findall(r"^(PDAL_TAG|PYPDAL_TAG)=(\S+)", script, re.M))
+    args = dict(re.findall(r"^ARG (PDAL_VERSION|PYTHON_PDAL_VERSION)=(\S+)", DOCKERFILE.read_text(), re.M))
+    assert args == {"PDAL_VERSION": tags["PDAL_TAG"], "PYTHON_PDAL_VERSION": tags["PYPDAL_TAG"]}
+    assert re.fullmatch(r"\d+\.\d+\.\d+", tags["PDAL_TAG"]) and re.fullmatch(r"\d+\.\d+\.\d+", tags["PYPDAL_TAG"])
+
+
 def test_build_context_files_exist():
     """Every COPY source (relative to the repository root, the build context) exists."""
     for instruction, args in _instructions():
