@@ -42,8 +42,10 @@ class LasBlockWriter(AtomicWriter):
         ``"1.2"``, ``"1.3"`` or ``"1.4"`` (formats >= 6 need 1.4).
     extra_dims : dict name → numpy dtype, optional
         Extra-bytes dimensions (bool is stored as uint8).
-    creation_date : datetime.date, optional
-        The header's file creation day (default: today, laspy's).
+    creation_date : datetime.date or "unset", optional
+        The header's file creation day (default: today, laspy's); ``"unset"`` writes
+        day and year 0, the LAS way of saying the day is unknown (a file converted from
+        a format without dates: the conversion day is no capture day).
     """
 
     def __init__(
@@ -64,7 +66,8 @@ class LasBlockWriter(AtomicWriter):
             version = "1.4" if point_format >= 6 else "1.2"
         header = laspy.LasHeader(version=version, point_format=int(point_format))
         header.scales = np.asarray(scales, dtype=np.float64)
-        if creation_date is not None:
+        self._unset_date = creation_date == "unset"
+        if creation_date is not None and not self._unset_date:
             header.creation_date = creation_date
         if offsets is not None:
             header.offsets = np.asarray(offsets, dtype=np.float64)
@@ -80,6 +83,19 @@ class LasBlockWriter(AtomicWriter):
         self._writer = None if self._auto_offsets else self._open()
         self.n_points = 0
         self._closed = False
+
+    def close(self) -> None:
+        if self._unset_date and not self._closed:
+            if self._writer is None:
+                self._writer = self._open()
+            self._writer.close()
+            # laspy always stamps a day: the header's day and year (bytes 90-93 of every
+            # LAS version's public header, uncompressed in a LAZ too) are zeroed here
+            with open(self._tmp, "r+b") as f:
+                f.seek(90)
+                f.write(b"\0\0\0\0")
+            self._writer = _Closed()
+        super().close()
 
     def _open(self):
         return laspy.open(str(self._tmp), mode="w", header=self.header, do_compress=self.path.suffix.lower() == ".laz")
@@ -114,6 +130,13 @@ class LasBlockWriter(AtomicWriter):
             rec[name] = np.asarray(values).astype(self._extra[name])
         self._writer.write_points(rec)
         self.n_points += m
+
+
+class _Closed:
+    """A writer already closed (closing it again does nothing)."""
+
+    def close(self) -> None:
+        pass
 
 
 def write_labelled_las(

@@ -99,7 +99,7 @@ def to_laz(src, dst, *, fmt: str | None = None, crs_epsg: int | None = None, col
         source = open_points(src, fmt, columns=columns)
     written = dropped = 0
     with LasBlockWriter(dst, crs_epsg=crs_epsg, crs_wkt=None if crs_epsg else source.crs_wkt,
-                        scales=(SCALE, SCALE, SCALE)) as w:
+                        scales=(SCALE, SCALE, SCALE), creation_date="unset") as w:
         for xyz in source.chunks(int(chunk_points)):
             keep = np.isfinite(xyz).all(axis=1)
             if not keep.all():

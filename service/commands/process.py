@@ -200,8 +200,18 @@ def run(args: argparse.Namespace) -> int:
         left = f", {done.n_dropped} with a non-finite coordinate left out" if done.n_dropped else ""
         print(f"orchard process: {Path(args.input).name}: {fmt.upper()}, {done.n_points} points{left}, converted to LAZ",
               file=sys.stderr)
+        # the capture is the original file: its name and (without a --captured-on) its day
+        args.capture_id = args.capture_id or Path(args.input).stem
+        args.captured_at_fallback = _file_day(args.input)
         args.input_name, args.input = Path(args.input).name, str(laz)
         return _run(args)
+
+
+def _file_day(path: str) -> str:
+    """The day a file was last written (UTC, ISO): a capture's day when nothing better says it."""
+    from datetime import datetime, timezone
+
+    return datetime.fromtimestamp(os.path.getmtime(path), tz=timezone.utc).date().isoformat()
 
 
 def _input_format(args: argparse.Namespace) -> str:
@@ -277,6 +287,7 @@ def _run(args: argparse.Namespace) -> int:
         previous=args.previous,
         capture_id=args.capture_id,
         captured_at=args.captured_at,
+        captured_at_fallback=getattr(args, "captured_at_fallback", None),
     )
     tiled = bool(args.tile_size) or args.scheduler is not None
     count_on_cluster = False  # a block that surely needs tiles is counted by the workers

@@ -104,3 +104,42 @@ def test_bad_inputs_are_one_line_and_exit_2(tmp_path, capsys, name, data, args, 
     code, _, err = _run(capsys, "process", src, "--out", tmp_path / "o", *args)
     assert code == 2 and words in err and len(err.strip().splitlines()) == 1, err
     assert not (tmp_path / "o").exists() and not list(tmp_path.glob(".orchard-input-*"))
+
+
+def test_a_converted_file_states_no_day_so_the_capture_takes_the_given_one(small, tmp_path, capsys):
+    import os
+
+    from pipeline.blockinfo import creation_date
+    from workers.captures import resolve_capture
+
+    _, files = small
+    out = tmp_path / "c.laz"
+    code, _, err = _run(capsys, "convert", files["ply-binary"], "--out", out)
+    assert code == 0, err
+    assert creation_date(out) is None  # not the conversion day: a PLY has no capture day
+    assert laspy.read(out).header.point_count == 2000  # the file is whole after its header was touched
+    assert resolve_capture(str(out), captured_at="2025-10-03").captured_at_source == "given"
+    os.utime(files["ply-binary"], (1_700_000_000, 1_700_000_000))  # 2023-11-14
+    from service.commands.process import _file_day
+
+    assert _file_day(str(files["ply-binary"])) == "2023-11-14"
+
+
+@pytest.mark.slow
+def test_a_converted_capture_is_named_and_dated_after_its_original(block, tmp_path, capsys):
+    import json
+    import os
+
+    import pyarrow.parquet as pq
+
+    _, files = block
+    ply = files["ply-binary"]
+    os.utime(ply, (1_700_000_000, 1_700_000_000))
+    code, _, err = _run(capsys, "process", ply, "--out", tmp_path / "a", "--crs", "EPSG:28356")
+    assert code == 0, err
+    record = json.loads(pq.read_schema(tmp_path / "a" / "trees.parquet").metadata[b"orchard:capture"])
+    assert (record["capture_id"], record["captured_at"], record["captured_at_source"]) == (ply.stem, "2023-11-14", "upload")
+    code, _, err = _run(capsys, "process", ply, "--out", tmp_path / "b", "--crs", "EPSG:28356", "--captured-on", "2024-02-01")
+    assert code == 0, err
+    record = json.loads(pq.read_schema(tmp_path / "b" / "trees.parquet").metadata[b"orchard:capture"])
+    assert (record["captured_at"], record["captured_at_source"]) == ("2024-02-01", "given")
