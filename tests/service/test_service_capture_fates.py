@@ -37,7 +37,7 @@ def _fill(inbox):
     (inbox / "bad.laz").write_text("these are notes, not points\n" * 20)
     data = write_las(inbox / "cut.laz", 3000, seed=2).read_bytes()
     (inbox / "cut.laz").write_bytes(data[: len(data) // 3])
-    (inbox / "scan.xyz").write_text("1 2 3\n4 5 6\n")
+    (inbox / "scan.csv").write_text("1 2 3\n4 5 6\n")
     (inbox / "notes.txt").write_text("row 4 sprayed")
     (inbox / "old").mkdir()
     (inbox / ".DS_Store").write_bytes(b"\0")
@@ -50,13 +50,13 @@ def _by_file(fates):
 def test_the_ignore_rule_follows_the_accepted_suffixes(tmp_path, monkeypatch):
     import service.schedules as schedules
 
-    (tmp_path / "scan.xyz").write_text("1 2 3\n")
-    why = ignored_why(tmp_path / "scan.xyz")
-    assert why.startswith("a .xyz file") and all(s in why for s in accepted_suffixes())
+    (tmp_path / "scan.csv").write_text("1 2 3\n")
+    why = ignored_why(tmp_path / "scan.csv")
+    assert why.startswith("a .csv file") and all(s in why for s in accepted_suffixes())
     # a format taken later (a reader for it added) is no longer ignored, with nothing else changed
-    monkeypatch.setattr(schedules, "CAPTURE_SUFFIXES", (*accepted_suffixes(), ".xyz"))
-    assert ignored_why(tmp_path / "scan.xyz") is None
-    assert [p.name for p in schedules.captures(tmp_path)] == ["scan.xyz"]
+    monkeypatch.setattr(schedules, "CAPTURE_SUFFIXES", (*accepted_suffixes(), ".csv"))
+    assert ignored_why(tmp_path / "scan.csv") is None
+    assert [p.name for p in schedules.captures(tmp_path)] == ["scan.csv"]
 
 
 def test_every_file_of_an_inbox_has_a_fate(local):
@@ -66,25 +66,25 @@ def test_every_file_of_an_inbox_has_a_fate(local):
     before = _by_file(capture_fates(store, settings, sched))
     assert {f: c["fate"] for f, c in before.items()} == {
         "good.laz": "new", "bad.laz": "new", "cut.laz": "new",
-        "scan.xyz": "ignored", "notes.txt": "ignored", "old": "ignored",
+        "scan.csv": "ignored", "notes.txt": "ignored", "old": "ignored",
     }
     res = run_schedule(store, settings, sched)
     assert len(res["jobs"]) == 1 and len(res["rejected"]) == 2
-    assert sorted(i["file"] for i in res["ignored"]) == ["notes.txt", "old", "scan.xyz"]
+    assert sorted(i["file"] for i in res["ignored"]) == ["notes.txt", "old", "scan.csv"]
     fates = capture_fates(store, settings, sched)
     got = _by_file(fates)
     assert got["good.laz"]["fate"] == "processed" and got["good.laz"]["job_id"] == res["jobs"][0]
     assert got["good.laz"]["job_state"] == "queued"
     assert got["bad.laz"]["fate"] == "rejected" and "LASF" in got["bad.laz"]["reason"]
     assert got["cut.laz"]["fate"] == "rejected" and got["cut.laz"]["reason"]
-    assert got["scan.xyz"]["fate"] == "ignored" and ".xyz" in got["scan.xyz"]["reason"]
+    assert got["scan.csv"]["fate"] == "ignored" and ".csv" in got["scan.csv"]["reason"]
     assert "folder" in got["old"]["reason"]
     assert ".DS_Store" not in got
     assert fates["counts"] == {"arriving": 0, "new": 0, "rejected": 2, "processed": 1, "ignored": 3}
     # a capture handled and then moved away is still told
     (inbox / "good.laz").unlink()
     assert _by_file(capture_fates(store, settings, sched))["good.laz"]["fate"] == "processed"
-    assert fate_line(got["scan.xyz"]).startswith("ignored   scan.xyz  a .xyz file")
+    assert fate_line(got["scan.csv"]).startswith("ignored   scan.csv  a .csv file")
 
 
 def test_a_capture_being_copied_in_is_arriving(local, tmp_path):
@@ -117,7 +117,7 @@ def test_the_schedules_resource_tells_every_captures_fate(client_a, client_b, ap
     sid = client_a.post("/v1/schedules", json={"inbox": str(inbox)}).json()["id"]
     try:
         run = client_a.post(f"/v1/schedules/{sid}/run").json()
-        assert sorted(i["file"] for i in run["ignored"]) == ["notes.txt", "old", "scan.xyz"]
+        assert sorted(i["file"] for i in run["ignored"]) == ["notes.txt", "old", "scan.csv"]
         body = client_a.get(f"/v1/schedules/{sid}").json()
         got = {c["file"]: c for c in body["captures"]}
         assert got["bad.laz"]["fate"] == "rejected" and "LASF" in got["bad.laz"]["reason"]
@@ -148,7 +148,7 @@ def test_the_command_lines_list_tells_every_captures_fate(tmp_path, monkeypatch,
     out = capsys.readouterr().out
     lines = {line.split()[1]: line for line in out.splitlines() if line.startswith("    ")}
     assert lines["bad.laz"].split()[0] == "rejected" and "LASF" in lines["bad.laz"]
-    assert lines["scan.xyz"].split()[0] == "ignored" and ".xyz" in lines["scan.xyz"]
+    assert lines["scan.csv"].split()[0] == "ignored" and ".csv" in lines["scan.csv"]
     assert lines["good.laz"].split()[0] == "processed" and "(queued)" in lines["good.laz"]
     assert "captures: 2 rejected, 1 processed, 3 ignored" in out
     assert main(["schedules", "list", "--json", "--data-dir", str(data)]) == 0

@@ -163,7 +163,7 @@ def test_the_blocks_page_lists_rejected_and_ignored_captures(browser, tmp_path):
         inbox.mkdir(parents=True)
         write_las(inbox / "good.laz", 400, seed=1)
         (inbox / "bad.laz").write_text("not points")
-        (inbox / "scan.xyz").write_text("1 2 3\n")
+        (inbox / "scan.csv").write_text("1 2 3\n")
         with httpx.Client(base_url=srv.url, headers={"Authorization": f"Bearer {token}"}, timeout=60) as c:
             sid = c.post("/v1/schedules", json={"inbox": str(inbox)}).json()["id"]
             assert len(c.post(f"/v1/schedules/{sid}/run").json()["jobs"]) == 1
@@ -177,9 +177,9 @@ def test_the_blocks_page_lists_rejected_and_ignored_captures(browser, tmp_path):
             page.wait_for_url("**/blocks")
             page.wait_for_selector(f"section[data-schedule='{sid}'] tr[data-capture]")
             fates = dict(page.eval_on_selector_all("#inboxes tr[data-capture]", "els => els.map(e => [e.dataset.capture, e.dataset.fate])"))
-            assert fates == {"good.laz": "processed", "bad.laz": "rejected", "scan.xyz": "ignored"}
+            assert fates == {"good.laz": "processed", "bad.laz": "rejected", "scan.csv": "ignored"}
             assert "LASF" in page.text_content("tr[data-capture='bad.laz'] .reason")
-            assert ".xyz" in page.text_content("tr[data-capture='scan.xyz'] .reason")
+            assert ".csv" in page.text_content("tr[data-capture='scan.csv'] .reason")
             page.click("tr[data-capture='good.laz'] a")
             page.wait_for_url("**/jobs/*")
             watch.clean()
