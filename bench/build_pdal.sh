@@ -33,7 +33,7 @@ t() { local s=$SECONDS; "$@"; echo "[time] $((SECONDS-s)) s: $*" >&2; }
 t apt-get update -qq
 t nice -n 19 apt-get install -y -q --no-install-recommends \
     libgdal-dev libproj-dev libgeotiff-dev libcurl4-openssl-dev libxml2-dev \
-    nlohmann-json3-dev libzstd-dev zlib1g-dev liblzma-dev cmake g++ make pkg-config
+    nlohmann-json3-dev libzstd-dev zlib1g-dev liblzma-dev libxerces-c-dev cmake g++ make pkg-config
 
 # 2. PDAL sources. test/data is left out: WITH_TESTS=OFF needs none of it, and a mirror
 #    may lack some of its blobs (git archive then dies on them).
@@ -43,15 +43,15 @@ git --git-dir="$(gitdir "$PDAL_GIT")" archive "$PDAL_TAG" -- . ':(exclude)test/d
 # 3. PDAL: Release, no tests, no plugins. LAZ = vendored lazperf, always built into
 #    readers.las/writers.las (no LASzip needed). libpq comes in with libgdal-dev and would
 #    switch the pgpointcloud plugin on by itself: turn it off. readers.ply, readers.pcd and
-#    readers.text are built in; readers.e57 is a plugin (Xerces-C) and stays off.
+#    readers.text are built in; readers.e57 is a plugin (it needs Xerces-C) and is turned on.
 rm -rf "$ROOT/build-pdal"; mkdir -p "$ROOT/build-pdal"; cd "$ROOT/build-pdal"
 t nice -n 19 cmake "$ROOT/src/PDAL-$PDAL_TAG" -DCMAKE_BUILD_TYPE=Release \
     -DCMAKE_INSTALL_PREFIX="$PREFIX" -DWITH_TESTS=OFF -DWITH_COMPLETION=OFF \
-    -DBUILD_PLUGIN_PGPOINTCLOUD=OFF
+    -DBUILD_PLUGIN_PGPOINTCLOUD=OFF -DBUILD_PLUGIN_E57=ON
 t nice -n 19 make -j"$JOBS"
 t nice -n 19 make install
 "$PREFIX/bin/pdal" --version
-"$PREFIX/bin/pdal" --drivers | grep -E 'readers.las|writers.las|filters.splitter|readers.ply|readers.pcd|readers.text'
+"$PREFIX/bin/pdal" --drivers | grep -E 'readers.las|writers.las|filters.splitter|readers.ply|readers.pcd|readers.text|readers.e57'
 
 # 4. venv with the project and its test extras (a clone, never the checkout itself)
 [ -d "$ROOT/repo" ] || git clone -q "$PROJECT" "$ROOT/repo"
