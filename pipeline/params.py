@@ -138,7 +138,7 @@ class SegmentParams(_Model):
         return self.model_copy(update=_from_spacing(self, "segment", spacing))
 
 
-#: Size floors left unset (None) follow the block's trees (:func:`pipeline.trunks.block_floors`);
+#: Size floors left unset (None) follow the block's trees (:func:`pipeline.floors.block_floors`);
 #: these are their caps, the mature trees' floors, which hold on blocks of grown trees
 MATURE_FLOORS: dict[str, float] = {"min_tree_height": 2.0, "min_canopy_voxels": 150}
 

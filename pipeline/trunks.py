@@ -23,6 +23,15 @@ import numpy as np
 from scipy import sparse
 from scipy.spatial import cKDTree
 
+from pipeline.floors import (
+    BRANCH_MAX_PLANAR,
+    BRANCH_MAX_SIZE,
+    MIN_FLOOR_HEIGHT,
+    MIN_FLOOR_VOXELS,
+    block_floors,
+    branches,
+    group_percentile,
+)
 from pipeline.graph import shortest_paths, subtree_sizes
 from pipeline.params import MATURE_FLOORS, SPACING_RADII, TrunkParams
 from pipeline.spacing import estimate_spacing
@@ -59,32 +68,6 @@ SOURCE_MARGIN = 0.1
 #: the box test of a segmented tree counts its material within this [m] of the trunk (a
 #: crown overhanging a vehicle stays a tree)
 BOX_TEST_RADIUS = 1.0
-
-
-#: a contact group below the mature trees' floors is a tree only if it branches: some of
-#: its catchment above the grass (BRANCH_LOW [m]) lies between BRANCH_OFFSET and
-#: BRANCH_REACH [m] of its centre (a stake or a post beside the stem does not), at least
-#: BRANCH_LENGTH [m] of it in nodes, spread over BRANCH_EXTENT [m] of height (a fence's
-#: wire runs out at one height: 0.00-0.08 m on generated blocks, young trees 0.06-1.3 m)
-BRANCH_LOW = 0.3
-BRANCH_OFFSET = 0.2
-BRANCH_REACH = 0.8
-BRANCH_LENGTH = 0.3
-BRANCH_EXTENT = 0.1
-#: ... and its low material is nearly free of box faces (a bin's corners branch out; the
-#: low material of young trees on generated blocks is 0 % planar, the bin's groups 12-65 %)
-BRANCH_MAX_PLANAR = 0.05
-#: ... and drains at most this many times the canopy floor (4 times the median catchment
-#: of the block's branching groups; young trees on generated blocks drain up to 2.2 times it)
-BRANCH_MAX_SIZE = 16
-#: floors from the block: the height floor is this share of the median height of the
-#: block's branching contact groups, at least MIN_FLOOR_HEIGHT [m] (irrigation risers,
-#: grass tufts) ...
-FLOOR_HEIGHT_SHARE = 0.5
-MIN_FLOOR_HEIGHT = 0.7
-#: ... and the canopy floor this share of their median catchment, at least MIN_FLOOR_VOXELS
-FLOOR_SIZE_SHARE = 0.25
-MIN_FLOOR_VOXELS = 20
 
 
 #: a group with a stem of its own (:func:`_own_stems`): its catchment reaches above
@@ -160,21 +143,6 @@ def _suppress(xy: np.ndarray, score: np.ndarray, radius: float) -> np.ndarray:
         nb = nb[leader[nb] < 0]
         leader[nb] = i
     return leader
-
-
-def _group_percentile(values: np.ndarray, group: np.ndarray, n_groups: int, q: float) -> np.ndarray:
-    """q-th percentile (nearest rank) of ``values`` per group id in [0, n_groups); -inf if empty."""
-    keep = group >= 0
-    v, g = values[keep], group[keep]
-    order = np.lexsort((v, g))
-    v, g = v[order], g[order]
-    start = np.searchsorted(g, np.arange(n_groups))
-    end = np.searchsorted(g, np.arange(n_groups), side="right")
-    out = np.full(n_groups, -np.inf)
-    has = end > start
-    idx = start + np.floor((end - start - 1) * q / 100.0).astype(np.int64)
-    out[has] = v[idx[has]]
-    return out
 
 
 def _suppressed(xy: np.ndarray, strength: np.ndarray, ok: np.ndarray, reach: float, beats) -> np.ndarray:
@@ -334,7 +302,7 @@ def _groups(
     groups : (g,) int64 — each group's leader (index into ``d.cand``)
     gidx : (c,) int64 — the group of each contact of ``d.cand``
     candidates : dict of (g,) arrays — centre ``x``, ``y`` [m], ``support``, ``top``,
-        ``planar``, ``width`` [m], ``branches`` (:func:`_branches`), ``fits`` (the size,
+        ``planar``, ``width`` [m], ``branches`` (:func:`pipeline.floors.branches`), ``fits`` (the size,
         height and box tests; with ``branch_test``, a group below the mature trees'
         floors must also branch), ``unbranched`` (failed only that) and flow diagnostics
     """
@@ -347,7 +315,7 @@ def _groups(
     group_of_contact = np.full(m, -1, np.int64)
     group_of_contact[cand] = gidx
     node_group = np.where(reached, group_of_contact[np.maximum(d.source, 0)], -1)
-    g_top = _group_percentile(node_height, node_group, groups.size, TOP_PERCENTILE)
+    g_top = group_percentile(node_height, node_group, groups.size, TOP_PERCENTILE)
     g_planar = np.bincount(gidx, weights=d.n_planar[cand]) / np.maximum(np.bincount(gidx, weights=d.n_low[cand]), 1)
     fits = (g_support >= params.min_canopy_voxels) & (g_top >= params.min_tree_height) & (g_planar <= params.max_planar_fraction)
 
@@ -377,59 +345,23 @@ def _groups(
     band_scatter = np.bincount(bg, weights=wgt * sc[bn], minlength=groups.size) / np.maximum(wsum, 1e-12)
     band_max = np.zeros(groups.size)
     np.maximum.at(band_max, bg, wgt)
-    branches = _branches(nodes, node_height, node_group, np.column_stack([cx, cy]), d.voxel_size)
+    branched = branches(nodes, node_height, node_group, np.column_stack([cx, cy]), d.voxel_size)
     unbranched = np.zeros(groups.size, bool)
     if branch_test:
         mature = (g_support >= MATURE_FLOORS["min_canopy_voxels"]) & (g_top >= MATURE_FLOORS["min_tree_height"])
-        unbranched = fits & ~branches & ~mature
+        unbranched = fits & ~branched & ~mature
         # and shows no box face (a bin's corners branch out, thin young stems form no planar patches)
         # and drains no more than a young tree of the block: a vehicle's underside drains
         # like several (6 times the median young tree on generated blocks)
         young = (g_planar <= BRANCH_MAX_PLANAR) & (g_support <= BRANCH_MAX_SIZE * params.min_canopy_voxels)
         fits &= ~unbranched & (mature | young)
     candidates = {
-        "x": cx, "y": cy, "support": g_support, "top": g_top, "planar": g_planar, "width": width, "branches": branches,
+        "x": cx, "y": cy, "support": g_support, "top": g_top, "planar": g_planar, "width": width, "branches": branched,
         "unbranched": unbranched,
         "band_flow": wsum, "band_scatter": band_scatter,
         "band_nodes": np.bincount(bg, minlength=groups.size), "band_max": band_max, "fits": fits,
     }
     return groups, gidx, candidates
-
-
-def _branches(nodes: np.ndarray, node_height: np.ndarray, node_group: np.ndarray, centre: np.ndarray,
-              voxel_size: float) -> np.ndarray:
-    """Groups whose catchment branches: at least BRANCH_LENGTH of nodes above BRANCH_LOW
-    lie BRANCH_OFFSET to BRANCH_REACH [m] from the group's ``centre`` (g, 2), spread over at least
-    BRANCH_EXTENT of height (10th to 90th percentile). A post, a stake or a riser is one
-    column; a fence's wire runs out at one height. Returns (g,) bool."""
-    g = centre.shape[0]
-    sel = np.flatnonzero((node_group >= 0) & (node_height >= BRANCH_LOW))
-    grp = node_group[sel]
-    r = np.hypot(*(nodes[sel, :2] - centre[grp]).T)
-    out = (r > BRANCH_OFFSET) & (r <= BRANCH_REACH)
-    sel, grp = sel[out], grp[out]
-    many = np.bincount(grp, minlength=g) >= max(1, int(round(BRANCH_LENGTH / voxel_size)))
-    hi = _group_percentile(node_height[sel], grp, g, 90.0)
-    lo = _group_percentile(node_height[sel], grp, g, 10.0)
-    extent = np.zeros(g)
-    extent[many] = hi[many] - lo[many]
-    return extent >= BRANCH_EXTENT
-
-
-def block_floors(top: np.ndarray, support: np.ndarray, ok: np.ndarray) -> tuple[float | None, int | None]:
-    """The size floors a block's trees ask for, from the contact groups ``ok`` that
-    branch and pass every test of their own at the lowest floors: FLOOR_HEIGHT_SHARE of
-    their median ``top`` [m] and FLOOR_SIZE_SHARE of their median ``support`` [voxels],
-    each between its least value and the mature trees' floor (MATURE_FLOORS). (None,
-    None) without such a group, or where their median height and median catchment are
-    both at the mature trees' floors or more (a block of grown trees, replants among them
-    or not): the mature trees' floors hold."""
-    if not ok.any() or (np.median(top[ok]) >= MATURE_FLOORS["min_tree_height"]
-                        and np.median(support[ok]) >= MATURE_FLOORS["min_canopy_voxels"]):
-        return None, None
-    h = float(np.clip(FLOOR_HEIGHT_SHARE * np.median(top[ok]), MIN_FLOOR_HEIGHT, MATURE_FLOORS["min_tree_height"]))
-    s = int(np.clip(round(FLOOR_SIZE_SHARE * np.median(support[ok])), MIN_FLOOR_VOXELS, MATURE_FLOORS["min_canopy_voxels"]))
-    return h, s
 
 
 def detect_trunks(
@@ -624,7 +556,7 @@ def low_trees(node_tree: np.ndarray, node_height: np.ndarray, k: int, *, params:
     -------
     (j,) int64 indices of trunks to drop.
     """
-    top = _group_percentile(node_height, np.asarray(node_tree, dtype=np.int64) - 1, k, TOP_PERCENTILE)
+    top = group_percentile(node_height, np.asarray(node_tree, dtype=np.int64) - 1, k, TOP_PERCENTILE)
     return np.flatnonzero(top < params.at_floors().min_tree_height)  # unset: the mature trees' floor
 
 

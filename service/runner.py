@@ -37,6 +37,7 @@ from pipeline.errors import OrchardError, ParameterError
 from pipeline.jobparams import TilingParams
 from pipeline.params import PipelineParams
 from service import seasons
+from service.background import Background
 from service.db.jobstore import Store
 from service.settings import Settings
 from service.wording import api_words, disk_full
@@ -179,7 +180,7 @@ def _jsonable(value: Any) -> Any:
     return value
 
 
-class Runner(threading.Thread):
+class Runner(Background):
     """Runs queued jobs one at a time on a dask client owned by this thread."""
 
     def __init__(
@@ -191,7 +192,7 @@ class Runner(threading.Thread):
         after_done: Callable[[dict], None] | None = None,
         on_final: Callable[[dict], None] | None = None,
     ) -> None:
-        super().__init__(name="orchard-runner", daemon=True)
+        super().__init__("orchard-runner")
         self.store = store
         self.settings = settings
         self._client_factory = client_factory or self._default_client
@@ -199,18 +200,12 @@ class Runner(threading.Thread):
         self._on_final = on_final  # told every job the runner took, as it left it (webhooks)
         self._client = None
         self._unreachable = False  # the last attempt to start or reach the cluster failed
-        self._stopping = threading.Event()
-        self._wake = threading.Event()
         self._lock = threading.Lock()
         self._current: str | None = None
         self._cancel: threading.Event | None = None
         self.dashboard_link: str | None = None
 
     # -- control, from other threads ----------------------------------------------
-
-    def wake(self) -> None:
-        """A job was queued: look at the queue now."""
-        self._wake.set()
 
     def cancel(self, job_id: str) -> None:
         """Ask the job ``job_id`` to stop if it is the one running."""
@@ -220,13 +215,12 @@ class Runner(threading.Thread):
 
     def stop(self, timeout: float | None = 30.0) -> None:
         """Stop taking jobs; interrupt the running one (it stays ``running`` and is re-queued at the next start)."""
-        self._stopping.set()
-        self._wake.set()
+        super().stop(timeout)
+
+    def _before_join(self) -> None:
         with self._lock:
             if self._cancel is not None:
                 self._cancel.set()
-        if self.is_alive():
-            self.join(timeout)
 
     def cluster_state(self) -> str:
         """'connected', 'not started', 'unreachable' (the last attempt to reach it failed;

@@ -30,6 +30,7 @@ from croniter import croniter
 from croniter.croniter import CroniterBadDateError
 
 from pipeline.errors import InputError, ParameterError
+from service.background import Background
 from service.db.block_files import accept_block
 from service.db.errors import NotFoundError
 from service.db.jobstore import Store
@@ -477,29 +478,18 @@ def _file_state(stat: os.stat_result) -> tuple[int, int, int, int]:
     return stat.st_size, stat.st_mtime_ns, stat.st_ctime_ns, stat.st_ino
 
 
-class ScheduleClock(threading.Thread):
-    """Background thread that runs every schedule at its cron times.
+class ScheduleClock(Background):
+    """Background thread that runs every schedule at its cron times (``wake()``: a
+    schedule was created or changed).
 
     ``on_jobs`` is called after a run that queued jobs (the runner's wake-up).
     """
 
     def __init__(self, store: Store, settings: Settings, *, on_jobs=None) -> None:
-        super().__init__(name="orchard-schedules", daemon=True)
+        super().__init__("orchard-schedules")
         self.store = store
         self.settings = settings
         self.on_jobs = on_jobs
-        self._stopping = threading.Event()
-        self._wake = threading.Event()
-
-    def wake(self) -> None:
-        """Look at the schedules again now (one was created or changed)."""
-        self._wake.set()
-
-    def stop(self, timeout: float | None = 10.0) -> None:
-        self._stopping.set()
-        self._wake.set()
-        if self.is_alive():
-            self.join(timeout)
 
     def tick(self, now: float | None = None) -> float:
         """Run the schedules that are due; return the earliest next run time (POSIX seconds)."""

@@ -17,7 +17,6 @@ from __future__ import annotations
 import hashlib
 import hmac
 import logging
-import threading
 import time
 import urllib.error
 import urllib.request
@@ -26,6 +25,7 @@ from typing import Any
 from urllib.parse import urlsplit
 
 from pipeline.errors import ParameterError
+from service.background import Background
 from service.db.jobstore import Store
 from service.settings import Settings
 
@@ -137,26 +137,15 @@ def post(url: str, body: bytes, headers: dict[str, str], timeout_s: float) -> tu
         return None, f"no answer: {str(reason)[:200]}"
 
 
-class WebhookSender(threading.Thread):
-    """Background thread that delivers queued webhook calls, with retries and backoff."""
+class WebhookSender(Background):
+    """Background thread that delivers queued webhook calls, with retries and backoff
+    (``wake()``: an event was queued, deliver it now)."""
 
     def __init__(self, store: Store, settings: Settings, *, poster: Callable = post) -> None:
-        super().__init__(name="orchard-webhooks", daemon=True)
+        super().__init__("orchard-webhooks")
         self.store = store
         self.settings = settings
         self._post = poster
-        self._stopping = threading.Event()
-        self._wake = threading.Event()
-
-    def wake(self) -> None:
-        """An event was queued: deliver it now."""
-        self._wake.set()
-
-    def stop(self, timeout: float | None = 10.0) -> None:
-        self._stopping.set()
-        self._wake.set()
-        if self.is_alive():
-            self.join(timeout)
 
     def deliver_due(self, now: float | None = None) -> int:
         """One attempt at every delivery that is due; returns how many were tried."""

@@ -15,7 +15,7 @@ from pipeline.process import process_points
 from pipeline.synthetic.orchard import KIND
 from pipeline.synthetic.simparams import SimulationParams
 from pipeline.synthetic.simulate import simulate_orchard
-from pipeline.trunks import _branches, block_floors
+from pipeline.floors import block_floors, branches
 
 YOUNG = dict(form="young", rows=2, trees_per_row=8, spacing=1.0, row_spacing=3.5)
 
@@ -106,7 +106,7 @@ def test_branch_test_by_hand():
     nodes = np.r_[post, tree, staked]
     group = np.r_[np.zeros(len(post)), np.ones(len(tree)), np.full(len(staked), 2)].astype(np.int64)
     centre = np.array([[0.0, 0.0], [5.0, 0.0], [10.04, 0.0]])
-    assert _branches(nodes, nodes[:, 2], group, centre, 0.1).tolist() == [False, True, False]
+    assert branches(nodes, nodes[:, 2], group, centre, 0.1).tolist() == [False, True, False]
 
 
 def test_grass_carries_no_paths_beyond_a_trunks_foot():

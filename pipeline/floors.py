@@ -1,0 +1,90 @@
+"""Size floors that follow the block: young and dormant blocks.
+
+The mature trees' floors (a 2 m height, 150 canopy voxels) drop every newly planted
+tree. A block's own trees set its floors instead: the contact groups that pass every
+test at the lowest floors and *branch* (a post, a stake or a riser is one column; a
+fence wire runs out at one height) give their median height and catchment, and a block
+whose branching groups are as large as mature trees keeps the mature floors.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+from pipeline.params import MATURE_FLOORS
+
+#: a contact group below the mature trees' floors is a tree only if it branches: some of
+#: its catchment above the grass (BRANCH_LOW [m]) lies between BRANCH_OFFSET and
+#: BRANCH_REACH [m] of its centre (a stake or a post beside the stem does not), at least
+#: BRANCH_LENGTH [m] of it in nodes, spread over BRANCH_EXTENT [m] of height (a fence's
+#: wire runs out at one height: 0.00-0.08 m on generated blocks, young trees 0.06-1.3 m)
+BRANCH_LOW = 0.3
+BRANCH_OFFSET = 0.2
+BRANCH_REACH = 0.8
+BRANCH_LENGTH = 0.3
+BRANCH_EXTENT = 0.1
+#: ... and its low material is nearly free of box faces (a bin's corners branch out; the
+#: low material of young trees on generated blocks is 0 % planar, the bin's groups 12-65 %)
+BRANCH_MAX_PLANAR = 0.05
+#: ... and drains at most this many times the canopy floor (4 times the median catchment
+#: of the block's branching groups; young trees on generated blocks drain up to 2.2 times it)
+BRANCH_MAX_SIZE = 16
+#: floors from the block: the height floor is this share of the median height of the
+#: block's branching contact groups, at least MIN_FLOOR_HEIGHT [m] (irrigation risers,
+#: grass tufts) ...
+FLOOR_HEIGHT_SHARE = 0.5
+MIN_FLOOR_HEIGHT = 0.7
+#: ... and the canopy floor this share of their median catchment, at least MIN_FLOOR_VOXELS
+FLOOR_SIZE_SHARE = 0.25
+MIN_FLOOR_VOXELS = 20
+
+
+def group_percentile(values: np.ndarray, group: np.ndarray, n_groups: int, q: float) -> np.ndarray:
+    """q-th percentile (nearest rank) of ``values`` per group id in [0, n_groups); -inf if empty."""
+    keep = group >= 0
+    v, g = values[keep], group[keep]
+    order = np.lexsort((v, g))
+    v, g = v[order], g[order]
+    start = np.searchsorted(g, np.arange(n_groups))
+    end = np.searchsorted(g, np.arange(n_groups), side="right")
+    out = np.full(n_groups, -np.inf)
+    has = end > start
+    idx = start + np.floor((end - start - 1) * q / 100.0).astype(np.int64)
+    out[has] = v[idx[has]]
+    return out
+
+
+def branches(nodes: np.ndarray, node_height: np.ndarray, node_group: np.ndarray, centre: np.ndarray,
+              voxel_size: float) -> np.ndarray:
+    """Groups whose catchment branches: at least BRANCH_LENGTH of nodes above BRANCH_LOW
+    lie BRANCH_OFFSET to BRANCH_REACH [m] from the group's ``centre`` (g, 2), spread over at least
+    BRANCH_EXTENT of height (10th to 90th percentile). A post, a stake or a riser is one
+    column; a fence's wire runs out at one height. Returns (g,) bool."""
+    g = centre.shape[0]
+    sel = np.flatnonzero((node_group >= 0) & (node_height >= BRANCH_LOW))
+    grp = node_group[sel]
+    r = np.hypot(*(nodes[sel, :2] - centre[grp]).T)
+    out = (r > BRANCH_OFFSET) & (r <= BRANCH_REACH)
+    sel, grp = sel[out], grp[out]
+    many = np.bincount(grp, minlength=g) >= max(1, int(round(BRANCH_LENGTH / voxel_size)))
+    hi = group_percentile(node_height[sel], grp, g, 90.0)
+    lo = group_percentile(node_height[sel], grp, g, 10.0)
+    extent = np.zeros(g)
+    extent[many] = hi[many] - lo[many]
+    return extent >= BRANCH_EXTENT
+
+
+def block_floors(top: np.ndarray, support: np.ndarray, ok: np.ndarray) -> tuple[float | None, int | None]:
+    """The size floors a block's trees ask for, from the contact groups ``ok`` that
+    branch and pass every test of their own at the lowest floors: FLOOR_HEIGHT_SHARE of
+    their median ``top`` [m] and FLOOR_SIZE_SHARE of their median ``support`` [voxels],
+    each between its least value and the mature trees' floor (MATURE_FLOORS). (None,
+    None) without such a group, or where their median height and median catchment are
+    both at the mature trees' floors or more (a block of grown trees, replants among them
+    or not): the mature trees' floors hold."""
+    if not ok.any() or (np.median(top[ok]) >= MATURE_FLOORS["min_tree_height"]
+                        and np.median(support[ok]) >= MATURE_FLOORS["min_canopy_voxels"]):
+        return None, None
+    h = float(np.clip(FLOOR_HEIGHT_SHARE * np.median(top[ok]), MIN_FLOOR_HEIGHT, MATURE_FLOORS["min_tree_height"]))
+    s = int(np.clip(round(FLOOR_SIZE_SHARE * np.median(support[ok])), MIN_FLOOR_VOXELS, MATURE_FLOORS["min_canopy_voxels"]))
+    return h, s
