@@ -11,6 +11,8 @@
   /* GET (or another method) a JSON resource of this server with the session cookie;
      a lost session sends the browser to sign in again. */
   O.api = async function (path, options) {
+    // signing out: the pages' refreshes ask nothing more (the ended session would answer 401)
+    if (O.leaving) return new Promise(() => {});
     const opts = Object.assign({ credentials: "same-origin", headers: {} }, options || {});
     if (opts.method && opts.method !== "GET") opts.headers["X-CSRF-Token"] = O.csrf();
     const resp = await fetch(path, opts);
@@ -22,6 +24,10 @@
     if (!resp.ok) throw new Error(body.detail || resp.status + " " + resp.statusText);
     return body;
   };
+
+  document.addEventListener("submit", (e) => {
+    if (e.target && e.target.classList && e.target.classList.contains("signout")) O.leaving = true;
+  });
 
   O.el = function (tag, attrs, children) {
     const e = document.createElement(tag);
