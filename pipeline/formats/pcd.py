@@ -18,7 +18,7 @@ from collections.abc import Iterator
 import numpy as np
 
 from pipeline.blockinfo import one_line
-from pipeline.formats.source import MAX_HEADER_LINES, MAX_WHOLE_BYTES, PointSource, bad, read_line, xyz_columns
+from pipeline.formats.source import MAX_HEADER_LINES, MAX_WHOLE_BYTES, PointSource, ascii_rows, bad, read_line, xyz_columns
 
 
 def _header(path):
@@ -77,7 +77,7 @@ def open_pcd(path) -> PointSource:
         if n * 2 * len(names) > size - body:
             raise bad(path, f"the PCD header claims {n} points, more than its {size - body} bytes of text hold "
                             "(a truncated or corrupt file)")
-        return PointSource("pcd", lambda chunk_points: _ascii(path, body, n, cols, chunk_points))
+        return PointSource("pcd", lambda chunk_points: ascii_rows(path, body, n, cols, chunk_points, fmt="PCD", item="point", items="points"))
     with open(path, "rb") as fh:
         fh.seek(body)
         sizes = fh.read(8)
@@ -101,27 +101,6 @@ def _binary(path, body: int, n: int, dtype, xyz, chunk_points: int) -> Iterator[
         part = rows[a : a + chunk_points]
         yield np.column_stack([part[f] for f in xyz]).astype(np.float64)
     del rows
-
-
-def _ascii(path, body: int, n: int, cols, chunk_points: int) -> Iterator[np.ndarray]:
-    with open(path, "rb") as fh:
-        fh.seek(body)
-        done = 0
-        while done < n:
-            lines = []
-            for _ in range(min(chunk_points, n - done)):
-                line = read_line(fh, path, done + len(lines) + 1)
-                if not line:
-                    raise bad(path, f"the PCD file ends after {done + len(lines)} of its {n} points (truncated)")
-                lines.append(line)
-            try:
-                xyz = np.loadtxt([ln.decode("ascii") for ln in lines], usecols=cols, dtype=np.float64, ndmin=2)
-            except (ValueError, UnicodeDecodeError):
-                raise bad(path, f"a PCD point among rows {done + 1}-{done + len(lines)} is not a row of numbers") from None
-            if len(xyz) != len(lines):  # (loadtxt passes over blank lines)
-                raise bad(path, f"a PCD point among rows {done + 1}-{done + len(lines)} is a blank line (a corrupt file)")
-            done += len(lines)
-            yield xyz
 
 
 def _compressed(path, xyz) -> Iterator[np.ndarray]:

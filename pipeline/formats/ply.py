@@ -16,7 +16,7 @@ from collections.abc import Iterator
 import numpy as np
 
 from pipeline.blockinfo import one_line
-from pipeline.formats.source import MAX_HEADER_LINES, MAX_WHOLE_BYTES, PointSource, bad, read_line, xyz_columns
+from pipeline.formats.source import MAX_HEADER_LINES, MAX_WHOLE_BYTES, PointSource, ascii_rows, bad, read_line, xyz_columns
 
 
 def _header(path):
@@ -85,7 +85,7 @@ def open_ply(path) -> PointSource:
         return PointSource("ply", lambda chunk_points: _whole(path, size, xyz))
     count = vertex.count
     if meta.text:
-        return PointSource("ply", lambda chunk_points: _ascii(path, body, count, cols, chunk_points))
+        return PointSource("ply", lambda chunk_points: ascii_rows(path, body, count, cols, chunk_points, fmt="PLY", item="vertex", items="vertices"))
     dtype = vertex.dtype(meta.byte_order)
     return PointSource("ply", lambda chunk_points: _binary(path, body, count, dtype, props, cols, chunk_points))
 
@@ -99,27 +99,6 @@ def _binary(path, body: int, count: int, dtype: np.dtype, props, cols, chunk_poi
         part = rows[a : a + chunk_points]
         yield np.column_stack([part[x], part[y], part[z]]).astype(np.float64)
     del rows
-
-
-def _ascii(path, body: int, count: int, cols, chunk_points: int) -> Iterator[np.ndarray]:
-    with open(path, "rb") as fh:
-        fh.seek(body)
-        done = 0
-        while done < count:
-            lines = []
-            for _ in range(min(chunk_points, count - done)):
-                line = read_line(fh, path, done + len(lines) + 1)
-                if not line:
-                    raise bad(path, f"the PLY file ends after {done + len(lines)} of its {count} vertices (truncated)")
-                lines.append(line)
-            try:
-                xyz = np.loadtxt([ln.decode("ascii") for ln in lines], usecols=cols, dtype=np.float64, ndmin=2)
-            except (ValueError, UnicodeDecodeError):
-                raise bad(path, f"a PLY vertex among rows {done + 1}-{done + len(lines)} is not a row of numbers") from None
-            if len(xyz) != len(lines):  # (loadtxt passes over blank lines)
-                raise bad(path, f"a PLY vertex among rows {done + 1}-{done + len(lines)} is a blank line (a corrupt file)")
-            done += len(lines)
-            yield xyz
 
 
 def _whole(path, size: int, names: tuple[str, str, str]) -> Iterator[np.ndarray]:

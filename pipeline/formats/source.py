@@ -65,3 +65,27 @@ def xyz_columns(names: list[str], path, where: str) -> tuple[int, int, int]:
     if missing:
         raise bad(path, f"{where} has no {', '.join(missing)} (it has {', '.join(names[:12]) or 'nothing'})")
     return low.index("x"), low.index("y"), low.index("z")
+
+
+def ascii_rows(path, body: int, n: int, cols, chunk_points: int, *, fmt: str, item: str, items: str) -> Iterator[np.ndarray]:
+    """(m, 3) float64 chunks of the ``n`` text rows from byte ``body`` on, columns ``cols``
+    (an ascii PLY's vertices, an ascii PCD's points); InputError naming ``fmt`` and
+    ``item`` for a file that ends early, a row that is not numbers, or a blank row."""
+    with open(path, "rb") as fh:
+        fh.seek(body)
+        done = 0
+        while done < n:
+            lines = []
+            for _ in range(min(chunk_points, n - done)):
+                line = read_line(fh, path, done + len(lines) + 1)
+                if not line:
+                    raise bad(path, f"the {fmt} file ends after {done + len(lines)} of its {n} {items} (truncated)")
+                lines.append(line)
+            try:
+                xyz = np.loadtxt([ln.decode("ascii") for ln in lines], usecols=cols, dtype=np.float64, ndmin=2)
+            except (ValueError, UnicodeDecodeError):
+                raise bad(path, f"a {fmt} {item} among rows {done + 1}-{done + len(lines)} is not a row of numbers") from None
+            if len(xyz) != len(lines):  # (loadtxt passes over blank lines)
+                raise bad(path, f"a {fmt} {item} among rows {done + 1}-{done + len(lines)} is a blank line (a corrupt file)")
+            done += len(lines)
+            yield xyz
