@@ -152,9 +152,8 @@ def test_healthz_is_ok_with_room(edges):
     assert body["status"] == "ok" and body["problems"] == [] and body["disk_free_mb"] > 512
 
 
-@pytest.fixture(scope="module")
-def done_job(edges, block):
-    """A job marked done with a 100-byte trees.parquet (the download routes serve files)."""
+def _finished_job(edges, block, write_outputs, n_trees: int) -> str:
+    """A job of ``block`` claimed and marked done, its folder filled by ``write_outputs(folder)``."""
     settings, c = edges
     job_id = c.post("/v1/jobs", json={"block_id": block["id"]}).json()["id"]
     store = Store(settings.store_path)
@@ -163,11 +162,17 @@ def done_job(edges, block):
             pass
         out = job_dir(settings, job_id)
         out.mkdir(parents=True, exist_ok=True)
-        (out / "trees.parquet").write_bytes(bytes(range(100)))
-        store.finish_job(job_id, "done", outcome={"n_trees": 0})
+        write_outputs(out)
+        store.finish_job(job_id, "done", outcome={"n_trees": n_trees})
     finally:
         store.close()
     return job_id
+
+
+@pytest.fixture(scope="module")
+def done_job(edges, block):
+    """A job marked done with a 100-byte trees.parquet (the download routes serve files)."""
+    return _finished_job(edges, block, lambda out: (out / "trees.parquet").write_bytes(bytes(range(100))), 0)
 
 
 @pytest.mark.parametrize("method", ["GET", "HEAD"])
@@ -243,28 +248,16 @@ def addressed_job(edges, block):
 
     from pipeline.parquet import write_trees_parquet
 
-    settings, c = edges
-    job_id = c.post("/v1/jobs", json={"block_id": block["id"]}).json()["id"]
-    store = Store(settings.store_path)
-    try:
-        while (claimed := store.claim_next_job()) is not None and claimed["id"] != job_id:
-            pass
-        out = job_dir(settings, job_id)
-        out.mkdir(parents=True, exist_ok=True)
-        k = 6
-        trees = {
-            "tree_id": np.arange(1, k + 1), "trunk_x": np.arange(k, dtype=float), "trunk_y": np.zeros(k),
-            "trunk_z": np.zeros(k), "height_m": np.full(k, 3.0), "crown_diameter_m": np.ones(k),
-            "crown_area_m2": np.ones(k), "crown_volume_m3": np.ones(k), "trunk_diameter_m": np.full(k, 0.1),
-            "n_points": np.full(k, 100), "wood_fraction": np.full(k, 0.2),
-            "row": np.array([1, 1, 1, 2, 2, 2], np.int32), "position": np.array([1, 2, 4, 1, 2, 3], np.int32),
-            "young": np.array([False, False, True, False, False, False]),
-        }
-        write_trees_parquet(out / "trees.parquet", trees, crs_wkt=None)
-        store.finish_job(job_id, "done", outcome={"n_trees": k})
-    finally:
-        store.close()
-    return job_id
+    k = 6
+    trees = {
+        "tree_id": np.arange(1, k + 1), "trunk_x": np.arange(k, dtype=float), "trunk_y": np.zeros(k),
+        "trunk_z": np.zeros(k), "height_m": np.full(k, 3.0), "crown_diameter_m": np.ones(k),
+        "crown_area_m2": np.ones(k), "crown_volume_m3": np.ones(k), "trunk_diameter_m": np.full(k, 0.1),
+        "n_points": np.full(k, 100), "wood_fraction": np.full(k, 0.2),
+        "row": np.array([1, 1, 1, 2, 2, 2], np.int32), "position": np.array([1, 2, 4, 1, 2, 3], np.int32),
+        "young": np.array([False, False, True, False, False, False]),
+    }
+    return _finished_job(edges, block, lambda out: write_trees_parquet(out / "trees.parquet", trees, crs_wkt=None), k)
 
 
 @pytest.mark.parametrize(("query", "ids"), [
