@@ -37,6 +37,16 @@ def _local(xyz: np.ndarray) -> np.ndarray:
     return xyz - np.floor(xyz.min(axis=0))
 
 
+def _scored_row(xyz: np.ndarray, tid: np.ndarray, bases: np.ndarray, params) -> tuple[dict, float]:
+    """A row of real trees with exact ids, processed and scored: (scores, seconds)."""
+    r, dt = _timed(_local(xyz), params)
+    org = np.floor(xyz.min(axis=0))
+    return score_labels(
+        true_tree_id=tid, true_is_wood=np.zeros(len(tid), bool), true_trunks=bases[:, :2] - org[:2],
+        pred_tree_id=r.tree_id, pred_is_wood=r.is_wood, found_trunks=r.trunks[:, :2],
+    ), dt
+
+
 def adtree_row(seed: int = 0, overlap: float = 0.8) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Four AdTree trees in a row, crowns overlapping, on a noisy ground plane.
 
@@ -155,12 +165,7 @@ def run() -> str:
     ]
 
     xyz, tid, bases = adtree_row()
-    r, dt = _timed(_local(xyz), params)
-    org = np.floor(xyz.min(axis=0))
-    s = score_labels(
-        true_tree_id=tid, true_is_wood=np.zeros(len(tid), bool), true_trunks=bases[:, :2] - org[:2],
-        pred_tree_id=r.tree_id, pred_is_wood=r.is_wood, found_trunks=r.trunks[:, :2],
-    )
+    s, dt = _scored_row(xyz, tid, bases, params)
     lines.append(
         f"| AdTree tree1+7+13+33 in a row, crowns overlapping (80 % of summed radii), generated ground | {len(xyz):,} | {dt:.2f} "
         f"| trunk F1 (1 m), v-measure on tree points | trunk F1 {s['trunk_f1']:.2f} ({s['trunk_tp']} of {len(bases)} found, "
@@ -168,12 +173,7 @@ def run() -> str:
     )
 
     xyz, tid, bases = young_row()
-    r, dt = _timed(_local(xyz), params)
-    org = np.floor(xyz.min(axis=0))
-    s = score_labels(
-        true_tree_id=tid, true_is_wood=np.zeros(len(tid), bool), true_trunks=bases[:, :2] - org[:2],
-        pred_tree_id=r.tree_id, pred_is_wood=r.is_wood, found_trunks=r.trunks[:, :2],
-    )
+    s, dt = _scored_row(xyz, tid, bases, params)
     lines.append(
         f"| young block: AdTree tree1+7+13+33 and aRchi Tree_1 scaled to 1.4-2.2 m, 2 rows 0.9 m x 3.2 m, a stake beside "
         f"each, generated ground | {len(xyz):,} | {dt:.2f} | trunk F1 (1 m), v-measure on tree points, defaults "
