@@ -1,10 +1,10 @@
 """Accuracy over noise and tree spacing: ours (the product path) and the baselines.
 
 Ours is scored the way a user would get it: ``run_job`` writes ``trees.parquet`` and
-``points.parquet`` and ``pipeline.evaluation.result.evaluate_result`` scores them against the
+``points.parquet`` and ``simulator.scoring.result.evaluate_result`` scores them against the
 truth. The baselines (``bench.baselines``: closest-trunk segmentation, the paper as
 published) return labels in memory and are scored by the same
-``pipeline.evaluation.scores.score_labels`` on the same points. Blocks are scored in parallel
+``simulator.scoring.scores.score_labels`` on the same points. Blocks are scored in parallel
 processes (one per usable core).
 """
 
@@ -27,11 +27,11 @@ def score_block(work: str, noise: float, spacing: float, seed: int, baselines: b
     import numpy as np
 
     from pipeline.errors import NoTreesError
-    from pipeline.evaluation.result import evaluate_result
-    from pipeline.evaluation.scores import score_labels
+    from simulator.scoring.result import evaluate_result
+    from simulator.scoring.scores import score_labels
     from pipeline.params import PipelineParams
     from pipeline.reading import read_points
-    from pipeline.synthetic.truth import read_truth
+    from simulator.truth import read_truth
     from workers.job import run_job
     from workers.jobspec import JobSpec
 

@@ -12,9 +12,9 @@ import json
 from dataclasses import dataclass
 from pathlib import Path
 
-from pipeline.synthetic.simparams import SimulationParams
-from pipeline.synthetic.simulate import iter_simulation
-from pipeline.synthetic.truth import write_simulation
+from simulator.simparams import SimulationParams
+from simulator.simulate import iter_simulation
+from simulator.truth import write_simulation
 
 
 @dataclass(frozen=True)

@@ -22,8 +22,8 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--rounds", type=int, default=3, help="runs of each kind (default 3)")
     args = p.parse_args(argv)
     import workers.cluster as cluster
-    from pipeline.synthetic.simparams import SimulationParams
-    from pipeline.synthetic.truth import write_simulation
+    from simulator.simparams import SimulationParams
+    from simulator.truth import write_simulation
     from service.cli import main as orchard
 
     with tempfile.TemporaryDirectory(prefix="orchard-tls-") as tmp:

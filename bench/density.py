@@ -49,7 +49,7 @@ from pathlib import Path
 from bench.blocks import count_points, make_block
 from bench.isolation import SINGLE_THREAD_ENV, measure
 from bench.memory import TreeSampler
-from pipeline.synthetic.simparams import SimulationParams
+from simulator.simparams import SimulationParams
 
 PULSE_RATE = 300_000.0
 """Pulses per second of the assumed scanner [1/s]."""

@@ -19,8 +19,8 @@ from scipy.optimize import minimize
 from pipeline import woodleaf
 from pipeline.params import PipelineParams
 from pipeline.process import analyse_nodes
-from pipeline.synthetic.simparams import SimulationParams
-from pipeline.synthetic.simulate import simulate_orchard
+from simulator.simparams import SimulationParams
+from simulator.simulate import simulate_orchard
 
 TRAINING = [
     dict(rows=2, trees_per_row=4),

@@ -35,8 +35,8 @@ def main(argv: list[str] | None = None) -> None:
     from pipeline.ground import classify_ground, ground_model
     from pipeline.reading import read_points
     from pipeline.params import PipelineParams
-    from pipeline.synthetic.simparams import SimulationParams
-    from pipeline.synthetic.truth import write_simulation
+    from simulator.simparams import SimulationParams
+    from simulator.truth import write_simulation
     from pipeline.voxels import voxelize
 
     ap = argparse.ArgumentParser(prog="python -m bench.graph_search", description=__doc__.splitlines()[0])

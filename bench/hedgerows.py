@@ -21,11 +21,11 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from pipeline.evaluation.scores import score_labels
+from simulator.scoring.scores import score_labels
 from pipeline.params import PipelineParams
 from pipeline.process import process_points
-from pipeline.synthetic.simparams import SimulationParams
-from pipeline.synthetic.simulate import simulate_orchard
+from simulator.simparams import SimulationParams
+from simulator.simulate import simulate_orchard
 
 SETTINGS: dict[str, dict] = {
     "spindle 1.0 m × 3.5 m": dict(form="spindle", rows=2, trees_per_row=14, spacing=1.0, row_spacing=3.5),
@@ -35,7 +35,7 @@ SETTINGS: dict[str, dict] = {
     "high density vase 2.5 m × 4.5 m, low foliage": dict(rows=2, trees_per_row=5, spacing=2.5, row_spacing=4.5, low_foliage=True),
     "paper setting vase 5 m × 6 m": dict(rows=2, trees_per_row=4, spacing=5.0, row_spacing=6.0, noise=0.02),
 }
-"""Simulator parameters of each setting (``pipeline.synthetic.simparams.SimulationParams``)."""
+"""Simulator parameters of each setting (``simulator.simparams.SimulationParams``)."""
 
 FIXED = {"trunks": {"cluster_radius": 0.8, "satellite_radius": 2.0}, "segment": {"unreached_radius": 0.6}}
 """The radii fixed for free-standing trees (the defaults before they followed the spacing)."""

@@ -53,8 +53,8 @@ def _warm_up() -> bool:
 
     from pipeline.params import PipelineParams
     from pipeline.process import process_points
-    from pipeline.synthetic.simparams import SimulationParams
-    from pipeline.synthetic.simulate import simulate_orchard
+    from simulator.simparams import SimulationParams
+    from simulator.simulate import simulate_orchard
 
     o = simulate_orchard(SimulationParams(rows=1, trees_per_row=1, density=0.3, seed=1))
     process_points(o.xyz - np.floor(o.xyz.min(axis=0)), params=PipelineParams())

@@ -19,7 +19,7 @@ import numpy as np
 from bench.blocks import stand_density, stand_params
 from pipeline.params import PipelineParams
 from pipeline.process import process_points
-from pipeline.synthetic.simulate import simulate_orchard
+from simulator.simulate import simulate_orchard
 
 SHARES = (0.0002, 0.0005, 0.001, 0.002, 0.005)
 """Shares of the points moved under the ground."""

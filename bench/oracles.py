@@ -68,14 +68,14 @@ from scipy.stats import mannwhitneyu, norm
 
 from bench.baselines import nearest_trunk_labels
 from pipeline.enrichment import shape_features
-from pipeline.evaluation.scores import v_measure
+from simulator.scoring.scores import v_measure
 from pipeline.graph import build_graph, shortest_paths
 from pipeline.params import PipelineParams
 from pipeline.process import NodeAnalysis, analyse_nodes, block_result
 from pipeline.segment import segment_nodes
-from pipeline.synthetic.orchard import LEAF, TWIG, Orchard
-from pipeline.synthetic.simparams import SimulationParams
-from pipeline.synthetic.simulate import simulate_orchard
+from simulator.orchard import LEAF, TWIG, Orchard
+from simulator.simparams import SimulationParams
+from simulator.simulate import simulate_orchard
 
 SKELETON_RADIUS = 0.12
 """Edge length of the point-scale skeleton graph [m] (0.08 leaves a fifth of it unreached)."""

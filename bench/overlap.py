@@ -30,11 +30,11 @@ from pydantic import ValidationError
 
 from bench.baselines import nearest_trunk_labels
 from bench.oracles import SETTINGS, overlap_shares
-from pipeline.evaluation.scores import score_labels
+from simulator.scoring.scores import score_labels
 from pipeline.params import PipelineParams
 from pipeline.process import process_points
-from pipeline.synthetic.simparams import SimulationParams
-from pipeline.synthetic.simulate import simulate_orchard
+from simulator.simparams import SimulationParams
+from simulator.simulate import simulate_orchard
 
 DEFAULT_RATIOS = (0.4, 0.45, 0.5, 0.55, 0.6)
 """Crown radii of the sweep, as multiples of the in-row spacing (0.55 is the simulator's default)."""

@@ -3,7 +3,7 @@
 dendromatics pins older laspy and scipy than this project uses, so it is installed
 in its own virtualenv (``--peers-venv``, by default under ``~/.cache/orchard-bench``)
 and run there as a subprocess on the block's points; its labels are scored here with
-the same ``pipeline.evaluation.scores.score_labels`` as our method. Every step that fails is
+the same ``simulator.scoring.scores.score_labels`` as our method. Every step that fails is
 recorded with the reason, and the report says exactly why the peer did not run.
 """
 
@@ -83,9 +83,9 @@ def run_on_block(status: dict, block, work: Path, *, config_name: str, timeout: 
     """Run the peer on ``block`` with a named configuration; returns metrics or an error."""
     import numpy as np
 
-    from pipeline.evaluation.scores import score_labels
+    from simulator.scoring.scores import score_labels
     from pipeline.reading import read_points
-    from pipeline.synthetic.truth import read_truth
+    from simulator.truth import read_truth
 
     cfg = FIN_DEFAULTS if config_name == "3DFin defaults" else FIN_ORCHARD
     folder = work / "peers" / Path(block.las).stem

@@ -16,7 +16,7 @@ row with 3.5 m between rows and hedge at 1.35 m x 4 m; ``mobile``, the hedgerow 
 :mod:`bench.density` at a mobile scan's density) and each evaluation seed 0..N-1:
 
 - **ours**: the block's LAZ through :func:`workers.job.run_job` (LAZ in, Parquet out),
-  scored by :func:`pipeline.evaluation.result.evaluate_result`;
+  scored by :func:`simulator.scoring.result.evaluate_result`;
 - **rayextract trees**, defaults: the same points, in the same order, written as a ray
   cloud (``cloud.ply``: float x, y, z relative to the block's local origin, a time per
   point, and a 1 m vertical ray per point in the normal field, as
@@ -31,7 +31,7 @@ Then the same for real trees (``--adtree``): the row of four AdTree scans of
 given its flat ground plane as the mesh for rayextract (read from ``../shared/data/real/``;
 left out with a note when that folder is missing).
 
-Both are scored by :func:`pipeline.evaluation.scores.score_labels` on the same truth: trunk F1
+Both are scored by :func:`simulator.scoring.scores.score_labels` on the same truth: trunk F1
 with one-to-one matching within half the in-row spacing, at most 1 m (as
 :mod:`bench.hedgerows`), v-measure on true tree points. ``rayextract`` has no
 per-point wood flag, so wood F1 is left out. Seconds are wall-clock for the whole run of
@@ -67,13 +67,13 @@ from bench.hedgerows import match_distance
 from bench.isolation import SINGLE_THREAD_ENV, measure, one_core, pinned_to
 from bench.oracles import SETTINGS
 from bench.real_data import REAL, adtree_row
-from pipeline.evaluation.result import evaluate_result
-from pipeline.evaluation.scores import score_labels
+from simulator.scoring.result import evaluate_result
+from simulator.scoring.scores import score_labels
 from pipeline.reading import read_points
-from pipeline.synthetic.orchard import GROUND, LEAF, Orchard
-from pipeline.synthetic.simparams import SimulationParams
-from pipeline.synthetic.terrain import ground_height
-from pipeline.synthetic.truth import read_truth, write_simulation
+from simulator.orchard import GROUND, LEAF, Orchard
+from simulator.simparams import SimulationParams
+from simulator.terrain import ground_height
+from simulator.truth import read_truth, write_simulation
 
 MESH_CELL = 0.25
 """Edge of the ground mesh's grid cells [m]."""
@@ -230,7 +230,7 @@ def _run_ours(las: str, result_dir: Path, repeats: int = 1) -> tuple[float, int]
 def compare_scene(binary: str, work: Path, las: str, truth_path: str,
                   ground: Callable[[np.ndarray, np.ndarray], np.ndarray], repeats: int = 1,
                   match: float = 1.0) -> dict:
-    """Ours and rayextract on one block with its truth file (``pipeline.synthetic.truth``'s
+    """Ours and rayextract on one block with its truth file (``simulator.truth``'s
     format): {method: scores, seconds and peak RSS [bytes]}. ``ground(x, y) -> z`` is the
     true ground in the block's absolute coordinates [m]; trunks match within ``match`` [m]."""
     truth, true_trunks = read_truth(truth_path)

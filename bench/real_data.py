@@ -22,7 +22,7 @@ from pathlib import Path
 import numpy as np
 from scipy.io import loadmat
 
-from pipeline.evaluation.scores import score_labels, wood_scores
+from simulator.scoring.scores import score_labels, wood_scores
 from pipeline.params import PipelineParams
 from pipeline.process import process_points
 from pipeline.reading import read_points

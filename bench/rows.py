@@ -6,7 +6,7 @@ For each planting system it generates blocks (evaluation seeds ``first-seed`` ..
 ``first-seed + seeds - 1``; tune on other seeds) with 10 % of the planting slots empty
 and 5 % replanted, writes each as LAZ with its truth, runs the whole job as
 ``orchard process`` does (``workers.job.run_job``, untiled) and scores it with
-``orchard evaluate`` (``pipeline.evaluation.result.evaluate_result``). Prints a Markdown table:
+``orchard evaluate`` (``simulator.scoring.result.evaluate_result``). Prints a Markdown table:
 pooled trunk precision, recall and F1, mean v-measure, the share of found trees at their
 true address (up to the numbering rule, docs/rows.md), empty-slot precision and recall,
 replants found and flagged young, and the rows found (those from the canopy alone, with
@@ -22,9 +22,9 @@ from pathlib import Path
 import numpy as np
 import pyarrow.parquet as pq
 
-from pipeline.evaluation.result import evaluate_result
-from pipeline.synthetic.simparams import SimulationParams
-from pipeline.synthetic.truth import write_simulation
+from simulator.scoring.result import evaluate_result
+from simulator.simparams import SimulationParams
+from simulator.truth import write_simulation
 from workers.job import run_job
 from workers.jobspec import JobSpec
 

@@ -4,7 +4,7 @@
 
 For each planting system and seed (evaluation seeds ``first-seed`` .. ``first-seed +
 seeds - 1``; the tests and the tuning used seeds 11 and 21, series seeds 1 and 2) it
-generates a series of captures of one block (:func:`pipeline.synthetic.series.capture_series`:
+generates a series of captures of one block (:func:`simulator.series.capture_series`:
 trees grown 5-10 % between captures, 5 % of the grown trees cut, half the slots cut
 before replanted, each capture's frame drifted by 0.5-2 m and 0.5-2 degrees against the
 previous one, a new scan each time), processes each as ``orchard process --previous``
@@ -42,10 +42,10 @@ import pyarrow.parquet as pq
 from pipeline.coverage import occupied_cells, stem_cells
 from pipeline.reading import read_points
 from pipeline.registration import RigidTransform
-from pipeline.synthetic.plan import make_plan
-from pipeline.synthetic.series import capture_series
-from pipeline.synthetic.simparams import SimulationParams, local_origin
-from pipeline.synthetic.truth import write_simulation
+from simulator.plan import make_plan
+from simulator.series import capture_series
+from simulator.simparams import SimulationParams, local_origin
+from simulator.truth import write_simulation
 from workers.job import run_job
 from workers.jobspec import JobSpec
 from workers.tasks import COVERAGE_STRIDE

@@ -19,11 +19,11 @@ from dataclasses import dataclass
 import numpy as np
 
 from bench.oracles import SETTINGS
-from pipeline.evaluation.scores import score_labels
+from simulator.scoring.scores import score_labels
 from pipeline.params import PipelineParams
 from pipeline.process import process_points
-from pipeline.synthetic.simparams import SimulationParams
-from pipeline.synthetic.simulate import simulate_orchard
+from simulator.simparams import SimulationParams
+from simulator.simulate import simulate_orchard
 
 HIGH_DENSITY = SETTINGS["high density (2.5 m × 4.5 m, low foliage)"]
 

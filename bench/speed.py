@@ -14,7 +14,7 @@ PAPER_STAND_SECONDS = 49.0
 
 def run_stand(work: Path, *, min_points: int, repeats: int, log=print) -> dict:
     """LAZ in → Parquet out on a generated 3-tree stand of >= ``min_points`` points."""
-    from pipeline.evaluation.result import evaluate_result
+    from simulator.scoring.result import evaluate_result
 
     density = stand_density(min_points)
     block = make_block(work, "stand", stand_params(density))

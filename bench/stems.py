@@ -23,8 +23,8 @@ import numpy as np
 import pipeline.process as process
 from pipeline.metrics import trunk_circles
 from pipeline.params import PipelineParams
-from pipeline.synthetic.simparams import SimulationParams
-from pipeline.synthetic.simulate import simulate_orchard
+from simulator.simparams import SimulationParams
+from simulator.simulate import simulate_orchard
 
 SETTINGS: dict[str, dict] = {
     "spindle 1.0 m × 3.5 m": dict(form="spindle", rows=2, trees_per_row=14, spacing=1.0, row_spacing=3.5),

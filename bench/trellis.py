@@ -22,12 +22,12 @@ import numpy as np
 
 from bench import shoots
 from bench.oracles import SETTINGS
-from pipeline.evaluation.scores import score_labels
+from simulator.scoring.scores import score_labels
 from pipeline.params import PipelineParams
 from pipeline.process import process_points
-from pipeline.synthetic.orchard import POST
-from pipeline.synthetic.simparams import SimulationParams
-from pipeline.synthetic.simulate import simulate_orchard
+from simulator.orchard import POST
+from simulator.simparams import SimulationParams
+from simulator.simulate import simulate_orchard
 
 #: the simulator's trellis setting of the blocks with a trellis
 TRELLIS = 2

@@ -21,9 +21,9 @@ SETTINGS = ((1.0, 3.5), (1.5, 3.5), (2.0, 4.0))
 def score(work: Path, spacing: float, row_spacing: float, seed: int) -> dict:
     from bench.blocks import make_block
     from pipeline.errors import NoTreesError
-    from pipeline.evaluation.result import evaluate_result
+    from simulator.scoring.result import evaluate_result
     from pipeline.params import PipelineParams
-    from pipeline.synthetic.simparams import SimulationParams
+    from simulator.simparams import SimulationParams
     from workers.job import run_job
     from workers.jobspec import JobSpec
 
@@ -53,7 +53,7 @@ def main(argv: list[str] | None = None) -> int:
         vm = ", ".join(f"{r['v_measure']:.3f}" for r in rs)
         print(f"| young, dormant, {spacing:g} m × {row_spacing:g} m, 20 trees | 0–{args.seeds - 1} | {f1} | {vm} |")
     from bench.real_data import REAL, _local, young_row
-    from pipeline.evaluation.scores import score_labels
+    from simulator.scoring.scores import score_labels
     from pipeline.params import PipelineParams
     from pipeline.process import process_points
 

@@ -115,9 +115,9 @@ def run(args: argparse.Namespace) -> int:
     import uvicorn
 
     from pipeline.errors import OrchardError
-    from pipeline.synthetic.simparams import SimulationParams
-    from pipeline.synthetic.simulate import simulate_orchard
-    from pipeline.synthetic.truth import write_simulation
+    from simulator.simparams import SimulationParams
+    from simulator.simulate import simulate_orchard
+    from simulator.truth import write_simulation
     from service.app import create_app
     from service.auth import create_token
     from service.settings import build_settings

@@ -20,11 +20,11 @@ HELP = (
 )
 
 if typing.TYPE_CHECKING:
-    from pipeline.synthetic.simparams import SimulationParams
+    from simulator.simparams import SimulationParams
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
-    from pipeline.synthetic.simparams import SimulationParams  # imported here: `orchard --help` needs no numpy
+    from simulator.simparams import SimulationParams  # imported here: `orchard --help` needs no numpy
 
     parser.add_argument("--out", required=True, metavar="BLOCK.laz", help="output point cloud (.laz compressed, .las plain)")
     parser.add_argument("--truth", required=True, metavar="TRUTH.parquet", help="output ground truth (one row per point; trunks in the metadata)")
@@ -46,7 +46,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 
 def params_from_args(args: argparse.Namespace) -> SimulationParams:
     """Validated parameters from the options given (unset options keep their defaults)."""
-    from pipeline.synthetic.simparams import SimulationParams
+    from simulator.simparams import SimulationParams
 
     given = {k[3:]: v for k, v in vars(args).items() if k.startswith("s__") and v is not None}
     return SimulationParams.model_validate(given)
@@ -80,7 +80,7 @@ def run(args: argparse.Namespace) -> int:
         raise InputError(f"--out {args.out}: the file name must end in .las or .laz")
     if os.path.abspath(args.out) == os.path.abspath(args.truth):
         raise InputError("--out and --truth must be different files")
-    from pipeline.synthetic.truth import write_simulation
+    from simulator.truth import write_simulation
 
     summary = write_simulation(params, args.out, args.truth)
     print(

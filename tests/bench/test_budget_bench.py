@@ -9,8 +9,8 @@ import pytest
 from bench import budget
 from pipeline.budget import FIXED_BYTES, block_bytes
 from pipeline.reading import sample_density
-from pipeline.synthetic.simparams import SimulationParams
-from pipeline.synthetic.truth import write_simulation
+from simulator.simparams import SimulationParams
+from simulator.truth import write_simulation
 
 
 @pytest.fixture(scope="module")

@@ -19,7 +19,7 @@ from bench.density import (
     read_whole,
     run_cli,
 )
-from pipeline.synthetic.simparams import SimulationParams
+from simulator.simparams import SimulationParams
 
 
 def test_points_per_m2_and_per_tree_by_hand():
@@ -69,7 +69,7 @@ def test_block_row_per_hectare_tree_and_point():
 
 @pytest.mark.slow  # a fresh interpreter importing laspy, and a simulated block
 def test_whole_file_read_reports_time_and_memory(tmp_path):
-    from pipeline.synthetic.truth import write_simulation
+    from simulator.truth import write_simulation
 
     las = tmp_path / "b.laz"
     write_simulation(SimulationParams(rows=1, trees_per_row=1, density=0.05, seed=1), str(las), str(tmp_path / "t.parquet"))

@@ -97,7 +97,7 @@ def test_error_breakdown_by_hand():
     e = error_breakdown(true, pred, ratio)
     assert e["wrong"] == pytest.approx(1 / 6) and e["unlabelled"] == pytest.approx(1 / 6)
     # with point 2 put right the only error left is the unlabelled point, and vice versa
-    from pipeline.evaluation.scores import v_measure
+    from simulator.scoring.scores import v_measure
 
     assert e["v-measure, wrong right"] == pytest.approx(v_measure(true, np.array([5, 5, 5, 7, 7, 0])))
     assert e["v-measure, unlabelled right"] == pytest.approx(v_measure(true, np.array([5, 5, 7, 7, 7, 7])))

@@ -25,8 +25,8 @@ from bench.rayextract import (
 )
 from bench.real_data import REAL
 from pipeline.blockinfo import read_info
-from pipeline.synthetic.simparams import SimulationParams
-from pipeline.synthetic.terrain import ground_height
+from simulator.simparams import SimulationParams
+from simulator.terrain import ground_height
 
 XYZ = np.array([[0.0, 0.0, 0.1], [1.0, 2.0, 3.0], [-4.5, 2.25, 1.5], [7.0, -1.0, 0.0]])
 

@@ -5,8 +5,8 @@ from __future__ import annotations
 import json
 
 from bench import tiled_phases
-from pipeline.synthetic.simparams import SimulationParams
-from pipeline.synthetic.truth import write_simulation
+from simulator.simparams import SimulationParams
+from simulator.truth import write_simulation
 
 
 def test_a_tiled_run_reports_its_phases_and_tiles(tmp_path, capsys):

@@ -136,9 +136,9 @@ def test_job_end_to_end_through_separate_processes(topology, tmp_path):
     import distributed
     import httpx
 
-    from pipeline.evaluation.scores import trunk_scores
-    from pipeline.synthetic.simparams import SimulationParams
-    from pipeline.synthetic.truth import read_truth, write_simulation
+    from simulator.scoring.scores import trunk_scores
+    from simulator.simparams import SimulationParams
+    from simulator.truth import read_truth, write_simulation
 
     proc, env = topology
     url, scheduler, data_dir = env["ORCHARD_URL"], env["ORCHARD_SCHEDULER"], env["ORCHARD_DATA_DIR"]

@@ -11,12 +11,12 @@ import numpy as np
 import pytest
 
 from bench.baselines import closest_trunk
-from pipeline.evaluation.scores import score_labels
+from simulator.scoring.scores import score_labels
 from pipeline.params import PipelineParams
 from pipeline.process import process_points
-from pipeline.synthetic.orchard import KIND
-from pipeline.synthetic.simparams import SimulationParams
-from pipeline.synthetic.simulate import simulate_orchard
+from simulator.orchard import KIND
+from simulator.simparams import SimulationParams
+from simulator.simulate import simulate_orchard
 
 PAPER_SETTING = dict(rows=2, trees_per_row=4, noise=0.02, spacing=5.0, row_spacing=6.0)
 HIGH_DENSITY = dict(rows=2, trees_per_row=5, spacing=2.5, row_spacing=4.5, low_foliage=True)

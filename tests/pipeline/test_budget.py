@@ -153,8 +153,8 @@ def test_a_turned_block_is_tiled_by_its_local_density_not_its_bounding_box():
 
 @pytest.fixture(scope="module")
 def blocks(tmp_path_factory):
-    from pipeline.synthetic.simparams import SimulationParams
-    from pipeline.synthetic.truth import write_simulation
+    from simulator.simparams import SimulationParams
+    from simulator.truth import write_simulation
 
     folder = tmp_path_factory.mktemp("budget")
     out = {}

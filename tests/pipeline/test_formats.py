@@ -18,8 +18,8 @@ from pipeline.errors import InputError, ParameterError
 from pipeline.formats import sniff
 from pipeline.formats.convert import parse_crs_option, to_laz
 from pipeline.laswriting import LasBlockWriter
-from pipeline.synthetic.simparams import SimulationParams
-from pipeline.synthetic.truth import write_simulation
+from simulator.simparams import SimulationParams
+from simulator.truth import write_simulation
 
 
 @pytest.fixture(scope="module")

@@ -7,7 +7,7 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from pipeline.evaluation.scores import score_labels
+from simulator.scoring.scores import score_labels
 from pipeline.params import PipelineParams
 from pipeline.posts import (
     POST_HEIGHTS,
@@ -21,9 +21,9 @@ from pipeline.posts import (
     on_posts,
 )
 from pipeline.process import process_points
-from pipeline.synthetic.orchard import POST
-from pipeline.synthetic.simparams import SimulationParams
-from pipeline.synthetic.simulate import simulate_orchard
+from simulator.orchard import POST
+from simulator.simparams import SimulationParams
+from simulator.simulate import simulate_orchard
 
 RNG = np.random.default_rng(3)
 MAX_HEIGHT = PipelineParams().trunks.max_post_height

@@ -5,8 +5,8 @@ import pytest
 
 from pipeline.params import PipelineParams
 from pipeline.process import process_points
-from pipeline.synthetic.simparams import SimulationParams
-from pipeline.synthetic.simulate import simulate_orchard
+from simulator.simparams import SimulationParams
+from simulator.simulate import simulate_orchard
 
 
 @pytest.fixture(scope="module")

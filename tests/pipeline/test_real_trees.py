@@ -5,7 +5,7 @@ import numpy as np
 import pytest
 
 from bench.real_data import REAL, adtree_row
-from pipeline.evaluation.scores import score_labels
+from simulator.scoring.scores import score_labels
 from pipeline.params import PipelineParams
 from pipeline.process import process_points
 from pipeline.reading import read_points

@@ -7,7 +7,7 @@ import pytest
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
-from pipeline.evaluation.addresses import address_scores, gap_scores
+from simulator.scoring.addresses import address_scores, gap_scores
 from pipeline.rows import RowParams, find_rows
 
 

@@ -394,11 +394,11 @@ def test_detect_trunks_reports_the_spacing_it_followed():
 
 
 def _score(sim: dict, params: dict, seed: int = 0):
-    from pipeline.evaluation.scores import score_labels
+    from simulator.scoring.scores import score_labels
     from pipeline.params import PipelineParams
     from pipeline.process import process_points
-    from pipeline.synthetic.simparams import SimulationParams
-    from pipeline.synthetic.simulate import simulate_orchard
+    from simulator.simparams import SimulationParams
+    from simulator.simulate import simulate_orchard
 
     o = simulate_orchard(SimulationParams(seed=seed, **sim))
     origin = np.floor(o.xyz.min(axis=0))

@@ -9,12 +9,12 @@ import numpy as np
 import pytest
 
 from bench.real_data import REAL, young_row
-from pipeline.evaluation.scores import score_labels
+from simulator.scoring.scores import score_labels
 from pipeline.params import MATURE_FLOORS, PipelineParams, TrunkParams
 from pipeline.process import process_points
-from pipeline.synthetic.orchard import KIND
-from pipeline.synthetic.simparams import SimulationParams
-from pipeline.synthetic.simulate import simulate_orchard
+from simulator.orchard import KIND
+from simulator.simparams import SimulationParams
+from simulator.simulate import simulate_orchard
 from pipeline.floors import block_floors, branches
 
 YOUNG = dict(form="young", rows=2, trees_per_row=8, spacing=1.0, row_spacing=3.5)
@@ -49,7 +49,7 @@ def test_a_block_of_posts_without_trees_stops_with_a_clear_message(tmp_path):
     from dataclasses import replace
 
     from pipeline.errors import NoTreesError
-    from pipeline.synthetic.truth import write_simulation
+    from simulator.truth import write_simulation
     from workers.job import run_job
     from workers.jobspec import JobSpec
 

@@ -164,9 +164,9 @@ def write_las(path: Path, n: int = 2000, *, seed: int = 0, compressed: bool | No
 
 def simulated_block(path: Path, *, rows: int = 2, trees_per_row: int = 4, seed: int = 7, **kwargs) -> Path:
     """A generated orchard block and its truth beside it."""
-    from pipeline.synthetic.simparams import SimulationParams
-    from pipeline.synthetic.simulate import simulate_orchard
-    from pipeline.synthetic.truth import write_simulation
+    from simulator.simparams import SimulationParams
+    from simulator.simulate import simulate_orchard
+    from simulator.truth import write_simulation
 
     params = SimulationParams(rows=rows, trees_per_row=trees_per_row, seed=seed, **kwargs)
     orchard = simulate_orchard(params)

@@ -14,8 +14,8 @@ import numpy as np
 import pytest
 
 from pipeline.laswriting import LasBlockWriter
-from pipeline.synthetic.simparams import SimulationParams
-from pipeline.synthetic.truth import write_simulation
+from simulator.simparams import SimulationParams
+from simulator.truth import write_simulation
 
 
 def _simulate(path: Path, **kw) -> Path:

@@ -117,8 +117,8 @@ PARAMS = {"segment": {"max_crown_radius": 3.0}}
 @pytest.fixture(scope="module")
 def block(tmp_path_factory):
     from pipeline.blockinfo import read_info
-    from pipeline.synthetic.simparams import SimulationParams
-    from pipeline.synthetic.truth import write_simulation
+    from simulator.simparams import SimulationParams
+    from simulator.truth import write_simulation
 
     folder = tmp_path_factory.mktemp("autotile")
     path = folder / "b.laz"

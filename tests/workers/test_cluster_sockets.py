@@ -26,8 +26,8 @@ import pytest
 from distributed import Client, LocalCluster
 
 from pipeline.jobparams import TilingParams
-from pipeline.synthetic.simparams import SimulationParams
-from pipeline.synthetic.truth import write_simulation
+from simulator.simparams import SimulationParams
+from simulator.truth import write_simulation
 from service.cli import main as orchard
 from tests.service.service_fixtures import ServerProcess, make_token, wait_for_job
 from workers import cluster as cluster_module

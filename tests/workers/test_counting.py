@@ -18,8 +18,8 @@ from workers.jobspec import JobCancelled
 @pytest.fixture(scope="module")
 def block(tmp_path_factory):
     from pipeline.blockinfo import read_info
-    from pipeline.synthetic.simparams import SimulationParams
-    from pipeline.synthetic.truth import write_simulation
+    from simulator.simparams import SimulationParams
+    from simulator.truth import write_simulation
 
     folder = tmp_path_factory.mktemp("counting")
     path = folder / "b.laz"

@@ -14,7 +14,7 @@ import pyproj
 import pytest
 
 from pipeline.errors import InputError, NoTreesError, ParameterError
-from pipeline.evaluation.scores import v_measure
+from simulator.scoring.scores import v_measure
 from pipeline.ground import raw_ground_model
 from pipeline.jobparams import TilingParams
 from pipeline.params import PipelineParams
@@ -398,8 +398,8 @@ def test_small_tiles_through_a_trunk_give_the_untiled_result(tmp_path):
     came out 6 cm apart in two tiles, each placing it in the other's core: the tree was
     owned by neither and vanished, and elsewhere two trees swapped ids. With the block's
     ground statistics shared by every tile, the result is the untiled one."""
-    from pipeline.synthetic.simparams import SimulationParams
-    from pipeline.synthetic.truth import write_simulation
+    from simulator.simparams import SimulationParams
+    from simulator.truth import write_simulation
 
     block = tmp_path / "b3.laz"
     write_simulation(SimulationParams(rows=2, trees_per_row=3, density=0.2, seed=3), str(block), str(tmp_path / "t.parquet"))
@@ -421,8 +421,8 @@ def test_trellis_post_test_gives_the_untiled_result_in_tiles(tmp_path):
     used to miss a post the untiled run found (its circle fits drew their trials from
     the column's points in the k-d tree's order, which depends on the points the tile
     holds), and the tree beside that post was lost."""
-    from pipeline.synthetic.simparams import SimulationParams
-    from pipeline.synthetic.truth import write_simulation
+    from simulator.simparams import SimulationParams
+    from simulator.truth import write_simulation
 
     block = tmp_path / "trellis.laz"
     sim = SimulationParams(rows=2, trees_per_row=5, spacing=2.5, row_spacing=4.5, low_foliage=True, trellis=2, seed=1)
@@ -441,8 +441,8 @@ def test_no_tree_is_left_lower_than_a_tree(tmp_path):
     # with the vehicle's faces cut out of the graph its "tree" was 227 points of grass and
     # wheel, 0.22 m tall, crown 0 m (found by a probe); it is dropped after segmentation
     # like a box, and its points go back to the others or to no tree
-    from pipeline.synthetic.simparams import SimulationParams
-    from pipeline.synthetic.truth import write_simulation
+    from simulator.simparams import SimulationParams
+    from simulator.truth import write_simulation
 
     block = tmp_path / "sp10.laz"
     write_simulation(SimulationParams(spacing=10.0, density=0.2, seed=0), str(block), str(tmp_path / "t.parquet"))

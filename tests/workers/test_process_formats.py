@@ -14,8 +14,8 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "pipeline"))
 from format_files import every_format  # noqa: E402
 
 from pipeline.laswriting import LasBlockWriter  # noqa: E402
-from pipeline.synthetic.simparams import SimulationParams  # noqa: E402
-from pipeline.synthetic.truth import write_simulation  # noqa: E402
+from simulator.simparams import SimulationParams  # noqa: E402
+from simulator.truth import write_simulation  # noqa: E402
 from service.cli import main  # noqa: E402
 
 

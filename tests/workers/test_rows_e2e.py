@@ -7,10 +7,10 @@ import numpy as np
 import pyarrow.parquet as pq
 import pytest
 
-from pipeline.evaluation.result import evaluate_result
+from simulator.scoring.result import evaluate_result
 from pipeline.jobparams import TilingParams
-from pipeline.synthetic.simparams import SimulationParams
-from pipeline.synthetic.truth import write_simulation
+from simulator.simparams import SimulationParams
+from simulator.truth import write_simulation
 from workers.job import run_job
 from workers.jobspec import JobSpec
 
@@ -67,7 +67,7 @@ def test_a_row_whose_trunks_are_all_hidden_is_found_from_its_canopy(tmp_path):
     there, but the canopy shows the row, and row 3 keeps its number."""
     import laspy
 
-    from pipeline.synthetic.truth import read_truth, read_truth_layout
+    from simulator.truth import read_truth, read_truth_layout
 
     las, truth = tmp_path / "hedge.laz", tmp_path / "hedge.truth.parquet"
     sim = SimulationParams(form="hedge", rows=3, trees_per_row=10, spacing=1.35, row_spacing=4.0, density=0.4, seed=12,

@@ -15,10 +15,10 @@ import pytest
 from pipeline.errors import NoOverlapError
 from pipeline.jobparams import TilingParams
 from pipeline.registration import RigidTransform
-from pipeline.synthetic.plan import make_plan
-from pipeline.synthetic.series import capture_series
-from pipeline.synthetic.simparams import SimulationParams, local_origin
-from pipeline.synthetic.truth import write_simulation
+from simulator.plan import make_plan
+from simulator.series import capture_series
+from simulator.simparams import SimulationParams, local_origin
+from simulator.truth import write_simulation
 from service.cli import main
 from workers.job import run_job
 from workers.jobspec import JobSpec

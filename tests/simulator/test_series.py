@@ -2,9 +2,9 @@
 
 import numpy as np
 
-from pipeline.synthetic.planting import make_layout
-from pipeline.synthetic.series import capture_series
-from pipeline.synthetic.simparams import SimulationParams
+from simulator.planting import make_layout
+from simulator.series import capture_series
+from simulator.simparams import SimulationParams
 
 
 def test_a_series_grows_cuts_replants_and_drifts_within_its_ranges():

@@ -8,8 +8,8 @@ import numpy as np
 import pytest
 
 from pipeline.errors import InputError
-from pipeline.evaluation.result import evaluate_result
-from pipeline.evaluation.scores import v_measure, wood_f1
+from simulator.scoring.result import evaluate_result
+from simulator.scoring.scores import v_measure, wood_f1
 
 
 def _write_result(folder, trunks_xy, point_index, tree_id, is_wood, diameters=None):
@@ -32,8 +32,8 @@ def _write_result(folder, trunks_xy, point_index, tree_id, is_wood, diameters=No
 @pytest.fixture(scope="module")
 def truth_file(tmp_path_factory):
     """A hand-made 'block' of 8 points, 2 trees, written with the simulator's writer."""
-    from pipeline.synthetic.orchard import Orchard
-    from pipeline.synthetic.truth import write_simulation
+    from simulator.orchard import Orchard
+    from simulator.truth import write_simulation
 
     folder = tmp_path_factory.mktemp("truth")
     xyz = np.array([[500000.0 + i, 6950000.0, 100.0] for i in range(8)])
@@ -83,7 +83,7 @@ def test_evaluate_result_rejects_foreign_results(tmp_path, truth_file):
 
 def test_cli_simulate_then_evaluate_a_perfect_result(tmp_path, capsys):
     """`orchard simulate` and `orchard evaluate` through the console script's main()."""
-    from pipeline.synthetic.truth import read_truth
+    from simulator.truth import read_truth
     from service.cli import main
 
     block, truth = tmp_path / "b.laz", tmp_path / "t.parquet"

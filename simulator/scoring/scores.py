@@ -9,7 +9,7 @@
 
 :func:`score_labels` works on arrays (for tuning loops that call
 :func:`pipeline.process.process_points` directly, and for labelled real trees);
-:func:`pipeline.evaluation.result.evaluate_result` reads a truth file and a result folder.
+:func:`simulator.scoring.result.evaluate_result` reads a truth file and a result folder.
 """
 
 from __future__ import annotations
@@ -249,7 +249,7 @@ def score_result(orchard, result, *, origin=(0.0, 0.0, 0.0), match_distance: flo
 
     Parameters
     ----------
-    orchard : pipeline.synthetic.orchard.Orchard
+    orchard : simulator.orchard.Orchard
         Truth (absolute coordinates).
     result : object with ``tree_id`` (n,), ``is_wood`` (n,) and ``trunks`` (m, 3)
         E.g. :class:`pipeline.process.BlockResult`, aligned with ``orchard.xyz``.

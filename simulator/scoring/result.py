@@ -7,8 +7,8 @@ import os
 import numpy as np
 
 from pipeline.errors import InputError
-from pipeline.evaluation.addresses import score_layout
-from pipeline.evaluation.scores import diameter_errors, score_labels
+from simulator.scoring.addresses import score_layout
+from simulator.scoring.scores import diameter_errors, score_labels
 
 
 def _read_points_labels(path: str, n: int) -> tuple[np.ndarray, np.ndarray, int]:
@@ -42,7 +42,7 @@ def evaluate_result(truth_path: str, result_dir: str, *, match_distance: float =
     Parameters
     ----------
     truth_path : str
-        Truth Parquet written by :func:`pipeline.synthetic.truth.write_simulation`.
+        Truth Parquet written by :func:`simulator.truth.write_simulation`.
     result_dir : str
         Folder with ``trees.parquet`` (``trunk_x``, ``trunk_y``, absolute) and
         ``points.parquet`` (``point_index``, ``tree_id``, ``is_wood``).
@@ -52,10 +52,10 @@ def evaluate_result(truth_path: str, result_dir: str, *, match_distance: float =
     Returns
     -------
     dict
-        The metrics of :func:`~pipeline.evaluation.scores.score_labels` plus ``n_missing_points`` (truth points
+        The metrics of :func:`~simulator.scoring.scores.score_labels` plus ``n_missing_points`` (truth points
         absent from points.parquet; they count as tree 0, not wood) and, where the truth
         carries trunk radii and trees.parquet a ``trunk_diameter_m`` column, those of
-        :func:`~pipeline.evaluation.scores.diameter_errors` (the truth's radius is at 0.3 m above the trunk base, the
+        :func:`~simulator.scoring.scores.diameter_errors` (the truth's radius is at 0.3 m above the trunk base, the
         default ``metrics.trunk_height``).
 
     Raises
@@ -64,7 +64,7 @@ def evaluate_result(truth_path: str, result_dir: str, *, match_distance: float =
         Missing or unreadable files, or point indices that do not fit the truth.
     """
     from pipeline.parquet import read_trees_parquet
-    from pipeline.synthetic.truth import read_truth
+    from simulator.truth import read_truth
 
     trees_path = os.path.join(result_dir, "trees.parquet")
     points_path = os.path.join(result_dir, "points.parquet")

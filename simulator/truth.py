@@ -8,9 +8,9 @@ from typing import Iterable
 
 import numpy as np
 
-from pipeline.synthetic.orchard import KIND, Orchard
-from pipeline.synthetic.simparams import SimulationParams
-from pipeline.synthetic.simulate import iter_simulation
+from simulator.orchard import KIND, Orchard
+from simulator.simparams import SimulationParams
+from simulator.simulate import iter_simulation
 
 TRUTH_COLUMNS = ("point_index", "tree_id", "is_wood", "kind")
 
@@ -37,7 +37,7 @@ def write_simulation(source: Orchard | SimulationParams | Iterable[Orchard], las
     -----
     The truth file has one row per point in file order: ``point_index`` (uint64),
     ``tree_id`` (int64, 0 = not a tree), ``is_wood`` (bool), ``kind`` (uint8 code into
-    :data:`pipeline.synthetic.orchard.KIND`). Its key-value metadata holds ``orchard:trunks`` (JSON list of absolute
+    :data:`simulator.orchard.KIND`). Its key-value metadata holds ``orchard:trunks`` (JSON list of absolute
     [x, y, z] trunk bases, tree ``k`` at position ``k-1``), ``orchard:trunk_radius``,
     ``orchard:kinds`` and ``orchard:crs_epsg``; for a generated block also the layout
     (:func:`read_truth_layout`): ``orchard:tree_rows``, ``orchard:tree_slots``,

@@ -12,10 +12,10 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from pipeline.synthetic.forms import perpendicular, unit
-from pipeline.synthetic.orchard import OUTLIER, Orchard
-from pipeline.synthetic.plan import VOXEL, Plan
-from pipeline.synthetic.planting import place
+from simulator.forms import perpendicular, unit
+from simulator.orchard import OUTLIER, Orchard
+from simulator.plan import VOXEL, Plan
+from simulator.planting import place
 
 RANGE_REF = 1.0
 """Reference range [m] at which the plan's point density ``rho`` applies."""

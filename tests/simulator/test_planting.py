@@ -8,10 +8,10 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 from pydantic import ValidationError
 
-from pipeline.synthetic.orchard import GROUND, POST
-from pipeline.synthetic.simparams import SimulationParams
-from pipeline.synthetic.simulate import simulate_orchard
-from pipeline.synthetic.terrain import ground_height
+from simulator.orchard import GROUND, POST
+from simulator.simparams import SimulationParams
+from simulator.simulate import simulate_orchard
+from simulator.terrain import ground_height
 from synthetic_blocks import LAYOUT, SMALL
 
 
@@ -68,7 +68,7 @@ def test_other_trees_stay_when_a_slot_is_emptied(gappy):
 
 
 def test_ragged_rows_lose_up_to_three_slots_at_either_end():
-    from pipeline.synthetic.planting import make_layout
+    from simulator.planting import make_layout
 
     p = SimulationParams(rows=4, trees_per_row=8, spacing=1.2, form="hedge", ragged_rows=True, seed=3,
                          density=0.02, posts=False, vehicle=False, bin=False)
@@ -187,7 +187,7 @@ _layouts = dict(
 @settings(max_examples=150, deadline=None)
 @given(**_layouts)
 def test_every_slot_is_a_tree_an_empty_slot_or_off_the_row(**kw):
-    from pipeline.synthetic.planting import make_layout
+    from simulator.planting import make_layout
 
     p = SimulationParams(**kw)
     lay = make_layout(p)
@@ -210,7 +210,7 @@ def test_every_slot_is_a_tree_an_empty_slot_or_off_the_row(**kw):
 @given(rotation=st.floats(-360, 360), bow=st.floats(-1.0, 1.0), tpr=st.integers(2, 30),
        xyz=st.lists(st.tuples(st.floats(-20, 60), st.floats(-10, 40), st.floats(-2, 5)), min_size=1, max_size=20))
 def test_the_block_frame_maps_back_to_the_straight_frame(rotation, bow, tpr, xyz):
-    from pipeline.synthetic.planting import place, unplace_xy
+    from simulator.planting import place, unplace_xy
 
     p = SimulationParams(trees_per_row=tpr, spacing=1.0, rotation=rotation, row_curvature=bow * 0.25 * (tpr - 1))
     pts = np.array(xyz, dtype=np.float64)

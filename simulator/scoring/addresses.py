@@ -12,7 +12,7 @@ from collections import Counter
 
 import numpy as np
 
-from pipeline.evaluation.scores import trunk_scores
+from simulator.scoring.scores import trunk_scores
 
 
 def _best_affine(found: np.ndarray, true: np.ndarray, mask: np.ndarray) -> np.ndarray:
@@ -52,7 +52,7 @@ def address_scores(
         Largest trunk match distance [m].
     pairs : (p, 2) int64, optional
         The trunk matching (true index, found index) when already made
-        (:func:`pipeline.evaluation.scores.trunk_scores`); made here otherwise.
+        (:func:`simulator.scoring.scores.trunk_scores`); made here otherwise.
 
     Returns
     -------
@@ -104,7 +104,7 @@ def score_layout(truth_path: str, result_dir: str, trees: dict, *, match_distanc
     Parameters
     ----------
     truth_path : str
-        Truth Parquet of :func:`pipeline.synthetic.truth.write_simulation`.
+        Truth Parquet of :func:`simulator.truth.write_simulation`.
     result_dir : str
         Folder holding ``gaps.parquet`` beside the trees table.
     trees : dict
@@ -116,7 +116,7 @@ def score_layout(truth_path: str, result_dir: str, trees: dict, *, match_distanc
     import os
 
     from pipeline.parquet import read_parquet_columns
-    from pipeline.synthetic.truth import read_truth, read_truth_layout
+    from simulator.truth import read_truth, read_truth_layout
 
     plan = read_truth_layout(truth_path)
     if plan["tree_row"] is None or "row" not in trees or "position" not in trees:

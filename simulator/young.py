@@ -12,13 +12,13 @@ from __future__ import annotations
 
 import numpy as np
 
-from pipeline.synthetic.forms import Tree, _add_polylines, _Branches, _points_on, _polylines, perpendicular, unit
+from simulator.forms import Tree, _add_polylines, _Branches, _points_on, _polylines, perpendicular, unit
 
 
 def grow_young(rng: np.random.Generator, p, base_xy: np.ndarray, ground, scale: float = 1.0) -> Tree:
     """Branches of one young, dormant tree (no leaves); see the module docstring.
 
-    Parameters are those of :func:`pipeline.synthetic.forms.grow_tree`.
+    Parameters are those of :func:`simulator.forms.grow_tree`.
     """
     gz = float(ground.z(base_xy[0], base_xy[1]))
     base = np.array([base_xy[0], base_xy[1], gz])

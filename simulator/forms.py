@@ -179,11 +179,11 @@ def grow_tree(rng: np.random.Generator, p, base_xy: np.ndarray, ground, *, scale
         Size of the tree relative to a grown one (< 1 for a replant).
     """
     if p.form == "conifer":
-        from pipeline.synthetic.conifer import grow_conifer  # its own module (it builds on this one)
+        from simulator.conifer import grow_conifer  # its own module (it builds on this one)
 
         return grow_conifer(rng, p, base_xy, ground, scale)
     if p.form == "young":
-        from pipeline.synthetic.young import grow_young  # its own module (it builds on this one)
+        from simulator.young import grow_young  # its own module (it builds on this one)
 
         return grow_young(rng, p, base_xy, ground, scale)
     grow = {"vase": _grow_vase, "spindle": _grow_spindle, "hedge": _grow_hedge}[p.form]

@@ -13,11 +13,11 @@ from __future__ import annotations
 
 import numpy as np
 
-from pipeline.synthetic.forms import Tree, _add_polylines, _Branches, _points_on, _polylines, unit
+from simulator.forms import Tree, _add_polylines, _Branches, _points_on, _polylines, unit
 
 
 def grow_conifer(rng: np.random.Generator, p, base_xy: np.ndarray, ground, scale: float = 1.0) -> Tree:
-    """Bole, whorls and needles of one conifer; parameters of :func:`pipeline.synthetic.forms.grow_tree`."""
+    """Bole, whorls and needles of one conifer; parameters of :func:`simulator.forms.grow_tree`."""
     gz = float(ground.z(base_xy[0], base_xy[1]))
     base = np.array([base_xy[0], base_xy[1], gz])
     height = ((p.tree_height * rng.uniform(0.95, 1.05)) if p.tree_height else rng.uniform(5.0, 8.0)) * scale

@@ -2,7 +2,7 @@
 
 from __future__ import annotations
 
-from pipeline.synthetic.simparams import SimulationParams
+from simulator.simparams import SimulationParams
 
 #: a small vase block: 2 rows of 3 trees, sparse
 SMALL = SimulationParams(rows=2, trees_per_row=3, density=0.15, seed=11)

@@ -7,10 +7,10 @@ import pytest
 from pydantic import ValidationError
 from scipy.spatial import cKDTree
 
-from pipeline.synthetic.orchard import GROUND, KIND, LEAF, OUTLIER, POST, TWIG, VEHICLE, WOOD
-from pipeline.synthetic.simparams import SimulationParams
-from pipeline.synthetic.simulate import iter_simulation, simulate_orchard
-from pipeline.synthetic.terrain import ground_height
+from simulator.orchard import GROUND, KIND, LEAF, OUTLIER, POST, TWIG, VEHICLE, WOOD
+from simulator.simparams import SimulationParams
+from simulator.simulate import iter_simulation, simulate_orchard
+from simulator.terrain import ground_height
 from synthetic_blocks import SMALL
 
 

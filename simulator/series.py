@@ -16,8 +16,8 @@ from datetime import date, timedelta
 
 import numpy as np
 
-from pipeline.synthetic.planting import make_layout
-from pipeline.synthetic.simparams import SimulationParams
+from simulator.planting import make_layout
+from simulator.simparams import SimulationParams
 
 
 @dataclass(frozen=True)

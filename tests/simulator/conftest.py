@@ -5,7 +5,7 @@ from __future__ import annotations
 import pytest
 from synthetic_blocks import LAYOUT, SMALL
 
-from pipeline.synthetic.simulate import simulate_orchard
+from simulator.simulate import simulate_orchard
 
 
 @pytest.fixture(scope="session")

@@ -7,8 +7,8 @@ from dataclasses import dataclass
 import numpy as np
 from scipy.special import ndtri
 
-from pipeline.synthetic.planting import unplace_xy
-from pipeline.synthetic.simparams import SimulationParams, local_origin
+from simulator.planting import unplace_xy
+from simulator.simparams import SimulationParams, local_origin
 
 
 @dataclass
@@ -80,7 +80,7 @@ class Terrain:
 
 def ground_height(params: SimulationParams, x: np.ndarray, y: np.ndarray) -> np.ndarray:
     """The simulated ground's true height [m] at (x, y), in the block's absolute
-    coordinates (those of :func:`pipeline.synthetic.simulate.simulate_orchard`'s points).
+    coordinates (those of :func:`simulator.simulate.simulate_orchard`'s points).
 
     For benchmarks that hand a peer the true terrain, e.g. a ground mesh for
     raycloudtools' ``rayextract trees``. The ground is the first thing the block's plan

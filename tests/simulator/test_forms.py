@@ -5,8 +5,8 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from pipeline.synthetic.simparams import SimulationParams
-from pipeline.synthetic.simulate import simulate_orchard
+from simulator.simparams import SimulationParams
+from simulator.simulate import simulate_orchard
 
 SPINDLE = SimulationParams(form="spindle", rows=2, trees_per_row=5, spacing=1.0, row_spacing=3.5, density=0.25, seed=3)
 HEDGE = SimulationParams(form="hedge", rows=2, trees_per_row=5, spacing=1.3, row_spacing=4.0, density=0.25, seed=3)
@@ -67,7 +67,7 @@ def test_spindle_crowns_touch_along_the_row(spindle):
 
 
 def test_hedge_trunk_branches_low_into_a_wall(hedge):
-    from pipeline.synthetic.forms import grow_tree
+    from simulator.forms import grow_tree
 
     class Flat:
         def z(self, x, y):

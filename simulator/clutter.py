@@ -4,11 +4,11 @@ from __future__ import annotations
 
 import numpy as np
 
-from pipeline.synthetic.conifer import debris
-from pipeline.synthetic.orchard import GRASS, POST, VEHICLE, Orchard
-from pipeline.synthetic.plan import HEADLAND, Plan
-from pipeline.synthetic.scanner import Chunk, passes_for, sample_cylinders, sample_discs, sample_rects
-from pipeline.synthetic.young import stakes
+from simulator.conifer import debris
+from simulator.orchard import GRASS, POST, VEHICLE, Orchard
+from simulator.plan import HEADLAND, Plan
+from simulator.scanner import Chunk, passes_for, sample_cylinders, sample_discs, sample_rects
+from simulator.young import stakes
 
 
 def _box_faces(centre, size, yaw=0.0, tile=0.25):
@@ -76,7 +76,7 @@ def _add_posts(ch: Chunk, plan: Plan, rng, xs, ys, height, radius, *, wires, y: 
 
 
 def _add_stakes(ch: Chunk, plan: Plan) -> None:
-    """The stake beside every young tree (:func:`pipeline.synthetic.young.stakes`), as points of kind post."""
+    """The stake beside every young tree (:func:`simulator.young.stakes`), as points of kind post."""
     a, b, r = stakes(plan)
     rng = np.random.default_rng([plan.params.seed, 7])
     for k in range(len(plan.pass_y)):
@@ -88,7 +88,7 @@ def _add_stakes(ch: Chunk, plan: Plan) -> None:
 
 
 def _add_debris(ch: Chunk, plan: Plan) -> None:
-    """Fallen branches on a conifer block's floor (:func:`pipeline.synthetic.conifer.debris`),
+    """Fallen branches on a conifer block's floor (:func:`simulator.conifer.debris`),
     as points of kind grass (low material in no tree)."""
     a, b, r = debris(plan)
     rng = np.random.default_rng([plan.params.seed, 9])

@@ -8,10 +8,10 @@ from functools import cached_property
 
 import numpy as np
 
-from pipeline.synthetic.forms import grow_tree, unit
-from pipeline.synthetic.planting import Layout, make_layout, place, young_scale
-from pipeline.synthetic.simparams import SimulationParams, local_origin
-from pipeline.synthetic.terrain import Terrain
+from simulator.forms import grow_tree, unit
+from simulator.planting import Layout, make_layout, place, young_scale
+from simulator.simparams import SimulationParams, local_origin
+from simulator.terrain import Terrain
 
 _RHO = 20000.0  # points per m^2 (normal incidence, 1 m range) at density 1
 VOXEL = 0.25
@@ -55,7 +55,7 @@ class Plan:
 
     @cached_property
     def addresses(self) -> dict:
-        """The truth of the block's layout, as :class:`pipeline.synthetic.orchard.Orchard` fields."""
+        """The truth of the block's layout, as :class:`simulator.orchard.Orchard` fields."""
         p, lay = self.params, self.layout
         trees, empty = lay.trees, lay.empty
         centre = np.c_[lay.col[empty] * p.spacing, lay.row[empty] * p.row_spacing, np.zeros(len(empty))]
@@ -76,7 +76,7 @@ def tree_rng(seed: int, i: int) -> np.random.Generator:
 
 
 def make_plan(p: SimulationParams) -> Plan:
-    """Draw the plan of block ``p``: the ground first (:func:`pipeline.synthetic.terrain.ground_height`
+    """Draw the plan of block ``p``: the ground first (:func:`simulator.terrain.ground_height`
     relies on it), then the tree positions and passes, then every tree once for its trunk
     and leaf area."""
     rng = np.random.default_rng([p.seed, 0])

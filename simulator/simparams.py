@@ -51,7 +51,7 @@ class SimulationParams(BaseModel):
     ragged_rows: bool = Field(False, description="rows of different length: each row loses 0-3 slots at either end at random")
     scan: int = Field(0, ge=0, le=2**16, description="scan of the block: another number is another scan of the same "
                       "planting (its own noise, sampling and occlusion draws); 0 is the block's first")
-    # a series of captures of one block (pipeline.synthetic.series): per grid slot, row-major
+    # a series of captures of one block (simulator.series): per grid slot, row-major
     tree_scale: tuple[float, ...] = Field((), description="size of each slot's tree (growth since planting); empty: 1")
     cut: tuple[int, ...] = Field((), description="grid slots whose tree was cut (empty slots)")
     young_slots: tuple[int, ...] = Field((), description="grid slots holding a replant (a young tree)")

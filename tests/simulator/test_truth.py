@@ -5,8 +5,8 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from pipeline.synthetic.simparams import SimulationParams
-from pipeline.synthetic.truth import read_truth, write_simulation
+from simulator.simparams import SimulationParams
+from simulator.truth import read_truth, write_simulation
 from synthetic_blocks import SMALL
 
 
@@ -73,7 +73,7 @@ def test_read_truth_rejects_other_files(tmp_path):
         read_truth(str(bad))
     with pytest.raises(InputError):
         read_truth(str(tmp_path / "missing.parquet"))
-    from pipeline.synthetic.truth import read_truth_layout
+    from simulator.truth import read_truth_layout
 
     for path in (bad, tmp_path / "missing.parquet"):
         with pytest.raises(InputError):
@@ -87,8 +87,8 @@ def test_read_truth_rejects_other_files(tmp_path):
 
 
 def test_truth_layout_round_trip(tmp_path, gappy):
-    from pipeline.synthetic.orchard import Orchard
-    from pipeline.synthetic.truth import read_truth_layout
+    from simulator.orchard import Orchard
+    from simulator.truth import read_truth_layout
 
     las, truth = str(tmp_path / "b.las"), str(tmp_path / "t.parquet")
     write_simulation(gappy, las, truth)

@@ -7,7 +7,7 @@ import math
 import numpy as np
 import pytest
 
-from pipeline.evaluation.scores import (
+from simulator.scoring.scores import (
     diameter_errors,
     homogeneity_completeness_v_measure,
     score_labels,
@@ -161,7 +161,7 @@ def test_scores_use_only_true_tree_points():
 def test_score_result_takes_a_local_frame_result():
     from types import SimpleNamespace
 
-    from pipeline.synthetic.orchard import Orchard
+    from simulator.orchard import Orchard
 
     origin = np.array([500000.0, 6950000.0, 100.0])
     truth = Orchard(

@@ -3,7 +3,7 @@
 Everything is deterministic for a seed: each tree, ground strip and the distractors draw
 from their own random stream. Blocks are generated tree by tree (:func:`iter_simulation`),
 so memory stays bounded whatever the block size. The block is built in a straight frame
-(rows along x) and mapped to the local frame by :func:`pipeline.synthetic.planting.place`
+(rows along x) and mapped to the local frame by :func:`simulator.planting.place`
 as each chunk is finished.
 """
 
@@ -13,12 +13,12 @@ from typing import Iterator
 
 import numpy as np
 
-from pipeline.synthetic.clutter import objects_chunk
-from pipeline.synthetic.forms import grow_tree
-from pipeline.synthetic.orchard import GRASS, GROUND, LEAF, OUTLIER, TWIG, WOOD, WOOD_RADIUS, Orchard, concatenate
-from pipeline.synthetic.plan import Plan, make_plan, tree_rng
-from pipeline.synthetic.scanner import RANGE_REF, Chunk, passes_for, sample_cylinders, sample_discs
-from pipeline.synthetic.simparams import SimulationParams
+from simulator.clutter import objects_chunk
+from simulator.forms import grow_tree
+from simulator.orchard import GRASS, GROUND, LEAF, OUTLIER, TWIG, WOOD, WOOD_RADIUS, Orchard, concatenate
+from simulator.plan import Plan, make_plan, tree_rng
+from simulator.scanner import RANGE_REF, Chunk, passes_for, sample_cylinders, sample_discs
+from simulator.simparams import SimulationParams
 
 _GROUND_RETURN = 0.3  # ground and grass return less (dark, grazing incidence, vehicle shadow)
 _BLIND = 0.7  # ground closer than this to the path (laterally) is hidden by the vehicle [m]
@@ -118,7 +118,7 @@ def iter_simulation(params: SimulationParams, *, ground_chunk_length: float = 25
 
 
 def simulate_orchard(params: SimulationParams | None = None) -> Orchard:
-    """Generate a whole block in memory (see :mod:`pipeline.synthetic` for the model).
+    """Generate a whole block in memory (see :mod:`simulator` for the model).
 
     Parameters
     ----------
