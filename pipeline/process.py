@@ -261,6 +261,200 @@ def _stem_points(xyz, height, is_ground, ground_top: float, *, on: bool) -> dict
     return {"stem_xy": xyz[sel, :2], "stem_slice": (rel[sel] // STEM_SLICE_HEIGHT).astype(np.int64)}
 
 
+@dataclass(frozen=True)
+class _NodeGraph:
+    """The vegetation's voxel graph and what is read off it before trunks are looked for."""
+
+    ground: GroundModel
+    height: np.ndarray
+    is_ground: np.ndarray
+    vegetation: np.ndarray
+    veg_idx: np.ndarray
+    vox: Voxels
+    node_height: np.ndarray
+    adjacency: sparse.csr_matrix
+    features: ShapeFeatures
+    graph: sparse.csr_matrix
+    leafiness: np.ndarray
+
+    @property
+    def nodes(self) -> np.ndarray:
+        return self.vox.centroids
+
+
+@dataclass(frozen=True)
+class _Faces:
+    """Planar patches of the graph and the box tests' views of them."""
+
+    patch: np.ndarray
+    size: np.ndarray
+    standing_face: np.ndarray
+    box_planar: np.ndarray
+
+
+def _node_graph(xyz: np.ndarray, *, params: PipelineParams, grid_origin, ground_stats, raw_ground) -> _NodeGraph:
+    """Ground model, vegetation voxels, their shape features and the bridged graph."""
+    gm = ground_model(xyz, params=params.ground, grid_origin=grid_origin, stats=ground_stats, raw=raw_ground)
+    height, is_ground = classify_ground(xyz, gm, params=params.ground)
+    vegetation = ~is_ground & (height > 0)
+    veg_idx = np.flatnonzero(vegetation)
+    vox = voxelize(xyz[veg_idx], voxel_size=params.graph.voxel_size, grid_origin=grid_origin)
+    nodes = vox.centroids
+    node_height = np.bincount(vox.point_voxel, weights=height[veg_idx], minlength=vox.n) / np.maximum(vox.counts, 1)
+    radius = params.matter.smoothing_radius
+    # one neighbour search serves both radii
+    pairs = node_pairs(nodes, max(radius, params.graph.edge_radius))
+    adjacency = neighbourhood_matrix(nodes, radius=radius, candidates=pairs)
+    feats = shape_features(nodes, radius=radius, adjacency=adjacency)
+    edge_scale = feats.matrix() if params.graph.weighting == "enriched" else None
+    graph = build_graph(nodes, radius=params.graph.edge_radius, edge_scale=edge_scale, candidates=pairs)
+    del pairs
+    graph = bridge_floating(
+        graph,
+        nodes,
+        node_height,
+        floating_height=params.segment.floating_height,
+        max_gap=params.graph.max_gap,
+        min_nodes=params.segment.min_fragment,
+    )
+    leafiness = np.clip(woodleaf.smooth(feats.scattering, adjacency) / LEAFY_SCATTERING, 0.0, 1.0)
+    return _NodeGraph(gm, height, is_ground, vegetation, veg_idx, vox, node_height, adjacency, feats, graph, leafiness)
+
+
+def _faces(g: _NodeGraph, *, params: PipelineParams) -> _Faces:
+    """Flat patches (connected planar nodes, without the curved bark of thick trunks) and
+    the faces the box tests count."""
+    feats = g.features
+    planar = (feats.planarity >= PLANAR_MIN) & (feats.scattering <= PLANAR_MAX_SCATTER)
+    patch, size = planar_patches(g.graph, planar)
+    min_face = face_nodes(params.graph.voxel_size)
+    bark = curved_patches(
+        g.nodes, feats.normal, patch, size,
+        min_nodes=min_face, min_spread=BARK_MIN_SPREAD, max_radius=BARK_MAX_RADIUS, max_residual=BARK_MAX_RESIDUAL,
+    )
+    if bark.any():
+        patch = np.where((patch >= 0) & bark[np.maximum(patch, 0)], -1, patch)
+    # box tests: planar nodes in patches of MIN_FACE_AREA or more; the catchment's test
+    # also counts blurred faces on noisy scans, whatever their patches (they break into
+    # small ones), and cutting surfaces out of the graph needs the strict test
+    face = faces(patch, size, min_face)
+    # a segmented tree's box test counts only faces standing above the grass: flat grass
+    # tops under a thin trunk (a spindle's leader) made up most of its little low material
+    standing_face = face & standing(patch, size, g.node_height, min_top=params.segment.floating_height)
+    box_planar = face | noisy_planar(feats, noise=g.ground.noise)
+    return _Faces(patch, size, standing_face, box_planar)
+
+
+def _find_trunks(xyz: np.ndarray, g: _NodeGraph, f: _Faces, *, params: PipelineParams,
+                 slot_trees: np.ndarray | None) -> tuple[TrunkDetection, Posts | None, np.ndarray, dict, np.ndarray]:
+    """Trunks from one multi-source search to the ground, trellis posts cut out, trees on
+    open planting slots let in; returns (detection, posts, on_post, slot evidence, slot trees)."""
+    gm, nodes, node_height = g.ground, g.nodes, g.node_height
+    # drainage to the ground prefers woody paths: leafy (scattered) nodes cost more
+    drainage = reweight(g.graph, 1.0 + params.trunks.leaf_cost * g.leafiness)
+    ground_top = gm.tolerance(params.ground)
+    stem_points = _stem_points(xyz, g.height, g.is_ground, ground_top, on=params.trunks.stem_ratio > 0)
+    foot_xy = xyz[g.is_ground & (g.height > FOOT_LAYER_SHARE * ground_top), :2] if params.trunks.min_foot_ratio > 0 else None
+
+    # radii left unset follow the spacing only where it can be measured
+    measure_spacing = gm.noise < SPACING_MAX_NOISE
+
+    def detect(drainage: sparse.csr_matrix, spacing: float | None = None) -> TrunkDetection:
+        return detect_trunks(
+            nodes,
+            node_height,
+            drainage,
+            planar=f.box_planar,
+            scattering=g.features.scattering,
+            ground_top=ground_top,
+            foot_xy=foot_xy,
+            **stem_points,
+            spacing=spacing,
+            voxel_size=params.graph.voxel_size,
+            measure_spacing=measure_spacing,
+            params=params.trunks,
+        )
+
+    det = detect(drainage)
+    # trellis posts drain crowns like trunks: cut them out of the graph and detect again
+    on_post = np.zeros(g.vox.n, bool)
+    posts = None
+    auto = params.trunks.max_post_radius is None
+    post_radius = AUTO_POST_RADIUS if auto else params.trunks.max_post_radius
+    if post_radius > 0 and gm.noise < POST_MAX_NOISE and det.candidates is not None:
+        cand = det.candidates
+        # a post's catchment ends below the post height; a bole drains the crown above it
+        tall = (cand["top"] >= _floors(det, params).min_tree_height) & (cand["top"] < params.trunks.max_post_height)
+        posts = find_posts(
+            xyz, g.height, np.c_[cand["x"], cand["y"]][tall], max_radius=post_radius,
+            max_height=params.trunks.max_post_height, among=g.vegetation,
+        )
+        on_post = on_posts(nodes, node_height, posts, margin=POST_NODE_MARGIN)
+        if on_post.any():
+            again = detect(without_nodes(drainage, on_post))  # the spacing measured again, without the posts
+            wide = again.spacing is not None and again.spacing >= AUTO_POST_MIN_SPACING
+            if auto and not wide:  # close rows: the "posts" may be tall spindles' straight leaders
+                posts, on_post = None, np.zeros(g.vox.n, bool)
+            else:
+                det = again
+    # the row model as a prior: replants and full trees on open planting slots
+    evidence = slot_evidence(det, params=params)
+    if slot_trees is None:
+        slot_trees = trees_on_slots(evidence, params=params.rows)
+    det = let_in(det, slot_trees, nodes, node_height, contact_top=ground_top + params.trunks.contact_height)
+    return det, posts, on_post, evidence, slot_trees
+
+
+def _segment_trees(g: _NodeGraph, f: _Faces, det: TrunkDetection, on_post: np.ndarray, *,
+                   params: PipelineParams) -> tuple[TrunkDetection, Segmentation]:
+    """Segmentation from one multi-source search from the trunks; "trees" that turn out
+    box-like or low (a vehicle) are dropped and their material segmented again."""
+    nodes, node_height = g.nodes, g.node_height
+    surfaces = on_post | hard_surfaces(
+        nodes,
+        f.patch,
+        f.size,
+        node_height,
+        min_nodes=int(round(params.segment.surface_area / params.graph.voxel_size**2)),
+        margin=params.segment.surface_margin,
+        min_top=params.segment.floating_height,
+    )
+    if _low_floor(det, params).min_tree_height < _floors(det, params).min_tree_height:
+        # on a block of young trees a bin's edges and a vehicle's wheels stand like young
+        # trees, and their faces are cut out (below) before the box test of segmented trees
+        # could see them: a young tree stands clear of such surfaces
+        det = drop_trunks(det, _beside(det.xy, nodes[surfaces & ~on_post, :2], YOUNG_SURFACE_REACH))
+    seg_graph = g.graph
+    if params.segment.leaf_cost > 0:
+        seg_graph = reweight(g.graph, 1.0 + params.segment.leaf_cost * g.leafiness)
+
+    def segment(det: TrunkDetection) -> Segmentation:
+        return segment_nodes(
+            nodes,
+            _without_edges_within(seg_graph, grass_nodes(nodes, node_height, det.xy, params=params.segment)),
+            source_nodes=det.source_nodes,
+            source_trunk=det.source_trunk,
+            trunk_xy=det.xy,
+            node_height=node_height,
+            params=params.segment.at_spacing(det.spacing),
+            exclude=surfaces,
+        )
+
+    seg = segment(det)
+    for _ in range(DROP_ROUNDS):  # dropping a box-like or low "tree" (a vehicle) re-segments its material
+        drop = np.union1d(
+            # the box test reads the material below a grown tree's height, where a vehicle's body is
+            box_like_trees(seg.node_tree, node_height, nodes=nodes, trunk_xy=det.xy, planar=f.standing_face,
+                           params=params.trunks.at_floors()),
+            _not_on_slot(low_trees(seg.node_tree, node_height, det.k, params=_low_floor(det, params)), det),
+        )
+        if drop.size == 0:
+            break
+        det = drop_trunks(det, drop)
+        seg = segment(det)
+    return det, seg
+
+
 def analyse_nodes(
     xyz: np.ndarray,
     *,
@@ -297,144 +491,12 @@ def analyse_nodes(
     xyz = np.asarray(xyz, dtype=np.float64)
     if xyz.ndim != 2 or xyz.shape[1] != 3:
         raise ValueError("xyz must have shape (n, 3)")
-    gm = ground_model(xyz, params=params.ground, grid_origin=grid_origin, stats=ground_stats, raw=raw_ground)
-    height, is_ground = classify_ground(xyz, gm, params=params.ground)
-    vegetation = ~is_ground & (height > 0)
-    veg_idx = np.flatnonzero(vegetation)
-    vox = voxelize(xyz[veg_idx], voxel_size=params.graph.voxel_size, grid_origin=grid_origin)
-    nodes = vox.centroids
-    node_height = np.bincount(vox.point_voxel, weights=height[veg_idx], minlength=vox.n) / np.maximum(vox.counts, 1)
-    radius = params.matter.smoothing_radius
-    # one neighbour search serves both radii
-    pairs = node_pairs(nodes, max(radius, params.graph.edge_radius))
-    adjacency = neighbourhood_matrix(nodes, radius=radius, candidates=pairs)
-    feats = shape_features(nodes, radius=radius, adjacency=adjacency)
-    edge_scale = feats.matrix() if params.graph.weighting == "enriched" else None
-    graph = build_graph(nodes, radius=params.graph.edge_radius, edge_scale=edge_scale, candidates=pairs)
-    del pairs
-    graph = bridge_floating(
-        graph,
-        nodes,
-        node_height,
-        floating_height=params.segment.floating_height,
-        max_gap=params.graph.max_gap,
-        min_nodes=params.segment.min_fragment,
-    )
-    # drainage to the ground prefers woody paths: leafy (scattered) nodes cost more
-    leafiness = np.clip(woodleaf.smooth(feats.scattering, adjacency) / LEAFY_SCATTERING, 0.0, 1.0)
-    drainage = reweight(graph, 1.0 + params.trunks.leaf_cost * leafiness)
-    planar = (feats.planarity >= PLANAR_MIN) & (feats.scattering <= PLANAR_MAX_SCATTER)
-    # flat patches: connected planar nodes, without the curved ones (bark of thick trunks)
-    patch, size = planar_patches(graph, planar)
-    min_face = face_nodes(params.graph.voxel_size)
-    bark = curved_patches(
-        nodes, feats.normal, patch, size,
-        min_nodes=min_face, min_spread=BARK_MIN_SPREAD, max_radius=BARK_MAX_RADIUS, max_residual=BARK_MAX_RESIDUAL,
-    )
-    if bark.any():
-        patch = np.where((patch >= 0) & bark[np.maximum(patch, 0)], -1, patch)
-    # box tests: planar nodes in patches of MIN_FACE_AREA or more; the catchment's test
-    # also counts blurred faces on noisy scans, whatever their patches (they break into
-    # small ones), and cutting surfaces out of the graph needs the strict test
-    face = faces(patch, size, min_face)
-    # a segmented tree's box test counts only faces standing above the grass: flat grass
-    # tops under a thin trunk (a spindle's leader) made up most of its little low material
-    standing_face = face & standing(patch, size, node_height, min_top=params.segment.floating_height)
-    box_planar = face | noisy_planar(feats, noise=gm.noise)
-    ground_top = gm.tolerance(params.ground)
-    stem_points = _stem_points(xyz, height, is_ground, ground_top, on=params.trunks.stem_ratio > 0)
-    foot_xy = xyz[is_ground & (height > FOOT_LAYER_SHARE * ground_top), :2] if params.trunks.min_foot_ratio > 0 else None
-
-    # radii left unset follow the spacing only where it can be measured
-    measure_spacing = gm.noise < SPACING_MAX_NOISE
-
-    def detect(drainage: sparse.csr_matrix, spacing: float | None = None) -> TrunkDetection:
-        return detect_trunks(
-            nodes,
-            node_height,
-            drainage,
-            planar=box_planar,
-            scattering=feats.scattering,
-            ground_top=ground_top,
-            foot_xy=foot_xy,
-            **stem_points,
-            spacing=spacing,
-            voxel_size=params.graph.voxel_size,
-            measure_spacing=measure_spacing,
-            params=params.trunks,
-        )
-
-    det = detect(drainage)
-    # trellis posts drain crowns like trunks: cut them out of the graph and detect again
-    on_post = np.zeros(vox.n, bool)
-    posts = None
-    auto = params.trunks.max_post_radius is None
-    post_radius = AUTO_POST_RADIUS if auto else params.trunks.max_post_radius
-    if post_radius > 0 and gm.noise < POST_MAX_NOISE and det.candidates is not None:
-        cand = det.candidates
-        # a post's catchment ends below the post height; a bole drains the crown above it
-        tall = (cand["top"] >= _floors(det, params).min_tree_height) & (cand["top"] < params.trunks.max_post_height)
-        posts = find_posts(
-            xyz, height, np.c_[cand["x"], cand["y"]][tall], max_radius=post_radius,
-            max_height=params.trunks.max_post_height, among=vegetation,
-        )
-        on_post = on_posts(nodes, node_height, posts, margin=POST_NODE_MARGIN)
-        if on_post.any():
-            again = detect(without_nodes(drainage, on_post))  # the spacing measured again, without the posts
-            wide = again.spacing is not None and again.spacing >= AUTO_POST_MIN_SPACING
-            if auto and not wide:  # close rows: the "posts" may be tall spindles' straight leaders
-                posts, on_post = None, np.zeros(vox.n, bool)
-            else:
-                det = again
-    # the row model as a prior: replants and full trees on open planting slots
-    evidence = slot_evidence(det, params=params)
-    if slot_trees is None:
-        slot_trees = trees_on_slots(evidence, params=params.rows)
-    det = let_in(det, slot_trees, nodes, node_height, contact_top=ground_top + params.trunks.contact_height)
-    surfaces = on_post | hard_surfaces(
-        nodes,
-        patch,
-        size,
-        node_height,
-        min_nodes=int(round(params.segment.surface_area / params.graph.voxel_size**2)),
-        margin=params.segment.surface_margin,
-        min_top=params.segment.floating_height,
-    )
-    if _low_floor(det, params).min_tree_height < _floors(det, params).min_tree_height:
-        # on a block of young trees a bin's edges and a vehicle's wheels stand like young
-        # trees, and their faces are cut out (below) before the box test of segmented trees
-        # could see them: a young tree stands clear of such surfaces
-        det = drop_trunks(det, _beside(det.xy, nodes[surfaces & ~on_post, :2], YOUNG_SURFACE_REACH))
-    seg_graph = graph
-    if params.segment.leaf_cost > 0:
-        seg_graph = reweight(graph, 1.0 + params.segment.leaf_cost * leafiness)
-
-    def segment(det: TrunkDetection) -> Segmentation:
-        return segment_nodes(
-            nodes,
-            _without_edges_within(seg_graph, grass_nodes(nodes, node_height, det.xy, params=params.segment)),
-            source_nodes=det.source_nodes,
-            source_trunk=det.source_trunk,
-            trunk_xy=det.xy,
-            node_height=node_height,
-            params=params.segment.at_spacing(det.spacing),
-            exclude=surfaces,
-        )
-
-    seg = segment(det)
-    for _ in range(DROP_ROUNDS):  # dropping a box-like or low "tree" (a vehicle) re-segments its material
-        drop = np.union1d(
-            # the box test reads the material below a grown tree's height, where a vehicle's body is
-            box_like_trees(seg.node_tree, node_height, nodes=nodes, trunk_xy=det.xy, planar=standing_face,
-                           params=params.trunks.at_floors()),
-            _not_on_slot(low_trees(seg.node_tree, node_height, det.k, params=_low_floor(det, params)), det),
-        )
-        if drop.size == 0:
-            break
-        det = drop_trunks(det, drop)
-        seg = segment(det)
-    return NodeAnalysis(gm, height, is_ground, veg_idx, vox, node_height, adjacency, feats, graph, det, seg, posts, on_post,
-                        evidence, np.asarray(slot_trees, np.float64).reshape(-1, 3))
+    g = _node_graph(xyz, params=params, grid_origin=grid_origin, ground_stats=ground_stats, raw_ground=raw_ground)
+    f = _faces(g, params=params)
+    det, posts, on_post, evidence, slot_trees = _find_trunks(xyz, g, f, params=params, slot_trees=slot_trees)
+    det, seg = _segment_trees(g, f, det, on_post, params=params)
+    return NodeAnalysis(g.ground, g.height, g.is_ground, g.veg_idx, g.vox, g.node_height, g.adjacency, g.features,
+                        g.graph, det, seg, posts, on_post, evidence, np.asarray(slot_trees, np.float64).reshape(-1, 3))
 
 
 def node_wood_score(a: NodeAnalysis, *, params: PipelineParams) -> np.ndarray:

@@ -84,69 +84,98 @@ def segment_nodes(
     -------
     Segmentation
     """
-    m = nodes.shape[0]
     params = params.at_spacing(None)  # radii still unset: the free-standing trees' values
     if exclude is not None and exclude.any():
         exclude = exclude.copy()
         exclude[source_nodes] = False  # a trunk's seeds stay, whatever stands beside it
         graph = without_nodes(graph, exclude)
     sp = shortest_paths(graph, source_nodes)
-    trunk_of_node = np.full(m, -1, np.int64)
+    node_tree, reached = _path_labels(sp, source_nodes, source_trunk)
+    if trunk_xy.shape[0]:
+        node_tree, reached = _within_reach(nodes, node_tree, reached, trunk_xy, params.max_crown_radius)
+    node_tree = _label_unreached(nodes, graph, node_tree, trunk_xy, node_height, params=params, exclude=exclude)
+    return Segmentation(node_tree, sp, reached)
+
+
+def _path_labels(sp: ShortestPaths, source_nodes: np.ndarray, source_trunk: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Tree of each node (1-based, 0 = unreached) by the trunk its shortest path starts
+    at, and the nodes reached, (m,) int64 and (m,) bool."""
+    trunk_of_node = np.full(sp.source.shape[0], -1, np.int64)
     trunk_of_node[source_nodes] = source_trunk
-    node_tree = np.zeros(m, np.int64)
+    node_tree = np.zeros(sp.source.shape[0], np.int64)
     reached = sp.source >= 0
     node_tree[reached] = trunk_of_node[sp.source[reached]] + 1
+    return node_tree, reached
 
-    def within_crown(idx: np.ndarray, tree: np.ndarray) -> np.ndarray:
-        """Nodes ``idx`` lie within max_crown_radius (horizontally) of trunk ``tree`` (1-based)."""
-        return ((nodes[idx, :2] - trunk_xy[tree - 1]) ** 2).sum(1) <= params.max_crown_radius**2
 
-    def join_nearest(cand: np.ndarray, lab: np.ndarray, bound, reach: float) -> np.ndarray:
-        """Give each node of ``cand`` the tree of its nearest node of ``lab`` where that lies
-        within ``bound`` [m] (scalar or per node; searched up to ``reach``) and the node lies
-        within its trunk's crown radius; returns the nodes that joined."""
-        tree_of = cKDTree(nodes[lab])
-        bound = np.broadcast_to(np.minimum(bound, reach), cand.shape)
-        d, j = np.full(cand.shape, np.inf), np.zeros(cand.shape, np.int64)
-        # one search per distinct bound: a node far from every tree is given up on at its
-        # own bound, not at the widest one (the same nearest node wherever one is in reach)
-        for b in np.unique(bound[bound >= 0]):
-            sel = np.flatnonzero(bound == b)
-            d[sel], j[sel] = tree_of.query(nodes[cand[sel]], distance_upper_bound=b * (1 + 1e-9) + 1e-12)
-        hit = np.isfinite(d) & (d <= bound)
-        tree = node_tree[lab[j[hit]]]
-        ok = within_crown(cand[hit], tree)  # the fallback must also respect the crown reach
-        node_tree[cand[hit][ok]] = tree[ok]
-        return cand[hit][ok]
+def _within_crown(nodes: np.ndarray, idx: np.ndarray, tree: np.ndarray, trunk_xy: np.ndarray, radius: float) -> np.ndarray:
+    """Nodes ``idx`` lie within ``radius`` (horizontally) of trunk ``tree`` (1-based), (i,) bool."""
+    return ((nodes[idx, :2] - trunk_xy[tree - 1]) ** 2).sum(1) <= radius**2
 
-    if trunk_xy.shape[0]:
-        idx = np.flatnonzero(reached)
-        idx = idx[~within_crown(idx, node_tree[idx])]
-        node_tree[idx] = 0
-        reached[idx] = False
+
+def _within_reach(nodes, node_tree, reached, trunk_xy, radius: float) -> tuple[np.ndarray, np.ndarray]:
+    """``node_tree`` and ``reached`` without the nodes farther than ``radius`` [m]
+    horizontally from their trunk (paths that leak into other objects)."""
+    node_tree, reached = node_tree.copy(), reached.copy()
+    idx = np.flatnonzero(reached)
+    idx = idx[~_within_crown(nodes, idx, node_tree[idx], trunk_xy, radius)]
+    node_tree[idx] = 0
+    reached[idx] = False
+    return node_tree, reached
+
+
+def _join_nearest(nodes, node_tree, trunk_xy, cand: np.ndarray, lab: np.ndarray, bound, reach: float,
+                  crown_radius: float) -> np.ndarray:
+    """Give each node of ``cand`` the tree of its nearest node of ``lab`` where that lies
+    within ``bound`` [m] (scalar or per node; searched up to ``reach``) and the node lies
+    within its trunk's ``crown_radius``; labels ``node_tree`` in place and returns the
+    nodes that joined."""
+    tree_of = cKDTree(nodes[lab])
+    bound = np.broadcast_to(np.minimum(bound, reach), cand.shape)
+    d, j = np.full(cand.shape, np.inf), np.zeros(cand.shape, np.int64)
+    # one search per distinct bound: a node far from every tree is given up on at its
+    # own bound, not at the widest one (the same nearest node wherever one is in reach)
+    for b in np.unique(bound[bound >= 0]):
+        sel = np.flatnonzero(bound == b)
+        d[sel], j[sel] = tree_of.query(nodes[cand[sel]], distance_upper_bound=b * (1 + 1e-9) + 1e-12)
+    hit = np.isfinite(d) & (d <= bound)
+    tree = node_tree[lab[j[hit]]]
+    ok = _within_crown(nodes, cand[hit], tree, trunk_xy, crown_radius)  # the fallback must also respect the crown reach
+    node_tree[cand[hit][ok]] = tree[ok]
+    return cand[hit][ok]
+
+
+def _label_unreached(nodes, graph, node_tree, trunk_xy, node_height, *, params: SegmentParams,
+                     exclude: np.ndarray | None) -> np.ndarray:
+    """``node_tree`` with the nodes the search did not reach labelled by distance, per
+    connected fragment (see :func:`segment_nodes`)."""
+    node_tree = node_tree.copy()
     labelled = node_tree > 0
     todo = np.flatnonzero(~labelled if exclude is None else ~labelled & ~exclude)
-    if todo.size and labelled.any():
-        _, comp = csgraph.connected_components(graph[todo][:, todo], directed=False)
-        low = np.full(comp.max() + 1, np.inf)
-        np.minimum.at(low, comp, node_height[todo])
-        floating = low[comp] > params.floating_height
-        bound = np.where(floating, params.max_crown_radius, params.unreached_radius)
-        big = np.bincount(comp)[comp] >= params.min_fragment
-        # a small fragment is an outlier unless it floats right beside a tree (a lone leaf at the rim)
-        bound = np.where(big, bound, np.where(floating, params.fragment_reach, -1.0))
-        joined = join_nearest(todo, np.flatnonzero(labelled), bound, max(params.max_crown_radius, params.unreached_radius))
-        # small floating fragments also join through fragments that have just joined (a
-        # sparsely scanned crown's rim: a chain of lone leaves). The nodes labelled before
-        # a round are all beyond fragment_reach of the rest, so each round only searches
-        # the nodes that joined in the round before.
-        rim = todo[~big & floating]
-        for _ in range(RIM_ROUNDS):
-            rim = rim[node_tree[rim] == 0]
-            if rim.size == 0 or joined.size == 0:
-                break
-            joined = join_nearest(rim, joined, params.fragment_reach, params.fragment_reach)
-    return Segmentation(node_tree, sp, reached)
+    if not (todo.size and labelled.any()):
+        return node_tree
+    _, comp = csgraph.connected_components(graph[todo][:, todo], directed=False)
+    low = np.full(comp.max() + 1, np.inf)
+    np.minimum.at(low, comp, node_height[todo])
+    floating = low[comp] > params.floating_height
+    bound = np.where(floating, params.max_crown_radius, params.unreached_radius)
+    big = np.bincount(comp)[comp] >= params.min_fragment
+    # a small fragment is an outlier unless it floats right beside a tree (a lone leaf at the rim)
+    bound = np.where(big, bound, np.where(floating, params.fragment_reach, -1.0))
+    joined = _join_nearest(nodes, node_tree, trunk_xy, todo, np.flatnonzero(labelled), bound,
+                           max(params.max_crown_radius, params.unreached_radius), params.max_crown_radius)
+    # small floating fragments also join through fragments that have just joined (a
+    # sparsely scanned crown's rim: a chain of lone leaves). The nodes labelled before
+    # a round are all beyond fragment_reach of the rest, so each round only searches
+    # the nodes that joined in the round before.
+    rim = todo[~big & floating]
+    for _ in range(RIM_ROUNDS):
+        rim = rim[node_tree[rim] == 0]
+        if rim.size == 0 or joined.size == 0:
+            break
+        joined = _join_nearest(nodes, node_tree, trunk_xy, rim, joined, params.fragment_reach, params.fragment_reach,
+                               params.max_crown_radius)
+    return node_tree
 
 
 def planar_patches(graph: sparse.csr_matrix, planar: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
