@@ -13,6 +13,7 @@ from pipeline.graph import ShortestPaths, shortest_paths, without_nodes
 from pipeline.metrics import group_runs, tree_circles
 from pipeline.nearby import near_centres
 from pipeline.params import SegmentParams
+from pipeline.refine import refine_contested
 
 # Fixed tuning of segmentation (lengths in metres).
 
@@ -93,6 +94,8 @@ def segment_nodes(
     node_tree, reached = _path_labels(sp, source_nodes, source_trunk)
     if trunk_xy.shape[0]:
         node_tree, reached = _within_reach(nodes, node_tree, reached, trunk_xy, params.max_crown_radius)
+    if params.method == "refined":
+        node_tree = refine_contested(graph, node_tree, sp.dist, margin=params.contest_margin)
     node_tree = _label_unreached(nodes, graph, node_tree, trunk_xy, node_height, params=params, exclude=exclude)
     return Segmentation(node_tree, sp, reached)
 

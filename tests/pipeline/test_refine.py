@@ -1,0 +1,102 @@
+"""Refinement of contested nodes on hand-built graphs."""
+
+import numpy as np
+from hypothesis import given, settings
+from hypothesis import strategies as st
+
+from pipeline.graph import build_graph, shortest_paths
+from pipeline.params import SegmentParams
+from pipeline.refine import contested_nodes, random_walk, refine_contested, rival_distance
+from pipeline.segment import segment_nodes
+
+
+def _line(a, b, step=0.1):
+    """Nodes every ``step`` from ``a`` to ``b`` (both included)."""
+    a, b = np.asarray(a, float), np.asarray(b, float)
+    n = int(round(np.linalg.norm(b - a) / step)) + 1
+    return a + np.linspace(0, 1, n)[:, None] * (b - a)
+
+
+def _touching_crowns():
+    """Two trees whose crowns touch at one twig.
+
+    Tree A (trunk at x = 0) holds a dense twig cluster at x 1.6-2.0 m, 1 m up; tree B
+    (trunk at x = 3.8 m) reaches it with a single thin twig whose tip lies 0.12 m from
+    the cluster's end node: one edge. B's path to that end node is shorter than A's by
+    a few centimetres, so shortest paths give it to B; it hangs on A's cluster by eight
+    edges.
+    """
+    trunk_a = _line([0, 0, 0], [0, 0, 0.9])
+    branch_a = _line([0, 0, 1.0], [1.5, 0, 1.0])
+    g = np.arange(3) * 0.1 - 0.1
+    cluster = np.array([[x, y, z + 1.0] for x in np.arange(16, 21) * 0.1 for y in g for z in g])
+    trunk_b = _line([3.8, 0.22, 0], [3.8, 0.22, 0.9])
+    twig_b = _line([3.8, 0.22, 1.0], [2.0, 0.22, 1.0])
+    parts = [trunk_a, branch_a, cluster, trunk_b, twig_b]
+    nodes = np.vstack(parts)
+    tree = np.repeat([1, 1, 1, 2, 2], [len(p) for p in parts])
+    sources = np.array([0, len(trunk_a) + len(branch_a) + len(cluster)])
+    return nodes, tree, sources
+
+
+def _segment(nodes, sources, method):
+    graph = build_graph(nodes, radius=0.15)
+    params = SegmentParams(method=method, contest_margin=0.3, unreached_radius=0.6)
+    seg = segment_nodes(nodes, graph, source_nodes=sources, source_trunk=np.array([0, 1]),
+                        trunk_xy=nodes[sources, :2], node_height=nodes[:, 2], params=params)
+    return seg.node_tree
+
+
+def test_a_twig_that_touches_the_neighbour_stays_with_its_own_branch():
+    nodes, tree, sources = _touching_crowns()
+    paths = _segment(nodes, sources, "paths")
+    wrong = np.flatnonzero(paths != tree)
+    assert wrong.size >= 1  # the contact node goes to the neighbour by shortest path
+    assert (tree[wrong] == 1).all()
+    refined = _segment(nodes, sources, "refined")
+    np.testing.assert_array_equal(refined, tree)
+
+
+def test_rival_distance_is_the_other_trunks_shortest_path():
+    nodes, tree, sources = _touching_crowns()
+    graph = build_graph(nodes, radius=0.15)
+    sp = shortest_paths(graph, sources)
+    node_tree = np.where(sp.source == sources[0], 1, 2)
+    rival_dist, rival = rival_distance(graph, node_tree, sp.dist)
+    own = shortest_paths(graph, sources[:1]).dist, shortest_paths(graph, sources[1:]).dist
+    expect = np.where(node_tree == 1, own[1], own[0])
+    np.testing.assert_allclose(rival_dist, expect)
+    np.testing.assert_array_equal(rival, 3 - node_tree)
+
+
+@settings(max_examples=30, deadline=None)
+@given(seed=st.integers(0, 10_000), margin=st.floats(0.0, 2.0))
+def test_nodes_only_one_trunk_reaches_never_move(seed, margin):
+    """Three random clouds: two joined (both trunks reach them), one apart with its own
+    trunk; neither the lone cloud nor any node no rival path reaches changes tree."""
+    rng = np.random.default_rng(seed)
+    a = rng.uniform([0, 0, 0], [2, 1, 1], (120, 3))
+    b = rng.uniform([1.5, 0, 0], [3.5, 1, 1], (120, 3))
+    c = rng.uniform([10, 0, 0], [11, 1, 1], (60, 3))
+    nodes = np.vstack([a, b, c])
+    graph = build_graph(nodes, radius=0.35)
+    sources = np.array([0, 120, 240])
+    sp = shortest_paths(graph, sources)
+    node_tree = np.zeros(len(nodes), np.int64)
+    reached = sp.source >= 0
+    node_tree[reached] = np.searchsorted(sources, sp.source[reached]) + 1
+    out = refine_contested(graph, node_tree, sp.dist, margin=margin)
+    rival_dist, _ = rival_distance(graph, node_tree, sp.dist)
+    alone = ~np.isfinite(rival_dist)
+    np.testing.assert_array_equal(out[alone], node_tree[alone])
+    assert (out[240:] == node_tree[240:]).all()
+    assert ((out > 0) == (node_tree > 0)).all()  # nothing gained or lost, only moved
+    moved = out != node_tree
+    assert not moved[~contested_nodes(node_tree, sp.dist, rival_dist, margin=margin)].any()
+
+
+def test_a_walk_with_no_seed_in_reach_keeps_the_labels():
+    nodes = _line([0, 0, 0], [1, 0, 0])
+    graph = build_graph(nodes, radius=0.15)
+    tree = np.ones(len(nodes), np.int64)
+    np.testing.assert_array_equal(random_walk(graph, tree, np.ones(len(nodes), bool)), tree)
