@@ -1,12 +1,15 @@
 """Fit the "combined" wood/leaf model on generated orchards (training seeds only).
 
-    python -m bench.fit_matter [--seeds 4]
+    python -m bench.fit_matter [--seeds 4] [--models wide,narrow]
 
 Generates orchards with seeds 1000, 1001, ... (never used for evaluation, which uses
 seeds below 1000), runs the pipeline to the node level, and fits a logistic model of
 node wood fraction on :data:`pipeline.woodleaf.FEATURES` (L2-regularised, points as
 weights). Prints the weights and the threshold that maximises point-level wood F1 on
 the training blocks, to paste into ``pipeline/woodleaf.py`` / ``pipeline/params.py``.
+The narrow trees' model (``NARROW_WEIGHTS``) is fitted the same way on the narrow forms
+(``NARROW_TRAINING``) over :func:`pipeline.woodleaf.narrow_features`, its bias shifted
+so that its best threshold falls on the wide model's.
 """
 
 from __future__ import annotations
@@ -28,6 +31,14 @@ TRAINING = [
     dict(rows=2, trees_per_row=4, spacing=3.5, row_spacing=5.0),
     dict(rows=2, trees_per_row=5, spacing=2.5, row_spacing=4.5, low_foliage=True),
 ]
+"""Blocks of wide (vase) trees: the wide trees' model."""
+
+NARROW_TRAINING = [
+    dict(form="spindle", rows=2, trees_per_row=14, spacing=1.0, row_spacing=3.5),
+    dict(form="hedge", rows=2, trees_per_row=12, spacing=1.2, row_spacing=4.0),
+]
+"""Blocks of narrow trees (tall spindles, hedges): the narrow trees' model, each block
+weighted alike (a spindle block holds a tenth of a vase block's wood)."""
 
 
 def node_table(seed: int, sim: dict, params: PipelineParams):
@@ -76,20 +87,43 @@ def best_threshold(score: np.ndarray, n_wood: np.ndarray, n_all: np.ndarray) -> 
     return best
 
 
+def _f1(score: np.ndarray, n_wood: np.ndarray, n_all: np.ndarray, thr: float) -> float:
+    pred = score >= thr
+    tp, fp, fn = n_wood[pred].sum(), (n_all - n_wood)[pred].sum(), n_wood[~pred].sum()
+    return float(2 * tp / max(2 * tp + fp + fn, 1e-9))
+
+
 def main(argv: list[str] | None = None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--seeds", type=int, default=2, help="training blocks per configuration")
+    ap.add_argument("--models", default="wide,narrow", help="which models to fit: wide, narrow or both")
     args = ap.parse_args(argv)
     params = PipelineParams()
-    rows = [node_table(1000 + s, sim, params) for s in range(args.seeds) for sim in TRAINING]
-    x = np.concatenate([r[0] for r in rows])
-    nw = np.concatenate([r[1] for r in rows])
-    na = np.concatenate([r[2] for r in rows])
-    beta = fit(x, nw, na)
-    thr, f1 = best_threshold(woodleaf.combined_score(x, weights=beta), nw, na)
     print("features :", ", ".join(woodleaf.FEATURES))
-    print("weights  :", np.array2string(beta, precision=3, separator=", "))
-    print(f"threshold: {thr:.2f}  (training point-level wood F1 {f1:.3f}, {len(x)} nodes)")
+    if "wide" in args.models:
+        rows = [node_table(1000 + s, sim, params) for s in range(args.seeds) for sim in TRAINING]
+        x = np.concatenate([r[0] for r in rows])[:, :-1]
+        nw = np.concatenate([r[1] for r in rows])
+        na = np.concatenate([r[2] for r in rows])
+        beta = np.r_[fit(x, nw, na), 0.0]  # the tree's width plays no part in the wide model
+        thr, f1 = best_threshold(woodleaf.combined_score(np.c_[x, np.zeros(len(x))], weights=beta), nw, na)
+        print("COMBINED_WEIGHTS:", np.array2string(beta, precision=3, separator=", "))
+        print(f"threshold: {thr:.2f}  (training point-level wood F1 {f1:.3f}, {len(x)} nodes)")
+    if "narrow" in args.models:
+        cells = [(s, sim) for s in range(args.seeds) for sim in NARROW_TRAINING]
+        rows = [node_table(1000 + s, sim, params) for s, sim in cells]
+        x = np.concatenate([woodleaf.narrow_features(r[0]) for r in rows])
+        nw = np.concatenate([r[1] / r[2].sum() for r in rows])  # each block weighs alike
+        na = np.concatenate([r[2] / r[2].sum() for r in rows])
+        beta = fit(x, nw, na, l2=1e-4)
+        thr, f1 = best_threshold(1 / (1 + np.exp(-np.clip(x @ beta, -50, 50))), nw, na)
+        target = PipelineParams().matter.effective_threshold()
+        beta[0] += np.log(target / (1 - target)) - np.log(thr / (1 - thr))
+        print("NARROW_WEIGHTS:", np.array2string(beta, precision=3, separator=", ", max_line_width=110))
+        print(f"best threshold {thr:.2f} moved to {target:.2f} (training wood F1 {f1:.3f}, blocks weighted alike)")
+        for (s, sim), (xi, nwi, nai) in zip(cells, rows):
+            score = 1 / (1 + np.exp(-np.clip(woodleaf.narrow_features(xi) @ beta, -50, 50)))
+            print(f"  seed {1000 + s} {sim}: training wood F1 {_f1(score, nwi, nai, target):.3f}")
     return 0
 
 

@@ -9,6 +9,10 @@ Our method ("combined") normalises the score per tree rather than over the whole
 averages it over a neighbourhood (a trunk wider than a voxel carries its paths down a
 narrow "highway" and the smoothing spreads it over the whole stem), and combines it with
 local shape (branches are linear, foliage is scattered) in a fixed logistic model.
+Narrow trees (tall spindles, hedges: a crown radius under about a third of the tree's
+height) carry a much smaller share of wood than open vase trees, so one threshold
+cannot serve both: their nodes are scored by a second logistic model, fitted on narrow
+forms, and the two scores are blended by the tree's width.
 """
 
 from __future__ import annotations
@@ -33,13 +37,27 @@ FEATURES = (
     "rel_density",
     "height_frac",
     "radial_frac",
+    "tree_width",
 )
 
 # Logistic model of the "combined" score, one weight per FEATURES column, fitted by
 # `python -m bench.fit_matter --seeds 4` on generated orchards never used for evaluation
 # (seeds 1000+); refit and paste when the features change. The matching threshold is
 # params.COMBINED_THRESHOLD.
-COMBINED_WEIGHTS = np.array([-4.523, 1.337, 3.206, 5.642, 1.075, -1.547, 0.281, 0.045, -0.813, -2.692])
+COMBINED_WEIGHTS = np.array([-4.523, 1.337, 3.206, 5.642, 1.075, -1.547, 0.281, 0.045, -0.813, -2.692, 0.0])
+#: weights of the narrow trees' model: one per FEATURES column but the last, then one
+#: per such column times the tree's width (``python -m bench.fit_matter --seeds 2
+#: --models narrow``, seeds 1000+, the narrow forms only; its bias shifted so that
+#: params.COMBINED_THRESHOLD is its best threshold)
+NARROW_WEIGHTS = np.array([
+    -8.204, 1.402, 6.934, 2.595, 1.594, 1.146, 0.762, -1.01, -4.646, -1.359,
+    3.176, 1.534, 2.634, 3.56, 1.872, 0.981, 2.499, 3.93, 0.113, 0.452,
+])
+#: a tree narrower than this (90th percentile of its material's distance from the trunk
+#: over its height) is scored by the narrow trees' model ...
+NARROW_WIDTH = 0.3
+#: ... blended over about this width on either side
+NARROW_BLEND = 0.03
 
 
 def path_counts(pred: np.ndarray) -> np.ndarray:
@@ -136,6 +154,9 @@ def wood_features(
     top_r = np.zeros_like(top_h)
     np.maximum.at(top_r, node_tree, radial)
     med_c = _per_group(points_per_node.astype(np.float64), node_tree, np.median) if m else np.ones(1)
+    # the crown's reach by its 90th percentile: a few stray nodes do not widen a tree
+    reach = _per_group(radial, node_tree, lambda v: np.percentile(v, 90)) if m else np.zeros(1)
+    width = reach / np.maximum(top_h, 1e-9)
     return np.column_stack(
         [
             np.ones(m),
@@ -148,13 +169,41 @@ def wood_features(
             np.log(np.maximum(points_per_node, 1) / np.maximum(med_c[node_tree], 1.0)),
             np.clip(node_height / np.maximum(top_h[node_tree], 1e-9), 0.0, 1.0),
             np.clip(radial / np.maximum(top_r[node_tree], 1e-9), 0.0, 1.0),
+            width[node_tree],
         ]
     )
 
 
-def combined_score(features: np.ndarray, *, weights: np.ndarray = COMBINED_WEIGHTS) -> np.ndarray:
-    """Wood probability per node from :func:`wood_features`, (m,) float64 in [0, 1]."""
-    return 1.0 / (1.0 + np.exp(-np.clip(features @ weights, -50, 50)))  # clipped: no overflow in exp
+def _logistic(z: np.ndarray) -> np.ndarray:
+    return 1.0 / (1.0 + np.exp(-np.clip(z, -50, 50)))  # clipped: no overflow in exp
+
+
+def narrow_features(features: np.ndarray) -> np.ndarray:
+    """The narrow trees' model's columns from :func:`wood_features`: the node's
+    features and the same times the tree's width, (m, 2 * (len(FEATURES) - 1))."""
+    base, width = features[:, :-1], features[:, -1:]
+    return np.column_stack([base, base * width])
+
+
+def narrowness(width: np.ndarray) -> np.ndarray:
+    """Weight of the narrow trees' model for trees of ``width``, (m,) in [0, 1]."""
+    return _logistic((NARROW_WIDTH - width) / NARROW_BLEND)
+
+
+def combined_score(
+    features: np.ndarray, *, weights: np.ndarray = COMBINED_WEIGHTS, narrow_weights: np.ndarray | None = None
+) -> np.ndarray:
+    """Wood probability per node from :func:`wood_features`, (m,) float64 in [0, 1].
+
+    ``weights`` score wide trees; ``narrow_weights`` (default NARROW_WEIGHTS; all zeros:
+    the wide trees' model everywhere) score narrow ones, blended by :func:`narrowness`.
+    """
+    wide = _logistic(features @ weights)
+    nw = NARROW_WEIGHTS if narrow_weights is None else narrow_weights
+    if not nw.any():
+        return wide
+    g = narrowness(features[:, -1])
+    return (1.0 - g) * wide + g * _logistic(narrow_features(features) @ nw)
 
 
 def classify(
