@@ -102,11 +102,12 @@ def main(argv: list[str] | None = None) -> int:
     print("features :", ", ".join(woodleaf.FEATURES))
     if "wide" in args.models:
         rows = [node_table(1000 + s, sim, params) for s in range(args.seeds) for sim in TRAINING]
-        x = np.concatenate([r[0] for r in rows])[:, :-1]
+        x = np.concatenate([r[0] for r in rows])[:, : woodleaf.NODE_FEATURES]
         nw = np.concatenate([r[1] for r in rows])
         na = np.concatenate([r[2] for r in rows])
-        beta = np.r_[fit(x, nw, na), 0.0]  # the tree's width plays no part in the wide model
-        thr, f1 = best_threshold(woodleaf.combined_score(np.c_[x, np.zeros(len(x))], weights=beta), nw, na)
+        beta = fit(x, nw, na)
+        thr, f1 = best_threshold(1 / (1 + np.exp(-np.clip(x @ beta, -50, 50))), nw, na)
+        beta = np.r_[beta, 0.0, 0.0]  # the tree's width and height play no part in the wide model
         print("COMBINED_WEIGHTS:", np.array2string(beta, precision=3, separator=", "))
         print(f"threshold: {thr:.2f}  (training point-level wood F1 {f1:.3f}, {len(x)} nodes)")
     if "narrow" in args.models:

@@ -38,15 +38,18 @@ FEATURES = (
     "height_frac",
     "radial_frac",
     "tree_width",
+    "tree_height",
 )
+#: the node features; the last two columns describe the node's tree
+NODE_FEATURES = len(FEATURES) - 2
 
 # Logistic model of the "combined" score, one weight per FEATURES column, fitted by
 # `python -m bench.fit_matter --seeds 4` on generated orchards never used for evaluation
 # (seeds 1000+); refit and paste when the features change. The matching threshold is
 # params.COMBINED_THRESHOLD.
-COMBINED_WEIGHTS = np.array([-4.523, 1.337, 3.206, 5.642, 1.075, -1.547, 0.281, 0.045, -0.813, -2.692, 0.0])
-#: weights of the narrow trees' model: one per FEATURES column but the last, then one
-#: per such column times the tree's width (``python -m bench.fit_matter --seeds 2
+COMBINED_WEIGHTS = np.array([-4.523, 1.337, 3.206, 5.642, 1.075, -1.547, 0.281, 0.045, -0.813, -2.692, 0.0, 0.0])
+#: weights of the narrow trees' model: one per node feature, then one per node feature
+#: times the tree's width (``python -m bench.fit_matter --seeds 2
 #: --models narrow``, seeds 1000+, the narrow forms only; its bias shifted so that
 #: params.COMBINED_THRESHOLD is its best threshold)
 NARROW_WEIGHTS = np.array([
@@ -56,8 +59,14 @@ NARROW_WEIGHTS = np.array([
 #: a tree narrower than this (90th percentile of its material's distance from the trunk
 #: over its height) is scored by the narrow trees' model ...
 NARROW_WIDTH = 0.3
-#: ... blended over about this width on either side
+#: ... blended over about this width on either side ...
 NARROW_BLEND = 0.03
+#: ... and only up to this height [m]: the model was fitted on trained orchard trees
+#: 2.5-3.5 m tall and is not carried over to tall trees (a leafless 20 m tree is narrow
+#: too, and nearly all wood) ...
+NARROW_MAX_HEIGHT = 6.0
+#: ... blended over about this height on either side [m]
+NARROW_HEIGHT_BLEND = 0.5
 
 
 def path_counts(pred: np.ndarray) -> np.ndarray:
@@ -170,6 +179,7 @@ def wood_features(
             np.clip(node_height / np.maximum(top_h[node_tree], 1e-9), 0.0, 1.0),
             np.clip(radial / np.maximum(top_r[node_tree], 1e-9), 0.0, 1.0),
             width[node_tree],
+            top_h[node_tree],
         ]
     )
 
@@ -180,14 +190,14 @@ def _logistic(z: np.ndarray) -> np.ndarray:
 
 def narrow_features(features: np.ndarray) -> np.ndarray:
     """The narrow trees' model's columns from :func:`wood_features`: the node's
-    features and the same times the tree's width, (m, 2 * (len(FEATURES) - 1))."""
-    base, width = features[:, :-1], features[:, -1:]
+    features and the same times the tree's width, (m, 2 * NODE_FEATURES)."""
+    base, width = features[:, :NODE_FEATURES], features[:, NODE_FEATURES : NODE_FEATURES + 1]
     return np.column_stack([base, base * width])
 
 
-def narrowness(width: np.ndarray) -> np.ndarray:
-    """Weight of the narrow trees' model for trees of ``width``, (m,) in [0, 1]."""
-    return _logistic((NARROW_WIDTH - width) / NARROW_BLEND)
+def narrowness(width: np.ndarray, height: np.ndarray) -> np.ndarray:
+    """Weight of the narrow trees' model for trees of ``width`` and ``height`` [m], (m,) in [0, 1]."""
+    return _logistic((NARROW_WIDTH - width) / NARROW_BLEND) * _logistic((NARROW_MAX_HEIGHT - height) / NARROW_HEIGHT_BLEND)
 
 
 def combined_score(
@@ -202,7 +212,7 @@ def combined_score(
     nw = NARROW_WEIGHTS if narrow_weights is None else narrow_weights
     if not nw.any():
         return wide
-    g = narrowness(features[:, -1])
+    g = narrowness(features[:, NODE_FEATURES], features[:, NODE_FEATURES + 1])
     return (1.0 - g) * wide + g * _logistic(narrow_features(features) @ nw)
 
 

@@ -1,0 +1,49 @@
+"""pipeline.woodleaf: the narrow trees' model and the blend by the tree's width and height."""
+
+from __future__ import annotations
+
+import numpy as np
+
+from pipeline import woodleaf
+
+
+def _features(n, width, height, seed=0):
+    rng = np.random.default_rng(seed)
+    x = rng.uniform(0, 1, (n, len(woodleaf.FEATURES)))
+    x[:, 0] = 1.0
+    x[:, woodleaf.NODE_FEATURES] = width
+    x[:, woodleaf.NODE_FEATURES + 1] = height
+    return x
+
+
+def _wide(x):
+    return 1 / (1 + np.exp(-(x @ woodleaf.COMBINED_WEIGHTS)))
+
+
+def test_wide_trees_keep_the_wide_model():
+    x = _features(200, width=0.6, height=4.0)  # a vase tree
+    np.testing.assert_allclose(woodleaf.combined_score(x), _wide(x), atol=1e-3)
+
+
+def test_tall_trees_keep_the_wide_model_however_narrow():
+    x = _features(200, width=0.15, height=20.0)  # a narrow forest tree, outside the narrow model's range
+    np.testing.assert_allclose(woodleaf.combined_score(x), _wide(x), atol=1e-3)
+
+
+def test_narrow_orchard_trees_take_the_narrow_model():
+    x = _features(200, width=0.15, height=3.0)  # a tall spindle
+    narrow = 1 / (1 + np.exp(-(woodleaf.narrow_features(x) @ woodleaf.NARROW_WEIGHTS)))
+    np.testing.assert_allclose(woodleaf.combined_score(x), narrow, atol=0.01)  # blend weight 0.99
+    assert not np.allclose(narrow, _wide(x), atol=0.05)
+
+
+def test_the_blend_is_continuous_in_width():
+    widths = np.linspace(0.1, 0.5, 81)
+    s = np.array([woodleaf.combined_score(_features(1, w, 3.0, seed=1))[0] for w in widths])
+    assert np.abs(np.diff(s)).max() < 0.1
+
+
+def test_all_zero_narrow_weights_mean_the_wide_model():
+    x = _features(50, width=0.15, height=3.0)
+    got = woodleaf.combined_score(x, narrow_weights=np.zeros_like(woodleaf.NARROW_WEIGHTS))
+    np.testing.assert_allclose(got, _wide(x))
