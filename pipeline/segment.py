@@ -62,7 +62,9 @@ def segment_nodes(
     above ``floating_height`` is canopy the graph could not bridge (sparse scans) and
     takes the tree of the nearest labelled node; a fragment standing on the ground is a
     separate object (fence post, vehicle, grass) and only its nodes within
-    ``unreached_radius`` of a tree join it. Either way within ``max_crown_radius``.
+    ``unreached_radius`` of a tree join it, and so does a floating fragment that
+    touched an excluded node (what is left of a vehicle or a bin once its faces are cut
+    out: its roof, its edges). Either way within ``max_crown_radius``.
     Fragments smaller than ``min_fragment`` nodes are outliers and stay unlabelled,
     unless they float within ``fragment_reach`` of a labelled node (sparse leaves at the
     crown's rim, which the scanner saw only once), or of such a fragment that has joined
@@ -86,9 +88,11 @@ def segment_nodes(
     Segmentation
     """
     params = params.at_spacing(None)  # radii still unset: the free-standing trees' values
+    on_object = None
     if exclude is not None and exclude.any():
         exclude = exclude.copy()
         exclude[source_nodes] = False  # a trunk's seeds stay, whatever stands beside it
+        on_object = _beside_excluded(graph, exclude)
         graph = without_nodes(graph, exclude)
     sp = shortest_paths(graph, source_nodes)
     node_tree, reached = _path_labels(sp, source_nodes, source_trunk)
@@ -96,7 +100,8 @@ def segment_nodes(
         node_tree, reached = _within_reach(nodes, node_tree, reached, trunk_xy, params.max_crown_radius)
     if params.method == "refined":
         node_tree = refine_contested(graph, node_tree, sp.dist, margin=params.contest_margin)
-    node_tree = _label_unreached(nodes, graph, node_tree, trunk_xy, node_height, params=params, exclude=exclude)
+    node_tree = _label_unreached(nodes, graph, node_tree, trunk_xy, node_height, params=params, exclude=exclude,
+                                 on_object=on_object)
     return Segmentation(node_tree, sp, reached)
 
 
@@ -148,8 +153,14 @@ def _join_nearest(nodes, node_tree, trunk_xy, cand: np.ndarray, lab: np.ndarray,
     return cand[hit][ok]
 
 
+def _beside_excluded(graph: sparse.csr_matrix, exclude: np.ndarray) -> np.ndarray:
+    """Nodes not in ``exclude`` with an edge to one that is, (m,) bool."""
+    touch = np.asarray(graph @ exclude.astype(np.float64)).ravel() > 0
+    return touch & ~exclude
+
+
 def _label_unreached(nodes, graph, node_tree, trunk_xy, node_height, *, params: SegmentParams,
-                     exclude: np.ndarray | None) -> np.ndarray:
+                     exclude: np.ndarray | None, on_object: np.ndarray | None = None) -> np.ndarray:
     """``node_tree`` with the nodes the search did not reach labelled by distance, per
     connected fragment (see :func:`segment_nodes`)."""
     node_tree = node_tree.copy()
@@ -161,6 +172,11 @@ def _label_unreached(nodes, graph, node_tree, trunk_xy, node_height, *, params: 
     low = np.full(comp.max() + 1, np.inf)
     np.minimum.at(low, comp, node_height[todo])
     floating = low[comp] > params.floating_height
+    if on_object is not None and on_object[todo].any():
+        # a fragment left of a cut-out object stands with it, however high it floats
+        part_of_object = np.zeros(comp.max() + 1, bool)
+        part_of_object[comp[on_object[todo]]] = True
+        floating &= ~part_of_object[comp]
     bound = np.where(floating, params.max_crown_radius, params.unreached_radius)
     big = np.bincount(comp)[comp] >= params.min_fragment
     # a small fragment is an outlier unless it floats right beside a tree (a lone leaf at the rim)

@@ -100,3 +100,24 @@ def test_a_walk_with_no_seed_in_reach_keeps_the_labels():
     graph = build_graph(nodes, radius=0.15)
     tree = np.ones(len(nodes), np.int64)
     np.testing.assert_array_equal(random_walk(graph, tree, np.ones(len(nodes), bool)), tree)
+
+
+def test_what_is_left_of_a_cut_out_object_does_not_join_a_crown():
+    """A vehicle's sides are cut out of the graph; its roof floats above the grass and
+    used to join the nearest tree as canopy the graph could not bridge (5 m away at a
+    row's end). A floating fragment as far away that touched no cut-out node still joins."""
+    trunk = _line([0, 0, 0], [0, 0, 1.5])
+    crown = _line([0, 0, 1.6], [1.0, 0, 1.6])
+    side = _line([2.0, 0, 0.1], [2.0, 0, 1.4])  # a face, cut out
+    roof = _line([2.1, 0, 1.5], [3.0, 0, 1.5])  # touches the face's top node only
+    canopy = _line([2.1, 1.0, 1.5], [3.0, 1.0, 1.5])  # floating canopy, no face near
+    parts = [trunk, crown, side, roof, canopy]
+    nodes = np.vstack(parts)
+    part = np.repeat(np.arange(5), [len(p) for p in parts])
+    graph = build_graph(nodes, radius=0.15)
+    tree = segment_nodes(nodes, graph, source_nodes=np.array([0]), source_trunk=np.array([0]),
+                         trunk_xy=np.zeros((1, 2)), node_height=nodes[:, 2], params=SegmentParams(unreached_radius=0.6),
+                         exclude=part == 2).node_tree
+    assert (tree[part <= 1] == 1).all()
+    assert (tree[part == 2] == 0).all() and (tree[part == 3] == 0).all()
+    assert (tree[part == 4] == 1).all()
