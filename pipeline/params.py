@@ -131,7 +131,7 @@ class SegmentParams(_Model):
     surface_margin: float = Field(0.3, ge=0.0, le=5.0, description="material this close to such a surface belongs to the object (its edges, wheels) [m]")
     grass_height: float = Field(0.3, ge=0.0, le=2.0, description="graph nodes lower than this above the ground and farther than grass_clearance from every trunk are grass or the feet of clutter: never tree material, and no path runs through them (a crown at a row's end does not spread over the headland's grass); 0 = off [m]")
     grass_clearance: float = Field(0.5, ge=0.0, le=5.0, description="low nodes this close to a trunk are its foot, not grass (see grass_height) [m]")
-    method: Literal["paths", "refined"] = Field("paths", description="'paths': every node goes to the trunk of its shortest path (the paper's rule); 'refined': then the contested nodes (another trunk's path at most contest_margin longer) go where a random walk from them most likely ends, among the trees' settled nodes")
+    method: Literal["paths", "refined"] = Field("refined", description="'paths': every node goes to the trunk of its shortest path (the paper's rule); 'refined': then the contested nodes (another trunk's path at most contest_margin longer) go where a random walk from them most likely ends, among the trees' settled nodes")
     contest_margin: float = Field(0.2, ge=0.0, le=5.0, description="with method 'refined', a node is contested when another trunk's shortest path to it is at most this much longer than its own [m]")
 
     def at_spacing(self, spacing: float | None) -> "SegmentParams":
