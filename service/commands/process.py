@@ -130,27 +130,38 @@ def _check_tiled_options(args: argparse.Namespace, *, tiled: bool) -> None:
 
 def _tiling(args: argparse.Namespace):
     """The tiling options as the job's `TilingParams`: ``--tile-size 0`` is one piece
-    whatever the block's size (no budget); without ``--tile-size`` tiles are chosen to fit
-    ``--worker-memory``, else the ORCHARD_WORKER_MEMORY_GB setting."""
+    whatever the block's size."""
     from pipeline.jobparams import TilingParams
 
-    given = {k: getattr(args, k) for k in ("buffer", "grid_origin", "engine", "workers") if getattr(args, k) is not None}
+    given = {k: getattr(args, k) for k in ("buffer", "grid_origin") if getattr(args, k) is not None}
     if args.tile_size is not None:
-        given.update(tile_size=args.tile_size or None, worker_memory=None)
+        given["tile_size"] = args.tile_size or None
+    return TilingParams(**given)
+
+
+def _run_options(args: argparse.Namespace):
+    """How to run the job, `RunOptions`: with ``--tile-size`` no memory budget (the
+    tiles are given); without, tiles are chosen to fit ``--worker-memory``, else the
+    ORCHARD_WORKER_MEMORY_GB setting."""
+    from workers.runoptions import RunOptions
+
+    given = {k: getattr(args, k) for k in ("engine", "workers") if getattr(args, k) is not None}
+    if args.tile_size is not None:
+        given["worker_memory"] = None
     elif args.worker_memory is not None:
         given["worker_memory"] = args.worker_memory
     else:
         from service.settings import Settings
 
         given["worker_memory"] = Settings().worker_memory_gb
-    return TilingParams(**given)
+    return RunOptions(**given)
 
 
 def _check_same_job(args: argparse.Namespace) -> None:
     """ParameterError if INPUT, the pipeline options or --labelled-laz are not those the
     job in ``work`` was started with (--rerun-tile and --resume go on with that job: they
     were ignored without a word)."""
-    from pipeline.params import PipelineParams
+    from workers.jobspec import stored_job
     from workers.workstore import JOB_KEY, WorkStore
 
     work, input_path = args.work, args.input
@@ -158,7 +169,7 @@ def _check_same_job(args: argparse.Namespace) -> None:
     if not store.exists(JOB_KEY):
         return  # said by resume_job / finish_job / run_tile
     record = store.get_json(JOB_KEY)
-    started_with = PipelineParams.model_validate(record.get("params") or {})
+    started_with = stored_job(record).pipeline
     if pipeline_params_from_args(args, base=started_with) != started_with:  # an option given to change one
         raise ParameterError(
             f"the pipeline options differ from those the job in --work {work} was started with; "
@@ -275,12 +286,14 @@ def _run(args: argparse.Namespace) -> int:
                 close_client(client)
         return _report(outcome, args)
 
-    tiling = _tiling(args)
+    from pipeline.jobparams import JobParams
+
+    run = _run_options(args)
     spec = JobSpec(
         input_path=args.input,
         out_dir=args.out,
-        params=params,
-        tiling=tiling,
+        job=JobParams(pipeline=params, tiling=_tiling(args)),
+        run=run,
         work_dir=args.work,
         labelled_laz=args.labelled_laz,
         inject_failure=tuple(args.inject_failure or ()),
@@ -295,7 +308,7 @@ def _run(args: argparse.Namespace) -> int:
     if spec.tiling.tile_size is None and not tiled:
         from pipeline.budget import surely_tiled
 
-        if surely_tiled(n_points, spec.tiling.memory_budget):
+        if surely_tiled(n_points, spec.run.memory_budget):
             tiled = count_on_cluster = True
         else:
             spec, points = _budget_tiles(spec)  # bad input fails here, before anything else
@@ -314,7 +327,7 @@ def _run(args: argparse.Namespace) -> int:
         if tiled:
             from workers.cluster import LOOPBACK, close_client, dashboard_address, make_client
 
-            client = make_client(args.scheduler, n_workers=tiling.workers, quiet=True, dashboard=args.dashboard,
+            client = make_client(args.scheduler, n_workers=run.workers, quiet=True, dashboard=args.dashboard,
                                  host=args.dask_host or LOOPBACK)
             if count_on_cluster:  # before the dashboard line: a budget that cannot work ends the count's lines
                 from workers.counting import count_block
@@ -342,7 +355,7 @@ def _budget_tiles(spec, count=None):
     from pipeline.budget import BudgetError
     from workers.jobspec import auto_tiled, budgeted
 
-    tiling, points = spec.tiling, None
+    run, points = spec.run, None
     try:
         if count is None:
             spec, points = budgeted(spec)
@@ -351,10 +364,10 @@ def _budget_tiles(spec, count=None):
     except BudgetError as exc:
         need = math.ceil(exc.need / 1e8) / 10  # GB, rounded up
         raise ParameterError(exc.message, hint=f"{exc.hint} ({{tiling.worker_memory}} {need:g} or more)",
-                             param="tiling.worker_memory", value=tiling.worker_memory, limit=need) from None
+                             param="tiling.worker_memory", value=run.worker_memory, limit=need) from None
     if spec.tiling.tile_size is not None:
         print(
-            f"orchard process: the block would need more than {tiling.worker_memory:g} GB in one piece: "
+            f"orchard process: the block would need more than {run.worker_memory:g} GB in one piece: "
             f"tiles of {spec.tiling.tile_size:g} m (--tile-size 0: one piece)",
             file=sys.stderr,
         )
