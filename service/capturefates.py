@@ -17,6 +17,7 @@ from typing import Any
 from service.db.jobstore import Store
 from service.schedules import captures, display_name, ignored_files, still_arriving
 from service.settings import Settings
+from service.wording import job_error
 
 #: the fates, in the order a list shows them
 FATES = ("arriving", "new", "rejected", "processed", "ignored")
@@ -66,7 +67,7 @@ def _handled(rec: dict[str, Any]) -> dict[str, Any]:
     name = display_name(Path(rec["path"]))
     if rec["job_id"] is None:
         return _capture(name, "rejected", reason=rec["error"], seen_at=rec["seen_at"])
-    reason = rec["job_error"] if rec["job_state"] == "failed" else None
+    reason = job_error(rec, prefix="job_") if rec["job_state"] == "failed" else None
     return _capture(name, "processed", job_id=rec["job_id"], job_state=rec["job_state"] or "deleted",
                     reason=reason, seen_at=rec["seen_at"])
 

@@ -280,7 +280,7 @@ def test_a_job_cancelled_just_before_a_shutdown_loses_its_tiles_at_the_next_star
     block_file = write_las(tmp_path / "b.las", 500, seed=6)
     block, _ = accept_block(store, blocks_dir=data / "blocks", tenant_id=tenant["id"], tmp_path=block_file,
                             sha256=file_sha256(block_file), size_bytes=block_file.stat().st_size, filename="b.las")
-    job = store.create_job(tenant_id=tenant["id"], block_id=block["id"], params={}, tiling={"tile_size": 6.0})
+    job = store.create_job(tenant_id=tenant["id"], block_id=block["id"], job={"tiling": {"tile_size": 6.0}})
     assert store.claim_next_job()["id"] == job["id"]
     store.request_cancel(tenant["id"], job["id"])
     work = WorkStore(work_dir_of(Settings(data_dir=data), job["id"]))
