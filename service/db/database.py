@@ -212,33 +212,29 @@ class Database:
         self._add_column("schedules", "orchard_block_id", "TEXT")  # (orchard_blocks and captures: new tables)
         self._add_column("jobs", "error_kind", "TEXT")
         self._add_column("jobs", "error_fields", "TEXT")
-        self._merge_job_columns("jobs")
-        self._merge_job_columns("schedules")
+        self._merge_job_columns()
         self._migrate_tokens()
 
-    def _merge_job_columns(self, table: str) -> None:
+    def _merge_job_columns(self) -> None:
         """A store written before a job's parameters were stored whole kept them in two
-        columns, ``params`` (the pipeline's) and ``tiling`` (the request's tile size and
-        buffer; NULL: one tile): they become the one ``job`` column (a
-        `pipeline.jobparams.JobParams`' fields), in place, in one transaction."""
-        def columns(con) -> set[str]:
-            return {r["name"] for r in con.execute(f"PRAGMA table_info({table})")}
+        columns of ``jobs`` and ``schedules``, ``params`` (the pipeline's) and ``tiling``
+        (the request's tile size and buffer; NULL: one tile): they become the one ``job``
+        column (a `pipeline.jobparams.JobParams`' fields), in place, in one transaction."""
+        def merged(con) -> list[str]:
+            return [t for t in ("jobs", "schedules")
+                    if "params" in {r["name"] for r in con.execute(f"PRAGMA table_info({t})")}]
 
-        if "params" not in columns(self._con()):
+        if not merged(self._con()):
             return
         with self._tx() as con:
-            have = columns(con)
-            if "params" not in have:  # another process merged them meanwhile
-                return
-            if "job" not in have:
+            for table in merged(con):  # (another process may have merged them meanwhile)
                 con.execute(f"ALTER TABLE {table} ADD COLUMN job TEXT NOT NULL DEFAULT '{{}}'")
-            rows = con.execute(f"SELECT rowid, params, tiling FROM {table}").fetchall()
-            for row in rows:
-                tiling = json.loads(row["tiling"]) if row["tiling"] else {}
-                job = {"pipeline": json.loads(row["params"]), "tiling": {k: tiling[k] for k in _OLD_TILING if k in tiling}}
-                con.execute(f"UPDATE {table} SET job = ? WHERE rowid = ?", (json.dumps(job), row["rowid"]))
-            con.execute(f"ALTER TABLE {table} DROP COLUMN params")
-            con.execute(f"ALTER TABLE {table} DROP COLUMN tiling")
+                for row in con.execute(f"SELECT rowid, params, tiling FROM {table}").fetchall():
+                    tiling = json.loads(row["tiling"]) if row["tiling"] else {}
+                    job = {"pipeline": json.loads(row["params"]), "tiling": {k: tiling[k] for k in _OLD_TILING if k in tiling}}
+                    con.execute(f"UPDATE {table} SET job = ? WHERE rowid = ?", (json.dumps(job), row["rowid"]))
+                con.execute(f"ALTER TABLE {table} DROP COLUMN params")
+                con.execute(f"ALTER TABLE {table} DROP COLUMN tiling")
 
     def _migrate_tokens(self) -> None:
         """Tokens stored before they had ids get one; their visible prefix stays unknown
