@@ -259,41 +259,61 @@ def _run(args: argparse.Namespace) -> int:
         from pipeline.lasheader import check_file
 
         n_points = check_file(args.input).point_count
-    from workers.jobspec import JobSpec, check_job
-
     _check_cluster_options(args)
     if args.rerun_tile or args.resume:
-        from workers.replay import finish_job, resume_job, run_tile
+        return _go_on(args)
+    spec = _spec(args, params)
+    spec, tiled, count_on_cluster, points = _tiled(spec, args, n_points)
+    _check_tiled_options(args, tiled=tiled)  # they went unused, without a word (the budget decided, or --tile-size 0)
+    if args.work:
+        from workers.workstore import check_work_url
 
-        if not args.work:
-            raise ParameterError("--rerun-tile and --resume need --work: the work folder of the tiled run that failed")
-        _check_same_job(args)
-        for tid in args.rerun_tile or ():
-            print(f"re-running tile {tid} from {args.work}", file=sys.stderr)
-            run_tile(args.work, tid)
-        if not args.resume:
-            return _report(finish_job(args.work, out_dir=args.out), args)
-        client = None
         try:
-            if args.scheduler:
-                from workers.cluster import close_client, make_client
+            check_work_url(args.work, shared=tiled)
+        except ParameterError as exc:
+            raise ParameterError("{job.work_dir}: " + exc.message, hint=exc.hint, param="job.work_dir", value=args.work) from None
+    outcome = _run_job(spec, args, tiled=tiled, count_on_cluster=count_on_cluster, points=points)
+    points = None  # not held through the report
+    return _report(outcome, args)
 
-                client = make_client(args.scheduler)
-            outcome = resume_job(args.work, out_dir=args.out, client=client, progress=_Bar(),
-                                 cancel=getattr(args, "interrupted", None))
-        finally:
-            if client is not None:
-                close_client(client)
-        return _report(outcome, args)
 
+def _go_on(args: argparse.Namespace) -> int:
+    """--rerun-tile and --resume: go on with the tiled job in --work."""
+    from workers.replay import finish_job, resume_job, run_tile
+
+    if not args.work:
+        raise ParameterError("--rerun-tile and --resume need --work: the work folder of the tiled run that failed")
+    _check_same_job(args)
+    for tid in args.rerun_tile or ():
+        print(f"re-running tile {tid} from {args.work}", file=sys.stderr)
+        run_tile(args.work, tid)
+    if not args.resume:
+        return _report(finish_job(args.work, out_dir=args.out), args)
+    client = None
+    try:
+        if args.scheduler:
+            from workers.cluster import close_client, make_client
+
+            client = make_client(args.scheduler)
+        outcome = resume_job(args.work, out_dir=args.out, client=client, progress=_Bar(),
+                             cancel=getattr(args, "interrupted", None))
+    finally:
+        if client is not None:
+            close_client(client)
+    return _report(outcome, args)
+
+
+def _spec(args: argparse.Namespace, params):
+    """The job the options describe: its parameters (a `JobParams`, checked once, here)
+    and how to run it."""
     from pipeline.jobparams import JobParams
+    from workers.jobspec import JobSpec
 
-    run = _run_options(args)
-    spec = JobSpec(
+    return JobSpec(
         input_path=args.input,
         out_dir=args.out,
         job=JobParams(pipeline=params, tiling=_tiling(args)),
-        run=run,
+        run=_run_options(args),
         work_dir=args.work,
         labelled_laz=args.labelled_laz,
         inject_failure=tuple(args.inject_failure or ()),
@@ -302,6 +322,13 @@ def _run(args: argparse.Namespace) -> int:
         captured_at=args.captured_at,
         captured_at_fallback=getattr(args, "captured_at_fallback", None),
     )
+
+
+def _tiled(spec, args: argparse.Namespace, n_points: int):
+    """Whether the job is tiled: given tiles, a scheduler, or a block that does not fit
+    the memory budget. Returns the spec (with the budget's tiles), whether it is tiled,
+    whether its workers are to count the block (it surely needs tiles), and the block's
+    points when they were read here and it stays whole."""
     tiled = bool(args.tile_size) or args.scheduler is not None
     count_on_cluster = False  # a block that surely needs tiles is counted by the workers
     points = None  # the block's points, read here when it stays whole
@@ -313,21 +340,21 @@ def _run(args: argparse.Namespace) -> int:
         else:
             spec, points = _budget_tiles(spec)  # bad input fails here, before anything else
             tiled = spec.tiling.tile_size is not None
-    _check_tiled_options(args, tiled=tiled)  # they went unused, without a word (the budget decided, or --tile-size 0)
-    if args.work:
-        from workers.workstore import check_work_url
+    return spec, tiled, count_on_cluster, points
 
-        try:
-            check_work_url(args.work, shared=tiled)
-        except ParameterError as exc:
-            raise ParameterError("{job.work_dir}: " + exc.message, hint=exc.hint, param="job.work_dir", value=args.work) from None
+
+def _run_job(spec, args: argparse.Namespace, *, tiled: bool, count_on_cluster: bool, points):
+    """Check the job, start the cluster a tiled job needs (its workers count the block
+    when ``count_on_cluster``) and run it."""
+    from workers.jobspec import check_job
+
     client = None
     try:
         check_job(spec, tiled=tiled)  # bad input or parameters fail before a cluster starts
         if tiled:
             from workers.cluster import LOOPBACK, close_client, dashboard_address, make_client
 
-            client = make_client(args.scheduler, n_workers=run.workers, quiet=True, dashboard=args.dashboard,
+            client = make_client(args.scheduler, n_workers=spec.run.workers, quiet=True, dashboard=args.dashboard,
                                  host=args.dask_host or LOOPBACK)
             if count_on_cluster:  # before the dashboard line: a budget that cannot work ends the count's lines
                 from workers.counting import count_block
@@ -339,13 +366,12 @@ def _run(args: argparse.Namespace) -> int:
             print(f"dask dashboard: {link or 'none'}", file=sys.stderr)
         from workers.job import run_job
 
-        outcome = run_job(spec, client=client, progress=_Bar() if tiled else None,  # TileFailed: exit 1 (service.cli)
-                          cancel=getattr(args, "interrupted", None), points=points)
-        points = None  # not held through the report
+        # TileFailed: exit 1 (service.cli)
+        return run_job(spec, client=client, progress=_Bar() if tiled else None,
+                       cancel=getattr(args, "interrupted", None), points=points)
     finally:
         if client is not None:
             close_client(client)
-    return _report(outcome, args)
 
 
 def _budget_tiles(spec, count=None):
