@@ -163,6 +163,8 @@ def validation_words(errors: list[dict], name=cli_name) -> list[str]:
 #: kind (`service.failures.classify`): the message, from the failure's fields
 _FAILURES = {
     "cancelled": "cancelled on request",
+    "crashed": "the service stopped {crashes} times while running this job; it is not retried (it may be what stops "
+               "the service: see the service log; submit it again to retry)",
     "cluster_unavailable": "cannot start or reach the dask cluster ({where}): {detail}",
     "disk_full": "the server ran out of disk space during the job",
     "scheduler_lost": "lost the connection to the dask scheduler during the job",
@@ -189,7 +191,9 @@ def failure_words(kind: str, fields: dict, *, name=api_name) -> str:
     retried failure says its attempt: ``retry_at`` (epoch seconds) when it is queued
     again, else the last attempt's advice."""
     if kind in _FAILURES:
-        text = _FAILURES[kind].format_map({k: fields.get(k, "") for k in ("where", "detail", "exception")})
+        if kind == "cancelled" and fields.get("before_start"):
+            return "cancelled before it started"
+        text = _FAILURES[kind].format_map({k: fields.get(k, "") for k in ("where", "detail", "exception", "crashes")})
     else:
         exc = OrchardError(fields.get("message", ""), hint=fields.get("hint", ""))
         text = exc.render(name, hint=not fields.get("stopped")) or fields.get("class", kind)

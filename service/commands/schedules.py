@@ -119,8 +119,9 @@ def run(args: argparse.Namespace) -> int:
 def _print_list(rows: list[dict], tenants: dict, store, settings, *, as_json: bool) -> None:
     """The schedules, each followed by its captures' fates (one line each)."""
     from service.capturefates import capture_fates, fate_line
+    from service.wording import cli_name
 
-    fates = [capture_fates(store, settings, s) for s in rows]
+    fates = [capture_fates(store, settings, s, name=cli_name) for s in rows]
     if as_json:
         print(json.dumps([{**s, "paused": bool(s["paused"]), "tenant": tenants.get(s["tenant_id"]), **f}
                           for s, f in zip(rows, fates)], indent=2))

@@ -175,8 +175,9 @@ class JobQueue(TenantQuotas):
                 raise NotFoundError(f"no job {job_id!r}; ", hint="{list.jobs}")
             if row["state"] == "queued":
                 con.execute(
-                    "UPDATE jobs SET state = 'cancelled', cancel_requested = 1, finished_at = ?, error = ? WHERE id = ?",
-                    (time.time(), "cancelled before it started", job_id),
+                    "UPDATE jobs SET state = 'cancelled', cancel_requested = 1, finished_at = ?, error_kind = 'cancelled', "
+                    "error_fields = ? WHERE id = ?",
+                    (time.time(), json.dumps({"before_start": True}), job_id),
                 )
             elif row["state"] == "running":
                 con.execute("UPDATE jobs SET cancel_requested = 1 WHERE id = ?", (job_id,))
@@ -194,7 +195,8 @@ class JobQueue(TenantQuotas):
         with self._tx() as con:
             ids = [r["id"] for r in con.execute("SELECT id FROM jobs WHERE state = 'running' AND cancel_requested = 1")]
             con.executemany(
-                "UPDATE jobs SET state = 'cancelled', finished_at = ?, error = 'cancelled on request' WHERE id = ?",
+                "UPDATE jobs SET state = 'cancelled', finished_at = ?, error_kind = 'cancelled', error_fields = '{}' "
+                "WHERE id = ?",
                 [(time.time(), jid) for jid in ids],
             )
         return ids
@@ -232,9 +234,8 @@ class JobQueue(TenantQuotas):
                 poisoned = [(r["id"], r["crashes"]) for r in con.execute(
                     "SELECT id, crashes FROM jobs WHERE state = 'running' AND crashes >= ?", (max_crashes,))]
                 con.executemany(
-                    "UPDATE jobs SET state = 'failed', finished_at = ?, retry_at = NULL, error = 'the service stopped ' "
-                    "|| crashes || ' times while running this job; it is not retried (it may be what stops the "
-                    "service: see the service log; submit it again to retry)' WHERE id = ?",
+                    "UPDATE jobs SET state = 'failed', finished_at = ?, retry_at = NULL, error = NULL, "
+                    "error_kind = 'crashed', error_fields = json_object('crashes', crashes) WHERE id = ?",
                     [(time.time(), jid) for jid, _ in poisoned],
                 )
             n = con.execute("UPDATE jobs SET state = 'queued' WHERE state = 'running'").rowcount

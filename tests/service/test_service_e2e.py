@@ -29,6 +29,7 @@ from service_fixtures import (
 from service.db.block_files import accept_block
 from service.db.jobstore import Store
 from service.schedules import file_sha256
+from service.wording import job_error
 
 pytestmark = pytest.mark.slow
 
@@ -290,7 +291,7 @@ def test_a_job_cancelled_just_before_a_shutdown_loses_its_tiles_at_the_next_star
     srv = ServerProcess(data, ORCHARD_SCHEDULING="false").start()
     try:
         rec = store.get_job(None, job["id"])
-        assert rec["state"] == "cancelled" and rec["error"] == "cancelled on request"
+        assert rec["state"] == "cancelled" and job_error(rec) == "cancelled on request" and rec["error_kind"] == "cancelled"
         assert not Path(work.root).exists()
     finally:
         srv.stop()

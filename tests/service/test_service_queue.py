@@ -16,6 +16,7 @@ from service.db.jobstore import Store
 from service.quotas import GB, QueueQuotaExceeded, StorageQuotaExceeded
 from service.runner import Runner
 from service.settings import Settings
+from service.wording import job_error
 
 import workers.job as workers_job
 import workers.jobspec as workers_jobspec
@@ -198,7 +199,8 @@ def test_a_job_that_keeps_killing_the_service_is_failed_and_the_rest_run(tmp_pat
     assert s.requeue_running(max_crashes=2) == 0
     failed = s.get_job(None, poison)
     assert failed["state"] == "failed" and failed["crashes"] == 2 and failed["finished_at"] is not None
-    assert failed["error"].startswith("the service stopped 2 times while running this job; it is not retried")
+    assert failed["error_kind"] == "crashed" and failed["error_fields"] == {"crashes": 2}
+    assert job_error(failed).startswith("the service stopped 2 times while running this job; it is not retried")
     nxt = s.claim_next_job()
     assert nxt["id"] == other and nxt["crashes"] == 0
     s.close()
