@@ -223,7 +223,7 @@ def test_a_second_service_on_one_data_folder_leaves_the_first_ones_work_alone(tm
         # a job the first service runs (as the store sees it), and an upload it is receiving
         con = sqlite3.connect(data / "orchard.sqlite")
         with con:
-            con.execute("INSERT INTO jobs (id, tenant_id, block_id, params, state, created_at, started_at) "
+            con.execute("INSERT INTO jobs (id, tenant_id, block_id, job, state, created_at, started_at) "
                         "VALUES ('j-running', ?, ?, '{}', 'running', 0, 0)", (tenant["id"], block["id"]))
         con.close()
         holder = subprocess.Popen(
