@@ -6,9 +6,10 @@ each with `workers.job.run_job` on a dask client it owns (an embedded `LocalClus
 or the cluster at ``settings.scheduler``; created when the first job arrives). Tiles
 done / total go to the store through the progress callback; a cancel request sets the
 job's `threading.Event`. The outcome of every job is one store transaction: ``done``
-with its outcome and timings, ``failed`` with a one-line error (a domain error's own
-message; for anything unexpected a short message, the traceback only in the log), or
-``cancelled``. A capture of an orchard block is told its previous capture when it
+with its outcome and timings, ``failed`` with its failure's kind and fields
+(:func:`service.failures.classify` sorts what the run raised; each edge words them; the
+traceback of anything unexpected goes only to the log), queued again after a failure of
+the cluster, or ``cancelled``. `Runner.run_job` takes these steps one method each. A capture of an orchard block is told its previous capture when it
 starts, and its record is kept before it is done (`service.seasons`). A job left
 ``running`` when the process dies is re-queued by `Store.requeue_running` at the next
 start, as a crash (not an attempt); one during which the process has died
