@@ -32,9 +32,6 @@ from concurrent.futures import CancelledError as FutureCancelled
 from dataclasses import dataclass, field
 from typing import Any
 
-from distributed.client import FutureCancelledError, FuturesCancelledError
-from distributed.comm.core import CommClosedError
-
 from pipeline.errors import InputError, NoTreesError, OrchardError, ParameterError
 from service.wording import disk_full
 from workers.stops import ClusterLost, JobCancelled, Stopped, TileFailed
@@ -107,11 +104,23 @@ def classify(exc: BaseException, *, cancelled: bool = False) -> Outcome:
         return Outcome("cluster_unavailable", {"where": exc.where, "detail": exc.why}, retry=True)
     if disk_full(exc):
         return Outcome("disk_full", {"detail": _short(str(exc))}, retry=True, log="line")
-    if isinstance(exc, (CommClosedError, FuturesCancelledError, FutureCancelledError)):
+    if isinstance(exc, _scheduler_lost()):
         return Outcome("scheduler_lost", {"exception": type(exc).__name__}, retry=True, reconnect=True)
     if isinstance(exc, (FutureCancelled, TaskCancelled)):
         return Outcome("cancelled")
     return Outcome("internal", {"exception": type(exc).__name__, "detail": _short(str(exc))}, log="traceback")
+
+
+def _scheduler_lost() -> tuple[type[BaseException], ...]:
+    """distributed's classes of a lost scheduler: the connection closed under a gather,
+    and the futures it cancelled then."""
+    # imported at a failure, not with this module: distributed adds 1.5-2.6 s (python -X
+    # importtime, on the shared two-core machine) to every process importing the runner,
+    # the API's too, which otherwise never imports it
+    from distributed.client import FutureCancelledError, FuturesCancelledError
+    from distributed.comm.core import CommClosedError
+
+    return CommClosedError, FuturesCancelledError, FutureCancelledError
 
 
 def domain_fields(exc: OrchardError) -> dict[str, Any]:
