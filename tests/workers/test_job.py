@@ -17,12 +17,12 @@ from pipeline.errors import InputError, NoTreesError, ParameterError
 from simulator.scoring.scores import v_measure
 from pipeline.ground import raw_ground_model
 from pipeline.jobparams import JobParams, TilingParams
-from workers.runoptions import RunOptions
 from pipeline.params import PipelineParams
 from workers.cluster import close_client, make_client
 from workers.job import run_job
 from workers.jobspec import JobSpec, TileFailed
 from workers.replay import finish_job, run_tile
+from workers.runoptions import RunOptions
 from workers.tasks import ground_sample, process_tile, raw_ground_key, result_key
 from workers.tiler import FRAME_KEY, INDEX_KEY, read_tile
 from workers.workstore import WorkStore
@@ -145,6 +145,25 @@ def test_buffer_below_reach_is_refused_before_any_output(small_block, tmp_path):
     with pytest.raises(ParameterError, match="reach"):
         run_job(JobSpec(str(small_block), str(tmp_path / "out"), job=JobParams(tiling=TilingParams(tile_size=10.0, buffer=2.0))))
     assert not (tmp_path / "out").exists()
+
+
+def test_tiles_too_fine_for_the_block_are_refused_at_planning_before_any_output(small_block, tmp_path):
+    from pipeline.blockinfo import read_info
+    from workers.jobspec import check_job, plan_tiles
+
+    # 1 m tiles with the reach as the buffer (6.15 m): up to 14 x 14 copies of a point on
+    # this block's grid; the job model alone, which knows no block, lets them through
+    fine = JobParams(tiling=TilingParams(tile_size=1.0))
+    with pytest.raises(ParameterError, match="copy each point") as err:
+        plan_tiles(fine, read_info(str(small_block)))
+    assert err.value.param == "tiling.tile_size" and err.value.limit == 1.76
+    with pytest.raises(ParameterError, match="copy each point"):
+        run_job(JobSpec(str(small_block), str(tmp_path / "out"), job=fine))
+    assert not (tmp_path / "out").exists()
+    spec = JobSpec(str(small_block), str(tmp_path / "out"), job=JobParams(tiling=TilingParams(tile_size=12.0, buffer=7.0)),
+                   run=RunOptions(engine="pdal"))  # PDAL's buffer must stay below half a tile: a run option's limit
+    with pytest.raises(ParameterError, match="PDAL engine needs a buffer"):
+        check_job(spec)
 
 
 def test_bad_input_leaves_nothing(tmp_path):
