@@ -31,10 +31,10 @@ from pipeline.budget import (
     tile_size_for_sample,
 )
 from pipeline.jobparams import JobParams, TilingParams
-from workers.runoptions import RunOptions
 from pipeline.params import PipelineParams
 from workers.job import run_job
 from workers.jobspec import JobSpec, auto_tiled, budgeted
+from workers.runoptions import RunOptions
 
 
 def _uniform(n_points: int, width: int, depth: int) -> DensitySample:
@@ -235,11 +235,11 @@ def test_the_tiles_chosen_for_a_budget_give_the_untiled_result(block, tmp_path, 
 # VmHWM, not getrusage: ru_maxrss survives exec, and would count the forking pytest's memory
 _RUN = """
 import json, re, sys
-from pipeline.jobparams import JobParams, TilingParams
-from workers.runoptions import RunOptions
+from pipeline.jobparams import JobParams
 from pipeline.params import PipelineParams
 from workers.job import run_job
 from workers.jobspec import JobSpec
+from workers.runoptions import RunOptions
 spec = JobSpec(sys.argv[1], sys.argv[2], job=JobParams(pipeline=PipelineParams.model_validate_json(sys.argv[3])),
                run=RunOptions(worker_memory=float(sys.argv[4]) / 1e9))
 outcome = run_job(spec)

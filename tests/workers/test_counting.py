@@ -69,9 +69,9 @@ def test_a_job_given_a_cluster_counts_its_block_there(block, client, monkeypatch
     # never in the submitting process
     import workers.jobspec as jobspec
     from pipeline.budget import FIXED_BYTES, block_bytes
-    from pipeline.jobparams import JobParams, TilingParams
-    from workers.runoptions import RunOptions
+    from pipeline.jobparams import JobParams
     from pipeline.params import PipelineParams
+    from workers.runoptions import RunOptions
     from workers.job import run_job
 
     def not_here(*a, **k):

@@ -61,7 +61,6 @@ def test_a_tiled_job_carries_the_points_the_tiler_kept_as_the_report_would_read_
 
 def test_a_partial_tiled_job_gives_the_failed_tiles_points_no_tree(small_block, tmp_path):
     from pipeline.jobparams import JobParams, TilingParams
-    from workers.runoptions import RunOptions
 
     outcome = run_job(JobSpec(str(small_block), str(tmp_path / "out"), job=JobParams(tiling=TilingParams(tile_size=10.0)),
                               work_dir=str(tmp_path / "work"), inject_failure=(3,)))
