@@ -1,5 +1,6 @@
 """A job's contract: what to process (:class:`JobSpec`), what came of it
-(:class:`JobOutcome`), how a run can stop, and the checks made before any work."""
+(:class:`JobOutcome`), how a run can stop (:mod:`workers.stops`' classes, named here
+too), the checks made before any work and the planning of its tiles."""
 
 from __future__ import annotations
 
