@@ -29,6 +29,7 @@ def score_block(work: str, noise: float, spacing: float, seed: int, baselines: b
     from pipeline.errors import NoTreesError
     from simulator.scoring.result import evaluate_result
     from simulator.scoring.scores import score_labels
+    from pipeline.jobparams import JobParams
     from pipeline.params import PipelineParams
     from pipeline.reading import read_points
     from simulator.truth import read_truth
@@ -43,7 +44,7 @@ def score_block(work: str, noise: float, spacing: float, seed: int, baselines: b
     shutil.rmtree(result_dir, ignore_errors=True)
     t = time.perf_counter()
     try:
-        run_job(JobSpec(input_path=block.las, out_dir=str(result_dir), params=params))
+        run_job(JobSpec(input_path=block.las, out_dir=str(result_dir), job=JobParams(pipeline=params)))
         out["methods"]["ours"] = evaluate_result(block.truth, str(result_dir))
     except NoTreesError as exc:
         # "no trees found" is an answer, scored as such: no trunks, every point tree 0.

@@ -36,6 +36,7 @@ from pipeline.reading import read_points, sample_density
 from workers.cluster import close_client, make_client
 from workers.job import run_job
 from workers.jobspec import JobSpec, auto_tiled, grid_origin, plan_tiles
+from workers.runoptions import RunOptions
 
 
 def _status(field: str) -> int:
@@ -66,7 +67,7 @@ class TaskPeaks(WorkerPlugin):
 
 
 def default_budget(path: str, gb: float) -> dict:
-    spec = JobSpec(path, tempfile.mkdtemp(prefix="budget-"), params=PipelineParams(), tiling=TilingParams(worker_memory=gb))
+    spec = JobSpec(path, tempfile.mkdtemp(prefix="budget-"), job=JobParams(pipeline=PipelineParams()), run=RunOptions(worker_memory=gb))
     counted = []  # the sample auto_tiled counts, kept for the estimate below
 
     def count(info, voxel_size):
@@ -79,7 +80,7 @@ def default_budget(path: str, gb: float) -> dict:
     out = {"block": path, "budget_gb": gb, "tile_size": chosen.tiling.tile_size, "choose_s": round(t_choose, 2)}
     if chosen.tiling.tile_size is not None:
         info = read_info(path)
-        buffer = JobParams(pipeline=chosen.params, tiling=chosen.tiling).buffer()
+        buffer = chosen.job.buffer()
         est = sampled_tile_bytes(counted[0], chosen.tiling.tile_size, buffer, info.mins, info.maxs,
                                  grid_origin(chosen.tiling, info))
         out["estimate_largest_tile"] = float(est.max())
@@ -96,9 +97,9 @@ def default_budget(path: str, gb: float) -> dict:
 
 
 def per_tile(path: str, tile_size: float, voxel_size: float = 0.1) -> list[dict]:
-    spec = JobSpec(path, tempfile.mkdtemp(prefix="budget-"), params=PipelineParams(), tiling=TilingParams(tile_size=tile_size))
+    spec = JobSpec(path, tempfile.mkdtemp(prefix="budget-"), job=JobParams(pipeline=PipelineParams(), tiling=TilingParams(tile_size=tile_size)))
     xyz, info = read_points(path)
-    grid = plan_tiles(spec, info)
+    grid = plan_tiles(spec.job, info)
     stats = {}
     absolute = xyz[:, :2] + np.asarray(info.origin[:2])
     for t in grid.tiles():

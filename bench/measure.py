@@ -62,7 +62,7 @@ def _warm_up() -> bool:
 
 
 def run_job_measure(cfg: dict) -> dict:
-    from pipeline.jobparams import TilingParams
+    from pipeline.jobparams import JobParams, TilingParams
     from pipeline.params import PipelineParams
     from workers.job import run_job
     from workers.jobspec import JobSpec
@@ -89,15 +89,13 @@ def run_job_measure(cfg: dict) -> dict:
     try:
         for _ in range(int(cfg.get("warmup", 0))):  # imports, caches, first-touch page faults
             warm_dir = os.path.join(cfg["out"], "warmup")
-            run_job(JobSpec(input_path=cfg["input"], out_dir=warm_dir, params=params,
-                            tiling=TilingParams(tile_size=cfg.get("tile_size")), work_dir=cfg.get("work_dir")), client=client)
+            run_job(JobSpec(input_path=cfg["input"], out_dir=warm_dir, job=JobParams(pipeline=params, tiling=TilingParams(tile_size=cfg.get("tile_size"))), work_dir=cfg.get("work_dir")), client=client)
             shutil.rmtree(warm_dir, ignore_errors=True)
         for r in range(repeats):
             out_dir = os.path.join(cfg["out"], f"run{r}")
             shutil.rmtree(out_dir, ignore_errors=True)
             spec = JobSpec(
-                input_path=cfg["input"], out_dir=out_dir, params=params,
-                tiling=TilingParams(tile_size=cfg.get("tile_size")), work_dir=cfg.get("work_dir"),
+                input_path=cfg["input"], out_dir=out_dir, job=JobParams(pipeline=params, tiling=TilingParams(tile_size=cfg.get("tile_size"))), work_dir=cfg.get("work_dir"),
             )
             cpu0 = _cpu_seconds()
             wcpu0 = sum(client.run(_cpu_seconds).values()) if client is not None else 0.0

@@ -116,7 +116,7 @@ def prepare(data_dir: Path, sizes: list[int]) -> tuple[str, dict[int, str], dict
         jobs, datas = {}, {}
         for n in sizes:
             table, data = synthetic_map(n)
-            job = store.create_job(tenant_id=tenant["id"], block_id=block["id"], params={}, tiling=None)
+            job = store.create_job(tenant_id=tenant["id"], block_id=block["id"], job={})
             store.claim_next_job()
             out = job_dir(settings, job["id"])
             out.mkdir(parents=True, exist_ok=True)

@@ -22,6 +22,7 @@ def score(work: Path, spacing: float, row_spacing: float, seed: int) -> dict:
     from bench.blocks import make_block
     from pipeline.errors import NoTreesError
     from simulator.scoring.result import evaluate_result
+    from pipeline.jobparams import JobParams
     from pipeline.params import PipelineParams
     from simulator.simparams import SimulationParams
     from workers.job import run_job
@@ -32,7 +33,7 @@ def score(work: Path, spacing: float, row_spacing: float, seed: int) -> dict:
     out = work / "young-results" / Path(block.las).stem
     shutil.rmtree(out, ignore_errors=True)
     try:
-        run_job(JobSpec(input_path=block.las, out_dir=str(out), params=PipelineParams()))
+        run_job(JobSpec(input_path=block.las, out_dir=str(out), job=JobParams(pipeline=PipelineParams())))
         return evaluate_result(block.truth, str(out))
     except NoTreesError:
         return {"trunk_f1": 0.0, "v_measure": 0.0}

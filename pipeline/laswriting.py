@@ -12,7 +12,7 @@ import numpy as np
 from pipeline.atomic import AtomicWriter, temp_name
 from pipeline.blockinfo import read_info
 from pipeline.crs import add_crs, crs_from
-from pipeline.jobparams import CHUNK_POINTS
+from pipeline.reading import CHUNK_POINTS
 
 
 def _extra_type(dtype) -> np.dtype:

@@ -19,8 +19,9 @@ import numpy as np
 from pipeline import lasheader
 from pipeline.blockinfo import BlockInfo, input_error, one_line, read_info
 from pipeline.budget import DensitySample, count_cells
+from pipeline.chunks import CHUNK_POINTS
 from pipeline.errors import InputError
-from pipeline.jobparams import CHUNK_POINTS, first_sampled
+from pipeline.mapsample import first_sampled
 from pipeline.voxels import DENSE_CELLS_PER_POINT, packed_keys
 
 #: decode only X, Y, Z of LAZ points (the other fields' layers are skipped)

@@ -1,6 +1,12 @@
 """The limits of a tile grid's parameters: a tile size, its buffer against the
 parameters' reach, how many tiles a point may be copied into, the grid's origin and
-PDAL's narrower buffer. Plain arithmetic, so options are checked without numpy."""
+PDAL's narrower buffer. Plain arithmetic, so options are checked without numpy.
+
+One set of bounds for a job's tiling: a tile is :data:`MIN_TILE_SIZE` (1 m) to
+:data:`MAX_TILE_SIZE` wide, a buffer 0 to :data:`MAX_BUFFER`; `pipeline.jobparams.
+TilingParams` states them as its fields' bounds. The grid's geometry
+(:func:`pipeline.tiling.plan_grid`) takes any positive size: it also plans the small
+grids of tests, and a block's one tile."""
 
 from __future__ import annotations
 
@@ -26,7 +32,12 @@ def check_buffer(buffer: float, reach: float) -> None:
 MAX_COPIES = 64
 
 
-#: widest tile buffer [m]: a block spans at most 1e5 m (``pipeline.blockinfo.MAX_EXTENT``)
+#: narrowest tile of a job [m]: below a metre a tile holds less than a tree's trunk, and
+#: the buffer (the reach, 6 m by default) would copy each point into hundreds of tiles
+MIN_TILE_SIZE = 1.0
+#: widest tile [m] and widest tile buffer [m]: a block spans at most 1e5 m
+#: (``pipeline.blockinfo.MAX_EXTENT``), so neither ever needs to be wider
+MAX_TILE_SIZE = 1e5
 MAX_BUFFER = 1e5
 
 #: farthest a grid origin may lie from 0 [m], like a block's coordinates (``pipeline.blockinfo.MAX_ABS_COORD``)
@@ -46,31 +57,28 @@ def min_tile_size(buffer: float) -> float:
     return math.ceil(2.0 * buffer / (per_axis - 1) * 100.0) / 100.0
 
 
-def check_tiling(tile_size: float, buffer: float | None, reach: float | None = None, *, copies: bool = True) -> None:
+def check_tiling(tile_size: float, buffer: float, reach: float | None = None) -> None:
     """Raise ParameterError unless ``tile_size`` [m] is positive and finite and ``buffer``
-    [m] (None = the reach) is non-negative, finite and at least ``reach`` (when given);
-    with ``copies``, also unless a point falls in at most :data:`MAX_COPIES` buffered tiles
-    (whatever the block: :func:`pipeline.tiling.plan_grid` checks that against the block's grid instead)."""
+    [m] is non-negative, finite, at most :data:`MAX_BUFFER` and at least ``reach`` (when
+    given): the geometry's own conditions (how many tiles copy a point depends on the
+    block's grid: :func:`pipeline.tiling.plan_grid` checks it there)."""
     s = float(tile_size)
     if not (math.isfinite(s) and s > 0):
         raise ParameterError(f"tile size must be a positive number of metres, not {tile_size}",
                              param="tiling.tile_size", value=tile_size, limit=0.0)
-    if buffer is not None:
-        b = float(buffer)
-        if not (math.isfinite(b) and b >= 0):
-            raise ParameterError(f"tile buffer must be a non-negative number of metres, not {buffer}",
-                                 param="tiling.buffer", value=buffer, limit=0.0)
-        if b > MAX_BUFFER:
-            raise ParameterError(f"tile buffer {buffer:g} m is wider than any block ({MAX_BUFFER:g} m at most)",
-                                 param="tiling.buffer", value=buffer, limit=MAX_BUFFER)
-        if reach is not None:
-            check_buffer(b, reach)
-    width = buffer if buffer is not None else reach
-    if copies and width is not None:
-        check_copies(s, float(width), copies_per_point(s, float(width)))
+    b = float(buffer)
+    if not (math.isfinite(b) and b >= 0):
+        raise ParameterError(f"tile buffer must be a non-negative number of metres, not {buffer}",
+                             param="tiling.buffer", value=buffer, limit=0.0)
+    if b > MAX_BUFFER:
+        raise ParameterError(f"tile buffer {buffer:g} m is wider than any block ({MAX_BUFFER:g} m at most)",
+                             param="tiling.buffer", value=buffer, limit=MAX_BUFFER)
+    if reach is not None:
+        check_buffer(b, reach)
 
 
 def check_copies(tile_size: float, buffer: float, copies: int) -> None:
+    """ParameterError when a point would be copied into more than :data:`MAX_COPIES` tiles."""
     if copies > MAX_COPIES:
         raise ParameterError(
             f"tile size {tile_size:g} m with a {buffer:g} m buffer would copy each point into up to {copies} tiles "

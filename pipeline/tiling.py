@@ -148,7 +148,7 @@ def plan_grid(
     ParameterError
         Non-positive or non-finite sizes, a buffer below the reach, too many tiles.
     """
-    check_tiling(tile_size, buffer, reach, copies=False)
+    check_tiling(tile_size, buffer, reach)
     s, b = float(tile_size), float(buffer)
     gx, gy = check_grid_origin(grid_origin)
     spans = [(float(maxs[d]) - float(mins[d])) / s + 2.0 for d in range(2)]

@@ -11,12 +11,14 @@ look is a directory listing and a few lookups, whatever the captures weigh.
 from __future__ import annotations
 
 import time
+from collections.abc import Callable
 from pathlib import Path
 from typing import Any
 
 from service.db.jobstore import Store
 from service.schedules import captures, display_name, ignored_files, still_arriving
 from service.settings import Settings
+from service.wording import api_name, job_error
 
 #: the fates, in the order a list shows them
 FATES = ("arriving", "new", "rejected", "processed", "ignored")
@@ -25,14 +27,15 @@ MAX_LISTED = 200
 
 
 def capture_fates(store: Store, settings: Settings, schedule: dict[str, Any], *, now: float | None = None,
-                  limit: int = MAX_LISTED) -> dict[str, Any]:
+                  limit: int = MAX_LISTED, name: Callable[[str], str | None] = api_name) -> dict[str, Any]:
     """Every capture's fate for one schedule: ``{"captures": [...], "counts": {fate: n}}``.
 
     Each capture is ``{"file", "fate", "job_id", "job_state", "reason", "seen_at"}``:
     ``job_id``/``job_state`` for a processed one, ``reason`` for a rejected or ignored
     one (and for a processed one whose job failed: the job's error), ``seen_at`` when a
     scan handled it (POSIX seconds). Files now in the inbox come first, then the handled
-    ones, newest first; at most ``limit`` are listed.
+    ones, newest first; at most ``limit`` are listed. ``name`` words a parameter a job's
+    error names (the API's `api_name`, the command line's `cli_name`).
     """
     now = time.time() if now is None else now
     handled, counts = store.schedule_captures(schedule["id"], limit=limit)
@@ -50,7 +53,7 @@ def capture_fates(store: Store, settings: Settings, schedule: dict[str, Any], *,
             if entry is not None:
                 current.append(entry)
         ignored = ignored_files(inbox)
-    out = current + [_handled(r) for r in handled] + [_capture(f["file"], "ignored", reason=f["reason"]) for f in ignored]
+    out = current + [_handled(r, name) for r in handled] + [_capture(f["file"], "ignored", reason=f["reason"]) for f in ignored]
     counts = {"arriving": 0, "new": 0, **counts, "ignored": len(ignored)}
     for c in current:
         counts[c["fate"]] += 1
@@ -62,11 +65,11 @@ def _capture(file: str, fate: str, *, job_id: str | None = None, job_state: str 
     return {"file": file, "fate": fate, "job_id": job_id, "job_state": job_state, "reason": reason, "seen_at": seen_at}
 
 
-def _handled(rec: dict[str, Any]) -> dict[str, Any]:
+def _handled(rec: dict[str, Any], name: Callable[[str], str | None]) -> dict[str, Any]:
     name = display_name(Path(rec["path"]))
     if rec["job_id"] is None:
         return _capture(name, "rejected", reason=rec["error"], seen_at=rec["seen_at"])
-    reason = rec["job_error"] if rec["job_state"] == "failed" else None
+    reason = job_error(rec, name=name, prefix="job_") if rec["job_state"] == "failed" else None
     return _capture(name, "processed", job_id=rec["job_id"], job_state=rec["job_state"] or "deleted",
                     reason=reason, seen_at=rec["seen_at"])
 

@@ -1,5 +1,5 @@
-"""What a job or schedule request sets, checked by the job model into what the job store
-keeps. The API's bodies and the command line's options both come here: no HTTP."""
+"""What a job or schedule request sets, checked once into the `JobParams` the job store
+keeps whole. The API's bodies and the command line's options both come here: no HTTP."""
 
 from __future__ import annotations
 
@@ -12,16 +12,24 @@ from service.schedules import next_run_time, validate_cron
 from service.wording import REQUEST_TILING
 
 
-def stored_tiling(params: PipelineParams, tiling: dict | None) -> dict | None:
-    """A request's ``tiling`` (its `REQUEST_TILING` fields; None: one tile) as the store
-    keeps it, checked by the job model with ``params``: pydantic's ValidationError for a
-    field out of its bounds, ParameterError for a buffer below the parameters' reach or
-    tiles so small that each point would be copied into too many of them."""
-    if tiling is None:
-        return None
-    model = TilingParams(**tiling)
-    JobParams(pipeline=params, tiling=model)
-    return model.model_dump(include=set(REQUEST_TILING))
+def request_job(params: PipelineParams, tiling: dict | None) -> JobParams:
+    """A request's pipeline ``params`` and ``tiling`` (its `REQUEST_TILING` fields;
+    None: one tile) as the job's parameters: pydantic's ValidationError for a field out
+    of its bounds, ParameterError for a buffer below the parameters' reach. The limits
+    that depend on the block are checked when the job plans its tiles."""
+    return JobParams(pipeline=params, tiling=TilingParams(**(tiling or {})))
+
+
+def stored(job: JobParams) -> dict:
+    """``job`` as the job store keeps it (JSON, every field)."""
+    return job.model_dump(mode="json")
+
+
+def request_tiling(job: dict) -> dict | None:
+    """The tiling of a stored job as a request gave it (its `REQUEST_TILING` fields),
+    None for one tile: what the API shows as a job's or a schedule's ``tiling``."""
+    tiling = {k: (job.get("tiling") or {}).get(k) for k in REQUEST_TILING}
+    return None if all(v is None for v in tiling.values()) else tiling
 
 
 def schedule_changes(sched: dict, given: dict[str, Any], *, now: datetime | None = None) -> dict[str, Any]:
@@ -37,12 +45,11 @@ def schedule_changes(sched: dict, given: dict[str, Any], *, now: datetime | None
     cron = sched["cron"]
     if "cron" in given:
         cron = changes["cron"] = validate_cron(given["cron"])
-    params = PipelineParams(**sched["params"])
-    if "params" in given:
-        params = PipelineParams.model_validate(given["params"])
-        changes["params"] = params.model_dump()
     if "tiling" in given or "params" in given:
-        changes["tiling"] = stored_tiling(params, given["tiling"] if "tiling" in given else sched["tiling"])
+        job = JobParams.model_validate(sched["job"])
+        params = PipelineParams.model_validate(given["params"]) if "params" in given else job.pipeline
+        tiling = given["tiling"] if "tiling" in given else request_tiling(sched["job"])
+        changes["job"] = stored(request_job(params, tiling))
     if "paused" in given:
         changes["paused"] = given["paused"]
     paused = changes.get("paused", bool(sched["paused"]))

@@ -29,7 +29,7 @@ import pyarrow.compute as pc
 import pyarrow.csv as pacsv
 import pyarrow.parquet as pq
 
-from pipeline.jobparams import REPORT_POINTS, sample_stride
+from pipeline.mapsample import REPORT_POINTS, sample_stride
 from service.web import mapdata, render
 
 #: the outputs the report links to, beside it (relative links)

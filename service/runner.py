@@ -6,9 +6,10 @@ each with `workers.job.run_job` on a dask client it owns (an embedded `LocalClus
 or the cluster at ``settings.scheduler``; created when the first job arrives). Tiles
 done / total go to the store through the progress callback; a cancel request sets the
 job's `threading.Event`. The outcome of every job is one store transaction: ``done``
-with its outcome and timings, ``failed`` with a one-line error (a domain error's own
-message; for anything unexpected a short message, the traceback only in the log), or
-``cancelled``. A capture of an orchard block is told its previous capture when it
+with its outcome and timings, ``failed`` with its failure's kind and fields
+(:func:`service.failures.classify` sorts what the run raised; each edge words them; the
+traceback of anything unexpected goes only to the log), queued again after a failure of
+the cluster, or ``cancelled``. `Runner.run_job` takes these steps one method each. A capture of an orchard block is told its previous capture when it
 starts, and its record is kept before it is done (`service.seasons`). A job left
 ``running`` when the process dies is re-queued by `Store.requeue_running` at the next
 start, as a crash (not an attempt); one during which the process has died
@@ -33,20 +34,17 @@ from typing import IO, Any, Callable
 
 import numpy as np
 
-from pipeline.errors import OrchardError, ParameterError
-from pipeline.jobparams import TilingParams
-from pipeline.params import PipelineParams
+from pipeline.errors import ParameterError
+from pipeline.jobparams import JobParams
 from service import seasons
 from service.background import Background
 from service.db.jobstore import Store
+from service.failures import ClusterUnavailable, Outcome, classify
 from service.settings import Settings
-from service.wording import api_words, disk_full
+from service.wording import failure_words
+from workers.runoptions import RunOptions
 
 log = logging.getLogger("orchard.runner")
-
-
-class ClusterUnavailable(RuntimeError):
-    """The dask cluster could not be started or reached (the job fails; the next one tries again)."""
 
 
 RUNNER_LOCK = "runner.lock"
@@ -145,22 +143,8 @@ def sweep_work(settings: Settings, store: Store) -> list[str]:
     return swept
 
 
-def _is_cancel(exc: BaseException) -> bool:
-    return type(exc).__name__ in ("JobCancelled", "CancelledError")
-
-
-def _lost_scheduler(exc: BaseException) -> bool:
-    """Whether ``exc`` says the dask scheduler went away during the job: its futures
-    cancelled, or the connection closed while results were fetched (CommClosedError
-    from a gather)."""
-    from distributed.comm.core import CommClosedError
-
-    return (isinstance(exc, CommClosedError) or type(exc).__name__ == "FuturesCancelledError"
-            or "scheduler-connection-lost" in str(exc))
-
-
-def _short(exc: BaseException, limit: int = 300) -> str:
-    text = " ".join((api_words(exc) if isinstance(exc, OrchardError) else str(exc)).split())
+def _short(exc: BaseException, limit: int = 600) -> str:
+    text = " ".join(str(exc).split())
     return text if len(text) <= limit else text[: limit - 3] + "..."
 
 
@@ -300,8 +284,7 @@ class Runner(Background):
                 client = self._client_factory()
             except Exception as exc:  # noqa: BLE001 - becomes the job's error; the next job tries again
                 self._unreachable = True
-                why = _short(exc, 600)
-                raise ClusterUnavailable(f"cannot start or reach the dask cluster ({where}): {why}") from exc
+                raise ClusterUnavailable(where, _short(exc)) from exc
             self._client = client
             self._unreachable = False
             if self.settings.dashboard:
@@ -341,8 +324,8 @@ class Runner(Background):
                 except Exception as exc:  # e.g. the store failed while recording (logged); keep running
                     log.error("runner: job %s could not be recorded", job["id"], exc_info=exc)
                     try:  # not left "running" (and waited on) for good
-                        left = self.store.finish_job(job["id"], "failed", error=f"internal error ({type(exc).__name__}) "
-                                              "while recording the job's outcome; see the service log")
+                        left = self.store.finish_job(job["id"], "failed", error_kind="unrecorded",
+                                                     error_fields={"exception": type(exc).__name__})
                     except Exception as again:  # noqa: BLE001 - the store itself is failing; the next start re-queues it
                         log.error("runner: job %s stays running: %s", job["id"], again)
                     continue
@@ -355,18 +338,33 @@ class Runner(Background):
             self._close_client()
 
 
-    def _after_cluster_failure(self, job: dict[str, Any], message: str, *, advice: str) -> dict[str, Any]:
-        """A job the dask cluster failed: queued again after ``retry_delay_s`` while it
-        has attempts left (``job_retries``), failed for good (with ``advice``) after the last."""
-        attempts = int(job.get("attempts") or 1)
-        if attempts > self.settings.job_retries:
-            tries = f" (attempt {attempts}, the last)" if attempts > 1 else ""
-            return self.store.finish_job(job["id"], "failed", error=message + tries + advice)
-        at = time.time() + self.settings.retry_delay_s
-        when = time.strftime("%Y-%m-%d %H:%M:%S UTC", time.gmtime(at))
-        log.warning("job %s: attempt %d failed (%s); queued again from %s", job["id"], attempts, message, when)
-        note = f"attempt {attempts} of {self.settings.job_retries + 1} failed: {message}; trying again from {when}"
-        return self.store.retry_job(job["id"], error=note, retry_at=at)
+    # -- one job, step by step --------------------------------------------------------
+
+    def run_job(self, job: dict[str, Any]) -> dict[str, Any]:
+        """Run one claimed (``running``) job to a final state; returns the stored job."""
+        cancel, watching = self._watch(job["id"])
+        block = None
+        try:
+            block = self.store.get_block(None, job["block_id"])
+            return self._run_to_done(job, block, cancel)
+        except BaseException as exc:  # noqa: BLE001 - every outcome is recorded
+            return self._record_failure(job, block, exc, cancel)
+        finally:
+            watching.set()
+            with self._lock:
+                self._current, self._cancel = None, None
+
+    def _watch(self, job_id: str) -> tuple[threading.Event, threading.Event]:
+        """The running job's cancel event (set by `cancel`, or by a cancel the store holds)
+        and the event that ends its watch (`_watch_cancel`, on a thread of its own)."""
+        cancel, watching = threading.Event(), threading.Event()
+        with self._lock:
+            self._current, self._cancel = job_id, cancel
+        if self.store.cancel_requested(job_id):
+            cancel.set()
+        threading.Thread(target=self._watch_cancel, args=(job_id, cancel, watching), daemon=True,
+                         name=f"orchard-cancel-{job_id[:8]}").start()
+        return cancel, watching
 
     def _watch_cancel(self, job_id: str, cancel: threading.Event, done: threading.Event) -> None:
         """Set ``cancel`` once the store says the job is to be cancelled: a cancel made
@@ -379,101 +377,106 @@ class Runner(Background):
             except Exception as exc:  # noqa: BLE001 - the store briefly locked: look again
                 log.debug("job %s: cannot read its cancel flag: %s", job_id, exc)
 
-    def run_job(self, job: dict[str, Any]) -> dict[str, Any]:
-        """Run one claimed (``running``) job to a final state; returns the stored job."""
-        cancel = threading.Event()
-        with self._lock:
-            self._current, self._cancel = job["id"], cancel
-        if self.store.cancel_requested(job["id"]):
-            cancel.set()
-        watching = threading.Event()
-        threading.Thread(target=self._watch_cancel, args=(job["id"], cancel, watching), daemon=True,
-                         name=f"orchard-cancel-{job['id'][:8]}").start()
+    def _progress(self, job_id: str, cancel: threading.Event) -> Callable[[int, int], None]:
+        """The job's progress callback: tiles done / total to the store, and a look at its
+        cancel flag at most every half second."""
         last_check = [0.0]
 
         def progress(done: int, total: int) -> None:
-            self.store.set_progress(job["id"], int(done), int(total))
+            self.store.set_progress(job_id, int(done), int(total))
             now = time.monotonic()
             if now - last_check[0] > 0.5:
                 last_check[0] = now
-                if self.store.cancel_requested(job["id"]):
+                if self.store.cancel_requested(job_id):
                     cancel.set()
 
-        out_dir = job_dir(self.settings, job["id"])
-        t0 = time.perf_counter()
-        block = None
-        try:
-            from workers.job import run_job
-            from workers.jobspec import JobSpec
+        return progress
 
-            block = self.store.get_block(None, job["block_id"])
-            spec = JobSpec(
-                input_path=block["path"],
-                out_dir=str(out_dir),
-                params=PipelineParams.model_validate(job["params"]),
-                # the request's tiling; the service's settings give the rest
-                tiling=TilingParams(**(job.get("tiling") or {}), worker_memory=self.settings.worker_memory_gb),
-                work_dir=work_dir_of(self.settings, job["id"]),
-                # a capture of an orchard block: its previous capture, looked up now
-                **seasons.spec_fields(seasons.capture_job_fields(self.store, self.settings, job)),
-            )
-            out_dir.mkdir(parents=True, exist_ok=True)
-            client = self._get_client()
-            outcome = run_job(spec, client=client, progress=progress, cancel=cancel)
-            record = _jsonable(outcome)
-            record.pop("trees", None)  # the per-tree table is in trees.parquet
-            record.pop("sample", None)  # points for a report's map, not a record
-            timings = dict(record.get("timings") or {})
-            timings.setdefault("total", round(time.perf_counter() - t0, 3))
-            drop_work(self.settings, job["id"])  # tiles of a finished job are not needed again
-            if self.store.capture_of_job(job["id"]) is not None:
-                self.store.set_capture_record(job["id"], seasons.capture_record(out_dir))
-            done = self.store.finish_job(job["id"], "done", outcome=record, timings=timings)
-            if self._after_done is not None:
-                try:
-                    self._after_done(done)
-                except Exception as exc:  # noqa: BLE001 - a report problem does not fail the job
-                    log.warning("job %s: post-processing failed: %s", job["id"], exc)
-            return done
-        except BaseException as exc:  # noqa: BLE001 - every outcome is recorded
-            if _is_cancel(exc) or (cancel.is_set() and not isinstance(exc, OrchardError)):
-                if self._stopping.is_set() and not self.store.cancel_requested(job["id"]):
-                    log.info("job %s interrupted by shutdown; it runs again at the next start", job["id"])
-                    self.store.release_job(job["id"])
-                    return self.store.get_job(None, job["id"])
-                drop_work(self.settings, job["id"])  # the service never resumes a cancelled job
-                return self.store.finish_job(job["id"], "cancelled", error="cancelled on request")
-            # the cluster failed the job, not the job itself: worth another attempt, and
-            # this advice after the last
-            retry_advice: str | None = None
-            if isinstance(exc, OrchardError):
-                # without the command line's advice to resume from the work store: the
-                # service deletes a failed job's work store and never resumes it
-                named = {} if block is None else {"block_path": block["path"], "filename": job_block_name(job, block)}
-                message = api_words(exc, hint=not hasattr(exc, "reason"), **named) or type(exc).__name__
-                if type(exc).__name__ == "ClusterLost":
-                    retry_advice = "; start dask workers and submit the job again"
-            elif isinstance(exc, (KeyboardInterrupt, SystemExit)):
-                raise
-            elif isinstance(exc, ClusterUnavailable):
-                retry_advice = ""
-                message = str(exc)
-            elif disk_full(exc):
-                log.error("job %s: the disk is full (%s)", job["id"], exc)
-                retry_advice = "; free disk space on the server and submit it again"
-                message = "the server ran out of disk space during the job"
-            elif _lost_scheduler(exc):
-                self._close_client()  # the next job connects afresh
-                retry_advice = "; submit it again once the cluster is back"
-                message = "lost the connection to the dask scheduler during the job"
-            else:
-                log.error("job %s failed unexpectedly", job["id"], exc_info=exc)
-                message = f"internal error ({type(exc).__name__}): {_short(exc)}"
-            drop_work(self.settings, job["id"])  # the service never resumes a job: its tiles are not needed
-            if retry_advice is not None:
-                return self._after_cluster_failure(job, message, advice=retry_advice)
-            return self.store.finish_job(job["id"], "failed", error=message)
-        finally:
-            watching.set()
-            with self._lock:
-                self._current, self._cancel = None, None
+    def _spec(self, job: dict[str, Any], block: dict[str, Any]):
+        """The job's `JobSpec`: its parameters as stored, how the service runs jobs (its
+        settings), and for a capture of an orchard block, its previous capture (looked up
+        now: the one before may have finished meanwhile)."""
+        from workers.jobspec import JobSpec
+
+        return JobSpec(
+            input_path=block["path"],
+            out_dir=str(job_dir(self.settings, job["id"])),
+            job=JobParams.model_validate(job["job"]),
+            run=RunOptions(workers=self.settings.n_workers, worker_memory=self.settings.worker_memory_gb),
+            work_dir=work_dir_of(self.settings, job["id"]),
+            **seasons.spec_fields(seasons.capture_job_fields(self.store, self.settings, job)),
+        )
+
+    def _run_to_done(self, job: dict[str, Any], block: dict[str, Any], cancel: threading.Event) -> dict[str, Any]:
+        """Run the job on the cluster and record it done (raises what the run raised)."""
+        from workers.job import run_job
+
+        t0 = time.perf_counter()
+        spec = self._spec(job, block)
+        Path(spec.out_dir).mkdir(parents=True, exist_ok=True)
+        client = self._get_client()
+        outcome = run_job(spec, client=client, progress=self._progress(job["id"], cancel), cancel=cancel)
+        return self._record_done(job, outcome, t0)
+
+    def _record_done(self, job: dict[str, Any], outcome, t0: float) -> dict[str, Any]:
+        """Keep a finished job's outcome and timings (and a capture's record), delete its
+        tiles, and run the post-processing (the report), whose failure fails no job."""
+        record = _jsonable(outcome)
+        record.pop("trees", None)  # the per-tree table is in trees.parquet
+        record.pop("sample", None)  # points for a report's map, not a record
+        timings = dict(record.get("timings") or {})
+        timings.setdefault("total", round(time.perf_counter() - t0, 3))
+        drop_work(self.settings, job["id"])  # tiles of a finished job are not needed again
+        if self.store.capture_of_job(job["id"]) is not None:
+            self.store.set_capture_record(job["id"], seasons.capture_record(job_dir(self.settings, job["id"])))
+        done = self.store.finish_job(job["id"], "done", outcome=record, timings=timings)
+        if self._after_done is not None:
+            try:
+                self._after_done(done)
+            except Exception as exc:  # noqa: BLE001 - a report problem does not fail the job
+                log.warning("job %s: post-processing failed: %s", job["id"], exc)
+        return done
+
+    def _record_failure(self, job: dict[str, Any], block: dict[str, Any] | None, exc: BaseException,
+                        cancel: threading.Event) -> dict[str, Any]:
+        """Record what a failed run means (:func:`service.failures.classify`): cancelled,
+        released at shutdown, queued again after a failure of the cluster, or failed."""
+        outcome = classify(exc, cancelled=cancel.is_set())
+        if outcome.kind == "exit":
+            raise exc
+        if outcome.kind == "cancelled":
+            return self._record_cancel(job)
+        if outcome.log == "traceback":
+            log.error("job %s failed unexpectedly", job["id"], exc_info=exc)
+        elif outcome.log == "line":
+            log.error("job %s: %s (%s)", job["id"], failure_words(outcome.kind, outcome.fields), exc)
+        if outcome.reconnect:
+            self._close_client()  # the next job connects afresh
+        fields = dict(outcome.fields)
+        if block is not None and "message" in fields:  # a domain error names the block's file by its name
+            fields.update(block_path=block["path"], block_name=job_block_name(job, block))
+        drop_work(self.settings, job["id"])  # the service never resumes a job: its tiles are not needed
+        if outcome.retry:
+            return self._after_cluster_failure(job, Outcome(outcome.kind, fields))
+        return self.store.finish_job(job["id"], "failed", error_kind=outcome.kind, error_fields=fields)
+
+    def _record_cancel(self, job: dict[str, Any]) -> dict[str, Any]:
+        """A cancelled job: cancelled for good, or, when the service is stopping and no
+        one asked for the cancel, put back in the queue for its next start."""
+        if self._stopping.is_set() and not self.store.cancel_requested(job["id"]):
+            log.info("job %s interrupted by shutdown; it runs again at the next start", job["id"])
+            self.store.release_job(job["id"])
+            return self.store.get_job(None, job["id"])
+        drop_work(self.settings, job["id"])  # the service never resumes a cancelled job
+        return self.store.finish_job(job["id"], "cancelled", error_kind="cancelled", error_fields={})
+
+    def _after_cluster_failure(self, job: dict[str, Any], outcome: Outcome) -> dict[str, Any]:
+        """A job the cluster (or the server) failed: queued again after ``retry_delay_s``
+        while it has attempts left (``job_retries``), failed for good after the last."""
+        attempts = int(job.get("attempts") or 1)
+        fields = {**outcome.fields, "attempt": attempts}
+        if attempts > self.settings.job_retries:
+            return self.store.finish_job(job["id"], "failed", error_kind=outcome.kind, error_fields=fields)
+        fields.update(attempts=self.settings.job_retries + 1, retry_at=time.time() + self.settings.retry_delay_s)
+        log.warning("job %s: %s", job["id"], failure_words(outcome.kind, fields))
+        return self.store.retry_job(job["id"], error_kind=outcome.kind, error_fields=fields, retry_at=fields["retry_at"])

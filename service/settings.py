@@ -16,13 +16,13 @@ from pydantic.fields import FieldInfo
 from pydantic.types import AllowInfNan
 from pydantic_settings import BaseSettings, SettingsConfigDict
 
-from pipeline.jobparams import TilingParams
+from workers.runoptions import RunOptions
 
 
-def _tiling_field(name: str, description: str, **default):
-    """A setting that stands for a tiling parameter: the model's bounds, and its default
+def _run_field(name: str, description: str, **default):
+    """A setting that stands for a run option (`RunOptions`): its bounds, and its default
     unless ``default`` gives the deployment's."""
-    field = FieldInfo.merge_field_infos(TilingParams.model_fields[name], description=description, **default)
+    field = FieldInfo.merge_field_infos(RunOptions.model_fields[name], description=description, **default)
     field.metadata.append(AllowInfNan(False))  # the model's config says it for all its fields
     return field
 
@@ -42,9 +42,9 @@ class Settings(BaseSettings):
     scheduler_timeout_s: float = Field(
         20.0, gt=0, le=600, description="how long a job waits to reach the dask scheduler before that attempt fails [s]"
     )
-    n_workers: int = _tiling_field("workers", "workers of the embedded LocalCluster")
+    n_workers: int = _run_field("workers", "workers of the embedded LocalCluster")
     threads_per_worker: int = Field(1, ge=1, le=64, description="threads per worker of the embedded LocalCluster")
-    worker_memory_gb: float = _tiling_field(
+    worker_memory_gb: float = _run_field(
         "worker_memory", "memory budget of one worker [GB]: a block without a tile size that would need more in one "
         "piece is tiled, with tiles chosen to fit it", default=2.0,
     )

@@ -28,6 +28,7 @@ from pipeline.errors import ParameterError
 from service.background import Background
 from service.db.jobstore import Store
 from service.settings import Settings
+from service.wording import job_error
 
 log = logging.getLogger("orchard.webhooks")
 
@@ -97,7 +98,7 @@ def job_event(store: Store, job: dict[str, Any]) -> int:
     outcome = job.get("outcome") or {}
     body = {"job": {
         "id": job["id"], "state": job["state"], "block_id": job["block_id"], "schedule_id": job.get("schedule_id"),
-        "capture": job.get("capture"), "error": job.get("error"), "n_trees": outcome.get("n_trees"),
+        "capture": job.get("capture"), "error": job_error(job), "n_trees": outcome.get("n_trees"),
         "partial": outcome.get("partial"), "finished_at": job.get("finished_at"),
         "links": {"self": f"/v1/jobs/{job['id']}", "page": f"/jobs/{job['id']}"},
     }}

@@ -16,6 +16,7 @@ from __future__ import annotations
 import errno
 import math
 import sqlite3
+import time
 from collections.abc import Sequence
 from pathlib import Path
 
@@ -156,6 +157,68 @@ def validation_words(errors: list[dict], name=cli_name) -> list[str]:
         msg = e.get("msg", "invalid value")
         parts.append(f"{where}: {msg}" if where else msg)
     return parts
+
+
+#: how the edges of the service word a job's failure that is no domain error, by its
+#: kind (`service.failures.classify`): the message, from the failure's fields
+_FAILURES = {
+    "cancelled": "cancelled on request",
+    "crashed": "the service stopped {crashes} times while running this job; it is not retried (it may be what stops "
+               "the service: see the service log; submit it again to retry)",
+    "cluster_unavailable": "cannot start or reach the dask cluster ({where}): {detail}",
+    "disk_full": "the server ran out of disk space during the job",
+    "scheduler_lost": "lost the connection to the dask scheduler during the job",
+    "internal": "internal error ({exception}): {detail}",
+    "unrecorded": "internal error ({exception}) while recording the job's outcome; see the service log",
+}
+
+#: what to do after a retried job's last attempt failed, by kind
+_LAST_ADVICE = {
+    "cluster_lost": "; start dask workers and submit the job again",
+    "disk_full": "; free disk space on the server and submit it again",
+    "scheduler_lost": "; submit it again once the cluster is back",
+}
+
+
+def failure_words(kind: str, fields: dict, *, name=api_name) -> str:
+    """A job's failure, kept by the store as its ``kind`` and ``fields``
+    (`service.failures`), as an edge says it: ``name`` words a parameter (`api_name`,
+    `cli_name`).
+
+    A domain error's message is rendered with its parameters worded, the block's stored
+    file named by the name it arrived as (``block_path``, ``block_name``), and without
+    the command line's advice of a stopped run (the service never resumes a job). A
+    retried failure says its attempt: ``retry_at`` (epoch seconds) when it is queued
+    again, else the last attempt's advice."""
+    if kind in _FAILURES:
+        if kind == "cancelled" and fields.get("before_start"):
+            return "cancelled before it started"
+        text = _FAILURES[kind].format_map({k: fields.get(k, "") for k in ("where", "detail", "exception", "crashes")})
+    else:
+        exc = OrchardError(fields.get("message", ""), hint=fields.get("hint", ""))
+        text = exc.render(name, hint=not fields.get("stopped")) or fields.get("class", kind)
+        if fields.get("block_path"):
+            block_name = fields.get("block_name") or "the block"
+            text = text.replace(fields["block_path"], block_name).replace(Path(fields["block_path"]).name, block_name)
+    attempt = fields.get("attempt")
+    if attempt is None:
+        return text
+    if fields.get("retry_at") is not None:
+        when = time.strftime("%Y-%m-%d %H:%M:%S UTC", time.gmtime(fields["retry_at"]))
+        return f"attempt {attempt} of {fields.get('attempts', attempt)} failed: {text}; trying again from {when}"
+    tries = f" (attempt {attempt}, the last)" if attempt > 1 else ""
+    return text + tries + _LAST_ADVICE.get(kind, "")
+
+
+def job_error(rec: dict, *, name=api_name, prefix: str = "") -> str | None:
+    """A stored job's error as an edge says it: its failure (``error_kind`` and
+    ``error_fields``, `failure_words`), else the note the store keeps as text (a
+    running job waiting for workers, a job cancelled before it started), else None.
+    ``prefix``: the columns' prefix in a joined record (``job_``)."""
+    kind = rec.get(prefix + "error_kind")
+    if kind:
+        return failure_words(kind, rec.get(prefix + "error_fields") or {}, name=name)
+    return rec.get(prefix + "error")
 
 
 #: errno values of a full disk or an exhausted quota

@@ -16,7 +16,7 @@ from dask.utils import parse_timedelta
 from distributed import Client, LocalCluster
 
 from pipeline.errors import ParameterError
-from pipeline.jobparams import WORKERS
+from workers.runoptions import WORKERS
 from workers.identity import DISTRIBUTION, identity
 
 log = logging.getLogger(__name__)

@@ -11,8 +11,7 @@ from collections.abc import Callable
 
 from pipeline.blockinfo import BlockInfo
 from pipeline.budget import DensitySample
-from pipeline.jobparams import CHUNK_POINTS
-from pipeline.reading import count_range, sample_density, sample_from_ranges
+from pipeline.reading import CHUNK_POINTS, count_range, sample_density, sample_from_ranges
 from workers.dispatch import gather
 
 

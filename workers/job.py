@@ -30,7 +30,7 @@ import numpy as np
 
 from pipeline.blockinfo import BlockInfo, read_info
 from pipeline.budget import range_points
-from pipeline.jobparams import REPORT_POINTS, sample_stride
+from pipeline.mapsample import REPORT_POINTS, sample_stride
 from pipeline.parquet import sampled_tree_ids
 from pipeline.reading import read_points
 from pipeline.tiling import TileGrid
@@ -100,7 +100,7 @@ def _run_single(spec, info, t0, progress, cancel, xyz=None) -> JobOutcome:
     if progress:
         progress(0, 1)
     if xyz is None:
-        xyz, _ = read_points(info.path, chunk_points=spec.tiling.chunk_points)
+        xyz, _ = read_points(info.path, chunk_points=spec.run.chunk_points)
     timings["read"] = time.perf_counter() - t0
     check_cancel(cancel)
     t = time.perf_counter()
@@ -130,7 +130,7 @@ def _run_single(spec, info, t0, progress, cancel, xyz=None) -> JobOutcome:
 
 
 def report_sample(xyz: np.ndarray, tree_id: np.ndarray, origin, max_points: int = REPORT_POINTS) -> dict:
-    """Every :func:`pipeline.jobparams.sample_stride`-th point of a whole block: the
+    """Every :func:`pipeline.mapsample.sample_stride`-th point of a whole block: the
     points ``service.report.sample_points`` takes from the block's file and
     ``points.parquet``, from memory.
 
@@ -161,12 +161,12 @@ def _stored_sample(store: WorkStore, info: BlockInfo, points_parquet: str) -> di
 
 
 def _job_record(spec: JobSpec, info: BlockInfo, grid: TileGrid, work: str) -> dict:
+    """What the work store keeps of a tiled job to resume it or re-run a tile: the job's
+    parameters whole (:func:`workers.jobspec.stored_job` reads them back) and its grid."""
     return {
         "input_path": spec.input_path,
         "out_dir": spec.out_dir,
-        "params": spec.params.model_dump(mode="json"),
-        "tile_size": spec.tiling.tile_size,
-        "buffer": grid.buffer,
+        "job": spec.job.model_dump(mode="json"),
         "grid": grid.to_dict(),
         "work_dir": work,
         "labelled_laz": spec.labelled_laz,
@@ -178,8 +178,8 @@ def _job_record(spec: JobSpec, info: BlockInfo, grid: TileGrid, work: str) -> di
 
 def _run_tiled(spec, info, client, t0, progress, cancel) -> JobOutcome:
     timings = {}
-    grid = plan_tiles(spec, info)
-    check_engine(spec.tiling.engine, grid)
+    grid = plan_tiles(spec.job, info)
+    check_engine(spec.run.engine, grid)
     out_dir = Path(spec.out_dir)
     made = [d for d in (out_dir, *out_dir.parents) if not d.exists()]  # deepest first
     work = spec.work_dir or default_work_dir(spec.out_dir)
@@ -203,8 +203,8 @@ def _run_tiled_locked(spec, info, client, t0, progress, cancel, grid, store, tim
         store.put_json(JOB_KEY, record)
         check_cancel(cancel)
         # a worker's range of the file follows the memory budget, as its tiles do
-        chunk = range_points(spec.tiling.memory_budget, spec.tiling.chunk_points)
-        index = tile_block(info, grid, store, chunk_points=chunk, engine=spec.tiling.engine, client=client,
+        chunk = range_points(spec.run.memory_budget, spec.run.chunk_points)
+        index = tile_block(info, grid, store, chunk_points=chunk, engine=spec.run.engine, client=client,
                            gather=lambda futures: gather(client, futures, cancel, store))
         timings["tile"] = time.perf_counter() - t0
         tiles = [t for t in index["tiles"] if t["n_core"] > 0]

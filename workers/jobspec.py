@@ -1,5 +1,6 @@
 """A job's contract: what to process (:class:`JobSpec`), what came of it
-(:class:`JobOutcome`), how a run can stop, and the checks made before any work."""
+(:class:`JobOutcome`), how a run can stop (:mod:`workers.stops`' classes, named here
+too), the checks made before any work and the planning of its tiles."""
 
 from __future__ import annotations
 
@@ -13,12 +14,14 @@ import numpy as np
 
 from pipeline.blockinfo import BlockInfo, read_info
 from pipeline.budget import fits_whole, tile_size_for_sample
-from pipeline.errors import OrchardError, ParameterError
+from pipeline.errors import ParameterError
 from pipeline.jobparams import JobParams, TilingParams
 from pipeline.params import PipelineParams
 from pipeline.reading import read_counted, read_points, sample_density
 from pipeline.tiling import TileGrid, plan_grid
 from workers.captures import check_date, check_previous
+from workers.runoptions import RunOptions
+from workers.stops import ClusterLost, JobCancelled, TileFailed  # noqa: F401  (the contract names them)
 from workers.tiler import check_engine
 from workers.workstore import WorkStore, absolute_url, default_work_dir, own_entry
 
@@ -26,38 +29,15 @@ from workers.workstore import WorkStore, absolute_url, default_work_dir, own_ent
 OUTPUT_NAMES = ("points.parquet", "labelled.laz", "trees.parquet", "rows.parquet", "gaps.parquet", "history.parquet")
 
 
-class _Stopped(OrchardError):
-    """A tiled job stopped with its work store kept: ``reason`` says why, ``hint`` how to
-    go on from that store (the command line's advice: the service never resumes a job)."""
-
-    def __init__(self, reason: str, hint: str = ""):
-        super().__init__(reason, hint=hint)
-        self.reason = reason
-
-
-class TileFailed(_Stopped):
-    """A tile's processing failed after its retries (the message names the tile)."""
-
-    def __init__(self, reason: str, tile_id: int, hint: str = ""):
-        super().__init__(reason, hint)
-        self.tile_id = tile_id
-
-
-class JobCancelled(OrchardError):
-    """The job was cancelled before it finished."""
-
-
-class ClusterLost(_Stopped):
-    """The dask cluster had no workers for too long; the job stopped (it can be resumed)."""
-
-
 @dataclass
 class JobSpec:
-    """What to process and how: the block, the outputs' folder and the job's parameters,
-    ``params`` and ``tiling`` (checked together as a :class:`pipeline.jobparams.JobParams`).
+    """What to process and how: the block, the outputs' folder, the job's parameters
+    ``job`` (a :class:`pipeline.jobparams.JobParams`, checked when it was made: the
+    pipeline's ``params`` and the ``tiling``) and how to run it, ``run``
+    (:class:`workers.runoptions.RunOptions`, which change no output).
 
     ``tiling.tile_size`` None processes the block as one tile, unless it would need more
-    than ``tiling.worker_memory`` in one piece: then :func:`auto_tiled` chooses tiles that
+    than ``run.worker_memory`` in one piece: then :func:`auto_tiled` chooses tiles that
     fit it (None: no budget). ``tiling.buffer`` None uses ``params.reach()``;
     ``tiling.grid_origin`` None uses the block origin (floor of the header minimum), in
     the input CRS; ``work_dir`` None uses ``out_dir/_work``. ``inject_failure`` lists
@@ -79,8 +59,8 @@ class JobSpec:
 
     input_path: str
     out_dir: str
-    params: PipelineParams = field(default_factory=PipelineParams)
-    tiling: TilingParams = field(default_factory=TilingParams)
+    job: JobParams = field(default_factory=JobParams)
+    run: RunOptions = field(default_factory=RunOptions)
     work_dir: str | None = None
     labelled_laz: bool = False
     inject_failure: tuple[int, ...] = ()
@@ -105,7 +85,26 @@ class JobSpec:
             self.previous = check_previous(self.previous)
         if self.captured_at is not None:
             self.captured_at = check_date(self.captured_at, "job.captured_at")
-        JobParams(pipeline=self.params, tiling=self.tiling)  # ParameterError: a buffer below the reach...
+
+    @property
+    def params(self) -> PipelineParams:
+        """The pipeline's parameters (``job.pipeline``)."""
+        return self.job.pipeline
+
+    @property
+    def tiling(self) -> TilingParams:
+        """The tiling (``job.tiling``)."""
+        return self.job.tiling
+
+
+def stored_job(record: dict) -> JobParams:
+    """The parameters of the job a work store's record (``job.json``) describes: stored
+    whole; a store written before they were (its ``params``, its grid's tile size and
+    buffer) is read as it was."""
+    if "job" in record:
+        return JobParams.model_validate(record["job"])
+    tiling = {"tile_size": record.get("tile_size"), "buffer": (record.get("grid") or {}).get("buffer")}
+    return JobParams.model_validate({"pipeline": record.get("params") or {}, "tiling": tiling})
 
 
 def check_job_paths(input_path: str, out_dir: str, work_dir: str | None) -> None:
@@ -162,8 +161,8 @@ def check_job(spec: JobSpec, *, tiled: bool | None = None) -> tuple[BlockInfo, T
             raise ParameterError("{tiling.buffer} needs {tiling.tile_size}: a block processed in one piece has no tile buffer",
                                  param="tiling.buffer", value=spec.tiling.buffer)
         return info, None
-    grid = plan_tiles(spec, info)
-    check_engine(spec.tiling.engine, grid)
+    grid = plan_tiles(spec.job, info)
+    check_engine(spec.run.engine, grid)
     WorkStore(spec.work_dir or default_work_dir(spec.out_dir)).check_free()  # before any cluster starts
     return info, grid
 
@@ -196,18 +195,17 @@ def auto_tiled(spec: JobSpec, info: BlockInfo | None = None, *, count: Callable 
     Raises ParameterError (a :class:`pipeline.budget.BudgetError` when no tile fits),
     InputError (truncated or corrupt point data met while counting).
     """
-    tiling = spec.tiling
-    if tiling.tile_size is not None or tiling.memory_budget is None:
+    budget = spec.run.memory_budget
+    if spec.tiling.tile_size is not None or budget is None:
         return spec
     info = info or read_info(spec.input_path)
-    if fits_whole(info.n_points, tiling.memory_budget):
+    if fits_whole(info.n_points, budget):
         return spec
-    buffer = JobParams(pipeline=spec.params, tiling=tiling).buffer()
     voxel_size = spec.params.graph.voxel_size
     sample = count(info, voxel_size) if count else sample_density(info.path, info=info, voxel_size=voxel_size)
     size = tile_size_for_sample(sample, info.mins, info.maxs,
-                                budget=tiling.memory_budget, buffer=buffer, grid_origin=grid_origin(tiling, info))
-    return spec if size is None else dataclasses.replace(spec, tiling=tiling.model_copy(update={"tile_size": size}))
+                                budget=budget, buffer=spec.job.buffer(), grid_origin=grid_origin(spec.tiling, info))
+    return spec if size is None else dataclasses.replace(spec, job=spec.job.with_tile_size(size))
 
 
 def budgeted(spec: JobSpec, info: BlockInfo | None = None) -> tuple[JobSpec, np.ndarray | None]:
@@ -228,7 +226,7 @@ def budgeted(spec: JobSpec, info: BlockInfo | None = None) -> tuple[JobSpec, np.
     if spec.tiling.tile_size is not None:
         return spec, None
     if not kept:
-        kept.append(read_points(spec.input_path, chunk_points=spec.tiling.chunk_points)[0])
+        kept.append(read_points(spec.input_path, chunk_points=spec.run.chunk_points)[0])
     return spec, kept[0]
 
 
@@ -238,16 +236,22 @@ def grid_origin(tiling: TilingParams, info: BlockInfo) -> tuple[float, float]:
     return tiling.grid_origin if tiling.grid_origin is not None else info.origin[:2]
 
 
-def plan_tiles(spec: JobSpec, info: BlockInfo) -> TileGrid:
+def plan_tiles(job: JobParams, info: BlockInfo) -> TileGrid:
     """The tile grid of a job over the block ``info`` (one tile holding the whole block
-    when ``spec`` has no tile size)."""
-    reach, tiling = spec.params.reach(), spec.tiling
-    buffer = JobParams(pipeline=spec.params, tiling=tiling).buffer()
-    origin = grid_origin(tiling, info)
-    if tiling.tile_size is None:  # one tile holding the whole block
+    when ``job`` has no tile size): where the tiling's limits that depend on the block are
+    checked, once, against its actual grid (how many tiles, how many copies of a point,
+    an origin the block lies above).
+
+    Raises
+    ------
+    ParameterError
+    """
+    tiling, origin = job.tiling, grid_origin(job.tiling, info)
+    size = tiling.tile_size
+    if size is None:  # one tile holding the whole block
         size = max(info.maxs[0] - origin[0], info.maxs[1] - origin[1]) + 1.0
         if origin[0] > info.mins[0] or origin[1] > info.mins[1]:
             raise ParameterError("with no {tiling.tile_size} the grid origin must lie below the block's minimum x and y",
                                  param="tiling.grid_origin", value=tuple(origin))
-        return plan_grid(info.mins, info.maxs, tile_size=size, buffer=buffer, grid_origin=origin, reach=reach)
-    return plan_grid(info.mins, info.maxs, tile_size=tiling.tile_size, buffer=buffer, grid_origin=origin, reach=reach)
+    return plan_grid(info.mins, info.maxs, tile_size=size, buffer=job.buffer(), grid_origin=origin,
+                     reach=job.pipeline.reach())

@@ -18,9 +18,8 @@ import numpy as np
 
 from pipeline.blockinfo import BlockInfo
 from pipeline.errors import NoTreesError, ParameterError
-from pipeline.params import PipelineParams
 from workers.dispatch import block_ground_stats, process_tiles, settle_slot_trees
-from workers.jobspec import JobOutcome, JobSpec, check_job_paths
+from workers.jobspec import JobOutcome, JobSpec, check_job_paths, stored_job
 from workers.outputs import Labels, merge_and_write
 from workers.captures import Capture
 from workers.tasks import process_tile, result_key
@@ -36,7 +35,7 @@ def merge_stored(store: WorkStore, record: dict, index: dict, summaries: list[di
     the merge). The outcome's timings hold only ``seasons`` (registration and keys).
     """
     info = BlockInfo(**{k: tuple(v) if isinstance(v, list) else v for k, v in record["info"].items()})
-    params = PipelineParams.model_validate(record["params"])
+    params = stored_job(record).pipeline
     summaries = sorted(summaries, key=lambda s: s["tile_id"])
     origin = np.asarray(index["origin"][:2], dtype=np.float64)
     dead = [np.asarray(t["core"], dtype=np.float64) - np.r_[origin, origin] for t in index["tiles"] if t["id"] in set(failed)]
@@ -70,7 +69,7 @@ def run_tile(work_dir: str, tile_id: int) -> dict:
     index = store.get_json(INDEX_KEY)
     if tile_id not in {t["id"] for t in index["tiles"] if t["n_core"] > 0}:
         raise ParameterError(f"tile {tile_id} is not a tile of the job in {work_dir}")
-    params = PipelineParams.model_validate(record["params"])
+    params = stored_job(record).pipeline
     with store.lock():
         return process_tile(store.url, tile_id, params.model_dump_json())
 
@@ -102,7 +101,7 @@ def _resume(store: WorkStore, out_dir, client, progress, cancel) -> JobOutcome:
         t for t in index["tiles"]
         if t["n_core"] > 0 and not store.exists(f"{result_key(t['id'])}/summary.pkl")
     ]
-    spec = JobSpec(record["input_path"], out_dir or record["out_dir"], params=PipelineParams.model_validate(record["params"]))
+    spec = JobSpec(record["input_path"], out_dir or record["out_dir"], job=stored_job(record))
     if todo and "ground_stats" not in record:  # stopped before the block's ground statistics were taken
         tiles = [t for t in index["tiles"] if t["n_core"] > 0]
         record["ground_stats"] = block_ground_stats(store, tiles, spec, client, cancel, record["info"]["n_points"])

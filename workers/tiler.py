@@ -22,8 +22,8 @@ import numpy as np
 
 from pipeline.blockinfo import BlockInfo
 from pipeline.errors import ParameterError
-from pipeline.jobparams import CHUNK_POINTS, first_sampled, sample_stride
-from pipeline.reading import check_bounds, iter_raw, read_raw_range, to_local
+from pipeline.mapsample import first_sampled, sample_stride
+from pipeline.reading import CHUNK_POINTS, check_bounds, iter_raw, read_raw_range, to_local
 from pipeline.tilelimits import check_split_buffer
 from pipeline.tiling import TileGrid, buffered_tiles, core_tile
 from workers.workstore import WorkStore
@@ -31,7 +31,7 @@ from workers.workstore import WorkStore
 #: One record per (point, tile): stored integers, source index, core flag.
 TILE_DTYPE = np.dtype([("X", "<i4"), ("Y", "<i4"), ("Z", "<i4"), ("index", "<u8"), ("core", "u1")])
 INDEX_KEY = "tiles/index.json"
-#: every :func:`pipeline.jobparams.sample_stride`-th point's local x, y, kept by the
+#: every :func:`pipeline.mapsample.sample_stride`-th point's local x, y, kept by the
 #: tiler for the report's map (one part per chunk, named by its first point)
 SAMPLE_KEY = "tiles/sample"
 #: the index without its list of tiles: what a tile's task needs (frame and grid), so
@@ -406,7 +406,7 @@ def read_tile(store: WorkStore, tile_id: int) -> np.ndarray:
 
 def read_sample(store: WorkStore, n_points: int) -> tuple[np.ndarray, np.ndarray] | None:
     """The sample the tiler kept: local x, y (m, 2) [m] of every
-    :func:`pipeline.jobparams.sample_stride`-th point of the block and those points'
+    :func:`pipeline.mapsample.sample_stride`-th point of the block and those points'
     indices (m,) int64; None when the tiles were made without it (the PDAL engine, a
     work store of an earlier version)."""
     keys = sorted(k for k in store.list(SAMPLE_KEY) if k.endswith(".npy"))

@@ -8,7 +8,7 @@ from fastapi import APIRouter, Query, Request, Response
 
 from service.api.deps import StoreDep, TenantDep, wake_runner
 from service.api.schemas import JSON_BODY, ErrorBody, Job, JobCreate, JobsPage, job_out
-from service.jobrequests import stored_tiling
+from service.jobrequests import request_job, stored
 
 router = APIRouter()
 
@@ -18,8 +18,8 @@ router = APIRouter()
                     **JSON_BODY})
 def create_job(body: JobCreate, request: Request, response: Response, tenant: TenantDep, store: StoreDep):
     block = store.get_block(tenant["id"], body.block_id)
-    tiling = stored_tiling(body.params, body.tiling and body.tiling.model_dump())
-    job = store.create_job(tenant_id=tenant["id"], block_id=block["id"], params=body.params.model_dump(), tiling=tiling)
+    params = request_job(body.params, body.tiling and body.tiling.model_dump())
+    job = store.create_job(tenant_id=tenant["id"], block_id=block["id"], job=stored(params))
     wake_runner(request.app)
     response.headers["Location"] = f"/v1/jobs/{job['id']}"
     return job_out(job)

@@ -35,7 +35,7 @@ from service.api.uploads import UPLOAD_BODY, UPLOAD_SLACK, receive_upload
 from service.db.block_files import accept_block
 from service.db.errors import NotFoundError
 from service.db.jobstore import Store
-from service.jobrequests import stored_tiling
+from service.jobrequests import request_job, stored
 from service.runner import job_dir
 from service.seasons import HISTORY
 from service.settings import Settings
@@ -127,9 +127,9 @@ async def add_capture(
 
 
 def _queue_capture(store: Store, tenant: dict, orchard_block_id: str, body: OrchardCaptureCreate) -> dict:
-    tiling = stored_tiling(body.params, body.tiling and body.tiling.model_dump())
+    job = request_job(body.params, body.tiling and body.tiling.model_dump())
     return store.create_capture(tenant_id=tenant["id"], orchard_block_id=orchard_block_id, block_id=body.block_id,
-                                params=body.params.model_dump(), tiling=tiling,
+                                job=stored(job),
                                 captured_at=body.captured_at.isoformat() if body.captured_at else None)
 
 

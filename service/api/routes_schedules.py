@@ -16,7 +16,7 @@ from service.api.schemas import (
     schedule_out,
 )
 from service.capturefates import capture_fates
-from service.jobrequests import schedule_changes, stored_tiling
+from service.jobrequests import request_job, schedule_changes, stored
 from service.schedules import check_inbox_use, next_run_time, run_schedule, tenant_inbox_root, validate_cron, validate_inbox
 
 router = APIRouter()
@@ -29,13 +29,12 @@ def create_schedule(body: ScheduleCreate, request: Request, response: Response, 
     # a tenant's inboxes lie in its own folder: no other farm's captures, no server files
     inbox = validate_inbox(body.inbox, root=tenant_inbox_root(settings, tenant["name"]), root_label="this tenant's inbox folder")
     check_inbox_use(inbox, settings=settings, store=store, tenant_id=tenant["id"])
-    tiling = stored_tiling(body.params, body.tiling and body.tiling.model_dump())  # as a job would: refused now, not every night
+    job = request_job(body.params, body.tiling and body.tiling.model_dump())  # as a job would: refused now, not every night
     rec = store.create_schedule(
         tenant_id=tenant["id"],
         inbox=str(inbox),
         cron=cron,
-        params=body.params.model_dump(),
-        tiling=tiling,
+        job=stored(job),
         next_run_at=next_run_time(cron, datetime.now().astimezone()).timestamp(),
         orchard_block_id=body.orchard_block_id,
     )

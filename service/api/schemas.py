@@ -17,8 +17,9 @@ from pydantic_core import PydanticUndefined
 
 from pipeline.jobparams import TilingParams
 from pipeline.params import PipelineParams
+from service.jobrequests import request_tiling
 from service.schedules import DEFAULT_CRON
-from service.wording import REQUEST_TILING
+from service.wording import REQUEST_TILING, job_error
 
 # -- bodies --------------------------------------------------------------------------------
 
@@ -81,6 +82,9 @@ class Job(BaseModel):
     tiles_total: int
     timings: dict[str, Any]
     error: str | None
+    error_kind: str | None = Field(None, description="what kind of failure ``error`` says, for a client to act on: "
+                                   "parameter, input, no_trees, tile_failed, cluster_lost, cluster_unavailable, "
+                                   "disk_full, scheduler_lost, internal, cancelled, ... (null: none, or a note)")
     cancel_requested: bool
     attempts: int = 0
     crashes: int = Field(0, description="times the service died while running this job (not attempts; at ORCHARD_MAX_CRASHES it fails)")
@@ -332,13 +336,14 @@ def job_out(rec: dict, *, capture: dict | None = None) -> Job:
         tiles_done=rec["tiles_done"],
         tiles_total=rec["tiles_total"],
         timings=rec.get("timings") or {},
-        error=rec.get("error"),
+        error=job_error(rec),
+        error_kind=rec.get("error_kind"),
         cancel_requested=bool(rec.get("cancel_requested")),
         attempts=int(rec.get("attempts") or 0),
         crashes=int(rec.get("crashes") or 0),
         retry_at=_iso(rec.get("retry_at")),
-        params=rec.get("params") or {},
-        tiling=rec.get("tiling"),
+        params=rec["job"].get("pipeline") or {},
+        tiling=request_tiling(rec["job"]),
         n_points=outcome.get("n_points"),
         n_trees=outcome.get("n_trees"),
         partial=outcome.get("partial"),
@@ -365,8 +370,8 @@ def schedule_out(rec: dict, fates: dict | None = None) -> Schedule:
         id=rec["id"],
         inbox=rec["inbox"],
         cron=rec["cron"],
-        params=rec.get("params") or {},
-        tiling=rec.get("tiling"),
+        params=rec["job"].get("pipeline") or {},
+        tiling=request_tiling(rec["job"]),
         paused=bool(rec.get("paused")),
         created_at=_iso(rec.get("created_at")),
         last_run_at=_iso(rec.get("last_run_at"), local=True),
@@ -390,7 +395,7 @@ def orchard_capture_out(rec: dict) -> OrchardCapture:
     links = {"self": f"/v1/orchard-blocks/{rec['orchard_block_id']}/captures/{rec['id']}",
              "job": f"/v1/jobs/{rec['job_id']}", "block": f"/v1/blocks/{rec['block_id']}", "page": f"/jobs/{rec['job_id']}"}
     return OrchardCapture(id=rec["id"], orchard_block_id=rec["orchard_block_id"], seq=rec["seq"], block_id=rec["block_id"],
-                   job_id=rec["job_id"], state=rec["state"], error=rec.get("error"), captured_at=rec.get("captured_at"),
+                   job_id=rec["job_id"], state=rec["state"], error=job_error(rec), captured_at=rec.get("captured_at"),
                    captured_at_source=rec.get("captured_at_source"), previous_capture_id=record.get("previous_capture_id"),
                    registration=record.get("registration"), counts=record.get("counts"),
                    arrived_at=_iso(rec.get("arrived_at")), links=links)

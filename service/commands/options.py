@@ -64,15 +64,23 @@ def _origin(text: str) -> tuple[float, float]:
     return x, y
 
 
-def add_tiling_options(group, names: tuple[str, ...], notes: dict[str, str] | None = None) -> None:
-    """An option ``--<field>`` for each named field of `TilingParams` (default None: the
-    command applies the model's, or a setting's, at its edge). Its help is the field's
-    description, then the command's ``notes`` on it, else the model's default."""
+def _tiling_field(name: str):
+    """The field ``name`` of `TilingParams` (what a job computes), else of `RunOptions`
+    (how it runs): the command line sets both with one group of options."""
     from pipeline.jobparams import TilingParams
+    from workers.runoptions import RunOptions
 
+    return TilingParams.model_fields.get(name) or RunOptions.model_fields[name]
+
+
+def add_tiling_options(group, names: tuple[str, ...], notes: dict[str, str] | None = None) -> None:
+    """An option ``--<field>`` for each named field of `TilingParams` or `RunOptions`
+    (default None: the command applies the model's, or a setting's, at its edge). Its
+    help is the field's description, then the command's ``notes`` on it, else the
+    model's default."""
     notes = notes or {}
     for name in names:
-        field = TilingParams.model_fields[name]
+        field = _tiling_field(name)
         ann = base_type(field.annotation)
         kwargs: dict = {"dest": name, "default": None}
         if typing.get_origin(ann) is typing.Literal:
@@ -87,7 +95,5 @@ def add_tiling_options(group, names: tuple[str, ...], notes: dict[str, str] | No
 
 
 def tiling_default(name: str):
-    """The model's default of a `TilingParams` field."""
-    from pipeline.jobparams import TilingParams
-
-    return TilingParams.model_fields[name].default
+    """The model's default of a `TilingParams` or `RunOptions` field."""
+    return _tiling_field(name).default

@@ -130,27 +130,38 @@ def _check_tiled_options(args: argparse.Namespace, *, tiled: bool) -> None:
 
 def _tiling(args: argparse.Namespace):
     """The tiling options as the job's `TilingParams`: ``--tile-size 0`` is one piece
-    whatever the block's size (no budget); without ``--tile-size`` tiles are chosen to fit
-    ``--worker-memory``, else the ORCHARD_WORKER_MEMORY_GB setting."""
+    whatever the block's size."""
     from pipeline.jobparams import TilingParams
 
-    given = {k: getattr(args, k) for k in ("buffer", "grid_origin", "engine", "workers") if getattr(args, k) is not None}
+    given = {k: getattr(args, k) for k in ("buffer", "grid_origin") if getattr(args, k) is not None}
     if args.tile_size is not None:
-        given.update(tile_size=args.tile_size or None, worker_memory=None)
+        given["tile_size"] = args.tile_size or None
+    return TilingParams(**given)
+
+
+def _run_options(args: argparse.Namespace):
+    """How to run the job, `RunOptions`: with ``--tile-size`` no memory budget (the
+    tiles are given); without, tiles are chosen to fit ``--worker-memory``, else the
+    ORCHARD_WORKER_MEMORY_GB setting."""
+    from workers.runoptions import RunOptions
+
+    given = {k: getattr(args, k) for k in ("engine", "workers") if getattr(args, k) is not None}
+    if args.tile_size is not None:
+        given["worker_memory"] = None
     elif args.worker_memory is not None:
         given["worker_memory"] = args.worker_memory
     else:
         from service.settings import Settings
 
         given["worker_memory"] = Settings().worker_memory_gb
-    return TilingParams(**given)
+    return RunOptions(**given)
 
 
 def _check_same_job(args: argparse.Namespace) -> None:
     """ParameterError if INPUT, the pipeline options or --labelled-laz are not those the
     job in ``work`` was started with (--rerun-tile and --resume go on with that job: they
     were ignored without a word)."""
-    from pipeline.params import PipelineParams
+    from workers.jobspec import stored_job
     from workers.workstore import JOB_KEY, WorkStore
 
     work, input_path = args.work, args.input
@@ -158,7 +169,7 @@ def _check_same_job(args: argparse.Namespace) -> None:
     if not store.exists(JOB_KEY):
         return  # said by resume_job / finish_job / run_tile
     record = store.get_json(JOB_KEY)
-    started_with = PipelineParams.model_validate(record.get("params") or {})
+    started_with = stored_job(record).pipeline
     if pipeline_params_from_args(args, base=started_with) != started_with:  # an option given to change one
         raise ParameterError(
             f"the pipeline options differ from those the job in --work {work} was started with; "
@@ -248,58 +259,11 @@ def _run(args: argparse.Namespace) -> int:
         from pipeline.lasheader import check_file
 
         n_points = check_file(args.input).point_count
-    from workers.jobspec import JobSpec, check_job
-
     _check_cluster_options(args)
     if args.rerun_tile or args.resume:
-        from workers.replay import finish_job, resume_job, run_tile
-
-        if not args.work:
-            raise ParameterError("--rerun-tile and --resume need --work: the work folder of the tiled run that failed")
-        _check_same_job(args)
-        for tid in args.rerun_tile or ():
-            print(f"re-running tile {tid} from {args.work}", file=sys.stderr)
-            run_tile(args.work, tid)
-        if not args.resume:
-            return _report(finish_job(args.work, out_dir=args.out), args)
-        client = None
-        try:
-            if args.scheduler:
-                from workers.cluster import close_client, make_client
-
-                client = make_client(args.scheduler)
-            outcome = resume_job(args.work, out_dir=args.out, client=client, progress=_Bar(),
-                                 cancel=getattr(args, "interrupted", None))
-        finally:
-            if client is not None:
-                close_client(client)
-        return _report(outcome, args)
-
-    tiling = _tiling(args)
-    spec = JobSpec(
-        input_path=args.input,
-        out_dir=args.out,
-        params=params,
-        tiling=tiling,
-        work_dir=args.work,
-        labelled_laz=args.labelled_laz,
-        inject_failure=tuple(args.inject_failure or ()),
-        previous=args.previous,
-        capture_id=args.capture_id,
-        captured_at=args.captured_at,
-        captured_at_fallback=getattr(args, "captured_at_fallback", None),
-    )
-    tiled = bool(args.tile_size) or args.scheduler is not None
-    count_on_cluster = False  # a block that surely needs tiles is counted by the workers
-    points = None  # the block's points, read here when it stays whole
-    if spec.tiling.tile_size is None and not tiled:
-        from pipeline.budget import surely_tiled
-
-        if surely_tiled(n_points, spec.tiling.memory_budget):
-            tiled = count_on_cluster = True
-        else:
-            spec, points = _budget_tiles(spec)  # bad input fails here, before anything else
-            tiled = spec.tiling.tile_size is not None
+        return _go_on(args)
+    spec = _spec(args, params)
+    spec, tiled, count_on_cluster, points = _tiled(spec, args, n_points)
     _check_tiled_options(args, tiled=tiled)  # they went unused, without a word (the budget decided, or --tile-size 0)
     if args.work:
         from workers.workstore import check_work_url
@@ -308,13 +272,89 @@ def _run(args: argparse.Namespace) -> int:
             check_work_url(args.work, shared=tiled)
         except ParameterError as exc:
             raise ParameterError("{job.work_dir}: " + exc.message, hint=exc.hint, param="job.work_dir", value=args.work) from None
+    outcome = _run_job(spec, args, tiled=tiled, count_on_cluster=count_on_cluster, points=points)
+    points = None  # not held through the report
+    return _report(outcome, args)
+
+
+def _go_on(args: argparse.Namespace) -> int:
+    """--rerun-tile and --resume: go on with the tiled job in --work."""
+    from workers.replay import finish_job, resume_job, run_tile
+
+    if not args.work:
+        raise ParameterError("--rerun-tile and --resume need --work: the work folder of the tiled run that failed")
+    _check_same_job(args)
+    for tid in args.rerun_tile or ():
+        print(f"re-running tile {tid} from {args.work}", file=sys.stderr)
+        run_tile(args.work, tid)
+    if not args.resume:
+        return _report(finish_job(args.work, out_dir=args.out), args)
+    client = None
+    try:
+        if args.scheduler:
+            from workers.cluster import close_client, make_client
+
+            client = make_client(args.scheduler)
+        outcome = resume_job(args.work, out_dir=args.out, client=client, progress=_Bar(),
+                             cancel=getattr(args, "interrupted", None))
+    finally:
+        if client is not None:
+            close_client(client)
+    return _report(outcome, args)
+
+
+def _spec(args: argparse.Namespace, params):
+    """The job the options describe: its parameters (a `JobParams`, checked once, here)
+    and how to run it."""
+    from pipeline.jobparams import JobParams
+    from workers.jobspec import JobSpec
+
+    return JobSpec(
+        input_path=args.input,
+        out_dir=args.out,
+        job=JobParams(pipeline=params, tiling=_tiling(args)),
+        run=_run_options(args),
+        work_dir=args.work,
+        labelled_laz=args.labelled_laz,
+        inject_failure=tuple(args.inject_failure or ()),
+        previous=args.previous,
+        capture_id=args.capture_id,
+        captured_at=args.captured_at,
+        captured_at_fallback=getattr(args, "captured_at_fallback", None),
+    )
+
+
+def _tiled(spec, args: argparse.Namespace, n_points: int):
+    """Whether the job is tiled: given tiles, a scheduler, or a block that does not fit
+    the memory budget. Returns the spec (with the budget's tiles), whether it is tiled,
+    whether its workers are to count the block (it surely needs tiles), and the block's
+    points when they were read here and it stays whole."""
+    tiled = bool(args.tile_size) or args.scheduler is not None
+    count_on_cluster = False  # a block that surely needs tiles is counted by the workers
+    points = None  # the block's points, read here when it stays whole
+    if spec.tiling.tile_size is None and not tiled:
+        from pipeline.budget import surely_tiled
+
+        if surely_tiled(n_points, spec.run.memory_budget):
+            tiled = count_on_cluster = True
+        else:
+            spec, points = _budget_tiles(spec)  # bad input fails here, before anything else
+            tiled = spec.tiling.tile_size is not None
+    return spec, tiled, count_on_cluster, points
+
+
+def _run_job(spec, args: argparse.Namespace, *, tiled: bool, count_on_cluster: bool, points):
+    """Check the job, start the cluster a tiled job needs (its workers count the block
+    when ``count_on_cluster``) and run it."""
+    from workers.jobspec import check_job
+
     client = None
     try:
         check_job(spec, tiled=tiled)  # bad input or parameters fail before a cluster starts
         if tiled:
             from workers.cluster import LOOPBACK, close_client, dashboard_address, make_client
 
-            client = make_client(args.scheduler, n_workers=tiling.workers, quiet=True, dashboard=args.dashboard,
+            client = make_client(args.scheduler, n_workers=spec.run.workers, quiet=True, dashboard=args.dashboard,
                                  host=args.dask_host or LOOPBACK)
             if count_on_cluster:  # before the dashboard line: a budget that cannot work ends the count's lines
                 from workers.counting import count_block
@@ -326,13 +366,12 @@ def _run(args: argparse.Namespace) -> int:
             print(f"dask dashboard: {link or 'none'}", file=sys.stderr)
         from workers.job import run_job
 
-        outcome = run_job(spec, client=client, progress=_Bar() if tiled else None,  # TileFailed: exit 1 (service.cli)
-                          cancel=getattr(args, "interrupted", None), points=points)
-        points = None  # not held through the report
+        # TileFailed: exit 1 (service.cli)
+        return run_job(spec, client=client, progress=_Bar() if tiled else None,
+                       cancel=getattr(args, "interrupted", None), points=points)
     finally:
         if client is not None:
             close_client(client)
-    return _report(outcome, args)
 
 
 def _budget_tiles(spec, count=None):
@@ -342,7 +381,7 @@ def _budget_tiles(spec, count=None):
     from pipeline.budget import BudgetError
     from workers.jobspec import auto_tiled, budgeted
 
-    tiling, points = spec.tiling, None
+    run, points = spec.run, None
     try:
         if count is None:
             spec, points = budgeted(spec)
@@ -351,10 +390,10 @@ def _budget_tiles(spec, count=None):
     except BudgetError as exc:
         need = math.ceil(exc.need / 1e8) / 10  # GB, rounded up
         raise ParameterError(exc.message, hint=f"{exc.hint} ({{tiling.worker_memory}} {need:g} or more)",
-                             param="tiling.worker_memory", value=tiling.worker_memory, limit=need) from None
+                             param="tiling.worker_memory", value=run.worker_memory, limit=need) from None
     if spec.tiling.tile_size is not None:
         print(
-            f"orchard process: the block would need more than {tiling.worker_memory:g} GB in one piece: "
+            f"orchard process: the block would need more than {run.worker_memory:g} GB in one piece: "
             f"tiles of {spec.tiling.tile_size:g} m (--tile-size 0: one piece)",
             file=sys.stderr,
         )

@@ -65,7 +65,7 @@ def _when(ts: float | None) -> str:
 def run(args: argparse.Namespace) -> int:
     from pipeline.errors import ParameterError
     from service.db.jobstore import Store
-    from service.jobrequests import schedule_changes, stored_tiling
+    from service.jobrequests import request_job, schedule_changes, stored
     from service.schedules import check_inbox_use, next_run_time, run_schedule, validate_cron, validate_inbox
     from service.settings import build_settings
 
@@ -81,11 +81,10 @@ def run(args: argparse.Namespace) -> int:
             cron = validate_cron(args.cron)
             inbox = validate_inbox(args.inbox, root=settings.inbox_root, base=Path.cwd())
             params = pipeline_params_from_args(args)
-            tiling = None
-            if args.tile_size is not None:  # as a job would: refused now, not every night
-                tiling = stored_tiling(params, {"tile_size": args.tile_size, "buffer": args.buffer})
-            elif args.buffer is not None:
+            if args.tile_size is None and args.buffer is not None:
                 raise ParameterError("--buffer needs --tile-size")
+            tiling = None if args.tile_size is None else {"tile_size": args.tile_size, "buffer": args.buffer}
+            job = request_job(params, tiling)  # as a job would: refused now, not every night
             tenant = store.ensure_tenant(args.tenant)
             check_inbox_use(inbox, settings=settings, store=store, tenant_id=tenant["id"])
             block_id = store.orchard_block_by_name(tenant["id"], args.orchard_block)["id"] if args.orchard_block else None
@@ -93,8 +92,7 @@ def run(args: argparse.Namespace) -> int:
                 tenant_id=tenant["id"],
                 inbox=str(inbox),
                 cron=cron,
-                params=params.model_dump(),
-                tiling=tiling,
+                job=stored(job),
                 next_run_at=next_run_time(cron, datetime.now().astimezone()).timestamp(),
                 orchard_block_id=block_id,
             )
@@ -121,8 +119,9 @@ def run(args: argparse.Namespace) -> int:
 def _print_list(rows: list[dict], tenants: dict, store, settings, *, as_json: bool) -> None:
     """The schedules, each followed by its captures' fates (one line each)."""
     from service.capturefates import capture_fates, fate_line
+    from service.wording import cli_name
 
-    fates = [capture_fates(store, settings, s) for s in rows]
+    fates = [capture_fates(store, settings, s, name=cli_name) for s in rows]
     if as_json:
         print(json.dumps([{**s, "paused": bool(s["paused"]), "tenant": tenants.get(s["tenant_id"]), **f}
                           for s, f in zip(rows, fates)], indent=2))
@@ -142,11 +141,13 @@ def _update_body(args: argparse.Namespace, sched: dict) -> dict:
     leaves the schedule's others as they are)."""
     from pipeline.errors import ParameterError
     from pipeline.params import PipelineParams
+    from service.jobrequests import request_tiling
 
     body: dict = {}
     if args.cron is not None:
         body["cron"] = args.cron
-    current = PipelineParams.model_validate(sched["params"])
+    current = PipelineParams.model_validate(sched["job"]["pipeline"])
+    tiling = request_tiling(sched["job"])
     params = pipeline_params_from_args(args, base=current)
     if params != current:
         body["params"] = params.model_dump()
@@ -155,12 +156,12 @@ def _update_body(args: argparse.Namespace, sched: dict) -> dict:
     if args.untiled:
         body["tiling"] = None
     elif args.tile_size is not None:  # a buffer set before stays (widened for wide crowns, say)
-        buffer = args.buffer if args.buffer is not None else (sched.get("tiling") or {}).get("buffer")
+        buffer = args.buffer if args.buffer is not None else (tiling or {}).get("buffer")
         body["tiling"] = {"tile_size": args.tile_size, "buffer": buffer}
     elif args.buffer is not None:
-        if not sched.get("tiling"):
+        if not tiling:
             raise ParameterError("--buffer needs --tile-size: the schedule processes each capture as one tile")
-        body["tiling"] = {"tile_size": sched["tiling"]["tile_size"], "buffer": args.buffer}
+        body["tiling"] = {"tile_size": tiling["tile_size"], "buffer": args.buffer}
     if not body:
         raise ParameterError("nothing to change: give --cron, --tile-size (with --buffer), --untiled or pipeline options")
     return body

@@ -52,14 +52,15 @@ CREATE TABLE IF NOT EXISTS jobs (
     tenant_id TEXT NOT NULL REFERENCES tenants(id),
     block_id TEXT NOT NULL REFERENCES blocks(id),
     schedule_id TEXT,
-    params TEXT NOT NULL,
-    tiling TEXT,
+    job TEXT NOT NULL,
     state TEXT NOT NULL,
     tiles_done INTEGER NOT NULL DEFAULT 0,
     tiles_total INTEGER NOT NULL DEFAULT 0,
     timings TEXT NOT NULL DEFAULT '{}',
     outcome TEXT,
     error TEXT,
+    error_kind TEXT,
+    error_fields TEXT,
     cancel_requested INTEGER NOT NULL DEFAULT 0,
     attempts INTEGER NOT NULL DEFAULT 0,
     crashes INTEGER NOT NULL DEFAULT 0,
@@ -85,8 +86,7 @@ CREATE TABLE IF NOT EXISTS schedules (
     tenant_id TEXT NOT NULL REFERENCES tenants(id),
     inbox TEXT NOT NULL,
     cron TEXT NOT NULL,
-    params TEXT NOT NULL,
-    tiling TEXT,
+    job TEXT NOT NULL,
     created_at REAL NOT NULL,
     last_run_at REAL,
     next_run_at REAL,
@@ -160,7 +160,11 @@ CREATE INDEX IF NOT EXISTS webhook_deliveries_due ON webhook_deliveries(state, n
 """
 
 #: columns stored as JSON text, decoded by `record`
-JSON_COLUMNS = ("info", "params", "tiling", "timings", "outcome", "record")
+JSON_COLUMNS = ("info", "job", "timings", "outcome", "record", "error_fields", "job_error_fields")
+
+#: the fields of a job's tiling that the ``tiling`` column of a store written before
+#: jobs were stored whole could hold (`Database._merge_job_columns`)
+_OLD_TILING = ("tile_size", "buffer", "grid_origin")
 
 
 def new_id() -> str:
@@ -206,7 +210,31 @@ class Database:
         self._add_column("jobs", "crashes", "INTEGER NOT NULL DEFAULT 0")
         self._add_column("schedules", "paused", "INTEGER NOT NULL DEFAULT 0")
         self._add_column("schedules", "orchard_block_id", "TEXT")  # (orchard_blocks and captures: new tables)
+        self._add_column("jobs", "error_kind", "TEXT")
+        self._add_column("jobs", "error_fields", "TEXT")
+        self._merge_job_columns()
         self._migrate_tokens()
+
+    def _merge_job_columns(self) -> None:
+        """A store written before a job's parameters were stored whole kept them in two
+        columns of ``jobs`` and ``schedules``, ``params`` (the pipeline's) and ``tiling``
+        (the request's tile size and buffer; NULL: one tile): they become the one ``job``
+        column (a `pipeline.jobparams.JobParams`' fields), in place, in one transaction."""
+        def merged(con) -> list[str]:
+            return [t for t in ("jobs", "schedules")
+                    if "params" in {r["name"] for r in con.execute(f"PRAGMA table_info({t})")}]
+
+        if not merged(self._con()):
+            return
+        with self._tx() as con:
+            for table in merged(con):  # (another process may have merged them meanwhile)
+                con.execute(f"ALTER TABLE {table} ADD COLUMN job TEXT NOT NULL DEFAULT '{{}}'")
+                for row in con.execute(f"SELECT rowid, params, tiling FROM {table}").fetchall():
+                    tiling = json.loads(row["tiling"]) if row["tiling"] else {}
+                    job = {"pipeline": json.loads(row["params"]), "tiling": {k: tiling[k] for k in _OLD_TILING if k in tiling}}
+                    con.execute(f"UPDATE {table} SET job = ? WHERE rowid = ?", (json.dumps(job), row["rowid"]))
+                con.execute(f"ALTER TABLE {table} DROP COLUMN params")
+                con.execute(f"ALTER TABLE {table} DROP COLUMN tiling")
 
     def _migrate_tokens(self) -> None:
         """Tokens stored before they had ids get one; their visible prefix stays unknown

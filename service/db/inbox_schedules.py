@@ -21,7 +21,7 @@ class InboxSchedules(OrchardBlocks):
     orchard block records each file as one more capture of it)."""
 
     def create_schedule(
-        self, *, tenant_id: str, inbox: str, cron: str, params: dict, tiling: dict | None, next_run_at: float | None,
+        self, *, tenant_id: str, inbox: str, cron: str, job: dict, next_run_at: float | None,
         orchard_block_id: str | None = None,
     ) -> dict[str, Any]:
         sid = new_id()
@@ -35,10 +35,9 @@ class InboxSchedules(OrchardBlocks):
                 whose = "this tenant's" if other[1] == tenant_id else "another tenant's"
                 raise ParameterError(f"inbox {inbox!r} already has a schedule ({whose}); one schedule per inbox")
             con.execute(
-                "INSERT INTO schedules (id, tenant_id, inbox, cron, params, tiling, created_at, next_run_at, orchard_block_id) "
-                "VALUES (?, ?, ?, ?, ?, ?, ?, ?, ?)",
-                (sid, tenant_id, inbox, cron, json.dumps(params), json.dumps(tiling) if tiling else None, time.time(),
-                 next_run_at, orchard_block_id),
+                "INSERT INTO schedules (id, tenant_id, inbox, cron, job, created_at, next_run_at, orchard_block_id) "
+                "VALUES (?, ?, ?, ?, ?, ?, ?, ?)",
+                (sid, tenant_id, inbox, cron, json.dumps(job), time.time(), next_run_at, orchard_block_id),
             )
         return self.get_schedule(None, sid)
 
@@ -87,11 +86,11 @@ class InboxSchedules(OrchardBlocks):
     def update_schedule(
         self, tenant_id: str | None, schedule_id: str, changes: dict[str, Any] | Callable[[dict[str, Any]], dict[str, Any]]
     ) -> dict[str, Any]:
-        """Change a schedule's ``cron``, ``params``, ``tiling``, ``paused`` and
+        """Change a schedule's ``cron``, ``job`` (its jobs' parameters), ``paused`` and
         ``next_run_at`` (the keys given) in one transaction. ``changes`` may be a function
         of the schedule as stored, called inside that transaction, so that what it checks
         (a tiling against the parameters) cannot be changed by another request meanwhile."""
-        allowed = {"cron", "params", "tiling", "paused", "next_run_at"}
+        allowed = {"cron", "job", "paused", "next_run_at"}
         where, args = "id = ?", [schedule_id]
         if tenant_id is not None:
             where, args = "id = ? AND tenant_id = ?", [schedule_id, tenant_id]
@@ -103,7 +102,7 @@ class InboxSchedules(OrchardBlocks):
                 changes = changes(current)
             if not changes.keys() <= allowed:
                 raise ValueError(f"not a schedule setting: {sorted(changes.keys() - allowed)}")
-            values = {k: (json.dumps(v) if k in ("params", "tiling") and v is not None else v) for k, v in changes.items()}
+            values = {k: (json.dumps(v) if k == "job" else v) for k, v in changes.items()}
             if "paused" in values:
                 values["paused"] = int(bool(values["paused"]))
             if values:
@@ -167,10 +166,9 @@ class InboxSchedules(OrchardBlocks):
                 return None
             self._check_queue(con, schedule["tenant_id"])  # rolls the capture's record back too
             con.execute(
-                "INSERT INTO jobs (id, tenant_id, block_id, schedule_id, params, tiling, state, created_at, capture) "
-                "VALUES (?, ?, ?, ?, ?, ?, 'queued', ?, ?)",
-                (jid, schedule["tenant_id"], block_id, schedule["id"], json.dumps(schedule["params"]),
-                 json.dumps(schedule["tiling"]) if schedule["tiling"] else None, time.time(), capture),
+                "INSERT INTO jobs (id, tenant_id, block_id, schedule_id, job, state, created_at, capture) "
+                "VALUES (?, ?, ?, ?, ?, 'queued', ?, ?)",
+                (jid, schedule["tenant_id"], block_id, schedule["id"], json.dumps(schedule["job"]), time.time(), capture),
             )
             if schedule.get("orchard_block_id"):  # the inbox of an orchard block: one more capture of it
                 self._insert_capture(con, tenant_id=schedule["tenant_id"], orchard_block_id=schedule["orchard_block_id"],
@@ -194,7 +192,8 @@ class InboxSchedules(OrchardBlocks):
         job's state (``job_state``, None if rejected or the job was deleted), and how many
         it handled in all: ``{"processed": n, "rejected": n}``."""
         rows = self._all_rows(
-            "SELECT f.sha256, f.path, f.job_id, f.error, f.seen_at, j.state AS job_state, j.error AS job_error "
+            "SELECT f.sha256, f.path, f.job_id, f.error, f.seen_at, j.state AS job_state, j.error AS job_error, "
+            "j.error_kind AS job_error_kind, j.error_fields AS job_error_fields "
             "FROM schedule_files f LEFT JOIN jobs j ON j.id = f.job_id "
             "WHERE f.schedule_id = ? ORDER BY f.seen_at DESC, f.path LIMIT ?",
             (schedule_id, int(limit)),

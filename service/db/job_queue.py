@@ -31,15 +31,17 @@ class JobQueue(TenantQuotas):
     """The ``jobs`` table (a job is queued within its tenant's queue quota)."""
 
     def create_job(
-        self, *, tenant_id: str, block_id: str, params: dict, tiling: dict | None, schedule_id: str | None = None
+        self, *, tenant_id: str, block_id: str, job: dict, schedule_id: str | None = None
     ) -> dict[str, Any]:
+        """Queue a job; ``job`` is its parameters whole (a `pipeline.jobparams.JobParams`
+        as JSON), kept as given."""
         jid = new_id()
         with self._tx() as con:
             self._check_queue(con, tenant_id)
             con.execute(
-                "INSERT INTO jobs (id, tenant_id, block_id, schedule_id, params, tiling, state, created_at) "
-                "VALUES (?, ?, ?, ?, ?, ?, 'queued', ?)",
-                (jid, tenant_id, block_id, schedule_id, json.dumps(params), json.dumps(tiling) if tiling else None, time.time()),
+                "INSERT INTO jobs (id, tenant_id, block_id, schedule_id, job, state, created_at) "
+                "VALUES (?, ?, ?, ?, ?, 'queued', ?)",
+                (jid, tenant_id, block_id, schedule_id, json.dumps(job), time.time()),
             )
         return self.get_job(None, jid)
 
@@ -102,7 +104,7 @@ class JobQueue(TenantQuotas):
                 return None
             con.execute(
                 "UPDATE jobs SET state = 'running', started_at = ?, attempts = attempts + 1, error = NULL, "
-                "retry_at = NULL WHERE id = ?",
+                "error_kind = NULL, error_fields = NULL, retry_at = NULL WHERE id = ?",
                 (now, row["id"]),
             )
             job = con.execute("SELECT * FROM jobs WHERE id = ?", (row["id"],)).fetchone()
@@ -126,15 +128,19 @@ class JobQueue(TenantQuotas):
         state: str,
         *,
         error: str | None = None,
+        error_kind: str | None = None,
+        error_fields: dict | None = None,
         outcome: dict | None = None,
         timings: dict | None = None,
     ) -> dict[str, Any]:
-        """Move a running job to a final state (``done``, ``failed`` or ``cancelled``)."""
+        """Move a running job to a final state (``done``, ``failed`` or ``cancelled``).
+        Its failure is kept as ``error_kind`` and ``error_fields`` (`service.failures`),
+        which each edge words; ``error`` is a text that no failure's kind says."""
         if state not in FINAL_STATES:
             raise ValueError(f"not a final state: {state}")
         with self._tx() as con:
-            sets = "state = ?, error = ?, finished_at = ?"
-            params: list[Any] = [state, error, time.time()]
+            sets = "state = ?, error = ?, error_kind = ?, error_fields = ?, finished_at = ?"
+            params: list[Any] = [state, error, error_kind, _json_or_null(error_fields), time.time()]
             if outcome is not None:
                 sets += ", outcome = ?"
                 params.append(json.dumps(outcome))
@@ -146,14 +152,18 @@ class JobQueue(TenantQuotas):
             con.execute(f"UPDATE jobs SET {sets} WHERE id = ? AND state = 'running'", (*params, job_id))
         return self.get_job(None, job_id)
 
-    def retry_job(self, job_id: str, *, error: str, retry_at: float) -> dict[str, Any]:
+    def retry_job(
+        self, job_id: str, *, retry_at: float, error_kind: str | None = None, error_fields: dict | None = None,
+        error: str | None = None,
+    ) -> dict[str, Any]:
         """Put a running job back in the queue, to be taken again from ``retry_at`` (epoch
-        seconds); ``error`` says why its last attempt failed."""
+        seconds); ``error_kind`` and ``error_fields`` say why its last attempt failed (as
+        in `finish_job`; ``error``: a text that no kind says)."""
         with self._tx() as con:
             con.execute(
-                "UPDATE jobs SET state = 'queued', error = ?, retry_at = ?, tiles_done = 0, tiles_total = 0 "
-                "WHERE id = ? AND state = 'running'",
-                (error, retry_at, job_id),
+                "UPDATE jobs SET state = 'queued', error = ?, error_kind = ?, error_fields = ?, retry_at = ?, "
+                "tiles_done = 0, tiles_total = 0 WHERE id = ? AND state = 'running'",
+                (error, error_kind, _json_or_null(error_fields), retry_at, job_id),
             )
         return self.get_job(None, job_id)
 
@@ -165,8 +175,9 @@ class JobQueue(TenantQuotas):
                 raise NotFoundError(f"no job {job_id!r}; ", hint="{list.jobs}")
             if row["state"] == "queued":
                 con.execute(
-                    "UPDATE jobs SET state = 'cancelled', cancel_requested = 1, finished_at = ?, error = ? WHERE id = ?",
-                    (time.time(), "cancelled before it started", job_id),
+                    "UPDATE jobs SET state = 'cancelled', cancel_requested = 1, finished_at = ?, error_kind = 'cancelled', "
+                    "error_fields = ? WHERE id = ?",
+                    (time.time(), json.dumps({"before_start": True}), job_id),
                 )
             elif row["state"] == "running":
                 con.execute("UPDATE jobs SET cancel_requested = 1 WHERE id = ?", (job_id,))
@@ -184,7 +195,8 @@ class JobQueue(TenantQuotas):
         with self._tx() as con:
             ids = [r["id"] for r in con.execute("SELECT id FROM jobs WHERE state = 'running' AND cancel_requested = 1")]
             con.executemany(
-                "UPDATE jobs SET state = 'cancelled', finished_at = ?, error = 'cancelled on request' WHERE id = ?",
+                "UPDATE jobs SET state = 'cancelled', finished_at = ?, error_kind = 'cancelled', error_fields = '{}' "
+                "WHERE id = ?",
                 [(time.time(), jid) for jid in ids],
             )
         return ids
@@ -222,15 +234,18 @@ class JobQueue(TenantQuotas):
                 poisoned = [(r["id"], r["crashes"]) for r in con.execute(
                     "SELECT id, crashes FROM jobs WHERE state = 'running' AND crashes >= ?", (max_crashes,))]
                 con.executemany(
-                    "UPDATE jobs SET state = 'failed', finished_at = ?, retry_at = NULL, error = 'the service stopped ' "
-                    "|| crashes || ' times while running this job; it is not retried (it may be what stops the "
-                    "service: see the service log; submit it again to retry)' WHERE id = ?",
+                    "UPDATE jobs SET state = 'failed', finished_at = ?, retry_at = NULL, error = NULL, "
+                    "error_kind = 'crashed', error_fields = json_object('crashes', crashes) WHERE id = ?",
                     [(time.time(), jid) for jid, _ in poisoned],
                 )
             n = con.execute("UPDATE jobs SET state = 'queued' WHERE state = 'running'").rowcount
         for jid, crashes in poisoned:
             log.warning("job %s failed: the service stopped %d times while running it", jid, crashes)
         return n
+
+
+def _json_or_null(value: dict | None) -> str | None:
+    return None if value is None else json.dumps(value)
 
 
 def _job_filter(tenant_id: str, **equal: str | None) -> tuple[str, tuple[Any, ...]]:

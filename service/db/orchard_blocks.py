@@ -21,7 +21,8 @@ from service.db.job_queue import JobQueue
 
 #: a capture as read: its row with its job's state and error
 _CAPTURE_SELECT = (
-    "SELECT c.*, j.state AS state, j.error AS error, j.finished_at AS finished_at, ob.name AS orchard_block_name "
+    "SELECT c.*, j.state AS state, j.error AS error, j.error_kind AS error_kind, j.error_fields AS error_fields, "
+    "j.finished_at AS finished_at, ob.name AS orchard_block_name "
     "FROM captures c JOIN jobs j ON j.id = c.job_id JOIN orchard_blocks ob ON ob.id = c.orchard_block_id"
 )
 
@@ -95,7 +96,7 @@ class OrchardBlocks(JobQueue):
         return cid
 
     def create_capture(
-        self, *, tenant_id: str, orchard_block_id: str, block_id: str, params: dict, tiling: dict | None,
+        self, *, tenant_id: str, orchard_block_id: str, block_id: str, job: dict,
         captured_at: str | None = None,
     ) -> dict[str, Any]:
         """Queue the job of a new capture of an orchard block, and record the capture, in
@@ -110,8 +111,8 @@ class OrchardBlocks(JobQueue):
             self._check_queue(con, tenant_id)
             now = time.time()
             con.execute(
-                "INSERT INTO jobs (id, tenant_id, block_id, params, tiling, state, created_at) VALUES (?, ?, ?, ?, ?, 'queued', ?)",
-                (jid, tenant_id, block["id"], json.dumps(params), json.dumps(tiling) if tiling else None, now),
+                "INSERT INTO jobs (id, tenant_id, block_id, job, state, created_at) VALUES (?, ?, ?, ?, 'queued', ?)",
+                (jid, tenant_id, block["id"], json.dumps(job), now),
             )
             cid = self._insert_capture(con, tenant_id=tenant_id, orchard_block_id=orchard_block_id, block_id=block["id"],
                                        job_id=jid, captured_at=captured_at, arrived_at=block["created_at"] or now)

@@ -1,4 +1,5 @@
-"""The job model: tiling beside pipeline parameters, with the rules a tiled job must keep."""
+"""The job model: tiling beside pipeline parameters, with the rules a tiled job must keep
+whatever its block (the block's own limits are planning's: tests/workers/test_job.py)."""
 
 import pickle
 
@@ -8,7 +9,8 @@ from pydantic import ValidationError
 from pipeline.errors import ParameterError
 from pipeline.jobparams import JobParams, TilingParams
 from pipeline.params import PipelineParams, SegmentParams
-from pipeline.tilelimits import MAX_COPIES, copies_per_point, min_tile_size
+from pipeline.tilelimits import MAX_BUFFER, MAX_TILE_SIZE, MIN_TILE_SIZE
+from workers.runoptions import RunOptions
 
 
 def test_a_buffer_below_the_reach_says_which_parameter_its_value_and_limit():
@@ -27,40 +29,48 @@ def test_a_smaller_crown_radius_lets_the_same_buffer_through():
     assert job.buffer() == 2.0
 
 
-def test_without_a_buffer_the_reach_is_the_buffer_and_bounds_the_tile_size():
+def test_without_a_buffer_the_reach_is_the_buffer():
     reach = PipelineParams().reach()
     assert JobParams(tiling=TilingParams(tile_size=20)).buffer() == reach
-    smallest = min_tile_size(reach)
-    assert copies_per_point(smallest, reach) <= MAX_COPIES
-    JobParams(tiling=TilingParams(tile_size=smallest))
-    with pytest.raises(ParameterError) as err:
-        JobParams(tiling=TilingParams(tile_size=smallest - 0.01))
-    assert err.value.param == "tiling.tile_size" and err.value.limit == smallest
-    assert "{tiling.tile_size}" in err.value.hint
 
 
-def test_tiles_that_copy_each_point_too_often_are_refused_by_the_tiling_alone():
-    with pytest.raises(ParameterError, match="copy each point"):
-        TilingParams(tile_size=2, buffer=10)
+def test_limits_that_depend_on_the_block_are_left_to_planning():
+    # a point of 2 m tiles with a 10 m buffer falls in up to 121 tiles of a large block,
+    # in 1 of a block that is one tile: the model alone cannot tell, the block's grid can
+    JobParams(tiling=TilingParams(tile_size=2, buffer=10))
+    JobParams(tiling=TilingParams(tile_size=12, buffer=7))  # the PDAL engine's narrower buffer: a run option's
 
 
-def test_the_pdal_engine_needs_a_buffer_below_half_the_tile():
-    JobParams(tiling=TilingParams(tile_size=20, buffer=7, engine="pdal"))
-    JobParams(tiling=TilingParams(tile_size=12, buffer=7))  # the laspy engine takes any buffer
-    with pytest.raises(ParameterError, match="PDAL engine") as err:
-        TilingParams(tile_size=12, buffer=7, engine="pdal")
-    assert (err.value.param, err.value.value, err.value.limit) == ("tiling.tile_size", 12.0, 14.0)
-    with pytest.raises(ParameterError, match="PDAL engine"):  # the reach as the buffer: 6.15 m of 12 m
-        JobParams(tiling=TilingParams(tile_size=12, engine="pdal"))
+def test_one_set_of_bounds_the_model_states_those_of_tilelimits():
+    fields = TilingParams.model_fields
+    bounds = {name: {type(m).__name__: getattr(m, type(m).__name__.lower()) for m in fields[name].metadata}
+              for name in ("tile_size", "buffer")}
+    assert bounds["tile_size"] == {"Ge": MIN_TILE_SIZE, "Le": MAX_TILE_SIZE}
+    assert bounds["buffer"] == {"Ge": 0.0, "Le": MAX_BUFFER}
 
 
-@pytest.mark.parametrize("field, value", [("tile_size", 0.5), ("tile_size", float("nan")), ("buffer", -1.0),
-                                          ("buffer", 1e308), ("workers", 0), ("worker_memory", 0.0),
-                                          ("engine", "gdal")])
+@pytest.mark.parametrize("field, value", [("tile_size", 0.5), ("tile_size", float("nan")), ("tile_size", 2e5),
+                                          ("buffer", -1.0), ("buffer", 1e308), ("buffer", 1.5e5)])
 def test_field_bounds_are_validation_errors_naming_the_field(field, value):
     with pytest.raises(ValidationError) as err:
         TilingParams(**{field: value})
     assert err.value.errors()[0]["loc"] == (field,)
+
+
+@pytest.mark.parametrize("field, value", [("workers", 0), ("worker_memory", 0.0), ("engine", "gdal"), ("chunk_points", 0)])
+def test_run_options_are_no_part_of_the_job(field, value):
+    assert field not in TilingParams.model_fields and field not in JobParams.model_fields
+    with pytest.raises(ValidationError) as err:
+        RunOptions(**{field: value})
+    assert err.value.errors()[0]["loc"] == (field,)
+
+
+def test_a_job_travels_whole_through_json():
+    job = JobParams(pipeline=PipelineParams(segment=SegmentParams(max_crown_radius=2.0)),
+                    tiling=TilingParams(tile_size=12.5, buffer=4.0, grid_origin=(1.0, 2.0)))
+    assert JobParams.model_validate_json(job.model_dump_json()) == job
+    assert JobParams.model_validate(job.model_dump(mode="json")) == job
+    assert job.with_tile_size(30).tiling.tile_size == 30.0 and job.with_tile_size(30).pipeline == job.pipeline
 
 
 def test_a_grid_origin_far_from_any_block_is_refused():
@@ -70,8 +80,8 @@ def test_a_grid_origin_far_from_any_block_is_refused():
 
 
 def test_the_memory_budget_is_in_bytes_and_none_is_no_budget():
-    assert TilingParams(worker_memory=1.5).memory_budget == 1.5e9
-    assert TilingParams(worker_memory=None).memory_budget is None
+    assert RunOptions(worker_memory=1.5).memory_budget == 1.5e9
+    assert RunOptions(worker_memory=None).memory_budget is None
 
 
 def test_a_structured_error_survives_a_trip_to_a_dask_worker():
@@ -84,7 +94,7 @@ def test_a_structured_error_survives_a_trip_to_a_dask_worker():
 
 @pytest.mark.parametrize("start, stride, first", [(0, 5, 0), (1, 5, 4), (5, 5, 0), (7, 5, 3), (10, 1, 0), (3, 4, 1)])
 def test_first_sampled_is_the_runs_first_point_whose_index_is_a_multiple_of_the_stride(start, stride, first):
-    from pipeline.jobparams import first_sampled
+    from pipeline.mapsample import first_sampled
 
     assert first_sampled(start, stride) == first
     assert (start + first) % stride == 0 and 0 <= first < stride

@@ -28,7 +28,7 @@ def local(tmp_path):
 
 
 def _schedule(store, tenant, inbox):
-    return store.create_schedule(tenant_id=tenant["id"], inbox=str(inbox), cron="0 1 * * *", params={}, tiling=None, next_run_at=None)
+    return store.create_schedule(tenant_id=tenant["id"], inbox=str(inbox), cron="0 1 * * *", job={}, next_run_at=None)
 
 
 def _fill(inbox):

@@ -91,7 +91,7 @@ def test_a_running_job_without_workers_says_so_until_some_connect(tmp_path, monk
     tenant = store.ensure_tenant("farm")
     block, _ = store.insert_block(tenant_id=tenant["id"], sha256="ab" * 32, path="/x.las", filename="b.las",
                                   size_bytes=1, info={})
-    store.create_job(tenant_id=tenant["id"], block_id=block["id"], params={}, tiling=None)
+    store.create_job(tenant_id=tenant["id"], block_id=block["id"], job={})
     job = store.claim_next_job()
     runner = Runner(store, settings)
     runner._client, runner._current = _Client(0), job["id"]

@@ -29,6 +29,7 @@ from service_fixtures import (
 from service.db.block_files import accept_block
 from service.db.jobstore import Store
 from service.schedules import file_sha256
+from service.wording import job_error
 
 pytestmark = pytest.mark.slow
 
@@ -222,7 +223,7 @@ def test_a_second_service_on_one_data_folder_leaves_the_first_ones_work_alone(tm
         # a job the first service runs (as the store sees it), and an upload it is receiving
         con = sqlite3.connect(data / "orchard.sqlite")
         with con:
-            con.execute("INSERT INTO jobs (id, tenant_id, block_id, params, state, created_at, started_at) "
+            con.execute("INSERT INTO jobs (id, tenant_id, block_id, job, state, created_at, started_at) "
                         "VALUES ('j-running', ?, ?, '{}', 'running', 0, 0)", (tenant["id"], block["id"]))
         con.close()
         holder = subprocess.Popen(
@@ -280,7 +281,7 @@ def test_a_job_cancelled_just_before_a_shutdown_loses_its_tiles_at_the_next_star
     block_file = write_las(tmp_path / "b.las", 500, seed=6)
     block, _ = accept_block(store, blocks_dir=data / "blocks", tenant_id=tenant["id"], tmp_path=block_file,
                             sha256=file_sha256(block_file), size_bytes=block_file.stat().st_size, filename="b.las")
-    job = store.create_job(tenant_id=tenant["id"], block_id=block["id"], params={}, tiling={"tile_size": 6.0})
+    job = store.create_job(tenant_id=tenant["id"], block_id=block["id"], job={"tiling": {"tile_size": 6.0}})
     assert store.claim_next_job()["id"] == job["id"]
     store.request_cancel(tenant["id"], job["id"])
     work = WorkStore(work_dir_of(Settings(data_dir=data), job["id"]))
@@ -290,7 +291,7 @@ def test_a_job_cancelled_just_before_a_shutdown_loses_its_tiles_at_the_next_star
     srv = ServerProcess(data, ORCHARD_SCHEDULING="false").start()
     try:
         rec = store.get_job(None, job["id"])
-        assert rec["state"] == "cancelled" and rec["error"] == "cancelled on request"
+        assert rec["state"] == "cancelled" and job_error(rec) == "cancelled on request" and rec["error_kind"] == "cancelled"
         assert not Path(work.root).exists()
     finally:
         srv.stop()

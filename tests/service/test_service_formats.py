@@ -69,7 +69,7 @@ def test_an_inbox_takes_the_formats_and_rejects_a_hostile_one(local):
     (inbox / "row2.pcd").write_bytes(b"VERSION 0.7\nFIELDS x y z\nSIZE 4 4 4\nTYPE F F F\nCOUNT 1 1 1\nWIDTH 1\n"
                                      b"HEIGHT 1\nPOINTS 999999999\nDATA binary\n" + bytes(12))
     (inbox / "notes.txt").write_text("not a capture")
-    sched = store.create_schedule(tenant_id=tenant["id"], inbox=str(inbox), cron="0 1 * * *", params={}, tiling=None, next_run_at=None)
+    sched = store.create_schedule(tenant_id=tenant["id"], inbox=str(inbox), cron="0 1 * * *", job={}, next_run_at=None)
     scan = run_schedule(store, settings, sched)
     assert len(scan["jobs"]) == 1
     assert len(scan["rejected"]) == 1 and "row2.pcd: the PCD header claims 999999999 points" in str(scan["rejected"][0])

@@ -29,7 +29,7 @@ def _file(store, tenant, n: int) -> dict:
 
 def _capture(store, tenant, ob, n: int, **kw) -> dict:
     return store.create_capture(tenant_id=tenant["id"], orchard_block_id=ob["id"], block_id=_file(store, tenant, n)["id"],
-                                params={}, tiling=None, **kw)
+                                job={}, **kw)
 
 
 def test_blocks_are_named_once_per_tenant_and_listed_by_name(store):
@@ -63,11 +63,11 @@ def test_a_capture_needs_the_tenants_own_block_and_file(store):
     ob_b = store.create_orchard_block(b["id"], "north")
     with pytest.raises(NotFoundError):  # another farm's orchard block
         store.create_capture(tenant_id=a["id"], orchard_block_id=ob_b["id"], block_id=_file(store, a, 1)["id"],
-                             params={}, tiling=None)
+                             job={})
     ob_a = store.create_orchard_block(a["id"], "north")
     with pytest.raises(NotFoundError):  # another farm's file
         store.create_capture(tenant_id=a["id"], orchard_block_id=ob_a["id"], block_id=_file(store, b, 2)["id"],
-                             params={}, tiling=None)
+                             job={})
     assert store.list_jobs(a["id"]) == []  # nothing queued by the refusals
     with pytest.raises(NotFoundError):
         store.list_captures(a["id"], ob_b["id"])
@@ -78,7 +78,7 @@ def test_a_blocks_captures_run_one_at_a_time_in_arrival_order(store):
     north, south = store.create_orchard_block(t["id"], "north"), store.create_orchard_block(t["id"], "south")
     n1, n2, n3 = (_capture(store, t, north, i) for i in (1, 2, 3))
     s1 = _capture(store, t, south, 4)
-    plain = store.create_job(tenant_id=t["id"], block_id=_file(store, t, 5)["id"], params={}, tiling=None)
+    plain = store.create_job(tenant_id=t["id"], block_id=_file(store, t, 5)["id"], job={})
     claimed = store.claim_next_job()
     assert claimed["id"] == n1["job_id"]
     # north's next capture waits while its first runs; the other block and a plain job do not
@@ -132,8 +132,8 @@ def test_a_store_of_an_earlier_version_gains_blocks_and_captures_in_place(tmp_pa
     con.execute("INSERT INTO tenants VALUES ('t1', 'farm', 0)")
     con.execute("INSERT INTO blocks (id, tenant_id, sha256, path, size_bytes, info, created_at) "
                 "VALUES ('b1', 't1', 'ab', '/x/ab.las', 5, '{}', 0)")
-    con.execute("INSERT INTO jobs (id, tenant_id, block_id, params, state, created_at) VALUES ('j1', 't1', 'b1', '{}', 'queued', 0)")
-    con.execute("INSERT INTO schedules (id, tenant_id, inbox, cron, params, created_at) VALUES ('s1', 't1', '/in', '0 1 * * *', '{}', 0)")
+    con.execute("INSERT INTO jobs (id, tenant_id, block_id, job, state, created_at) VALUES ('j1', 't1', 'b1', '{}', 'queued', 0)")
+    con.execute("INSERT INTO schedules (id, tenant_id, inbox, cron, job, created_at) VALUES ('s1', 't1', '/in', '0 1 * * *', '{}', 0)")
     con.commit()
     con.close()
     s = Store(path)
@@ -141,7 +141,7 @@ def test_a_store_of_an_earlier_version_gains_blocks_and_captures_in_place(tmp_pa
         assert s.get_schedule(None, "s1")["orchard_block_id"] is None  # the column, added
         assert s.claim_next_job()["id"] == "j1"  # the queue reads the new tables
         ob = s.create_orchard_block("t1", "north")
-        cap = s.create_capture(tenant_id="t1", orchard_block_id=ob["id"], block_id="b1", params={}, tiling=None)
+        cap = s.create_capture(tenant_id="t1", orchard_block_id=ob["id"], block_id="b1", job={})
         assert cap["seq"] == 1 and cap["block_id"] == "b1"
     finally:
         s.close()
@@ -161,7 +161,7 @@ def test_captures_sent_at_the_same_moment_each_get_their_own_place(tmp_path):
         store = Store(path)  # each its own connection, as requests of two processes
         try:
             barrier.wait()
-            store.create_capture(tenant_id=t["id"], orchard_block_id=ob["id"], block_id=block_id, params={}, tiling=None)
+            store.create_capture(tenant_id=t["id"], orchard_block_id=ob["id"], block_id=block_id, job={})
         except Exception as exc:  # noqa: BLE001 - collected for the assertion
             errors.append(exc)
         finally:

@@ -16,6 +16,7 @@ from service.db.jobstore import Store
 from service.quotas import GB, QueueQuotaExceeded, StorageQuotaExceeded
 from service.runner import Runner
 from service.settings import Settings
+from service.wording import job_error
 
 import workers.job as workers_job
 import workers.jobspec as workers_jobspec
@@ -36,7 +37,7 @@ def _block(store, tenant_id, sha="ab" * 32, size=10):
 
 def _jobs(store, tenant, n):
     block = _block(store, tenant["id"], sha=tenant["id"][:2] * 32)
-    return [store.create_job(tenant_id=tenant["id"], block_id=block["id"], params={}, tiling=None)["id"]
+    return [store.create_job(tenant_id=tenant["id"], block_id=block["id"], job={})["id"]
             for i in range(n)]
 
 
@@ -105,7 +106,7 @@ def test_served_counts_of_waiting_tenants_never_differ_by_more_than_one(arrivals
             blocks = {t["id"]: _block(s, t["id"], sha=f"{i:02d}" * 32) for i, t in enumerate(tenants)}
             for i in arrivals:
                 t = tenants[i]
-                s.create_job(tenant_id=t["id"], block_id=blocks[t["id"]]["id"], params={}, tiling=None)
+                s.create_job(tenant_id=t["id"], block_id=blocks[t["id"]]["id"], job={})
             total = {t["id"]: arrivals.count(i) for i, t in enumerate(tenants)}
             served = dict.fromkeys(total, 0)
             for tid in _drain(s):
@@ -198,7 +199,8 @@ def test_a_job_that_keeps_killing_the_service_is_failed_and_the_rest_run(tmp_pat
     assert s.requeue_running(max_crashes=2) == 0
     failed = s.get_job(None, poison)
     assert failed["state"] == "failed" and failed["crashes"] == 2 and failed["finished_at"] is not None
-    assert failed["error"].startswith("the service stopped 2 times while running this job; it is not retried")
+    assert failed["error_kind"] == "crashed" and failed["error_fields"] == {"crashes": 2}
+    assert job_error(failed).startswith("the service stopped 2 times while running this job; it is not retried")
     nxt = s.claim_next_job()
     assert nxt["id"] == other and nxt["crashes"] == 0
     s.close()
@@ -223,7 +225,7 @@ def test_a_store_of_an_earlier_version_gains_the_crash_column_in_place(tmp_path)
     con.execute("INSERT INTO tenants VALUES ('t1', 'farm', 0)")
     con.execute("INSERT INTO blocks (id, tenant_id, sha256, path, size_bytes, info, created_at) "
                 "VALUES ('b1', 't1', 'ab', '/x/ab.las', 5, '{}', 0)")
-    con.execute("INSERT INTO jobs (id, tenant_id, block_id, params, state, attempts, created_at, started_at) "
+    con.execute("INSERT INTO jobs (id, tenant_id, block_id, job, state, attempts, created_at, started_at) "
                 "VALUES ('j1', 't1', 'b1', '{}', 'running', 1, 0, 1)")
     con.commit()
     con.close()
@@ -265,7 +267,7 @@ def test_a_queue_quota_refuses_the_job_past_it(store):
     _jobs(store, b, 5)  # another tenant is not limited by it
     assert store.claim_next_job()["id"] == first  # a started job is no longer queued: room for one more
     blk = store.list_blocks(a["id"])[0]
-    store.create_job(tenant_id=a["id"], block_id=blk["id"], params={}, tiling=None)
+    store.create_job(tenant_id=a["id"], block_id=blk["id"], job={})
     assert store.quota(a["id"])["used_queued_jobs"] == 2
 
 
@@ -277,7 +279,7 @@ def test_a_queue_quota_holds_under_simultaneous_submissions(store):
 
     def submit():
         try:
-            job = store.create_job(tenant_id=t["id"], block_id=blk["id"], params={}, tiling=None)
+            job = store.create_job(tenant_id=t["id"], block_id=blk["id"], job={})
             with lock:
                 made.append(job["id"])
         except QueueQuotaExceeded:

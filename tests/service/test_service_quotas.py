@@ -110,8 +110,7 @@ def farms(tmp_path):
         tenant = store.ensure_tenant(name)
         inbox = tmp_path / name
         inbox.mkdir()
-        sched = store.create_schedule(tenant_id=tenant["id"], inbox=str(inbox), cron="0 1 * * *", params={},
-                                      tiling=None, next_run_at=None)
+        sched = store.create_schedule(tenant_id=tenant["id"], inbox=str(inbox), cron="0 1 * * *", job={}, next_run_at=None)
         out[name] = (tenant, inbox, sched)
     yield settings, store, out
     store.close()

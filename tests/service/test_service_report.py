@@ -108,7 +108,7 @@ def finished_job(tmp_path):
         src = write_las(tmp_path / "upload.las", 3_000, seed=4)
         block, _ = accept_block(store, blocks_dir=settings.blocks_dir, tenant_id=tenant["id"], tmp_path=src,
                                 sha256=file_sha256(src), size_bytes=src.stat().st_size, filename=filename)
-        job = store.create_job(tenant_id=tenant["id"], block_id=block["id"], params={}, tiling={"tile_size": 20})
+        job = store.create_job(tenant_id=tenant["id"], block_id=block["id"], job={"tiling": {"tile_size": 20}})
         assert store.claim_next_job()["id"] == job["id"]
         out = job_dir(settings, job["id"])
         out.mkdir(parents=True)

@@ -6,12 +6,14 @@ import threading
 import time
 
 import pytest
+from distributed.client import CancelledFuturesGroup, FutureCancelledError, FuturesCancelledError
 from distributed.comm.core import CommClosedError
 
 from pipeline.errors import InputError, NoTreesError
 from service.db.database import SCHEMA
 from service.db.jobstore import Store
 from service.runner import Runner
+from service.wording import job_error
 from service.settings import Settings
 
 import workers.job as workers_job
@@ -31,7 +33,7 @@ def env(tmp_path):
 
 
 def _queue(store, tenant, block, tiling=None):
-    store.create_job(tenant_id=tenant["id"], block_id=block["id"], params={}, tiling=tiling)
+    store.create_job(tenant_id=tenant["id"], block_id=block["id"], job={"tiling": tiling or {}})
     return store.claim_next_job()
 
 
@@ -71,7 +73,8 @@ def test_done_records_outcome_and_progress(env, monkeypatch):
                                 "MemoryError: ", 3, hint="; its data is kept in /srv/work/abc (run the job's tiles "
                                 "again with --work /srv/work/abc --resume)"),
          "tile 3 (core x 0.00..10.00, y 0.00..10.00, 99 points) failed after 3 attempts: MemoryError: "),
-        (type("FuturesCancelledError", (Exception,), {})("46 Futures cancelled: reason scheduler-connection-lost"),
+        (FuturesCancelledError([CancelledFuturesGroup([FutureCancelledError("k", "scheduler-connection-lost")],
+                                                     reason="scheduler-connection-lost")]),
          "lost the connection to the dask scheduler during the job; submit it again once the cluster is back"),
         # a full disk is the server's to fix, not the job's: "internal error (OSError)" before
         (OSError(28, "No space left on device"),
@@ -94,8 +97,8 @@ def test_failures_keep_a_one_line_message(env, monkeypatch, exc, expected):
     (work / "tiles").mkdir(parents=True)
     (work / "job.json").write_text("{}")
     failed = Runner(store, settings, client_factory=lambda: None).run_job(job)
-    assert failed["state"] == "failed" and failed["error"] == expected
-    assert "Traceback" not in failed["error"]
+    assert failed["state"] == "failed" and job_error(failed) == expected
+    assert "Traceback" not in job_error(failed)
     assert not (settings.jobs_dir / job["id"]).exists()  # nothing left: the service never resumes a job
 
 
@@ -132,7 +135,7 @@ def test_cluster_that_cannot_start_fails_the_job_clearly(env, monkeypatch):
     monkeypatch.setattr(workers_job, "run_job", lambda *a, **k: pytest.fail("must not run"))
     runner = Runner(store, settings, client_factory=broken)
     failed = runner.run_job(_queue(store, tenant, block))
-    assert failed["state"] == "failed" and failed["error"].startswith("cannot start or reach the dask cluster")
+    assert failed["state"] == "failed" and job_error(failed).startswith("cannot start or reach the dask cluster")
     assert runner.cluster_state() == "unreachable"  # /healthz said "not started"
 
 
@@ -155,14 +158,14 @@ def test_a_job_the_cluster_failed_is_queued_again_later(env, monkeypatch):
     for attempt in (1, 2):
         again = runner.run_job(job)
         assert again["state"] == "queued" and again["attempts"] == attempt and again["tiles_done"] == 0
-        assert again["error"].startswith(f"attempt {attempt} of 3 failed: cannot start or reach the dask cluster")
-        assert "trying again from" in again["error"] and again["retry_at"] >= calls[-1] + 0.5
+        assert job_error(again).startswith(f"attempt {attempt} of 3 failed: cannot start or reach the dask cluster")
+        assert "trying again from" in job_error(again) and again["retry_at"] >= calls[-1] + 0.5
         assert store.claim_next_job() is None  # not before its time
         time.sleep(max(0.0, again["retry_at"] - time.time()) + 0.05)
         job = store.claim_next_job()
-        assert job["id"] == again["id"] and job["error"] is None and job["retry_at"] is None
+        assert job["id"] == again["id"] and job_error(job) is None and job["retry_at"] is None
     done = runner.run_job(job)
-    assert done["state"] == "done" and done["attempts"] == 3 and done["error"] is None
+    assert done["state"] == "done" and done["attempts"] == 3 and job_error(done) is None
 
 
 def test_the_last_attempt_fails_for_good_and_other_failures_at_once(env, monkeypatch):
@@ -174,12 +177,12 @@ def test_the_last_attempt_fails_for_good_and_other_failures_at_once(env, monkeyp
     assert runner.run_job(_queue(store, tenant, block))["state"] == "queued"
     failed = runner.run_job(store.claim_next_job())
     assert failed["state"] == "failed" and failed["attempts"] == 2
-    assert failed["error"] == ("no dask worker for 120 s with 6 tiles to go (attempt 2, the last); "
+    assert job_error(failed) == ("no dask worker for 120 s with 6 tiles to go (attempt 2, the last); "
                                "start dask workers and submit the job again")
     # a failure of the job itself is not the cluster's: no second attempt
     monkeypatch.setattr(workers_job, "run_job", lambda spec, **kw: (_ for _ in ()).throw(InputError("b.laz: truncated")))
     failed = runner.run_job(_queue(store, tenant, block))
-    assert failed["state"] == "failed" and failed["attempts"] == 1 and failed["error"] == "b.laz: truncated"
+    assert failed["state"] == "failed" and failed["attempts"] == 1 and job_error(failed) == "b.laz: truncated"
 
 
 def test_a_job_waiting_for_its_retry_can_be_cancelled(env, monkeypatch):
@@ -203,7 +206,7 @@ def test_a_store_of_an_earlier_version_gains_the_retry_column(tmp_path):
     con.execute("INSERT INTO tenants (id, name, created_at) VALUES ('t', 'farm', 0)")
     con.execute("INSERT INTO blocks (id, tenant_id, sha256, path, size_bytes, info, created_at) "
                 "VALUES ('b', 't', 'x', '/b.laz', 1, '{}', 0)")
-    con.execute("INSERT INTO jobs (id, tenant_id, block_id, params, state, created_at) VALUES ('j', 't', 'b', '{}', 'queued', 0)")
+    con.execute("INSERT INTO jobs (id, tenant_id, block_id, job, state, created_at) VALUES ('j', 't', 'b', '{}', 'queued', 0)")
     con.commit()
     con.close()
     store = Store(path)
@@ -226,7 +229,7 @@ def test_cancel_a_running_job_and_stop(env, monkeypatch):
         raise workers_jobspec.JobCancelled("job cancelled")
 
     monkeypatch.setattr(workers_job, "run_job", slow)
-    store.create_job(tenant_id=tenant["id"], block_id=block["id"], params={}, tiling=None)
+    store.create_job(tenant_id=tenant["id"], block_id=block["id"], job={})
     runner = Runner(store, settings, client_factory=lambda: None)
     runner.start()
     assert started.wait(10)
@@ -240,7 +243,7 @@ def test_cancel_a_running_job_and_stop(env, monkeypatch):
     # a job interrupted by shutdown goes back in the queue, and the restart is no attempt
     # of its own (two restarts used up its retries for a lost cluster)
     started.clear()
-    store.create_job(tenant_id=tenant["id"], block_id=block["id"], params={}, tiling=None)
+    store.create_job(tenant_id=tenant["id"], block_id=block["id"], job={})
     runner.wake()
     assert started.wait(10)
     second = runner.current_job
@@ -266,7 +269,7 @@ def test_a_job_whose_outcome_cannot_be_recorded_is_not_left_running(env, monkeyp
     # (orchard demo) waited for ever
     settings, store, tenant, block = env
     monkeypatch.setattr(Runner, "run_job", lambda self, job: (_ for _ in ()).throw(RuntimeError("store hiccup")))
-    job = store.create_job(tenant_id=tenant["id"], block_id=block["id"], params={}, tiling=None)
+    job = store.create_job(tenant_id=tenant["id"], block_id=block["id"], job={})
     runner = Runner(store, settings, client_factory=lambda: None)
     runner.start()
     try:
@@ -274,7 +277,7 @@ def test_a_job_whose_outcome_cannot_be_recorded_is_not_left_running(env, monkeyp
         while store.get_job(None, job["id"])["state"] in ("queued", "running") and time.monotonic() < deadline:
             time.sleep(0.02)
         rec = store.get_job(None, job["id"])
-        assert rec["state"] == "failed" and "RuntimeError" in rec["error"]
+        assert rec["state"] == "failed" and "RuntimeError" in job_error(rec)
     finally:
         runner.stop()
 
@@ -288,16 +291,16 @@ def test_a_scheduled_jobs_error_names_the_capture_not_an_earlier_upload_of_the_s
         raise NoTreesError(f"{spec.input_path}: no trees found in 100 points")
 
     monkeypatch.setattr(workers_job, "run_job", fake)
-    sched = store.create_schedule(tenant_id=tenant["id"], inbox="/in", cron="0 1 * * *", params={}, tiling=None, next_run_at=None)
+    sched = store.create_schedule(tenant_id=tenant["id"], inbox="/in", cron="0 1 * * *", job={}, next_run_at=None)
     store.create_scheduled_job(schedule=sched, block_id=block["id"], sha256=block["sha256"], path="/in/north-row-2.laz",
                                capture="north-row-2.laz")
     job = store.claim_next_job()
     assert job["capture"] == "north-row-2.laz"
     failed = Runner(store, settings, client_factory=lambda: None).run_job(job)
-    assert failed["error"] == "north-row-2.laz: no trees found in 100 points"
+    assert job_error(failed) == "north-row-2.laz: no trees found in 100 points"
     # an uploaded job's still names the upload
     uploaded = _queue(store, tenant, block)
-    assert Runner(store, settings, client_factory=lambda: None).run_job(uploaded)["error"] == "b.laz: no trees found in 100 points"
+    assert job_error(Runner(store, settings, client_factory=lambda: None).run_job(uploaded)) == "b.laz: no trees found in 100 points"
 
 
 def test_a_cancel_stored_by_another_process_stops_a_job_that_makes_no_progress(env, monkeypatch):
@@ -313,7 +316,7 @@ def test_a_cancel_stored_by_another_process_stops_a_job_that_makes_no_progress(e
         raise workers_jobspec.JobCancelled("job cancelled")
 
     monkeypatch.setattr(workers_job, "run_job", stuck)
-    job = store.create_job(tenant_id=tenant["id"], block_id=block["id"], params={}, tiling=None)
+    job = store.create_job(tenant_id=tenant["id"], block_id=block["id"], job={})
     runner = Runner(store, settings, client_factory=lambda: None)
     runner.start()
     try:

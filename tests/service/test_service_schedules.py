@@ -16,6 +16,7 @@ from service_fixtures import tenant_inbox, write_las
 
 from pipeline.errors import InputError, ParameterError
 from service.db.jobstore import Store
+from service.jobrequests import request_tiling
 from service.schedules import (
     ScheduleClock,
     check_inbox_use,
@@ -209,7 +210,7 @@ def local(tmp_path):
 
 
 def _schedule(store, tenant, inbox, cron="0 1 * * *"):
-    return store.create_schedule(tenant_id=tenant["id"], inbox=str(inbox), cron=cron, params={}, tiling=None, next_run_at=None)
+    return store.create_schedule(tenant_id=tenant["id"], inbox=str(inbox), cron=cron, job={}, next_run_at=None)
 
 
 def test_run_schedule_takes_each_capture_once(local):
@@ -290,8 +291,7 @@ def test_a_scan_by_hand_that_finds_a_capture_arriving_looks_again_once_it_settle
     settings, store, tenant, inbox = local
     settings = settings.model_copy(update={"capture_settle_s": 60.0})
     now = time.time()
-    sched = store.create_schedule(tenant_id=tenant["id"], inbox=str(inbox), cron="0 1 1 * *", params={},
-                                  tiling=None, next_run_at=next_run_time("0 1 1 * *", now).timestamp())
+    sched = store.create_schedule(tenant_id=tenant["id"], inbox=str(inbox), cron="0 1 1 * *", job={}, next_run_at=next_run_time("0 1 1 * *", now).timestamp())
     write_las(inbox / "a.laz", 500, seed=1)
     assert run_schedule(store, settings, sched, now=now)["waiting"] == ["a.laz"]
     assert store.get_schedule(tenant["id"], sched["id"])["next_run_at"] == pytest.approx(now + 60)
@@ -322,8 +322,7 @@ def test_the_clock_looks_again_soon_at_a_capture_still_arriving(local):
     settings, store, tenant, inbox = local
     settings = settings.model_copy(update={"capture_settle_s": 120.0})
     now = time.time()
-    sched = store.create_schedule(tenant_id=tenant["id"], inbox=str(inbox), cron="0 1 * * *", params={},
-                                  tiling=None, next_run_at=now - 1)
+    sched = store.create_schedule(tenant_id=tenant["id"], inbox=str(inbox), cron="0 1 * * *", job={}, next_run_at=now - 1)
     write_las(inbox / "a.laz", 500, seed=1)
     ScheduleClock(store, settings).tick(now)
     rec = store.get_schedule(tenant["id"], sched["id"])
@@ -463,7 +462,7 @@ def test_api_schedules_run_now(client_a, api_data):
         ({"inbox": "{farm-a}/missing"}, "does not exist"),
         ({"inbox": "{farm-a}", "tiling": {"tile_size": 10, "buffer": 1}}, "tiling.buffer"),  # every night's job would fail
         ({"inbox": "{farm-a}", "tiling": {"tile_size": 0}}, "tile_size"),
-        ({"inbox": "{farm-a}", "tiling": {"tile_size": 1}}, "use a tiling.tile_size of at least 1.76 m"),  # 196 copies a point
+        ({"inbox": "{farm-a}", "tiling": {"tile_size": 0.5}}, "greater than or equal to 1"),  # the job model's bound
     ],
 )
 def test_api_bad_schedule_is_422(client_a, api_data, body, fragment):
@@ -646,7 +645,7 @@ def test_a_store_from_before_pausing_gains_the_column(tmp_path):
     con = sqlite3.connect(path)
     con.execute("ALTER TABLE schedules DROP COLUMN paused")
     con.execute("INSERT INTO tenants (id, name, created_at) VALUES ('t', 'farm', 0)")
-    con.execute("INSERT INTO schedules (id, tenant_id, inbox, cron, params, created_at) VALUES ('s', 't', '/x', '0 1 * * *', '{}', 0)")
+    con.execute("INSERT INTO schedules (id, tenant_id, inbox, cron, job, created_at) VALUES ('s', 't', '/x', '0 1 * * *', '{}', 0)")
     con.commit()
     con.close()
     store = Store(path)
@@ -712,7 +711,7 @@ def test_cli_schedules_pause_resume_and_update(tmp_path, capsys):
     store = Store(data / "orchard.sqlite")
     rec = store.get_schedule(None, sid)
     store.close()
-    assert rec["cron"] == "15 3 * * *" and rec["tiling"] == {"tile_size": 40.0, "buffer": None} and rec["paused"] == 0
+    assert rec["cron"] == "15 3 * * *" and request_tiling(rec["job"]) == {"tile_size": 40.0, "buffer": None} and rec["paused"] == 0
     for args, fragment in ((["--cron", "61 * * * *"], "minute field"), ([], "nothing to change"),
                            (["--untiled", "--tile-size", "5"], "--untiled"), (["--tile-size", "0.5"], "--tile-size: Input should be"),
                            (["--tile-size", "10", "--buffer", "1"], "buffer")):
@@ -722,7 +721,7 @@ def test_cli_schedules_pause_resume_and_update(tmp_path, capsys):
     assert main(["schedules", "update", sid, "--buffer", "9", "--data-dir", str(data)]) == 0  # keeps its 40 m tiles
     assert main(["schedules", "update", sid, "--tile-size", "30", "--data-dir", str(data)]) == 0  # keeps its 9 m buffer
     store = Store(data / "orchard.sqlite")
-    assert store.get_schedule(None, sid)["tiling"] == {"tile_size": 30.0, "buffer": 9.0}
+    assert request_tiling(store.get_schedule(None, sid)["job"]) == {"tile_size": 30.0, "buffer": 9.0}
     store.close()
     # a check of the tiling speaks of the command's options, not the API's fields
     assert main(["schedules", "update", sid, "--buffer", "3", "--data-dir", str(data)]) == 2
@@ -737,8 +736,9 @@ def test_cli_schedules_pause_resume_and_update(tmp_path, capsys):
     store = Store(data / "orchard.sqlite")
     rec = store.get_schedule(None, sid)
     store.close()
-    assert rec["params"]["trunks"]["min_tree_height"] == 1.5 and rec["params"]["segment"]["max_crown_radius"] == 1.5
-    assert rec["tiling"] == {"tile_size": 30.0, "buffer": 3.0}
+    params = rec["job"]["pipeline"]
+    assert params["trunks"]["min_tree_height"] == 1.5 and params["segment"]["max_crown_radius"] == 1.5
+    assert request_tiling(rec["job"]) == {"tile_size": 30.0, "buffer": 3.0}
     assert main(["schedules", "update", sid, "--segment-max-crown-radius", "5", "--data-dir", str(data)]) == 2
     assert "--buffer" in capsys.readouterr().err  # 5 m crowns need more than the 3 m buffer
     assert main(["schedules", "update", sid, "--untiled", "--data-dir", str(data)]) == 0
@@ -773,10 +773,10 @@ def test_a_change_or_pause_during_a_long_scan_applies_to_the_captures_queued_aft
     res = run_schedule(store, settings, sched, by_clock=True)
     assert res["jobs"] == [] and store.list_jobs(tenant["id"]) == []
     new = {"segment": {"max_crown_radius": 3.0}}
-    change.update(params=new)  # a scan by hand of the paused schedule runs on, with the new parameters
+    change.update(job={"pipeline": new})  # a scan by hand of the paused schedule runs on, with the new parameters
     res = run_schedule(store, settings, store.get_schedule(None, sched["id"]))
     assert len(res["jobs"]) == 3
-    assert all(j["params"] == new for j in store.list_jobs(tenant["id"]))
+    assert all(j["job"]["pipeline"] == new for j in store.list_jobs(tenant["id"]))
 
 
 def test_two_changes_at_once_cannot_store_a_buffer_below_the_reach(local):
@@ -789,7 +789,7 @@ def test_two_changes_at_once_cannot_store_a_buffer_below_the_reach(local):
 
     settings, store, tenant, inbox = local
     sched = store.create_schedule(tenant_id=tenant["id"], inbox=str(inbox), cron="0 1 * * *",
-                                  params={"segment": {"max_crown_radius": 2.0}}, tiling={"tile_size": 30.0, "buffer": None},
+                                  job={"pipeline": {"segment": {"max_crown_radius": 2.0}}, "tiling": {"tile_size": 30.0}},
                                   next_run_at=None)
     inside = threading.Event()
 
@@ -811,4 +811,5 @@ def test_two_changes_at_once_cannot_store_a_buffer_below_the_reach(local):
         first.join(10)
         other.close()
     rec = store.get_schedule(None, sched["id"])
-    assert rec["tiling"] == {"tile_size": 30.0, "buffer": None} and rec["params"]["segment"]["max_crown_radius"] == 5.0
+    assert request_tiling(rec["job"]) == {"tile_size": 30.0, "buffer": None}
+    assert rec["job"]["pipeline"]["segment"]["max_crown_radius"] == 5.0

@@ -25,7 +25,7 @@ def local(tmp_path):
 
 
 def _schedule(store, tenant, inbox, block):
-    return store.create_schedule(tenant_id=tenant["id"], inbox=str(inbox), cron="0 1 * * *", params={}, tiling=None,
+    return store.create_schedule(tenant_id=tenant["id"], inbox=str(inbox), cron="0 1 * * *", job={},
                                  next_run_at=None, orchard_block_id=block["id"] if block else None)
 
 

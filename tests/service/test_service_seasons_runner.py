@@ -22,6 +22,7 @@ from service import seasons
 from service.api.results import ensure_report
 from service.db.block_files import accept_block
 from service.db.jobstore import Store
+from service.wording import job_error
 from service.runner import Runner, job_dir
 from service.schedules import file_sha256
 from service.settings import Settings
@@ -57,8 +58,7 @@ def env(tmp_path, monkeypatch):
 def _capture(store, tenant, ob, n, **kw):
     block, _ = store.insert_block(tenant_id=tenant["id"], sha256=f"{n:064x}", path=f"/x/{n}.laz", filename=f"scan{n}.laz",
                                   size_bytes=1, info={})
-    return store.create_capture(tenant_id=tenant["id"], orchard_block_id=ob["id"], block_id=block["id"], params={},
-                                tiling=None, **kw)
+    return store.create_capture(tenant_id=tenant["id"], orchard_block_id=ob["id"], block_id=block["id"], job={}, **kw)
 
 
 def _run_all(store, settings, fake, monkeypatch, expect: int) -> None:
@@ -103,7 +103,7 @@ def test_captures_run_in_order_each_with_the_previous_done_one(env, monkeypatch)
     assert by_capture[n3["id"]]["captured_at"] is None and len(by_capture[n3["id"]]["captured_at_fallback"]) == 10
     caps = {c["id"]: c for c in store.list_captures(tenant["id"], north["id"])}
     assert [caps[c["id"]]["state"] for c in (n1, n2, n3)] == ["done", "failed", "done"]
-    assert "does not overlap" in caps[n2["id"]]["error"] and caps[n2["id"]]["record"] is None
+    assert "does not overlap" in job_error(caps[n2["id"]]) and caps[n2["id"]]["record"] is None
     # each done capture keeps its outputs' record: date from the file, the registration
     assert caps[n3["id"]]["record"]["registration"]["residual_m"] == 0.021
     assert (caps[n3["id"]]["captured_at"], caps[n3["id"]]["captured_at_source"]) == ("2026-07-01", "file")
@@ -132,7 +132,7 @@ def test_a_failed_capture_leaves_the_blocks_history_as_it_was(env, monkeypatch):
 def test_a_plain_job_is_told_nothing_of_captures(env):
     settings, store, tenant = env
     block, _ = store.insert_block(tenant_id=tenant["id"], sha256="ab" * 32, path="/x/b.laz", filename="b.laz", size_bytes=1, info={})
-    job = store.create_job(tenant_id=tenant["id"], block_id=block["id"], params={}, tiling=None)
+    job = store.create_job(tenant_id=tenant["id"], block_id=block["id"], job={})
     assert seasons.capture_job_fields(store, settings, job) == {}
 
 
@@ -149,7 +149,7 @@ def test_the_report_of_a_capture_names_its_block_and_carries_its_history(env, tm
     src = write_las(tmp_path / "july.las", 2_000, seed=4)
     block, _ = accept_block(store, blocks_dir=settings.blocks_dir, tenant_id=tenant["id"], tmp_path=src,
                             sha256=file_sha256(src), size_bytes=src.stat().st_size, filename="july.las")
-    cap = store.create_capture(tenant_id=tenant["id"], orchard_block_id=ob["id"], block_id=block["id"], params={}, tiling=None)
+    cap = store.create_capture(tenant_id=tenant["id"], orchard_block_id=ob["id"], block_id=block["id"], job={})
     assert store.claim_next_job()["id"] == cap["job_id"]
     out = job_dir(settings, cap["job_id"])
     write_capture_outputs(out, "c2")

@@ -37,7 +37,7 @@ def test_wal_mode(store):
 def test_job_states(store):
     t = store.ensure_tenant("farm")
     b = _block(store, t["id"])
-    job = store.create_job(tenant_id=t["id"], block_id=b["id"], params={}, tiling=None)
+    job = store.create_job(tenant_id=t["id"], block_id=b["id"], job={})
     assert job["state"] == "queued"
     claimed = store.claim_next_job()
     assert claimed["id"] == job["id"] and claimed["state"] == "running" and claimed["attempts"] == 1
@@ -53,8 +53,8 @@ def test_job_states(store):
 def test_cancel_queued_and_running(store):
     t = store.ensure_tenant("farm")
     b = _block(store, t["id"])
-    j1 = store.create_job(tenant_id=t["id"], block_id=b["id"], params={}, tiling=None)
-    j2 = store.create_job(tenant_id=t["id"], block_id=b["id"], params={}, tiling=None)
+    j1 = store.create_job(tenant_id=t["id"], block_id=b["id"], job={})
+    j2 = store.create_job(tenant_id=t["id"], block_id=b["id"], job={})
     running = store.claim_next_job()
     assert running["id"] == j1["id"]
     assert store.request_cancel(t["id"], j2["id"])["state"] == "cancelled"
@@ -68,7 +68,7 @@ def test_requeue_running_after_a_crash(tmp_path):
     s1 = Store(tmp_path / "o.sqlite")
     t = s1.ensure_tenant("farm")
     b = _block(s1, t["id"])
-    j = s1.create_job(tenant_id=t["id"], block_id=b["id"], params={"a": 1}, tiling={"tile_size": 20.0, "buffer": None})
+    j = s1.create_job(tenant_id=t["id"], block_id=b["id"], job={"pipeline": {"a": 1}, "tiling": {"tile_size": 20.0}})
     s1.claim_next_job()
     s1.close()  # the process dies with the job running
     s2 = Store(tmp_path / "o.sqlite")
@@ -77,14 +77,14 @@ def test_requeue_running_after_a_crash(tmp_path):
     again = s2.claim_next_job()
     # the service's death is a crash, not an attempt of the job's (attempts are for a lost cluster)
     assert again["id"] == j["id"] and again["attempts"] == 1 and again["crashes"] == 1
-    assert again["tiling"]["tile_size"] == 20.0
+    assert again["job"]["tiling"]["tile_size"] == 20.0
     s2.close()
 
 
 def test_claim_is_atomic_across_threads(store):
     t = store.ensure_tenant("farm")
     b = _block(store, t["id"])
-    ids = {store.create_job(tenant_id=t["id"], block_id=b["id"], params={}, tiling=None)["id"] for _ in range(20)}
+    ids = {store.create_job(tenant_id=t["id"], block_id=b["id"], job={})["id"] for _ in range(20)}
     got, lock = [], threading.Lock()
 
     def worker():
@@ -103,7 +103,7 @@ def test_claim_is_atomic_across_threads(store):
 def test_tenant_isolation(store):
     a, b = store.ensure_tenant("a"), store.ensure_tenant("b")
     blk = _block(store, a["id"])
-    job = store.create_job(tenant_id=a["id"], block_id=blk["id"], params={}, tiling=None)
+    job = store.create_job(tenant_id=a["id"], block_id=blk["id"], job={})
     with pytest.raises(NotFoundError):
         store.get_block(b["id"], blk["id"])
     with pytest.raises(NotFoundError):

@@ -137,12 +137,12 @@ def test_a_signed_call_per_finished_job_and_a_retry_after_a_500(env, receiver, m
             sender.wake()
 
     runner = Runner(store, settings, client_factory=lambda: None, on_final=notify)
-    done_job = store.create_job(tenant_id=tenant["id"], block_id=block["id"], params={}, tiling=None)
+    done_job = store.create_job(tenant_id=tenant["id"], block_id=block["id"], job={})
     sender.start()
     runner.start()
     try:
         calls = receiver.wait_for(2)  # the done job's call, answered 500, and its retry
-        store.create_job(tenant_id=tenant["id"], block_id=block["id"], params={}, tiling=None)
+        store.create_job(tenant_id=tenant["id"], block_id=block["id"], job={})
         calls = receiver.wait_for(3)
     finally:
         runner.stop()
@@ -162,7 +162,7 @@ def test_a_receiver_that_keeps_failing_is_given_up_after_the_attempts(env, recei
     settings, store, tenant, block = env
     receiver.answers = [503, 503, 503, 503]
     hook = store.create_webhook(tenant_id=tenant["id"], url=receiver.url, secret=SECRET, schedule_id=None, events=["job.failed"])
-    job = store.create_job(tenant_id=tenant["id"], block_id=block["id"], params={}, tiling=None)
+    job = store.create_job(tenant_id=tenant["id"], block_id=block["id"], job={})
     store.claim_next_job()
     assert job_event(store, store.finish_job(job["id"], "failed", error="no trees found")) == 1
     # a cancelled job, or one of another event, calls nobody
@@ -196,11 +196,11 @@ def test_a_rejected_capture_calls_the_schedules_webhook_only(env, receiver, tmp_
     inbox = tmp_path / "inbox"
     inbox.mkdir()
     (inbox / "bad.laz").write_text("not points")
-    sched = store.create_schedule(tenant_id=tenant["id"], inbox=str(inbox), cron="0 1 * * *", params={}, tiling=None,
+    sched = store.create_schedule(tenant_id=tenant["id"], inbox=str(inbox), cron="0 1 * * *", job={},
                                   next_run_at=None)
     other = tmp_path / "other"
     other.mkdir()
-    sched2 = store.create_schedule(tenant_id=tenant["id"], inbox=str(other), cron="0 1 * * *", params={}, tiling=None,
+    sched2 = store.create_schedule(tenant_id=tenant["id"], inbox=str(other), cron="0 1 * * *", job={},
                                    next_run_at=None)
     mine = store.create_webhook(tenant_id=tenant["id"], url=receiver.url, secret=SECRET, schedule_id=sched["id"],
                                 events=["capture.rejected"])
@@ -252,7 +252,7 @@ def test_a_deleted_schedules_webhooks_go_with_it_and_a_farm_has_at_most_20(env, 
     _, store, tenant, _ = env
     inbox = tmp_path / "inbox"
     inbox.mkdir()
-    sched = store.create_schedule(tenant_id=tenant["id"], inbox=str(inbox), cron="0 1 * * *", params={}, tiling=None,
+    sched = store.create_schedule(tenant_id=tenant["id"], inbox=str(inbox), cron="0 1 * * *", job={},
                                   next_run_at=None)
     farm = store.create_webhook(tenant_id=tenant["id"], url="http://127.0.0.1:9/", secret=SECRET, schedule_id=None, events=["job.done"])
     store.create_webhook(tenant_id=tenant["id"], url="http://127.0.0.1:9/", secret=SECRET, schedule_id=sched["id"], events=["job.done"])

@@ -12,6 +12,7 @@ from pipeline.jobparams import TilingParams
 from service.commands import process, schedules
 from service.settings import Settings
 from service.wording import api_errors, api_location, api_words, cli_name, cli_words, validation_words
+from workers.runoptions import RunOptions
 
 
 def _hand_made() -> ParameterError:
@@ -79,25 +80,28 @@ def _defaults(add, *argv) -> dict:
 
 def test_every_tiling_default_is_the_model_s():
     model = {name: f.default for name, f in TilingParams.model_fields.items()}
-    assert model["worker_memory"] is None  # a model has no budget: a deployment's settings give one
+    run = {name: f.default for name, f in RunOptions.model_fields.items()}
+    assert run["worker_memory"] is None  # a model has no budget: a deployment's settings give one
     # the command line's options are unset (None): the command applies the model's, or a setting's, at its edge
     actions = _defaults(process.add_arguments)
     for name in ("tile_size", "buffer", "grid_origin", "engine", "workers", "worker_memory"):
         assert actions[name].default is None, name
         assert f"--{name.replace('_', '-')}" in actions[name].option_strings
     settings = Settings.model_fields
-    assert f"default {model['workers']}," in actions["workers"].help
+    assert f"default {run['workers']}," in actions["workers"].help
     assert f"or {settings['worker_memory_gb'].default:g})" in actions["worker_memory"].help
-    assert f"(default {model['engine']})" in actions["engine"].help
-    # the settings that stand for them: the model's default and bounds
-    assert settings["n_workers"].default == model["workers"]
+    assert f"(default {run['engine']})" in actions["engine"].help
+    # the settings that stand for them: the run options' default and bounds
+    assert settings["n_workers"].default == run["workers"]
     for setting, name in (("n_workers", "workers"), ("worker_memory_gb", "worker_memory")):
-        assert TilingParams.model_fields[name].metadata == settings[setting].metadata[:2], setting
-    # a tiling built from no options is the model's, with the setting's budget
+        assert RunOptions.model_fields[name].metadata == settings[setting].metadata[:2], setting
+    # built from no options: the model's tiling, and the run options with the setting's budget
     args = argparse.Namespace(tile_size=None, buffer=None, grid_origin=None, engine=None, workers=None, worker_memory=None)
-    assert process._tiling(args) == TilingParams(worker_memory=Settings().worker_memory_gb)
+    assert process._tiling(args) == TilingParams() and model["tile_size"] is None
+    assert process._run_options(args) == RunOptions(worker_memory=Settings().worker_memory_gb)
     # --tile-size 0: one piece, no budget
-    assert process._tiling(argparse.Namespace(**{**vars(args), "tile_size": 0.0})) == TilingParams()
+    zero = argparse.Namespace(**{**vars(args), "tile_size": 0.0})
+    assert process._tiling(zero) == TilingParams() and process._run_options(zero) == RunOptions()
 
 
 def test_the_api_tiling_body_has_the_model_s_bounds_and_defaults():

@@ -30,10 +30,11 @@ from pipeline.budget import (
     smallest_tile,
     tile_size_for_sample,
 )
-from pipeline.jobparams import TilingParams
+from pipeline.jobparams import JobParams, TilingParams
 from pipeline.params import PipelineParams
 from workers.job import run_job
 from workers.jobspec import JobSpec, auto_tiled, budgeted
+from workers.runoptions import RunOptions
 
 
 def _uniform(n_points: int, width: int, depth: int) -> DensitySample:
@@ -151,11 +152,11 @@ def _densest_tile(path, info, size: float, buffer: float) -> tuple[int, int]:
 def test_a_block_within_the_budget_is_left_whole_and_one_above_it_is_tiled(block, tmp_path):
     path, info = block
     params = PipelineParams.model_validate(PARAMS)
-    whole = JobSpec(str(path), str(tmp_path / "o"), params=params, tiling=TilingParams(worker_memory=bytes_needed(info.n_points) / 1e9))
+    whole = JobSpec(str(path), str(tmp_path / "o"), job=JobParams(pipeline=params), run=RunOptions(worker_memory=bytes_needed(info.n_points) / 1e9))
     assert auto_tiled(whole, info) is whole
-    assert auto_tiled(JobSpec(str(path), str(tmp_path / "o"), params=params), info).tiling.tile_size is None  # no budget
-    assert auto_tiled(JobSpec(str(path), str(tmp_path / "o"), params=params, tiling=TilingParams(tile_size=7.0, worker_memory=1.0 / 1e9)), info).tiling.tile_size == 7.0
-    spec = auto_tiled(JobSpec(str(path), str(tmp_path / "o"), params=params, tiling=TilingParams(worker_memory=_budget(info) / 1e9)), info)
+    assert auto_tiled(JobSpec(str(path), str(tmp_path / "o"), job=JobParams(pipeline=params)), info).tiling.tile_size is None  # no budget
+    assert auto_tiled(JobSpec(str(path), str(tmp_path / "o"), job=JobParams(pipeline=params, tiling=TilingParams(tile_size=7.0)), run=RunOptions(worker_memory=1.0 / 1e9)), info).tiling.tile_size == 7.0
+    spec = auto_tiled(JobSpec(str(path), str(tmp_path / "o"), job=JobParams(pipeline=params), run=RunOptions(worker_memory=_budget(info) / 1e9)), info)
     size = spec.tiling.tile_size
     assert size is not None and size >= MIN_CORE_PER_BUFFER * params.reach()
     # every buffered tile of the job's grid holds no more points and voxels than the budget allows
@@ -175,11 +176,10 @@ def test_a_block_counted_and_kept_whole_is_decoded_once(block, tmp_path, monkeyp
     params = PipelineParams.model_validate(PARAMS)
     budget = block_bytes(sample_density(info.path, info=info, voxel_size=0.1))  # what it needs whole, as counted
     assert not fits_whole(info.n_points, budget)  # so it is counted
-    spec = JobSpec(str(path), str(tmp_path / "counted"), params=params, tiling=TilingParams(worker_memory=budget / 1e9))
+    spec = JobSpec(str(path), str(tmp_path / "counted"), job=JobParams(pipeline=params), run=RunOptions(worker_memory=budget / 1e9))
     kept, points = budgeted(spec, info)
     assert kept.tiling.tile_size is None and np.array_equal(points, read_points(str(path))[0])
-    tiled, none = budgeted(JobSpec(str(path), str(tmp_path / "t"), params=params,
-                                   tiling=TilingParams(worker_memory=_budget(info) / 1e9)), info)
+    tiled, none = budgeted(JobSpec(str(path), str(tmp_path / "t"), job=JobParams(pipeline=params), run=RunOptions(worker_memory=_budget(info) / 1e9)), info)
     assert tiled.tiling.tile_size is not None and none is None  # not held while tiles run
 
     reads = []  # every decode of the block, by the name it is called through
@@ -189,7 +189,7 @@ def test_a_block_counted_and_kept_whole_is_decoded_once(block, tmp_path, monkeyp
                             reads.append(_n) or _f(*a, **k))
     counted = run_job(spec)
     assert reads == ["workers.jobspec.read_counted"] and counted.n_tiles == 1
-    plain = run_job(JobSpec(str(path), str(tmp_path / "plain"), params=params))  # fits the default budget surely
+    plain = run_job(JobSpec(str(path), str(tmp_path / "plain"), job=JobParams(pipeline=params)))  # fits the default budget surely
     assert reads[1:] == ["workers.jobspec.read_points"]  # read before the job's work, once
     assert counted.n_trees == plain.n_trees >= 15
     for name in ("trees.parquet", "points.parquet"):
@@ -211,15 +211,15 @@ def _header_rule_refuses(info, budget: float, buffer: float) -> bool:
 def test_the_tiles_chosen_for_a_budget_give_the_untiled_result(block, tmp_path, monkeypatch):
     import workers.job
     from pipeline.budget import range_points
-    from pipeline.jobparams import CHUNK_POINTS
+    from pipeline.chunks import CHUNK_POINTS
 
     path, info = block
     params = PipelineParams.model_validate(PARAMS)
-    single = run_job(JobSpec(str(path), str(tmp_path / "single"), params=params))
+    single = run_job(JobSpec(str(path), str(tmp_path / "single"), job=JobParams(pipeline=params)))
     ranges = []  # the tiler's ranges of the file follow the budget too
     tile_block = workers.job.tile_block
     monkeypatch.setattr(workers.job, "tile_block", lambda *a, **k: ranges.append(k["chunk_points"]) or tile_block(*a, **k))
-    tiled = run_job(JobSpec(str(path), str(tmp_path / "tiled"), params=params, tiling=TilingParams(worker_memory=_budget(info) / 1e9)))
+    tiled = run_job(JobSpec(str(path), str(tmp_path / "tiled"), job=JobParams(pipeline=params), run=RunOptions(worker_memory=_budget(info) / 1e9)))
     assert ranges == [range_points(_budget(info), CHUNK_POINTS)] and ranges[0] < CHUNK_POINTS
     assert single.n_tiles == 1 and tiled.n_tiles >= 6
     assert tiled.n_trees == single.n_trees >= 15
@@ -235,12 +235,13 @@ def test_the_tiles_chosen_for_a_budget_give_the_untiled_result(block, tmp_path, 
 # VmHWM, not getrusage: ru_maxrss survives exec, and would count the forking pytest's memory
 _RUN = """
 import json, re, sys
-from pipeline.jobparams import TilingParams
+from pipeline.jobparams import JobParams
 from pipeline.params import PipelineParams
 from workers.job import run_job
 from workers.jobspec import JobSpec
-spec = JobSpec(sys.argv[1], sys.argv[2], params=PipelineParams.model_validate_json(sys.argv[3]),
-               tiling=TilingParams(worker_memory=float(sys.argv[4]) / 1e9))
+from workers.runoptions import RunOptions
+spec = JobSpec(sys.argv[1], sys.argv[2], job=JobParams(pipeline=PipelineParams.model_validate_json(sys.argv[3])),
+               run=RunOptions(worker_memory=float(sys.argv[4]) / 1e9))
 outcome = run_job(spec)
 peak = int(re.search(r"VmHWM:\\s+(\\d+) kB", open("/proc/self/status").read()).group(1)) * 1024
 print(json.dumps({"tiles": outcome.n_tiles, "peak": peak}))

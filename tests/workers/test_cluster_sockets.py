@@ -25,7 +25,7 @@ import psutil
 import pytest
 from distributed import Client, LocalCluster
 
-from pipeline.jobparams import TilingParams
+from pipeline.jobparams import JobParams, TilingParams
 from simulator.simparams import SimulationParams
 from simulator.truth import write_simulation
 from service.cli import main as orchard
@@ -86,7 +86,7 @@ def test_embedded_cluster_listens_on_loopback_alone_after_a_job(tiny_block, tmp_
     before = listening(os.getpid())
     client = make_client(n_workers=2, dashboard=dashboard, quiet=True)
     try:
-        outcome = run_job(JobSpec(str(tiny_block), str(tmp_path / "out"), tiling=TilingParams(tile_size=6.0)), client=client)
+        outcome = run_job(JobSpec(str(tiny_block), str(tmp_path / "out"), job=JobParams(tiling=TilingParams(tile_size=6.0))), client=client)
         assert outcome.n_tiles > 1 and outcome.n_trees >= 1
         new = listening(os.getpid()) - before
         # scheduler, two nannies, two workers (and the dashboard): all there, all on loopback
@@ -247,7 +247,7 @@ def test_a_job_whose_workers_all_die_stops_saying_so(tiny_block, tmp_path, monke
         with Client(address, timeout="60s") as client:
             with pytest.raises(ClusterLost, match=r"no dask worker for 1 s \(they died or left; their logs say why\) "
                                                   r"with \d+ tiles to go"):
-                run_job(JobSpec(str(tiny_block), str(tmp_path / "out"), tiling=TilingParams(tile_size=4.0)), client=client,
+                run_job(JobSpec(str(tiny_block), str(tmp_path / "out"), job=JobParams(tiling=TilingParams(tile_size=4.0))), client=client,
                         progress=kill_the_worker)
         assert worker_proc.wait(10) == -signal.SIGKILL
 

@@ -69,8 +69,9 @@ def test_a_job_given_a_cluster_counts_its_block_there(block, client, monkeypatch
     # never in the submitting process
     import workers.jobspec as jobspec
     from pipeline.budget import FIXED_BYTES, block_bytes
-    from pipeline.jobparams import TilingParams
+    from pipeline.jobparams import JobParams
     from pipeline.params import PipelineParams
+    from workers.runoptions import RunOptions
     from workers.job import run_job
 
     def not_here(*a, **k):
@@ -81,8 +82,8 @@ def test_a_job_given_a_cluster_counts_its_block_there(block, client, monkeypatch
     monkeypatch.setattr(counting, "sample_density", not_here)
     monkeypatch.setattr(jobspec, "sample_density", not_here)
     budget = (FIXED_BYTES + 0.6 * (need - FIXED_BYTES)) / 1e9  # the whole block does not fit
-    spec = jobspec.JobSpec(block.path, str(tmp_path / "out"), params=PipelineParams.model_validate(
-        {"segment": {"max_crown_radius": 3.0}}), tiling=TilingParams(worker_memory=budget))
+    spec = jobspec.JobSpec(block.path, str(tmp_path / "out"), job=JobParams(pipeline=PipelineParams.model_validate(
+        {"segment": {"max_crown_radius": 3.0}})), run=RunOptions(worker_memory=budget))
     outcome = run_job(spec, client=client)
     assert outcome.n_tiles > 1 and outcome.n_points == block.n_points and outcome.n_trees > 0
     prefixes = client.run_on_scheduler(lambda dask_scheduler: list(dask_scheduler.task_prefixes))

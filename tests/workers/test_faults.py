@@ -16,7 +16,7 @@ from pathlib import Path
 import pyarrow.parquet as pq
 import pytest
 
-from pipeline.jobparams import TilingParams
+from pipeline.jobparams import JobParams, TilingParams
 from workers.job import run_job
 from workers.jobspec import JobSpec
 from workers.workstore import WorkStore
@@ -32,7 +32,7 @@ def _orchard(*args) -> list[str]:
 @pytest.fixture(scope="module")
 def reference(small_block, tmp_path_factory) -> Path:
     out = tmp_path_factory.mktemp("reference")
-    run_job(JobSpec(str(small_block), str(out), tiling=TilingParams(tile_size=10.0)))
+    run_job(JobSpec(str(small_block), str(out), job=JobParams(tiling=TilingParams(tile_size=10.0))))
     return out
 
 

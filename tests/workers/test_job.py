@@ -16,12 +16,13 @@ import pytest
 from pipeline.errors import InputError, NoTreesError, ParameterError
 from simulator.scoring.scores import v_measure
 from pipeline.ground import raw_ground_model
-from pipeline.jobparams import TilingParams
+from pipeline.jobparams import JobParams, TilingParams
 from pipeline.params import PipelineParams
 from workers.cluster import close_client, make_client
 from workers.job import run_job
 from workers.jobspec import JobSpec, TileFailed
 from workers.replay import finish_job, run_tile
+from workers.runoptions import RunOptions
 from workers.tasks import ground_sample, process_tile, raw_ground_key, result_key
 from workers.tiler import FRAME_KEY, INDEX_KEY, read_tile
 from workers.workstore import WorkStore
@@ -39,14 +40,14 @@ def _trees(out):
 def tiled_ref(small_block, tmp_path_factory):
     """An undisturbed run of the small block in 10 m tiles and its output folder (read only)."""
     out = tmp_path_factory.mktemp("tiled-ref")
-    return run_job(JobSpec(str(small_block), str(out), tiling=TilingParams(tile_size=10.0))), out
+    return run_job(JobSpec(str(small_block), str(out), job=JobParams(tiling=TilingParams(tile_size=10.0)))), out
 
 
 @pytest.mark.slow
 def test_tiling_invariance_on_a_40_tree_block(orchard_block, tmp_path):
     """10 m tiles (tasks run in this process; the dask paths are tested on the small block)."""
     single = run_job(JobSpec(str(orchard_block), str(tmp_path / "single")))
-    tiled = run_job(JobSpec(str(orchard_block), str(tmp_path / "tiled"), tiling=TilingParams(tile_size=10.0)))
+    tiled = run_job(JobSpec(str(orchard_block), str(tmp_path / "tiled"), job=JobParams(tiling=TilingParams(tile_size=10.0))))
     assert single.n_trees >= 38 and tiled.n_trees == single.n_trees
     assert tiled.n_tiles > 10 and not tiled.partial
     a, b = single.trees, tiled.trees
@@ -65,8 +66,8 @@ def test_tiling_invariance_on_a_40_tree_block(orchard_block, tmp_path):
 def test_ids_do_not_depend_on_tiling(small_block, tmp_path):
     runs = [
         run_job(JobSpec(str(small_block), str(tmp_path / "a"))),
-        run_job(JobSpec(str(small_block), str(tmp_path / "b"), tiling=TilingParams(tile_size=9.0, grid_origin=(499_990.5, 6_949_990.25)))),
-        run_job(JobSpec(str(small_block), str(tmp_path / "c"), tiling=TilingParams(tile_size=14.0, buffer=8.0))),
+        run_job(JobSpec(str(small_block), str(tmp_path / "b"), job=JobParams(tiling=TilingParams(tile_size=9.0, grid_origin=(499_990.5, 6_949_990.25))))),
+        run_job(JobSpec(str(small_block), str(tmp_path / "c"), job=JobParams(tiling=TilingParams(tile_size=14.0, buffer=8.0)))),
     ]
     ref = runs[0].trees
     assert ref["tree_id"].tolist() == list(range(1, 9))
@@ -89,7 +90,7 @@ def test_ids_do_not_depend_on_tiling(small_block, tmp_path):
 
 def test_rows_can_be_switched_off(small_block, tmp_path):
     out = tmp_path / "out"
-    outcome = run_job(JobSpec(str(small_block), str(out), params=PipelineParams(rows={"enabled": False})))
+    outcome = run_job(JobSpec(str(small_block), str(out), job=JobParams(pipeline=PipelineParams(rows={"enabled": False}))))
     assert sorted(p.name for p in out.iterdir()) == ["history.parquet", "points.parquet", "trees.parquet"]
     assert "row" not in outcome.trees
 
@@ -129,7 +130,7 @@ def test_in_process_dask_with_memory_store(small_block, tiled_ref, tmp_path):
     try:
         seen = []
         out = run_job(
-            JobSpec(str(small_block), str(tmp_path / "mem"), tiling=TilingParams(tile_size=10.0), work_dir=f"memory://job-{tmp_path.name}"),
+            JobSpec(str(small_block), str(tmp_path / "mem"), job=JobParams(tiling=TilingParams(tile_size=10.0)), work_dir=f"memory://job-{tmp_path.name}"),
             client=client,
             progress=lambda d, t: seen.append((d, t)),
         )
@@ -142,15 +143,34 @@ def test_in_process_dask_with_memory_store(small_block, tiled_ref, tmp_path):
 
 def test_buffer_below_reach_is_refused_before_any_output(small_block, tmp_path):
     with pytest.raises(ParameterError, match="reach"):
-        run_job(JobSpec(str(small_block), str(tmp_path / "out"), tiling=TilingParams(tile_size=10.0, buffer=2.0)))
+        run_job(JobSpec(str(small_block), str(tmp_path / "out"), job=JobParams(tiling=TilingParams(tile_size=10.0, buffer=2.0))))
     assert not (tmp_path / "out").exists()
+
+
+def test_tiles_too_fine_for_the_block_are_refused_at_planning_before_any_output(small_block, tmp_path):
+    from pipeline.blockinfo import read_info
+    from workers.jobspec import check_job, plan_tiles
+
+    # 1 m tiles with the reach as the buffer (6.15 m): up to 14 x 14 copies of a point on
+    # this block's grid; the job model alone, which knows no block, lets them through
+    fine = JobParams(tiling=TilingParams(tile_size=1.0))
+    with pytest.raises(ParameterError, match="copy each point") as err:
+        plan_tiles(fine, read_info(str(small_block)))
+    assert err.value.param == "tiling.tile_size" and err.value.limit == 1.76
+    with pytest.raises(ParameterError, match="copy each point"):
+        run_job(JobSpec(str(small_block), str(tmp_path / "out"), job=fine))
+    assert not (tmp_path / "out").exists()
+    spec = JobSpec(str(small_block), str(tmp_path / "out"), job=JobParams(tiling=TilingParams(tile_size=12.0, buffer=7.0)),
+                   run=RunOptions(engine="pdal"))  # PDAL's buffer must stay below half a tile: a run option's limit
+    with pytest.raises(ParameterError, match="PDAL engine needs a buffer"):
+        check_job(spec)
 
 
 def test_bad_input_leaves_nothing(tmp_path):
     bad = tmp_path / "bad.laz"
     bad.write_bytes(b"not a point cloud")
     with pytest.raises(InputError):
-        run_job(JobSpec(str(bad), str(tmp_path / "out"), tiling=TilingParams(tile_size=10.0)))
+        run_job(JobSpec(str(bad), str(tmp_path / "out"), job=JobParams(tiling=TilingParams(tile_size=10.0))))
     assert not (tmp_path / "out").exists()
 
 
@@ -163,7 +183,7 @@ def test_no_trees(ground_block, tmp_path):
 def test_first_tile_failure_stops_and_names_the_tile(small_block, tmp_path):
     work = tmp_path / "work"
     with pytest.raises(TileFailed) as e:
-        run_job(JobSpec(str(small_block), str(tmp_path / "out"), tiling=TilingParams(tile_size=10.0), work_dir=str(work), inject_failure=(0,)))
+        run_job(JobSpec(str(small_block), str(tmp_path / "out"), job=JobParams(tiling=TilingParams(tile_size=10.0)), work_dir=str(work), inject_failure=(0,)))
     assert e.value.tile_id == 0
     msg = str(e.value)
     assert msg.startswith("tile 0 (core x") and "after 3 attempts" in msg
@@ -180,7 +200,7 @@ def test_later_tile_failure_gives_partial_result_then_replay(small_block, tiled_
     out = tmp_path / "out"
     # the tile ids with points: take the third one
     victim = 3
-    outcome = run_job(JobSpec(str(small_block), str(out), tiling=TilingParams(tile_size=10.0), work_dir=str(work), inject_failure=(victim,)))
+    outcome = run_job(JobSpec(str(small_block), str(out), job=JobParams(tiling=TilingParams(tile_size=10.0)), work_dir=str(work), inject_failure=(victim,)))
     assert outcome.partial and outcome.failed_tiles == [victim]
     meta = pq.read_table(out / "points.parquet").schema.metadata
     assert json.loads(meta[b"orchard:failed_tiles"]) == [victim]
@@ -202,7 +222,7 @@ def test_tile_tasks_read_the_frame_not_the_list_of_tiles(small_block, tiled_ref,
     ref, ref_out = tiled_ref
     work, out = tmp_path / "work", tmp_path / "out"
     victim = 3
-    run_job(JobSpec(str(small_block), str(out), tiling=TilingParams(tile_size=10.0), work_dir=str(work), inject_failure=(victim,)))
+    run_job(JobSpec(str(small_block), str(out), job=JobParams(tiling=TilingParams(tile_size=10.0)), work_dir=str(work), inject_failure=(victim,)))
     store = WorkStore(str(work))
     assert store.get_json(FRAME_KEY) == {k: v for k, v in store.get_json(INDEX_KEY).items() if k != "tiles"}
     reads = []
@@ -225,7 +245,7 @@ def test_tile_tasks_read_the_frame_not_the_list_of_tiles(small_block, tiled_ref,
 def test_a_tile_takes_the_raw_ground_model_its_ground_pass_fitted(small_block, tmp_path):
     work = tmp_path / "work"
     victim = 2
-    run_job(JobSpec(str(small_block), str(tmp_path / "out"), tiling=TilingParams(tile_size=10.0), work_dir=str(work),
+    run_job(JobSpec(str(small_block), str(tmp_path / "out"), job=JobParams(tiling=TilingParams(tile_size=10.0)), work_dir=str(work),
                     inject_failure=(victim,)))  # a failed tile keeps the work store
     store = WorkStore(str(work))
     params = PipelineParams()
@@ -260,7 +280,7 @@ def test_params_reach_the_tiles(small_block, tmp_path):
     # a huge minimum canopy removes every tree, tiled or not
     params = PipelineParams.model_validate({"trunks": {"min_canopy_voxels": 10_000_000}})
     with pytest.raises(NoTreesError):
-        run_job(JobSpec(str(small_block), str(tmp_path / "o"), params=params, tiling=TilingParams(tile_size=20.0)))
+        run_job(JobSpec(str(small_block), str(tmp_path / "o"), job=JobParams(pipeline=params, tiling=TilingParams(tile_size=20.0))))
 
 
 def test_work_folder_holding_other_files_is_refused_and_left_alone(small_block, tmp_path):
@@ -270,7 +290,7 @@ def test_work_folder_holding_other_files_is_refused_and_left_alone(small_block, 
     mine.mkdir()
     (mine / "notes.txt").write_text("keep me")
     with pytest.raises(ParameterError, match="new or empty folder"):
-        run_job(JobSpec(str(small_block), str(tmp_path / "out"), tiling=TilingParams(tile_size=10.0), work_dir=str(mine)))
+        run_job(JobSpec(str(small_block), str(tmp_path / "out"), job=JobParams(tiling=TilingParams(tile_size=10.0)), work_dir=str(mine)))
     assert sorted(p.name for p in mine.iterdir()) == ["notes.txt"]
     assert small_block.exists() and not (tmp_path / "out").exists()
 
@@ -278,7 +298,7 @@ def test_work_folder_holding_other_files_is_refused_and_left_alone(small_block, 
 def test_work_store_removes_only_what_it_wrote(small_block, tmp_path):
     # the work folder is the output folder: after the job the outputs stay, the tiles go
     out = tmp_path / "out"
-    run_job(JobSpec(str(small_block), str(out), tiling=TilingParams(tile_size=20.0), work_dir=str(out)))
+    run_job(JobSpec(str(small_block), str(out), job=JobParams(tiling=TilingParams(tile_size=20.0)), work_dir=str(out)))
     assert sorted(p.name for p in out.iterdir()) == ["gaps.parquet", "history.parquet", "points.parquet", "rows.parquet", "trees.parquet"]
     store = WorkStore(str(tmp_path / "w"))
     store.claim()
@@ -314,10 +334,10 @@ def test_a_lock_file_left_by_a_killed_run_goes_with_its_store(tmp_path):
 
 def test_a_new_job_does_not_reuse_an_earlier_jobs_tile_results(small_block, tmp_path):
     work = tmp_path / "work"
-    first = run_job(JobSpec(str(small_block), str(tmp_path / "a"), tiling=TilingParams(tile_size=20.0), work_dir=str(work), inject_failure=(3,)))
+    first = run_job(JobSpec(str(small_block), str(tmp_path / "a"), job=JobParams(tiling=TilingParams(tile_size=20.0)), work_dir=str(work), inject_failure=(3,)))
     assert first.partial and WorkStore(str(work)).list("results")  # kept for a re-run
     with pytest.raises(TileFailed):
-        run_job(JobSpec(str(small_block), str(tmp_path / "b"), tiling=TilingParams(tile_size=12.0), work_dir=str(work), inject_failure=(0,)))
+        run_job(JobSpec(str(small_block), str(tmp_path / "b"), job=JobParams(tiling=TilingParams(tile_size=12.0)), work_dir=str(work), inject_failure=(0,)))
     # the second job's store holds its own tiles and no result of the first job's tiles,
     # which a --resume would have merged as if they were its own
     assert WorkStore(str(work)).list("results") == []
@@ -339,7 +359,7 @@ def test_a_failed_write_leaves_the_previous_outputs_whole(small_block, tmp_path,
 
     monkeypatch.setattr(outputs, "write_trees_parquet", disk_full)
     with pytest.raises(ParameterError, match="cannot write the outputs .* No space left"):
-        run_job(JobSpec(str(small_block), str(out), params=PipelineParams.model_validate({"matter": {"threshold": 0.9}})))
+        run_job(JobSpec(str(small_block), str(out), job=JobParams(pipeline=PipelineParams.model_validate({"matter": {"threshold": 0.9}}))))
     assert {p.name: p.read_bytes() for p in out.iterdir()} == before  # no staging folder left either
     monkeypatch.undo()
     # a run without --labelled-laz removes the earlier run's labelled.laz with the rest
@@ -354,13 +374,13 @@ def test_a_partial_result_gives_no_tree_the_points_of_a_failed_tiles_tree(small_
     from workers.jobspec import plan_tiles
 
     _, full = tiled_ref
-    index_grid = plan_tiles(JobSpec(str(small_block), str(full), tiling=TilingParams(tile_size=10.0)), read_info(str(small_block)))
+    index_grid = plan_tiles(JobParams(tiling=TilingParams(tile_size=10.0)), read_info(str(small_block)))
     trees = _trees(full).to_pydict()
     owner = core_tile(np.c_[trees["trunk_x"], trees["trunk_y"]], index_grid)
     first = int(core_tile(np.c_[trees["trunk_x"], trees["trunk_y"]][:1], index_grid)[0])
     victim = int(next(t for t in sorted(set(owner.tolist())) if t != first and t > min(owner)))
     part = tmp_path / "part"
-    outcome = run_job(JobSpec(str(small_block), str(part), tiling=TilingParams(tile_size=10.0), work_dir=str(tmp_path / "w1"), inject_failure=(victim,)))
+    outcome = run_job(JobSpec(str(small_block), str(part), job=JobParams(tiling=TilingParams(tile_size=10.0)), work_dir=str(tmp_path / "w1"), inject_failure=(victim,)))
     assert outcome.partial and outcome.failed_tiles == [victim]
     assert json.loads(pq.read_table(part / "trees.parquet").schema.metadata[b"orchard:failed_tiles"]) == [victim]
     got = _trees(part).to_pydict()
@@ -383,7 +403,7 @@ def test_a_tile_that_finishes_after_its_job_was_cancelled_leaves_nothing(small_b
     # a tile already running on a worker when the job is cancelled carries on; it must not
     # write its results into the work store the job's end deleted
     work = tmp_path / "work"
-    outcome = run_job(JobSpec(str(small_block), str(tmp_path / "out"), tiling=TilingParams(tile_size=20.0), work_dir=str(work), inject_failure=(3,)))
+    outcome = run_job(JobSpec(str(small_block), str(tmp_path / "out"), job=JobParams(tiling=TilingParams(tile_size=20.0)), work_dir=str(work), inject_failure=(3,)))
     assert outcome.partial and (work / "job.json").exists()
     (work / "job.json").unlink()  # the job's end took the store away (job record first)
     shutil.rmtree(work / "results", ignore_errors=True)
@@ -404,7 +424,7 @@ def test_small_tiles_through_a_trunk_give_the_untiled_result(tmp_path):
     block = tmp_path / "b3.laz"
     write_simulation(SimulationParams(rows=2, trees_per_row=3, density=0.2, seed=3), str(block), str(tmp_path / "t.parquet"))
     single = run_job(JobSpec(str(block), str(tmp_path / "single")))
-    tiled = run_job(JobSpec(str(block), str(tmp_path / "tiled"), tiling=TilingParams(tile_size=4.0, grid_origin=(500010.108, 6949992.0))))
+    tiled = run_job(JobSpec(str(block), str(tmp_path / "tiled"), job=JobParams(tiling=TilingParams(tile_size=4.0, grid_origin=(500010.108, 6949992.0)))))
     assert tiled.n_tiles > 30 and tiled.n_trees == single.n_trees == 6
     for col in ("tree_id", "trunk_x", "trunk_y", "trunk_z", "height_m", "n_points"):
         assert np.array_equal(single.trees[col], tiled.trees[col]), col
@@ -428,8 +448,8 @@ def test_trellis_post_test_gives_the_untiled_result_in_tiles(tmp_path):
     sim = SimulationParams(rows=2, trees_per_row=5, spacing=2.5, row_spacing=4.5, low_foliage=True, trellis=2, seed=1)
     write_simulation(sim, str(block), str(tmp_path / "t.parquet"))
     params = PipelineParams.model_validate({"trunks": {"max_post_radius": 0.08}})
-    single = run_job(JobSpec(str(block), str(tmp_path / "single"), params=params))
-    tiled = run_job(JobSpec(str(block), str(tmp_path / "tiled"), params=params, tiling=TilingParams(tile_size=8.0)))
+    single = run_job(JobSpec(str(block), str(tmp_path / "single"), job=JobParams(pipeline=params)))
+    tiled = run_job(JobSpec(str(block), str(tmp_path / "tiled"), job=JobParams(pipeline=params, tiling=TilingParams(tile_size=8.0))))
     assert tiled.n_tiles >= 9 and tiled.n_trees == single.n_trees == 10
     pa, pb = _points(tmp_path / "single"), _points(tmp_path / "tiled")
     for col in ("point_index", "tree_id", "is_ground"):
@@ -460,7 +480,7 @@ def test_a_users_folders_named_like_the_stores_are_not_its_own(small_block, tmp_
     (mine / "results").mkdir()
     (mine / ".draft.tmp").write_text("y")
     with pytest.raises(ParameterError, match="new or empty folder"):
-        run_job(JobSpec(str(small_block), str(tmp_path / "out"), tiling=TilingParams(tile_size=10.0), work_dir=str(mine)))
+        run_job(JobSpec(str(small_block), str(tmp_path / "out"), job=JobParams(tiling=TilingParams(tile_size=10.0)), work_dir=str(mine)))
     assert sorted(p.relative_to(mine).as_posix() for p in mine.rglob("*")) == [".draft.tmp", "results", "tiles", "tiles/my-tile.laz"]
     WorkStore(str(mine)).remove()  # not marked: nothing is the store's
     assert (mine / "tiles" / "my-tile.laz").exists()
@@ -471,8 +491,8 @@ def test_two_runs_cannot_share_a_work_store(small_block, tmp_path):
     work = tmp_path / "work"
     with WorkStore(str(work)).lock():  # a run holding it
         with pytest.raises(ParameterError, match="in use by another run"):
-            run_job(JobSpec(str(small_block), str(tmp_path / "out"), tiling=TilingParams(tile_size=20.0), work_dir=str(work)))
-    run_job(JobSpec(str(small_block), str(tmp_path / "out"), tiling=TilingParams(tile_size=20.0), work_dir=str(work)))  # free again
+            run_job(JobSpec(str(small_block), str(tmp_path / "out"), job=JobParams(tiling=TilingParams(tile_size=20.0)), work_dir=str(work)))
+    run_job(JobSpec(str(small_block), str(tmp_path / "out"), job=JobParams(tiling=TilingParams(tile_size=20.0)), work_dir=str(work)))  # free again
     assert not work.exists()
 
 
@@ -504,8 +524,8 @@ def test_many_tiles_under_a_low_open_file_limit(small_block, tmp_path, soft, har
     # with some hundred tiles the common limit of 1024 ran out after every tile was done
     script = (
         "import resource, sys; resource.setrlimit(resource.RLIMIT_NOFILE, (int(sys.argv[3]), int(sys.argv[4])));"
-        "from workers.job import run_job; from workers.jobspec import JobSpec; from pipeline.jobparams import TilingParams;"
-        "o = run_job(JobSpec(sys.argv[1], sys.argv[2], tiling=TilingParams(tile_size=5.0))); print(o.n_tiles, o.n_trees)"  # 34 tiles
+        "from workers.job import run_job; from workers.jobspec import JobSpec; from pipeline.jobparams import JobParams, TilingParams;"
+        "o = run_job(JobSpec(sys.argv[1], sys.argv[2], job=JobParams(tiling=TilingParams(tile_size=5.0)))); print(o.n_tiles, o.n_trees)"  # 34 tiles
     )
     run = subprocess.run([sys.executable, "-c", script, str(small_block), str(tmp_path / "out"), str(soft), str(hard)],
                          capture_output=True, text=True, timeout=600, check=False)
@@ -527,5 +547,5 @@ def test_a_cancel_while_the_file_is_tiled_on_a_cluster_without_workers_stops_the
     with LocalCluster(n_workers=0, processes=False, dashboard_address=None) as cluster, Client(cluster) as client:
         threading.Timer(1.0, cancel.set).start()
         with pytest.raises(JobCancelled):
-            run_job(JobSpec(str(small_block), str(tmp_path / "out"), tiling=TilingParams(tile_size=10.0, chunk_points=50_000), work_dir=str(tmp_path / "work")), client=client, cancel=cancel)
+            run_job(JobSpec(str(small_block), str(tmp_path / "out"), job=JobParams(tiling=TilingParams(tile_size=10.0)), run=RunOptions(chunk_points=50_000), work_dir=str(tmp_path / "work")), client=client, cancel=cancel)
     assert not (tmp_path / "out" / "trees.parquet").exists()

@@ -48,10 +48,11 @@ def test_report_sample_takes_every_stride_th_point(small_block, whole, max_point
 @pytest.mark.parametrize("chunk_points", [30_001, 2_000_000])
 def test_a_tiled_job_carries_the_points_the_tiler_kept_as_the_report_would_read_them(small_block, tmp_path,
                                                                                     chunk_points):
-    from pipeline.jobparams import TilingParams
+    from pipeline.jobparams import JobParams, TilingParams
+    from workers.runoptions import RunOptions
 
     outcome = run_job(JobSpec(str(small_block), str(tmp_path / "out"),
-                              tiling=TilingParams(tile_size=10.0, chunk_points=chunk_points)))
+                              job=JobParams(tiling=TilingParams(tile_size=10.0)), run=RunOptions(chunk_points=chunk_points)))
     assert outcome.n_tiles > 1 and outcome.sample["max_points"] == REPORT_POINTS
     read = sample_points(str(small_block), outcome.outputs["points"], max_points=REPORT_POINTS)
     assert (read[1] > 0).any() and (read[1] == 0).any()
@@ -59,9 +60,9 @@ def test_a_tiled_job_carries_the_points_the_tiler_kept_as_the_report_would_read_
 
 
 def test_a_partial_tiled_job_gives_the_failed_tiles_points_no_tree(small_block, tmp_path):
-    from pipeline.jobparams import TilingParams
+    from pipeline.jobparams import JobParams, TilingParams
 
-    outcome = run_job(JobSpec(str(small_block), str(tmp_path / "out"), tiling=TilingParams(tile_size=10.0),
+    outcome = run_job(JobSpec(str(small_block), str(tmp_path / "out"), job=JobParams(tiling=TilingParams(tile_size=10.0)),
                               work_dir=str(tmp_path / "work"), inject_failure=(3,)))
     assert outcome.partial
     _same(outcome.sample, sample_points(str(small_block), outcome.outputs["points"], max_points=REPORT_POINTS))

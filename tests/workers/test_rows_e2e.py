@@ -8,7 +8,7 @@ import pyarrow.parquet as pq
 import pytest
 
 from simulator.scoring.result import evaluate_result
-from pipeline.jobparams import TilingParams
+from pipeline.jobparams import JobParams, TilingParams
 from simulator.simparams import SimulationParams
 from simulator.truth import write_simulation
 from workers.job import run_job
@@ -55,7 +55,7 @@ def test_a_hedgerow_gets_its_trunks_and_addresses(hedgerow, tmp_path):
         trunk = np.array([untiled["trunk_x"][k - 1], untiled["trunk_y"][k - 1]])
         assert np.hypot(*(centre - trunk)) < 0.5, k
 
-    tiled = run_job(JobSpec(str(las), str(tmp_path / "tiled"), tiling=TilingParams(tile_size=8.0)))
+    tiled = run_job(JobSpec(str(las), str(tmp_path / "tiled"), job=JobParams(tiling=TilingParams(tile_size=8.0))))
     assert tiled.trees["tree_id"].tolist() == untiled["tree_id"]
     assert tiled.trees["row"].tolist() == untiled["row"] and tiled.trees["position"].tolist() == untiled["position"]
     assert tiled.trees["young"].tolist() == untiled["young"]
@@ -112,7 +112,7 @@ def test_trees_on_open_slots_are_decided_on_the_block_and_tiled_equals_untiled(t
         return first(store, tiles, *args, **kwargs)
 
     monkeypatch.setattr(workers.dispatch, "process_tiles", counting)  # the block's second round only
-    tiled = run_job(JobSpec(str(las), str(tmp_path / "tiled"), tiling=TilingParams(tile_size=14.0)))
+    tiled = run_job(JobSpec(str(las), str(tmp_path / "tiled"), job=JobParams(tiling=TilingParams(tile_size=14.0))))
     assert tiled.n_tiles == 6 and again and 0 < len(again[0]) < 6
     assert tiled.n_trees == single.n_trees
     for col in ("trunk_x", "trunk_y", "row", "position", "young"):

@@ -13,7 +13,7 @@ import pyarrow.parquet as pq
 import pytest
 
 from pipeline.errors import NoOverlapError
-from pipeline.jobparams import TilingParams
+from pipeline.jobparams import JobParams, TilingParams
 from pipeline.registration import RigidTransform
 from simulator.plan import make_plan
 from simulator.series import capture_series
@@ -182,7 +182,7 @@ def test_tiled_and_whole_runs_agree_on_the_seasons_columns(series, tmp_path):
     caps, paths, folder = series
     whole, tiled = tmp_path / "whole", tmp_path / "tiled"
     run_job(JobSpec(str(paths[1]), str(whole), previous=str(folder / "out0")))
-    run_job(JobSpec(str(paths[1]), str(tiled), previous=str(folder / "out0"), tiling=TilingParams(tile_size=6.0)))
+    run_job(JobSpec(str(paths[1]), str(tiled), previous=str(folder / "out0"), job=JobParams(tiling=TilingParams(tile_size=6.0))))
     assert capture_record(tiled)["counts"] == capture_record(whole)["counts"]
     cols = ["tree_key", "status", "row", "position", "height_change_m", "crown_volume_change_m3",
             "trunk_diameter_change_m", "days_since_previous"]
