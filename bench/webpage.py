@@ -105,7 +105,7 @@ def prepare(data_dir: Path, sizes: list[int]) -> tuple[str, dict[int, str], dict
     store = Store(settings.store_path)
     try:
         token = create_token(store, "bench")
-        tenant = store.tenant_by_name("bench")
+        tenant = store.accounts.tenant_by_name("bench")
         las_path = data_dir / "upload.las"
         header = laspy.LasHeader(point_format=6, version="1.4")
         las = laspy.LasData(header)
@@ -116,14 +116,14 @@ def prepare(data_dir: Path, sizes: list[int]) -> tuple[str, dict[int, str], dict
         jobs, datas = {}, {}
         for n in sizes:
             table, data = synthetic_map(n)
-            job = store.create_job(tenant_id=tenant["id"], block_id=block["id"], params={}, tiling=None)
-            store.claim_next_job()
+            job = store.jobs.create(tenant_id=tenant["id"], block_id=block["id"], params={}, tiling=None)
+            store.jobs.claim_next()
             out = job_dir(settings, job["id"])
             out.mkdir(parents=True, exist_ok=True)
             pq.write_table(table, out / "trees.parquet")
             # (newer than trees.parquet: served as is)
             _atomic_write(out / "map.json.gz", gzip.compress(to_json(data).encode(), mtime=0))
-            store.finish_job(job["id"], "done", outcome={"n_trees": n, "n_points": 0})
+            store.jobs.finish(job["id"], "done", outcome={"n_trees": n, "n_points": 0})
             jobs[n], datas[n] = job["id"], data
         return token, jobs, datas
     finally:

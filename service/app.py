@@ -68,9 +68,9 @@ def create_app(settings: Settings) -> FastAPI:
         await run_in_threadpool(tighten, settings.data_dir, skip=[settings.http_inbox_root])
         tempfiles.sweep(settings.tmp_dir)  # uploads a crash interrupted (not those of live processes)
         if runner_lock is not None:  # no other process runs jobs here: a "running" job is an orphan
-            for job_id in store.cancel_interrupted():  # asked to stop before the last shutdown
+            for job_id in store.jobs.cancel_interrupted():  # asked to stop before the last shutdown
                 drop_work(settings, job_id)
-            n = store.requeue_running(max_crashes=settings.max_crashes)
+            n = store.jobs.requeue_running(max_crashes=settings.max_crashes)
             if n:
                 log.info("re-queued %d job(s) interrupted by the last shutdown", n)
             await run_in_threadpool(sweep_work, settings, store)  # failed just now, or a crash cut the deletion short

@@ -1,6 +1,6 @@
 """The background job runner of ``orchard serve``.
 
-One thread takes queued jobs from the store one at a time (`Store.claim_next_job`: fair
+One thread takes queued jobs from the store one at a time (`JobQueue.claim_next`: fair
 share between tenants, oldest first within one), and runs
 each with `workers.job.run_job` on a dask client it owns (an embedded `LocalCluster`,
 or the cluster at ``settings.scheduler``; created when the first job arrives). Tiles
@@ -10,7 +10,7 @@ with its outcome and timings, ``failed`` with a one-line error (a domain error's
 message; for anything unexpected a short message, the traceback only in the log), or
 ``cancelled``. A capture of an orchard block is told its previous capture when it
 starts, and its record is kept before it is done (`service.seasons`). A job left
-``running`` when the process dies is re-queued by `Store.requeue_running` at the next
+``running`` when the process dies is re-queued by `JobQueue.requeue_running` at the next
 start, as a crash (not an attempt); one during which the process has died
 ``settings.max_crashes`` times is failed there instead.
 
@@ -117,7 +117,7 @@ def drop_work(settings: Settings, job_id: str) -> None:
 
 def sweep_work(settings: Settings, store: Store) -> list[str]:
     """Delete the work stores (tiles) left by jobs that have ended: failed at start-up
-    after too many crashes (`Store.requeue_running`), or whose deletion a crash cut
+    after too many crashes (`JobQueue.requeue_running`), or whose deletion a crash cut
     short. Only jobs this store knows as done, failed or cancelled are touched (a shared
     work folder may hold other services' jobs). Returns the ids swept."""
     from service.db.errors import NotFoundError
@@ -134,7 +134,7 @@ def sweep_work(settings: Settings, store: Store) -> list[str]:
     swept = []
     for job_id in candidates:
         try:
-            state = store.get_job(None, job_id)["state"]
+            state = store.jobs.get_any_tenant(job_id)["state"]
         except NotFoundError:
             continue
         if state in ("done", "failed", "cancelled"):
@@ -262,12 +262,12 @@ class Runner(Background):
                     heal_cluster(client, self.settings.n_workers)
                 counts, job_id = self.cluster_workers(), self._current
                 if noted is not None and (noted[0] != job_id or not counts or counts[0] > 0):
-                    self.store.set_job_note(noted[0], noted[1])
+                    self.store.jobs.set_note(noted[0], noted[1])
                     noted = None
                 if noted is None and job_id is not None and counts is not None and counts[0] == 0:
-                    before = self.store.get_job(None, job_id).get("error")
+                    before = self.store.jobs.get_any_tenant(job_id).get("error")
                     want = f" (it should have {counts[1]}; new ones are starting)" if counts[1] else ""
-                    self.store.set_job_note(job_id, f"waiting for dask workers: the cluster has none{want}")
+                    self.store.jobs.set_note(job_id, f"waiting for dask workers: the cluster has none{want}")
                     noted = (job_id, before)
             except Exception as exc:  # noqa: BLE001 - look again next time
                 log.warning("runner: cannot look after the dask cluster: %s", exc)
@@ -328,7 +328,7 @@ class Runner(Background):
         try:
             while not self._stopping.is_set():
                 try:
-                    job = self.store.claim_next_job()
+                    job = self.store.jobs.claim_next()
                 except Exception as exc:  # noqa: BLE001 - e.g. the store briefly locked; try again
                     log.warning("runner: cannot read the queue: %s", exc)
                     job = None
@@ -341,7 +341,7 @@ class Runner(Background):
                 except Exception as exc:  # e.g. the store failed while recording (logged); keep running
                     log.error("runner: job %s could not be recorded", job["id"], exc_info=exc)
                     try:  # not left "running" (and waited on) for good
-                        left = self.store.finish_job(job["id"], "failed", error=f"internal error ({type(exc).__name__}) "
+                        left = self.store.jobs.finish(job["id"], "failed", error=f"internal error ({type(exc).__name__}) "
                                               "while recording the job's outcome; see the service log")
                     except Exception as again:  # noqa: BLE001 - the store itself is failing; the next start re-queues it
                         log.error("runner: job %s stays running: %s", job["id"], again)
@@ -361,12 +361,12 @@ class Runner(Background):
         attempts = int(job.get("attempts") or 1)
         if attempts > self.settings.job_retries:
             tries = f" (attempt {attempts}, the last)" if attempts > 1 else ""
-            return self.store.finish_job(job["id"], "failed", error=message + tries + advice)
+            return self.store.jobs.finish(job["id"], "failed", error=message + tries + advice)
         at = time.time() + self.settings.retry_delay_s
         when = time.strftime("%Y-%m-%d %H:%M:%S UTC", time.gmtime(at))
         log.warning("job %s: attempt %d failed (%s); queued again from %s", job["id"], attempts, message, when)
         note = f"attempt {attempts} of {self.settings.job_retries + 1} failed: {message}; trying again from {when}"
-        return self.store.retry_job(job["id"], error=note, retry_at=at)
+        return self.store.jobs.retry(job["id"], error=note, retry_at=at)
 
     def _watch_cancel(self, job_id: str, cancel: threading.Event, done: threading.Event) -> None:
         """Set ``cancel`` once the store says the job is to be cancelled: a cancel made
@@ -374,7 +374,7 @@ class Runner(Background):
         while the cluster waited for workers)."""
         while not done.wait(CANCEL_POLL_S) and not cancel.is_set():
             try:
-                if self.store.cancel_requested(job_id):
+                if self.store.jobs.cancel_requested(job_id):
                     cancel.set()
             except Exception as exc:  # noqa: BLE001 - the store briefly locked: look again
                 log.debug("job %s: cannot read its cancel flag: %s", job_id, exc)
@@ -384,7 +384,7 @@ class Runner(Background):
         cancel = threading.Event()
         with self._lock:
             self._current, self._cancel = job["id"], cancel
-        if self.store.cancel_requested(job["id"]):
+        if self.store.jobs.cancel_requested(job["id"]):
             cancel.set()
         watching = threading.Event()
         threading.Thread(target=self._watch_cancel, args=(job["id"], cancel, watching), daemon=True,
@@ -392,11 +392,11 @@ class Runner(Background):
         last_check = [0.0]
 
         def progress(done: int, total: int) -> None:
-            self.store.set_progress(job["id"], int(done), int(total))
+            self.store.jobs.set_progress(job["id"], int(done), int(total))
             now = time.monotonic()
             if now - last_check[0] > 0.5:
                 last_check[0] = now
-                if self.store.cancel_requested(job["id"]):
+                if self.store.jobs.cancel_requested(job["id"]):
                     cancel.set()
 
         out_dir = job_dir(self.settings, job["id"])
@@ -406,7 +406,7 @@ class Runner(Background):
             from workers.job import run_job
             from workers.jobspec import JobSpec
 
-            block = self.store.get_block(None, job["block_id"])
+            block = self.store.blocks.get(job["tenant_id"], job["block_id"])
             spec = JobSpec(
                 input_path=block["path"],
                 out_dir=str(out_dir),
@@ -426,9 +426,9 @@ class Runner(Background):
             timings = dict(record.get("timings") or {})
             timings.setdefault("total", round(time.perf_counter() - t0, 3))
             drop_work(self.settings, job["id"])  # tiles of a finished job are not needed again
-            if self.store.capture_of_job(job["id"]) is not None:
-                self.store.set_capture_record(job["id"], seasons.capture_record(out_dir))
-            done = self.store.finish_job(job["id"], "done", outcome=record, timings=timings)
+            if self.store.orchard_blocks.capture_of_job(job["tenant_id"], job["id"]) is not None:
+                self.store.orchard_blocks.set_capture_record(job["id"], seasons.capture_record(out_dir))
+            done = self.store.jobs.finish(job["id"], "done", outcome=record, timings=timings)
             if self._after_done is not None:
                 try:
                     self._after_done(done)
@@ -437,12 +437,12 @@ class Runner(Background):
             return done
         except BaseException as exc:  # noqa: BLE001 - every outcome is recorded
             if _is_cancel(exc) or (cancel.is_set() and not isinstance(exc, OrchardError)):
-                if self._stopping.is_set() and not self.store.cancel_requested(job["id"]):
+                if self._stopping.is_set() and not self.store.jobs.cancel_requested(job["id"]):
                     log.info("job %s interrupted by shutdown; it runs again at the next start", job["id"])
-                    self.store.release_job(job["id"])
-                    return self.store.get_job(None, job["id"])
+                    self.store.jobs.release(job["id"])
+                    return self.store.jobs.get(job["tenant_id"], job["id"])
                 drop_work(self.settings, job["id"])  # the service never resumes a cancelled job
-                return self.store.finish_job(job["id"], "cancelled", error="cancelled on request")
+                return self.store.jobs.finish(job["id"], "cancelled", error="cancelled on request")
             # the cluster failed the job, not the job itself: worth another attempt, and
             # this advice after the last
             retry_advice: str | None = None
@@ -472,7 +472,7 @@ class Runner(Background):
             drop_work(self.settings, job["id"])  # the service never resumes a job: its tiles are not needed
             if retry_advice is not None:
                 return self._after_cluster_failure(job, message, advice=retry_advice)
-            return self.store.finish_job(job["id"], "failed", error=message)
+            return self.store.jobs.finish(job["id"], "failed", error=message)
         finally:
             watching.set()
             with self._lock:

@@ -35,10 +35,10 @@ def capture_job_fields(store: Store, settings: Settings, job: dict[str, Any]) ->
     and ``captured_at_fallback`` (the day its file arrived)."""
     from service.runner import job_dir
 
-    capture = store.capture_of_job(job["id"])
+    capture = store.orchard_blocks.capture_of_job(job["tenant_id"], job["id"])
     if capture is None:
         return {}
-    before = store.latest_done_capture(None, capture["orchard_block_id"], before_seq=capture["seq"])
+    before = store.orchard_blocks.latest_done_capture(capture["tenant_id"], capture["orchard_block_id"], before_seq=capture["seq"])
     return {
         "previous": str(job_dir(settings, before["job_id"]).absolute()) if before is not None else None,
         "capture_id": capture["id"],

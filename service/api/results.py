@@ -20,7 +20,7 @@ from service.settings import Settings
 def job_output(store: Store, settings: Settings, tenant: dict, job_id: str, name: str) -> tuple[dict, Path]:
     """The job record and the path of its output file ``name`` (which may be missing:
     see `require_output`); ConflictError (409) unless the job is done."""
-    job = store.get_job(tenant["id"], job_id)
+    job = store.jobs.get(tenant["id"], job_id)
     if job["state"] in ("failed", "cancelled"):  # "once it is done" would never come
         raise ConflictError(f"job {job_id} is {job['state']} and has no results; submit its block again "
                             f"with POST /v1/jobs (GET /v1/jobs/{job_id} says why it ended)")
@@ -50,7 +50,7 @@ def ensure_report(store: Store, settings: Settings, job: dict) -> Path:
     html_path = out / "report.html"
     if html_path.exists() and (out / "map.png").exists():
         return html_path
-    block = store.get_block(None, job["block_id"])
+    block = store.blocks.get(job["tenant_id"], job["block_id"])
     if not Path(block["path"]).is_file():  # not the farm's fault, and not its file name to show
         raise NotFoundError("the uploaded block of this job is missing on the server, so its report cannot be "
                             "drawn; the per-tree downloads (trees.csv, trees.parquet) still work")
@@ -67,7 +67,7 @@ def ensure_report(store: Store, settings: Settings, job: dict) -> Path:
         "Points": str((block.get("info") or {}).get("n_points", "")),
         "Trees": str(rows_total if rows_total is not None else ""),
     }
-    capture = store.capture_of_job(job["id"])
+    capture = store.orchard_blocks.capture_of_job(job["tenant_id"], job["id"])
     if capture is not None:  # a capture of an orchard block: which, and when
         summary["Orchard block"] = f"{capture['orchard_block_name']} (capture {capture['seq']})"
         summary["Captured"] = capture.get("captured_at") or ""

@@ -73,9 +73,11 @@ def run(args: argparse.Namespace) -> int:
     store = Store(settings.store_path)
     try:
         if args.action == "list":
-            tenants = {t["id"]: t["name"] for t in store.list_tenants()}
-            tenant_id = store.tenant_by_name(args.tenant)["id"] if args.tenant else None
-            rows = store.list_schedules(tenant_id)
+            tenants = {t["id"]: t["name"] for t in store.accounts.list_tenants()}
+            if args.tenant:
+                rows = store.schedules.list(store.accounts.tenant_by_name(args.tenant)["id"])
+            else:
+                rows = store.schedules.list_any_tenant()
             _print_list(rows, tenants, store, settings, as_json=args.json)
         elif args.action == "create":
             cron = validate_cron(args.cron)
@@ -86,10 +88,10 @@ def run(args: argparse.Namespace) -> int:
                 tiling = stored_tiling(params, {"tile_size": args.tile_size, "buffer": args.buffer})
             elif args.buffer is not None:
                 raise ParameterError("--buffer needs --tile-size")
-            tenant = store.ensure_tenant(args.tenant)
+            tenant = store.accounts.ensure_tenant(args.tenant)
             check_inbox_use(inbox, settings=settings, store=store, tenant_id=tenant["id"])
-            block_id = store.orchard_block_by_name(tenant["id"], args.orchard_block)["id"] if args.orchard_block else None
-            rec = store.create_schedule(
+            block_id = store.orchard_blocks.by_name(tenant["id"], args.orchard_block)["id"] if args.orchard_block else None
+            rec = store.schedules.create(
                 tenant_id=tenant["id"],
                 inbox=str(inbox),
                 cron=cron,
@@ -100,18 +102,18 @@ def run(args: argparse.Namespace) -> int:
             )
             print(rec["id"])
         elif args.action in ("update", "pause", "resume"):
-            sched = store.get_schedule(None, args.schedule_id)
+            sched = store.schedules.get_any_tenant(args.schedule_id)
             given = _update_body(args, sched) if args.action == "update" else {"paused": args.action == "pause"}
-            rec = store.update_schedule(None, sched["id"], lambda current: schedule_changes(current, given))
+            rec = store.schedules.update_any_tenant(sched["id"], lambda current: schedule_changes(current, given))
             state = "paused" if rec["paused"] else f"next run {_when(rec['next_run_at'])}"
             print(f"{rec['id']}\t{rec['cron']}\t{state}")
         elif args.action == "run":
-            sched = store.get_schedule(None, args.schedule_id)
+            sched = store.schedules.get_any_tenant(args.schedule_id)
             res = run_schedule(store, settings, sched)
             print(json.dumps(res, indent=2))
         elif args.action == "delete":
-            sched = store.get_schedule(None, args.schedule_id)
-            store.delete_schedule(sched["tenant_id"], sched["id"])
+            sched = store.schedules.get_any_tenant(args.schedule_id)
+            store.schedules.delete(sched["tenant_id"], sched["id"])
             print("deleted")
     finally:
         store.close()

@@ -65,16 +65,16 @@ def run(args: argparse.Namespace) -> int:
     store = Store(settings.store_path)
     try:
         if args.action == "list":
-            for t in store.list_tenants():
-                print(_row(t["name"], store.quota(t["id"])))
+            for t in store.accounts.list_tenants():
+                print(_row(t["name"], store.quotas.get(t["id"])))
         else:
-            tenant = store.tenant_by_name(args.name)
+            tenant = store.accounts.tenant_by_name(args.name)
             limits = {}
             if "storage_gb" in args:
                 limits["storage_bytes"] = None if args.storage_gb is None else round(args.storage_gb * GB)
             if "max_queued" in args:
                 limits["queued_jobs"] = args.max_queued
-            print(_row(tenant["name"], store.set_quota(tenant["id"], **limits) if limits else store.quota(tenant["id"])))
+            print(_row(tenant["name"], store.quotas.set_limits(tenant["id"], **limits) if limits else store.quotas.get(tenant["id"])))
     finally:
         store.close()
     return 0

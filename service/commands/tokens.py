@@ -71,17 +71,20 @@ def run(args: argparse.Namespace) -> int:
                 file=sys.stderr,
             )
         elif args.action == "list":
-            tenant_id = store.tenant_by_name(args.tenant)["id"] if args.tenant else None
+            if args.tenant:
+                tokens = store.accounts.list_tokens(store.accounts.tenant_by_name(args.tenant)["id"])
+            else:
+                tokens = store.accounts.list_tokens_any_tenant()
             now = time.time()
             print("tenant\tid\tprefix\tcreated\tlast used\texpires")
-            for t in store.list_tokens(tenant_id):
+            for t in tokens:
                 print("\t".join((
                     t["tenant"], t["id"], t["prefix"] or "(made before prefixes)", _when(t["created_at"], "-"),
                     _when(t["last_used_at"], "never"),
                     _when(t["expires_at"], "never") + (" (expired)" if t["expires_at"] and t["expires_at"] <= now else ""),
                 )))
         elif args.action == "revoke":
-            if not (store.revoke_token_id(args.token) or store.revoke_token(hash_token(args.token))):
+            if not (store.accounts.revoke_token_id(args.token) or store.accounts.revoke_token(hash_token(args.token))):
                 raise NotFoundError(f"no token {args.token!r} in the data folder {settings.data_dir}; "
                                     "`orchard tokens list` shows the ids")
             print("revoked")

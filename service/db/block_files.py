@@ -91,13 +91,13 @@ def accept_block(
 
     tmp_path = Path(tmp_path)
     try:
-        existing = store.block_by_sha(tenant_id, sha256)
+        existing = store.blocks.by_sha(tenant_id, sha256)
         if existing is not None and Path(existing["path"]).exists():
             return existing, False
         if size_bytes == 0:
             raise InputError("the file is empty (0 bytes); upload a LAS or LAZ file")
         tmp_path, size_bytes = _as_las(tmp_path, size_bytes, filename, crs_epsg, columns)
-        store.check_storage(tenant_id, size_bytes)
+        store.quotas.check_storage(tenant_id, size_bytes)
         suffix = _sniff_suffix(tmp_path)
         typed = tmp_path.with_suffix(suffix)
         os.replace(tmp_path, typed)
@@ -117,7 +117,7 @@ def accept_block(
             os.replace(tmp_path, final)
             _fsync_dir(blocks_dir)
         try:
-            return store.insert_block(
+            return store.blocks.insert(
                 tenant_id=tenant_id,
                 sha256=sha256,
                 path=str(final),
@@ -126,7 +126,7 @@ def accept_block(
                 info=info_record(info),
             )
         except StorageQuotaExceeded:  # another upload of the tenant's took the room meanwhile
-            if landed and not store.block_file_used(str(final)):
+            if landed and not store.blocks.file_used_any_tenant(str(final)):
                 final.unlink(missing_ok=True)
             raise
     finally:

@@ -107,7 +107,7 @@ def job(job_id: str, request: Request) -> Response:
         return _to_signin(request)
     sess, tenant = found
     try:
-        _store(request).get_job(tenant["id"], job_id)
+        _store(request).jobs.get(tenant["id"], job_id)
     except NotFoundError:
         page = render.message_page(title="No such job", message=f"This farm has no job {job_id}.",
                                    tenant_name=tenant["name"], csrf=sess.csrf)
@@ -128,7 +128,7 @@ def job_map_data(job_id: str, request: Request) -> Response:
     with _map_lock:
         if not packed.exists() or packed.stat().st_mtime < trees.stat().st_mtime:
             _, points = job_output(store, settings, tenant, job_id, "points.parquet")
-            block = store.get_block(None, job_rec["block_id"])
+            block = store.blocks.get(job_rec["tenant_id"], job_rec["block_id"])
             data = mapdata.build_map_data(trees, block_path=block.get("path"), points_parquet=points)
             cached.parent.mkdir(parents=True, exist_ok=True)
             from service.report import _atomic_write

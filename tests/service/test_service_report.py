@@ -104,18 +104,18 @@ def finished_job(tmp_path):
     store = Store(settings.store_path)
 
     def make(filename: str, outcome: dict):
-        tenant = store.ensure_tenant("farm")
+        tenant = store.accounts.ensure_tenant("farm")
         src = write_las(tmp_path / "upload.las", 3_000, seed=4)
         block, _ = accept_block(store, blocks_dir=settings.blocks_dir, tenant_id=tenant["id"], tmp_path=src,
                                 sha256=file_sha256(src), size_bytes=src.stat().st_size, filename=filename)
-        job = store.create_job(tenant_id=tenant["id"], block_id=block["id"], params={}, tiling={"tile_size": 20})
-        assert store.claim_next_job()["id"] == job["id"]
+        job = store.jobs.create(tenant_id=tenant["id"], block_id=block["id"], params={}, tiling={"tile_size": 20})
+        assert store.jobs.claim_next()["id"] == job["id"]
         out = job_dir(settings, job["id"])
         out.mkdir(parents=True)
         points, trees = _outputs(tmp_path, 3_000)
         shutil.copy(points, out / "points.parquet")
         shutil.copy(trees, out / "trees.parquet")
-        return settings, store, store.finish_job(job["id"], "done", outcome=outcome)
+        return settings, store, store.jobs.finish(job["id"], "done", outcome=outcome)
 
     try:
         yield make
@@ -148,7 +148,7 @@ def test_a_lost_map_is_drawn_again_and_a_lost_block_is_a_clear_404(finished_job)
     ensure_report(store, settings, job)
     assert (out / "map.png").read_bytes()[:4] == b"\x89PNG"
     (out / "report.html").unlink()
-    stored = Path(store.get_block(None, job["block_id"])["path"])
+    stored = Path(store.blocks.get(job["tenant_id"], job["block_id"])["path"])
     stored.unlink()
     with pytest.raises(NotFoundError, match="uploaded block of this job is missing on the server") as err:
         ensure_report(store, settings, job)
@@ -162,8 +162,8 @@ def test_a_scheduled_jobs_report_names_its_capture(finished_job):
     from service.api.schemas import job_out
 
     settings, store, job = finished_job("test-upload.las", {"n_trees": 2})
-    store._con().execute("UPDATE jobs SET capture = 'night-7.laz' WHERE id = ?", (job["id"],))
-    job = store.get_job(None, job["id"])
+    store.db.connection().execute("UPDATE jobs SET capture = 'night-7.laz' WHERE id = ?", (job["id"],))
+    job = store.jobs.get_any_tenant(job["id"])
     assert job_out(job).capture == "night-7.laz"
     text = ensure_report(store, settings, job).read_text()
     assert "Orchard report — night-7.laz" in text and "test-upload.las" not in text

@@ -169,10 +169,10 @@ def served_capture(tmp_path_factory):
         write_capture_outputs(out, "c2")
         store = Store(srv.data_dir / "orchard.sqlite")
         try:  # done, as the runner would record it
-            with store._tx() as con:
+            with store.db.transaction() as con:
                 con.execute("UPDATE jobs SET state = 'running' WHERE id = ?", (cap["job_id"],))
-            store.set_capture_record(cap["job_id"], capture_record(out))
-            store.finish_job(cap["job_id"], "done", outcome={"n_trees": 8, "outputs": {"history": str(out / "history.parquet")}})
+            store.orchard_blocks.set_capture_record(cap["job_id"], capture_record(out))
+            store.jobs.finish(cap["job_id"], "done", outcome={"n_trees": 8, "outputs": {"history": str(out / "history.parquet")}})
         finally:
             store.close()
         yield srv, token, ob, cap
