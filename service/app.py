@@ -3,7 +3,7 @@ the schedule clock into a FastAPI app.
 
 This module holds wiring only: the routes are in `service.api` (one module per
 resource) and `service.web` (the browser's pages), the work in `service.db`,
-`service.runner`, `service.schedules` and `service.report`. OpenAPI docs are at
+`service.runner`, `service.schedules` and `service.reports`. OpenAPI docs are at
 ``/docs``. Every ``/v1`` request needs ``Authorization: Bearer <token>``; a tenant sees
 only its own resources (anything else is 404). Errors are JSON ``{"detail": ...}``
 (see `service.errors`).
@@ -24,13 +24,14 @@ from service import tempfiles, web
 from service.api import openapi, routes_health, v1_router
 from service.api.bodies import JsonShape
 from service.api.deps import wake_runner
-from service.api.results import ensure_report
 from service.api.uploads import UPLOAD_SLACK, BodyLimit
 from service.db.jobstore import Store
 from service.errors import install_error_handlers
 from service.headers import SecurityHeaders
+from service.jobfolders import job_dir
 from service.permissions import private_dir, tighten
-from service.runner import Runner, drop_work, hold_runner_lock, job_dir, sweep_work
+from service.reports.outputs import ensure_report
+from service.runner import Runner, drop_work, hold_runner_lock, sweep_work
 from service.schedules import ScheduleClock
 from service.settings import Settings
 from service.webhooks import WebhookSender, job_event

@@ -39,6 +39,8 @@ from pipeline.params import PipelineParams
 from service import seasons
 from service.background import Background
 from service.db.jobstore import Store
+from service.jobfolders import job_dir, work_dir_of
+from service.reports.outputs import job_block_name
 from service.settings import Settings
 from service.wording import api_words, disk_full
 
@@ -82,24 +84,6 @@ def hold_runner_lock(data_dir: Path) -> IO:
     fh.write(f"orchard service pid {os.getpid()}\n")
     fh.flush()
     return fh
-
-
-def job_block_name(job: dict, block: dict | None) -> str | None:
-    """How a job names its block to the farm: the inbox file its schedule took it from,
-    else the block's file name (its first upload's); None if neither is known."""
-    return job.get("capture") or (block or {}).get("filename")
-
-
-def job_dir(settings: Settings, job_id: str) -> Path:
-    """Where a job's results live: ``data_dir/jobs/<job id>/``."""
-    return settings.jobs_dir / job_id
-
-
-def work_dir_of(settings: Settings, job_id: str) -> str:
-    """A job's work store (its tiles): ``<work_dir>/<job id>``, or ``<job dir>/_work``."""
-    if settings.work_dir:
-        return f"{settings.work_dir.rstrip('/')}/{job_id}"
-    return str(job_dir(settings, job_id) / "_work")
 
 
 def drop_work(settings: Settings, job_id: str) -> None:

@@ -18,6 +18,7 @@ from typing import Any
 
 from service.db.jobstore import Store
 from service.db.orchard_blocks import arrival_date
+from service.jobfolders import job_dir
 from service.settings import Settings
 
 log = logging.getLogger("orchard.runner")
@@ -33,8 +34,6 @@ def capture_job_fields(store: Store, settings: Settings, job: dict[str, Any]) ->
     ``previous`` (the output folder of the block's latest capture done before this one,
     or None for its first), ``capture_id``, ``captured_at`` (the date its sender gave)
     and ``captured_at_fallback`` (the day its file arrived)."""
-    from service.runner import job_dir
-
     capture = store.orchard_blocks.capture_of_job(job["tenant_id"], job["id"])
     if capture is None:
         return {}

@@ -35,8 +35,8 @@ from service.api.uploads import UPLOAD_BODY, UPLOAD_SLACK, receive_upload
 from service.db.block_files import accept_block
 from service.db.errors import NotFoundError
 from service.db.jobstore import Store
+from service.jobfolders import job_dir
 from service.jobrequests import stored_tiling
-from service.runner import job_dir
 from service.seasons import HISTORY
 from service.settings import Settings
 

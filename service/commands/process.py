@@ -364,7 +364,7 @@ def _budget_tiles(spec, count=None):
 def _write_views(outcome, args) -> None:
     """``trees.csv`` and ``report.html`` beside the Parquet files: a spreadsheet and a page
     that open from disk."""
-    from service.report import write_report, write_trees_csv
+    from service.reports.report import write_report, write_trees_csv
 
     trees, points = outcome.outputs.get("trees"), outcome.outputs.get("points")
     if not trees:

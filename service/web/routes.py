@@ -18,11 +18,14 @@ from fastapi import APIRouter, Form, Request
 from fastapi.openapi.docs import get_redoc_html
 from fastapi.responses import HTMLResponse, RedirectResponse, Response
 
-from service.api.results import job_output, require_output
+from service import sessions
 from service.db.errors import NotFoundError
 from service.errors import UnauthorizedError
-from service.runner import job_dir
-from service.web import mapdata, render, sessions
+from service.jobfolders import job_dir
+from service.reports import mapdata
+from service.reports.outputs import job_output, require_output
+from service.reports.report import atomic_write
+from service.web import render
 
 router = APIRouter(include_in_schema=False)
 _map_lock = threading.Lock()  # one footprint computation at a time (it reads the whole block)
@@ -117,7 +120,7 @@ def job(job_id: str, request: Request) -> Response:
 
 @router.get("/web/jobs/{job_id}/map.json")
 def job_map_data(job_id: str, request: Request) -> Response:
-    """What the job page's map draws (see `service.web.mapdata`); computed once, kept
+    """What the job page's map draws (see `service.reports.mapdata`); computed once, kept
     gzipped as ``map.json.gz`` beside the job's outputs."""
     store, settings = _store(request), request.app.state.settings
     tenant = sessions.request_tenant(request, store)
@@ -131,9 +134,7 @@ def job_map_data(job_id: str, request: Request) -> Response:
             block = store.blocks.get(job_rec["tenant_id"], job_rec["block_id"])
             data = mapdata.build_map_data(trees, block_path=block.get("path"), points_parquet=points)
             cached.parent.mkdir(parents=True, exist_ok=True)
-            from service.report import _atomic_write
-
-            _atomic_write(packed, gzip.compress(mapdata.to_json(data).encode("utf-8"), compresslevel=6, mtime=0))
+            atomic_write(packed, gzip.compress(mapdata.to_json(data).encode("utf-8"), compresslevel=6, mtime=0))
     headers = {"Cache-Control": "private, max-age=60", "Vary": "Accept-Encoding"}
     body = packed.read_bytes()
     if "gzip" in request.headers.get("accept-encoding", ""):

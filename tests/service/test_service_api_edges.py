@@ -17,7 +17,7 @@ from service_fixtures import client_of, make_token, temp_files, write_las
 from service.api.openapi import unique_operation_ids
 from service.app import create_app
 from service.db.jobstore import Store
-from service.runner import job_dir
+from service.jobfolders import job_dir
 from service.settings import Settings
 
 _METHODS = {"get", "put", "post", "delete", "options", "head", "patch", "trace"}

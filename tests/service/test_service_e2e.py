@@ -270,7 +270,7 @@ def test_a_second_service_on_one_data_folder_leaves_the_first_ones_work_alone(tm
 def test_a_job_cancelled_just_before_a_shutdown_loses_its_tiles_at_the_next_start(tmp_path):
     # DELETE then SIGTERM at once: the job stayed "running" with cancel requested, the next
     # start cancelled it in the store, and its tiles stayed on disk for good
-    from service.runner import work_dir_of
+    from service.jobfolders import work_dir_of
     from service.settings import Settings
     from workers.workstore import WorkStore
 

@@ -16,7 +16,7 @@ import pytest
 from seasons_fixtures import write_capture_outputs
 from service_fixtures import tenant_inbox, write_las
 
-from service.runner import job_dir
+from service.jobfolders import job_dir
 
 
 def _name() -> str:

@@ -14,7 +14,8 @@ import pyarrow.parquet as pq
 import pytest
 from service_fixtures import write_las
 
-from service.report import sample_points, trees_records, write_report, write_trees_csv
+from service.reports.report import trees_records, write_report, write_trees_csv
+from service.reports.sampling import sample_points
 
 
 def _outputs(tmp_path, n):
@@ -95,7 +96,7 @@ def finished_job(tmp_path):
     outcome (and result files): ``make(filename, outcome) -> (settings, store, job)``."""
     from service.db.block_files import accept_block
     from service.db.jobstore import Store
-    from service.runner import job_dir
+    from service.jobfolders import job_dir
     from service.schedules import file_sha256
     from service.settings import Settings
 
@@ -126,7 +127,7 @@ def finished_job(tmp_path):
 def test_the_report_of_a_partial_result_says_which_tiles_are_missing(finished_job):
     # the API said "partial", the report did not: a grower reading it saw a block with
     # fewer trees and no word why
-    from service.api.results import ensure_report
+    from service.reports.outputs import ensure_report
 
     settings, store, job = finished_job("north $block$.las", {"n_trees": 2, "partial": True, "failed_tiles": [3, 4]})
     text = ensure_report(store, settings, job).read_text()
@@ -137,9 +138,9 @@ def test_the_report_of_a_partial_result_says_which_tiles_are_missing(finished_jo
 def test_a_lost_map_is_drawn_again_and_a_lost_block_is_a_clear_404(finished_job):
     # map.png lost beside its report.html: every request for it was a 500 (and the map was
     # never drawn again); the block file lost: a 422 naming the server's checksum file
-    from service.api.results import ensure_report
+    from service.reports.outputs import ensure_report
     from service.db.errors import NotFoundError
-    from service.runner import job_dir
+    from service.jobfolders import job_dir
 
     settings, store, job = finished_job("north.las", {"n_trees": 2})
     out = job_dir(settings, job["id"])
@@ -158,7 +159,7 @@ def test_a_lost_map_is_drawn_again_and_a_lost_block_is_a_clear_404(finished_job)
 def test_a_scheduled_jobs_report_names_its_capture(finished_job):
     # the same bytes were uploaded before as "test-upload.las": the night's report is
     # about the capture the schedule took
-    from service.api.results import ensure_report
+    from service.reports.outputs import ensure_report
     from service.api.schemas import job_out
 
     settings, store, job = finished_job("test-upload.las", {"n_trees": 2})
@@ -173,7 +174,7 @@ def test_a_scheduled_jobs_report_names_its_capture(finished_job):
                     reason="needs time.tzset and the system's zone files")
 def test_the_report_gives_the_finish_time_in_the_servers_zone(finished_job, monkeypatch):
     # a grower read "Finished ... UTC" while the schedules run on the server's local time
-    from service.api.results import ensure_report
+    from service.reports.outputs import ensure_report
 
     monkeypatch.setenv("TZ", "Australia/Sydney")
     time.tzset()

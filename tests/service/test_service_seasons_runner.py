@@ -19,10 +19,11 @@ from test_service_report import _outputs
 
 from pipeline.errors import ParameterError
 from service import seasons
-from service.api.results import ensure_report
 from service.db.block_files import accept_block
 from service.db.jobstore import Store
-from service.runner import Runner, job_dir
+from service.jobfolders import job_dir
+from service.reports.outputs import ensure_report
+from service.runner import Runner
 from service.schedules import file_sha256
 from service.settings import Settings
 

@@ -21,7 +21,7 @@ from service_fixtures import ServerProcess, make_token, write_las
 from test_web_browser import CHROMIUM, Watch, browser  # noqa: F401 - the module's browser fixture
 
 from service.db.jobstore import Store
-from service.report import write_report
+from service.reports.report import write_report
 from service.seasons import capture_record
 
 pytestmark = [pytest.mark.slow, pytest.mark.skipif(not Path(CHROMIUM).exists(), reason=f"no browser: {CHROMIUM} is missing")]
@@ -165,7 +165,7 @@ def served_capture(tmp_path_factory):
         with httpx.Client(base_url=srv.url, headers={"Authorization": f"Bearer {token}"}, timeout=60) as c:
             ob = c.post("/v1/orchard-blocks", json={"name": "North"}).json()
             cap = c.post(f"/v1/orchard-blocks/{ob['id']}/captures", files={"file": ("july.laz", las.read_bytes())}).json()
-        out = srv.data_dir / "jobs" / cap["job_id"]  # the server's job folder (service.runner.job_dir)
+        out = srv.data_dir / "jobs" / cap["job_id"]  # the server's job folder (service.jobfolders.job_dir)
         write_capture_outputs(out, "c2")
         store = Store(srv.data_dir / "orchard.sqlite")
         try:  # done, as the runner would record it

@@ -1,8 +1,9 @@
-"""A finished job's outputs as the API serves them: where each file is, and the report.
+"""A finished job's outputs as the service serves them: where each file is, and the report.
 
-`job_output` finds an output of a tenant's job (409 while the job is not done, or when it
-failed); `require_output` turns a missing file into a 404; `ensure_report` draws the
-HTML report and its map on first use. The browser's pages use the same rules.
+`job_output` finds an output of a tenant's job (ConflictError, a 409, while the job is
+not done, or when it failed); `require_output` turns a missing file into a
+NotFoundError (404); `ensure_report` draws the HTML report and its map on first use.
+The API and the browser's pages use the same rules.
 """
 
 from __future__ import annotations
@@ -10,11 +11,17 @@ from __future__ import annotations
 from datetime import datetime
 from pathlib import Path
 
-from service import report as reports
 from service.db.errors import ConflictError, NotFoundError
 from service.db.jobstore import Store
-from service.runner import job_block_name, job_dir
+from service.jobfolders import job_dir
+from service.reports import report as reports
 from service.settings import Settings
+
+
+def job_block_name(job: dict, block: dict | None) -> str | None:
+    """How a job names its block to the farm: the inbox file its schedule took it from,
+    else the block's file name (its first upload's); None if neither is known."""
+    return job.get("capture") or (block or {}).get("filename")
 
 
 def job_output(store: Store, settings: Settings, tenant: dict, job_id: str, name: str) -> tuple[dict, Path]:
