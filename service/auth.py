@@ -19,8 +19,8 @@ import time
 from datetime import datetime, timezone
 from typing import Any
 
+from pipeline.errors import OrchardError
 from service.db.jobstore import Store
-from service.errors import UnauthorizedError
 
 TOKEN_PREFIX = "orch_"
 _PREFIX_CHARS = string.ascii_lowercase + string.digits
@@ -31,6 +31,10 @@ TOUCH_INTERVAL_S = 60.0
 #: another data folder than the server's (named in the server's log at start)
 UNKNOWN_TOKEN = ("unknown or revoked token; create one with `orchard tokens create --tenant NAME --data-dir DIR` "
                  "on the server, DIR being the data folder the server uses (its log names it at start)")
+
+
+class UnauthorizedError(OrchardError):
+    """No bearer token, or one the store does not know (a 401 at the API)."""
 
 
 def hash_token(token: str) -> str:

@@ -29,9 +29,8 @@ from urllib.parse import urlsplit
 from fastapi import Request
 from starlette.exceptions import HTTPException
 
-from service.auth import authenticate, hash_token
+from service.auth import UnauthorizedError, authenticate, hash_token
 from service.db.jobstore import Store
-from service.errors import UnauthorizedError
 
 COOKIE = "orchard_session"
 CSRF_HEADER = "x-csrf-token"

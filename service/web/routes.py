@@ -19,8 +19,8 @@ from fastapi.openapi.docs import get_redoc_html
 from fastapi.responses import HTMLResponse, RedirectResponse, Response
 
 from service import sessions
+from service.auth import UnauthorizedError
 from service.db.errors import NotFoundError
-from service.errors import UnauthorizedError
 from service.jobfolders import job_dir
 from service.reports import mapdata
 from service.reports.outputs import job_output, require_output

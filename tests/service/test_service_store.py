@@ -8,11 +8,10 @@ import threading
 import pytest
 
 from pipeline.errors import InputError
-from service.auth import authenticate, create_token, hash_token
+from service.auth import UnauthorizedError, authenticate, create_token, hash_token
 from service.db.block_files import accept_block
 from service.db.errors import ConflictError, NotFoundError
 from service.db.jobstore import Store
-from service.errors import UnauthorizedError
 from service_fixtures import write_las
 
 

@@ -16,10 +16,9 @@ from fastapi.testclient import TestClient
 from service_fixtures import client_of, write_las
 
 from service.app import create_app
-from service.auth import TOUCH_INTERVAL_S, authenticate, create_token, hash_token, issue_token
+from service.auth import TOUCH_INTERVAL_S, UnauthorizedError, authenticate, create_token, hash_token, issue_token
 from service.cli import main
 from service.db.jobstore import Store
-from service.errors import UnauthorizedError
 from service.permissions import tighten
 from service.settings import Settings
 
