@@ -35,6 +35,7 @@ from service.runner import Runner, drop_work, hold_runner_lock, sweep_work
 from service.schedules import ScheduleClock
 from service.settings import Settings
 from service.webhooks import WebhookSender, job_event
+from workers.workstore import check_work_url
 
 log = logging.getLogger("orchard.service")
 
@@ -42,8 +43,6 @@ log = logging.getLogger("orchard.service")
 def create_app(settings: Settings) -> FastAPI:
     """The API app. Starting it (lifespan) re-queues interrupted jobs and starts the runner and the schedule clock."""
     if settings.work_dir and settings.runner:  # the runner's jobs would each fail on it
-        from workers.workstore import check_work_url
-
         try:
             check_work_url(settings.work_dir, shared=True)
         except ParameterError as exc:

@@ -38,11 +38,13 @@ from pipeline.jobparams import TilingParams
 from pipeline.params import PipelineParams
 from service import seasons
 from service.background import Background
+from service.db.errors import NotFoundError
 from service.db.jobstore import Store
 from service.jobfolders import job_dir, work_dir_of
 from service.reports.outputs import job_block_name
 from service.settings import Settings
 from service.wording import api_words, disk_full
+from workers.workstore import WorkStore
 
 log = logging.getLogger("orchard.runner")
 
@@ -88,8 +90,6 @@ def hold_runner_lock(data_dir: Path) -> IO:
 
 def drop_work(settings: Settings, job_id: str) -> None:
     """Delete a job's work store, and its result folder if that is left empty."""
-    from workers.workstore import WorkStore
-
     out_dir = job_dir(settings, job_id)
     try:
         WorkStore(work_dir_of(settings, job_id)).remove()
@@ -104,9 +104,6 @@ def sweep_work(settings: Settings, store: Store) -> list[str]:
     after too many crashes (`JobQueue.requeue_running`), or whose deletion a crash cut
     short. Only jobs this store knows as done, failed or cancelled are touched (a shared
     work folder may hold other services' jobs). Returns the ids swept."""
-    from service.db.errors import NotFoundError
-    from workers.workstore import WorkStore
-
     if settings.work_dir:
         try:
             candidates = WorkStore(settings.work_dir).entries()
@@ -222,7 +219,7 @@ class Runner(Background):
         client = self._client
         if client is None:
             return None
-        from workers.cluster import cluster_workers
+        from workers.cluster import cluster_workers  # here: dask (~1 s) loads with the first cluster
 
         try:
             return cluster_workers(client)
@@ -236,7 +233,7 @@ class Runner(Background):
     def _doctor(self) -> None:
         """Every `DOCTOR_POLL_S`: replace the embedded cluster's lost workers (without a
         restart of the service), and say on the running job when it waits for workers."""
-        from workers.cluster import heal_cluster
+        from workers.cluster import heal_cluster  # here: dask (~1 s) loads with the first cluster
 
         noted: tuple[str, str | None] | None = None  # (job id, its error before the note)
         while not self._stopping.wait(DOCTOR_POLL_S):
@@ -259,7 +256,7 @@ class Runner(Background):
     # -- the thread ------------------------------------------------------------------
 
     def _default_client(self):
-        from workers.cluster import make_client
+        from workers.cluster import make_client  # here: dask (~1 s) loads with the first cluster
 
         return make_client(
             self.settings.scheduler,
@@ -299,7 +296,7 @@ class Runner(Background):
             return
         try:
             if self.settings.scheduler is None:
-                from workers.cluster import close_client
+                from workers.cluster import close_client  # here: dask (~1 s) loads with the first cluster
 
                 close_client(client)  # the embedded LocalCluster goes too
             else:

@@ -453,6 +453,7 @@ def _header_problem(path: Path, name: str) -> str | None:
     """Why an inbox file is no usable point file, read from its signature and header
     where it lies (the header and VLRs only); None if it looks usable. The copy taken
     afterwards is checked again, as any upload."""
+    # here: laspy and pyproj (~0.6 s) are no cost of `orchard schedules --help`, which imports service.schedules
     from pipeline.blockinfo import read_info
     from pipeline.formats import open_points, sniff
 

@@ -6,6 +6,9 @@ from __future__ import annotations
 import argparse
 import json
 
+from pipeline.errors import ParameterError
+from service.db.errors import NotFoundError
+
 NAME = "blocks"
 HELP = ("Create or list orchard blocks (the same piece of orchard scanned again and again) and list a block's captures, "
         "in the service's data folder.")
@@ -34,8 +37,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
-    from pipeline.errors import ParameterError
-    from service.db.errors import NotFoundError
+    # here, not at the top: `orchard --help` imports every command module (see service.commands)
     from service.db.jobstore import Store
     from service.settings import build_settings
 

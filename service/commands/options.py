@@ -24,6 +24,7 @@ def metavar(kind, description: str | None) -> str:
 
 
 def add_pipeline_options(parser: argparse.ArgumentParser) -> None:
+    # here, not at the top: `orchard --help` imports every command module (see service.commands)
     from pipeline.params import GROUPS  # imported here: `orchard --help` needs no models
 
     for group, model in GROUPS.items():
@@ -46,6 +47,7 @@ def add_pipeline_options(parser: argparse.ArgumentParser) -> None:
 
 def pipeline_params_from_args(args: argparse.Namespace, base: PipelineParams | None = None) -> PipelineParams:
     """Build validated parameters from the options given (unset options keep defaults)."""
+    # here, not at the top: `orchard --help` imports every command module (see service.commands)
     from pipeline.params import PipelineParams
 
     data = (base or PipelineParams()).model_dump()
@@ -68,6 +70,7 @@ def add_tiling_options(group, names: tuple[str, ...], notes: dict[str, str] | No
     """An option ``--<field>`` for each named field of `TilingParams` (default None: the
     command applies the model's, or a setting's, at its edge). Its help is the field's
     description, then the command's ``notes`` on it, else the model's default."""
+    # here, not at the top: `orchard --help` imports every command module (see service.commands)
     from pipeline.jobparams import TilingParams
 
     notes = notes or {}
@@ -88,6 +91,7 @@ def add_tiling_options(group, names: tuple[str, ...], notes: dict[str, str] | No
 
 def tiling_default(name: str):
     """The model's default of a `TilingParams` field."""
+    # here, not at the top: `orchard --help` imports every command module (see service.commands)
     from pipeline.jobparams import TilingParams
 
     return TilingParams.model_fields[name].default

@@ -7,6 +7,7 @@ import json
 from datetime import datetime
 from pathlib import Path
 
+from pipeline.errors import ParameterError
 from service.commands.options import add_pipeline_options, add_tiling_options, pipeline_params_from_args
 
 NAME = "schedules"
@@ -27,6 +28,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     c = sub.add_parser("create", help="register an inbox folder and a schedule for a tenant")
     c.add_argument("--tenant", required=True, help="tenant (farm) name; created if new")
     c.add_argument("--inbox", required=True, help="folder where the mobile captures (LAS/LAZ) land")
+    # here, not at the top: `orchard --help` imports every command module (see service.commands)
     from service.schedules import DEFAULT_CRON
 
     c.add_argument("--orchard-block", default=None, metavar="NAME",
@@ -63,7 +65,7 @@ def _when(ts: float | None) -> str:
 
 
 def run(args: argparse.Namespace) -> int:
-    from pipeline.errors import ParameterError
+    # here, not at the top: `orchard --help` imports every command module (see service.commands)
     from service.db.jobstore import Store
     from service.jobrequests import schedule_changes, stored_tiling
     from service.schedules import check_inbox_use, next_run_time, run_schedule, validate_cron, validate_inbox
@@ -122,6 +124,7 @@ def run(args: argparse.Namespace) -> int:
 
 def _print_list(rows: list[dict], tenants: dict, store, settings, *, as_json: bool) -> None:
     """The schedules, each followed by its captures' fates (one line each)."""
+    # here, not at the top: `orchard --help` imports every command module (see service.commands)
     from service.capturefates import capture_fates, fate_line
 
     fates = [capture_fates(store, settings, s) for s in rows]
@@ -142,7 +145,7 @@ def _update_body(args: argparse.Namespace, sched: dict) -> dict:
     """The changes ``orchard schedules update``'s options ask for (``--buffer`` alone
     changes a tiled schedule's buffer; a pipeline option changes that parameter and
     leaves the schedule's others as they are)."""
-    from pipeline.errors import ParameterError
+    # here, not at the top: `orchard --help` imports every command module (see service.commands)
     from pipeline.params import PipelineParams
 
     body: dict = {}

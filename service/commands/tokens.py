@@ -7,6 +7,9 @@ import re
 import sys
 import time
 
+from pipeline.errors import ParameterError
+from service.db.errors import NotFoundError
+
 NAME = "tokens"
 HELP = "Create, list or revoke API tokens; a token belongs to a tenant (farm)."
 
@@ -44,15 +47,15 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 
 
 def _when(ts: float | None, never: str) -> str:
+    # here, not at the top: `orchard --help` imports every command module (see service.commands)
     from service.auth import iso_time
 
     return iso_time(ts) or never
 
 
 def run(args: argparse.Namespace) -> int:
-    from pipeline.errors import ParameterError
+    # here, not at the top: `orchard --help` imports every command module (see service.commands)
     from service.auth import hash_token, issue_token
-    from service.db.errors import NotFoundError
     from service.db.jobstore import Store
     from service.settings import build_settings
 

@@ -31,6 +31,7 @@ def _as_las(tmp_path: Path, size_bytes: int, filename: str | None, crs_epsg: int
             columns: str | None) -> tuple[Path, int]:
     """The LAS/LAZ file of an upload and its size: the upload itself, or the LAZ its
     points were converted to (the upload is then removed)."""
+    # here: laspy and pyproj (~0.6 s) are no cost of `orchard schedules --help`, which imports service.schedules
     from pipeline.formats import sniff
     from pipeline.formats.convert import to_laz
 
@@ -87,6 +88,7 @@ def accept_block(
     and only then recorded. The temporary file is always gone afterwards. Returns
     ``(block, created)``; the same file twice gives the same block.
     """
+    # here: laspy and pyproj (~0.6 s) are no cost of `orchard schedules --help`, which imports service.schedules
     from pipeline.blockinfo import read_info
 
     tmp_path = Path(tmp_path)

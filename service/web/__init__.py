@@ -16,7 +16,7 @@ def install(app: FastAPI) -> None:
     """Add the browser pages and their static files to the service's app."""
     from fastapi.staticfiles import StaticFiles
 
-    from service.web import render, routes
+    from service.web import render, routes  # here: `service.web.render` serves `orchard process`, which has no FastAPI
 
     app.include_router(routes.router)
     app.mount(render.STATIC_URL, StaticFiles(directory=render.STATIC_DIR), name="static")
