@@ -151,7 +151,7 @@ def measure(sizes: list[int], repeats: int, work: Path) -> list[dict]:
     from playwright.sync_api import sync_playwright
 
     from service.reports.mapdata import to_json
-    from service.web.render import report_page
+    from service.pages import report_page
 
     data_dir = work / "data"
     token, jobs, datas = prepare(data_dir, sizes)

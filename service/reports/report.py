@@ -1,6 +1,6 @@
 """The per-tree report a grower reads: one HTML page with a map of the block and a table.
 
-The page is interactive (`service.web.render.report_page`: pan, zoom, colour by a
+The page is interactive (`service.pages.report_page`: pan, zoom, colour by a
 metric, search, a sortable table; for a capture of an orchard block, growth colours, the
 changes since the previous capture and each tree's history, read from ``history.parquet``
 beside ``trees.parquet``) and self-contained; the static map and table below
@@ -34,7 +34,7 @@ from pipeline.jobparams import REPORT_POINTS
 from service.reports import mapdata
 from service.reports.mapimage import render_map_png
 from service.reports.sampling import sample_points
-from service.web import render
+from service import pages
 
 #: the outputs the report links to, beside it (relative links)
 DOWNLOADS = ("trees.csv", "trees.parquet", "points.parquet", "rows.parquet", "gaps.parquet", "history.parquet", "map.png")
@@ -189,7 +189,7 @@ def write_report(
 ) -> Path:
     """Write ``report.html`` and ``map.png`` into ``out_dir``; returns the HTML path.
 
-    The report is the job page of the service (`service.web.render.report_page`) with its
+    The report is the job page of the service (`service.pages.report_page`) with its
     scripts, styles and data inlined: it opens from disk, offline. Where scripts do not
     run it shows the static map (``map.png``, embedded) and table. ``warning`` is shown
     above everything else (a partial result). ``sample``: the points :func:`sample_points`
@@ -214,7 +214,7 @@ def write_report(
     # the files beside the report: relative links work from disk and under /v1/jobs/<id>/
     # (trees.csv is written beside it by `orchard process`, and on its first download by the service)
     downloads = {name: name for name in DOWNLOADS if name == "trees.csv" or (out / name).is_file()}
-    page = render.report_page(title=title, data_json=mapdata.to_json(data), facts=summary or {}, downloads=downloads,
+    page = pages.report_page(title=title, data_json=mapdata.to_json(data), facts=summary or {}, downloads=downloads,
                               warning=warning, fallback=_body_of(static))
     path = out / "report.html"
     atomic_write(path, page.encode("utf-8"))

@@ -17,7 +17,7 @@ import json
 import re
 from pathlib import Path
 
-STATIC_DIR = Path(__file__).parent / "static"
+STATIC_DIR = Path(__file__).parent / "web" / "static"  # served by service.web, inlined in a report
 STATIC_URL = "/static"
 FAVICON = f"{STATIC_URL}/favicon.svg"
 
