@@ -7,7 +7,7 @@ from __future__ import annotations
 import inspect
 
 import pytest
-from service_fixtures import write_las
+from service_fixtures import client_of, make_token, write_las
 
 from service.db.errors import NotFoundError
 from service.db.jobstore import Store
@@ -114,7 +114,17 @@ def test_the_unscoped_lookups_are_named_so(two_farms):
 # -- at the API: another farm's ids are 404, also for a finished job's report and map ------------
 
 
-def test_another_farms_finished_job_orchard_block_and_webhook_are_404(api, client_a, client_b, tmp_path):
+@pytest.fixture()
+def farms(api, api_data):
+    """Clients of two farms of their own in the shared app (other tests count farm-a's webhooks)."""
+    a, b = (client_of(api, token=make_token(api_data, name)) for name in ("tenancy-a", "tenancy-b"))
+    yield a, b
+    a.close()
+    b.close()
+
+
+def test_another_farms_finished_job_orchard_block_and_webhook_are_404(api, farms, tmp_path):
+    client_a, client_b = farms
     las = write_las(tmp_path / "a.laz", 500, seed=11)
     block = client_a.post("/v1/blocks", files={"file": ("a.laz", las.read_bytes())}).json()
     job = client_a.post("/v1/jobs", json={"block_id": block["id"]}).json()
