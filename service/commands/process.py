@@ -222,7 +222,7 @@ def _input_format(args: argparse.Namespace) -> str:
     p = Path(args.input)
     if args.rerun_tile or args.resume or not p.is_file() or p.suffix.lower() in (".las", ".laz"):
         fmt = "las"  # (a .las/.laz that is not LAS/LAZ: the LAS checks say why)
-    else:
+    else:  # (here, not at the top: `orchard --help` imports every command module, see service.commands)
         from pipeline.formats import sniff
 
         fmt = sniff(p)
