@@ -51,8 +51,8 @@ TIMED = (
     "pipeline.process:let_in pipeline.process:segment_nodes "
     "pipeline.process:analyse_nodes pipeline.process:node_wood_score pipeline.process:trunk_feet "
     "pipeline.process:trunk_circles pipeline.process:block_result workers.tasks:summarise "
-    "workers.job:merge_and_write workers.outputs:write_outputs service.report:write_report "
-    "service.report:write_trees_csv"
+    "workers.job:merge_and_write workers.outputs:write_outputs service.reports.report:write_report "
+    "service.reports.report:write_trees_csv"
 ).split()
 
 #: reported categories, in order

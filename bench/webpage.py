@@ -64,7 +64,7 @@ def synthetic_map(n: int, *, seed: int = 0) -> tuple[pa.Table, dict]:
         ring = np.c_[x[i] - origin[0] + r * np.cos(angles), y[i] - origin[1] + r * np.sin(angles)]
         outlines.append(np.round(ring, 2).ravel().tolist())
     cols = {name: table.column(name).to_numpy(zero_copy_only=False) for name in table.column_names}
-    from service.web.mapdata import _clean
+    from service.reports.mapdata import _clean
 
     rows = sorted(set(row.tolist()))
     data = {
@@ -94,18 +94,18 @@ def prepare(data_dir: Path, sizes: list[int]) -> tuple[str, dict[int, str], dict
     from service.auth import create_token
     from service.db.block_files import accept_block
     from service.db.jobstore import Store
-    from service.report import _atomic_write
-    from service.runner import job_dir
+    from service.reports.report import atomic_write
+    from service.jobfolders import job_dir
     from service.schedules import file_sha256
     from service.settings import Settings
-    from service.web.mapdata import to_json
+    from service.reports.mapdata import to_json
 
     settings = Settings(data_dir=data_dir)
     settings.blocks_dir.mkdir(parents=True, exist_ok=True)
     store = Store(settings.store_path)
     try:
         token = create_token(store, "bench")
-        tenant = store.tenant_by_name("bench")
+        tenant = store.accounts.tenant_by_name("bench")
         las_path = data_dir / "upload.las"
         header = laspy.LasHeader(point_format=6, version="1.4")
         las = laspy.LasData(header)
@@ -116,14 +116,14 @@ def prepare(data_dir: Path, sizes: list[int]) -> tuple[str, dict[int, str], dict
         jobs, datas = {}, {}
         for n in sizes:
             table, data = synthetic_map(n)
-            job = store.create_job(tenant_id=tenant["id"], block_id=block["id"], job={})
-            store.claim_next_job()
+            job = store.jobs.create(tenant_id=tenant["id"], block_id=block["id"], job={})
+            store.jobs.claim_next()
             out = job_dir(settings, job["id"])
             out.mkdir(parents=True, exist_ok=True)
             pq.write_table(table, out / "trees.parquet")
             # (newer than trees.parquet: served as is)
-            _atomic_write(out / "map.json.gz", gzip.compress(to_json(data).encode(), mtime=0))
-            store.finish_job(job["id"], "done", outcome={"n_trees": n, "n_points": 0})
+            atomic_write(out / "map.json.gz", gzip.compress(to_json(data).encode(), mtime=0))
+            store.jobs.finish(job["id"], "done", outcome={"n_trees": n, "n_points": 0})
             jobs[n], datas[n] = job["id"], data
         return token, jobs, datas
     finally:
@@ -150,8 +150,8 @@ def _timings(page) -> dict:
 def measure(sizes: list[int], repeats: int, work: Path) -> list[dict]:
     from playwright.sync_api import sync_playwright
 
-    from service.web.mapdata import to_json
-    from service.web.render import report_page
+    from service.reports.mapdata import to_json
+    from service.pages import report_page
 
     data_dir = work / "data"
     token, jobs, datas = prepare(data_dir, sizes)

@@ -3,7 +3,7 @@ the schedule clock into a FastAPI app.
 
 This module holds wiring only: the routes are in `service.api` (one module per
 resource) and `service.web` (the browser's pages), the work in `service.db`,
-`service.runner`, `service.schedules` and `service.report`. OpenAPI docs are at
+`service.runner`, `service.schedules` and `service.reports`. OpenAPI docs are at
 ``/docs``. Every ``/v1`` request needs ``Authorization: Bearer <token>``; a tenant sees
 only its own resources (anything else is 404). Errors are JSON ``{"detail": ...}``
 (see `service.errors`).
@@ -24,16 +24,18 @@ from service import tempfiles, web
 from service.api import openapi, routes_health, v1_router
 from service.api.bodies import JsonShape
 from service.api.deps import wake_runner
-from service.api.results import ensure_report
 from service.api.uploads import UPLOAD_SLACK, BodyLimit
 from service.db.jobstore import Store
 from service.errors import install_error_handlers
 from service.headers import SecurityHeaders
+from service.jobfolders import job_dir
 from service.permissions import private_dir, tighten
-from service.runner import Runner, drop_work, hold_runner_lock, job_dir, sweep_work
+from service.reports.outputs import ensure_report
+from service.runner import Runner, drop_work, hold_runner_lock, sweep_work
 from service.schedules import ScheduleClock
 from service.settings import Settings
 from service.webhooks import WebhookSender, job_event
+from workers.workstore import check_work_url
 
 log = logging.getLogger("orchard.service")
 
@@ -41,8 +43,6 @@ log = logging.getLogger("orchard.service")
 def create_app(settings: Settings) -> FastAPI:
     """The API app. Starting it (lifespan) re-queues interrupted jobs and starts the runner and the schedule clock."""
     if settings.work_dir and settings.runner:  # the runner's jobs would each fail on it
-        from workers.workstore import check_work_url
-
         try:
             check_work_url(settings.work_dir, shared=True)
         except ParameterError as exc:
@@ -68,9 +68,9 @@ def create_app(settings: Settings) -> FastAPI:
         await run_in_threadpool(tighten, settings.data_dir, skip=[settings.http_inbox_root])
         tempfiles.sweep(settings.tmp_dir)  # uploads a crash interrupted (not those of live processes)
         if runner_lock is not None:  # no other process runs jobs here: a "running" job is an orphan
-            for job_id in store.cancel_interrupted():  # asked to stop before the last shutdown
+            for job_id in store.jobs.cancel_interrupted():  # asked to stop before the last shutdown
                 drop_work(settings, job_id)
-            n = store.requeue_running(max_crashes=settings.max_crashes)
+            n = store.jobs.requeue_running(max_crashes=settings.max_crashes)
             if n:
                 log.info("re-queued %d job(s) interrupted by the last shutdown", n)
             await run_in_threadpool(sweep_work, settings, store)  # failed just now, or a crash cut the deletion short

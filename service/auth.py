@@ -19,8 +19,8 @@ import time
 from datetime import datetime, timezone
 from typing import Any
 
+from pipeline.errors import OrchardError
 from service.db.jobstore import Store
-from service.errors import UnauthorizedError
 
 TOKEN_PREFIX = "orch_"
 _PREFIX_CHARS = string.ascii_lowercase + string.digits
@@ -31,6 +31,10 @@ TOUCH_INTERVAL_S = 60.0
 #: another data folder than the server's (named in the server's log at start)
 UNKNOWN_TOKEN = ("unknown or revoked token; create one with `orchard tokens create --tenant NAME --data-dir DIR` "
                  "on the server, DIR being the data folder the server uses (its log names it at start)")
+
+
+class UnauthorizedError(OrchardError):
+    """No bearer token, or one the store does not know (a 401 at the API)."""
 
 
 def hash_token(token: str) -> str:
@@ -47,11 +51,11 @@ def issue_token(store: Store, tenant: str, *, expires_in_s: float | None = None)
         raise ValueError("a tenant name is 1-100 printable characters")
     if expires_in_s is not None and not expires_in_s > 0:
         raise ValueError("a token's lifetime must be positive")
-    rec = store.ensure_tenant(name)
+    rec = store.accounts.ensure_tenant(name)
     prefix = TOKEN_PREFIX + "".join(secrets.choice(_PREFIX_CHARS) for _ in range(8))
     token = f"{prefix}_{secrets.token_urlsafe(32)}"
     expires_at = None if expires_in_s is None else time.time() + expires_in_s
-    token_rec = store.add_token(rec["id"], hash_token(token), prefix=prefix, expires_at=expires_at)
+    token_rec = store.accounts.add_token(rec["id"], hash_token(token), prefix=prefix, expires_at=expires_at)
     return token, {**token_rec, "tenant": rec["name"]}
 
 
@@ -76,7 +80,7 @@ def authenticate(store: Store, authorization: str | None, *, now: float | None =
     token = token.strip()
     if scheme.lower() != "bearer" or not token:
         raise UnauthorizedError("the Authorization header must be 'Bearer <token>'")
-    rec = store.token_by_hash(hash_token(token))
+    rec = store.accounts.token_by_hash(hash_token(token))
     if rec is None or rec["tenant"] is None:
         raise UnauthorizedError(UNKNOWN_TOKEN)
     now = time.time() if now is None else now
@@ -87,7 +91,7 @@ def authenticate(store: Store, authorization: str | None, *, now: float | None =
         )
     if rec["last_used_at"] is None or now - rec["last_used_at"] >= TOUCH_INTERVAL_S:
         try:
-            store.touch_token(rec["id"], now)
+            store.accounts.touch_token(rec["id"], now)
         except sqlite3.OperationalError:  # a busy or full store: the last use is a hint, the request goes on
             pass
     return rec["tenant"]

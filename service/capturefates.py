@@ -38,7 +38,7 @@ def capture_fates(store: Store, settings: Settings, schedule: dict[str, Any], *,
     error names (the API's `api_name`, the command line's `cli_name`).
     """
     now = time.time() if now is None else now
-    handled, counts = store.schedule_captures(schedule["id"], limit=limit)
+    handled, counts = store.schedules.captures(schedule["id"], limit=limit)
     recorded = {r["sha256"] for r in handled}
     current: list[dict[str, Any]] = []
     inbox = Path(schedule["inbox"])
@@ -86,10 +86,10 @@ def _unhandled(store: Store, schedule: dict[str, Any], path: Path, now: float, s
         stat = path.stat()
     except OSError:
         return None  # gone since the listing
-    sha = store.known_hash(str(path), (stat.st_size, stat.st_mtime_ns, stat.st_ctime_ns, stat.st_ino))
-    if sha is not None and (sha in recorded or store.schedule_file_seen(schedule["id"], sha)):
+    sha = store.schedules.known_hash(str(path), (stat.st_size, stat.st_mtime_ns, stat.st_ctime_ns, stat.st_ino))
+    if sha is not None and (sha in recorded or store.schedules.file_seen(schedule["id"], sha)):
         return None  # handled: listed from its record (or older than the records listed)
-    if sha is not None and store.capture_scheduled(schedule["tenant_id"], sha):
+    if sha is not None and store.schedules.capture_scheduled(schedule["tenant_id"], sha):
         return None  # the same bytes were processed by an earlier schedule of this farm
     if still_arriving(stat, now, settle_s):
         return _capture(name, "arriving", reason="still being written to; taken once it has settled")

@@ -17,7 +17,7 @@ from pipeline.errors import NoTreesError, OrchardError
 from service.commands import COMMANDS
 from service.db.errors import NotFoundError
 from service.interrupts import ctrl_c
-from service.wording import cli_words
+from service.wording import cli_words, disk_full, validation_words
 
 
 def _validation_error(exc: BaseException) -> bool:
@@ -28,8 +28,6 @@ def _validation_error(exc: BaseException) -> bool:
 
 
 def _validation_message(err) -> str:
-    from service.wording import validation_words
-
     return "invalid parameters: " + "; ".join(validation_words(err.errors()))
 
 
@@ -107,8 +105,6 @@ def main(argv: list[str] | None = None) -> int:
                 return 2
             if os.environ.get("ORCHARD_DEBUG") == "1":
                 raise
-            from service.wording import disk_full
-
             if disk_full(exc):  # the machine's trouble, said as such
                 print(f"orchard {args.command}: the disk is full ({exc}); free some space and run it again", file=sys.stderr)
                 return 1

@@ -20,15 +20,12 @@ from starlette.exceptions import HTTPException as StarletteHTTPException
 from starlette.requests import ClientDisconnect
 
 from pipeline.errors import InputError, NoTreesError, OrchardError, ParameterError
+from service.auth import UnauthorizedError
 from service.db.errors import ConflictError, NotFoundError
 from service.quotas import QueueQuotaExceeded, StorageQuotaExceeded
 from service.wording import api_errors, api_words, disk_full
 
 log = logging.getLogger("orchard.service")
-
-
-class UnauthorizedError(OrchardError):
-    """No bearer token, or one the store does not know."""
 
 
 class TooLargeError(StarletteHTTPException):

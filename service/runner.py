@@ -1,6 +1,6 @@
 """The background job runner of ``orchard serve``.
 
-One thread takes queued jobs from the store one at a time (`Store.claim_next_job`: fair
+One thread takes queued jobs from the store one at a time (`JobQueue.claim_next`: fair
 share between tenants, oldest first within one), and runs
 each with `workers.job.run_job` on a dask client it owns (an embedded `LocalCluster`,
 or the cluster at ``settings.scheduler``; created when the first job arrives). Tiles
@@ -11,7 +11,7 @@ with its outcome and timings, ``failed`` with its failure's kind and fields
 traceback of anything unexpected goes only to the log), queued again after a failure of
 the cluster, or ``cancelled``. `Runner.run_job` takes these steps one method each. A capture of an orchard block is told its previous capture when it
 starts, and its record is kept before it is done (`service.seasons`). A job left
-``running`` when the process dies is re-queued by `Store.requeue_running` at the next
+``running`` when the process dies is re-queued by `JobQueue.requeue_running` at the next
 start, as a crash (not an attempt); one during which the process has died
 ``settings.max_crashes`` times is failed there instead.
 
@@ -38,11 +38,15 @@ from pipeline.errors import ParameterError
 from pipeline.jobparams import JobParams
 from service import seasons
 from service.background import Background
+from service.db.errors import NotFoundError
 from service.db.jobstore import Store
 from service.failures import ClusterUnavailable, Outcome, classify
+from service.jobfolders import job_dir, work_dir_of
+from service.reports.outputs import job_block_name
 from service.settings import Settings
 from service.wording import failure_words
 from workers.runoptions import RunOptions
+from workers.workstore import WorkStore
 
 log = logging.getLogger("orchard.runner")
 
@@ -82,28 +86,8 @@ def hold_runner_lock(data_dir: Path) -> IO:
     return fh
 
 
-def job_block_name(job: dict, block: dict | None) -> str | None:
-    """How a job names its block to the farm: the inbox file its schedule took it from,
-    else the block's file name (its first upload's); None if neither is known."""
-    return job.get("capture") or (block or {}).get("filename")
-
-
-def job_dir(settings: Settings, job_id: str) -> Path:
-    """Where a job's results live: ``data_dir/jobs/<job id>/``."""
-    return settings.jobs_dir / job_id
-
-
-def work_dir_of(settings: Settings, job_id: str) -> str:
-    """A job's work store (its tiles): ``<work_dir>/<job id>``, or ``<job dir>/_work``."""
-    if settings.work_dir:
-        return f"{settings.work_dir.rstrip('/')}/{job_id}"
-    return str(job_dir(settings, job_id) / "_work")
-
-
 def drop_work(settings: Settings, job_id: str) -> None:
     """Delete a job's work store, and its result folder if that is left empty."""
-    from workers.workstore import WorkStore
-
     out_dir = job_dir(settings, job_id)
     try:
         WorkStore(work_dir_of(settings, job_id)).remove()
@@ -115,12 +99,9 @@ def drop_work(settings: Settings, job_id: str) -> None:
 
 def sweep_work(settings: Settings, store: Store) -> list[str]:
     """Delete the work stores (tiles) left by jobs that have ended: failed at start-up
-    after too many crashes (`Store.requeue_running`), or whose deletion a crash cut
+    after too many crashes (`JobQueue.requeue_running`), or whose deletion a crash cut
     short. Only jobs this store knows as done, failed or cancelled are touched (a shared
     work folder may hold other services' jobs). Returns the ids swept."""
-    from service.db.errors import NotFoundError
-    from workers.workstore import WorkStore
-
     if settings.work_dir:
         try:
             candidates = WorkStore(settings.work_dir).entries()
@@ -132,7 +113,7 @@ def sweep_work(settings: Settings, store: Store) -> list[str]:
     swept = []
     for job_id in candidates:
         try:
-            state = store.get_job(None, job_id)["state"]
+            state = store.jobs.get_any_tenant(job_id)["state"]
         except NotFoundError:
             continue
         if state in ("done", "failed", "cancelled"):
@@ -222,7 +203,7 @@ class Runner(Background):
         client = self._client
         if client is None:
             return None
-        from workers.cluster import cluster_workers
+        from workers.cluster import cluster_workers  # here: dask (~1 s) loads with the first cluster
 
         try:
             return cluster_workers(client)
@@ -236,7 +217,7 @@ class Runner(Background):
     def _doctor(self) -> None:
         """Every `DOCTOR_POLL_S`: replace the embedded cluster's lost workers (without a
         restart of the service), and say on the running job when it waits for workers."""
-        from workers.cluster import heal_cluster
+        from workers.cluster import heal_cluster  # here: dask (~1 s) loads with the first cluster
 
         noted: tuple[str, str | None] | None = None  # (job id, its error before the note)
         while not self._stopping.wait(DOCTOR_POLL_S):
@@ -246,12 +227,12 @@ class Runner(Background):
                     heal_cluster(client, self.settings.n_workers)
                 counts, job_id = self.cluster_workers(), self._current
                 if noted is not None and (noted[0] != job_id or not counts or counts[0] > 0):
-                    self.store.set_job_note(noted[0], noted[1])
+                    self.store.jobs.set_note(noted[0], noted[1])
                     noted = None
                 if noted is None and job_id is not None and counts is not None and counts[0] == 0:
-                    before = self.store.get_job(None, job_id).get("error")
+                    before = self.store.jobs.get_any_tenant(job_id).get("error")
                     want = f" (it should have {counts[1]}; new ones are starting)" if counts[1] else ""
-                    self.store.set_job_note(job_id, f"waiting for dask workers: the cluster has none{want}")
+                    self.store.jobs.set_note(job_id, f"waiting for dask workers: the cluster has none{want}")
                     noted = (job_id, before)
             except Exception as exc:  # noqa: BLE001 - look again next time
                 log.warning("runner: cannot look after the dask cluster: %s", exc)
@@ -259,7 +240,7 @@ class Runner(Background):
     # -- the thread ------------------------------------------------------------------
 
     def _default_client(self):
-        from workers.cluster import make_client
+        from workers.cluster import make_client  # here: dask (~1 s) loads with the first cluster
 
         return make_client(
             self.settings.scheduler,
@@ -298,7 +279,7 @@ class Runner(Background):
             return
         try:
             if self.settings.scheduler is None:
-                from workers.cluster import close_client
+                from workers.cluster import close_client  # here: dask (~1 s) loads with the first cluster
 
                 close_client(client)  # the embedded LocalCluster goes too
             else:
@@ -311,7 +292,7 @@ class Runner(Background):
         try:
             while not self._stopping.is_set():
                 try:
-                    job = self.store.claim_next_job()
+                    job = self.store.jobs.claim_next()
                 except Exception as exc:  # noqa: BLE001 - e.g. the store briefly locked; try again
                     log.warning("runner: cannot read the queue: %s", exc)
                     job = None
@@ -324,7 +305,7 @@ class Runner(Background):
                 except Exception as exc:  # e.g. the store failed while recording (logged); keep running
                     log.error("runner: job %s could not be recorded", job["id"], exc_info=exc)
                     try:  # not left "running" (and waited on) for good
-                        left = self.store.finish_job(job["id"], "failed", error_kind="unrecorded",
+                        left = self.store.jobs.finish(job["id"], "failed", error_kind="unrecorded",
                                                      error_fields={"exception": type(exc).__name__})
                     except Exception as again:  # noqa: BLE001 - the store itself is failing; the next start re-queues it
                         log.error("runner: job %s stays running: %s", job["id"], again)
@@ -345,7 +326,7 @@ class Runner(Background):
         cancel, watching = self._watch(job["id"])
         block = None
         try:
-            block = self.store.get_block(None, job["block_id"])
+            block = self.store.blocks.get(job["tenant_id"], job["block_id"])
             return self._run_to_done(job, block, cancel)
         except BaseException as exc:  # noqa: BLE001 - every outcome is recorded
             return self._record_failure(job, block, exc, cancel)
@@ -360,7 +341,7 @@ class Runner(Background):
         cancel, watching = threading.Event(), threading.Event()
         with self._lock:
             self._current, self._cancel = job_id, cancel
-        if self.store.cancel_requested(job_id):
+        if self.store.jobs.cancel_requested(job_id):
             cancel.set()
         threading.Thread(target=self._watch_cancel, args=(job_id, cancel, watching), daemon=True,
                          name=f"orchard-cancel-{job_id[:8]}").start()
@@ -372,7 +353,7 @@ class Runner(Background):
         while the cluster waited for workers)."""
         while not done.wait(CANCEL_POLL_S) and not cancel.is_set():
             try:
-                if self.store.cancel_requested(job_id):
+                if self.store.jobs.cancel_requested(job_id):
                     cancel.set()
             except Exception as exc:  # noqa: BLE001 - the store briefly locked: look again
                 log.debug("job %s: cannot read its cancel flag: %s", job_id, exc)
@@ -383,11 +364,11 @@ class Runner(Background):
         last_check = [0.0]
 
         def progress(done: int, total: int) -> None:
-            self.store.set_progress(job_id, int(done), int(total))
+            self.store.jobs.set_progress(job_id, int(done), int(total))
             now = time.monotonic()
             if now - last_check[0] > 0.5:
                 last_check[0] = now
-                if self.store.cancel_requested(job_id):
+                if self.store.jobs.cancel_requested(job_id):
                     cancel.set()
 
         return progress
@@ -427,9 +408,9 @@ class Runner(Background):
         timings = dict(record.get("timings") or {})
         timings.setdefault("total", round(time.perf_counter() - t0, 3))
         drop_work(self.settings, job["id"])  # tiles of a finished job are not needed again
-        if self.store.capture_of_job(job["id"]) is not None:
-            self.store.set_capture_record(job["id"], seasons.capture_record(job_dir(self.settings, job["id"])))
-        done = self.store.finish_job(job["id"], "done", outcome=record, timings=timings)
+        if self.store.orchard_blocks.capture_of_job(job["tenant_id"], job["id"]) is not None:
+            self.store.orchard_blocks.set_capture_record(job["id"], seasons.capture_record(job_dir(self.settings, job["id"])))
+        done = self.store.jobs.finish(job["id"], "done", outcome=record, timings=timings)
         if self._after_done is not None:
             try:
                 self._after_done(done)
@@ -458,17 +439,17 @@ class Runner(Background):
         drop_work(self.settings, job["id"])  # the service never resumes a job: its tiles are not needed
         if outcome.retry:
             return self._after_cluster_failure(job, Outcome(outcome.kind, fields))
-        return self.store.finish_job(job["id"], "failed", error_kind=outcome.kind, error_fields=fields)
+        return self.store.jobs.finish(job["id"], "failed", error_kind=outcome.kind, error_fields=fields)
 
     def _record_cancel(self, job: dict[str, Any]) -> dict[str, Any]:
         """A cancelled job: cancelled for good, or, when the service is stopping and no
         one asked for the cancel, put back in the queue for its next start."""
-        if self._stopping.is_set() and not self.store.cancel_requested(job["id"]):
+        if self._stopping.is_set() and not self.store.jobs.cancel_requested(job["id"]):
             log.info("job %s interrupted by shutdown; it runs again at the next start", job["id"])
-            self.store.release_job(job["id"])
-            return self.store.get_job(None, job["id"])
+            self.store.jobs.release(job["id"])
+            return self.store.jobs.get(job["tenant_id"], job["id"])
         drop_work(self.settings, job["id"])  # the service never resumes a cancelled job
-        return self.store.finish_job(job["id"], "cancelled", error_kind="cancelled", error_fields={})
+        return self.store.jobs.finish(job["id"], "cancelled", error_kind="cancelled", error_fields={})
 
     def _after_cluster_failure(self, job: dict[str, Any], outcome: Outcome) -> dict[str, Any]:
         """A job the cluster (or the server) failed: queued again after ``retry_delay_s``
@@ -476,7 +457,7 @@ class Runner(Background):
         attempts = int(job.get("attempts") or 1)
         fields = {**outcome.fields, "attempt": attempts}
         if attempts > self.settings.job_retries:
-            return self.store.finish_job(job["id"], "failed", error_kind=outcome.kind, error_fields=fields)
+            return self.store.jobs.finish(job["id"], "failed", error_kind=outcome.kind, error_fields=fields)
         fields.update(attempts=self.settings.job_retries + 1, retry_at=time.time() + self.settings.retry_delay_s)
         log.warning("job %s: %s", job["id"], failure_words(outcome.kind, fields))
-        return self.store.retry_job(job["id"], error_kind=outcome.kind, error_fields=fields, retry_at=fields["retry_at"])
+        return self.store.jobs.retry(job["id"], error_kind=outcome.kind, error_fields=fields, retry_at=fields["retry_at"])

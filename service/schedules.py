@@ -197,7 +197,7 @@ def check_inbox_use(inbox: Path, *, settings: Settings, store: Store, tenant_id:
     own = [data / "blocks", data / "jobs", data / "tmp"]
     if inbox == data or any(inbox == d or d in inbox.parents for d in own):
         raise ParameterError(f"inbox {str(inbox)!r} is a folder of the service's own data; captures must land elsewhere")
-    for sched in store.list_schedules():
+    for sched in store.schedules.list_any_tenant():
         if Path(sched["inbox"]) != inbox:
             continue
         if sched["tenant_id"] != tenant_id:
@@ -354,7 +354,7 @@ def run_schedule(
     if result["rejected"]:  # told to the farm's webhooks (a scan by hand's rejections too)
         rejected_event(store, tenant_id=tenant_id, schedule_id=result["schedule_id"], rejected=result["rejected"])
     if result["waiting"]:
-        store.bring_schedule_forward(schedule["id"], settled_at(settings, now))
+        store.schedules.bring_forward(schedule["id"], settled_at(settings, now))
     return result
 
 
@@ -379,7 +379,7 @@ def still_arriving(stat: os.stat_result, now: float, settle_s: float) -> bool:
 def _current(store: Store, schedule_id: str, *, by_clock: bool) -> dict[str, Any] | None:
     """The schedule as stored now; None if it was deleted, or paused during a clock's scan."""
     try:
-        schedule = store.get_schedule(None, schedule_id)
+        schedule = store.schedules.get_any_tenant(schedule_id)
     except NotFoundError:
         return None
     return None if by_clock and schedule["paused"] else schedule
@@ -400,24 +400,24 @@ def _take_capture(
         if still_arriving(stat, now, settings.capture_settle_s):  # still being copied in
             return "waiting", None
         state = _file_state(stat)
-        sha = store.known_hash(str(path), state)
+        sha = store.schedules.known_hash(str(path), state)
         if sha is None:
             sha = file_sha256(path)
             if _file_state(path.stat()) == state:  # not written to while it was read
-                store.remember_hash(str(path), state, sha)
+                store.schedules.remember_hash(str(path), state, sha)
     except OSError as exc:
         return "rejected", f"cannot read: {exc.strerror}"
     # taken before by this schedule, or by an earlier one of this farm (deleted to change its cron)
-    if store.schedule_file_seen(schedule["id"], sha) or store.capture_scheduled(schedule["tenant_id"], sha):
+    if store.schedules.file_seen(schedule["id"], sha) or store.schedules.capture_scheduled(schedule["tenant_id"], sha):
         return "skipped", None
     error = _header_problem(path, name)  # before the copy: a 2 GB file refused after it held the scan for seconds
     if error is not None:
-        store.record_schedule_file(schedule_id=schedule["id"], sha256=sha, path=str(path), job_id=None, error=error)
+        store.schedules.record_file(schedule_id=schedule["id"], sha256=sha, path=str(path), job_id=None, error=error)
         return "rejected", error
     tmp = process_dir(settings.tmp_dir) / f"inbox-{uuid.uuid4().hex}.part"
     try:
-        if store.block_by_sha(schedule["tenant_id"], sha) is None:  # the same bytes uploaded before take no more room
-            store.check_storage(schedule["tenant_id"], stat.st_size)
+        if store.blocks.by_sha(schedule["tenant_id"], sha) is None:  # the same bytes uploaded before take no more room
+            store.quotas.check_storage(schedule["tenant_id"], stat.st_size)
         copied_sha, size = _copy_hashed(path, tmp)
         if copied_sha != sha or path.stat().st_mtime != stat.st_mtime:  # written to meanwhile
             return "waiting", None
@@ -433,7 +433,7 @@ def _take_capture(
     except QuotaExceeded as exc:  # not recorded: taken at a scan after the quota allows it
         return "rejected", f"{exc}; the capture is tried again at the next scan"
     except InputError as exc:
-        store.record_schedule_file(schedule_id=schedule["id"], sha256=sha, path=str(path), job_id=None, error=str(exc))
+        store.schedules.record_file(schedule_id=schedule["id"], sha256=sha, path=str(path), job_id=None, error=str(exc))
         return "rejected", str(exc)
     finally:
         tmp.unlink(missing_ok=True)
@@ -441,7 +441,7 @@ def _take_capture(
     if schedule is None:
         return "stopped", None
     try:
-        job = store.create_scheduled_job(schedule=schedule, block_id=block["id"], sha256=sha, path=str(path), capture=name)
+        job = store.schedules.create_job(schedule=schedule, block_id=block["id"], sha256=sha, path=str(path), capture=name)
     except QuotaExceeded as exc:
         return "rejected", f"{exc}; the capture is tried again at the next scan"
     if job is None:  # another scan of this inbox (another process) took it first
@@ -453,6 +453,7 @@ def _header_problem(path: Path, name: str) -> str | None:
     """Why an inbox file is no usable point file, read from its signature and header
     where it lies (the header and VLRs only); None if it looks usable. The copy taken
     afterwards is checked again, as any upload."""
+    # here: laspy and pyproj (~0.6 s) are no cost of `orchard schedules --help`, which imports service.schedules
     from pipeline.blockinfo import read_info
     from pipeline.formats import open_points, sniff
 
@@ -495,14 +496,14 @@ class ScheduleClock(Background):
         """Run the schedules that are due; return the earliest next run time (POSIX seconds)."""
         now = time.time() if now is None else now
         earliest = now + self.settings.schedule_poll_s
-        for sched in self.store.list_schedules():
+        for sched in self.store.schedules.list_any_tenant():
             if sched["paused"]:
                 continue
             nxt = sched["next_run_at"]
             try:
                 if nxt is None:
                     nxt = next_run_time(sched["cron"], now).timestamp()
-                    self.store.set_schedule_times(sched["id"], cron=sched["cron"], last_run_at=None, next_run_at=nxt)
+                    self.store.schedules.set_times(sched["id"], cron=sched["cron"], last_run_at=None, next_run_at=nxt)
                 elif nxt <= now:
                     again = None
                     try:
@@ -519,7 +520,7 @@ class ScheduleClock(Background):
                     nxt = next_run_time(sched["cron"], now).timestamp()
                     if again is not None:
                         nxt = min(nxt, again)
-                    self.store.set_schedule_times(sched["id"], cron=sched["cron"], last_run_at=now, next_run_at=nxt)
+                    self.store.schedules.set_times(sched["id"], cron=sched["cron"], last_run_at=now, next_run_at=nxt)
             except ParameterError as exc:
                 log.warning("schedule %s has an invalid cron expression: %s", sched["id"], exc)
                 continue

@@ -16,9 +16,13 @@ import logging
 from pathlib import Path
 from typing import Any
 
+import pyarrow.parquet as pq
+
 from service.db.jobstore import Store
 from service.db.orchard_blocks import arrival_date
+from service.jobfolders import job_dir
 from service.settings import Settings
+from workers.jobspec import JobSpec
 
 log = logging.getLogger("orchard.runner")
 
@@ -33,12 +37,10 @@ def capture_job_fields(store: Store, settings: Settings, job: dict[str, Any]) ->
     ``previous`` (the output folder of the block's latest capture done before this one,
     or None for its first), ``capture_id``, ``captured_at`` (the date its sender gave)
     and ``captured_at_fallback`` (the day its file arrived)."""
-    from service.runner import job_dir
-
-    capture = store.capture_of_job(job["id"])
+    capture = store.orchard_blocks.capture_of_job(job["tenant_id"], job["id"])
     if capture is None:
         return {}
-    before = store.latest_done_capture(None, capture["orchard_block_id"], before_seq=capture["seq"])
+    before = store.orchard_blocks.latest_done_capture(capture["tenant_id"], capture["orchard_block_id"], before_seq=capture["seq"])
     return {
         "previous": str(job_dir(settings, before["job_id"]).absolute()) if before is not None else None,
         "capture_id": capture["id"],
@@ -50,8 +52,6 @@ def capture_job_fields(store: Store, settings: Settings, job: dict[str, Any]) ->
 def spec_fields(fields: dict[str, Any]) -> dict[str, Any]:
     """``fields`` that `JobSpec` has; the others are left out with a warning (a worker
     package from before captures: the capture is processed as a job of its own)."""
-    from workers.jobspec import JobSpec
-
     known = {f.name for f in dataclasses.fields(JobSpec)}
     missing = sorted(set(fields) - known)
     if missing:
@@ -68,7 +68,7 @@ def capture_record(out_dir: Path) -> dict[str, Any] | None:
     The one call of `workers.seasons.capture_record`; before that module exists, the
     record is read from ``trees.parquet``'s schema metadata, where it writes it.
     """
-    try:
+    try:  # here: workers.seasons costs the server's start ~0.5 s, and may be missing from an older worker package
         from workers.seasons import capture_record as read_record
     except ImportError:
         read_record = _metadata_record
@@ -80,8 +80,6 @@ def capture_record(out_dir: Path) -> dict[str, Any] | None:
 
 
 def _metadata_record(out_dir: Path) -> dict[str, Any] | None:
-    import pyarrow.parquet as pq
-
     path = Path(out_dir) / "trees.parquet"
     if not path.is_file():
         return None

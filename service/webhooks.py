@@ -102,7 +102,7 @@ def job_event(store: Store, job: dict[str, Any]) -> int:
         "partial": outcome.get("partial"), "finished_at": job.get("finished_at"),
         "links": {"self": f"/v1/jobs/{job['id']}", "page": f"/jobs/{job['id']}"},
     }}
-    return store.queue_webhook_event(tenant_id=job["tenant_id"], schedule_id=job.get("schedule_id"), event=event, body=body)
+    return store.webhooks.queue_event(tenant_id=job["tenant_id"], schedule_id=job.get("schedule_id"), event=event, body=body)
 
 
 def rejected_event(store: Store, *, tenant_id: str, schedule_id: str, rejected: list[dict[str, str]]) -> int:
@@ -110,7 +110,7 @@ def rejected_event(store: Store, *, tenant_id: str, schedule_id: str, rejected: 
     n = 0
     for r in rejected:
         body = {"schedule_id": schedule_id, "capture": {"file": r["file"], "reason": r["error"]}}
-        n += store.queue_webhook_event(tenant_id=tenant_id, schedule_id=schedule_id, event="capture.rejected", body=body)
+        n += store.webhooks.queue_event(tenant_id=tenant_id, schedule_id=schedule_id, event="capture.rejected", body=body)
     return n
 
 
@@ -150,7 +150,7 @@ class WebhookSender(Background):
 
     def deliver_due(self, now: float | None = None) -> int:
         """One attempt at every delivery that is due; returns how many were tried."""
-        due = self.store.due_deliveries_any_tenant(time.time() if now is None else now)
+        due = self.store.webhooks.due_deliveries_any_tenant(time.time() if now is None else now)
         for d in due:
             if self._stopping.is_set():
                 break
@@ -173,7 +173,7 @@ class WebhookSender(Background):
             error = f"answered {status}"
         at = time.time()
         wait = None if ok else backoff_s(int(delivery["attempts"]) + 1, self.settings)
-        self.store.record_delivery_attempt(delivery["id"], at=at, status_code=status, error=None if ok else error,
+        self.store.webhooks.record_attempt(delivery["id"], at=at, status_code=status, error=None if ok else error,
                                            delivered=ok, retry_at=None if wait is None else at + wait)
         if not ok:
             log.info("webhook delivery %s (%s): %s%s", delivery["id"], delivery["event"], error,
@@ -185,9 +185,9 @@ class WebhookSender(Background):
             try:
                 if time.time() - pruned_at > 3600:
                     pruned_at = time.time()
-                    self.store.prune_deliveries_any_tenant(pruned_at - KEEP_DELIVERIES_S)
+                    self.store.webhooks.prune_deliveries_any_tenant(pruned_at - KEEP_DELIVERIES_S)
                 self.deliver_due()
-                nxt = self.store.next_delivery_at_any_tenant()
+                nxt = self.store.webhooks.next_delivery_at_any_tenant()
             except Exception as exc:  # noqa: BLE001 - keep the sender alive (e.g. store briefly locked)
                 log.warning("webhook sender: %s", exc)
                 nxt = None

@@ -65,7 +65,7 @@ def _split(path: str | Sequence) -> tuple[str, ...]:
 
 
 def _groups() -> set[str]:
-    from pipeline.params import GROUPS
+    from pipeline.params import GROUPS  # here: pydantic (~0.3 s) would be a cost of every `orchard --help`
 
     return set(GROUPS)
 

@@ -131,7 +131,7 @@ def _run_single(spec, info, t0, progress, cancel, xyz=None) -> JobOutcome:
 
 def report_sample(xyz: np.ndarray, tree_id: np.ndarray, origin, max_points: int = REPORT_POINTS) -> dict:
     """Every :func:`pipeline.mapsample.sample_stride`-th point of a whole block: the
-    points ``service.report.sample_points`` takes from the block's file and
+    points ``service.reports.sampling.sample_points`` takes from the block's file and
     ``points.parquet``, from memory.
 
     Parameters

@@ -11,9 +11,9 @@ from typing import Annotated
 from fastapi import Depends, FastAPI, Request
 from fastapi.security import HTTPAuthorizationCredentials, HTTPBearer
 
+from service import sessions
 from service.db.jobstore import Store
 from service.settings import Settings
-from service.web import sessions as web_sessions
 
 
 def get_store(request: Request) -> Store:
@@ -32,7 +32,7 @@ def get_tenant(
     store: Annotated[Store, Depends(get_store)],
     _creds: Annotated[HTTPAuthorizationCredentials | None, Depends(_bearer)],
 ) -> dict:
-    return web_sessions.request_tenant(request, store)  # a bearer token, or a browser's session cookie
+    return sessions.request_tenant(request, store)  # a bearer token, or a browser's session cookie
 
 
 StoreDep = Annotated[Store, Depends(get_store)]

@@ -40,7 +40,7 @@ async def upload_block(
     except ParameterError as exc:
         raise ParameterError(f"crs: {exc.message}") from None
     declared = request.headers.get("content-length", "")  # refused before the body is read; checked again after
-    await run_in_threadpool(store.check_storage, tenant["id"], max(int(declared) - UPLOAD_SLACK if declared.isdigit() else 0, 1))
+    await run_in_threadpool(store.quotas.check_storage, tenant["id"], max(int(declared) - UPLOAD_SLACK if declared.isdigit() else 0, 1))
     part = await receive_upload(request, settings)
     block, created = await run_in_threadpool(
         accept_block,
@@ -66,9 +66,9 @@ def list_blocks(
     limit: Annotated[int, Query(ge=1, le=1000)] = 100,
     offset: Annotated[int, Query(ge=0, le=1_000_000_000)] = 0,
 ):
-    return [block_out(b) for b in store.list_blocks(tenant["id"], limit=limit, offset=offset)]
+    return [block_out(b) for b in store.blocks.list(tenant["id"], limit=limit, offset=offset)]
 
 
 @router.get("/blocks/{block_id}", response_model=Block, tags=["blocks"])
 def get_block(block_id: str, tenant: TenantDep, store: StoreDep):
-    return block_out(store.get_block(tenant["id"], block_id))
+    return block_out(store.blocks.get(tenant["id"], block_id))

@@ -17,9 +17,9 @@ router = APIRouter()
          responses={429: {"model": ErrorBody, "description": "the tenant has as many jobs queued as its quota allows"},
                     **JSON_BODY})
 def create_job(body: JobCreate, request: Request, response: Response, tenant: TenantDep, store: StoreDep):
-    block = store.get_block(tenant["id"], body.block_id)
+    block = store.blocks.get(tenant["id"], body.block_id)
     params = request_job(body.params, body.tiling and body.tiling.model_dump())
-    job = store.create_job(tenant_id=tenant["id"], block_id=block["id"], job=stored(params))
+    job = store.jobs.create(tenant_id=tenant["id"], block_id=block["id"], job=stored(params))
     wake_runner(request.app)
     response.headers["Location"] = f"/v1/jobs/{job['id']}"
     return job_out(job)
@@ -37,16 +37,16 @@ def list_jobs(
     paged: Annotated[bool, Query(description="false: the page's jobs as a bare list, as before pages (deprecated)")] = True,
 ):
     filters = {"state": state, "block_id": block_id, "schedule_id": schedule_id}
-    items = [job_out(j) for j in store.list_jobs(tenant["id"], **filters, limit=limit, offset=offset)]
+    items = [job_out(j) for j in store.jobs.list(tenant["id"], **filters, limit=limit, offset=offset)]
     if not paged:
         return items
-    return JobsPage(items=items, total=store.count_jobs(tenant["id"], **filters), limit=limit, offset=offset)
+    return JobsPage(items=items, total=store.jobs.count(tenant["id"], **filters), limit=limit, offset=offset)
 
 
 @router.get("/jobs/{job_id}", response_model=Job, tags=["jobs"])
 def get_job(job_id: str, tenant: TenantDep, store: StoreDep):
-    job = store.get_job(tenant["id"], job_id)
-    return job_out(job, capture=store.capture_of_job(job["id"]))
+    job = store.jobs.get(tenant["id"], job_id)
+    return job_out(job, capture=store.orchard_blocks.capture_of_job(tenant["id"], job["id"]))
 
 
 @router.delete(
@@ -58,7 +58,7 @@ def get_job(job_id: str, tenant: TenantDep, store: StoreDep):
     responses={409: {"model": ErrorBody, "description": "the job has already finished"}},
 )
 def cancel_job(job_id: str, request: Request, tenant: TenantDep, store: StoreDep):
-    job = store.request_cancel(tenant["id"], job_id)
+    job = store.jobs.request_cancel(tenant["id"], job_id)
     runner = request.app.state.runner
     if runner is not None:
         runner.cancel(job_id)

@@ -35,8 +35,8 @@ from service.api.uploads import UPLOAD_BODY, UPLOAD_SLACK, receive_upload
 from service.db.block_files import accept_block
 from service.db.errors import NotFoundError
 from service.db.jobstore import Store
+from service.jobfolders import job_dir
 from service.jobrequests import request_job, stored
-from service.runner import job_dir
 from service.seasons import HISTORY
 from service.settings import Settings
 
@@ -48,19 +48,19 @@ _QUEUE_FULL = {429: {"model": ErrorBody, "description": "the tenant has as many 
              summary="Create a named orchard block", responses={409: {"model": ErrorBody, "description": "the name is taken"},
                                                                  **JSON_BODY})
 def create_orchard_block(body: OrchardBlockCreate, response: Response, tenant: TenantDep, store: StoreDep):
-    rec = store.create_orchard_block(tenant["id"], body.name)
+    rec = store.orchard_blocks.create(tenant["id"], body.name)
     response.headers["Location"] = f"/v1/orchard-blocks/{rec['id']}"
     return orchard_block_out(rec)
 
 
 @router.get("/orchard-blocks", response_model=list[OrchardBlock], tags=["orchard blocks"])
 def list_orchard_blocks(tenant: TenantDep, store: StoreDep):
-    return [orchard_block_out(r) for r in store.list_orchard_blocks(tenant["id"])]
+    return [orchard_block_out(r) for r in store.orchard_blocks.list(tenant["id"])]
 
 
 @router.get("/orchard-blocks/{orchard_block_id}", response_model=OrchardBlock, tags=["orchard blocks"])
 def get_orchard_block(orchard_block_id: str, tenant: TenantDep, store: StoreDep):
-    return orchard_block_out(store.get_orchard_block(tenant["id"], orchard_block_id))
+    return orchard_block_out(store.orchard_blocks.get(tenant["id"], orchard_block_id))
 
 
 def _capture_json_schema() -> dict:
@@ -102,10 +102,10 @@ async def add_capture(
                                                           "multipart; used when the file has no date of its own")] = None,
 ):
     # the block first: a file for another farm's block is refused before it is received
-    await run_in_threadpool(store.get_orchard_block, tenant["id"], orchard_block_id)
+    await run_in_threadpool(store.orchard_blocks.get, tenant["id"], orchard_block_id)
     if request.headers.get("content-type", "").lower().startswith("multipart/"):
         declared = request.headers.get("content-length", "")
-        await run_in_threadpool(store.check_storage, tenant["id"],
+        await run_in_threadpool(store.quotas.check_storage, tenant["id"],
                                 max(int(declared) - UPLOAD_SLACK if declared.isdigit() else 0, 1))
         part = await receive_upload(request, settings)
         block, _ = await run_in_threadpool(
@@ -128,7 +128,7 @@ async def add_capture(
 
 def _queue_capture(store: Store, tenant: dict, orchard_block_id: str, body: OrchardCaptureCreate) -> dict:
     job = request_job(body.params, body.tiling and body.tiling.model_dump())
-    return store.create_capture(tenant_id=tenant["id"], orchard_block_id=orchard_block_id, block_id=body.block_id,
+    return store.orchard_blocks.create_capture(tenant_id=tenant["id"], orchard_block_id=orchard_block_id, block_id=body.block_id,
                                 job=stored(job),
                                 captured_at=body.captured_at.isoformat() if body.captured_at else None)
 
@@ -136,12 +136,12 @@ def _queue_capture(store: Store, tenant: dict, orchard_block_id: str, body: Orch
 @router.get("/orchard-blocks/{orchard_block_id}/captures", response_model=list[OrchardCapture], tags=["orchard blocks"],
             summary="A block's captures in arrival order (the order they are processed in)")
 def list_captures(orchard_block_id: str, tenant: TenantDep, store: StoreDep):
-    return [orchard_capture_out(c) for c in store.list_captures(tenant["id"], orchard_block_id)]
+    return [orchard_capture_out(c) for c in store.orchard_blocks.list_captures(tenant["id"], orchard_block_id)]
 
 
 @router.get("/orchard-blocks/{orchard_block_id}/captures/{capture_id}", response_model=OrchardCapture, tags=["orchard blocks"])
 def get_capture(orchard_block_id: str, capture_id: str, tenant: TenantDep, store: StoreDep):
-    rec = store.get_capture(tenant["id"], capture_id)
+    rec = store.orchard_blocks.get_capture(tenant["id"], capture_id)
     if rec["orchard_block_id"] != orchard_block_id:
         raise NotFoundError(f"orchard block {orchard_block_id!r} has no capture {capture_id!r}")
     return orchard_capture_out(rec)
@@ -151,8 +151,8 @@ def block_history(store: Store, settings: Settings, tenant: dict, orchard_block_
     """The block's ``history.parquet``: that of its latest processed capture, which holds
     every capture before it (a failed capture leaves it as it was). NotFoundError while
     there is none."""
-    store.get_orchard_block(tenant["id"], orchard_block_id)
-    latest = store.latest_done_capture(tenant["id"], orchard_block_id)
+    store.orchard_blocks.get(tenant["id"], orchard_block_id)
+    latest = store.orchard_blocks.latest_done_capture(tenant["id"], orchard_block_id)
     if latest is None:
         raise NotFoundError(f"orchard block {orchard_block_id} has no processed capture yet, so no history; "
                             f"GET /v1/orchard-blocks/{orchard_block_id}/captures shows where its captures are")

@@ -9,13 +9,13 @@ from typing import Annotated
 from fastapi import APIRouter, Query, Request
 from fastapi.responses import FileResponse, HTMLResponse
 
-from service import report as reports
-from service.headers import report_policy
 from service.api.deps import SettingsDep, StoreDep, TenantDep
 from service.api.downloads import DownloadResponse
-from service.api.results import ensure_report, job_output, require_output
 from service.api.schemas import UNFINISHED, TreesPage
-from service.runner import job_dir
+from service.headers import report_policy
+from service.jobfolders import job_dir
+from service.reports import report as reports
+from service.reports.outputs import ensure_report, job_output, require_output
 
 router = APIRouter()
 

@@ -30,7 +30,7 @@ def create_schedule(body: ScheduleCreate, request: Request, response: Response, 
     inbox = validate_inbox(body.inbox, root=tenant_inbox_root(settings, tenant["name"]), root_label="this tenant's inbox folder")
     check_inbox_use(inbox, settings=settings, store=store, tenant_id=tenant["id"])
     job = request_job(body.params, body.tiling and body.tiling.model_dump())  # as a job would: refused now, not every night
-    rec = store.create_schedule(
+    rec = store.schedules.create(
         tenant_id=tenant["id"],
         inbox=str(inbox),
         cron=cron,
@@ -47,19 +47,19 @@ def create_schedule(body: ScheduleCreate, request: Request, response: Response, 
 
 @router.get("/schedules", response_model=list[Schedule], tags=["schedules"])
 def list_schedules(tenant: TenantDep, store: StoreDep):
-    return [schedule_out(s) for s in store.list_schedules(tenant["id"])]
+    return [schedule_out(s) for s in store.schedules.list(tenant["id"])]
 
 
 @router.get("/schedules/{schedule_id}", response_model=Schedule, tags=["schedules"])
 def get_schedule(schedule_id: str, tenant: TenantDep, store: StoreDep, settings: SettingsDep):
-    sched = store.get_schedule(tenant["id"], schedule_id)
+    sched = store.schedules.get(tenant["id"], schedule_id)
     return schedule_out(sched, capture_fates(store, settings, sched))
 
 
 @router.patch("/schedules/{schedule_id}", response_model=Schedule, tags=["schedules"], summary="Pause, resume or change a schedule",
           responses=JSON_BODY)
 def update_schedule(schedule_id: str, body: ScheduleUpdate, request: Request, tenant: TenantDep, store: StoreDep):
-    rec = store.update_schedule(tenant["id"], schedule_id, lambda current: schedule_changes(current, body.model_dump(exclude_unset=True)))
+    rec = store.schedules.update(tenant["id"], schedule_id, lambda current: schedule_changes(current, body.model_dump(exclude_unset=True)))
     clock = request.app.state.clock
     if clock is not None:
         clock.wake()
@@ -68,13 +68,13 @@ def update_schedule(schedule_id: str, body: ScheduleUpdate, request: Request, te
 
 @router.delete("/schedules/{schedule_id}", status_code=204, tags=["schedules"], response_class=Response)
 def delete_schedule(schedule_id: str, tenant: TenantDep, store: StoreDep):
-    store.delete_schedule(tenant["id"], schedule_id)
+    store.schedules.delete(tenant["id"], schedule_id)
     return Response(status_code=204)
 
 
 @router.post("/schedules/{schedule_id}/run", response_model=ScheduleRun, tags=["schedules"], summary="Scan the inbox now")
 def run_schedule_now(schedule_id: str, request: Request, tenant: TenantDep, store: StoreDep, settings: SettingsDep):
-    sched = store.get_schedule(tenant["id"], schedule_id)
+    sched = store.schedules.get(tenant["id"], schedule_id)
     result = run_schedule(store, settings, sched)
     if result["jobs"]:
         wake_runner(request.app)

@@ -82,7 +82,7 @@ def _delivery_out(rec: dict) -> Delivery:
              summary="Be called when a job finishes or fails, or a capture is rejected", responses=JSON_BODY)
 def create_webhook(body: WebhookCreate, response: Response, tenant: TenantDep, store: StoreDep, settings: SettingsDep):
     url = check_url(body.url, settings)
-    rec = store.create_webhook(tenant_id=tenant["id"], url=url, secret=body.secret, schedule_id=body.schedule_id,
+    rec = store.webhooks.create(tenant_id=tenant["id"], url=url, secret=body.secret, schedule_id=body.schedule_id,
                                events=list(dict.fromkeys(body.events)))
     response.headers["Location"] = f"/v1/webhooks/{rec['id']}"
     return _webhook_out(rec)
@@ -90,17 +90,17 @@ def create_webhook(body: WebhookCreate, response: Response, tenant: TenantDep, s
 
 @router.get("/webhooks", response_model=list[Webhook], tags=["webhooks"])
 def list_webhooks(tenant: TenantDep, store: StoreDep):
-    return [_webhook_out(w) for w in store.list_webhooks(tenant["id"])]
+    return [_webhook_out(w) for w in store.webhooks.list(tenant["id"])]
 
 
 @router.get("/webhooks/{webhook_id}", response_model=Webhook, tags=["webhooks"])
 def get_webhook(webhook_id: str, tenant: TenantDep, store: StoreDep):
-    return _webhook_out(store.get_webhook(tenant["id"], webhook_id))
+    return _webhook_out(store.webhooks.get(tenant["id"], webhook_id))
 
 
 @router.delete("/webhooks/{webhook_id}", status_code=204, tags=["webhooks"], response_class=Response)
 def delete_webhook(webhook_id: str, tenant: TenantDep, store: StoreDep):
-    store.delete_webhook(tenant["id"], webhook_id)
+    store.webhooks.delete(tenant["id"], webhook_id)
     return Response(status_code=204)
 
 
@@ -108,4 +108,4 @@ def delete_webhook(webhook_id: str, tenant: TenantDep, store: StoreDep):
             summary="A webhook's calls, newest first, with every attempt's status code")
 def list_deliveries(webhook_id: str, tenant: TenantDep, store: StoreDep,
                     limit: int = Query(100, ge=1, le=1000, description="most deliveries listed")):
-    return [_delivery_out(d) for d in store.list_deliveries(tenant["id"], webhook_id, limit=limit)]
+    return [_delivery_out(d) for d in store.webhooks.deliveries(tenant["id"], webhook_id, limit=limit)]

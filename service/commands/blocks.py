@@ -6,6 +6,9 @@ from __future__ import annotations
 import argparse
 import json
 
+from pipeline.errors import ParameterError
+from service.db.errors import NotFoundError
+
 NAME = "blocks"
 HELP = ("Create or list orchard blocks (the same piece of orchard scanned again and again) and list a block's captures, "
         "in the service's data folder.")
@@ -34,8 +37,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
-    from pipeline.errors import ParameterError
-    from service.db.errors import NotFoundError
+    # here, not at the top: `orchard --help` imports every command module (see service.commands)
     from service.db.jobstore import Store
     from service.settings import build_settings
 
@@ -46,12 +48,14 @@ def run(args: argparse.Namespace) -> int:
             name = " ".join(args.name.split())
             if not name or len(name) > 200:
                 raise ParameterError(f"a block's name is 1 to 200 characters, not {args.name!r}")
-            tenant = store.ensure_tenant(args.tenant)
-            print(store.create_orchard_block(tenant["id"], name)["id"])
+            tenant = store.accounts.ensure_tenant(args.tenant)
+            print(store.orchard_blocks.create(tenant["id"], name)["id"])
         elif args.action == "list":
-            tenants = {t["id"]: t["name"] for t in store.list_tenants()}
-            tenant_id = store.tenant_by_name(args.tenant)["id"] if args.tenant else None
-            rows = store.list_orchard_blocks(tenant_id)
+            tenants = {t["id"]: t["name"] for t in store.accounts.list_tenants()}
+            if args.tenant:
+                rows = store.orchard_blocks.list(store.accounts.tenant_by_name(args.tenant)["id"])
+            else:
+                rows = store.orchard_blocks.list_any_tenant()
             if args.json:
                 print(json.dumps([{**r, "tenant": tenants.get(r["tenant_id"])} for r in rows], indent=2))
             else:
@@ -60,12 +64,12 @@ def run(args: argparse.Namespace) -> int:
                     print(f"{r['id']}\t{tenants.get(r['tenant_id'])}\t{r['name']}\t{r['n_captures']}\t{r['n_done']}\t"
                           f"{r['last_captured_at'] or '-'}")
         elif args.action == "captures":
-            tenant = store.tenant_by_name(args.tenant)
+            tenant = store.accounts.tenant_by_name(args.tenant)
             try:
-                block = store.orchard_block_by_name(tenant["id"], args.name)
+                block = store.orchard_blocks.by_name(tenant["id"], args.name)
             except NotFoundError:
-                block = store.get_orchard_block(tenant["id"], args.name)  # an id: else its own "no orchard block"
-            rows = store.list_captures(tenant["id"], block["id"])
+                block = store.orchard_blocks.get(tenant["id"], args.name)  # an id: else its own "no orchard block"
+            rows = store.orchard_blocks.list_captures(tenant["id"], block["id"])
             if args.json:
                 print(json.dumps(rows, indent=2))
             else:

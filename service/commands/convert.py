@@ -35,6 +35,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
+    # here, not at the top: `orchard --help` imports every command module (see service.commands)
     from pipeline.formats.convert import parse_crs_option, to_laz
     from pipeline.lasheader import check_file
 

@@ -20,6 +20,9 @@ import threading
 import time
 from pathlib import Path
 
+from pipeline.errors import OrchardError
+from service.commands.options import tiling_default
+
 NAME = "demo"
 HELP = "Run the service locally on a generated orchard block and print the per-tree table."
 
@@ -40,8 +43,6 @@ _TABLE = [
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
-    from service.commands.options import tiling_default
-
     parser.add_argument("--data-dir", default=None, help="service data folder (default: a new temporary folder, kept afterwards)")
     parser.add_argument("--rows", type=int, default=2, help="tree rows of the generated orchard (default 2)")
     parser.add_argument("--trees-per-row", type=int, default=5, help="trees in each row (default 5)")
@@ -111,10 +112,10 @@ class _Progress:
 
 
 def run(args: argparse.Namespace) -> int:
+    # here, not at the top: `orchard --help` imports every command module (see service.commands)
     import httpx
     import uvicorn
 
-    from pipeline.errors import OrchardError
     from simulator.simparams import SimulationParams
     from simulator.simulate import simulate_orchard
     from simulator.truth import write_simulation

@@ -72,6 +72,7 @@ def format_table(metrics: dict) -> str:
 def run(args: argparse.Namespace) -> int:
     if not (args.match_distance > 0 and math.isfinite(args.match_distance)):
         raise ParameterError(f"--match-distance must be a positive number of metres, not {args.match_distance}")
+    # here, not at the top: `orchard --help` imports every command module (see service.commands)
     from simulator.scoring.result import evaluate_result  # imported here: `orchard --help` needs no scipy
 
     metrics = evaluate_result(args.truth, args.result, match_distance=args.match_distance)

@@ -24,6 +24,7 @@ def metavar(kind, description: str | None) -> str:
 
 
 def add_pipeline_options(parser: argparse.ArgumentParser) -> None:
+    # here, not at the top: `orchard --help` imports every command module (see service.commands)
     from pipeline.params import GROUPS  # imported here: `orchard --help` needs no models
 
     for group, model in GROUPS.items():
@@ -46,6 +47,7 @@ def add_pipeline_options(parser: argparse.ArgumentParser) -> None:
 
 def pipeline_params_from_args(args: argparse.Namespace, base: PipelineParams | None = None) -> PipelineParams:
     """Build validated parameters from the options given (unset options keep defaults)."""
+    # here, not at the top: `orchard --help` imports every command module (see service.commands)
     from pipeline.params import PipelineParams
 
     data = (base or PipelineParams()).model_dump()
@@ -67,6 +69,7 @@ def _origin(text: str) -> tuple[float, float]:
 def _tiling_field(name: str):
     """The field ``name`` of `TilingParams` (what a job computes), else of `RunOptions`
     (how it runs): the command line sets both with one group of options."""
+    # here, not at the top: `orchard --help` imports every command module (see service.commands)
     from pipeline.jobparams import TilingParams
     from workers.runoptions import RunOptions
 

@@ -6,11 +6,14 @@ import argparse
 import math
 import os
 import sys
+import tempfile
 import time
+from datetime import datetime, timezone
 from functools import partial
 from pathlib import Path
 
 from pipeline.errors import ParameterError
+from service.commands.convert import add_input_options
 from service.commands.options import add_pipeline_options, add_tiling_options, pipeline_params_from_args, tiling_default
 
 NAME = "process"
@@ -25,6 +28,7 @@ HELP = (
 
 
 def _settings_default(name: str):
+    # here, not at the top: `orchard --help` imports every command module (see service.commands)
     from service.settings import Settings
 
     return Settings.model_fields[name].default
@@ -59,7 +63,6 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     c.add_argument("--captured-on", dest="captured_at", default=None, metavar="YYYY-MM-DD",
                    help="the capture's date when the file's header has none (default: the file's modification day)")
     c.add_argument("--capture-id", default=None, metavar="ID", help="the capture's id in history.parquet (default: INPUT's file stem)")
-    from service.commands.convert import add_input_options
 
     add_input_options(parser.add_argument_group("inputs other than LAS/LAZ"))
     add_pipeline_options(parser)
@@ -131,6 +134,7 @@ def _check_tiled_options(args: argparse.Namespace, *, tiled: bool) -> None:
 def _tiling(args: argparse.Namespace):
     """The tiling options as the job's `TilingParams`: ``--tile-size 0`` is one piece
     whatever the block's size."""
+    # here, not at the top: `orchard --help` imports every command module (see service.commands)
     from pipeline.jobparams import TilingParams
 
     given = {k: getattr(args, k) for k in ("buffer", "grid_origin") if getattr(args, k) is not None}
@@ -161,6 +165,7 @@ def _check_same_job(args: argparse.Namespace) -> None:
     """ParameterError if INPUT, the pipeline options or --labelled-laz are not those the
     job in ``work`` was started with (--rerun-tile and --resume go on with that job: they
     were ignored without a word)."""
+    # here, not at the top: `orchard --help` imports every command module (see service.commands)
     from workers.jobspec import stored_job
     from workers.workstore import JOB_KEY, WorkStore
 
@@ -193,8 +198,7 @@ def run(args: argparse.Namespace) -> int:
     fmt = _input_format(args)
     if fmt == "las":
         return _run(args)
-    import tempfile
-
+    # here, not at the top: `orchard --help` imports every command module (see service.commands)
     from pipeline.formats.convert import parse_crs_option, to_laz
 
     crs = parse_crs_option(args.crs)
@@ -220,8 +224,6 @@ def run(args: argparse.Namespace) -> int:
 
 def _file_day(path: str) -> str:
     """The day a file was last written (UTC, ISO): a capture's day when nothing better says it."""
-    from datetime import datetime, timezone
-
     return datetime.fromtimestamp(os.path.getmtime(path), tz=timezone.utc).date().isoformat()
 
 
@@ -231,7 +233,7 @@ def _input_format(args: argparse.Namespace) -> str:
     p = Path(args.input)
     if args.rerun_tile or args.resume or not p.is_file() or p.suffix.lower() in (".las", ".laz"):
         fmt = "las"  # (a .las/.laz that is not LAS/LAZ: the LAS checks say why)
-    else:
+    else:  # (here, not at the top: `orchard --help` imports every command module, see service.commands)
         from pipeline.formats import sniff
 
         fmt = sniff(p)
@@ -378,6 +380,7 @@ def _budget_tiles(spec, count=None):
     """``spec`` with the tiles its memory budget needs (:func:`workers.jobspec.auto_tiled`),
     said on stderr when there are any, and the block's points when it stays whole and
     they were read here (:func:`workers.jobspec.budgeted`; ``count`` None)."""
+    # here, not at the top: `orchard --help` imports every command module (see service.commands)
     from pipeline.budget import BudgetError
     from workers.jobspec import auto_tiled, budgeted
 
@@ -403,7 +406,8 @@ def _budget_tiles(spec, count=None):
 def _write_views(outcome, args) -> None:
     """``trees.csv`` and ``report.html`` beside the Parquet files: a spreadsheet and a page
     that open from disk."""
-    from service.report import write_report, write_trees_csv
+    # here, not at the top: `orchard --help` imports every command module (see service.commands)
+    from service.reports.report import write_report, write_trees_csv
 
     trees, points = outcome.outputs.get("trees"), outcome.outputs.get("points")
     if not trees:
@@ -426,6 +430,7 @@ def _report_capture(outcome) -> None:
     """One line on stderr for a capture registered onto its previous capture."""
     if not outcome.outputs.get("trees"):
         return
+    # here, not at the top: `orchard --help` imports every command module (see service.commands)
     from workers.seasons import capture_record
 
     record = capture_record(Path(outcome.outputs["trees"]).parent)
@@ -439,7 +444,8 @@ def _report_capture(outcome) -> None:
 
 
 def _report(outcome, args) -> int:
-    import pyarrow.parquet as pq  # here, not at the top: `orchard --help` stays fast
+    # here, not at the top: `orchard --help` imports every command module (see service.commands)
+    import pyarrow.parquet as pq
 
     from service.commands.printout import print_summary, print_trees
 

@@ -7,6 +7,7 @@ import json
 from datetime import datetime
 from pathlib import Path
 
+from pipeline.errors import ParameterError
 from service.commands.options import add_pipeline_options, add_tiling_options, pipeline_params_from_args
 
 NAME = "schedules"
@@ -27,6 +28,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     c = sub.add_parser("create", help="register an inbox folder and a schedule for a tenant")
     c.add_argument("--tenant", required=True, help="tenant (farm) name; created if new")
     c.add_argument("--inbox", required=True, help="folder where the mobile captures (LAS/LAZ) land")
+    # here, not at the top: `orchard --help` imports every command module (see service.commands)
     from service.schedules import DEFAULT_CRON
 
     c.add_argument("--orchard-block", default=None, metavar="NAME",
@@ -63,7 +65,7 @@ def _when(ts: float | None) -> str:
 
 
 def run(args: argparse.Namespace) -> int:
-    from pipeline.errors import ParameterError
+    # here, not at the top: `orchard --help` imports every command module (see service.commands)
     from service.db.jobstore import Store
     from service.jobrequests import request_job, schedule_changes, stored
     from service.schedules import check_inbox_use, next_run_time, run_schedule, validate_cron, validate_inbox
@@ -73,9 +75,11 @@ def run(args: argparse.Namespace) -> int:
     store = Store(settings.store_path)
     try:
         if args.action == "list":
-            tenants = {t["id"]: t["name"] for t in store.list_tenants()}
-            tenant_id = store.tenant_by_name(args.tenant)["id"] if args.tenant else None
-            rows = store.list_schedules(tenant_id)
+            tenants = {t["id"]: t["name"] for t in store.accounts.list_tenants()}
+            if args.tenant:
+                rows = store.schedules.list(store.accounts.tenant_by_name(args.tenant)["id"])
+            else:
+                rows = store.schedules.list_any_tenant()
             _print_list(rows, tenants, store, settings, as_json=args.json)
         elif args.action == "create":
             cron = validate_cron(args.cron)
@@ -85,10 +89,10 @@ def run(args: argparse.Namespace) -> int:
                 raise ParameterError("--buffer needs --tile-size")
             tiling = None if args.tile_size is None else {"tile_size": args.tile_size, "buffer": args.buffer}
             job = request_job(params, tiling)  # as a job would: refused now, not every night
-            tenant = store.ensure_tenant(args.tenant)
+            tenant = store.accounts.ensure_tenant(args.tenant)
             check_inbox_use(inbox, settings=settings, store=store, tenant_id=tenant["id"])
-            block_id = store.orchard_block_by_name(tenant["id"], args.orchard_block)["id"] if args.orchard_block else None
-            rec = store.create_schedule(
+            block_id = store.orchard_blocks.by_name(tenant["id"], args.orchard_block)["id"] if args.orchard_block else None
+            rec = store.schedules.create(
                 tenant_id=tenant["id"],
                 inbox=str(inbox),
                 cron=cron,
@@ -98,18 +102,18 @@ def run(args: argparse.Namespace) -> int:
             )
             print(rec["id"])
         elif args.action in ("update", "pause", "resume"):
-            sched = store.get_schedule(None, args.schedule_id)
+            sched = store.schedules.get_any_tenant(args.schedule_id)
             given = _update_body(args, sched) if args.action == "update" else {"paused": args.action == "pause"}
-            rec = store.update_schedule(None, sched["id"], lambda current: schedule_changes(current, given))
+            rec = store.schedules.update_any_tenant(sched["id"], lambda current: schedule_changes(current, given))
             state = "paused" if rec["paused"] else f"next run {_when(rec['next_run_at'])}"
             print(f"{rec['id']}\t{rec['cron']}\t{state}")
         elif args.action == "run":
-            sched = store.get_schedule(None, args.schedule_id)
+            sched = store.schedules.get_any_tenant(args.schedule_id)
             res = run_schedule(store, settings, sched)
             print(json.dumps(res, indent=2))
         elif args.action == "delete":
-            sched = store.get_schedule(None, args.schedule_id)
-            store.delete_schedule(sched["tenant_id"], sched["id"])
+            sched = store.schedules.get_any_tenant(args.schedule_id)
+            store.schedules.delete(sched["tenant_id"], sched["id"])
             print("deleted")
     finally:
         store.close()
@@ -118,6 +122,7 @@ def run(args: argparse.Namespace) -> int:
 
 def _print_list(rows: list[dict], tenants: dict, store, settings, *, as_json: bool) -> None:
     """The schedules, each followed by its captures' fates (one line each)."""
+    # here, not at the top: `orchard --help` imports every command module (see service.commands)
     from service.capturefates import capture_fates, fate_line
     from service.wording import cli_name
 
@@ -139,7 +144,7 @@ def _update_body(args: argparse.Namespace, sched: dict) -> dict:
     """The changes ``orchard schedules update``'s options ask for (``--buffer`` alone
     changes a tiled schedule's buffer; a pipeline option changes that parameter and
     leaves the schedule's others as they are)."""
-    from pipeline.errors import ParameterError
+    # here, not at the top: `orchard --help` imports every command module (see service.commands)
     from pipeline.params import PipelineParams
     from service.jobrequests import request_tiling
 

@@ -7,15 +7,18 @@ import contextlib
 import errno
 import logging
 import os
+import resource
 import socket
+
+from pipeline.errors import ParameterError
+from service.commands.options import tiling_default
+from service.permissions import UMASK
 
 NAME = "serve"
 HELP = "Run the HTTP service (API under /v1, docs at /docs) with its job runner and overnight schedules."
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
-    from service.commands.options import tiling_default
-
     parser.add_argument("--host", default=None, help="address to bind (default 127.0.0.1; env ORCHARD_HOST)")
     parser.add_argument("--port", type=int, default=None, help="port to bind (default 8000; env ORCHARD_PORT)")
     parser.add_argument("--data-dir", default=None, help="job store, uploads and results (env ORCHARD_DATA_DIR)")
@@ -36,7 +39,6 @@ def bind(host: str, port: int) -> socket.socket:
     """The listening socket of the server, bound before the app starts, so that an
     address in use is said as such (`ParameterError`: exit 2, as a second runner on a
     data folder) and not as an app that failed to start."""
-    from pipeline.errors import ParameterError
 
     family = socket.AF_INET6 if ":" in host else socket.AF_INET
     # IPPROTO_TCP, not 0: asyncio sets TCP_NODELAY only on sockets that say so, and without
@@ -67,8 +69,6 @@ def connection_cap(wanted: int) -> int:
     """``wanted`` open connections, or fewer if the process's file-handle limit (raised to
     its hard limit first) would not leave `FD_RESERVE` for the rest: past that limit
     ``accept()`` fails, and asyncio stops accepting anyone for a second each time."""
-    import resource
-
     soft, hard = resource.getrlimit(resource.RLIMIT_NOFILE)
     if hard == resource.RLIM_INFINITY or hard > soft:
         with contextlib.suppress(ValueError, OSError):
@@ -78,6 +78,7 @@ def connection_cap(wanted: int) -> int:
 
 
 def run(args: argparse.Namespace) -> int:
+    # here, not at the top: `orchard --help` imports every command module (see service.commands)
     import uvicorn
 
     from service.app import create_app
@@ -98,7 +99,6 @@ def run(args: argparse.Namespace) -> int:
     logs.configure(args.log_level, log_file=settings.log_file, max_mb=settings.log_max_mb, backups=settings.log_backups)
     if args.log_level != "debug":
         logging.getLogger("distributed").setLevel(logging.WARNING)  # the cluster's own chatter
-    from service.permissions import UMASK
 
     os.umask(UMASK)  # what the service and its local workers write is the service user's alone
     sock = bind(settings.host, settings.port)

@@ -24,6 +24,7 @@ if typing.TYPE_CHECKING:
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
+    # here, not at the top: `orchard --help` imports every command module (see service.commands)
     from simulator.simparams import SimulationParams  # imported here: `orchard --help` needs no numpy
 
     parser.add_argument("--out", required=True, metavar="BLOCK.laz", help="output point cloud (.laz compressed, .las plain)")
@@ -46,6 +47,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 
 def params_from_args(args: argparse.Namespace) -> SimulationParams:
     """Validated parameters from the options given (unset options keep their defaults)."""
+    # here, not at the top: `orchard --help` imports every command module (see service.commands)
     from simulator.simparams import SimulationParams
 
     given = {k[3:]: v for k, v in vars(args).items() if k.startswith("s__") and v is not None}
@@ -55,6 +57,7 @@ def params_from_args(args: argparse.Namespace) -> SimulationParams:
 def _check_crs(epsg: int) -> None:
     """ParameterError unless ``epsg`` names a projected CRS in metres (the simulator's
     coordinates are metres east and north)."""
+    # here, not at the top: `orchard --help` imports every command module (see service.commands)
     import pyproj
 
     try:
@@ -80,6 +83,7 @@ def run(args: argparse.Namespace) -> int:
         raise InputError(f"--out {args.out}: the file name must end in .las or .laz")
     if os.path.abspath(args.out) == os.path.abspath(args.truth):
         raise InputError("--out and --truth must be different files")
+    # here, not at the top: `orchard --help` imports every command module (see service.commands)
     from simulator.truth import write_simulation
 
     summary = write_simulation(params, args.out, args.truth)

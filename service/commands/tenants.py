@@ -4,6 +4,8 @@ from __future__ import annotations
 
 import argparse
 
+from service.quotas import GB, gigabytes
+
 NAME = "tenants"
 HELP = "List tenants (farms) with what they store and queue, or set a tenant's quotas."
 
@@ -48,8 +50,6 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 
 
 def _row(name: str, quota: dict) -> str:
-    from service.quotas import gigabytes
-
     storage = gigabytes(quota["used_storage_bytes"]) + " of " + (
         "unlimited" if quota["storage_bytes"] is None else gigabytes(quota["storage_bytes"]))
     queued = f"{quota['used_queued_jobs']} of " + ("unlimited" if quota["queued_jobs"] is None else str(quota["queued_jobs"]))
@@ -57,24 +57,24 @@ def _row(name: str, quota: dict) -> str:
 
 
 def run(args: argparse.Namespace) -> int:
+    # here, not at the top: `orchard --help` imports every command module (see service.commands)
     from service.db.jobstore import Store
-    from service.quotas import GB
     from service.settings import build_settings
 
     settings = build_settings(data_dir=args.data_dir)
     store = Store(settings.store_path)
     try:
         if args.action == "list":
-            for t in store.list_tenants():
-                print(_row(t["name"], store.quota(t["id"])))
+            for t in store.accounts.list_tenants():
+                print(_row(t["name"], store.quotas.get(t["id"])))
         else:
-            tenant = store.tenant_by_name(args.name)
+            tenant = store.accounts.tenant_by_name(args.name)
             limits = {}
             if "storage_gb" in args:
                 limits["storage_bytes"] = None if args.storage_gb is None else round(args.storage_gb * GB)
             if "max_queued" in args:
                 limits["queued_jobs"] = args.max_queued
-            print(_row(tenant["name"], store.set_quota(tenant["id"], **limits) if limits else store.quota(tenant["id"])))
+            print(_row(tenant["name"], store.quotas.set_limits(tenant["id"], **limits) if limits else store.quotas.get(tenant["id"])))
     finally:
         store.close()
     return 0

@@ -7,6 +7,9 @@ import re
 import sys
 import time
 
+from pipeline.errors import ParameterError
+from service.db.errors import NotFoundError
+
 NAME = "tokens"
 HELP = "Create, list or revoke API tokens; a token belongs to a tenant (farm)."
 
@@ -44,15 +47,15 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 
 
 def _when(ts: float | None, never: str) -> str:
+    # here, not at the top: `orchard --help` imports every command module (see service.commands)
     from service.auth import iso_time
 
     return iso_time(ts) or never
 
 
 def run(args: argparse.Namespace) -> int:
-    from pipeline.errors import ParameterError
+    # here, not at the top: `orchard --help` imports every command module (see service.commands)
     from service.auth import hash_token, issue_token
-    from service.db.errors import NotFoundError
     from service.db.jobstore import Store
     from service.settings import build_settings
 
@@ -71,17 +74,20 @@ def run(args: argparse.Namespace) -> int:
                 file=sys.stderr,
             )
         elif args.action == "list":
-            tenant_id = store.tenant_by_name(args.tenant)["id"] if args.tenant else None
+            if args.tenant:
+                tokens = store.accounts.list_tokens(store.accounts.tenant_by_name(args.tenant)["id"])
+            else:
+                tokens = store.accounts.list_tokens_any_tenant()
             now = time.time()
             print("tenant\tid\tprefix\tcreated\tlast used\texpires")
-            for t in store.list_tokens(tenant_id):
+            for t in tokens:
                 print("\t".join((
                     t["tenant"], t["id"], t["prefix"] or "(made before prefixes)", _when(t["created_at"], "-"),
                     _when(t["last_used_at"], "never"),
                     _when(t["expires_at"], "never") + (" (expired)" if t["expires_at"] and t["expires_at"] <= now else ""),
                 )))
         elif args.action == "revoke":
-            if not (store.revoke_token_id(args.token) or store.revoke_token(hash_token(args.token))):
+            if not (store.accounts.revoke_token_id(args.token) or store.accounts.revoke_token(hash_token(args.token))):
                 raise NotFoundError(f"no token {args.token!r} in the data folder {settings.data_dir}; "
                                     "`orchard tokens list` shows the ids")
             print("revoked")

@@ -31,6 +31,7 @@ def _as_las(tmp_path: Path, size_bytes: int, filename: str | None, crs_epsg: int
             columns: str | None) -> tuple[Path, int]:
     """The LAS/LAZ file of an upload and its size: the upload itself, or the LAZ its
     points were converted to (the upload is then removed)."""
+    # here: laspy and pyproj (~0.6 s) are no cost of `orchard schedules --help`, which imports service.schedules
     from pipeline.formats import sniff
     from pipeline.formats.convert import to_laz
 
@@ -87,17 +88,18 @@ def accept_block(
     and only then recorded. The temporary file is always gone afterwards. Returns
     ``(block, created)``; the same file twice gives the same block.
     """
+    # here: laspy and pyproj (~0.6 s) are no cost of `orchard schedules --help`, which imports service.schedules
     from pipeline.blockinfo import read_info
 
     tmp_path = Path(tmp_path)
     try:
-        existing = store.block_by_sha(tenant_id, sha256)
+        existing = store.blocks.by_sha(tenant_id, sha256)
         if existing is not None and Path(existing["path"]).exists():
             return existing, False
         if size_bytes == 0:
             raise InputError("the file is empty (0 bytes); upload a LAS or LAZ file")
         tmp_path, size_bytes = _as_las(tmp_path, size_bytes, filename, crs_epsg, columns)
-        store.check_storage(tenant_id, size_bytes)
+        store.quotas.check_storage(tenant_id, size_bytes)
         suffix = _sniff_suffix(tmp_path)
         typed = tmp_path.with_suffix(suffix)
         os.replace(tmp_path, typed)
@@ -117,7 +119,7 @@ def accept_block(
             os.replace(tmp_path, final)
             _fsync_dir(blocks_dir)
         try:
-            return store.insert_block(
+            return store.blocks.insert(
                 tenant_id=tenant_id,
                 sha256=sha256,
                 path=str(final),
@@ -126,7 +128,7 @@ def accept_block(
                 info=info_record(info),
             )
         except StorageQuotaExceeded:  # another upload of the tenant's took the room meanwhile
-            if landed and not store.block_file_used(str(final)):
+            if landed and not store.blocks.file_used_any_tenant(str(final)):
                 final.unlink(missing_ok=True)
             raise
     finally:

@@ -199,7 +199,7 @@ class Database:
         self._local = threading.local()
         self._all: list[sqlite3.Connection] = []
         self._all_lock = threading.Lock()
-        self._con().executescript(SCHEMA)
+        self.connection().executescript(SCHEMA)
         self._migrate()
 
     def _migrate(self) -> None:
@@ -224,9 +224,9 @@ class Database:
             return [t for t in ("jobs", "schedules")
                     if "params" in {r["name"] for r in con.execute(f"PRAGMA table_info({t})")}]
 
-        if not merged(self._con()):
+        if not merged(self.connection()):
             return
-        with self._tx() as con:
+        with self.transaction() as con:
             for table in merged(con):  # (another process may have merged them meanwhile)
                 con.execute(f"ALTER TABLE {table} ADD COLUMN job TEXT NOT NULL DEFAULT '{{}}'")
                 for row in con.execute(f"SELECT rowid, params, tiling FROM {table}").fetchall():
@@ -241,26 +241,26 @@ class Database:
         (only their hash was kept), and they never expire."""
         for column, decl in (("id", "TEXT"), ("prefix", "TEXT"), ("last_used_at", "REAL"), ("expires_at", "REAL")):
             self._add_column("tokens", column, decl)
-        if self._one("SELECT 1 AS x FROM tokens WHERE id IS NULL LIMIT 1") is not None:
-            with self._tx() as con:
+        if self.one("SELECT 1 AS x FROM tokens WHERE id IS NULL LIMIT 1") is not None:
+            with self.transaction() as con:
                 for row in con.execute("SELECT hash FROM tokens WHERE id IS NULL").fetchall():
                     con.execute("UPDATE tokens SET id = ? WHERE hash = ?", (new_token_id(), row["hash"]))
-        self._con().execute("CREATE UNIQUE INDEX IF NOT EXISTS tokens_by_id ON tokens(id)")
+        self.connection().execute("CREATE UNIQUE INDEX IF NOT EXISTS tokens_by_id ON tokens(id)")
 
     def _add_column(self, table: str, column: str, decl: str) -> None:
         def present() -> bool:
-            return any(r["name"] == column for r in self._con().execute(f"PRAGMA table_info({table})"))
+            return any(r["name"] == column for r in self.connection().execute(f"PRAGMA table_info({table})"))
 
         if not present():
             try:
-                self._con().execute(f"ALTER TABLE {table} ADD COLUMN {column} {decl}")
+                self.connection().execute(f"ALTER TABLE {table} ADD COLUMN {column} {decl}")
             except sqlite3.OperationalError:  # another process added it meanwhile
                 if not present():
                     raise
 
     # -- connections and transactions ------------------------------------------------
 
-    def _con(self) -> sqlite3.Connection:
+    def connection(self) -> sqlite3.Connection:
         """This thread's connection, opened on first use."""
         con = getattr(self._local, "con", None)
         if con is None:
@@ -276,9 +276,9 @@ class Database:
         return con
 
     @contextlib.contextmanager
-    def _tx(self) -> Iterator[sqlite3.Connection]:
+    def transaction(self) -> Iterator[sqlite3.Connection]:
         """One write transaction (``BEGIN IMMEDIATE`` … ``COMMIT``, rolled back on error)."""
-        con = self._con()
+        con = self.connection()
         con.execute("BEGIN IMMEDIATE")
         try:
             yield con
@@ -287,11 +287,13 @@ class Database:
             raise
         con.execute("COMMIT")
 
-    def _one(self, sql: str, params: tuple = ()) -> dict[str, Any] | None:
-        return record(self._con().execute(sql, params).fetchone())
+    def one(self, sql: str, params: tuple = ()) -> dict[str, Any] | None:
+        """The first row of a query as a record (None if it has none)."""
+        return record(self.connection().execute(sql, params).fetchone())
 
-    def _all_rows(self, sql: str, params: tuple = ()) -> list[dict[str, Any]]:
-        return [record(r) for r in self._con().execute(sql, params).fetchall()]
+    def rows(self, sql: str, params: tuple = ()) -> list[dict[str, Any]]:
+        """Every row of a query as records."""
+        return [record(r) for r in self.connection().execute(sql, params).fetchall()]
 
     def close(self) -> None:
         """Close every thread's connection; a later call opens new ones."""

@@ -8,9 +8,9 @@ import logging
 import time
 from typing import Any
 
-from service.db.database import new_id, record
+from service.db.database import Database, new_id, record
 from service.db.errors import ConflictError, NotFoundError
-from service.db.tenant_quotas import TenantQuotas
+from service.db.tenant_quotas import check_queue_in
 
 log = logging.getLogger("orchard.store")
 
@@ -27,34 +27,37 @@ CAPTURE_WAITS = (
 )
 
 
-class JobQueue(TenantQuotas):
+class JobQueue:
     """The ``jobs`` table (a job is queued within its tenant's queue quota)."""
 
-    def create_job(
+    def __init__(self, db: Database) -> None:
+        self.db = db
+
+    def create(
         self, *, tenant_id: str, block_id: str, job: dict, schedule_id: str | None = None
     ) -> dict[str, Any]:
         """Queue a job; ``job`` is its parameters whole (a `pipeline.jobparams.JobParams`
         as JSON), kept as given."""
         jid = new_id()
-        with self._tx() as con:
-            self._check_queue(con, tenant_id)
+        with self.db.transaction() as con:
+            check_queue_in(con, tenant_id)
             con.execute(
                 "INSERT INTO jobs (id, tenant_id, block_id, schedule_id, job, state, created_at) "
                 "VALUES (?, ?, ?, ?, ?, 'queued', ?)",
                 (jid, tenant_id, block_id, schedule_id, json.dumps(job), time.time()),
             )
-        return self.get_job(None, jid)
+        return self.get(tenant_id, jid)
 
-    def get_job(self, tenant_id: str | None, job_id: str) -> dict[str, Any]:
-        if tenant_id is None:
-            rec = self._one("SELECT * FROM jobs WHERE id = ?", (job_id,))
-        else:
-            rec = self._one("SELECT * FROM jobs WHERE id = ? AND tenant_id = ?", (job_id, tenant_id))
-        if rec is None:
-            raise NotFoundError(f"no job {job_id!r}; ", hint="{list.jobs}")
-        return rec
+    def get(self, tenant_id: str, job_id: str) -> dict[str, Any]:
+        """The tenant's job; NotFoundError if it has none of that id."""
+        return _found(self.db.one("SELECT * FROM jobs WHERE id = ? AND tenant_id = ?", (job_id, tenant_id)), job_id)
 
-    def list_jobs(
+    def get_any_tenant(self, job_id: str) -> dict[str, Any]:
+        """The job of this id whoever's it is: for the runner and the sweep of work
+        folders, which hold a job id, not a tenant."""
+        return _found(self.db.one("SELECT * FROM jobs WHERE id = ?", (job_id,)), job_id)
+
+    def list(
         self,
         tenant_id: str,
         *,
@@ -67,16 +70,16 @@ class JobQueue(TenantQuotas):
         where, params = _job_filter(tenant_id, state=state, block_id=block_id, schedule_id=schedule_id)
         # newest first: last night's jobs on the first page
         sql = f"SELECT * FROM jobs WHERE {where} ORDER BY created_at DESC, id DESC LIMIT ? OFFSET ?"
-        return self._all_rows(sql, (*params, limit, offset))
+        return self.db.rows(sql, (*params, limit, offset))
 
-    def count_jobs(
+    def count(
         self, tenant_id: str, *, state: str | None = None, block_id: str | None = None, schedule_id: str | None = None
     ) -> int:
-        """How many jobs `list_jobs` with these filters lists over all its pages."""
+        """How many jobs `list` with these filters lists over all its pages."""
         where, params = _job_filter(tenant_id, state=state, block_id=block_id, schedule_id=schedule_id)
-        return self._one(f"SELECT COUNT(*) AS n FROM jobs WHERE {where}", params)["n"]
+        return self.db.one(f"SELECT COUNT(*) AS n FROM jobs WHERE {where}", params)["n"]
 
-    def claim_next_job(self) -> dict[str, Any] | None:
+    def claim_next(self) -> dict[str, Any] | None:
         """Move the next queued job to ``running`` and return it (None if the queue is
         empty, or holds only jobs waiting for their retry time).
 
@@ -88,7 +91,7 @@ class JobQueue(TenantQuotas):
         earlier capture of that block is queued or running (`CAPTURE_WAITS`).
         """
         now = time.time()
-        with self._tx() as con:
+        with self.db.transaction() as con:
             row = con.execute(
                 "WITH ready AS (SELECT tenant_id, MIN(created_at) AS oldest FROM jobs "
                 f"  WHERE state = 'queued' AND (retry_at IS NULL OR retry_at <= :now) AND NOT {CAPTURE_WAITS} GROUP BY tenant_id), "
@@ -111,18 +114,18 @@ class JobQueue(TenantQuotas):
         return record(job)
 
     def set_progress(self, job_id: str, done: int, total: int) -> None:
-        with self._tx() as con:
+        with self.db.transaction() as con:
             con.execute(
                 "UPDATE jobs SET tiles_done = ?, tiles_total = ? WHERE id = ? AND state = 'running'", (done, total, job_id)
             )
 
-    def set_job_note(self, job_id: str, note: str | None) -> None:
+    def set_note(self, job_id: str, note: str | None) -> None:
         """Say on a running job why it is not moving (its ``error`` while it runs), or
         put back what was there (None clears it)."""
-        with self._tx() as con:
+        with self.db.transaction() as con:
             con.execute("UPDATE jobs SET error = ? WHERE id = ? AND state = 'running'", (note, job_id))
 
-    def finish_job(
+    def finish(
         self,
         job_id: str,
         state: str,
@@ -138,7 +141,7 @@ class JobQueue(TenantQuotas):
         which each edge words; ``error`` is a text that no failure's kind says."""
         if state not in FINAL_STATES:
             raise ValueError(f"not a final state: {state}")
-        with self._tx() as con:
+        with self.db.transaction() as con:
             sets = "state = ?, error = ?, error_kind = ?, error_fields = ?, finished_at = ?"
             params: list[Any] = [state, error, error_kind, _json_or_null(error_fields), time.time()]
             if outcome is not None:
@@ -150,26 +153,26 @@ class JobQueue(TenantQuotas):
             if state == "done":
                 sets += ", tiles_done = tiles_total"
             con.execute(f"UPDATE jobs SET {sets} WHERE id = ? AND state = 'running'", (*params, job_id))
-        return self.get_job(None, job_id)
+        return self.get_any_tenant(job_id)
 
-    def retry_job(
+    def retry(
         self, job_id: str, *, retry_at: float, error_kind: str | None = None, error_fields: dict | None = None,
         error: str | None = None,
     ) -> dict[str, Any]:
         """Put a running job back in the queue, to be taken again from ``retry_at`` (epoch
         seconds); ``error_kind`` and ``error_fields`` say why its last attempt failed (as
-        in `finish_job`; ``error``: a text that no kind says)."""
-        with self._tx() as con:
+        in `finish`; ``error``: a text that no kind says)."""
+        with self.db.transaction() as con:
             con.execute(
                 "UPDATE jobs SET state = 'queued', error = ?, error_kind = ?, error_fields = ?, retry_at = ?, "
                 "tiles_done = 0, tiles_total = 0 WHERE id = ? AND state = 'running'",
                 (error, error_kind, _json_or_null(error_fields), retry_at, job_id),
             )
-        return self.get_job(None, job_id)
+        return self.get_any_tenant(job_id)
 
     def request_cancel(self, tenant_id: str, job_id: str) -> dict[str, Any]:
         """Cancel a job: a queued one at once, a running one as soon as the runner sees the request."""
-        with self._tx() as con:
+        with self.db.transaction() as con:
             row = con.execute("SELECT state FROM jobs WHERE id = ? AND tenant_id = ?", (job_id, tenant_id)).fetchone()
             if row is None:
                 raise NotFoundError(f"no job {job_id!r}; ", hint="{list.jobs}")
@@ -183,16 +186,16 @@ class JobQueue(TenantQuotas):
                 con.execute("UPDATE jobs SET cancel_requested = 1 WHERE id = ?", (job_id,))
             else:
                 raise ConflictError(f"job {job_id} is already {row['state']}; only queued or running jobs can be cancelled")
-        return self.get_job(None, job_id)
+        return self.get(tenant_id, job_id)
 
     def cancel_requested(self, job_id: str) -> bool:
-        rec = self._one("SELECT cancel_requested FROM jobs WHERE id = ?", (job_id,))
+        rec = self.db.one("SELECT cancel_requested FROM jobs WHERE id = ?", (job_id,))
         return bool(rec and rec["cancel_requested"])
 
     def cancel_interrupted(self) -> list[str]:
         """Cancel the jobs left ``running`` by a dead service that had been asked to stop;
         returns their ids (their work stores are the caller's to delete)."""
-        with self._tx() as con:
+        with self.db.transaction() as con:
             ids = [r["id"] for r in con.execute("SELECT id FROM jobs WHERE state = 'running' AND cancel_requested = 1")]
             con.executemany(
                 "UPDATE jobs SET state = 'cancelled', finished_at = ?, error_kind = 'cancelled', error_fields = '{}' "
@@ -201,11 +204,11 @@ class JobQueue(TenantQuotas):
             )
         return ids
 
-    def release_job(self, job_id: str) -> None:
+    def release(self, job_id: str) -> None:
         """Put a running job back in the queue as if it had not been claimed (the service
         is stopping): a restart is no attempt of the job's, and must not use up the
         retries meant for a lost cluster."""
-        with self._tx() as con:
+        with self.db.transaction() as con:
             con.execute(
                 "UPDATE jobs SET state = 'queued', tiles_done = 0, tiles_total = 0, attempts = MAX(attempts - 1, 0) "
                 "WHERE id = ? AND state = 'running'",
@@ -224,7 +227,7 @@ class JobQueue(TenantQuotas):
         Called once at start-up, before the runner takes jobs. Returns the number re-queued.
         """
         self.cancel_interrupted()
-        with self._tx() as con:
+        with self.db.transaction() as con:
             con.execute(
                 "UPDATE jobs SET crashes = crashes + 1, attempts = MAX(attempts - 1, 0), tiles_done = 0, "
                 "tiles_total = 0 WHERE state = 'running'"
@@ -246,11 +249,15 @@ class JobQueue(TenantQuotas):
 
 def _json_or_null(value: dict | None) -> str | None:
     return None if value is None else json.dumps(value)
+def _found(rec: dict[str, Any] | None, job_id: str) -> dict[str, Any]:
+    if rec is None:
+        raise NotFoundError(f"no job {job_id!r}; ", hint="{list.jobs}")
+    return rec
 
 
 def _job_filter(tenant_id: str, **equal: str | None) -> tuple[str, tuple[Any, ...]]:
     """The WHERE clause (and its parameters) of a tenant's jobs with the given columns
-    equal to the values that are not None, for `list_jobs` and `count_jobs` alike."""
+    equal to the values that are not None, for `JobQueue.list` and `JobQueue.count` alike."""
     where, params = "tenant_id = ?", [tenant_id]
     for column, value in equal.items():
         if value is not None:

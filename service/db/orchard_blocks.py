@@ -15,9 +15,9 @@ import time
 from datetime import datetime
 from typing import Any
 
-from service.db.database import new_id
+from service.db.database import Database, new_id
 from service.db.errors import ConflictError, NotFoundError
-from service.db.job_queue import JobQueue
+from service.db.tenant_quotas import check_queue_in
 
 #: a capture as read: its row with its job's state and error
 _CAPTURE_SELECT = (
@@ -32,68 +32,70 @@ def arrival_date(ts: float) -> str:
     return datetime.fromtimestamp(ts).date().isoformat()
 
 
-class OrchardBlocks(JobQueue):
+def insert_capture(
+    con: sqlite3.Connection, *, tenant_id: str, orchard_block_id: str, block_id: str, job_id: str,
+    captured_at: str | None, arrived_at: float,
+) -> str:
+    """Record a capture of a job just inserted in ``con``'s transaction (by
+    `OrchardBlocks.create_capture` or a schedule of the orchard block); the next in its
+    block's order. Returns its id."""
+    owner = con.execute("SELECT tenant_id FROM orchard_blocks WHERE id = ?", (orchard_block_id,)).fetchone()
+    if owner is None or owner["tenant_id"] != tenant_id:
+        raise NotFoundError(f"no orchard block {orchard_block_id!r}; ", hint="{list.orchard_blocks}")
+    (seq,) = con.execute("SELECT COALESCE(MAX(seq), 0) + 1 FROM captures WHERE orchard_block_id = ?",
+                         (orchard_block_id,)).fetchone()
+    cid = new_id()
+    con.execute(
+        "INSERT INTO captures (id, tenant_id, orchard_block_id, seq, block_id, job_id, captured_at, "
+        "captured_at_source, given_captured_at, arrived_at) VALUES (?, ?, ?, ?, ?, ?, ?, ?, ?, ?)",
+        (cid, tenant_id, orchard_block_id, seq, block_id, job_id, captured_at or arrival_date(arrived_at),
+         "given" if captured_at else "upload", captured_at, arrived_at),
+    )
+    return cid
+
+
+class OrchardBlocks:
     """The ``orchard_blocks`` and ``captures`` tables (a capture's job is queued with its
     record, in one transaction)."""
 
-    # -- orchard blocks ------------------------------------------------------------------
+    def __init__(self, db: Database) -> None:
+        self.db = db
 
-    def create_orchard_block(self, tenant_id: str, name: str) -> dict[str, Any]:
+    def create(self, tenant_id: str, name: str) -> dict[str, Any]:
         """A new orchard block of the tenant; ConflictError if it has one of that name."""
         obid = new_id()
-        with self._tx() as con:
+        with self.db.transaction() as con:
             try:
                 con.execute("INSERT INTO orchard_blocks (id, tenant_id, name, created_at) VALUES (?, ?, ?, ?)",
                             (obid, tenant_id, name, time.time()))
             except sqlite3.IntegrityError:
                 raise ConflictError(f"this farm already has an orchard block called {name!r}; "
                                     "add captures to that one, or choose another name") from None
-        return self.get_orchard_block(tenant_id, obid)
+        return self.get(tenant_id, obid)
 
-    def get_orchard_block(self, tenant_id: str | None, orchard_block_id: str) -> dict[str, Any]:
-        """One orchard block with its capture counts; NotFoundError if it is not the tenant's
-        (``tenant_id`` None: any tenant's, for the runner and the command line)."""
-        where, args = "ob.id = ?", [orchard_block_id]
-        if tenant_id is not None:
-            where, args = "ob.id = ? AND ob.tenant_id = ?", [orchard_block_id, tenant_id]
-        rec = self._one(f"{_BLOCK_SELECT} WHERE {where} GROUP BY ob.id", tuple(args))
+    def get(self, tenant_id: str, orchard_block_id: str) -> dict[str, Any]:
+        """One orchard block with its capture counts; NotFoundError if it is not the tenant's."""
+        rec = self.db.one(f"{_BLOCK_SELECT} WHERE ob.id = ? AND ob.tenant_id = ? GROUP BY ob.id", (orchard_block_id, tenant_id))
         if rec is None:
             raise NotFoundError(f"no orchard block {orchard_block_id!r}; ", hint="{list.orchard_blocks}")
         return rec
 
-    def orchard_block_by_name(self, tenant_id: str, name: str) -> dict[str, Any]:
-        row = self._one("SELECT id FROM orchard_blocks WHERE tenant_id = ? AND name = ?", (tenant_id, name))
+    def by_name(self, tenant_id: str, name: str) -> dict[str, Any]:
+        """The tenant's orchard block called ``name``; NotFoundError if it has none."""
+        row = self.db.one("SELECT id FROM orchard_blocks WHERE tenant_id = ? AND name = ?", (tenant_id, name))
         if row is None:
             raise NotFoundError(f"no orchard block called {name!r}; ", hint="{list.orchard_blocks}")
-        return self.get_orchard_block(tenant_id, row["id"])
+        return self.get(tenant_id, row["id"])
 
-    def list_orchard_blocks(self, tenant_id: str | None) -> list[dict[str, Any]]:
-        """The tenant's orchard blocks by name (``tenant_id`` None: every tenant's)."""
-        if tenant_id is None:
-            return self._all_rows(f"{_BLOCK_SELECT} GROUP BY ob.id ORDER BY ob.name, ob.id")
-        return self._all_rows(f"{_BLOCK_SELECT} WHERE ob.tenant_id = ? GROUP BY ob.id ORDER BY ob.name, ob.id", (tenant_id,))
+    def list(self, tenant_id: str) -> list[dict[str, Any]]:
+        """The tenant's orchard blocks by name."""
+        return self.db.rows(f"{_BLOCK_SELECT} WHERE ob.tenant_id = ? GROUP BY ob.id ORDER BY ob.name, ob.id", (tenant_id,))
+
+    def list_any_tenant(self) -> list[dict[str, Any]]:
+        """Every tenant's orchard blocks by name (the operator's listing)."""
+        return self.db.rows(f"{_BLOCK_SELECT} GROUP BY ob.id ORDER BY ob.name, ob.id")
 
     # -- captures --------------------------------------------------------------------------
-
-    def _insert_capture(
-        self, con: sqlite3.Connection, *, tenant_id: str, orchard_block_id: str, block_id: str, job_id: str,
-        captured_at: str | None, arrived_at: float,
-    ) -> str:
-        """Record a capture of a job just inserted in ``con``'s transaction; the next in
-        its block's order. Returns its id."""
-        owner = con.execute("SELECT tenant_id FROM orchard_blocks WHERE id = ?", (orchard_block_id,)).fetchone()
-        if owner is None or owner["tenant_id"] != tenant_id:
-            raise NotFoundError(f"no orchard block {orchard_block_id!r}; ", hint="{list.orchard_blocks}")
-        (seq,) = con.execute("SELECT COALESCE(MAX(seq), 0) + 1 FROM captures WHERE orchard_block_id = ?",
-                             (orchard_block_id,)).fetchone()
-        cid = new_id()
-        con.execute(
-            "INSERT INTO captures (id, tenant_id, orchard_block_id, seq, block_id, job_id, captured_at, "
-            "captured_at_source, given_captured_at, arrived_at) VALUES (?, ?, ?, ?, ?, ?, ?, ?, ?, ?)",
-            (cid, tenant_id, orchard_block_id, seq, block_id, job_id, captured_at or arrival_date(arrived_at),
-             "given" if captured_at else "upload", captured_at, arrived_at),
-        )
-        return cid
 
     def create_capture(
         self, *, tenant_id: str, orchard_block_id: str, block_id: str, job: dict,
@@ -104,57 +106,52 @@ class OrchardBlocks(JobQueue):
         sender gave (ISO ``YYYY-MM-DD``); the file's own date wins when it has one.
         NotFoundError if the orchard block or the uploaded block is not the tenant's."""
         jid = new_id()
-        with self._tx() as con:
+        with self.db.transaction() as con:
             block = con.execute("SELECT id, created_at FROM blocks WHERE id = ? AND tenant_id = ?", (block_id, tenant_id)).fetchone()
             if block is None:
                 raise NotFoundError(f"no block {block_id!r}; ", hint="{list.blocks}")
-            self._check_queue(con, tenant_id)
+            check_queue_in(con, tenant_id)
             now = time.time()
             con.execute(
                 "INSERT INTO jobs (id, tenant_id, block_id, job, state, created_at) VALUES (?, ?, ?, ?, 'queued', ?)",
                 (jid, tenant_id, block["id"], json.dumps(job), now),
             )
-            cid = self._insert_capture(con, tenant_id=tenant_id, orchard_block_id=orchard_block_id, block_id=block["id"],
+            cid = insert_capture(con, tenant_id=tenant_id, orchard_block_id=orchard_block_id, block_id=block["id"],
                                        job_id=jid, captured_at=captured_at, arrived_at=block["created_at"] or now)
         return self.get_capture(tenant_id, cid)
 
-    def get_capture(self, tenant_id: str | None, capture_id: str) -> dict[str, Any]:
-        where, args = "c.id = ?", [capture_id]
-        if tenant_id is not None:
-            where, args = "c.id = ? AND c.tenant_id = ?", [capture_id, tenant_id]
-        rec = self._one(f"{_CAPTURE_SELECT} WHERE {where}", tuple(args))
+    def get_capture(self, tenant_id: str, capture_id: str) -> dict[str, Any]:
+        """The tenant's capture; NotFoundError if it has none of that id."""
+        rec = self.db.one(f"{_CAPTURE_SELECT} WHERE c.id = ? AND c.tenant_id = ?", (capture_id, tenant_id))
         if rec is None:
             raise NotFoundError(f"no capture {capture_id!r}")
         return rec
 
-    def capture_of_job(self, job_id: str) -> dict[str, Any] | None:
-        """The capture a job processes (None: the job is no capture of an orchard block).
-        Unscoped: for the runner, which holds a job, not a tenant."""
-        return self._one(f"{_CAPTURE_SELECT} WHERE c.job_id = ?", (job_id,))
+    def capture_of_job(self, tenant_id: str, job_id: str) -> dict[str, Any] | None:
+        """The capture the tenant's job processes (None: the job is no capture of an
+        orchard block, or not the tenant's)."""
+        return self.db.one(f"{_CAPTURE_SELECT} WHERE c.job_id = ? AND c.tenant_id = ?", (job_id, tenant_id))
 
     def list_captures(self, tenant_id: str, orchard_block_id: str) -> list[dict[str, Any]]:
         """An orchard block's captures in arrival order; NotFoundError if it is not the tenant's."""
-        self.get_orchard_block(tenant_id, orchard_block_id)
-        return self._all_rows(f"{_CAPTURE_SELECT} WHERE c.orchard_block_id = ? AND c.tenant_id = ? ORDER BY c.seq",
+        self.get(tenant_id, orchard_block_id)
+        return self.db.rows(f"{_CAPTURE_SELECT} WHERE c.orchard_block_id = ? AND c.tenant_id = ? ORDER BY c.seq",
                               (orchard_block_id, tenant_id))
 
-    def latest_done_capture(self, tenant_id: str | None, orchard_block_id: str, *, before_seq: int | None = None) -> dict[str, Any] | None:
-        """The block's latest capture (in arrival order) whose job is done, before
+    def latest_done_capture(self, tenant_id: str, orchard_block_id: str, *, before_seq: int | None = None) -> dict[str, Any] | None:
+        """The tenant's block's latest capture (in arrival order) whose job is done, before
         ``before_seq`` if given; None if there is none. Its outputs hold the block's history."""
-        where, args = "c.orchard_block_id = ? AND j.state = 'done'", [orchard_block_id]
-        if tenant_id is not None:
-            where += " AND c.tenant_id = ?"
-            args.append(tenant_id)
+        where, args = "c.orchard_block_id = ? AND c.tenant_id = ? AND j.state = 'done'", [orchard_block_id, tenant_id]
         if before_seq is not None:
             where += " AND c.seq < ?"
             args.append(before_seq)
-        return self._one(f"{_CAPTURE_SELECT} WHERE {where} ORDER BY c.seq DESC LIMIT 1", tuple(args))
+        return self.db.one(f"{_CAPTURE_SELECT} WHERE {where} ORDER BY c.seq DESC LIMIT 1", tuple(args))
 
     def set_capture_record(self, job_id: str, rec: dict[str, Any] | None) -> None:
         """Keep a finished capture job's record (``orchard:capture``: date and its source,
         previous capture, registration, counts); its date becomes the capture's."""
         rec = rec or {}
-        with self._tx() as con:
+        with self.db.transaction() as con:
             con.execute(
                 "UPDATE captures SET record = ?, captured_at = COALESCE(?, captured_at), "
                 "captured_at_source = COALESCE(?, captured_at_source) WHERE job_id = ?",

@@ -2,21 +2,20 @@
 
 `install(app)` adds the routes (`service.web.routes`) and serves the static files
 (the page scripts and the vendored libraries under ``static/vendor``) at ``/static``.
+The pages' HTML is `service.pages`, which the report of ``orchard process`` uses too,
+without FastAPI.
 """
 
 from __future__ import annotations
 
-from typing import TYPE_CHECKING
+from fastapi import FastAPI
+from fastapi.staticfiles import StaticFiles
 
-if TYPE_CHECKING:  # the report of `orchard process` uses this package without FastAPI
-    from fastapi import FastAPI
+from service import pages
+from service.web import routes
 
 
 def install(app: FastAPI) -> None:
     """Add the browser pages and their static files to the service's app."""
-    from fastapi.staticfiles import StaticFiles
-
-    from service.web import render, routes
-
     app.include_router(routes.router)
-    app.mount(render.STATIC_URL, StaticFiles(directory=render.STATIC_DIR), name="static")
+    app.mount(pages.STATIC_URL, StaticFiles(directory=pages.STATIC_DIR), name="static")

@@ -18,11 +18,14 @@ from fastapi import APIRouter, Form, Request
 from fastapi.openapi.docs import get_redoc_html
 from fastapi.responses import HTMLResponse, RedirectResponse, Response
 
-from service.api.results import job_output, require_output
+from service import sessions
+from service.auth import UnauthorizedError
 from service.db.errors import NotFoundError
-from service.errors import UnauthorizedError
-from service.runner import job_dir
-from service.web import mapdata, render, sessions
+from service.jobfolders import job_dir
+from service.reports import mapdata
+from service.reports.outputs import job_output, require_output
+from service.reports.report import atomic_write
+from service import pages
 
 router = APIRouter(include_in_schema=False)
 _map_lock = threading.Lock()  # one footprint computation at a time (it reads the whole block)
@@ -60,18 +63,18 @@ def root() -> RedirectResponse:
 def signin_form(request: Request, next: str = "/blocks") -> HTMLResponse:
     if _page_session(request) is not None:
         return RedirectResponse(_safe_next(next), status_code=303)
-    return HTMLResponse(render.signin_page(next_path=_safe_next(next)), headers=_NO_STORE)
+    return HTMLResponse(pages.signin_page(next_path=_safe_next(next)), headers=_NO_STORE)
 
 
 @router.post("/signin")
 def signin(request: Request, token: Annotated[str, Form(max_length=500)] = "",
            next: Annotated[str, Form(max_length=2000)] = "/blocks") -> Response:
     if not sessions.same_origin(request):  # another site signing this browser in as someone else
-        return HTMLResponse(render.signin_page(error="sign in from this server's own page"), status_code=403, headers=_NO_STORE)
+        return HTMLResponse(pages.signin_page(error="sign in from this server's own page"), status_code=403, headers=_NO_STORE)
     try:
         sid, sess, _ = sessions.sign_in(request, _store(request), token)
     except UnauthorizedError:
-        page = render.signin_page(error="That token is not known here, or has expired or been revoked. Check it and try again.",
+        page = pages.signin_page(error="That token is not known here, or has expired or been revoked. Check it and try again.",
                                   next_path=_safe_next(next))
         return HTMLResponse(page, status_code=401, headers=_NO_STORE)
     resp = RedirectResponse(_safe_next(next), status_code=303)
@@ -97,7 +100,7 @@ def blocks(request: Request) -> Response:
     if found is None:
         return _to_signin(request)
     sess, tenant = found
-    return HTMLResponse(render.blocks_page(tenant_name=tenant["name"], csrf=sess.csrf), headers=_NO_STORE)
+    return HTMLResponse(pages.blocks_page(tenant_name=tenant["name"], csrf=sess.csrf), headers=_NO_STORE)
 
 
 @router.get("/jobs/{job_id}")
@@ -107,17 +110,17 @@ def job(job_id: str, request: Request) -> Response:
         return _to_signin(request)
     sess, tenant = found
     try:
-        _store(request).get_job(tenant["id"], job_id)
+        _store(request).jobs.get(tenant["id"], job_id)
     except NotFoundError:
-        page = render.message_page(title="No such job", message=f"This farm has no job {job_id}.",
+        page = pages.message_page(title="No such job", message=f"This farm has no job {job_id}.",
                                    tenant_name=tenant["name"], csrf=sess.csrf)
         return HTMLResponse(page, status_code=404, headers=_NO_STORE)
-    return HTMLResponse(render.job_page(job_id=job_id, tenant_name=tenant["name"], csrf=sess.csrf), headers=_NO_STORE)
+    return HTMLResponse(pages.job_page(job_id=job_id, tenant_name=tenant["name"], csrf=sess.csrf), headers=_NO_STORE)
 
 
 @router.get("/web/jobs/{job_id}/map.json")
 def job_map_data(job_id: str, request: Request) -> Response:
-    """What the job page's map draws (see `service.web.mapdata`); computed once, kept
+    """What the job page's map draws (see `service.reports.mapdata`); computed once, kept
     gzipped as ``map.json.gz`` beside the job's outputs."""
     store, settings = _store(request), request.app.state.settings
     tenant = sessions.request_tenant(request, store)
@@ -128,12 +131,10 @@ def job_map_data(job_id: str, request: Request) -> Response:
     with _map_lock:
         if not packed.exists() or packed.stat().st_mtime < trees.stat().st_mtime:
             _, points = job_output(store, settings, tenant, job_id, "points.parquet")
-            block = store.get_block(None, job_rec["block_id"])
+            block = store.blocks.get(job_rec["tenant_id"], job_rec["block_id"])
             data = mapdata.build_map_data(trees, block_path=block.get("path"), points_parquet=points)
             cached.parent.mkdir(parents=True, exist_ok=True)
-            from service.report import _atomic_write
-
-            _atomic_write(packed, gzip.compress(mapdata.to_json(data).encode("utf-8"), compresslevel=6, mtime=0))
+            atomic_write(packed, gzip.compress(mapdata.to_json(data).encode("utf-8"), compresslevel=6, mtime=0))
     headers = {"Cache-Control": "private, max-age=60", "Vary": "Accept-Encoding"}
     body = packed.read_bytes()
     if "gzip" in request.headers.get("accept-encoding", ""):
@@ -145,11 +146,11 @@ def job_map_data(job_id: str, request: Request) -> Response:
 def swagger(request: Request) -> HTMLResponse:
     # FastAPI's own page starts Swagger UI with an inline script, which the CSP refuses
     title = html.escape(f"{request.app.title} — API")
-    static = render.STATIC_URL
+    static = pages.STATIC_URL
     return HTMLResponse(
         '<!doctype html>\n<html lang="en"><head><meta charset="utf-8">'
         '<meta name="viewport" content="width=device-width, initial-scale=1">'
-        f'<title>{title}</title><link rel="icon" href="{render.FAVICON}" type="image/svg+xml">'
+        f'<title>{title}</title><link rel="icon" href="{pages.FAVICON}" type="image/svg+xml">'
         f'<link rel="stylesheet" href="{static}/vendor/swagger-ui/swagger-ui.css"></head>\n'
         f'<body><div id="swagger-ui" data-openapi-url="{html.escape(request.app.openapi_url)}"></div>\n'
         f'<script src="{static}/vendor/swagger-ui/swagger-ui-bundle.js"></script>\n'
@@ -163,8 +164,8 @@ _REDOC_LOGO = "https://cdn.redoc.ly/redoc/logo-mini.svg"
 
 @functools.cache
 def _redoc_script() -> bytes:
-    text = (render.STATIC_DIR / "vendor" / "redoc" / "redoc.standalone.js").read_text(encoding="utf-8")
-    return text.replace(_REDOC_LOGO, render.FAVICON).encode("utf-8")
+    text = (pages.STATIC_DIR / "vendor" / "redoc" / "redoc.standalone.js").read_text(encoding="utf-8")
+    return text.replace(_REDOC_LOGO, pages.FAVICON).encode("utf-8")
 
 
 @router.get("/redoc/redoc.standalone.js")
@@ -178,7 +179,7 @@ def redoc(request: Request) -> HTMLResponse:
         openapi_url=request.app.openapi_url,
         title=f"{request.app.title} — API",
         redoc_js_url="/redoc/redoc.standalone.js",
-        redoc_favicon_url=render.FAVICON,
+        redoc_favicon_url=pages.FAVICON,
         with_google_fonts=False,
     )
 

@@ -17,7 +17,7 @@ from service_fixtures import client_of, make_token, temp_files, write_las
 from service.api.openapi import unique_operation_ids
 from service.app import create_app
 from service.db.jobstore import Store
-from service.runner import job_dir
+from service.jobfolders import job_dir
 from service.settings import Settings
 
 _METHODS = {"get", "put", "post", "delete", "options", "head", "patch", "trace"}
@@ -158,12 +158,12 @@ def _finished_job(edges, block, write_outputs, n_trees: int) -> str:
     job_id = c.post("/v1/jobs", json={"block_id": block["id"]}).json()["id"]
     store = Store(settings.store_path)
     try:
-        while (claimed := store.claim_next_job()) is not None and claimed["id"] != job_id:
+        while (claimed := store.jobs.claim_next()) is not None and claimed["id"] != job_id:
             pass
         out = job_dir(settings, job_id)
         out.mkdir(parents=True, exist_ok=True)
         write_outputs(out)
-        store.finish_job(job_id, "done", outcome={"n_trees": n_trees})
+        store.jobs.finish(job_id, "done", outcome={"n_trees": n_trees})
     finally:
         store.close()
     return job_id

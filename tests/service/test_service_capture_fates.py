@@ -20,7 +20,7 @@ from service.settings import Settings
 def local(tmp_path):
     settings = Settings(data_dir=tmp_path / "data", capture_settle_s=0)
     store = Store(settings.store_path)
-    tenant = store.ensure_tenant("farm")
+    tenant = store.accounts.ensure_tenant("farm")
     inbox = tmp_path / "inbox"
     inbox.mkdir()
     yield settings, store, tenant, inbox
@@ -28,7 +28,7 @@ def local(tmp_path):
 
 
 def _schedule(store, tenant, inbox):
-    return store.create_schedule(tenant_id=tenant["id"], inbox=str(inbox), cron="0 1 * * *", job={}, next_run_at=None)
+    return store.schedules.create(tenant_id=tenant["id"], inbox=str(inbox), cron="0 1 * * *", job={}, next_run_at=None)
 
 
 def _fill(inbox):
@@ -104,7 +104,7 @@ def test_the_nightly_log_line_counts_rejected_and_ignored(local, caplog):
     settings, store, tenant, inbox = local
     _fill(inbox)
     sched = _schedule(store, tenant, inbox)
-    store.update_schedule(None, sched["id"], {"next_run_at": time.time() - 1})
+    store.schedules.update_any_tenant(sched["id"], {"next_run_at": time.time() - 1})
     with caplog.at_level(logging.INFO, logger="orchard.schedules"):
         ScheduleClock(store, settings).tick()
     line = [r.getMessage() for r in caplog.records if sched["id"] in r.getMessage()][-1]

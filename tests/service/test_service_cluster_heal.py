@@ -88,24 +88,24 @@ def test_a_running_job_without_workers_says_so_until_some_connect(tmp_path, monk
     monkeypatch.setattr(runner_module, "DOCTOR_POLL_S", 0.05)
     settings = Settings(data_dir=tmp_path, scheduler="tcp://127.0.0.1:1")
     store = Store(settings.store_path)
-    tenant = store.ensure_tenant("farm")
-    block, _ = store.insert_block(tenant_id=tenant["id"], sha256="ab" * 32, path="/x.las", filename="b.las",
+    tenant = store.accounts.ensure_tenant("farm")
+    block, _ = store.blocks.insert(tenant_id=tenant["id"], sha256="ab" * 32, path="/x.las", filename="b.las",
                                   size_bytes=1, info={})
-    store.create_job(tenant_id=tenant["id"], block_id=block["id"], job={})
-    job = store.claim_next_job()
+    store.jobs.create(tenant_id=tenant["id"], block_id=block["id"], job={})
+    job = store.jobs.claim_next()
     runner = Runner(store, settings)
     runner._client, runner._current = _Client(0), job["id"]
     doctor = threading.Thread(target=runner._doctor)
     doctor.start()
     try:
         deadline = time.monotonic() + 30
-        while time.monotonic() < deadline and not store.get_job(None, job["id"])["error"]:
+        while time.monotonic() < deadline and not store.jobs.get_any_tenant(job["id"])["error"]:
             time.sleep(0.05)
-        assert store.get_job(None, job["id"])["error"] == "waiting for dask workers: the cluster has none"
+        assert store.jobs.get_any_tenant(job["id"])["error"] == "waiting for dask workers: the cluster has none"
         runner._client._scheduler_identity = {"n_workers": 1}
-        while time.monotonic() < deadline and store.get_job(None, job["id"])["error"]:
+        while time.monotonic() < deadline and store.jobs.get_any_tenant(job["id"])["error"]:
             time.sleep(0.05)
-        assert store.get_job(None, job["id"])["error"] is None  # put back as it was
+        assert store.jobs.get_any_tenant(job["id"])["error"] is None  # put back as it was
     finally:
         runner._stopping.set()
         doctor.join(10)

@@ -215,7 +215,7 @@ def test_a_second_service_on_one_data_folder_leaves_the_first_ones_work_alone(tm
     api_only = None
     try:
         store = Store(data / "orchard.sqlite")
-        tenant = store.ensure_tenant("farm-two")
+        tenant = store.accounts.ensure_tenant("farm-two")
         block_file = write_las(tmp_path / "b.las", 500, seed=5)
         block, _ = accept_block(store, blocks_dir=data / "blocks", tenant_id=tenant["id"],
                                 tmp_path=block_file, sha256=file_sha256(block_file),
@@ -244,7 +244,7 @@ def test_a_second_service_on_one_data_folder_leaves_the_first_ones_work_alone(tm
         assert "ORCHARD_RUNNER=false" in refused.stderr and "Traceback" not in refused.stderr
         # as API only it starts, and leaves the running job and the upload alone
         api_only = ServerProcess(data, ORCHARD_RUNNER="false", ORCHARD_SCHEDULING="false").start()
-        assert store.get_job(None, "j-running")["state"] == "running"
+        assert store.jobs.get_any_tenant("j-running")["state"] == "running"
         assert (receiving / "upload-x.part").read_bytes() == b"half"
         holder.kill()
         holder.wait()
@@ -255,9 +255,9 @@ def test_a_second_service_on_one_data_folder_leaves_the_first_ones_work_alone(tm
         third = ServerProcess(data, ORCHARD_SCHEDULING="false").start()
         try:
             deadline = time.monotonic() + 30
-            while store.get_job(None, "j-running")["state"] == "running" and time.monotonic() < deadline:
+            while store.jobs.get_any_tenant("j-running")["state"] == "running" and time.monotonic() < deadline:
                 time.sleep(0.2)
-            assert store.get_job(None, "j-running")["state"] != "running"
+            assert store.jobs.get_any_tenant("j-running")["state"] != "running"
             assert not receiving.exists()
         finally:
             third.stop()
@@ -271,26 +271,26 @@ def test_a_second_service_on_one_data_folder_leaves_the_first_ones_work_alone(tm
 def test_a_job_cancelled_just_before_a_shutdown_loses_its_tiles_at_the_next_start(tmp_path):
     # DELETE then SIGTERM at once: the job stayed "running" with cancel requested, the next
     # start cancelled it in the store, and its tiles stayed on disk for good
-    from service.runner import work_dir_of
+    from service.jobfolders import work_dir_of
     from service.settings import Settings
     from workers.workstore import WorkStore
 
     data = tmp_path / "data"
     store = Store(data / "orchard.sqlite")
-    tenant = store.ensure_tenant("farm-cancel")
+    tenant = store.accounts.ensure_tenant("farm-cancel")
     block_file = write_las(tmp_path / "b.las", 500, seed=6)
     block, _ = accept_block(store, blocks_dir=data / "blocks", tenant_id=tenant["id"], tmp_path=block_file,
                             sha256=file_sha256(block_file), size_bytes=block_file.stat().st_size, filename="b.las")
-    job = store.create_job(tenant_id=tenant["id"], block_id=block["id"], job={"tiling": {"tile_size": 6.0}})
-    assert store.claim_next_job()["id"] == job["id"]
-    store.request_cancel(tenant["id"], job["id"])
+    job = store.jobs.create(tenant_id=tenant["id"], block_id=block["id"], job={"tiling": {"tile_size": 6.0}})
+    assert store.jobs.claim_next()["id"] == job["id"]
+    store.jobs.request_cancel(tenant["id"], job["id"])
     work = WorkStore(work_dir_of(Settings(data_dir=data), job["id"]))
     work.claim()
     work.put_json("job.json", {"tiles": []})
     assert Path(work.root).is_dir()
     srv = ServerProcess(data, ORCHARD_SCHEDULING="false").start()
     try:
-        rec = store.get_job(None, job["id"])
+        rec = store.jobs.get_any_tenant(job["id"])
         assert rec["state"] == "cancelled" and job_error(rec) == "cancelled on request" and rec["error_kind"] == "cancelled"
         assert not Path(work.root).exists()
     finally:

@@ -57,7 +57,7 @@ def test_hostile_uploads_are_refused_with_one_line(client_a, name, data, query, 
 def local(tmp_path):
     settings = Settings(data_dir=tmp_path / "data", capture_settle_s=0)
     store = Store(settings.store_path)
-    tenant = store.ensure_tenant("farm")
+    tenant = store.accounts.ensure_tenant("farm")
     inbox = tenant_inbox(settings.data_dir, "farm")
     yield settings, store, tenant, inbox
     store.close()
@@ -69,11 +69,11 @@ def test_an_inbox_takes_the_formats_and_rejects_a_hostile_one(local):
     (inbox / "row2.pcd").write_bytes(b"VERSION 0.7\nFIELDS x y z\nSIZE 4 4 4\nTYPE F F F\nCOUNT 1 1 1\nWIDTH 1\n"
                                      b"HEIGHT 1\nPOINTS 999999999\nDATA binary\n" + bytes(12))
     (inbox / "notes.txt").write_text("not a capture")
-    sched = store.create_schedule(tenant_id=tenant["id"], inbox=str(inbox), cron="0 1 * * *", job={}, next_run_at=None)
+    sched = store.schedules.create(tenant_id=tenant["id"], inbox=str(inbox), cron="0 1 * * *", job={}, next_run_at=None)
     scan = run_schedule(store, settings, sched)
     assert len(scan["jobs"]) == 1
     assert len(scan["rejected"]) == 1 and "row2.pcd: the PCD header claims 999999999 points" in str(scan["rejected"][0])
-    block = store.list_blocks(tenant["id"])[0]
+    block = store.blocks.list(tenant["id"])[0]
     assert block["filename"] == "row1.xyz" and Path(block["path"]).suffix == ".laz"
     assert laspy.open(block["path"]).header.point_count == len(XYZ)
     assert run_schedule(store, settings, sched)["jobs"] == []  # taken once

@@ -7,7 +7,7 @@ import io
 import numpy as np
 from PIL import Image
 
-from service.mapimage import OTHER, PALETTE, point_image, render_map_png
+from service.reports.mapimage import OTHER, PALETTE, point_image, render_map_png
 
 
 def _image(png: bytes) -> np.ndarray:

@@ -16,7 +16,7 @@ import pytest
 from seasons_fixtures import write_capture_outputs
 from service_fixtures import tenant_inbox, write_las
 
-from service.runner import job_dir
+from service.jobfolders import job_dir
 
 
 def _name() -> str:
@@ -32,13 +32,13 @@ def _finish(api, job_id: str, which: str | None, *, state: str = "done") -> None
     if which is not None:
         write_capture_outputs(out, which)
         outputs = {"trees": str(out / "trees.parquet"), "history": str(out / "history.parquet")}
-    with store._tx() as con:  # claimed, as the runner would (the shared queue holds other tests' jobs)
+    with store.db.transaction() as con:  # claimed, as the runner would (the shared queue holds other tests' jobs)
         con.execute("UPDATE jobs SET state = 'running' WHERE id = ?", (job_id,))
     if which is not None:
         from service.seasons import capture_record
 
-        store.set_capture_record(job_id, capture_record(out))
-    store.finish_job(job_id, state, outcome={"outputs": outputs, "n_trees": 7} if state == "done" else None,
+        store.orchard_blocks.set_capture_record(job_id, capture_record(out))
+    store.jobs.finish(job_id, state, outcome={"outputs": outputs, "n_trees": 7} if state == "done" else None,
                      error=None if state == "done" else "no overlap")
 
 

@@ -23,7 +23,7 @@ def api(tmp_path):
     tokens = {name: make_token(settings.data_dir, name) for name in ("farm-a", "farm-b")}
     with TestClient(create_app(settings)) as client:
         store = client.app.state.store
-        tenants = {name: store.tenant_by_name(name) for name in tokens}
+        tenants = {name: store.accounts.tenant_by_name(name) for name in tokens}
 
         def as_(name):
             return {"Authorization": f"Bearer {tokens[name]}"}
@@ -39,7 +39,7 @@ def _stored_files(settings):
 def test_an_upload_over_the_storage_quota_is_507_and_keeps_nothing(api, tmp_path, room):
     settings, c, store, tenants, as_ = api
     data = write_las(tmp_path / "b.laz", 3000, seed=3).read_bytes()
-    store.set_quota(tenants["farm-a"]["id"], storage_bytes=0 if room == 0 else len(data) + room)
+    store.quotas.set_limits(tenants["farm-a"]["id"], storage_bytes=0 if room == 0 else len(data) + room)
     r = c.post("/v1/blocks", files={"file": ("b.laz", data)}, headers=as_("farm-a"))
     assert r.status_code == 507, r.text
     detail = r.json()["detail"]
@@ -50,7 +50,7 @@ def test_an_upload_over_the_storage_quota_is_507_and_keeps_nothing(api, tmp_path
     # another farm uploads the same file as before
     assert c.post("/v1/blocks", files={"file": ("b.laz", data)}, headers=as_("farm-b")).status_code == 201
     # with the quota raised the farm's upload goes through
-    store.set_quota(tenants["farm-a"]["id"], storage_bytes=len(data))
+    store.quotas.set_limits(tenants["farm-a"]["id"], storage_bytes=len(data))
     assert c.post("/v1/blocks", files={"file": ("b.laz", data)}, headers=as_("farm-a")).status_code == 201
 
 
@@ -58,7 +58,7 @@ def test_a_job_past_the_queue_quota_is_429_and_queues_nothing(api, tmp_path):
     settings, c, store, tenants, as_ = api
     data = write_las(tmp_path / "b.laz", 3000, seed=4).read_bytes()
     blocks = {f: c.post("/v1/blocks", files={"file": ("b.laz", data)}, headers=as_(f)).json()["id"] for f in tenants}
-    store.set_quota(tenants["farm-a"]["id"], queued_jobs=1)
+    store.quotas.set_limits(tenants["farm-a"]["id"], queued_jobs=1)
     first = c.post("/v1/jobs", json={"block_id": blocks["farm-a"]}, headers=as_("farm-a"))
     assert first.status_code == 201
     r = c.post("/v1/jobs", json={"block_id": blocks["farm-a"]}, headers=as_("farm-a"))
@@ -107,10 +107,10 @@ def farms(tmp_path):
     store = Store(settings.store_path)
     out = {}
     for name in ("farm-a", "farm-b"):
-        tenant = store.ensure_tenant(name)
+        tenant = store.accounts.ensure_tenant(name)
         inbox = tmp_path / name
         inbox.mkdir()
-        sched = store.create_schedule(tenant_id=tenant["id"], inbox=str(inbox), cron="0 1 * * *", job={}, next_run_at=None)
+        sched = store.schedules.create(tenant_id=tenant["id"], inbox=str(inbox), cron="0 1 * * *", job={}, next_run_at=None)
         out[name] = (tenant, inbox, sched)
     yield settings, store, out
     store.close()
@@ -146,7 +146,7 @@ def test_a_capture_over_the_storage_quota_waits_for_room_without_a_copy(farms, m
     settings, store, out = farms
     tenant, inbox, sched = out["farm-a"]
     size = write_las(inbox / "a.laz", 2000, seed=2).stat().st_size
-    store.set_quota(tenant["id"], storage_bytes=size - 1)
+    store.quotas.set_limits(tenant["id"], storage_bytes=size - 1)
     copied = []
     real = schedules._copy_hashed
     monkeypatch.setattr(schedules, "_copy_hashed", lambda src, dst: copied.append(src.name) or real(src, dst))
@@ -154,7 +154,7 @@ def test_a_capture_over_the_storage_quota_waits_for_room_without_a_copy(farms, m
     assert res["jobs"] == [] and copied == [] and _stored_files(settings) == []
     (rej,) = res["rejected"]
     assert "'farm-a' is at its storage quota" in rej["error"] and rej["error"].endswith("tried again at the next scan")
-    store.set_quota(tenant["id"], storage_bytes=size)  # not recorded as handled: taken once there is room
+    store.quotas.set_limits(tenant["id"], storage_bytes=size)  # not recorded as handled: taken once there is room
     assert len(run_schedule(store, settings, sched)["jobs"]) == 1
 
 
@@ -163,12 +163,12 @@ def test_captures_past_the_queue_quota_are_taken_at_a_later_scan(farms):
     tenant, inbox, sched = out["farm-a"]
     for i in range(3):
         write_las(inbox / f"c{i}.laz", 500, seed=10 + i)
-    store.set_quota(tenant["id"], queued_jobs=2)
+    store.quotas.set_limits(tenant["id"], queued_jobs=2)
     first = run_schedule(store, settings, sched)
     assert len(first["jobs"]) == 2 and [r["file"] for r in first["rejected"]] == ["c2.laz"]
     assert "has 2 job(s) queued, its limit of 2" in first["rejected"][0]["error"]
     assert run_schedule(store, settings, sched)["rejected"][0]["file"] == "c2.laz"  # still full
-    store.claim_next_job()  # one starts: room for one more
+    store.jobs.claim_next()  # one starts: room for one more
     again = run_schedule(store, settings, sched)
     assert len(again["jobs"]) == 1 and again["rejected"] == [] and again["skipped"] == 2
 
@@ -207,18 +207,19 @@ def test_a_block_refused_when_recorded_leaves_no_file(tmp_path, monkeypatch):
     # two uploads of a farm at once both pass the early check; the store's own check,
     # made when the block is recorded, refuses the second and its landed file goes
     from service.db.block_files import accept_block
+    from service.db.tenant_quotas import TenantQuotas
     from service.quotas import StorageQuotaExceeded
 
     store = Store(tmp_path / "data" / "orchard.sqlite")
-    tenant = store.ensure_tenant("farm")
+    tenant = store.accounts.ensure_tenant("farm")
     src = write_las(tmp_path / "b.laz", 2000, seed=6)
-    store.set_quota(tenant["id"], storage_bytes=src.stat().st_size - 1)
-    monkeypatch.setattr(Store, "check_storage", lambda self, tenant_id, size: None)  # the race: passed meanwhile
+    store.quotas.set_limits(tenant["id"], storage_bytes=src.stat().st_size - 1)
+    monkeypatch.setattr(TenantQuotas, "check_storage", lambda self, tenant_id, size: None)  # the race: passed meanwhile
     tmp = tmp_path / "upload.part"
     tmp.write_bytes(src.read_bytes())
     blocks_dir = tmp_path / "data" / "blocks"
     with pytest.raises(StorageQuotaExceeded):
         accept_block(store, blocks_dir=blocks_dir, tenant_id=tenant["id"], tmp_path=tmp, sha256="cd" * 32,
                      size_bytes=src.stat().st_size, filename="b.laz")
-    assert list(blocks_dir.iterdir()) == [] and not tmp.exists() and store.list_blocks(tenant["id"]) == []
+    assert list(blocks_dir.iterdir()) == [] and not tmp.exists() and store.blocks.list(tenant["id"]) == []
     store.close()

@@ -14,7 +14,8 @@ import pyarrow.parquet as pq
 import pytest
 from service_fixtures import write_las
 
-from service.report import sample_points, trees_records, write_report, write_trees_csv
+from service.reports.report import trees_records, write_report, write_trees_csv
+from service.reports.sampling import sample_points
 
 
 def _outputs(tmp_path, n):
@@ -95,7 +96,7 @@ def finished_job(tmp_path):
     outcome (and result files): ``make(filename, outcome) -> (settings, store, job)``."""
     from service.db.block_files import accept_block
     from service.db.jobstore import Store
-    from service.runner import job_dir
+    from service.jobfolders import job_dir
     from service.schedules import file_sha256
     from service.settings import Settings
 
@@ -104,18 +105,18 @@ def finished_job(tmp_path):
     store = Store(settings.store_path)
 
     def make(filename: str, outcome: dict):
-        tenant = store.ensure_tenant("farm")
+        tenant = store.accounts.ensure_tenant("farm")
         src = write_las(tmp_path / "upload.las", 3_000, seed=4)
         block, _ = accept_block(store, blocks_dir=settings.blocks_dir, tenant_id=tenant["id"], tmp_path=src,
                                 sha256=file_sha256(src), size_bytes=src.stat().st_size, filename=filename)
-        job = store.create_job(tenant_id=tenant["id"], block_id=block["id"], job={"tiling": {"tile_size": 20}})
-        assert store.claim_next_job()["id"] == job["id"]
+        job = store.jobs.create(tenant_id=tenant["id"], block_id=block["id"], job={"tiling": {"tile_size": 20}})
+        assert store.jobs.claim_next()["id"] == job["id"]
         out = job_dir(settings, job["id"])
         out.mkdir(parents=True)
         points, trees = _outputs(tmp_path, 3_000)
         shutil.copy(points, out / "points.parquet")
         shutil.copy(trees, out / "trees.parquet")
-        return settings, store, store.finish_job(job["id"], "done", outcome=outcome)
+        return settings, store, store.jobs.finish(job["id"], "done", outcome=outcome)
 
     try:
         yield make
@@ -126,7 +127,7 @@ def finished_job(tmp_path):
 def test_the_report_of_a_partial_result_says_which_tiles_are_missing(finished_job):
     # the API said "partial", the report did not: a grower reading it saw a block with
     # fewer trees and no word why
-    from service.api.results import ensure_report
+    from service.reports.outputs import ensure_report
 
     settings, store, job = finished_job("north $block$.las", {"n_trees": 2, "partial": True, "failed_tiles": [3, 4]})
     text = ensure_report(store, settings, job).read_text()
@@ -137,9 +138,9 @@ def test_the_report_of_a_partial_result_says_which_tiles_are_missing(finished_jo
 def test_a_lost_map_is_drawn_again_and_a_lost_block_is_a_clear_404(finished_job):
     # map.png lost beside its report.html: every request for it was a 500 (and the map was
     # never drawn again); the block file lost: a 422 naming the server's checksum file
-    from service.api.results import ensure_report
+    from service.reports.outputs import ensure_report
     from service.db.errors import NotFoundError
-    from service.runner import job_dir
+    from service.jobfolders import job_dir
 
     settings, store, job = finished_job("north.las", {"n_trees": 2})
     out = job_dir(settings, job["id"])
@@ -148,7 +149,7 @@ def test_a_lost_map_is_drawn_again_and_a_lost_block_is_a_clear_404(finished_job)
     ensure_report(store, settings, job)
     assert (out / "map.png").read_bytes()[:4] == b"\x89PNG"
     (out / "report.html").unlink()
-    stored = Path(store.get_block(None, job["block_id"])["path"])
+    stored = Path(store.blocks.get(job["tenant_id"], job["block_id"])["path"])
     stored.unlink()
     with pytest.raises(NotFoundError, match="uploaded block of this job is missing on the server") as err:
         ensure_report(store, settings, job)
@@ -158,12 +159,12 @@ def test_a_lost_map_is_drawn_again_and_a_lost_block_is_a_clear_404(finished_job)
 def test_a_scheduled_jobs_report_names_its_capture(finished_job):
     # the same bytes were uploaded before as "test-upload.las": the night's report is
     # about the capture the schedule took
-    from service.api.results import ensure_report
+    from service.reports.outputs import ensure_report
     from service.api.schemas import job_out
 
     settings, store, job = finished_job("test-upload.las", {"n_trees": 2})
-    store._con().execute("UPDATE jobs SET capture = 'night-7.laz' WHERE id = ?", (job["id"],))
-    job = store.get_job(None, job["id"])
+    store.db.connection().execute("UPDATE jobs SET capture = 'night-7.laz' WHERE id = ?", (job["id"],))
+    job = store.jobs.get_any_tenant(job["id"])
     assert job_out(job).capture == "night-7.laz"
     text = ensure_report(store, settings, job).read_text()
     assert "Orchard report — night-7.laz" in text and "test-upload.las" not in text
@@ -173,7 +174,7 @@ def test_a_scheduled_jobs_report_names_its_capture(finished_job):
                     reason="needs time.tzset and the system's zone files")
 def test_the_report_gives_the_finish_time_in_the_servers_zone(finished_job, monkeypatch):
     # a grower read "Finished ... UTC" while the schedules run on the server's local time
-    from service.api.results import ensure_report
+    from service.reports.outputs import ensure_report
 
     monkeypatch.setenv("TZ", "Australia/Sydney")
     time.tzset()

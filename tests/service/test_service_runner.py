@@ -25,16 +25,16 @@ import workers.workstore as workers_workstore
 def env(tmp_path):
     settings = Settings(data_dir=tmp_path / "data", runner_poll_s=0.05, job_retries=0)
     store = Store(settings.store_path)
-    tenant = store.ensure_tenant("farm")
-    block, _ = store.insert_block(tenant_id=tenant["id"], sha256="ab" * 32, path=str(tmp_path / "b.laz"),
+    tenant = store.accounts.ensure_tenant("farm")
+    block, _ = store.blocks.insert(tenant_id=tenant["id"], sha256="ab" * 32, path=str(tmp_path / "b.laz"),
                                   filename="b.laz", size_bytes=1, info={})
     yield settings, store, tenant, block
     store.close()
 
 
 def _queue(store, tenant, block, tiling=None):
-    store.create_job(tenant_id=tenant["id"], block_id=block["id"], job={"tiling": tiling or {}})
-    return store.claim_next_job()
+    store.jobs.create(tenant_id=tenant["id"], block_id=block["id"], job={"tiling": tiling or {}})
+    return store.jobs.claim_next()
 
 
 def test_done_records_outcome_and_progress(env, monkeypatch):
@@ -45,7 +45,7 @@ def test_done_records_outcome_and_progress(env, monkeypatch):
         assert spec.tiling.tile_size == 20.0 and spec.input_path == block["path"]
         for i in range(4):
             progress(i, 3)
-            seen.append(store.get_job(None, job["id"])["tiles_done"])
+            seen.append(store.jobs.get_any_tenant(job["id"])["tiles_done"])
         return workers_jobspec.JobOutcome(100, 3, 3, [], False, {"process": 1.0}, {"trees": "t"}, trees={"x": [1]})
 
     monkeypatch.setattr(workers_job, "run_job", fake)
@@ -160,9 +160,9 @@ def test_a_job_the_cluster_failed_is_queued_again_later(env, monkeypatch):
         assert again["state"] == "queued" and again["attempts"] == attempt and again["tiles_done"] == 0
         assert job_error(again).startswith(f"attempt {attempt} of 3 failed: cannot start or reach the dask cluster")
         assert "trying again from" in job_error(again) and again["retry_at"] >= calls[-1] + 0.5
-        assert store.claim_next_job() is None  # not before its time
+        assert store.jobs.claim_next() is None  # not before its time
         time.sleep(max(0.0, again["retry_at"] - time.time()) + 0.05)
-        job = store.claim_next_job()
+        job = store.jobs.claim_next()
         assert job["id"] == again["id"] and job_error(job) is None and job["retry_at"] is None
     done = runner.run_job(job)
     assert done["state"] == "done" and done["attempts"] == 3 and job_error(done) is None
@@ -175,7 +175,7 @@ def test_the_last_attempt_fails_for_good_and_other_failures_at_once(env, monkeyp
     monkeypatch.setattr(workers_job, "run_job", lambda spec, **kw: (_ for _ in ()).throw(lost))
     runner = Runner(store, settings, client_factory=lambda: None)
     assert runner.run_job(_queue(store, tenant, block))["state"] == "queued"
-    failed = runner.run_job(store.claim_next_job())
+    failed = runner.run_job(store.jobs.claim_next())
     assert failed["state"] == "failed" and failed["attempts"] == 2
     assert job_error(failed) == ("no dask worker for 120 s with 6 tiles to go (attempt 2, the last); "
                                "start dask workers and submit the job again")
@@ -191,8 +191,8 @@ def test_a_job_waiting_for_its_retry_can_be_cancelled(env, monkeypatch):
     runner = Runner(store, settings, client_factory=lambda: (_ for _ in ()).throw(OSError("refused")))
     waiting = runner.run_job(_queue(store, tenant, block))
     assert waiting["state"] == "queued"
-    assert store.request_cancel(tenant["id"], waiting["id"])["state"] == "cancelled"
-    assert store.claim_next_job() is None
+    assert store.jobs.request_cancel(tenant["id"], waiting["id"])["state"] == "cancelled"
+    assert store.jobs.claim_next() is None
 
 
 def test_a_store_of_an_earlier_version_gains_the_retry_column(tmp_path):
@@ -211,7 +211,7 @@ def test_a_store_of_an_earlier_version_gains_the_retry_column(tmp_path):
     con.close()
     store = Store(path)
     try:
-        job = store.claim_next_job()  # the queued job of the old store runs
+        job = store.jobs.claim_next()  # the queued job of the old store runs
         assert job["id"] == "j" and job["retry_at"] is None
         Store(path).close()  # a second process opening it: nothing to add
     finally:
@@ -229,39 +229,39 @@ def test_cancel_a_running_job_and_stop(env, monkeypatch):
         raise workers_jobspec.JobCancelled("job cancelled")
 
     monkeypatch.setattr(workers_job, "run_job", slow)
-    store.create_job(tenant_id=tenant["id"], block_id=block["id"], job={})
+    store.jobs.create(tenant_id=tenant["id"], block_id=block["id"], job={})
     runner = Runner(store, settings, client_factory=lambda: None)
     runner.start()
     assert started.wait(10)
     job_id = runner.current_job
-    store.request_cancel(tenant["id"], job_id)
+    store.jobs.request_cancel(tenant["id"], job_id)
     runner.cancel(job_id)
     deadline = time.monotonic() + 10
-    while store.get_job(None, job_id)["state"] == "running" and time.monotonic() < deadline:
+    while store.jobs.get_any_tenant(job_id)["state"] == "running" and time.monotonic() < deadline:
         time.sleep(0.02)
-    assert store.get_job(None, job_id)["state"] == "cancelled"
+    assert store.jobs.get_any_tenant(job_id)["state"] == "cancelled"
     # a job interrupted by shutdown goes back in the queue, and the restart is no attempt
     # of its own (two restarts used up its retries for a lost cluster)
     started.clear()
-    store.create_job(tenant_id=tenant["id"], block_id=block["id"], job={})
+    store.jobs.create(tenant_id=tenant["id"], block_id=block["id"], job={})
     runner.wake()
     assert started.wait(10)
     second = runner.current_job
-    assert store.get_job(None, second)["attempts"] == 1
+    assert store.jobs.get_any_tenant(second)["attempts"] == 1
     runner.stop()
     assert not runner.is_alive()
-    rec = store.get_job(None, second)
+    rec = store.jobs.get_any_tenant(second)
     assert (rec["state"], rec["attempts"]) == ("queued", 0)
-    assert store.requeue_running() == 0
+    assert store.jobs.requeue_running() == 0
     # ... but one asked to stop just before the shutdown is cancelled then, not re-queued
     started.clear()
     runner = Runner(store, settings, client_factory=lambda: None)
     runner.start()
     assert started.wait(10)
     third = runner.current_job
-    store.request_cancel(tenant["id"], third)
+    store.jobs.request_cancel(tenant["id"], third)
     runner.stop()
-    assert store.get_job(None, third)["state"] == "cancelled"
+    assert store.jobs.get_any_tenant(third)["state"] == "cancelled"
 
 
 def test_a_job_whose_outcome_cannot_be_recorded_is_not_left_running(env, monkeypatch):
@@ -269,14 +269,14 @@ def test_a_job_whose_outcome_cannot_be_recorded_is_not_left_running(env, monkeyp
     # (orchard demo) waited for ever
     settings, store, tenant, block = env
     monkeypatch.setattr(Runner, "run_job", lambda self, job: (_ for _ in ()).throw(RuntimeError("store hiccup")))
-    job = store.create_job(tenant_id=tenant["id"], block_id=block["id"], job={})
+    job = store.jobs.create(tenant_id=tenant["id"], block_id=block["id"], job={})
     runner = Runner(store, settings, client_factory=lambda: None)
     runner.start()
     try:
         deadline = time.monotonic() + 10
-        while store.get_job(None, job["id"])["state"] in ("queued", "running") and time.monotonic() < deadline:
+        while store.jobs.get_any_tenant(job["id"])["state"] in ("queued", "running") and time.monotonic() < deadline:
             time.sleep(0.02)
-        rec = store.get_job(None, job["id"])
+        rec = store.jobs.get_any_tenant(job["id"])
         assert rec["state"] == "failed" and "RuntimeError" in job_error(rec)
     finally:
         runner.stop()
@@ -291,10 +291,10 @@ def test_a_scheduled_jobs_error_names_the_capture_not_an_earlier_upload_of_the_s
         raise NoTreesError(f"{spec.input_path}: no trees found in 100 points")
 
     monkeypatch.setattr(workers_job, "run_job", fake)
-    sched = store.create_schedule(tenant_id=tenant["id"], inbox="/in", cron="0 1 * * *", job={}, next_run_at=None)
-    store.create_scheduled_job(schedule=sched, block_id=block["id"], sha256=block["sha256"], path="/in/north-row-2.laz",
+    sched = store.schedules.create(tenant_id=tenant["id"], inbox="/in", cron="0 1 * * *", job={}, next_run_at=None)
+    store.schedules.create_job(schedule=sched, block_id=block["id"], sha256=block["sha256"], path="/in/north-row-2.laz",
                                capture="north-row-2.laz")
-    job = store.claim_next_job()
+    job = store.jobs.claim_next()
     assert job["capture"] == "north-row-2.laz"
     failed = Runner(store, settings, client_factory=lambda: None).run_job(job)
     assert job_error(failed) == "north-row-2.laz: no trees found in 100 points"
@@ -316,17 +316,17 @@ def test_a_cancel_stored_by_another_process_stops_a_job_that_makes_no_progress(e
         raise workers_jobspec.JobCancelled("job cancelled")
 
     monkeypatch.setattr(workers_job, "run_job", stuck)
-    job = store.create_job(tenant_id=tenant["id"], block_id=block["id"], job={})
+    job = store.jobs.create(tenant_id=tenant["id"], block_id=block["id"], job={})
     runner = Runner(store, settings, client_factory=lambda: None)
     runner.start()
     try:
         assert started.wait(10)
         other = Store(settings.store_path)  # another API process
-        other.request_cancel(tenant["id"], job["id"])
+        other.jobs.request_cancel(tenant["id"], job["id"])
         other.close()
         deadline = time.monotonic() + 10
-        while store.get_job(None, job["id"])["state"] == "running" and time.monotonic() < deadline:
+        while store.jobs.get_any_tenant(job["id"])["state"] == "running" and time.monotonic() < deadline:
             time.sleep(0.05)
-        assert store.get_job(None, job["id"])["state"] == "cancelled"
+        assert store.jobs.get_any_tenant(job["id"])["state"] == "cancelled"
     finally:
         runner.stop()

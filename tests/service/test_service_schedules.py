@@ -178,7 +178,7 @@ def test_inbox_use_refuses_service_folders_and_other_tenants_inboxes(tmp_path):
     settings = Settings(data_dir=tmp_path / "data")
     store = Store(settings.store_path)
     try:
-        a, b = store.ensure_tenant("a"), store.ensure_tenant("b")
+        a, b = store.accounts.ensure_tenant("a"), store.accounts.ensure_tenant("b")
         data = settings.data_dir.resolve()
         for folder in (data, data / "blocks", data / "jobs" / "x" / "_work", data / "tmp"):
             with pytest.raises(ParameterError, match="service's own data"):
@@ -202,7 +202,7 @@ def local(tmp_path):
     # time has its own tests)
     settings = Settings(data_dir=tmp_path / "data", capture_settle_s=0)
     store = Store(settings.store_path)
-    tenant = store.ensure_tenant("farm")
+    tenant = store.accounts.ensure_tenant("farm")
     inbox = tmp_path / "inbox"
     inbox.mkdir()
     yield settings, store, tenant, inbox
@@ -210,7 +210,7 @@ def local(tmp_path):
 
 
 def _schedule(store, tenant, inbox, cron="0 1 * * *"):
-    return store.create_schedule(tenant_id=tenant["id"], inbox=str(inbox), cron=cron, job={}, next_run_at=None)
+    return store.schedules.create(tenant_id=tenant["id"], inbox=str(inbox), cron=cron, job={}, next_run_at=None)
 
 
 def test_run_schedule_takes_each_capture_once(local):
@@ -221,7 +221,7 @@ def test_run_schedule_takes_each_capture_once(local):
     sched = _schedule(store, tenant, inbox)
     first = run_schedule(store, settings, sched)
     assert len(first["jobs"]) == 2 and first["skipped"] == 0 and first["rejected"] == []
-    jobs = store.list_jobs(tenant["id"], schedule_id=sched["id"])
+    jobs = store.jobs.list(tenant["id"], schedule_id=sched["id"])
     assert {j["state"] for j in jobs} == {"queued"}
     again = run_schedule(store, settings, sched)
     assert again["jobs"] == [] and again["skipped"] == 2
@@ -244,7 +244,7 @@ def test_a_capture_still_being_copied_in_waits_for_a_later_scan(local):
     now = time.time()
     first = run_schedule(store, settings, sched, now=now)
     assert first["waiting"] == ["a.laz"] and first["jobs"] == [] and first["rejected"] == []
-    assert store.schedule_files(sched["id"]) == []  # not recorded: it is looked at again
+    assert store.schedules.files(sched["id"]) == []  # not recorded: it is looked at again
     later = run_schedule(store, settings, sched, now=now + 31)
     assert len(later["jobs"]) == 1 and later["waiting"] == []
 
@@ -258,8 +258,8 @@ def test_control_characters_in_a_captures_name_are_not_shown(local):
     sched = _schedule(store, tenant, inbox)
     res = run_schedule(store, settings, sched)
     assert len(res["jobs"]) == 1
-    job = store.get_job(tenant["id"], res["jobs"][0])
-    assert store.get_block(None, job["block_id"])["filename"] == "row[31m 4.las"
+    job = store.jobs.get(tenant["id"], res["jobs"][0])
+    assert store.blocks.get(tenant["id"], job["block_id"])["filename"] == "row[31m 4.las"
 
 
 def test_a_capture_handled_before_is_not_read_again(local, monkeypatch):
@@ -291,17 +291,17 @@ def test_a_scan_by_hand_that_finds_a_capture_arriving_looks_again_once_it_settle
     settings, store, tenant, inbox = local
     settings = settings.model_copy(update={"capture_settle_s": 60.0})
     now = time.time()
-    sched = store.create_schedule(tenant_id=tenant["id"], inbox=str(inbox), cron="0 1 1 * *", job={}, next_run_at=next_run_time("0 1 1 * *", now).timestamp())
+    sched = store.schedules.create(tenant_id=tenant["id"], inbox=str(inbox), cron="0 1 1 * *", job={}, next_run_at=next_run_time("0 1 1 * *", now).timestamp())
     write_las(inbox / "a.laz", 500, seed=1)
     assert run_schedule(store, settings, sched, now=now)["waiting"] == ["a.laz"]
-    assert store.get_schedule(tenant["id"], sched["id"])["next_run_at"] == pytest.approx(now + 60)
+    assert store.schedules.get(tenant["id"], sched["id"])["next_run_at"] == pytest.approx(now + 60)
     ScheduleClock(store, settings).tick(now + 61)
-    assert len(store.list_jobs(tenant["id"], schedule_id=sched["id"])) == 1
-    rec = store.get_schedule(tenant["id"], sched["id"])
+    assert len(store.jobs.list(tenant["id"], schedule_id=sched["id"])) == 1
+    rec = store.schedules.get(tenant["id"], sched["id"])
     assert rec["next_run_at"] == next_run_time("0 1 1 * *", now + 61).timestamp()  # the cron again
     # a scan that finds nothing arriving leaves the next run alone
     assert run_schedule(store, settings, rec, now=now + 62)["waiting"] == []
-    assert store.get_schedule(tenant["id"], sched["id"])["next_run_at"] == rec["next_run_at"]
+    assert store.schedules.get(tenant["id"], sched["id"])["next_run_at"] == rec["next_run_at"]
 
 
 def test_a_capture_dated_in_the_future_settles_by_the_servers_clock(local):
@@ -322,15 +322,15 @@ def test_the_clock_looks_again_soon_at_a_capture_still_arriving(local):
     settings, store, tenant, inbox = local
     settings = settings.model_copy(update={"capture_settle_s": 120.0})
     now = time.time()
-    sched = store.create_schedule(tenant_id=tenant["id"], inbox=str(inbox), cron="0 1 * * *", job={}, next_run_at=now - 1)
+    sched = store.schedules.create(tenant_id=tenant["id"], inbox=str(inbox), cron="0 1 * * *", job={}, next_run_at=now - 1)
     write_las(inbox / "a.laz", 500, seed=1)
     ScheduleClock(store, settings).tick(now)
-    rec = store.get_schedule(tenant["id"], sched["id"])
+    rec = store.schedules.get(tenant["id"], sched["id"])
     assert rec["next_run_at"] == pytest.approx(now + 120)  # not tomorrow at 01:00
     os.utime(inbox / "a.laz", (now - 600, now - 600))  # the copy has finished
     ScheduleClock(store, settings).tick(now + 121)
-    assert len(store.list_jobs(tenant["id"], schedule_id=sched["id"])) == 1
-    rec = store.get_schedule(tenant["id"], sched["id"])
+    assert len(store.jobs.list(tenant["id"], schedule_id=sched["id"])) == 1
+    rec = store.schedules.get(tenant["id"], sched["id"])
     assert rec["next_run_at"] == next_run_time("0 1 * * *", now + 121).timestamp()
 
 
@@ -350,7 +350,7 @@ def test_a_file_name_that_is_not_utf8_does_not_stop_the_scan(local):
     assert res["rejected"] == [{"file": "B\\xe4ume.las", "error": res["rejected"][0]["error"]}]
     assert "not valid UTF-8" in res["rejected"][0]["error"]
     json.dumps(res)  # the API returns it as it is
-    assert [f["path"] for f in store.schedule_files(sched["id"])] == [str(inbox / "zz new capture.laz")]
+    assert [f["path"] for f in store.schedules.files(sched["id"])] == [str(inbox / "zz new capture.laz")]
     # renamed, it is taken
     os.rename(bad, os.fsencode(inbox) + b"/Baeume.las")
     assert len(run_schedule(store, settings, sched)["jobs"]) == 1
@@ -386,7 +386,7 @@ def test_a_schedule_made_again_does_not_take_old_captures_again(local):
     write_las(inbox / "b.las", 600, seed=2)
     old = _schedule(store, tenant, inbox)
     assert len(run_schedule(store, settings, old)["jobs"]) == 2
-    store.delete_schedule(tenant["id"], old["id"])
+    store.schedules.delete(tenant["id"], old["id"])
     new = _schedule(store, tenant, inbox, cron="30 2 * * *")
     write_las(inbox / "c.laz", 700, seed=3)
     res = run_schedule(store, settings, new)
@@ -395,8 +395,8 @@ def test_a_schedule_made_again_does_not_take_old_captures_again(local):
     from service.schedules import file_sha256
 
     sha = file_sha256(inbox / "a.laz")
-    other = store.ensure_tenant("other")
-    assert store.capture_scheduled(tenant["id"], sha) and not store.capture_scheduled(other["id"], sha)
+    other = store.accounts.ensure_tenant("other")
+    assert store.schedules.capture_scheduled(tenant["id"], sha) and not store.schedules.capture_scheduled(other["id"], sha)
 
 
 def test_unusable_capture_is_rejected_once(local):
@@ -416,12 +416,12 @@ def test_clock_runs_due_schedules_and_sets_next_run(local):
     clock = ScheduleClock(store, settings)
     now = time.time()
     clock.tick(now)  # first look: computes the next run, runs nothing
-    rec = store.get_schedule(None, sched["id"])
+    rec = store.schedules.get_any_tenant(sched["id"])
     assert rec["next_run_at"] == next_run_time("0 1 * * *", now).timestamp()
-    assert store.list_jobs(tenant["id"]) == []
+    assert store.jobs.list(tenant["id"]) == []
     clock.tick(rec["next_run_at"] + 1)  # the night comes
-    assert len(store.list_jobs(tenant["id"])) == 1
-    rec2 = store.get_schedule(None, sched["id"])
+    assert len(store.jobs.list(tenant["id"])) == 1
+    rec2 = store.schedules.get_any_tenant(sched["id"])
     assert rec2["last_run_at"] == rec["next_run_at"] + 1
     assert rec2["next_run_at"] > rec["next_run_at"]
 
@@ -529,7 +529,7 @@ def test_cli_schedules_create_and_list(tmp_path, monkeypatch, capsys):
     assert main(["schedules", "run", sid, "--data-dir", str(data)]) == 0
     assert '"jobs": [' in capsys.readouterr().out
     store = Store(data / "orchard.sqlite")
-    assert len(store.list_jobs(store.tenant_by_name("farm-x")["id"], schedule_id=sid)) == 1
+    assert len(store.jobs.list(store.accounts.tenant_by_name("farm-x")["id"], schedule_id=sid)) == 1
     store.close()
 
 
@@ -560,12 +560,12 @@ def test_one_schedule_per_inbox_in_the_store_and_one_job_per_capture(local):
     sched = _schedule(store, tenant, inbox)
     with pytest.raises(ParameterError, match="already has a schedule"):
         _schedule(store, tenant, inbox)
-    block, _ = store.insert_block(tenant_id=tenant["id"], sha256="cd" * 32, path=str(inbox / "x.laz"),
+    block, _ = store.blocks.insert(tenant_id=tenant["id"], sha256="cd" * 32, path=str(inbox / "x.laz"),
                                   filename="x.laz", size_bytes=1, info={})
-    first = store.create_scheduled_job(schedule=sched, block_id=block["id"], sha256="cd" * 32, path="x.laz")
-    again = store.create_scheduled_job(schedule=sched, block_id=block["id"], sha256="cd" * 32, path="x.laz")
+    first = store.schedules.create_job(schedule=sched, block_id=block["id"], sha256="cd" * 32, path="x.laz")
+    again = store.schedules.create_job(schedule=sched, block_id=block["id"], sha256="cd" * 32, path="x.laz")
     assert first["schedule_id"] == sched["id"] and again is None
-    assert len(store.list_jobs(tenant["id"])) == 1
+    assert len(store.jobs.list(tenant["id"])) == 1
 
 
 def test_links_in_an_inbox_are_not_followed(local, tmp_path):
@@ -580,7 +580,7 @@ def test_links_in_an_inbox_are_not_followed(local, tmp_path):
     sched = _schedule(store, tenant, inbox)
     res = run_schedule(store, settings, sched)
     assert len(res["jobs"]) == 1 and res["skipped"] == 0
-    assert store.get_block(None, store.get_job(None, res["jobs"][0])["block_id"])["filename"] == "mine.laz"
+    assert store.blocks.get(tenant["id"], store.jobs.get(tenant["id"], res["jobs"][0])["block_id"])["filename"] == "mine.laz"
     # the inbox itself swapped for a link to another folder after the schedule was made
     sub = tmp_path / "sub"
     sub.mkdir()
@@ -600,24 +600,24 @@ def test_a_paused_schedule_is_skipped_by_the_clock_and_resumes_at_its_next_cron_
     clock = ScheduleClock(store, settings)
     now = time.time()
     clock.tick(now)
-    due = store.get_schedule(None, sched["id"])["next_run_at"]
-    sched = store.get_schedule(None, sched["id"])
-    store.update_schedule(tenant["id"], sched["id"], schedule_changes(sched, {"paused": True}))
-    paused = store.get_schedule(None, sched["id"])
+    due = store.schedules.get_any_tenant(sched["id"])["next_run_at"]
+    sched = store.schedules.get_any_tenant(sched["id"])
+    store.schedules.update(tenant["id"], sched["id"], schedule_changes(sched, {"paused": True}))
+    paused = store.schedules.get_any_tenant(sched["id"])
     assert paused["paused"] == 1 and paused["next_run_at"] is None
     for night in range(3):  # three nights pass: nothing is scanned, nothing is set
         clock.tick(due + 1 + night * 86400)
-    assert store.list_jobs(tenant["id"]) == []
-    assert store.get_schedule(None, sched["id"])["next_run_at"] is None
+    assert store.jobs.list(tenant["id"]) == []
+    assert store.schedules.get_any_tenant(sched["id"])["next_run_at"] is None
     # a scan by hand still runs, and does not bring a paused schedule forward
     assert len(run_schedule(store, settings, paused)["jobs"]) == 1
-    assert store.get_schedule(None, sched["id"])["next_run_at"] is None
+    assert store.schedules.get_any_tenant(sched["id"])["next_run_at"] is None
     # resumed three nights later: from the next cron time, the missed nights not made up
     later = datetime.fromtimestamp(due + 3 * 86400 + 3600).astimezone()
     changes = schedule_changes(paused, {"paused": False}, now=later)
     assert changes == {"paused": False, "next_run_at": next_run_time("0 1 * * *", later).timestamp()}
-    store.update_schedule(tenant["id"], sched["id"], changes)
-    rec = store.get_schedule(None, sched["id"])
+    store.schedules.update(tenant["id"], sched["id"], changes)
+    rec = store.schedules.get_any_tenant(sched["id"])
     assert rec["paused"] == 0 and rec["next_run_at"] == changes["next_run_at"]
 
 
@@ -626,14 +626,14 @@ def test_the_clock_does_not_undo_a_pause_or_a_new_cron_made_while_it_ran(local):
     # stored meanwhile must win
     _, store, tenant, inbox = local
     sched = _schedule(store, tenant, inbox)
-    store.update_schedule(tenant["id"], sched["id"], {"paused": True, "next_run_at": None})
-    store.set_schedule_times(sched["id"], cron=sched["cron"], last_run_at=1.0, next_run_at=2.0)
-    assert store.get_schedule(None, sched["id"])["next_run_at"] is None
-    store.update_schedule(tenant["id"], sched["id"], {"paused": False, "cron": "0 3 * * *", "next_run_at": 5.0})
-    store.set_schedule_times(sched["id"], cron="0 1 * * *", last_run_at=1.0, next_run_at=2.0)
-    assert store.get_schedule(None, sched["id"])["next_run_at"] == 5.0
-    store.set_schedule_times(sched["id"], cron="0 3 * * *", last_run_at=1.0, next_run_at=7.0)
-    rec = store.get_schedule(None, sched["id"])
+    store.schedules.update(tenant["id"], sched["id"], {"paused": True, "next_run_at": None})
+    store.schedules.set_times(sched["id"], cron=sched["cron"], last_run_at=1.0, next_run_at=2.0)
+    assert store.schedules.get_any_tenant(sched["id"])["next_run_at"] is None
+    store.schedules.update(tenant["id"], sched["id"], {"paused": False, "cron": "0 3 * * *", "next_run_at": 5.0})
+    store.schedules.set_times(sched["id"], cron="0 1 * * *", last_run_at=1.0, next_run_at=2.0)
+    assert store.schedules.get_any_tenant(sched["id"])["next_run_at"] == 5.0
+    store.schedules.set_times(sched["id"], cron="0 3 * * *", last_run_at=1.0, next_run_at=7.0)
+    rec = store.schedules.get_any_tenant(sched["id"])
     assert rec["next_run_at"] == 7.0 and rec["last_run_at"] == 1.0
 
 
@@ -649,7 +649,7 @@ def test_a_store_from_before_pausing_gains_the_column(tmp_path):
     con.commit()
     con.close()
     store = Store(path)
-    assert store.get_schedule(None, "s")["paused"] == 0
+    assert store.schedules.get_any_tenant("s")["paused"] == 0
     store.close()
 
 
@@ -709,7 +709,7 @@ def test_cli_schedules_pause_resume_and_update(tmp_path, capsys):
     assert main(["schedules", "update", sid, "--cron", "15 3 * * *", "--tile-size", "40", "--data-dir", str(data)]) == 0
     capsys.readouterr()
     store = Store(data / "orchard.sqlite")
-    rec = store.get_schedule(None, sid)
+    rec = store.schedules.get_any_tenant(sid)
     store.close()
     assert rec["cron"] == "15 3 * * *" and request_tiling(rec["job"]) == {"tile_size": 40.0, "buffer": None} and rec["paused"] == 0
     for args, fragment in ((["--cron", "61 * * * *"], "minute field"), ([], "nothing to change"),
@@ -721,7 +721,7 @@ def test_cli_schedules_pause_resume_and_update(tmp_path, capsys):
     assert main(["schedules", "update", sid, "--buffer", "9", "--data-dir", str(data)]) == 0  # keeps its 40 m tiles
     assert main(["schedules", "update", sid, "--tile-size", "30", "--data-dir", str(data)]) == 0  # keeps its 9 m buffer
     store = Store(data / "orchard.sqlite")
-    assert request_tiling(store.get_schedule(None, sid)["job"]) == {"tile_size": 30.0, "buffer": 9.0}
+    assert request_tiling(store.schedules.get_any_tenant(sid)["job"]) == {"tile_size": 30.0, "buffer": 9.0}
     store.close()
     # a check of the tiling speaks of the command's options, not the API's fields
     assert main(["schedules", "update", sid, "--buffer", "3", "--data-dir", str(data)]) == 2
@@ -734,7 +734,7 @@ def test_cli_schedules_pause_resume_and_update(tmp_path, capsys):
                  "--data-dir", str(data)]) == 0
     capsys.readouterr()
     store = Store(data / "orchard.sqlite")
-    rec = store.get_schedule(None, sid)
+    rec = store.schedules.get_any_tenant(sid)
     store.close()
     params = rec["job"]["pipeline"]
     assert params["trunks"]["min_tree_height"] == 1.5 and params["segment"]["max_crown_radius"] == 1.5
@@ -764,19 +764,19 @@ def test_a_change_or_pause_during_a_long_scan_applies_to_the_captures_queued_aft
 
     def copy_and_change(src, dst):
         if change:
-            store.update_schedule(tenant["id"], sched["id"], change.copy())
+            store.schedules.update(tenant["id"], sched["id"], change.copy())
             change.clear()
         return real_copy(src, dst)
 
     monkeypatch.setattr(schedules, "_copy_hashed", copy_and_change)
     change.update(paused=True)  # paused while the clock's scan reads its first capture
     res = run_schedule(store, settings, sched, by_clock=True)
-    assert res["jobs"] == [] and store.list_jobs(tenant["id"]) == []
+    assert res["jobs"] == [] and store.jobs.list(tenant["id"]) == []
     new = {"segment": {"max_crown_radius": 3.0}}
     change.update(job={"pipeline": new})  # a scan by hand of the paused schedule runs on, with the new parameters
-    res = run_schedule(store, settings, store.get_schedule(None, sched["id"]))
+    res = run_schedule(store, settings, store.schedules.get_any_tenant(sched["id"]))
     assert len(res["jobs"]) == 3
-    assert all(j["job"]["pipeline"] == new for j in store.list_jobs(tenant["id"]))
+    assert all(j["job"]["pipeline"] == new for j in store.jobs.list(tenant["id"]))
 
 
 def test_two_changes_at_once_cannot_store_a_buffer_below_the_reach(local):
@@ -788,7 +788,7 @@ def test_two_changes_at_once_cannot_store_a_buffer_below_the_reach(local):
     from service.jobrequests import schedule_changes
 
     settings, store, tenant, inbox = local
-    sched = store.create_schedule(tenant_id=tenant["id"], inbox=str(inbox), cron="0 1 * * *",
+    sched = store.schedules.create(tenant_id=tenant["id"], inbox=str(inbox), cron="0 1 * * *",
                                   job={"pipeline": {"segment": {"max_crown_radius": 2.0}}, "tiling": {"tile_size": 30.0}},
                                   next_run_at=None)
     inside = threading.Event()
@@ -799,17 +799,17 @@ def test_two_changes_at_once_cannot_store_a_buffer_below_the_reach(local):
         time.sleep(0.5)  # still in its write transaction
         return changes
 
-    first = threading.Thread(target=store.update_schedule, args=(tenant["id"], sched["id"], slow_params))
+    first = threading.Thread(target=store.schedules.update, args=(tenant["id"], sched["id"], slow_params))
     first.start()
     assert inside.wait(10)
     other = Store(settings.store_path)  # another request's connection
     try:
         with pytest.raises(ParameterError, match="buffer"):
-            other.update_schedule(tenant["id"], sched["id"],
+            other.schedules.update(tenant["id"], sched["id"],
                                   lambda current: schedule_changes(current, {"tiling": {"tile_size": 30, "buffer": 3.5}}))
     finally:
         first.join(10)
         other.close()
-    rec = store.get_schedule(None, sched["id"])
+    rec = store.schedules.get_any_tenant(sched["id"])
     assert request_tiling(rec["job"]) == {"tile_size": 30.0, "buffer": None}
     assert rec["job"]["pipeline"]["segment"]["max_crown_radius"] == 5.0

@@ -19,19 +19,19 @@ from service.settings import Settings
 def local(tmp_path):
     settings = Settings(data_dir=tmp_path / "data", capture_settle_s=0)
     store = Store(settings.store_path)
-    tenant = store.ensure_tenant("farm")
+    tenant = store.accounts.ensure_tenant("farm")
     yield settings, store, tenant, tmp_path
     store.close()
 
 
 def _schedule(store, tenant, inbox, block):
-    return store.create_schedule(tenant_id=tenant["id"], inbox=str(inbox), cron="0 1 * * *", job={},
+    return store.schedules.create(tenant_id=tenant["id"], inbox=str(inbox), cron="0 1 * * *", job={},
                                  next_run_at=None, orchard_block_id=block["id"] if block else None)
 
 
 def test_each_file_landing_in_a_blocks_inbox_is_one_more_capture(local):
     settings, store, tenant, root = local
-    north, south = store.create_orchard_block(tenant["id"], "north"), store.create_orchard_block(tenant["id"], "south")
+    north, south = store.orchard_blocks.create(tenant["id"], "north"), store.orchard_blocks.create(tenant["id"], "south")
     inboxes = {}
     for ob in (north, south):
         inboxes[ob["name"]] = root / f"inbox-{ob['name']}"
@@ -45,24 +45,24 @@ def test_each_file_landing_in_a_blocks_inbox_is_one_more_capture(local):
     # night 2: the next capture of north lands; the clock's scan takes it (and nothing twice)
     write_las(inboxes["north"] / "night2.laz", 300, seed=3)
     for s in (s_north, s_south):
-        store.update_schedule(None, s["id"], {"next_run_at": time.time() - 1})
+        store.schedules.update_any_tenant(s["id"], {"next_run_at": time.time() - 1})
     ScheduleClock(store, settings).tick()
-    north_caps = store.list_captures(tenant["id"], north["id"])
-    south_caps = store.list_captures(tenant["id"], south["id"])
+    north_caps = store.orchard_blocks.list_captures(tenant["id"], north["id"])
+    south_caps = store.orchard_blocks.list_captures(tenant["id"], south["id"])
     assert [c["seq"] for c in north_caps] == [1, 2] and len(south_caps) == 1
-    files = {c["block_id"]: store.get_block(tenant["id"], c["block_id"])["filename"] for c in north_caps + south_caps}
+    files = {c["block_id"]: store.blocks.get(tenant["id"], c["block_id"])["filename"] for c in north_caps + south_caps}
     assert [files[c["block_id"]] for c in north_caps] == ["night1.laz", "night2.laz"]
     assert first[s_north["id"]]["jobs"] == [north_caps[0]["job_id"]]
     assert first[s_south["id"]]["jobs"] == [south_caps[0]["job_id"]]  # south's file is south's capture only
     # the second night's capture waits for the first of its block, not for the other block's
-    claimed = [store.claim_next_job()["id"] for _ in range(2)]
-    assert claimed == [north_caps[0]["job_id"], south_caps[0]["job_id"]] and store.claim_next_job() is None
+    claimed = [store.jobs.claim_next()["id"] for _ in range(2)]
+    assert claimed == [north_caps[0]["job_id"], south_caps[0]["job_id"]] and store.jobs.claim_next() is None
     # a plain schedule beside them queues plain jobs, as before
     plain_inbox = root / "plain"
     plain_inbox.mkdir()
     write_las(plain_inbox / "x.laz", 300, seed=4)
     res = run_schedule(store, settings, _schedule(store, tenant, plain_inbox, None))
-    assert len(res["jobs"]) == 1 and store.capture_of_job(res["jobs"][0]) is None
+    assert len(res["jobs"]) == 1 and store.orchard_blocks.capture_of_job(tenant["id"], res["jobs"][0]) is None
 
 
 def test_cli_blocks_create_list_captures_and_a_blocks_schedule(tmp_path, monkeypatch, capsys):

@@ -11,7 +11,8 @@ import pytest
 from service_fixtures import app_in_thread, make_token, write_las
 
 from service.api.uploads import FilePart
-from service.db.jobstore import Store
+from service.db.accounts import Accounts
+from service.db.job_queue import JobQueue
 from service.settings import Settings
 
 
@@ -57,14 +58,14 @@ def test_a_job_store_locked_for_too_long_is_503_with_retry_after(server, tmp_pat
     def locked(self, **kw):
         raise sqlite3.OperationalError("database is locked")
 
-    monkeypatch.setattr(Store, "create_job", locked)
+    monkeypatch.setattr(JobQueue, "create", locked)
     r = c.post("/v1/jobs", json={"block_id": up["id"]})
     assert r.status_code == 503 and r.headers["retry-after"] == "5", r.text
     assert "busy" in r.json()["detail"]
     def full(self, **kw):
         raise sqlite3.OperationalError("database or disk is full")
 
-    monkeypatch.setattr(Store, "create_job", full)  # the store's own disk is full: a 500 before
+    monkeypatch.setattr(JobQueue, "create", full)  # the store's own disk is full: a 500 before
     r = c.post("/v1/jobs", json={"block_id": up["id"]})
     assert r.status_code == 507 and "no disk space left" in r.json()["detail"], r.text
     monkeypatch.undo()
@@ -77,7 +78,7 @@ def test_the_command_line_says_a_full_disk_is_one(tmp_path, monkeypatch, capsys)
     def full(self, name):
         raise sqlite3.OperationalError("database or disk is full")
 
-    monkeypatch.setattr(Store, "ensure_tenant", full)
+    monkeypatch.setattr(Accounts, "ensure_tenant", full)
     assert main(["tokens", "create", "--tenant", "farm", "--data-dir", str(tmp_path / "d")]) == 1
     err = capsys.readouterr().err
     assert err.startswith("orchard tokens: the disk is full (database or disk is full)") and "internal error" not in err

@@ -8,11 +8,10 @@ import threading
 import pytest
 
 from pipeline.errors import InputError
-from service.auth import authenticate, create_token, hash_token
+from service.auth import UnauthorizedError, authenticate, create_token, hash_token
 from service.db.block_files import accept_block
 from service.db.errors import ConflictError, NotFoundError
 from service.db.jobstore import Store
-from service.errors import UnauthorizedError
 from service_fixtures import write_las
 
 
@@ -24,7 +23,7 @@ def store(tmp_path):
 
 
 def _block(store, tenant_id, sha="ab" * 32):
-    block, _ = store.insert_block(tenant_id=tenant_id, sha256=sha, path=f"/x/{sha}.las", filename="b.las", size_bytes=10, info={"n_points": 1})
+    block, _ = store.blocks.insert(tenant_id=tenant_id, sha256=sha, path=f"/x/{sha}.las", filename="b.las", size_bytes=10, info={"n_points": 1})
     return block
 
 
@@ -35,46 +34,46 @@ def test_wal_mode(store):
 
 
 def test_job_states(store):
-    t = store.ensure_tenant("farm")
+    t = store.accounts.ensure_tenant("farm")
     b = _block(store, t["id"])
-    job = store.create_job(tenant_id=t["id"], block_id=b["id"], job={})
+    job = store.jobs.create(tenant_id=t["id"], block_id=b["id"], job={})
     assert job["state"] == "queued"
-    claimed = store.claim_next_job()
+    claimed = store.jobs.claim_next()
     assert claimed["id"] == job["id"] and claimed["state"] == "running" and claimed["attempts"] == 1
-    assert store.claim_next_job() is None
-    store.set_progress(job["id"], 2, 5)
-    assert (store.get_job(t["id"], job["id"])["tiles_done"], store.get_job(t["id"], job["id"])["tiles_total"]) == (2, 5)
-    done = store.finish_job(job["id"], "done", outcome={"n_trees": 3}, timings={"total": 1.5})
+    assert store.jobs.claim_next() is None
+    store.jobs.set_progress(job["id"], 2, 5)
+    assert (store.jobs.get(t["id"], job["id"])["tiles_done"], store.jobs.get(t["id"], job["id"])["tiles_total"]) == (2, 5)
+    done = store.jobs.finish(job["id"], "done", outcome={"n_trees": 3}, timings={"total": 1.5})
     assert done["state"] == "done" and done["tiles_done"] == 5 and done["outcome"]["n_trees"] == 3
     with pytest.raises(ConflictError):
-        store.request_cancel(t["id"], job["id"])
+        store.jobs.request_cancel(t["id"], job["id"])
 
 
 def test_cancel_queued_and_running(store):
-    t = store.ensure_tenant("farm")
+    t = store.accounts.ensure_tenant("farm")
     b = _block(store, t["id"])
-    j1 = store.create_job(tenant_id=t["id"], block_id=b["id"], job={})
-    j2 = store.create_job(tenant_id=t["id"], block_id=b["id"], job={})
-    running = store.claim_next_job()
+    j1 = store.jobs.create(tenant_id=t["id"], block_id=b["id"], job={})
+    j2 = store.jobs.create(tenant_id=t["id"], block_id=b["id"], job={})
+    running = store.jobs.claim_next()
     assert running["id"] == j1["id"]
-    assert store.request_cancel(t["id"], j2["id"])["state"] == "cancelled"
-    r = store.request_cancel(t["id"], j1["id"])
+    assert store.jobs.request_cancel(t["id"], j2["id"])["state"] == "cancelled"
+    r = store.jobs.request_cancel(t["id"], j1["id"])
     assert r["state"] == "running" and r["cancel_requested"] == 1
-    assert store.cancel_requested(j1["id"])
-    assert store.claim_next_job() is None  # the cancelled one is never picked up
+    assert store.jobs.cancel_requested(j1["id"])
+    assert store.jobs.claim_next() is None  # the cancelled one is never picked up
 
 
 def test_requeue_running_after_a_crash(tmp_path):
     s1 = Store(tmp_path / "o.sqlite")
-    t = s1.ensure_tenant("farm")
+    t = s1.accounts.ensure_tenant("farm")
     b = _block(s1, t["id"])
-    j = s1.create_job(tenant_id=t["id"], block_id=b["id"], job={"pipeline": {"a": 1}, "tiling": {"tile_size": 20.0}})
-    s1.claim_next_job()
+    j = s1.jobs.create(tenant_id=t["id"], block_id=b["id"], job={"pipeline": {"a": 1}, "tiling": {"tile_size": 20.0}})
+    s1.jobs.claim_next()
     s1.close()  # the process dies with the job running
     s2 = Store(tmp_path / "o.sqlite")
-    assert s2.get_job(None, j["id"])["state"] == "running"
-    assert s2.requeue_running() == 1
-    again = s2.claim_next_job()
+    assert s2.jobs.get_any_tenant(j["id"])["state"] == "running"
+    assert s2.jobs.requeue_running() == 1
+    again = s2.jobs.claim_next()
     # the service's death is a crash, not an attempt of the job's (attempts are for a lost cluster)
     assert again["id"] == j["id"] and again["attempts"] == 1 and again["crashes"] == 1
     assert again["job"]["tiling"]["tile_size"] == 20.0
@@ -82,13 +81,13 @@ def test_requeue_running_after_a_crash(tmp_path):
 
 
 def test_claim_is_atomic_across_threads(store):
-    t = store.ensure_tenant("farm")
+    t = store.accounts.ensure_tenant("farm")
     b = _block(store, t["id"])
-    ids = {store.create_job(tenant_id=t["id"], block_id=b["id"], job={})["id"] for _ in range(20)}
+    ids = {store.jobs.create(tenant_id=t["id"], block_id=b["id"], job={})["id"] for _ in range(20)}
     got, lock = [], threading.Lock()
 
     def worker():
-        while (job := store.claim_next_job()) is not None:
+        while (job := store.jobs.claim_next()) is not None:
             with lock:
                 got.append(job["id"])
 
@@ -101,35 +100,35 @@ def test_claim_is_atomic_across_threads(store):
 
 
 def test_tenant_isolation(store):
-    a, b = store.ensure_tenant("a"), store.ensure_tenant("b")
+    a, b = store.accounts.ensure_tenant("a"), store.accounts.ensure_tenant("b")
     blk = _block(store, a["id"])
-    job = store.create_job(tenant_id=a["id"], block_id=blk["id"], job={})
+    job = store.jobs.create(tenant_id=a["id"], block_id=blk["id"], job={})
     with pytest.raises(NotFoundError):
-        store.get_block(b["id"], blk["id"])
+        store.blocks.get(b["id"], blk["id"])
     with pytest.raises(NotFoundError):
-        store.get_job(b["id"], job["id"])
+        store.jobs.get(b["id"], job["id"])
     with pytest.raises(NotFoundError):
-        store.request_cancel(b["id"], job["id"])
-    assert store.list_jobs(b["id"]) == [] and store.list_blocks(b["id"]) == []
+        store.jobs.request_cancel(b["id"], job["id"])
+    assert store.jobs.list(b["id"]) == [] and store.blocks.list(b["id"]) == []
 
 
 def test_tokens_are_stored_hashed(store):
     token = create_token(store, "farm")
     assert authenticate(store, f"Bearer {token}")["name"] == "farm"
-    assert store.tenant_for_token(hash_token(token)) is not None
-    rows = store._con().execute("SELECT hash FROM tokens").fetchall()
+    assert store.accounts.tenant_for_token(hash_token(token)) is not None
+    rows = store.db.connection().execute("SELECT hash FROM tokens").fetchall()
     assert [r[0] for r in rows] == [hash_token(token)]
     assert token.encode() not in store.path.read_bytes()
     for header in (None, "", "Bearer", "Token " + token, "Bearer x" + token):
         with pytest.raises(UnauthorizedError):
             authenticate(store, header)
-    assert store.revoke_token(hash_token(token))
+    assert store.accounts.revoke_token(hash_token(token))
     with pytest.raises(UnauthorizedError):
         authenticate(store, f"Bearer {token}")
 
 
 def test_accept_block_lands_file_and_dedupes(store, tmp_path):
-    t = store.ensure_tenant("farm")
+    t = store.accounts.ensure_tenant("farm")
     src = write_las(tmp_path / "in.laz", 300, seed=4)
     import hashlib
 
@@ -159,24 +158,24 @@ def test_block_files_are_found_in_the_data_folder_whatever_path_was_recorded(tmp
 
     data = tmp_path / "data"
     store = Store(data / "orchard.sqlite")
-    t = store.ensure_tenant("farm")
+    t = store.accounts.ensure_tenant("farm")
     src = write_las(tmp_path / "in.laz", 300, seed=4)
     sha = hashlib.sha256(src.read_bytes()).hexdigest()
     (data / "blocks").mkdir()
     shutil.copy(src, data / "blocks" / f"{sha}.laz")
-    block, _ = store.insert_block(tenant_id=t["id"], sha256=sha, path=f"data/blocks/{sha}.laz", filename="in.laz",
+    block, _ = store.blocks.insert(tenant_id=t["id"], sha256=sha, path=f"data/blocks/{sha}.laz", filename="in.laz",
                                   size_bytes=src.stat().st_size, info={"n_points": 300})
     elsewhere = tmp_path / "elsewhere"
     elsewhere.mkdir()
     monkeypatch.chdir(elsewhere)
-    for rec in (store.get_block(None, block["id"]), store.list_blocks(t["id"])[0], store.block_by_sha(t["id"], sha)):
+    for rec in (store.blocks.get(t["id"], block["id"]), store.blocks.list(t["id"])[0], store.blocks.by_sha(t["id"], sha)):
         assert rec["path"] == str(data / "blocks" / f"{sha}.laz")
     store.close()
     # the data folder moved (or mounted elsewhere): its blocks come with it
     moved = tmp_path / "moved"
     shutil.move(data, moved)
     store = Store(moved / "orchard.sqlite")
-    assert store.get_block(None, block["id"])["path"] == str(moved / "blocks" / f"{sha}.laz")
+    assert store.blocks.get(t["id"], block["id"])["path"] == str(moved / "blocks" / f"{sha}.laz")
     # a file landed again under a new path mends the record
     (moved / "blocks" / f"{sha}.laz").unlink()
     again = tmp_path / "again.part"
@@ -184,7 +183,7 @@ def test_block_files_are_found_in_the_data_folder_whatever_path_was_recorded(tmp
     rec, created = accept_block(store, blocks_dir=tmp_path / "new-blocks", tenant_id=t["id"], tmp_path=again, sha256=sha,
                                 size_bytes=src.stat().st_size, filename="in.laz")
     assert not created and rec["id"] == block["id"] and rec["path"] == str(tmp_path / "new-blocks" / f"{sha}.laz")
-    assert store.get_block(None, block["id"])["path"] == rec["path"]
+    assert store.blocks.get(t["id"], block["id"])["path"] == rec["path"]
     store.close()
 
 

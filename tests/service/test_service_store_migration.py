@@ -54,7 +54,7 @@ def test_params_and_tiling_become_one_job_column_in_place(old_store):
         for table in ("jobs", "schedules"):
             cols = _columns(old_store, table)
             assert "job" in cols and not {"params", "tiling"} & cols, table
-        jobs = {j["state"]: j for j in store.list_jobs(store.tenant_by_name("farm")["id"])}
+        jobs = {j["state"]: j for j in store.jobs.list(store.accounts.tenant_by_name("farm")["id"])}
         tiled = jobs["running"]["job"]
         assert tiled == {"pipeline": {"segment": {"max_crown_radius": 2.0}}, "tiling": {"tile_size": 20.0, "buffer": 4.0}}
         job = JobParams.model_validate(tiled)  # what the runner makes of it
@@ -67,7 +67,7 @@ def test_params_and_tiling_become_one_job_column_in_place(old_store):
         # an error stored as text before failures had kinds is said as it was
         assert job_error(jobs["failed"]) == "north.laz: no trees found in 100 points"
         assert job_out(jobs["failed"]).error == "north.laz: no trees found in 100 points"
-        scheds = {s["inbox"]: s for s in store.list_schedules()}
+        scheds = {s["inbox"]: s for s in store.schedules.list_any_tenant()}
         assert scheds["/in/a"]["job"] == {"pipeline": {"trunks": {"min_tree_height": 1.5}}, "tiling": {"tile_size": 30.0, "buffer": None}}
         assert schedule_out(scheds["/in/a"]).tiling == {"tile_size": 30.0, "buffer": None}
         assert schedule_out(scheds["/in/b"]).tiling is None
@@ -78,19 +78,19 @@ def test_params_and_tiling_become_one_job_column_in_place(old_store):
 def test_the_merged_store_keeps_working_and_is_not_merged_twice(old_store):
     store = Store(old_store)
     try:
-        tenant = store.tenant_by_name("farm")
-        assert store.requeue_running() == 1  # the running job of the old service
-        again = store.claim_next_job()
+        tenant = store.accounts.tenant_by_name("farm")
+        assert store.jobs.requeue_running() == 1  # the running job of the old service
+        again = store.jobs.claim_next()
         assert again["job"]["tiling"]["tile_size"] == 20.0
-        store.finish_job(again["id"], "failed", error_kind="no_trees", error_fields={"message": "no trees found"})
-        new = store.create_job(tenant_id=tenant["id"], block_id=again["block_id"], job=JobParams().model_dump(mode="json"))
+        store.jobs.finish(again["id"], "failed", error_kind="no_trees", error_fields={"message": "no trees found"})
+        new = store.jobs.create(tenant_id=tenant["id"], block_id=again["block_id"], job=JobParams().model_dump(mode="json"))
         assert JobParams.model_validate(new["job"]) == JobParams()
     finally:
         store.close()
     second = Store(old_store)  # opened again (another process): nothing left to merge
     try:
-        assert job_error(second.get_job(None, again["id"])) == "no trees found"
-        assert len(second.list_jobs(tenant["id"])) == 3
+        assert job_error(second.jobs.get_any_tenant(again["id"])) == "no trees found"
+        assert len(second.jobs.list(tenant["id"])) == 3
     finally:
         second.close()
 

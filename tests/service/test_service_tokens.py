@@ -16,10 +16,9 @@ from fastapi.testclient import TestClient
 from service_fixtures import client_of, write_las
 
 from service.app import create_app
-from service.auth import TOUCH_INTERVAL_S, authenticate, create_token, hash_token, issue_token
+from service.auth import TOUCH_INTERVAL_S, UnauthorizedError, authenticate, create_token, hash_token, issue_token
 from service.cli import main
 from service.db.jobstore import Store
-from service.errors import UnauthorizedError
 from service.permissions import tighten
 from service.settings import Settings
 
@@ -41,7 +40,7 @@ def test_a_token_has_an_id_and_a_visible_prefix_that_are_not_secret(store):
     assert sep == "_"
     assert rec["prefix"] == prefix and prefix.startswith("orch_") and len(prefix) == 13
     assert len(secret) == 43 and len(rec["id"]) == 12
-    listed = store.list_tokens()
+    listed = store.accounts.list_tokens_any_tenant()
     assert [(t["tenant"], t["id"], t["prefix"]) for t in listed] == [("farm", rec["id"], prefix)]
     assert "hash" not in listed[0] and secret not in repr(listed)
     assert token.encode() not in store.path.read_bytes()
@@ -54,22 +53,22 @@ def test_tokens_are_listed_per_tenant_with_their_last_use(store):
     issue_token(store, "farm-b")
     t0 = time.time()
     assert authenticate(store, f"Bearer {a1}", now=t0)["name"] == "farm-a"
-    tenant_a = store.tenant_by_name("farm-a")
-    [row] = store.list_tokens(tenant_a["id"])
+    tenant_a = store.accounts.tenant_by_name("farm-a")
+    [row] = store.accounts.list_tokens(tenant_a["id"])
     assert row["id"] == rec_a1["id"] and row["last_used_at"] == t0
     # a request a second later writes nothing (one write a minute at most), a later one does
     authenticate(store, f"Bearer {a1}", now=t0 + 1)
-    assert store.list_tokens(tenant_a["id"])[0]["last_used_at"] == t0
+    assert store.accounts.list_tokens(tenant_a["id"])[0]["last_used_at"] == t0
     authenticate(store, f"Bearer {a1}", now=t0 + TOUCH_INTERVAL_S)
-    assert store.list_tokens(tenant_a["id"])[0]["last_used_at"] == t0 + TOUCH_INTERVAL_S
-    assert [t["tenant"] for t in store.list_tokens()] == ["farm-a", "farm-b"]
+    assert store.accounts.list_tokens(tenant_a["id"])[0]["last_used_at"] == t0 + TOUCH_INTERVAL_S
+    assert [t["tenant"] for t in store.accounts.list_tokens_any_tenant()] == ["farm-a", "farm-b"]
 
 
 def test_revoke_by_id_refuses_that_token_only(store):
     keep, _ = issue_token(store, "farm")
     gone, rec = issue_token(store, "farm")
-    assert store.revoke_token_id(rec["id"])
-    assert not store.revoke_token_id(rec["id"])
+    assert store.accounts.revoke_token_id(rec["id"])
+    assert not store.accounts.revoke_token_id(rec["id"])
     with pytest.raises(UnauthorizedError, match="unknown or revoked"):
         authenticate(store, f"Bearer {gone}")
     assert authenticate(store, f"Bearer {keep}")["name"] == "farm"
@@ -101,13 +100,13 @@ def test_a_store_written_before_token_ids_keeps_its_tokens(tmp_path):
     store = Store(path)
     try:
         assert authenticate(store, f"Bearer {old}")["name"] == "farm"
-        [row] = store.list_tokens()
+        [row] = store.accounts.list_tokens_any_tenant()
         assert row["prefix"] is None and row["expires_at"] is None and row["created_at"] == 2.0
         assert len(row["id"]) == 12 and row["last_used_at"] is not None
         store.close()
         store = Store(path)  # opening it again changes nothing
-        assert [t["id"] for t in store.list_tokens()] == [row["id"]]
-        assert store.revoke_token_id(row["id"])
+        assert [t["id"] for t in store.accounts.list_tokens_any_tenant()] == [row["id"]]
+        assert store.accounts.revoke_token_id(row["id"])
         with pytest.raises(UnauthorizedError):
             authenticate(store, f"Bearer {old}")
     finally:
@@ -212,7 +211,7 @@ def test_an_expired_token_is_a_401_over_http(tmp_path):
     settings = Settings(data_dir=tmp_path / "data", runner=False, scheduling=False)
     store = Store(settings.store_path)
     token, rec = issue_token(store, "farm", expires_in_s=3600)
-    store._con().execute("UPDATE tokens SET expires_at = ? WHERE id = ?", (time.time() - 1, rec["id"]))
+    store.db.connection().execute("UPDATE tokens SET expires_at = ? WHERE id = ?", (time.time() - 1, rec["id"]))
     store.close()
     with TestClient(create_app(settings)) as c:
         r = c.get("/v1/jobs", headers={"Authorization": f"Bearer {token}"})

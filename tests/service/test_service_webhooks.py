@@ -75,8 +75,8 @@ def env(tmp_path):
     settings = Settings(data_dir=tmp_path / "data", runner_poll_s=0.05, job_retries=0, webhook_backoff_s=0.05,
                         webhook_attempts=3, webhook_poll_s=0.05, capture_settle_s=0)
     store = Store(settings.store_path)
-    tenant = store.ensure_tenant("farm")
-    block, _ = store.insert_block(tenant_id=tenant["id"], sha256="ab" * 32, path=str(tmp_path / "b.laz"),
+    tenant = store.accounts.ensure_tenant("farm")
+    block, _ = store.blocks.insert(tenant_id=tenant["id"], sha256="ab" * 32, path=str(tmp_path / "b.laz"),
                                   filename="b.laz", size_bytes=1, info={})
     yield settings, store, tenant, block
     store.close()
@@ -119,7 +119,7 @@ def test_only_http_urls_of_allowed_hosts(url, words):
 def test_a_signed_call_per_finished_job_and_a_retry_after_a_500(env, receiver, monkeypatch):
     settings, store, tenant, block = env
     receiver.answers = [500]
-    hook = store.create_webhook(tenant_id=tenant["id"], url=receiver.url, secret=SECRET, schedule_id=None,
+    hook = store.webhooks.create(tenant_id=tenant["id"], url=receiver.url, secret=SECRET, schedule_id=None,
                                 events=["job.done", "job.failed"])
     outcomes = iter([workers_jobspec.JobOutcome(100, 3, 1, [], False, {}, {"trees": "t"}), InputError("b.laz: truncated")])
 
@@ -137,12 +137,12 @@ def test_a_signed_call_per_finished_job_and_a_retry_after_a_500(env, receiver, m
             sender.wake()
 
     runner = Runner(store, settings, client_factory=lambda: None, on_final=notify)
-    done_job = store.create_job(tenant_id=tenant["id"], block_id=block["id"], job={})
+    done_job = store.jobs.create(tenant_id=tenant["id"], block_id=block["id"], job={})
     sender.start()
     runner.start()
     try:
         calls = receiver.wait_for(2)  # the done job's call, answered 500, and its retry
-        store.create_job(tenant_id=tenant["id"], block_id=block["id"], job={})
+        store.jobs.create(tenant_id=tenant["id"], block_id=block["id"], job={})
         calls = receiver.wait_for(3)
     finally:
         runner.stop()
@@ -152,7 +152,7 @@ def test_a_signed_call_per_finished_job_and_a_retry_after_a_500(env, receiver, m
     assert first == retry and first["event"] == "job.done" and first["job"]["id"] == done_job["id"]
     assert first["job"]["n_trees"] == 3 and first["job"]["links"]["page"] == f"/jobs/{done_job['id']}"
     assert failed["event"] == "job.failed" and failed["job"]["error"] == "b.laz: truncated"
-    deliveries = {d["event"]: d for d in store.list_deliveries(tenant["id"], hook["id"])}
+    deliveries = {d["event"]: d for d in store.webhooks.deliveries(tenant["id"], hook["id"])}
     assert deliveries["job.done"]["state"] == "delivered" and deliveries["job.done"]["attempts"] == 2
     assert [t["status_code"] for t in deliveries["job.done"]["tries"]] == [500, 200]
     assert deliveries["job.failed"]["attempts"] == 1
@@ -161,22 +161,22 @@ def test_a_signed_call_per_finished_job_and_a_retry_after_a_500(env, receiver, m
 def test_a_receiver_that_keeps_failing_is_given_up_after_the_attempts(env, receiver):
     settings, store, tenant, block = env
     receiver.answers = [503, 503, 503, 503]
-    hook = store.create_webhook(tenant_id=tenant["id"], url=receiver.url, secret=SECRET, schedule_id=None, events=["job.failed"])
-    job = store.create_job(tenant_id=tenant["id"], block_id=block["id"], job={})
-    store.claim_next_job()
-    assert job_event(store, store.finish_job(job["id"], "failed", error="no trees found")) == 1
+    hook = store.webhooks.create(tenant_id=tenant["id"], url=receiver.url, secret=SECRET, schedule_id=None, events=["job.failed"])
+    job = store.jobs.create(tenant_id=tenant["id"], block_id=block["id"], job={})
+    store.jobs.claim_next()
+    assert job_event(store, store.jobs.finish(job["id"], "failed", error="no trees found")) == 1
     # a cancelled job, or one of another event, calls nobody
     assert job_event(store, {**job, "state": "cancelled"}) == 0
     sender = WebhookSender(store, settings)
     for _ in range(3):
         time.sleep(settings.webhook_backoff_s * 4)  # (lets the backoff pass; nothing is timed)
         sender.deliver_due()
-    (d,) = store.list_deliveries(tenant["id"], hook["id"])
+    (d,) = store.webhooks.deliveries(tenant["id"], hook["id"])
     assert d["state"] == "failed" and d["attempts"] == 3 and d["status_code"] == 503
     assert len(receiver.calls) == 3 and sender.deliver_due() == 0
-    assert store.prune_deliveries_any_tenant(d["finished_at"]) == 0  # ended at, not before
-    assert store.prune_deliveries_any_tenant(d["finished_at"] + 1) == 1
-    assert store.list_deliveries(tenant["id"], hook["id"]) == []
+    assert store.webhooks.prune_deliveries_any_tenant(d["finished_at"]) == 0  # ended at, not before
+    assert store.webhooks.prune_deliveries_any_tenant(d["finished_at"] + 1) == 1
+    assert store.webhooks.deliveries(tenant["id"], hook["id"]) == []
 
 
 def test_a_receiver_that_is_not_there_is_recorded_as_no_answer(env):
@@ -184,10 +184,10 @@ def test_a_receiver_that_is_not_there_is_recorded_as_no_answer(env):
     gone = Receiver()
     url = gone.url
     gone.close()
-    hook = store.create_webhook(tenant_id=tenant["id"], url=url, secret=SECRET, schedule_id=None, events=["job.done"])
-    store.queue_webhook_event(tenant_id=tenant["id"], schedule_id=None, event="job.done", body={"job": {}})
+    hook = store.webhooks.create(tenant_id=tenant["id"], url=url, secret=SECRET, schedule_id=None, events=["job.done"])
+    store.webhooks.queue_event(tenant_id=tenant["id"], schedule_id=None, event="job.done", body={"job": {}})
     WebhookSender(store, settings).deliver_due()
-    (d,) = store.list_deliveries(tenant["id"], hook["id"])
+    (d,) = store.webhooks.deliveries(tenant["id"], hook["id"])
     assert d["state"] == "pending" and d["status_code"] is None and d["error"].startswith("no answer")
 
 
@@ -196,15 +196,15 @@ def test_a_rejected_capture_calls_the_schedules_webhook_only(env, receiver, tmp_
     inbox = tmp_path / "inbox"
     inbox.mkdir()
     (inbox / "bad.laz").write_text("not points")
-    sched = store.create_schedule(tenant_id=tenant["id"], inbox=str(inbox), cron="0 1 * * *", job={},
+    sched = store.schedules.create(tenant_id=tenant["id"], inbox=str(inbox), cron="0 1 * * *", job={},
                                   next_run_at=None)
     other = tmp_path / "other"
     other.mkdir()
-    sched2 = store.create_schedule(tenant_id=tenant["id"], inbox=str(other), cron="0 1 * * *", job={},
+    sched2 = store.schedules.create(tenant_id=tenant["id"], inbox=str(other), cron="0 1 * * *", job={},
                                    next_run_at=None)
-    mine = store.create_webhook(tenant_id=tenant["id"], url=receiver.url, secret=SECRET, schedule_id=sched["id"],
+    mine = store.webhooks.create(tenant_id=tenant["id"], url=receiver.url, secret=SECRET, schedule_id=sched["id"],
                                 events=["capture.rejected"])
-    theirs = store.create_webhook(tenant_id=tenant["id"], url=receiver.url, secret=SECRET, schedule_id=sched2["id"],
+    theirs = store.webhooks.create(tenant_id=tenant["id"], url=receiver.url, secret=SECRET, schedule_id=sched2["id"],
                                   events=["capture.rejected"])
     assert len(run_schedule(store, settings, sched)["rejected"]) == 1
     WebhookSender(store, settings).deliver_due()
@@ -212,8 +212,8 @@ def test_a_rejected_capture_calls_the_schedules_webhook_only(env, receiver, tmp_
     body = _checked(call)
     assert body["event"] == "capture.rejected" and body["capture"]["file"] == "bad.laz"
     assert "LASF" in body["capture"]["reason"] and body["schedule_id"] == sched["id"]
-    assert len(store.list_deliveries(tenant["id"], mine["id"])) == 1
-    assert store.list_deliveries(tenant["id"], theirs["id"]) == []
+    assert len(store.webhooks.deliveries(tenant["id"], mine["id"])) == 1
+    assert store.webhooks.deliveries(tenant["id"], theirs["id"]) == []
 
 
 def test_api_webhooks(client_a, client_b, api, api_data, receiver):
@@ -252,19 +252,19 @@ def test_a_deleted_schedules_webhooks_go_with_it_and_a_farm_has_at_most_20(env, 
     _, store, tenant, _ = env
     inbox = tmp_path / "inbox"
     inbox.mkdir()
-    sched = store.create_schedule(tenant_id=tenant["id"], inbox=str(inbox), cron="0 1 * * *", job={},
+    sched = store.schedules.create(tenant_id=tenant["id"], inbox=str(inbox), cron="0 1 * * *", job={},
                                   next_run_at=None)
-    farm = store.create_webhook(tenant_id=tenant["id"], url="http://127.0.0.1:9/", secret=SECRET, schedule_id=None, events=["job.done"])
-    store.create_webhook(tenant_id=tenant["id"], url="http://127.0.0.1:9/", secret=SECRET, schedule_id=sched["id"], events=["job.done"])
-    store.delete_schedule(tenant["id"], sched["id"])
-    assert [w["id"] for w in store.list_webhooks(tenant["id"])] == [farm["id"]]
+    farm = store.webhooks.create(tenant_id=tenant["id"], url="http://127.0.0.1:9/", secret=SECRET, schedule_id=None, events=["job.done"])
+    store.webhooks.create(tenant_id=tenant["id"], url="http://127.0.0.1:9/", secret=SECRET, schedule_id=sched["id"], events=["job.done"])
+    store.schedules.delete(tenant["id"], sched["id"])
+    assert [w["id"] for w in store.webhooks.list(tenant["id"])] == [farm["id"]]
 
     from service.db.webhooks import MAX_WEBHOOKS
 
     for _ in range(MAX_WEBHOOKS - 1):
-        store.create_webhook(tenant_id=tenant["id"], url="http://127.0.0.1:9/", secret=SECRET, schedule_id=None, events=["job.done"])
+        store.webhooks.create(tenant_id=tenant["id"], url="http://127.0.0.1:9/", secret=SECRET, schedule_id=None, events=["job.done"])
     with pytest.raises(ParameterError, match="the most it may have"):
-        store.create_webhook(tenant_id=tenant["id"], url="http://127.0.0.1:9/", secret=SECRET, schedule_id=None, events=["job.done"])
+        store.webhooks.create(tenant_id=tenant["id"], url="http://127.0.0.1:9/", secret=SECRET, schedule_id=None, events=["job.done"])
 
 
 @pytest.mark.slow

@@ -296,7 +296,7 @@ def _report_outputs(folder: Path, n_rows: int = 3, per_row: int = 4) -> tuple[Pa
 
 @pytest.mark.slow
 def test_report_html_opens_from_disk_offline(browser, tmp_path):
-    from service.report import write_report, write_trees_csv
+    from service.reports.report import write_report, write_trees_csv
 
     trees, points = _report_outputs(tmp_path)
     write_trees_csv(trees, tmp_path / "trees.csv")

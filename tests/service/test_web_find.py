@@ -36,13 +36,14 @@ def browser():
 
 @pytest.fixture(scope="module")
 def big_report(tmp_path_factory):
-    """report.html of the made-up block, as `service.report.write_report` writes it but
+    """report.html of the made-up block, as `service.reports.report.write_report` writes it but
     without its map image and footprints (seconds): the trees are drawn as crown circles."""
-    from service.web import mapdata, render
+    from service.reports import mapdata
+    from service import pages
 
     folder = tmp_path_factory.mktemp("big")
     trees, _ = _report_outputs(folder, n_rows=N_ROWS, per_row=PER_ROW)
-    page = render.report_page(title="Big block", data_json=mapdata.to_json(mapdata.build_map_data(trees)),
+    page = pages.report_page(title="Big block", data_json=mapdata.to_json(mapdata.build_map_data(trees)),
                               facts={"Block": "made up"}, downloads={})
     (folder / "report.html").write_text(page, encoding="utf-8")
     return folder / "report.html"

@@ -12,8 +12,8 @@ import pyarrow.parquet as pq
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from service.web.mapdata import build_map_data, footprints, parse_wkb, to_json
-from service.web.sessions import SESSION_SECONDS, SessionStore
+from service.reports.mapdata import build_map_data, footprints, parse_wkb, to_json
+from service.sessions import SESSION_SECONDS, SessionStore
 
 
 def _wkb(kind: int, body: bytes, order: str = "<") -> bytes:

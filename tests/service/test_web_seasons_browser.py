@@ -21,7 +21,7 @@ from service_fixtures import ServerProcess, make_token, write_las
 from test_web_browser import CHROMIUM, Watch, browser  # noqa: F401 - the module's browser fixture
 
 from service.db.jobstore import Store
-from service.report import write_report
+from service.reports.report import write_report
 from service.seasons import capture_record
 
 pytestmark = [pytest.mark.slow, pytest.mark.skipif(not Path(CHROMIUM).exists(), reason=f"no browser: {CHROMIUM} is missing")]
@@ -38,7 +38,7 @@ def _report(folder: Path, which: str, *, with_history: bool = True) -> Path:
     xy = np.concatenate([np.c_[x - origin[0] + rng.uniform(-0.9, 0.9, 40), y - origin[1] + rng.uniform(-0.9, 0.9, 40)]
                          for x, y in zip(trees["trunk_x"], trees["trunk_y"])])
     ids = np.repeat(trees["tree_id"], 40)
-    from pipeline.jobparams import REPORT_POINTS
+    from pipeline.mapsample import REPORT_POINTS
 
     return write_report(block_path=str(folder / "none.laz"), trees_parquet=folder / "trees.parquet",
                         points_parquet=folder / "points.parquet", out_dir=folder, title=f"Capture {which}",
@@ -165,14 +165,14 @@ def served_capture(tmp_path_factory):
         with httpx.Client(base_url=srv.url, headers={"Authorization": f"Bearer {token}"}, timeout=60) as c:
             ob = c.post("/v1/orchard-blocks", json={"name": "North"}).json()
             cap = c.post(f"/v1/orchard-blocks/{ob['id']}/captures", files={"file": ("july.laz", las.read_bytes())}).json()
-        out = srv.data_dir / "jobs" / cap["job_id"]  # the server's job folder (service.runner.job_dir)
+        out = srv.data_dir / "jobs" / cap["job_id"]  # the server's job folder (service.jobfolders.job_dir)
         write_capture_outputs(out, "c2")
         store = Store(srv.data_dir / "orchard.sqlite")
         try:  # done, as the runner would record it
-            with store._tx() as con:
+            with store.db.transaction() as con:
                 con.execute("UPDATE jobs SET state = 'running' WHERE id = ?", (cap["job_id"],))
-            store.set_capture_record(cap["job_id"], capture_record(out))
-            store.finish_job(cap["job_id"], "done", outcome={"n_trees": 8, "outputs": {"history": str(out / "history.parquet")}})
+            store.orchard_blocks.set_capture_record(cap["job_id"], capture_record(out))
+            store.jobs.finish(cap["job_id"], "done", outcome={"n_trees": 8, "outputs": {"history": str(out / "history.parquet")}})
         finally:
             store.close()
         yield srv, token, ob, cap

@@ -7,7 +7,7 @@ import pyarrow.parquet as pq
 import pytest
 
 from pipeline.reading import read_points
-from service.report import sample_points
+from service.reports.sampling import sample_points
 from workers.job import REPORT_POINTS, report_sample, run_job
 from workers.jobspec import JobSpec
 

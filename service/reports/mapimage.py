@@ -87,6 +87,7 @@ def render_map_png(
     title : str
         Drawn as text ("$" is no formula).
     """
+    # here: matplotlib (~1-2 s) loads with the first map drawn, not with the server or `orchard process --help`
     from matplotlib.backends.backend_agg import FigureCanvasAgg
     from matplotlib.figure import Figure
 

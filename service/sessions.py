@@ -29,9 +29,8 @@ from urllib.parse import urlsplit
 from fastapi import Request
 from starlette.exceptions import HTTPException
 
-from service.auth import authenticate, hash_token
+from service.auth import UnauthorizedError, authenticate, hash_token
 from service.db.jobstore import Store
-from service.errors import UnauthorizedError
 
 COOKIE = "orchard_session"
 CSRF_HEADER = "x-csrf-token"
@@ -120,7 +119,7 @@ def current_session(request: Request, store: Store) -> tuple[Session, dict[str, 
     sess = sessions_of(request).get(sid, now=now)
     if sess is None:
         return None
-    rec = store.token_by_hash(sess.token_hash)  # revoked or expired since: the session ends with it
+    rec = store.accounts.token_by_hash(sess.token_hash)  # revoked or expired since: the session ends with it
     if rec is None or rec["tenant"] is None or (rec.get("expires_at") is not None and rec["expires_at"] <= now):
         return None
     return sess, rec["tenant"]

@@ -17,7 +17,7 @@ import json
 import re
 from pathlib import Path
 
-STATIC_DIR = Path(__file__).parent / "static"
+STATIC_DIR = Path(__file__).parent / "web" / "static"  # served by service.web, inlined in a report
 STATIC_URL = "/static"
 FAVICON = f"{STATIC_URL}/favicon.svg"
 
@@ -144,7 +144,7 @@ def report_page(*, title: str, data_json: str, facts: dict[str, str], downloads:
                 warning: str | None = None, fallback: str = "") -> str:
     """``report.html``: the job page with its scripts, styles and data inlined.
 
-    ``data_json`` is `service.web.mapdata.to_json` of the map data; ``downloads`` maps a
+    ``data_json`` is `service.reports.mapdata.to_json` of the map data; ``downloads`` maps a
     label to a path relative to the report (the files beside it); ``fallback`` is HTML
     shown when scripts do not run (the static map and table).
     """

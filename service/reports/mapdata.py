@@ -22,6 +22,8 @@ import numpy as np
 import pyarrow.parquet as pq
 from scipy.spatial import ConvexHull, QhullError
 
+from service.reports.sampling import sample_points
+
 #: points sampled from the block for the footprints (enough for a smooth hull per tree)
 FOOTPRINT_POINTS = 400_000
 
@@ -222,8 +224,6 @@ def build_map_data(
     origin = np.floor([tx[finite].min(), ty[finite].min()]) if finite.any() else np.zeros(2)
     outlines: list | None = None
     if sample is None and block_path and points_parquet and Path(block_path).is_file() and Path(points_parquet).is_file():
-        from service.report import sample_points
-
         xy, tree_id, block_origin = sample_points(block_path, points_parquet, max_points=max_points)
         sample = (xy + block_origin[:2], tree_id)
     if sample is not None and n:

@@ -1,17 +1,18 @@
 """The per-tree report a grower reads: one HTML page with a map of the block and a table.
 
-The page is interactive (`service.web.render.report_page`: pan, zoom, colour by a
+The page is interactive (`service.pages.report_page`: pan, zoom, colour by a
 metric, search, a sortable table; for a capture of an orchard block, growth colours, the
 changes since the previous capture and each tree's history, read from ``history.parquet``
 beside ``trees.parquet``) and self-contained; the static map and table below
 are what it shows where scripts do not run.
 
-The map (PNG, :mod:`service.mapimage`: matplotlib's axes over the points composed into one
+The map (PNG, :mod:`service.reports.mapimage`: matplotlib's axes over the points composed into one
 image; embedded in the page as base64 and also saved as ``map.png``) shows a subsample
 of the block's points seen from above, tree points
 coloured by tree id, other points grey, and each trunk as a marker with its number. The
 table has one row per tree from ``trees.parquet``. Memory stays bounded: the block and
-``points.parquet`` are read in chunks and only every ``stride``-th point is kept.
+``points.parquet`` are read in chunks and only every ``stride``-th point is kept
+(:mod:`service.reports.sampling`).
 """
 
 from __future__ import annotations
@@ -29,8 +30,11 @@ import pyarrow.compute as pc
 import pyarrow.csv as pacsv
 import pyarrow.parquet as pq
 
-from pipeline.mapsample import REPORT_POINTS, sample_stride
-from service.web import mapdata, render
+from pipeline.mapsample import REPORT_POINTS
+from service.reports import mapdata
+from service.reports.mapimage import render_map_png
+from service.reports.sampling import sample_points
+from service import pages
 
 #: the outputs the report links to, beside it (relative links)
 DOWNLOADS = ("trees.csv", "trees.parquet", "points.parquet", "rows.parquet", "gaps.parquet", "history.parquet", "map.png")
@@ -57,7 +61,8 @@ CHANGE_COLUMNS = [
 ]
 
 
-def _atomic_write(path: Path, data: bytes) -> None:
+def atomic_write(path: Path, data: bytes) -> None:
+    """Write ``data`` to ``path`` whole or not at all (a reader never sees half a file)."""
     tmp = path.with_name(f".{path.name}.{uuid.uuid4().hex}.tmp")
     try:
         tmp.write_bytes(data)
@@ -103,41 +108,16 @@ def write_trees_csv(trees_parquet: str | os.PathLike, csv_path: str | os.PathLik
     buf = io.BytesIO()
     pacsv.write_csv(table, buf)
     path = Path(csv_path)
-    _atomic_write(path, buf.getvalue())
+    atomic_write(path, buf.getvalue())
     return path
-
-
-def sample_points(
-    block_path: str, points_parquet: str | os.PathLike, *, max_points: int = REPORT_POINTS
-) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """Every ``stride``-th point of the block with its tree id.
-
-    Returns
-    -------
-    xy : (m, 2) float64
-        Local coordinates [m] (block coordinates minus ``origin``).
-    tree_id : (m,) int64
-    origin : (3,) float64
-    """
-    from pipeline.blockinfo import read_info
-    from pipeline.parquet import sampled_tree_ids
-    from pipeline.reading import sample_xy
-
-    info = read_info(block_path)
-    stride = sample_stride(info.n_points, max_points)
-    xy, idx = sample_xy(block_path, stride, info=info)
-    tree_id = sampled_tree_ids(points_parquet, idx, stride)
-    return xy, tree_id, np.asarray(info.origin, dtype=np.float64)
 
 
 def render_map(xy: np.ndarray, tree_id: np.ndarray, trunks_xy: np.ndarray, trunk_ids: np.ndarray, *, title: str) -> bytes:
     """PNG of the block from above: tree points coloured by id, trunk markers with numbers
-    (:func:`service.mapimage.render_map_png`).
+    (:func:`service.reports.mapimage.render_map_png`).
 
     ``xy`` and ``trunks_xy`` are in the same local frame [m].
     """
-    from service.mapimage import render_map_png
-
     return render_map_png(xy, tree_id, trunks_xy, trunk_ids, title=title)
 
 
@@ -209,7 +189,7 @@ def write_report(
 ) -> Path:
     """Write ``report.html`` and ``map.png`` into ``out_dir``; returns the HTML path.
 
-    The report is the job page of the service (`service.web.render.report_page`) with its
+    The report is the job page of the service (`service.pages.report_page`) with its
     scripts, styles and data inlined: it opens from disk, offline. Where scripts do not
     run it shows the static map (``map.png``, embedded) and table. ``warning`` is shown
     above everything else (a partial result). ``sample``: the points :func:`sample_points`
@@ -228,14 +208,14 @@ def write_report(
     else:
         trunks_xy, ids = np.zeros((0, 2)), np.zeros(0, np.int64)
     png = render_map(xy, tree_id, trunks_xy, ids, title=title)
-    _atomic_write(out / "map.png", png)
+    atomic_write(out / "map.png", png)
     static = render_html(title=title, png=png, rows=rows, origin=origin, summary=summary or {}, warning=warning)
     data = mapdata.build_map_data(trees_parquet, sample=(xy + origin[:2], tree_id))
     # the files beside the report: relative links work from disk and under /v1/jobs/<id>/
     # (trees.csv is written beside it by `orchard process`, and on its first download by the service)
     downloads = {name: name for name in DOWNLOADS if name == "trees.csv" or (out / name).is_file()}
-    page = render.report_page(title=title, data_json=mapdata.to_json(data), facts=summary or {}, downloads=downloads,
+    page = pages.report_page(title=title, data_json=mapdata.to_json(data), facts=summary or {}, downloads=downloads,
                               warning=warning, fallback=_body_of(static))
     path = out / "report.html"
-    _atomic_write(path, page.encode("utf-8"))
+    atomic_write(path, page.encode("utf-8"))
     return path

@@ -1,8 +1,9 @@
-"""A finished job's outputs as the API serves them: where each file is, and the report.
+"""A finished job's outputs as the service serves them: where each file is, and the report.
 
-`job_output` finds an output of a tenant's job (409 while the job is not done, or when it
-failed); `require_output` turns a missing file into a 404; `ensure_report` draws the
-HTML report and its map on first use. The browser's pages use the same rules.
+`job_output` finds an output of a tenant's job (ConflictError, a 409, while the job is
+not done, or when it failed); `require_output` turns a missing file into a
+NotFoundError (404); `ensure_report` draws the HTML report and its map on first use.
+The API and the browser's pages use the same rules.
 """
 
 from __future__ import annotations
@@ -10,17 +11,23 @@ from __future__ import annotations
 from datetime import datetime
 from pathlib import Path
 
-from service import report as reports
 from service.db.errors import ConflictError, NotFoundError
 from service.db.jobstore import Store
-from service.runner import job_block_name, job_dir
+from service.jobfolders import job_dir
+from service.reports import report as reports
 from service.settings import Settings
+
+
+def job_block_name(job: dict, block: dict | None) -> str | None:
+    """How a job names its block to the farm: the inbox file its schedule took it from,
+    else the block's file name (its first upload's); None if neither is known."""
+    return job.get("capture") or (block or {}).get("filename")
 
 
 def job_output(store: Store, settings: Settings, tenant: dict, job_id: str, name: str) -> tuple[dict, Path]:
     """The job record and the path of its output file ``name`` (which may be missing:
     see `require_output`); ConflictError (409) unless the job is done."""
-    job = store.get_job(tenant["id"], job_id)
+    job = store.jobs.get(tenant["id"], job_id)
     if job["state"] in ("failed", "cancelled"):  # "once it is done" would never come
         raise ConflictError(f"job {job_id} is {job['state']} and has no results; submit its block again "
                             f"with POST /v1/jobs (GET /v1/jobs/{job_id} says why it ended)")
@@ -50,7 +57,7 @@ def ensure_report(store: Store, settings: Settings, job: dict) -> Path:
     html_path = out / "report.html"
     if html_path.exists() and (out / "map.png").exists():
         return html_path
-    block = store.get_block(None, job["block_id"])
+    block = store.blocks.get(job["tenant_id"], job["block_id"])
     if not Path(block["path"]).is_file():  # not the farm's fault, and not its file name to show
         raise NotFoundError("the uploaded block of this job is missing on the server, so its report cannot be "
                             "drawn; the per-tree downloads (trees.csv, trees.parquet) still work")
@@ -67,7 +74,7 @@ def ensure_report(store: Store, settings: Settings, job: dict) -> Path:
         "Points": str((block.get("info") or {}).get("n_points", "")),
         "Trees": str(rows_total if rows_total is not None else ""),
     }
-    capture = store.capture_of_job(job["id"])
+    capture = store.orchard_blocks.capture_of_job(job["tenant_id"], job["id"])
     if capture is not None:  # a capture of an orchard block: which, and when
         summary["Orchard block"] = f"{capture['orchard_block_name']} (capture {capture['seq']})"
         summary["Captured"] = capture.get("captured_at") or ""
