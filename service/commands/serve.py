@@ -17,7 +17,10 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     from service.commands.options import tiling_default
 
     parser.add_argument("--host", default=None, help="address to bind (default 127.0.0.1; env ORCHARD_HOST)")
-    parser.add_argument("--port", type=int, default=None, help="port to bind (default 8000; env ORCHARD_PORT)")
+    parser.add_argument("--port", type=int, default=None, help="port to bind (default 8000; 0: any free port; env ORCHARD_PORT)")
+    parser.add_argument("--port-file", default=None, metavar="PATH",
+                        help="write the port the server listens on to PATH (one line) once it accepts connections: "
+                             "with --port 0, how a supervisor or a test learns it")
     parser.add_argument("--data-dir", default=None, help="job store, uploads and results (env ORCHARD_DATA_DIR)")
     parser.add_argument(
         "--scheduler", default=None, metavar="ADDR",
@@ -57,6 +60,15 @@ def bind(host: str, port: int) -> socket.socket:
                              "(or ORCHARD_PORT), or --host") from None
     sock.set_inheritable(True)
     return sock
+
+
+def write_port_file(path: str, port: int) -> None:
+    """``port`` and a newline in ``path``, whole or not at all (a reader polls for the file)."""
+    target = os.path.abspath(path)
+    tmp = f"{target}.{os.getpid()}.tmp"
+    with open(tmp, "w", encoding="ascii") as fh:
+        fh.write(f"{port}\n")
+    os.replace(tmp, target)
 
 
 #: file handles kept for the job store, uploads, results and the dask cluster's sockets
@@ -101,6 +113,10 @@ def run(args: argparse.Namespace) -> int:
     from service.permissions import UMASK
 
     os.umask(UMASK)  # what the service and its local workers write is the service user's alone
+    if args.port_file and not os.path.isdir(os.path.dirname(os.path.abspath(args.port_file))):
+        from pipeline.errors import ParameterError
+
+        raise ParameterError(f"--port-file {args.port_file}: its folder does not exist")
     sock = bind(settings.host, settings.port)
     try:
         app = create_app(settings)
@@ -116,6 +132,11 @@ def run(args: argparse.Namespace) -> int:
             if begin is not None:
                 begin()
             super().handle_exit(sig, frame)
+
+        async def startup(self, sockets=None) -> None:
+            await super().startup(sockets)
+            if self.started and args.port_file:  # listening now: a reader of the file can connect at once
+                write_port_file(args.port_file, port)
 
     from service.edge import EdgeLimits, edge_protocol
 

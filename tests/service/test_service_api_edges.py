@@ -216,6 +216,17 @@ def test_a_port_in_use_is_exit_2_naming_it_and_creates_nothing(tmp_path):
     assert not (tmp_path / "data").exists()
 
 
+def test_a_port_file_in_a_folder_that_is_not_there_is_exit_2_and_creates_nothing(tmp_path):
+    r = subprocess.run(
+        [sys.executable, "-m", "service.cli", "serve", "--port", "0", "--port-file", str(tmp_path / "nope" / "port"),
+         "--data-dir", str(tmp_path / "data")],
+        capture_output=True, text=True, timeout=120, env={**os.environ, "ORCHARD_RUNNER": "false", "ORCHARD_SCHEDULING": "false"},
+    )
+    assert r.returncode == 2, r.stderr
+    assert f"--port-file {tmp_path / 'nope' / 'port'}: its folder does not exist" in r.stderr and "Traceback" not in r.stderr
+    assert not (tmp_path / "data").exists()
+
+
 def test_the_servers_connections_send_small_responses_at_once():
     # without TCP_NODELAY a keep-alive response's last segment waited for the client's
     # delayed ACK: every request on a reused connection took about 40 ms
