@@ -62,11 +62,11 @@ def test_no_dashboard():
 
 
 def test_unreachable_scheduler_is_a_parameter_error():
-    with socket.socket() as s:  # a port nobody listens on
+    with socket.socket() as s:  # bound, never listening: refused, and no other process can take the port meanwhile
         s.bind(("127.0.0.1", 0))
         port = s.getsockname()[1]
-    with pytest.raises(ParameterError, match=f"127.0.0.1:{port}.*dask scheduler"):
-        make_client(f"tcp://127.0.0.1:{port}", timeout="0.5s")
+        with pytest.raises(ParameterError, match=f"127.0.0.1:{port}.*dask scheduler"):
+            make_client(f"tcp://127.0.0.1:{port}", timeout="0.5s")
 
 
 def test_a_port_that_accepts_but_never_answers_is_a_parameter_error_in_time():

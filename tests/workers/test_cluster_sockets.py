@@ -23,6 +23,7 @@ from pathlib import Path
 import httpx
 import psutil
 import pytest
+from cluster_fixtures import scheduler_address
 from distributed import Client, LocalCluster
 
 from pipeline.jobparams import TilingParams
@@ -143,13 +144,7 @@ def test_orchard_serve_listens_on_loopback_alone_after_a_job(tiny_block, tmp_pat
 # -- workers of an external cluster --------------------------------------------------------
 
 
-def _free_port() -> int:
-    with socket.socket() as s:
-        s.bind(("127.0.0.1", 0))
-        return s.getsockname()[1]
-
-
-_SCHEDULER_ARGS = ("--host", "127.0.0.1", "--no-dashboard", "--port")
+_SCHEDULER_ARGS = ("--host", "127.0.0.1", "--no-dashboard", "--port", "0")
 _WORKER_ARGS = ("--nthreads", "1", "--no-dashboard", "--no-nanny")
 
 
@@ -182,11 +177,11 @@ _BARE_WORKER = (
 def one_worker_cluster(folder: Path, *, bare: bool = False):
     """``dask scheduler`` and one ``dask worker`` (without the project if ``bare``) on
     loopback: yields the scheduler's address, the worker's address and the worker process."""
-    port = _free_port()
-    address = f"tcp://127.0.0.1:{port}"
     logs = open(folder / "cluster.log", "ab")  # noqa: SIM115 - closed below
-    procs = [_start(logs, "-m", "distributed.cli.dask_scheduler", *_SCHEDULER_ARGS, str(port))]
+    scheduler_file = folder / "scheduler.json"
+    procs = [_start(logs, "-m", "distributed.cli.dask_scheduler", *_SCHEDULER_ARGS, "--scheduler-file", str(scheduler_file))]
     try:
+        address = scheduler_address(scheduler_file, procs[0])
         if bare:
             paths = ":".join(site.getsitepackages())
             procs.append(_start(logs, "-I", "-S", "-c", _BARE_WORKER, paths, address, *_WORKER_ARGS, cwd=folder))
