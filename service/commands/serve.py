@@ -71,6 +71,17 @@ def write_port_file(path: str, port: int) -> None:
     os.replace(tmp, target)
 
 
+def listen_backlog() -> int:
+    """The kernel's limit of a listen queue (``net.core.somaxconn``; ``listen()`` caps at
+    it): a burst of connections that overflows the queue drops new ones, ``/healthz``'s
+    too, and a dropped connection is tried again only after 1 s."""
+    try:
+        with open("/proc/sys/net/core/somaxconn", encoding="ascii") as fh:
+            return int(fh.read())
+    except (OSError, ValueError):
+        return 4096
+
+
 #: file handles kept for the job store, uploads, results and the dask cluster's sockets
 FD_RESERVE = 512
 
@@ -138,7 +149,7 @@ def run(args: argparse.Namespace) -> int:
             if self.started and args.port_file:  # listening now: a reader of the file can connect at once
                 write_port_file(args.port_file, port)
 
-    from service.edge import EdgeLimits, edge_protocol
+    from service.edge import EdgeLimits, EdgeSocket, edge_protocol
 
     limits = EdgeLimits(
         max_connections=connection_cap(settings.max_connections),
@@ -146,12 +157,11 @@ def run(args: argparse.Namespace) -> int:
         header_timeout_s=settings.header_timeout_s,
         body_timeout_s=settings.body_timeout_s,
     )
+    protocol = edge_protocol(limits)
+    sock = EdgeSocket.wrap(sock, protocol)
     config = uvicorn.Config(app, host=settings.host, port=settings.port, log_level=args.log_level, timeout_graceful_shutdown=10,
-                            http=edge_protocol(limits), log_config=None,  # uvicorn's records go through service.logs
-                            timeout_keep_alive=5,
-                            # (the kernel caps it at net.core.somaxconn): a burst of connections
-                            # that overflows the queue drops new ones, /healthz's too, for seconds
-                            backlog=4096)
+                            http=protocol, log_config=None,  # uvicorn's records go through service.logs
+                            timeout_keep_alive=5, backlog=listen_backlog())
     server = Server(config)
     with contextlib.suppress(KeyboardInterrupt):
         server.run(sockets=[sock])

@@ -233,6 +233,7 @@ def test_the_servers_connections_send_small_responses_at_once():
     import asyncio
 
     from service.commands.serve import bind
+    from service.edge import EdgeLimits, EdgeSocket, edge_protocol
 
     async def accepted_nodelay() -> int:
         seen = asyncio.get_running_loop().create_future()
@@ -241,7 +242,7 @@ def test_the_servers_connections_send_small_responses_at_once():
             seen.set_result(writer.get_extra_info("socket").getsockopt(socket.IPPROTO_TCP, socket.TCP_NODELAY))
             writer.close()
 
-        listening = bind("127.0.0.1", 0)
+        listening = EdgeSocket.wrap(bind("127.0.0.1", 0), edge_protocol(EdgeLimits()))
         server = await asyncio.start_server(on_connect, sock=listening)  # as uvicorn serves it
         async with server:
             _, writer = await asyncio.open_connection("127.0.0.1", listening.getsockname()[1])

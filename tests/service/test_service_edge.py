@@ -14,6 +14,7 @@ import pytest
 from service_fixtures import client_of
 
 from service.api.bodies import MAX_DEPTH, MAX_KEYS, shape_problem
+from service.edge import EdgeLimits, EdgeSocket, edge_protocol
 
 
 def _many_keys(n: int, size: int | None = None) -> bytes:
@@ -79,6 +80,53 @@ def test_healthz_answers_while_sixteen_clients_send_1mb_bodies(api_server, serve
 
 
 # -- connections and deadlines at the edge --------------------------------------------
+
+
+def _accept_all(listener: EdgeSocket) -> tuple[list, int]:
+    """What ``accept()`` hands on until nothing is queued, and how many BlockingIOErrors it raised on the way."""
+    import select
+
+    accepted, stops = [], 0
+    while select.select([listener], [], [], 0.2)[0]:
+        try:
+            accepted.append(listener.accept())
+        except BlockingIOError:
+            stops += 1
+    return accepted, stops
+
+
+def _closed_by_server(s: socket.socket) -> bool:
+    try:
+        return s.recv(1) == b""
+    except ConnectionResetError:
+        return True
+
+
+def test_the_listening_socket_closes_a_flood_as_it_accepts_it(monkeypatch):
+    """Past the caps and the refusals pending, a connection is closed by accept() itself,
+    a batch at a time (the event loop runs between batches); the others are handed on,
+    sorted for the protocol: admitted, or to be answered 503."""
+    monkeypatch.setattr(EdgeSocket, "DROP_BATCH", 2)
+    protocol = edge_protocol(EdgeLimits(max_connections=100, max_per_client=2, max_refusing=1))
+    raw = socket.socket()
+    raw.bind(("127.0.0.1", 0))  # port 0: the kernel's choice
+    raw.listen(16)
+    with EdgeSocket.wrap(raw, protocol) as listener:
+        listener.setblocking(False)
+        clients = [socket.create_connection(listener.getsockname(), timeout=10) for _ in range(8)]
+        try:
+            accepted, stops = _accept_all(listener)
+            assert [protocol.edge_counts.sorted.pop(addr) for _, addr in accepted] == ["admit", "admit", "refuse"]
+            assert [addr for _, addr in accepted] == [c.getsockname() for c in clients[:3]]  # in the order they came
+            assert stops == 3  # the 5 dropped: batches of 2, 2 and 1 (the last one ended by the empty queue)
+            assert all(_closed_by_server(c) for c in clients[3:])
+            counts = protocol.edge_counts
+            assert (counts.open, counts.per_client["127.0.0.1"], counts.refusing) == (2, 2, 1)
+        finally:
+            for c in clients:
+                c.close()
+            for conn, _ in accepted:
+                conn.close()
 
 
 @pytest.fixture(scope="module")
