@@ -16,6 +16,9 @@ and `EdgeSocket` the listening socket that sorts connections as they are accepte
   `EdgeSocket` as they are accepted (no transport, no protocol, no task made for them:
   a burst of them is drained from the kernel's listen queue fast enough that a
   connection which is served, ``/healthz``'s, is not dropped from it);
+- a connection that sends nothing stays with the kernel (``TCP_DEFER_ACCEPT``, Linux)
+  up to ``header_timeout_s``: it holds no file handle and no protocol of the service
+  until its first byte arrives or that time is up;
 - a request whose line and headers have not all arrived ``header_timeout_s`` after
   the connection opened (or after the first byte of a later request on it) is
   answered ``408`` and closed;
@@ -32,6 +35,7 @@ import collections
 import dataclasses
 import json
 import logging
+import math
 import os
 import socket
 import time
@@ -117,6 +121,9 @@ class EdgeSocket(socket.socket):
         """An `EdgeSocket` on ``sock``'s file descriptor (``sock`` is detached: use the result)."""
         edge = cls(sock.family, sock.type, sock.proto, fileno=sock.detach())
         edge._counts = protocol.edge_counts
+        if hasattr(socket, "TCP_DEFER_ACCEPT"):
+            edge.setsockopt(socket.IPPROTO_TCP, socket.TCP_DEFER_ACCEPT,
+                            max(1, math.ceil(protocol.edge_counts.limits.header_timeout_s)))
         edge._dropped = 0
         edge._logged_at = 0.0
         return edge

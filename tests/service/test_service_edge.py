@@ -102,6 +102,20 @@ def _closed_by_server(s: socket.socket) -> bool:
         return True
 
 
+@pytest.mark.skipif(not hasattr(socket, "TCP_DEFER_ACCEPT"), reason="TCP_DEFER_ACCEPT is Linux's")
+def test_a_connection_that_sends_nothing_is_not_handed_to_the_service():
+    import select
+
+    raw = socket.socket()
+    raw.bind(("127.0.0.1", 0))
+    raw.listen(16)
+    with EdgeSocket.wrap(raw, edge_protocol(EdgeLimits(header_timeout_s=10))) as listener, \
+            socket.create_connection(listener.getsockname(), timeout=10) as silent:
+        assert not select.select([listener], [], [], 0.5)[0]  # connected, as the client sees it; nothing to accept
+        silent.sendall(b"G")
+        assert select.select([listener], [], [], 10)[0]  # its first byte: handed on
+
+
 def test_the_listening_socket_closes_a_flood_as_it_accepts_it(monkeypatch):
     """Past the caps and the refusals pending, a connection is closed by accept() itself,
     a batch at a time (the event loop runs between batches); the others are handed on,
@@ -115,6 +129,8 @@ def test_the_listening_socket_closes_a_flood_as_it_accepts_it(monkeypatch):
         listener.setblocking(False)
         clients = [socket.create_connection(listener.getsockname(), timeout=10) for _ in range(8)]
         try:
+            for c in clients:
+                c.sendall(b"GET / HTTP/1.1\r\n")  # (one that sends nothing is not handed on yet)
             accepted, stops = _accept_all(listener)
             assert [protocol.edge_counts.sorted.pop(addr) for _, addr in accepted] == ["admit", "admit", "refuse"]
             assert [addr for _, addr in accepted] == [c.getsockname() for c in clients[:3]]  # in the order they came
@@ -146,6 +162,14 @@ def _connect(server, source: str = "127.0.0.1") -> socket.socket:
     s.settimeout(30)
     s.bind((source, 0))
     s.connect(("127.0.0.1", server.port))
+    return s
+
+
+def _hold(server, source: str) -> socket.socket:
+    """A connection the server holds: it has sent the start of a request (one that has sent
+    nothing yet stays with the kernel, `test_a_connection_that_sends_nothing_is_not_handed_to_the_service`)."""
+    s = _connect(server, source)
+    s.sendall(b"GET /healthz HTTP/1.1\r\nHost: x\r\n")
     return s
 
 
@@ -182,7 +206,7 @@ def test_a_request_whose_headers_do_not_arrive_gets_408_and_is_closed(edge_serve
 
 
 def test_connections_past_the_cap_of_one_address_get_503_and_others_still_get_through(edge_server):
-    held = [_connect(edge_server, "127.0.0.2") for _ in range(8)]
+    held = [_hold(edge_server, "127.0.0.2") for _ in range(8)]
     try:
         with _connect(edge_server, "127.0.0.2") as extra:
             extra.sendall(b"GET /healthz HTTP/1.1\r\nHost: x\r\n\r\n")
@@ -195,7 +219,7 @@ def test_connections_past_the_cap_of_one_address_get_503_and_others_still_get_th
 
 
 def test_connections_past_the_cap_in_all_get_503(edge_server):
-    held = [_connect(edge_server, f"127.0.0.{10 + i // 8}") for i in range(40)]  # 5 addresses of 8: the cap of 40
+    held = [_hold(edge_server, f"127.0.0.{10 + i // 8}") for i in range(40)]  # 5 addresses of 8: the cap of 40
     try:
         with _connect(edge_server, "127.0.0.20") as extra:
             extra.sendall(b"GET /healthz HTTP/1.1\r\nHost: x\r\n\r\n")
