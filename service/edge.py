@@ -152,7 +152,7 @@ class EdgeSocket(socket.socket):
         if now - self._logged_at >= self.LOG_EVERY_S:
             counts = self._counts
             log.warning("connections closed unanswered: too many open connections and refusals pending "
-                        "(%d closed, %d open in all, %d from %s, %d refusals pending)",
+                        "(%d closed since the last such line, %d open in all, %d from %s, %d refusals pending)",
                         self._dropped, counts.open, counts.per_client[peer], peer, counts.refusing)
             self._dropped = 0
             self._logged_at = now
