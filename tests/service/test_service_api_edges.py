@@ -246,6 +246,7 @@ def test_the_servers_connections_send_small_responses_at_once():
         server = await asyncio.start_server(on_connect, sock=listening)  # as uvicorn serves it
         async with server:
             _, writer = await asyncio.open_connection("127.0.0.1", listening.getsockname()[1])
+            writer.write(b"G")  # (a connection that has sent nothing stays with the kernel)
             value = await asyncio.wait_for(seen, 10)
             writer.close()
         return value
