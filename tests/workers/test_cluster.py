@@ -32,6 +32,7 @@ def test_embedded_cluster_has_workers_and_a_dashboard():
         close_client(client)
 
 
+@pytest.mark.slow  # a cluster of worker processes
 def test_embedded_worker_processes_get_the_allocator_settings_not_dasks_trim():
     client = make_client(n_workers=1, dashboard=False, quiet=True)
     try:
@@ -88,6 +89,7 @@ def _sigint_blocked(_=None) -> bool:
     return bool(int(mask, 16) & (1 << (signal.SIGINT - 1)))
 
 
+@pytest.mark.slow  # a cluster of worker processes
 @pytest.mark.skipif(not Path("/proc/thread-self/status").exists(), reason="needs Linux /proc")
 def test_embedded_workers_do_not_take_ctrl_c_and_this_thread_does():
     """A terminal's Ctrl-C reaches every process of its group: the embedded workers
