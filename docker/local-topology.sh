@@ -81,34 +81,28 @@ start() {  # start NAME CMD...: run CMD in its own process group, log to logs/NA
     echo "local-topology: started $name (pid $!): $*" >&2
 }
 
-wait_http() {  # wait_http NAME URL PID
-    "$python_bin" - "$1" "$2" "$3" "$timeout_s" <<'PY' || { echo "local-topology: $1 did not come up; see $log_dir/$1.log" >&2; tail -n 20 "$log_dir/$1.log" >&2 || true; exit 1; }
-import os, sys, time, urllib.request
-name, url, pid, timeout = sys.argv[1], sys.argv[2], int(sys.argv[3]), float(sys.argv[4])
-deadline = time.monotonic() + timeout
-while time.monotonic() < deadline:
-    try:
-        os.kill(pid, 0)
-    except ProcessLookupError:
-        sys.exit(f"local-topology: {name} exited during start-up")
-    try:
-        with urllib.request.urlopen(url, timeout=2) as r:
-            if r.status == 200:
-                sys.exit(0)
-    except Exception:
-        pass
-    time.sleep(0.25)
-sys.exit(f"local-topology: {name} not healthy at {url} after {timeout:.0f} s")
-PY
-}
+wait_for() {  # wait_for NAME PID KIND TARGET: until NAME (process PID) is up, and what it reports
+    # KIND http: TARGET (a URL) answers 200. Each process binds port 0 and reports the
+    # port it got (a port picked here and bound later could be taken by another process
+    # meanwhile): KIND scheduler prints "ADDRESS DASHBOARD_PORT" from the dask scheduler
+    # file TARGET; KIND port prints the port in orchard serve's --port-file TARGET
+    "$python_bin" - "$@" "$timeout_s" <<'PY' || { echo "local-topology: $1 did not come up; see $log_dir/$1.log" >&2; tail -n 20 "$log_dir/$1.log" >&2 || true; exit 1; }
+import json, os, sys, time, urllib.request
+name, pid, kind, target, timeout = sys.argv[1], int(sys.argv[2]), sys.argv[3], sys.argv[4], float(sys.argv[5])
 
-reported() {  # reported NAME FILE PID KIND: what a process reports in FILE once it listens
-    # (each binds port 0 and says the port it got: a port picked here and bound later
-    # could be taken by another process meanwhile). KIND scheduler: "ADDRESS DASHBOARD_PORT"
-    # from a dask scheduler file; port: the port in orchard serve's --port-file
-    "$python_bin" - "$@" "$timeout_s" <<'PY' || { echo "local-topology: $1 did not say where it listens; see $log_dir/$1.log" >&2; tail -n 20 "$log_dir/$1.log" >&2 || true; exit 1; }
-import json, os, sys, time
-name, path, pid, kind, timeout = sys.argv[1], sys.argv[2], int(sys.argv[3]), sys.argv[4], float(sys.argv[5])
+
+def reported():
+    if kind == "http":
+        with urllib.request.urlopen(target, timeout=2) as r:
+            return "" if r.status == 200 else None
+    with open(target) as fh:
+        text = fh.read()
+    if kind == "scheduler":
+        info = json.loads(text)
+        return f"{info['address']} {info['services']['dashboard']}"
+    return str(int(text))
+
+
 deadline = time.monotonic() + timeout
 while time.monotonic() < deadline:
     try:
@@ -116,17 +110,15 @@ while time.monotonic() < deadline:
     except ProcessLookupError:
         sys.exit(f"local-topology: {name} exited during start-up")
     try:
-        with open(path) as fh:
-            text = fh.read()
-        if kind == "scheduler":
-            info = json.loads(text)
-            print(info["address"], info["services"]["dashboard"])
-        else:
-            print(int(text))
+        out = reported()
+    except Exception:  # not up yet, or its file not there or being written
+        out = None
+    if out is not None:
+        if out:
+            print(out)
         sys.exit(0)
-    except (OSError, ValueError, KeyError):  # not there yet, or being written
-        time.sleep(0.1)
-sys.exit(f"local-topology: {name} did not write {path} within {timeout:.0f} s")
+    time.sleep(0.2)
+sys.exit(f"local-topology: {name} not up ({kind} {target}) after {timeout:.0f} s")
 PY
 }
 
@@ -134,9 +126,8 @@ host=127.0.0.1
 rm -f "$log_dir/scheduler.json" "$log_dir/api.port"
 start scheduler dask scheduler --host "$host" --port 0 --dashboard-address "$host:0" \
     --scheduler-file "$log_dir/scheduler.json"
-read -r scheduler dashboard_port < <(reported scheduler "$log_dir/scheduler.json" "${pids[0]}" scheduler) || exit 1
-[[ -n "${scheduler:-}" ]] || exit 1
-wait_http scheduler "http://$host:$dashboard_port/health" "${pids[0]}"
+read -r scheduler dashboard_port < <(wait_for scheduler "${pids[0]}" scheduler "$log_dir/scheduler.json") || exit 1
+wait_for scheduler "${pids[0]}" http "http://$host:$dashboard_port/health"
 
 # dask's nanny starts each worker with MALLOC_TRIM_THRESHOLD_=65536, which maps and
 # page-faults every array above 128 KiB afresh: the embedded cluster's allocator
@@ -159,8 +150,8 @@ with Client(sys.argv[1], timeout=float(sys.argv[3])) as client:
 PY
 
 start api orchard serve --host "$host" --port 0 --port-file "$log_dir/api.port" --data-dir "$data_dir" --scheduler "$scheduler"
-api_port="$(reported api "$log_dir/api.port" "${pids[-1]}" port)" || exit 1
-wait_http api "http://$host:$api_port/healthz" "${pids[-1]}"
+api_port="$(wait_for api "${pids[-1]}" port "$log_dir/api.port")" || exit 1
+wait_for api "${pids[-1]}" http "http://$host:$api_port/healthz"
 
 export ORCHARD_URL="http://$host:$api_port"
 export ORCHARD_SCHEDULER="$scheduler"
