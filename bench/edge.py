@@ -21,7 +21,6 @@ import argparse
 import json
 import multiprocessing as mp
 import os
-import re
 import resource
 import selectors
 import signal
@@ -105,38 +104,34 @@ def _flood_bodies(url: str, token: str | None, body: bytes, end: float, statuses
 
 
 class Server:
-    """`orchard serve` on port 0 of 127.0.0.1 (its port read from its log), runner off."""
+    """`orchard serve` on port 0 of 127.0.0.1 (its port read from ``--port-file``), runner off."""
 
     def __init__(self, root: Path, **env: str) -> None:
         self.data_dir = root / "data"
         self.log_file = root / "serve.log"
+        self.port_file = root / "serve.port"
         self.env = {**os.environ, "ORCHARD_RUNNER": "false", "ORCHARD_SCHEDULING": "false",
                     "ORCHARD_LOG_FILE": str(self.log_file), **env}
         self.proc = None
         self.url = ""
 
     def __enter__(self) -> "Server":
+        self.port_file.unlink(missing_ok=True)
         self.proc = subprocess.Popen(
             [sys.executable, "-m", "service.cli", "serve", "--data-dir", str(self.data_dir), "--host", "127.0.0.1",
-             "--port", "0", "--log-level", "info"],
+             "--port", "0", "--port-file", str(self.port_file), "--log-level", "info"],
             env=self.env, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL, start_new_session=True)
         deadline = time.monotonic() + 60
-        while time.monotonic() < deadline and not self.url:
+        while time.monotonic() < deadline:
             if self.proc.poll() is not None:
                 raise RuntimeError(f"orchard serve exited: {self.log_text()[-2000:]}")
-            m = re.search(r"listening on (http://127\.0\.0\.1:\d+)", self.log_text())
-            if m:
-                self.url = m.group(1)
-            time.sleep(0.1)
-        if not self.url:
-            self.__exit__()
-            raise RuntimeError("orchard serve did not say where it listens")
-        while time.monotonic() < deadline:  # (the socket is bound before the app starts: said, not yet listening)
-            try:
-                if httpx.get(self.url + "/healthz", timeout=5).status_code == 200:
-                    return self
-            except httpx.HTTPError:
-                pass
+            if self.port_file.exists():  # written once it listens
+                self.url = f"http://127.0.0.1:{int(self.port_file.read_text())}"
+                try:
+                    if httpx.get(self.url + "/healthz", timeout=5).status_code == 200:
+                        return self
+                except httpx.HTTPError:
+                    pass
             time.sleep(0.1)
         self.__exit__()
         raise RuntimeError(f"orchard serve did not answer /healthz: {self.log_text()[-2000:]}")

@@ -1,6 +1,7 @@
 #!/usr/bin/env bash
 # The docker/compose.yaml topology without Docker: a `dask scheduler`, N `dask worker`
-# processes and `orchard serve`, each a separate process on 127.0.0.1 (free ports).
+# processes and `orchard serve`, each a separate process on 127.0.0.1 (each binds port 0
+# and reports the port it got).
 #
 # Usage:
 #   docker/local-topology.sh [--data-dir DIR] [--workers N] [--ready-file FILE] [-- COMMAND ...]
@@ -41,10 +42,6 @@ mkdir -p "$log_dir"
 timeout_s="${ORCHARD_TOPOLOGY_TIMEOUT:-90}"
 python_bin="${PYTHON:-python3}"
 
-free_port() {
-    "$python_bin" -c 'import socket; s = socket.socket(); s.bind(("127.0.0.1", 0)); print(s.getsockname()[1]); s.close()'
-}
-
 pids=()
 command_pid=""
 stopping=0
@@ -84,10 +81,28 @@ start() {  # start NAME CMD...: run CMD in its own process group, log to logs/NA
     echo "local-topology: started $name (pid $!): $*" >&2
 }
 
-wait_http() {  # wait_http NAME URL PID
-    "$python_bin" - "$1" "$2" "$3" "$timeout_s" <<'PY' || { echo "local-topology: $1 did not come up; see $log_dir/$1.log" >&2; tail -n 20 "$log_dir/$1.log" >&2 || true; exit 1; }
-import os, sys, time, urllib.request
-name, url, pid, timeout = sys.argv[1], sys.argv[2], int(sys.argv[3]), float(sys.argv[4])
+wait_for() {  # wait_for NAME PID KIND TARGET: until NAME (process PID) is up, and what it reports
+    # KIND http: TARGET (a URL) answers 200. Each process binds port 0 and reports the
+    # port it got (a port picked here and bound later could be taken by another process
+    # meanwhile): KIND scheduler prints "ADDRESS DASHBOARD_PORT" from the dask scheduler
+    # file TARGET; KIND port prints the port in orchard serve's --port-file TARGET
+    "$python_bin" - "$@" "$timeout_s" <<'PY' || { echo "local-topology: $1 did not come up; see $log_dir/$1.log" >&2; tail -n 20 "$log_dir/$1.log" >&2 || true; exit 1; }
+import json, os, sys, time, urllib.request
+name, pid, kind, target, timeout = sys.argv[1], int(sys.argv[2]), sys.argv[3], sys.argv[4], float(sys.argv[5])
+
+
+def reported():
+    if kind == "http":
+        with urllib.request.urlopen(target, timeout=2) as r:
+            return "" if r.status == 200 else None
+    with open(target) as fh:
+        text = fh.read()
+    if kind == "scheduler":
+        info = json.loads(text)
+        return f"{info['address']} {info['services']['dashboard']}"
+    return str(int(text))
+
+
 deadline = time.monotonic() + timeout
 while time.monotonic() < deadline:
     try:
@@ -95,44 +110,37 @@ while time.monotonic() < deadline:
     except ProcessLookupError:
         sys.exit(f"local-topology: {name} exited during start-up")
     try:
-        with urllib.request.urlopen(url, timeout=2) as r:
-            if r.status == 200:
-                sys.exit(0)
-    except Exception:
-        pass
-    time.sleep(0.25)
-sys.exit(f"local-topology: {name} not healthy at {url} after {timeout:.0f} s")
+        out = reported()
+    except Exception:  # not up yet, or its file not there or being written
+        out = None
+    if out is not None:
+        if out:
+            print(out)
+        sys.exit(0)
+    time.sleep(0.2)
+sys.exit(f"local-topology: {name} not up ({kind} {target}) after {timeout:.0f} s")
 PY
 }
 
 host=127.0.0.1
-scheduler_port="$(free_port)"
-dashboard_port="$(free_port)"
-api_port="$(free_port)"
-scheduler="tcp://$host:$scheduler_port"
-
-start scheduler dask scheduler --host "$host" --port "$scheduler_port" \
-    --dashboard-address "$host:$dashboard_port"
-wait_http scheduler "http://$host:$dashboard_port/health" "${pids[0]}"
+rm -f "$log_dir/scheduler.json" "$log_dir/api.port"
+start scheduler dask scheduler --host "$host" --port 0 --dashboard-address "$host:0" \
+    --scheduler-file "$log_dir/scheduler.json"
+read -r scheduler dashboard_port < <(wait_for scheduler "${pids[0]}" scheduler "$log_dir/scheduler.json") || exit 1
+wait_for scheduler "${pids[0]}" http "http://$host:$dashboard_port/health"
 
 # dask's nanny starts each worker with MALLOC_TRIM_THRESHOLD_=65536, which maps and
 # page-faults every array above 128 KiB afresh: the embedded cluster's allocator
 # settings instead (workers.cluster.WORKER_MALLOC_ENV), dask's others kept
 worker_environ="{'MALLOC_MMAP_THRESHOLD_': '16777216', 'MALLOC_TRIM_THRESHOLD_': '33554432', 'OMP_NUM_THREADS': 1, 'MKL_NUM_THREADS': 1, 'OPENBLAS_NUM_THREADS': 1}"
 export DASK_DISTRIBUTED__NANNY__PRE_SPAWN_ENVIRON="${DASK_DISTRIBUTED__NANNY__PRE_SPAWN_ENVIRON:-$worker_environ}"
-worker_ports=()
 for (( i=1; i<=n_workers; i++ )); do
-    port="$(free_port)"
-    worker_ports+=("$port")
     # env -u: like a container's clean environment; the nanny lets an inherited
     # MALLOC_* value override its pre-spawn setting
     start "worker-$i" env -u MALLOC_TRIM_THRESHOLD_ -u MALLOC_MMAP_THRESHOLD_ dask worker "$scheduler" --host "$host" --name "local-worker-$i" \
         --nworkers 1 --nthreads "${ORCHARD_WORKER_THREADS:-1}" \
         --memory-limit "${ORCHARD_WORKER_MEMORY:-2GiB}" \
-        --dashboard-address "$host:$port" --local-directory "$data_dir/dask-worker-$i"
-done
-for (( i=1; i<=n_workers; i++ )); do
-    wait_http "worker-$i" "http://$host:${worker_ports[$((i-1))]}/health" "${pids[$i]}"
+        --dashboard-address "$host:0" --local-directory "$data_dir/dask-worker-$i"
 done
 "$python_bin" - "$scheduler" "$n_workers" "$timeout_s" <<'PY' || { echo "local-topology: workers did not register with the scheduler" >&2; exit 1; }
 import sys
@@ -141,8 +149,9 @@ with Client(sys.argv[1], timeout=float(sys.argv[3])) as client:
     client.wait_for_workers(int(sys.argv[2]), timeout=float(sys.argv[3]))
 PY
 
-start api orchard serve --host "$host" --port "$api_port" --data-dir "$data_dir" --scheduler "$scheduler"
-wait_http api "http://$host:$api_port/healthz" "${pids[-1]}"
+start api orchard serve --host "$host" --port 0 --port-file "$log_dir/api.port" --data-dir "$data_dir" --scheduler "$scheduler"
+api_port="$(wait_for api "${pids[-1]}" port "$log_dir/api.port")" || exit 1
+wait_for api "${pids[-1]}" http "http://$host:$api_port/healthz"
 
 export ORCHARD_URL="http://$host:$api_port"
 export ORCHARD_SCHEDULER="$scheduler"

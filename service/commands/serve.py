@@ -20,7 +20,10 @@ HELP = "Run the HTTP service (API under /v1, docs at /docs) with its job runner 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--host", default=None, help="address to bind (default 127.0.0.1; env ORCHARD_HOST)")
-    parser.add_argument("--port", type=int, default=None, help="port to bind (default 8000; env ORCHARD_PORT)")
+    parser.add_argument("--port", type=int, default=None, help="port to bind (default 8000; 0: any free port; env ORCHARD_PORT)")
+    parser.add_argument("--port-file", default=None, metavar="PATH",
+                        help="write the port the server listens on to PATH (one line) once it accepts connections: "
+                             "with --port 0, how a supervisor or a test learns it")
     parser.add_argument("--data-dir", default=None, help="job store, uploads and results (env ORCHARD_DATA_DIR)")
     parser.add_argument(
         "--scheduler", default=None, metavar="ADDR",
@@ -59,6 +62,26 @@ def bind(host: str, port: int) -> socket.socket:
                              "(or ORCHARD_PORT), or --host") from None
     sock.set_inheritable(True)
     return sock
+
+
+def write_port_file(path: str, port: int) -> None:
+    """``port`` and a newline in ``path``, whole or not at all (a reader polls for the file)."""
+    target = os.path.abspath(path)
+    tmp = f"{target}.{os.getpid()}.tmp"
+    with open(tmp, "w", encoding="ascii") as fh:
+        fh.write(f"{port}\n")
+    os.replace(tmp, target)
+
+
+def listen_backlog() -> int:
+    """The kernel's limit of a listen queue (``net.core.somaxconn``; ``listen()`` caps at
+    it): a burst of connections that overflows the queue drops new ones, ``/healthz``'s
+    too, and a dropped connection is tried again only after 1 s."""
+    try:
+        with open("/proc/sys/net/core/somaxconn", encoding="ascii") as fh:
+            return int(fh.read())
+    except (OSError, ValueError):
+        return 4096
 
 
 #: file handles kept for the job store, uploads, results and the dask cluster's sockets
@@ -101,6 +124,10 @@ def run(args: argparse.Namespace) -> int:
         logging.getLogger("distributed").setLevel(logging.WARNING)  # the cluster's own chatter
 
     os.umask(UMASK)  # what the service and its local workers write is the service user's alone
+    if args.port_file and not os.path.isdir(os.path.dirname(os.path.abspath(args.port_file))):
+        from pipeline.errors import ParameterError
+
+        raise ParameterError(f"--port-file {args.port_file}: its folder does not exist")
     sock = bind(settings.host, settings.port)
     try:
         app = create_app(settings)
@@ -117,7 +144,12 @@ def run(args: argparse.Namespace) -> int:
                 begin()
             super().handle_exit(sig, frame)
 
-    from service.edge import EdgeLimits, edge_protocol
+        async def startup(self, sockets=None) -> None:
+            await super().startup(sockets)
+            if self.started and args.port_file:  # listening now: a reader of the file can connect at once
+                write_port_file(args.port_file, port)
+
+    from service.edge import EdgeLimits, EdgeSocket, edge_protocol
 
     limits = EdgeLimits(
         max_connections=connection_cap(settings.max_connections),
@@ -125,12 +157,11 @@ def run(args: argparse.Namespace) -> int:
         header_timeout_s=settings.header_timeout_s,
         body_timeout_s=settings.body_timeout_s,
     )
+    protocol = edge_protocol(limits)
+    sock = EdgeSocket.wrap(sock, protocol)
     config = uvicorn.Config(app, host=settings.host, port=settings.port, log_level=args.log_level, timeout_graceful_shutdown=10,
-                            http=edge_protocol(limits), log_config=None,  # uvicorn's records go through service.logs
-                            timeout_keep_alive=5,
-                            # (the kernel caps it at net.core.somaxconn): a burst of connections
-                            # that overflows the queue drops new ones, /healthz's too, for seconds
-                            backlog=4096)
+                            http=protocol, log_config=None,  # uvicorn's records go through service.logs
+                            timeout_keep_alive=5, backlog=listen_backlog())
     server = Server(config)
     with contextlib.suppress(KeyboardInterrupt):
         server.run(sockets=[sock])

@@ -1,8 +1,8 @@
 """The compose topology without Docker, end to end.
 
 ``docker/local-topology.sh`` starts a real ``dask scheduler``, two ``dask worker``
-processes and ``orchard serve --scheduler ...`` as separate processes on free ports of
-127.0.0.1. Through it: a token from ``orchard tokens create``, a generated block
+processes and ``orchard serve --scheduler ...`` as separate processes on 127.0.0.1, each
+on port 0 (the port it got read back). Through it: a token from ``orchard tokens create``, a generated block
 uploaded over HTTP, a tiled job run on the two workers, its trees checked against the
 simulation truth; then SIGTERM to the script must stop every process it started.
 Every wait is bounded; nothing here can hang the suite.

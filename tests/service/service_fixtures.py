@@ -4,6 +4,7 @@ served by uvicorn in a thread, a real `orchard serve` on loopback, tokens, small
 from __future__ import annotations
 
 import contextlib
+import itertools
 import os
 import signal
 import socket
@@ -34,28 +35,34 @@ def client_of(started: TestClient, *, token: str | None = None, **kwargs) -> Tes
     return client
 
 
-def free_port() -> int:
-    with socket.socket() as s:
-        s.bind(("127.0.0.1", 0))
-        return s.getsockname()[1]
+@contextlib.contextmanager
+def refusing_address() -> Iterator[str]:
+    """``tcp://127.0.0.1:PORT`` where nothing listens (a connection is refused) and
+    nothing else can start listening while the block runs: the port is held by a socket
+    bound and never listening. A dask scheduler may still be started on it on purpose
+    (dask binds with SO_REUSEADDR, as this socket is, and only one socket listens)."""
+    with socket.socket() as held:
+        held.setsockopt(socket.SOL_SOCKET, socket.SO_REUSEADDR, 1)
+        held.bind(("127.0.0.1", 0))
+        yield f"tcp://127.0.0.1:{held.getsockname()[1]}"
 
 
 @contextlib.contextmanager
 def app_in_thread(settings: Settings) -> Iterator[str]:
-    """`create_app(settings)` served by uvicorn on a loopback port in a thread of this
+    """`create_app(settings)` served by uvicorn on port 0 of loopback in a thread of this
     process (its lifespan runs; faults can be injected into it with monkeypatch); yields
     its base URL, stops it afterwards."""
     import uvicorn
 
     app = create_app(settings)
-    port = free_port()
-    srv = uvicorn.Server(uvicorn.Config(app, host="127.0.0.1", port=port, log_level="warning", lifespan="on"))
+    srv = uvicorn.Server(uvicorn.Config(app, host="127.0.0.1", port=0, log_level="warning", lifespan="on"))
     thread = threading.Thread(target=srv.run, daemon=True)
     thread.start()
     deadline = time.monotonic() + 30
     while not srv.started and thread.is_alive() and time.monotonic() < deadline:
         time.sleep(0.02)
     assert srv.started, "the app did not start"
+    port = srv.servers[0].sockets[0].getsockname()[1]
     try:
         yield f"http://127.0.0.1:{port}"
     finally:
@@ -64,32 +71,39 @@ def app_in_thread(settings: Settings) -> Iterator[str]:
 
 
 class ServerProcess:
-    """`orchard serve` in its own process group, on a free loopback port."""
+    """`orchard serve` in its own process group on port 0 of loopback; ``port`` and
+    ``url`` are those it reports (``--port-file``) once started."""
+
+    _started = itertools.count()
 
     def __init__(self, data_dir: Path, **env: str) -> None:
         self.data_dir = Path(data_dir)
         self.env = {k: str(v) for k, v in env.items()}
-        self.port = free_port()
-        self.url = f"http://127.0.0.1:{self.port}"
+        self.port: int | None = None
+        self.url = ""
         self.proc: subprocess.Popen | None = None
-        self.log_path = self.data_dir.parent / f"serve-{self.port}.log"
+        name = f"serve-{os.getpid()}-{next(self._started)}"
+        self.log_path = self.data_dir.parent / f"{name}.log"
+        self.port_file = self.data_dir.parent / f"{name}.port"
 
     def start(self, timeout: float = 60.0) -> "ServerProcess":
         self.data_dir.mkdir(parents=True, exist_ok=True)
+        self.port_file.unlink(missing_ok=True)
         env = {**os.environ, "ORCHARD_RUNNER_POLL_S": "0.2", "ORCHARD_N_WORKERS": "2", **self.env}
-        cmd = [sys.executable, "-m", "service.cli", "serve", "--data-dir", str(self.data_dir),
-               "--host", "127.0.0.1", "--port", str(self.port), "--log-level", "warning"]
+        cmd = [sys.executable, "-m", "service.cli", "serve", "--data-dir", str(self.data_dir), "--host", "127.0.0.1",
+               "--port", "0", "--port-file", str(self.port_file), "--log-level", "warning"]
         self._log = open(self.log_path, "ab")
         self.proc = subprocess.Popen(cmd, env=env, stdout=self._log, stderr=subprocess.STDOUT, start_new_session=True)
         deadline = time.monotonic() + timeout
         while time.monotonic() < deadline:
             if self.proc.poll() is not None:
                 raise RuntimeError(f"orchard serve exited early:\n{self.log()}")
-            try:
-                if httpx.get(self.url + "/healthz", timeout=1.0).status_code == 200:
-                    return self
-            except httpx.HTTPError:
-                pass
+            if self.port_file.exists():  # written once the server listens
+                self.port = int(self.port_file.read_text())
+                self.url = f"http://127.0.0.1:{self.port}"
+                with contextlib.suppress(httpx.HTTPError):
+                    if httpx.get(self.url + "/healthz", timeout=30).status_code == 200:
+                        return self
             time.sleep(0.1)
         self.kill()
         raise RuntimeError(f"orchard serve did not come up:\n{self.log()}")

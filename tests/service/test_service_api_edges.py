@@ -216,12 +216,24 @@ def test_a_port_in_use_is_exit_2_naming_it_and_creates_nothing(tmp_path):
     assert not (tmp_path / "data").exists()
 
 
+def test_a_port_file_in_a_folder_that_is_not_there_is_exit_2_and_creates_nothing(tmp_path):
+    r = subprocess.run(
+        [sys.executable, "-m", "service.cli", "serve", "--port", "0", "--port-file", str(tmp_path / "nope" / "port"),
+         "--data-dir", str(tmp_path / "data")],
+        capture_output=True, text=True, timeout=120, env={**os.environ, "ORCHARD_RUNNER": "false", "ORCHARD_SCHEDULING": "false"},
+    )
+    assert r.returncode == 2, r.stderr
+    assert f"--port-file {tmp_path / 'nope' / 'port'}: its folder does not exist" in r.stderr and "Traceback" not in r.stderr
+    assert not (tmp_path / "data").exists()
+
+
 def test_the_servers_connections_send_small_responses_at_once():
     # without TCP_NODELAY a keep-alive response's last segment waited for the client's
     # delayed ACK: every request on a reused connection took about 40 ms
     import asyncio
 
     from service.commands.serve import bind
+    from service.edge import EdgeLimits, EdgeSocket, edge_protocol
 
     async def accepted_nodelay() -> int:
         seen = asyncio.get_running_loop().create_future()
@@ -230,10 +242,11 @@ def test_the_servers_connections_send_small_responses_at_once():
             seen.set_result(writer.get_extra_info("socket").getsockopt(socket.IPPROTO_TCP, socket.TCP_NODELAY))
             writer.close()
 
-        listening = bind("127.0.0.1", 0)
+        listening = EdgeSocket.wrap(bind("127.0.0.1", 0), edge_protocol(EdgeLimits()))
         server = await asyncio.start_server(on_connect, sock=listening)  # as uvicorn serves it
         async with server:
             _, writer = await asyncio.open_connection("127.0.0.1", listening.getsockname()[1])
+            writer.write(b"G")  # (a connection that has sent nothing stays with the kernel)
             value = await asyncio.wait_for(seen, 10)
             writer.close()
         return value

@@ -14,6 +14,7 @@ import pytest
 from service_fixtures import client_of
 
 from service.api.bodies import MAX_DEPTH, MAX_KEYS, shape_problem
+from service.edge import EdgeLimits, EdgeSocket, edge_protocol
 
 
 def _many_keys(n: int, size: int | None = None) -> bytes:
@@ -81,6 +82,69 @@ def test_healthz_answers_while_sixteen_clients_send_1mb_bodies(api_server, serve
 # -- connections and deadlines at the edge --------------------------------------------
 
 
+def _accept_all(listener: EdgeSocket) -> tuple[list, int]:
+    """What ``accept()`` hands on until nothing is queued, and how many BlockingIOErrors it raised on the way."""
+    import select
+
+    accepted, stops = [], 0
+    while select.select([listener], [], [], 0.2)[0]:
+        try:
+            accepted.append(listener.accept())
+        except BlockingIOError:
+            stops += 1
+    return accepted, stops
+
+
+def _closed_by_server(s: socket.socket) -> bool:
+    try:
+        return s.recv(1) == b""
+    except ConnectionResetError:
+        return True
+
+
+@pytest.mark.skipif(not hasattr(socket, "TCP_DEFER_ACCEPT"), reason="TCP_DEFER_ACCEPT is Linux's")
+def test_a_connection_that_sends_nothing_is_not_handed_to_the_service():
+    import select
+
+    raw = socket.socket()
+    raw.bind(("127.0.0.1", 0))
+    raw.listen(16)
+    with EdgeSocket.wrap(raw, edge_protocol(EdgeLimits(header_timeout_s=10))) as listener, \
+            socket.create_connection(listener.getsockname(), timeout=10) as silent:
+        assert not select.select([listener], [], [], 0.5)[0]  # connected, as the client sees it; nothing to accept
+        silent.sendall(b"G")
+        assert select.select([listener], [], [], 10)[0]  # its first byte: handed on
+
+
+def test_the_listening_socket_closes_a_flood_as_it_accepts_it(monkeypatch):
+    """Past the caps and the refusals pending, a connection is closed by accept() itself,
+    a batch at a time (the event loop runs between batches); the others are handed on,
+    sorted for the protocol: admitted, or to be answered 503."""
+    monkeypatch.setattr(EdgeSocket, "DROP_BATCH", 2)
+    protocol = edge_protocol(EdgeLimits(max_connections=100, max_per_client=2, max_refusing=1))
+    raw = socket.socket()
+    raw.bind(("127.0.0.1", 0))  # port 0: the kernel's choice
+    raw.listen(16)
+    with EdgeSocket.wrap(raw, protocol) as listener:
+        listener.setblocking(False)
+        clients = [socket.create_connection(listener.getsockname(), timeout=10) for _ in range(8)]
+        try:
+            for c in clients:
+                c.sendall(b"GET / HTTP/1.1\r\n")  # (one that sends nothing is not handed on yet)
+            accepted, stops = _accept_all(listener)
+            assert [protocol.edge_counts.sorted.pop(addr) for _, addr in accepted] == ["admit", "admit", "refuse"]
+            assert [addr for _, addr in accepted] == [c.getsockname() for c in clients[:3]]  # in the order they came
+            assert stops == 3  # the 5 dropped: batches of 2, 2 and 1 (the last one ended by the empty queue)
+            assert all(_closed_by_server(c) for c in clients[3:])
+            counts = protocol.edge_counts
+            assert (counts.open, counts.per_client["127.0.0.1"], counts.refusing) == (2, 2, 1)
+        finally:
+            for c in clients:
+                c.close()
+            for conn, _ in accepted:
+                conn.close()
+
+
 @pytest.fixture(scope="module")
 def edge_server(tmp_path_factory):
     """A server with small edge limits, its log in a rotated file."""
@@ -98,6 +162,14 @@ def _connect(server, source: str = "127.0.0.1") -> socket.socket:
     s.settimeout(30)
     s.bind((source, 0))
     s.connect(("127.0.0.1", server.port))
+    return s
+
+
+def _hold(server, source: str) -> socket.socket:
+    """A connection the server holds: it has sent the start of a request (one that has sent
+    nothing yet stays with the kernel, `test_a_connection_that_sends_nothing_is_not_handed_to_the_service`)."""
+    s = _connect(server, source)
+    s.sendall(b"GET /healthz HTTP/1.1\r\nHost: x\r\n")
     return s
 
 
@@ -134,7 +206,7 @@ def test_a_request_whose_headers_do_not_arrive_gets_408_and_is_closed(edge_serve
 
 
 def test_connections_past_the_cap_of_one_address_get_503_and_others_still_get_through(edge_server):
-    held = [_connect(edge_server, "127.0.0.2") for _ in range(8)]
+    held = [_hold(edge_server, "127.0.0.2") for _ in range(8)]
     try:
         with _connect(edge_server, "127.0.0.2") as extra:
             extra.sendall(b"GET /healthz HTTP/1.1\r\nHost: x\r\n\r\n")
@@ -147,7 +219,7 @@ def test_connections_past_the_cap_of_one_address_get_503_and_others_still_get_th
 
 
 def test_connections_past_the_cap_in_all_get_503(edge_server):
-    held = [_connect(edge_server, f"127.0.0.{10 + i // 8}") for i in range(40)]  # 5 addresses of 8: the cap of 40
+    held = [_hold(edge_server, f"127.0.0.{10 + i // 8}") for i in range(40)]  # 5 addresses of 8: the cap of 40
     try:
         with _connect(edge_server, "127.0.0.20") as extra:
             extra.sendall(b"GET /healthz HTTP/1.1\r\nHost: x\r\n\r\n")

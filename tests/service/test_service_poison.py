@@ -13,17 +13,21 @@ import sqlite3
 
 import httpx
 import pytest
-from service_fixtures import ServerProcess, free_port, make_token, simulated_block, wait_for_job
+from service_fixtures import ServerProcess, make_token, refusing_address, simulated_block, wait_for_job
 
 pytestmark = pytest.mark.slow
 
 
 def test_a_job_that_keeps_killing_the_service_is_failed_and_the_next_one_runs(tmp_path):
+    with refusing_address() as address:
+        _keeps_killing_the_service(tmp_path, address)
+
+
+def _keeps_killing_the_service(tmp_path, address: str) -> None:
     block = simulated_block(tmp_path / "b.laz", rows=1, trees_per_row=3, seed=7, density=0.3)
     data = tmp_path / "data"
     # nothing listens at this address: a job waits there up to the timeout, "running"
-    hanging = {"ORCHARD_SCHEDULER": f"tcp://127.0.0.1:{free_port()}", "ORCHARD_SCHEDULER_TIMEOUT_S": "300",
-               "ORCHARD_SCHEDULING": "false"}
+    hanging = {"ORCHARD_SCHEDULER": address, "ORCHARD_SCHEDULER_TIMEOUT_S": "300", "ORCHARD_SCHEDULING": "false"}
     token = make_token(data, "farm")
     auth = {"Authorization": f"Bearer {token}"}
     seen = []

@@ -18,8 +18,8 @@ import httpx
 import pytest
 from service_fixtures import (
     ServerProcess,
-    free_port,
     make_token,
+    refusing_address,
     simulated_block,
     wait_for_job,
 )
@@ -39,9 +39,14 @@ def _stop(proc: subprocess.Popen) -> None:
 
 @pytest.mark.slow
 def test_a_job_waits_for_a_scheduler_that_comes_back(tmp_path):
-    port = free_port()
+    with refusing_address() as address:
+        _waits_for_a_scheduler_that_comes_back(tmp_path, address)
+
+
+def _waits_for_a_scheduler_that_comes_back(tmp_path, address: str) -> None:
+    port = address.rsplit(":", 1)[1]
     block = simulated_block(tmp_path / "b.laz", rows=1, trees_per_row=3, seed=7, density=0.3)
-    srv = ServerProcess(tmp_path / "data", ORCHARD_SCHEDULER=f"tcp://127.0.0.1:{port}", ORCHARD_JOB_RETRIES="10",
+    srv = ServerProcess(tmp_path / "data", ORCHARD_SCHEDULER=address, ORCHARD_JOB_RETRIES="10",
                         ORCHARD_RETRY_DELAY_S="1", ORCHARD_SCHEDULER_TIMEOUT_S="3", ORCHARD_SCHEDULING="false").start()
     cluster: list[subprocess.Popen] = []
     try:
@@ -57,10 +62,10 @@ def test_a_job_waits_for_a_scheduler_that_comes_back(tmp_path):
             # the cluster comes back: a later attempt runs the job on it
             logs = open(tmp_path / "cluster.log", "ab")  # noqa: SIM115 - closed below
             cluster.append(subprocess.Popen(
-                ["dask", "scheduler", "--host", "127.0.0.1", "--port", str(port), "--dashboard-address", ":0"],
+                ["dask", "scheduler", "--host", "127.0.0.1", "--port", port, "--dashboard-address", ":0"],
                 stdout=logs, stderr=subprocess.STDOUT, start_new_session=True))
             cluster.append(subprocess.Popen(
-                ["dask", "worker", f"tcp://127.0.0.1:{port}", "--nworkers", "1", "--nthreads", "1", "--no-dashboard"],
+                ["dask", "worker", address, "--nworkers", "1", "--nthreads", "1", "--no-dashboard"],
                 stdout=logs, stderr=subprocess.STDOUT, start_new_session=True))
             done = wait_for_job(c, job["id"], timeout=240)
             assert done["state"] == "done", (done["error"], srv.log())

@@ -4,7 +4,6 @@ from __future__ import annotations
 
 import os
 import signal
-import socket
 import subprocess
 import sys
 import time
@@ -13,6 +12,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
+from cluster_fixtures import scheduler_address
 from pipeline.laswriting import LasBlockWriter
 from simulator.simparams import SimulationParams
 from simulator.truth import write_simulation
@@ -49,23 +49,23 @@ def ground_block(tmp_path_factory) -> Path:
     return path
 
 
-def free_port() -> int:
-    with socket.socket() as s:
-        s.bind(("127.0.0.1", 0))
-        return s.getsockname()[1]
-
-
 class LoopbackCluster:
-    """``dask scheduler`` and ``dask worker`` processes on 127.0.0.1."""
+    """``dask scheduler`` (on port 0, its address read back) and ``dask worker`` processes on 127.0.0.1."""
 
     def __init__(self, n_workers: int, log_dir: Path):
-        self.port = free_port()
-        self.address = f"tcp://127.0.0.1:{self.port}"
         self.log_dir = log_dir
         self.procs: list[subprocess.Popen] = []
+        scheduler_file = log_dir / "scheduler.json"
         self.scheduler = self._start(
-            ["scheduler", "--host", "127.0.0.1", "--port", str(self.port), "--no-dashboard"], "scheduler"
+            ["scheduler", "--host", "127.0.0.1", "--port", "0", "--no-dashboard", "--scheduler-file", str(scheduler_file)],
+            "scheduler",
         )
+        try:
+            self.address = scheduler_address(scheduler_file, self.scheduler)
+        except RuntimeError:
+            self.close()
+            raise
+        self.port = int(self.address.rsplit(":", 1)[1])
         self.workers = [self.start_worker(i) for i in range(n_workers)]
         self.wait_for_workers(n_workers)
 

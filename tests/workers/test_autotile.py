@@ -307,7 +307,8 @@ def test_a_block_counted_and_kept_whole_is_counted_once(block, tmp_path, capsys,
 @pytest.mark.parametrize(
     "argv, words",
     [
-        (["--worker-memory", "0.21"], "too small for this block"),
+        # (counted by a cluster of worker processes first)
+        pytest.param(["--worker-memory", "0.21"], "too small for this block", marks=pytest.mark.slow),
         (["--worker-memory", "0"], "--worker-memory: Input should be greater than 0"),
         (["--worker-memory", "nan"], "--worker-memory: Input should be a finite number"),
         (["--worker-memory", "1", "--tile-size", "10"], "not both"),

@@ -32,6 +32,7 @@ def test_embedded_cluster_has_workers_and_a_dashboard():
         close_client(client)
 
 
+@pytest.mark.slow  # a cluster of worker processes
 def test_embedded_worker_processes_get_the_allocator_settings_not_dasks_trim():
     client = make_client(n_workers=1, dashboard=False, quiet=True)
     try:
@@ -62,11 +63,11 @@ def test_no_dashboard():
 
 
 def test_unreachable_scheduler_is_a_parameter_error():
-    with socket.socket() as s:  # a port nobody listens on
+    with socket.socket() as s:  # bound, never listening: refused, and no other process can take the port meanwhile
         s.bind(("127.0.0.1", 0))
         port = s.getsockname()[1]
-    with pytest.raises(ParameterError, match=f"127.0.0.1:{port}.*dask scheduler"):
-        make_client(f"tcp://127.0.0.1:{port}", timeout="0.5s")
+        with pytest.raises(ParameterError, match=f"127.0.0.1:{port}.*dask scheduler"):
+            make_client(f"tcp://127.0.0.1:{port}", timeout="0.5s")
 
 
 def test_a_port_that_accepts_but_never_answers_is_a_parameter_error_in_time():
@@ -88,6 +89,7 @@ def _sigint_blocked(_=None) -> bool:
     return bool(int(mask, 16) & (1 << (signal.SIGINT - 1)))
 
 
+@pytest.mark.slow  # a cluster of worker processes
 @pytest.mark.skipif(not Path("/proc/thread-self/status").exists(), reason="needs Linux /proc")
 def test_embedded_workers_do_not_take_ctrl_c_and_this_thread_does():
     """A terminal's Ctrl-C reaches every process of its group: the embedded workers

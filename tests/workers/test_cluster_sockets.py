@@ -23,6 +23,7 @@ from pathlib import Path
 import httpx
 import psutil
 import pytest
+from cluster_fixtures import scheduler_address
 from distributed import Client, LocalCluster
 
 from pipeline.jobparams import JobParams, TilingParams
@@ -67,7 +68,9 @@ def answers_http(ip: str, port: int) -> bool:
     a dask comm port reads the request as a malformed frame and answers nothing."""
     try:
         with socket.create_connection((ip, port), timeout=2) as sock:
-            sock.sendall(b"GET /health HTTP/1.0\r\nHost: x\r\n\r\n")
+            # /healthz: the service answers it at once; its first 404 (of /health) took 1.4 s
+            # on a loaded machine, past this timeout; any HTTP server answers it, 404 or not
+            sock.sendall(b"GET /healthz HTTP/1.0\r\nHost: x\r\n\r\n")
             return sock.recv(5) == b"HTTP/"
     except OSError:
         return False
@@ -143,13 +146,7 @@ def test_orchard_serve_listens_on_loopback_alone_after_a_job(tiny_block, tmp_pat
 # -- workers of an external cluster --------------------------------------------------------
 
 
-def _free_port() -> int:
-    with socket.socket() as s:
-        s.bind(("127.0.0.1", 0))
-        return s.getsockname()[1]
-
-
-_SCHEDULER_ARGS = ("--host", "127.0.0.1", "--no-dashboard", "--port")
+_SCHEDULER_ARGS = ("--host", "127.0.0.1", "--no-dashboard", "--port", "0")
 _WORKER_ARGS = ("--nthreads", "1", "--no-dashboard", "--no-nanny")
 
 
@@ -182,11 +179,11 @@ _BARE_WORKER = (
 def one_worker_cluster(folder: Path, *, bare: bool = False):
     """``dask scheduler`` and one ``dask worker`` (without the project if ``bare``) on
     loopback: yields the scheduler's address, the worker's address and the worker process."""
-    port = _free_port()
-    address = f"tcp://127.0.0.1:{port}"
     logs = open(folder / "cluster.log", "ab")  # noqa: SIM115 - closed below
-    procs = [_start(logs, "-m", "distributed.cli.dask_scheduler", *_SCHEDULER_ARGS, str(port))]
+    scheduler_file = folder / "scheduler.json"
+    procs = [_start(logs, "-m", "distributed.cli.dask_scheduler", *_SCHEDULER_ARGS, "--scheduler-file", str(scheduler_file))]
     try:
+        address = scheduler_address(scheduler_file, procs[0])
         if bare:
             paths = ":".join(site.getsitepackages())
             procs.append(_start(logs, "-I", "-S", "-c", _BARE_WORKER, paths, address, *_WORKER_ARGS, cwd=folder))
@@ -253,12 +250,9 @@ def test_a_job_whose_workers_all_die_stops_saying_so(tiny_block, tmp_path, monke
 
 
 @pytest.fixture
-def inprocess_cluster():
-    """A scheduler and one worker in this process, reached over TCP as an external cluster."""
-    # (dashboard_address=None would still bind the scheduler's HTTP server, on 8787)
-    with LocalCluster(n_workers=1, processes=False, protocol="tcp://", host="127.0.0.1",
-                      dashboard_address="127.0.0.1:0") as cluster:
-        yield cluster
+def inprocess_cluster(dask_cluster):
+    """The fast tests' shared cluster (workers in this process), reached over TCP as an external cluster."""
+    return dask_cluster
 
 
 def test_workers_of_the_same_project_pass(inprocess_cluster):
@@ -276,8 +270,8 @@ def test_another_version_on_the_workers_is_refused(inprocess_cluster, monkeypatc
                     "--scheduler", inprocess_cluster.scheduler_address])
     err = capsys.readouterr().err
     assert code == 2, err
-    (worker,) = inprocess_cluster.scheduler.workers
-    assert f"{worker} ({here['python']} on {here['host']}) has orchard-trees {here['version']}, not 9.9.9" in err
+    for worker in inprocess_cluster.scheduler.workers:
+        assert f"{worker} ({here['python']} on {here['host']}) has orchard-trees {here['version']}, not 9.9.9" in err
     assert "Install orchard-trees 9.9.9" in err
     assert not (tmp_path / "out").exists()
 

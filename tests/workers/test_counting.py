@@ -27,13 +27,16 @@ def block(tmp_path_factory):
     return read_info(str(path))
 
 
-@pytest.fixture(scope="module")
-def client():
-    from distributed import Client, LocalCluster
+@pytest.fixture
+def client(dask_client):
+    return dask_client
 
-    with LocalCluster(n_workers=2, threads_per_worker=1, processes=False, dashboard_address=None) as cluster, \
-            Client(cluster) as c:
-        yield c
+
+def _ranges_counted(client) -> int:
+    """How many count-range tasks the (shared) cluster has finished so far."""
+    return client.run_on_scheduler(
+        lambda dask_scheduler: dask_scheduler.task_prefixes["count-range"].state_counts["memory"]
+        if "count-range" in dask_scheduler.task_prefixes else 0)
 
 
 def test_the_workers_count_what_one_process_counts(block, client, monkeypatch):
@@ -41,10 +44,10 @@ def test_the_workers_count_what_one_process_counts(block, client, monkeypatch):
     monkeypatch.setattr(counting, "CHUNK_POINTS", run)  # several ranges on a small block
     assert block.seekable and block.n_points > 4 * run
     here = sample_density(block.path, info=block, voxel_size=0.1, chunk_points=run)
+    before = _ranges_counted(client)
     there = count_block(block, 0.1, client=client)
     assert there.exact and np.array_equal(there.counts, here.counts) and np.array_equal(there.nodes, here.nodes)
-    prefixes = client.run_on_scheduler(lambda dask_scheduler: list(dask_scheduler.task_prefixes))
-    assert "count-range" in prefixes  # counted by tasks, not here
+    assert _ranges_counted(client) - before >= 4  # counted by tasks, not here
 
 
 def test_without_a_cluster_or_a_seekable_file_the_block_is_counted_here(block, client, monkeypatch):
@@ -84,7 +87,7 @@ def test_a_job_given_a_cluster_counts_its_block_there(block, client, monkeypatch
     budget = (FIXED_BYTES + 0.6 * (need - FIXED_BYTES)) / 1e9  # the whole block does not fit
     spec = jobspec.JobSpec(block.path, str(tmp_path / "out"), job=JobParams(pipeline=PipelineParams.model_validate(
         {"segment": {"max_crown_radius": 3.0}})), run=RunOptions(worker_memory=budget))
+    before = _ranges_counted(client)
     outcome = run_job(spec, client=client)
     assert outcome.n_tiles > 1 and outcome.n_points == block.n_points and outcome.n_trees > 0
-    prefixes = client.run_on_scheduler(lambda dask_scheduler: list(dask_scheduler.task_prefixes))
-    assert "count-range" in prefixes
+    assert _ranges_counted(client) > before

@@ -63,6 +63,7 @@ def test_tiling_invariance_on_a_40_tree_block(orchard_block, tmp_path):
     assert not (tmp_path / "tiled" / "_work").exists()  # work store removed after success
 
 
+@pytest.mark.slow  # three whole runs of a block
 def test_ids_do_not_depend_on_tiling(small_block, tmp_path):
     runs = [
         run_job(JobSpec(str(small_block), str(tmp_path / "a"))),

@@ -205,13 +205,14 @@ def test_the_pdal_engine_without_pdal(small_block, tmp_path, capsys):
     assert "import pdal failed" in err and "--engine laspy" in err
 
 
-def test_no_trees_exit_code(ground_block, tmp_path, capsys):
+def test_no_trees_exit_code(ground_block, tmp_path, capsys, dask_cluster):
     out_dir = tmp_path / "out"
     code, _, err = _run(capsys, ground_block, "--out", out_dir)
     _assert_clean_failure(code, err, out_dir, expect_code=3)
     assert "no trees" in err
     # tiled, into folders that did not exist: none is left behind (a/b stayed)
-    code, _, err = _run(capsys, ground_block, "--out", tmp_path / "a" / "b" / "c", "--tile-size", 10, "--workers", 1)
+    code, _, err = _run(capsys, ground_block, "--out", tmp_path / "a" / "b" / "c", "--tile-size", 10,
+                        "--scheduler", dask_cluster.scheduler_address)
     assert code == 3 and "no trees" in err, err
     assert not (tmp_path / "a").exists()
 

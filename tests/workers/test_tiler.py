@@ -109,11 +109,10 @@ def test_unknown_engine(small_block, tmp_path):
         _tile(small_block, WorkStore(str(tmp_path / "w")), engine="gdal")
 
 
-def test_parallel_tiling_on_dask_gives_the_same_tiles(tmp_path):
+def test_parallel_tiling_on_dask_gives_the_same_tiles(tmp_path, dask_client):
     """Chunks split by dask tasks (each seeking its own range) equal the sequential tiler,
     also for a LAZ of variable-size chunks (lazrs cannot seek in those: its points after a
     seek were garbage within the bounds, and tiled runs gave wrong trees, exit 0)."""
-    from distributed import Client, LocalCluster
     from laz_fixtures import write_variable_chunk_laz
 
     rng = np.random.default_rng(4)
@@ -123,18 +122,17 @@ def test_parallel_tiling_on_dask_gives_the_same_tiles(tmp_path):
         w.write(xyz)
     variable = write_variable_chunk_laz(fixed, tmp_path / "v.laz", [9_000, 1, 17_000, 4_999, 19_000])
     assert read_info(fixed).seekable and not read_info(variable).seekable
-    with LocalCluster(n_workers=2, threads_per_worker=1, processes=True, dashboard_address=None) as cluster, Client(cluster) as client:
-        for path in (fixed, variable):
-            info = read_info(path)
-            grid = plan_grid(info.mins, info.maxs, tile_size=10.0, buffer=2.0, grid_origin=(500000.0, 6950000.0), reach=1.0)
-            seq = WorkStore(str(tmp_path / f"seq-{path.stem}"))
-            par = WorkStore(str(tmp_path / f"par-{path.stem}"))
-            a = tile_block(info, grid, seq, chunk_points=7_000)
-            b = tile_block(info, grid, par, chunk_points=7_000, client=client)
-            assert a["tiles"] == b["tiles"]
-            for t in a["tiles"]:
-                ra, rb = read_tile(seq, t["id"]), read_tile(par, t["id"])
-                assert np.array_equal(np.sort(ra, order="index"), np.sort(rb, order="index"))
+    for path in (fixed, variable):
+        info = read_info(path)
+        grid = plan_grid(info.mins, info.maxs, tile_size=10.0, buffer=2.0, grid_origin=(500000.0, 6950000.0), reach=1.0)
+        seq = WorkStore(str(tmp_path / f"seq-{path.stem}"))
+        par = WorkStore(str(tmp_path / f"par-{path.stem}"))
+        a = tile_block(info, grid, seq, chunk_points=7_000)
+        b = tile_block(info, grid, par, chunk_points=7_000, client=dask_client)
+        assert a["tiles"] == b["tiles"]
+        for t in a["tiles"]:
+            ra, rb = read_tile(seq, t["id"]), read_tile(par, t["id"])
+            assert np.array_equal(np.sort(ra, order="index"), np.sort(rb, order="index"))
 
 
 def test_a_range_of_a_laz_with_variable_size_chunks_is_the_same_points(small_block, tmp_path):
