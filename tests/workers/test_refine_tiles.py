@@ -6,7 +6,7 @@ import numpy as np
 import pyarrow.parquet as pq
 import pytest
 
-from pipeline.jobparams import TilingParams
+from pipeline.jobparams import JobParams, TilingParams
 from pipeline.params import PipelineParams
 from workers.job import run_job
 from workers.jobspec import JobSpec
@@ -26,8 +26,8 @@ def test_refined_labels_do_not_depend_on_tiling(tmp_path, sim):
     block = tmp_path / "b.laz"
     write_simulation(SimulationParams(**sim), str(block), str(tmp_path / "t.parquet"))
     params = PipelineParams.model_validate({"segment": {"method": "refined"}})
-    single = run_job(JobSpec(str(block), str(tmp_path / "single"), params=params))
-    tiled = run_job(JobSpec(str(block), str(tmp_path / "tiled"), params=params, tiling=TilingParams(tile_size=6.0)))
+    single = run_job(JobSpec(str(block), str(tmp_path / "single"), job=JobParams(pipeline=params)))
+    tiled = run_job(JobSpec(str(block), str(tmp_path / "tiled"), job=JobParams(pipeline=params, tiling=TilingParams(tile_size=6.0))))
     assert tiled.n_tiles > 2 and tiled.n_trees == single.n_trees > 0
     pa = pq.read_table(tmp_path / "single" / "points.parquet").to_pydict()
     pb = pq.read_table(tmp_path / "tiled" / "points.parquet").to_pydict()
