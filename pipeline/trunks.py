@@ -481,7 +481,7 @@ def _floors_of_block(
     _, _, probe = _groups(nodes, node_height, drained, scattering, radius=loose.at_spacing(None).cluster_radius,
                           params=loose)
     ok = probe["fits"] & probe["branches"] & (probe["width"] <= params.max_trunk_width)
-    floors = block_floors(probe["top"], probe["support"], ok)
+    floors = block_floors(probe["top"], probe["support"], ok, probe["width"])
     return params.at_floors(*floors), floors[0] is not None  # a block of young trees
 
 

@@ -157,3 +157,15 @@ def test_a_stem_of_its_own_is_never_a_neighbours_satellite():
     broken = np.r_[_column(0.0, 0.0, 0.05, 1.0), _column(0.0, 0.0, 1.6, 6.0)]
     nodes = np.r_[bole, broken]
     assert _own_stems(xy[::-1], nodes, nodes[:, 2]).tolist() == [True, False]
+
+
+def test_a_cloud_of_random_points_is_no_block_of_young_trees():
+    # the service tests' upload fixture: 20,000 points in a 10 m x 10 m x 3 m box. Its
+    # contact groups branch everywhere, but their flow passes the contact band as a
+    # curtain (0.75-0.82 m), not through stems
+    xyz = np.random.default_rng(7).uniform([0, 0, 0], [10, 10, 3], (20_000, 3))
+    assert process_points(xyz, params=PipelineParams()).n_trees == 0
+    support = np.array([100.0, 110.0, 120.0])
+    top = np.array([1.5, 1.6, 1.7])
+    assert block_floors(top, support, np.ones(3, bool), np.array([0.2, 0.3, 0.6])) == (0.8, 28)
+    assert block_floors(top, support, np.ones(3, bool), np.array([0.6, 0.8, 0.3])) == (None, None)
