@@ -79,6 +79,13 @@ def branches(nodes: np.ndarray, node_height: np.ndarray, node_group: np.ndarray,
     return extent >= BRANCH_EXTENT
 
 
+def _weighted_median(values: np.ndarray, weights: np.ndarray) -> float:
+    """The value below and above which half of the ``weights`` lie."""
+    order = np.argsort(values, kind="stable")
+    cum = np.cumsum(weights[order])
+    return float(values[order][np.searchsorted(cum, 0.5 * cum[-1])])
+
+
 def block_floors(top: np.ndarray, support: np.ndarray, ok: np.ndarray,
                  width: np.ndarray | None = None) -> tuple[float | None, int | None]:
     """The size floors a block's trees ask for, from the contact groups ``ok`` that
@@ -87,10 +94,15 @@ def block_floors(top: np.ndarray, support: np.ndarray, ok: np.ndarray,
     each between its least value and the mature trees' floor (MATURE_FLOORS). (None,
     None) without such a group, where their median height and median catchment are
     both at the mature trees' floors or more (a block of grown trees, replants among them
-    or not), or where the median of their flow cross-sections ``width`` [m] is over
+    or not; both medians weighted by the catchment), or where the median of their flow cross-sections ``width`` [m] is over
     YOUNG_MAX_WIDTH (no stems: a cloud of random points): the mature trees' floors hold."""
-    if not ok.any() or (np.median(top[ok]) >= MATURE_FLOORS["min_tree_height"]
-                        and np.median(support[ok]) >= MATURE_FLOORS["min_canopy_voxels"]):
+    if not ok.any():
+        return None, None
+    # grown or young is what most of the material says: a mature block's branching groups
+    # include crown fragments and replants, many small groups that drain little
+    w = support[ok]
+    if (_weighted_median(top[ok], w) >= MATURE_FLOORS["min_tree_height"]
+            and _weighted_median(support[ok], w) >= MATURE_FLOORS["min_canopy_voxels"]):
         return None, None
     if width is not None and np.median(width[ok]) > YOUNG_MAX_WIDTH:
         return None, None
