@@ -169,3 +169,16 @@ def test_a_cloud_of_random_points_is_no_block_of_young_trees():
     top = np.array([1.5, 1.6, 1.7])
     assert block_floors(top, support, np.ones(3, bool), np.array([0.2, 0.3, 0.6])) == (0.8, 28)
     assert block_floors(top, support, np.ones(3, bool), np.array([0.6, 0.8, 0.3])) == (None, None)
+
+
+@pytest.mark.slow
+def test_a_block_of_mixed_ages_with_defaults():
+    # grown vase trees with a third of the slots replanted (0.3-0.5 times a grown tree):
+    # the grown trees set the mature floors, the rows let the replants in (two rows of
+    # six keep three grown trees each; replants at a row's end)
+    o = simulate_orchard(SimulationParams(form="vase", rows=2, trees_per_row=6, replants=0.3, seed=0))
+    origin, r = _run(o)
+    s = score_labels(true_tree_id=o.tree_id, true_is_wood=o.is_wood, true_trunks=o.trunks[:, :2] - origin[:2],
+                     pred_tree_id=r.tree_id, pred_is_wood=r.is_wood, found_trunks=r.trunks[:, :2])
+    assert s["trunk_f1"] >= 0.95, s
+    assert s["v_measure"] >= 0.95, s
