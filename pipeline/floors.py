@@ -93,16 +93,21 @@ def block_floors(top: np.ndarray, support: np.ndarray, ok: np.ndarray,
     their median ``top`` [m] and FLOOR_SIZE_SHARE of their median ``support`` [voxels],
     each between its least value and the mature trees' floor (MATURE_FLOORS). (None,
     None) without such a group, where their median height and median catchment are
-    both at the mature trees' floors or more (a block of grown trees, replants among them
-    or not; both medians weighted by the catchment), or where the median of their flow cross-sections ``width`` [m] is over
-    YOUNG_MAX_WIDTH (no stems: a cloud of random points): the mature trees' floors hold."""
+    both at the mature trees' floors or more (a block of grown trees), where weighted by
+    the catchment their median height is and their median catchment is BRANCH_MAX_SIZE
+    times the mature floor (a grown block with replants), or where the median of their
+    flow cross-sections ``width`` [m] is over YOUNG_MAX_WIDTH (no stems: a cloud of
+    random points): the mature trees' floors hold."""
     if not ok.any():
         return None, None
-    # grown or young is what most of the material says: a mature block's branching groups
-    # include crown fragments and replants, many small groups that drain little
+    height, size = MATURE_FLOORS["min_tree_height"], MATURE_FLOORS["min_canopy_voxels"]
+    if np.median(top[ok]) >= height and np.median(support[ok]) >= size:
+        return None, None
+    # or where most of the material drains into groups larger than any young tree: a grown
+    # block with replants, whose many crown fragments and replants drain little (trellis
+    # posts among young trees, with their wires, drain more than the trees but not that much)
     w = support[ok]
-    if (_weighted_median(top[ok], w) >= MATURE_FLOORS["min_tree_height"]
-            and _weighted_median(support[ok], w) >= MATURE_FLOORS["min_canopy_voxels"]):
+    if _weighted_median(top[ok], w) >= height and _weighted_median(support[ok], w) >= BRANCH_MAX_SIZE * size:
         return None, None
     if width is not None and np.median(width[ok]) > YOUNG_MAX_WIDTH:
         return None, None

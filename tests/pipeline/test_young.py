@@ -182,3 +182,12 @@ def test_a_block_of_mixed_ages_with_defaults():
                      pred_tree_id=r.tree_id, pred_is_wood=r.is_wood, found_trunks=r.trunks[:, :2])
     assert s["trunk_f1"] >= 0.95, s
     assert s["v_measure"] >= 0.95, s
+
+
+def test_a_grown_block_with_replants_keeps_the_mature_floors():
+    # most groups short (replants, crown fragments), most material in grown crowns
+    top, support = np.array([1.2, 1.3, 1.4, 3.5, 3.6]), np.array([100.0, 120.0, 90.0, 5000.0, 6000.0])
+    assert block_floors(top, support, np.ones(5, bool)) == (None, None)
+    # trellis posts with their wires drain more than young trees, but far less than a crown
+    top, support = np.array([1.5, 1.6, 1.7, 2.9, 2.9]), np.array([100.0, 110.0, 120.0, 300.0, 320.0])
+    assert block_floors(top, support, np.ones(5, bool)) == (0.85, 30)
