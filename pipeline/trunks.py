@@ -543,6 +543,9 @@ def _trunk_tests(
     # a bole: its catchment goes on above where a trellis post would end (no orchard form
     # of the simulator reaches that high: on orchards these tests are as before)
     tall = ok & (candidates["top"] >= params.max_post_height)
+    if ok.any() and np.median(candidates["top"][ok]) >= params.max_post_height:
+        # a stand of trees taller than any post: a dominated tree's catchment may end lower
+        tall = ok.copy()
     own[tall] = _own_stems(centre[tall], nodes, node_height) & (stem[tall] >= COLUMN_MIN_STEM)
     candidates["own_stem"] = own
     ok, support = _accept(centre, g_support, stem, ok, fits & (width > params.max_trunk_width), params, own)
