@@ -37,6 +37,11 @@ _DIRECTION_NEIGHBOURS = 12
 _SHORT_LINK_SLOTS = 2.5
 #: an off-row trunk this many row spacings beyond an outer row is no row of its own yet
 _OUTER_REACH = 0.5
+#: ... and stands between rows only where the off-row limit lies this many standard
+#: deviations of the trees' scatter about their row lines out (the usual outlier rule);
+#: the scatter's standard deviation from the median absolute offset
+_OUTLIER_SIGMAS = 3.0
+_MAD_SIGMA = 1.4826
 #: a row's planting distance differs from the block's by at most this fraction ...
 _SPACING_SLACK = 0.1
 #: ... and is looked for in this many steps (0.1 % of the spacing)
@@ -243,7 +248,8 @@ def _section_rows(local, direction, members, u, v, spacing, params, canopy=None)
     that each row is one across offset. Chains of three or more trees, and shorter ones
     half a row spacing from all of those, are rows; those whose offsets lie within half
     the lateral tolerance of each other are one row (fragments on both sides of a run of
-    empty slots). Strips of ``canopy`` (cell centres, local frame) half a row spacing
+    empty slots). A tree off its row stands between rows only where the rows are
+    evident: the off-row limit is an outlier of the trees' scatter about their lines. Strips of ``canopy`` (cell centres, local frame) half a row spacing
     from all of those are rows whose trunks are hidden (:mod:`pipeline.canopy`). Every
     tree goes to its nearest row, unless it lies farther from it than
     ``params.max_offset`` times the distance between rows.
@@ -311,6 +317,12 @@ def _section_rows(local, direction, members, u, v, spacing, params, canopy=None)
     # between two rows, or beside an outer row nearer than an unseen next row could stand
     reach = _OUTER_REACH * across if np.isfinite(across) and len(centres) > 1 else 0.0
     inside = (flat > centres.min() - reach) & (flat < centres.max() + reach)
+    if len(dist) >= 3 and np.isfinite(across):
+        # a block has rows where a tree off its row line is an outlier of the trees' scatter
+        # about their lines (a robust scatter: the few false trunks in the alleys do not
+        # move it): in a stand planted loosely, or not in rows, it is a tree
+        scatter = _MAD_SIGMA * float(np.median(dist))
+        inside &= params.max_offset * across >= _OUTLIER_SIGMAS * scatter
     if on.any():
         inside &= (a >= a[on].min() - spacing) & (a <= a[on].max() + spacing)
     return rows, members[~on], members[~on & inside], spacing
