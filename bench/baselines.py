@@ -78,10 +78,15 @@ def nearest_trunk_labels(xyz: np.ndarray, ours: BlockResult) -> BlockResult:
     )
 
 
-def _paper_trunks(nodes: np.ndarray, is_ground_node: np.ndarray, graph, grid_origin) -> np.ndarray:
-    """The paper's trunk finding; returns (k, 3) trunk node positions."""
+def _paper_trunks(nodes: np.ndarray, is_ground_node: np.ndarray, graph, grid_origin, node_height: np.ndarray | None = None,
+                  source_min_height: float = 0.0) -> np.ndarray:
+    """The paper's trunk finding; returns (k, 3) trunk node positions. Sources are taken
+    among the non-ground nodes at least ``source_min_height`` [m] above the ground (0: all,
+    as published)."""
     veg = np.flatnonzero(~is_ground_node)
     gnd = np.flatnonzero(is_ground_node)
+    if source_min_height > 0 and node_height is not None:
+        veg = veg[node_height[veg] >= source_min_height]
     if veg.size == 0 or gnd.size == 0:
         return np.zeros((0, 3))
     # one source per 4 m cell: the vegetation node nearest the cell centre
@@ -135,6 +140,7 @@ def paper_as_published(
     params: PipelineParams,
     grid_origin: tuple[float, float, float] = (0.0, 0.0, 0.0),
     trunks: np.ndarray | None = None,
+    source_min_height: float = 0.0,
 ) -> BlockResult:
     """The paper's method as written (see module docstring).
 
@@ -145,6 +151,9 @@ def paper_as_published(
     grid_origin : (3,) float
     trunks : (k, 3) float64, optional — start from these trunks instead of the paper's
         trunk finding
+    source_min_height : float — trunk finding takes its sources only among nodes at least
+        this high above the ground [m]; 0 (as published): any non-ground node, which on a
+        block with grass is mostly grass (``python -m bench.paper_setting``)
 
     Returns
     -------
@@ -161,7 +170,11 @@ def paper_as_published(
     ground_frac = np.bincount(vox.point_voxel, weights=is_ground[idx].astype(float), minlength=m) / vox.counts
     is_ground_node = ground_frac > 0.5
     graph_all = build_graph(nodes, radius=params.graph.edge_radius)
-    trunk_nodes = _paper_trunks(nodes, is_ground_node, graph_all, grid_origin) if trunks is None else np.asarray(trunks)
+    if trunks is None:
+        node_height = np.bincount(vox.point_voxel, weights=height[idx], minlength=m) / vox.counts
+        trunk_nodes = _paper_trunks(nodes, is_ground_node, graph_all, grid_origin, node_height, source_min_height)
+    else:
+        trunk_nodes = np.asarray(trunks)
     k = trunk_nodes.shape[0]
 
     # segmentation and path counts: one search per trunk over the tree graph (ground removed)

@@ -16,9 +16,26 @@ from pathlib import Path
 import numpy as np
 
 SETTINGS = ((1.0, 3.5), (1.5, 3.5), (2.0, 4.0))
+#: blocks of mixed ages: replants (0.3-0.5 times a grown tree) among grown trees of each form;
+#: and young trees among trellis posts taller than they are
+MIXED = (
+    ("vase, 5 m × 6 m, 2 × 6 slots, 30 % replants", dict(form="vase", rows=2, trees_per_row=6, replants=0.3)),
+    ("tall spindle, 1.0 m × 3.5 m, 2 × 12 slots, 30 % replants",
+     dict(form="spindle", rows=2, trees_per_row=12, spacing=1.0, row_spacing=3.5, replants=0.3)),
+    ("hedge, 1.5 m × 4 m, 2 × 10 slots, 30 % replants",
+     dict(form="hedge", rows=2, trees_per_row=10, spacing=1.5, row_spacing=4.0, replants=0.3)),
+    ("young, dormant, trellised (a 2.8-3.2 m post every 2 gaps, wires), 1 m × 3.5 m, 2 × 8 trees",
+     dict(form="young", rows=2, trees_per_row=8, spacing=1.0, row_spacing=3.5, trellis=2)),
+)
 
 
 def score(work: Path, spacing: float, row_spacing: float, seed: int) -> dict:
+    return score_block(work, f"young-{spacing:g}", dict(form="young", rows=2, trees_per_row=10, spacing=spacing,
+                                                        row_spacing=row_spacing), seed)
+
+
+def score_block(work: Path, name: str, options: dict, seed: int) -> dict:
+    """One generated block of ``options`` scored from the product path's outputs."""
     from bench.blocks import make_block
     from pipeline.errors import NoTreesError
     from simulator.scoring.result import evaluate_result
@@ -28,8 +45,7 @@ def score(work: Path, spacing: float, row_spacing: float, seed: int) -> dict:
     from workers.job import run_job
     from workers.jobspec import JobSpec
 
-    sim = SimulationParams(form="young", rows=2, trees_per_row=10, spacing=spacing, row_spacing=row_spacing, seed=seed)
-    block = make_block(work, f"young-{spacing:g}", sim)
+    block = make_block(work, name, SimulationParams(**options, seed=seed))
     out = work / "young-results" / Path(block.las).stem
     shutil.rmtree(out, ignore_errors=True)
     try:
@@ -45,7 +61,18 @@ def main(argv: list[str] | None = None) -> int:
     p = argparse.ArgumentParser(prog="python -m bench.young", description=__doc__.splitlines()[0])
     p.add_argument("--seeds", type=int, default=3, help="evaluation seeds 0..N-1 (default 3)")
     p.add_argument("--work-dir", type=Path, default=Path("/tmp/orchard-bench"))
+    p.add_argument("--mixed-only", action="store_true", help="only the blocks of mixed ages")
     args = p.parse_args(argv)
+    print("| block of mixed ages, or young among posts | seeds | trunk F1 per block | v-measure per block |")
+    print("|---|---|---|---|")
+    for name, options in MIXED:
+        rs = [score_block(args.work_dir, f"mixed-{options['form']}-{options.get('trellis', 0)}", options, s) for s in range(args.seeds)]
+        f1 = ", ".join(f"{r['trunk_f1']:.2f}" for r in rs)
+        vm = ", ".join(f"{r['v_measure']:.3f}" for r in rs)
+        print(f"| {name} | 0–{args.seeds - 1} | {f1} | {vm} |", flush=True)
+    if args.mixed_only:
+        return 0
+    print()
     print("| block | seeds | trunk F1 per block | v-measure per block |")
     print("|---|---|---|---|")
     for spacing, row_spacing in SETTINGS:

@@ -37,6 +37,11 @@ MIN_FLOOR_HEIGHT = 0.7
 #: ... and the canopy floor this share of their median catchment, at least MIN_FLOOR_VOXELS
 FLOOR_SIZE_SHARE = 0.25
 MIN_FLOOR_VOXELS = 20
+#: a block is one of young trees only while the flow of its branching groups passes the
+#: contact band through a stem, not a curtain: their median cross-section (the trunk
+#: width test's measure) at most YOUNG_MAX_WIDTH [m]. Young stems 0.18-0.21 m on generated
+#: blocks, 0.31-0.32 m on the real young row; a cloud of random points 0.75-0.82 m
+YOUNG_MAX_WIDTH = 0.5
 
 
 def group_percentile(values: np.ndarray, group: np.ndarray, n_groups: int, q: float) -> np.ndarray:
@@ -74,16 +79,37 @@ def branches(nodes: np.ndarray, node_height: np.ndarray, node_group: np.ndarray,
     return extent >= BRANCH_EXTENT
 
 
-def block_floors(top: np.ndarray, support: np.ndarray, ok: np.ndarray) -> tuple[float | None, int | None]:
+def _weighted_median(values: np.ndarray, weights: np.ndarray) -> float:
+    """The value below and above which half of the ``weights`` lie."""
+    order = np.argsort(values, kind="stable")
+    cum = np.cumsum(weights[order])
+    return float(values[order][np.searchsorted(cum, 0.5 * cum[-1])])
+
+
+def block_floors(top: np.ndarray, support: np.ndarray, ok: np.ndarray,
+                 width: np.ndarray | None = None) -> tuple[float | None, int | None]:
     """The size floors a block's trees ask for, from the contact groups ``ok`` that
     branch and pass every test of their own at the lowest floors: FLOOR_HEIGHT_SHARE of
     their median ``top`` [m] and FLOOR_SIZE_SHARE of their median ``support`` [voxels],
     each between its least value and the mature trees' floor (MATURE_FLOORS). (None,
-    None) without such a group, or where their median height and median catchment are
-    both at the mature trees' floors or more (a block of grown trees, replants among them
-    or not): the mature trees' floors hold."""
-    if not ok.any() or (np.median(top[ok]) >= MATURE_FLOORS["min_tree_height"]
-                        and np.median(support[ok]) >= MATURE_FLOORS["min_canopy_voxels"]):
+    None) without such a group, where their median height and median catchment are
+    both at the mature trees' floors or more (a block of grown trees), where weighted by
+    the catchment their median height is and their median catchment is BRANCH_MAX_SIZE
+    times the mature floor (a grown block with replants), or where the median of their
+    flow cross-sections ``width`` [m] is over YOUNG_MAX_WIDTH (no stems: a cloud of
+    random points): the mature trees' floors hold."""
+    if not ok.any():
+        return None, None
+    height, size = MATURE_FLOORS["min_tree_height"], MATURE_FLOORS["min_canopy_voxels"]
+    if np.median(top[ok]) >= height and np.median(support[ok]) >= size:
+        return None, None
+    # or where most of the material drains into groups larger than any young tree: a grown
+    # block with replants, whose many crown fragments and replants drain little (trellis
+    # posts among young trees, with their wires, drain more than the trees but not that much)
+    w = support[ok]
+    if _weighted_median(top[ok], w) >= height and _weighted_median(support[ok], w) >= BRANCH_MAX_SIZE * size:
+        return None, None
+    if width is not None and np.median(width[ok]) > YOUNG_MAX_WIDTH:
         return None, None
     h = float(np.clip(FLOOR_HEIGHT_SHARE * np.median(top[ok]), MIN_FLOOR_HEIGHT, MATURE_FLOORS["min_tree_height"]))
     s = int(np.clip(round(FLOOR_SIZE_SHARE * np.median(support[ok])), MIN_FLOOR_VOXELS, MATURE_FLOORS["min_canopy_voxels"]))

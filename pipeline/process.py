@@ -385,6 +385,7 @@ def _find_trunks(xyz: np.ndarray, g: _NodeGraph, f: _Faces, *, params: PipelineP
         cand = det.candidates
         # a post's catchment ends below the post height; a bole drains the crown above it
         tall = (cand["top"] >= _floors(det, params).min_tree_height) & (cand["top"] < params.trunks.max_post_height)
+        tall &= ~np.asarray(cand.get("own_stem", False), bool)  # a bole of a stand taller than any post
         posts = find_posts(
             xyz, g.height, np.c_[cand["x"], cand["y"]][tall], max_radius=post_radius,
             max_height=params.trunks.max_post_height, among=g.vegetation,

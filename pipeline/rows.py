@@ -37,6 +37,11 @@ _DIRECTION_NEIGHBOURS = 12
 _SHORT_LINK_SLOTS = 2.5
 #: an off-row trunk this many row spacings beyond an outer row is no row of its own yet
 _OUTER_REACH = 0.5
+#: ... and stands between rows only where the off-row limit lies this many standard
+#: deviations of the trees' scatter about their row lines out (the usual outlier rule);
+#: the scatter's standard deviation from the median absolute offset
+_OUTLIER_SIGMAS = 3.0
+_MAD_SIGMA = 1.4826
 #: a row's planting distance differs from the block's by at most this fraction ...
 _SPACING_SLACK = 0.1
 #: ... and is looked for in this many steps (0.1 % of the spacing)
@@ -243,7 +248,8 @@ def _section_rows(local, direction, members, u, v, spacing, params, canopy=None)
     that each row is one across offset. Chains of three or more trees, and shorter ones
     half a row spacing from all of those, are rows; those whose offsets lie within half
     the lateral tolerance of each other are one row (fragments on both sides of a run of
-    empty slots). Strips of ``canopy`` (cell centres, local frame) half a row spacing
+    empty slots). A tree off its row stands between rows only where the rows are
+    evident: the off-row limit is an outlier of the trees' scatter about their lines. Strips of ``canopy`` (cell centres, local frame) half a row spacing
     from all of those are rows whose trunks are hidden (:mod:`pipeline.canopy`). Every
     tree goes to its nearest row, unless it lies farther from it than
     ``params.max_offset`` times the distance between rows.
@@ -311,6 +317,12 @@ def _section_rows(local, direction, members, u, v, spacing, params, canopy=None)
     # between two rows, or beside an outer row nearer than an unseen next row could stand
     reach = _OUTER_REACH * across if np.isfinite(across) and len(centres) > 1 else 0.0
     inside = (flat > centres.min() - reach) & (flat < centres.max() + reach)
+    if len(dist) >= 3 and np.isfinite(across):
+        # a block has rows where a tree off its row line is an outlier of the trees' scatter
+        # about their lines (a robust scatter: the few false trunks in the alleys do not
+        # move it): in a stand planted loosely, or not in rows, it is a tree
+        scatter = _MAD_SIGMA * float(np.median(dist))
+        inside &= params.max_offset * across >= _OUTLIER_SIGMAS * scatter
     if on.any():
         inside &= (a >= a[on].min() - spacing) & (a <= a[on].max() + spacing)
     return rows, members[~on], members[~on & inside], spacing
@@ -434,27 +446,55 @@ def find_rows(xy: np.ndarray, height: np.ndarray | None = None, *, params: RowPa
     RowLayout
         Addresses are unique: no two trees share a (row, position).
     """
+    # Strategy: each tree's local row direction groups the trees into sections of one
+    # direction; each section's trees are linked into rows and slots; then every row is
+    # numbered across the block and its empty slots listed.
     params = params or RowParams()
     xy = np.asarray(xy, dtype=np.float64).reshape(-1, 2)
     k = len(xy)
     height = np.zeros(k) if height is None else np.asarray(height, dtype=np.float64)
-    row = np.zeros(k, dtype=np.int32)
-    position = np.zeros(k, dtype=np.int32)
-    empty_rows = {"row": np.zeros(0, np.int32), "n_trees": np.zeros(0, np.int32), "n_gaps": np.zeros(0, np.int32),
-                  "spacing_m": np.zeros(0), "length_m": np.zeros(0), "azimuth_deg": np.zeros(0)}
-    empty_gaps = {"row": np.zeros(0, np.int32), "position": np.zeros(0, np.int32), "x": np.zeros(0), "y": np.zeros(0)}
+    if k < 2:
+        return _few_trees(xy)
+    found, off_row, between_rows = _found_rows(xy, params, canopy)
+    return _numbered(xy, height, found, off_row, between_rows, params)
+
+
+def _empty_rows() -> dict:
+    return {"row": np.zeros(0, np.int32), "n_trees": np.zeros(0, np.int32), "n_gaps": np.zeros(0, np.int32),
+            "spacing_m": np.zeros(0), "length_m": np.zeros(0), "azimuth_deg": np.zeros(0)}
+
+
+def _empty_gaps() -> dict:
+    return {"row": np.zeros(0, np.int32), "position": np.zeros(0, np.int32), "x": np.zeros(0), "y": np.zeros(0)}
+
+
+def _few_trees(xy: np.ndarray) -> RowLayout:
+    """The layout of a block of no tree or one (a row of its own)."""
+    k = len(xy)
     if k == 0:
-        return RowLayout(row, position, np.zeros(0, bool), empty_rows, [], empty_gaps, np.zeros(0, bool), np.zeros(0, bool))
+        return RowLayout(np.zeros(0, np.int32), np.zeros(0, np.int32), np.zeros(0, bool), _empty_rows(), [], _empty_gaps(),
+                         np.zeros(0, bool), np.zeros(0, bool))
+    rows = dict(_empty_rows(), row=np.array([1], np.int32), n_trees=np.array([1], np.int32),
+                n_gaps=np.array([0], np.int32), spacing_m=np.array([np.nan]), length_m=np.array([0.0]),
+                azimuth_deg=np.array([np.nan]))
+    return RowLayout(np.ones(1, np.int32), np.ones(1, np.int32), np.zeros(1, bool), rows, [xy.copy()], _empty_gaps(),
+                     np.zeros(1, bool), np.zeros(1, bool))
+
+
+def _found_rows(xy: np.ndarray, params: RowParams, canopy: np.ndarray | None) -> tuple[list, np.ndarray, np.ndarray]:
+    """The rows of every section of the block (at least two trees), unnumbered.
+
+    Returns
+    -------
+    found : list of (section key, across offset, (n,) int64 trees in order along the
+        row, (n,) int64 their slots, the row's spacing [m], the canopy's line (m, 2) [m]
+        for a row whose trunks are all hidden, else None); trees off every row last, one
+        row each
+    off_row, between_rows : (k,) bool — as in :class:`RowLayout`
+    """
+    k = len(xy)
     centre = xy.mean(axis=0)
     local = xy - centre
-    if k == 1:
-        row[:] = 1
-        position[:] = 1
-        rows = dict(empty_rows, row=np.array([1], np.int32), n_trees=np.array([1], np.int32),
-                    n_gaps=np.array([0], np.int32), spacing_m=np.array([np.nan]), length_m=np.array([0.0]),
-                    azimuth_deg=np.array([np.nan]))
-        return RowLayout(row, position, np.zeros(1, bool), rows, [xy.copy()], empty_gaps, np.zeros(1, bool), np.zeros(1, bool))
-
     m = min(k, _DIRECTION_NEIGHBOURS)
     tree = cKDTree(local)
     dist, near = tree.query(local, k=m)
@@ -465,7 +505,7 @@ def find_rows(xy: np.ndarray, height: np.ndarray | None = None, *, params: RowPa
         can_local = np.asarray(canopy, dtype=np.float64).reshape(-1, 2) - centre
         can_section = section[tree.query(can_local)[1]]
 
-    found = []  # per row: (section key, across offset, trees in order along the row, slots, spacing)
+    found = []  # per row: (section key, across offset, trees in order along the row, slots, spacing, line)
     off_row = np.zeros(k, dtype=bool)
     between_rows = np.zeros(k, dtype=bool)
     for sec in np.unique(section):
@@ -487,8 +527,18 @@ def find_rows(xy: np.ndarray, height: np.ndarray | None = None, *, params: RowPa
             found.append((sec_key, offset, g[keep], slots[keep], s, None))
     for i in np.flatnonzero(off_row):  # off every row line: one row each, after the rows
         found.append(((np.inf,), float(xy[i, 0]), np.array([i]), np.zeros(1, np.int64), float("nan"), None))
+    return found, off_row, between_rows
 
-    # order: sections west to east (then south to north), rows across
+
+def _numbered(xy: np.ndarray, height: np.ndarray, found: list, off_row: np.ndarray, between_rows: np.ndarray,
+              params: RowParams) -> RowLayout:
+    """The layout of the rows ``found`` (:func:`_found_rows`): rows numbered sections
+    west to east (then south to north) and across each section, every tree's address,
+    each row's line and measures, and the empty slots between its trees."""
+    k = len(xy)
+    row = np.zeros(k, dtype=np.int32)
+    position = np.zeros(k, dtype=np.int32)
+    empty_rows, empty_gaps = _empty_rows(), _empty_gaps()
     order = sorted(range(len(found)), key=lambda a: (found[a][0], found[a][1]))
     chains = []
     rows_out = {key: [] for key in empty_rows}

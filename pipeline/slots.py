@@ -49,6 +49,8 @@ MIN_FULL_SHARE = 0.2
 MIN_FAR_FULL_SHARE = 0.4
 #: a replant drains at least this share (a shoot or weed in the grass drains less)
 MIN_REPLANT_SHARE = 0.1
+#: trees let in at a row's end open the slot beyond them: rounds of letting in, at most
+SLOT_ROUNDS = 3
 #: contact nodes within this distance [m] of a tree let in seed it in segmentation
 SOURCE_RADIUS = 0.2
 #: a tile's contact group is the block's group a tree was let in as when their centres
@@ -59,18 +61,39 @@ SAME_GROUP = 0.05
 #: a row is evidence of a planting lattice from this many trees on (two trees with a gap
 #: between them are as likely two trees of an irregular stand)
 MIN_LATTICE_TREES = 4
+#: ... and so is a shorter row of at least MIN_SHORT_LATTICE_TREES trees in a block with
+#: such a row, where each step between its trees is a whole number of the long rows'
+#: spacing, within SLOT_REACH of it (a mature row a third replanted keeps three trees of six)
+MIN_SHORT_LATTICE_TREES = 3
 
 
 def open_slots(layout: RowLayout) -> np.ndarray:
     """(o, 2) float64 centres [m] of the slots a tree could still stand in, in rows of at
-    least :data:`MIN_LATTICE_TREES` trees: the empty slots between two trees of the row,
+    least :data:`MIN_LATTICE_TREES` trees (or of fewer on the block's lattice,
+    :func:`_lattice_rows`): the empty slots between two trees of the row,
     and the slot beyond each of its ends (:func:`pipeline.rows.slot_centres`)."""
     return _open_slots(layout)[0]
 
 
+def _lattice_rows(layout: RowLayout) -> np.ndarray:
+    """(r,) bool: the rows that are evidence of a planting lattice (:data:`MIN_LATTICE_TREES`,
+    :data:`MIN_SHORT_LATTICE_TREES`)."""
+    n = layout.rows["n_trees"]
+    long = n >= MIN_LATTICE_TREES
+    spacing = layout.rows["spacing_m"][long]
+    spacing = spacing[np.isfinite(spacing)]
+    if not spacing.size:
+        return long
+    s = float(np.median(spacing))
+    for r in np.flatnonzero(~long & (n >= MIN_SHORT_LATTICE_TREES)):
+        steps = np.hypot(*np.diff(layout.lines[r], axis=0).T) / s  # the line runs through its trees in slot order
+        long[r] = bool(np.all((np.rint(steps) >= 1) & (np.abs(steps - np.rint(steps)) <= SLOT_REACH)))
+    return long
+
+
 def _open_slots(layout: RowLayout) -> tuple[np.ndarray, np.ndarray]:
     """:func:`open_slots` and (o,) bool: which of them lie beyond a row's end."""
-    long = layout.rows["n_trees"] >= MIN_LATTICE_TREES
+    long = _lattice_rows(layout)
     in_long = np.isin(layout.gaps["row"], layout.rows["row"][long])
     pts = [np.c_[layout.gaps["x"][in_long], layout.gaps["y"][in_long]]]
     # a row's line runs through its trees in slot order (a canopy row has no trees)
@@ -193,13 +216,24 @@ def trees_on_slots(evidence: dict, *, params: RowParams) -> np.ndarray:
         share = np.asarray(support, np.float64) / np.median(ref)
     enough = np.where(full, share >= MIN_FULL_SHARE, share >= MIN_REPLANT_SHARE)
     xy, support, full, share = xy[enough], support[enough], full[enough], share[enough]
-    slot = on_open_slot(trunks, xy, params=params, reach=np.where(full & (share < MIN_FAR_FULL_SHARE), SLOT_REACH, FAR_REACH),
-                        end_reach=np.where(full, SLOT_REACH, FAR_REACH))
-    on = np.flatnonzero(slot >= 0)
-    if not on.size:
+    taken = np.zeros(len(xy), bool)
+    picked = []  # by round, each round's by slot
+    for _ in range(SLOT_ROUNDS):
+        # a tree let in at a row's end opens the slot beyond it (replants at a row's end)
+        rest = np.flatnonzero(~taken)
+        slot = on_open_slot(np.r_[trunks, xy[taken]], xy[rest], params=params,
+                            reach=np.where(full[rest] & (share[rest] < MIN_FAR_FULL_SHARE), SLOT_REACH, FAR_REACH),
+                            end_reach=np.where(full[rest], SLOT_REACH, FAR_REACH))
+        on = np.flatnonzero(slot >= 0)
+        if not on.size:
+            break
+        order = on[np.lexsort((-support[rest][on], ~full[rest][on], slot[on]))]
+        first = rest[order[np.r_[True, np.diff(slot[order]) != 0]]]
+        taken[first] = True
+        picked.append(first)
+    if not picked:
         return np.zeros((0, 3))
-    order = on[np.lexsort((-support[on], ~full[on], slot[on]))]
-    first = order[np.r_[True, np.diff(slot[order]) != 0]]
+    first = np.concatenate(picked)
     return np.c_[xy[first], (~full[first]).astype(np.float64)]
 
 

@@ -415,12 +415,40 @@ def detect_trunks(
     TrunkDetection, with ``candidates`` holding every contact group's measurements and
     ``spacing`` the spacing the radii followed (None: none measured).
     """
-    m = nodes.shape[0]
+    # Strategy: drain every node to its ground contact once; the floors follow the block's
+    # trees and the radii its spacing, each measured on a grouping of those contacts; then
+    # every group passes its own tests and the tests between neighbours.
     empty = TrunkDetection(np.zeros((0, 2)), np.zeros(0), np.zeros(0), np.zeros(0, np.int64), np.zeros(0, np.int64))
+    drained = _drain(nodes, node_height, graph, planar=planar, ground_top=ground_top, voxel_size=voxel_size,
+                     params=params)
+    if drained is None:
+        return empty
+    params, branch_test = _floors_of_block(nodes, node_height, drained, scattering, params)
+    if spacing is None and measure_spacing and params.needs_spacing():
+        spacing = _measured_spacing(nodes, node_height, drained, scattering, params, branch_test)
+    params = _radii(params, spacing, branch_test)
+    groups, gidx, candidates = _groups(nodes, node_height, drained, scattering, radius=params.cluster_radius, params=params,
+                                       branch_test=branch_test)
+    ok, support = _trunk_tests(candidates, nodes, node_height, foot_xy=foot_xy, stem_xy=stem_xy, stem_slice=stem_slice,
+                               params=params)
+    sel = np.flatnonzero(ok)
+    xy = np.column_stack([candidates["x"][sel], candidates["y"][sel]])
+    src, src_t = _sources(nodes, drained.cand, groups, gidx, candidates, sel)
+    return TrunkDetection(xy, support[sel], candidates["width"][sel], src, src_t, candidates, spacing,
+                          floors=(params.min_tree_height, params.min_canopy_voxels))
+
+
+def _drain(
+    nodes: np.ndarray, node_height: np.ndarray, graph: sparse.csr_matrix, *, planar: np.ndarray, ground_top: float,
+    voxel_size: float, params: TrunkParams,
+) -> _Drained | None:
+    """Every node drained to its nearest ground contact (one multi-source search from
+    the contact band), with each contact's catchment; None without a candidate contact."""
+    m = nodes.shape[0]
     contact_top = ground_top + params.contact_height
     contact = np.flatnonzero(node_height < contact_top)
     if m == 0 or contact.size == 0:
-        return empty
+        return None
     sp = shortest_paths(graph, contact)
     size = subtree_sizes(sp.pred)
     reached = sp.source >= 0
@@ -435,65 +463,104 @@ def detect_trunks(
 
     cand = contact[catch >= min_contact_drain(voxel_size)]
     if cand.size == 0:
-        return empty
-    drained = _Drained(cand, size, sp.source, reached, n_planar, n_low, contact_top, voxel_size)
-    branch_test = params.needs_floors()
-    if branch_test:
-        # the floors follow the block's trees: measured on the groups of the free-standing
-        # trees' (or the given) cluster radius that branch and pass every other test of
-        # their own at the lowest floors
-        loose = params.at_floors(MIN_FLOOR_HEIGHT, MIN_FLOOR_VOXELS)
-        _, _, probe = _groups(nodes, node_height, drained, scattering, radius=loose.at_spacing(None).cluster_radius,
-                              params=loose)
-        ok = probe["fits"] & probe["branches"] & (probe["width"] <= params.max_trunk_width)
-        floors = block_floors(probe["top"], probe["support"], ok)
-        branch_test = floors[0] is not None  # a block of young trees
-        params = params.at_floors(*floors)
-    if spacing is None and measure_spacing and params.needs_spacing():
-        # a first grouping with the free-standing trees' (or the given) cluster radius
-        # keeps the bark of a trunk up to about that thick in one group; where it measures
-        # trees closer than that, trunks may share groups: group again with the radius
-        # that spacing gives, and measure once more
-        radius = params.at_spacing(None).cluster_radius
-        for _ in range(SPACING_ROUNDS):
-            _, _, probe = _groups(nodes, node_height, drained, scattering, radius=radius, params=params,
-                                  branch_test=branch_test)
-            strong = probe["fits"] & (probe["width"] <= params.max_trunk_width)
-            spacing = estimate_spacing(np.column_stack([probe["x"], probe["y"]])[strong], probe["support"][strong])
-            if params.at_spacing(spacing).cluster_radius >= radius:
-                break
-            radius = params.at_spacing(spacing).cluster_radius
-    young_satellites = branch_test and params.satellite_radius is None
+        return None
+    return _Drained(cand, size, sp.source, reached, n_planar, n_low, contact_top, voxel_size)
+
+
+def _floors_of_block(
+    nodes: np.ndarray, node_height: np.ndarray, drained: _Drained, scattering: np.ndarray | None, params: TrunkParams,
+) -> tuple[TrunkParams, bool]:
+    """``params`` with the size floors the block's trees ask for, and whether they are a
+    young block's (then groups below the mature floors must branch)."""
+    if not params.needs_floors():
+        return params, False
+    # the floors follow the block's trees: measured on the groups of the free-standing
+    # trees' (or the given) cluster radius that branch and pass every other test of
+    # their own at the lowest floors
+    loose = params.at_floors(MIN_FLOOR_HEIGHT, MIN_FLOOR_VOXELS)
+    _, _, probe = _groups(nodes, node_height, drained, scattering, radius=loose.at_spacing(None).cluster_radius,
+                          params=loose)
+    ok = probe["fits"] & probe["branches"] & (probe["width"] <= params.max_trunk_width)
+    floors = block_floors(probe["top"], probe["support"], ok, probe["width"])
+    return params.at_floors(*floors), floors[0] is not None  # a block of young trees
+
+
+def _measured_spacing(
+    nodes: np.ndarray, node_height: np.ndarray, drained: _Drained, scattering: np.ndarray | None, params: TrunkParams,
+    branch_test: bool,
+) -> float | None:
+    """The in-row tree spacing [m] measured on the trunk-like contact groups."""
+    # a first grouping with the free-standing trees' (or the given) cluster radius
+    # keeps the bark of a trunk up to about that thick in one group; where it measures
+    # trees closer than that, trunks may share groups: group again with the radius
+    # that spacing gives, and measure once more
+    radius = params.at_spacing(None).cluster_radius
+    spacing = None
+    for _ in range(SPACING_ROUNDS):
+        _, _, probe = _groups(nodes, node_height, drained, scattering, radius=radius, params=params,
+                              branch_test=branch_test)
+        strong = probe["fits"] & (probe["width"] <= params.max_trunk_width)
+        spacing = estimate_spacing(np.column_stack([probe["x"], probe["y"]])[strong], probe["support"][strong])
+        if params.at_spacing(spacing).cluster_radius >= radius:
+            break
+        radius = params.at_spacing(spacing).cluster_radius
+    return spacing
+
+
+def _radii(params: TrunkParams, spacing: float | None, young: bool) -> TrunkParams:
+    """``params`` with the radii left unset following ``spacing`` [m] (and, on a block of
+    ``young`` trees, the satellite radius their size)."""
+    young_satellites = young and params.satellite_radius is None
     params = params.at_spacing(spacing)
     if young_satellites:
         # a satellite is a crown's foliage touching down: its reach follows the trees' size
         # as well as their spacing (young, dormant trees have no foliage to reach 2 m out)
         shrink = (params.min_tree_height / MATURE_FLOORS["min_tree_height"]) ** SPACING_RADII["trunks"]["satellite_radius"][1]
         params = params.model_copy(update={"satellite_radius": params.satellite_radius * shrink})
-    groups, gidx, candidates = _groups(nodes, node_height, drained, scattering, radius=params.cluster_radius, params=params,
-                                       branch_test=branch_test)
+    return params
+
+
+def _trunk_tests(
+    candidates: dict, nodes: np.ndarray, node_height: np.ndarray, *, foot_xy: np.ndarray | None,
+    stem_xy: np.ndarray | None, stem_slice: np.ndarray | None, params: TrunkParams,
+) -> tuple[np.ndarray, np.ndarray]:
+    """The groups that are trunks: each group's own tests (size, height, box, width,
+    foot), then the tests between neighbours (:func:`_accept`). Adds ``foot``, ``stem``,
+    ``own_stem``, ``pooled_support`` and ``accepted`` to ``candidates``.
+
+    Returns (g,) bool accepted and (g,) float64 pooled catchment."""
     cx, cy, width, g_support, fits = (candidates[k] for k in ("x", "y", "width", "support", "fits"))
     ok = fits & (width <= params.max_trunk_width)
     centre = np.column_stack([cx, cy])
     foot = foot_ratio(centre, foot_xy)
     candidates["foot"] = foot
     ok &= foot >= params.min_foot_ratio
-    stem = np.full(groups.size, np.nan)
+    stem = np.full(cx.size, np.nan)
     if params.stem_ratio > 0:
         stem[ok] = stem_contrast(centre[ok], stem_xy, stem_slice, n_slices=STEM_SLICES)
     candidates["stem"] = stem
-    own = np.zeros(groups.size, bool)
+    own = np.zeros(cx.size, bool)
     # a bole: its catchment goes on above where a trellis post would end (no orchard form
     # of the simulator reaches that high: on orchards these tests are as before)
     tall = ok & (candidates["top"] >= params.max_post_height)
+    if ok.any() and np.median(candidates["top"][ok]) >= params.max_post_height:
+        # a stand of trees taller than any post: a dominated tree's catchment may end lower
+        tall = ok.copy()
     own[tall] = _own_stems(centre[tall], nodes, node_height) & (stem[tall] >= COLUMN_MIN_STEM)
     candidates["own_stem"] = own
     ok, support = _accept(centre, g_support, stem, ok, fits & (width > params.max_trunk_width), params, own)
     candidates["pooled_support"] = support
     candidates["accepted"] = ok.copy()
-    sel = np.flatnonzero(ok)
-    xy = np.column_stack([cx[sel], cy[sel]])
-    # sources for segmentation: the contact nodes of each accepted group near its centre
+    return ok, support
+
+
+def _sources(
+    nodes: np.ndarray, cand: np.ndarray, groups: np.ndarray, gidx: np.ndarray, candidates: dict, sel: np.ndarray,
+) -> tuple[np.ndarray, np.ndarray]:
+    """Segmentation sources of the accepted groups ``sel``: each group's contact nodes
+    near its centre, and its leader. Returns (s,) int64 nodes and (s,) int64 trunk of each."""
+    centre = np.column_stack([candidates["x"], candidates["y"]])
+    width = candidates["width"]
     remap = np.full(groups.size, -1, np.int64)
     remap[sel] = np.arange(sel.size)
     t_of_cand = remap[gidx]
@@ -507,9 +574,7 @@ def detect_trunks(
     src = np.concatenate([src, lead_nodes])
     src_t = np.concatenate([src_t, np.arange(sel.size)])
     src, first = np.unique(src, return_index=True)
-    src_t = src_t[first]
-    return TrunkDetection(xy, support[sel], width[sel], src, src_t, candidates, spacing,
-                          floors=(params.min_tree_height, params.min_canopy_voxels))
+    return src, src_t[first]
 
 
 def box_like_trees(

@@ -328,3 +328,15 @@ def test_slot_centres_average_out_the_trees_jitter(seed, angle):
     err = np.hypot(*(got - true[empty]).T)
     assert err.max() < 0.45  # six sigma of a mean of at least four trees
     assert np.isfinite(got).all()
+
+
+def test_trees_of_a_stand_without_evident_rows_are_never_between_rows():
+    # a stand planted 2.2 m x 2.5 m with 0.3 m of scatter: a tree 0.5 m off its line is one
+    # of the stand's, not foliage touching down in an alley
+    rng = np.random.default_rng(3)
+    stand = np.array([[i * 2.2, j * 2.5] for j in range(6) for i in range(6)]) + rng.normal(0, 0.3, (36, 2))
+    assert not find_rows(stand).between_rows.any()
+    # an orchard planted to its lines keeps the prior: a trunk in the alley is flagged
+    orchard = np.array([[i * 2.5, j * 4.5] for j in range(3) for i in range(8)]) + rng.normal(0, 0.05, (24, 2))
+    flagged = find_rows(np.r_[orchard, [[8.8, 2.3]]]).between_rows
+    assert flagged[-1] and not flagged[:-1].any()

@@ -128,3 +128,27 @@ def test_nothing_is_let_in_with_rows_off_or_too_few_trees():
     assert _let_in(det, nodes, off) is det
     det2, nodes2 = _detection(row[:2], np.array([[3.0, 0.0, 1.2]]))
     assert _let_in(det2, nodes2) is det2
+
+
+def _evidence(trunks, cands):
+    return {"trunks": np.asarray(trunks, float), "trunk_support": np.full(len(trunks), 500.0),
+            "xy": np.asarray(cands, float), "support": np.full(len(cands), 150.0), "full": np.zeros(len(cands), bool)}
+
+
+def test_replants_at_a_rows_end_open_the_slot_beyond_them():
+    # two rows of four trees 5 m apart; two replants beyond the first row's east end
+    trunks = [[x, y] for y in (0.0, 6.0) for x in (0.0, 5.0, 10.0, 15.0)]
+    got = trees_on_slots(_evidence(trunks, [[25.1, 0.1], [20.1, -0.1]]), params=PipelineParams().rows)
+    assert sorted(np.round(got[:, 0], 1)) == [20.1, 25.1]
+    assert (got[:, 2] == 1.0).all()  # replants
+
+
+def test_a_row_of_three_trees_on_the_blocks_lattice_has_open_slots():
+    # a grown row of four, and a row a third replanted keeps three trees on its slots
+    long = [[x, 0.0] for x in (0.0, 5.0, 10.0, 15.0)]
+    on_lattice = [[0.0, 6.0], [10.1, 6.0], [15.0, 6.0]]
+    got = trees_on_slots(_evidence(long + on_lattice, [[5.2, 6.1]]), params=PipelineParams().rows)
+    assert np.allclose(got[:, :2], [[5.2, 6.1]])
+    # three trees off the lattice (steps 7.4 and 7.6 m) are no evidence of slots
+    off_lattice = [[0.0, 6.0], [7.4, 6.0], [15.0, 6.0]]
+    assert not len(trees_on_slots(_evidence(long + off_lattice, [[3.7, 6.0], [11.3, 6.0]]), params=PipelineParams().rows))

@@ -438,3 +438,22 @@ def test_a_vase_block_keeps_the_free_standing_radii_and_its_labels():
     assert r.spacing > 4.0
     assert np.array_equal(r.tree_id, fixed.tree_id) and np.array_equal(r.trunks, fixed.trunks)
     assert s["trunk_f1"] == 1.0, s
+
+
+@pytest.mark.slow
+def test_a_closed_conifer_stand_with_a_rough_floor_has_every_stem_found():
+    # evaluation seed; the stand taller than any post lets a dominated stem keep a stem of
+    # its own (its catchment ends under the tallest post's height)
+    from pipeline.params import PipelineParams
+    from pipeline.process import process_points
+    from simulator.scoring.scores import score_labels
+    from simulator.simparams import SimulationParams
+    from simulator.simulate import simulate_orchard
+
+    o = simulate_orchard(SimulationParams(form="conifer", rows=3, trees_per_row=5, spacing=2.2, row_spacing=2.5,
+                                          position_jitter=0.3, undulation=0.4, grass=0.8, seed=1))
+    origin = np.floor(o.xyz.min(axis=0))
+    r = process_points(o.xyz - origin, params=PipelineParams())
+    s = score_labels(true_tree_id=o.tree_id, true_is_wood=o.is_wood, true_trunks=o.trunks[:, :2] - origin[:2],
+                     pred_tree_id=r.tree_id, pred_is_wood=r.is_wood, found_trunks=r.trunks[:, :2])
+    assert s["trunk_f1"] == 1.0, s

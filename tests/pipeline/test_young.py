@@ -157,3 +157,37 @@ def test_a_stem_of_its_own_is_never_a_neighbours_satellite():
     broken = np.r_[_column(0.0, 0.0, 0.05, 1.0), _column(0.0, 0.0, 1.6, 6.0)]
     nodes = np.r_[bole, broken]
     assert _own_stems(xy[::-1], nodes, nodes[:, 2]).tolist() == [True, False]
+
+
+def test_a_cloud_of_random_points_is_no_block_of_young_trees():
+    # the service tests' upload fixture: 20,000 points in a 10 m x 10 m x 3 m box. Its
+    # contact groups branch everywhere, but their flow passes the contact band as a
+    # curtain (0.75-0.82 m), not through stems
+    xyz = np.random.default_rng(7).uniform([0, 0, 0], [10, 10, 3], (20_000, 3))
+    assert process_points(xyz, params=PipelineParams()).n_trees == 0
+    support = np.array([100.0, 110.0, 120.0])
+    top = np.array([1.5, 1.6, 1.7])
+    assert block_floors(top, support, np.ones(3, bool), np.array([0.2, 0.3, 0.6])) == (0.8, 28)
+    assert block_floors(top, support, np.ones(3, bool), np.array([0.6, 0.8, 0.3])) == (None, None)
+
+
+@pytest.mark.slow
+def test_a_block_of_mixed_ages_with_defaults():
+    # grown vase trees with a third of the slots replanted (0.3-0.5 times a grown tree):
+    # the grown trees set the mature floors, the rows let the replants in (two rows of
+    # six keep three grown trees each; replants at a row's end)
+    o = simulate_orchard(SimulationParams(form="vase", rows=2, trees_per_row=6, replants=0.3, seed=0))
+    origin, r = _run(o)
+    s = score_labels(true_tree_id=o.tree_id, true_is_wood=o.is_wood, true_trunks=o.trunks[:, :2] - origin[:2],
+                     pred_tree_id=r.tree_id, pred_is_wood=r.is_wood, found_trunks=r.trunks[:, :2])
+    assert s["trunk_f1"] >= 0.95, s
+    assert s["v_measure"] >= 0.95, s
+
+
+def test_a_grown_block_with_replants_keeps_the_mature_floors():
+    # most groups short (replants, crown fragments), most material in grown crowns
+    top, support = np.array([1.2, 1.3, 1.4, 3.5, 3.6]), np.array([100.0, 120.0, 90.0, 5000.0, 6000.0])
+    assert block_floors(top, support, np.ones(5, bool)) == (None, None)
+    # trellis posts with their wires drain more than young trees, but far less than a crown
+    top, support = np.array([1.5, 1.6, 1.7, 2.9, 2.9]), np.array([100.0, 110.0, 120.0, 300.0, 320.0])
+    assert block_floors(top, support, np.ones(5, bool)) == (0.85, 30)
