@@ -63,8 +63,16 @@ def stem_cells(xy: np.ndarray, height: np.ndarray, among: np.ndarray, origin_xy)
     """
     pick = among & (height >= STEM_BAND[0]) & (height < STEM_BAND[1])
     pts = np.asarray(xy, np.float64)[pick, :2] + np.asarray(origin_xy[:2], np.float64)
-    cells, counts = np.unique(np.floor(pts / STEM_CELL).astype(np.int64).reshape(-1, 2), axis=0, return_counts=True)
-    return np.c_[cells, counts]
+    ij = np.floor(pts / STEM_CELL).astype(np.int64).reshape(-1, 2)
+    if len(ij) == 0:
+        return np.zeros((0, 3), np.int64)
+    # one int64 key a cell, in the (i, j) order np.unique(axis=0) sorts rows in: a sort of
+    # int64 instead of rows viewed as bytes, ten times cheaper on a dense stand's band
+    lo = ij.min(axis=0)
+    span = int(ij[:, 1].max() - lo[1]) + 1
+    keys, counts = np.unique((ij[:, 0] - lo[0]) * span + (ij[:, 1] - lo[1]), return_counts=True)
+    i, j = np.divmod(keys, span)
+    return np.c_[i + lo[0], j + lo[1], counts]
 
 
 def stems_of(parts: list[np.ndarray]) -> np.ndarray:

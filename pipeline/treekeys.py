@@ -18,7 +18,6 @@ from dataclasses import dataclass, field
 from datetime import date
 
 import numpy as np
-from scipy.optimize import linear_sum_assignment
 from scipy.sparse import coo_matrix
 from scipy.sparse.csgraph import connected_components
 from scipy.spatial import cKDTree
@@ -176,6 +175,10 @@ def match_trees(moved: np.ndarray, prev_xy: np.ndarray, gate: float) -> np.ndarr
         uj, rj = np.unique(j[e], return_inverse=True)
         cost = np.full((len(ui), len(uj)), 1e6)
         cost[ri, rj] = w[e]
+        # imported here: scipy.optimize costs 0.1 s of CPU at start-up, and only a capture
+        # matched against a previous one gets here (python -X importtime)
+        from scipy.optimize import linear_sum_assignment
+
         r, c = linear_sum_assignment(cost)
         ok = cost[r, c] < 1e6
         out[ui[r[ok]]] = uj[c[ok]]
