@@ -11,6 +11,12 @@ Two engines produce the same tiles: ``laspy`` (default, streamed) and ``pdal``
 (``readers.las`` -> ``filters.splitter`` with length, buffer and origin), used when
 PDAL's Python bindings import. Whatever the engine, tiles whose core points do not add
 up to the block's points stop the run (:class:`TilesDoNotAddUp`) before the index is stored.
+
+A COPC block is not split at all (:func:`index_from_nodes`): its octree's hierarchy is
+the index, and each tile's task reads the nodes its box meets from the input
+(:func:`source_tile`), so no pass over the block comes before the first tile and no
+tile is written. Its tiles' counts are estimates until the tiles ran
+(:func:`settle_index`).
 """
 
 from __future__ import annotations
@@ -20,8 +26,9 @@ import math
 
 import numpy as np
 
-from pipeline.blockinfo import BlockInfo
+from pipeline.blockinfo import BlockInfo, input_error
 from pipeline.errors import ParameterError
+from pipeline.formats.copc import check_nodes_count, nodes_meeting, read_box, read_nodes
 from pipeline.jobparams import CHUNK_POINTS, first_sampled, sample_stride
 from pipeline.reading import check_bounds, iter_raw, read_raw_range, to_local
 from pipeline.tilelimits import check_split_buffer
@@ -99,6 +106,8 @@ def _index(info: BlockInfo, grid: TileGrid, counts: dict, engine: str) -> dict:
         "scales": list(info.scales),
         "offsets": list(info.offsets),
         "origin": list(info.origin),
+        "mins": list(info.mins),
+        "maxs": list(info.maxs),
         "grid": grid.to_dict(),
         "tiles": tiles,
     }
@@ -161,6 +170,8 @@ def tile_block(
     are listed.
     """
     check_engine(engine, grid)
+    if info.copc:
+        return index_from_nodes(info, grid, store)
     if engine == "pdal":
         return tile_block_pdal(info, grid, store)
     store.remove("tiles")
@@ -413,6 +424,10 @@ def read_sample(store: WorkStore, n_points: int) -> tuple[np.ndarray, np.ndarray
     if not keys:
         return None
     stride = sample_stride(n_points)
+    if "/tile-" in keys[0]:  # a streamed block's: each tile's share, with the points' positions
+        part = np.concatenate([store.get_array(k) for k in keys])
+        part = part[np.argsort(part["index"], kind="stable")]
+        return np.column_stack([part["x"], part["y"]]), part["index"].astype(np.int64)
     xy, index = [], []
     for k in keys:
         start = int(k.rsplit("part-", 1)[1].split(".")[0])
@@ -421,3 +436,137 @@ def read_sample(store: WorkStore, n_points: int) -> tuple[np.ndarray, np.ndarray
         xy.append(part)
         index.append(np.arange(first, first + len(part) * stride, stride, dtype=np.int64))
     return np.concatenate(xy), np.concatenate(index)
+
+
+#: the engine of a block whose tiles read their own points from the input
+SOURCE_ENGINE = "copc"
+
+
+def index_from_nodes(info: BlockInfo, grid: TileGrid, store: WorkStore) -> dict:
+    """The tile index of a COPC block from its hierarchy alone: no point is read or
+    written. Every tile of the grid whose core meets a node is listed, its ``n_core`` and
+    ``n_buffered`` the points of the nodes its core and buffered box meet (an upper bound,
+    replaced by the counts its task finds, :func:`settle_index`).
+
+    Raises
+    ------
+    InputError
+        The hierarchy's points are not the header's count, or a node holding points lies
+        wholly outside the header's bounds.
+    """
+    nodes = read_nodes(info.path)
+    check_nodes_count(info, nodes)
+    # a node beyond the header's bounds holds points no tile of the grid reads
+    outside = np.setdiff1d(np.arange(len(nodes.count)), nodes_meeting(nodes, (*info.mins[:2], *info.maxs[:2])))
+    if outside.size:
+        k = int(outside[0])
+        raise input_error(info.path, f"{int(nodes.count[k])} points of its COPC octree lie in a node "
+                                     f"({nodes.boxes[k].round(3).tolist()}) outside the header's bounds; the file is corrupt")
+    store.remove("tiles")
+    counts = {}
+    for t in grid.tiles():
+        core = int(nodes.count[nodes_meeting(nodes, t.core)].sum())
+        if core:
+            counts[t.id] = [core, int(nodes.count[nodes_meeting(nodes, t.buffered)].sum())]
+    idx = _index(info, grid, counts, SOURCE_ENGINE)
+    idx["estimated"] = True
+    put_index(store, idx)
+    return idx
+
+
+def _read_box(grid: TileGrid, tile_id: int) -> tuple[float, float, float, float]:
+    """The box whose points a tile of ``grid`` may hold: its buffered box, open to
+    infinity on the grid's outer edges (points there go to the edge tiles' cores)."""
+    t = grid.tile(int(tile_id))
+    x0, y0, x1, y1 = t.buffered
+    col, row = tile_id % grid.ncols, tile_id // grid.ncols
+    return (-math.inf if col == 0 else x0, -math.inf if row == 0 else y0,
+            math.inf if col == grid.ncols - 1 else x1, math.inf if row == grid.nrows - 1 else y1)
+
+
+def source_tile(frame: dict, tile_id: int) -> np.ndarray:
+    """One tile's records (TILE_DTYPE, ordered by source index) read from the input of
+    the tile index ``frame`` (its frame is enough): the same records the tiler would
+    have written for it.
+
+    Raises
+    ------
+    InputError
+        A point read lies outside the header's bounds, or the input's data is corrupt.
+    """
+    info = _frame_info(frame)
+    grid = TileGrid.from_dict(frame["grid"])
+    ints, index = read_box(info, _read_box(grid, tile_id))
+    check_bounds(to_local(ints, info), info, start=0)
+    xy = _absolute_xy(ints, info)
+    core = core_tile(xy, grid)
+    # the tiler's own assignment: every point of the nodes in exactly the tiles it gives
+    p, t = buffered_tiles(xy, grid, core=core)
+    sel = p[t == tile_id]
+    order = np.argsort(index[sel], kind="stable")
+    sel = sel[order]
+    rec = np.empty(sel.size, dtype=TILE_DTYPE)
+    rec["X"], rec["Y"], rec["Z"] = ints[sel, 0], ints[sel, 1], ints[sel, 2]
+    rec["index"] = index[sel]
+    rec["core"] = core[sel] == tile_id
+    return rec
+
+
+def _frame_info(frame: dict) -> BlockInfo:
+    """The block's header as the tile index's frame keeps it."""
+    return BlockInfo(path=frame["input"], n_points=int(frame["n_points"]), version="1.4", point_format=6,
+                     compressed=True, scales=tuple(frame["scales"]), offsets=tuple(frame["offsets"]),
+                     mins=tuple(frame["mins"]), maxs=tuple(frame["maxs"]), crs_wkt=None,
+                     origin=tuple(frame["origin"]), seekable=False, copc=True)
+
+
+def streamed(frame: dict) -> bool:
+    """Whether the tiles of this tile index (or its frame) read their points from the input."""
+    return frame.get("engine") == SOURCE_ENGINE
+
+
+def sample_key(tile_id: int) -> str:
+    """Where a streamed tile keeps its core's share of the report's sample."""
+    return f"{SAMPLE_KEY}/tile-{tile_id:06d}.npy"
+
+
+def put_tile_sample(store: WorkStore, tile_id: int, local_xy: np.ndarray, index: np.ndarray, n_points: int) -> None:
+    """Keep the sampled points (every :func:`pipeline.jobparams.sample_stride`-th of the
+    file) among a streamed tile's core points ``local_xy`` (k, 2) [m] of file positions
+    ``index`` (k,): the share the tiler keeps for a tile it writes."""
+    pick = index % np.uint64(sample_stride(n_points)) == 0
+    part = np.empty(int(pick.sum()), dtype=[("x", "<f8"), ("y", "<f8"), ("index", "<i8")])
+    part["x"], part["y"], part["index"] = local_xy[pick, 0], local_xy[pick, 1], index[pick].astype(np.int64)
+    store.put_array(sample_key(tile_id), part)
+
+
+def settle_index(store: WorkStore, idx: dict, summaries: list[dict], failed, n_points: int) -> tuple[dict, list[dict]]:
+    """A streamed tile index with the counts its tiles found (``summaries``: their
+    :func:`workers.tasks.process_tile` results; those of tiles with no core point are
+    dropped, with the tiles), stored, and the summaries kept. Any other index is returned
+    as it is.
+
+    Raises
+    ------
+    InputError
+        Every tile ran and their core points are not the header's count: the header lies
+        about the block's count or extent. Nothing is written from such tiles.
+    """
+    if not streamed(idx):
+        return idx, summaries
+    found = {int(s["tile_id"]): s for s in summaries}
+    tiles = []
+    for t in idx["tiles"]:
+        s = found.get(int(t["id"]))
+        if s is not None:
+            if int(s["n_core"]) == 0:
+                continue
+            t = dict(t, n_core=int(s["n_core"]), n_buffered=int(s.get("n_buffered", t["n_buffered"])))
+        tiles.append(t)
+    idx = dict(idx, tiles=tiles, estimated=bool(failed))
+    total = sum(int(t["n_core"]) for t in tiles)
+    if not failed and total != n_points:
+        raise input_error(idx["input"], f"its header announces {n_points:,} points within x {idx['mins'][0]}..{idx['maxs'][0]}, "
+                                        f"y {idx['mins'][1]}..{idx['maxs'][1]} but its tiles there hold {total:,}; the file is corrupt")
+    put_index(store, idx)
+    return idx, [s for s in summaries if int(s["n_core"]) > 0]

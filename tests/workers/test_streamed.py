@@ -1,0 +1,138 @@
+"""Tiles that read their own points from the input (a COPC block): no pass over the block
+before the first tile, no tile written, the same outputs as the same points in plain LAZ."""
+
+from __future__ import annotations
+
+import shutil
+import struct
+from pathlib import Path
+
+import laspy
+import numpy as np
+import pyarrow.parquet as pq
+import pytest
+
+from pipeline.blockinfo import read_info
+from pipeline.errors import InputError
+from pipeline.formats.copc import read_box, read_nodes
+from pipeline.jobparams import TilingParams
+from workers.job import run_job
+from workers.jobspec import JobSpec
+from workers.workstore import WorkStore
+
+COPC = Path(__file__).parent / "data" / "rows6.copc.laz"
+
+
+@pytest.fixture(scope="module")
+def plain_twin(tmp_path_factory) -> Path:
+    """The COPC fixture's points, in its order, as a plain LAZ of fixed-size chunks."""
+    las = laspy.read(COPC)
+    header = laspy.LasHeader(point_format=6, version="1.4")
+    header.scales, header.offsets = las.header.scales, las.header.offsets
+    header.add_crs(las.header.parse_crs())
+    out = laspy.LasData(header)
+    out.X, out.Y, out.Z = las.X, las.Y, las.Z
+    path = tmp_path_factory.mktemp("twin") / "rows6.laz"
+    out.write(path)
+    return path
+
+
+def _outputs(folder: Path) -> dict:
+    return {name: pq.read_table(folder / name) for name in ("points.parquet", "trees.parquet")}
+
+
+def test_a_box_reads_its_nodes_points_with_their_positions_in_the_file():
+    info = read_info(COPC)
+    assert info.copc and not read_info(COPC).seekable
+    las = laspy.read(COPC)
+    stored = np.column_stack([las.X, las.Y, las.Z])
+    ints, index = read_box(info, (-np.inf, -np.inf, np.inf, np.inf))
+    assert np.array_equal(np.sort(index), np.arange(info.n_points))  # every point once
+    assert np.array_equal(ints, stored[index.astype(np.int64)])
+    x0, y0 = info.mins[0] + 2, info.mins[1] + 2
+    ints, index = read_box(info, (x0, y0, x0 + 3, y0 + 3))
+    assert np.array_equal(ints, stored[index.astype(np.int64)])
+    x = las.X * info.scales[0] + info.offsets[0]
+    y = las.Y * info.scales[1] + info.offsets[1]
+    inside = np.flatnonzero((x0 <= x) & (x <= x0 + 3) & (y0 <= y) & (y <= y0 + 3))
+    assert set(inside) <= set(index.tolist())  # a superset of the box's points
+    assert len(index) < info.n_points
+
+
+def test_copc_tiles_give_the_trees_of_the_same_points_in_plain_laz_and_are_never_written(plain_twin, tmp_path,
+                                                                                         monkeypatch):
+    written = []
+    put = WorkStore.put_array
+
+    def spy(self, key, arr):
+        written.append(key)
+        return put(self, key, arr)
+
+    monkeypatch.setattr(WorkStore, "put_array", spy)
+    tiling = TilingParams(tile_size=10.0)
+    copc = run_job(JobSpec(str(COPC), str(tmp_path / "copc"), tiling=tiling))
+    tile_parts = [k for k in written if k.startswith("tiles/") and "/part-" in k]
+    assert copc.n_tiles > 1 and not tile_parts
+    written.clear()
+    plain = run_job(JobSpec(str(plain_twin), str(tmp_path / "plain"), tiling=tiling))
+    assert any("/part-" in k for k in written)  # the plain LAZ's tiles are written, as before
+    assert (copc.n_trees, copc.n_tiles) == (plain.n_trees, plain.n_tiles) and copc.n_trees >= 5
+    a, b = _outputs(tmp_path / "copc"), _outputs(tmp_path / "plain")
+    for name in a:
+        assert a[name].equals(b[name]), name
+    # the report's sample: the same points with the same trees
+    assert np.array_equal(copc.sample["xy"], plain.sample["xy"])
+    assert np.array_equal(copc.sample["tree_id"], plain.sample["tree_id"])
+
+
+def test_a_copc_block_in_one_piece_is_the_plain_one(plain_twin, tmp_path):
+    run_job(JobSpec(str(COPC), str(tmp_path / "copc")))
+    run_job(JobSpec(str(plain_twin), str(tmp_path / "plain")))
+    a, b = _outputs(tmp_path / "copc"), _outputs(tmp_path / "plain")
+    for name in a:
+        assert a[name].equals(b[name]), name
+
+
+def _lying(tmp_path: Path, *, count: int | None = None, max_x: float | None = None) -> Path:
+    """The fixture with its header's point count (LAS 1.4: uint64 at byte 247) or
+    maximum x (double at byte 179) replaced."""
+    path = tmp_path / "lying.copc.laz"
+    shutil.copy(COPC, path)
+    with open(path, "r+b") as f:
+        if count is not None:
+            f.seek(247)
+            f.write(struct.pack("<Q", count))
+        if max_x is not None:
+            f.seek(179)
+            f.write(struct.pack("<d", max_x))
+    return path
+
+
+def _nothing_written(out: Path) -> bool:
+    return not out.exists() or not any(out.iterdir())
+
+
+def test_a_header_lying_about_its_count_is_refused_before_any_tile(tmp_path):
+    info = read_info(COPC)
+    path = _lying(tmp_path, count=info.n_points - 1000)
+    out = tmp_path / "out"
+    with pytest.raises(InputError, match=f"{info.n_points - 1000} points but its COPC hierarchy holds {info.n_points}"):
+        run_job(JobSpec(str(path), str(out), tiling=TilingParams(tile_size=10.0)))
+    assert _nothing_written(out)
+
+
+def test_a_header_lying_about_its_extent_is_a_clear_error_and_nothing_is_written(tmp_path):
+    info = read_info(COPC)
+    # the true extent ends 24 m on; the header says 12 m: the points beyond lie outside it
+    path = _lying(tmp_path, max_x=info.mins[0] + 12.0)
+    out = tmp_path / "out"
+    with pytest.raises(InputError, match="outside the header's bounds"):
+        run_job(JobSpec(str(path), str(out), tiling=TilingParams(tile_size=10.0)))
+    assert _nothing_written(out)
+
+
+def test_the_hierarchy_counts_every_point_once():
+    nodes = read_nodes(COPC)
+    assert nodes.n_points == read_info(COPC).n_points
+    assert np.array_equal(nodes.first[1:], np.cumsum(nodes.count)[:-1])
+    assert (np.diff(nodes.offset) > 0).all()  # in file order
