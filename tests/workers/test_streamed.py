@@ -3,6 +3,7 @@ before the first tile, no tile written, the same outputs as the same points in p
 
 from __future__ import annotations
 
+import dataclasses
 import shutil
 import struct
 from pathlib import Path
@@ -136,3 +137,32 @@ def test_the_hierarchy_counts_every_point_once():
     assert nodes.n_points == read_info(COPC).n_points
     assert np.array_equal(nodes.first[1:], np.cumsum(nodes.count)[:-1])
     assert (np.diff(nodes.offset) > 0).all()  # in file order
+
+
+def test_the_hierarchys_density_sample_never_misses_a_cell_holding_points():
+    from pipeline.reading import sample_density
+
+    info = read_info(COPC)
+    copc = sample_density(COPC, info=info, voxel_size=0.1)
+    counted = sample_density(COPC, info=dataclasses.replace(info, copc=False), voxel_size=0.1)  # every point read
+    assert copc.counts.shape == counted.counts.shape
+    assert copc.counts.sum() >= info.n_points
+    assert ((copc.counts > 0) | (counted.counts == 0)).all()  # every cell holding points is counted
+    assert (copc.nodes <= copc.counts).all()
+
+
+@pytest.mark.slow
+def test_a_lying_copc_header_on_the_command_line_is_one_line_and_exit_2(tmp_path, capsys):
+    from service.cli import main
+
+    info = read_info(COPC)
+    for n, kw in enumerate(({"count": info.n_points - 1000}, {"max_x": info.mins[0] + 12.0})):
+        (tmp_path / str(n)).mkdir()
+        path = _lying(tmp_path / str(n), **kw)
+        out = tmp_path / f"out{n}"
+        code = main(["process", str(path), "--out", str(out), "--tile-size", "10", "--workers", "1", "--no-dashboard"])
+        err = capsys.readouterr().err
+        assert code == 2, err
+        lines = [line for line in err.strip().splitlines() if not line.startswith("dask dashboard:")]
+        assert len(lines) == 1 and lines[0].startswith("orchard process: ") and "Traceback" not in err
+        assert "lying.copc.laz" in err and _nothing_written(out)
