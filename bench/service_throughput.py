@@ -88,6 +88,7 @@ class Sampler:
     def __init__(self, roots: dict[str, int], interval: float = 0.2):
         self.roots, self.interval = roots, interval
         self.peak: dict[int, int] = {}
+        self.start_rss: dict[int, int] = {}
         self.first: dict[int, float] = {}
         self.last: dict[int, float] = {}
         self.role: dict[int, str] = {}
@@ -112,6 +113,7 @@ class Sampler:
             cpu = t.user + t.system
             self.role.setdefault(p.pid, role)
             self.peak[p.pid] = max(self.peak.get(p.pid, 0), rss)
+            self.start_rss.setdefault(p.pid, rss)
             self.first.setdefault(p.pid, cpu)
             self.last[p.pid] = cpu
 
@@ -129,10 +131,10 @@ class Sampler:
         self._thread.join(timeout=5)
         self.sample()
 
-    def rows(self) -> list[tuple[str, int, float]]:
-        """(role, peak RSS [bytes], CPU seconds) of every process seen, largest first;
-        a short-lived helper process (resource tracker) included."""
-        out = [(self.role[p], self.peak[p], self.last[p] - self.first[p]) for p in self.peak]
+    def rows(self) -> list[tuple[str, int, float, int]]:
+        """(role, peak RSS [bytes], CPU seconds, RSS when first seen [bytes]) of every
+        process seen, by role; a short-lived helper process (resource tracker) included."""
+        out = [(self.role[p], self.peak[p], self.last[p] - self.first[p], self.start_rss[p]) for p in self.peak]
         return sorted(out, key=lambda r: (r[0], -r[1]))
 
 
@@ -280,7 +282,7 @@ def measure(kind: str, las: str, folder: Path, timeout: float) -> dict:
 
 def report(r: dict, n_points: int, area_m2: float, decode_s: float) -> str:
     job, wall = r["job"], r["wall_s"]
-    cpu = sum(p[2] for p in r["processes"])
+    cpu = sum(p[2] for p in r["processes"])  # upload included: the service's share of it is small
     n_trees, ha = int(job["n_trees"]), area_m2 / 1e4
     lines = [f"### {r['kind']}: {n_points:,} points, {n_trees} trees, {ha:.2f} ha planted, "
              f"{job.get('tiles_total')} tiles", "",
@@ -288,8 +290,9 @@ def report(r: dict, n_points: int, area_m2: float, decode_s: float) -> str:
              "|---:|---:|---:|---:|---:|---:|---:|",
              f"| {wall:.1f} | {100 * decode_s / wall:.1f} % | {cpu:.1f} | {1e6 * cpu / n_points:.2f} | {wall / ha:.1f} "
              f"| {wall / max(n_trees, 1):.2f} | {r['upload_s']:.1f} |", "",
-             "| process | peak RSS [MiB] | CPU [s] |", "|---|---:|---:|"]
-    lines += [f"| {role} | {rss / 2**20:,.0f} | {c:.1f} |" for role, rss, c in r["processes"] if rss > 20 * 2**20]
+             "| process | RSS before the upload [MiB] | peak RSS [MiB] | CPU [s] |", "|---|---:|---:|---:|"]
+    lines += [f"| {role} | {first / 2**20:,.0f} | {rss / 2**20:,.0f} | {c:.1f} |" for role, rss, c, first in r["processes"]
+              if rss > 20 * 2**20]
     if job.get("timings"):
         lines += ["", "job phases [s]: " + ", ".join(f"{k} {v:.1f}" for k, v in job["timings"].items()
                                                      if isinstance(v, (int, float)))]
