@@ -89,6 +89,7 @@ class Sampler:
         self.roots, self.interval = roots, interval
         self.peak: dict[int, int] = {}
         self.start_rss: dict[int, int] = {}
+        self.peak_at: dict[int, float] = {}
         self.first: dict[int, float] = {}
         self.last: dict[int, float] = {}
         self.role: dict[int, str] = {}
@@ -112,7 +113,8 @@ class Sampler:
                 continue
             cpu = t.user + t.system
             self.role.setdefault(p.pid, role)
-            self.peak[p.pid] = max(self.peak.get(p.pid, 0), rss)
+            if rss > self.peak.get(p.pid, 0):
+                self.peak[p.pid], self.peak_at[p.pid] = rss, time.time()
             self.start_rss.setdefault(p.pid, rss)
             self.first.setdefault(p.pid, cpu)
             self.last[p.pid] = cpu
@@ -131,10 +133,12 @@ class Sampler:
         self._thread.join(timeout=5)
         self.sample()
 
-    def rows(self) -> list[tuple[str, int, float, int]]:
-        """(role, peak RSS [bytes], CPU seconds, RSS when first seen [bytes]) of every
-        process seen, by role; a short-lived helper process (resource tracker) included."""
-        out = [(self.role[p], self.peak[p], self.last[p] - self.first[p], self.start_rss[p]) for p in self.peak]
+    def rows(self) -> list[tuple[str, int, float, int, float]]:
+        """(role, peak RSS [bytes], CPU seconds, RSS when first seen [bytes], time of the
+        peak [s since the epoch]) of every process seen, by role; a short-lived helper
+        process (resource tracker) included."""
+        out = [(self.role[p], self.peak[p], self.last[p] - self.first[p], self.start_rss[p], self.peak_at[p])
+               for p in self.peak]
         return sorted(out, key=lambda r: (r[0], -r[1]))
 
 
@@ -263,8 +267,12 @@ def run_job(url: str, data: Path, las: str, timeout: float) -> tuple[dict, float
     raise RuntimeError(f"job {jid} not done after {timeout:.0f} s")
 
 
+def _epoch(iso: str) -> float:
+    return dt.datetime.fromisoformat(iso.replace("Z", "+00:00")).timestamp()
+
+
 def _seconds(a: str, b: str) -> float:
-    return (dt.datetime.fromisoformat(b.replace("Z", "+00:00")) - dt.datetime.fromisoformat(a.replace("Z", "+00:00"))).total_seconds()
+    return _epoch(b) - _epoch(a)
 
 
 def measure(kind: str, las: str, folder: Path, timeout: float) -> dict:
@@ -290,9 +298,11 @@ def report(r: dict, n_points: int, area_m2: float, decode_s: float) -> str:
              "|---:|---:|---:|---:|---:|---:|---:|",
              f"| {wall:.1f} | {100 * decode_s / wall:.1f} % | {cpu:.1f} | {1e6 * cpu / n_points:.2f} | {wall / ha:.1f} "
              f"| {wall / max(n_trees, 1):.2f} | {r['upload_s']:.1f} |", "",
-             "| process | RSS before the upload [MiB] | peak RSS [MiB] | CPU [s] |", "|---|---:|---:|---:|"]
-    lines += [f"| {role} | {first / 2**20:,.0f} | {rss / 2**20:,.0f} | {c:.1f} |" for role, rss, c, first in r["processes"]
-              if rss > 20 * 2**20]
+             "| process | RSS before the upload [MiB] | peak RSS [MiB] | peak at [s of the job] | CPU [s] |",
+             "|---|---:|---:|---:|---:|"]
+    start = _epoch(job["started_at"])
+    lines += [f"| {role} | {first / 2**20:,.0f} | {rss / 2**20:,.0f} | {at - start:.0f} | {c:.1f} |"
+              for role, rss, c, first, at in r["processes"] if rss > 20 * 2**20]
     if job.get("timings"):
         lines += ["", "job phases [s]: " + ", ".join(f"{k} {v:.1f}" for k, v in job["timings"].items()
                                                      if isinstance(v, (int, float)))]
