@@ -17,6 +17,7 @@ import os
 from dataclasses import dataclass
 
 import laspy
+import lazrs
 import numpy as np
 from laspy.copc import CopcReader, load_octree_for_query
 
@@ -116,7 +117,11 @@ def read_box(info: BlockInfo, box) -> tuple[np.ndarray, np.ndarray]:
         The nodes' data is corrupt or truncated.
     """
     nodes = read_nodes(info.path)
-    pick = nodes_meeting(nodes, box)
+    return _decode(info, nodes, nodes_meeting(nodes, box))
+
+
+def _decode(info: BlockInfo, nodes: Nodes, pick: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """The stored X, Y, Z and file positions of the points of the nodes ``pick`` (in file order)."""
     if pick.size == 0:
         return np.zeros((0, 3), dtype=np.int32), np.zeros(0, dtype=np.uint64)
     try:
@@ -131,8 +136,6 @@ def read_box(info: BlockInfo, box) -> tuple[np.ndarray, np.ndarray]:
             fmt = reader.header.point_format
             raw = np.zeros(int(nodes.count[pick].sum()) * fmt.size, dtype=np.uint8)
             table = [(int(nodes.count[k]), int(nodes.size[k])) for k in pick]
-            import lazrs
-
             lazrs.decompress_points_with_chunk_table(data, reader.laszip_vlr.record_data, raw, table,
                                                      reader.decompression_selection)
             arr = np.frombuffer(raw, dtype=fmt.dtype())
@@ -144,14 +147,49 @@ def read_box(info: BlockInfo, box) -> tuple[np.ndarray, np.ndarray]:
     return ints, index
 
 
+#: how many footprints of nodes are decoded to measure a COPC block's voxel-graph nodes
+#: per point (:func:`voxels_per_point`)
+PROBES = 6
+#: a sampled share of voxels per point is raised by this for the sampling error (as
+#: :data:`pipeline.budget.SAMPLE_MARGIN` raises a sampled count)
+PROBE_MARGIN = 1.25
+
+
+def voxels_per_point(info: BlockInfo, nodes: Nodes, voxel_size: float, *, probes: int = PROBES) -> float:
+    """The largest share of occupied voxels of ``voxel_size`` [m] per point among
+    ``probes`` footprints of nodes two levels above the deepest, evenly picked in file
+    order, from the points of their own and deeper levels (the upper levels' few points
+    are left out: decoding them would take a large share of the block; on a 14.8 M-point
+    block at mobile density the shares with and without them differed by under 10 %)."""
+    level = max(0, int(nodes.level.max()) - 2)
+    cand = np.flatnonzero(nodes.level == level)
+    picked = cand[np.unique(np.linspace(0, len(cand) - 1, min(probes, len(cand))).round().astype(np.int64))]
+    deep = nodes.level >= level
+    worst = 0.0
+    for k in picked:
+        x0, y0, _, x1, y1, _ = nodes.boxes[k]
+        pad = 1e-3 * (x1 - x0)  # inside the footprint: its neighbours' cubes only touch it
+        meet = nodes_meeting(nodes, (x0 + pad, y0 + pad, x1 - pad, y1 - pad))
+        ints, _ = _decode(info, nodes, meet[deep[meet]])
+        xyz = ints * np.asarray(info.scales) + (np.asarray(info.offsets) - np.asarray(info.origin))
+        o = info.origin
+        xyz = xyz[(xyz[:, 0] >= x0 - o[0]) & (xyz[:, 0] < x1 - o[0]) & (xyz[:, 1] >= y0 - o[1]) & (xyz[:, 1] < y1 - o[1])]
+        if len(xyz):
+            keys = np.floor(xyz / voxel_size).astype(np.int64)
+            worst = max(worst, len(np.unique(keys, axis=0)) / len(xyz))
+    return worst
+
+
 def density_from_nodes(info: BlockInfo, nodes: Nodes, *, cell: float, shape: tuple[int, int],
                        voxel_size: float | None) -> DensitySample:
-    """A :class:`pipeline.budget.DensitySample` of a COPC block from its hierarchy alone.
+    """A :class:`pipeline.budget.DensitySample` of a COPC block from its hierarchy and
+    a few of its nodes' points.
 
     Each node's points are spread evenly over the cells its footprint (clipped to the
-    header's bounds) covers, rounded up; with a ``voxel_size`` [m] its voxel-graph nodes
-    are taken as at most its points and at most the voxels its cube holds, an upper
-    bound of the voxels its points occupy.
+    header's bounds) covers, rounded up. With a ``voxel_size`` [m] a cell's voxel-graph
+    nodes are its points times the largest share of voxels per point found in
+    :data:`PROBES` footprints (:func:`voxels_per_point`) times :data:`PROBE_MARGIN`, and at
+    most the voxels the cubes of its nodes hold (at most its points).
     """
     ny, nx = shape
     ox, oy = info.origin[0], info.origin[1]
@@ -182,8 +220,9 @@ def density_from_nodes(info: BlockInfo, nodes: Nodes, *, cell: float, shape: tup
     voxels = None
     if voxel_size is not None:
         side = b[:, 3:] - b[:, :3]
-        held = np.prod(np.ceil(side / voxel_size) + 1, axis=1)  # voxels a cube can touch
-        voxels = spread(np.minimum(nodes.count.astype(np.float64), held))
+        held = spread(np.minimum(nodes.count.astype(np.float64), np.prod(np.ceil(side / voxel_size) + 1, axis=1)))
+        share = min(1.0, PROBE_MARGIN * voxels_per_point(info, nodes, voxel_size))
+        voxels = np.minimum(np.ceil(counts * share).astype(np.int64), held)
     return DensitySample(counts=counts, origin=(float(ox), float(oy)), cell=cell, sampled=info.n_points,
                          n_points=info.n_points, nodes=voxels)
 
