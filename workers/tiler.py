@@ -28,7 +28,7 @@ import numpy as np
 
 from pipeline.blockinfo import BlockInfo, input_error
 from pipeline.errors import ParameterError
-from pipeline.formats.copc import check_nodes_count, nodes_meeting, read_box, read_nodes
+from pipeline.formats.copc import check_nodes_count, iter_box, nodes_meeting, read_nodes
 from pipeline.jobparams import CHUNK_POINTS, first_sampled, sample_stride
 from pipeline.reading import check_bounds, iter_raw, read_raw_range, to_local
 from pipeline.tilelimits import check_split_buffer
@@ -487,7 +487,8 @@ def _read_box(grid: TileGrid, tile_id: int) -> tuple[float, float, float, float]
 def source_tile(frame: dict, tile_id: int) -> np.ndarray:
     """One tile's records (TILE_DTYPE, ordered by source index) read from the input of
     the tile index ``frame`` (its frame is enough): the same records the tiler would
-    have written for it.
+    have written for it. Its nodes are decoded a batch at a time and cut to the tile's
+    box at once, so memory is one batch and the tile's points.
 
     Raises
     ------
@@ -496,20 +497,33 @@ def source_tile(frame: dict, tile_id: int) -> np.ndarray:
     """
     info = _frame_info(frame)
     grid = TileGrid.from_dict(frame["grid"])
-    ints, index = read_box(info, _read_box(grid, tile_id))
-    check_bounds(to_local(ints, info), info, start=0)
-    xy = _absolute_xy(ints, info)
-    core = core_tile(xy, grid)
-    # the tiler's own assignment: every point of the nodes in exactly the tiles it gives
-    p, t = buffered_tiles(xy, grid, core=core)
-    sel = p[t == tile_id]
-    order = np.argsort(index[sel], kind="stable")
-    sel = sel[order]
-    rec = np.empty(sel.size, dtype=TILE_DTYPE)
-    rec["X"], rec["Y"], rec["Z"] = ints[sel, 0], ints[sel, 1], ints[sel, 2]
-    rec["index"] = index[sel]
-    rec["core"] = core[sel] == tile_id
-    return rec
+    box = _read_box(grid, tile_id)
+    scales, offsets = np.asarray(info.scales), np.asarray(info.offsets)
+    # the box and the header's bounds (and their 1 m of slack) as stored integers, a step
+    # wider on each side: the exact tests are the tiler's own, on the points kept
+    with np.errstate(invalid="ignore", over="ignore"):
+        lo = np.nan_to_num(np.floor((np.asarray(box[:2]) - offsets[:2]) / scales[:2]) - 1, neginf=-2**31)
+        hi = np.nan_to_num(np.ceil((np.asarray(box[2:]) - offsets[:2]) / scales[:2]) + 1, posinf=2**31)
+    valid_lo = np.floor((np.asarray(info.mins) - 1.0 - offsets) / scales) - 1
+    valid_hi = np.ceil((np.asarray(info.maxs) + 1.0 - offsets) / scales) + 1
+    parts = []
+    for ints, index in iter_box(info, box):
+        if (ints.min(axis=0) < valid_lo).any() or (ints.max(axis=0) > valid_hi).any():
+            check_bounds(to_local(ints, info), info, start=0)  # raises, naming the point
+        keep = (ints[:, 0] >= lo[0]) & (ints[:, 0] <= hi[0]) & (ints[:, 1] >= lo[1]) & (ints[:, 1] <= hi[1])
+        ints, index = ints[keep], index[keep]
+        core = core_tile(_absolute_xy(ints, info), grid)
+        # the tiler's own assignment: every point in exactly the tiles it gives
+        p, t = buffered_tiles(_absolute_xy(ints, info), grid, core=core)
+        sel = p[t == tile_id]  # ascending
+        del p, t
+        rec = np.empty(sel.size, dtype=TILE_DTYPE)
+        rec["X"], rec["Y"], rec["Z"] = ints[sel, 0], ints[sel, 1], ints[sel, 2]
+        rec["index"] = index[sel]
+        rec["core"] = core[sel] == tile_id
+        parts.append(rec)
+    # in file order already: the batches' nodes are, and each keeps its points' order
+    return np.concatenate(parts) if parts else np.zeros(0, dtype=TILE_DTYPE)
 
 
 def _frame_info(frame: dict) -> BlockInfo:

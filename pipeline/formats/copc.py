@@ -116,8 +116,30 @@ def read_box(info: BlockInfo, box) -> tuple[np.ndarray, np.ndarray]:
     InputError
         The nodes' data is corrupt or truncated.
     """
+    parts = list(iter_box(info, box))
+    if not parts:
+        return np.zeros((0, 3), dtype=np.int32), np.zeros(0, dtype=np.uint64)
+    return np.concatenate([p[0] for p in parts]), np.concatenate([p[1] for p in parts])
+
+
+def iter_box(info: BlockInfo, box, *, batch_points: int = 2_000_000):
+    """:func:`read_box` in batches of whole nodes of at most ``batch_points`` points (a
+    larger node alone), in file order: memory stays one batch however large the box.
+
+    Yields
+    ------
+    (ints, index) as :func:`read_box` returns them.
+    """
     nodes = read_nodes(info.path)
-    return _decode(info, nodes, nodes_meeting(nodes, box))
+    pick = nodes_meeting(nodes, box)
+    start, total = 0, 0
+    for i, k in enumerate(pick):
+        if total and total + int(nodes.count[k]) > batch_points:
+            yield _decode(info, nodes, pick[start:i])
+            start, total = i, 0
+        total += int(nodes.count[k])
+    if total:
+        yield _decode(info, nodes, pick[start:])
 
 
 def _decode(info: BlockInfo, nodes: Nodes, pick: np.ndarray) -> tuple[np.ndarray, np.ndarray]:

@@ -166,3 +166,15 @@ def test_a_lying_copc_header_on_the_command_line_is_one_line_and_exit_2(tmp_path
         lines = [line for line in err.strip().splitlines() if not line.startswith("dask dashboard:")]
         assert len(lines) == 1 and lines[0].startswith("orchard process: ") and "Traceback" not in err
         assert "lying.copc.laz" in err and _nothing_written(out)
+
+
+def test_a_box_read_in_batches_of_nodes_is_the_box_read_at_once():
+    from pipeline.formats.copc import iter_box
+
+    info = read_info(COPC)
+    box = (info.mins[0] + 2, info.mins[1] + 2, info.mins[0] + 9, info.mins[1] + 9)
+    ints, index = read_box(info, box)
+    parts = list(iter_box(info, box, batch_points=10_000))
+    assert len(parts) > 1
+    assert np.array_equal(np.concatenate([p[0] for p in parts]), ints)
+    assert np.array_equal(np.concatenate([p[1] for p in parts]), index)
