@@ -178,3 +178,24 @@ def test_a_box_read_in_batches_of_nodes_is_the_box_read_at_once():
     assert len(parts) > 1
     assert np.array_equal(np.concatenate([p[0] for p in parts]), ints)
     assert np.array_equal(np.concatenate([p[1] for p in parts]), index)
+
+
+def test_settling_a_streamed_index_takes_the_tiles_counts_and_drops_the_empty_ones(tmp_path):
+    from workers.tiler import INDEX_KEY, settle_index
+
+    store = WorkStore(str(tmp_path / "work"))
+    idx = {"engine": "copc", "input": "b.copc.laz", "mins": [0, 0, 0], "maxs": [9, 9, 9], "estimated": True,
+           "tiles": [{"id": i, "n_core": 50, "n_buffered": 90} for i in range(3)]}
+    summaries = [{"tile_id": 0, "n_core": 30, "n_buffered": 40}, {"tile_id": 1, "n_core": 0, "n_buffered": 7},
+                 {"tile_id": 2, "n_core": 70, "n_buffered": 80}]
+    settled, kept = settle_index(store, idx, summaries, {}, 100)
+    assert [(t["id"], t["n_core"], t["n_buffered"]) for t in settled["tiles"]] == [(0, 30, 40), (2, 70, 80)]
+    assert [s["tile_id"] for s in kept] == [0, 2] and not settled["estimated"]
+    assert store.get_json(INDEX_KEY) == settled
+    with pytest.raises(InputError, match="announces 101 points .* hold 100"):
+        settle_index(store, idx, summaries, {}, 101)
+    # a tile that failed: no count to check, the estimate stays
+    settled, _ = settle_index(store, idx, summaries[:2], {2: "boom"}, 101)
+    assert [t["n_core"] for t in settled["tiles"]] == [30, 50] and settled["estimated"]
+    plain = dict(idx, engine="laspy")
+    assert settle_index(store, plain, summaries, {}, 5) == (plain, summaries)
