@@ -133,6 +133,16 @@ def tile_range(info: BlockInfo, grid: TileGrid, store: WorkStore, start: int, co
     return counts
 
 
+def tile_in_order(info: BlockInfo, grid: TileGrid, store: WorkStore, chunk_points: int) -> dict:
+    """Split every point of the block into tile parts in one pass, ``chunk_points`` at a
+    time (a dask task for a file that cannot be entered in the middle). Returns the
+    point counts, {tile id: [core, buffered]}."""
+    counts = {}
+    for start, ints in iter_raw(info.path, chunk_points=chunk_points, info=info):
+        _split_chunk(info, grid, store, start, ints, counts)
+    return counts
+
+
 def tile_block(
     info: BlockInfo,
     grid: TileGrid,
@@ -156,8 +166,9 @@ def tile_block(
         Points read per chunk (bounds memory).
     engine : "laspy" or "pdal"
     client : distributed.Client, optional
-        With a client (and more than one chunk), every chunk is split by a dask task
-        that reads its own range of the file; the workers must see the input path.
+        With a client, every chunk is split by a dask task that reads its own range of
+        the file (one task reads all of a file that is not ``info.seekable``); the
+        workers must see the input path.
     gather : callable, optional
         ``gather(futures)`` → their results, in any order: how to wait for those tasks
         (default ``client.gather``; a job passes one that stops on a cancel and on a
@@ -176,19 +187,22 @@ def tile_block(
         return tile_block_pdal(info, grid, store)
     store.remove("tiles")
     counts = {}
-    if client is not None and info.n_points > chunk_points and info.seekable:
-        # each worker reads and splits its own range of the file: tiling runs in parallel
-        # (a LAZ of variable-size chunks cannot be entered in the middle: read in one pass)
-        starts = list(range(0, info.n_points, int(chunk_points)))
-        futures = [
-            client.submit(tile_range, info, grid, store, start, int(chunk_points), key=f"tile-range-{start}-{store.url}", pure=False)
-            for start in starts
-        ]
+    if client is not None:
+        # the workers read the file, never the submitting process (the service's, whose
+        # memory must not grow with a block): each its own range, in parallel, or one
+        # worker all of it in one pass, for a LAZ of variable-size chunks, which cannot be
+        # entered in the middle
+        if info.seekable:
+            futures = [client.submit(tile_range, info, grid, store, start, int(chunk_points),
+                                     key=f"tile-range-{start}-{store.url}", pure=False)
+                       for start in range(0, info.n_points, int(chunk_points))]
+        else:
+            futures = [client.submit(tile_in_order, info, grid, store, int(chunk_points), key=f"tile-all-{store.url}",
+                                     pure=False)]
         for part in (gather or client.gather)(futures):
             _merge_counts(counts, part)
     else:
-        for start, ints in iter_raw(info.path, chunk_points=chunk_points, info=info):
-            _split_chunk(info, grid, store, start, ints, counts)
+        counts = tile_in_order(info, grid, store, chunk_points)
     idx = _index(info, grid, counts, "laspy")
     check_tiles_add_up(idx, info.n_points, "laspy")
     put_index(store, idx)
