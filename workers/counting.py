@@ -25,7 +25,8 @@ def count_block(info: BlockInfo, voxel_size: float | None, *, client=None,
     without a client, or from a COPC block's hierarchy.
 
     The tasks are awaited as a job's are (:func:`workers.dispatch.gather`): ``cancel``
-    set stops them; ``progress(ranges counted, ranges)`` as each is (on the cluster only).
+    set stops them; ``progress(ranges counted, ranges)`` as each is (on the cluster
+    only, and for more than one range).
 
     Raises
     ------
@@ -39,10 +40,10 @@ def count_block(info: BlockInfo, voxel_size: float | None, *, client=None,
     if not info.seekable:  # one worker counts it all in one pass: never the submitting process
         future = client.submit(sample_density, info.path, info=info, voxel_size=voxel_size, key=f"count-all-{token}",
                                pure=False)
-        return gather(client, [future], cancel, None, progress)[0]
+        return gather(client, [future], cancel, None, None)[0]  # one task: no steps to show
     futures = [
         client.submit(count_range, info.path, start, CHUNK_POINTS, info=info, voxel_size=voxel_size,
                       key=f"count-range-{start}-{token}", pure=False)
         for start in range(0, info.n_points, CHUNK_POINTS)
     ]
-    return sample_from_ranges(info, gather(client, futures, cancel, None, progress))
+    return sample_from_ranges(info, gather(client, futures, cancel, None, progress if len(futures) > 1 else None))
