@@ -55,6 +55,9 @@ class BlockInfo:
         (:func:`read_raw_range`): LAS, and LAZ with fixed-size chunks and a chunk table.
         lazrs 0.8 decodes wrong points after a seek in a LAZ file of variable-size
         chunks (as COPC files are stored), so those are read from the start.
+    copc : bool
+        A COPC file (its first VLR is the COPC info): its tiles read their own octree
+        nodes (:mod:`pipeline.formats.copc`), with no pass over the whole file.
     """
 
     path: str
@@ -69,6 +72,7 @@ class BlockInfo:
     crs_wkt: str | None
     origin: tuple[float, float, float]
     seekable: bool = True
+    copc: bool = False
 
 
 def input_error(path, what: str) -> InputError:
@@ -198,6 +202,7 @@ def read_info(path) -> BlockInfo:
         crs_wkt=crs_wkt,
         origin=origin,
         seekable=seekable,
+        copc=compressed and len(header.vlrs) > 0 and header.vlrs[0].user_id == "copc" and header.vlrs[0].record_id == 1,
     )
 
 

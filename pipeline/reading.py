@@ -313,12 +313,20 @@ def sample_density(path, *, info: BlockInfo | None = None, voxel_size: float | N
     X and Y (and Z, for the voxels) are decoded where the point format stores them apart;
     memory is one run (``chunk_points`` when every point is counted) and the counts.
 
+    A COPC block is counted from its hierarchy, reading no point
+    (:func:`pipeline.formats.copc.density_from_nodes`).
+
     Raises
     ------
     InputError
         The point data is truncated or corrupt.
     """
     info = info or read_info(path)
+    if info.copc:  # its hierarchy counts every point by node: nothing is decoded
+        from pipeline.formats.copc import density_from_nodes, read_nodes
+
+        cell, shape = _density_grid(info)
+        return density_from_nodes(info, read_nodes(info.path), cell=cell, shape=shape, voxel_size=voxel_size)
     cell, counts, nodes = _empty_counts(info, voxel_size)
     selection = _XY_ONLY if voxel_size is None else _XYZ_ONLY
     run, picked = int(chunk_points), None  # None: every point, in order

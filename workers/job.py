@@ -50,7 +50,7 @@ from workers.outputs import Labels, merge_and_write
 from workers.replay import merge_stored
 from workers.captures import capture_of
 from workers.tasks import process, summarise
-from workers.tiler import check_engine, read_sample, tile_block
+from workers.tiler import check_engine, read_sample, settle_index, tile_block
 from workers.workstore import JOB_KEY, WorkStore, default_work_dir
 
 
@@ -215,6 +215,7 @@ def _run_tiled_locked(spec, info, client, t0, progress, cancel, grid, store, tim
             timings["ground"] = time.perf_counter() - t
             t = time.perf_counter()
             summaries, failed = process_tiles(store, tiles, spec, client, progress, cancel)
+            index, summaries = settle_index(store, index, summaries, failed, info.n_points)  # a streamed block's counts
             if not failed:  # trees on open slots, decided on the block's rows: tiles that differ run again
                 summaries, failed = settle_slot_trees(store, record, index, summaries, spec, client, progress, cancel)
         except (TileFailed, JobCancelled, ClusterLost):

@@ -218,6 +218,8 @@ def budgeted(spec: JobSpec, info: BlockInfo | None = None) -> tuple[JobSpec, np.
     kept = []
 
     def count(info, voxel_size):
+        if info.copc:  # counted from its hierarchy: no pass over its points
+            return sample_density(info.path, info=info, voxel_size=voxel_size)
         xyz, sample = read_counted(info.path, info=info, voxel_size=voxel_size)
         kept.append(xyz)
         return sample

@@ -25,7 +25,7 @@ from pipeline.process import process_points
 from pipeline.reading import to_local
 from pipeline.tiling import TileGrid, core_tile
 from workers.slottrees import SLOT_KEY, trees_in_tile
-from workers.tiler import read_frame, read_tile, tile_key
+from workers.tiler import put_tile_sample, read_frame, read_tile, source_tile, streamed, tile_key
 from workers.workstore import JOB_KEY, WorkStore
 
 #: how far beyond its core a tile claims a trunk, in cluster radii
@@ -125,8 +125,9 @@ def process(xyz: np.ndarray, params: PipelineParams, where: str, ground: tuple[f
 
 def _tile_points(store: WorkStore, tile_id: int, frame: dict) -> tuple[dict, np.ndarray]:
     """A buffered tile's record array and its points in the block's local frame
-    (``frame``: the tile index, or its frame from :func:`workers.tiler.read_frame`)."""
-    rec = read_tile(store, tile_id)
+    (``frame``: the tile index, or its frame from :func:`workers.tiler.read_frame`),
+    read from the work store, or from the input for a streamed block."""
+    rec = source_tile(frame, tile_id) if streamed(frame) else read_tile(store, tile_id)
     ints = np.column_stack([rec["X"], rec["Y"], rec["Z"]])
     return rec, to_local(ints, _frame(frame))
 
@@ -145,6 +146,8 @@ def ground_sample(work_url: str, tile_id: int, params_json: str, stride: int) ->
     frame = read_frame(store)
     params = PipelineParams.model_validate_json(params_json)
     rec, xyz = _tile_points(store, tile_id, frame)
+    if not rec["core"].any():  # a streamed tile whose estimate was wrong: it holds no core point
+        return np.zeros(0)
     pick = rec["core"].astype(bool) & (rec["index"] % np.uint64(stride) == 0)
     try:
         model = raw_ground_model(xyz, params=params.ground)
@@ -179,6 +182,10 @@ def process_tile(work_url: str, tile_id: int, params_json: str, fail: bool = Fal
     slot_trees = None if given is None else trees_in_tile(given, {"buffered": grid.tile(int(tile_id)).buffered}, frame["origin"])
     rec, xyz = _tile_points(store, tile_id, frame)
     core = rec["core"].astype(bool)
+    if not core.any():  # a streamed tile whose estimate was wrong (workers.tiler.settle_index drops it)
+        return {"tile_id": int(tile_id), "n_core": 0, "n_buffered": len(rec)}
+    if streamed(frame):
+        put_tile_sample(store, tile_id, xyz[core, :2], rec["index"][core], int(frame["n_points"]))
     raw = store.get_object(raw_ground_key(tile_id)) if store.exists(raw_ground_key(tile_id)) else None
     result = process(xyz, params, f"tile {tile_id}", tuple(stats) if stats else None, slot_trees, raw)
     key = result_key(tile_id)
@@ -190,6 +197,8 @@ def process_tile(work_url: str, tile_id: int, params_json: str, fail: bool = Fal
     store.put_array(f"{key}/is_wood.npy", np.asarray(result.is_wood[core], dtype=bool))
     store.put_array(f"{key}/wood_score.npy", np.asarray(result.wood_score[core], dtype=np.float32))
     summary = summarise(tile_id, xyz, core, result, grid, frame["origin"], params, index=rec["index"])
+    if streamed(frame):  # its count is known only now (workers.tiler.settle_index)
+        summary["n_buffered"] = len(rec)
     store.put_object(f"{key}/summary.pkl", summary)
     if not store.exists(JOB_KEY):  # deleted while these were written: take them back
         return _abandon(store, tile_id)

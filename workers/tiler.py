@@ -11,6 +11,12 @@ Two engines produce the same tiles: ``laspy`` (default, streamed) and ``pdal``
 (``readers.las`` -> ``filters.splitter`` with length, buffer and origin), used when
 PDAL's Python bindings import. Whatever the engine, tiles whose core points do not add
 up to the block's points stop the run (:class:`TilesDoNotAddUp`) before the index is stored.
+
+A COPC block is not split at all (:func:`index_from_nodes`): its octree's hierarchy is
+the index, and each tile's task reads the nodes its box meets from the input
+(:func:`source_tile`), so no pass over the block comes before the first tile and no
+tile is written. Its tiles' counts are estimates until the tiles ran
+(:func:`settle_index`).
 """
 
 from __future__ import annotations
@@ -20,8 +26,9 @@ import math
 
 import numpy as np
 
-from pipeline.blockinfo import BlockInfo
+from pipeline.blockinfo import BlockInfo, input_error
 from pipeline.errors import ParameterError
+from pipeline.formats.copc import check_nodes_count, iter_box, nodes_meeting, read_nodes
 from pipeline.mapsample import first_sampled, sample_stride
 from pipeline.reading import CHUNK_POINTS, check_bounds, iter_raw, read_raw_range, to_local
 from pipeline.tilelimits import check_split_buffer
@@ -99,6 +106,8 @@ def _index(info: BlockInfo, grid: TileGrid, counts: dict, engine: str) -> dict:
         "scales": list(info.scales),
         "offsets": list(info.offsets),
         "origin": list(info.origin),
+        "mins": list(info.mins),
+        "maxs": list(info.maxs),
         "grid": grid.to_dict(),
         "tiles": tiles,
     }
@@ -121,6 +130,16 @@ def tile_range(info: BlockInfo, grid: TileGrid, store: WorkStore, start: int, co
     counts = {}
     ints = read_raw_range(info.path, start, count, info=info)
     _split_chunk(info, grid, store, start, ints, counts)
+    return counts
+
+
+def tile_in_order(info: BlockInfo, grid: TileGrid, store: WorkStore, chunk_points: int) -> dict:
+    """Split every point of the block into tile parts in one pass, ``chunk_points`` at a
+    time (a dask task for a file that cannot be entered in the middle). Returns the
+    point counts, {tile id: [core, buffered]}."""
+    counts = {}
+    for start, ints in iter_raw(info.path, chunk_points=chunk_points, info=info):
+        _split_chunk(info, grid, store, start, ints, counts)
     return counts
 
 
@@ -147,8 +166,9 @@ def tile_block(
         Points read per chunk (bounds memory).
     engine : "laspy" or "pdal"
     client : distributed.Client, optional
-        With a client (and more than one chunk), every chunk is split by a dask task
-        that reads its own range of the file; the workers must see the input path.
+        With a client, every chunk is split by a dask task that reads its own range of
+        the file (one task reads all of a file that is not ``info.seekable``); the
+        workers must see the input path.
     gather : callable, optional
         ``gather(futures)`` → their results, in any order: how to wait for those tasks
         (default ``client.gather``; a job passes one that stops on a cancel and on a
@@ -161,23 +181,28 @@ def tile_block(
     are listed.
     """
     check_engine(engine, grid)
+    if info.copc:
+        return index_from_nodes(info, grid, store)
     if engine == "pdal":
         return tile_block_pdal(info, grid, store)
     store.remove("tiles")
     counts = {}
-    if client is not None and info.n_points > chunk_points and info.seekable:
-        # each worker reads and splits its own range of the file: tiling runs in parallel
-        # (a LAZ of variable-size chunks cannot be entered in the middle: read in one pass)
-        starts = list(range(0, info.n_points, int(chunk_points)))
-        futures = [
-            client.submit(tile_range, info, grid, store, start, int(chunk_points), key=f"tile-range-{start}-{store.url}", pure=False)
-            for start in starts
-        ]
+    if client is not None:
+        # the workers read the file, never the submitting process (the service's, whose
+        # memory must not grow with a block): each its own range, in parallel, or one
+        # worker all of it in one pass, for a LAZ of variable-size chunks, which cannot be
+        # entered in the middle
+        if info.seekable:
+            futures = [client.submit(tile_range, info, grid, store, start, int(chunk_points),
+                                     key=f"tile-range-{start}-{store.url}", pure=False)
+                       for start in range(0, info.n_points, int(chunk_points))]
+        else:
+            futures = [client.submit(tile_in_order, info, grid, store, int(chunk_points), key=f"tile-all-{store.url}",
+                                     pure=False)]
         for part in (gather or client.gather)(futures):
             _merge_counts(counts, part)
     else:
-        for start, ints in iter_raw(info.path, chunk_points=chunk_points, info=info):
-            _split_chunk(info, grid, store, start, ints, counts)
+        counts = tile_in_order(info, grid, store, chunk_points)
     idx = _index(info, grid, counts, "laspy")
     check_tiles_add_up(idx, info.n_points, "laspy")
     put_index(store, idx)
@@ -413,6 +438,10 @@ def read_sample(store: WorkStore, n_points: int) -> tuple[np.ndarray, np.ndarray
     if not keys:
         return None
     stride = sample_stride(n_points)
+    if "/tile-" in keys[0]:  # a streamed block's: each tile's share, with the points' positions
+        part = np.concatenate([store.get_array(k) for k in keys])
+        part = part[np.argsort(part["index"], kind="stable")]
+        return np.column_stack([part["x"], part["y"]]), part["index"].astype(np.int64)
     xy, index = [], []
     for k in keys:
         start = int(k.rsplit("part-", 1)[1].split(".")[0])
@@ -421,3 +450,151 @@ def read_sample(store: WorkStore, n_points: int) -> tuple[np.ndarray, np.ndarray
         xy.append(part)
         index.append(np.arange(first, first + len(part) * stride, stride, dtype=np.int64))
     return np.concatenate(xy), np.concatenate(index)
+
+
+#: the engine of a block whose tiles read their own points from the input
+SOURCE_ENGINE = "copc"
+
+
+def index_from_nodes(info: BlockInfo, grid: TileGrid, store: WorkStore) -> dict:
+    """The tile index of a COPC block from its hierarchy alone: no point is read or
+    written. Every tile of the grid whose core meets a node is listed, its ``n_core`` and
+    ``n_buffered`` the points of the nodes its core and buffered box meet (an upper bound,
+    replaced by the counts its task finds, :func:`settle_index`).
+
+    Raises
+    ------
+    InputError
+        The hierarchy's points are not the header's count, or a node holding points lies
+        wholly outside the header's bounds.
+    """
+    nodes = read_nodes(info.path)
+    check_nodes_count(info, nodes)
+    # a node beyond the header's bounds holds points no tile of the grid reads
+    outside = np.setdiff1d(np.arange(len(nodes.count)), nodes_meeting(nodes, (*info.mins[:2], *info.maxs[:2])))
+    if outside.size:
+        k = int(outside[0])
+        raise input_error(info.path, f"{int(nodes.count[k])} points of its COPC octree lie in a node "
+                                     f"({nodes.boxes[k].round(3).tolist()}) outside the header's bounds; the file is corrupt")
+    store.remove("tiles")
+    counts = {}
+    for t in grid.tiles():
+        core = int(nodes.count[nodes_meeting(nodes, t.core)].sum())
+        if core:
+            counts[t.id] = [core, int(nodes.count[nodes_meeting(nodes, t.buffered)].sum())]
+    idx = _index(info, grid, counts, SOURCE_ENGINE)
+    idx["estimated"] = True
+    put_index(store, idx)
+    return idx
+
+
+def _read_box(grid: TileGrid, tile_id: int) -> tuple[float, float, float, float]:
+    """The box whose points a tile of ``grid`` may hold: its buffered box, open to
+    infinity on the grid's outer edges (points there go to the edge tiles' cores)."""
+    t = grid.tile(int(tile_id))
+    x0, y0, x1, y1 = t.buffered
+    col, row = tile_id % grid.ncols, tile_id // grid.ncols
+    return (-math.inf if col == 0 else x0, -math.inf if row == 0 else y0,
+            math.inf if col == grid.ncols - 1 else x1, math.inf if row == grid.nrows - 1 else y1)
+
+
+def source_tile(frame: dict, tile_id: int) -> np.ndarray:
+    """One tile's records (TILE_DTYPE, ordered by source index) read from the input of
+    the tile index ``frame`` (its frame is enough): the same records the tiler would
+    have written for it. Its nodes are decoded a batch at a time and cut to the tile's
+    box at once, so memory is one batch and the tile's points.
+
+    Raises
+    ------
+    InputError
+        A point read lies outside the header's bounds, or the input's data is corrupt.
+    """
+    info = _frame_info(frame)
+    grid = TileGrid.from_dict(frame["grid"])
+    box = _read_box(grid, tile_id)
+    scales, offsets = np.asarray(info.scales), np.asarray(info.offsets)
+    # the box and the header's bounds (and their 1 m of slack) as stored integers, a step
+    # wider on each side: the exact tests are the tiler's own, on the points kept
+    with np.errstate(invalid="ignore", over="ignore"):
+        lo = np.nan_to_num(np.floor((np.asarray(box[:2]) - offsets[:2]) / scales[:2]) - 1, neginf=-2**31)
+        hi = np.nan_to_num(np.ceil((np.asarray(box[2:]) - offsets[:2]) / scales[:2]) + 1, posinf=2**31)
+    valid_lo = np.floor((np.asarray(info.mins) - 1.0 - offsets) / scales) - 1
+    valid_hi = np.ceil((np.asarray(info.maxs) + 1.0 - offsets) / scales) + 1
+    parts = []
+    for ints, index in iter_box(info, box):
+        if (ints.min(axis=0) < valid_lo).any() or (ints.max(axis=0) > valid_hi).any():
+            check_bounds(to_local(ints, info), info, start=0)  # raises, naming the point
+        keep = (ints[:, 0] >= lo[0]) & (ints[:, 0] <= hi[0]) & (ints[:, 1] >= lo[1]) & (ints[:, 1] <= hi[1])
+        ints, index = ints[keep], index[keep]
+        core = core_tile(_absolute_xy(ints, info), grid)
+        # the tiler's own assignment: every point in exactly the tiles it gives
+        p, t = buffered_tiles(_absolute_xy(ints, info), grid, core=core)
+        sel = p[t == tile_id]  # ascending
+        del p, t
+        rec = np.empty(sel.size, dtype=TILE_DTYPE)
+        rec["X"], rec["Y"], rec["Z"] = ints[sel, 0], ints[sel, 1], ints[sel, 2]
+        rec["index"] = index[sel]
+        rec["core"] = core[sel] == tile_id
+        parts.append(rec)
+    # in file order already: the batches' nodes are, and each keeps its points' order
+    return np.concatenate(parts) if parts else np.zeros(0, dtype=TILE_DTYPE)
+
+
+def _frame_info(frame: dict) -> BlockInfo:
+    """The block's header as the tile index's frame keeps it."""
+    return BlockInfo(path=frame["input"], n_points=int(frame["n_points"]), version="1.4", point_format=6,
+                     compressed=True, scales=tuple(frame["scales"]), offsets=tuple(frame["offsets"]),
+                     mins=tuple(frame["mins"]), maxs=tuple(frame["maxs"]), crs_wkt=None,
+                     origin=tuple(frame["origin"]), seekable=False, copc=True)
+
+
+def streamed(frame: dict) -> bool:
+    """Whether the tiles of this tile index (or its frame) read their points from the input."""
+    return frame.get("engine") == SOURCE_ENGINE
+
+
+def sample_key(tile_id: int) -> str:
+    """Where a streamed tile keeps its core's share of the report's sample."""
+    return f"{SAMPLE_KEY}/tile-{tile_id:06d}.npy"
+
+
+def put_tile_sample(store: WorkStore, tile_id: int, local_xy: np.ndarray, index: np.ndarray, n_points: int) -> None:
+    """Keep the sampled points (every :func:`pipeline.jobparams.sample_stride`-th of the
+    file) among a streamed tile's core points ``local_xy`` (k, 2) [m] of file positions
+    ``index`` (k,): the share the tiler keeps for a tile it writes."""
+    pick = index % np.uint64(sample_stride(n_points)) == 0
+    part = np.empty(int(pick.sum()), dtype=[("x", "<f8"), ("y", "<f8"), ("index", "<i8")])
+    part["x"], part["y"], part["index"] = local_xy[pick, 0], local_xy[pick, 1], index[pick].astype(np.int64)
+    store.put_array(sample_key(tile_id), part)
+
+
+def settle_index(store: WorkStore, idx: dict, summaries: list[dict], failed, n_points: int) -> tuple[dict, list[dict]]:
+    """A streamed tile index with the counts its tiles found (``summaries``: their
+    :func:`workers.tasks.process_tile` results; those of tiles with no core point are
+    dropped, with the tiles), stored, and the summaries kept. Any other index is returned
+    as it is.
+
+    Raises
+    ------
+    InputError
+        Every tile ran and their core points are not the header's count: the header lies
+        about the block's count or extent. Nothing is written from such tiles.
+    """
+    if not streamed(idx):
+        return idx, summaries
+    found = {int(s["tile_id"]): s for s in summaries}
+    tiles = []
+    for t in idx["tiles"]:
+        s = found.get(int(t["id"]))
+        if s is not None:
+            if int(s["n_core"]) == 0:
+                continue
+            t = dict(t, n_core=int(s["n_core"]), n_buffered=int(s.get("n_buffered", t["n_buffered"])))
+        tiles.append(t)
+    idx = dict(idx, tiles=tiles, estimated=bool(failed))
+    total = sum(int(t["n_core"]) for t in tiles)
+    if not failed and total != n_points:
+        raise input_error(idx["input"], f"its header announces {n_points:,} points within x {idx['mins'][0]}..{idx['maxs'][0]}, "
+                                        f"y {idx['mins'][1]}..{idx['maxs'][1]} but its tiles there hold {total:,}; the file is corrupt")
+    put_index(store, idx)
+    return idx, [s for s in summaries if int(s["n_core"]) > 0]

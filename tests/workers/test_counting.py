@@ -50,13 +50,20 @@ def test_the_workers_count_what_one_process_counts(block, client, monkeypatch):
     assert _ranges_counted(client) - before >= 4  # counted by tasks, not here
 
 
-def test_without_a_cluster_or_a_seekable_file_the_block_is_counted_here(block, client, monkeypatch):
+def test_without_a_cluster_the_block_is_counted_here_and_with_one_by_a_task_even_unseekable(block, client, monkeypatch):
     calls = []
     monkeypatch.setattr(counting, "sample_density", lambda *a, **k: calls.append(k) or sample_density(*a, **k))
     monkeypatch.setattr(counting, "CHUNK_POINTS", 7_000)
-    count_block(block, 0.1)
-    count_block(dataclasses.replace(block, seekable=False), 0.1, client=client)  # a LAZ of variable-size chunks
-    assert len(calls) == 2
+    here = count_block(block, 0.1)
+    assert len(calls) == 1
+    monkeypatch.undo()
+    keys = []
+    submit = client.submit
+    monkeypatch.setattr(client, "submit", lambda fn, *a, **k: keys.append(k["key"]) or submit(fn, *a, **k))
+    # a LAZ of variable-size chunks: one task reads it all in one pass, not the submitting process
+    there = count_block(dataclasses.replace(block, seekable=False), 0.1, client=client)
+    assert len(keys) == 1 and keys[0].startswith("count-all-")
+    assert np.array_equal(here.counts, there.counts) and np.array_equal(here.nodes, there.nodes)
 
 
 def test_a_cancel_stops_the_count(block, client, monkeypatch):

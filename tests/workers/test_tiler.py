@@ -122,14 +122,22 @@ def test_parallel_tiling_on_dask_gives_the_same_tiles(tmp_path, dask_client):
         w.write(xyz)
     variable = write_variable_chunk_laz(fixed, tmp_path / "v.laz", [9_000, 1, 17_000, 4_999, 19_000])
     assert read_info(fixed).seekable and not read_info(variable).seekable
+    client = dask_client
     for path in (fixed, variable):
         info = read_info(path)
         grid = plan_grid(info.mins, info.maxs, tile_size=10.0, buffer=2.0, grid_origin=(500000.0, 6950000.0), reach=1.0)
         seq = WorkStore(str(tmp_path / f"seq-{path.stem}"))
         par = WorkStore(str(tmp_path / f"par-{path.stem}"))
         a = tile_block(info, grid, seq, chunk_points=7_000)
-        b = tile_block(info, grid, par, chunk_points=7_000, client=dask_client)
+        keys, submit = [], client.submit
+        client.submit = lambda fn, *args, **kw: keys.append(kw["key"]) or submit(fn, *args, **kw)
+        try:
+            b = tile_block(info, grid, par, chunk_points=7_000, client=client)
+        finally:
+            del client.submit
         assert a["tiles"] == b["tiles"]
+        # never in the submitting process: one task reads a file that cannot be entered in the middle
+        assert len(keys) == (1 if path == variable else 8) and keys[0].startswith("tile-all-" if path == variable else "tile-range-")
         for t in a["tiles"]:
             ra, rb = read_tile(seq, t["id"]), read_tile(par, t["id"])
             assert np.array_equal(np.sort(ra, order="index"), np.sort(rb, order="index"))
