@@ -16,7 +16,7 @@ import pytest
 from pipeline.blockinfo import read_info
 from pipeline.errors import InputError
 from pipeline.formats.copc import read_box, read_nodes
-from pipeline.jobparams import TilingParams
+from pipeline.jobparams import JobParams, TilingParams
 from workers.job import run_job
 from workers.jobspec import JobSpec
 from workers.workstore import WorkStore
@@ -71,11 +71,11 @@ def test_copc_tiles_give_the_trees_of_the_same_points_in_plain_laz_and_are_never
 
     monkeypatch.setattr(WorkStore, "put_array", spy)
     tiling = TilingParams(tile_size=10.0)
-    copc = run_job(JobSpec(str(COPC), str(tmp_path / "copc"), tiling=tiling))
+    copc = run_job(JobSpec(str(COPC), str(tmp_path / "copc"), job=JobParams(tiling=tiling)))
     tile_parts = [k for k in written if k.startswith("tiles/") and "/part-" in k]
     assert copc.n_tiles > 1 and not tile_parts
     written.clear()
-    plain = run_job(JobSpec(str(plain_twin), str(tmp_path / "plain"), tiling=tiling))
+    plain = run_job(JobSpec(str(plain_twin), str(tmp_path / "plain"), job=JobParams(tiling=tiling)))
     assert any("/part-" in k for k in written)  # the plain LAZ's tiles are written, as before
     assert (copc.n_trees, copc.n_tiles) == (plain.n_trees, plain.n_tiles) and copc.n_trees >= 5
     a, b = _outputs(tmp_path / "copc"), _outputs(tmp_path / "plain")
@@ -118,7 +118,7 @@ def test_a_header_lying_about_its_count_is_refused_before_any_tile(tmp_path):
     path = _lying(tmp_path, count=info.n_points - 1000)
     out = tmp_path / "out"
     with pytest.raises(InputError, match=f"{info.n_points - 1000} points but its COPC hierarchy holds {info.n_points}"):
-        run_job(JobSpec(str(path), str(out), tiling=TilingParams(tile_size=10.0)))
+        run_job(JobSpec(str(path), str(out), job=JobParams(tiling=TilingParams(tile_size=10.0))))
     assert _nothing_written(out)
 
 
@@ -128,7 +128,7 @@ def test_a_header_lying_about_its_extent_is_a_clear_error_and_nothing_is_written
     path = _lying(tmp_path, max_x=info.mins[0] + 12.0)
     out = tmp_path / "out"
     with pytest.raises(InputError, match="outside the header's bounds"):
-        run_job(JobSpec(str(path), str(out), tiling=TilingParams(tile_size=10.0)))
+        run_job(JobSpec(str(path), str(out), job=JobParams(tiling=TilingParams(tile_size=10.0))))
     assert _nothing_written(out)
 
 
