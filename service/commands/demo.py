@@ -13,7 +13,6 @@ import argparse
 import csv
 import io
 import re
-import socket
 import sys
 import tempfile
 import threading
@@ -22,6 +21,7 @@ from pathlib import Path
 
 from pipeline.errors import OrchardError
 from service.commands.options import tiling_default
+from service.commands.serve import bind
 
 NAME = "demo"
 HELP = "Run the service locally on a generated orchard block and print the per-tree table."
@@ -51,12 +51,6 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--tile-size", type=float, default=20.0, help="tile size [m] for the dask workers (default 20; 0 = one tile)")
     workers = tiling_default("workers")
     parser.add_argument("--workers", type=int, default=workers, help=f"dask workers of the embedded LocalCluster (default {workers})")
-
-
-def _free_port() -> int:
-    with socket.socket() as s:
-        s.bind(("127.0.0.1", 0))
-        return s.getsockname()[1]
 
 
 def _say(msg: str) -> None:
@@ -124,12 +118,12 @@ def run(args: argparse.Namespace) -> int:
     out_dir = data_dir / "demo"
     out_dir.mkdir(parents=True, exist_ok=True)
     settings = build_settings(
-        data_dir=data_dir, host="127.0.0.1", port=_free_port(), n_workers=args.workers, scheduling=False, dashboard=False
+        data_dir=data_dir, host="127.0.0.1", port=0, n_workers=args.workers, scheduling=False, dashboard=False
     )
     sim, block_path = _generate_block(args, out_dir)
     app = create_app(settings)
     token = create_token(app.state.store, "demo-farm")
-    server, thread, base = _start_server(app, settings.host, settings.port, data_dir)
+    server, thread, base = _start_server(app, settings.host, data_dir)
     try:
         _wait_started(server, thread)
         job, csv_text, report_path = _run_job(base, token, args, block_path, out_dir)
@@ -164,14 +158,20 @@ def _generate_block(args: argparse.Namespace, out_dir: Path):
     return sim, block_path
 
 
-def _start_server(app, host: str, port: int, data_dir: Path):
-    """The uvicorn server of ``app`` started in a background thread on ``host:port``,
-    the thread, and the server's base URL."""
+def _start_server(app, host: str, data_dir: Path):
+    """The uvicorn server of ``app`` started in a background thread on a free port of
+    ``host``, the thread, and the server's base URL.
+
+    The socket is bound here, before the server starts, and handed to it: a port picked
+    free first and bound later races with every other process on the machine.
+    """
     # here, not at the top: `orchard --help` imports every command module (see service.commands)
     import uvicorn
 
+    sock = bind(host, 0)
+    port = sock.getsockname()[1]
     server = uvicorn.Server(uvicorn.Config(app, host=host, port=port, log_level="warning", lifespan="on"))
-    thread = threading.Thread(target=server.run, name="orchard-demo-server", daemon=True)
+    thread = threading.Thread(target=server.run, kwargs={"sockets": [sock]}, name="orchard-demo-server", daemon=True)
     _say(f"starting the service on http://{host}:{port} (docs at /docs), data in {data_dir}")
     thread.start()
     return server, thread, f"http://{host}:{port}"
