@@ -158,47 +158,13 @@ def voxel_pairs(keys: np.ndarray, nodes: np.ndarray, *, radius: float, voxel_siz
     if m < 2 or off.shape[0] == 0:
         return NodePairs(np.zeros((0, 2), np.int64), np.zeros(0), np.zeros(columns.shape[0] + 1, np.int64))
     check_graph_size(m, 0)  # the search counts in int32
-    reach = int(np.abs(off).max())
-    pad = 2 * reach + 1
-    kx = keys[:, 0] - keys[:, 0].min()
-    ky = keys[:, 1] - keys[:, 1].min() + reach
-    kz = keys[:, 2]
-    ny = int(ky.max()) + reach + 1
-    colkey = kx * ny + ky  # (x, y) of a column and its neighbours, without wrapping
-    start = np.flatnonzero(np.r_[True, colkey[1:] != colkey[:-1]])
-    size = np.diff(np.r_[start, m])
-    ucol, ncol = colkey[start], start.shape[0]
-    col = np.repeat(np.arange(ncol), size)
-    zlo = kz[start]
-    zspan = kz[start + size - 1] - zlo + 1
-    width = zspan + 2 * pad
-    tstart = np.cumsum(width) - width + pad  # slot of each column's lowest voxel
-    occupied = np.zeros(int(width.sum()), np.int64)
-    occupied[tstart[col] + (kz - zlo[col])] = 1
-    below = np.zeros(occupied.shape[0] + 1, np.int64)  # nodes in the slots before each slot
-    np.cumsum(occupied, out=below[1:])
-    del occupied
+    table = _ColumnTable.build(keys, int(np.abs(off).max()))
     x, y, z = (np.ascontiguousarray(nodes[:, d]) for d in range(3))
     r2 = radius * radius
     firsts, seconds, lengths = [], [], []
     for c, (dx, dy) in enumerate(columns):
         dz = off[inverse.reshape(-1) == c, 2]  # one run of dz, ascending
-        if dx == 0 and dy == 0:
-            sel, other = np.arange(m), col
-        else:
-            target = ucol + dx * ny + dy
-            pos = np.minimum(np.searchsorted(ucol, target), ncol - 1)
-            nb = np.where(ucol[pos] == target, pos, -1)[col]
-            sel = np.flatnonzero(nb >= 0)
-            other = nb[sel]
-        # z of each node in the other column's frame, clamped where no dz can reach
-        base = tstart[other] + np.clip(kz[sel] - zlo[other], -reach - 1, zspan[other] + reach)
-        lo = below[base + dz[0]]
-        count = below[base + dz[-1] + 1] - lo
-        ends = np.cumsum(count)
-        # int32 while candidates are many (csgraph indexes nodes with int32 anyway)
-        a = np.repeat(sel.astype(np.int32), count)
-        b = np.arange(int(ends[-1]) if ends.size else 0, dtype=np.int32) + np.repeat((lo - (ends - count)).astype(np.int32), count)
+        a, b = table.candidates(dx, dy, dz)
         # the distance as pair_lengths computes it, so lengths equal the k-d tree path's
         d2 = x[a] - x[b]
         d2 *= d2
@@ -216,6 +182,82 @@ def voxel_pairs(keys: np.ndarray, nodes: np.ndarray, *, radius: float, voxel_siz
     pairs[:, 0] = np.concatenate(firsts)
     pairs[:, 1] = np.concatenate(seconds)
     return NodePairs(pairs, np.concatenate(lengths), np.r_[0, np.cumsum([f.shape[0] for f in firsts])])
+
+
+@dataclass(frozen=True)
+class _ColumnTable:
+    """:func:`voxel_pairs`' voxels as (x, y) columns of ascending z, and a table of slots
+    (each column's z range padded by ``2 * reach + 1`` on both sides, so that no lookup
+    leaves its column) counting the nodes below each slot.
+
+    Attributes
+    ----------
+    ucol : (c,) int64 — each column's key ``x * ny + y``, ascending
+    col : (m,) int64 — each node's column
+    kz : (m,) int64 — each node's z key
+    zlo, zspan : (c,) int64 — each column's lowest z key, and the z keys it spans
+    tstart : (c,) int64 — the slot of each column's lowest voxel
+    below : (t + 1,) int64 — the nodes in the slots before each slot
+    ny : int — the stride of x in a column key
+    reach : int — the stencil's largest offset [voxels]
+    """
+
+    ucol: np.ndarray
+    col: np.ndarray
+    kz: np.ndarray
+    zlo: np.ndarray
+    zspan: np.ndarray
+    tstart: np.ndarray
+    below: np.ndarray
+    ny: int
+    reach: int
+
+    @classmethod
+    def build(cls, keys: np.ndarray, reach: int) -> _ColumnTable:
+        """The table of voxel ``keys`` (unique, sorted by (x, y, z)) for a stencil of ``reach``."""
+        m = keys.shape[0]
+        pad = 2 * reach + 1
+        kx = keys[:, 0] - keys[:, 0].min()
+        ky = keys[:, 1] - keys[:, 1].min() + reach
+        kz = keys[:, 2]
+        ny = int(ky.max()) + reach + 1
+        colkey = kx * ny + ky  # (x, y) of a column and its neighbours, without wrapping
+        start = np.flatnonzero(np.r_[True, colkey[1:] != colkey[:-1]])
+        size = np.diff(np.r_[start, m])
+        ucol, ncol = colkey[start], start.shape[0]
+        col = np.repeat(np.arange(ncol), size)
+        zlo = kz[start]
+        zspan = kz[start + size - 1] - zlo + 1
+        width = zspan + 2 * pad
+        tstart = np.cumsum(width) - width + pad  # slot of each column's lowest voxel
+        occupied = np.zeros(int(width.sum()), np.int64)
+        occupied[tstart[col] + (kz - zlo[col])] = 1
+        below = np.zeros(occupied.shape[0] + 1, np.int64)  # nodes in the slots before each slot
+        np.cumsum(occupied, out=below[1:])
+        return cls(ucol, col, kz, zlo, zspan, tstart, below, ny, reach)
+
+    def candidates(self, dx, dy, dz: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """(q,) int32 first and second nodes of the candidate pairs at column offset
+        (``dx``, ``dy``): each node and the nodes of that neighbour column within the run
+        ``dz`` (ascending) of z offsets, by node, then partner."""
+        ucol, col = self.ucol, self.col
+        if dx == 0 and dy == 0:
+            sel, other = np.arange(col.shape[0]), col
+        else:
+            target = ucol + dx * self.ny + dy
+            pos = np.minimum(np.searchsorted(ucol, target), ucol.shape[0] - 1)
+            nb = np.where(ucol[pos] == target, pos, -1)[col]
+            sel = np.flatnonzero(nb >= 0)
+            other = nb[sel]
+        # z of each node in the other column's frame, clamped where no dz can reach
+        base = self.tstart[other] + np.clip(self.kz[sel] - self.zlo[other], -self.reach - 1, self.zspan[other] + self.reach)
+        lo = self.below[base + dz[0]]
+        count = self.below[base + dz[-1] + 1] - lo
+        ends = np.cumsum(count)
+        # int32 while candidates are many (csgraph indexes nodes with int32 anyway)
+        a = np.repeat(sel.astype(np.int32), count)
+        b = np.arange(int(ends[-1]) if ends.size else 0, dtype=np.int32) + np.repeat((lo - (ends - count)).astype(np.int32), count)
+        return a, b
 
 
 def build_graph(

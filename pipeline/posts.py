@@ -130,35 +130,44 @@ def find_posts(
         idx = columns.ball(c)
         if idx.size < POST_MIN_POINTS * len(POST_HEIGHTS):
             continue
-        # the sections at POST_HEIGHTS hold none of the points above them (with a margin
-        # for rounding): they select from the column's foot, the column is followed up after
-        foot = idx[height[idx] <= POST_HEIGHTS[-1] + 2 * POST_SLAB]
-        column = _Column(xyz[foot, :2], height[foot], max_height)
-        c0, r0 = column.section(POST_HEIGHTS[0], c, reach)
-        if not 0 < r0 <= max_radius:
-            continue
-        circles = [(c0, r0)]
-        for at in POST_HEIGHTS[1:]:  # the sections up to where those found already rule a post out
-            circles.append(column.section(at, c0, r0 + POST_MARGIN))
-            if _ruled_out(circles, max_radius):
-                break
-        post = _one_axis(circles, max_radius)
-        if post is None:
-            continue
-        axis, r_med = post
-        column = _Column(xyz[idx, :2], height[idx], max_height)
-        top = POST_HEIGHTS[-1]
-        for step in (POST_STEP, POST_FINE_STEP):  # the post's top: coarse steps up, then fine ones
-            while top < max_height and _same(*column.section(top + step, axis, r_med + POST_MARGIN), axis, r_med):
-                top += step
-        if top >= max_height or column.goes_on(axis, r_med):
-            continue  # a bole going on into a crown
-        found_xy.append(axis)
-        found_r.append(r_med)
-        found_top.append(top + POST_FINE_STEP)
+        post = _post_at(c, xyz, height, idx, max_radius=max_radius, max_height=max_height, reach=reach)
+        if post is not None:
+            found_xy.append(post[0])
+            found_r.append(post[1])
+            found_top.append(post[2])
     if not found_xy:
         return none
     return Posts(np.asarray(found_xy), np.asarray(found_r), np.asarray(found_top))
+
+
+def _post_at(c: np.ndarray, xyz: np.ndarray, height: np.ndarray, idx: np.ndarray, *, max_radius: float,
+             max_height: float, reach: float) -> tuple[np.ndarray, float, float] | None:
+    """The axis (2,), radius and top [m] of the post at candidate ``c``, or None. ``idx``
+    are the points of its column, in input order (:func:`find_posts`)."""
+    # the sections at POST_HEIGHTS hold none of the points above them (with a margin
+    # for rounding): they select from the column's foot, the column is followed up after
+    foot = idx[height[idx] <= POST_HEIGHTS[-1] + 2 * POST_SLAB]
+    column = _Column(xyz[foot, :2], height[foot], max_height)
+    c0, r0 = column.section(POST_HEIGHTS[0], c, reach)
+    if not 0 < r0 <= max_radius:
+        return None
+    circles = [(c0, r0)]
+    for at in POST_HEIGHTS[1:]:  # the sections up to where those found already rule a post out
+        circles.append(column.section(at, c0, r0 + POST_MARGIN))
+        if _ruled_out(circles, max_radius):
+            break
+    post = _one_axis(circles, max_radius)
+    if post is None:
+        return None
+    axis, r_med = post
+    column = _Column(xyz[idx, :2], height[idx], max_height)
+    top = POST_HEIGHTS[-1]
+    for step in (POST_STEP, POST_FINE_STEP):  # the post's top: coarse steps up, then fine ones
+        while top < max_height and _same(*column.section(top + step, axis, r_med + POST_MARGIN), axis, r_med):
+            top += step
+    if top >= max_height or column.goes_on(axis, r_med):
+        return None  # a bole going on into a crown
+    return axis, r_med, top + POST_FINE_STEP
 
 
 def _one_axis(circles: list, max_radius: float) -> tuple[np.ndarray, float] | None:

@@ -587,18 +587,10 @@ def block_result(xyz: np.ndarray, a: NodeAnalysis, *, params: PipelineParams) ->
     is_wood[a.veg_idx] = node_wood[pv]
     wood_score[a.veg_idx] = score[pv]
     if a.on_post is not None and a.on_post.any():
-        # a post's voxels also hold the foliage touching it: that takes the labels of
-        # the nearest tree node (within fragment_reach); the post's own points stay 0
-        near = a.veg_idx[a.on_post[pv]]
-        near = near[~on_posts(xyz[near], a.height[near], a.posts, margin=POST_SURFACE_MARGIN)]
-        tree_nodes = np.flatnonzero((node_tree > 0) & ~a.on_post)
-        if near.size and tree_nodes.size:
-            d, j = cKDTree(a.vox.centroids[tree_nodes]).query(xyz[near], distance_upper_bound=params.segment.fragment_reach)
-            hit = np.isfinite(d)
-            near, src = near[hit], tree_nodes[j[hit]]
-            tree_id[near] = node_tree[src]
-            is_wood[near] = node_wood[src]
-            wood_score[near] = score[src]
+        near, src = _post_foliage(xyz, a, params=params)
+        tree_id[near] = node_tree[src]
+        is_wood[near] = node_wood[src]
+        wood_score[near] = score[src]
     # the bottom of each trunk fell below the ground tolerance: it takes its tree's labels back
     is_ground = a.is_ground.copy()
     foot, src = trunk_feet(
@@ -615,19 +607,7 @@ def block_result(xyz: np.ndarray, a: NodeAnalysis, *, params: PipelineParams) ->
     is_wood[foot] = is_wood[src]
     wood_score[foot] = wood_score[src]
     is_ground[foot] = False
-
-    k = a.trunks.k
-    trunks = np.zeros((k, 3))
-    trunks[:, :2] = a.trunks.xy
-    trunks[:, 2] = a.ground.height_at(a.trunks.xy) if k else np.zeros(0)
-    centres, diameter = trunk_circles(xyz, tree_id, trunks, params=params.metrics, height=a.height)
-    # where the stem's circle was measured, its centre is the trunk's position (the
-    # detection's flow-weighted centroid of voxels sits off the stem by a few cm)
-    shift = np.hypot(*(centres - trunks[:, :2]).T) if k else np.zeros(0)
-    moved = np.isfinite(diameter) & (shift <= np.maximum(diameter, MIN_RECENTRE))
-    if moved.any():
-        trunks[moved, :2] = centres[moved]
-        trunks[moved, 2] = a.ground.height_at(centres[moved])
+    trunks, diameter = _measured_trunks(xyz, tree_id, a, params=params)
     return BlockResult(
         tree_id=tree_id,
         is_ground=is_ground,
@@ -642,3 +622,39 @@ def block_result(xyz: np.ndarray, a: NodeAnalysis, *, params: PipelineParams) ->
         slot_evidence=a.slot_evidence,
         slot_trees=a.slot_trees,
     )
+
+
+def _post_foliage(xyz: np.ndarray, a: NodeAnalysis, *, params: PipelineParams) -> tuple[np.ndarray, np.ndarray]:
+    """The points of post voxels that are foliage touching the post, and the tree node
+    (within ``fragment_reach``) whose labels each takes: (p,) point and (p,) node indices.
+
+    A post's voxels also hold that foliage; the post's own points stay unlabelled (0).
+    """
+    node_tree = a.segmentation.node_tree
+    near = a.veg_idx[a.on_post[a.vox.point_voxel]]
+    near = near[~on_posts(xyz[near], a.height[near], a.posts, margin=POST_SURFACE_MARGIN)]
+    tree_nodes = np.flatnonzero((node_tree > 0) & ~a.on_post)
+    if not (near.size and tree_nodes.size):
+        return np.zeros(0, np.int64), np.zeros(0, np.int64)
+    d, j = cKDTree(a.vox.centroids[tree_nodes]).query(xyz[near], distance_upper_bound=params.segment.fragment_reach)
+    hit = np.isfinite(d)
+    return near[hit], tree_nodes[j[hit]]
+
+
+def _measured_trunks(xyz: np.ndarray, tree_id: np.ndarray, a: NodeAnalysis, *,
+                     params: PipelineParams) -> tuple[np.ndarray, np.ndarray]:
+    """(k, 3) trunk positions [m] (x, y, ground z) and (k,) stem diameters [m] (NaN where
+    not measured) of the detected trunks, given the points' tree labels."""
+    k = a.trunks.k
+    trunks = np.zeros((k, 3))
+    trunks[:, :2] = a.trunks.xy
+    trunks[:, 2] = a.ground.height_at(a.trunks.xy) if k else np.zeros(0)
+    centres, diameter = trunk_circles(xyz, tree_id, trunks, params=params.metrics, height=a.height)
+    # where the stem's circle was measured, its centre is the trunk's position (the
+    # detection's flow-weighted centroid of voxels sits off the stem by a few cm)
+    shift = np.hypot(*(centres - trunks[:, :2]).T) if k else np.zeros(0)
+    moved = np.isfinite(diameter) & (shift <= np.maximum(diameter, MIN_RECENTRE))
+    if moved.any():
+        trunks[moved, :2] = centres[moved]
+        trunks[moved, 2] = a.ground.height_at(centres[moved])
+    return trunks, diameter

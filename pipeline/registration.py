@@ -211,61 +211,102 @@ def register(
         raise _no_overlap(names, 0, need)
     cur_size = np.full((n, 3), np.nan) if cur_size is None else np.asarray(cur_size, np.float64).reshape(n, -1)
     prev_size = np.full((m, 3), np.nan) if prev_size is None else np.asarray(prev_size, np.float64).reshape(m, -1)
-    sigma = np.asarray(params.size_sigma, np.float64)[: cur_size.shape[1]]
-    centre = cur_xy.mean(axis=0)
-    spacing = in_row_spacing(prev_xy)
-    gate = float(np.clip(params.gate_fraction * spacing, params.gate_min, params.gate_max))
-    prev_tree = cKDTree(prev_xy)
-    rel = cur_xy - centre
-    steps = int(round(params.max_rotation_deg / params.rotation_step_deg))
-    angles = np.arange(-steps, steps + 1) * params.rotation_step_deg
+    search = _Search(cur_xy, prev_xy, params)
+    candidates = search.candidates(covered)
+    if not candidates or max(c[1] for c in candidates) < need:
+        raise _no_overlap(names, max((c[1] for c in candidates), default=0), need)
+    best = search.choose(candidates, cur_size, prev_size, need)
+    if best is None:
+        raise _no_overlap(names, 0, need)
+    transform = search.refine(*best)
+    i, j, d = search.pairs(transform)
+    if len(i) < need:
+        raise _no_overlap(names, len(i), need)
+    return Registration(transform, float(np.sqrt(np.mean(d[_fitted(d)] ** 2))), int(len(i)), gate=search.gate,
+                        residual_all_m=float(np.sqrt(np.mean(d**2))))
 
-    candidates = []  # (inliers less uncovered trees, rotation, translation)
-    for deg in angles:
-        rc = _rotate(rel, deg) + centre
-        pairs = prev_tree.sparse_distance_matrix(cKDTree(rc), params.max_shift, output_type="ndarray")
+
+class _Search:
+    """The steps of one registration and what they share: both captures' trunks, the
+    previous capture's KD-tree, the centre rotations turn about and the match gate.
+
+    A candidate is ``(score, inliers, rotation, translation)``: the trunks matched within
+    the gate less the uncovered-tree penalty, the trunks matched, the rotation [degrees]
+    about ``centre`` and the translation [m] applied after it.
+    """
+
+    def __init__(self, cur_xy: np.ndarray, prev_xy: np.ndarray, params: RegistrationParams):
+        self.cur_xy, self.prev_xy, self.params = cur_xy, prev_xy, params
+        self.centre = cur_xy.mean(axis=0)
+        self.rel = cur_xy - self.centre
+        spacing = in_row_spacing(prev_xy)
+        self.gate = float(np.clip(params.gate_fraction * spacing, params.gate_min, params.gate_max))
+        self.prev_tree = cKDTree(prev_xy)
+
+    def candidates(self, covered) -> list[tuple]:
+        """The strongest translations voted at each rotation of the grid, scored."""
+        steps = int(round(self.params.max_rotation_deg / self.params.rotation_step_deg))
+        angles = np.arange(-steps, steps + 1) * self.params.rotation_step_deg
+        candidates = []
+        for deg in angles:
+            candidates.extend(self._voted(deg, covered))
+        return candidates
+
+    def _voted(self, deg, covered) -> list[tuple]:
+        """The ``peaks`` translations most trunk pairs vote for at one rotation (a Hough
+        vote over bins of ``vote_bin``), each scored by its matches."""
+        params, prev_xy, centre = self.params, self.prev_xy, self.centre
+        rc = _rotate(self.rel, deg) + centre
+        pairs = self.prev_tree.sparse_distance_matrix(cKDTree(rc), params.max_shift, output_type="ndarray")
         if len(pairs) == 0:
-            continue
+            return []
         diff = prev_xy[pairs["i"]] - rc[pairs["j"]]
         cell = np.floor(diff / params.vote_bin).astype(np.int64)
         key = (cell[:, 0] << 32) + (cell[:, 1] & 0xFFFFFFFF)
         uniq, inv, counts = np.unique(key, return_inverse=True, return_counts=True)
         top = np.argsort(-counts, kind="stable")[: params.peaks]
+        out = []
         for u in top:
-            if counts[u] < 2 and n > 2:
+            if counts[u] < 2 and len(self.cur_xy) > 2:
                 break
             t = diff[inv == u].mean(axis=0)
-            i, j, _ = _pairs(prev_tree, rc + t, gate)
-            candidates.append((len(i) - _uncovered(j, deg, t, prev_xy, covered, centre, params.uncovered_penalty),
-                               len(i), deg, t))
-    if not candidates or max(c[1] for c in candidates) < need:
-        raise _no_overlap(names, max((c[1] for c in candidates), default=0), need)
-    # the sizes decide among the candidates close to the best count (a one-tree-off
-    # alignment matches about as many trunks as the true one)
-    top = max(c[0] for c in candidates)
-    best = None
-    for base, n_in, deg, t in candidates:
-        if base < top - max(3.0, 0.3 * abs(top)) or n_in < need:
-            continue
-        rc = _rotate(rel, deg) + centre + t
-        i, j, _ = _pairs(prev_tree, rc, gate)
-        score = float(_similarity(cur_size[i], prev_size[j], sigma).sum()) - (len(i) - base)
-        if best is None or score > best[0]:
-            best = (score, deg, t)
-    if best is None:
-        raise _no_overlap(names, 0, need)
-    _, deg, t = best
-    transform = RigidTransform(float(t[0]), float(t[1]), float(deg), float(centre[0]), float(centre[1]))
-    for _ in range(4):  # least squares on the mutual matches, which may change as it converges
-        i, j, d = _pairs(prev_tree, transform.apply(cur_xy), gate)
-        if len(i) < 2:
-            break
-        transform = kabsch_2d(cur_xy[i[_fitted(d)]], prev_xy[j[_fitted(d)]], centre)
-    i, j, d = _pairs(prev_tree, transform.apply(cur_xy), gate)
-    if len(i) < need:
-        raise _no_overlap(names, len(i), need)
-    return Registration(transform, float(np.sqrt(np.mean(d[_fitted(d)] ** 2))), int(len(i)), gate,
-                        float(np.sqrt(np.mean(d**2))))
+            i, j, _ = _pairs(self.prev_tree, rc + t, self.gate)
+            out.append((len(i) - _uncovered(j, deg, t, prev_xy, covered, centre, params.uncovered_penalty),
+                        len(i), deg, t))
+        return out
+
+    def choose(self, candidates, cur_size, prev_size, need) -> tuple | None:
+        """``(rotation, translation)`` of the candidate whose matched trees' sizes agree
+        best, among those near the best score; None when none matches ``need`` trees."""
+        # the sizes decide among the candidates close to the best count (a one-tree-off
+        # alignment matches about as many trunks as the true one)
+        sigma = np.asarray(self.params.size_sigma, np.float64)[: cur_size.shape[1]]
+        top = max(c[0] for c in candidates)
+        best = None
+        for base, n_in, deg, t in candidates:
+            if base < top - max(3.0, 0.3 * abs(top)) or n_in < need:
+                continue
+            rc = _rotate(self.rel, deg) + self.centre + t
+            i, j, _ = _pairs(self.prev_tree, rc, self.gate)
+            score = float(_similarity(cur_size[i], prev_size[j], sigma).sum()) - (len(i) - base)
+            if best is None or score > best[0]:
+                best = (score, deg, t)
+        return None if best is None else best[1:]
+
+    def refine(self, deg, t) -> RigidTransform:
+        """The chosen candidate refined by least squares on its (trimmed) mutual matches."""
+        centre = self.centre
+        transform = RigidTransform(float(t[0]), float(t[1]), float(deg), float(centre[0]), float(centre[1]))
+        for _ in range(4):  # the mutual matches may change as the fit converges
+            i, j, d = self.pairs(transform)
+            if len(i) < 2:
+                break
+            transform = kabsch_2d(self.cur_xy[i[_fitted(d)]], self.prev_xy[j[_fitted(d)]], centre)
+        return transform
+
+    def pairs(self, transform: RigidTransform) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """Mutual nearest pairs (cur index, prev index, distance) under ``transform``."""
+        return _pairs(self.prev_tree, transform.apply(self.cur_xy), self.gate)
 
 
 def _fitted(d: np.ndarray) -> np.ndarray:

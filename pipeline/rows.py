@@ -271,15 +271,61 @@ def _section_rows(local, direction, members, u, v, spacing, params, canopy=None)
     if steps:  # the planting distance: the typical step between neighbours in a row
         spacing = float(np.median(np.concatenate(steps)))
     a, c = p @ u, p @ v
-    scale = max(float(np.ptp(a)), 1.0)
-    t = (a - a.mean()) / scale
     long = [ch for ch in chains if len(ch) >= 3]
-    curve = np.zeros(2)
-    if sum(len(ch) for ch in long) >= 6:
-        x = np.concatenate([np.c_[t[ch] - t[ch].mean(), t[ch] ** 2 - (t[ch] ** 2).mean()] for ch in long])
-        y = np.concatenate([c[ch] - c[ch].mean() for ch in long])
-        curve = np.linalg.lstsq(x, y, rcond=None)[0]
-    flat = c - curve[0] * t - curve[1] * t**2
+    bow = _Bow.fit(a, c, long)
+    flat = bow.flatten(a, c)
+    centres = _row_centres(flat, chains, long, across, tol)
+    shown = []
+    if canopy is not None and len(canopy) and np.isfinite(across):
+        shown = canopy_rows(bow.flatten(canopy @ u, canopy @ v), canopy @ u, centres,
+                            row_spacing=across, spacing=spacing, extent=(float(a.min()), float(a.max())))
+        centres = np.sort(np.r_[centres, [off for off, _, _ in shown]])
+    nearest = np.abs(flat[:, None] - centres[None, :]).argmin(axis=1)
+    dist = np.abs(flat - centres[nearest])
+    on = dist <= params.max_offset * across if np.isfinite(across) else np.ones(len(p), dtype=bool)
+    rows = _assigned_rows(centres, nearest, on, a, members, shown, bow, u, v)
+    inside = _between_rows(flat, centres, dist, on, a, across, spacing, params)
+    return rows, members[~on], members[~on & inside], spacing
+
+
+@dataclass(frozen=True)
+class _Bow:
+    """The curvature common to a section's rows: the across offset (local frame) a
+    quadratic in ``t``, the along coordinate centred on ``mean`` and divided by ``scale``."""
+
+    mean: float
+    scale: float
+    curve: np.ndarray  # (2,) coefficients of t and t**2 [m]
+
+    @classmethod
+    def fit(cls, a: np.ndarray, c: np.ndarray, long: list[np.ndarray]) -> _Bow:
+        """Fitted to every chain of ``long`` at once (each about its own mean): none
+        without six trees in such chains. ``a``, ``c`` are the trees' along and across
+        coordinates [m]."""
+        mean, scale = a.mean(), max(float(np.ptp(a)), 1.0)
+        t = (a - mean) / scale
+        curve = np.zeros(2)
+        if sum(len(ch) for ch in long) >= 6:
+            x = np.concatenate([np.c_[t[ch] - t[ch].mean(), t[ch] ** 2 - (t[ch] ** 2).mean()] for ch in long])
+            y = np.concatenate([c[ch] - c[ch].mean() for ch in long])
+            curve = np.linalg.lstsq(x, y, rcond=None)[0]
+        return cls(mean, scale, curve)
+
+    def flatten(self, along: np.ndarray, across: np.ndarray) -> np.ndarray:
+        """Across offsets with the curvature taken off [m]."""
+        t = (along - self.mean) / self.scale
+        return across - self.curve[0] * t - self.curve[1] * t**2
+
+    def line(self, along: np.ndarray, offset: float) -> np.ndarray:
+        """Across coordinates [m] of the row of flattened ``offset`` at ``along``."""
+        t = (along - self.mean) / self.scale
+        return offset + self.curve[0] * t + self.curve[1] * t**2
+
+
+def _row_centres(flat: np.ndarray, chains: list[np.ndarray], long: list[np.ndarray], across: float,
+                 tol: float) -> np.ndarray:
+    """Flattened across offsets [m] of the section's rows, ascending: chains of three or
+    more trees and shorter ones of their own, merged within half ``tol``."""
     seeds = list(long)
     if long and np.isfinite(across):  # a short row of its own lies half a row spacing from every long one
         known = np.array([np.median(flat[ch]) for ch in long])
@@ -292,17 +338,12 @@ def _section_rows(local, direction, members, u, v, spacing, params, canopy=None)
     offs, weight = offs[order], weight[order]
     merge = 0.5 * tol if np.isfinite(across) else np.inf
     cut = np.r_[0, np.flatnonzero(np.diff(offs) > merge) + 1, len(offs)]
-    centres = np.array([np.average(offs[i:j], weights=weight[i:j]) for i, j in zip(cut[:-1], cut[1:])])
-    bowed = lambda along: (along - a.mean()) / scale  # noqa: E731
-    shown = []
-    if canopy is not None and len(canopy) and np.isfinite(across):
-        tc = bowed(canopy @ u)
-        shown = canopy_rows(canopy @ v - curve[0] * tc - curve[1] * tc**2, canopy @ u, centres,
-                            row_spacing=across, spacing=spacing, extent=(float(a.min()), float(a.max())))
-        centres = np.sort(np.r_[centres, [off for off, _, _ in shown]])
-    nearest = np.abs(flat[:, None] - centres[None, :]).argmin(axis=1)
-    dist = np.abs(flat - centres[nearest])
-    on = dist <= params.max_offset * across if np.isfinite(across) else np.ones(len(p), dtype=bool)
+    return np.array([np.average(offs[i:j], weights=weight[i:j]) for i, j in zip(cut[:-1], cut[1:])])
+
+
+def _assigned_rows(centres, nearest, on, a, members, shown, bow: _Bow, u, v) -> list:
+    """:func:`_section_rows`' rows: each row's trees in order along it, or a line along its
+    strip for a canopy row without trees."""
     rows = []
     strips = {off: (start, end) for off, start, end in shown}
     for r, centre in enumerate(centres):
@@ -311,9 +352,15 @@ def _section_rows(local, direction, members, u, v, spacing, params, canopy=None)
             rows.append((float(centre), members[sel[np.argsort(a[sel], kind="stable")]], None))
         elif centre in strips:  # the canopy's row, its trunks all hidden: a line along its strip
             along = np.linspace(*strips[centre], 5)
-            tc = bowed(along)
-            across_c = centre + curve[0] * tc + curve[1] * tc**2
+            across_c = bow.line(along, centre)
             rows.append((float(centre), np.zeros(0, np.int64), along[:, None] * u + across_c[:, None] * v))
+    return rows
+
+
+def _between_rows(flat, centres, dist, on, a, across: float, spacing: float, params) -> np.ndarray:
+    """(n,) bool: whether each tree lies between the rows (or beside an outer one) and
+    within their extent, where the rows are evident enough for a tree off them to be
+    an outlier."""
     # between two rows, or beside an outer row nearer than an unseen next row could stand
     reach = _OUTER_REACH * across if np.isfinite(across) and len(centres) > 1 else 0.0
     inside = (flat > centres.min() - reach) & (flat < centres.max() + reach)
@@ -325,7 +372,7 @@ def _section_rows(local, direction, members, u, v, spacing, params, canopy=None)
         inside &= params.max_offset * across >= _OUTLIER_SIGMAS * scatter
     if on.any():
         inside &= (a >= a[on].min() - spacing) & (a <= a[on].max() + spacing)
-    return rows, members[~on], members[~on & inside], spacing
+    return inside
 
 
 def _slots(p: np.ndarray, d: np.ndarray, spacing: float) -> tuple[np.ndarray, float, np.ndarray]:

@@ -164,108 +164,122 @@ def edge_protocol(limits: EdgeLimits) -> type[H11Protocol]:
 
     The counts are those of one server: each call makes a class with counts of its own.
     """
-    counts = _Counts(limits)
-    busy = _raw_response(503, f"too many open connections (at most {limits.max_connections} in all, "
-                              f"{limits.max_per_client} from one address); try again shortly", retry_after=5)
-    slow = _raw_response(408, f"the request's line and headers did not arrive within {limits.header_timeout_s:g} s")
 
-    class EdgeProtocol(H11Protocol):
-        edge_counts = counts
-
-        def connection_made(self, transport) -> None:
-            super().connection_made(transport)
-            self._peer = self.client[0] if self.client else ""
-            self._verdict = None
-            self._refused = False
-            self._head_timer = self._body_timer = None
-            verdict = counts.sorted.pop(transport.get_extra_info("peername"), None)
-            if verdict is None:  # not accepted by an EdgeSocket: sorted here
-                verdict = counts.admit(self._peer)
-            if verdict == _DROP:  # a flood: no file handle held for it
-                log.warning("connection refused: too many open connections (%d in all, %d from %s)",
-                            counts.open, counts.per_client[self._peer], self._peer)
-                self._refused = True
-                self.transport.abort()
-                return
-            self._verdict = verdict
-            if verdict == _REFUSE:
-                self._refuse()
-                return
-            self._arm_head()
-
-        # -- refused connections ---------------------------------------------------
-
-        def _refuse(self) -> None:
-            self._refused = True
-            log.warning("connection refused: too many open connections (%d in all, %d from %s)",
-                        counts.open, counts.per_client[self._peer], self._peer)
-            # answered once its request arrives (closing with an unread request would reset
-            # the connection, and the client would never read the 503), or after a moment
-            self._head_timer = self.loop.call_later(limits.refuse_linger_s, self._answer_refused)
-
-        def _answer_refused(self) -> None:
-            if not self.transport.is_closing():
-                self.transport.write(busy)
-                self.transport.close()
-
-        # -- deadlines ----------------------------------------------------------------
-
-        def _arm_head(self) -> None:
-            self._head_timer = self.loop.call_later(limits.header_timeout_s, self._head_late)
-
-        def _disarm(self, name: str) -> None:
-            timer = getattr(self, name)
-            if timer is not None:
-                timer.cancel()
-                setattr(self, name, None)
-
-        def _head_late(self) -> None:
-            self._head_timer = None
-            if self.transport.is_closing() or self.conn.their_state is not h11.IDLE:
-                return
-            log.warning("request from %s: its line and headers did not arrive within %g s; closed",
-                        self._peer, limits.header_timeout_s)
-            self.transport.write(slow)
-            self.transport.close()
-
-        def _body_late(self) -> None:
-            self._body_timer = None
-            if self.transport.is_closing() or self.conn.their_state is not h11.SEND_BODY:
-                return
-            log.warning("request from %s: its body did not arrive within %g s; closed", self._peer, limits.body_timeout_s)
-            self.transport.close()  # the app sees a disconnect (the response may have begun: no 408 here)
-
-        def data_received(self, data: bytes) -> None:
-            if self._refused:
-                self._disarm("_head_timer")
-                self._answer_refused()
-                return
-            if self._head_timer is None and self.conn.their_state is h11.IDLE:
-                self._arm_head()  # the first byte of a later request on a kept-alive connection
-            super().data_received(data)
-            self._after_events()
-
-        def on_response_complete(self) -> None:
-            super().on_response_complete()
-            self._after_events()
-
-        def _after_events(self) -> None:
-            """Disarm or arm the deadlines as the request moved on: its headers in, its body in."""
-            theirs = self.conn.their_state
-            if theirs is not h11.IDLE:
-                self._disarm("_head_timer")
-            if theirs is h11.SEND_BODY and self._body_timer is None and self.scope is not None \
-                    and self.scope.get("path", "").rstrip("/") != limits.upload_path:
-                self._body_timer = self.loop.call_later(limits.body_timeout_s, self._body_late)
-            elif theirs is not h11.SEND_BODY:
-                self._disarm("_body_timer")
-
-        def connection_lost(self, exc) -> None:
-            self._disarm("_head_timer")
-            self._disarm("_body_timer")
-            if self._verdict is not None:
-                counts.release(self._peer, self._verdict)
-                self._verdict = None
-            super().connection_lost(exc)
+    class EdgeProtocol(_EdgeProtocol):
+        edge_counts = _Counts(limits)
+        edge_busy = _raw_response(503, f"too many open connections (at most {limits.max_connections} in all, "
+                                       f"{limits.max_per_client} from one address); try again shortly", retry_after=5)
+        edge_slow = _raw_response(408, f"the request's line and headers did not arrive within {limits.header_timeout_s:g} s")
 
     return EdgeProtocol
+
+
+class _EdgeProtocol(H11Protocol):
+    """uvicorn's h11 protocol with the limits of `EdgeLimits`; `edge_protocol` makes a
+    subclass per server, with that server's counts and its two ready-made answers."""
+
+    edge_counts: _Counts
+    edge_busy: bytes  # the 503 of a refused connection
+    edge_slow: bytes  # the 408 of a request whose line and headers came late
+
+    @property
+    def edge_limits(self) -> EdgeLimits:
+        return self.edge_counts.limits
+
+    def connection_made(self, transport) -> None:
+        super().connection_made(transport)
+        counts = self.edge_counts
+        self._peer = self.client[0] if self.client else ""
+        self._verdict = None
+        self._refused = False
+        self._head_timer = self._body_timer = None
+        verdict = counts.sorted.pop(transport.get_extra_info("peername"), None)
+        if verdict is None:  # not accepted by an EdgeSocket: sorted here
+            verdict = counts.admit(self._peer)
+        if verdict == _DROP:  # a flood: no file handle held for it
+            log.warning("connection refused: too many open connections (%d in all, %d from %s)",
+                        counts.open, counts.per_client[self._peer], self._peer)
+            self._refused = True
+            self.transport.abort()
+            return
+        self._verdict = verdict
+        if verdict == _REFUSE:
+            self._refuse()
+            return
+        self._arm_head()
+
+    # -- refused connections ---------------------------------------------------
+
+    def _refuse(self) -> None:
+        self._refused = True
+        counts = self.edge_counts
+        log.warning("connection refused: too many open connections (%d in all, %d from %s)",
+                    counts.open, counts.per_client[self._peer], self._peer)
+        # answered once its request arrives (closing with an unread request would reset
+        # the connection, and the client would never read the 503), or after a moment
+        self._head_timer = self.loop.call_later(self.edge_limits.refuse_linger_s, self._answer_refused)
+
+    def _answer_refused(self) -> None:
+        if not self.transport.is_closing():
+            self.transport.write(self.edge_busy)
+            self.transport.close()
+
+    # -- deadlines ----------------------------------------------------------------
+
+    def _arm_head(self) -> None:
+        self._head_timer = self.loop.call_later(self.edge_limits.header_timeout_s, self._head_late)
+
+    def _disarm(self, name: str) -> None:
+        timer = getattr(self, name)
+        if timer is not None:
+            timer.cancel()
+            setattr(self, name, None)
+
+    def _head_late(self) -> None:
+        self._head_timer = None
+        if self.transport.is_closing() or self.conn.their_state is not h11.IDLE:
+            return
+        log.warning("request from %s: its line and headers did not arrive within %g s; closed",
+                    self._peer, self.edge_limits.header_timeout_s)
+        self.transport.write(self.edge_slow)
+        self.transport.close()
+
+    def _body_late(self) -> None:
+        self._body_timer = None
+        if self.transport.is_closing() or self.conn.their_state is not h11.SEND_BODY:
+            return
+        log.warning("request from %s: its body did not arrive within %g s; closed", self._peer, self.edge_limits.body_timeout_s)
+        self.transport.close()  # the app sees a disconnect (the response may have begun: no 408 here)
+
+    def data_received(self, data: bytes) -> None:
+        if self._refused:
+            self._disarm("_head_timer")
+            self._answer_refused()
+            return
+        if self._head_timer is None and self.conn.their_state is h11.IDLE:
+            self._arm_head()  # the first byte of a later request on a kept-alive connection
+        super().data_received(data)
+        self._after_events()
+
+    def on_response_complete(self) -> None:
+        super().on_response_complete()
+        self._after_events()
+
+    def _after_events(self) -> None:
+        """Disarm or arm the deadlines as the request moved on: its headers in, its body in."""
+        theirs = self.conn.their_state
+        if theirs is not h11.IDLE:
+            self._disarm("_head_timer")
+        if theirs is h11.SEND_BODY and self._body_timer is None and self.scope is not None \
+                and self.scope.get("path", "").rstrip("/") != self.edge_limits.upload_path:
+            self._body_timer = self.loop.call_later(self.edge_limits.body_timeout_s, self._body_late)
+        elif theirs is not h11.SEND_BODY:
+            self._disarm("_body_timer")
+
+    def connection_lost(self, exc) -> None:
+        self._disarm("_head_timer")
+        self._disarm("_body_timer")
+        if self._verdict is not None:
+            self.edge_counts.release(self._peer, self._verdict)
+            self._verdict = None
+        super().connection_lost(exc)

@@ -137,26 +137,48 @@ def make_client(
         A worker of ``scheduler``'s cluster cannot run this process's tasks.
     """
     if scheduler:
-        try:
-            _check_answers(scheduler, parse_timedelta(timeout))
-            client = Client(scheduler, timeout=timeout)
-        except TimeoutError:
-            raise ParameterError(
-                f"no dask scheduler answered at {scheduler} within {parse_timedelta(timeout):g} s (TimeoutError); "
-                "start one with `dask scheduler`, or fix {job.scheduler} (its port, 8786 by default, not the "
-                "dashboard's 8787)", param="job.scheduler", value=scheduler,
-            ) from None
-        except (OSError, ValueError) as exc:
-            raise ParameterError(
-                f"cannot reach the dask scheduler at {scheduler} ({type(exc).__name__}); "
-                "start one with `dask scheduler` or fix {job.scheduler}", param="job.scheduler", value=scheduler,
-            ) from None
-        try:
-            check_workers(client, scheduler=scheduler, seconds=parse_timedelta(timeout))
-        except BaseException:
-            client.close()
-            raise
-        return client
+        return _external_client(scheduler, timeout)
+    return _embedded_client(n_workers, threads_per_worker, dashboard, processes=processes,
+                            memory_limit=memory_limit, quiet=quiet, host=host)
+
+
+def _external_client(scheduler: str, timeout: str) -> Client:
+    """A client of the running cluster at ``scheduler``, once it answers and its workers
+    can run this process's tasks (:func:`make_client`'s errors)."""
+    try:
+        _check_answers(scheduler, parse_timedelta(timeout))
+        client = Client(scheduler, timeout=timeout)
+    except TimeoutError:
+        raise ParameterError(
+            f"no dask scheduler answered at {scheduler} within {parse_timedelta(timeout):g} s (TimeoutError); "
+            "start one with `dask scheduler`, or fix {job.scheduler} (its port, 8786 by default, not the "
+            "dashboard's 8787)", param="job.scheduler", value=scheduler,
+        ) from None
+    except (OSError, ValueError) as exc:
+        raise ParameterError(
+            f"cannot reach the dask scheduler at {scheduler} ({type(exc).__name__}); "
+            "start one with `dask scheduler` or fix {job.scheduler}", param="job.scheduler", value=scheduler,
+        ) from None
+    try:
+        check_workers(client, scheduler=scheduler, seconds=parse_timedelta(timeout))
+    except BaseException:
+        client.close()
+        raise
+    return client
+
+
+def _embedded_client(
+    n_workers: int,
+    threads_per_worker: int,
+    dashboard: bool,
+    *,
+    processes: bool,
+    memory_limit: str | float | None,
+    quiet: bool,
+    host: str,
+) -> Client:
+    """A client of a new ``LocalCluster`` listening on ``host`` (:func:`make_client`'s
+    parameters of the embedded cluster)."""
     _check_host(host)
     # worker processes talk to the scheduler over TLS with certificates made here, for this
     # cluster alone: a client without them (another local account) is refused

@@ -176,82 +176,34 @@ class FilePart:
 
 
 async def receive_upload(request: Request, settings: Settings) -> FilePart:
-    ctype, opts = parse_options_header(request.headers.get("content-type", "").encode("latin-1", "replace"))
-    boundary = opts.get(b"boundary")
-    if ctype != b"multipart/form-data" or not boundary:
-        raise InputError("send the block as multipart/form-data with the file in the field 'file' (curl -F file=@block.laz)")
-    part = FilePart(tempfiles.process_dir(settings.tmp_dir) / f"upload-{uuid.uuid4().hex}.part", settings.max_upload_bytes)
-    try:
-        parser = MultipartParser(boundary, part.callbacks())
-    except Exception:
-        raise InputError("the multipart boundary is invalid") from None
+    """The upload's ``file`` field, written to a temporary file of this process as it arrives.
+
+    Raises
+    ------
+    InputError
+        The body is not multipart, is malformed or cut off, or has no ``file`` field.
+    TooLargeError
+        The file grows past ``settings.max_upload_bytes``.
+    StalledUploadError
+        The body stalls, trickles or is still arriving after the deadline.
+    ShuttingDownError
+        The server is told to stop while the body arrives.
+
+    None of these leaves the temporary file behind.
+    """
+    part, parser = _file_parser(request, settings)
     stream = request.stream()
     stopping = getattr(request.app.state, "stopping", None)  # set when the server is told to stop
     stop = asyncio.ensure_future(stopping.wait()) if stopping is not None else None
-    loop = asyncio.get_running_loop()
-    began, received = loop.time(), 0
+    began = asyncio.get_running_loop().time()
     try:
-        while True:
-            # wait for the next chunk, the idle limit, the overall deadline or the server stopping:
-            # a client that stops sending, or trickles, would hold the request and its partial
-            # file for good, and delay a shutdown
-            left = settings.upload_deadline_s - (loop.time() - began)
-            nxt = asyncio.ensure_future(anext(stream))
-            done, _ = await asyncio.wait({nxt} | ({stop} if stop else set()), timeout=max(0.0, min(settings.upload_idle_s, left)),
-                                         return_when=asyncio.FIRST_COMPLETED)
-            if nxt not in done:
-                nxt.cancel()
-                if stop is not None and stop in done:
-                    raise ShuttingDownError("the server is stopping and cannot take this upload; send it again "
-                                            "once it is back (nothing of it was kept)")
-                if loop.time() - began >= settings.upload_deadline_s:
-                    raise StalledUploadError(_late(settings))
-                raise StalledUploadError(
-                    f"the upload sent nothing for {settings.upload_idle_s:g} s (ORCHARD_UPLOAD_IDLE_S); send it again"
-                )
-            try:
-                chunk = nxt.result()
-            except StopAsyncIteration:
-                break
-            received += len(chunk)
-            elapsed = loop.time() - began
-            if elapsed >= settings.upload_deadline_s:
-                raise StalledUploadError(_late(settings))
-            if settings.upload_min_kbps and elapsed >= settings.upload_idle_s \
-                    and received < settings.upload_min_kbps * 1024 * elapsed:
-                raise StalledUploadError(
-                    f"the upload averaged {received / 1024 / elapsed:.2f} kB/s over {elapsed:.0f} s, below the "
-                    f"minimum of {settings.upload_min_kbps:g} kB/s (ORCHARD_UPLOAD_MIN_KBPS); send it again over a faster link"
-                )
-            try:
-                parser.write(chunk)
-            except OSError:  # writing the file (a full disk): the server's fault, not the body's
-                raise
-            except Exception:
-                if part.header_name.lower() == b"content-disposition":  # (python-multipart's 4,224-byte line limit)
-                    raise InputError("the file name of the upload is too long; rename the file (a name is kept "
-                                     "to 200 characters) and send it again") from None
-                raise InputError("the multipart body is malformed; send the file as field 'file'") from None
-            if part.too_large:
-                break
+        await _read_body(stream, stop, began, parser, part, settings)
         if part.too_large:
-            drained = 0
-            with contextlib.suppress(TooLargeError, ClientDisconnect):
-                async for chunk in stream:
-                    drained += len(chunk)
-                    if drained > _DRAIN_LIMIT:
-                        break
+            await _drain(stream)
             raise TooLargeError(
                 f"the file is larger than the upload limit of {settings.max_upload_mb:g} MB (ORCHARD_MAX_UPLOAD_MB)"
             )
-        try:
-            parser.finalize()  # (it does not check that the body ended at a boundary)
-        except OSError:  # closing the file (a full disk)
-            raise
-        except Exception:
-            raise InputError("the multipart body is incomplete") from None
-        if part.found and not part.complete:
-            raise InputError("the multipart body is incomplete: the file's part has no closing boundary (upload cut off?)")
+        _finalize(parser, part)
     except BaseException:
         with contextlib.suppress(OSError):  # (its last write may fail again: a full disk)
             part.close()
@@ -265,6 +217,110 @@ async def receive_upload(request: Request, settings: Settings) -> FilePart:
         part.tmp_path.unlink(missing_ok=True)
         raise InputError("no field 'file' in the upload; send the block as multipart field 'file' (curl -F file=@block.laz)")
     return part
+
+
+def _file_parser(request: Request, settings: Settings) -> tuple[FilePart, MultipartParser]:
+    """The part that receives the file and the multipart parser that feeds it; InputError
+    unless the request's content type is multipart with a valid boundary."""
+    ctype, opts = parse_options_header(request.headers.get("content-type", "").encode("latin-1", "replace"))
+    boundary = opts.get(b"boundary")
+    if ctype != b"multipart/form-data" or not boundary:
+        raise InputError("send the block as multipart/form-data with the file in the field 'file' (curl -F file=@block.laz)")
+    part = FilePart(tempfiles.process_dir(settings.tmp_dir) / f"upload-{uuid.uuid4().hex}.part", settings.max_upload_bytes)
+    try:
+        parser = MultipartParser(boundary, part.callbacks())
+    except Exception:
+        raise InputError("the multipart boundary is invalid") from None
+    return part, parser
+
+
+async def _read_body(stream, stop, began: float, parser: MultipartParser, part: FilePart, settings: Settings) -> None:
+    """Feed the body to ``parser`` until it ends or the file grows past the limit."""
+    loop = asyncio.get_running_loop()
+    received = 0
+    while True:
+        chunk = await _next_chunk(stream, stop, loop, began, settings)
+        if chunk is None:
+            break
+        received += len(chunk)
+        _check_pace(received, loop.time() - began, settings)
+        _feed(parser, part, chunk)
+        if part.too_large:
+            break
+
+
+async def _next_chunk(stream, stop, loop, began: float, settings: Settings) -> bytes | None:
+    """The body's next chunk (None at its end), unless the idle limit, the overall deadline
+    or the server stopping comes first (StalledUploadError, ShuttingDownError)."""
+    # a client that stops sending, or trickles, would hold the request and its partial
+    # file for good, and delay a shutdown
+    left = settings.upload_deadline_s - (loop.time() - began)
+    nxt = asyncio.ensure_future(anext(stream))
+    done, _ = await asyncio.wait({nxt} | ({stop} if stop else set()), timeout=max(0.0, min(settings.upload_idle_s, left)),
+                                 return_when=asyncio.FIRST_COMPLETED)
+    if nxt not in done:
+        nxt.cancel()
+        if stop is not None and stop in done:
+            raise ShuttingDownError("the server is stopping and cannot take this upload; send it again "
+                                    "once it is back (nothing of it was kept)")
+        if loop.time() - began >= settings.upload_deadline_s:
+            raise StalledUploadError(_late(settings))
+        raise StalledUploadError(
+            f"the upload sent nothing for {settings.upload_idle_s:g} s (ORCHARD_UPLOAD_IDLE_S); send it again"
+        )
+    try:
+        return nxt.result()
+    except StopAsyncIteration:
+        return None
+
+
+def _check_pace(received: int, elapsed: float, settings: Settings) -> None:
+    """StalledUploadError when ``received`` bytes after ``elapsed`` seconds are past the
+    deadline or below the minimum average rate."""
+    if elapsed >= settings.upload_deadline_s:
+        raise StalledUploadError(_late(settings))
+    if settings.upload_min_kbps and elapsed >= settings.upload_idle_s \
+            and received < settings.upload_min_kbps * 1024 * elapsed:
+        raise StalledUploadError(
+            f"the upload averaged {received / 1024 / elapsed:.2f} kB/s over {elapsed:.0f} s, below the "
+            f"minimum of {settings.upload_min_kbps:g} kB/s (ORCHARD_UPLOAD_MIN_KBPS); send it again over a faster link"
+        )
+
+
+def _feed(parser: MultipartParser, part: FilePart, chunk: bytes) -> None:
+    """One chunk into the parser; InputError for a malformed body."""
+    try:
+        parser.write(chunk)
+    except OSError:  # writing the file (a full disk): the server's fault, not the body's
+        raise
+    except Exception:
+        if part.header_name.lower() == b"content-disposition":  # (python-multipart's 4,224-byte line limit)
+            raise InputError("the file name of the upload is too long; rename the file (a name is kept "
+                             "to 200 characters) and send it again") from None
+        raise InputError("the multipart body is malformed; send the file as field 'file'") from None
+
+
+async def _drain(stream) -> None:
+    """Read (and drop) what is left of a too-large body, up to ``_DRAIN_LIMIT``, before the
+    413 is sent: a client still sending when the connection closes may see a reset, not the answer."""
+    drained = 0
+    with contextlib.suppress(TooLargeError, ClientDisconnect):
+        async for chunk in stream:
+            drained += len(chunk)
+            if drained > _DRAIN_LIMIT:
+                break
+
+
+def _finalize(parser: MultipartParser, part: FilePart) -> None:
+    """The parser finished; InputError when the body ended before the file's part did."""
+    try:
+        parser.finalize()  # (it does not check that the body ended at a boundary)
+    except OSError:  # closing the file (a full disk)
+        raise
+    except Exception:
+        raise InputError("the multipart body is incomplete") from None
+    if part.found and not part.complete:
+        raise InputError("the multipart body is incomplete: the file's part has no closing boundary (upload cut off?)")
 
 
 def _late(settings: Settings) -> str:

@@ -13,7 +13,6 @@ import argparse
 import csv
 import io
 import re
-import socket
 import sys
 import tempfile
 import threading
@@ -22,6 +21,7 @@ from pathlib import Path
 
 from pipeline.errors import OrchardError
 from service.commands.options import tiling_default
+from service.commands.serve import bind
 
 NAME = "demo"
 HELP = "Run the service locally on a generated orchard block and print the per-tree table."
@@ -51,12 +51,6 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--tile-size", type=float, default=20.0, help="tile size [m] for the dask workers (default 20; 0 = one tile)")
     workers = tiling_default("workers")
     parser.add_argument("--workers", type=int, default=workers, help=f"dask workers of the embedded LocalCluster (default {workers})")
-
-
-def _free_port() -> int:
-    with socket.socket() as s:
-        s.bind(("127.0.0.1", 0))
-        return s.getsockname()[1]
 
 
 def _say(msg: str) -> None:
@@ -112,13 +106,8 @@ class _Progress:
 
 
 def run(args: argparse.Namespace) -> int:
+    """Generate a block, serve it, process it over HTTP and print its trees; 0 when done."""
     # here, not at the top: `orchard --help` imports every command module (see service.commands)
-    import httpx
-    import uvicorn
-
-    from simulator.simparams import SimulationParams
-    from simulator.simulate import simulate_orchard
-    from simulator.truth import write_simulation
     from service.app import create_app
     from service.auth import create_token
     from service.settings import build_settings
@@ -129,60 +118,15 @@ def run(args: argparse.Namespace) -> int:
     out_dir = data_dir / "demo"
     out_dir.mkdir(parents=True, exist_ok=True)
     settings = build_settings(
-        data_dir=data_dir, host="127.0.0.1", port=_free_port(), n_workers=args.workers, scheduling=False, dashboard=False
+        data_dir=data_dir, host="127.0.0.1", port=0, n_workers=args.workers, scheduling=False, dashboard=False
     )
-
-    sim = SimulationParams(rows=args.rows, trees_per_row=args.trees_per_row, density=args.density, seed=args.seed)
-    _say(f"orchard demo: generating a {sim.rows} x {sim.trees_per_row} tree orchard block (simulator, seed {sim.seed}) ...")
-    orchard = simulate_orchard(sim)
-    block_path = out_dir / "orchard-block.laz"
-    write_simulation(orchard, str(block_path), str(out_dir / "truth.parquet"))
-    _say(f"  {len(orchard.xyz):,} points -> {block_path}")
-
+    sim, block_path = _generate_block(args, out_dir)
     app = create_app(settings)
     token = create_token(app.state.store, "demo-farm")
-    server = uvicorn.Server(uvicorn.Config(app, host=settings.host, port=settings.port, log_level="warning", lifespan="on"))
-    thread = threading.Thread(target=server.run, name="orchard-demo-server", daemon=True)
-    _say(f"starting the service on http://{settings.host}:{settings.port} (docs at /docs), data in {data_dir}")
-    thread.start()
+    server, thread, base = _start_server(app, settings.host, data_dir)
     try:
-        deadline = time.monotonic() + 60
-        while not server.started:
-            if not thread.is_alive() or time.monotonic() > deadline:
-                raise RuntimeError("the service did not start")
-            time.sleep(0.05)
-        base = f"http://{settings.host}:{settings.port}"
-        with httpx.Client(base_url=base, headers={"Authorization": f"Bearer {token}"}, timeout=120) as http:
-            _say("uploading the block over HTTP (POST /v1/blocks) ...")
-            with open(block_path, "rb") as fh:
-                r = http.post("/v1/blocks", files={"file": (block_path.name, fh, "application/octet-stream")})
-            r.raise_for_status()
-            block = r.json()
-            _say(f"  block {block['id']}: {block['n_points']:,} points, sha256 {block['sha256'][:12]}...")
-            body: dict = {"block_id": block["id"]}
-            if args.tile_size and args.tile_size > 0:
-                body["tiling"] = {"tile_size": args.tile_size}
-            r = http.post("/v1/jobs", json=body)
-            r.raise_for_status()
-            job = r.json()
-            tiling = f"{args.tile_size:g} m tiles" if "tiling" in body else "one tile"
-            _say(f"submitted job {job['id']} ({tiling}) on {args.workers} dask worker(s); waiting ...")
-            progress = _Progress()
-            while True:
-                job = http.get(f"/v1/jobs/{job['id']}").json()
-                progress.show(job)
-                if job["state"] in ("done", "failed", "cancelled"):
-                    break
-                time.sleep(0.3)
-            progress.end()
-            if job["state"] != "done":
-                raise OrchardError(f"the job {job['state']}: {job['error']}")
-            csv_text = http.get(f"/v1/jobs/{job['id']}/trees.csv").text
-            (out_dir / "trees.csv").write_text(csv_text, encoding="utf-8")
-            report = http.get(f"/v1/jobs/{job['id']}/report")
-            report.raise_for_status()
-            report_path = out_dir / "report.html"
-            report_path.write_text(report.text, encoding="utf-8")
+        _wait_started(server, thread)
+        job, csv_text, report_path = _run_job(base, token, args, block_path, out_dir)
     finally:
         _say("shutting the service and its dask workers down ...")
         server.should_exit = True
@@ -196,3 +140,99 @@ def run(args: argparse.Namespace) -> int:
     print(f"report page:    {report_path}")
     _say(f"demo finished in {time.perf_counter() - t_start:.0f} s")
     return 0
+
+
+def _generate_block(args: argparse.Namespace, out_dir: Path):
+    """The simulator's parameters and the LAZ block it generated in ``out_dir`` (its truth beside it)."""
+    # here, not at the top: `orchard --help` imports every command module (see service.commands)
+    from simulator.simparams import SimulationParams
+    from simulator.simulate import simulate_orchard
+    from simulator.truth import write_simulation
+
+    sim = SimulationParams(rows=args.rows, trees_per_row=args.trees_per_row, density=args.density, seed=args.seed)
+    _say(f"orchard demo: generating a {sim.rows} x {sim.trees_per_row} tree orchard block (simulator, seed {sim.seed}) ...")
+    orchard = simulate_orchard(sim)
+    block_path = out_dir / "orchard-block.laz"
+    write_simulation(orchard, str(block_path), str(out_dir / "truth.parquet"))
+    _say(f"  {len(orchard.xyz):,} points -> {block_path}")
+    return sim, block_path
+
+
+def _start_server(app, host: str, data_dir: Path):
+    """The uvicorn server of ``app`` started in a background thread on a free port of
+    ``host``, the thread, and the server's base URL.
+
+    The socket is bound here, before the server starts, and handed to it: a port picked
+    free first and bound later races with every other process on the machine.
+    """
+    # here, not at the top: `orchard --help` imports every command module (see service.commands)
+    import uvicorn
+
+    sock = bind(host, 0)
+    port = sock.getsockname()[1]
+    server = uvicorn.Server(uvicorn.Config(app, host=host, port=port, log_level="warning", lifespan="on"))
+    thread = threading.Thread(target=server.run, kwargs={"sockets": [sock]}, name="orchard-demo-server", daemon=True)
+    _say(f"starting the service on http://{host}:{port} (docs at /docs), data in {data_dir}")
+    thread.start()
+    return server, thread, f"http://{host}:{port}"
+
+
+def _wait_started(server, thread: threading.Thread, seconds: float = 60) -> None:
+    """RuntimeError unless the server accepts connections within ``seconds``."""
+    deadline = time.monotonic() + seconds
+    while not server.started:
+        if not thread.is_alive() or time.monotonic() > deadline:
+            raise RuntimeError("the service did not start")
+        time.sleep(0.05)
+
+
+def _run_job(base: str, token: str, args: argparse.Namespace, block_path: Path, out_dir: Path):
+    """Upload the block, run a job on it and download its results into ``out_dir``, over
+    HTTP as a client would: the finished job, its per-tree CSV text and the report's path.
+
+    Raises
+    ------
+    OrchardError
+        The job did not finish.
+    """
+    # here, not at the top: `orchard --help` imports every command module (see service.commands)
+    import httpx
+
+    with httpx.Client(base_url=base, headers={"Authorization": f"Bearer {token}"}, timeout=120) as http:
+        _say("uploading the block over HTTP (POST /v1/blocks) ...")
+        with open(block_path, "rb") as fh:
+            r = http.post("/v1/blocks", files={"file": (block_path.name, fh, "application/octet-stream")})
+        r.raise_for_status()
+        block = r.json()
+        _say(f"  block {block['id']}: {block['n_points']:,} points, sha256 {block['sha256'][:12]}...")
+        body: dict = {"block_id": block["id"]}
+        if args.tile_size and args.tile_size > 0:
+            body["tiling"] = {"tile_size": args.tile_size}
+        r = http.post("/v1/jobs", json=body)
+        r.raise_for_status()
+        job = r.json()
+        tiling = f"{args.tile_size:g} m tiles" if "tiling" in body else "one tile"
+        _say(f"submitted job {job['id']} ({tiling}) on {args.workers} dask worker(s); waiting ...")
+        job = _follow(http, job["id"])
+        if job["state"] != "done":
+            raise OrchardError(f"the job {job['state']}: {job['error']}")
+        csv_text = http.get(f"/v1/jobs/{job['id']}/trees.csv").text
+        (out_dir / "trees.csv").write_text(csv_text, encoding="utf-8")
+        report = http.get(f"/v1/jobs/{job['id']}/report")
+        report.raise_for_status()
+        report_path = out_dir / "report.html"
+        report_path.write_text(report.text, encoding="utf-8")
+    return job, csv_text, report_path
+
+
+def _follow(http, job_id: str) -> dict:
+    """The job once it is done, failed or cancelled, its progress shown meanwhile."""
+    progress = _Progress()
+    while True:
+        job = http.get(f"/v1/jobs/{job_id}").json()
+        progress.show(job)
+        if job["state"] in ("done", "failed", "cancelled"):
+            break
+        time.sleep(0.3)
+    progress.end()
+    return job
