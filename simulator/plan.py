@@ -8,7 +8,8 @@ from functools import cached_property
 
 import numpy as np
 
-from simulator.forms import grow_tree, unit
+from simulator.branches import unit
+from simulator.forms import grow_tree
 from simulator.planting import Layout, make_layout, place, young_scale
 from simulator.simparams import SimulationParams, local_origin
 from simulator.terrain import Terrain

@@ -12,7 +12,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from simulator.forms import perpendicular, unit
+from simulator.branches import perpendicular, unit
 from simulator.orchard import OUTLIER, Orchard
 from simulator.plan import VOXEL, Plan
 from simulator.planting import place

@@ -12,7 +12,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from simulator.forms import Tree, _add_polylines, _Branches, _points_on, _polylines, perpendicular, unit
+from simulator.branches import Tree, _add_polylines, _Branches, _points_on, _polylines, perpendicular, unit
 
 
 def grow_young(rng: np.random.Generator, p, base_xy: np.ndarray, ground, scale: float = 1.0) -> Tree:
