@@ -225,49 +225,58 @@ def buffered_tiles(xy: np.ndarray, grid: TileGrid, *, core: np.ndarray | None = 
     if core is None:
         core = core_tile(xy, grid)
     n = len(xy)
-    s, b = grid.tile_size, grid.buffer
-    gx, gy = grid.origin
     pts = [np.arange(n, dtype=np.int64)]
     tiles = [core.astype(np.int64)]
-    if b > 0 and n:
-        col = core % grid.ncols + grid.col0
-        row = core // grid.ncols + grid.row0
-        tol = 1e-9 * (s + b + abs(gx) + abs(gy))
-        fx = xy[:, 0] - (gx + col * s)
-        fy = xy[:, 1] - (gy + row * s)
-        near = (fx < b + tol) | (fx > s - b - tol) | (fy < b + tol) | (fy > s - b - tol)
-        near |= (fx < 0) | (fx >= s) | (fy < 0) | (fy >= s)  # outside the grid (clipped)
-        sub = np.flatnonzero(near)
-        x, y = xy[sub, 0], xy[sub, 1]
-        col, row = col[sub], row[sub]
-        reach = int(math.floor(b / s)) + 1  # ceil(b/s), plus one where b/s is whole (rounding)
-        # no neighbour lies farther than the grid is wide: a buffer far wider than the
-        # block costs nothing extra
-        col_offsets = range(-min(reach, grid.ncols - 1), min(reach, grid.ncols - 1) + 1)
-        row_offsets = range(-min(reach, grid.nrows - 1), min(reach, grid.nrows - 1) + 1)
-        # column/row tests once per offset, then combine them per neighbour
-        xin, yin = {}, {}
-        for d in col_offsets:
-            c = col + d
-            minx = gx + c * s - b
-            xin[d] = (minx < x) & (x < minx + s + 2 * b) & (c >= grid.col0) & (c < grid.col0 + grid.ncols)
-        for d in row_offsets:
-            r = row + d
-            miny = gy + r * s - b
-            yin[d] = (miny < y) & (y < miny + s + 2 * b) & (r >= grid.row0) & (r < grid.row0 + grid.nrows)
-        for dc in col_offsets:
-            if not xin[dc].any():
+    if grid.buffer > 0 and n:
+        _add_neighbours(xy, grid, core, pts, tiles)
+    return _by_tile(np.concatenate(pts), np.concatenate(tiles), n, only_cores=len(tiles) == 1)
+
+
+def _add_neighbours(xy: np.ndarray, grid: TileGrid, core: np.ndarray, pts: list, tiles: list) -> None:
+    """Append to ``pts`` and ``tiles`` the (point, tile) pairs of the tiles other than a
+    point's core whose open buffered box holds it (`buffered_tiles`)."""
+    s, b = grid.tile_size, grid.buffer
+    gx, gy = grid.origin
+    col = core % grid.ncols + grid.col0
+    row = core // grid.ncols + grid.row0
+    tol = 1e-9 * (s + b + abs(gx) + abs(gy))
+    fx = xy[:, 0] - (gx + col * s)
+    fy = xy[:, 1] - (gy + row * s)
+    near = (fx < b + tol) | (fx > s - b - tol) | (fy < b + tol) | (fy > s - b - tol)
+    near |= (fx < 0) | (fx >= s) | (fy < 0) | (fy >= s)  # outside the grid (clipped)
+    sub = np.flatnonzero(near)
+    x, y = xy[sub, 0], xy[sub, 1]
+    col, row = col[sub], row[sub]
+    reach = int(math.floor(b / s)) + 1  # ceil(b/s), plus one where b/s is whole (rounding)
+    # no neighbour lies farther than the grid is wide: a buffer far wider than the
+    # block costs nothing extra
+    col_offsets = range(-min(reach, grid.ncols - 1), min(reach, grid.ncols - 1) + 1)
+    row_offsets = range(-min(reach, grid.nrows - 1), min(reach, grid.nrows - 1) + 1)
+    # column/row tests once per offset, then combine them per neighbour
+    xin, yin = {}, {}
+    for d in col_offsets:
+        c = col + d
+        minx = gx + c * s - b
+        xin[d] = (minx < x) & (x < minx + s + 2 * b) & (c >= grid.col0) & (c < grid.col0 + grid.ncols)
+    for d in row_offsets:
+        r = row + d
+        miny = gy + r * s - b
+        yin[d] = (miny < y) & (y < miny + s + 2 * b) & (r >= grid.row0) & (r < grid.row0 + grid.nrows)
+    for dc in col_offsets:
+        if not xin[dc].any():
+            continue
+        for dr in row_offsets:
+            if dc == 0 and dr == 0:
                 continue
-            for dr in row_offsets:
-                if dc == 0 and dr == 0:
-                    continue
-                idx = np.flatnonzero(xin[dc] & yin[dr])
-                if idx.size:
-                    pts.append(sub[idx])
-                    tiles.append((row[idx] + dr - grid.row0) * grid.ncols + (col[idx] + dc - grid.col0))
-    p = np.concatenate(pts)
-    t = np.concatenate(tiles)
-    if len(tiles) == 1:  # no point in any neighbour's buffer: already sorted by point
+            idx = np.flatnonzero(xin[dc] & yin[dr])
+            if idx.size:
+                pts.append(sub[idx])
+                tiles.append((row[idx] + dr - grid.row0) * grid.ncols + (col[idx] + dc - grid.col0))
+
+
+def _by_tile(p: np.ndarray, t: np.ndarray, n: int, *, only_cores: bool) -> tuple[np.ndarray, np.ndarray]:
+    """The (point, tile) pairs sorted by tile, then point (`buffered_tiles`)."""
+    if only_cores:  # no point in any neighbour's buffer: already sorted by point
         order = np.argsort(t, kind="stable")
         return p[order], t[order]
     lo, hi = int(t.min()), int(t.max())

@@ -104,37 +104,48 @@ def dispatch(
 
     try:
         if client is None:
-            while (tid := state.next_tile()) is not None:
-                check_cancel(cancel)
-                try:
-                    result = accept(by_id[tid], task(store.url, tid, *args(tid)))
-                except OrchardError:
-                    raise
-                except Exception as exc:  # noqa: BLE001 - recorded per tile, as on dask
-                    act(tid, state.tile_failed(tid, error_line(exc)))
-                else:
-                    act(tid, state.tile_succeeded(tid, result))
-            return state
-
-        token = uuid.uuid4().hex[:8]
-        futures = {}
-        for tid in state.tiles:
-            fut = client.submit(task, store.url, tid, *args(tid), key=f"{key}-{tid}-{token}",
-                                retries=state.retries, pure=False, priority=state.priority(tid))
-            futures[fut] = tid
-        with contextlib.closing(_completed(client, futures, cancel, store)) as done:
-            for tid, fut in done:
-                if fut.status == "finished":
-                    act(tid, state.tile_succeeded(tid, accept(by_id[tid], fut.result())))
-                    continue
-                exc = fut.exception()
-                if isinstance(exc, OrchardError):
-                    raise exc
-                act(tid, state.tile_failed(tid, error_line(exc), attempts=state.retries + 1))
+            _run_here(task, by_id, state, store=store, cancel=cancel, args=args, accept=accept, act=act)
+        else:
+            _run_on_cluster(task, by_id, state, store=store, client=client, cancel=cancel, key=key, args=args,
+                            accept=accept, act=act)
         return state
     except JobCancelled:
         state.cancel()
         raise
+
+
+def _run_here(task, by_id: dict[int, dict], state: TileState, *, store: WorkStore, cancel, args, accept, act) -> None:
+    """`dispatch` without a cluster: the tiles one by one in this process, retried here."""
+    while (tid := state.next_tile()) is not None:
+        check_cancel(cancel)
+        try:
+            result = accept(by_id[tid], task(store.url, tid, *args(tid)))
+        except OrchardError:
+            raise
+        except Exception as exc:  # noqa: BLE001 - recorded per tile, as on dask
+            act(tid, state.tile_failed(tid, error_line(exc)))
+        else:
+            act(tid, state.tile_succeeded(tid, result))
+
+
+def _run_on_cluster(task, by_id: dict[int, dict], state: TileState, *, store: WorkStore, client, cancel, key: str,
+                    args, accept, act) -> None:
+    """`dispatch` on a cluster: one dask task per tile (retried by dask), taken as they finish."""
+    token = uuid.uuid4().hex[:8]
+    futures = {}
+    for tid in state.tiles:
+        fut = client.submit(task, store.url, tid, *args(tid), key=f"{key}-{tid}-{token}",
+                            retries=state.retries, pure=False, priority=state.priority(tid))
+        futures[fut] = tid
+    with contextlib.closing(_completed(client, futures, cancel, store)) as done:
+        for tid, fut in done:
+            if fut.status == "finished":
+                act(tid, state.tile_succeeded(tid, accept(by_id[tid], fut.result())))
+                continue
+            exc = fut.exception()
+            if isinstance(exc, OrchardError):
+                raise exc
+            act(tid, state.tile_failed(tid, error_line(exc), attempts=state.retries + 1))
 
 
 def block_ground_stats(store: WorkStore, tiles: list[dict], spec: JobSpec, client, cancel, n_points: int) -> list[float]:
