@@ -12,7 +12,7 @@
 - ``paper_with_our_trunks``: the paper's segmentation and wood/leaf steps from our
   trunks, so the comparison of those steps does not depend on trunk finding.
 
-All return a :class:`pipeline.process.BlockResult` so they are evaluated like our method.
+All return a :class:`pipeline.blockresult.BlockResult` so they are evaluated like our method.
 """
 
 from __future__ import annotations
@@ -25,7 +25,8 @@ from pipeline.graph import build_graph, subtree_sizes
 from pipeline.ground import classify_ground, ground_model
 from pipeline.metrics import trunk_circles
 from pipeline.params import PipelineParams
-from pipeline.process import BlockResult, process_points
+from pipeline.blockresult import BlockResult
+from pipeline.process import process_points
 from pipeline.voxels import voxelize
 
 #: the paper's source sampling grid for trunk finding [m]

@@ -49,8 +49,8 @@ TIMED = (
     "pipeline.process:build_graph pipeline.process:bridge_floating pipeline.process:detect_trunks "
     "pipeline.process:find_posts pipeline.process:slot_evidence pipeline.process:trees_on_slots "
     "pipeline.process:let_in pipeline.process:segment_nodes "
-    "pipeline.process:analyse_nodes pipeline.process:node_wood_score pipeline.process:trunk_feet "
-    "pipeline.process:trunk_circles pipeline.process:block_result workers.tasks:summarise "
+    "pipeline.process:analyse_nodes pipeline.blockresult:node_wood_score pipeline.blockresult:trunk_feet "
+    "pipeline.blockresult:trunk_circles pipeline.blockresult:block_result workers.tasks:summarise "
     "workers.job:merge_and_write workers.outputs:write_outputs service.reports.report:write_report "
     "service.reports.report:write_trees_csv"
 ).split()

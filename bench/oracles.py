@@ -71,7 +71,8 @@ from pipeline.enrichment import shape_features
 from simulator.scoring.scores import v_measure
 from pipeline.graph import build_graph, shortest_paths
 from pipeline.params import PipelineParams
-from pipeline.process import NodeAnalysis, analyse_nodes, block_result
+from pipeline.blockresult import NodeAnalysis, block_result
+from pipeline.process import analyse_nodes
 from pipeline.segment import segment_nodes
 from simulator.orchard import LEAF, TWIG, Orchard
 from simulator.simparams import SimulationParams

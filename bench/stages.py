@@ -37,7 +37,7 @@ STAGE_OF_MODULE = {
 #: the order stages are reported in
 STAGES = ("IO", "ground", "graph", "trunks", "segmentation", "matter", "metrics", "other")
 #: namespaces whose references are wrapped
-CALLERS = ("pipeline.process", "workers.job", "workers.tasks", "workers.outputs", "workers.replay")
+CALLERS = ("pipeline.process", "pipeline.blockresult", "workers.job", "workers.tasks", "workers.outputs", "workers.replay")
 #: functions of the callers that are pure I/O
 EXTRA_IO = {("workers.outputs", "write_outputs")}
 

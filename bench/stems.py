@@ -20,7 +20,8 @@ from contextlib import contextmanager
 
 import numpy as np
 
-import pipeline.process as process
+import pipeline.blockresult as blockresult
+from pipeline.process import process_points
 from pipeline.metrics import trunk_circles
 from pipeline.params import PipelineParams
 from simulator.simparams import SimulationParams
@@ -46,17 +47,17 @@ MATCH = 0.5
 @contextmanager
 def _kept_inputs(kept: dict):
     """Keep the arguments of the pipeline's ``trunk_circles`` call in ``kept``."""
-    original = process.trunk_circles
+    original = blockresult.trunk_circles
 
     def keeping(xyz, tree_id, trunks, **kwargs):
         kept.update(xyz=xyz, tree_id=tree_id, trunks=trunks.copy(), kwargs=kwargs)
         return original(xyz, tree_id, trunks, **kwargs)
 
-    process.trunk_circles = keeping
+    blockresult.trunk_circles = keeping
     try:
         yield
     finally:
-        process.trunk_circles = original
+        blockresult.trunk_circles = original
 
 
 def errors(sim: dict, seed: int) -> dict[str, np.ndarray]:
@@ -66,7 +67,7 @@ def errors(sim: dict, seed: int) -> dict[str, np.ndarray]:
     kept: dict = {}
     params = PipelineParams()
     with _kept_inputs(kept):
-        process.process_points(o.xyz - origin, params=params)
+        process_points(o.xyz - origin, params=params)
     if "trunks" not in kept:
         return {"plain": np.zeros(0), "solid": np.zeros(0)}
     trunks, truth = kept["trunks"], o.trunks - origin

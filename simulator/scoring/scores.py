@@ -252,7 +252,7 @@ def score_result(orchard, result, *, origin=(0.0, 0.0, 0.0), match_distance: flo
     orchard : simulator.orchard.Orchard
         Truth (absolute coordinates).
     result : object with ``tree_id`` (n,), ``is_wood`` (n,) and ``trunks`` (m, 3)
-        E.g. :class:`pipeline.process.BlockResult`, aligned with ``orchard.xyz``.
+        E.g. :class:`pipeline.blockresult.BlockResult`, aligned with ``orchard.xyz``.
     origin : (3,) float
         What was subtracted from ``orchard.xyz`` before processing [m].
     match_distance : float
