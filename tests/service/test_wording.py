@@ -9,7 +9,7 @@ import pytest
 
 from pipeline.errors import NoTreesError, ParameterError
 from pipeline.jobparams import TilingParams
-from service.commands import process, schedules
+from service.commands import process
 from service.settings import Settings
 from service.wording import api_errors, api_location, api_words, cli_name, cli_words, validation_words
 from workers.runoptions import RunOptions

@@ -24,7 +24,7 @@ import httpx
 import psutil
 import pytest
 from cluster_fixtures import scheduler_address
-from distributed import Client, LocalCluster
+from distributed import Client
 
 from pipeline.jobparams import JobParams, TilingParams
 from simulator.simparams import SimulationParams
