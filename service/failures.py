@@ -103,12 +103,12 @@ def classify(exc: BaseException, *, cancelled: bool = False) -> Outcome:
     if isinstance(exc, ClusterUnavailable):
         return Outcome("cluster_unavailable", {"where": exc.where, "detail": exc.why}, retry=True)
     if disk_full(exc):
-        return Outcome("disk_full", {"detail": _short(str(exc))}, retry=True, log="line")
+        return Outcome("disk_full", {"detail": short_text(exc)}, retry=True, log="line")
     if isinstance(exc, _scheduler_lost()):
         return Outcome("scheduler_lost", {"exception": type(exc).__name__}, retry=True, reconnect=True)
     if isinstance(exc, (FutureCancelled, TaskCancelled)):
         return Outcome("cancelled")
-    return Outcome("internal", {"exception": type(exc).__name__, "detail": _short(str(exc))}, log="traceback")
+    return Outcome("internal", {"exception": type(exc).__name__, "detail": short_text(exc)}, log="traceback")
 
 
 def _scheduler_lost() -> tuple[type[BaseException], ...]:
@@ -154,6 +154,7 @@ def _json_safe(value: Any) -> Any:
     return None
 
 
-def _short(text: str, limit: int = DETAIL_CHARS) -> str:
+def short_text(text: object, limit: int = DETAIL_CHARS) -> str:
+    """``text`` on one line, cut to ``limit`` characters (an error's detail)."""
     text = " ".join(str(text).split())
     return text if len(text) <= limit else text[: limit - 3] + "..."

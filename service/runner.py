@@ -40,7 +40,7 @@ from service import seasons
 from service.background import Background
 from service.db.errors import NotFoundError
 from service.db.jobstore import Store
-from service.failures import ClusterUnavailable, Outcome, classify
+from service.failures import ClusterUnavailable, Outcome, classify, short_text
 from service.jobfolders import job_dir, work_dir_of
 from service.reports.outputs import job_block_name
 from service.settings import Settings
@@ -122,11 +122,6 @@ def sweep_work(settings: Settings, store: Store) -> list[str]:
     if swept:
         log.info("deleted the tiles of %d ended job(s)", len(swept))
     return swept
-
-
-def _short(exc: BaseException, limit: int = 600) -> str:
-    text = " ".join(str(exc).split())
-    return text if len(text) <= limit else text[: limit - 3] + "..."
 
 
 def _jsonable(value: Any) -> Any:
@@ -265,7 +260,7 @@ class Runner(Background):
                 client = self._client_factory()
             except Exception as exc:  # noqa: BLE001 - becomes the job's error; the next job tries again
                 self._unreachable = True
-                raise ClusterUnavailable(where, _short(exc)) from exc
+                raise ClusterUnavailable(where, short_text(exc, 600)) from exc
             self._client = client
             self._unreachable = False
             if self.settings.dashboard:
