@@ -60,6 +60,9 @@ class BlockResult:
         (:meth:`pipeline.params.TrunkParams.at_spacing`); None: not measured.
     trunk_young : (k,) bool or None
         Trunks let in as replants: too low to pass as trees, on an open planting slot.
+    trunk_own_stem : (k,) bool or None
+        Trunks with a stem of their own (a bole standing in a closed stand,
+        :class:`pipeline.trunks.TrunkDetection`): the row prior never drops them.
     slot_evidence : dict or None
         What the block's decision on trees on open slots needs of this run
         (:func:`pipeline.slots.slot_evidence`), in the frame of the input xyz.
@@ -78,6 +81,7 @@ class BlockResult:
     trunk_diameter: np.ndarray
     spacing: float | None = None
     trunk_young: np.ndarray | None = None
+    trunk_own_stem: np.ndarray | None = None
     slot_evidence: dict | None = None
     slot_trees: np.ndarray | None = None
 
@@ -192,6 +196,7 @@ def block_result(xyz: np.ndarray, a: NodeAnalysis, *, params: PipelineParams) ->
         trunk_diameter=diameter,
         spacing=a.trunks.spacing,
         trunk_young=a.trunks.young,
+        trunk_own_stem=a.trunks.own_stem,
         slot_evidence=a.slot_evidence,
         slot_trees=a.slot_trees,
     )

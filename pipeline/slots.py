@@ -300,4 +300,6 @@ def let_in(det: TrunkDetection, trees: np.ndarray, nodes: np.ndarray, node_heigh
         np.r_[np.zeros(det.k, bool) if det.young is None else det.young, trees[keep, 2] > 0],
         np.r_[np.zeros(det.k, bool) if det.on_slot is None else det.on_slot, np.ones(len(keep), bool)],
         det.floors,
+        # a tree on a slot stands on its row: the row prior has no say over it
+        np.r_[np.zeros(det.k, bool) if det.own_stem is None else det.own_stem, np.zeros(len(keep), bool)],
     )

@@ -110,6 +110,8 @@ class TrunkDetection:
         full-grown (:mod:`pipeline.slots`): the rows vouch for them
     floors : (min_tree_height [m], min_canopy_voxels) or None — the size floors the
         detection used (None: no detection ran)
+    own_stem : (k,) bool or None — trunks with a stem of their own (:func:`_own_stems`):
+        the row prior never drops them (:func:`workers.outputs.without_trunks_between_rows`)
     """
 
     xy: np.ndarray
@@ -122,6 +124,7 @@ class TrunkDetection:
     young: np.ndarray | None = None
     on_slot: np.ndarray | None = None
     floors: tuple[float, int] | None = None
+    own_stem: np.ndarray | None = None
 
     @property
     def k(self) -> int:
@@ -435,7 +438,7 @@ def detect_trunks(
     xy = np.column_stack([candidates["x"][sel], candidates["y"][sel]])
     src, src_t = _sources(nodes, drained.cand, groups, gidx, candidates, sel)
     return TrunkDetection(xy, support[sel], candidates["width"][sel], src, src_t, candidates, spacing,
-                          floors=(params.min_tree_height, params.min_canopy_voxels))
+                          floors=(params.min_tree_height, params.min_canopy_voxels), own_stem=candidates["own_stem"][sel])
 
 
 def _drain(
@@ -642,4 +645,5 @@ def drop_trunks(det: TrunkDetection, drop: np.ndarray) -> TrunkDetection:
         None if det.young is None else det.young[keep],
         None if det.on_slot is None else det.on_slot[keep],
         det.floors,
+        None if det.own_stem is None else det.own_stem[keep],
     )

@@ -147,16 +147,21 @@ def block_canopy(summaries: list[dict]) -> np.ndarray:
     return cell_centres(unique_cells(np.concatenate(cells)))
 
 
-def without_trunks_between_rows(merged: GlobalTrunks, params: PipelineParams, canopy: np.ndarray | None = None) -> GlobalTrunks:
+def without_trunks_between_rows(merged: GlobalTrunks, params: PipelineParams, canopy: np.ndarray | None = None,
+                                own_stem: np.ndarray | None = None) -> GlobalTrunks:
     """The merged trunks less those that stand between two rows (the row model as a
     prior: off both row lines is foliage or a weed touching down, not a tree); the
     material of each goes to the nearest remaining tree within the crown radius.
     Decided on the whole block's trunks (and ``canopy``, cell centres in the trunks'
-    frame), so tiled and untiled runs agree."""
+    frame), so tiled and untiled runs agree. ``own_stem`` (K,) bool: trunks with a stem
+    of their own (:func:`own_stems`), never dropped: foliage or a weed has no bole, and
+    in a closed stand the rows found are loose."""
     if not (params.rows.enabled and params.rows.drop_between_rows) or merged.n_trees < 3:
         return merged
     xy = merged.trunks[:, :2]
     drop = find_rows(xy, params=params.rows, canopy=canopy).between_rows
+    if own_stem is not None:
+        drop = drop & ~np.asarray(own_stem, bool)
     if not drop.any() or drop.all():
         return merged
     keep = ~drop
@@ -170,18 +175,30 @@ def without_trunks_between_rows(merged: GlobalTrunks, params: PipelineParams, ca
     )
 
 
-def replanted(summaries: list[dict], merged: GlobalTrunks) -> np.ndarray:
-    """(K,) bool: trees that the tile owning their trunk let in as replants."""
-    young = np.zeros(merged.n_trees, dtype=bool)
+def _owned_flags(summaries: list[dict], merged: GlobalTrunks, key: str) -> np.ndarray:
+    """(K,) bool: the per-trunk flag ``key`` of each tile's summary, as the tile owning
+    each merged trunk set it (a summary without it: False)."""
+    out = np.zeros(merged.n_trees, dtype=bool)
     for s in summaries:
-        flags = s.get("young")
+        flags = s.get(key)
         if flags is None or not np.any(flags):
             continue
         glob = merged.id_maps[s["tile_id"]][1:]
         local = np.flatnonzero(np.asarray(flags, bool) & (glob > 0))
         g = glob[local] - 1
-        young[g[merged.owner[g] == s["tile_id"]]] = True
-    return young
+        out[g[merged.owner[g] == s["tile_id"]]] = True
+    return out
+
+
+def replanted(summaries: list[dict], merged: GlobalTrunks) -> np.ndarray:
+    """(K,) bool: trees that the tile owning their trunk let in as replants."""
+    return _owned_flags(summaries, merged, "young")
+
+
+def own_stems(summaries: list[dict], merged: GlobalTrunks) -> np.ndarray:
+    """(K,) bool: trunks that the tile owning them found with a stem of their own
+    (:class:`pipeline.trunks.TrunkDetection`; a work store of an earlier release: none)."""
+    return _owned_flags(summaries, merged, "own_stem")
 
 
 def with_rows(trees: dict, params: RowParams, replants: np.ndarray | None = None,
@@ -281,7 +298,7 @@ def merge_and_write(
     )
     canopy = block_canopy(summaries) if params.rows.enabled else None
     local_canopy = None if canopy is None else canopy - np.asarray(info.origin[:2], dtype=np.float64)
-    merged = without_trunks_between_rows(merged, params, local_canopy)
+    merged = without_trunks_between_rows(merged, params, local_canopy, own_stems(summaries, merged))
     if merged.n_trees == 0:
         raise no_trees(info)
     trees, layout = with_rows(trees_table(summaries, merged, info.origin), params.rows, replanted(summaries, merged), canopy)

@@ -86,6 +86,7 @@ def summarise(tile_id, xyz, core, result, grid: TileGrid | None, origin, params:
         "diameter": np.asarray(result.trunk_diameter, dtype=np.float64),
         "owned": owned,
         "young": np.zeros(len(trunks), bool) if result.trunk_young is None else np.asarray(result.trunk_young, bool),
+        "own_stem": np.zeros(len(trunks), bool) if result.trunk_own_stem is None else np.asarray(result.trunk_own_stem, bool),
         "cluster_radius": cluster_radius,
         "partials": partials,
         "n_core": int(core.sum()),
