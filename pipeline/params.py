@@ -209,7 +209,7 @@ class RowParams(_Model):
     max_offset: float = Field(0.2, gt=0.0, lt=0.5, description="a tree farther than this fraction of the distance between rows from its row's line is off the row (a false trunk between rows, a lone tree) [fraction]")
     max_section_angle: float = Field(15.0, gt=0.0, le=45.0, description="neighbouring trees whose row directions differ by more than this belong to different sections (blocks of another row direction) [degrees]")
     young_ratio: float = Field(0.6, gt=0.0, lt=1.0, description="a tree lower than this fraction of the median height of its two neighbours on either side in its row is a replant (young) [fraction]")
-    drop_between_rows: bool = Field(True, description="a trunk standing between two rows (off both row lines, within the rows' extent; or less than half a row spacing beyond an outer row) is no tree but foliage or a weed touching down: its material goes to the nearest tree")
+    drop_between_rows: bool = Field(True, description="a trunk standing between two rows (off both row lines, within the rows' extent; or less than half a row spacing beyond an outer row) is no tree but foliage or a weed touching down: its material goes to the nearest tree; a trunk with a stem of its own (a bole in a closed stand) is never dropped")
 
 
 class PipelineParams(_Model):
