@@ -111,7 +111,7 @@ class TrunkDetection:
     floors : (min_tree_height [m], min_canopy_voxels) or None — the size floors the
         detection used (None: no detection ran)
     own_stem : (k,) bool or None — trunks with a stem of their own (:func:`_own_stems`):
-        the row prior never drops them (:func:`workers.outputs.without_trunks_between_rows`)
+        the row prior at the merge never drops them
     """
 
     xy: np.ndarray
