@@ -33,6 +33,7 @@ from pipeline.floors import (
     group_percentile,
 )
 from pipeline.graph import shortest_paths, subtree_sizes
+from pipeline.neighbours import COLUMN_MIN_STEM, accept, own_stems
 from pipeline.params import MATURE_FLOORS, SPACING_RADII, TrunkParams
 from pipeline.spacing import estimate_spacing
 from pipeline.stems import STEM_SLICES, foot_ratio, stem_contrast
@@ -48,16 +49,6 @@ FLOW_BAND = 0.4
 #: a group's height is this percentile of its nodes' heights (the maximum would follow
 #: single noisy points above a fence post)
 TOP_PERCENTILE = 95.0
-#: groups that are no trunks (too wide, or shoots beside a clearer stem) pass their
-#: catchment to the accepted group they lie beside, up to this many cluster radii away
-#: (stated in the help of TrunkParams.cluster_radius)
-POOL_REACH = 1.25
-#: a satellite lies at most this many satellite radii from its trunk (stated in the help
-#: of TrunkParams.satellite_radius)
-SATELLITE_REACH = 2.0
-#: a clearer stem drops a group only if it drains at least this share of that group's
-#: catchment (a grass tuft under a shoot tip makes a sharp little column that drains little)
-SHOOT_MIN_SUPPORT = 0.5
 #: groupings with a radius from the measured spacing: the spacing is measured again on
 #: the finer grouping, at most this many times
 SPACING_ROUNDS = 2
@@ -68,23 +59,6 @@ SOURCE_MARGIN = 0.1
 #: the box test of a segmented tree counts its material within this [m] of the trunk (a
 #: crown overhanging a vehicle stays a tree)
 BOX_TEST_RADIUS = 1.0
-
-
-#: a group with a stem of its own (:func:`_own_stems`): its catchment reaches above
-#: ``max_post_height`` (a bole, not a post or a shoot bundle), and graph nodes within COLUMN_RADIUS
-#: [m] of its centre in every COLUMN_SLICE [m] slice from COLUMN_BOTTOM (above the grass
-#: and the tips of drooping shoots) to COLUMN_TOP [m]: a bole standing in a closed stand.
-#: Such a group is never dropped as a neighbour's shoots or satellite (a weaker catchment
-#: in a closed canopy says who won the interlocking crowns, not that there is no tree)
-COLUMN_RADIUS = 0.25
-COLUMN_SLICE = 0.25
-COLUMN_BOTTOM = 0.3
-COLUMN_TOP = 2.5
-#: ... and whose stem stands out at least this clearly above the ground layer (stem
-#: score, :func:`stem_contrast`): drooping shoot bundles on high-density vase blocks fill
-#: such a column too, but score 1.7-11 (one 252 of 11), true trunks there 46-1005, the
-#: stems of TreeLS's pine plot 12-425
-COLUMN_MIN_STEM = 12.0
 
 
 def min_contact_drain(voxel_size: float) -> int:
@@ -110,7 +84,7 @@ class TrunkDetection:
         full-grown (:mod:`pipeline.slots`): the rows vouch for them
     floors : (min_tree_height [m], min_canopy_voxels) or None — the size floors the
         detection used (None: no detection ran)
-    own_stem : (k,) bool or None — trunks with a stem of their own (:func:`_own_stems`):
+    own_stem : (k,) bool or None — trunks with a stem of their own (:func:`pipeline.neighbours.own_stems`):
         the row prior at the merge never drops them
     """
 
@@ -146,132 +120,6 @@ def _suppress(xy: np.ndarray, score: np.ndarray, radius: float) -> np.ndarray:
         nb = nb[leader[nb] < 0]
         leader[nb] = i
     return leader
-
-
-def _suppressed(xy: np.ndarray, strength: np.ndarray, ok: np.ndarray, reach: float, beats) -> np.ndarray:
-    """Greedy suppression among the accepted groups ``ok``: strongest first by
-    ``strength`` (NaN last), each group not yet suppressed suppresses every group within
-    ``reach`` [m] for which ``beats(i, other, d)`` holds (d: their distance [m]).
-
-    Returns (g,) int64, the group that suppressed each group (-1: not suppressed).
-    """
-    by = np.full(xy.shape[0], -1, np.int64)
-    idx = np.flatnonzero(ok)
-    if idx.size < 2:
-        return by
-    tree = cKDTree(xy[idx])
-    for j in np.argsort(-np.nan_to_num(strength[idx], nan=-np.inf), kind="stable"):
-        i = idx[j]
-        if by[i] >= 0:
-            continue
-        for q in tree.query_ball_point(xy[i], reach):
-            other = idx[q]
-            if other != i and by[other] < 0 and beats(i, other, float(np.hypot(*(xy[other] - xy[i])))):
-                by[other] = i
-    return by
-
-
-def _nearest(xy: np.ndarray, ok: np.ndarray, which: np.ndarray, reach: float) -> np.ndarray:
-    """For the groups ``which``, the nearest group in ``ok`` within ``reach`` [m] (-1: none)."""
-    out = np.full(which.size, -1, np.int64)
-    idx = np.flatnonzero(ok)
-    if idx.size == 0 or which.size == 0:
-        return out
-    d, j = cKDTree(xy[idx]).query(xy[which])
-    return np.where(d <= reach, idx[j], -1)
-
-
-def _pool(support: np.ndarray, which: np.ndarray, into: np.ndarray) -> None:
-    """Add ``support`` of the groups ``which`` to the groups ``into`` (-1: nowhere), in place."""
-    has = into >= 0
-    np.add.at(support, into[has], support[which[has]])
-
-
-def _satellites(xy: np.ndarray, support: np.ndarray, ok: np.ndarray, radius: float, ratio: float) -> np.ndarray:
-    """Groups dominated by a stronger accepted group nearby.
-
-    Strongest first: a group at distance d from an accepted group is its satellite when
-    that group drains ``ratio * max(1, d / radius)**2`` times more material, up to
-    ``SATELLITE_REACH * radius`` away (the farther, the weaker a satellite must be).
-    """
-    if radius <= 0:
-        return np.zeros(xy.shape[0], bool)
-    return _suppressed(xy, support, ok, SATELLITE_REACH * radius,
-                       lambda i, other, d: support[i] >= ratio * max(1.0, d / radius) ** 2 * support[other]) >= 0
-
-
-def _shoots(xy: np.ndarray, stem: np.ndarray, support: np.ndarray, ok: np.ndarray, radius: float, ratio: float) -> np.ndarray:
-    """Accepted groups beside a much clearer stem: greedy by stem score, a group within
-    ``radius`` of a kept group whose stem score is at least ``ratio`` times its own, and
-    which drains at least SHOOT_MIN_SUPPORT times as much, is a shoot or foliage touching
-    down near that trunk, not a trunk (a grass tuft under a shoot tip can make a sharp
-    little column that drains little: it must not drop a trunk). NaN scores compare
-    false: a group without a score is never dropped and drops nothing.
-
-    Returns (g,) int64, the trunk group each shoot group lies beside (-1: not a shoot)."""
-    if ratio <= 0:
-        return np.full(xy.shape[0], -1, np.int64)
-    return _suppressed(xy, stem, ok, radius, lambda i, other, d: (
-        stem[i] >= ratio * stem[other] and support[i] >= SHOOT_MIN_SUPPORT * support[other]))
-
-
-def _own_stems(centre: np.ndarray, nodes: np.ndarray, node_height: np.ndarray) -> np.ndarray:
-    """Groups with a stem of their own: nodes within COLUMN_RADIUS of each ``centre``
-    (g, 2) in every COLUMN_SLICE slice from COLUMN_BOTTOM to COLUMN_TOP above the
-    ground. Returns (g,) bool."""
-    g = centre.shape[0]
-    sel = np.flatnonzero((node_height >= COLUMN_BOTTOM) & (node_height < COLUMN_TOP))
-    if g == 0 or sel.size == 0:
-        return np.zeros(g, bool)
-    n_slices = int(round((COLUMN_TOP - COLUMN_BOTTOM) / COLUMN_SLICE))
-    slc = np.minimum(((node_height[sel] - COLUMN_BOTTOM) // COLUMN_SLICE).astype(np.int64), n_slices - 1)
-    near = cKDTree(nodes[sel, :2]).query_ball_point(centre, COLUMN_RADIUS)
-    return np.array([np.unique(slc[np.asarray(j, np.int64)]).size == n_slices if j else False for j in near])
-
-
-def _accept(
-    xy: np.ndarray, support: np.ndarray, stem: np.ndarray, ok: np.ndarray, wide: np.ndarray, params: TrunkParams,
-    own: np.ndarray | None = None,
-) -> tuple[np.ndarray, np.ndarray]:
-    """The last trunk tests, between neighbouring groups: shoots, then satellites.
-
-    A tree's catchment also drains through groups beside its trunk that are no trunks
-    themselves: a curtain too wide for a trunk (``wide``: groups that failed only the
-    width test) and shoots beside a clearer stem. Each passes its catchment to the group
-    it lies beside (the nearest accepted one, or the stem that made it a shoot), up to
-    POOL_REACH cluster radii away, before the satellite test compares catchments (else
-    a shoot bundle beside a trunk can take most of its catchment, and the trunk is
-    dropped as a satellite of its neighbour in the row).
-
-    Parameters
-    ----------
-    xy : (g, 2) float64 — group centres [m]
-    support : (g,) float64 — each group's own catchment [nodes]
-    stem : (g,) float64 — stem scores (:func:`stem_contrast`; NaN: none)
-    ok : (g,) bool — groups that passed every test of their own
-    wide : (g,) bool — groups that failed only the width test
-    params : TrunkParams
-    own : (g,) bool, optional — groups with a stem of their own (:func:`_own_stems`):
-        never dropped as shoots or satellites
-
-    Returns
-    -------
-    ok : (g,) bool — the groups accepted as trunks
-    pooled : (g,) float64 — each group's catchment with what it received
-    """
-    reach = POOL_REACH * params.cluster_radius
-    pooled = support.astype(np.float64)
-    wide = np.flatnonzero(wide)
-    _pool(pooled, wide, _nearest(xy, ok, wide, reach))
-    shoot_of = _shoots(xy, stem, pooled, ok, params.satellite_radius, params.stem_ratio)
-    shoot = np.flatnonzero(shoot_of >= 0)
-    beside = np.hypot(*(xy[shoot] - xy[shoot_of[shoot]]).T) <= reach
-    _pool(pooled, shoot, np.where(beside, shoot_of[shoot], -1))
-    own = np.zeros(xy.shape[0], bool) if own is None else own
-    ok = ok & ((shoot_of < 0) | own)
-    # satellites: strongest first, a group near an accepted, much stronger one is not a tree
-    ok &= ~(_satellites(xy, pooled, ok, params.satellite_radius, params.satellite_ratio) & ~own)
-    return ok, pooled
 
 
 @dataclass(frozen=True)
@@ -528,7 +376,7 @@ def _trunk_tests(
     stem_xy: np.ndarray | None, stem_slice: np.ndarray | None, params: TrunkParams,
 ) -> tuple[np.ndarray, np.ndarray]:
     """The groups that are trunks: each group's own tests (size, height, box, width,
-    foot), then the tests between neighbours (:func:`_accept`). Adds ``foot``, ``stem``,
+    foot), then the tests between neighbours (:func:`pipeline.neighbours.accept`). Adds ``foot``, ``stem``,
     ``own_stem``, ``pooled_support`` and ``accepted`` to ``candidates``.
 
     Returns (g,) bool accepted and (g,) float64 pooled catchment."""
@@ -549,9 +397,9 @@ def _trunk_tests(
     if ok.any() and np.median(candidates["top"][ok]) >= params.max_post_height:
         # a stand of trees taller than any post: a dominated tree's catchment may end lower
         tall = ok.copy()
-    own[tall] = _own_stems(centre[tall], nodes, node_height) & (stem[tall] >= COLUMN_MIN_STEM)
+    own[tall] = own_stems(centre[tall], nodes, node_height) & (stem[tall] >= COLUMN_MIN_STEM)
     candidates["own_stem"] = own
-    ok, support = _accept(centre, g_support, stem, ok, fits & (width > params.max_trunk_width), params, own)
+    ok, support = accept(centre, g_support, stem, ok, fits & (width > params.max_trunk_width), params, own)
     candidates["pooled_support"] = support
     candidates["accepted"] = ok.copy()
     return ok, support

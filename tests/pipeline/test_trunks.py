@@ -5,7 +5,8 @@ import pytest
 
 from pipeline.params import TrunkParams
 from pipeline.stems import FOOT_ANNULUS, FOOT_RADIUS, STEM_RADIUS, foot_ratio, stem_contrast
-from pipeline.trunks import POOL_REACH, _accept, _shoots, low_trees
+from pipeline.neighbours import POOL_REACH, accept as _accept, shoots as _shoots
+from pipeline.trunks import low_trees
 
 
 def _ground(rng, n=20000, half=2.0):

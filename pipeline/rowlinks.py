@@ -1,0 +1,154 @@
+"""Trees linked along their rows: local row directions, sections, chains of trees.
+
+The first steps of :func:`pipeline.rows.find_rows`: each tree's local row direction
+from its nearest trees, the block's sections (trees whose directions agree), and each
+section's trees linked one after another along the row into chains.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+from scipy.sparse import coo_matrix
+from scipy.sparse.csgraph import connected_components
+from scipy.spatial import cKDTree
+
+#: first-pass links reach this many slots (one empty slot between two trees)
+SHORT_LINK_SLOTS = 2.5
+
+
+def _doubled(vec: np.ndarray) -> np.ndarray:
+    """Unit vectors of twice each vector's angle: a direction and its opposite agree."""
+    ang = 2.0 * np.arctan2(vec[:, 1], vec[:, 0])
+    return np.c_[np.cos(ang), np.sin(ang)]
+
+
+def local_directions(xy: np.ndarray, near: np.ndarray) -> np.ndarray:
+    """(k, 2) unit row direction at each tree: its nearest-neighbour direction,
+    averaged (as doubled angles) over its nearest trees, so that in a grid whose rows are
+    only a little wider than the in-row spacing the majority decides. ``near`` (k, m)
+    are each tree's nearest trees, itself first."""
+    d2 = _doubled(xy[near[:, 1]] - xy)
+    mean = d2[near].mean(axis=1)
+    ang = 0.5 * np.arctan2(mean[:, 1], mean[:, 0])
+    return np.c_[np.cos(ang), np.sin(ang)]
+
+
+def row_sections(xy: np.ndarray, direction: np.ndarray, max_angle: float) -> np.ndarray:
+    """(k,) section label of each tree: trees joined through neighbours (Delaunay edges)
+    whose row directions agree within ``max_angle`` degrees."""
+    k = len(xy)
+    if k < 4:
+        return np.zeros(k, dtype=np.int64)
+    from scipy.spatial import Delaunay, QhullError
+
+    try:
+        simplices = Delaunay(xy).simplices
+    except (QhullError, ValueError):  # all trees on one line: one section
+        return np.zeros(k, dtype=np.int64)
+    e = np.r_[simplices[:, [0, 1]], simplices[:, [1, 2]], simplices[:, [2, 0]]]
+    cos = np.abs(np.einsum("ij,ij->i", direction[e[:, 0]], direction[e[:, 1]]))
+    keep = cos >= np.cos(np.radians(max_angle))
+    e = e[keep]
+    graph = coo_matrix((np.ones(len(e)), (e[:, 0], e[:, 1])), shape=(k, k))
+    _, labels = connected_components(graph, directed=False)
+    # small sections (a stray tree, a headland corner) join their nearest large one
+    sizes = np.bincount(labels)
+    big = sizes[labels] >= 3
+    if big.any() and not big.all():
+        tree = cKDTree(xy[big])
+        _, j = tree.query(xy[~big])
+        labels[~big] = labels[big][j]
+    return np.unique(labels, return_inverse=True)[1]
+
+
+def _oriented(u: np.ndarray) -> np.ndarray:
+    """The row direction pointed the way positions increase: north for rows closer to
+    north–south, east for rows closer to east–west."""
+    u = u / np.hypot(*u)
+    if abs(u[1]) > abs(u[0]):
+        return u if u[1] > 0 else -u
+    return u if u[0] > 0 else -u
+
+
+def section_direction(direction: np.ndarray) -> np.ndarray:
+    mean = _doubled(direction).mean(axis=0)
+    ang = 0.5 * np.arctan2(mean[1], mean[0])
+    return _oriented(np.array([np.cos(ang), np.sin(ang)]))
+
+
+def link_trees(xy, direction, u, members, spacing, tol, max_gap_slots):
+    """Successor of each member tree along its row (-1 at a row's end).
+
+    Strategy: candidate links go forward along ``u`` and lie within ``tol`` of the
+    line through both trees' local row directions; the shortest links are taken first,
+    each tree keeping one successor and one predecessor. Short links (up to one empty
+    slot) are matched before long ones, so a long link only bridges a run of empty
+    slots between two row fragments.
+    """
+    n = len(members)
+    succ = np.full(n, -1, dtype=np.int64)
+    pred = np.full(n, -1, dtype=np.int64)
+    p = xy[members]
+    d_loc = direction[members]
+    tree = cKDTree(p)
+
+    def match(pairs: np.ndarray) -> None:
+        if not len(pairs):
+            return
+        i, j = pairs[:, 0], pairs[:, 1]
+        vec = p[j] - p[i]
+        along = vec @ u
+        flip = along < 0
+        i, j = np.where(flip, j, i), np.where(flip, i, j)
+        vec = np.where(flip[:, None], -vec, vec)
+        mid = d_loc[i] * np.sign(np.einsum("ij,ij->i", d_loc[i], d_loc[j]))[:, None] + d_loc[j]
+        norm = np.hypot(mid[:, 0], mid[:, 1])
+        mid = mid / np.where(norm > 0, norm, 1.0)[:, None]
+        lateral = np.abs(vec[:, 0] * mid[:, 1] - vec[:, 1] * mid[:, 0])
+        dist = np.hypot(vec[:, 0], vec[:, 1])
+        ok = (lateral <= tol) & (along != 0)
+        order = np.lexsort((j[ok], i[ok], dist[ok]))
+        for a, b in zip(i[ok][order], j[ok][order]):
+            if succ[a] < 0 and pred[b] < 0:  # links go forward along u: no loops
+                succ[a] = b
+                pred[b] = a
+
+    match(tree.query_pairs(SHORT_LINK_SLOTS * spacing, output_type="ndarray").astype(np.int64).reshape(-1, 2))
+    ends = np.flatnonzero((succ < 0) | (pred < 0))
+    if len(ends) > 1 and max_gap_slots > SHORT_LINK_SLOTS:
+        sub = cKDTree(p[ends])
+        far = sub.query_pairs(max_gap_slots * spacing, output_type="ndarray").astype(np.int64).reshape(-1, 2)
+        if len(far):
+            far = ends[far]
+            a, b = far[:, 0], far[:, 1]
+            fwd = (p[b] - p[a]) @ u > 0
+            start, stop = np.where(fwd, a, b), np.where(fwd, b, a)
+            usable = (succ[start] < 0) & (pred[stop] < 0)
+            match(np.c_[start[usable], stop[usable]])
+    return succ, pred
+
+
+def chains_of(succ: np.ndarray, pred: np.ndarray) -> list[np.ndarray]:
+    chains = []
+    for start in np.flatnonzero(pred < 0):
+        chain = [start]
+        while succ[chain[-1]] >= 0:
+            chain.append(succ[chain[-1]])
+        chains.append(np.asarray(chain, dtype=np.int64))
+    return chains
+
+
+def measured_row_spacing(xy: np.ndarray, direction: np.ndarray, tree: cKDTree) -> float:
+    """Median distance [m] from a tree to the nearest tree of a neighbouring row (one
+    lying more than 60° off its row direction), or NaN for a block of one row."""
+    k = len(xy)
+    m = min(k, 40)
+    dist, near = tree.query(xy, k=m)
+    vec = xy[near.reshape(k, m)] - xy[:, None, :]
+    along = np.abs(np.einsum("ijk,ik->ij", vec, direction))
+    across = np.abs(vec[..., 0] * direction[:, None, 1] - vec[..., 1] * direction[:, None, 0])
+    off = across > np.tan(np.radians(60.0)) * along
+    off[:, 0] = False
+    lateral = np.where(off, across, np.inf).min(axis=1)
+    lateral = lateral[np.isfinite(lateral)]
+    return float(np.median(lateral)) if len(lateral) >= max(3, 0.2 * k) else float("nan")
