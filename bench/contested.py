@@ -9,16 +9,18 @@ prints two Markdown tables.
 
 The first says what the wrong points are. Each found tree stands for the true tree most
 of its points belong to; a tree point is *wrong* when its found tree stands for another
-one. Per block: the share of tree points that are wrong; the share of the wrong points
-that are wood, twig and leaf (the simulator's kinds); the share of wrong points in
-*runs* of at least ``RUN_NODES`` graph nodes (a run: wrong nodes joined by graph edges,
-given to the same tree and truly of the same tree) and in runs holding wood; the share
-of wrong points whose node is contested at the refinement's margin (0.2 m) and at
-``--margin``, and the share of the tree points contested there; the share of wrong
-points whose node is *entered* from the shortest-path forest at a subtree of at least
-``RUN_NODES`` wrong nodes (an entry: a wrong node whose forest parent is not wrong);
-and the share of wrong points that a search over edges joining nodes of one true tree
-reaches from a trunk, with the median ratio of that search's path to the shortest path.
+one. Per block: the share of tree points that are wrong, and the share of those lying in
+*wrong nodes* (graph nodes given to a tree that does not stand for their points'
+majority; the rest are minority points of a node). Of the majority points of the wrong
+nodes: the share that are wood, twig and leaf (the simulator's kinds); the share in
+*runs* of at least ``RUN_NODES`` nodes (a run: wrong nodes joined by graph edges, given
+to the same tree and truly of the same tree) and in runs holding wood; the share
+contested at the refinement's margin (0.2 m) and at ``--margin`` (with the share of all
+tree points contested there); the share *entered* from the shortest-path forest at a
+subtree of at least ``RUN_NODES`` wrong nodes (an entry: a wrong node whose forest
+parent is not wrong), and the entries per run; and the share that a search over only the
+edges joining nodes of one true tree reaches from a trunk, with the median ratio of that
+search's path to the shortest path.
 
 The second is a learned model of the contested nodes (at ``--margin``): logistic
 regression and gradient-boosted depth-2 trees (numpy only), over per-node features
@@ -147,7 +149,9 @@ def diagnose(b: Block, margin: float) -> dict[str, float]:
     wrong = (b.final > 0) & (major > 0) & (stands[b.final] != major)
     wrong_pts = b.node_true[np.arange(m), major] * wrong
     total = wrong_pts.sum()
-    out = {"wrong": total / b.tree_points}
+    pt_tree = b.final[b.point_node]
+    pt_wrong_any = (b.point_true > 0) & (pt_tree > 0) & (stands[pt_tree] != b.point_true)
+    out = {"wrong": pt_wrong_any.sum() / b.tree_points, "in wrong nodes": total / max(pt_wrong_any.sum(), 1)}
     if b.point_kind is not None:
         pt_wrong = wrong[b.point_node] & (b.point_true == major[b.point_node])
         for name, k in (("wood", WOOD), ("twig", TWIG), ("leaf", LEAF)):
@@ -346,14 +350,14 @@ def main(argv: list[str] | None = None) -> None:
         xyz, tid, _ = adtree_row(seed=seed)
         blocks.append(("real AdTree row", seed, recorded_block(xyz - np.floor(xyz.min(axis=0)), tid, None)))
     m = f"{args.margin:g} m"
-    print(f"| setting | seed | wrong (of tree points) | wood / twig / leaf (of wrong) | in runs ≥ {RUN_NODES} nodes | in runs with wood | "
+    print(f"| setting | seed | wrong (of tree points) | in wrong nodes | wood / twig / leaf (of wrong) | in runs ≥ {RUN_NODES} nodes | in runs with wood | "
           f"contested at {SHIPPED_MARGIN:g} m (share of tree points) | contested at {m} | entered by subtrees ≥ {RUN_NODES} nodes | "
           "entries per run | reached inside own tree | its path ÷ shortest path (median) |")
-    print("|---" * 12 + "|")
+    print("|---" * 13 + "|")
     for s, seed, b in blocks:
         d = diagnose(b, args.margin)
         kinds = f"{d['wood']:.0%} / {d['twig']:.0%} / {d['leaf']:.0%}" if "wood" in d else "–"
-        print(f"| {s} | {seed} | {d['wrong']:.1%} | {kinds} | {d['in runs']:.0%} | {d['in runs with wood']:.0%} | "
+        print(f"| {s} | {seed} | {d['wrong']:.1%} | {d['in wrong nodes']:.0%} | {kinds} | {d['in runs']:.0%} | {d['in runs with wood']:.0%} | "
               f"{d['contested shipped']:.0%} ({d['contested shipped share']:.1%}) | {d['contested margin']:.0%} "
               f"({d['contested margin share']:.1%}) | {d['entered in subtrees']:.0%} | {d['entries per run']:.1f} | "
               f"{d['reached inside own tree']:.0%} | {d['detour']:.2f} |", flush=True)

@@ -37,6 +37,7 @@ def test_diagnosis_of_a_line_by_hand():
     assert b.node_tree.tolist() == [1, 1, 1, 1, 1, 2, 2, 2, 2, 2]
     d = diagnose(b, margin=1.0)
     assert d["wrong"] == pytest.approx(0.2)
+    assert d["in wrong nodes"] == pytest.approx(1.0)  # one point a node: no minority points
     assert (d["wood"], d["twig"], d["leaf"]) == pytest.approx((0.5, 0.0, 0.5))
     assert d["in runs"] == 0.0  # a run of 2 nodes is fringe
     assert d["in runs with wood"] == pytest.approx(1.0)
