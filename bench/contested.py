@@ -14,7 +14,10 @@ one. Per block: the share of tree points that are wrong, and the share of those 
 majority; the rest are minority points of a node). Of the majority points of the wrong
 nodes: the share that are wood, twig and leaf (the simulator's kinds); the share in
 *runs* of at least ``RUN_NODES`` nodes (a run: wrong nodes joined by graph edges, given
-to the same tree and truly of the same tree) and in runs holding wood; the share
+to the same tree and truly of the same tree) and in runs holding wood; where they lie
+between the two trunks (their horizontal distance to the trunk of their true tree over
+that plus the distance to the trunk of the tree they were given: 0.5 is the midpoint;
+10th, 50th and 90th percentile); the share
 contested at the refinement's margin (0.2 m) and at ``--margin`` (with the share of all
 tree points contested there); the share *entered* from the shortest-path forest at a
 subtree of at least ``RUN_NODES`` wrong nodes (an entry: a wrong node whose forest
@@ -168,6 +171,14 @@ def diagnose(b: Block, margin: float) -> dict[str, float]:
     run_wood = np.bincount(run[wood_node & wrong], minlength=m) > 0
     out["in runs"] = wrong_pts[run_nodes[run] >= RUN_NODES].sum() / max(total, 1)
     out["in runs with wood"] = wrong_pts[run_wood[run]].sum() / max(total, 1)
+    # where they lie between the two trunks: the found tree standing for their true tree, and theirs
+    own_tree = np.zeros(b.node_true.shape[1], np.int64)
+    own_tree[stands[1:]] = np.arange(1, stands.size)
+    at = np.flatnonzero(wrong & (own_tree[major] > 0))
+    d_own = np.hypot(*(b.nodes[at, :2] - b.trunk_xy[own_tree[major[at]] - 1]).T)
+    d_given = np.hypot(*(b.nodes[at, :2] - b.trunk_xy[b.final[at] - 1]).T)
+    ratio = d_own / np.maximum(d_own + d_given, 1e-9)
+    out["between trunks"] = _weighted_quantiles(ratio, wrong_pts[at], (0.1, 0.5, 0.9))
     rd, _ = rival_distance(b.graph, b.node_tree, b.dist)
     for name, mg in (("shipped", SHIPPED_MARGIN), ("margin", margin)):
         c = contested_nodes(b.node_tree, b.dist, rd, margin=mg)
@@ -189,6 +200,14 @@ def diagnose(b: Block, margin: float) -> dict[str, float]:
     out["reached inside own tree"] = wrong_pts[reach].sum() / max(total, 1)
     out["detour"] = float(np.median(own[reach] / b.dist[reach])) if reach.any() else float("nan")
     return out
+
+
+def _weighted_quantiles(x: np.ndarray, w: np.ndarray, q: tuple[float, ...]) -> np.ndarray:
+    if x.size == 0:
+        return np.full(len(q), np.nan)
+    order = np.argsort(x)
+    cum = np.cumsum(w[order]) / w.sum()
+    return x[order][np.minimum(np.searchsorted(cum, q), x.size - 1)]
 
 
 def contested_features(b: Block, margin: float) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
@@ -351,13 +370,15 @@ def main(argv: list[str] | None = None) -> None:
         blocks.append(("real AdTree row", seed, recorded_block(xyz - np.floor(xyz.min(axis=0)), tid, None)))
     m = f"{args.margin:g} m"
     print(f"| setting | seed | wrong (of tree points) | in wrong nodes | wood / twig / leaf (of wrong) | in runs ≥ {RUN_NODES} nodes | in runs with wood | "
+          "between the trunks (10 / 50 / 90 %) | "
           f"contested at {SHIPPED_MARGIN:g} m (share of tree points) | contested at {m} | entered by subtrees ≥ {RUN_NODES} nodes | "
           "entries per run | reached inside own tree | its path ÷ shortest path (median) |")
-    print("|---" * 13 + "|")
+    print("|---" * 14 + "|")
     for s, seed, b in blocks:
         d = diagnose(b, args.margin)
         kinds = f"{d['wood']:.0%} / {d['twig']:.0%} / {d['leaf']:.0%}" if "wood" in d else "–"
         print(f"| {s} | {seed} | {d['wrong']:.1%} | {d['in wrong nodes']:.0%} | {kinds} | {d['in runs']:.0%} | {d['in runs with wood']:.0%} | "
+              f"{' / '.join(f'{v:.2f}' for v in d['between trunks'])} | "
               f"{d['contested shipped']:.0%} ({d['contested shipped share']:.1%}) | {d['contested margin']:.0%} "
               f"({d['contested margin share']:.1%}) | {d['entered in subtrees']:.0%} | {d['entries per run']:.1f} | "
               f"{d['reached inside own tree']:.0%} | {d['detour']:.2f} |", flush=True)

@@ -41,6 +41,9 @@ def test_diagnosis_of_a_line_by_hand():
     assert (d["wood"], d["twig"], d["leaf"]) == pytest.approx((0.5, 0.0, 0.5))
     assert d["in runs"] == 0.0  # a run of 2 nodes is fringe
     assert d["in runs with wood"] == pytest.approx(1.0)
+    # nodes 3 and 4 lie 0.6 and 0.5 m from their true trunk (x = 0.9), 0.3 and 0.4 m from
+    # the one they were given: past the midpoint, at 0.67 and 0.56 (the median: the lower)
+    assert d["between trunks"].tolist() == pytest.approx([0.5 / 0.9, 0.5 / 0.9, 0.6 / 0.9])
     assert d["contested shipped"] == pytest.approx(0.5)  # node 4 only
     assert d["contested margin"] == pytest.approx(1.0)
     assert d["entries per run"] == pytest.approx(1.0)
