@@ -4,7 +4,17 @@ import numpy as np
 import pytest
 from scipy import sparse
 
-from bench.contested import FEATURES, Block, contested_features, diagnose, fit_logistic, fit_trees, logistic_p, trees_p
+from bench.contested import (
+    FEATURES,
+    Block,
+    contested_features,
+    diagnose,
+    fit_logistic,
+    fit_trees,
+    logistic_p,
+    subtree_vote,
+    trees_p,
+)
 from pipeline.graph import shortest_paths
 from simulator.orchard import LEAF, WOOD
 
@@ -59,6 +69,17 @@ def test_contested_features_one_row_per_contested_node():
     assert idx.tolist() == [4, 5]
     assert rival.tolist() == [2, 1]
     assert x.shape == (2, len(FEATURES)) and np.isfinite(x).all()
+
+
+def test_subtree_vote_moves_a_forest_subtree_as_a_whole():
+    # nodes 3 and 4 of tree 1 hang one from the other in the forest (3 is the root):
+    # the walk moving node 4 (3 points of 4) moves both, moving node 3 (1 of 4) moves none
+    b = _line_block()
+    idx, pts = np.array([3, 4]), np.array([1.0, 3.0])
+    assert subtree_vote(b, idx, pts, np.array([False, True])).tolist() == [True, True]
+    assert subtree_vote(b, idx, pts, np.array([True, False])).tolist() == [False, False]
+    # node 5 hangs from tree 2's forest: a subtree of its own
+    assert subtree_vote(b, np.array([4, 5]), np.ones(2), np.array([True, False])).tolist() == [True, False]
 
 
 def test_logistic_regression_learns_a_threshold():
