@@ -23,7 +23,9 @@ tree points contested there); the share *entered* from the shortest-path forest 
 subtree of at least ``RUN_NODES`` wrong nodes (an entry: a wrong node whose forest
 parent is not wrong), and the entries per run; and the share that a search over only the
 edges joining nodes of one true tree reaches from a trunk, with the median ratio of that
-search's path to the shortest path.
+search's path to the shortest path. Last, the v-measure of the tree points with the
+shortest paths' node labels, and with every wrong node given to the found tree that
+stands for its majority: the most any relabelling of these nodes can reach.
 
 The second is a learned model of the contested nodes (at ``--margin``): logistic
 regression and gradient-boosted depth-2 trees (numpy only), over per-node features
@@ -182,6 +184,11 @@ def diagnose(b: Block, margin: float) -> dict[str, float]:
     d_given = np.hypot(*(b.nodes[at, :2] - b.trunk_xy[b.final[at] - 1]).T)
     ratio = d_own / np.maximum(d_own + d_given, 1e-9)
     out["between trunks"] = _weighted_quantiles(ratio, wrong_pts[at], (0.1, 0.5, 0.9))
+    fixed = b.final.copy()
+    fixed[at] = own_tree[major[at]]
+    tree = b.point_true > 0
+    out["v paths"] = v_measure(b.point_true[tree], b.final[b.point_node][tree])
+    out["v fixed"] = v_measure(b.point_true[tree], fixed[b.point_node][tree])
     rd, _ = rival_distance(b.graph, b.node_tree, b.dist)
     for name, mg in (("shipped", SHIPPED_MARGIN), ("margin", margin)):
         c = contested_nodes(b.node_tree, b.dist, rd, margin=mg)
@@ -395,8 +402,8 @@ def main(argv: list[str] | None = None) -> None:
     print(f"| setting | seed | wrong (of tree points) | in wrong nodes | wood / twig / leaf (of wrong) | in runs ≥ {RUN_NODES} nodes | in runs with wood | "
           "between the trunks (10 / 50 / 90 %) | "
           f"contested at {SHIPPED_MARGIN:g} m (share of tree points) | contested at {m} | entered by subtrees ≥ {RUN_NODES} nodes | "
-          "entries per run | reached inside own tree | its path ÷ shortest path (median) |")
-    print("|---" * 14 + "|")
+          "entries per run | reached inside own tree | its path ÷ shortest path (median) | v-measure: paths | wrong nodes put right |")
+    print("|---" * 16 + "|")
     for s, seed, b in blocks:
         d = diagnose(b, args.margin)
         kinds = f"{d['wood']:.0%} / {d['twig']:.0%} / {d['leaf']:.0%}" if "wood" in d else "–"
@@ -404,7 +411,7 @@ def main(argv: list[str] | None = None) -> None:
               f"{' / '.join(f'{v:.2f}' for v in d['between trunks'])} | "
               f"{d['contested shipped']:.0%} ({d['contested shipped share']:.1%}) | {d['contested margin']:.0%} "
               f"({d['contested margin share']:.1%}) | {d['entered in subtrees']:.0%} | {d['entries per run']:.1f} | "
-              f"{d['reached inside own tree']:.0%} | {d['detour']:.2f} |", flush=True)
+              f"{d['reached inside own tree']:.0%} | {d['detour']:.2f} | {d['v paths']:.3f} | {d['v fixed']:.3f} |", flush=True)
     models = fitted_models(args.train_seeds, args.margin)
     print()
     print(f"| setting | seed | contested at {m} (of tree points) | right: paths | walk | subtree vote | logistic | trees | "

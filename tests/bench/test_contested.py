@@ -60,6 +60,7 @@ def test_diagnosis_of_a_line_by_hand():
     # inside tree 2 (edges 3-4-...-9) trunk 2 reaches both, by 0.6 and 0.5 m against 0.3 and 0.4
     assert d["reached inside own tree"] == pytest.approx(1.0)
     assert d["detour"] == pytest.approx((2.0 + 1.25) / 2)
+    assert d["v paths"] < 1.0 and d["v fixed"] == pytest.approx(1.0)  # one point a node: all put right
 
 
 def test_contested_features_one_row_per_contested_node():
