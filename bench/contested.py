@@ -316,7 +316,8 @@ def _split(xb: np.ndarray, g: np.ndarray, h: np.ndarray, rows: np.ndarray, bins:
     for f in range(xb.shape[1]):
         sg = np.cumsum(np.bincount(xb[rows, f], weights=g[rows], minlength=bins + 1))
         sh = np.cumsum(np.bincount(xb[rows, f], weights=h[rows], minlength=bins + 1))
-        gain = sg[:-1] ** 2 / (sh[:-1] + 1e-9) + (sg[-1] - sg[:-1]) ** 2 / (sh[-1] - sh[:-1] + 1e-9) - sg[-1] ** 2 / (sh[-1] + 1e-9)
+        left, right = sg[:-1] ** 2 / (sh[:-1] + 1e-9), (sg[-1] - sg[:-1]) ** 2 / (sh[-1] - sh[:-1] + 1e-9)
+        gain = left + right - sg[-1] ** 2 / (sh[-1] + 1e-9)
         k = int(np.argmax(gain))
         if gain[k] > best + 1e-12:
             best, at = gain[k], (f, k)
@@ -335,7 +336,8 @@ def evaluate(b: Block, models: dict, margin: float) -> dict[str, float]:
     idx, rival, x, riv_ok, own_ok, pts, walk = labelled_contested(b, margin)
     out = {"contested": pts.sum() / b.tree_points}
     vote = subtree_vote(b, idx, pts, walk[idx] == rival)
-    right = {"paths": own_ok, "walk": np.where(walk[idx] == rival, riv_ok, own_ok), "subtree vote": np.where(vote, riv_ok, own_ok)}
+    right = {"paths": own_ok, "walk": np.where(walk[idx] == rival, riv_ok, own_ok),
+             "subtree vote": np.where(vote, riv_ok, own_ok)}
     by_vote = b.node_tree.copy()
     by_vote[idx[vote]] = rival[vote]
     labels = {"paths": b.node_tree, "refined": refine_contested(b.graph, b.node_tree, b.dist, margin=SHIPPED_MARGIN),
@@ -399,15 +401,17 @@ def main(argv: list[str] | None = None) -> None:
         xyz, tid, _ = adtree_row(seed=seed)
         blocks.append(("real AdTree row", seed, recorded_block(xyz - np.floor(xyz.min(axis=0)), tid, None)))
     m = f"{args.margin:g} m"
-    print(f"| setting | seed | wrong (of tree points) | in wrong nodes | wood / twig / leaf (of wrong) | in runs ≥ {RUN_NODES} nodes | in runs with wood | "
-          "between the trunks (10 / 50 / 90 %) | "
-          f"contested at {SHIPPED_MARGIN:g} m (share of tree points) | contested at {m} | entered by subtrees ≥ {RUN_NODES} nodes | "
-          "entries per run | reached inside own tree | its path ÷ shortest path (median) | v-measure: paths | wrong nodes put right |")
+    print("| setting | seed | wrong (of tree points) | in wrong nodes | wood / twig / leaf (of wrong) | "
+          f"in runs ≥ {RUN_NODES} nodes | in runs with wood | between the trunks (10 / 50 / 90 %) | "
+          f"contested at {SHIPPED_MARGIN:g} m (share of tree points) | contested at {m} | "
+          f"entered by subtrees ≥ {RUN_NODES} nodes | entries per run | reached inside own tree | "
+          "its path ÷ shortest path (median) | v-measure: paths | wrong nodes put right |")
     print("|---" * 16 + "|")
     for s, seed, b in blocks:
         d = diagnose(b, args.margin)
         kinds = f"{d['wood']:.0%} / {d['twig']:.0%} / {d['leaf']:.0%}" if "wood" in d else "–"
-        print(f"| {s} | {seed} | {d['wrong']:.1%} | {d['in wrong nodes']:.0%} | {kinds} | {d['in runs']:.0%} | {d['in runs with wood']:.0%} | "
+        print(f"| {s} | {seed} | {d['wrong']:.1%} | {d['in wrong nodes']:.0%} | {kinds} | {d['in runs']:.0%} | "
+              f"{d['in runs with wood']:.0%} | "
               f"{' / '.join(f'{v:.2f}' for v in d['between trunks'])} | "
               f"{d['contested shipped']:.0%} ({d['contested shipped share']:.1%}) | {d['contested margin']:.0%} "
               f"({d['contested margin share']:.1%}) | {d['entered in subtrees']:.0%} | {d['entries per run']:.1f} | "
@@ -419,7 +423,8 @@ def main(argv: list[str] | None = None) -> None:
     print("|---" * 13 + "|")
     for s, seed, b in blocks:
         e = evaluate(b, models, args.margin)
-        print(f"| {s} | {seed} | {e['contested']:.1%} | {e['right paths']:.3f} | {e['right walk']:.3f} | {e['right subtree vote']:.3f} | "
+        print(f"| {s} | {seed} | {e['contested']:.1%} | {e['right paths']:.3f} | {e['right walk']:.3f} | "
+              f"{e['right subtree vote']:.3f} | "
               f"{e['right logistic']:.3f} | {e['right trees']:.3f} | {e['v paths']:.3f} | {e['v refined']:.3f} | "
               f"{e['v subtree vote']:.3f} | {e['v logistic']:.3f} | {e['v trees']:.3f} |",
               flush=True)
