@@ -30,11 +30,26 @@ def test_tall_trees_keep_the_wide_model_however_narrow():
     np.testing.assert_allclose(woodleaf.combined_score(x), _wide(x), atol=1e-3)
 
 
+def _model(x, weights):
+    return 1 / (1 + np.exp(-(woodleaf.narrow_features(x) @ weights)))
+
+
 def test_narrow_orchard_trees_take_the_narrow_model():
-    x = _features(200, width=0.15, height=3.0)  # a tall spindle
-    narrow = 1 / (1 + np.exp(-(woodleaf.narrow_features(x) @ woodleaf.NARROW_WEIGHTS)))
-    np.testing.assert_allclose(woodleaf.combined_score(x), narrow, atol=0.01)  # blend weight 0.99
+    x = _features(200, width=0.24, height=3.0)  # a hedge: the spindles' model plays no part
+    narrow = _model(x, woodleaf.NARROW_WEIGHTS)
+    g = woodleaf.narrowness(np.array(0.24), np.array(3.0))  # 0.88
+    np.testing.assert_allclose(woodleaf.combined_score(x), g * narrow + (1 - g) * _wide(x), atol=1e-3)
     assert not np.allclose(narrow, _wide(x), atol=0.05)
+
+
+def test_the_narrowest_trees_take_the_spindles_model():
+    x = _features(200, width=0.15, height=3.0)  # a tall spindle
+    spindle = _model(x, woodleaf.SPINDLE_WEIGHTS)
+    np.testing.assert_allclose(woodleaf.combined_score(x), spindle, atol=0.01)
+    assert not np.allclose(spindle, _model(x, woodleaf.NARROW_WEIGHTS), atol=0.05)
+    # all-zero spindle weights: the narrow model for every narrow tree
+    got = woodleaf.combined_score(x, spindle_weights=np.zeros_like(woodleaf.SPINDLE_WEIGHTS))
+    np.testing.assert_allclose(got, _model(x, woodleaf.NARROW_WEIGHTS), atol=0.01)
 
 
 def test_the_blend_is_continuous_in_width():
