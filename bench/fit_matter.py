@@ -1,6 +1,6 @@
 """Fit the "combined" wood/leaf model on generated orchards (training seeds only).
 
-    python -m bench.fit_matter [--seeds 4] [--models wide,narrow]
+    python -m bench.fit_matter [--seeds 4] [--models wide,narrow,spindle]
 
 Generates orchards with seeds 1000, 1001, ... (never used for evaluation, which uses
 seeds below 1000), runs the pipeline to the node level, and fits a logistic model of
@@ -9,7 +9,8 @@ weights). Prints the weights and the threshold that maximises point-level wood F
 the training blocks, to paste into ``pipeline/woodleaf.py`` / ``pipeline/params.py``.
 The narrow trees' model (``NARROW_WEIGHTS``) is fitted the same way on the narrow forms
 (``NARROW_TRAINING``) over :func:`pipeline.woodleaf.narrow_features`, its bias shifted
-so that its best threshold falls on the wide model's.
+so that its best threshold falls on the wide model's; the tall spindles' own model
+(``SPINDLE_WEIGHTS``) likewise on ``SPINDLE_TRAINING``.
 """
 
 from __future__ import annotations
@@ -39,6 +40,9 @@ NARROW_TRAINING = [
 ]
 """Blocks of narrow trees (tall spindles, hedges): the narrow trees' model, each block
 weighted alike (a spindle block holds a tenth of a vase block's wood)."""
+
+SPINDLE_TRAINING = NARROW_TRAINING[:1]
+"""Blocks of the narrowest trees (tall spindles): their own model (``SPINDLE_WEIGHTS``)."""
 
 
 def node_table(seed: int, sim: dict, params: PipelineParams):
@@ -96,7 +100,7 @@ def _f1(score: np.ndarray, n_wood: np.ndarray, n_all: np.ndarray, thr: float) ->
 def main(argv: list[str] | None = None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--seeds", type=int, default=2, help="training blocks per configuration")
-    ap.add_argument("--models", default="wide,narrow", help="which models to fit: wide, narrow or both")
+    ap.add_argument("--models", default="wide,narrow,spindle", help="which models to fit: wide, narrow, spindle, comma-separated")
     args = ap.parse_args(argv)
     params = PipelineParams()
     print("features :", ", ".join(woodleaf.FEATURES))
@@ -110,22 +114,28 @@ def main(argv: list[str] | None = None) -> int:
         beta = np.r_[beta, 0.0, 0.0]  # the tree's width and height play no part in the wide model
         print("COMBINED_WEIGHTS:", np.array2string(beta, precision=3, separator=", "))
         print(f"threshold: {thr:.2f}  (training point-level wood F1 {f1:.3f}, {len(x)} nodes)")
-    if "narrow" in args.models:
-        cells = [(s, sim) for s in range(args.seeds) for sim in NARROW_TRAINING]
-        rows = [node_table(1000 + s, sim, params) for s, sim in cells]
-        x = np.concatenate([woodleaf.narrow_features(r[0]) for r in rows])
-        nw = np.concatenate([r[1] / r[2].sum() for r in rows])  # each block weighs alike
-        na = np.concatenate([r[2] / r[2].sum() for r in rows])
-        beta = fit(x, nw, na, l2=1e-4)
-        thr, f1 = best_threshold(1 / (1 + np.exp(-np.clip(x @ beta, -50, 50))), nw, na)
-        target = PipelineParams().matter.effective_threshold()
-        beta[0] += np.log(target / (1 - target)) - np.log(thr / (1 - thr))
-        print("NARROW_WEIGHTS:", np.array2string(beta, precision=3, separator=", ", max_line_width=110))
-        print(f"best threshold {thr:.2f} moved to {target:.2f} (training wood F1 {f1:.3f}, blocks weighted alike)")
-        for (s, sim), (xi, nwi, nai) in zip(cells, rows):
-            score = 1 / (1 + np.exp(-np.clip(woodleaf.narrow_features(xi) @ beta, -50, 50)))
-            print(f"  seed {1000 + s} {sim}: training wood F1 {_f1(score, nwi, nai, target):.3f}")
+    for name, training in (("narrow", NARROW_TRAINING), ("spindle", SPINDLE_TRAINING)):
+        if name in args.models:
+            _fit_narrow(name, training, args.seeds, params)
     return 0
+
+
+def _fit_narrow(name: str, training: list[dict], seeds: int, params: PipelineParams) -> None:
+    """Fit and print one of the narrow trees' models (``NARROW_WEIGHTS``, ``SPINDLE_WEIGHTS``)."""
+    cells = [(s, sim) for s in range(seeds) for sim in training]
+    rows = [node_table(1000 + s, sim, params) for s, sim in cells]
+    x = np.concatenate([woodleaf.narrow_features(r[0]) for r in rows])
+    nw = np.concatenate([r[1] / r[2].sum() for r in rows])  # each block weighs alike
+    na = np.concatenate([r[2] / r[2].sum() for r in rows])
+    beta = fit(x, nw, na, l2=1e-4)
+    thr, f1 = best_threshold(1 / (1 + np.exp(-np.clip(x @ beta, -50, 50))), nw, na)
+    target = PipelineParams().matter.effective_threshold()
+    beta[0] += np.log(target / (1 - target)) - np.log(thr / (1 - thr))
+    print(f"{name.upper()}_WEIGHTS:", np.array2string(beta, precision=3, separator=", ", max_line_width=110))
+    print(f"best threshold {thr:.2f} moved to {target:.2f} (training wood F1 {f1:.3f}, blocks weighted alike)")
+    for (s, sim), (xi, nwi, nai) in zip(cells, rows):
+        score = 1 / (1 + np.exp(-np.clip(woodleaf.narrow_features(xi) @ beta, -50, 50)))
+        print(f"  seed {1000 + s} {sim}: training wood F1 {_f1(score, nwi, nai, target):.3f}")
 
 
 if __name__ == "__main__":

@@ -120,7 +120,9 @@ class TrunkParams(_Model):
 class SegmentParams(_Model):
     """Segmentation by shortest path from all trunks at once."""
 
-    max_crown_radius: float = Field(5.0, gt=0.1, le=30.0, description="farthest a tree's material reaches from its trunk, horizontally [m]")
+    max_crown_radius: float = Field(5.0, gt=0.1, le=30.0, description="farthest any tree's material reaches from its trunk, horizontally; it sets the tile buffer (raise it for wide trees taller than crown_radius / crown_per_height) [m]")
+    crown_radius: float = Field(5.0, gt=0.1, le=30.0, description="farthest a tree's material reaches from its trunk, horizontally, unless crown_per_height makes it more; never more than max_crown_radius [m]")
+    crown_per_height: float = Field(1.0, ge=0.0, le=5.0, description="a tall tree's material reaches this many times its height from its trunk, horizontally, where that is more than crown_radius (wide old trees) [x]")
     leaf_cost: float = Field(0.0, ge=0.0, le=100.0, description="segmentation paths through fully scattered (leafy) nodes cost this much more (0 = plain distance) [x]")
     floating_height: float = Field(0.5, ge=0.0, le=20.0, description="unreached fragments whose lowest point is above this height are canopy and join the nearest tree; lower ones are separate objects [m]")
     min_fragment: int = Field(3, ge=1, le=10_000, description="unreached fragments of fewer graph nodes than this are noise (outliers) and stay unlabelled, unless they float within fragment_reach of a tree [nodes]")

@@ -20,6 +20,10 @@ from pipeline.refine import refine_contested
 #: rounds in which small floating fragments may join a tree through fragments that joined
 #: the round before (each round reaches ``fragment_reach`` farther into a sparse rim)
 RIM_ROUNDS = 10
+#: a tree's height, for its reach, is that of the highest node this close [m] to its
+#: trunk, whatever tree that node is given to: within PATH_MARGIN, so a tile holds all of
+#: them for every trunk whose material can reach its core (tiled equals untiled)
+HEIGHT_ZONE = 1.0
 #: a trunk's circle for its foot is fitted to its points in a slice this thick [m] just
 #: above the ground layer
 FOOT_SLICE = 0.25
@@ -56,15 +60,17 @@ def segment_nodes(
 
     One multi-source Dijkstra from every trunk's source nodes: each node goes to the
     trunk whose path to it is shortest (the paper's rule, without a search per trunk).
-    Nodes farther than ``max_crown_radius`` horizontally from their trunk are dropped
-    (paths that leak into other objects). Nodes the search does not reach are labelled
+    Nodes farther than their tree's reach horizontally from their trunk are dropped
+    (paths that leak into other objects): ``crown_radius``, or ``crown_per_height``
+    times the tree's height for a taller tree, up to ``max_crown_radius``
+    (:func:`tree_reach`). Nodes the search does not reach are labelled
     by distance, the paper's proposed fix, per connected fragment: a fragment floating
     above ``floating_height`` is canopy the graph could not bridge (sparse scans) and
     takes the tree of the nearest labelled node; a fragment standing on the ground is a
     separate object (fence post, vehicle, grass) and only its nodes within
     ``unreached_radius`` of a tree join it, and so does a floating fragment that
     touched an excluded node (what is left of a vehicle or a bin once its faces are cut
-    out: its roof, its edges). Either way within ``max_crown_radius``.
+    out: its roof, its edges). Either way within the tree's reach.
     Fragments smaller than ``min_fragment`` nodes are outliers and stay unlabelled,
     unless they float within ``fragment_reach`` of a labelled node (sparse leaves at the
     crown's rim, which the scanner saw only once), or of such a fragment that has joined
@@ -96,11 +102,12 @@ def segment_nodes(
         graph = without_nodes(graph, exclude)
     sp = shortest_paths(graph, source_nodes)
     node_tree, reached = _path_labels(sp, source_nodes, source_trunk)
+    reach = tree_reach(nodes, node_height, trunk_xy, params=params)
     if trunk_xy.shape[0]:
-        node_tree, reached = _within_reach(nodes, node_tree, reached, trunk_xy, params.max_crown_radius)
+        node_tree, reached = _within_reach(nodes, node_tree, reached, trunk_xy, reach)
     if params.method == "refined":
         node_tree = refine_contested(graph, node_tree, sp.dist, margin=params.contest_margin)
-    node_tree = _label_unreached(nodes, graph, node_tree, trunk_xy, node_height, params=params, exclude=exclude,
+    node_tree = _label_unreached(nodes, graph, node_tree, trunk_xy, node_height, reach, params=params, exclude=exclude,
                                  on_object=on_object)
     return Segmentation(node_tree, sp, reached)
 
@@ -116,28 +123,43 @@ def _path_labels(sp: ShortestPaths, source_nodes: np.ndarray, source_trunk: np.n
     return node_tree, reached
 
 
-def _within_crown(nodes: np.ndarray, idx: np.ndarray, tree: np.ndarray, trunk_xy: np.ndarray, radius: float) -> np.ndarray:
-    """Nodes ``idx`` lie within ``radius`` (horizontally) of trunk ``tree`` (1-based), (i,) bool."""
-    return ((nodes[idx, :2] - trunk_xy[tree - 1]) ** 2).sum(1) <= radius**2
+def tree_reach(nodes: np.ndarray, node_height: np.ndarray, trunk_xy: np.ndarray, *, params: SegmentParams) -> np.ndarray:
+    """How far [m] each tree's material may reach from its trunk, horizontally, (k,) float64.
+
+    ``crown_radius``, or ``crown_per_height`` times the tree's height where that is
+    more (a wide old tree), never more than ``max_crown_radius`` (which sets the tile
+    buffer). The height is that of the highest node within HEIGHT_ZONE of the trunk.
+    """
+    height = np.zeros(trunk_xy.shape[0])
+    if trunk_xy.shape[0] and nodes.shape[0]:
+        near = cKDTree(nodes[:, :2]).query_ball_point(trunk_xy, HEIGHT_ZONE)
+        height = np.array([node_height[i].max() if len(i) else 0.0 for i in near])
+    reach = np.maximum(params.crown_radius, params.crown_per_height * height)
+    return np.minimum(reach, params.max_crown_radius)
 
 
-def _within_reach(nodes, node_tree, reached, trunk_xy, radius: float) -> tuple[np.ndarray, np.ndarray]:
-    """``node_tree`` and ``reached`` without the nodes farther than ``radius`` [m]
-    horizontally from their trunk (paths that leak into other objects)."""
+def _within_crown(nodes: np.ndarray, idx: np.ndarray, tree: np.ndarray, trunk_xy: np.ndarray, reach: np.ndarray) -> np.ndarray:
+    """Nodes ``idx`` lie within ``reach`` [tree - 1] (horizontally) of trunk ``tree`` (1-based), (i,) bool."""
+    return ((nodes[idx, :2] - trunk_xy[tree - 1]) ** 2).sum(1) <= reach[tree - 1] ** 2
+
+
+def _within_reach(nodes, node_tree, reached, trunk_xy, reach: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """``node_tree`` and ``reached`` without the nodes farther than their tree's ``reach``
+    [m] horizontally from their trunk (paths that leak into other objects)."""
     node_tree, reached = node_tree.copy(), reached.copy()
     idx = np.flatnonzero(reached)
-    idx = idx[~_within_crown(nodes, idx, node_tree[idx], trunk_xy, radius)]
+    idx = idx[~_within_crown(nodes, idx, node_tree[idx], trunk_xy, reach)]
     node_tree[idx] = 0
     reached[idx] = False
     return node_tree, reached
 
 
 def _join_nearest(nodes, node_tree, trunk_xy, cand: np.ndarray, lab: np.ndarray, bound, reach: float,
-                  crown_radius: float) -> np.ndarray:
+                  crown_reach: np.ndarray) -> np.ndarray:
     """Give each node of ``cand`` the tree of its nearest node of ``lab`` where that lies
     within ``bound`` [m] (scalar or per node; searched up to ``reach``) and the node lies
-    within its trunk's ``crown_radius``; labels ``node_tree`` in place and returns the
-    nodes that joined."""
+    within its tree's ``crown_reach`` (per tree) of its trunk; labels ``node_tree`` in
+    place and returns the nodes that joined."""
     tree_of = cKDTree(nodes[lab])
     bound = np.broadcast_to(np.minimum(bound, reach), cand.shape)
     d, j = np.full(cand.shape, np.inf), np.zeros(cand.shape, np.int64)
@@ -148,7 +170,7 @@ def _join_nearest(nodes, node_tree, trunk_xy, cand: np.ndarray, lab: np.ndarray,
         d[sel], j[sel] = tree_of.query(nodes[cand[sel]], distance_upper_bound=b * (1 + 1e-9) + 1e-12)
     hit = np.isfinite(d) & (d <= bound)
     tree = node_tree[lab[j[hit]]]
-    ok = _within_crown(nodes, cand[hit], tree, trunk_xy, crown_radius)  # the fallback must also respect the crown reach
+    ok = _within_crown(nodes, cand[hit], tree, trunk_xy, crown_reach)  # the fallback must also respect the crown reach
     node_tree[cand[hit][ok]] = tree[ok]
     return cand[hit][ok]
 
@@ -159,7 +181,7 @@ def _beside_excluded(graph: sparse.csr_matrix, exclude: np.ndarray) -> np.ndarra
     return touch & ~exclude
 
 
-def _label_unreached(nodes, graph, node_tree, trunk_xy, node_height, *, params: SegmentParams,
+def _label_unreached(nodes, graph, node_tree, trunk_xy, node_height, reach: np.ndarray, *, params: SegmentParams,
                      exclude: np.ndarray | None, on_object: np.ndarray | None = None) -> np.ndarray:
     """``node_tree`` with the nodes the search did not reach labelled by distance, per
     connected fragment (see :func:`segment_nodes`)."""
@@ -177,12 +199,13 @@ def _label_unreached(nodes, graph, node_tree, trunk_xy, node_height, *, params: 
         part_of_object = np.zeros(comp.max() + 1, bool)
         part_of_object[comp[on_object[todo]]] = True
         floating &= ~part_of_object[comp]
-    bound = np.where(floating, params.max_crown_radius, params.unreached_radius)
+    widest = float(reach.max(initial=0.0))
+    bound = np.where(floating, widest, params.unreached_radius)
     big = np.bincount(comp)[comp] >= params.min_fragment
     # a small fragment is an outlier unless it floats right beside a tree (a lone leaf at the rim)
     bound = np.where(big, bound, np.where(floating, params.fragment_reach, -1.0))
     joined = _join_nearest(nodes, node_tree, trunk_xy, todo, np.flatnonzero(labelled), bound,
-                           max(params.max_crown_radius, params.unreached_radius), params.max_crown_radius)
+                           max(widest, params.unreached_radius), reach)
     # small floating fragments also join through fragments that have just joined (a
     # sparsely scanned crown's rim: a chain of lone leaves). The nodes labelled before
     # a round are all beyond fragment_reach of the rest, so each round only searches
@@ -193,7 +216,7 @@ def _label_unreached(nodes, graph, node_tree, trunk_xy, node_height, *, params: 
         if rim.size == 0 or joined.size == 0:
             break
         joined = _join_nearest(nodes, node_tree, trunk_xy, rim, joined, params.fragment_reach, params.fragment_reach,
-                               params.max_crown_radius)
+                               reach)
     return node_tree
 
 

@@ -12,7 +12,8 @@ local shape (branches are linear, foliage is scattered) in a fixed logistic mode
 Narrow trees (tall spindles, hedges: a crown radius under about a third of the tree's
 height) carry a much smaller share of wood than open vase trees, so one threshold
 cannot serve both: their nodes are scored by a second logistic model, fitted on narrow
-forms, and the two scores are blended by the tree's width.
+forms, and the two scores are blended by the tree's width; the narrowest (tall
+spindles) by a third, fitted on spindles alone.
 """
 
 from __future__ import annotations
@@ -56,6 +57,19 @@ NARROW_WEIGHTS = np.array([
     -8.204, 1.402, 6.934, 2.595, 1.594, 1.146, 0.762, -1.01, -4.646, -1.359,
     3.176, 1.534, 2.634, 3.56, 1.872, 0.981, 2.499, 3.93, 0.113, 0.452,
 ])
+#: weights of the tall spindles' own model, over the narrow model's columns (``python -m
+#: bench.fit_matter --seeds 2 --models spindle``, seeds 1000+, spindle blocks only; its
+#: bias shifted likewise): the hedges' larger share of wood (9 % against 2 %) pulled the
+#: shared model's boundary away from the spindles' own
+SPINDLE_WEIGHTS = np.array([
+    -4.848, 2.085, 1.152, 2.843, 2.215, -1.827, 1.347, -0.496, -6.051, -5.282,
+    -0.002, 0.340, 0.191, 0.413, 0.356, -0.282, 0.210, 0.041, -0.905, -0.770,
+])
+#: a narrow tree narrower than this (spindles measure 0.12-0.18, hedges 0.20-0.27) is
+#: scored by the spindles' model ...
+SPINDLE_WIDTH = 0.19
+#: ... blended over about this width on either side
+SPINDLE_BLEND = 0.005
 #: a tree narrower than this (90th percentile of its material's distance from the trunk
 #: over its height) is scored by the narrow trees' model ...
 NARROW_WIDTH = 0.3
@@ -201,19 +215,29 @@ def narrowness(width: np.ndarray, height: np.ndarray) -> np.ndarray:
 
 
 def combined_score(
-    features: np.ndarray, *, weights: np.ndarray = COMBINED_WEIGHTS, narrow_weights: np.ndarray | None = None
+    features: np.ndarray, *, weights: np.ndarray = COMBINED_WEIGHTS, narrow_weights: np.ndarray | None = None,
+    spindle_weights: np.ndarray | None = None,
 ) -> np.ndarray:
     """Wood probability per node from :func:`wood_features`, (m,) float64 in [0, 1].
 
     ``weights`` score wide trees; ``narrow_weights`` (default NARROW_WEIGHTS; all zeros:
-    the wide trees' model everywhere) score narrow ones, blended by :func:`narrowness`.
+    the wide trees' model everywhere) score narrow ones, blended by :func:`narrowness`;
+    among those, ``spindle_weights`` (default SPINDLE_WEIGHTS; all zeros: the narrow
+    model for every narrow tree) score the narrowest, blended by SPINDLE_WIDTH.
     """
     wide = _logistic(features @ weights)
     nw = NARROW_WEIGHTS if narrow_weights is None else narrow_weights
     if not nw.any():
         return wide
-    g = narrowness(features[:, NODE_FEATURES], features[:, NODE_FEATURES + 1])
-    return (1.0 - g) * wide + g * _logistic(narrow_features(features) @ nw)
+    width = features[:, NODE_FEATURES]
+    g = narrowness(width, features[:, NODE_FEATURES + 1])
+    cols = narrow_features(features)
+    narrow = _logistic(cols @ nw)
+    sw = SPINDLE_WEIGHTS if spindle_weights is None else spindle_weights
+    if sw.any():
+        q = _logistic((SPINDLE_WIDTH - width) / SPINDLE_BLEND)
+        narrow = (1.0 - q) * narrow + q * _logistic(cols @ sw)
+    return (1.0 - g) * wide + g * narrow
 
 
 def classify(

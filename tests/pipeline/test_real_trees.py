@@ -28,6 +28,19 @@ def test_adtree_row_every_real_trunk_is_a_tree():
     assert s["v_measure"] >= 0.88, s
 
 
+def test_adtree_row_wide_trees_keep_their_far_limbs_under_a_wider_cap():
+    # tree33 (11.5 m tall) reaches 8.2 m from its trunk: cut at the default 5 m cap; with
+    # a 9 m cap it reaches its height, up to 9 m (tree_reach), and keeps its far limbs
+    # (measured: none of its 727 points beyond 5.5 m at 5 m, all but 3 at 9 m)
+    xyz, tid, bases = adtree_row()
+    origin = np.floor(xyz.min(axis=0))
+    local = xyz - origin
+    far = (tid == 4) & (np.hypot(*(local[:, :2] - (bases[3, :2] - origin[:2])).T) > 5.5)
+    kept = {cap: np.mean(process_points(local, params=PipelineParams(segment={"max_crown_radius": cap})).tree_id[far] > 0)
+            for cap in (5.0, 9.0)}
+    assert kept[5.0] < 0.5 < kept[9.0], kept
+
+
 def test_archi_thick_trunk_is_found():
     # aRchi Tree_1's 0.6 m trunk is one smooth planar patch of 188 voxels, 58 % of its
     # low material; counted as a box face, the tree was dropped and only branches

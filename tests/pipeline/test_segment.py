@@ -1,6 +1,7 @@
 """Segmentation kernels on hand-built node sets."""
 
 import numpy as np
+import pytest
 
 from pipeline.graph import build_graph
 from pipeline.params import SegmentParams
@@ -11,6 +12,7 @@ from pipeline.segment import (
     planar_patches,
     segment_nodes,
     trunk_feet,
+    tree_reach,
 )
 
 
@@ -226,3 +228,39 @@ def test_trunk_feet_need_a_plausible_trunk():
     far_ok = trunk_feet(wide, tree_id, is_ground, height, np.zeros((1, 2)), max_radius=2.0, **kw)[0]
     assert far_ok.size > 0  # allowed when max_radius allows it
     assert np.array_equal(trunk_feet(wide, tree_id, is_ground, height, np.zeros((1, 2)), **at)[0], empty)
+
+
+def _tree_with_limb(height, limb=7.0):
+    """A stem ``height`` m tall at the origin with a limb along x at 2 m, ``limb`` m long (0.1 m nodes)."""
+    stem = np.column_stack([np.zeros(int(height * 10)), np.zeros(int(height * 10)), np.arange(int(height * 10)) * 0.1])
+    arm = np.column_stack([np.arange(1, int(limb * 10) + 1) * 0.1, np.zeros(int(limb * 10)), np.full(int(limb * 10), 2.0)])
+    return np.vstack([stem, arm])
+
+
+def test_a_tall_tree_reaches_as_far_as_it_is_tall_a_short_one_its_crown_radius():
+    kw = dict(source_nodes=np.array([0]), source_trunk=np.array([0]), trunk_xy=np.zeros((1, 2)))
+    wide = SegmentParams(max_crown_radius=9.0)
+    for height, reach in ((3.0, 5.0), (8.0, 8.0), (12.0, 9.0)):  # crown_radius 5, x height, up to max_crown_radius 9
+        nodes = _tree_with_limb(height, limb=10.0)
+        graph = build_graph(nodes, radius=0.15)
+        tree = segment_nodes(nodes, graph, node_height=nodes[:, 2], params=wide, **kw).node_tree
+        x = nodes[:, 0]
+        assert (tree[x <= reach - 0.05] == 1).all() and (tree[x > reach + 0.05] == 0).all(), height
+    nodes = _tree_with_limb(8.0)
+    graph = build_graph(nodes, radius=0.15)
+    # max_crown_radius is a cap whatever the height (it sets the tile buffer) ...
+    tree = segment_nodes(nodes, graph, node_height=nodes[:, 2], params=SegmentParams(max_crown_radius=3.0), **kw).node_tree
+    assert (tree[nodes[:, 0] > 3.05] == 0).all() and (tree[nodes[:, 0] <= 2.95] == 1).all()
+    # ... by default 5 m, as crown_radius ...
+    tree = segment_nodes(nodes, graph, node_height=nodes[:, 2], params=SegmentParams(), **kw).node_tree
+    assert (tree[nodes[:, 0] > 5.05] == 0).all() and (tree[nodes[:, 0] <= 4.95] == 1).all()
+    # ... and crown_per_height 0 keeps every tree at crown_radius
+    wide0 = SegmentParams(max_crown_radius=9.0, crown_per_height=0.0)
+    tree = segment_nodes(nodes, graph, node_height=nodes[:, 2], params=wide0, **kw).node_tree
+    assert (tree[nodes[:, 0] > 5.05] == 0).all() and (tree[nodes[:, 0] <= 4.95] == 1).all()
+
+
+def test_tree_reach_reads_the_height_beside_the_trunk_only():
+    nodes = np.vstack([_tree_with_limb(3.0, limb=3.0), [[2.0, 0.0, 12.0]]])  # a tall node 2 m away: not this tree's height
+    got = tree_reach(nodes, nodes[:, 2], np.array([[0.0, 0.0], [2.0, 0.0]]), params=SegmentParams(crown_radius=1.0, max_crown_radius=9.0))
+    assert got == pytest.approx([2.9, 9.0])  # 2.9 m stem; the other trunk's 12 m column, capped at 9 m
