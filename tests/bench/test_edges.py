@@ -4,7 +4,7 @@ import numpy as np
 import pytest
 from scipy import sparse
 
-from bench.edges import WEIGHTINGS, edge_factors, principal_axes, shared_neighbours
+from bench.edges import WEIGHTINGS, contact_auc, edge_factors, principal_axes, shared_neighbours
 
 
 def _pair(**kw) -> dict:
@@ -60,3 +60,13 @@ def test_shared_neighbours_on_a_path():
     i = np.array([0, 1, 2])
     g = sparse.csr_matrix((np.ones(6), (np.r_[i, i + 1], np.r_[i + 1, i])), shape=(4, 4))
     assert shared_neighbours(g, np.array([0, 2]), np.array([1, 3])) == pytest.approx([2 / 3, 2 / 3])
+
+
+def test_contact_auc_on_a_path_of_two_trees():
+    # path 0-1-2-3, nodes 0, 1 of tree 1 and 2, 3 of tree 2: edge (1, 2) is the contact,
+    # (0, 1) and (2, 3) the edges beside it; node 4 belongs to no tree
+    a, b, truth = np.array([0, 1, 2, 3]), np.array([1, 2, 3, 4]), np.array([1, 1, 2, 2, 0])
+    assert contact_auc(np.array([1.0, 2.0, 1.0, 9.0]), a, b, truth) == pytest.approx(1.0)
+    assert contact_auc(np.array([2.0, 1.0, 2.0, 0.0]), a, b, truth) == pytest.approx(0.0)
+    assert contact_auc(np.array([2.0, 2.0, 1.0, 0.0]), a, b, truth) == pytest.approx(0.75)
+    assert np.isnan(contact_auc(np.ones(4), a, b, np.array([1, 1, 1, 1, 0])))
