@@ -1,6 +1,7 @@
 """Edge weightings of the segmentation graph that make contacts cost more than continuations.
 
-    python -m bench.edges [--seeds 0,1] [--alphas 0.5,1,2,4] [--only hedge]
+    python -m bench.edges [--seeds 0,1] [--alphas 0.5,1,2,4] [--weightings axis,...]
+                          [--settings "paper setting,...,real"] [--auc]
 
 Issue 61. ``bench.contested`` found the wrong points in runs of twigs and leaves that
 their own trunk reaches inside their own tree by a path only 1.05-1.16 times the
@@ -12,7 +13,10 @@ segments again with every edge's length multiplied by a factor (:func:`edge_fact
 the trunks unchanged. It prints the v-measure of the tree points in the vegetation
 with the nodes' labels mapped to points (a little below ``bench.segmentation``'s, which
 also labels trunk feet and post foliage), per setting and seed, for each weighting and
-each ``alpha``. Tune on seeds 1000.., evaluate on 0, 1.
+each ``alpha``. Tune on seeds 1000.., evaluate on 0, 1. ``--auc`` prints instead how
+well each factor tells contacts (edges joining two true trees) from the edges inside
+one tree beside them (ROC AUC, :func:`contact_auc`). Settings: names (or parts of
+names) of ``bench.segmentation.SETTINGS``, and ``real`` for the row of AdTree trees.
 """
 
 from __future__ import annotations
