@@ -197,8 +197,13 @@ def _label_unreached(nodes, graph, node_tree, trunk_xy, node_height, *, params: 
     return node_tree
 
 
-def planar_patches(graph: sparse.csr_matrix, planar: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+def planar_patches(graph: sparse.csr_matrix, planar: np.ndarray, normal: np.ndarray | None = None,
+                   min_cos: float = 0.0) -> tuple[np.ndarray, np.ndarray]:
     """Connected sets of planar nodes over ``graph``.
+
+    With ``normal`` (m, 3) unit normals, two planar neighbours connect only where their
+    normals agree (|cos| at least ``min_cos``): a face does not run on into leaves
+    touching it.
 
     Returns
     -------
@@ -209,7 +214,13 @@ def planar_patches(graph: sparse.csr_matrix, planar: np.ndarray) -> tuple[np.nda
     idx = np.flatnonzero(planar)
     if idx.size == 0:
         return patch, np.zeros(0, np.int64)
-    _, comp = csgraph.connected_components(graph[idx][:, idx], directed=False)
+    sub = graph[idx][:, idx]
+    if normal is not None:
+        sub = sub.tocoo()
+        n = normal[idx]
+        keep = np.abs((n[sub.row] * n[sub.col]).sum(axis=1)) >= min_cos
+        sub = sparse.csr_matrix((sub.data[keep], (sub.row[keep], sub.col[keep])), shape=sub.shape)
+    _, comp = csgraph.connected_components(sub, directed=False)
     patch[idx] = comp
     return patch, np.bincount(comp)
 
