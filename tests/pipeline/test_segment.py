@@ -62,6 +62,26 @@ def test_faces_are_large_connected_planar_patches_only():
     assert not faces(*planar_patches(graph, np.zeros(len(nodes), bool)), 10).any()
 
 
+def test_planar_patches_split_where_the_normals_disagree():
+    # a roof and a wall meeting at its edge: one patch by connection alone, two when
+    # neighbours' normals must agree (a face does not run on into what touches it)
+    roof = _grid(0.0, 0.0, 1.0, 5)  # 25 nodes, normal z
+    wall = np.column_stack([np.full(20, 0.5), np.tile(np.arange(5) * 0.1, 4), np.repeat(0.9 - np.arange(4) * 0.1, 5)])
+    nodes = np.vstack([roof, wall])
+    normal = np.vstack([np.tile([0.0, 0.0, 1.0], (25, 1)), np.tile([1.0, 0.0, 0.0], (20, 1))])
+    graph = build_graph(nodes, radius=0.15)
+    planar = np.ones(len(nodes), bool)
+    patch, size = planar_patches(graph, planar)
+    assert len(size) == 1 and size[0] == 45
+    patch, size = planar_patches(graph, planar, normal, 0.9)
+    assert sorted(size.tolist()) == [20, 25]
+    assert len(set(patch[:25])) == 1 and len(set(patch[25:])) == 1 and patch[0] != patch[-1]
+    # sign of a normal is arbitrary: a flipped one still agrees
+    flipped = normal.copy()
+    flipped[::2] *= -1
+    assert sorted(planar_patches(graph, planar, flipped, 0.9)[1].tolist()) == [20, 25]
+
+
 def _arc(radius, degrees, centre=(0.0, 0.0), heights=np.arange(0.2, 0.8, 0.1), step=0.1):
     """Nodes on an upright cylinder's arc (about one per ``step`` of bark) and their normals."""
     t = np.linspace(-np.radians(degrees) / 2, np.radians(degrees) / 2, max(3, int(np.radians(degrees) * radius / step)))
