@@ -24,6 +24,7 @@ from pipeline.segment import (
     Segmentation,
     curved_patches,
     faces,
+    flat_patches,
     hard_surfaces,
     planar_patches,
     segment_nodes,
@@ -64,6 +65,9 @@ BLURRED_MAX_SCATTER = 0.5
 BLURRED_AREA_RATIO = 4.0
 #: ... of neighbours whose normals agree this well (|cos|): leaves touching a face stay out ...
 BLURRED_MIN_COS = 0.9
+#: ... whose normals point one way (largest eigenvalue of their mean outer product; a
+#: vehicle's blurred faces 0.97-0.99, thick bark 0.53, a dense crown's envelope less) ...
+BLURRED_MIN_ALIGN = 0.9
 #: ... and of which the strict test sees at most this share as a face: a sharp face stops
 #: short of its edges, where leaves touch it, and its margin cuts less crown (on clean
 #: scans a vehicle's blurred patches are 55-92 % sharp, at range noise 0.03 m 0-25 %)
@@ -226,6 +230,7 @@ class _Faces:
     box_planar: np.ndarray
     blurred_patch: np.ndarray
     blurred_size: np.ndarray
+    blurred_flat: np.ndarray
 
 
 def _node_graph(xyz: np.ndarray, *, params: PipelineParams, grid_origin, ground_stats, raw_ground) -> _NodeGraph:
@@ -273,7 +278,8 @@ def _faces(g: _NodeGraph, *, params: PipelineParams) -> _Faces:
     # tops under a thin trunk (a spindle's leader) made up most of its little low material
     standing_face = face & standing(patch, size, g.node_height, min_top=params.segment.floating_height)
     box_planar = face | noisy_planar(feats, noise=g.ground.noise)
-    return _Faces(patch, size, standing_face, box_planar, blurred_patch, blurred_size)
+    blurred_flat = flat_patches(feats.normal, blurred_patch, blurred_size, min_align=BLURRED_MIN_ALIGN)
+    return _Faces(patch, size, standing_face, box_planar, blurred_patch, blurred_size, blurred_flat)
 
 
 def _flat_patches(g: _NodeGraph, planar: np.ndarray, min_face: int, *,
@@ -292,12 +298,16 @@ def _flat_patches(g: _NodeGraph, planar: np.ndarray, min_face: int, *,
     return patch, size
 
 
-def _mostly_blurred(patch: np.ndarray, size: np.ndarray, sharp: np.ndarray) -> np.ndarray:
+def _mostly_blurred(patch: np.ndarray, size: np.ndarray, sharp: np.ndarray, flat: np.ndarray | None = None) -> np.ndarray:
     """``patch`` (m,) without the patches of which more than BLURRED_MAX_SHARP are
-    ``sharp`` (m,) bool nodes (-1 for their nodes)."""
+    ``sharp`` (m,) bool nodes, nor those not ``flat`` (c,) bool, if given (-1 for their nodes)."""
     on = patch >= 0
+    if not on.any():
+        return patch
     n_sharp = np.bincount(patch[on], weights=sharp[on].astype(np.float64), minlength=size.shape[0])
     drop = n_sharp > BLURRED_MAX_SHARP * np.maximum(size, 1)
+    if flat is not None:
+        drop |= ~flat
     return np.where(on & drop[np.maximum(patch, 0)], -1, patch)
 
 
@@ -313,7 +323,7 @@ def surface_nodes(nodes: np.ndarray, node_height: np.ndarray, f: _Faces, *, para
     min_nodes = int(round(params.segment.surface_area / params.graph.voxel_size**2))
     kw = dict(margin=params.segment.surface_margin, min_top=params.segment.floating_height)
     sharp = hard_surfaces(nodes, f.patch, f.size, node_height, min_nodes=min_nodes, **kw)
-    blurred_patch = _mostly_blurred(f.blurred_patch, f.blurred_size, faces(f.patch, f.size, min_nodes))
+    blurred_patch = _mostly_blurred(f.blurred_patch, f.blurred_size, faces(f.patch, f.size, min_nodes), f.blurred_flat)
     blurred = hard_surfaces(nodes, blurred_patch, f.blurred_size, node_height,
                             min_nodes=int(round(BLURRED_AREA_RATIO * min_nodes)), **kw)
     return sharp | blurred

@@ -287,6 +287,33 @@ def curved_patches(
     return out
 
 
+def flat_patches(normals: np.ndarray, patch: np.ndarray, size: np.ndarray, *, min_align: float) -> np.ndarray:
+    """Patches whose normals point one way, (c,) bool.
+
+    A patch is flat when the largest eigenvalue of its normals' mean outer product is at
+    least ``min_align`` (1: all parallel). A box's face is; the bark of a trunk (normals
+    turning around its axis) and the envelope of a dense crown (turning every way) are not.
+
+    Parameters
+    ----------
+    normals : (m, 3) float64 — unit normal of each node (sign arbitrary)
+    patch, size : from :func:`planar_patches`
+    min_align : float — in [1/3, 1]
+
+    Returns
+    -------
+    (c,) bool
+    """
+    c = size.shape[0]
+    on = np.flatnonzero(patch >= 0)
+    if c == 0 or on.size == 0:
+        return np.zeros(c, bool)
+    n, p = normals[on], patch[on]
+    outer = np.stack([np.bincount(p, weights=n[:, i] * n[:, j], minlength=c) for i in range(3) for j in range(3)], axis=1)
+    outer = outer.reshape(c, 3, 3) / np.maximum(size, 1)[:, None, None]
+    return np.linalg.eigvalsh(outer)[:, -1] >= min_align
+
+
 def faces(patch: np.ndarray, size: np.ndarray, min_nodes: int) -> np.ndarray:
     """Nodes in patches of at least ``min_nodes`` nodes, (m,) bool.
 
