@@ -131,6 +131,9 @@ def test_mostly_sharp_patches_are_left_to_the_strict_test():
     out = _mostly_blurred(patch, size, sharp)
     assert (out[:5] == -1).all() and (out[5:10] == 1).all() and out[10] == -1
     assert (_mostly_blurred(patch, size, np.zeros(11, bool)) == patch).all()
+    # a patch whose normals do not point one way is no face either
+    out = _mostly_blurred(patch, size, np.zeros(11, bool), np.array([True, False]))
+    assert (out[:5] == 0).all() and (out[5:] == -1).all()
 
 
 @pytest.mark.parametrize("noise", [0.05, 0.08])

@@ -7,6 +7,7 @@ from pipeline.params import SegmentParams
 from pipeline.segment import (
     curved_patches,
     faces,
+    flat_patches,
     hard_surfaces,
     planar_patches,
     segment_nodes,
@@ -246,3 +247,23 @@ def test_trunk_feet_need_a_plausible_trunk():
     far_ok = trunk_feet(wide, tree_id, is_ground, height, np.zeros((1, 2)), max_radius=2.0, **kw)[0]
     assert far_ok.size > 0  # allowed when max_radius allows it
     assert np.array_equal(trunk_feet(wide, tree_id, is_ground, height, np.zeros((1, 2)), **at)[0], empty)
+
+
+def test_flat_patches_point_one_way():
+    # a face (normals parallel, signs mixed), a thick trunk's bark (normals turning around
+    # its axis) and a ball's envelope (every way): only the face is flat
+    face = np.tile([0.0, 1.0, 0.0], (30, 1))
+    face[::3] *= -1
+    _, bark = _arc(0.4, 360)
+    u = np.random.default_rng(0).normal(size=(50, 3))
+    ball = u / np.linalg.norm(u, axis=1)[:, None]
+    normals = np.vstack([face, bark, ball])
+    patch = np.repeat([0, 1, 2], [len(face), len(bark), len(ball)])
+    size = np.bincount(patch)
+    assert flat_patches(normals, patch, size, min_align=0.9).tolist() == [True, False, False]
+    # a patch in two faces at right angles turns one way half the time
+    corner = np.vstack([np.tile([1.0, 0, 0], (10, 1)), np.tile([0, 0, 1.0], (10, 1))])
+    assert not flat_patches(corner, np.zeros(20, np.int64), np.array([20]), min_align=0.9)[0]
+    assert flat_patches(corner, np.zeros(20, np.int64), np.array([20]), min_align=0.5)[0]
+    none = flat_patches(normals, np.full(len(normals), -1), np.zeros(0, np.int64), min_align=0.9)
+    assert none.shape == (0,)
