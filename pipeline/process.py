@@ -24,6 +24,7 @@ from pipeline.segment import (
     Segmentation,
     curved_patches,
     faces,
+    flat_patches,
     hard_surfaces,
     planar_patches,
     segment_nodes,
@@ -54,6 +55,23 @@ NOISY_BOX_NOISE = (0.055, 0.085)
 NOISY_PLANAR_MIN_SPREAD = 0.7
 #: ... and thin in the third (λ3/λ1) at most this
 NOISY_PLANAR_MAX_SCATTER = 0.35
+#: a face blurred by range noise still spreads in two directions as wide as the
+#: neighbourhood (λ2/λ1) at least this ...
+BLURRED_MIN_SPREAD = 0.8
+#: ... and in the third (λ3/λ1) at most this, at any noise up to about 0.08 m ...
+BLURRED_MAX_SCATTER = 0.5
+#: ... and foliage passes that node by node too, but forms no connected patch of this
+#: many times ``surface_area`` (a vehicle's side does, at every noise) ...
+BLURRED_AREA_RATIO = 4.0
+#: ... of neighbours whose normals agree this well (|cos|): leaves touching a face stay out ...
+BLURRED_MIN_COS = 0.9
+#: ... whose normals point one way (largest eigenvalue of their mean outer product; a
+#: vehicle's blurred faces 0.97-0.99, thick bark 0.53, a dense crown's envelope less) ...
+BLURRED_MIN_ALIGN = 0.9
+#: ... and of which the strict test sees at most this share as a face: a sharp face stops
+#: short of its edges, where leaves touch it, and its margin cuts less crown (on clean
+#: scans a vehicle's blurred patches are 55-92 % sharp, at range noise 0.03 m 0-25 %)
+BLURRED_MAX_SHARP = 0.4
 #: the box tests count planar nodes only in connected patches of at least this surface
 #: [m²] (a box face is far larger; sparsely scanned bark is planar only in small patches)
 MIN_FACE_AREA = 0.1
@@ -152,6 +170,15 @@ def _beside(xy: np.ndarray, other: np.ndarray, reach: float) -> np.ndarray:
     return np.flatnonzero(np.isfinite(d))
 
 
+def blurred_planar(feats: ShapeFeatures) -> np.ndarray:
+    """Nodes that may lie on a face, sharp or blurred by range noise, (m,) bool: spread
+    in two directions as wide as the neighbourhood and thinner in the third. Foliage
+    passes too, node by node; only large connected patches of them are faces
+    (:func:`surface_nodes`)."""
+    spread = feats.planarity + feats.scattering  # λ2/λ1
+    return (spread >= BLURRED_MIN_SPREAD) & (feats.scattering <= BLURRED_MAX_SCATTER)
+
+
 def noisy_planar(feats: ShapeFeatures, *, noise: float) -> np.ndarray:
     """Nodes on a box face blurred by range noise, (m,) bool; all False unless the
     block's estimated ground ``noise`` [m] is in ``NOISY_BOX_NOISE``."""
@@ -201,6 +228,9 @@ class _Faces:
     size: np.ndarray
     standing_face: np.ndarray
     box_planar: np.ndarray
+    blurred_patch: np.ndarray
+    blurred_size: np.ndarray
+    blurred_flat: np.ndarray
 
 
 def _node_graph(xyz: np.ndarray, *, params: PipelineParams, grid_origin, ground_stats, raw_ground) -> _NodeGraph:
@@ -237,14 +267,9 @@ def _faces(g: _NodeGraph, *, params: PipelineParams) -> _Faces:
     the faces the box tests count."""
     feats = g.features
     planar = (feats.planarity >= PLANAR_MIN) & (feats.scattering <= PLANAR_MAX_SCATTER)
-    patch, size = planar_patches(g.graph, planar)
     min_face = face_nodes(params.graph.voxel_size)
-    bark = curved_patches(
-        g.nodes, feats.normal, patch, size,
-        min_nodes=min_face, min_spread=BARK_MIN_SPREAD, max_radius=BARK_MAX_RADIUS, max_residual=BARK_MAX_RESIDUAL,
-    )
-    if bark.any():
-        patch = np.where((patch >= 0) & bark[np.maximum(patch, 0)], -1, patch)
+    patch, size = _flat_patches(g, planar, min_face)
+    blurred_patch, blurred_size = _flat_patches(g, blurred_planar(feats), min_face, min_cos=BLURRED_MIN_COS)
     # box tests: planar nodes in patches of MIN_FACE_AREA or more; the catchment's test
     # also counts blurred faces on noisy scans, whatever their patches (they break into
     # small ones), and cutting surfaces out of the graph needs the strict test
@@ -253,7 +278,55 @@ def _faces(g: _NodeGraph, *, params: PipelineParams) -> _Faces:
     # tops under a thin trunk (a spindle's leader) made up most of its little low material
     standing_face = face & standing(patch, size, g.node_height, min_top=params.segment.floating_height)
     box_planar = face | noisy_planar(feats, noise=g.ground.noise)
-    return _Faces(patch, size, standing_face, box_planar)
+    blurred_flat = flat_patches(feats.normal, blurred_patch, blurred_size, min_align=BLURRED_MIN_ALIGN)
+    return _Faces(patch, size, standing_face, box_planar, blurred_patch, blurred_size, blurred_flat)
+
+
+def _flat_patches(g: _NodeGraph, planar: np.ndarray, min_face: int, *,
+                  min_cos: float | None = None) -> tuple[np.ndarray, np.ndarray]:
+    """Connected patches of ``planar`` nodes (neighbours' normals agreeing to ``min_cos``,
+    if given), without the curved ones (the bark of a thick trunk) of at least
+    ``min_face`` nodes: (m,) patch of each node (-1: none), (c,) sizes."""
+    normal = None if min_cos is None else g.features.normal
+    patch, size = planar_patches(g.graph, planar, normal, 0.0 if min_cos is None else min_cos)
+    bark = curved_patches(
+        g.nodes, g.features.normal, patch, size,
+        min_nodes=min_face, min_spread=BARK_MIN_SPREAD, max_radius=BARK_MAX_RADIUS, max_residual=BARK_MAX_RESIDUAL,
+    )
+    if bark.any():
+        patch = np.where((patch >= 0) & bark[np.maximum(patch, 0)], -1, patch)
+    return patch, size
+
+
+def _mostly_blurred(patch: np.ndarray, size: np.ndarray, sharp: np.ndarray, flat: np.ndarray | None = None) -> np.ndarray:
+    """``patch`` (m,) without the patches of which more than BLURRED_MAX_SHARP are
+    ``sharp`` (m,) bool nodes, nor those not ``flat`` (c,) bool, if given (-1 for their nodes)."""
+    on = patch >= 0
+    if not on.any():
+        return patch
+    n_sharp = np.bincount(patch[on], weights=sharp[on].astype(np.float64), minlength=size.shape[0])
+    drop = n_sharp > BLURRED_MAX_SHARP * np.maximum(size, 1)
+    if flat is not None:
+        drop |= ~flat
+    return np.where(on & drop[np.maximum(patch, 0)], -1, patch)
+
+
+def surface_nodes(nodes: np.ndarray, node_height: np.ndarray, f: _Faces, *, params: PipelineParams) -> np.ndarray:
+    """Nodes of hard surfaces standing above the grass and those next to them, (m,) bool
+    (:func:`pipeline.segment.hard_surfaces`): sharp faces of ``surface_area``, and
+    faces blurred by range noise (:func:`blurred_planar`) of BLURRED_AREA_RATIO times it
+    that the strict test does not see. On noisy scans no strict test finds a vehicle's
+    faces; a part of them is enough to cut it out of the crown it stands under, as the
+    margin takes its edges and what floats beside it stands with it
+    (:func:`pipeline.segment.segment_nodes`).
+    """
+    min_nodes = int(round(params.segment.surface_area / params.graph.voxel_size**2))
+    kw = dict(margin=params.segment.surface_margin, min_top=params.segment.floating_height)
+    sharp = hard_surfaces(nodes, f.patch, f.size, node_height, min_nodes=min_nodes, **kw)
+    blurred_patch = _mostly_blurred(f.blurred_patch, f.blurred_size, faces(f.patch, f.size, min_nodes), f.blurred_flat)
+    blurred = hard_surfaces(nodes, blurred_patch, f.blurred_size, node_height,
+                            min_nodes=int(round(BLURRED_AREA_RATIO * min_nodes)), **kw)
+    return sharp | blurred
 
 
 def _find_trunks(xyz: np.ndarray, g: _NodeGraph, f: _Faces, *, params: PipelineParams,
@@ -322,15 +395,7 @@ def _segment_trees(g: _NodeGraph, f: _Faces, det: TrunkDetection, on_post: np.nd
     """Segmentation from one multi-source search from the trunks; "trees" that turn out
     box-like or low (a vehicle) are dropped and their material segmented again."""
     nodes, node_height = g.nodes, g.node_height
-    surfaces = on_post | hard_surfaces(
-        nodes,
-        f.patch,
-        f.size,
-        node_height,
-        min_nodes=int(round(params.segment.surface_area / params.graph.voxel_size**2)),
-        margin=params.segment.surface_margin,
-        min_top=params.segment.floating_height,
-    )
+    surfaces = on_post | surface_nodes(nodes, node_height, f, params=params)
     if _low_floor(det, params).min_tree_height < _floors(det, params).min_tree_height:
         # on a block of young trees a bin's edges and a vehicle's wheels stand like young
         # trees, and their faces are cut out (below) before the box test of segmented trees

@@ -220,8 +220,13 @@ def _label_unreached(nodes, graph, node_tree, trunk_xy, node_height, reach: np.n
     return node_tree
 
 
-def planar_patches(graph: sparse.csr_matrix, planar: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+def planar_patches(graph: sparse.csr_matrix, planar: np.ndarray, normal: np.ndarray | None = None,
+                   min_cos: float = 0.0) -> tuple[np.ndarray, np.ndarray]:
     """Connected sets of planar nodes over ``graph``.
+
+    With ``normal`` (m, 3) unit normals, two planar neighbours connect only where their
+    normals agree (|cos| at least ``min_cos``): a face does not run on into leaves
+    touching it.
 
     Returns
     -------
@@ -232,7 +237,13 @@ def planar_patches(graph: sparse.csr_matrix, planar: np.ndarray) -> tuple[np.nda
     idx = np.flatnonzero(planar)
     if idx.size == 0:
         return patch, np.zeros(0, np.int64)
-    _, comp = csgraph.connected_components(graph[idx][:, idx], directed=False)
+    sub = graph[idx][:, idx]
+    if normal is not None:
+        sub = sub.tocoo()
+        n = normal[idx]
+        keep = np.abs((n[sub.row] * n[sub.col]).sum(axis=1)) >= min_cos
+        sub = sparse.csr_matrix((sub.data[keep], (sub.row[keep], sub.col[keep])), shape=sub.shape)
+    _, comp = csgraph.connected_components(sub, directed=False)
     patch[idx] = comp
     return patch, np.bincount(comp)
 
@@ -297,6 +308,33 @@ def curved_patches(
         radius = np.linalg.norm(d, axis=1).mean()
         out[pid] = radius <= max_radius and residual <= max_residual * radius
     return out
+
+
+def flat_patches(normals: np.ndarray, patch: np.ndarray, size: np.ndarray, *, min_align: float) -> np.ndarray:
+    """Patches whose normals point one way, (c,) bool.
+
+    A patch is flat when the largest eigenvalue of its normals' mean outer product is at
+    least ``min_align`` (1: all parallel). A box's face is; the bark of a trunk (normals
+    turning around its axis) and the envelope of a dense crown (turning every way) are not.
+
+    Parameters
+    ----------
+    normals : (m, 3) float64 — unit normal of each node (sign arbitrary)
+    patch, size : from :func:`planar_patches`
+    min_align : float — in [1/3, 1]
+
+    Returns
+    -------
+    (c,) bool
+    """
+    c = size.shape[0]
+    on = np.flatnonzero(patch >= 0)
+    if c == 0 or on.size == 0:
+        return np.zeros(c, bool)
+    n, p = normals[on], patch[on]
+    outer = np.stack([np.bincount(p, weights=n[:, i] * n[:, j], minlength=c) for i in range(3) for j in range(3)], axis=1)
+    outer = outer.reshape(c, 3, 3) / np.maximum(size, 1)[:, None, None]
+    return np.linalg.eigvalsh(outer)[:, -1] >= min_align
 
 
 def faces(patch: np.ndarray, size: np.ndarray, min_nodes: int) -> np.ndarray:

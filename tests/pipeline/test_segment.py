@@ -8,6 +8,7 @@ from pipeline.params import SegmentParams
 from pipeline.segment import (
     curved_patches,
     faces,
+    flat_patches,
     hard_surfaces,
     planar_patches,
     segment_nodes,
@@ -62,6 +63,26 @@ def test_faces_are_large_connected_planar_patches_only():
     assert not f[~planar].any()
     assert faces(patch, size, 9)[parts == 3].all()
     assert not faces(*planar_patches(graph, np.zeros(len(nodes), bool)), 10).any()
+
+
+def test_planar_patches_split_where_the_normals_disagree():
+    # a roof and a wall meeting at its edge: one patch by connection alone, two when
+    # neighbours' normals must agree (a face does not run on into what touches it)
+    roof = _grid(0.0, 0.0, 1.0, 5)  # 25 nodes, normal z
+    wall = np.column_stack([np.full(20, 0.5), np.tile(np.arange(5) * 0.1, 4), np.repeat(0.9 - np.arange(4) * 0.1, 5)])
+    nodes = np.vstack([roof, wall])
+    normal = np.vstack([np.tile([0.0, 0.0, 1.0], (25, 1)), np.tile([1.0, 0.0, 0.0], (20, 1))])
+    graph = build_graph(nodes, radius=0.15)
+    planar = np.ones(len(nodes), bool)
+    patch, size = planar_patches(graph, planar)
+    assert len(size) == 1 and size[0] == 45
+    patch, size = planar_patches(graph, planar, normal, 0.9)
+    assert sorted(size.tolist()) == [20, 25]
+    assert len(set(patch[:25])) == 1 and len(set(patch[25:])) == 1 and patch[0] != patch[-1]
+    # sign of a normal is arbitrary: a flipped one still agrees
+    flipped = normal.copy()
+    flipped[::2] *= -1
+    assert sorted(planar_patches(graph, planar, flipped, 0.9)[1].tolist()) == [20, 25]
 
 
 def _arc(radius, degrees, centre=(0.0, 0.0), heights=np.arange(0.2, 0.8, 0.1), step=0.1):
@@ -264,3 +285,21 @@ def test_tree_reach_reads_the_height_beside_the_trunk_only():
     nodes = np.vstack([_tree_with_limb(3.0, limb=3.0), [[2.0, 0.0, 12.0]]])  # a tall node 2 m away: not this tree's height
     got = tree_reach(nodes, nodes[:, 2], np.array([[0.0, 0.0], [2.0, 0.0]]), params=SegmentParams(crown_radius=1.0, max_crown_radius=9.0))
     assert got == pytest.approx([2.9, 9.0])  # 2.9 m stem; the other trunk's 12 m column, capped at 9 m
+def test_flat_patches_point_one_way():
+    # a face (normals parallel, signs mixed), a thick trunk's bark (normals turning around
+    # its axis) and a ball's envelope (every way): only the face is flat
+    face = np.tile([0.0, 1.0, 0.0], (30, 1))
+    face[::3] *= -1
+    _, bark = _arc(0.4, 360)
+    u = np.random.default_rng(0).normal(size=(50, 3))
+    ball = u / np.linalg.norm(u, axis=1)[:, None]
+    normals = np.vstack([face, bark, ball])
+    patch = np.repeat([0, 1, 2], [len(face), len(bark), len(ball)])
+    size = np.bincount(patch)
+    assert flat_patches(normals, patch, size, min_align=0.9).tolist() == [True, False, False]
+    # a patch in two faces at right angles turns one way half the time
+    corner = np.vstack([np.tile([1.0, 0, 0], (10, 1)), np.tile([0, 0, 1.0], (10, 1))])
+    assert not flat_patches(corner, np.zeros(20, np.int64), np.array([20]), min_align=0.9)[0]
+    assert flat_patches(corner, np.zeros(20, np.int64), np.array([20]), min_align=0.5)[0]
+    none = flat_patches(normals, np.full(len(normals), -1), np.zeros(0, np.int64), min_align=0.9)
+    assert none.shape == (0,)
