@@ -88,13 +88,15 @@ def score_block(work: str, noise: float, spacing: float, seed: int, baselines: b
     return out
 
 
-def run_grid(work: Path, noises, spacings, *, seed: int = 3, processes: int | None = None, log=print) -> list[dict]:
+def run_grid(
+    work: Path, noises, spacings, *, seed: int = 3, processes: int | None = None, log=print, baselines: bool = True
+) -> list[dict]:
     """Score every (noise, spacing) block; returns one dict per block."""
     processes = processes or max(1, len(os.sched_getaffinity(0)))
     cells = [(n, s) for n in noises for s in spacings]
     results = []
     with ProcessPoolExecutor(max_workers=processes) as pool:
-        futures = {pool.submit(score_block, str(work), n, s, seed + i): (n, s) for i, (n, s) in enumerate(cells)}
+        futures = {pool.submit(score_block, str(work), n, s, seed + i, baselines): (n, s) for i, (n, s) in enumerate(cells)}
         for fut in futures:
             n, s = futures[fut]
             r = fut.result()
@@ -117,3 +119,25 @@ def summarise(results: list[dict]) -> dict:
         out[m]["n_blocks"] = len(ok)
         out[m]["n_errors"] = len(rows) - len(ok)
     return out
+
+
+def main(argv: list[str] | None = None) -> int:
+    """``python -m bench.accuracy``: the accuracy grid of ``python -m bench``, ours only
+    unless ``--baselines``, and the mean of each metric."""
+    import argparse
+
+    ap = argparse.ArgumentParser(description="the accuracy grid of python -m bench (same blocks and seeds)")
+    ap.add_argument("--work", default="bench-work", help="folder for the generated blocks")
+    ap.add_argument("--baselines", action="store_true", help="score the baselines too")
+    ap.add_argument("--processes", type=int, default=None, help="parallel blocks (default: usable cores)")
+    args = ap.parse_args(argv)
+    noises, spacings = [0.0, 0.02, 0.05, 0.1], [3.0, 4.0, 5.0, 6.0, 8.0]
+    blocks = run_grid(Path(args.work), noises, spacings, processes=args.processes, baselines=args.baselines)
+    for m, v in summarise(blocks).items():
+        if v["n_blocks"]:
+            print(f"{m}: " + ", ".join(f"{k} {v[k]:.3f}" for k in METRICS) + f" ({v['n_blocks']} blocks)")
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())

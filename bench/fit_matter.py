@@ -1,6 +1,6 @@
 """Fit the "combined" wood/leaf model on generated orchards (training seeds only).
 
-    python -m bench.fit_matter [--seeds 4] [--models wide,narrow,spindle]
+    python -m bench.fit_matter [--seeds 4] [--models wide,narrow,spindle,noisy]
 
 Generates orchards with seeds 1000, 1001, ... (never used for evaluation, which uses
 seeds below 1000), runs the pipeline to the node level, and fits a logistic model of
@@ -10,7 +10,10 @@ the training blocks, to paste into ``pipeline/woodleaf.py`` / ``pipeline/params.
 The narrow trees' model (``NARROW_WEIGHTS``) is fitted the same way on the narrow forms
 (``NARROW_TRAINING``) over :func:`pipeline.woodleaf.narrow_features`, its bias shifted
 so that its best threshold falls on the wide model's; the tall spindles' own model
-(``SPINDLE_WEIGHTS``) likewise on ``SPINDLE_TRAINING``.
+(``SPINDLE_WEIGHTS``) likewise on ``SPINDLE_TRAINING``. The wide model's correction for
+range noise (``NOISE_WEIGHTS``) is fitted on vase blocks over the noise x spacing grid
+(``NOISY_TRAINING``) with the wide model's weights held, on the node features times
+:func:`pipeline.woodleaf.noise_term` of each block's estimated ground noise.
 """
 
 from __future__ import annotations
@@ -23,6 +26,7 @@ from scipy.optimize import minimize
 from pipeline import woodleaf
 from pipeline.params import PipelineParams
 from pipeline.process import analyse_nodes
+from bench.blocks import accuracy_params
 from simulator.simparams import SimulationParams
 from simulator.simulate import simulate_orchard
 
@@ -44,8 +48,12 @@ weighted alike (a spindle block holds a tenth of a vase block's wood)."""
 SPINDLE_TRAINING = NARROW_TRAINING[:1]
 """Blocks of the narrowest trees (tall spindles): their own model (``SPINDLE_WEIGHTS``)."""
 
+NOISY_TRAINING = [(noise, spacing) for noise in (0.0, 0.02, 0.05, 0.1) for spacing in (3.0, 4.0, 5.0, 6.0, 8.0)]
+"""(noise sigma, spacing) [m] of the vase blocks (``bench.blocks.accuracy_params``, the
+accuracy grid's layout) of the noise correction; seeds 1000 + 20 k + cell."""
 
-def node_table(seed: int, sim: dict, params: PipelineParams):
+
+def node_table(seed: int, sim: dict, params: PipelineParams, *, with_noise: bool = False):
     o = simulate_orchard(SimulationParams(seed=seed, **sim))
     xyz = o.xyz - np.floor(o.xyz.min(axis=0))
     a = analyse_nodes(xyz, params=params)
@@ -59,20 +67,30 @@ def node_table(seed: int, sim: dict, params: PipelineParams):
         p, a.segmentation.node_tree, a.trunks.xy, a.vox.centroids, a.node_height, a.vox.counts, a.features, a.adjacency
     )
     keep = (a.segmentation.node_tree > 0) & (n_tree > 0)
+    if with_noise:
+        return x[keep], n_wood[keep], n_tree[keep], a.ground.noise
     return x[keep], n_wood[keep], n_tree[keep]
 
 
-def fit(x: np.ndarray, n_wood: np.ndarray, n_all: np.ndarray, l2: float = 1e-3) -> np.ndarray:
+def fit(
+    x: np.ndarray, n_wood: np.ndarray, n_all: np.ndarray, l2: float = 1e-3, offset: np.ndarray | None = None
+) -> np.ndarray:
+    """Logistic weights; with ``offset`` (held part of the linear predictor) every weight,
+    the first too, is a correction and regularised."""
     y = n_wood / n_all
     w = n_all / n_all.sum()
+    off = 0.0 if offset is None else offset
+    mask = np.ones(x.shape[1])
+    if offset is None:
+        mask[0] = 0.0  # the bias is not regularised
 
     def loss(beta):
-        z = x @ beta
+        z = off + x @ beta
         p = 1 / (1 + np.exp(-np.clip(z, -50, 50)))
         eps = 1e-9
         ll = -(w * (y * np.log(p + eps) + (1 - y) * np.log(1 - p + eps))).sum()
-        grad = x.T @ (w * (p - y)) + l2 * np.r_[0, beta[1:]]
-        return ll + 0.5 * l2 * (beta[1:] ** 2).sum(), grad
+        grad = x.T @ (w * (p - y)) + l2 * mask * beta
+        return ll + 0.5 * l2 * (mask * beta**2).sum(), grad
 
     res = minimize(loss, np.zeros(x.shape[1]), jac=True, method="L-BFGS-B")
     return res.x
@@ -100,7 +118,7 @@ def _f1(score: np.ndarray, n_wood: np.ndarray, n_all: np.ndarray, thr: float) ->
 def main(argv: list[str] | None = None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--seeds", type=int, default=2, help="training blocks per configuration")
-    ap.add_argument("--models", default="wide,narrow,spindle", help="which models to fit: wide, narrow, spindle, comma-separated")
+    ap.add_argument("--models", default="wide,narrow,spindle", help="which models to fit: wide, narrow, spindle, noisy (comma-separated)")
     args = ap.parse_args(argv)
     params = PipelineParams()
     print("features :", ", ".join(woodleaf.FEATURES))
@@ -117,6 +135,25 @@ def main(argv: list[str] | None = None) -> int:
     for name, training in (("narrow", NARROW_TRAINING), ("spindle", SPINDLE_TRAINING)):
         if name in args.models:
             _fit_narrow(name, training, args.seeds, params)
+    if "noisy" in args.models:
+        nf = woodleaf.NODE_FEATURES
+        rows = []
+        for k in range(args.seeds):
+            for i, (noise, spacing) in enumerate(NOISY_TRAINING):
+                sim = accuracy_params(noise, spacing, 1000 + 20 * k + i).model_dump(exclude={"seed"})
+                rows.append(node_table(1000 + 20 * k + i, sim, params, with_noise=True))
+        base = np.concatenate([r[0][:, :nf] for r in rows])
+        x = np.concatenate([r[0][:, :nf] * woodleaf.noise_term(r[3]) for r in rows])
+        nw = np.concatenate([r[1] for r in rows])
+        na = np.concatenate([r[2] for r in rows])
+        beta = fit(x, nw, na, offset=base @ woodleaf.COMBINED_WEIGHTS[:nf])
+        print("NOISE_WEIGHTS:", np.array2string(beta, precision=3, separator=", ", max_line_width=110))
+        target = PipelineParams().matter.effective_threshold()
+        for (noise, spacing), (xi, nwi, nai, est) in zip(NOISY_TRAINING * args.seeds, rows):
+            before = woodleaf.combined_score(xi, narrow_weights=np.zeros(2 * nf))
+            after = woodleaf.combined_score(xi, narrow_weights=np.zeros(2 * nf), noise=est, noise_weights=beta)
+            print(f"  sigma {noise:g} spacing {spacing:g} (estimated noise {est:.3f}): training wood F1 "
+                  f"{_f1(before, nwi, nai, target):.3f} -> {_f1(after, nwi, nai, target):.3f}")
     return 0
 
 

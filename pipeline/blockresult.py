@@ -132,7 +132,7 @@ def node_wood_score(a: NodeAnalysis, *, params: PipelineParams) -> np.ndarray:
         a.features,
         a.adjacency,
     )
-    return woodleaf.combined_score(x)
+    return woodleaf.combined_score(x, noise=a.ground.noise)
 
 
 def block_result(xyz: np.ndarray, a: NodeAnalysis, *, params: PipelineParams) -> BlockResult:

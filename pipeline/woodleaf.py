@@ -13,7 +13,9 @@ Narrow trees (tall spindles, hedges: a crown radius under about a third of the t
 height) carry a much smaller share of wood than open vase trees, so one threshold
 cannot serve both: their nodes are scored by a second logistic model, fitted on narrow
 forms, and the two scores are blended by the tree's width; the narrowest (tall
-spindles) by a third, fitted on spindles alone.
+spindles) by a third, fitted on spindles alone. Range noise blurs branches into
+scattered shells, so the wide model is corrected by a second set of weights grown with
+the block's estimated ground noise.
 """
 
 from __future__ import annotations
@@ -49,6 +51,24 @@ NODE_FEATURES = len(FEATURES) - 2
 # (seeds 1000+); refit and paste when the features change. The matching threshold is
 # params.COMBINED_THRESHOLD.
 COMBINED_WEIGHTS = np.array([-4.523, 1.337, 3.206, 5.642, 1.075, -1.547, 0.281, 0.045, -0.813, -2.692, 0.0, 0.0])
+#: the wide trees' model's correction for range noise, one weight per node feature, times
+#: :func:`noise_term` of the block's estimated ground noise (``python -m bench.fit_matter
+#: --seeds 2 --models noisy``: vase blocks at sigma 0-0.1 m and spacings 3-8 m, seeds
+#: 1000+, fitted with COMBINED_WEIGHTS held): range noise blurs branches into scattered
+#: shells, so linearity and the smoothed path score weigh differently
+NOISE_WEIGHTS = np.array([ 0.653, -0.439,  0.504,  1.502,  0.311,  0.089,  0.372,  0.171, -0.585, -1.412])
+#: estimated ground noise [m] below which the correction is off: clean scans' estimates
+#: (terrain roughness) stay under it, and the wide model was fitted there
+NOISE_FLOOR = 0.02
+#: ... the noise [m] over which it grows by one NOISE_WEIGHTS ...
+NOISE_SCALE = 0.1
+#: ... and the noise [m] above which it grows no more: the training blocks' estimates
+#: reach 0.11 (sigma 0.1 m), and a scan without a ground plane (a lone real tree) reads
+#: far higher
+NOISE_MAX = 0.12
+#: the correction is for orchard trees (the training vases reach 5.5 m) up to about this
+#: height [m], blended over NARROW_HEIGHT_BLEND: tall forest trees keep the wide model
+NOISE_MAX_HEIGHT = 8.0
 #: weights of the narrow trees' model: one per node feature, then one per node feature
 #: times the tree's width (``python -m bench.fit_matter --seeds 2
 #: --models narrow``, seeds 1000+, the narrow forms only; its bias shifted so that
@@ -214,18 +234,35 @@ def narrowness(width: np.ndarray, height: np.ndarray) -> np.ndarray:
     return _logistic((NARROW_WIDTH - width) / NARROW_BLEND) * _logistic((NARROW_MAX_HEIGHT - height) / NARROW_HEIGHT_BLEND)
 
 
+def noise_term(noise: float) -> float:
+    """Multiplier of NOISE_WEIGHTS for a block's estimated ground ``noise`` [m], >= 0."""
+    return float(np.clip(noise, NOISE_FLOOR, NOISE_MAX) - NOISE_FLOOR) / NOISE_SCALE
+
+
 def combined_score(
-    features: np.ndarray, *, weights: np.ndarray = COMBINED_WEIGHTS, narrow_weights: np.ndarray | None = None,
+    features: np.ndarray,
+    *,
+    weights: np.ndarray = COMBINED_WEIGHTS,
+    narrow_weights: np.ndarray | None = None,
     spindle_weights: np.ndarray | None = None,
+    noise: float = 0.0,
+    noise_weights: np.ndarray = NOISE_WEIGHTS,
 ) -> np.ndarray:
     """Wood probability per node from :func:`wood_features`, (m,) float64 in [0, 1].
 
-    ``weights`` score wide trees; ``narrow_weights`` (default NARROW_WEIGHTS; all zeros:
-    the wide trees' model everywhere) score narrow ones, blended by :func:`narrowness`;
-    among those, ``spindle_weights`` (default SPINDLE_WEIGHTS; all zeros: the narrow
-    model for every narrow tree) score the narrowest, blended by SPINDLE_WIDTH.
+    ``weights`` score wide trees, corrected by ``noise_weights`` for the block's
+    estimated ground ``noise`` [m] (:func:`noise_term`); ``narrow_weights`` (default
+    NARROW_WEIGHTS; all zeros: the wide trees' model everywhere) score narrow ones,
+    blended by :func:`narrowness`; among those, ``spindle_weights`` (default
+    SPINDLE_WEIGHTS; all zeros: the narrow model for every narrow tree) score the
+    narrowest, blended by SPINDLE_WIDTH.
     """
-    wide = _logistic(features @ weights)
+    z = features @ weights
+    k = noise_term(noise)
+    if k > 0:
+        short = _logistic((NOISE_MAX_HEIGHT - features[:, NODE_FEATURES + 1]) / NARROW_HEIGHT_BLEND)
+        z = z + k * short * (features[:, :NODE_FEATURES] @ noise_weights)
+    wide = _logistic(z)
     nw = NARROW_WEIGHTS if narrow_weights is None else narrow_weights
     if not nw.any():
         return wide
