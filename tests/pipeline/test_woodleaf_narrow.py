@@ -6,15 +6,7 @@ import numpy as np
 import pytest
 
 from pipeline import woodleaf
-
-
-def _features(n, width, height, seed=0):
-    rng = np.random.default_rng(seed)
-    x = rng.uniform(0, 1, (n, len(woodleaf.FEATURES)))
-    x[:, 0] = 1.0
-    x[:, woodleaf.NODE_FEATURES] = width
-    x[:, woodleaf.NODE_FEATURES + 1] = height
-    return x
+from woodleaf_inputs import node_features as _features
 
 
 def _wide(x):
