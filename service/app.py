@@ -49,9 +49,9 @@ def create_app(settings: Settings) -> FastAPI:
     store = Store(settings.store_path)
     report_lock = threading.Lock()  # a report is drawn once, whether a request or the runner asks first
 
-    def after_done(job: dict) -> None:
+    def after_done(job: dict, **drawing) -> None:  # drawing: the runner's sample and where it draws (ensure_report)
         with report_lock:
-            ensure_report(store, settings, job)
+            ensure_report(store, settings, job, **drawing)
         tighten(job_dir(settings, job["id"]))  # results are the farm's: whoever wrote them (a remote worker)
 
     app = FastAPI(

@@ -140,6 +140,16 @@ def _jsonable(value: Any) -> Any:
     return value
 
 
+def _on_worker(client) -> Callable[..., Any] | None:
+    """``draw(fn, **kwargs)``: ``fn`` as a task on a worker of ``client`` (None without one),
+    so that the service process never holds what a report reads and draws."""
+    if client is None:
+        return None
+    from workers.dispatch import run_task  # here: dask (~1 s) loads with the first cluster
+
+    return lambda fn, **kwargs: run_task(client, fn, key="orchard-report", **kwargs)
+
+
 class Runner(Background):
     """Runs queued jobs one at a time on a dask client owned by this thread."""
 
@@ -149,7 +159,7 @@ class Runner(Background):
         settings: Settings,
         *,
         client_factory: Callable[[], Any] | None = None,
-        after_done: Callable[[dict], None] | None = None,
+        after_done: Callable[..., None] | None = None,  # (job, sample=..., draw=...): ensure_report's
         on_final: Callable[[dict], None] | None = None,
     ) -> None:
         super().__init__("orchard-runner")
@@ -392,14 +402,16 @@ class Runner(Background):
         Path(spec.out_dir).mkdir(parents=True, exist_ok=True)
         client = self._get_client()
         outcome = run_job(spec, client=client, progress=self._progress(job["id"], cancel), cancel=cancel)
-        return self._record_done(job, outcome, t0)
+        return self._record_done(job, outcome, t0, client)
 
-    def _record_done(self, job: dict[str, Any], outcome, t0: float) -> dict[str, Any]:
+    def _record_done(self, job: dict[str, Any], outcome, t0: float, client=None) -> dict[str, Any]:
         """Keep a finished job's outcome and timings (and a capture's record), delete its
-        tiles, and run the post-processing (the report), whose failure fails no job."""
-        record = _jsonable(outcome)
-        record.pop("trees", None)  # the per-tree table is in trees.parquet
-        record.pop("sample", None)  # points for a report's map, not a record
+        tiles, and run the post-processing (the report: drawn by a task on ``client``'s
+        workers, from the job's sample of its points), whose failure fails no job."""
+        # the per-tree table is in trees.parquet; the sample is points for a report's map, not a record
+        record = _jsonable(dataclasses.replace(outcome, trees=None, sample=None))
+        record.pop("trees", None)
+        record.pop("sample", None)
         timings = dict(record.get("timings") or {})
         timings.setdefault("total", round(time.perf_counter() - t0, 3))
         drop_work(self.settings, job["id"])  # tiles of a finished job are not needed again
@@ -408,7 +420,7 @@ class Runner(Background):
         done = self.store.jobs.finish(job["id"], "done", outcome=record, timings=timings)
         if self._after_done is not None:
             try:
-                self._after_done(done)
+                self._after_done(done, sample=outcome.sample, draw=_on_worker(client))
             except Exception as exc:  # noqa: BLE001 - a report problem does not fail the job
                 log.warning("job %s: post-processing failed: %s", job["id"], exc)
         return done

@@ -238,6 +238,14 @@ def kept(summary: dict, store: WorkStore, tile: dict) -> dict:
     return summary
 
 
+def run_task(client, fn: Callable, *args, key: str, store: WorkStore | None = None, **kwargs):
+    """``fn(*args, **kwargs)`` as one dask task on a worker of ``client`` (its key
+    ``<key>-<token>``), awaited as a job's tasks are (:func:`gather`, without a cancel:
+    a step that publishes outputs runs to its end); what it raises is raised here."""
+    future = client.submit(fn, *args, key=f"{key}-{uuid.uuid4().hex[:8]}", pure=False, **kwargs)
+    return gather(client, [future], None, store)[0]
+
+
 def gather(client, futures: list, cancel, store: WorkStore | None,
            progress: Callable[[int, int], None] | None = None) -> list:
     """The results of dask ``futures`` as they finish (in that order), stopping like

@@ -35,7 +35,7 @@ from pipeline.parquet import sampled_tree_ids
 from pipeline.reading import read_points
 from pipeline.tiling import TileGrid
 from workers.counting import count_block
-from workers.dispatch import block_ground_stats, check_cancel, gather, process_tiles, settle_slot_trees
+from workers.dispatch import block_ground_stats, check_cancel, gather, process_tiles, run_task, settle_slot_trees
 from workers.jobspec import (
     ClusterLost,
     JobCancelled,
@@ -160,6 +160,16 @@ def _stored_sample(store: WorkStore, info: BlockInfo, points_parquet: str) -> di
             "origin": np.asarray(info.origin, dtype=np.float64), "max_points": REPORT_POINTS}
 
 
+def merged_outcome(store: WorkStore, info: BlockInfo, record: dict, index: dict, summaries: list[dict],
+                   failed: list[int]) -> JobOutcome:
+    """The task that ends a tiled job: :func:`workers.replay.merge_stored` of its work
+    store (the outputs written) and the report map's sample (:func:`_stored_sample`)."""
+    outcome = merge_stored(store, record, index, summaries, failed)
+    if outcome.sample is None and outcome.outputs.get("points"):
+        outcome.sample = _stored_sample(store, info, outcome.outputs["points"])
+    return outcome
+
+
 def _job_record(spec: JobSpec, info: BlockInfo, grid: TileGrid, work: str) -> dict:
     """What the work store keeps of a tiled job to resume it or re-run a tile: the job's
     parameters whole (:func:`workers.jobspec.stored_job` reads them back) and its grid."""
@@ -227,9 +237,11 @@ def _run_tiled_locked(spec, info, client, t0, progress, cancel, grid, store, tim
             record["failed_tiles"] = sorted(failed)
             store.put_json(JOB_KEY, record)
         t = time.perf_counter()
-        outcome = merge_stored(store, record, index, summaries, sorted(failed))
-        if outcome.sample is None and outcome.outputs.get("points"):
-            outcome.sample = _stored_sample(store, info, outcome.outputs["points"])
+        if client is None:
+            outcome = merged_outcome(store, info, record, index, summaries, sorted(failed))
+        else:  # the merge streams every point's labels: a worker's memory, not the submitting process's
+            outcome = run_task(client, merged_outcome, store, info, record, index, summaries, sorted(failed),
+                               key="orchard-merge", store=store)
         timings["merge_write"] = time.perf_counter() - t
         timings["total"] = time.perf_counter() - t0
         timings.update(outcome.timings)  # the merge's own (seasons)

@@ -8,6 +8,7 @@ The API and the browser's pages use the same rules.
 
 from __future__ import annotations
 
+from collections.abc import Callable
 from datetime import datetime
 from pathlib import Path
 
@@ -50,9 +51,16 @@ def require_output(path: Path, what: str) -> Path:
     return path
 
 
-def ensure_report(store: Store, settings: Settings, job: dict) -> Path:
+def ensure_report(store: Store, settings: Settings, job: dict, *, sample: dict | None = None,
+                  draw: Callable[..., Path] | None = None) -> Path:
     """``report.html`` (and ``map.png``) of a finished job, both written again if either is
-    missing (a lost ``map.png`` beside its report would fail every request for either)."""
+    missing (a lost ``map.png`` beside its report would fail every request for either).
+
+    ``sample``: the map's points, if the job kept them (``workers.jobspec.JobOutcome.sample``);
+    else they are read from the block and ``points.parquet``. ``draw(write_report, **its
+    arguments)``: where the report is drawn (the runner's: a task on a dask worker, as it
+    reads the block's points and loads matplotlib); by default in this process.
+    """
     out = job_dir(settings, job["id"])
     html_path = out / "report.html"
     if html_path.exists() and (out / "map.png").exists():
@@ -83,7 +91,8 @@ def ensure_report(store: Store, settings: Settings, job: dict) -> Path:
         failed = ", ".join(str(t) for t in outcome.get("failed_tiles") or []) or "some"
         warning = (f"Partial result: tile(s) {failed} of this block failed. Trees standing in them are missing "
                    "from this report and the downloads, and their points are in no tree.")
-    return reports.write_report(
+    return (draw or _here)(
+        reports.write_report,
         block_path=block["path"],
         trees_parquet=require_output(trees, "trees.parquet"),
         points_parquet=require_output(points, "points.parquet"),
@@ -91,4 +100,9 @@ def ensure_report(store: Store, settings: Settings, job: dict) -> Path:
         title=f"Orchard report — {job_block_name(job, block) or block['id']}",
         summary=summary,
         warning=warning,
+        sample=sample,
     )
+
+
+def _here(fn: Callable[..., Path], **kwargs) -> Path:
+    return fn(**kwargs)

@@ -51,7 +51,7 @@ def test_done_records_outcome_and_progress(env, monkeypatch):
     monkeypatch.setattr(workers_job, "run_job", fake)
     job = _queue(store, tenant, block, {"tile_size": 20.0, "buffer": None})
     after = []
-    done = Runner(store, settings, client_factory=lambda: None, after_done=after.append).run_job(job)
+    done = Runner(store, settings, client_factory=lambda: None, after_done=lambda job, **_: after.append(job)).run_job(job)
     assert done["state"] == "done" and done["tiles_done"] == 3 and done["tiles_total"] == 3
     assert seen == [0, 1, 2, 3]
     assert done["outcome"]["n_trees"] == 3 and "trees" not in done["outcome"]
