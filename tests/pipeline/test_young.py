@@ -142,7 +142,7 @@ def test_grass_carries_no_paths_beyond_a_trunks_foot():
 def test_a_stem_of_its_own_is_never_a_neighbours_satellite():
     # two groups 1.5 m apart, one draining a quarter of the other: a satellite by
     # catchment, unless it stands on a stem of its own
-    from pipeline.trunks import _accept, _own_stems
+    from pipeline.neighbours import accept as _accept, own_stems as _own_stems
 
     xy = np.array([[0.0, 0.0], [1.5, 0.0]])
     support = np.array([4000.0, 1000.0])
