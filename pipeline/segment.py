@@ -131,9 +131,14 @@ def tree_reach(nodes: np.ndarray, node_height: np.ndarray, trunk_xy: np.ndarray,
     buffer). The height is that of the highest node within HEIGHT_ZONE of the trunk.
     """
     height = np.zeros(trunk_xy.shape[0])
-    if trunk_xy.shape[0] and nodes.shape[0]:
-        near = cKDTree(nodes[:, :2]).query_ball_point(trunk_xy, HEIGHT_ZONE)
-        height = np.array([node_height[i].max() if len(i) else 0.0 for i in near])
+    # only nodes tall enough to reach beyond crown_radius can change a reach (none when
+    # the cap allows no more, as by default): the search skips the rest of the block
+    tall = np.zeros(0, np.int64)
+    if params.crown_per_height > 0 and params.max_crown_radius > params.crown_radius:
+        tall = np.flatnonzero(node_height > params.crown_radius / params.crown_per_height)
+    if trunk_xy.shape[0] and tall.size:
+        near = cKDTree(nodes[tall, :2]).query_ball_point(trunk_xy, HEIGHT_ZONE)
+        height = np.array([node_height[tall[i]].max() if len(i) else 0.0 for i in near])
     reach = np.maximum(params.crown_radius, params.crown_per_height * height)
     return np.minimum(reach, params.max_crown_radius)
 
