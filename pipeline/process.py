@@ -298,16 +298,14 @@ def _flat_patches(g: _NodeGraph, planar: np.ndarray, min_face: int, *,
     return patch, size
 
 
-def _mostly_blurred(patch: np.ndarray, size: np.ndarray, sharp: np.ndarray, flat: np.ndarray | None = None) -> np.ndarray:
+def _mostly_blurred(patch: np.ndarray, size: np.ndarray, sharp: np.ndarray, flat: np.ndarray) -> np.ndarray:
     """``patch`` (m,) without the patches of which more than BLURRED_MAX_SHARP are
-    ``sharp`` (m,) bool nodes, nor those not ``flat`` (c,) bool, if given (-1 for their nodes)."""
+    ``sharp`` (m,) bool nodes, nor those not ``flat`` (c,) bool (-1 for their nodes)."""
     on = patch >= 0
     if not on.any():
         return patch
     n_sharp = np.bincount(patch[on], weights=sharp[on].astype(np.float64), minlength=size.shape[0])
-    drop = n_sharp > BLURRED_MAX_SHARP * np.maximum(size, 1)
-    if flat is not None:
-        drop |= ~flat
+    drop = (n_sharp > BLURRED_MAX_SHARP * np.maximum(size, 1)) | ~flat
     return np.where(on & drop[np.maximum(patch, 0)], -1, patch)
 
 

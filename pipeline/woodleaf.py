@@ -229,9 +229,14 @@ def narrow_features(features: np.ndarray) -> np.ndarray:
     return np.column_stack([base, base * width])
 
 
+def _shorter_than(height: np.ndarray, limit: float) -> np.ndarray:
+    """Trees under ``limit`` [m]: 1 well below it, 0 well above, blended over NARROW_HEIGHT_BLEND."""
+    return _logistic((limit - height) / NARROW_HEIGHT_BLEND)
+
+
 def narrowness(width: np.ndarray, height: np.ndarray) -> np.ndarray:
     """Weight of the narrow trees' model for trees of ``width`` and ``height`` [m], (m,) in [0, 1]."""
-    return _logistic((NARROW_WIDTH - width) / NARROW_BLEND) * _logistic((NARROW_MAX_HEIGHT - height) / NARROW_HEIGHT_BLEND)
+    return _logistic((NARROW_WIDTH - width) / NARROW_BLEND) * _shorter_than(height, NARROW_MAX_HEIGHT)
 
 
 def noise_term(noise: float) -> float:
@@ -260,7 +265,7 @@ def combined_score(
     z = features @ weights
     k = noise_term(noise)
     if k > 0:
-        short = _logistic((NOISE_MAX_HEIGHT - features[:, NODE_FEATURES + 1]) / NARROW_HEIGHT_BLEND)
+        short = _shorter_than(features[:, NODE_FEATURES + 1], NOISE_MAX_HEIGHT)
         z = z + k * short * (features[:, :NODE_FEATURES] @ noise_weights)
     wide = _logistic(z)
     nw = NARROW_WEIGHTS if narrow_weights is None else narrow_weights

@@ -127,10 +127,11 @@ def test_mostly_sharp_patches_are_left_to_the_strict_test():
     patch = np.array([0, 0, 0, 0, 0, 1, 1, 1, 1, 1, -1])
     size = np.array([5, 5])
     sharp = np.array([1, 1, 1, 0, 0, 1, 0, 0, 0, 0, 1], bool)  # 3 of 5, 1 of 5
+    flat = np.ones(2, bool)
     assert 0.2 <= BLURRED_MAX_SHARP < 0.6
-    out = _mostly_blurred(patch, size, sharp)
+    out = _mostly_blurred(patch, size, sharp, flat)
     assert (out[:5] == -1).all() and (out[5:10] == 1).all() and out[10] == -1
-    assert (_mostly_blurred(patch, size, np.zeros(11, bool)) == patch).all()
+    assert (_mostly_blurred(patch, size, np.zeros(11, bool), flat) == patch).all()
     # a patch whose normals do not point one way is no face either
     out = _mostly_blurred(patch, size, np.zeros(11, bool), np.array([True, False]))
     assert (out[:5] == 0).all() and (out[5:] == -1).all()
