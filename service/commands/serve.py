@@ -104,7 +104,7 @@ def run(args: argparse.Namespace) -> int:
     # here, not at the top: `orchard --help` imports every command module (see service.commands)
     import uvicorn
 
-    from service.app import create_app
+    from service.app import create_app, warm_routes
     from service.settings import build_settings
 
     settings = build_settings(
@@ -131,6 +131,7 @@ def run(args: argparse.Namespace) -> int:
     sock = bind(settings.host, settings.port)
     try:
         app = create_app(settings)
+        warm_routes(app)
     except BaseException:
         sock.close()
         raise

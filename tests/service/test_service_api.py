@@ -25,6 +25,24 @@ def test_healthz_needs_no_token(api):
     assert r.json()["status"] == "ok" and r.json()["cluster"] == "disabled"  # this server runs no jobs
 
 
+def test_warmed_routes_still_route(tmp_path):
+    # orchard serve matches a path no route has before it listens (FastAPI builds its
+    # routers' models on first use); every route must still answer as before
+    from fastapi.testclient import TestClient
+
+    from service.app import create_app, warm_routes
+    from service.settings import Settings
+
+    app = create_app(Settings(data_dir=tmp_path / "data", runner=False, scheduling=False))
+    warm_routes(app)
+    warm_routes(app)  # twice: a restart of the same app object changes nothing
+    with TestClient(app) as client:
+        assert client.get("/healthz").status_code == 200
+        assert client.get("/v1/jobs").status_code == 401
+        missing = client.get("/no-such-page")
+        assert missing.status_code == 404 and "detail" in missing.json()
+
+
 def test_openapi_and_docs(api):
     spec = api.get("/openapi.json").json()
     for path in ("/v1/blocks", "/v1/jobs", "/v1/jobs/{job_id}/report", "/v1/schedules/{schedule_id}/run"):
