@@ -199,3 +199,26 @@ def test_settling_a_streamed_index_takes_the_tiles_counts_and_drops_the_empty_on
     assert [t["n_core"] for t in settled["tiles"]] == [30, 50] and settled["estimated"]
     plain = dict(idx, engine="laspy")
     assert settle_index(store, plain, summaries, {}, 5) == (plain, summaries)
+
+
+@pytest.mark.slow
+def test_a_streamed_job_stopped_at_its_first_tile_resumes_to_the_same_outputs(tmp_path):
+    # a COPC job has no written tiles to resume from: its work store keeps the tiles'
+    # index and the resumed tiles read their points from the input again
+    from workers.replay import resume_job
+    from workers.jobspec import TileFailed
+
+    tiling = TilingParams(tile_size=10.0)
+    whole = run_job(JobSpec(str(COPC), str(tmp_path / "whole"), job=JobParams(tiling=tiling)))
+    work = tmp_path / "work"
+    with pytest.raises(TileFailed):
+        run_job(JobSpec(str(COPC), str(tmp_path / "stopped"), work_dir=str(work), job=JobParams(tiling=tiling),
+                        inject_failure=(0,)))
+    store = WorkStore(str(work))
+    assert not store.exists("results/000000/summary.pkl")
+    assert not any("/part-" in k for k in store.list("tiles"))  # nothing of the block was written to resume from
+    resumed = resume_job(str(work), out_dir=str(tmp_path / "stopped"))
+    assert resumed.n_trees == whole.n_trees >= 5
+    a, b = _outputs(tmp_path / "whole"), _outputs(tmp_path / "stopped")
+    for name in a:
+        assert a[name].equals(b[name]), name
