@@ -257,10 +257,22 @@ def combine_partials(parts: list[TreePartials], id_maps: list[np.ndarray]) -> Tr
 
 
 def _area_and_diameter(v: np.ndarray) -> tuple[float, float]:
+    """Area [m²] and average spread [m] of the plan-view crown hull with vertices ``v`` (h, 2).
+
+    The average spread is the mean of the longest spread (the two vertices farthest
+    apart) and the spread at right angles to it, as foresters and arborists measure a
+    crown's diameter (the mean of the widest spread and the one across it): one twig
+    reaching out moves it by half its reach, and a crown cut by its neighbours in a row
+    reads as the mean of its width across the row and its share along it.
+    """
     if len(v) < 2:
         return 0.0, 0.0
     diff = v[:, None, :] - v[None, :, :]
-    diameter = float(np.sqrt((diff**2).sum(-1)).max())
+    dist = np.sqrt((diff**2).sum(-1))
+    a, b = np.unravel_index(dist.argmax(), dist.shape)
+    longest = float(dist[a, b])
+    across = v @ np.array([v[a, 1] - v[b, 1], v[b, 0] - v[a, 0]]) / max(longest, 1e-300)
+    diameter = 0.5 * (longest + float(across.max() - across.min()))
     if len(v) < 3:
         return 0.0, diameter
     try:

@@ -24,6 +24,16 @@ RIM_ROUNDS = 10
 #: trunk, whatever tree that node is given to: within PATH_MARGIN, so a tile holds all of
 #: them for every trunk whose material can reach its core (tiled equals untiled)
 HEIGHT_ZONE = 1.0
+#: a fragment the search did not reach joins a tree only if its nearest node lies within
+#: this many times the tree's reached crown radius (its farthest reached node from its
+#: trunk, horizontally) of the trunk: a sparse crown's own fragments start within 1.42
+#: times it (the AdTree row), a fence wire or a post's top beside a hedge 3.4-4.7 times
+#: (docs/limits.md)
+FRAGMENT_SPREAD = 2.0
+#: the reached crown radius counts as at least this [m] for FRAGMENT_SPREAD: a tree whose
+#: search reached little more than its trunk (a sparse scan) still takes the fragments of
+#: its crown
+MIN_REACHED_RADIUS = 1.0
 #: a trunk's circle for its foot is fitted to its points in a slice this thick [m] just
 #: above the ground layer
 FOOT_SLICE = 0.25
@@ -70,7 +80,9 @@ def segment_nodes(
     separate object (fence post, vehicle, grass) and only its nodes within
     ``unreached_radius`` of a tree join it, and so does a floating fragment that
     touched an excluded node (what is left of a vehicle or a bin once its faces are cut
-    out: its roof, its edges). Either way within the tree's reach.
+    out: its roof, its edges). Either way within the tree's reach, and within
+    ``FRAGMENT_SPREAD`` times the radius of the tree's reached crown of its trunk (a
+    fence wire beside a row's end tree is no part of it).
     Fragments smaller than ``min_fragment`` nodes are outliers and stay unlabelled,
     unless they float within ``fragment_reach`` of a labelled node (sparse leaves at the
     crown's rim, which the scanner saw only once), or of such a fragment that has joined
@@ -180,6 +192,31 @@ def _join_nearest(nodes, node_tree, trunk_xy, cand: np.ndarray, lab: np.ndarray,
     return cand[hit][ok]
 
 
+def _reached_radius(nodes: np.ndarray, node_tree: np.ndarray, trunk_xy: np.ndarray) -> np.ndarray:
+    """Farthest labelled node of each tree from its trunk, horizontally [m], at least
+    MIN_REACHED_RADIUS, (k,) float64."""
+    out = np.full(trunk_xy.shape[0], MIN_REACHED_RADIUS)
+    idx = np.flatnonzero(node_tree > 0)
+    t = node_tree[idx] - 1
+    np.maximum.at(out, t, np.hypot(*(nodes[idx, :2] - trunk_xy[t]).T))
+    return out
+
+
+def _drop_far_fragments(nodes, node_tree, joined: np.ndarray, comp: np.ndarray, trunk_xy, limit: np.ndarray) -> np.ndarray:
+    """Unlabel (in ``node_tree``, in place) the ``joined`` nodes of each fragment (``comp``
+    of each node) whose nearest node to the trunk of the tree they joined lies farther
+    than ``limit`` [tree - 1] [m] from it, horizontally; returns the nodes that stay."""
+    t = node_tree[joined] - 1
+    d = np.hypot(*(nodes[joined, :2] - trunk_xy[t]).T)
+    _, part = np.unique(np.c_[comp[joined], t], axis=0, return_inverse=True)
+    part = part.ravel()
+    nearest = np.full(part.max(initial=-1) + 1, np.inf)
+    np.minimum.at(nearest, part, d)
+    far = nearest[part] > limit[t]
+    node_tree[joined[far]] = 0
+    return joined[~far]
+
+
 def _beside_excluded(graph: sparse.csr_matrix, exclude: np.ndarray) -> np.ndarray:
     """Nodes not in ``exclude`` with an edge to one that is, (m,) bool."""
     touch = np.asarray(graph @ exclude.astype(np.float64)).ravel() > 0
@@ -209,8 +246,11 @@ def _label_unreached(nodes, graph, node_tree, trunk_xy, node_height, reach: np.n
     big = np.bincount(comp)[comp] >= params.min_fragment
     # a small fragment is an outlier unless it floats right beside a tree (a lone leaf at the rim)
     bound = np.where(big, bound, np.where(floating, params.fragment_reach, -1.0))
+    spread = FRAGMENT_SPREAD * _reached_radius(nodes, node_tree, trunk_xy)
     joined = _join_nearest(nodes, node_tree, trunk_xy, todo, np.flatnonzero(labelled), bound,
                            max(widest, params.unreached_radius), reach)
+    joined = _drop_far_fragments(nodes, node_tree, joined, np.bincount(todo, comp + 1, node_tree.size).astype(np.int64) - 1,
+                                 trunk_xy, spread)
     # small floating fragments also join through fragments that have just joined (a
     # sparsely scanned crown's rim: a chain of lone leaves). The nodes labelled before
     # a round are all beyond fragment_reach of the rest, so each round only searches

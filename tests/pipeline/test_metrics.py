@@ -136,6 +136,25 @@ def test_a_flat_part_of_a_crown_in_another_tile_keeps_its_hull(flat):
         assert two[key][0] == pytest.approx(one[key][0], rel=1e-9), key
 
 
+def _crown_diameter(xy: np.ndarray) -> float:
+    xyz = np.c_[xy, np.full(len(xy), 2.0)]
+    parts = tree_partials(xyz, np.ones(len(xy), np.int64), np.zeros(len(xy), bool), np.zeros(1), params=MetricsParams())
+    return finalize_metrics(parts, np.zeros((1, 3)), np.array([np.nan]))["crown_diameter_m"][0]
+
+
+def test_crown_diameter_is_the_average_of_the_longest_spread_and_the_one_across_it():
+    a = np.linspace(0, 2 * np.pi, 720, endpoint=False)
+    turn = np.deg2rad(30)
+    x, y = 2 * np.cos(a), np.sin(a)  # an ellipse 4 m x 2 m, turned by 30 degrees
+    ellipse = np.c_[x * np.cos(turn) - y * np.sin(turn), x * np.sin(turn) + y * np.cos(turn)]
+    assert _crown_diameter(ellipse) == pytest.approx(3.0, abs=1e-3)
+    # a round crown 2 m across with one twig reaching 0.6 m past its rim: the twig adds
+    # half its reach (the largest extent would read 2.6 m)
+    disc = np.c_[np.cos(a), np.sin(a)]
+    assert _crown_diameter(disc) == pytest.approx(2.0, abs=1e-3)
+    assert _crown_diameter(np.r_[disc, [[1.6, 0.0]]]) == pytest.approx(2.3, abs=1e-3)
+
+
 def _cloud(seed: int, shape: str, n: int) -> np.ndarray:
     rng = np.random.default_rng(seed)
     if shape == "ball":

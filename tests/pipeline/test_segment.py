@@ -2,6 +2,7 @@
 
 import numpy as np
 import pytest
+from scipy.sparse import csgraph
 
 from pipeline.graph import build_graph
 from pipeline.params import SegmentParams
@@ -197,6 +198,36 @@ def test_a_chain_of_lone_leaves_joins_link_by_link_but_not_across_a_gap():
     assert (tree[27:] == 0).all()  # tufts on the ground do not chain (only the first is within reach: too low)
     tree = segment_nodes(nodes, graph, params=SegmentParams(fragment_reach=0.3, max_crown_radius=1.1), **kw).node_tree
     assert (tree[20:24] == 1).all() and (tree[24:26] == 0).all()  # never past the crown radius
+
+
+def _hedge_tree_and_wire(arm: float):
+    """A trunk (0-1.9 m) with four limbs ``arm`` m long at 1.5 m; a fence wire (1.0 m high,
+    1.5 m long, 15 nodes, touching nothing) 3 m to one side, along the row; and a tuft of
+    the crown (5 nodes at 1.8 m) floating 1.4 m from the trunk on the other side."""
+    trunk = np.column_stack([np.zeros(20), np.zeros(20), np.arange(20) * 0.1])
+    r = np.arange(1, int(round(arm * 10)) + 1) * 0.1
+    limbs = np.vstack([np.column_stack([sx * r if ax == 0 else 0 * r, sx * r if ax == 1 else 0 * r, np.full(r.size, 1.5)])
+                       for ax in (0, 1) for sx in (-1, 1)])
+    wire = np.column_stack([np.arange(15) * 0.1 - 1.0, np.full(15, -3.0), np.full(15, 1.0)])
+    tuft = np.column_stack([np.full(5, 0.1), 1.4 + np.arange(5) * 0.1, np.full(5, 1.8)])
+    nodes = np.vstack([trunk, limbs, wire, tuft])
+    part = np.repeat(np.arange(4), [len(trunk), len(limbs), len(wire), len(tuft)])
+    return nodes, part
+
+
+def test_a_wire_beside_a_row_end_does_not_join_the_tree_its_crown_fragments_do():
+    kw = dict(source_nodes=np.array([0]), source_trunk=np.array([0]), trunk_xy=np.zeros((1, 2)))
+    nodes, part = _hedge_tree_and_wire(arm=1.0)
+    graph = build_graph(nodes, radius=0.15)
+    assert csgraph.connected_components(graph)[0] == 3  # the tree, the wire, the tuft
+    tree = segment_nodes(nodes, graph, node_height=nodes[:, 2], params=SegmentParams(), **kw).node_tree
+    assert (tree[part <= 1] == 1).all()
+    assert (tree[part == 2] == 0).all()  # 3 m off: three times as far as the crown reaches
+    assert (tree[part == 3] == 1).all()  # the crown's own tuft joins, beyond the reached crown
+    # a crown that reaches 1.6 m takes floating material out to 3.2 m: the rule is relative
+    nodes, part = _hedge_tree_and_wire(arm=1.6)
+    tree = segment_nodes(nodes, build_graph(nodes, radius=0.15), node_height=nodes[:, 2], params=SegmentParams(), **kw).node_tree
+    assert (tree[part == 2] == 1).all()
 
 
 def _trunk_on_ground(radius=0.1, noise=0.0, seed=0):
