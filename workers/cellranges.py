@@ -133,7 +133,7 @@ def split_in_order(info: BlockInfo, cells: TileGrid, store: WorkStore, chunk_poi
 
 
 def split_block(info: BlockInfo, origin, store: WorkStore, *, voxel_size: float | None, client=None,
-                gather=None) -> tuple[DensitySample, TileGrid, list[dict]]:
+                gather=None, progress=None) -> tuple[DensitySample, TileGrid, list[dict]]:
     """Decode the block ``info`` once into ranges sorted by cell (:func:`split_range`, one
     task per :data:`pipeline.chunks.CHUNK_POINTS` points on ``client``'s workers, one task
     for a file that cannot be entered in the middle, or in this process without a client)
@@ -146,7 +146,10 @@ def split_block(info: BlockInfo, origin, store: WorkStore, *, voxel_size: float 
     voxel_size : float or None
         As :func:`pipeline.reading.count_range`'s.
     gather : callable, optional
-        ``gather(futures)`` → their results, in any order (default ``client.gather``).
+        ``gather(futures, progress)`` → their results, in any order, calling
+        ``progress(done, total)`` as each is, when given (default ``client.gather``).
+    progress : callable (ranges split, ranges), optional
+        Handed to ``gather`` when there is more than one range.
 
     Returns
     -------
@@ -171,7 +174,10 @@ def split_block(info: BlockInfo, origin, store: WorkStore, *, voxel_size: float 
         else:
             futures = [client.submit(split_in_order, info, cells, store, CHUNK_POINTS, voxel_size,
                                      key=f"split-all-{store.url}", pure=False)]
-        parts = (gather or client.gather)(futures)
+        if gather is None:
+            parts = client.gather(futures)
+        else:
+            parts = gather(futures, progress if len(futures) > 1 else None)
         if not info.seekable:
             parts = parts[0]
     sample = sample_from_ranges(info, [p.pop("density") for p in parts])

@@ -63,6 +63,8 @@ def run_job(
     progress: Callable[[int, int], None] | None = None,
     cancel: threading.Event | None = None,
     points: np.ndarray | None = None,
+    on_tiles: Callable[[JobSpec], None] | None = None,
+    counting: Callable[[int, int], None] | None = None,
 ) -> JobOutcome:
     """Process one block.
 
@@ -79,6 +81,11 @@ def run_job(
         The block's local coordinates, read already by :func:`workers.jobspec.budgeted`,
         which kept it whole: a job in this process uses them instead of reading the file
         again, and does not run the memory budget a second time.
+    on_tiles : callable (spec), optional
+        Told the job's spec with the tile size its memory budget chose, when the job
+        counted its block itself (:func:`splits_while_counting`).
+    counting : callable (ranges counted, ranges), optional
+        Progress of that count, as each range is (for more than one).
 
     Raises
     ------
@@ -88,7 +95,8 @@ def run_job(
     info = read_info(spec.input_path)
     if client is not None:  # its workers count the block, each its own ranges of the file
         if splits_while_counting(spec, info):  # and split it by cell in the same pass
-            return _run_tiled(spec, info, client, t0, progress, cancel, split=True)
+            return _run_tiled(spec, info, client, t0, progress, cancel, split=True, on_tiles=on_tiles,
+                              counting=counting)
         spec = auto_tiled(spec, info, count=partial(count_block, client=client, cancel=cancel))
     elif points is None:  # counted here: a block that stays whole is then decoded once, not twice
         spec, points = budgeted(spec, info)
@@ -200,7 +208,8 @@ def splits_while_counting(spec: JobSpec, info: BlockInfo) -> bool:
             and not info.copc and spec.run.engine == "laspy")
 
 
-def _run_tiled(spec, info, client, t0, progress, cancel, *, split: bool = False) -> JobOutcome:
+def _run_tiled(spec, info, client, t0, progress, cancel, *, split: bool = False, on_tiles=None,
+               counting=None) -> JobOutcome:
     """A tiled job; ``split``: its tile size is chosen from the count of the same pass
     that splits the block (:func:`splits_while_counting`), its grid planned then."""
     timings = {}
@@ -216,7 +225,8 @@ def _run_tiled(spec, info, client, t0, progress, cancel, *, split: bool = False)
         with store.lock():  # one job per work store: another would delete this one's tiles
             store.remove()  # an earlier job's tiles and results there must not mix with this job's
             store.claim()  # refused if the folder holds anything that is not a work store's
-            return _run_tiled_locked(spec, info, client, t0, progress, cancel, grid, store, timings)
+            return _run_tiled_locked(spec, info, client, t0, progress, cancel, grid, store, timings, on_tiles,
+                                     counting)
     finally:
         for folder in made:  # folders this run made for its outputs and left empty
             if not folder.is_dir() or any(folder.iterdir()):
@@ -224,19 +234,23 @@ def _run_tiled(spec, info, client, t0, progress, cancel, *, split: bool = False)
             folder.rmdir()
 
 
-def _run_tiled_locked(spec, info, client, t0, progress, cancel, grid, store, timings) -> JobOutcome:
+def _run_tiled_locked(spec, info, client, t0, progress, cancel, grid, store, timings, on_tiles=None,
+                      counting=None) -> JobOutcome:
     keep_work = False
     try:
         check_cancel(cancel)
 
-        def wait(futures):
-            return gather(client, futures, cancel, store)
+        def wait(futures, progress=None):
+            return gather(client, futures, cancel, store, progress)
 
         split = None
         if grid is None:  # one pass over the file counts it and writes its points once, sorted by cell
             sample, cells, parts = split_block(info, grid_origin(spec.tiling, info), store,
-                                               voxel_size=spec.params.graph.voxel_size, client=client, gather=wait)
+                                               voxel_size=spec.params.graph.voxel_size, client=client,
+                                               gather=wait, progress=counting)
             spec = auto_tiled(spec, info, count=lambda info, voxel_size: sample)
+            if on_tiles:
+                on_tiles(spec)
             grid = plan_tiles(spec.job, info)
             check_engine(spec.run.engine, grid)
             split = (cells, parts) if aligned(grid, cells) else None
