@@ -17,6 +17,10 @@ the index, and each tile's task reads the nodes its box meets from the input
 (:func:`source_tile`), so no pass over the block comes before the first tile and no
 tile is written. Its tiles' counts are estimates until the tiles ran
 (:func:`settle_index`).
+
+A plain block that a job counts to choose its tile size is not split here either: the
+pass that counts it writes its points once, sorted by cell, and each tile gathers its
+own (:mod:`workers.cellranges`, engine :data:`CELLS_ENGINE`).
 """
 
 from __future__ import annotations
