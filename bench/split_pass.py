@@ -22,6 +22,7 @@ import argparse
 import os
 import shutil
 import time
+import tracemalloc
 from pathlib import Path
 
 import numpy as np
@@ -90,11 +91,23 @@ def main(argv=None) -> int:
     assert [(t["id"], t["n_core"]) for t in idx_new["tiles"]] == [
         (t["id"], t["n_core"]) for t in idx_old["tiles"] if t["n_core"]]
     if args.check:
-        (_, c_gather, _) = _timed(lambda: [np.testing.assert_array_equal(gather_tile(new, idx_new, t["id"]),
-                                                                         read_tile(old, t["id"]))
-                                           for t in idx_old["tiles"]])
-        print(f"\nevery tile gathered equals the tile written ({len(idx_old['tiles'])} tiles; gathering them all: "
-              f"{c_gather:.1f} s CPU)")
+        tiles = [t["id"] for t in idx_old["tiles"]]
+        gathered, c_gather, w_gather = _timed(lambda: [gather_tile(new, idx_new, t) for t in tiles])
+        written, c_read, w_read = _timed(lambda: [read_tile(old, t) for t in tiles])
+        for t, a, b in zip(tiles, gathered, written):
+            np.testing.assert_array_equal(a, b, err_msg=f"tile {t}")
+        del gathered, written
+        largest = max(idx_old["tiles"], key=lambda t: t["n_buffered"])
+        peaks = []
+        for read in (lambda: gather_tile(new, idx_new, largest["id"]), lambda: read_tile(old, largest["id"])):
+            tracemalloc.start()
+            read()
+            peaks.append(tracemalloc.get_traced_memory()[1])
+            tracemalloc.stop()
+        print(f"\nevery tile gathered from the split equals the tile written ({len(tiles)} tiles). Reading them "
+              f"all once: gathered {c_gather:.1f} s CPU ({w_gather:.1f} s wall), written tiles {c_read:.1f} s CPU "
+              f"({w_read:.1f} s wall); the largest ({largest['n_buffered']:,} points) allocates at most "
+              f"{peaks[0] / 2**20:,.0f} MiB gathered, {peaks[1] / 2**20:,.0f} MiB read (tracemalloc)")
     shutil.rmtree(args.work, ignore_errors=True)
     return 0
 

@@ -19,7 +19,6 @@ reads the cells its buffered box meets from the ranges whose cells do
 from __future__ import annotations
 
 import math
-from types import SimpleNamespace
 
 import numpy as np
 
@@ -28,7 +27,7 @@ from pipeline.budget import DensitySample
 from pipeline.chunks import CHUNK_POINTS
 from pipeline.mapsample import first_sampled, sample_stride
 from pipeline.reading import check_bounds, count_ints, iter_raw, read_raw_range, sample_from_ranges, to_local
-from pipeline.tiling import TileGrid, buffered_tiles, core_tile
+from pipeline.tiling import TileGrid, core_tile, in_buffered
 from workers.tiler import (
     CELLS_ENGINE,
     SAMPLE_KEY,
@@ -286,13 +285,15 @@ def gather_tile(store: WorkStore, frame: dict, tile_id: int) -> np.ndarray:
     """
     # Strategy: the cells that can hold a point of the tile's buffered box are read from
     # each range whose cells meet them (a run of cells per row); the tiler's own tests
-    # (core_tile, buffered_tiles) then keep exactly the tile's points, and each range's
-    # points back in their file order (ranges are disjoint and taken in file order).
+    # (core_tile, and buffered_tiles' box for one tile) then keep exactly the tile's
+    # points, and each range's back in file order (ranges are disjoint and taken in
+    # file order): memory is one range's cells at a time and the tile's records.
     grid = TileGrid.from_dict(frame["grid"])
     cells = TileGrid.from_dict(frame["cells"])
     span = _cell_span(read_box(grid, tile_id), cells)
     c0, c1, r0, r1 = span
-    ints, index = [], []
+    scale, offset = np.asarray(frame["scales"][:2]), np.asarray(frame["offsets"][:2])
+    parts = []
     for r in frame["ranges"]:
         box = r["box"]
         if box is None or box[2] < c0 or box[0] > c1 or box[3] < r0 or box[1] > r1:
@@ -302,19 +303,16 @@ def gather_tile(store: WorkStore, frame: dict, tile_id: int) -> np.ndarray:
         offsets = store.get_array(f"{key}/offsets.npy")
         a, z = _row_runs(ids, cells, span)
         rec = _read_runs(store.open_array(f"{key}/points.npy"), offsets[a], offsets[z])
-        rec = rec[np.argsort(rec["at"], kind="stable")]
-        ints.append(np.column_stack([rec["X"], rec["Y"], rec["Z"]]))
-        index.append(rec["at"].astype(np.uint64) + np.uint64(r["start"]))
-    if not ints:
-        return np.zeros(0, dtype=TILE_DTYPE)
-    ints, index = np.concatenate(ints), np.concatenate(index)
-    xy = absolute_xy(ints, SimpleNamespace(scales=tuple(frame["scales"]), offsets=tuple(frame["offsets"])))
-    core = core_tile(xy, grid)
-    p, t = buffered_tiles(xy, grid, core=core)
-    sel = p[t == tile_id]  # ascending
-    del p, t, xy
-    out = np.empty(sel.size, dtype=TILE_DTYPE)
-    out["X"], out["Y"], out["Z"] = ints[sel, 0], ints[sel, 1], ints[sel, 2]
-    out["index"] = index[sel]
-    out["core"] = core[sel] == tile_id
-    return out
+        # absolute x, y as workers.tiler.absolute_xy computes them
+        xy = np.column_stack([rec["X"], rec["Y"]]) * scale + offset
+        core = core_tile(xy, grid)
+        keep = in_buffered(xy, grid, tile_id, core=core)
+        del xy
+        rec, core = rec[keep], core[keep]
+        order = np.argsort(rec["at"], kind="stable")
+        out = np.empty(len(rec), dtype=TILE_DTYPE)
+        out["X"], out["Y"], out["Z"] = rec["X"][order], rec["Y"][order], rec["Z"][order]
+        out["index"] = rec["at"][order].astype(np.uint64) + np.uint64(r["start"])
+        out["core"] = core[order] == tile_id
+        parts.append(out)
+    return np.concatenate(parts) if parts else np.zeros(0, dtype=TILE_DTYPE)
