@@ -277,17 +277,54 @@ def _read_runs(points, a: np.ndarray, z: np.ndarray) -> np.ndarray:
     return np.concatenate(out)
 
 
+def _cells_in_tile(ids: np.ndarray, cells: TileGrid, grid: TileGrid, tile_id: int) -> tuple[np.ndarray, ...]:
+    """For cells ``ids`` of ``cells`` (aligned with ``grid``, :func:`aligned`): whether
+    their points lie in the core of ``tile_id``, all in its open buffered box, or surely
+    none in it (else they are tested one by one)."""
+    j = ids % cells.ncols + cells.col0
+    k = ids // cells.ncols + cells.row0
+    size = max(1, int(grid.tile_size))
+    col = np.clip(j // size - grid.col0, 0, grid.ncols - 1)
+    row = np.clip(k // size - grid.row0, 0, grid.nrows - 1)
+    core = row * grid.ncols + col == tile_id
+    if grid.buffer <= 0:  # no buffer: the buffered set is the core
+        return core, core, ~core
+    # a cell's points lie in [gx + j, gx + j + 1) (core_tile's own test, cells of 1 m),
+    # against in_buffered's box, written as it writes it
+    s, b = grid.tile_size, grid.buffer
+    gx, gy = cells.origin
+    minx = gx + np.int64(grid.col0 + tile_id % grid.ncols) * s - b
+    miny = gy + np.int64(grid.row0 + tile_id // grid.ncols) * s - b
+    maxx, maxy = minx + s + 2 * b, miny + s + 2 * b
+    x0, x1 = gx + j * CELL, gx + (j + 1) * CELL
+    y0, y1 = gy + k * CELL, gy + (k + 1) * CELL
+    inside = (x0 > minx) & (x1 <= maxx) & (y0 > miny) & (y1 <= maxy)
+    outside = (x1 <= minx) | (x0 >= maxx) | (y1 <= miny) | (y0 >= maxy)
+    return core, core | inside, ~core & outside
+
+
+def _file_order(at: np.ndarray, count: int) -> np.ndarray:
+    """The permutation that sorts ``at`` (distinct positions in a range of ``count``
+    points): a pass over the range instead of a sort."""
+    slot = np.empty(count, dtype=np.int64)
+    slot[at] = np.arange(len(at))
+    seen = np.zeros(count, dtype=bool)
+    seen[at] = True
+    return slot[seen]
+
+
 def gather_tile(store: WorkStore, frame: dict, tile_id: int) -> np.ndarray:
     """One tile's records (TILE_DTYPE, ordered by source index) gathered from the ranges
     of a block split by :func:`split_range` (``frame``: its tile index or the index's
     frame): the records :func:`workers.tiler.read_tile` gives for the tile the tiler
-    would have written. Memory is the points of the cells the tile's box meets.
+    would have written. Memory is one range's cells and the tile's records.
     """
     # Strategy: the cells that can hold a point of the tile's buffered box are read from
-    # each range whose cells meet them (a run of cells per row); the tiler's own tests
-    # (core_tile, and buffered_tiles' box for one tile) then keep exactly the tile's
-    # points, and each range's back in file order (ranges are disjoint and taken in
-    # file order): memory is one range's cells at a time and the tile's records.
+    # each range whose cells meet them (a run of cells per row). A cell lies in one core
+    # (the grid is aligned with the cells), and most lie wholly inside the tile's open
+    # buffered box or wholly outside it: only the points of the cells on its edge are
+    # tested, with pipeline.tiling.in_buffered. Each range's points go back to their
+    # file order (ranges are disjoint and taken in file order).
     grid = TileGrid.from_dict(frame["grid"])
     cells = TileGrid.from_dict(frame["cells"])
     span = _cell_span(read_box(grid, tile_id), cells)
@@ -303,16 +340,21 @@ def gather_tile(store: WorkStore, frame: dict, tile_id: int) -> np.ndarray:
         offsets = store.get_array(f"{key}/offsets.npy")
         a, z = _row_runs(ids, cells, span)
         rec = _read_runs(store.open_array(f"{key}/points.npy"), offsets[a], offsets[z])
-        # absolute x, y as workers.tiler.absolute_xy computes them
-        xy = np.column_stack([rec["X"], rec["Y"]]) * scale + offset
-        core = core_tile(xy, grid)
-        keep = in_buffered(xy, grid, tile_id, core=core)
-        del xy
-        rec, core = rec[keep], core[keep]
-        order = np.argsort(rec["at"], kind="stable")
-        out = np.empty(len(rec), dtype=TILE_DTYPE)
-        out["X"], out["Y"], out["Z"] = rec["X"][order], rec["Y"][order], rec["Z"][order]
-        out["index"] = rec["at"][order].astype(np.uint64) + np.uint64(r["start"])
-        out["core"] = core[order] == tile_id
+        # the cells read, in the order of their points
+        lengths = z - a
+        picked = np.repeat(a - np.r_[0, np.cumsum(lengths)[:-1]], lengths) + np.arange(int(lengths.sum()))
+        core, inside, outside = _cells_in_tile(ids[picked], cells, grid, tile_id)
+        per_cell = np.diff(offsets)[picked]
+        keep = np.repeat(inside, per_cell)
+        edge = np.flatnonzero(np.repeat(~inside & ~outside, per_cell))
+        if edge.size:  # absolute x, y as workers.tiler.absolute_xy computes them
+            xy = np.column_stack([rec["X"][edge], rec["Y"][edge]]) * scale + offset
+            keep[edge] = in_buffered(xy, grid, tile_id, core=np.full(len(edge), -1))
+        sel = np.flatnonzero(keep)
+        sel = sel[_file_order(rec["at"][sel], int(r["count"]))]
+        out = np.empty(len(sel), dtype=TILE_DTYPE)
+        out["X"], out["Y"], out["Z"] = rec["X"][sel], rec["Y"][sel], rec["Z"][sel]
+        out["index"] = rec["at"][sel].astype(np.uint64) + np.uint64(r["start"])
+        out["core"] = np.repeat(core, per_cell)[sel]
         parts.append(out)
     return np.concatenate(parts) if parts else np.zeros(0, dtype=TILE_DTYPE)

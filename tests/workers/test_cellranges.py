@@ -149,8 +149,10 @@ def _blocks(draw):
     # stored integers, some on whole metres (cell and tile edges) from the origin
     ints = np.empty((n, 3), dtype=np.int32)
     ints[:, :2] = rng.integers(0, int(span / scale) + 1, size=(n, 2))
-    edges = rng.random(n) < 0.3
-    ints[edges, 0] = (np.round(ints[edges, 0] * scale) / scale).astype(np.int32)
+    for d in (0, 1):  # on whole and half metres: cell, tile and buffer edges
+        edges = rng.random(n) < 0.3
+        step = rng.choice([0.5, 1.0])
+        ints[edges, d] = (np.round(ints[edges, d] * scale / step) * step / scale).astype(np.int32)
     ints[:, 2] = rng.integers(0, 1000, size=n)
     offsets = (500_000.0 + draw(st.sampled_from([0.0, 0.3, 0.75])), 6_000_000.0, 0.0)
     xyz = ints * scale + np.asarray(offsets)
@@ -160,7 +162,7 @@ def _blocks(draw):
                      scales=(scale,) * 3, offsets=offsets, mins=mins, maxs=maxs, crs_wkt=None, origin=origin,
                      seekable=True, copc=False)
     size = float(max(draw(st.integers(1, 20)), math.ceil(span / 6)))  # at most 7 x 7 tiles
-    buffer = draw(st.sampled_from([0.0, 0.5, 1.0, 2.5, size]))
+    buffer = draw(st.sampled_from([0.0, 0.25, 0.5, 1.0, 1.5, 2.5, size]))
     shift = (float(draw(st.integers(-3, 0))), float(draw(st.integers(-3, 0))))
     grid = plan_grid(mins, maxs, tile_size=size, buffer=buffer, grid_origin=(origin[0] + shift[0], origin[1] + shift[1]),
                      max_tiles=10_000)
