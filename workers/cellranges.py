@@ -352,9 +352,12 @@ def gather_tile(store: WorkStore, frame: dict, tile_id: int) -> np.ndarray:
             keep[edge] = in_buffered(xy, grid, tile_id, core=np.full(len(edge), -1))
         sel = np.flatnonzero(keep)
         sel = sel[_file_order(rec["at"][sel], int(r["count"]))]
+        core = np.repeat(core, per_cell)[sel]
+        rec = rec[sel]  # one gather of whole records, then each field in order
         out = np.empty(len(sel), dtype=TILE_DTYPE)
-        out["X"], out["Y"], out["Z"] = rec["X"][sel], rec["Y"][sel], rec["Z"][sel]
-        out["index"] = rec["at"][sel].astype(np.uint64) + np.uint64(r["start"])
-        out["core"] = np.repeat(core, per_cell)[sel]
+        out["X"], out["Y"], out["Z"] = rec["X"], rec["Y"], rec["Z"]
+        out["index"] = rec["at"]
+        out["index"] += np.uint64(r["start"])
+        out["core"] = core
         parts.append(out)
     return np.concatenate(parts) if parts else np.zeros(0, dtype=TILE_DTYPE)
