@@ -96,8 +96,14 @@ def test_a_job_given_a_cluster_counts_its_block_there(block, client, monkeypatch
     spec = jobspec.JobSpec(block.path, str(tmp_path / "out"), job=JobParams(pipeline=PipelineParams.model_validate(
         {"segment": {"max_crown_radius": 3.0}})), run=RunOptions(worker_memory=budget))
     monkeypatch.setattr(cellranges, "CHUNK_POINTS", 7_000)
+    from workers.workstore import WorkStore
+
+    written = []
+    put = WorkStore.put_array
+    monkeypatch.setattr(WorkStore, "put_array", lambda self, key, arr: written.append(key) or put(self, key, arr))
     before = _ranges_counted(client, "split-range")
     outcome = run_job(spec, client=client)
     assert outcome.n_tiles > 1 and outcome.n_points == block.n_points and outcome.n_trees > 0
+    assert not [k for k in written if k.startswith("tiles/0")]  # no buffered tile written: tiles gather their points
     # counted by the tasks that split it (workers.cellranges)
     assert _ranges_counted(client, "split-range") - before >= 4
