@@ -193,3 +193,25 @@ def test_a_gathered_tile_is_the_tiles_written_tile_and_the_index_its_index(drawn
         for t in want["tiles"]:  # every tile holding points, buffer-only ones too
             a, b = read_tile(old, t["id"]), gather_tile(new, got, t["id"])
             assert np.array_equal(a, b), t["id"]
+
+
+@pytest.mark.slow  # three tiled jobs: 30-40 s
+def test_a_failed_tile_of_a_split_block_runs_again_alone_from_the_ranges(block, client, monkeypatch, tmp_path):
+    import dataclasses
+
+    from workers.replay import finish_job, run_tile
+
+    monkeypatch.setattr(cellranges, "CHUNK_POINTS", RUN)
+    indexes = []
+    made = job.index_from_cells
+    monkeypatch.setattr(job, "index_from_cells", lambda *a: indexes.append(made(*a)) or indexes[-1])
+    ref = run_job(_spec(block, tmp_path / "ref"), client=client)
+    victim = indexes[-1]["tiles"][-1]["id"]  # not the canary: a later tile's failure leaves a partial job
+    work, out = tmp_path / "work", tmp_path / "out"
+    spec = dataclasses.replace(_spec(block, out), work_dir=str(work), inject_failure=(victim,))
+    outcome = run_job(spec, client=client)
+    assert outcome.partial and outcome.failed_tiles == [victim] and ref.n_tiles > 1
+    run_tile(str(work), victim)  # in this process, from the ranges the job left
+    again = finish_job(str(work))
+    assert not again.partial and not work.exists()
+    assert _files(out) == _files(tmp_path / "ref")
