@@ -416,8 +416,14 @@ def count_range(path, start: int, count: int, *, info: BlockInfo | None = None,
         The range lies beyond the points the file holds, or its data is corrupt.
     """
     info = info or read_info(path)
+    return count_ints(info, read_raw_range(info.path, start, count, info=info), voxel_size=voxel_size)
+
+
+def count_ints(info: BlockInfo, ints: np.ndarray, *, voxel_size: float | None = None
+               ) -> tuple[np.ndarray, np.ndarray, np.ndarray | None]:
+    """:func:`count_range` of a range already decoded: its stored integers ``ints`` (m, 3)
+    int32 counted as one run."""
     cell, counts, nodes = _empty_counts(info, voxel_size)
-    ints = read_raw_range(info.path, start, count, info=info)
     _count_run(info, ints[:, 0], ints[:, 1], ints[:, 2] if nodes is not None else None, voxel_size, cell, counts, nodes)
     # a run covers a strip of the block: only its cells are returned (a voxel's centre can
     # lie in a cell that holds none of its points)

@@ -232,6 +232,38 @@ def buffered_tiles(xy: np.ndarray, grid: TileGrid, *, core: np.ndarray | None = 
     return _by_tile(np.concatenate(pts), np.concatenate(tiles), n, only_cores=len(tiles) == 1)
 
 
+def in_buffered(xy: np.ndarray, grid: TileGrid, tile_id: int, *, core: np.ndarray | None = None) -> np.ndarray:
+    """Which points the buffered set of one tile holds: :func:`buffered_tiles`' pairs of
+    ``tile_id``, as a mask, without the pairs of every other tile.
+
+    Parameters
+    ----------
+    xy : (n, 2) or (n, 3) float64 [m]
+    grid : TileGrid
+    tile_id : int
+    core : (n,) int64, optional
+        ``core_tile(xy, grid)`` if already computed.
+
+    Returns
+    -------
+    (n,) bool
+    """
+    if core is None:
+        core = core_tile(xy, grid)
+    held = core == tile_id
+    if grid.buffer > 0:
+        # the open box's test written as _add_neighbours writes it, for the same floats
+        s, b = grid.tile_size, grid.buffer
+        gx, gy = grid.origin
+        c = np.int64(grid.col0 + tile_id % grid.ncols)
+        r = np.int64(grid.row0 + tile_id // grid.ncols)
+        minx = gx + c * s - b
+        miny = gy + r * s - b
+        x, y = xy[:, 0], xy[:, 1]
+        held |= (minx < x) & (x < minx + s + 2 * b) & (miny < y) & (y < miny + s + 2 * b)
+    return held
+
+
 def _add_neighbours(xy: np.ndarray, grid: TileGrid, core: np.ndarray, pts: list, tiles: list) -> None:
     """Append to ``pts`` and ``tiles`` the (point, tile) pairs of the tiles other than a
     point's core whose open buffered box holds it (`buffered_tiles`)."""

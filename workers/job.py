@@ -29,11 +29,12 @@ from pathlib import Path
 import numpy as np
 
 from pipeline.blockinfo import BlockInfo, read_info
-from pipeline.budget import range_points
+from pipeline.budget import fits_whole, range_points
 from pipeline.mapsample import REPORT_POINTS, sample_stride
 from pipeline.parquet import sampled_tree_ids
 from pipeline.reading import read_points
 from pipeline.tiling import TileGrid
+from workers.cellranges import aligned, index_from_cells, split_block
 from workers.counting import count_block
 from workers.dispatch import block_ground_stats, check_cancel, gather, process_tiles, run_task, settle_slot_trees
 from workers.jobspec import (
@@ -44,6 +45,7 @@ from workers.jobspec import (
     TileFailed,
     auto_tiled,
     budgeted,
+    grid_origin,
     plan_tiles,
 )
 from workers.outputs import Labels, merge_and_write
@@ -61,6 +63,8 @@ def run_job(
     progress: Callable[[int, int], None] | None = None,
     cancel: threading.Event | None = None,
     points: np.ndarray | None = None,
+    on_tiles: Callable[[JobSpec], None] | None = None,
+    counting: Callable[[int, int], None] | None = None,
 ) -> JobOutcome:
     """Process one block.
 
@@ -77,6 +81,11 @@ def run_job(
         The block's local coordinates, read already by :func:`workers.jobspec.budgeted`,
         which kept it whole: a job in this process uses them instead of reading the file
         again, and does not run the memory budget a second time.
+    on_tiles : callable (spec), optional
+        Told the job's spec with the tile size its memory budget chose, when the job
+        counted its block itself (:func:`splits_while_counting`).
+    counting : callable (ranges counted, ranges), optional
+        Progress of that count, as each range is (for more than one).
 
     Raises
     ------
@@ -85,6 +94,9 @@ def run_job(
     t0 = time.perf_counter()
     info = read_info(spec.input_path)
     if client is not None:  # its workers count the block, each its own ranges of the file
+        if splits_while_counting(spec, info):  # and split it by cell in the same pass
+            return _run_tiled(spec, info, client, t0, progress, cancel, split=True, on_tiles=on_tiles,
+                              counting=counting)
         spec = auto_tiled(spec, info, count=partial(count_block, client=client, cancel=cancel))
     elif points is None:  # counted here: a block that stays whole is then decoded once, not twice
         spec, points = budgeted(spec, info)
@@ -186,10 +198,25 @@ def _job_record(spec: JobSpec, info: BlockInfo, grid: TileGrid, work: str) -> di
     }
 
 
-def _run_tiled(spec, info, client, t0, progress, cancel) -> JobOutcome:
+def splits_while_counting(spec: JobSpec, info: BlockInfo) -> bool:
+    """Whether a job on a cluster counts its block for the memory budget and splits it
+    into ranges sorted by cell in the same pass (:mod:`workers.cellranges`): a plain
+    LAS/LAZ block (a COPC block is counted from its hierarchy) with no tile size given,
+    tiled by the laspy engine, that may not fit whole."""
+    budget = spec.run.memory_budget
+    return (spec.tiling.tile_size is None and budget is not None and not fits_whole(info.n_points, budget)
+            and not info.copc and spec.run.engine == "laspy")
+
+
+def _run_tiled(spec, info, client, t0, progress, cancel, *, split: bool = False, on_tiles=None,
+               counting=None) -> JobOutcome:
+    """A tiled job; ``split``: its tile size is chosen from the count of the same pass
+    that splits the block (:func:`splits_while_counting`), its grid planned then."""
     timings = {}
-    grid = plan_tiles(spec.job, info)
-    check_engine(spec.run.engine, grid)
+    grid = None
+    if not split:
+        grid = plan_tiles(spec.job, info)
+        check_engine(spec.run.engine, grid)
     out_dir = Path(spec.out_dir)
     made = [d for d in (out_dir, *out_dir.parents) if not d.exists()]  # deepest first
     work = spec.work_dir or default_work_dir(spec.out_dir)
@@ -198,7 +225,8 @@ def _run_tiled(spec, info, client, t0, progress, cancel) -> JobOutcome:
         with store.lock():  # one job per work store: another would delete this one's tiles
             store.remove()  # an earlier job's tiles and results there must not mix with this job's
             store.claim()  # refused if the folder holds anything that is not a work store's
-            return _run_tiled_locked(spec, info, client, t0, progress, cancel, grid, store, timings)
+            return _run_tiled_locked(spec, info, client, t0, progress, cancel, grid, store, timings, on_tiles,
+                                     counting)
     finally:
         for folder in made:  # folders this run made for its outputs and left empty
             if not folder.is_dir() or any(folder.iterdir()):
@@ -206,16 +234,36 @@ def _run_tiled(spec, info, client, t0, progress, cancel) -> JobOutcome:
             folder.rmdir()
 
 
-def _run_tiled_locked(spec, info, client, t0, progress, cancel, grid, store, timings) -> JobOutcome:
-    record = _job_record(spec, info, grid, store.url)
+def _run_tiled_locked(spec, info, client, t0, progress, cancel, grid, store, timings, on_tiles=None,
+                      counting=None) -> JobOutcome:
     keep_work = False
     try:
+        check_cancel(cancel)
+
+        def wait(futures, progress=None):
+            return gather(client, futures, cancel, store, progress)
+
+        split = None
+        if grid is None:  # one pass over the file counts it and writes its points once, sorted by cell
+            sample, cells, parts = split_block(info, grid_origin(spec.tiling, info), store,
+                                               voxel_size=spec.params.graph.voxel_size, client=client,
+                                               gather=wait, progress=counting)
+            spec = auto_tiled(spec, info, count=lambda info, voxel_size: sample)
+            if on_tiles:
+                on_tiles(spec)
+            grid = plan_tiles(spec.job, info)
+            check_engine(spec.run.engine, grid)
+            split = (cells, parts) if aligned(grid, cells) else None
+        record = _job_record(spec, info, grid, store.url)
         store.put_json(JOB_KEY, record)
         check_cancel(cancel)
-        # a worker's range of the file follows the memory budget, as its tiles do
-        chunk = range_points(spec.run.memory_budget, spec.run.chunk_points)
-        index = tile_block(info, grid, store, chunk_points=chunk, engine=spec.run.engine, client=client,
-                           gather=lambda futures: gather(client, futures, cancel, store))
+        if split is not None:
+            index = index_from_cells(info, grid, *split, store)
+        else:
+            # a worker's range of the file follows the memory budget, as its tiles do
+            chunk = range_points(spec.run.memory_budget, spec.run.chunk_points)
+            index = tile_block(info, grid, store, chunk_points=chunk, engine=spec.run.engine, client=client,
+                               gather=wait)
         timings["tile"] = time.perf_counter() - t0
         tiles = [t for t in index["tiles"] if t["n_core"] > 0]
         t = time.perf_counter()

@@ -25,7 +25,17 @@ from pipeline.process import process_points
 from pipeline.reading import to_local
 from pipeline.tiling import TileGrid, core_tile
 from workers.slottrees import SLOT_KEY, trees_in_tile
-from workers.tiler import put_tile_sample, read_frame, read_tile, source_tile, streamed, tile_key
+from workers.cellranges import gather_tile
+from workers.tiler import (
+    CELLS_ENGINE,
+    SOURCE_ENGINE,
+    put_tile_sample,
+    read_frame,
+    read_tile,
+    source_tile,
+    streamed,
+    tile_key,
+)
 from workers.workstore import JOB_KEY, WorkStore
 
 #: how far beyond its core a tile claims a trunk, in cluster radii
@@ -128,7 +138,10 @@ def _tile_points(store: WorkStore, tile_id: int, frame: dict) -> tuple[dict, np.
     """A buffered tile's record array and its points in the block's local frame
     (``frame``: the tile index, or its frame from :func:`workers.tiler.read_frame`),
     read from the work store, or from the input for a streamed block."""
-    rec = source_tile(frame, tile_id) if streamed(frame) else read_tile(store, tile_id)
+    if frame.get("engine") == CELLS_ENGINE:
+        rec = gather_tile(store, frame, tile_id)
+    else:
+        rec = source_tile(frame, tile_id) if streamed(frame) else read_tile(store, tile_id)
     ints = np.column_stack([rec["X"], rec["Y"], rec["Z"]])
     return rec, to_local(ints, _frame(frame))
 
@@ -185,7 +198,7 @@ def process_tile(work_url: str, tile_id: int, params_json: str, fail: bool = Fal
     core = rec["core"].astype(bool)
     if not core.any():  # a streamed tile whose estimate was wrong (workers.tiler.settle_index drops it)
         return {"tile_id": int(tile_id), "n_core": 0, "n_buffered": len(rec)}
-    if streamed(frame):
+    if frame.get("engine") == SOURCE_ENGINE:  # the ranges of a block split by cell keep theirs
         put_tile_sample(store, tile_id, xyz[core, :2], rec["index"][core], int(frame["n_points"]))
     raw = store.get_object(raw_ground_key(tile_id)) if store.exists(raw_ground_key(tile_id)) else None
     result = process(xyz, params, f"tile {tile_id}", tuple(stats) if stats else None, slot_trees, raw)

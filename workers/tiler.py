@@ -17,6 +17,10 @@ the index, and each tile's task reads the nodes its box meets from the input
 (:func:`source_tile`), so no pass over the block comes before the first tile and no
 tile is written. Its tiles' counts are estimates until the tiles ran
 (:func:`settle_index`).
+
+A plain block that a job counts to choose its tile size is not split here either: the
+pass that counts it writes its points once, sorted by cell, and each tile gathers its
+own (:mod:`workers.cellranges`, engine :data:`CELLS_ENGINE`).
 """
 
 from __future__ import annotations
@@ -50,7 +54,7 @@ def tile_key(tile_id: int) -> str:
     return f"tiles/{tile_id:06d}"
 
 
-def _absolute_xy(ints: np.ndarray, info: BlockInfo) -> np.ndarray:
+def absolute_xy(ints: np.ndarray, info: BlockInfo) -> np.ndarray:
     """Absolute x, y [m] computed as PDAL and laspy do: ``X * scale + offset``."""
     return ints[:, :2] * np.asarray(info.scales[:2]) + np.asarray(info.offsets[:2])
 
@@ -83,7 +87,7 @@ def _merge_counts(total: dict, part: dict) -> None:
         c[1] += every
 
 
-def _index(info: BlockInfo, grid: TileGrid, counts: dict, engine: str) -> dict:
+def tile_index(info: BlockInfo, grid: TileGrid, counts: dict, engine: str) -> dict:
     tiles = []
     for tid in sorted(counts):
         t = grid.tile(int(tid))
@@ -119,7 +123,7 @@ def _split_chunk(info, grid, store, start, ints, counts: dict) -> None:
     stride = sample_stride(info.n_points)
     store.put_array(f"{SAMPLE_KEY}/part-{start:012d}.npy", local[first_sampled(start, stride) :: stride, :2])
     index = np.arange(start, start + len(ints), dtype=np.uint64)
-    _write_parts(store, f"part-{start:012d}", ints, index, _absolute_xy(ints, info), grid, counts)
+    _write_parts(store, f"part-{start:012d}", ints, index, absolute_xy(ints, info), grid, counts)
 
 
 def tile_range(info: BlockInfo, grid: TileGrid, store: WorkStore, start: int, count: int) -> dict:
@@ -203,7 +207,7 @@ def tile_block(
             _merge_counts(counts, part)
     else:
         counts = tile_in_order(info, grid, store, chunk_points)
-    idx = _index(info, grid, counts, "laspy")
+    idx = tile_index(info, grid, counts, "laspy")
     check_tiles_add_up(idx, info.n_points, "laspy")
     put_index(store, idx)
     return idx
@@ -311,7 +315,7 @@ def tiles_from_views(ints: np.ndarray, views, info: BlockInfo, grid: TileGrid, s
     # holds exactly t's buffered points; the rest are dropped.
     store.remove("tiles")
     stride = sample_stride(info.n_points)
-    xy_all = _absolute_xy(ints, info)
+    xy_all = absolute_xy(ints, info)
     expected = {}
     for a in range(0, len(ints), CHUNK_POINTS):
         local = to_local(ints[a : a + CHUNK_POINTS], info)
@@ -349,7 +353,7 @@ def tiles_from_views(ints: np.ndarray, views, info: BlockInfo, grid: TileGrid, s
             f"PDAL's splitter gave no view equal to the buffered points of tile(s) {missing[:5]}"
             f"{' ...' if len(missing) > 5 else ''} (of {len(expected)}): points on the grid's edges or "
             "outside the header's bounds fell in other cells; tile with the 'laspy' engine")
-    idx = _index(info, grid, written, "pdal")
+    idx = tile_index(info, grid, written, "pdal")
     check_tiles_add_up(idx, info.n_points, "pdal")
     put_index(store, idx)
     return idx
@@ -454,6 +458,9 @@ def read_sample(store: WorkStore, n_points: int) -> tuple[np.ndarray, np.ndarray
 
 #: the engine of a block whose tiles read their own points from the input
 SOURCE_ENGINE = "copc"
+#: the engine of a block whose tiles gather their points from ranges sorted by cell
+#: (:mod:`workers.cellranges`)
+CELLS_ENGINE = "cells"
 
 
 def index_from_nodes(info: BlockInfo, grid: TileGrid, store: WorkStore) -> dict:
@@ -482,13 +489,13 @@ def index_from_nodes(info: BlockInfo, grid: TileGrid, store: WorkStore) -> dict:
         core = int(nodes.count[nodes_meeting(nodes, t.core)].sum())
         if core:
             counts[t.id] = [core, int(nodes.count[nodes_meeting(nodes, t.buffered)].sum())]
-    idx = _index(info, grid, counts, SOURCE_ENGINE)
+    idx = tile_index(info, grid, counts, SOURCE_ENGINE)
     idx["estimated"] = True
     put_index(store, idx)
     return idx
 
 
-def _read_box(grid: TileGrid, tile_id: int) -> tuple[float, float, float, float]:
+def read_box(grid: TileGrid, tile_id: int) -> tuple[float, float, float, float]:
     """The box whose points a tile of ``grid`` may hold: its buffered box, open to
     infinity on the grid's outer edges (points there go to the edge tiles' cores)."""
     t = grid.tile(int(tile_id))
@@ -511,7 +518,7 @@ def source_tile(frame: dict, tile_id: int) -> np.ndarray:
     """
     info = _frame_info(frame)
     grid = TileGrid.from_dict(frame["grid"])
-    box = _read_box(grid, tile_id)
+    box = read_box(grid, tile_id)
     scales, offsets = np.asarray(info.scales), np.asarray(info.offsets)
     # the box and the header's bounds (and their 1 m of slack) as stored integers, a step
     # wider on each side: the exact tests are the tiler's own, on the points kept
@@ -526,9 +533,9 @@ def source_tile(frame: dict, tile_id: int) -> np.ndarray:
             check_bounds(to_local(ints, info), info, start=0)  # raises, naming the point
         keep = (ints[:, 0] >= lo[0]) & (ints[:, 0] <= hi[0]) & (ints[:, 1] >= lo[1]) & (ints[:, 1] <= hi[1])
         ints, index = ints[keep], index[keep]
-        core = core_tile(_absolute_xy(ints, info), grid)
+        core = core_tile(absolute_xy(ints, info), grid)
         # the tiler's own assignment: every point in exactly the tiles it gives
-        p, t = buffered_tiles(_absolute_xy(ints, info), grid, core=core)
+        p, t = buffered_tiles(absolute_xy(ints, info), grid, core=core)
         sel = p[t == tile_id]  # ascending
         del p, t
         rec = np.empty(sel.size, dtype=TILE_DTYPE)
@@ -549,8 +556,10 @@ def _frame_info(frame: dict) -> BlockInfo:
 
 
 def streamed(frame: dict) -> bool:
-    """Whether the tiles of this tile index (or its frame) read their points from the input."""
-    return frame.get("engine") == SOURCE_ENGINE
+    """Whether the tiles of this tile index (or its frame) find their points when they
+    run (from the input, or from ranges sorted by cell): its counts are settled then
+    (:func:`settle_index`)."""
+    return frame.get("engine") in (SOURCE_ENGINE, CELLS_ENGINE)
 
 
 def sample_key(tile_id: int) -> str:

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import argparse
+import contextlib
 import math
 import os
 import sys
@@ -348,29 +349,41 @@ def _tiled(spec, args: argparse.Namespace, n_points: int):
 def _run_job(spec, args: argparse.Namespace, *, tiled: bool, count_on_cluster: bool, points):
     """Check the job, start the cluster a tiled job needs (its workers count the block
     when ``count_on_cluster``) and run it."""
+    from workers.job import splits_while_counting
     from workers.jobspec import check_job
 
-    client = None
+    client, fused, tiles_chosen = None, False, None
     try:
-        check_job(spec, tiled=tiled)  # bad input or parameters fail before a cluster starts
+        info, _ = check_job(spec, tiled=tiled)  # bad input or parameters fail before a cluster starts
         if tiled:
             from workers.cluster import LOOPBACK, close_client, dashboard_address, make_client
 
             client = make_client(args.scheduler, n_workers=spec.run.workers, quiet=True, dashboard=args.dashboard,
                                  host=args.dask_host or LOOPBACK)
-            if count_on_cluster:  # before the dashboard line: a budget that cannot work ends the count's lines
+            # the job's workers count the block as they split it (workers.cellranges), else here
+            fused = count_on_cluster and splits_while_counting(spec, info)
+            if count_on_cluster and not fused:
                 from workers.counting import count_block
 
                 spec, _ = _budget_tiles(spec, count=partial(count_block, client=client,
                                                             cancel=getattr(args, "interrupted", None),
                                                             progress=_Bar(what="counting")))
             link = dashboard_address(client)
-            print(f"dask dashboard: {link or 'none'}", file=sys.stderr)
+
+            def tiles_chosen(spec):
+                # after the count: a budget that cannot work ends the count's lines
+                _say_tiles(spec)
+                print(f"dask dashboard: {link or 'none'}", file=sys.stderr)
+
+            if not fused:
+                print(f"dask dashboard: {link or 'none'}", file=sys.stderr)
         from workers.job import run_job
 
         # TileFailed: exit 1 (service.cli)
-        return run_job(spec, client=client, progress=_Bar() if tiled else None,
-                       cancel=getattr(args, "interrupted", None), points=points)
+        with _budget_worded(spec):
+            return run_job(spec, client=client, progress=_Bar() if tiled else None,
+                           cancel=getattr(args, "interrupted", None), points=points,
+                           on_tiles=tiles_chosen if fused else None, counting=_Bar(what="counting") if fused else None)
     finally:
         if client is not None:
             close_client(client)
@@ -381,26 +394,40 @@ def _budget_tiles(spec, count=None):
     said on stderr when there are any, and the block's points when it stays whole and
     they were read here (:func:`workers.jobspec.budgeted`; ``count`` None)."""
     # here, not at the top: `orchard --help` imports every command module (see service.commands)
-    from pipeline.budget import BudgetError
     from workers.jobspec import auto_tiled, budgeted
 
-    run, points = spec.run, None
-    try:
+    points = None
+    with _budget_worded(spec):
         if count is None:
             spec, points = budgeted(spec)
         else:
             spec = auto_tiled(spec, count=count)
+    _say_tiles(spec)
+    return spec, points
+
+
+@contextlib.contextmanager
+def _budget_worded(spec):
+    """A :class:`pipeline.budget.BudgetError` raised inside, worded for the command line."""
+    from pipeline.budget import BudgetError
+
+    try:
+        yield
     except BudgetError as exc:
         need = math.ceil(exc.need / 1e8) / 10  # GB, rounded up
         raise ParameterError(exc.message, hint=f"{exc.hint} ({{tiling.worker_memory}} {need:g} or more)",
-                             param="tiling.worker_memory", value=run.worker_memory, limit=need) from None
+                             param="tiling.worker_memory", value=spec.run.worker_memory, limit=need) from None
+
+
+def _say_tiles(spec) -> None:
+    """The budget's tile size, said on stderr when it chose tiles."""
+    run = spec.run
     if spec.tiling.tile_size is not None:
         print(
             f"orchard process: the block would need more than {run.worker_memory:g} GB in one piece: "
             f"tiles of {spec.tiling.tile_size:g} m (--tile-size 0: one piece)",
             file=sys.stderr,
         )
-    return spec, points
 
 
 def _write_views(outcome, args) -> None:

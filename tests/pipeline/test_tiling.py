@@ -10,7 +10,7 @@ from hypothesis import strategies as st
 from pipeline.errors import ParameterError
 from pipeline.params import PipelineParams, SegmentParams
 from pipeline.tilelimits import MAX_COPIES, check_buffer, check_tiling, copies_per_point, min_tile_size
-from pipeline.tiling import buffered_tiles, core_tile, plan_grid
+from pipeline.tiling import buffered_tiles, core_tile, in_buffered, plan_grid
 
 
 def _brute_force(xy, grid):
@@ -60,6 +60,8 @@ def test_every_point_in_exactly_one_core_and_buffers_exact(pts, size, buffer_fra
     assert len(got) == len(p)  # no duplicate pairs
     assert got == _brute_force(xy, grid)
     assert np.all(np.diff(tiles) >= 0)
+    for t in set(tiles.tolist()) | {0, grid.n_tiles - 1}:  # one tile's set alone is the same
+        assert np.array_equal(np.flatnonzero(in_buffered(xy, grid, t, core=core)), p[tiles == t])
 
 
 def test_hand_checked_grid():

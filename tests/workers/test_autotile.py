@@ -330,6 +330,7 @@ def test_a_block_that_surely_needs_tiles_is_counted_by_the_workers(block, tmp_pa
     # command starts its cluster first and the workers count the block, not this process
     import pipeline.budget
     import pipeline.reading
+    import workers.cellranges
     import workers.counting
     import workers.jobspec
 
@@ -340,6 +341,7 @@ def test_a_block_that_surely_needs_tiles_is_counted_by_the_workers(block, tmp_pa
     gb = _budget(info) / 1e9
     monkeypatch.setattr(pipeline.budget, "surely_tiled", lambda n, budget: True)  # this small block is not
     monkeypatch.setattr(workers.counting, "CHUNK_POINTS", 40_000)  # several ranges, as a large block has
+    monkeypatch.setattr(workers.cellranges, "CHUNK_POINTS", 40_000)  # (counted as they are split)
     for module in (workers.jobspec, pipeline.reading, workers.counting):
         monkeypatch.setattr(module, "sample_density", not_here)
     monkeypatch.setattr(workers.jobspec, "read_counted", not_here)

@@ -9,6 +9,7 @@ import threading
 import numpy as np
 import pytest
 
+import workers.cellranges as cellranges
 import workers.counting as counting
 from pipeline.reading import sample_density
 from workers.counting import count_block
@@ -32,11 +33,11 @@ def client(dask_client):
     return dask_client
 
 
-def _ranges_counted(client) -> int:
-    """How many count-range tasks the (shared) cluster has finished so far."""
+def _ranges_counted(client, prefix: str = "count-range") -> int:
+    """How many tasks of ``prefix`` (count-range) the (shared) cluster has finished so far."""
     return client.run_on_scheduler(
-        lambda dask_scheduler: dask_scheduler.task_prefixes["count-range"].state_counts["memory"]
-        if "count-range" in dask_scheduler.task_prefixes else 0)
+        lambda dask_scheduler: dask_scheduler.task_prefixes[prefix].state_counts["memory"]
+        if prefix in dask_scheduler.task_prefixes else 0)
 
 
 def test_the_workers_count_what_one_process_counts(block, client, monkeypatch):
@@ -94,7 +95,15 @@ def test_a_job_given_a_cluster_counts_its_block_there(block, client, monkeypatch
     budget = (FIXED_BYTES + 0.6 * (need - FIXED_BYTES)) / 1e9  # the whole block does not fit
     spec = jobspec.JobSpec(block.path, str(tmp_path / "out"), job=JobParams(pipeline=PipelineParams.model_validate(
         {"segment": {"max_crown_radius": 3.0}})), run=RunOptions(worker_memory=budget))
-    before = _ranges_counted(client)
+    monkeypatch.setattr(cellranges, "CHUNK_POINTS", 7_000)
+    from workers.workstore import WorkStore
+
+    written = []
+    put = WorkStore.put_array
+    monkeypatch.setattr(WorkStore, "put_array", lambda self, key, arr: written.append(key) or put(self, key, arr))
+    before = _ranges_counted(client, "split-range")
     outcome = run_job(spec, client=client)
     assert outcome.n_tiles > 1 and outcome.n_points == block.n_points and outcome.n_trees > 0
-    assert _ranges_counted(client) > before
+    assert not [k for k in written if k.startswith("tiles/0")]  # no buffered tile written: tiles gather their points
+    # counted by the tasks that split it (workers.cellranges)
+    assert _ranges_counted(client, "split-range") - before >= 4
