@@ -447,11 +447,12 @@ def _report(outcome, args) -> int:
     # here, not at the top: `orchard --help` imports every command module (see service.commands)
     import pyarrow.parquet as pq
 
+    from pipeline.parquet import read_table
     from service.commands.printout import print_summary, print_trees
 
     if outcome.trees is not None:
         rows_path = outcome.outputs.get("rows")
-        rows = pq.read_table(rows_path, columns=["row", "n_gaps"]).to_pydict() if rows_path else None
+        rows = read_table(rows_path, ["row", "n_gaps"]).to_pydict() if rows_path else None
         if args.trees:
             print_trees(outcome.trees)
         else:
