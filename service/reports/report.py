@@ -22,6 +22,7 @@ import html
 import io
 import os
 import uuid
+from collections.abc import Callable
 from pathlib import Path
 
 import numpy as np
@@ -121,6 +122,12 @@ def render_map(xy: np.ndarray, tree_id: np.ndarray, trunks_xy: np.ndarray, trunk
     return render_map_png(xy, tree_id, trunks_xy, trunk_ids, title=title)
 
 
+def _drawn_here(*args, **kwargs) -> Callable[[], bytes]:
+    """:func:`render_map` now, as a ``draw_map`` of :func:`write_report`."""
+    png = render_map(*args, **kwargs)
+    return lambda: png
+
+
 def _cell(value, fmt: str) -> str:
     if value is None:
         return "–"
@@ -186,6 +193,7 @@ def write_report(
     warning: str | None = None,
     max_points: int = REPORT_POINTS,
     sample: dict | None = None,
+    draw_map: Callable[..., Callable[[], bytes]] | None = None,
 ) -> Path:
     """Write ``report.html`` and ``map.png`` into ``out_dir``; returns the HTML path.
 
@@ -194,7 +202,10 @@ def write_report(
     run it shows the static map (``map.png``, embedded) and table. ``warning`` is shown
     above everything else (a partial result). ``sample``: the points :func:`sample_points`
     would read, already in memory (``workers.job.report_sample``), used when taken for
-    the same ``max_points``.
+    the same ``max_points``. ``draw_map``: takes :func:`render_map`'s arguments and returns
+    a function that returns the PNG (:meth:`service.reports.mapprocess.MapProcess.draw`,
+    which draws it in another process while this one builds the page's data); default:
+    drawn here.
     """
     out = Path(out_dir)
     if sample is not None and sample["max_points"] == max_points:
@@ -207,10 +218,11 @@ def write_report(
         ids = np.array([r["tree_id"] for r in rows])
     else:
         trunks_xy, ids = np.zeros((0, 2)), np.zeros(0, np.int64)
-    png = render_map(xy, tree_id, trunks_xy, ids, title=title)
+    drawn = (draw_map or _drawn_here)(xy, tree_id, trunks_xy, ids, title=title)
+    data = mapdata.build_map_data(trees_parquet, sample=(xy + origin[:2], tree_id))
+    png = drawn()
     atomic_write(out / "map.png", png)
     static = render_html(title=title, png=png, rows=rows, origin=origin, summary=summary or {}, warning=warning)
-    data = mapdata.build_map_data(trees_parquet, sample=(xy + origin[:2], tree_id))
     # the files beside the report: relative links work from disk and under /v1/jobs/<id>/
     # (trees.csv is written beside it by `orchard process`, and on its first download by the service)
     downloads = {name: name for name in DOWNLOADS if name == "trees.csv" or (out / name).is_file()}
