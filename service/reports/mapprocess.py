@@ -1,10 +1,10 @@
 """The report's map drawn by a process forked when a run starts, ready when the run ends.
 
-matplotlib's import (about 0.4 s) and the map's drawing (about 0.3 s) were a fifth of
-``orchard process`` on a block of a million points, after the pipeline. A
-:class:`MapProcess` forks before the run imports numpy; the child imports matplotlib
-and draws a blank map (fonts, caches) while the parent reads and processes the block,
-then waits for the map's points and returns its PNG: the same function
+matplotlib's import (about 0.4 s) and the map's drawing (about 0.3 s) came after the
+pipeline in ``orchard process``, a fifth of a run on a block of a million points. A
+:class:`MapProcess` forks as the run starts (numpy loaded, shared with the child); the
+child imports matplotlib on the other core while the parent reads and processes the
+block, then draws the map while the parent builds the report's data: the same function
 (:func:`service.reports.mapimage.render_map_png`) on the same arrays, so the same bytes.
 
 Only a process with a single Python thread forks (a thread holding a lock at the fork
@@ -104,16 +104,15 @@ class MapProcess:
 
 
 def _serve(down: int, up: int) -> None:
-    """The child: import and warm matplotlib, draw the one map asked for, exit."""
+    """The child: import matplotlib, draw the one map asked for, exit."""
     code = 1
     try:
         signal.signal(signal.SIGINT, signal.SIG_IGN)  # Ctrl-C is the parent's; it ends the child
-        import numpy as np
+        import matplotlib.backends.backend_agg  # noqa: F401 - what the map needs, loaded before it is asked for
+        import matplotlib.figure  # noqa: F401
 
         from service.reports.mapimage import render_map_png
 
-        none = np.zeros((0, 2))  # a blank map: fonts and matplotlib's first-draw caches
-        render_map_png(none, np.zeros(0, np.int64), none, np.zeros(0, np.int64), title="warm-up")
         with os.fdopen(down, "rb") as inp, os.fdopen(up, "wb") as out:
             try:
                 args, kwargs = pickle.load(inp)
