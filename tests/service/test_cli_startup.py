@@ -139,3 +139,23 @@ def test_process_draws_the_reports_map_in_another_process(tmp_path):
     assert lines[-2] == "exit: 0", p.stdout + p.stderr
     assert lines[-1].split()[1:] == ["pyarrow"]  # the probe works: the run's outputs loaded pyarrow
     assert (out / "map.png").read_bytes()[:4] == b"\x89PNG" and "data:image/png;base64," in (out / "report.html").read_text()
+
+
+_FREEZE_PROBE = """
+import gc, sys
+from service.cli import main
+main([])  # as a test or another program calls it
+print("frozen:", gc.get_freeze_count())
+sys.argv = ["orchard"]
+main()  # as the console script does
+print("frozen:", gc.get_freeze_count() > 0)
+"""
+
+
+def test_the_command_lines_process_leaves_its_objects_to_its_end():
+    """`main()` for the command line freezes the garbage collector's objects as it returns:
+    the interpreter's shutdown would search them for cycles again and again. Called with
+    arguments it leaves them alone."""
+    p = subprocess.run([sys.executable, "-c", _FREEZE_PROBE], capture_output=True, text=True, timeout=60)
+    assert p.returncode == 0, p.stderr
+    assert [line for line in p.stdout.splitlines() if line.startswith("frozen:")] == ["frozen: 0", "frozen: True"]
