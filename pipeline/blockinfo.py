@@ -14,11 +14,10 @@ from dataclasses import dataclass
 from io import BytesIO
 from pathlib import Path
 
-import laspy
-
 from pipeline import lasheader
 from pipeline.crs import crs_units_problem, parse_crs
 from pipeline.errors import InputError
+from pipeline.laspyload import laspy
 
 #: Largest absolute coordinate accepted [m] (UTM northings are < 1e7).
 MAX_ABS_COORD = 1e8

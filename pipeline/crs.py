@@ -3,7 +3,7 @@ metres, and stored into the header of a written file (pyproj objects throughout)
 
 from __future__ import annotations
 
-import laspy
+from pipeline.laspyload import laspy
 
 _LINEAR_UNITS_KEY, _VERTICAL_CS_KEY, _VERTICAL_UNITS_KEY = 3076, 4096, 4099
 _METRE = 9001

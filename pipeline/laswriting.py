@@ -6,12 +6,12 @@ import os
 from pathlib import Path
 from typing import Callable
 
-import laspy
 import numpy as np
 
 from pipeline.atomic import AtomicWriter, temp_name
 from pipeline.blockinfo import read_info
 from pipeline.crs import add_crs, crs_from
+from pipeline.laspyload import laspy
 from pipeline.reading import CHUNK_POINTS
 
 

@@ -13,7 +13,6 @@ import math
 import os
 from typing import Iterator
 
-import laspy
 import numpy as np
 
 from pipeline import lasheader
@@ -21,6 +20,7 @@ from pipeline.blockinfo import BlockInfo, input_error, one_line, read_info
 from pipeline.budget import DensitySample, count_cells
 from pipeline.chunks import CHUNK_POINTS
 from pipeline.errors import InputError
+from pipeline.laspyload import laspy
 from pipeline.mapsample import first_sampled
 from pipeline.voxels import DENSE_CELLS_PER_POINT, packed_keys
 

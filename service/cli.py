@@ -9,6 +9,7 @@ by the caller for a debugging session.
 from __future__ import annotations
 
 import argparse
+import gc
 import importlib
 import os
 import sys
@@ -78,6 +79,18 @@ def build_parser(argv: list[str] | None = None) -> tuple[argparse.ArgumentParser
 
 
 def main(argv: list[str] | None = None) -> int:
+    """Run the command in ``argv`` (default: the command line's); returns the exit code."""
+    try:
+        return _main(argv)
+    finally:
+        if argv is None:  # the command line's own process, which ends with the command
+            # the interpreter's shutdown collects cycles among the objects of every module
+            # loaded, again and again (0.26-0.36 s of CPU after a run of `orchard process`);
+            # frozen, they are left to the process's end: its files are closed already
+            gc.freeze()
+
+
+def _main(argv: list[str] | None) -> int:
     parser, modules = build_parser(argv)
     args = parser.parse_args(argv)
     if not args.command:

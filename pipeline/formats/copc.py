@@ -16,13 +16,12 @@ import functools
 import os
 from dataclasses import dataclass
 
-import laspy
 import lazrs
 import numpy as np
-from laspy.copc import CopcReader, load_octree_for_query
 
 from pipeline.blockinfo import BlockInfo, input_error, one_line
 from pipeline.budget import DensitySample
+from pipeline.laspyload import laspy
 
 #: decode only X, Y, Z (the other fields' layers are skipped)
 _XYZ_ONLY = laspy.DecompressionSelection.XY_RETURNS_CHANNEL | laspy.DecompressionSelection.Z
@@ -75,8 +74,8 @@ def read_nodes(path) -> Nodes:
 def _read_nodes(path: str, _mtime: int, _size: int) -> Nodes:
     # cached per process by the file's identity: every tile of a job asks for it
     try:
-        with CopcReader.open(path) as reader:
-            nodes = [n for n in load_octree_for_query(reader.source, reader.copc_info, reader.root_page) if n.point_count > 0]
+        with laspy.copc.CopcReader.open(path) as reader:
+            nodes = [n for n in laspy.copc.load_octree_for_query(reader.source, reader.copc_info, reader.root_page) if n.point_count > 0]
     except Exception as exc:  # noqa: BLE001 - laspy and lazrs raise their own types
         raise input_error(path, f"not a readable COPC file ({one_line(exc)})") from None
     nodes.sort(key=lambda n: n.offset)
@@ -147,7 +146,7 @@ def _decode(info: BlockInfo, nodes: Nodes, pick: np.ndarray) -> tuple[np.ndarray
     if pick.size == 0:
         return np.zeros((0, 3), dtype=np.int32), np.zeros(0, dtype=np.uint64)
     try:
-        with CopcReader.open(info.path, decompression_selection=_XYZ_ONLY) as reader:
+        with laspy.copc.CopcReader.open(info.path, decompression_selection=_XYZ_ONLY) as reader:
             data = bytearray(int(nodes.size[pick].sum()))
             view, at = memoryview(data), 0
             for k in pick:  # in file order: one seek and read per node

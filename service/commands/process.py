@@ -265,19 +265,28 @@ def _run(args: argparse.Namespace) -> int:
     _check_cluster_options(args)
     if args.rerun_tile or args.resume:
         return _go_on(args)
-    spec = _spec(args, params)
-    spec, tiled, count_on_cluster, points = _tiled(spec, args, n_points)
-    _check_tiled_options(args, tiled=tiled)  # they went unused, without a word (the budget decided, or --tile-size 0)
-    if args.work:
-        from workers.workstore import check_work_url
+    import numpy  # noqa: F401 - every run needs it: imported before the fork, the map's process shares it
 
-        try:
-            check_work_url(args.work, shared=tiled)
-        except ParameterError as exc:
-            raise ParameterError("{job.work_dir}: " + exc.message, hint=exc.hint, param="job.work_dir", value=args.work) from None
-    outcome = _run_job(spec, args, tiled=tiled, count_on_cluster=count_on_cluster, points=points)
-    points = None  # not held through the report
-    return _report(outcome, args)
+    from service.reports.mapprocess import MapProcess
+
+    maps = MapProcess.start()  # matplotlib loads there while this process reads and processes the block
+    try:
+        spec = _spec(args, params)
+        spec, tiled, count_on_cluster, points = _tiled(spec, args, n_points)
+        _check_tiled_options(args, tiled=tiled)  # they went unused, without a word (the budget decided, or --tile-size 0)
+        if args.work:
+            from workers.workstore import check_work_url
+
+            try:
+                check_work_url(args.work, shared=tiled)
+            except ParameterError as exc:
+                raise ParameterError("{job.work_dir}: " + exc.message, hint=exc.hint, param="job.work_dir",
+                                     value=args.work) from None
+        outcome = _run_job(spec, args, tiled=tiled, count_on_cluster=count_on_cluster, points=points)
+        points = None  # not held through the report
+        return _report(outcome, args, draw_map=maps.draw)
+    finally:
+        maps.close()
 
 
 def _go_on(args: argparse.Namespace) -> int:
@@ -430,9 +439,9 @@ def _say_tiles(spec) -> None:
         )
 
 
-def _write_views(outcome, args) -> None:
+def _write_views(outcome, args, draw_map=None) -> None:
     """``trees.csv`` and ``report.html`` beside the Parquet files: a spreadsheet and a page
-    that open from disk."""
+    that open from disk (``draw_map``: see :func:`service.reports.report.write_report`)."""
     # here, not at the top: `orchard --help` imports every command module (see service.commands)
     from service.reports.report import write_report, write_trees_csv
 
@@ -450,7 +459,8 @@ def _write_views(outcome, args) -> None:
         warning = (f"Partial result: tile(s) {', '.join(map(str, outcome.failed_tiles))} of this block failed. Trees "
                    "standing in them are missing from this report, and their points are in no tree.")
     write_report(block_path=args.input, trees_parquet=trees, points_parquet=points, out_dir=out,
-                 title=f"Orchard report — {name}", summary=summary, warning=warning, sample=outcome.sample)
+                 title=f"Orchard report — {name}", summary=summary, warning=warning, sample=outcome.sample,
+                 draw_map=draw_map)
 
 
 def _report_capture(outcome) -> None:
@@ -470,20 +480,21 @@ def _report_capture(outcome) -> None:
           f"{counts['replanted']} replanted, {counts['removed']} removed", file=sys.stderr)
 
 
-def _report(outcome, args) -> int:
+def _report(outcome, args, draw_map=None) -> int:
     # here, not at the top: `orchard --help` imports every command module (see service.commands)
     import pyarrow.parquet as pq
 
+    from pipeline.parquet import read_table
     from service.commands.printout import print_summary, print_trees
 
     if outcome.trees is not None:
         rows_path = outcome.outputs.get("rows")
-        rows = pq.read_table(rows_path, columns=["row", "n_gaps"]).to_pydict() if rows_path else None
+        rows = read_table(rows_path, ["row", "n_gaps"]).to_pydict() if rows_path else None
         if args.trees:
             print_trees(outcome.trees)
         else:
             print_summary(outcome.trees, rows)
-    _write_views(outcome, args)
+    _write_views(outcome, args, draw_map)
     out = Path(args.out)
     points = f"{outcome.n_points} points"
     if outcome.partial and outcome.outputs.get("points"):

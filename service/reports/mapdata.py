@@ -19,9 +19,9 @@ from pathlib import Path
 from typing import Any
 
 import numpy as np
-import pyarrow.parquet as pq
 from scipy.spatial import ConvexHull, QhullError
 
+from pipeline.parquet import read_table
 from service.reports.sampling import sample_points
 
 #: points sampled from the block for the footprints (enough for a smooth hull per tree)
@@ -126,7 +126,7 @@ def _features(path: Path, origin: np.ndarray) -> list[dict[str, Any]] | None:
     geometry as local coordinates (``line`` for a row, ``x``/``y`` for a slot)."""
     if not path.is_file():
         return None
-    table = pq.read_table(str(path))
+    table = read_table(path)
     names = [n for n in table.column_names if n != "geometry"]
     cols = {n: _clean(table.column(n).to_numpy(zero_copy_only=False)) for n in names}
     geoms = table.column("geometry").to_pylist() if "geometry" in table.column_names else [None] * table.num_rows
@@ -163,7 +163,7 @@ def history_data(path: Path) -> dict[str, Any] | None:
     and ``status``."""
     if not path.is_file():
         return None
-    table = pq.read_table(str(path))
+    table = read_table(path)
     names = set(table.column_names)
     if not {"tree_key", "capture"} <= names:
         return None
@@ -214,7 +214,7 @@ def build_map_data(
     either the page draws circles.
     """
     trees_parquet = Path(trees_parquet)
-    table = pq.read_table(str(trees_parquet))
+    table = read_table(trees_parquet)
     names = [n for n in table.column_names if n != "geometry"]
     cols = {n: table.column(n).to_numpy(zero_copy_only=False) for n in names}
     n = table.num_rows

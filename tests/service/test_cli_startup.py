@@ -113,3 +113,49 @@ def test_process_reads_a_valid_block_before_importing_the_job(tmp_path, n_points
                        capture_output=True, text=True, timeout=120)
     assert p.returncode == 0, p.stderr
     assert set(p.stdout.rstrip("\n").splitlines()[-1].split()[1:]) == {"laspy", "numpy"}
+
+
+_RUN_PROBE = """
+import sys
+from service.cli import main
+print("exit:", main({argv!r}))
+print("imported:", *sorted(name for name in {names!r} if name in sys.modules))
+"""
+
+
+@pytest.mark.slow  # a whole run
+def test_process_draws_the_reports_map_in_another_process(tmp_path):
+    """matplotlib (its import about 0.4 s) loads in a process forked as the run starts
+    (`service.reports.mapprocess`), not in the one that reads and processes the block."""
+    from service_fixtures import simulated_block
+
+    block = simulated_block(tmp_path / "b.laz", rows=1, trees_per_row=2, density=0.2, seed=3)
+    out = tmp_path / "out"
+    argv = ["process", str(block), "--out", str(out)]
+    p = subprocess.run([sys.executable, "-c", _RUN_PROBE.format(argv=argv, names=("matplotlib", "pyarrow"))],
+                       capture_output=True, text=True, timeout=120)
+    assert p.returncode == 0, p.stderr
+    lines = p.stdout.rstrip("\n").splitlines()
+    assert lines[-2] == "exit: 0", p.stdout + p.stderr
+    assert lines[-1].split()[1:] == ["pyarrow"]  # the probe works: the run's outputs loaded pyarrow
+    assert (out / "map.png").read_bytes()[:4] == b"\x89PNG" and "data:image/png;base64," in (out / "report.html").read_text()
+
+
+_FREEZE_PROBE = """
+import gc, sys
+from service.cli import main
+main([])  # as a test or another program calls it
+print("frozen:", gc.get_freeze_count())
+sys.argv = ["orchard"]
+main()  # as the console script does
+print("frozen:", gc.get_freeze_count() > 0)
+"""
+
+
+def test_the_command_lines_process_leaves_its_objects_to_its_end():
+    """`main()` for the command line freezes the garbage collector's objects as it returns:
+    the interpreter's shutdown would search them for cycles again and again. Called with
+    arguments it leaves them alone."""
+    p = subprocess.run([sys.executable, "-c", _FREEZE_PROBE], capture_output=True, text=True, timeout=60)
+    assert p.returncode == 0, p.stderr
+    assert [line for line in p.stdout.splitlines() if line.startswith("frozen:")] == ["frozen: 0", "frozen: True"]
