@@ -69,6 +69,12 @@ NOISE_MAX = 0.12
 #: the correction is for orchard trees (the training vases reach 5.5 m) up to about this
 #: height [m], blended over NARROW_HEIGHT_BLEND: tall forest trees keep the wide model
 NOISE_MAX_HEIGHT = 8.0
+#: ... and for trees at least about this wide (the training vases measure 0.32 and more):
+#: hedges, scored partly by the wide model, lost wood F1 to it, and high density's and
+#: hedges' clean scans read 0.04-0.047 m of ground noise ...
+NOISE_MIN_WIDTH = 0.33
+#: ... blended over about this width on either side
+NOISE_WIDTH_BLEND = 0.02
 #: weights of the narrow trees' model: one per node feature, then one per node feature
 #: times the tree's width (``python -m bench.fit_matter --seeds 2
 #: --models narrow``, seeds 1000+, the narrow forms only; its bias shifted so that
@@ -256,7 +262,8 @@ def combined_score(
     """Wood probability per node from :func:`wood_features`, (m,) float64 in [0, 1].
 
     ``weights`` score wide trees, corrected by ``noise_weights`` for the block's
-    estimated ground ``noise`` [m] (:func:`noise_term`); ``narrow_weights`` (default
+    estimated ground ``noise`` [m] (:func:`noise_term`) on trees under about
+    NOISE_MAX_HEIGHT and wider than about NOISE_MIN_WIDTH; ``narrow_weights`` (default
     NARROW_WEIGHTS; all zeros: the wide trees' model everywhere) score narrow ones,
     blended by :func:`narrowness`; among those, ``spindle_weights`` (default
     SPINDLE_WEIGHTS; all zeros: the narrow model for every narrow tree) score the
@@ -266,7 +273,8 @@ def combined_score(
     k = noise_term(noise)
     if k > 0:
         short = _shorter_than(features[:, NODE_FEATURES + 1], NOISE_MAX_HEIGHT)
-        z = z + k * short * (features[:, :NODE_FEATURES] @ noise_weights)
+        wide_enough = _logistic((features[:, NODE_FEATURES] - NOISE_MIN_WIDTH) / NOISE_WIDTH_BLEND)
+        z = z + k * short * wide_enough * (features[:, :NODE_FEATURES] @ noise_weights)
     wide = _logistic(z)
     nw = NARROW_WEIGHTS if narrow_weights is None else narrow_weights
     if not nw.any():
