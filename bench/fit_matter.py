@@ -13,7 +13,8 @@ so that its best threshold falls on the wide model's; the tall spindles' own mod
 (``SPINDLE_WEIGHTS``) likewise on ``SPINDLE_TRAINING``. The wide model's correction for
 range noise (``NOISE_WEIGHTS``) is fitted on vase blocks over the noise x spacing grid
 (``NOISY_TRAINING``) with the wide model's weights held, on the node features times
-:func:`pipeline.woodleaf.noise_term` of each block's estimated ground noise.
+:func:`pipeline.woodleaf.noise_term` of each block's estimated ground noise and
+:func:`pipeline.woodleaf.noise_gate` of each node's tree.
 """
 
 from __future__ import annotations
@@ -143,7 +144,7 @@ def main(argv: list[str] | None = None) -> int:
                 sim = accuracy_params(noise, spacing, 1000 + 20 * k + i).model_dump(exclude={"seed"})
                 rows.append(node_table(1000 + 20 * k + i, sim, params, with_noise=True))
         base = np.concatenate([r[0][:, :nf] for r in rows])
-        x = np.concatenate([r[0][:, :nf] * woodleaf.noise_term(r[3]) for r in rows])
+        x = np.concatenate([r[0][:, :nf] * (woodleaf.noise_term(r[3]) * woodleaf.noise_gate(r[0]))[:, None] for r in rows])
         nw = np.concatenate([r[1] for r in rows])
         na = np.concatenate([r[2] for r in rows])
         beta = fit(x, nw, na, offset=base @ woodleaf.COMBINED_WEIGHTS[:nf])

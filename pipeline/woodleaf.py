@@ -40,6 +40,7 @@ FEATURES = (
     "rel_density",
     "height_frac",
     "radial_frac",
+    "neighbours",
     "tree_width",
     "tree_height",
 )
@@ -49,14 +50,16 @@ NODE_FEATURES = len(FEATURES) - 2
 # Logistic model of the "combined" score, one weight per FEATURES column, fitted by
 # `python -m bench.fit_matter --seeds 4` on generated orchards never used for evaluation
 # (seeds 1000+); refit and paste when the features change. The matching threshold is
-# params.COMBINED_THRESHOLD.
-COMBINED_WEIGHTS = np.array([-4.523, 1.337, 3.206, 5.642, 1.075, -1.547, 0.281, 0.045, -0.813, -2.692, 0.0, 0.0])
+# params.COMBINED_THRESHOLD. The neighbours column plays no part in it nor in the
+# narrow and spindle models (all fitted before it came in for the noise correction).
+COMBINED_WEIGHTS = np.array([-4.523, 1.337, 3.206, 5.642, 1.075, -1.547, 0.281, 0.045, -0.813, -2.692, 0.0, 0.0, 0.0])
 #: the wide trees' model's correction for range noise, one weight per node feature, times
-#: :func:`noise_term` of the block's estimated ground noise (``python -m bench.fit_matter
-#: --seeds 2 --models noisy``: vase blocks at sigma 0-0.1 m and spacings 3-8 m, seeds
-#: 1000+, fitted with COMBINED_WEIGHTS held): range noise blurs branches into scattered
-#: shells, so linearity and the smoothed path score weigh differently
-NOISE_WEIGHTS = np.array([ 0.653, -0.439,  0.504,  1.502,  0.311,  0.089,  0.372,  0.171, -0.585, -1.412])
+#: :func:`noise_term` of the block's estimated ground noise and :func:`noise_gate`
+#: (``python -m bench.fit_matter --seeds 2 --models noisy``: vase blocks at sigma 0-0.1 m
+#: and spacings 3-8 m, seeds 1000+, fitted with COMBINED_WEIGHTS held): range noise
+#: blurs branches into scattered shells, so linearity, the smoothed path score and the
+#: node's neighbour count weigh differently
+NOISE_WEIGHTS = np.array([-0.12, -0.529, 0.368, 1.081, 0.245, -0.491, 0.202, 0.054, -0.878, -1.669, 0.496])
 #: estimated ground noise [m] below which the correction is off: clean scans' estimates
 #: (terrain roughness) stay under it, and the wide model was fitted there
 NOISE_FLOOR = 0.02
@@ -69,21 +72,27 @@ NOISE_MAX = 0.12
 #: the correction is for orchard trees (the training vases reach 5.5 m) up to about this
 #: height [m], blended over NARROW_HEIGHT_BLEND: tall forest trees keep the wide model
 NOISE_MAX_HEIGHT = 8.0
+#: ... and for trees at least about this wide (the training vases measure 0.32 and more):
+#: hedges, scored partly by the wide model, lost wood F1 to it, and high density's and
+#: hedges' clean scans read 0.04-0.047 m of ground noise ...
+NOISE_MIN_WIDTH = 0.33
+#: ... blended over about this width on either side
+NOISE_WIDTH_BLEND = 0.02
 #: weights of the narrow trees' model: one per node feature, then one per node feature
 #: times the tree's width (``python -m bench.fit_matter --seeds 2
 #: --models narrow``, seeds 1000+, the narrow forms only; its bias shifted so that
 #: params.COMBINED_THRESHOLD is its best threshold)
 NARROW_WEIGHTS = np.array([
-    -8.204, 1.402, 6.934, 2.595, 1.594, 1.146, 0.762, -1.01, -4.646, -1.359,
-    3.176, 1.534, 2.634, 3.56, 1.872, 0.981, 2.499, 3.93, 0.113, 0.452,
+    -8.204, 1.402, 6.934, 2.595, 1.594, 1.146, 0.762, -1.01, -4.646, -1.359, 0.0,
+    3.176, 1.534, 2.634, 3.56, 1.872, 0.981, 2.499, 3.93, 0.113, 0.452, 0.0,
 ])
 #: weights of the tall spindles' own model, over the narrow model's columns (``python -m
 #: bench.fit_matter --seeds 2 --models spindle``, seeds 1000+, spindle blocks only; its
 #: bias shifted likewise): the hedges' larger share of wood (9 % against 2 %) pulled the
 #: shared model's boundary away from the spindles' own
 SPINDLE_WEIGHTS = np.array([
-    -4.848, 2.085, 1.152, 2.843, 2.215, -1.827, 1.347, -0.496, -6.051, -5.282,
-    -0.002, 0.340, 0.191, 0.413, 0.356, -0.282, 0.210, 0.041, -0.905, -0.770,
+    -4.848, 2.085, 1.152, 2.843, 2.215, -1.827, 1.347, -0.496, -6.051, -5.282, 0.0,
+    -0.002, 0.340, 0.191, 0.413, 0.356, -0.282, 0.210, 0.041, -0.905, -0.770, 0.0,
 ])
 #: a narrow tree narrower than this (spindles measure 0.12-0.18, hedges 0.20-0.27) is
 #: scored by the spindles' model ...
@@ -212,6 +221,7 @@ def wood_features(
             np.log(np.maximum(points_per_node, 1) / np.maximum(med_c[node_tree], 1.0)),
             np.clip(node_height / np.maximum(top_h[node_tree], 1e-9), 0.0, 1.0),
             np.clip(radial / np.maximum(top_r[node_tree], 1e-9), 0.0, 1.0),
+            np.log1p(shape.neighbours),
             width[node_tree],
             top_h[node_tree],
         ]
@@ -244,6 +254,13 @@ def noise_term(noise: float) -> float:
     return float(np.clip(noise, NOISE_FLOOR, NOISE_MAX) - NOISE_FLOOR) / NOISE_SCALE
 
 
+def noise_gate(features: np.ndarray) -> np.ndarray:
+    """Share of the noise correction each node of :func:`wood_features` takes, (m,) in
+    [0, 1]: trees under about NOISE_MAX_HEIGHT and wider than about NOISE_MIN_WIDTH."""
+    short = _shorter_than(features[:, NODE_FEATURES + 1], NOISE_MAX_HEIGHT)
+    return short * _logistic((features[:, NODE_FEATURES] - NOISE_MIN_WIDTH) / NOISE_WIDTH_BLEND)
+
+
 def combined_score(
     features: np.ndarray,
     *,
@@ -256,7 +273,7 @@ def combined_score(
     """Wood probability per node from :func:`wood_features`, (m,) float64 in [0, 1].
 
     ``weights`` score wide trees, corrected by ``noise_weights`` for the block's
-    estimated ground ``noise`` [m] (:func:`noise_term`); ``narrow_weights`` (default
+    estimated ground ``noise`` [m] (:func:`noise_term`, :func:`noise_gate`); ``narrow_weights`` (default
     NARROW_WEIGHTS; all zeros: the wide trees' model everywhere) score narrow ones,
     blended by :func:`narrowness`; among those, ``spindle_weights`` (default
     SPINDLE_WEIGHTS; all zeros: the narrow model for every narrow tree) score the
@@ -265,8 +282,7 @@ def combined_score(
     z = features @ weights
     k = noise_term(noise)
     if k > 0:
-        short = _shorter_than(features[:, NODE_FEATURES + 1], NOISE_MAX_HEIGHT)
-        z = z + k * short * (features[:, :NODE_FEATURES] @ noise_weights)
+        z = z + k * noise_gate(features) * (features[:, :NODE_FEATURES] @ noise_weights)
     wide = _logistic(z)
     nw = NARROW_WEIGHTS if narrow_weights is None else narrow_weights
     if not nw.any():

@@ -36,6 +36,20 @@ def test_tall_trees_keep_the_wide_model_however_noisy():
     np.testing.assert_allclose(woodleaf.combined_score(x, noise=0.2), woodleaf.combined_score(x), atol=1e-6)
 
 
+def test_hedges_keep_the_wide_model_under_noise():
+    # a hedge's wide part is not corrected: hedges lost wood F1 to it, and their clean
+    # scans read about 0.04 m of ground noise
+    zero = np.zeros(2 * woodleaf.NODE_FEATURES)  # the wide model on every tree
+
+    def change(width):
+        x = _features(200, width=width, height=3.0)
+        return np.abs(woodleaf.combined_score(x, narrow_weights=zero, noise=0.06)
+                      - woodleaf.combined_score(x, narrow_weights=zero)).max()
+
+    assert change(0.6) > 0.05
+    assert change(0.25) < 0.1 * change(0.6)
+
+
 def test_the_correction_is_continuous_in_noise():
     x = _features(1, width=0.6, height=4.0, seed=1)
     s = np.array([woodleaf.combined_score(x, noise=n)[0] for n in np.linspace(0.0, 0.2, 81)])
