@@ -117,7 +117,7 @@ def _steps(p: np.ndarray, d: np.ndarray) -> np.ndarray:
     return np.abs(np.einsum("ij,ij->i", np.diff(p, axis=0), mid))
 
 
-def _section_rows(local, direction, members, u, v, spacing, params, canopy=None):
+def _section_rows(local, direction, members, u, v, spacing, params, canopy=None, links=None):
     """Rows of one section of the block.
 
     Strategy: trees linked into chains (:func:`pipeline.rowlinks.link_trees`) give the rows' course; the
@@ -141,7 +141,7 @@ def _section_rows(local, direction, members, u, v, spacing, params, canopy=None)
     spacing : float — the typical step between neighbours in a row [m]
     """
     p = local[members]
-    succ, pred, across, tol = _links(local, direction, members, u, spacing, params)
+    succ, pred, across, tol = links or _links(local, direction, members, u, spacing, params)
     chains = chains_of(succ, pred)
     steps = [_steps(p[c], direction[members][c]) for c in chains if len(c) > 1]
     if steps:
@@ -202,24 +202,24 @@ def _links(local, direction, members, u, spacing, params) -> tuple[np.ndarray, n
     return succ, pred, across, tol
 
 
-def _along_links(local, direction, near, members, spacing, params) -> np.ndarray:
+def _along_links(local, direction, near, members, spacing, params) -> tuple[np.ndarray, tuple]:
     """``direction`` with the section's row directions read off the links they give
-    (:func:`pipeline.rowlinks.linked_directions`) while that links more of its trees.
+    (:func:`pipeline.rowlinks.linked_directions`) while that links more of its trees,
+    and its links (:func:`_links`, along the section's direction).
 
     A row with empty slots has its nearest trees across the row at the gaps, and the
     directions lean across (a vase block whose rows keep four trees of six, 6 m apart
     across and 10 m along: 9-10 degrees), so far that a link over a gap falls outside the
     lateral tolerance; the links found lie along the rows. The reading that links more
     trees is the one that explains more of the block: more trees per row."""
-    u = section_direction(direction[members])
-    succ = _links(local, direction, members, u, spacing, params)[0]
+    links = _links(local, direction, members, section_direction(direction[members]), spacing, params)
     for _ in range(_LINK_ROUNDS):
-        again = linked_directions(local, near, members, succ, direction)
-        more = _links(local, again, members, section_direction(again[members]), spacing, params)[0]
-        if (more >= 0).sum() <= (succ >= 0).sum():
+        again = linked_directions(local, near, members, links[0], direction)
+        more = _links(local, again, members, section_direction(again[members]), spacing, params)
+        if (more[0] >= 0).sum() <= (links[0] >= 0).sum():
             break
-        direction, succ = again, more
-    return direction
+        direction, links = again, more
+    return direction, links
 
 
 @dataclass(frozen=True)
@@ -492,14 +492,15 @@ def _found_rows(xy: np.ndarray, params: RowParams, canopy: np.ndarray | None) ->
     for sec in np.unique(section):
         members = np.flatnonzero(section == sec)
         sec_key = tuple(np.round(local[members].mean(axis=0), 3))
+        links = None
         if len(members) > 2:
-            direction = _along_links(local, direction, near.reshape(k, m), members, float(np.median(nn_dist[members])),
-                                     params)
+            direction, links = _along_links(local, direction, near.reshape(k, m), members,
+                                            float(np.median(nn_dist[members])), params)
         u = section_direction(direction[members]) if len(members) > 1 else np.array([1.0, 0.0])
         v = np.array([u[1], -u[0]]) if abs(u[1]) > abs(u[0]) else np.array([-u[1], u[0]])  # numbering: east or north
         sec_canopy = can_local[can_section == sec] if canopy is not None and len(canopy) else None
         rows_here, off, between, spacing = _section_rows(local, direction, members, u, v, float(np.median(nn_dist[members])),
-                                                         params, sec_canopy)
+                                                         params, sec_canopy, links)
         off_row[off] = True
         between_rows[between] = True
         for offset, g, line in rows_here:
