@@ -37,6 +37,14 @@ COLUMN_TOP = 2.5
 #: such a column too, but score 1.7-11 (one 252 of 11), true trunks there 46-1005, the
 #: stems of TreeLS's pine plot 12-425
 COLUMN_MIN_STEM = 12.0
+#: ... or, in any block, whose column goes on unbroken to this far [m] above the tallest
+#: post (``max_post_height``): a bole continuous from the ground into the crowns, whatever
+#: its stem score and wherever its catchment ends. A dominated stem of a closed stand may
+#: score under COLUMN_MIN_STEM (7.7-11 on generated conifer stands) and its catchment end
+#: at 2.6-4.5 m (taller neighbours drain the interlocking crowns above it), but its column
+#: reaches 5.05-7.3 m; a post ends at its top, and the shoot bundles of orchard crowns
+#: stand lower (their columns end by 4.3 m on high-density vase blocks)
+BOLE_ABOVE_POST = 0.5
 
 
 def _suppressed(xy: np.ndarray, strength: np.ndarray, ok: np.ndarray, reach: float, beats) -> np.ndarray:
@@ -106,15 +114,15 @@ def shoots(xy: np.ndarray, stem: np.ndarray, support: np.ndarray, ok: np.ndarray
         stem[i] >= ratio * stem[other] and support[i] >= SHOOT_MIN_SUPPORT * support[other]))
 
 
-def own_stems(centre: np.ndarray, nodes: np.ndarray, node_height: np.ndarray) -> np.ndarray:
+def own_stems(centre: np.ndarray, nodes: np.ndarray, node_height: np.ndarray, top: float = COLUMN_TOP) -> np.ndarray:
     """Groups with a stem of their own: nodes within COLUMN_RADIUS of each ``centre``
-    (g, 2) in every COLUMN_SLICE slice from COLUMN_BOTTOM to COLUMN_TOP above the
+    (g, 2) in every COLUMN_SLICE slice from COLUMN_BOTTOM to ``top`` [m] above the
     ground. Returns (g,) bool."""
     g = centre.shape[0]
-    sel = np.flatnonzero((node_height >= COLUMN_BOTTOM) & (node_height < COLUMN_TOP))
+    sel = np.flatnonzero((node_height >= COLUMN_BOTTOM) & (node_height < top))
     if g == 0 or sel.size == 0:
         return np.zeros(g, bool)
-    n_slices = int(round((COLUMN_TOP - COLUMN_BOTTOM) / COLUMN_SLICE))
+    n_slices = int(round((top - COLUMN_BOTTOM) / COLUMN_SLICE))
     slc = np.minimum(((node_height[sel] - COLUMN_BOTTOM) // COLUMN_SLICE).astype(np.int64), n_slices - 1)
     near = cKDTree(nodes[sel, :2]).query_ball_point(centre, COLUMN_RADIUS)
     return np.array([np.unique(slc[np.asarray(j, np.int64)]).size == n_slices if j else False for j in near])

@@ -128,6 +128,31 @@ def link_trees(xy, direction, u, members, spacing, tol, max_gap_slots):
     return succ, pred
 
 
+def linked_directions(xy: np.ndarray, near: np.ndarray, members: np.ndarray, succ: np.ndarray,
+                      direction: np.ndarray) -> np.ndarray:
+    """(k, 2) ``direction`` with each member's row direction read off the links found
+    (:func:`link_trees`' ``succ`` of the ``members``): the mean, as doubled angles, of
+    the links of its nearest trees ``near`` (k, m), itself first. Where empty slots put
+    a tree's nearest tree across the row, :func:`local_directions` leans across it; the
+    links, which bridge such slots, lie along the row. A member with no link among its
+    nearest trees keeps its direction."""
+    k = len(xy)
+    linked = succ >= 0
+    a, b = members[linked], members[succ[linked]]
+    d2 = _doubled(xy[b] - xy[a])
+    total = np.zeros((k, 2))
+    count = np.zeros(k)
+    for end in (a, b):  # a link counts at both its trees
+        np.add.at(total, end, d2)
+        np.add.at(count, end, 1.0)
+    mean = total[near[members]].sum(axis=1)
+    ok = (count[near[members]].sum(axis=1) > 0) & (np.hypot(mean[:, 0], mean[:, 1]) > 0)
+    ang = 0.5 * np.arctan2(mean[ok, 1], mean[ok, 0])
+    out = direction.copy()
+    out[members[ok]] = np.c_[np.cos(ang), np.sin(ang)]
+    return out
+
+
 def chains_of(succ: np.ndarray, pred: np.ndarray) -> list[np.ndarray]:
     chains = []
     for start in np.flatnonzero(pred < 0):

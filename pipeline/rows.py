@@ -30,6 +30,7 @@ from pipeline.params import RowParams
 from pipeline.rowlinks import (
     chains_of,
     link_trees,
+    linked_directions,
     local_directions,
     measured_row_spacing,
     row_sections,
@@ -46,6 +47,17 @@ _OUTER_REACH = 0.5
 #: the scatter's standard deviation from the median absolute offset
 _OUTLIER_SIGMAS = 3.0
 _MAD_SIGMA = 1.4826
+#: rounds of reading the row directions off the links found (:func:`_along_links`)
+_LINK_ROUNDS = 2
+#: steps between a row's trees are whole numbers of its planting distance within this
+#: fraction of it (a tree hand-planted off its slot)...
+_WHOLE_SLOTS = 0.25
+#: the median step is the planting distance where this share of the steps are whole numbers of it ...
+_MEDIAN_WHOLE_SHARE = 0.5
+#: ... else the largest step of which this share are
+_WHOLE_SHARE = 0.9
+#: the planting distance is looked for among this many quantiles of the steps (and their halves and thirds)
+_SPACING_CANDIDATES = 41
 #: a row's planting distance differs from the block's by at most this fraction ...
 _SPACING_SLACK = 0.1
 #: ... and is looked for in this many steps (0.1 % of the spacing)
@@ -105,7 +117,7 @@ def _steps(p: np.ndarray, d: np.ndarray) -> np.ndarray:
     return np.abs(np.einsum("ij,ij->i", np.diff(p, axis=0), mid))
 
 
-def _section_rows(local, direction, members, u, v, spacing, params, canopy=None):
+def _section_rows(local, direction, members, u, v, spacing, params, canopy=None, links=None):
     """Rows of one section of the block.
 
     Strategy: trees linked into chains (:func:`pipeline.rowlinks.link_trees`) give the rows' course; the
@@ -129,13 +141,11 @@ def _section_rows(local, direction, members, u, v, spacing, params, canopy=None)
     spacing : float — the typical step between neighbours in a row [m]
     """
     p = local[members]
-    across = measured_row_spacing(p, direction[members], cKDTree(p))
-    tol = params.lateral_tolerance * across if np.isfinite(across) else max(spacing, 0.5)
-    succ, pred = link_trees(local, direction, u, members, spacing, tol, params.max_gap_slots)
+    succ, pred, across, tol = links or _links(local, direction, members, u, spacing, params)
     chains = chains_of(succ, pred)
     steps = [_steps(p[c], direction[members][c]) for c in chains if len(c) > 1]
-    if steps:  # the planting distance: the typical step between neighbours in a row
-        spacing = float(np.median(np.concatenate(steps)))
+    if steps:
+        spacing = _planting_distance(np.concatenate(steps))
     a, c = p @ u, p @ v
     long = [ch for ch in chains if len(ch) >= 3]
     bow = _Bow.fit(a, c, long)
@@ -152,6 +162,64 @@ def _section_rows(local, direction, members, u, v, spacing, params, canopy=None)
     rows = _assigned_rows(centres, nearest, on, a, members, shown, bow, u, v)
     inside = _between_rows(flat, centres, dist, on, a, across, spacing, params)
     return rows, members[~on], members[~on & inside], spacing
+
+
+def _planting_distance(steps: np.ndarray) -> float:
+    """The planting distance [m] of rows whose steps between neighbouring trees are
+    ``steps`` [m]: their median, unless most steps are not whole numbers of it
+    (:func:`_whole`); then the largest step of which nearly all are (a step, a half or a
+    third of one), read again as the median of the steps divided by their slots.
+
+    A row that keeps four trees of six steps one and two slots in about equal
+    numbers, and the median of such steps is no slot at all (7.5 m in 5 m rows). A
+    median most steps are whole numbers of stands: false trunks half a slot from a
+    tree (a trellis post) must not halve the planting distance."""
+    spacing = float(np.median(steps))
+    if _whole(steps, spacing).mean() >= _MEDIAN_WHOLE_SHARE:
+        return spacing
+    quantiles = np.quantile(steps, np.linspace(0.0, 1.0, _SPACING_CANDIDATES))
+    for cand in np.sort(np.concatenate([quantiles / n for n in (1, 2, 3)]))[::-1]:
+        whole = _whole(steps, cand)
+        if whole.mean() >= _WHOLE_SHARE:
+            return float(np.median(steps[whole] / np.maximum(1.0, np.rint(steps[whole] / cand))))
+    return spacing
+
+
+def _whole(steps: np.ndarray, spacing: float) -> np.ndarray:
+    """(n,) bool: which ``steps`` [m] are a whole number (one or more) of ``spacing`` [m],
+    within :data:`_WHOLE_SLOTS` of it."""
+    ratio = steps / spacing
+    return np.abs(ratio - np.maximum(1.0, np.rint(ratio))) <= _WHOLE_SLOTS
+
+
+def _links(local, direction, members, u, spacing, params) -> tuple[np.ndarray, np.ndarray, float, float]:
+    """Each member's successor and predecessor along its row (:func:`pipeline.rowlinks.link_trees`),
+    the distance between rows [m] (NaN: one row) and the lateral tolerance of a link [m]."""
+    p = local[members]
+    across = measured_row_spacing(p, direction[members], cKDTree(p))
+    tol = params.lateral_tolerance * across if np.isfinite(across) else max(spacing, 0.5)
+    succ, pred = link_trees(local, direction, u, members, spacing, tol, params.max_gap_slots)
+    return succ, pred, across, tol
+
+
+def _along_links(local, direction, near, members, spacing, params) -> tuple[np.ndarray, tuple]:
+    """``direction`` with the section's row directions read off the links they give
+    (:func:`pipeline.rowlinks.linked_directions`) while that links more of its trees,
+    and its links (:func:`_links`, along the section's direction).
+
+    A row with empty slots has its nearest trees across the row at the gaps, and the
+    directions lean across (a vase block whose rows keep four trees of six, 6 m apart
+    across and 10 m along: 9-10 degrees), so far that a link over a gap falls outside the
+    lateral tolerance; the links found lie along the rows. The reading that links more
+    trees is the one that explains more of the block: more trees per row."""
+    links = _links(local, direction, members, section_direction(direction[members]), spacing, params)
+    for _ in range(_LINK_ROUNDS):
+        again = linked_directions(local, near, members, links[0], direction)
+        more = _links(local, again, members, section_direction(again[members]), spacing, params)
+        if (more[0] >= 0).sum() <= (links[0] >= 0).sum():
+            break
+        direction, links = again, more
+    return direction, links
 
 
 @dataclass(frozen=True)
@@ -424,11 +492,15 @@ def _found_rows(xy: np.ndarray, params: RowParams, canopy: np.ndarray | None) ->
     for sec in np.unique(section):
         members = np.flatnonzero(section == sec)
         sec_key = tuple(np.round(local[members].mean(axis=0), 3))
+        links = None
+        if len(members) > 2:
+            direction, links = _along_links(local, direction, near.reshape(k, m), members,
+                                            float(np.median(nn_dist[members])), params)
         u = section_direction(direction[members]) if len(members) > 1 else np.array([1.0, 0.0])
         v = np.array([u[1], -u[0]]) if abs(u[1]) > abs(u[0]) else np.array([-u[1], u[0]])  # numbering: east or north
         sec_canopy = can_local[can_section == sec] if canopy is not None and len(canopy) else None
         rows_here, off, between, spacing = _section_rows(local, direction, members, u, v, float(np.median(nn_dist[members])),
-                                                         params, sec_canopy)
+                                                         params, sec_canopy, links)
         off_row[off] = True
         between_rows[between] = True
         for offset, g, line in rows_here:

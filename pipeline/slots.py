@@ -65,6 +65,9 @@ MIN_LATTICE_TREES = 4
 #: such a row, where each step between its trees is a whole number of the long rows'
 #: spacing, within SLOT_REACH of it (a mature row a third replanted keeps three trees of six)
 MIN_SHORT_LATTICE_TREES = 3
+#: ... and a row of two trees a whole number of at least two such spacings apart: an
+#: empty slot between two trees on the block's lattice (a row half replanted keeps two)
+MIN_GAPPED_LATTICE_SLOTS = 2
 
 
 def open_slots(layout: RowLayout) -> np.ndarray:
@@ -77,7 +80,7 @@ def open_slots(layout: RowLayout) -> np.ndarray:
 
 def _lattice_rows(layout: RowLayout) -> np.ndarray:
     """(r,) bool: the rows that are evidence of a planting lattice (:data:`MIN_LATTICE_TREES`,
-    :data:`MIN_SHORT_LATTICE_TREES`)."""
+    :data:`MIN_SHORT_LATTICE_TREES`, :data:`MIN_GAPPED_LATTICE_SLOTS`)."""
     n = layout.rows["n_trees"]
     long = n >= MIN_LATTICE_TREES
     spacing = layout.rows["spacing_m"][long]
@@ -85,9 +88,10 @@ def _lattice_rows(layout: RowLayout) -> np.ndarray:
     if not spacing.size:
         return long
     s = float(np.median(spacing))
-    for r in np.flatnonzero(~long & (n >= MIN_SHORT_LATTICE_TREES)):
+    for r in np.flatnonzero(~long & (n >= 2)):
         steps = np.hypot(*np.diff(layout.lines[r], axis=0).T) / s  # the line runs through its trees in slot order
-        long[r] = bool(np.all((np.rint(steps) >= 1) & (np.abs(steps - np.rint(steps)) <= SLOT_REACH)))
+        least = 1 if n[r] >= MIN_SHORT_LATTICE_TREES else MIN_GAPPED_LATTICE_SLOTS
+        long[r] = bool(np.all((np.rint(steps) >= least) & (np.abs(steps - np.rint(steps)) <= SLOT_REACH)))
     return long
 
 

@@ -33,7 +33,7 @@ from pipeline.floors import (
     group_percentile,
 )
 from pipeline.graph import shortest_paths, subtree_sizes
-from pipeline.neighbours import COLUMN_MIN_STEM, accept, own_stems
+from pipeline.neighbours import BOLE_ABOVE_POST, COLUMN_MIN_STEM, accept, own_stems
 from pipeline.params import MATURE_FLOORS, SPACING_RADII, TrunkParams
 from pipeline.spacing import estimate_spacing
 from pipeline.stems import STEM_SLICES, foot_ratio, stem_contrast
@@ -377,7 +377,8 @@ def _trunk_tests(
 ) -> tuple[np.ndarray, np.ndarray]:
     """The groups that are trunks: each group's own tests (size, height, box, width,
     foot), then the tests between neighbours (:func:`pipeline.neighbours.accept`). Adds ``foot``, ``stem``,
-    ``own_stem``, ``pooled_support`` and ``accepted`` to ``candidates``.
+    ``bole`` (a column to above the tallest post: no post), ``own_stem``, ``pooled_support`` and ``accepted``
+    to ``candidates``.
 
     Returns (g,) bool accepted and (g,) float64 pooled catchment."""
     cx, cy, width, g_support, fits = (candidates[k] for k in ("x", "y", "width", "support", "fits"))
@@ -398,8 +399,14 @@ def _trunk_tests(
         # a stand of trees taller than any post: a dominated tree's catchment may end lower
         tall = ok.copy()
     own[tall] = own_stems(centre[tall], nodes, node_height) & (stem[tall] >= COLUMN_MIN_STEM)
-    candidates["own_stem"] = own
-    ok, support = accept(centre, g_support, stem, ok, fits & (width > params.max_trunk_width), params, own)
+    # or a column unbroken from the ground to above the tallest post, whatever its stem
+    # score and wherever its catchment ends (taller neighbours drain the interlocking crowns
+    # above a dominated stem): a bole, no post, and never a neighbour's shoots or satellite
+    bole = np.zeros(cx.size, bool)
+    bole[ok] = own_stems(centre[ok], nodes, node_height, top=params.max_post_height + BOLE_ABOVE_POST)
+    candidates["bole"] = bole
+    candidates["own_stem"] = own | bole
+    ok, support = accept(centre, g_support, stem, ok, fits & (width > params.max_trunk_width), params, own | bole)
     candidates["pooled_support"] = support
     candidates["accepted"] = ok.copy()
     return ok, support

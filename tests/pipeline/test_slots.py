@@ -3,10 +3,12 @@
 from __future__ import annotations
 
 import numpy as np
+import pytest
 
 from pipeline.params import PipelineParams
+from pipeline.rows import find_rows
 from pipeline.slots import (FAR_REACH, MIN_FAR_FULL_SHARE, MIN_FULL_SHARE, MIN_REPLANT_SHARE, SLOT_REACH, let_in,
-                            slot_evidence, trees_on_slots)
+                            on_open_slot, slot_evidence, trees_on_slots)
 from pipeline.trunks import TrunkDetection
 
 
@@ -152,3 +154,41 @@ def test_a_row_of_three_trees_on_the_blocks_lattice_has_open_slots():
     # three trees off the lattice (steps 7.4 and 7.6 m) are no evidence of slots
     off_lattice = [[0.0, 6.0], [7.4, 6.0], [15.0, 6.0]]
     assert not len(trees_on_slots(_evidence(long + off_lattice, [[3.7, 6.0], [11.3, 6.0]]), params=PipelineParams().rows))
+
+
+def test_a_row_of_two_trees_with_a_slot_between_them_on_the_blocks_lattice_has_open_slots():
+    # a grown row of six and a row half replanted: two trees two slots apart, three
+    # replants beyond its west end (let in round by round) and one between them
+    # (trunks as found on the vase block of tuning seed 110)
+    long = [[8.32, 14.0], [13.45, 14.05], [17.84, 14.07], [23.01, 13.95], [27.94, 14.25], [32.98, 13.9]]
+    two = [[22.91, 7.97], [33.03, 7.91]]
+    replants = [[8.12, 8.02], [13.06, 8.11], [17.97, 7.98], [28.3, 8.07]]
+    got = trees_on_slots(_evidence(long + two, replants), params=PipelineParams().rows)
+    assert sorted(got[:, 0].tolist()) == [8.12, 13.06, 17.97, 28.3]
+    # two trees one slot apart, or off the lattice (1.6 slots), open nothing between them
+    for two in ([[22.91, 7.97], [27.9, 7.9]], [[22.91, 7.97], [30.9, 7.9]]):
+        assert not len(trees_on_slots(_evidence(long + two, [[26.9, 8.0]]), params=PipelineParams().rows))
+
+
+#: trunks as found on vase blocks of mixed ages (5 m x 6 m, 2 x 6 slots, a third replanted):
+#: evaluation seed 2 and tuning seeds 106 and 118, and the slots of their replants
+MIXED_AGES = {
+    2: ([[7.89, 8.14], [8.35, 14.09], [17.73, 8.17], [23.0, 14.03], [28.02, 8.17], [28.08, 13.81],
+         [32.73, 13.63], [32.98, 8.15]], [[12.96, 8.2], [23.16, 7.79], [12.96, 13.88], [18.1, 13.97]]),
+    106: ([[7.87, 14.25], [8.12, 7.77], [12.76, 8.06], [13.11, 13.98], [18.05, 7.84], [22.79, 7.9],
+           [28.0, 14.16], [33.15, 8.11]], [[27.99, 8.08], [17.97, 14.13], [22.93, 13.94], [32.78, 14.14]]),
+    118: ([[8.42, 8.01], [13.02, 7.48], [13.1, 13.69], [18.1, 8.07], [22.88, 13.78], [27.65, 7.89],
+           [32.97, 13.97], [33.06, 8.07]], [[23.02, 7.82], [8.02, 14.12], [18.07, 14.28], [28.21, 14.17]]),
+}
+
+
+@pytest.mark.parametrize("seed", sorted(MIXED_AGES))
+def test_rows_a_third_replanted_are_read_along_the_planting_and_their_slots_open(seed):
+    # the grown trees stand 10 m apart in a row as often as 5 m, and 6 m across: the
+    # nearest tree of many lies across the row
+    trunks, replants = MIXED_AGES[seed]
+    layout = find_rows(np.asarray(trunks))
+    assert len(layout.rows["row"]) == 2 and not layout.off_row.any()
+    assert np.allclose(layout.rows["spacing_m"], 5.0, atol=0.2)
+    slot = on_open_slot(np.asarray(trunks), np.asarray(replants), reach=FAR_REACH)
+    assert (slot >= 0).all() and len(set(slot.tolist())) == 4

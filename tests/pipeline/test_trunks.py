@@ -458,3 +458,28 @@ def test_a_closed_conifer_stand_with_a_rough_floor_has_every_stem_found():
     s = score_labels(true_tree_id=o.tree_id, true_is_wood=o.is_wood, true_trunks=o.trunks[:, :2] - origin[:2],
                      pred_tree_id=r.tree_id, pred_is_wood=r.is_wood, found_trunks=r.trunks[:, :2])
     assert s["trunk_f1"] == 1.0, s
+
+
+def _bole(x, z1, step=0.1):
+    z = np.arange(0.05, z1, step)
+    return np.c_[np.full_like(z, x), np.zeros_like(z), z]
+
+
+@pytest.mark.parametrize("column_top, kept", [(6.0, True), (4.4, False)])
+def test_a_bole_unbroken_to_above_the_tallest_post_is_a_stem_of_its_own(monkeypatch, column_top, kept):
+    # a closed stand: a dominated stem 1.5 m from a clearer one scores 8 (sampled thinly
+    # under interlocking crowns), under the stem-of-its-own score: a shoot of its
+    # neighbour by the stem test, unless its column goes on unbroken from the ground to
+    # above the tallest post (4.5 m) into its own crown. One ending under that (a post,
+    # a shoot bundle) is still judged as before.
+    import pipeline.trunks as trunks
+
+    monkeypatch.setattr(trunks, "stem_contrast", lambda xy, *a, **k: np.array([100.0, 8.0])[: len(xy)])
+    cand = {"x": np.array([0.0, 1.5]), "y": np.zeros(2), "width": np.full(2, 0.2), "support": np.array([4000.0, 2000.0]),
+            "fits": np.ones(2, bool), "top": np.array([9.0, 8.0])}
+    nodes = np.r_[_bole(0.0, 9.0), _bole(1.5, column_top)]
+    params = TrunkParams().at_floors().at_spacing(2.2)
+    ok, _ = trunks._trunk_tests(cand, nodes, nodes[:, 2], foot_xy=None, stem_xy=np.zeros((1, 2)),
+                                stem_slice=np.zeros(1, np.int64), params=params)
+    assert ok.tolist() == [True, kept]
+    assert cand["own_stem"].tolist() == [True, kept]
