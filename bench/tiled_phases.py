@@ -33,9 +33,9 @@ def _spy_run_again(run_again):
 
 
 def _spy_report(report):
-    def wrapper(outcome, args):
+    def wrapper(outcome, args, **kwargs):
         t = time.perf_counter()
-        rc = report(outcome, args)
+        rc = report(outcome, args, **kwargs)
         STATS["timings"] = {k: round(v, 2) for k, v in outcome.timings.items()}
         STATS["views"] = round(time.perf_counter() - t, 2)
         return rc

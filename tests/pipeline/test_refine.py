@@ -107,7 +107,9 @@ def test_what_is_left_of_a_cut_out_object_does_not_join_a_crown():
     used to join the nearest tree as canopy the graph could not bridge (5 m away at a
     row's end). A floating fragment as far away that touched no cut-out node still joins."""
     trunk = _line([0, 0, 0], [0, 0, 1.5])
-    crown = _line([0, 0, 1.6], [1.0, 0, 1.6])
+    # the crown reaches 1.5 m: both fragments start within twice that (a fragment farther
+    # out is the fence wire's case, test_segment), so only the cut-out face tells them apart
+    crown = _line([0, 0, 1.6], [1.5, 0, 1.6])
     side = _line([2.0, 0, 0.1], [2.0, 0, 1.4])  # a face, cut out
     roof = _line([2.1, 0, 1.5], [3.0, 0, 1.5])  # touches the face's top node only
     canopy = _line([2.1, 1.0, 1.5], [3.0, 1.0, 1.5])  # floating canopy, no face near
