@@ -30,6 +30,12 @@ def small_block(tmp_path_factory) -> Path:
 
 
 @pytest.fixture(scope="session")
+def sparse_block(tmp_path_factory) -> Path:
+    """8 trees in 2 rows at a tenth of the default density, LAZ: a block to count and split."""
+    return _simulate(tmp_path_factory.mktemp("blocks") / "sparse.laz", rows=2, trees_per_row=4, density=0.1, seed=11)
+
+
+@pytest.fixture(scope="session")
 def orchard_block(tmp_path_factory) -> Path:
     """40 trees in 4 rows, low density, LAZ."""
     return _simulate(

@@ -33,3 +33,20 @@ def write_variable_chunk_laz(src: Path, dst: Path, sizes: list[int]) -> Path:
     finally:
         backend.lazrs.LazVlr = real
     return dst
+
+
+def lying_copy(src: Path, dst: Path, *, count: int | None = None, max_x: float | None = None) -> Path:
+    """``src`` copied to ``dst`` with its header's point count (LAS 1.4: uint64 at byte
+    247) or maximum x (double at byte 179) replaced."""
+    import shutil
+    import struct
+
+    shutil.copy(src, dst)
+    with open(dst, "r+b") as f:
+        if count is not None:
+            f.seek(247)
+            f.write(struct.pack("<Q", count))
+        if max_x is not None:
+            f.seek(179)
+            f.write(struct.pack("<d", max_x))
+    return dst

@@ -6,8 +6,6 @@ then tiling."""
 from __future__ import annotations
 
 import math
-import shutil
-import struct
 import tempfile
 from pathlib import Path
 
@@ -15,6 +13,7 @@ import numpy as np
 import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
+from laz_fixtures import lying_copy
 
 import workers.cellranges as cellranges
 import workers.job as job
@@ -36,14 +35,8 @@ RUN = 7_000  # points per range: several ranges on a small block
 
 
 @pytest.fixture(scope="module")
-def block(tmp_path_factory) -> BlockInfo:
-    from simulator.simparams import SimulationParams
-    from simulator.truth import write_simulation
-
-    folder = tmp_path_factory.mktemp("cellranges")
-    path = folder / "b.laz"
-    write_simulation(SimulationParams(rows=2, trees_per_row=4, density=0.1, seed=11), str(path), str(folder / "t.parquet"))
-    return read_info(str(path))
+def block(sparse_block):
+    return read_info(str(sparse_block))
 
 
 @pytest.fixture
@@ -106,18 +99,7 @@ def test_the_split_counts_what_the_count_counts_and_an_unseekable_file_is_split_
 
 
 def _lying(block: BlockInfo, tmp_path: Path, *, count=None, max_x=None) -> Path:
-    """The block with its header's point count (LAS 1.4: uint64 at byte 247) or maximum x
-    (double at byte 179) replaced."""
-    path = tmp_path / "lying.laz"
-    shutil.copy(block.path, path)
-    with open(path, "r+b") as f:
-        if count is not None:
-            f.seek(247)
-            f.write(struct.pack("<Q", count))
-        if max_x is not None:
-            f.seek(179)
-            f.write(struct.pack("<d", max_x))
-    return path
+    return lying_copy(Path(block.path), tmp_path / "lying.laz", count=count, max_x=max_x)
 
 
 @pytest.mark.parametrize("lie", ["count", "extent"])

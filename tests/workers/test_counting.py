@@ -11,21 +11,15 @@ import pytest
 
 import workers.cellranges as cellranges
 import workers.counting as counting
+from pipeline.blockinfo import read_info
 from pipeline.reading import sample_density
 from workers.counting import count_block
 from workers.jobspec import JobCancelled
 
 
 @pytest.fixture(scope="module")
-def block(tmp_path_factory):
-    from pipeline.blockinfo import read_info
-    from simulator.simparams import SimulationParams
-    from simulator.truth import write_simulation
-
-    folder = tmp_path_factory.mktemp("counting")
-    path = folder / "b.laz"
-    write_simulation(SimulationParams(rows=2, trees_per_row=4, density=0.1, seed=11), str(path), str(folder / "t.parquet"))
-    return read_info(str(path))
+def block(sparse_block):
+    return read_info(str(sparse_block))
 
 
 @pytest.fixture

@@ -4,14 +4,13 @@ before the first tile, no tile written, the same outputs as the same points in p
 from __future__ import annotations
 
 import dataclasses
-import shutil
-import struct
 from pathlib import Path
 
 import laspy
 import numpy as np
 import pyarrow.parquet as pq
 import pytest
+from laz_fixtures import lying_copy
 
 from pipeline.blockinfo import read_info
 from pipeline.errors import InputError
@@ -95,18 +94,7 @@ def test_a_copc_block_in_one_piece_is_the_plain_one(plain_twin, tmp_path):
 
 
 def _lying(tmp_path: Path, *, count: int | None = None, max_x: float | None = None) -> Path:
-    """The fixture with its header's point count (LAS 1.4: uint64 at byte 247) or
-    maximum x (double at byte 179) replaced."""
-    path = tmp_path / "lying.copc.laz"
-    shutil.copy(COPC, path)
-    with open(path, "r+b") as f:
-        if count is not None:
-            f.seek(247)
-            f.write(struct.pack("<Q", count))
-        if max_x is not None:
-            f.seek(179)
-            f.write(struct.pack("<d", max_x))
-    return path
+    return lying_copy(COPC, tmp_path / "lying.copc.laz", count=count, max_x=max_x)
 
 
 def _nothing_written(out: Path) -> bool:
