@@ -208,6 +208,16 @@ def _row_runs(ids: np.ndarray, cells: TileGrid, span) -> tuple[np.ndarray, np.nd
             np.searchsorted(ids, rows * cells.ncols + c1, side="right"))
 
 
+def _cell_tiles(ids: np.ndarray, cells: TileGrid, grid: TileGrid) -> np.ndarray:
+    """The tile of ``grid`` (aligned with ``cells``, :func:`aligned`) whose core holds each
+    cell ``ids``: its column counted in whole tiles from the origin, clipped to the grid as
+    :func:`pipeline.tiling.core_tile` clips a point outside it."""
+    size = max(1, int(grid.tile_size))
+    col = np.clip((ids % cells.ncols + cells.col0) // size - grid.col0, 0, grid.ncols - 1)
+    row = np.clip((ids // cells.ncols + cells.row0) // size - grid.row0, 0, grid.nrows - 1)
+    return row * grid.ncols + col
+
+
 def index_from_cells(info: BlockInfo, grid: TileGrid, cells: TileGrid, parts: list[dict], store: WorkStore) -> dict:
     """The tile index of a block split by :func:`split_range` (``parts``: their results),
     stored with the ranges in its frame.
@@ -228,13 +238,7 @@ def index_from_cells(info: BlockInfo, grid: TileGrid, cells: TileGrid, parts: li
     n = np.concatenate([p["counts"] for p in parts]) if parts else np.zeros(0, np.int64)
     ids, inverse = np.unique(ids, return_inverse=True)
     n = np.bincount(inverse.ravel(), weights=n, minlength=len(ids)).astype(np.int64)
-    # a cell's tile: its column counted in whole tiles from the origin, clipped to the
-    # grid as core_tile clips a point outside it
-    size = max(1, int(grid.tile_size))
-    col = np.clip((ids % cells.ncols + cells.col0) // size - grid.col0, 0, grid.ncols - 1)
-    row = np.clip((ids // cells.ncols + cells.row0) // size - grid.row0, 0, grid.nrows - 1)
-    tid = row * grid.ncols + col
-    tiles, core = np.unique(tid, return_inverse=True)
+    tiles, core = np.unique(_cell_tiles(ids, cells, grid), return_inverse=True)
     core = np.bincount(core.ravel(), weights=n, minlength=len(tiles)).astype(np.int64)
     cum = np.r_[0, np.cumsum(n)]
     counts = {}
@@ -281,18 +285,14 @@ def _cells_in_tile(ids: np.ndarray, cells: TileGrid, grid: TileGrid, tile_id: in
     """For cells ``ids`` of ``cells`` (aligned with ``grid``, :func:`aligned`): whether
     their points lie in the core of ``tile_id``, all in its open buffered box, or surely
     none in it (else they are tested one by one)."""
-    j = ids % cells.ncols + cells.col0
-    k = ids // cells.ncols + cells.row0
-    size = max(1, int(grid.tile_size))
-    col = np.clip(j // size - grid.col0, 0, grid.ncols - 1)
-    row = np.clip(k // size - grid.row0, 0, grid.nrows - 1)
-    core = row * grid.ncols + col == tile_id
+    core = _cell_tiles(ids, cells, grid) == tile_id
     if grid.buffer <= 0:  # no buffer: the buffered set is the core
         return core, core, ~core
     # a cell's points lie in [gx + j, gx + j + 1) (core_tile's own test, cells of 1 m),
     # against in_buffered's box, written as it writes it
     s, b = grid.tile_size, grid.buffer
     gx, gy = cells.origin
+    j, k = ids % cells.ncols + cells.col0, ids // cells.ncols + cells.row0
     minx = gx + np.int64(grid.col0 + tile_id % grid.ncols) * s - b
     miny = gy + np.int64(grid.row0 + tile_id // grid.ncols) * s - b
     maxx, maxy = minx + s + 2 * b, miny + s + 2 * b
