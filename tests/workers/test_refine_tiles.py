@@ -52,7 +52,7 @@ def test_a_reach_from_each_trees_height_does_not_depend_on_tiling(tmp_path):
     assert tiled.n_tiles > 2 and tiled.n_trees == single.n_trees > 0
     pa = pq.read_table(tmp_path / "single" / "points.parquet").to_pydict()
     pb = pq.read_table(tmp_path / "tiled" / "points.parquet").to_pydict()
-    default = run_job(JobSpec(str(block), str(tmp_path / "default"), job=JobParams()))
+    run_job(JobSpec(str(block), str(tmp_path / "default"), job=JobParams()))
     pd_ = pq.read_table(tmp_path / "default" / "points.parquet").to_pydict()
     assert np.count_nonzero(pa["tree_id"]) < np.count_nonzero(pd_["tree_id"])  # the height's reach did cut material
     for col in ("point_index", "tree_id", "is_ground"):
