@@ -249,8 +249,9 @@ def _label_unreached(nodes, graph, node_tree, trunk_xy, node_height, reach: np.n
     spread = FRAGMENT_SPREAD * _reached_radius(nodes, node_tree, trunk_xy)
     joined = _join_nearest(nodes, node_tree, trunk_xy, todo, np.flatnonzero(labelled), bound,
                            max(widest, params.unreached_radius), reach)
-    joined = _drop_far_fragments(nodes, node_tree, joined, np.bincount(todo, comp + 1, node_tree.size).astype(np.int64) - 1,
-                                 trunk_xy, spread)
+    fragment = np.full(node_tree.size, -1, np.int64)  # each unreached node's fragment
+    fragment[todo] = comp
+    joined = _drop_far_fragments(nodes, node_tree, joined, fragment, trunk_xy, spread)
     # small floating fragments also join through fragments that have just joined (a
     # sparsely scanned crown's rim: a chain of lone leaves). The nodes labelled before
     # a round are all beyond fragment_reach of the rest, so each round only searches
