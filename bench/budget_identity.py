@@ -15,11 +15,10 @@ from __future__ import annotations
 
 import argparse
 import hashlib
-import json
 import shutil
 from pathlib import Path
 
-from bench.identity import BLOCKS, differences, measure
+from bench.identity import BLOCKS, measure, write_or_compare
 
 #: a budget [GB] per block that tiles it (the smallest tile still fits)
 BUDGETS = {"vase": 0.48, "spindle": 0.45, "hedge": 0.45}
@@ -55,17 +54,7 @@ def main(argv: list[str] | None = None) -> int:
     args = p.parse_args(argv)
     if not all((BLOCKS / f"{scene}.laz").exists() for scene in BUDGETS):
         measure(args.work / "identity")  # makes the blocks (and runs bench.identity's runs once)
-    manifest = run(args.work)
-    if args.write:
-        args.write.write_text(json.dumps(manifest, indent=1, sort_keys=True))
-        print(f"{sum(map(len, manifest.values()))} entries in {len(manifest)} runs -> {args.write}")
-        return 0
-    diff = differences(json.loads(args.compare.read_text()), manifest)
-    for line in diff:
-        print(line)
-    n = sum(map(len, manifest.values()))
-    print(f"{n - len(diff)} of {n} entries identical" if diff else f"all {n} entries in {len(manifest)} runs identical")
-    return 1 if diff else 0
+    return write_or_compare(args, run(args.work), "entries")
 
 
 if __name__ == "__main__":

@@ -92,16 +92,21 @@ def main(argv: list[str] | None = None) -> int:
     g.add_argument("--compare", type=Path, metavar="MANIFEST", help="compare with the hashes in this JSON file")
     p.add_argument("--work", type=Path, default=Path("/tmp/orchard-identity-out"), help="folder for the outputs")
     args = p.parse_args(argv)
-    manifest = measure(args.work)
+    return write_or_compare(args, measure(args.work), "files")
+
+
+def write_or_compare(args: argparse.Namespace, manifest: dict, unit: str) -> int:
+    """Write ``manifest`` to ``args.write``, or compare it with ``args.compare`` and print
+    each difference: the exit code (1 on any difference). ``unit``: what an entry is."""
     if args.write:
         args.write.write_text(json.dumps(manifest, indent=1, sort_keys=True))
-        print(f"{sum(map(len, manifest.values()))} files in {len(manifest)} runs -> {args.write}")
+        print(f"{sum(map(len, manifest.values()))} {unit} in {len(manifest)} runs -> {args.write}")
         return 0
     diff = differences(json.loads(args.compare.read_text()), manifest)
     for line in diff:
         print(line)
     n = sum(map(len, manifest.values()))
-    print(f"{n - len(diff)} of {n} files identical" if diff else f"all {n} files in {len(manifest)} runs identical")
+    print(f"{n - len(diff)} of {n} {unit} identical" if diff else f"all {n} {unit} in {len(manifest)} runs identical")
     return 1 if diff else 0
 
 
