@@ -10,7 +10,7 @@ buffer copies) to the work store, sorted by the 1 m cell of the job's grid origi
 holds them, with the cells' offsets. Once the tile size is chosen the tile index comes
 from the cells' counts (:func:`index_from_cells`: a whole-metre tile from that origin
 is a block of whole cells, so its core count is exact; its buffered count is an upper
-bound until its task ran, :func:`workers.tiler.settle_index`), and each tile's task
+bound until its task ran, :func:`workers.settling.settle_index`), and each tile's task
 reads the cells its buffered box meets from the ranges whose cells do
 (:func:`gather_tile`) and keeps the tiler's own points, in file order: the records
 :func:`workers.tiler.read_tile` gives for the same tile.
@@ -225,7 +225,7 @@ def index_from_cells(info: BlockInfo, grid: TileGrid, cells: TileGrid, parts: li
     Every tile whose core holds a point is listed, with its exact core count (``grid``
     must be :func:`aligned` with ``cells``) and, as ``n_buffered``, the points of the
     cells its buffered box meets (an upper bound, settled once its task counted them,
-    :func:`workers.tiler.settle_index`).
+    :func:`workers.settling.settle_index`).
 
     Raises
     ------

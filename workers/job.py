@@ -52,7 +52,8 @@ from workers.outputs import Labels, merge_and_write
 from workers.replay import merge_stored
 from workers.captures import capture_of
 from workers.tasks import process, summarise
-from workers.tiler import check_engine, read_sample, settle_index, tile_block
+from workers.settling import settle_index
+from workers.tiler import check_engine, read_sample, tile_block
 from workers.workstore import JOB_KEY, WorkStore, default_work_dir
 
 

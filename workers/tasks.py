@@ -26,16 +26,8 @@ from pipeline.reading import to_local
 from pipeline.tiling import TileGrid, core_tile
 from workers.slottrees import SLOT_KEY, trees_in_tile
 from workers.cellranges import gather_tile
-from workers.tiler import (
-    CELLS_ENGINE,
-    SOURCE_ENGINE,
-    put_tile_sample,
-    read_frame,
-    read_tile,
-    source_tile,
-    streamed,
-    tile_key,
-)
+from workers.settling import put_tile_sample, streamed
+from workers.tiler import CELLS_ENGINE, SOURCE_ENGINE, read_frame, read_tile, source_tile, tile_key
 from workers.workstore import JOB_KEY, WorkStore
 
 #: how far beyond its core a tile claims a trunk, in cluster radii
@@ -196,7 +188,7 @@ def process_tile(work_url: str, tile_id: int, params_json: str, fail: bool = Fal
     slot_trees = None if given is None else trees_in_tile(given, {"buffered": grid.tile(int(tile_id)).buffered}, frame["origin"])
     rec, xyz = _tile_points(store, tile_id, frame)
     core = rec["core"].astype(bool)
-    if not core.any():  # a streamed tile whose estimate was wrong (workers.tiler.settle_index drops it)
+    if not core.any():  # a streamed tile whose estimate was wrong (workers.settling.settle_index drops it)
         return {"tile_id": int(tile_id), "n_core": 0, "n_buffered": len(rec)}
     if frame.get("engine") == SOURCE_ENGINE:  # the ranges of a block split by cell keep theirs
         put_tile_sample(store, tile_id, xyz[core, :2], rec["index"][core], int(frame["n_points"]))
@@ -211,7 +203,7 @@ def process_tile(work_url: str, tile_id: int, params_json: str, fail: bool = Fal
     store.put_array(f"{key}/is_wood.npy", np.asarray(result.is_wood[core], dtype=bool))
     store.put_array(f"{key}/wood_score.npy", np.asarray(result.wood_score[core], dtype=np.float32))
     summary = summarise(tile_id, xyz, core, result, grid, frame["origin"], params, index=rec["index"])
-    if streamed(frame):  # its count is known only now (workers.tiler.settle_index)
+    if streamed(frame):  # its count is known only now (workers.settling.settle_index)
         summary["n_buffered"] = len(rec)
     store.put_object(f"{key}/summary.pkl", summary)
     if not store.exists(JOB_KEY):  # deleted while these were written: take them back

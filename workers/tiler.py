@@ -16,7 +16,7 @@ A COPC block is not split at all (:func:`index_from_nodes`): its octree's hierar
 the index, and each tile's task reads the nodes its box meets from the input
 (:func:`source_tile`), so no pass over the block comes before the first tile and no
 tile is written. Its tiles' counts are estimates until the tiles ran
-(:func:`settle_index`).
+(:func:`workers.settling.settle_index`).
 
 A plain block that a job counts to choose its tile size is not split here either: the
 pass that counts it writes its points once, sorted by cell, and each tile gathers its
@@ -553,57 +553,3 @@ def _frame_info(frame: dict) -> BlockInfo:
                      compressed=True, scales=tuple(frame["scales"]), offsets=tuple(frame["offsets"]),
                      mins=tuple(frame["mins"]), maxs=tuple(frame["maxs"]), crs_wkt=None,
                      origin=tuple(frame["origin"]), seekable=False, copc=True)
-
-
-def streamed(frame: dict) -> bool:
-    """Whether the tiles of this tile index (or its frame) find their points when they
-    run (from the input, or from ranges sorted by cell): its counts are settled then
-    (:func:`settle_index`)."""
-    return frame.get("engine") in (SOURCE_ENGINE, CELLS_ENGINE)
-
-
-def sample_key(tile_id: int) -> str:
-    """Where a streamed tile keeps its core's share of the report's sample."""
-    return f"{SAMPLE_KEY}/tile-{tile_id:06d}.npy"
-
-
-def put_tile_sample(store: WorkStore, tile_id: int, local_xy: np.ndarray, index: np.ndarray, n_points: int) -> None:
-    """Keep the sampled points (every :func:`pipeline.jobparams.sample_stride`-th of the
-    file) among a streamed tile's core points ``local_xy`` (k, 2) [m] of file positions
-    ``index`` (k,): the share the tiler keeps for a tile it writes."""
-    pick = index % np.uint64(sample_stride(n_points)) == 0
-    part = np.empty(int(pick.sum()), dtype=[("x", "<f8"), ("y", "<f8"), ("index", "<i8")])
-    part["x"], part["y"], part["index"] = local_xy[pick, 0], local_xy[pick, 1], index[pick].astype(np.int64)
-    store.put_array(sample_key(tile_id), part)
-
-
-def settle_index(store: WorkStore, idx: dict, summaries: list[dict], failed, n_points: int) -> tuple[dict, list[dict]]:
-    """A streamed tile index with the counts its tiles found (``summaries``: their
-    :func:`workers.tasks.process_tile` results; those of tiles with no core point are
-    dropped, with the tiles), stored, and the summaries kept. Any other index is returned
-    as it is.
-
-    Raises
-    ------
-    InputError
-        Every tile ran and their core points are not the header's count: the header lies
-        about the block's count or extent. Nothing is written from such tiles.
-    """
-    if not streamed(idx):
-        return idx, summaries
-    found = {int(s["tile_id"]): s for s in summaries}
-    tiles = []
-    for t in idx["tiles"]:
-        s = found.get(int(t["id"]))
-        if s is not None:
-            if int(s["n_core"]) == 0:
-                continue
-            t = dict(t, n_core=int(s["n_core"]), n_buffered=int(s.get("n_buffered", t["n_buffered"])))
-        tiles.append(t)
-    idx = dict(idx, tiles=tiles, estimated=bool(failed))
-    total = sum(int(t["n_core"]) for t in tiles)
-    if not failed and total != n_points:
-        raise input_error(idx["input"], f"its header announces {n_points:,} points within x {idx['mins'][0]}..{idx['maxs'][0]}, "
-                                        f"y {idx['mins'][1]}..{idx['maxs'][1]} but its tiles there hold {total:,}; the file is corrupt")
-    put_index(store, idx)
-    return idx, [s for s in summaries if int(s["n_core"]) > 0]

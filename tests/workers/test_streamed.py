@@ -169,7 +169,8 @@ def test_a_box_read_in_batches_of_nodes_is_the_box_read_at_once():
 
 
 def test_settling_a_streamed_index_takes_the_tiles_counts_and_drops_the_empty_ones(tmp_path):
-    from workers.tiler import INDEX_KEY, settle_index
+    from workers.settling import settle_index
+    from workers.tiler import INDEX_KEY
 
     store = WorkStore(str(tmp_path / "work"))
     idx = {"engine": "copc", "input": "b.copc.laz", "mins": [0, 0, 0], "maxs": [9, 9, 9], "estimated": True,
