@@ -377,15 +377,15 @@ def _run_job(spec, args: argparse.Namespace, *, tiled: bool, count_on_cluster: b
                 spec, _ = _budget_tiles(spec, count=partial(count_block, client=client,
                                                             cancel=getattr(args, "interrupted", None),
                                                             progress=_Bar(what="counting")))
-            link = dashboard_address(client)
+            dashboard_line = f"dask dashboard: {dashboard_address(client) or 'none'}"
 
             def tiles_chosen(spec):
                 # after the count: a budget that cannot work ends the count's lines
                 _say_tiles(spec)
-                print(f"dask dashboard: {link or 'none'}", file=sys.stderr)
+                print(dashboard_line, file=sys.stderr)
 
             if not fused:
-                print(f"dask dashboard: {link or 'none'}", file=sys.stderr)
+                print(dashboard_line, file=sys.stderr)
         from workers.job import run_job
 
         # TileFailed: exit 1 (service.cli)
