@@ -110,44 +110,92 @@ def find_posts(
     -------
     Posts (one per candidate that is a post; nearby candidates on one post give one)
     """
-    # Strategy: a grid picks the points near any candidate, a finer one sorted by cell
-    # finds each candidate's column; per candidate, a handful of circle fits on the few
-    # hundred points of its column.
+    # Strategy: most candidates fail on the sections at POST_HEIGHTS, which hold a few %
+    # of a column's points: those points are picked first (a coarse pass over height
+    # bins, then the sections' own test), a grid of them finds each candidate's, and the
+    # circles are fitted to them. The whole columns are indexed only once a candidate's
+    # sections show a post, to follow it up to its top.
     none = Posts(np.zeros((0, 2)), np.zeros(0), np.zeros(0))
     if max_radius <= 0 or centres.shape[0] == 0 or xyz.shape[0] == 0:
         return none
     column_reach = reach + max_radius + POST_MARGIN + POST_FOLLOW_SHIFT
-    near = near_centres(xyz[:, :2], centres, column_reach)
-    keep = (height[near] >= POST_HEIGHTS[0] - POST_SLAB) & (height[near] <= max_height + POST_SLAB)
-    near = near[keep if among is None else keep & among[near]]  # in input order, as the fits need
-    xyz, height = xyz[near], height[near]
-    columns = CellIndex(xyz[:, :2], column_reach)
+    in_sections, section_of = _section_points(height, among, max_height=max_height)
+    near = near_centres(xyz[in_sections, :2], centres, column_reach)
+    in_sections, section_of = in_sections[near], section_of[near]  # in input order, as the fits need
+    low_xy, low_height = xyz[in_sections, :2], height[in_sections]
+    sections = CellIndex(low_xy, column_reach)
+    columns = None
     found_xy, found_r, found_top = [], [], []
     for c in np.asarray(centres, dtype=np.float64):
         if found_xy and np.min(np.hypot(*(np.asarray(found_xy) - c).T)) <= 2 * max_radius:
             continue  # on a post already found
         # in input order: the circle fits draw their trials by position
-        idx = columns.ball(c)
-        if idx.size < POST_MIN_POINTS * len(POST_HEIGHTS):
+        idx = sections.ball(c)
+        if np.bincount(section_of[idx], minlength=len(POST_HEIGHTS)).min() < POST_MIN_POINTS:
+            continue  # a section without the points of a circle: no post
+        post = _axis_at(c, _Column(low_xy[idx], low_height[idx], max_height), max_radius=max_radius, reach=reach)
+        if post is None:
             continue
-        post = _post_at(c, xyz, height, idx, max_radius=max_radius, max_height=max_height, reach=reach)
-        if post is not None:
+        if columns is None:
+            columns = _Columns(xyz, height, centres, column_reach, max_height=max_height, among=among)
+        top = _top(columns.at(c), *post)
+        if top is not None:
             found_xy.append(post[0])
             found_r.append(post[1])
-            found_top.append(post[2])
+            found_top.append(top)
     if not found_xy:
         return none
     return Posts(np.asarray(found_xy), np.asarray(found_r), np.asarray(found_top))
 
 
-def _post_at(c: np.ndarray, xyz: np.ndarray, height: np.ndarray, idx: np.ndarray, *, max_radius: float,
-             max_height: float, reach: float) -> tuple[np.ndarray, float, float] | None:
-    """The axis (2,), radius and top [m] of the post at candidate ``c``, or None. ``idx``
-    are the points of its column, in input order (:func:`find_posts`)."""
-    # the sections at POST_HEIGHTS hold none of the points above them (with a margin
-    # for rounding): they select from the column's foot, the column is followed up after
-    foot = idx[height[idx] <= POST_HEIGHTS[-1] + 2 * POST_SLAB]
-    column = _Column(xyz[foot, :2], height[foot], max_height)
+def _section_points(height: np.ndarray, among: np.ndarray | None, *, max_height: float) -> tuple[np.ndarray, np.ndarray]:
+    """Indices (sorted) of the points (among ``among``, up to ``max_height`` [m] as
+    :class:`_Columns` keeps them) that a section at one of POST_HEIGHTS takes by its
+    height (:meth:`_Column.section`'s own test), and the index in POST_HEIGHTS of each,
+    (m,) int64 and (m,) int64."""
+    # 1 cm bins first, a lookup table giving the section that reaches each (with a bin
+    # to spare each side for rounding): one cheap pass over every point, the sections'
+    # test on the few it lets through. NaN heights fall into bin -1 (the last, none) and
+    # heights past the table into its last bin too.
+    top = int(np.ceil(100 * (POST_HEIGHTS[-1] + POST_SLAB))) + 2
+    section = np.full(top + 1, -1, np.int8)
+    for k, at in enumerate(POST_HEIGHTS):
+        section[int(np.floor(100 * (at - POST_SLAB))) - 1 : int(np.floor(100 * (at + POST_SLAB))) + 2] = k
+    b = np.multiply(height, 100.0)
+    np.fmax(b, -1.0, out=b)
+    np.fmin(b, float(top), out=b)
+    which = section[b.astype(np.int16)]
+    near = which >= 0
+    if among is not None:
+        near &= among
+    idx = np.flatnonzero(near)
+    which, h = which[idx].astype(np.int64), height[idx]
+    keep = np.abs(h - np.asarray(POST_HEIGHTS)[which]) <= POST_SLAB  # as the section tests them
+    keep &= (h >= POST_HEIGHTS[0] - POST_SLAB) & (h <= max_height + POST_SLAB)
+    return idx[keep], which[keep]
+
+
+class _Columns:
+    """The points of every candidate's whole column (heights up to ``max_height``), indexed
+    to find one candidate's in input order (:meth:`at`)."""
+
+    def __init__(self, xyz: np.ndarray, height: np.ndarray, centres: np.ndarray, column_reach: float, *,
+                 max_height: float, among: np.ndarray | None) -> None:
+        near = near_centres(xyz[:, :2], centres, column_reach)
+        keep = (height[near] >= POST_HEIGHTS[0] - POST_SLAB) & (height[near] <= max_height + POST_SLAB)
+        near = near[keep if among is None else keep & among[near]]  # in input order, as the fits need
+        self.xy, self.height, self.max_height = xyz[near, :2], height[near], max_height
+        self.index = CellIndex(self.xy, column_reach)
+
+    def at(self, c: np.ndarray) -> _Column:
+        """The column around candidate ``c`` (2,) [m]."""
+        idx = self.index.ball(c)
+        return _Column(self.xy[idx], self.height[idx], self.max_height)
+
+
+def _axis_at(c: np.ndarray, column: _Column, *, max_radius: float, reach: float) -> tuple[np.ndarray, float] | None:
+    """The axis (2,) and radius [m] of the post that the sections at POST_HEIGHTS of the
+    ``column`` of candidate ``c`` show (:func:`_one_axis`), or None."""
     c0, r0 = column.section(POST_HEIGHTS[0], c, reach)
     if not 0 < r0 <= max_radius:
         return None
@@ -156,18 +204,20 @@ def _post_at(c: np.ndarray, xyz: np.ndarray, height: np.ndarray, idx: np.ndarray
         circles.append(column.section(at, c0, r0 + POST_MARGIN))
         if _ruled_out(circles, max_radius):
             break
-    post = _one_axis(circles, max_radius)
-    if post is None:
-        return None
-    axis, r_med = post
-    column = _Column(xyz[idx, :2], height[idx], max_height)
+    return _one_axis(circles, max_radius)
+
+
+def _top(column: _Column, axis: np.ndarray, r_med: float) -> float | None:
+    """The height above the ground [m] up to which the post on ``axis`` with radius
+    ``r_med`` [m] stands in its whole ``column``, or None where the column goes on to the
+    tallest post's height (a bole going on into a crown)."""
     top = POST_HEIGHTS[-1]
     for step in (POST_STEP, POST_FINE_STEP):  # the post's top: coarse steps up, then fine ones
-        while top < max_height and _same(*column.section(top + step, axis, r_med + POST_MARGIN), axis, r_med):
+        while top < column.max_height and _same(*column.section(top + step, axis, r_med + POST_MARGIN), axis, r_med):
             top += step
-    if top >= max_height or column.goes_on(axis, r_med):
-        return None  # a bole going on into a crown
-    return axis, r_med, top + POST_FINE_STEP
+    if top >= column.max_height or column.goes_on(axis, r_med):
+        return None
+    return top + POST_FINE_STEP
 
 
 def _one_axis(circles: list, max_radius: float) -> tuple[np.ndarray, float] | None:
