@@ -199,9 +199,14 @@ def _axis_at(c: np.ndarray, column: _Column, *, max_radius: float, reach: float)
     c0, r0 = column.section(POST_HEIGHTS[0], c, reach)
     if not 0 < r0 <= max_radius:
         return None
+    picks = [column.pick(at, c0, r0 + POST_MARGIN) for at in POST_HEIGHTS[1:]]
+    if min(p.size for p in picks) < POST_MIN_POINTS:
+        return None  # a section without the points of a circle
+    # the fewest points first: the cheapest fits. The sections that rule a post out do so
+    # in any order (:func:`_ruled_out` and :func:`_one_axis` look at the set of circles)
     circles = [(c0, r0)]
-    for at in POST_HEIGHTS[1:]:  # the sections up to where those found already rule a post out
-        circles.append(column.section(at, c0, r0 + POST_MARGIN))
+    for sel in sorted(picks, key=len):
+        circles.append(column.fit(sel))
         if _ruled_out(circles, max_radius):
             break
     return _one_axis(circles, max_radius)
@@ -287,8 +292,15 @@ class _Column:
     def section(self, at: float, centre: np.ndarray, within: float) -> tuple[np.ndarray, float]:
         """The circle through the points within POST_SLAB of height ``at`` and ``within``
         [m] of ``centre``; NaN with fewer than POST_MIN_POINTS points."""
+        return self.fit(self.pick(at, centre, within))
+
+    def pick(self, at: float, centre: np.ndarray, within: float) -> np.ndarray:
+        """The points (indices, in input order) of :meth:`section`."""
         sel = np.flatnonzero(np.abs(self.height - at) <= POST_SLAB)  # the slab first: a few of the column's points
-        sel = sel[((self.xy[sel] - centre) ** 2).sum(1) <= within**2]
+        return sel[((self.xy[sel] - centre) ** 2).sum(1) <= within**2]
+
+    def fit(self, sel: np.ndarray) -> tuple[np.ndarray, float]:
+        """The circle of :meth:`section` through the points ``sel`` (:meth:`pick`)."""
         if sel.size < POST_MIN_POINTS:
             return np.full(2, np.nan), float("nan")
         return trunk_circle(self.xy[sel], trials=POST_TRIALS, solid=False)  # the fit its thresholds were set on
