@@ -120,9 +120,9 @@ def find_posts(
         return none
     column_reach = reach + max_radius + POST_MARGIN + POST_FOLLOW_SHIFT
     in_sections, section_of = _section_points(height, among, max_height=max_height)
-    near = near_centres(xyz[in_sections, :2], centres, column_reach)
-    in_sections, section_of = in_sections[near], section_of[near]  # in input order, as the fits need
-    low_xy, low_height = xyz[in_sections, :2], height[in_sections]
+    low_xy = xyz[in_sections, :2]
+    near = near_centres(low_xy, centres, column_reach)  # in input order, as the fits need
+    low_xy, low_height, section_of = low_xy[near], height[in_sections[near]], section_of[near]
     sections = CellIndex(low_xy, column_reach)
     columns = None
     found_xy, found_r, found_top = [], [], []
