@@ -153,25 +153,23 @@ def _section_points(height: np.ndarray, among: np.ndarray | None, *, max_height:
     :class:`_Columns` keeps them) that a section at one of POST_HEIGHTS takes by its
     height (:meth:`_Column.section`'s own test), and the index in POST_HEIGHTS of each,
     (m,) int64 and (m,) int64."""
-    # 1 cm bins first, a lookup table giving the section that reaches each (with a bin
-    # to spare each side for rounding): one cheap pass over every point, the sections'
-    # test on the few it lets through. NaN heights fall into bin -1 (the last, none) and
-    # heights past the table into its last bin too.
-    top = int(np.ceil(100 * (POST_HEIGHTS[-1] + POST_SLAB))) + 2
-    section = np.full(top + 1, -1, np.int8)
-    for k, at in enumerate(POST_HEIGHTS):
-        section[int(np.floor(100 * (at - POST_SLAB))) - 1 : int(np.floor(100 * (at + POST_SLAB))) + 2] = k
-    b = np.multiply(height, 100.0)
-    np.fmax(b, -1.0, out=b)
-    np.fmin(b, float(top), out=b)
-    which = section[b.astype(np.int16)]
-    near = which >= 0
+    # a slab a micrometre wider each side first (two comparisons a point and section, a
+    # superset whatever the rounding; NaN heights in none), then the sections' own test
+    # on the few it lets through
+    near = np.zeros(height.shape[0], bool)
+    slab = np.empty(height.shape[0], bool)
+    for at in POST_HEIGHTS:
+        np.greater_equal(height, at - POST_SLAB - 1e-6, out=slab)
+        slab &= height <= at + POST_SLAB + 1e-6
+        near |= slab
     if among is not None:
         near &= among
     idx = np.flatnonzero(near)
-    which, h = which[idx].astype(np.int64), height[idx]
-    keep = np.abs(h - np.asarray(POST_HEIGHTS)[which]) <= POST_SLAB  # as the section tests them
-    keep &= (h >= POST_HEIGHTS[0] - POST_SLAB) & (h <= max_height + POST_SLAB)
+    h = height[idx]
+    which = np.full(idx.size, -1, np.int64)
+    for k, at in enumerate(POST_HEIGHTS):
+        which[np.abs(h - at) <= POST_SLAB] = k  # as the sections test them
+    keep = (which >= 0) & (h >= POST_HEIGHTS[0] - POST_SLAB) & (h <= max_height + POST_SLAB)
     return idx[keep], which[keep]
 
 
