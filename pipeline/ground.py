@@ -164,7 +164,7 @@ def bilinear(grid: np.ndarray, xy: np.ndarray, origin: np.ndarray, cell: float) 
     return out
 
 
-def _axis_weights(v: np.ndarray, origin: float, cell: float, size: int):
+def _axis_weights(v: np.ndarray, origin: float, cell: float, size: int) -> tuple[np.ndarray, ...]:
     """Along one axis of :func:`bilinear`: the two cells' indices (m,) intp and weights (m,)."""
     c = np.subtract(v, origin)
     np.divide(c, cell, out=c)

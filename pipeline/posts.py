@@ -111,9 +111,9 @@ def find_posts(
     Posts (one per candidate that is a post; nearby candidates on one post give one)
     """
     # Strategy: most candidates fail on the sections at POST_HEIGHTS, which hold a few %
-    # of a column's points: those points are picked first (a coarse pass over height
-    # bins, then the sections' own test), a grid of them finds each candidate's, and the
-    # circles are fitted to them. The whole columns are indexed only once a candidate's
+    # of a column's points: those points are picked first (slightly wider slabs, then
+    # the sections' own test), a grid of them finds each candidate's, and the circles
+    # are fitted to them. The whole columns are indexed only once a candidate's
     # sections show a post, to follow it up to its top.
     none = Posts(np.zeros((0, 2)), np.zeros(0), np.zeros(0))
     if max_radius <= 0 or centres.shape[0] == 0 or xyz.shape[0] == 0:
