@@ -86,13 +86,15 @@ def _circle_trials(xy: np.ndarray, trials: int) -> tuple[np.ndarray, ...]:
         n = len(xy)
     rng = np.random.default_rng(0)
     tri = rng.integers(0, n, (trials, 3))  # a triple repeating a point is degenerate: d = 0 below
-    a, b, c = xy[tri[:, 0]], xy[tri[:, 1]], xy[tri[:, 2]]
-    d = 2 * (a[:, 0] * (b[:, 1] - c[:, 1]) + b[:, 0] * (c[:, 1] - a[:, 1]) + c[:, 0] * (a[:, 1] - b[:, 1]))
+    x, y = xy[:, 0], xy[:, 1]
+    (ax, bx, cx), (ay, by, cy) = (x[tri[:, k]] for k in range(3)), (y[tri[:, k]] for k in range(3))
+    d = 2 * (ax * (by - cy) + bx * (cy - ay) + cx * (ay - by))
     ok = np.abs(d) > 1e-12
-    a2, b2, c2 = (a**2).sum(1), (b**2).sum(1), (c**2).sum(1)
-    ux = (a2 * (b[:, 1] - c[:, 1]) + b2 * (c[:, 1] - a[:, 1]) + c2 * (a[:, 1] - b[:, 1])) / np.where(ok, d, 1)
-    uy = (a2 * (c[:, 0] - b[:, 0]) + b2 * (a[:, 0] - c[:, 0]) + c2 * (b[:, 0] - a[:, 0])) / np.where(ok, d, 1)
-    r = np.hypot(a[:, 0] - ux, a[:, 1] - uy)
+    a2, b2, c2 = ax * ax + ay * ay, bx * bx + by * by, cx * cx + cy * cy
+    d = np.where(ok, d, 1)
+    ux = (a2 * (by - cy) + b2 * (cy - ay) + c2 * (ay - by)) / d
+    uy = (a2 * (cx - bx) + b2 * (ax - cx) + c2 * (bx - ax)) / d
+    r = np.hypot(ax - ux, ay - uy)
     return xy, ux, uy, r, ok
 
 
@@ -147,15 +149,23 @@ def circle_support(xy: np.ndarray, ux: np.ndarray, uy: np.ndarray, r: np.ndarray
     u2 = vx * vx + vy * vy
     bound = (reach + np.sqrt(u2)) ** 2  # of every term of a squared distance
 
+    m2vx, m2vy = -2 * vx, -2 * vy
+
     def band(lo: np.ndarray, hi: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         # lo < d < hi as |d² - c| < w (for lo <= 0, d² < hi²), with the product divided by w
         wide = lo > 0
-        c = np.where(wide, (hi * hi + lo * lo) / 2, 0.0)
-        w = np.where(wide, (hi * hi - lo * lo) / 2, hi * hi)
+        hh, ll = hi * hi, lo * lo
+        c = np.where(wide, (hh + ll) / 2, 0.0)
+        w = np.where(wide, (hh - ll) / 2, hh)
+        rows = np.empty((t, 4))  # column by column: a narrow array's row reductions are slow
         with np.errstate(divide="ignore", invalid="ignore", over="ignore"):
-            rows = np.column_stack([-2 * vx, -2 * vy, np.ones(t), u2 - c]) / w[:, None]
-            rel = _BAND_ROUNDING * np.finfo(np.float64).eps * (bound + hi * hi + c) / w
-        unsure = ~((rel < _MAX_BAND_MARGIN) & np.isfinite(rows).all(axis=1))
+            for j, col in enumerate((m2vx, m2vy, 1.0, u2 - c)):
+                np.divide(col, w, out=rows[:, j])
+            rel = _BAND_ROUNDING * np.finfo(np.float64).eps * (bound + hh + c) / w
+        sure = rel < _MAX_BAND_MARGIN
+        for j in range(4):
+            sure &= np.isfinite(rows[:, j])
+        unsure = ~sure
         rows[unsure] = 0.0
         return rows, unsure
 

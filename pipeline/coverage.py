@@ -32,10 +32,11 @@ def occupied_cells(xy: np.ndarray, origin_xy) -> np.ndarray:
     """
     if len(xy) == 0:
         return np.zeros((0, 2), np.int64)
-    ij = np.floor(np.asarray(xy[:, :2], np.float64)).astype(np.int64)
-    lo = ij.min(axis=0)
-    span = ij.max(axis=0) - lo + 1
-    flat = (ij[:, 0] - lo[0]) * span[1] + (ij[:, 1] - lo[1])
+    xy = np.asarray(xy, np.float64)
+    i, j = (np.floor(xy[:, d]).astype(np.int64) for d in (0, 1))  # column by column: no (n, 2) temporaries
+    lo = np.array([i.min(), j.min()])
+    span = np.array([i.max(), j.max()]) - lo + 1
+    flat = (i - lo[0]) * span[1] + (j - lo[1])
     hit = np.flatnonzero(np.bincount(flat, minlength=int(span[0] * span[1])))
     i, j = np.divmod(hit, span[1])
     return np.c_[i + lo[0], j + lo[1]] + np.round(np.asarray(origin_xy[:2], np.float64)).astype(np.int64)
@@ -61,16 +62,23 @@ def stem_cells(xy: np.ndarray, height: np.ndarray, among: np.ndarray, origin_xy)
     among : (n,) bool — the points to look at (not ground)
     origin_xy : (2,) float — the block's local origin in the input CRS [m]
     """
-    pick = among & (height >= STEM_BAND[0]) & (height < STEM_BAND[1])
-    pts = np.asarray(xy, np.float64)[pick, :2] + np.asarray(origin_xy[:2], np.float64)
-    ij = np.floor(pts / STEM_CELL).astype(np.int64).reshape(-1, 2)
-    if len(ij) == 0:
+    pick = np.flatnonzero(among & (height >= STEM_BAND[0]) & (height < STEM_BAND[1]))
+    if not pick.size:
         return np.zeros((0, 3), np.int64)
-    # one int64 key a cell, in the (i, j) order np.unique(axis=0) sorts rows in: a sort of
-    # int64 instead of rows viewed as bytes, ten times cheaper on a dense stand's band
-    lo = ij.min(axis=0)
-    span = int(ij[:, 1].max() - lo[1]) + 1
-    keys, counts = np.unique((ij[:, 0] - lo[0]) * span + (ij[:, 1] - lo[1]), return_counts=True)
+    xy, origin = np.asarray(xy, np.float64), np.asarray(origin_xy[:2], np.float64)
+    i, j = (np.floor((xy[pick, d] + origin[d]) / STEM_CELL).astype(np.int64) for d in (0, 1))  # column by column
+    # one int64 key a cell, in the (i, j) order np.unique(axis=0) sorts rows in: a count
+    # of the keys where they are dense, else a sort of int64 (not of rows viewed as bytes)
+    lo = np.array([i.min(), j.min()])
+    span = int(j.max() - lo[1]) + 1
+    key = (i - lo[0]) * span + (j - lo[1])
+    n_keys = (int(i.max() - lo[0]) + 1) * span
+    if n_keys <= 8 * key.size:
+        counts = np.bincount(key, minlength=n_keys)
+        keys = np.flatnonzero(counts)
+        counts = counts[keys]
+    else:
+        keys, counts = np.unique(key, return_counts=True)
     i, j = np.divmod(keys, span)
     return np.c_[i + lo[0], j + lo[1], counts]
 

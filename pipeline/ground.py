@@ -123,12 +123,61 @@ class GroundModel:
         return out
 
     def _part_height(self, k: int, xy: np.ndarray) -> np.ndarray:
-        g = np.empty((2, xy.shape[0]))  # grid coordinates, row by row: map_coordinates reads (2, n)
-        for d in (0, 1):
-            np.subtract(xy[:, d], self.origins[k][d], out=g[d])
-            np.divide(g[d], self.cell_size, out=g[d])
-            np.subtract(g[d], 0.5, out=g[d])
-        return ndimage.map_coordinates(self.dtms[k], g, order=1, mode="nearest")
+        return bilinear(self.dtms[k], xy, self.origins[k], self.cell_size)
+
+
+#: points interpolated at a time by :func:`bilinear` (its temporaries stay in cache)
+BILINEAR_CHUNK = 1 << 14
+
+
+def bilinear(grid: np.ndarray, xy: np.ndarray, origin: np.ndarray, cell: float) -> np.ndarray:
+    """Values of ``grid`` (nx, ny), whose cell (0, 0) has its corner at ``origin`` (2,)
+    [m] and cells of side ``cell`` [m], at the points ``xy`` (n, 2) [m]: bilinear between
+    cell centres, the edge cells' values beyond them, (n,) float64.
+
+    Bit for bit ``scipy.ndimage.map_coordinates(grid, g, order=1, mode="nearest")`` at
+    grid coordinates ``g = (xy - origin) / cell - 0.5``: its weights (1 - f and
+    1 - (1 - f) for the fraction f), indices clipped to the grid, and sum
+    ((v * wx) * wy, corner by corner, from 0.0), without its per-point loop over a
+    generic filter.
+    """
+    nx, ny = grid.shape
+    flat = grid.ravel()
+    n = xy.shape[0]
+    out = np.empty(n)
+    with np.errstate(invalid="ignore"):  # NaN coordinates: any index, NaN weights and value
+        for s in range(0, n, BILINEAR_CHUNK):
+            e = min(n, s + BILINEAR_CHUNK)
+            x0, x1, wx0, wx1 = _axis_weights(xy[s:e, 0], origin[0], cell, nx)
+            y0, y1, wy0, wy1 = _axis_weights(xy[s:e, 1], origin[1], cell, ny)
+            x0 *= ny
+            x1 *= ny
+            t = out[s:e]
+            np.multiply(flat[x0 + y0], wx0, out=t)
+            t *= wy0
+            t += 0.0
+            for xi, wx, yi, wy in ((x0, wx0, y1, wy1), (x1, wx1, y0, wy0), (x1, wx1, y1, wy1)):
+                v = flat[xi + yi]
+                v *= wx
+                v *= wy
+                t += v
+    return out
+
+
+def _axis_weights(v: np.ndarray, origin: float, cell: float, size: int) -> tuple[np.ndarray, ...]:
+    """Along one axis of :func:`bilinear`: the two cells' indices (m,) intp and weights (m,)."""
+    c = np.subtract(v, origin)
+    np.divide(c, cell, out=c)
+    np.subtract(c, 0.5, out=c)
+    f = np.floor(c)
+    w0 = np.subtract(c, f, out=c)
+    np.subtract(1.0, w0, out=w0)
+    w1 = 1.0 - w0
+    i0 = f.astype(np.intp)
+    i1 = i0 + 1
+    np.clip(i1, 0, size - 1, out=i1)
+    np.clip(i0, 0, size - 1, out=i0)
+    return i0, i1, w0, w1
 
 
 def _disk(radius_cells: float) -> np.ndarray:
@@ -201,24 +250,38 @@ def raw_ground_model(
     go = np.asarray(grid_origin[:2], dtype=np.float64)
     if xyz.shape[0] == 0:
         return GroundModel((np.zeros((1, 1)),), go[None].copy(), c, 0.0)
-    ij = np.empty((xyz.shape[0], 2), np.int64)
-    for d in (0, 1):  # column by column: no (n, 2) float temporaries
-        ij[:, d] = np.floor((xyz[:, d] - go[d]) / c)
-    span = column_max(ij) - column_min(ij) + 1
+    ix, iy = (_cell_index(xyz[:, d], go[d], c) for d in (0, 1))
+    lo = np.array([ix.min(), iy.min()])
+    span = np.array([ix.max(), iy.max()]) - lo + 1
     part = part_xy = part_of = None
     if float(span[0]) * float(span[1]) > ONE_PART_CELLS:
+        ij = np.column_stack([ix, iy])
         part, part_xy, part_of = _parts(ij, c, go, max(PART_GAP, PART_GAP_RADII * params.search_radius))
-    if part is None:
-        members = [slice(None)]
-    else:
-        order = np.argsort(part, kind="stable")
-        members = np.split(order, np.cumsum(np.bincount(part))[:-1])
+    if part is None:  # one part (most blocks): the cells' flat index in place of ix
+        np.subtract(ix, lo[0], out=ix)
+        np.multiply(ix, span[1], out=ix)
+        np.add(ix, iy, out=ix)
+        np.subtract(ix, lo[1], out=ix)
+        dtm = _part_dtm(np.ascontiguousarray(xyz[:, 2]), ix, tuple(span.tolist()), params, corner=lo)
+        return GroundModel((dtm,), (go + lo * c)[None], c, 0.0, part_xy, part_of)
+    order = np.argsort(part, kind="stable")
     dtms, origins = [], []
-    for sel in members:
-        lo = column_min(ij[sel])
-        dtms.append(_part_dtm(xyz[sel], ij[sel] - lo, params, corner=lo))
+    for sel in np.split(order, np.cumsum(np.bincount(part))[:-1]):
+        part_ij = ij[sel]
+        lo = column_min(part_ij)
+        part_ij -= lo
+        nx, ny = (column_max(part_ij) + 1).tolist()
+        dtms.append(_part_dtm(xyz[sel, 2], part_ij[:, 0] * ny + part_ij[:, 1], (nx, ny), params, corner=lo))
         origins.append(go + lo * c)
     return GroundModel(tuple(dtms), np.array(origins), c, 0.0, part_xy, part_of)
+
+
+def _cell_index(v: np.ndarray, origin: float, cell: float) -> np.ndarray:
+    """``floor((v - origin) / cell)`` as int64 (n,), with one float temporary."""
+    t = np.subtract(v, origin)
+    np.divide(t, cell, out=t)
+    np.floor(t, out=t)
+    return t.astype(np.int64)
 
 
 def ground_residuals(model: GroundModel, xyz: np.ndarray) -> np.ndarray:
@@ -289,18 +352,19 @@ def _check_fits(cells_xy: np.ndarray, cell: float, *, cells: float) -> None:
         )
 
 
-def _part_dtm(xyz: np.ndarray, ij: np.ndarray, params: GroundParams, *, corner: np.ndarray) -> np.ndarray:
-    """Ground height of each cell of one part [m], (nx, ny); ``ij`` the cell of each point
-    relative to the part's corner cell, ``corner`` that cell's index on the block's grid."""
+def _part_dtm(z: np.ndarray, flat: np.ndarray, shape: tuple[int, int], params: GroundParams, *,
+              corner: np.ndarray) -> np.ndarray:
+    """Ground height of each cell of one part [m], ``shape`` (nx, ny); ``z`` (n,) the
+    points' heights, ``flat`` (n,) their cells' flat index ``i * ny + j`` relative to the
+    part's corner cell, ``corner`` that cell's index on the block's grid."""
     # Strategy: per-cell minimum z; drop cells far below their neighbourhood (isolated
     # points under the ground); the paper's local z-minimum over R_g picks ground cells
     # (a cell is ground if its minimum is near the local minimum, allowing for slope);
     # holes (cells under dense canopy with no ground return) take the nearest ground cell.
     c = params.cell_size
-    nx, ny = (column_max(ij) + 1).tolist()
-    flat = ij[:, 0] * ny + ij[:, 1]
+    nx, ny = shape
     zmin = np.full(nx * ny, np.inf)
-    np.minimum.at(zmin, flat, xyz[:, 2])
+    np.minimum.at(zmin, flat, z)
     zmin = zmin.reshape(nx, ny)
     occupied = np.isfinite(zmin)
 
@@ -308,7 +372,7 @@ def _part_dtm(xyz: np.ndarray, ij: np.ndarray, params: GroundParams, *, corner: 
     # the neighbourhood seen through minima that other points back (multipath returns
     # under the ground can sit in most cells of a dense scan, several to a cell)
     foot = _disk(max(params.search_radius / c, 1.0))
-    backed, own = _backed_minima(xyz[:, 2], flat, zmin, params.outlier_depth)
+    backed, own = _backed_minima(z, flat, zmin, params.outlier_depth)
     med = ndimage.median_filter(_fill_nearest(backed, np.isfinite(backed)), size=OUTLIER_MEDIAN_CELLS, mode="nearest")
     low = occupied & (zmin < med - params.outlier_depth)
     if low.any():
@@ -316,7 +380,7 @@ def _part_dtm(xyz: np.ndarray, ij: np.ndarray, params: GroundParams, *, corner: 
         # deep unless its cell's points back it (a cell can hold several stray returns;
         # a patch of ground that the neighbourhood misjudges keeps all but its lowest)
         in_low = np.flatnonzero(low.ravel()[flat])
-        z_low, f_low = xyz[in_low, 2], flat[in_low]
+        z_low, f_low = z[in_low], flat[in_low]
         stray = (z_low < (med.ravel() - params.outlier_depth)[f_low]) & (
             (z_low < backed.ravel()[f_low]) | ~own.ravel()[f_low]
         )

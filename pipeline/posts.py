@@ -110,64 +110,117 @@ def find_posts(
     -------
     Posts (one per candidate that is a post; nearby candidates on one post give one)
     """
-    # Strategy: a grid picks the points near any candidate, a finer one sorted by cell
-    # finds each candidate's column; per candidate, a handful of circle fits on the few
-    # hundred points of its column.
+    # Strategy: most candidates fail on the sections at POST_HEIGHTS, which hold a few %
+    # of a column's points: those points are picked first (slightly wider slabs, then
+    # the sections' own test), a grid of them finds each candidate's, and the circles
+    # are fitted to them. The whole columns are indexed only once a candidate's
+    # sections show a post, to follow it up to its top.
     none = Posts(np.zeros((0, 2)), np.zeros(0), np.zeros(0))
     if max_radius <= 0 or centres.shape[0] == 0 or xyz.shape[0] == 0:
         return none
     column_reach = reach + max_radius + POST_MARGIN + POST_FOLLOW_SHIFT
-    near = near_centres(xyz[:, :2], centres, column_reach)
-    keep = (height[near] >= POST_HEIGHTS[0] - POST_SLAB) & (height[near] <= max_height + POST_SLAB)
-    near = near[keep if among is None else keep & among[near]]  # in input order, as the fits need
-    xyz, height = xyz[near], height[near]
-    columns = CellIndex(xyz[:, :2], column_reach)
+    in_sections, section_of = _section_points(height, among, max_height=max_height)
+    low_xy = xyz[in_sections, :2]
+    near = near_centres(low_xy, centres, column_reach)  # in input order, as the fits need
+    low_xy, low_height, section_of = low_xy[near], height[in_sections[near]], section_of[near]
+    sections = CellIndex(low_xy, column_reach)
+    columns = None
     found_xy, found_r, found_top = [], [], []
     for c in np.asarray(centres, dtype=np.float64):
         if found_xy and np.min(np.hypot(*(np.asarray(found_xy) - c).T)) <= 2 * max_radius:
             continue  # on a post already found
         # in input order: the circle fits draw their trials by position
-        idx = columns.ball(c)
-        if idx.size < POST_MIN_POINTS * len(POST_HEIGHTS):
+        idx = sections.ball(c)
+        if np.bincount(section_of[idx], minlength=len(POST_HEIGHTS)).min() < POST_MIN_POINTS:
+            continue  # a section without the points of a circle: no post
+        post = _axis_at(c, _Column(low_xy[idx], low_height[idx], max_height), max_radius=max_radius, reach=reach)
+        if post is None:
             continue
-        post = _post_at(c, xyz, height, idx, max_radius=max_radius, max_height=max_height, reach=reach)
-        if post is not None:
+        if columns is None:
+            columns = _Columns(xyz, height, centres, column_reach, max_height=max_height, among=among)
+        top = _top(columns.at(c), *post)
+        if top is not None:
             found_xy.append(post[0])
             found_r.append(post[1])
-            found_top.append(post[2])
+            found_top.append(top)
     if not found_xy:
         return none
     return Posts(np.asarray(found_xy), np.asarray(found_r), np.asarray(found_top))
 
 
-def _post_at(c: np.ndarray, xyz: np.ndarray, height: np.ndarray, idx: np.ndarray, *, max_radius: float,
-             max_height: float, reach: float) -> tuple[np.ndarray, float, float] | None:
-    """The axis (2,), radius and top [m] of the post at candidate ``c``, or None. ``idx``
-    are the points of its column, in input order (:func:`find_posts`)."""
-    # the sections at POST_HEIGHTS hold none of the points above them (with a margin
-    # for rounding): they select from the column's foot, the column is followed up after
-    foot = idx[height[idx] <= POST_HEIGHTS[-1] + 2 * POST_SLAB]
-    column = _Column(xyz[foot, :2], height[foot], max_height)
+def _section_points(height: np.ndarray, among: np.ndarray | None, *, max_height: float) -> tuple[np.ndarray, np.ndarray]:
+    """Indices (sorted) of the points (among ``among``, up to ``max_height`` [m] as
+    :class:`_Columns` keeps them) that a section at one of POST_HEIGHTS takes by its
+    height (:meth:`_Column.section`'s own test), and the index in POST_HEIGHTS of each,
+    (m,) int64 and (m,) int64."""
+    # a slab a micrometre wider each side first (two comparisons a point and section, a
+    # superset whatever the rounding; NaN heights in none), then the sections' own test
+    # on the few it lets through
+    near = np.zeros(height.shape[0], bool)
+    slab = np.empty(height.shape[0], bool)
+    for at in POST_HEIGHTS:
+        np.greater_equal(height, at - POST_SLAB - 1e-6, out=slab)
+        slab &= height <= at + POST_SLAB + 1e-6
+        near |= slab
+    if among is not None:
+        near &= among
+    idx = np.flatnonzero(near)
+    h = height[idx]
+    which = np.full(idx.size, -1, np.int64)
+    for k, at in enumerate(POST_HEIGHTS):
+        which[np.abs(h - at) <= POST_SLAB] = k  # as the sections test them
+    keep = (which >= 0) & (h >= POST_HEIGHTS[0] - POST_SLAB) & (h <= max_height + POST_SLAB)
+    return idx[keep], which[keep]
+
+
+class _Columns:
+    """The points of every candidate's whole column (heights up to ``max_height``), indexed
+    to find one candidate's in input order (:meth:`at`)."""
+
+    def __init__(self, xyz: np.ndarray, height: np.ndarray, centres: np.ndarray, column_reach: float, *,
+                 max_height: float, among: np.ndarray | None) -> None:
+        near = near_centres(xyz[:, :2], centres, column_reach)
+        keep = (height[near] >= POST_HEIGHTS[0] - POST_SLAB) & (height[near] <= max_height + POST_SLAB)
+        near = near[keep if among is None else keep & among[near]]  # in input order, as the fits need
+        self.xy, self.height, self.max_height = xyz[near, :2], height[near], max_height
+        self.index = CellIndex(self.xy, column_reach)
+
+    def at(self, c: np.ndarray) -> _Column:
+        """The column around candidate ``c`` (2,) [m]."""
+        idx = self.index.ball(c)
+        return _Column(self.xy[idx], self.height[idx], self.max_height)
+
+
+def _axis_at(c: np.ndarray, column: _Column, *, max_radius: float, reach: float) -> tuple[np.ndarray, float] | None:
+    """The axis (2,) and radius [m] of the post that the sections at POST_HEIGHTS of the
+    ``column`` of candidate ``c`` show (:func:`_one_axis`), or None."""
     c0, r0 = column.section(POST_HEIGHTS[0], c, reach)
     if not 0 < r0 <= max_radius:
         return None
+    picks = [column.pick(at, c0, r0 + POST_MARGIN) for at in POST_HEIGHTS[1:]]
+    if min(p.size for p in picks) < POST_MIN_POINTS:
+        return None  # a section without the points of a circle
+    # the fewest points first: the cheapest fits. The sections that rule a post out do so
+    # in any order (:func:`_ruled_out` and :func:`_one_axis` look at the set of circles)
     circles = [(c0, r0)]
-    for at in POST_HEIGHTS[1:]:  # the sections up to where those found already rule a post out
-        circles.append(column.section(at, c0, r0 + POST_MARGIN))
+    for sel in sorted(picks, key=len):
+        circles.append(column.fit(sel))
         if _ruled_out(circles, max_radius):
             break
-    post = _one_axis(circles, max_radius)
-    if post is None:
-        return None
-    axis, r_med = post
-    column = _Column(xyz[idx, :2], height[idx], max_height)
+    return _one_axis(circles, max_radius)
+
+
+def _top(column: _Column, axis: np.ndarray, r_med: float) -> float | None:
+    """The height above the ground [m] up to which the post on ``axis`` with radius
+    ``r_med`` [m] stands in its whole ``column``, or None where the column goes on to the
+    tallest post's height (a bole going on into a crown)."""
     top = POST_HEIGHTS[-1]
     for step in (POST_STEP, POST_FINE_STEP):  # the post's top: coarse steps up, then fine ones
-        while top < max_height and _same(*column.section(top + step, axis, r_med + POST_MARGIN), axis, r_med):
+        while top < column.max_height and _same(*column.section(top + step, axis, r_med + POST_MARGIN), axis, r_med):
             top += step
-    if top >= max_height or column.goes_on(axis, r_med):
-        return None  # a bole going on into a crown
-    return axis, r_med, top + POST_FINE_STEP
+    if top >= column.max_height or column.goes_on(axis, r_med):
+        return None
+    return top + POST_FINE_STEP
 
 
 def _one_axis(circles: list, max_radius: float) -> tuple[np.ndarray, float] | None:
@@ -237,8 +290,15 @@ class _Column:
     def section(self, at: float, centre: np.ndarray, within: float) -> tuple[np.ndarray, float]:
         """The circle through the points within POST_SLAB of height ``at`` and ``within``
         [m] of ``centre``; NaN with fewer than POST_MIN_POINTS points."""
+        return self.fit(self.pick(at, centre, within))
+
+    def pick(self, at: float, centre: np.ndarray, within: float) -> np.ndarray:
+        """The points (indices, in input order) of :meth:`section`."""
         sel = np.flatnonzero(np.abs(self.height - at) <= POST_SLAB)  # the slab first: a few of the column's points
-        sel = sel[((self.xy[sel] - centre) ** 2).sum(1) <= within**2]
+        return sel[((self.xy[sel] - centre) ** 2).sum(1) <= within**2]
+
+    def fit(self, sel: np.ndarray) -> tuple[np.ndarray, float]:
+        """The circle of :meth:`section` through the points ``sel`` (:meth:`pick`)."""
         if sel.size < POST_MIN_POINTS:
             return np.full(2, np.nan), float("nan")
         return trunk_circle(self.xy[sel], trials=POST_TRIALS, solid=False)  # the fit its thresholds were set on

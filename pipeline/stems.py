@@ -78,7 +78,10 @@ def stem_contrast(xy: np.ndarray, stem_xy: np.ndarray | None, stem_slice: np.nda
     owner = np.repeat(np.arange(k), m)  # candidate of each probe
     a_in = np.pi * STEM_RADIUS**2
     a_ring = np.pi * (STEM_RING[1] ** 2 - STEM_RING[0] ** 2)
-    trees = [cKDTree(stem_xy[stem_slice == s].reshape(-1, 2)) for s in range(n_slices)]  # empty: contrast 1
+    # a tree built without median splits nor shrunk boxes builds in about half the time and
+    # counts alike: a ball's count is the points within it whatever the tree's shape
+    trees = [cKDTree(stem_xy[stem_slice == s].reshape(-1, 2), balanced_tree=False, compact_nodes=False)
+             for s in range(n_slices)]  # empty: contrast 1
 
     def disc(s: int, at: np.ndarray) -> np.ndarray:
         return trees[s].query_ball_point(probes[at], STEM_RADIUS, return_length=True) / a_in + 1.0

@@ -31,3 +31,19 @@ def test_a_stem_needs_a_few_points_and_tiles_add_up():
     split = stems_of([stem_cells(xy[:2], height[:2], among[:2], (100.0, 0.0)),
                       stem_cells(xy[2:], height[2:], among[2:], (100.0, 0.0))])
     assert np.allclose(split, whole)  # two tiles' points of one cell count together
+
+
+def test_stem_cells_are_the_band_points_cells_and_counts_dense_or_sparse():
+    from pipeline.coverage import STEM_BAND, STEM_CELL, stem_cells
+
+    rng = np.random.default_rng(3)
+    for spread in (0.3, 40.0):  # cells dense enough to be counted in place, and scattered ones
+        xy = rng.uniform(-spread, spread, (3000, 2))
+        height = rng.uniform(0.0, 1.2, 3000)
+        among = rng.random(3000) < 0.8
+        origin = (500000.0, 20.0)
+        pick = among & (height >= STEM_BAND[0]) & (height < STEM_BAND[1])
+        ij = np.floor((xy[pick] + np.asarray(origin)) / STEM_CELL).astype(np.int64)
+        rows, counts = np.unique(ij, axis=0, return_counts=True)
+        assert np.array_equal(stem_cells(xy, height, among, origin), np.c_[rows, counts])
+    assert stem_cells(xy, height, np.zeros(3000, bool), origin).shape == (0, 3)

@@ -283,3 +283,20 @@ def test_a_raw_model_fitted_beforehand_is_taken_as_it_is():
     higher = ground.GroundModel(tuple(d + 1.0 for d in raw.dtms), raw.origins, raw.cell_size, 0.0)
     lifted_by_one = ground_model(g, params=p, stats=(0.0, 0.0), raw=higher)
     assert all(np.array_equal(a, b + 1.0) for a, b in zip(lifted_by_one.dtms, raw.dtms))
+
+
+@pytest.mark.parametrize("shape", [(1, 1), (1, 5), (2, 3), (7, 9), (106, 66)])
+def test_bilinear_is_map_coordinates_bit_for_bit(shape):
+    from scipy import ndimage
+
+    rng = np.random.default_rng(sum(shape))
+    grid = rng.normal(0, 3, shape)
+    origin, cell = np.array([-2.5, 10.0]), 0.25
+    g = rng.uniform(-3, max(shape) + 3, (2, 3 * ground.BILINEAR_CHUNK + 17))  # grid coordinates, past the edges
+    g[:, :2000] = np.round(g[:, :2000])  # on cell centres and edges
+    special = np.array([np.nan, np.inf, -np.inf, -0.0, 0.0, shape[0] - 1.0, 1e300, -1e300, 1e-300])
+    g = np.concatenate([g, np.array(np.meshgrid(special, special)).reshape(2, -1)], axis=1)
+    xy = (g.T + 0.5) * cell + origin
+    want = ndimage.map_coordinates(grid, (xy.T - origin[:, None]) / cell - 0.5, order=1, mode="nearest")
+    got = ground.bilinear(grid, xy, origin, cell)
+    assert got.tobytes() == want.tobytes()

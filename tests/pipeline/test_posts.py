@@ -218,3 +218,22 @@ def test_radius_range_fits_where_a_search_over_medians_finds_one(median, below, 
         assert got
     if not np.any((np.abs(low - m) <= tol + 1e-6) & (np.abs(high - m) <= tol + 1e-6)):
         assert not got
+
+
+def test_section_points_are_those_each_section_takes():
+    from pipeline.posts import POST_SLAB, _section_points
+
+    rng = np.random.default_rng(5)
+    edges = np.array([[at - POST_SLAB, at + POST_SLAB] for at in POST_HEIGHTS]).ravel()
+    height = np.concatenate([rng.uniform(-0.5, 5.0, 20_000), edges, np.nextafter(edges, 0), np.nextafter(edges, 9),
+                             [np.nan, np.inf, -np.inf]])
+    among = rng.random(height.size) < 0.9
+    for max_height in (4.5, 1.2):
+        idx, which = _section_points(height, among, max_height=max_height)
+        want_idx, want_which = [], []
+        for i in np.flatnonzero(among & (height >= POST_HEIGHTS[0] - POST_SLAB) & (height <= max_height + POST_SLAB)):
+            hit = [k for k, at in enumerate(POST_HEIGHTS) if np.abs(height[i] - at) <= POST_SLAB]
+            if hit:
+                want_idx.append(i)
+                want_which.append(hit[0])
+        assert idx.tolist() == want_idx and which.tolist() == want_which
