@@ -199,20 +199,25 @@ def tree_partials(
     -------
     TreePartials for the trees that have at least one point.
     """
-    # Strategy: sort the tree points by id once, then reduce each contiguous run.
+    # Strategy: sort the tree points by id once, then reduce each contiguous run. Only
+    # heights are gathered for every tree point; whole points only for the crowns.
     idx = np.flatnonzero(tree_id > 0)
     order, uniq, start, counts = group_runs(tree_id[idx])
     idx = idx[order]
-    pts, wood = xyz[idx], is_wood[idx]
-    n_wood = np.add.reduceat(wood.astype(np.int64), start) if uniq.size else np.zeros(0, np.int64)
-    z_max = np.maximum.reduceat(pts[:, 2], start) if uniq.size else np.zeros(0)
+    if uniq.size == 0:
+        return TreePartials(uniq.astype(np.int64), counts.astype(np.int64), np.zeros(0, np.int64), np.zeros(0), [], [])
+    z = xyz[idx, 2]
+    n_wood = np.add.reduceat(is_wood[idx].astype(np.int64), start)
+    z_max = np.maximum.reduceat(z, start)
+    z -= np.repeat(trunk_z[uniq - 1], counts)  # the height above the tree's trunk base, as each tree's own subtraction gave it
+    crown = z >= params.crown_base
+    crown_end = np.cumsum(np.add.reduceat(crown.astype(np.int64), start))
+    crowns = xyz[idx[crown]]
     crown_xy, crown_xyz = [], []
-    for t, s, c in zip(uniq, start, counts):
-        p = pts[s : s + c]
-        crown = p[p[:, 2] - trunk_z[t - 1] >= params.crown_base]
-        xy, xyz = _crown_hulls(crown)
-        crown_xy.append(xy)
-        crown_xyz.append(xyz)
+    for e, c in zip(crown_end.tolist(), np.diff(np.r_[0, crown_end]).tolist()):
+        hull_xy, hull_xyz = _crown_hulls(crowns[e - c : e])
+        crown_xy.append(hull_xy)
+        crown_xyz.append(hull_xyz)
     return TreePartials(uniq.astype(np.int64), counts.astype(np.int64), n_wood.astype(np.int64), z_max, crown_xy, crown_xyz)
 
 
