@@ -33,15 +33,27 @@ class Voxels:
         return int(self.counts.shape[0])
 
 
+#: points per pass of a chain of whole-array steps: their temporaries (128 KiB a float
+#: column) stay in the CPU's cache instead of passing through memory between steps
+CACHE_POINTS = 1 << 14
+
+
 def column_min(a: np.ndarray) -> np.ndarray:
-    """``a.min(axis=0)`` of an (n, d) array, shape (d,), in one pass per column (numpy's
-    reduction across the rows of a narrow array is many times slower)."""
-    return np.array([a[:, d].min() for d in range(a.shape[1])], dtype=a.dtype)
+    """``a.min(axis=0)`` of an (n, d) array, shape (d,) (numpy's reduction across the rows
+    of a narrow array is many times slower, and so is one down a strided column that
+    does not fit in the CPU's cache: CACHE_POINTS rows at a time)."""
+    return _column_reduce(a, np.min)
 
 
 def column_max(a: np.ndarray) -> np.ndarray:
     """``a.max(axis=0)`` of an (n, d) array, like :func:`column_min`."""
-    return np.array([a[:, d].max() for d in range(a.shape[1])], dtype=a.dtype)
+    return _column_reduce(a, np.max)
+
+
+def _column_reduce(a: np.ndarray, reduce) -> np.ndarray:
+    parts = [[reduce(a[s : s + CACHE_POINTS, d]) for d in range(a.shape[1])]
+             for s in range(0, max(a.shape[0], 1), CACHE_POINTS)]  # an empty array raises as numpy's does
+    return reduce(np.array(parts, dtype=a.dtype), axis=0)
 
 
 def voxelize(
@@ -85,27 +97,34 @@ def packed_keys(xyz: np.ndarray, voxel_size: float, grid_origin) -> tuple[np.nda
     """Each point's voxel as one int64, ``(x * ny + y) * nz + z`` of its integer key
     relative to the lowest key ``lo`` (3,), in a grid of ``span`` (3,) voxels: (packed
     (n,), lo, span). ValueError when the grid has 2**62 voxels or more."""
-    # column by column, in place (one float buffer, one int64 column per axis): half the
-    # time and 60 % of the memory of (n, 3) arrays of keys and offsets (bench.kernels)
-    buf = np.empty(xyz.shape[0])
-    rel = []
-    for d in range(3):
-        np.subtract(xyz[:, d], float(grid_origin[d]), out=buf)
-        np.divide(buf, voxel_size, out=buf)
-        np.floor(buf, out=buf)
-        rel.append(buf.astype(np.int64))
-    del buf
-    lo = np.array([k.min() for k in rel], dtype=np.int64)
-    for k, low in zip(rel, lo):
-        k -= low
-    span = np.array([k.max() for k in rel], dtype=np.int64) + 1
+    # every step from a coordinate to its key is monotonic, so the lowest and highest
+    # keys are those of the lowest and highest coordinates; the keys themselves are then
+    # packed CACHE_POINTS points at a time, whose temporaries stay in the CPU's cache
+    # (0.6 of the time of whole columns, and no temporary of every point)
+    origin = np.array([float(grid_origin[d]) for d in range(3)])
+    ends = np.floor((np.stack([column_min(xyz), column_max(xyz)]) - origin) / voxel_size).astype(np.int64)
+    lo = ends[0]
+    span = ends[1] - lo + 1
     if float(span[0]) * float(span[1]) * float(span[2]) >= 2**62:
         raise ValueError("block extent too large for the voxel size; tile it")
-    packed = rel[0]  # built in x's column
-    packed *= span[1]
-    packed += rel[1]
-    packed *= span[2]
-    packed += rel[2]
+    n = xyz.shape[0]
+    packed = np.empty(n, np.int64)
+    buf = np.empty(min(n, CACHE_POINTS))
+    key = np.empty(buf.shape[0], np.int64)
+    for a in range(0, n, CACHE_POINTS):
+        b = min(n, a + CACHE_POINTS)
+        out, f, k = packed[a:b], buf[: b - a], key[: b - a]
+        for d in range(3):
+            np.subtract(xyz[a:b, d], origin[d], out=f)
+            np.divide(f, voxel_size, out=f)
+            np.floor(f, out=f)
+            np.copyto(k, f, casting="unsafe")  # as astype(np.int64)
+            k -= lo[d]
+            if d == 0:
+                out[...] = k
+            else:
+                out *= span[d]
+                out += k
     return packed, lo, span
 
 
