@@ -88,3 +88,16 @@ def test_packed_keys_and_column_extremes_across_cache_sized_passes():
     np.testing.assert_array_equal(column_max(xyz), xyz.max(axis=0))
     xyz[CACHE_POINTS + 5, 1] = np.nan  # a NaN in a later pass comes through as numpy's does
     np.testing.assert_array_equal(column_min(xyz), xyz.min(axis=0))
+
+
+def test_rows_by_column_are_the_rows_and_voxelize_alike():
+    from pipeline.voxels import rows_by_column
+
+    rng = np.random.default_rng(5)
+    xyz = rng.uniform(-3, 3, (40_000, 3))
+    rows = np.flatnonzero(xyz[:, 2] > 0)
+    got = rows_by_column(xyz, rows)
+    assert got.flags.f_contiguous and np.array_equal(got, xyz[rows])
+    a, b = voxelize(got, voxel_size=0.1), voxelize(xyz[rows], voxel_size=0.1)
+    for f in ("point_voxel", "keys", "centroids", "counts"):
+        assert getattr(a, f).tobytes() == getattr(b, f).tobytes()
