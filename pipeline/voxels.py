@@ -152,7 +152,7 @@ def _group_keys(packed: np.ndarray, n_keys: int) -> tuple[np.ndarray, np.ndarray
         return uniq, inverse.reshape(-1), counts
     # a dense grid: count each cell and rank the occupied ones, where a sort costs ten times more
     counts = np.bincount(packed, minlength=n_keys)
-    uniq = np.flatnonzero(counts)
+    uniq = np.flatnonzero(counts > 0)  # numpy finds the set elements of a bool array twice as fast
     rank = np.empty(n_keys, np.int32)
     rank[uniq] = np.arange(uniq.shape[0], dtype=np.int32)
     return uniq, rank[packed].astype(np.int64), counts[uniq]
