@@ -18,6 +18,7 @@ from scipy.spatial import ConvexHull, QhullError
 
 from pipeline.circles import fit_circle, trunk_circle
 from pipeline.params import MetricsParams
+from pipeline.passes import indices_where
 
 TREE_COLUMNS = (
     "tree_id",
@@ -201,7 +202,7 @@ def tree_partials(
     """
     # Strategy: sort the tree points by id once, then reduce each contiguous run. Only
     # heights are gathered for every tree point; whole points only for the crowns.
-    idx = np.flatnonzero(tree_id > 0)
+    idx = indices_where(tree_id.shape[0], lambda s: tree_id[s] > 0)
     order, uniq, start, counts = group_runs(tree_id[idx])
     idx = idx[order]
     if uniq.size == 0:
@@ -384,10 +385,15 @@ def trunk_circles(
     if k == 0:
         return centres, out
     if height is not None:  # pre-select the slice by height above ground (cheap)
-        mask = (np.abs(height - params.trunk_height) <= params.trunk_slice / 2 + SLICE_PRESELECT_MARGIN) & (tree_id > 0)
+        reach = params.trunk_slice / 2 + SLICE_PRESELECT_MARGIN
+
+        def near(s: slice) -> np.ndarray:
+            return (np.abs(height[s] - params.trunk_height) <= reach) & (tree_id[s] > 0)
     else:
-        mask = tree_id > 0
-    pts, ids = xyz[mask], tree_id[mask]
+        def near(s: slice) -> np.ndarray:
+            return tree_id[s] > 0
+    pre = indices_where(tree_id.shape[0], near)
+    pts, ids = xyz[pre], tree_id[pre]
     dz = pts[:, 2] - trunks[ids - 1, 2]
     in_slice = np.abs(dz - params.trunk_height) <= params.trunk_slice / 2
     d2 = ((pts[:, :2] - trunks[ids - 1, :2]) ** 2).sum(1)

@@ -9,7 +9,8 @@ from __future__ import annotations
 
 import numpy as np
 
-from pipeline.voxels import CACHE_POINTS, column_max, column_min
+from pipeline.passes import CACHE_POINTS
+from pipeline.voxels import column_max, column_min
 
 #: most grid cells of :func:`near_centres` (centres spread wider take the bounding box)
 MAX_NEAR_CELLS = 4_000_000

@@ -12,6 +12,7 @@ from scipy.spatial import cKDTree
 from pipeline.graph import ShortestPaths, shortest_paths, without_nodes
 from pipeline.metrics import group_runs, tree_circles
 from pipeline.nearby import near_centres
+from pipeline.passes import indices_where
 from pipeline.params import SegmentParams
 from pipeline.refine import refine_contested
 
@@ -498,7 +499,8 @@ def trunk_feet(
     gidx = np.flatnonzero(is_ground)
     if k == 0 or gidx.size == 0:
         return empty
-    cand = np.flatnonzero((tree_id > 0) & (height >= ground_top) & (height < ground_top + slice_height))
+    top = ground_top + slice_height
+    cand = indices_where(tree_id.shape[0], lambda s: (tree_id[s] > 0) & (height[s] >= ground_top) & (height[s] < top))
     own = trunk_xy[tree_id[cand] - 1]
     cand = cand[((xyz[cand, :2] - own) ** 2).sum(1) <= max_radius**2]
     if cand.size == 0:

@@ -6,6 +6,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from pipeline.passes import CACHE_POINTS
+
 
 @dataclass(frozen=True)
 class Voxels:
@@ -31,11 +33,6 @@ class Voxels:
     @property
     def n(self) -> int:
         return int(self.counts.shape[0])
-
-
-#: points per pass of a chain of whole-array steps: their temporaries (128 KiB a float
-#: column) stay in the CPU's cache instead of passing through memory between steps
-CACHE_POINTS = 1 << 14
 
 
 def column_min(a: np.ndarray) -> np.ndarray:

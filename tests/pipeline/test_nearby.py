@@ -83,7 +83,7 @@ def test_near_centres_by_hand():
 
 def test_many_points_in_several_cache_sized_passes():
     # more points than one pass of CACHE_POINTS: the passes' indices join in order
-    from pipeline.voxels import CACHE_POINTS
+    from pipeline.passes import CACHE_POINTS
 
     rng = np.random.default_rng(4)
     xy = rng.uniform(0, 30, (2 * CACHE_POINTS + 123, 2)) + 5e4

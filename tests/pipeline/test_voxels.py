@@ -74,7 +74,7 @@ def test_grouping_keys_equals_numpys_unique_on_dense_and_sparse_grids(keys, n_ke
 
 def test_packed_keys_and_column_extremes_across_cache_sized_passes():
     # more points than one pass of CACHE_POINTS: every pass packs its points alike
-    from pipeline.voxels import CACHE_POINTS
+    from pipeline.passes import CACHE_POINTS
 
     rng = np.random.default_rng(3)
     xyz = rng.uniform(-20, 20, (2 * CACHE_POINTS + 17, 3))
