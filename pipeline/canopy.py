@@ -12,6 +12,7 @@ from __future__ import annotations
 import numpy as np
 from scipy.ndimage import gaussian_filter1d
 
+from pipeline.passes import CACHE_POINTS
 from pipeline.voxels import column_max, column_min
 
 #: side of a canopy cell [m]: fine enough to resolve a 1 m hedgerow wall
@@ -51,17 +52,33 @@ def canopy_cells(xy: np.ndarray, height: np.ndarray, *, cell: float = CELL, min_
     -------
     (c, 2) int64 unique cell indices, ``floor((xy + offset) / cell)``, sorted.
     """
-    # Strategy: the canopy points are picked first, so that only they are copied and shifted.
+    # Strategy: the canopy points are picked first, so that only they are copied and
+    # shifted; CACHE_POINTS points at a time, column by column, whose temporaries stay
+    # in the CPU's cache (numpy's passes along rows of two are slow)
     xy = np.asarray(xy, dtype=np.float64).reshape(-1, 2)
-    keep = np.asarray(height) >= min_height
-    if among is not None:
-        keep &= among
-    if not keep.any():
+    height = np.asarray(height)
+    shift = None if offset is None else np.asarray(offset, dtype=np.float64)[:2]
+    parts = []
+    for a in range(0, xy.shape[0], CACHE_POINTS):
+        s = slice(a, a + CACHE_POINTS)
+        keep = height[s] >= min_height
+        if among is not None:
+            keep &= among[s]
+        pick = np.flatnonzero(keep)
+        if pick.size == 0:
+            continue
+        part = np.empty((pick.size, 2), np.int64)
+        for d in (0, 1):
+            c = xy[s, d][pick]
+            if shift is not None:
+                c += shift[d]
+            c /= cell
+            np.floor(c, out=c)
+            part[:, d] = c  # as astype(np.int64)
+        parts.append(part)
+    if not parts:
         return np.zeros((0, 2), np.int64)
-    pts = xy[keep]
-    if offset is not None:
-        pts += np.asarray(offset, dtype=np.float64)[:2]
-    return unique_cells(np.floor(pts / cell).astype(np.int64))
+    return unique_cells(np.concatenate(parts))
 
 
 def unique_cells(cells: np.ndarray) -> np.ndarray:
