@@ -15,6 +15,8 @@ from dataclasses import dataclass
 import numpy as np
 from scipy import ndimage
 
+from pipeline.passes import CACHE_POINTS, indices_where
+
 #: Side of a coverage cell [m]; whole metres, so cells follow from the block's origin exactly.
 CELL = 1
 
@@ -61,9 +63,18 @@ def stem_cells(xy: np.ndarray, height: np.ndarray, among: np.ndarray, origin_xy)
     among : (n,) bool — the points to look at (not ground)
     origin_xy : (2,) float — the block's local origin in the input CRS [m]
     """
-    pick = among & (height >= STEM_BAND[0]) & (height < STEM_BAND[1])
-    pts = np.asarray(xy, np.float64)[pick, :2] + np.asarray(origin_xy[:2], np.float64)
-    ij = np.floor(pts / STEM_CELL).astype(np.int64).reshape(-1, 2)
+    # CACHE_POINTS points at a time, column by column: temporaries that stay in the CPU's cache
+    xy, origin = np.asarray(xy, np.float64), np.asarray(origin_xy[:2], np.float64)
+    pick = indices_where(len(height), lambda s: among[s] & (height[s] >= STEM_BAND[0]) & (height[s] < STEM_BAND[1]))
+    ij = np.empty((pick.size, 2), np.int64)
+    for a in range(0, pick.size, CACHE_POINTS):
+        rows = pick[a : a + CACHE_POINTS]
+        for d in (0, 1):
+            c = xy[rows, d]
+            c += origin[d]
+            c /= STEM_CELL
+            np.floor(c, out=c)
+            ij[a : a + CACHE_POINTS, d] = c  # as astype(np.int64)
     if len(ij) == 0:
         return np.zeros((0, 3), np.int64)
     # one int64 key a cell, in the (i, j) order np.unique(axis=0) sorts rows in: a sort of

@@ -2,7 +2,7 @@
 
 import numpy as np
 
-from pipeline.coverage import Coverage, occupied_cells
+from pipeline.coverage import STEM_BAND, STEM_CELL, Coverage, occupied_cells, stem_cells
 
 
 def test_cells_are_on_the_input_crs_whole_metre_grid():
@@ -31,3 +31,15 @@ def test_a_stem_needs_a_few_points_and_tiles_add_up():
     split = stems_of([stem_cells(xy[:2], height[:2], among[:2], (100.0, 0.0)),
                       stem_cells(xy[2:], height[2:], among[2:], (100.0, 0.0))])
     assert np.allclose(split, whole)  # two tiles' points of one cell count together
+
+
+def test_stem_cells_of_many_points_in_several_passes():
+    from pipeline.passes import CACHE_POINTS
+
+    rng = np.random.default_rng(9)
+    n = 3 * CACHE_POINTS + 5
+    xy, height, among = rng.uniform(-20, 20, (n, 2)), rng.uniform(0, 1.2, n), rng.random(n) < 0.9
+    origin = np.array([431000.0, 5123000.0])
+    pick = among & (height >= STEM_BAND[0]) & (height < STEM_BAND[1])
+    cells, counts = np.unique(np.floor((xy[pick] + origin) / STEM_CELL).astype(np.int64), axis=0, return_counts=True)
+    np.testing.assert_array_equal(stem_cells(xy, height, among, origin), np.c_[cells, counts])
