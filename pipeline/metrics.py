@@ -19,6 +19,7 @@ from scipy.spatial import ConvexHull, QhullError
 from pipeline.circles import fit_circle, trunk_circle
 from pipeline.params import MetricsParams
 from pipeline.passes import indices_where
+from pipeline.voxels import rows_by_column
 
 TREE_COLUMNS = (
     "tree_id",
@@ -213,7 +214,7 @@ def tree_partials(
     z -= np.repeat(trunk_z[uniq - 1], counts)  # the height above the tree's trunk base, as each tree's own subtraction gave it
     crown = z >= params.crown_base
     crown_end = np.cumsum(np.add.reduceat(crown.astype(np.int64), start))
-    crowns = xyz[idx[crown]]
+    crowns = rows_by_column(xyz, idx[crown])  # the hull candidates' passes run down its columns
     crown_xy, crown_xyz = [], []
     for e, c in zip(crown_end.tolist(), np.diff(np.r_[0, crown_end]).tolist()):
         hull_xy, hull_xyz = _crown_hulls(crowns[e - c : e])
