@@ -38,7 +38,8 @@ per-point wood flag, so wood F1 is left out. Seconds are wall-clock for the whol
 each (reading, processing, writing) on one core: ours in a fresh process
 (:func:`bench.isolation.measure`) pinned to one core (the LAZ decoder and the Parquet
 writer would otherwise use every core), after one untimed warm-up run (as a dask worker
-runs it); rayextract as a fresh process pinned to the same core, with
+runs it), or with ``--whole-command`` as a whole ``orchard process`` run in a fresh process
+(start-up, imports, report and map included); rayextract as a fresh process pinned to the same core, with
 ``OMP_NUM_THREADS=1``; the median of ``--repeats`` timed runs of each (default 3). Each
 tool's peak RSS is its own process's high-water
 mark (``getrusage``; ours includes the interpreter and its imports), also given per
@@ -95,9 +96,17 @@ SCENES: dict[str, dict[str, dict]] = {
         "hedge 1.35 m × 4 m, mobile density": dict(form="hedge", rows=2, trees_per_row=10, spacing=1.35,
                                                   row_spacing=4.0, density=3.077),
     },
+    # a few trees of a hedgerow at a lower density: 0.27 and 0.32 M points, where fixed costs weigh
+    "small": {
+        "tall spindle 1.0 m × 3.5 m, 2 × 6 trees, 0.27 M points": dict(form="spindle", rows=2, trees_per_row=6,
+                                                                      spacing=1.0, row_spacing=3.5, density=0.45),
+        "tall spindle 1.5 m × 3.5 m, 2 × 5 trees, 0.32 M points": dict(form="spindle", rows=2, trees_per_row=5,
+                                                                      spacing=1.5, row_spacing=3.5, density=0.55),
+    },
 }
 """Scene groups of ``--scenes``: setting name -> ``SimulationParams`` fields (no seed).
-``mobile`` holds the hedgerow blocks of :mod:`bench.density` (2.4-2.7 M points)."""
+``mobile`` holds the hedgerow blocks of :mod:`bench.density` (2.4-2.7 M points), ``small``
+two spindle hedgerows of 0.27 and 0.32 M points."""
 
 
 def write_ray_cloud(path: Path, xyz: np.ndarray) -> None:
@@ -227,16 +236,37 @@ def _run_ours(las: str, result_dir: Path, repeats: int = 1) -> tuple[float, int]
     return statistics.median(run["wall_s"] for run in r["runs"]), int(r["main_maxrss"])
 
 
+def _run_command(las: str, result_dir: Path, repeats: int = 1) -> tuple[float, int]:
+    """``orchard process`` on ``las`` as a fresh process pinned to one core, ``repeats``
+    times, start-up, imports, report and map included (a grower's run); returns (the
+    median wall time [s], the largest peak RSS of a run [bytes]). The last run's outputs
+    are left in ``result_dir / "run{repeats-1}"``."""
+    shutil.rmtree(result_dir, ignore_errors=True)
+    result_dir.mkdir(parents=True)
+    env = dict(os.environ, **SINGLE_THREAD_ENV)
+    walls, peak = [], 0
+    with one_core() as core:
+        for r in range(max(1, repeats)):
+            cmd = [sys.executable, "-m", "service.cli", "process", os.path.abspath(las), "--out", f"run{r}"]
+            t = time.perf_counter()
+            code, output, rss = _run_pinned(cmd, result_dir, env, core, timeout=3600.0)
+            walls.append(time.perf_counter() - t)
+            peak = max(peak, rss)
+            if code != 0:
+                raise RuntimeError(f"orchard process exited {code}: {output.strip().splitlines()[-1:]}")
+    return statistics.median(walls), peak
+
+
 def compare_scene(binary: str, work: Path, las: str, truth_path: str,
                   ground: Callable[[np.ndarray, np.ndarray], np.ndarray], repeats: int = 1,
-                  match: float = 1.0) -> dict:
+                  match: float = 1.0, whole_command: bool = False) -> dict:
     """Ours and rayextract on one block with its truth file (``simulator.truth``'s
     format): {method: scores, seconds and peak RSS [bytes]}. ``ground(x, y) -> z`` is the
     true ground in the block's absolute coordinates [m]; trunks match within ``match`` [m]."""
     truth, true_trunks = read_truth(truth_path)
     name = Path(las).stem
     result_dir = work / "rayextract-results" / name
-    seconds, rss = _run_ours(las, result_dir, repeats)
+    seconds, rss = (_run_command if whole_command else _run_ours)(las, result_dir, repeats)
     ours = evaluate_result(truth_path, str(result_dir / f"run{max(1, repeats) - 1}"), match_distance=match)
     methods = {"ours": dict(ours, seconds=seconds, found=ours["n_found_trees"], peak_rss=rss)}
 
@@ -255,18 +285,18 @@ def compare_scene(binary: str, work: Path, las: str, truth_path: str,
 
 
 def compare_block(binary: str, work: Path, setting: str, seed: int, repeats: int = 1,
-                  sim: dict | None = None) -> dict:
+                  sim: dict | None = None, whole_command: bool = False) -> dict:
     """Ours and rayextract on one generated block of ``sim`` (simulator fields; default
     ``SETTINGS[setting]``): {method: scores}, plus block facts."""
     sim = SETTINGS[setting] if sim is None else sim
     params = SimulationParams(seed=seed, **sim)
     block = make_block(work, f"rayextract-s{seed}", params)
     methods = compare_scene(binary, work, block.las, block.truth, partial(ground_height, params), repeats,
-                            match=match_distance(params.spacing))
+                            match=match_distance(params.spacing), whole_command=whole_command)
     return {"setting": setting, "seed": seed, "n_points": block.n_points, "n_trees": block.n_trees, "methods": methods}
 
 
-def compare_adtree(binary: str, work: Path, overlap: float, repeats: int = 1) -> dict:
+def compare_adtree(binary: str, work: Path, overlap: float, repeats: int = 1, whole_command: bool = False) -> dict:
     """Ours and rayextract on the real-tree row of :func:`bench.real_data.adtree_row`
     (four AdTree scans, crowns overlapping by ``overlap`` of their summed radii, on a flat
     ground plane at z = 0), written as a block with its exact tree ids as the truth. The
@@ -279,7 +309,8 @@ def compare_adtree(binary: str, work: Path, overlap: float, repeats: int = 1) ->
     folder.mkdir(parents=True, exist_ok=True)
     las, truth = folder / f"adtree-row-{overlap:g}.laz", folder / f"adtree-row-{overlap:g}.truth.parquet"
     write_simulation(row, str(las), str(truth))
-    methods = compare_scene(binary, work, str(las), str(truth), lambda x, y: np.zeros(len(x)), repeats)
+    methods = compare_scene(binary, work, str(las), str(truth), lambda x, y: np.zeros(len(x)), repeats,
+                            whole_command=whole_command)
     return {"setting": f"AdTree row (real trees), overlap {overlap:g}", "seed": "-", "n_points": len(xyz),
             "n_trees": len(bases), "methods": methods}
 
@@ -315,6 +346,9 @@ def main(argv: list[str] | None = None) -> int:
                    help="also the row of four real AdTree trees (bench.real_data) at these crown overlaps, "
                         "comma-separated fractions of the summed crown radii; '' for none (default 0.8,1.0)")
     p.add_argument("--repeats", type=int, default=3, help="timed runs of each tool per scene; the median is reported (default 3)")
+    p.add_argument("--whole-command", action="store_true",
+                   help="time ours as a whole `orchard process` run in a fresh process (start-up, imports, report "
+                        "and map included) instead of the job after a warm-up run")
     args = p.parse_args(argv)
     binary = shutil.which(args.rayextract) or args.rayextract
     if not (os.path.isfile(binary) and os.access(binary, os.X_OK)):
@@ -326,13 +360,13 @@ def main(argv: list[str] | None = None) -> int:
         print(f"error: unknown scene group {', '.join(unknown)}; choose from {', '.join(SCENES)}", file=sys.stderr)
         return 2
     seeds = [int(s) for s in args.seeds.split(",") if s.strip()]
-    rows = [compare_block(binary, args.work_dir, setting, seed, args.repeats, sim)
+    rows = [compare_block(binary, args.work_dir, setting, seed, args.repeats, sim, args.whole_command)
             for g in groups for setting, sim in SCENES[g].items() for seed in seeds]
     overlaps = [float(o) for o in args.adtree.split(",") if o.strip()]
     if overlaps and not (REAL / "AdTree").is_dir():
         print(f"note: {REAL / 'AdTree'} is missing; the real-tree rows are left out", file=sys.stderr)
         overlaps = []
-    rows += [compare_adtree(binary, args.work_dir, o, args.repeats) for o in overlaps]
+    rows += [compare_adtree(binary, args.work_dir, o, args.repeats, args.whole_command) for o in overlaps]
     print(table(rows))
     return 0
 

@@ -155,14 +155,16 @@ def block_result(xyz: np.ndarray, a: NodeAnalysis, *, params: PipelineParams) ->
     score = np.where(node_tree > 0, node_wood_score(a, params=params), 0.0)
     node_wood = woodleaf.classify(score, node_tree, params=params.matter)
 
-    n = xyz.shape[0]
-    pv = a.vox.point_voxel
-    tree_id = np.zeros(n, np.int64)
-    is_wood = np.zeros(n, bool)
-    wood_score = np.zeros(n, np.float32)
-    tree_id[a.veg_idx] = node_tree[pv]
-    is_wood[a.veg_idx] = node_wood[pv]
-    wood_score[a.veg_idx] = score[pv]
+    # each point's node (a node past the last for points in none, labelled 0): one
+    # scatter, then one gather a label, instead of a gather and a scatter each
+    m = node_tree.shape[0]
+    point_node = np.full(xyz.shape[0], m, np.intp)
+    point_node[a.veg_idx] = a.vox.point_voxel
+    tree_id, is_wood, wood_score = (
+        np.concatenate([v.astype(t, copy=False), np.zeros(1, t)])[point_node]
+        for v, t in ((node_tree, np.int64), (node_wood, bool), (score, np.float32))
+    )
+    del point_node
     if a.on_post is not None and a.on_post.any():
         near, src = _post_foliage(xyz, a, params=params)
         tree_id[near] = node_tree[src]

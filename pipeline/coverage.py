@@ -15,6 +15,7 @@ from dataclasses import dataclass
 import numpy as np
 from scipy import ndimage
 
+
 #: Side of a coverage cell [m]; whole metres, so cells follow from the block's origin exactly.
 CELL = 1
 

@@ -18,6 +18,8 @@ from scipy.spatial import ConvexHull, QhullError
 
 from pipeline.circles import fit_circle, trunk_circle
 from pipeline.params import MetricsParams
+from pipeline.passes import indices_where
+from pipeline.voxels import rows_by_column
 
 TREE_COLUMNS = (
     "tree_id",
@@ -199,20 +201,25 @@ def tree_partials(
     -------
     TreePartials for the trees that have at least one point.
     """
-    # Strategy: sort the tree points by id once, then reduce each contiguous run.
-    idx = np.flatnonzero(tree_id > 0)
+    # Strategy: sort the tree points by id once, then reduce each contiguous run. Only
+    # heights are gathered for every tree point; whole points only for the crowns.
+    idx = indices_where(tree_id.shape[0], lambda s: tree_id[s] > 0)
     order, uniq, start, counts = group_runs(tree_id[idx])
     idx = idx[order]
-    pts, wood = xyz[idx], is_wood[idx]
-    n_wood = np.add.reduceat(wood.astype(np.int64), start) if uniq.size else np.zeros(0, np.int64)
-    z_max = np.maximum.reduceat(pts[:, 2], start) if uniq.size else np.zeros(0)
+    if uniq.size == 0:
+        return TreePartials(uniq.astype(np.int64), counts.astype(np.int64), np.zeros(0, np.int64), np.zeros(0), [], [])
+    z = xyz[idx, 2]
+    n_wood = np.add.reduceat(is_wood[idx].astype(np.int64), start)
+    z_max = np.maximum.reduceat(z, start)
+    z -= np.repeat(trunk_z[uniq - 1], counts)  # the height above the tree's trunk base, as each tree's own subtraction gave it
+    crown = z >= params.crown_base
+    crown_end = np.cumsum(np.add.reduceat(crown.astype(np.int64), start))
+    crowns = rows_by_column(xyz, idx[crown])  # the hull candidates' passes run down its columns
     crown_xy, crown_xyz = [], []
-    for t, s, c in zip(uniq, start, counts):
-        p = pts[s : s + c]
-        crown = p[p[:, 2] - trunk_z[t - 1] >= params.crown_base]
-        xy, xyz = _crown_hulls(crown)
-        crown_xy.append(xy)
-        crown_xyz.append(xyz)
+    for e, c in zip(crown_end.tolist(), np.diff(np.r_[0, crown_end]).tolist()):
+        hull_xy, hull_xyz = _crown_hulls(crowns[e - c : e])
+        crown_xy.append(hull_xy)
+        crown_xyz.append(hull_xyz)
     return TreePartials(uniq.astype(np.int64), counts.astype(np.int64), n_wood.astype(np.int64), z_max, crown_xy, crown_xyz)
 
 
@@ -379,10 +386,15 @@ def trunk_circles(
     if k == 0:
         return centres, out
     if height is not None:  # pre-select the slice by height above ground (cheap)
-        mask = (np.abs(height - params.trunk_height) <= params.trunk_slice / 2 + SLICE_PRESELECT_MARGIN) & (tree_id > 0)
+        reach = params.trunk_slice / 2 + SLICE_PRESELECT_MARGIN
+
+        def near(s: slice) -> np.ndarray:
+            return (np.abs(height[s] - params.trunk_height) <= reach) & (tree_id[s] > 0)
     else:
-        mask = tree_id > 0
-    pts, ids = xyz[mask], tree_id[mask]
+        def near(s: slice) -> np.ndarray:
+            return tree_id[s] > 0
+    pre = indices_where(tree_id.shape[0], near)
+    pts, ids = xyz[pre], tree_id[pre]
     dz = pts[:, 2] - trunks[ids - 1, 2]
     in_slice = np.abs(dz - params.trunk_height) <= params.trunk_slice / 2
     d2 = ((pts[:, :2] - trunks[ids - 1, :2]) ** 2).sum(1)

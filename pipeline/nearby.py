@@ -9,7 +9,8 @@ from __future__ import annotations
 
 import numpy as np
 
-from pipeline.voxels import column_min
+from pipeline.passes import CACHE_POINTS
+from pipeline.voxels import column_max, column_min
 
 #: most grid cells of :func:`near_centres` (centres spread wider take the bounding box)
 MAX_NEAR_CELLS = 4_000_000
@@ -22,19 +23,30 @@ def near_centres(xy: np.ndarray, centres: np.ndarray, reach: float) -> np.ndarra
     reach = reach * (1 + 1e-6)  # a point within reach is never outside the box or two cells off by rounding
     lo = centres.min(axis=0) - reach
     hi = centres.max(axis=0) + reach
-    inside = np.flatnonzero((xy[:, 0] >= lo[0]) & (xy[:, 0] <= hi[0]) & (xy[:, 1] >= lo[1]) & (xy[:, 1] <= hi[1]))
     shape = (np.floor((hi - lo) / reach).astype(np.int64) + 1)
     if shape[0] * shape[1] > MAX_NEAR_CELLS:  # candidates spread over a huge extent: the box alone
-        return inside
+        return np.concatenate([a + _in_box(xy[a : a + CACHE_POINTS], lo, hi) for a in range(0, xy.shape[0], CACHE_POINTS)]
+                              + [np.zeros(0, np.int64)])
     grid = np.zeros(shape, bool)
     cell = np.floor((centres - lo) / reach).astype(np.int64)
     for dx in (-1, 0, 1):
         for dy in (-1, 0, 1):
             grid[np.clip(cell[:, 0] + dx, 0, shape[0] - 1), np.clip(cell[:, 1] + dy, 0, shape[1] - 1)] = True
-    # column by column: (n, 2) float temporaries of every point of a tile were its peak
-    # (x - lo) / reach >= 0 inside the box: truncation is the floor, without a pass of its own
-    ix, iy = (np.minimum(((xy[inside, d] - lo[d]) / reach).astype(np.int64), shape[d] - 1) for d in (0, 1))
-    return inside[grid[ix, iy]]
+    # CACHE_POINTS points at a time, whose temporaries stay in the CPU's cache
+    found = [np.zeros(0, np.int64)]
+    for a in range(0, xy.shape[0], CACHE_POINTS):
+        part = xy[a : a + CACHE_POINTS]
+        inside = _in_box(part, lo, hi)
+        # (x - lo) / reach >= 0 inside the box: truncation is the floor, without a pass of its own
+        ix, iy = (np.minimum(((part[inside, d] - lo[d]) / reach).astype(np.int64), shape[d] - 1) for d in (0, 1))
+        found.append(a + inside[grid[ix, iy]])
+    return np.concatenate(found)
+
+
+def _in_box(xy: np.ndarray, lo: np.ndarray, hi: np.ndarray) -> np.ndarray:
+    """Indices of the points ``xy`` (n, 2) in the box from ``lo`` to ``hi`` (2,), edges included."""
+    x, y = xy[:, 0], xy[:, 1]
+    return np.flatnonzero((x >= lo[0]) & (x <= hi[0]) & (y >= lo[1]) & (y <= hi[1]))
 
 
 class CellIndex:
@@ -48,12 +60,20 @@ class CellIndex:
     def __init__(self, xy: np.ndarray, reach: float) -> None:
         self.xy, self.reach = xy, reach
         self.cell = reach * (1 + 1e-6)  # a point within reach is never two cells off by rounding
-        self.lo = column_min(xy) if xy.shape[0] else np.zeros(2)
-        ij = xy - self.lo  # >= 0: truncation is the floor, without a pass of its own
-        ij /= self.cell
-        ij = ij.astype(np.int64)
-        self.ny = int(ij[:, 1].max()) + 3 if xy.shape[0] else 3  # keys of a row of cells never reach the next row's
-        key = (ij[:, 0] + 1) * self.ny + (ij[:, 1] + 1)
+        n = xy.shape[0]
+        self.lo = column_min(xy) if n else np.zeros(2)
+        # a cell's row and column grow with x and y: the highest row is the highest y's
+        top = int(((column_max(xy)[1:] - self.lo[1:]) / self.cell).astype(np.int64)[0]) if n else 0
+        self.ny = top + 3  # keys of a row of cells never reach the next row's
+        key = np.empty(n, np.int64)
+        for a in range(0, n, CACHE_POINTS):  # temporaries that stay in the CPU's cache
+            # column by column (numpy's passes along rows of two are slow); >= 0: truncation is the floor
+            i, j = (((xy[a : a + CACHE_POINTS, d] - self.lo[d]) / self.cell).astype(np.int64) for d in (0, 1))
+            i += 1
+            i *= self.ny
+            i += j
+            i += 1
+            key[a : a + CACHE_POINTS] = i
         # the same stable order from 16-bit keys where they fit: numpy sorts those by radix
         small = key.size and int(key.max()) < 1 << 16
         self.order = np.argsort(key.astype(np.uint16) if small else key, kind="stable")

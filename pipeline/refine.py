@@ -46,9 +46,11 @@ def rival_distance(graph: sparse.csr_matrix, node_tree: np.ndarray, dist: np.nda
     m = node_tree.shape[0]
     g = graph.tocoo()
     a, b, w = g.row, g.col, g.data
-    labelled = (node_tree[a] > 0) & (node_tree[b] > 0) & np.isfinite(dist[a])
-    cross = labelled & (node_tree[a] != node_tree[b])
-    inside = labelled & (node_tree[a] == node_tree[b])
+    ta, tb = node_tree[a], node_tree[b]  # each edge's trees, gathered once
+    labelled = (ta > 0) & (tb > 0) & np.isfinite(dist[a])
+    same = ta == tb
+    cross = labelled & ~same
+    inside = labelled & same
     rival_dist = np.full(m, np.inf)
     rival = np.zeros(m, np.int64)
     if not cross.any():
@@ -57,7 +59,7 @@ def rival_distance(graph: sparse.csr_matrix, node_tree: np.ndarray, dist: np.nda
     off = dist[a[cross]] + w[cross]
     order = np.lexsort((off, b[cross]))
     ent, first = np.unique(b[cross][order], return_index=True)
-    ent_off, ent_tree = off[order][first], node_tree[a[cross]][order][first]
+    ent_off, ent_tree = off[order][first], ta[cross][order][first]
     # one virtual source per entered node, joined to it by its offset
     e = ent.size
     rows = np.r_[a[inside], m + np.arange(e)]

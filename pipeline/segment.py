@@ -11,7 +11,8 @@ from scipy.spatial import cKDTree
 
 from pipeline.graph import ShortestPaths, shortest_paths, without_nodes
 from pipeline.metrics import group_runs, tree_circles
-from pipeline.nearby import near_centres
+from pipeline.nearby import CellIndex, near_centres
+from pipeline.passes import indices_where
 from pipeline.params import SegmentParams
 from pipeline.refine import refine_contested
 
@@ -498,7 +499,8 @@ def trunk_feet(
     gidx = np.flatnonzero(is_ground)
     if k == 0 or gidx.size == 0:
         return empty
-    cand = np.flatnonzero((tree_id > 0) & (height >= ground_top) & (height < ground_top + slice_height))
+    top = ground_top + slice_height
+    cand = indices_where(tree_id.shape[0], lambda s: (tree_id[s] > 0) & (height[s] >= ground_top) & (height[s] < top))
     own = trunk_xy[tree_id[cand] - 1]
     cand = cand[((xyz[cand, :2] - own) ** 2).sum(1) <= max_radius**2]
     if cand.size == 0:
@@ -517,11 +519,14 @@ def trunk_feet(
         return empty
     order, uniq, start, counts = group_runs(tree_id[cand])  # each tree's slice points, in input order
     first = dict(zip(uniq.tolist(), zip(start.tolist(), counts.tolist())))
-    near = cKDTree(xyz[gidx, :2]).query_ball_point(centres[trunk_like], query)
+    # the cells' ball at the widest reach holds every point of each trunk's own (the
+    # exact test below keeps the same points a k-d tree's ball at its reach gave, in the
+    # same order), for a sort of cell keys instead of a k-d tree and lists of hits
+    cells = CellIndex(xyz[gidx, :2], float(query.max()))
     idx, src = [], []
-    for t, reach, hits in zip(trunk_like, reaches, near):
+    for t, reach in zip(trunk_like, reaches):
         c = centres[t]
-        win = gidx[np.sort(np.asarray(hits, dtype=np.int64))]
+        win = gidx[cells.ball(c)]
         foot = win[((xyz[win, :2] - c) ** 2).sum(1) <= reach**2]  # the exact test
         if foot.size == 0:
             continue

@@ -6,6 +6,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from pipeline.passes import CACHE_POINTS
+
 
 @dataclass(frozen=True)
 class Voxels:
@@ -34,14 +36,32 @@ class Voxels:
 
 
 def column_min(a: np.ndarray) -> np.ndarray:
-    """``a.min(axis=0)`` of an (n, d) array, shape (d,), in one pass per column (numpy's
-    reduction across the rows of a narrow array is many times slower)."""
-    return np.array([a[:, d].min() for d in range(a.shape[1])], dtype=a.dtype)
+    """``a.min(axis=0)`` of an (n, d) array, shape (d,) (numpy's reduction across the rows
+    of a narrow array is many times slower, and so is one down a strided column that
+    does not fit in the CPU's cache: CACHE_POINTS rows at a time)."""
+    return _column_reduce(a, np.min)
 
 
 def column_max(a: np.ndarray) -> np.ndarray:
     """``a.max(axis=0)`` of an (n, d) array, like :func:`column_min`."""
-    return np.array([a[:, d].max() for d in range(a.shape[1])], dtype=a.dtype)
+    return _column_reduce(a, np.max)
+
+
+def _column_reduce(a: np.ndarray, reduce) -> np.ndarray:
+    parts = [[reduce(a[s : s + CACHE_POINTS, d]) for d in range(a.shape[1])]
+             for s in range(0, max(a.shape[0], 1), CACHE_POINTS)]  # an empty array raises as numpy's does
+    return reduce(np.array(parts, dtype=a.dtype), axis=0)
+
+
+def rows_by_column(xyz: np.ndarray, rows: np.ndarray) -> np.ndarray:
+    """``xyz[rows]`` of an (n, 3) array, in column-major order: :func:`voxelize` reads it
+    a column at a time, and numpy's passes down contiguous columns are several times
+    faster than down the strided ones of a row-major copy (the same values).
+    ``rows``: indices in ``[0, n)``, not checked."""
+    out = np.empty((rows.shape[0], xyz.shape[1]), dtype=xyz.dtype, order="F")
+    for d in range(xyz.shape[1]):
+        np.take(xyz[:, d], rows, out=out[:, d], mode="clip")  # "raise" would gather through a buffer
+    return out
 
 
 def voxelize(
@@ -85,27 +105,34 @@ def packed_keys(xyz: np.ndarray, voxel_size: float, grid_origin) -> tuple[np.nda
     """Each point's voxel as one int64, ``(x * ny + y) * nz + z`` of its integer key
     relative to the lowest key ``lo`` (3,), in a grid of ``span`` (3,) voxels: (packed
     (n,), lo, span). ValueError when the grid has 2**62 voxels or more."""
-    # column by column, in place (one float buffer, one int64 column per axis): half the
-    # time and 60 % of the memory of (n, 3) arrays of keys and offsets (bench.kernels)
-    buf = np.empty(xyz.shape[0])
-    rel = []
-    for d in range(3):
-        np.subtract(xyz[:, d], float(grid_origin[d]), out=buf)
-        np.divide(buf, voxel_size, out=buf)
-        np.floor(buf, out=buf)
-        rel.append(buf.astype(np.int64))
-    del buf
-    lo = np.array([k.min() for k in rel], dtype=np.int64)
-    for k, low in zip(rel, lo):
-        k -= low
-    span = np.array([k.max() for k in rel], dtype=np.int64) + 1
+    # every step from a coordinate to its key is monotonic, so the lowest and highest
+    # keys are those of the lowest and highest coordinates; the keys themselves are then
+    # packed CACHE_POINTS points at a time, whose temporaries stay in the CPU's cache
+    # (0.6 of the time of whole columns, and no temporary of every point)
+    origin = np.array([float(grid_origin[d]) for d in range(3)])
+    ends = np.floor((np.stack([column_min(xyz), column_max(xyz)]) - origin) / voxel_size).astype(np.int64)
+    lo = ends[0]
+    span = ends[1] - lo + 1
     if float(span[0]) * float(span[1]) * float(span[2]) >= 2**62:
         raise ValueError("block extent too large for the voxel size; tile it")
-    packed = rel[0]  # built in x's column
-    packed *= span[1]
-    packed += rel[1]
-    packed *= span[2]
-    packed += rel[2]
+    n = xyz.shape[0]
+    packed = np.empty(n, np.int64)
+    buf = np.empty(min(n, CACHE_POINTS))
+    key = np.empty(buf.shape[0], np.int64)
+    for a in range(0, n, CACHE_POINTS):
+        b = min(n, a + CACHE_POINTS)
+        out, f, k = packed[a:b], buf[: b - a], key[: b - a]
+        for d in range(3):
+            np.subtract(xyz[a:b, d], origin[d], out=f)
+            np.divide(f, voxel_size, out=f)
+            np.floor(f, out=f)
+            np.copyto(k, f, casting="unsafe")  # as astype(np.int64)
+            k -= lo[d]
+            if d == 0:
+                out[...] = k
+            else:
+                out *= span[d]
+                out += k
     return packed, lo, span
 
 
@@ -122,7 +149,7 @@ def _group_keys(packed: np.ndarray, n_keys: int) -> tuple[np.ndarray, np.ndarray
         return uniq, inverse.reshape(-1), counts
     # a dense grid: count each cell and rank the occupied ones, where a sort costs ten times more
     counts = np.bincount(packed, minlength=n_keys)
-    uniq = np.flatnonzero(counts)
+    uniq = np.flatnonzero(counts > 0)  # numpy finds the set elements of a bool array twice as fast
     rank = np.empty(n_keys, np.int32)
     rank[uniq] = np.arange(uniq.shape[0], dtype=np.int32)
     return uniq, rank[packed].astype(np.int64), counts[uniq]

@@ -37,3 +37,17 @@ def test_unique_cells_equals_numpy_unique_by_rows(n, span, offset, seed):
     """Dense grids (occupancy path) and sparse ones (sorted keys) alike."""
     cells = np.random.default_rng(seed).integers(-span, span + 1, (n, 2)) + offset
     np.testing.assert_array_equal(unique_cells(cells), np.unique(cells, axis=0))
+
+
+def test_canopy_cells_of_many_points_in_several_passes():
+    from pipeline.canopy import canopy_cells
+    from pipeline.passes import CACHE_POINTS
+
+    rng = np.random.default_rng(8)
+    n = 3 * CACHE_POINTS + 11
+    xy, height = rng.uniform(-30, 30, (n, 2)), rng.uniform(-1, 4, n)
+    among = rng.random(n) < 0.8
+    offset = np.array([512000.0, 6800000.0])
+    keep = (height >= 1.0) & among
+    want = np.unique(np.floor((xy[keep] + offset) / 0.25).astype(np.int64), axis=0)
+    np.testing.assert_array_equal(canopy_cells(xy, height, offset=offset, among=among), want)

@@ -2,7 +2,7 @@
 
 import numpy as np
 
-from pipeline.coverage import Coverage, occupied_cells
+from pipeline.coverage import STEM_BAND, STEM_CELL, Coverage, occupied_cells, stem_cells
 
 
 def test_cells_are_on_the_input_crs_whole_metre_grid():
@@ -47,3 +47,13 @@ def test_stem_cells_are_the_band_points_cells_and_counts_dense_or_sparse():
         rows, counts = np.unique(ij, axis=0, return_counts=True)
         assert np.array_equal(stem_cells(xy, height, among, origin), np.c_[rows, counts])
     assert stem_cells(xy, height, np.zeros(3000, bool), origin).shape == (0, 3)
+def test_stem_cells_of_many_points_in_several_passes():
+    from pipeline.passes import CACHE_POINTS
+
+    rng = np.random.default_rng(9)
+    n = 3 * CACHE_POINTS + 5
+    xy, height, among = rng.uniform(-20, 20, (n, 2)), rng.uniform(0, 1.2, n), rng.random(n) < 0.9
+    origin = np.array([431000.0, 5123000.0])
+    pick = among & (height >= STEM_BAND[0]) & (height < STEM_BAND[1])
+    cells, counts = np.unique(np.floor((xy[pick] + origin) / STEM_CELL).astype(np.int64), axis=0, return_counts=True)
+    np.testing.assert_array_equal(stem_cells(xy, height, among, origin), np.c_[cells, counts])

@@ -79,3 +79,24 @@ def test_near_centres_by_hand():
     xy = np.array([[0.0, 0.0], [0.5, 0.0], [1.9, 0.0], [3.5, 0.0], [10.0, 10.0]])
     got = near_centres(xy, np.array([[0.0, 0.0]]), 1.0)
     assert {0, 1}.issubset(got) and not {3, 4} & set(got.tolist())
+
+
+def test_many_points_in_several_cache_sized_passes():
+    # more points than one pass of CACHE_POINTS: the passes' indices join in order
+    from pipeline.passes import CACHE_POINTS
+
+    rng = np.random.default_rng(4)
+    xy = rng.uniform(0, 30, (2 * CACHE_POINTS + 123, 2)) + 5e4
+    centres = rng.uniform(0, 30, (6, 2)) + 5e4
+    got = near_centres(xy, centres, 0.8)
+    within = np.flatnonzero(cKDTree(centres).query(xy)[0] <= 0.8)
+    assert np.all(np.diff(got) > 0) and np.isin(within, got).all()
+    # every point it leaves out is outside the cells around each centre
+    cell = np.floor((xy - (centres.min(axis=0) - 0.8 * (1 + 1e-6))) / (0.8 * (1 + 1e-6)))
+    around = np.zeros(len(xy), bool)
+    for c in np.floor((centres - (centres.min(axis=0) - 0.8 * (1 + 1e-6))) / (0.8 * (1 + 1e-6))):
+        around |= (np.abs(cell - c) <= 1).all(axis=1)
+    assert not np.isin(np.flatnonzero(~around), got).any()
+    index = CellIndex(xy, 0.8)
+    for c in centres:
+        np.testing.assert_array_equal(index.ball(c), _kdtree_ball(xy, c, 0.8))

@@ -334,3 +334,23 @@ def test_flat_patches_point_one_way():
     assert flat_patches(corner, np.zeros(20, np.int64), np.array([20]), min_align=0.5)[0]
     none = flat_patches(normals, np.full(len(normals), -1), np.zeros(0, np.int64), min_align=0.9)
     assert none.shape == (0,)
+
+
+def test_trunk_feet_of_a_thin_and_a_thick_trunk_each_within_its_own_circle():
+    # the ground points are looked up at the thick trunk's reach: the thin one's feet
+    # stay within its own circle
+    thin, thin_trunk, _, _, thin_id = _trunk_on_ground(radius=0.05, seed=1)
+    thick, thick_trunk, _, _, thick_id = _trunk_on_ground(radius=0.2, seed=2)
+    thick = thick + np.array([3.0, 0.0, 0.0])
+    xyz = np.vstack([thin, thick])
+    height = xyz[:, 2]
+    is_ground = height < 0.12
+    tree_id = np.r_[thin_id, 2 * thick_id]
+    idx, src = trunk_feet(xyz, tree_id, is_ground, height, np.array([[0.0, 0.0], [3.0, 0.0]]), ground_top=0.12,
+                          margin=0.03, max_radius=0.5)
+    for t, centre, r in ((1, (0.0, 0.0), 0.05), (2, (3.0, 0.0), 0.2)):
+        mine = idx[tree_id[src] == t]
+        d = np.hypot(xyz[mine, 0] - centre[0], xyz[mine, 1] - centre[1])
+        assert mine.size and (d <= r + 0.03 + 0.01).all()
+        on_ground = np.flatnonzero(is_ground & (np.hypot(xyz[:, 0] - centre[0], xyz[:, 1] - centre[1]) < r - 0.02))
+        assert np.isin(on_ground, mine).all()

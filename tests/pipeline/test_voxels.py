@@ -70,3 +70,34 @@ def test_grouping_keys_equals_numpys_unique_on_dense_and_sparse_grids(keys, n_ke
     u, i, c = np.unique(packed, return_inverse=True, return_counts=True)
     assert np.array_equal(uniq, u) and np.array_equal(inverse, i) and np.array_equal(counts, c)
     assert inverse.dtype == np.int64 and uniq.dtype == np.int64 and counts.dtype == np.int64
+
+
+def test_packed_keys_and_column_extremes_across_cache_sized_passes():
+    # more points than one pass of CACHE_POINTS: every pass packs its points alike
+    from pipeline.passes import CACHE_POINTS
+
+    rng = np.random.default_rng(3)
+    xyz = rng.uniform(-20, 20, (2 * CACHE_POINTS + 17, 3))
+    origin = (0.3, -1.0, 2.0)
+    keys = np.floor((xyz - np.array(origin)) / 0.1).astype(np.int64)
+    packed, lo, span = packed_keys(xyz, 0.1, origin)
+    rel = keys - keys.min(axis=0)
+    np.testing.assert_array_equal(lo, keys.min(axis=0))
+    np.testing.assert_array_equal(packed, (rel[:, 0] * span[1] + rel[:, 1]) * span[2] + rel[:, 2])
+    np.testing.assert_array_equal(column_min(xyz), xyz.min(axis=0))
+    np.testing.assert_array_equal(column_max(xyz), xyz.max(axis=0))
+    xyz[CACHE_POINTS + 5, 1] = np.nan  # a NaN in a later pass comes through as numpy's does
+    np.testing.assert_array_equal(column_min(xyz), xyz.min(axis=0))
+
+
+def test_rows_by_column_are_the_rows_and_voxelize_alike():
+    from pipeline.voxels import rows_by_column
+
+    rng = np.random.default_rng(5)
+    xyz = rng.uniform(-3, 3, (40_000, 3))
+    rows = np.flatnonzero(xyz[:, 2] > 0)
+    got = rows_by_column(xyz, rows)
+    assert got.flags.f_contiguous and np.array_equal(got, xyz[rows])
+    a, b = voxelize(got, voxel_size=0.1), voxelize(xyz[rows], voxel_size=0.1)
+    for f in ("point_voxel", "keys", "centroids", "counts"):
+        assert getattr(a, f).tobytes() == getattr(b, f).tobytes()
