@@ -76,9 +76,15 @@ def test_rows_can_be_switched_off(small_block, tmp_path):
     assert "row" not in outcome.trees
 
 
-def test_outputs_contract(small_block, tmp_path):
-    out = tmp_path / "out"
-    outcome = run_job(JobSpec(str(small_block), str(out), labelled_laz=True))
+@pytest.fixture(scope="module")
+def labelled_run(small_block, tmp_path_factory):
+    """The small block's job in one piece with the labelled LAZ, and its output folder (read only)."""
+    out = tmp_path_factory.mktemp("labelled") / "out"
+    return run_job(JobSpec(str(small_block), str(out), labelled_laz=True)), out
+
+
+def test_outputs_contract(small_block, labelled_run):
+    outcome, out = labelled_run
     assert sorted(p.name for p in out.iterdir()) == ["gaps.parquet", "history.parquet", "labelled.laz", "points.parquet", "rows.parquet", "trees.parquet"]
     trees = _trees(out)
     assert trees.schema.field("tree_id").type == "int64" and trees.schema.field("n_points").type == "int64"
@@ -175,7 +181,7 @@ def test_first_tile_failure_stops_and_names_the_tile(small_block, tmp_path):
 
 
 @pytest.mark.slow
-def test_later_tile_failure_gives_partial_result_then_replay(small_block, tiled_ref, tmp_path):
+def test_later_tile_failure_gives_partial_result_then_replay(small_block, tiled_ref, tmp_path, monkeypatch):
     ref, ref_out = tiled_ref
     work = tmp_path / "work"
     out = tmp_path / "out"
@@ -187,23 +193,9 @@ def test_later_tile_failure_gives_partial_result_then_replay(small_block, tiled_
     assert json.loads(meta[b"orchard:failed_tiles"]) == [victim]
     assert len(_points(out)["point_index"]) < ref.n_points
     assert len(WorkStore(str(work)).list(f"attempts/{victim:06d}")) == 3
-    # re-run the failed tile alone, merge again: identical to an undisturbed run
-    run_tile(str(work), victim)
-    again = finish_job(str(work))
-    assert not again.partial
-    assert _points(out) == _points(ref_out)
-    assert _trees(out).equals(_trees(ref_out))
-    assert not work.exists()
 
-
-@pytest.mark.slow
-def test_tile_tasks_read_the_frame_not_the_list_of_tiles(small_block, tiled_ref, tmp_path, monkeypatch):
     # every tile's task used to read the whole index (all tiles' bounds and counts): with
     # thousands of tiles that cost grew with the square of their number
-    ref, ref_out = tiled_ref
-    work, out = tmp_path / "work", tmp_path / "out"
-    victim = 3
-    run_job(JobSpec(str(small_block), str(out), job=JobParams(tiling=TilingParams(tile_size=10.0)), work_dir=str(work), inject_failure=(victim,)))
     store = WorkStore(str(work))
     assert store.get_json(FRAME_KEY) == {k: v for k, v in store.get_json(INDEX_KEY).items() if k != "tiles"}
     reads = []
@@ -214,13 +206,22 @@ def test_tile_tasks_read_the_frame_not_the_list_of_tiles(small_block, tiled_ref,
     process_tile(store.url, victim, params)
     assert FRAME_KEY in reads and INDEX_KEY not in reads
     monkeypatch.undo()
+
+    def labels():
+        return {k: store.get_array(f"{result_key(victim)}/{k}.npy") for k in ("index", "tree_id", "is_ground", "wood_score")}
+
+    from_frame = labels()
     # a work store left by an earlier version has no frame: its tiles read the index
     store.remove(result_key(victim))
     store.remove(FRAME_KEY)
+    # re-run the failed tile alone, merge again: identical to an undisturbed run
     run_tile(str(work), victim)
-    assert finish_job(str(work)).n_trees == ref.n_trees
+    assert all(np.array_equal(from_frame[k], v) for k, v in labels().items())
+    again = finish_job(str(work))
+    assert not again.partial and again.n_trees == ref.n_trees
     assert _points(out) == _points(ref_out)
     assert _trees(out).equals(_trees(ref_out))
+    assert not work.exists()
 
 
 def test_a_tile_takes_the_raw_ground_model_its_ground_pass_fitted(small_block, tmp_path):
@@ -325,11 +326,11 @@ def test_a_new_job_does_not_reuse_an_earlier_jobs_tile_results(small_block, tmp_
     assert WorkStore(str(work)).get_json("job.json")["grid"]["tile_size"] == 12.0
 
 
-def test_a_failed_write_leaves_the_previous_outputs_whole(small_block, tmp_path, monkeypatch):
+def test_a_failed_write_leaves_the_previous_outputs_whole(small_block, labelled_run, tmp_path, monkeypatch):
     # outputs are published as one set: an output failing after another was written
     # must not leave the folder mixing two runs (or one run's trees without its points)
     out = tmp_path / "out"
-    run_job(JobSpec(str(small_block), str(out), labelled_laz=True))
+    shutil.copytree(labelled_run[1], out)  # an earlier run's outputs
     before = {p.name: p.read_bytes() for p in out.iterdir()}
     assert sorted(before) == ["gaps.parquet", "history.parquet", "labelled.laz", "points.parquet", "rows.parquet", "trees.parquet"]
 
