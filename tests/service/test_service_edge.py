@@ -286,21 +286,22 @@ def test_idle_connections_from_two_clients_leave_healthz_answering_and_the_log_s
 
 
 @pytest.mark.slow
-def test_an_upload_of_a_byte_every_10_s_hits_the_overall_deadline(tmp_path):
+def test_an_upload_of_a_byte_every_4_s_hits_the_overall_deadline(tmp_path):
     from bench.edge import Server
 
-    with Server(tmp_path, ORCHARD_UPLOAD_DEADLINE_S="15", ORCHARD_UPLOAD_IDLE_S="30", ORCHARD_UPLOAD_MIN_KBPS="0") as server:
+    # the limits of a byte every 10 s under a 15 s deadline and a 30 s idle limit, scaled down
+    with Server(tmp_path, ORCHARD_UPLOAD_DEADLINE_S="6", ORCHARD_UPLOAD_IDLE_S="12", ORCHARD_UPLOAD_MIN_KBPS="0") as server:
         token = _token(server, "trickle")
         head = b'--b0\r\nContent-Disposition: form-data; name="file"; filename="slow.laz"\r\n\r\n'
         with _connect(server) as s:
             s.sendall((f"POST /v1/blocks HTTP/1.1\r\nHost: x\r\nAuthorization: Bearer {token}\r\n"
                        f"Content-Type: multipart/form-data; boundary=b0\r\nContent-Length: 1000000\r\n\r\n").encode() + head)
-            for _ in range(4):  # a byte every 10 s: never idle for 30 s, and no minimum rate here
-                time.sleep(10)
+            for _ in range(4):  # a byte every 4 s: never idle for 12 s, and no minimum rate here
+                time.sleep(4)
                 try:
                     s.sendall(b"x")
                 except OSError:
                     break
             reply = _reply(s)
-        assert reply.startswith(b"HTTP/1.1 408") and b"did not arrive within 15 s" in reply, reply[:300]
+        assert reply.startswith(b"HTTP/1.1 408") and b"did not arrive within 6 s" in reply, reply[:300]
         assert not list((server.data_dir / "tmp").rglob("upload-*"))

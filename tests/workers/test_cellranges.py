@@ -55,25 +55,40 @@ def _files(folder: Path) -> dict:
     return {p.name: p.read_bytes() for p in sorted(folder.iterdir()) if p.is_file()}
 
 
-@pytest.mark.slow  # two tiled jobs: 20-30 s
-def test_a_job_split_while_counting_writes_no_tile_and_gives_the_outputs_of_counting_then_tiling(
-        block, client, monkeypatch, tmp_path):
+@pytest.fixture(scope="module")
+def split_run(block, dask_client, tmp_path_factory):
+    """The block's job split while counting, in ranges of RUN points (read only): its
+    outcome, its output folder, the keys it wrote to its work store and the tiles' index."""
     import workers.counting as counting
 
+    out = tmp_path_factory.mktemp("split") / "out"
+    written, indexes = [], []
+    put, made = WorkStore.put_array, job.index_from_cells
+    with pytest.MonkeyPatch.context() as mp:
+        mp.setattr(counting, "CHUNK_POINTS", RUN)
+        mp.setattr(cellranges, "CHUNK_POINTS", RUN)
+        mp.setattr(WorkStore, "put_array", lambda self, key, arr: written.append(key) or put(self, key, arr))
+        mp.setattr(job, "index_from_cells", lambda *a: indexes.append(made(*a)) or indexes[-1])
+        outcome = run_job(_spec(block, out), client=dask_client)
+    return outcome, out, written, indexes
+
+
+@pytest.mark.slow  # two tiled jobs, one of them split_run
+def test_a_job_split_while_counting_writes_no_tile_and_gives_the_outputs_of_counting_then_tiling(
+        block, client, split_run, monkeypatch, tmp_path):
+    import workers.counting as counting
+
+    new, new_out, written, _ = split_run
     monkeypatch.setattr(counting, "CHUNK_POINTS", RUN)
     monkeypatch.setattr(cellranges, "CHUNK_POINTS", RUN)
-    written = []
-    put = WorkStore.put_array
-    monkeypatch.setattr(WorkStore, "put_array", lambda self, key, arr: written.append(key) or put(self, key, arr))
-    new = run_job(_spec(block, tmp_path / "new"), client=client)
-    assert not [k for k in written if k.startswith("tiles/0")]  # no buffered tile written
+    assert written and not [k for k in written if k.startswith("tiles/0")]  # no buffered tile written
     assert len({k for k in written if k.endswith("/points.npy")}) == math.ceil(block.n_points / RUN)
     assert new.n_tiles > 1 and new.n_points == block.n_points and new.n_trees > 0
 
     monkeypatch.setattr(job, "splits_while_counting", lambda spec, info: False)  # the old path: count, then tile
     old = run_job(_spec(block, tmp_path / "old"), client=client)
     assert (new.n_tiles, new.n_trees) == (old.n_tiles, old.n_trees)
-    a, b = _files(tmp_path / "new"), _files(tmp_path / "old")
+    a, b = _files(new_out), _files(tmp_path / "old")
     assert a.keys() == b.keys() and "points.parquet" in a
     for name in a:
         assert a[name] == b[name], name  # byte for byte
@@ -177,17 +192,17 @@ def test_a_gathered_tile_is_the_tiles_written_tile_and_the_index_its_index(drawn
             assert np.array_equal(a, b), t["id"]
 
 
-@pytest.mark.slow  # three tiled jobs: 30-40 s
-def test_a_failed_tile_of_a_split_block_runs_again_alone_from_the_ranges(block, client, monkeypatch, tmp_path):
+@pytest.mark.slow  # three tiled jobs, one of them split_run
+def test_a_failed_tile_of_a_split_block_runs_again_alone_from_the_ranges(block, client, split_run, monkeypatch,
+                                                                         tmp_path):
     import dataclasses
 
+    import workers.counting as counting
     from workers.replay import finish_job, run_tile
 
+    ref, ref_out, _, indexes = split_run
+    monkeypatch.setattr(counting, "CHUNK_POINTS", RUN)  # as the reference run
     monkeypatch.setattr(cellranges, "CHUNK_POINTS", RUN)
-    indexes = []
-    made = job.index_from_cells
-    monkeypatch.setattr(job, "index_from_cells", lambda *a: indexes.append(made(*a)) or indexes[-1])
-    ref = run_job(_spec(block, tmp_path / "ref"), client=client)
     victim = indexes[-1]["tiles"][-1]["id"]  # not the canary: a later tile's failure leaves a partial job
     work, out = tmp_path / "work", tmp_path / "out"
     spec = dataclasses.replace(_spec(block, out), work_dir=str(work), inject_failure=(victim,))
@@ -196,4 +211,4 @@ def test_a_failed_tile_of_a_split_block_runs_again_alone_from_the_ranges(block, 
     run_tile(str(work), victim)  # in this process, from the ranges the job left
     again = finish_job(str(work))
     assert not again.partial and not work.exists()
-    assert _files(out) == _files(tmp_path / "ref")
+    assert _files(out) == _files(ref_out)

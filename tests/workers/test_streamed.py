@@ -37,6 +37,24 @@ def plain_twin(tmp_path_factory) -> Path:
     return path
 
 
+@pytest.fixture(scope="module")
+def copc_tiled(tmp_path_factory):
+    """The COPC fixture's job in 10 m tiles (read only): its outcome, its output folder and
+    the keys it wrote to its work store."""
+    out = tmp_path_factory.mktemp("copc-tiled")
+    written = []
+    put = WorkStore.put_array
+
+    def spy(self, key, arr):
+        written.append(key)
+        return put(self, key, arr)
+
+    with pytest.MonkeyPatch.context() as mp:
+        mp.setattr(WorkStore, "put_array", spy)
+        outcome = run_job(JobSpec(str(COPC), str(out), job=JobParams(tiling=TilingParams(tile_size=10.0))))
+    return outcome, out, written
+
+
 def _outputs(folder: Path) -> dict:
     return {name: pq.read_table(folder / name) for name in ("points.parquet", "trees.parquet")}
 
@@ -59,8 +77,11 @@ def test_a_box_reads_its_nodes_points_with_their_positions_in_the_file():
     assert len(index) < info.n_points
 
 
-def test_copc_tiles_give_the_trees_of_the_same_points_in_plain_laz_and_are_never_written(plain_twin, tmp_path,
-                                                                                         monkeypatch):
+def test_copc_tiles_give_the_trees_of_the_same_points_in_plain_laz_and_are_never_written(plain_twin, copc_tiled,
+                                                                                         tmp_path, monkeypatch):
+    copc, copc_out, copc_written = copc_tiled
+    tile_parts = [k for k in copc_written if k.startswith("tiles/") and "/part-" in k]
+    assert copc.n_tiles > 1 and copc_written and not tile_parts
     written = []
     put = WorkStore.put_array
 
@@ -69,15 +90,10 @@ def test_copc_tiles_give_the_trees_of_the_same_points_in_plain_laz_and_are_never
         return put(self, key, arr)
 
     monkeypatch.setattr(WorkStore, "put_array", spy)
-    tiling = TilingParams(tile_size=10.0)
-    copc = run_job(JobSpec(str(COPC), str(tmp_path / "copc"), job=JobParams(tiling=tiling)))
-    tile_parts = [k for k in written if k.startswith("tiles/") and "/part-" in k]
-    assert copc.n_tiles > 1 and not tile_parts
-    written.clear()
-    plain = run_job(JobSpec(str(plain_twin), str(tmp_path / "plain"), job=JobParams(tiling=tiling)))
+    plain = run_job(JobSpec(str(plain_twin), str(tmp_path / "plain"), job=JobParams(tiling=TilingParams(tile_size=10.0))))
     assert any("/part-" in k for k in written)  # the plain LAZ's tiles are written, as before
     assert (copc.n_trees, copc.n_tiles) == (plain.n_trees, plain.n_tiles) and copc.n_trees >= 5
-    a, b = _outputs(tmp_path / "copc"), _outputs(tmp_path / "plain")
+    a, b = _outputs(copc_out), _outputs(tmp_path / "plain")
     for name in a:
         assert a[name].equals(b[name]), name
     # the report's sample: the same points with the same trees
@@ -191,14 +207,14 @@ def test_settling_a_streamed_index_takes_the_tiles_counts_and_drops_the_empty_on
 
 
 @pytest.mark.slow
-def test_a_streamed_job_stopped_at_its_first_tile_resumes_to_the_same_outputs(tmp_path):
+def test_a_streamed_job_stopped_at_its_first_tile_resumes_to_the_same_outputs(copc_tiled, tmp_path):
     # a COPC job has no written tiles to resume from: its work store keeps the tiles'
     # index and the resumed tiles read their points from the input again
     from workers.replay import resume_job
     from workers.jobspec import TileFailed
 
     tiling = TilingParams(tile_size=10.0)
-    whole = run_job(JobSpec(str(COPC), str(tmp_path / "whole"), job=JobParams(tiling=tiling)))
+    whole, whole_out, _ = copc_tiled
     work = tmp_path / "work"
     with pytest.raises(TileFailed):
         run_job(JobSpec(str(COPC), str(tmp_path / "stopped"), work_dir=str(work), job=JobParams(tiling=tiling),
@@ -208,6 +224,6 @@ def test_a_streamed_job_stopped_at_its_first_tile_resumes_to_the_same_outputs(tm
     assert not any("/part-" in k for k in store.list("tiles"))  # nothing of the block was written to resume from
     resumed = resume_job(str(work), out_dir=str(tmp_path / "stopped"))
     assert resumed.n_trees == whole.n_trees >= 5
-    a, b = _outputs(tmp_path / "whole"), _outputs(tmp_path / "stopped")
+    a, b = _outputs(whole_out), _outputs(tmp_path / "stopped")
     for name in a:
         assert a[name].equals(b[name]), name
