@@ -25,7 +25,7 @@ BRANCH_LENGTH = 0.3
 BRANCH_EXTENT = 0.1
 #: ... and its low material is nearly free of box faces (a bin's corners branch out; the
 #: low material of young trees on generated blocks is 0 % planar, the bin's groups 12-65 %)
-BRANCH_MAX_PLANAR = 0.05
+BRANCH_MAX_PLANAR = 0.1
 #: ... and drains at most this many times the canopy floor (4 times the median catchment
 #: of the block's branching groups; young trees on generated blocks drain up to 2.2 times it)
 BRANCH_MAX_SIZE = 16

@@ -196,6 +196,7 @@ def _groups(
     band_scatter = np.bincount(bg, weights=wgt * sc[bn], minlength=groups.size) / np.maximum(wsum, 1e-12)
     band_max = np.zeros(groups.size)
     np.maximum.at(band_max, bg, wgt)
+    stem_width = _stem_width(nodes[bn, :2], bg, wgt, groups.size, d.voxel_size)
     branched = branches(nodes, node_height, node_group, np.column_stack([cx, cy]), d.voxel_size)
     unbranched = np.zeros(groups.size, bool)
     if branch_test:
@@ -207,12 +208,42 @@ def _groups(
         young = (g_planar <= BRANCH_MAX_PLANAR) & (g_support <= BRANCH_MAX_SIZE * params.min_canopy_voxels)
         fits &= ~unbranched & (mature | young)
     candidates = {
-        "x": cx, "y": cy, "support": g_support, "top": g_top, "planar": g_planar, "width": width, "branches": branched,
+        "x": cx, "y": cy, "support": g_support, "top": g_top, "planar": g_planar, "width": width,
+        "stem_width": np.where(has_band, stem_width, d.voxel_size), "branches": branched,
         "unbranched": unbranched,
         "band_flow": wsum, "band_scatter": band_scatter,
         "band_nodes": np.bincount(bg, minlength=groups.size), "band_max": band_max, "fits": fits,
     }
     return groups, gidx, candidates
+
+
+def _stem_width(xy: np.ndarray, group: np.ndarray, weight: np.ndarray, n_groups: int, voxel_size: float) -> np.ndarray:
+    """Width [m] of each group's main column in the band above the contacts: twice the
+    flow-weighted median distance of the band nodes ``xy`` (b, 2) of ``group`` (b,) from
+    the group's node carrying the most flow, plus one voxel. Returns (n_groups,); one
+    voxel for a group without band nodes."""
+    # a thin column beside a stem (an irrigation riser by a young tree) takes over part
+    # of the tree's flow where a feather touches it: the flow's RMS spans both columns,
+    # while half the flow stays within the stem's own cross-section
+    out = np.full(n_groups, voxel_size)
+    if not len(group):
+        return out
+    heaviest = np.lexsort((-weight, group))
+    first = heaviest[np.r_[0, np.flatnonzero(np.diff(group[heaviest])) + 1]]
+    centre = np.zeros((n_groups, 2))
+    centre[group[first]] = xy[first]
+    dist = np.hypot(*(xy - centre[group]).T)
+    order = np.lexsort((dist, group))
+    g, dist, w = group[order], dist[order], weight[order]
+    cum = np.cumsum(w)
+    start = np.searchsorted(g, np.arange(n_groups))
+    end = np.searchsorted(g, np.arange(n_groups), side="right")
+    has = end > start
+    before = np.where(start > 0, cum[np.maximum(start - 1, 0)], 0.0)
+    half = before + 0.5 * (cum[np.maximum(end - 1, 0)] - before)
+    idx = np.searchsorted(cum, half)  # the first node of the group reaching half its flow
+    out[has] = 2.0 * dist[np.minimum(idx[has], end[has] - 1)] + voxel_size
+    return out
 
 
 def detect_trunks(
@@ -332,7 +363,7 @@ def _floors_of_block(
     _, _, probe = _groups(nodes, node_height, drained, scattering, radius=loose.at_spacing(None).cluster_radius,
                           params=loose)
     ok = probe["fits"] & probe["branches"] & (probe["width"] <= params.max_trunk_width)
-    floors = block_floors(probe["top"], probe["support"], ok, probe["width"])
+    floors = block_floors(probe["top"], probe["support"], ok, probe["stem_width"])
     return params.at_floors(*floors), floors[0] is not None  # a block of young trees
 
 
