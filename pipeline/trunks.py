@@ -196,8 +196,18 @@ def _groups(
     band_scatter = np.bincount(bg, weights=wgt * sc[bn], minlength=groups.size) / np.maximum(wsum, 1e-12)
     band_max = np.zeros(groups.size)
     np.maximum.at(band_max, bg, wgt)
-    stem_width = _stem_width(nodes[bn, :2], bg, wgt, groups.size, d.voxel_size)
-    branched = branches(nodes, node_height, node_group, np.column_stack([cx, cy]), d.voxel_size)
+    main_xy, stem_width = _main_column(nodes[bn, :2], bg, wgt, groups.size, d.voxel_size)
+    if branch_test:
+        # a young stem's flow is a few voxels wide: a riser or a stake beside it that took
+        # over part of it would pull the flow's centroid off the stem
+        main = np.hypot(*(nodes[bn, :2] - main_xy[bg]).T) <= 0.5 * stem_width[bg]
+        msum = np.bincount(bg[main], weights=wgt[main], minlength=groups.size)
+        cx = np.where(msum > 0, np.bincount(bg[main], weights=(wgt * nodes[bn, 0])[main], minlength=groups.size)
+                      / np.maximum(msum, 1e-12), cx)
+        cy = np.where(msum > 0, np.bincount(bg[main], weights=(wgt * nodes[bn, 1])[main], minlength=groups.size)
+                      / np.maximum(msum, 1e-12), cy)
+    branched = branches(nodes, node_height, node_group, np.column_stack([cx, cy]), d.voxel_size,
+                        node_foot=nodes[np.maximum(d.source, 0), :2])
     unbranched = np.zeros(groups.size, bool)
     if branch_test:
         mature = (g_support >= MATURE_FLOORS["min_canopy_voxels"]) & (g_top >= MATURE_FLOORS["min_tree_height"])
@@ -217,20 +227,22 @@ def _groups(
     return groups, gidx, candidates
 
 
-def _stem_width(xy: np.ndarray, group: np.ndarray, weight: np.ndarray, n_groups: int, voxel_size: float) -> np.ndarray:
-    """Width [m] of each group's main column in the band above the contacts: twice the
-    flow-weighted median distance of the band nodes ``xy`` (b, 2) of ``group`` (b,) from
-    the group's node carrying the most flow, plus one voxel. Returns (n_groups,); one
-    voxel for a group without band nodes."""
+def _main_column(xy: np.ndarray, group: np.ndarray, weight: np.ndarray, n_groups: int,
+                 voxel_size: float) -> tuple[np.ndarray, np.ndarray]:
+    """Each group's main column in the band above the contacts: the band node of ``xy``
+    (b, 2) [m] of ``group`` (b,) carrying the most flow ``weight`` (b,), and the width [m]
+    around it: twice the flow-weighted median distance of the group's band nodes from it,
+    plus one voxel. Returns (n_groups, 2) and (n_groups,); zeros and one voxel for a
+    group without band nodes."""
     # a thin column beside a stem (an irrigation riser by a young tree) takes over part
     # of the tree's flow where a feather touches it: the flow's RMS spans both columns,
     # while half the flow stays within the stem's own cross-section
-    out = np.full(n_groups, voxel_size)
+    centre = np.zeros((n_groups, 2))
+    width = np.full(n_groups, voxel_size)
     if not len(group):
-        return out
+        return centre, width
     heaviest = np.lexsort((-weight, group))
     first = heaviest[np.r_[0, np.flatnonzero(np.diff(group[heaviest])) + 1]]
-    centre = np.zeros((n_groups, 2))
     centre[group[first]] = xy[first]
     dist = np.hypot(*(xy - centre[group]).T)
     order = np.lexsort((dist, group))
@@ -242,8 +254,8 @@ def _stem_width(xy: np.ndarray, group: np.ndarray, weight: np.ndarray, n_groups:
     before = np.where(start > 0, cum[np.maximum(start - 1, 0)], 0.0)
     half = before + 0.5 * (cum[np.maximum(end - 1, 0)] - before)
     idx = np.searchsorted(cum, half)  # the first node of the group reaching half its flow
-    out[has] = 2.0 * dist[np.minimum(idx[has], end[has] - 1)] + voxel_size
-    return out
+    width[has] = 2.0 * dist[np.minimum(idx[has], end[has] - 1)] + voxel_size
+    return centre, width
 
 
 def detect_trunks(
