@@ -36,7 +36,8 @@ def test_young_dormant_block_with_defaults():
     assert s["v_measure"] >= 0.95, s
 
 
-@pytest.mark.parametrize("options", [YOUNG, dict(form="young", rows=2, trees_per_row=10, spacing=2.0, row_spacing=4.0)])
+@pytest.mark.parametrize("options", [YOUNG, pytest.param(dict(form="young", rows=2, trees_per_row=10, spacing=2.0,
+                                                               row_spacing=4.0), marks=pytest.mark.slow)])
 def test_irrigation_risers_among_young_trees_are_no_trees(options):
     # a 0.3-1.0 m pipe by 30 % of the trees (0.15-0.4 m from the trunk) and in 30 % of the
     # gaps: every tree found where it stands, no riser taken for one
