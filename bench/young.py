@@ -1,10 +1,12 @@
 """``python -m bench.young``: young, dormant blocks with default settings.
 
 Generated blocks of the ``young`` form (1-2.5 m whips, a stake beside each, no leaves)
-at three in-row spacings, scored the way a user gets them (``run_job`` writes the
-Parquet files, ``evaluate_result`` scores them), and the real young row of
-``bench.real_data.young_row``. Evaluation seeds 0-2 by default (the size floors and the
-branch test were set on seeds 100-101).
+at three in-row spacings, blocks of mixed ages, young trees among trellis posts, grown
+blocks scanned leafless (dormant) and blocks with irrigation risers, scored the way a
+user gets them (``run_job`` writes the Parquet files, ``evaluate_result`` scores them),
+and the real young row of ``bench.real_data.young_row``. Evaluation seeds 0-2 by default
+(the size floors and the branch test were set on seeds 100-101, the rules for risers on
+seeds 100-107).
 """
 
 from __future__ import annotations
@@ -26,6 +28,20 @@ MIXED = (
      dict(form="hedge", rows=2, trees_per_row=10, spacing=1.5, row_spacing=4.0, replants=0.3)),
     ("young, dormant, trellised (a 2.8-3.2 m post every 2 gaps, wires), 1 m × 3.5 m, 2 × 8 trees",
      dict(form="young", rows=2, trees_per_row=8, spacing=1.0, row_spacing=3.5, trellis=2)),
+)
+#: grown blocks scanned in winter (leafless), and irrigation risers (0.3-1.0 m pipes by 30 % of
+#: the trees and in 30 % of the gaps) among young and grown trees
+DORMANT = (
+    ("vase, leafless, 5 m × 6 m, 2 × 6 trees", dict(form="vase", rows=2, trees_per_row=6, leafless=True)),
+    ("tall spindle, leafless, 1.0 m × 3.5 m, 2 × 12 trees",
+     dict(form="spindle", rows=2, trees_per_row=12, spacing=1.0, row_spacing=3.5, leafless=True)),
+    ("hedge, leafless, 1.5 m × 4 m, 2 × 10 trees",
+     dict(form="hedge", rows=2, trees_per_row=10, spacing=1.5, row_spacing=4.0, leafless=True)),
+    ("young, dormant, risers, 1 m × 3.5 m, 2 × 8 trees",
+     dict(form="young", rows=2, trees_per_row=8, spacing=1.0, row_spacing=3.5, risers=0.3)),
+    ("young, dormant, risers, 2 m × 4 m, 2 × 10 trees",
+     dict(form="young", rows=2, trees_per_row=10, spacing=2.0, row_spacing=4.0, risers=0.3)),
+    ("vase, risers, 5 m × 6 m, 2 × 6 trees", dict(form="vase", rows=2, trees_per_row=6, risers=0.3)),
 )
 
 
@@ -61,18 +77,25 @@ def main(argv: list[str] | None = None) -> int:
     p = argparse.ArgumentParser(prog="python -m bench.young", description=__doc__.splitlines()[0])
     p.add_argument("--seeds", type=int, default=3, help="evaluation seeds 0..N-1 (default 3)")
     p.add_argument("--work-dir", type=Path, default=Path("/tmp/orchard-bench"))
-    p.add_argument("--mixed-only", action="store_true", help="only the blocks of mixed ages")
+    p.add_argument("--mixed-only", action="store_true", help="only the blocks of mixed ages (and young among posts)")
+    p.add_argument("--dormant-only", action="store_true", help="only the leafless grown blocks and the blocks with risers")
     args = p.parse_args(argv)
-    print("| block of mixed ages, or young among posts | seeds | trunk F1 per block | v-measure per block |")
-    print("|---|---|---|---|")
-    for name, options in MIXED:
-        rs = [score_block(args.work_dir, f"mixed-{options['form']}-{options.get('trellis', 0)}", options, s) for s in range(args.seeds)]
-        f1 = ", ".join(f"{r['trunk_f1']:.2f}" for r in rs)
-        vm = ", ".join(f"{r['v_measure']:.3f}" for r in rs)
-        print(f"| {name} | 0–{args.seeds - 1} | {f1} | {vm} |", flush=True)
-    if args.mixed_only:
+    tables = []
+    if not args.dormant_only:
+        tables.append(("block of mixed ages, or young among posts", "mixed", MIXED))
+    if not args.mixed_only:
+        tables.append(("grown block leafless, or with irrigation risers", "dormant", DORMANT))
+    for header, prefix, blocks in tables:
+        print(f"| {header} | seeds | trunk F1 per block | v-measure per block |")
+        print("|---|---|---|---|")
+        for name, options in blocks:
+            rs = [score_block(args.work_dir, f"{prefix}-{options['form']}", options, s) for s in range(args.seeds)]
+            f1 = ", ".join(f"{r['trunk_f1']:.2f}" for r in rs)
+            vm = ", ".join(f"{r['v_measure']:.3f}" for r in rs)
+            print(f"| {name} | 0–{args.seeds - 1} | {f1} | {vm} |", flush=True)
+        print()
+    if args.mixed_only or args.dormant_only:
         return 0
-    print()
     print("| block | seeds | trunk F1 per block | v-measure per block |")
     print("|---|---|---|---|")
     for spacing, row_spacing in SETTINGS:

@@ -25,7 +25,7 @@ BRANCH_LENGTH = 0.3
 BRANCH_EXTENT = 0.1
 #: ... and its low material is nearly free of box faces (a bin's corners branch out; the
 #: low material of young trees on generated blocks is 0 % planar, the bin's groups 12-65 %)
-BRANCH_MAX_PLANAR = 0.05
+BRANCH_MAX_PLANAR = 0.1
 #: ... and drains at most this many times the canopy floor (4 times the median catchment
 #: of the block's branching groups; young trees on generated blocks drain up to 2.2 times it)
 BRANCH_MAX_SIZE = 16
@@ -74,16 +74,21 @@ def group_percentiles(values: np.ndarray, group: np.ndarray, n_groups: int, qs) 
 
 
 def branches(nodes: np.ndarray, node_height: np.ndarray, node_group: np.ndarray, centre: np.ndarray,
-              voxel_size: float) -> np.ndarray:
+              voxel_size: float, node_foot: np.ndarray | None = None) -> np.ndarray:
     """Groups whose catchment branches: at least BRANCH_LENGTH of nodes above BRANCH_LOW
     lie BRANCH_OFFSET to BRANCH_REACH [m] from the group's ``centre`` (g, 2), spread over at least
-    BRANCH_EXTENT of height (10th to 90th percentile). A post, a stake or a riser is one
-    column; a fence's wire runs out at one height. Returns (g,) bool."""
+    BRANCH_EXTENT of height (10th to 90th percentile), and (given ``node_foot`` (m, 2), the
+    ground contact each node drains to [m]) drain to the ground within BRANCH_OFFSET of
+    the centre. A post, a stake or a riser is one column; a fence's wire runs out at one
+    height; a second column beside one (a riser by a stake) stands on its own contact.
+    Returns (g,) bool."""
     g = centre.shape[0]
     sel = np.flatnonzero((node_group >= 0) & (node_height >= BRANCH_LOW))
     grp = node_group[sel]
     r = np.hypot(*(nodes[sel, :2] - centre[grp]).T)
     out = (r > BRANCH_OFFSET) & (r <= BRANCH_REACH)
+    if node_foot is not None:  # a branch drains down its stem
+        out &= np.hypot(*(node_foot[sel] - centre[grp]).T) <= BRANCH_OFFSET
     sel, grp = sel[out], grp[out]
     many = np.bincount(grp, minlength=g) >= max(1, int(round(BRANCH_LENGTH / voxel_size)))
     hi, lo = group_percentiles(node_height[sel], grp, g, (90.0, 10.0))

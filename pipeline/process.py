@@ -94,6 +94,10 @@ AUTO_POST_RADIUS = 0.08
 #: in the row [m]: between tall spindles and SHD hedges (0.8-1.5 m, whose straight
 #: leaders can pass for posts) and the closest vase rows (2.5 m)
 AUTO_POST_MIN_SPACING = 1.8
+#: ... and only where no two of them stand closer than this share of that spacing: a
+#: trellis has at most one post in a gap, while the bare leaders of tall spindles that
+#: pass for posts stand one slot apart
+AUTO_POST_MIN_GAP = 0.75
 #: the trees' spacing is measured only on scans whose ground noise [m] is below this: on
 #: noisier ones shoot bundles drain like trunks and the spacing comes out too short
 SPACING_MAX_NOISE = 0.05
@@ -327,6 +331,15 @@ def surface_nodes(nodes: np.ndarray, node_height: np.ndarray, f: _Faces, *, para
     return sharp | blurred
 
 
+def _one_post_per_gap(xy: np.ndarray, spacing: float) -> bool:
+    """Whether the posts at ``xy`` (p, 2) [m] stand at least AUTO_POST_MIN_GAP of the
+    trees' ``spacing`` [m] from each other."""
+    if len(xy) < 2:
+        return True
+    d, _ = cKDTree(xy).query(xy, k=2)
+    return bool(d[:, 1].min() >= AUTO_POST_MIN_GAP * spacing)
+
+
 def _find_trunks(xyz: np.ndarray, g: _NodeGraph, f: _Faces, *, params: PipelineParams,
                  slot_trees: np.ndarray | None) -> tuple[TrunkDetection, Posts | None, np.ndarray, dict, np.ndarray]:
     """Trunks from one multi-source search to the ground, trellis posts cut out, trees on
@@ -376,7 +389,8 @@ def _find_trunks(xyz: np.ndarray, g: _NodeGraph, f: _Faces, *, params: PipelineP
         if on_post.any():
             again = detect(without_nodes(drainage, on_post))  # the spacing measured again, without the posts
             wide = again.spacing is not None and again.spacing >= AUTO_POST_MIN_SPACING
-            if auto and not wide:  # close rows: the "posts" may be tall spindles' straight leaders
+            if auto and not (wide and _one_post_per_gap(posts.xy, again.spacing)):
+                # close rows, or "posts" closer than a trellis sets them: tall spindles' straight leaders
                 posts, on_post = None, np.zeros(g.vox.n, bool)
             else:
                 det = again

@@ -196,7 +196,18 @@ def _groups(
     band_scatter = np.bincount(bg, weights=wgt * sc[bn], minlength=groups.size) / np.maximum(wsum, 1e-12)
     band_max = np.zeros(groups.size)
     np.maximum.at(band_max, bg, wgt)
-    branched = branches(nodes, node_height, node_group, np.column_stack([cx, cy]), d.voxel_size)
+    main_xy, stem_width = _main_column(nodes[bn, :2], bg, wgt, groups.size, d.voxel_size)
+    if branch_test:
+        # a young stem's flow is a few voxels wide: a riser or a stake beside it that took
+        # over part of it would pull the flow's centroid off the stem
+        main = np.hypot(*(nodes[bn, :2] - main_xy[bg]).T) <= 0.5 * stem_width[bg]
+        msum = np.bincount(bg[main], weights=wgt[main], minlength=groups.size)
+        cx = np.where(msum > 0, np.bincount(bg[main], weights=(wgt * nodes[bn, 0])[main], minlength=groups.size)
+                      / np.maximum(msum, 1e-12), cx)
+        cy = np.where(msum > 0, np.bincount(bg[main], weights=(wgt * nodes[bn, 1])[main], minlength=groups.size)
+                      / np.maximum(msum, 1e-12), cy)
+    branched = branches(nodes, node_height, node_group, np.column_stack([cx, cy]), d.voxel_size,
+                        node_foot=nodes[np.maximum(d.source, 0), :2])
     unbranched = np.zeros(groups.size, bool)
     if branch_test:
         mature = (g_support >= MATURE_FLOORS["min_canopy_voxels"]) & (g_top >= MATURE_FLOORS["min_tree_height"])
@@ -207,12 +218,44 @@ def _groups(
         young = (g_planar <= BRANCH_MAX_PLANAR) & (g_support <= BRANCH_MAX_SIZE * params.min_canopy_voxels)
         fits &= ~unbranched & (mature | young)
     candidates = {
-        "x": cx, "y": cy, "support": g_support, "top": g_top, "planar": g_planar, "width": width, "branches": branched,
+        "x": cx, "y": cy, "support": g_support, "top": g_top, "planar": g_planar, "width": width,
+        "stem_width": np.where(has_band, stem_width, d.voxel_size), "branches": branched,
         "unbranched": unbranched,
         "band_flow": wsum, "band_scatter": band_scatter,
         "band_nodes": np.bincount(bg, minlength=groups.size), "band_max": band_max, "fits": fits,
     }
     return groups, gidx, candidates
+
+
+def _main_column(xy: np.ndarray, group: np.ndarray, weight: np.ndarray, n_groups: int,
+                 voxel_size: float) -> tuple[np.ndarray, np.ndarray]:
+    """Each group's main column in the band above the contacts: the band node of ``xy``
+    (b, 2) [m] of ``group`` (b,) carrying the most flow ``weight`` (b,), and the width [m]
+    around it: twice the flow-weighted median distance of the group's band nodes from it,
+    plus one voxel. Returns (n_groups, 2) and (n_groups,); zeros and one voxel for a
+    group without band nodes."""
+    # a thin column beside a stem (an irrigation riser by a young tree) takes over part
+    # of the tree's flow where a feather touches it: the flow's RMS spans both columns,
+    # while half the flow stays within the stem's own cross-section
+    centre = np.zeros((n_groups, 2))
+    width = np.full(n_groups, voxel_size)
+    if not len(group):
+        return centre, width
+    heaviest = np.lexsort((-weight, group))
+    first = heaviest[np.r_[0, np.flatnonzero(np.diff(group[heaviest])) + 1]]
+    centre[group[first]] = xy[first]
+    dist = np.hypot(*(xy - centre[group]).T)
+    order = np.lexsort((dist, group))
+    g, dist, w = group[order], dist[order], weight[order]
+    cum = np.cumsum(w)
+    start = np.searchsorted(g, np.arange(n_groups))
+    end = np.searchsorted(g, np.arange(n_groups), side="right")
+    has = end > start
+    before = np.where(start > 0, cum[np.maximum(start - 1, 0)], 0.0)
+    half = before + 0.5 * (cum[np.maximum(end - 1, 0)] - before)
+    idx = np.searchsorted(cum, half)  # the first node of the group reaching half its flow
+    width[has] = 2.0 * dist[np.minimum(idx[has], end[has] - 1)] + voxel_size
+    return centre, width
 
 
 def detect_trunks(
@@ -332,7 +375,7 @@ def _floors_of_block(
     _, _, probe = _groups(nodes, node_height, drained, scattering, radius=loose.at_spacing(None).cluster_radius,
                           params=loose)
     ok = probe["fits"] & probe["branches"] & (probe["width"] <= params.max_trunk_width)
-    floors = block_floors(probe["top"], probe["support"], ok, probe["width"])
+    floors = block_floors(probe["top"], probe["support"], ok, probe["stem_width"])
     return params.at_floors(*floors), floors[0] is not None  # a block of young trees
 
 

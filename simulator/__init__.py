@@ -18,8 +18,9 @@ figure, so they are built to be hard in the ways real mobile captures are hard:
 - Gaussian noise, ghosting (each alley pass is offset by a small rigid shift, so
   surfaces seen from two passes are doubled), random outliers in the block volume,
   fence posts with a wire, a parked vehicle and a bin as distractors; optionally a
-  trellis in every row (``trellis``: posts among the trees, wires along the row)
-  (:mod:`~simulator.clutter`).
+  trellis in every row (``trellis``: posts among the trees, wires along the row) and
+  irrigation risers (``risers``) (:mod:`~simulator.clutter`); optionally a winter scan
+  of leafless trees (``leafless``).
 
 Modules, in the order a block is made: :mod:`~simulator.simparams` (the
 parameters), :mod:`~simulator.plan` (everything drawn before the points),

@@ -1,4 +1,5 @@
-"""Things in the block that are not trees: fence posts and wire, trellises, a vehicle and a bin."""
+"""Things in the block that are not trees: fence posts and wire, trellises, stakes, irrigation
+risers, a vehicle and a bin."""
 
 from __future__ import annotations
 
@@ -87,6 +88,51 @@ def _add_stakes(ch: Chunk, plan: Plan) -> None:
             ch.add(plan, rng, k, pts, 0, False, POST)
 
 
+def risers(plan) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Irrigation risers on the drip line of every row (``params.risers``), in the straight local frame.
+
+    The drip line runs along the trunks; ``round(risers x trees)`` trees have a riser
+    beside them, 0.15-0.4 m along the row from the trunk, and ``round(risers x gaps)``
+    gaps between consecutive planted slots of a row one in their middle (on a curved row,
+    between the two slots). Each is a pipe 1-2.5 cm in radius, 0.3-1.0 m tall. Drawn from
+    their own random stream ([seed, 10]), so the rest of the block is the same with or
+    without them. Returns bottom ends (k, 3), top ends (k, 3) and radii (k,) [m].
+    """
+    p = plan.params
+    rng = np.random.default_rng([p.seed, 10])
+    lay = plan.layout
+    xy = plan.tree_xy[lay.trees]
+    by = rng.choice(len(xy), int(round(p.risers * len(xy))), replace=False)
+    side = rng.choice([-1.0, 1.0], len(by))
+    near = xy[by] + np.c_[side * rng.uniform(0.15, 0.4, len(by)), rng.normal(0, 0.03, len(by))]
+    # consecutive planted slots of a row (slots are row-major)
+    s = np.flatnonzero(lay.planted)
+    pair = lay.row[s[:-1]] == lay.row[s[1:]]
+    left, right = s[:-1][pair], s[1:][pair]
+    mid = rng.choice(len(left), int(round(p.risers * len(left))), replace=False)
+    gap = 0.5 * (plan.tree_xy[left[mid]] + plan.tree_xy[right[mid]]) + np.c_[np.zeros(len(mid)), rng.normal(0, 0.03, len(mid))]
+    at = np.vstack([near, gap])
+    k = len(at)
+    zb = plan.ground.z(at[:, 0], at[:, 1])
+    ht = rng.uniform(0.3, 1.0, k)
+    r = rng.uniform(0.01, 0.025, k)
+    a = np.c_[at, zb - 0.05]
+    b = np.c_[at[:, 0] + rng.normal(0, 0.01, k), at[:, 1] + rng.normal(0, 0.01, k), zb + ht]
+    return a, b, r
+
+
+def _add_risers(ch: Chunk, plan: Plan) -> None:
+    """The irrigation risers of :func:`risers`, as points of kind post."""
+    a, b, r = risers(plan)
+    rng = np.random.default_rng([plan.params.seed, 11])
+    for k in range(len(plan.pass_y)):
+        near = np.abs(a[:, 1] - plan.pass_y[k]) <= plan.params.row_spacing
+        if near.any():
+            pts, _, _ = sample_cylinders(rng, plan, k, a[near], b[near], r[near], r[near])
+            pts = pts[pts[:, 2] >= plan.ground.z(pts[:, 0], pts[:, 1])]
+            ch.add(plan, rng, k, pts, 0, False, POST)
+
+
 def _add_debris(ch: Chunk, plan: Plan) -> None:
     """Fallen branches on a conifer block's floor (:func:`simulator.conifer.debris`),
     as points of kind grass (low material in no tree)."""
@@ -101,7 +147,8 @@ def _add_debris(ch: Chunk, plan: Plan) -> None:
 
 
 def objects_chunk(plan: Plan) -> Orchard:
-    """Fence posts and wire, trellis posts and wires (when asked for), the vehicle and the bin."""
+    """Fence posts and wire, trellis posts and wires and irrigation risers (when asked
+    for), a young block's stakes, the vehicle and the bin."""
     p = plan.params
     rng = p.stream(4)
     g = plan.ground
@@ -118,6 +165,8 @@ def objects_chunk(plan: Plan) -> Orchard:
         _add_trellis(ch, plan)
     if p.form == "young":
         _add_stakes(ch, plan)
+    if p.risers:
+        _add_risers(ch, plan)
     if p.form == "conifer":
         _add_debris(ch, plan)
     boxes = []

@@ -18,7 +18,7 @@ branching height are scaled together. All lengths are metres.
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 
 import numpy as np
 
@@ -103,7 +103,11 @@ def grow_tree(rng: np.random.Generator, p, base_xy: np.ndarray, ground, *, scale
 
         return grow_young(rng, p, base_xy, ground, scale)
     grow = {"vase": _grow_vase, "spindle": _grow_spindle, "hedge": _grow_hedge}[p.form]
-    return grow(rng, p, base_xy, ground, scale)
+    tree = grow(rng, p, base_xy, ground, scale)
+    if p.leafless:  # the tree grown as in leaf (the same draws), its leaves dropped
+        return replace(tree, leaf_c=tree.leaf_c[:0], leaf_n=tree.leaf_n[:0], leaf_r=tree.leaf_r[:0],
+                       top=float(np.max(tree.cyl_b[:, 2])))
+    return tree
 
 
 def _grow_vase(rng, p, base_xy, ground, scale):

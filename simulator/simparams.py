@@ -37,6 +37,8 @@ class SimulationParams(BaseModel):
     vehicle: bool = Field(True, description="a vehicle parked in a headland")
     bin: bool = Field(True, description="a 1.2 m fruit bin in the other headland")
     trellis: int = Field(0, ge=0, le=50, description="a trellis in every row: a post (2.8-3.2 m tall, 0.05-0.065 m radius) at both row ends and in every this many-th gap between trees, with wires at 0.8, 1.6 and 2.4 m along the row; 0 = none")
+    risers: float = Field(0.0, ge=0.0, le=1.0, description="irrigation risers on the drip line along every row: this fraction of the trees has one beside it (0.15-0.4 m along the row from the trunk) and this fraction of the gaps between planted slots one in its middle; a pipe 0.02-0.05 m wide and 0.3-1.0 m tall, in no tree (points of kind post); 0 = none")
+    leafless: bool = Field(False, description="a dormant (winter) scan: the same trees without their leaves (vase, spindle and hedge; young trees are always leafless)")
     ghosting: float = Field(0.01, ge=0.0, le=0.05, description="registration drift: rigid offset of each alley pass [m]")
     outliers: float = Field(0.002, ge=0.0, le=0.05, description="fraction of random outlier points in the block volume")
     occlusion: float = Field(1.0, ge=0.0, le=10.0, description="scale of the leaf optical depth (0 = no occlusion)")
@@ -62,6 +64,8 @@ class SimulationParams(BaseModel):
             raise ValueError(f"tree_scale has {len(self.tree_scale)} sizes for {self.rows * self.trees_per_row} slots")
         if any(not 0 <= s < self.rows * self.trees_per_row for s in (*self.cut, *self.young_slots)):
             raise ValueError("cut and young_slots name grid slots 0..rows x trees_per_row - 1")
+        if self.leafless and self.form == "conifer":
+            raise ValueError("leafless: a conifer keeps its needles (vase, spindle, hedge or young)")
         if self.rows * self.trees_per_row > 200_000:
             raise ValueError(f"{self.rows * self.trees_per_row} trees is too many (at most 200000)")
         if self.crown_radius is not None and self.crown_radius > 2.0 * self.spacing:

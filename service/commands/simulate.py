@@ -14,7 +14,7 @@ HELP = (
     "Generate an orchard block as a mobile scanner driving the alleys sees it (branching trees with "
     "overlapping crowns - vase trees, tall spindles or a hedgerow wall - on sloping ground with grass, range "
     "fall-off, leaf occlusion, noise, ghosting, outliers, fence posts and a vehicle; optionally a trellis in "
-    "every row, missing trees, replants, ragged, curved or rotated rows), and its ground truth: tree id, "
+    "every row, irrigation risers, leafless trees, missing trees, replants, ragged, curved or rotated rows), and its ground truth: tree id, "
     "wood flag and kind per point, trunk base, row and planting slot per tree, and the empty slots. "
     "Deterministic for a seed; large blocks are streamed to disk (docs/simulator.md)."
 )

@@ -237,3 +237,23 @@ def test_section_points_are_those_each_section_takes():
                 want_idx.append(i)
                 want_which.append(hit[0])
         assert idx.tolist() == want_idx and which.tolist() == want_which
+def test_a_trellis_has_at_most_one_post_in_a_gap_by_hand():
+    from pipeline.process import _one_post_per_gap
+
+    # posts in every second gap of trees 2 m apart, and at both row ends (1 m beyond)
+    trellis = np.array([[-1.0, 0.0], [1.0, 0.0], [5.0, 0.0], [9.0, 0.0], [11.0, 0.0]])
+    assert _one_post_per_gap(trellis, 2.0) and _one_post_per_gap(trellis[:1], 2.0)
+    # leaders of trees 1 m apart, every other one taken for a post: the trees left stand
+    # 2 m apart, and two "posts" stand one slot apart
+    leaders = np.array([[0.0, 0.0], [3.0, 0.0], [4.0, 0.0], [7.0, 0.0]])
+    assert not _one_post_per_gap(leaders, 2.0)
+
+
+@pytest.mark.slow
+def test_bare_tall_spindles_are_no_trellis():
+    # a leafless tall-spindle block: bare leaders pass the post test, and with half of them
+    # cut out the trees left stood 2 m apart, where posts are kept (before: 10 of 24 found)
+    o = simulate_orchard(SimulationParams(seed=1, form="spindle", rows=2, trees_per_row=12, spacing=1.0,
+                                          row_spacing=3.5, leafless=True))
+    _, s, _ = _run(o, None)
+    assert s["trunk_f1"] >= 0.97, s

@@ -36,6 +36,73 @@ def test_young_dormant_block_with_defaults():
     assert s["v_measure"] >= 0.95, s
 
 
+@pytest.mark.parametrize("options", [YOUNG, pytest.param(dict(form="young", rows=2, trees_per_row=10, spacing=2.0,
+                                                               row_spacing=4.0), marks=pytest.mark.slow)])
+def test_irrigation_risers_among_young_trees_are_no_trees(options):
+    # a 0.3-1.0 m pipe by 30 % of the trees (0.15-0.4 m from the trunk) and in 30 % of the
+    # gaps: every tree found where it stands, no riser taken for one
+    p = SimulationParams(seed=0, risers=0.3, **options)
+    o = simulate_orchard(p)
+    origin, r = _run(o)
+    truth = o.trunks[:, :2] - origin[:2]
+    s = score_labels(true_tree_id=o.tree_id, true_is_wood=o.is_wood, true_trunks=truth,
+                     pred_tree_id=r.tree_id, pred_is_wood=r.is_wood, found_trunks=r.trunks[:, :2])
+    assert s["trunk_f1"] == 1.0, s
+    assert s["v_measure"] >= 0.95, s
+    # one trunk by each tree (F1 matches within 1 m, more than a slot here): no riser
+    # stands for a tree. A trunk may sit up to a third of a metre off its stem, toward a
+    # riser (1 m spacing: one of 16, the stem circle at 0.3 m fitted across stem and riser)
+    d = np.hypot(*(r.trunks[:, None, :2] - truth[None]).transpose(2, 0, 1))
+    assert len(r.trunks) == len(truth) and len(set(d.argmin(axis=1).tolist())) == len(truth)
+    assert d.min(axis=1).max() < 0.35
+    assert np.median(d.min(axis=1)) < 0.1
+    # and the risers alone, with the stakes and the fence, are no trees
+    keep = o.tree_id == 0
+    assert process_points(o.xyz[keep] - origin, params=PipelineParams()).n_trees == 0
+
+
+@pytest.mark.slow
+def test_irrigation_risers_among_grown_trees_are_no_trees():
+    p = SimulationParams(form="vase", rows=2, trees_per_row=6, seed=1, risers=0.3)
+    o = simulate_orchard(p)
+    origin, r = _run(o)
+    truth = o.trunks[:, :2] - origin[:2]
+    s = score_labels(true_tree_id=o.tree_id, true_is_wood=o.is_wood, true_trunks=truth,
+                     pred_tree_id=r.tree_id, pred_is_wood=r.is_wood, found_trunks=r.trunks[:, :2])
+    assert s["trunk_f1"] == 1.0, s
+    assert s["v_measure"] >= 0.95, s
+
+
+@pytest.mark.slow
+def test_a_leafless_grown_block_with_defaults():
+    # a vase block scanned in winter: the same trees, bare (no leaf to occlude or to join crowns)
+    o = simulate_orchard(SimulationParams(form="vase", rows=2, trees_per_row=6, seed=2, leafless=True))
+    assert not (o.kind == KIND.index("leaf")).any()
+    origin, r = _run(o)
+    s = score_labels(true_tree_id=o.tree_id, true_is_wood=o.is_wood, true_trunks=o.trunks[:, :2] - origin[:2],
+                     pred_tree_id=r.tree_id, pred_is_wood=r.is_wood, found_trunks=r.trunks[:, :2])
+    assert s["trunk_f1"] == 1.0, s
+    assert s["v_measure"] >= 0.95, s
+
+
+def test_a_stem_is_as_wide_as_its_main_column_beside_a_riser():
+    from pipeline.trunks import _main_column
+
+    # group 0: a stem of four band nodes each carrying 100, a riser 0.3 m off carrying 150
+    # of the tree's flow over two nodes; group 1: a lone stem
+    xy = np.array([[0.0, 0.0], [0.05, 0.0], [0.0, 0.05], [0.05, 0.05], [0.3, 0.0], [0.3, 0.05], [5.0, 0.0]])
+    group = np.array([0, 0, 0, 0, 0, 0, 1])
+    flow = np.array([100.0, 100.0, 100.0, 100.0, 75.0, 75.0, 50.0])
+    centre, width = _main_column(xy, group, flow, 3, 0.1)
+    assert np.allclose(centre, [[0.0, 0.0], [5.0, 0.0], [0.0, 0.0]])
+    assert width[0] == pytest.approx(2 * 0.05 + 0.1)  # half the flow within 5 cm of the heaviest node
+    assert width[1] == pytest.approx(0.1) and width[2] == pytest.approx(0.1)  # one node; no band node
+    # the flow's RMS spans both columns
+    c = np.average(xy[:6], axis=0, weights=flow[:6])
+    rms = np.sqrt(np.average(np.sum((xy[:6] - c) ** 2, axis=1), weights=flow[:6]))
+    assert 2 * rms + 0.1 > 0.3
+
+
 def test_posts_stakes_and_boxes_without_trees_are_no_trees():
     # a young block with its trees taken out: stakes, the fence with its wire, the vehicle and the bin
     o = simulate_orchard(SimulationParams(seed=4, **YOUNG))
@@ -107,6 +174,15 @@ def test_branch_test_by_hand():
     group = np.r_[np.zeros(len(post)), np.ones(len(tree)), np.full(len(staked), 2)].astype(np.int64)
     centre = np.array([[0.0, 0.0], [5.0, 0.0], [10.04, 0.0]])
     assert branches(nodes, nodes[:, 2], group, centre, 0.1).tolist() == [False, True, False]
+    # group 3: a stake and a riser 0.3 m from it, each on its own ground contact; the
+    # tree's side shoots drain down its stem
+    pair = np.r_[_column(15, 0, 0.1, 1.8), _column(15.3, 0, 0.1, 1.0)]
+    nodes = np.r_[nodes, pair]
+    group = np.r_[group, np.full(len(pair), 3)]
+    centre = np.r_[centre, [[15.0, 0.0]]]
+    foot = np.where(group[:, None] == 3, nodes[:, :2], centre[group])  # each column drains to its own foot
+    assert branches(nodes, nodes[:, 2], group, centre, 0.1).tolist() == [False, True, False, True]
+    assert branches(nodes, nodes[:, 2], group, centre, 0.1, node_foot=foot).tolist() == [False, True, False, False]
 
 
 def test_grass_carries_no_paths_beyond_a_trunks_foot():

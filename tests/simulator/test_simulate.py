@@ -281,3 +281,40 @@ def test_spacing_down_to_0_8_m():
     assert set(np.unique(o.tree_id)) == {0, 1, 2, 3}
     with pytest.raises(ValidationError):
         SimulationParams(spacing=0.79)
+
+
+def test_irrigation_risers_stand_on_the_drip_line_in_no_tree():
+    from simulator.clutter import risers
+    from simulator.plan import make_plan
+
+    p = SimulationParams(rows=2, trees_per_row=4, spacing=2.0, row_spacing=4.0, density=0.15, seed=4, risers=0.5,
+                         vehicle=False, bin=False, posts=False)
+    plain = simulate_orchard(p.model_copy(update={"risers": 0.0}))
+    o = simulate_orchard(p)
+    a, b, r = risers(make_plan(p))
+    assert len(a) == 4 + 3  # half of the 8 trees, half of the 6 gaps (rounded)
+    assert np.all((r >= 0.01) & (r <= 0.025))
+    height = b[:, 2] - a[:, 2] - 0.05
+    assert np.all((height >= 0.29) & (height <= 1.01))
+    riser = o.kind == POST
+    assert riser.sum() > 100 and (o.tree_id[riser] == 0).all()
+    # on the rows' lines (y 0 or 4 in the straight frame), by a trunk or mid-gap
+    local = o.xyz[riser, :2] - o.trunks[0, :2]
+    assert np.all(np.min(np.abs(local[:, [1]] - np.array([0.0, 4.0])), axis=1) < 0.5)
+    h = o.xyz[riser, 2] - ground_height(p, o.xyz[riser, 0], o.xyz[riser, 1])
+    assert h.max() < 1.1
+    # the rest of the block is drawn as without them
+    assert np.array_equal(o.xyz[~riser], plain.xyz)
+
+
+def test_a_leafless_block_has_the_same_trees_without_leaves():
+    p = SimulationParams(rows=1, trees_per_row=3, density=0.1, seed=6)
+    leafy = simulate_orchard(p)
+    bare = simulate_orchard(p.model_copy(update={"leafless": True}))
+    assert (leafy.kind == LEAF).sum() > 1000 and not (bare.kind == LEAF).any()
+    assert np.array_equal(leafy.trunks, bare.trunks)
+    assert np.array_equal(leafy.trunk_radius, bare.trunk_radius)
+    # the wood is the same, and seen better without the leaves in front of it
+    assert (bare.is_wood.sum()) > leafy.is_wood.sum()
+    with pytest.raises(ValidationError, match="conifer"):
+        SimulationParams(form="conifer", leafless=True)
