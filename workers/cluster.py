@@ -377,18 +377,23 @@ def _unfit(answer, expected: dict) -> str | None:
 
 
 class _ClosingNoise(logging.Filter):
-    """Drops the warning a worker logs for each task it was running when it was closed
-    ("Async instruction for <Task ...> ended with CancelledError": distributed logs it
-    only from ``Worker.close``), which otherwise follows every shutdown mid-job."""
+    """Drops what a worker logs when the embedded cluster closes: the warning for each
+    task it was running ("Async instruction for <Task ...> ended with CancelledError":
+    distributed logs it only from ``Worker.close``), and the traceback of a heartbeat
+    caught by the scheduler closing first (the scheduler lives in the process that
+    started the cluster, so only its closing makes a heartbeat fail)."""
 
     def filter(self, record: logging.LogRecord) -> bool:
-        return not str(record.msg).endswith("ended with CancelledError")
+        msg = str(record.msg)
+        return not (msg.endswith("ended with CancelledError")
+                    or msg == "Failed to communicate with scheduler during heartbeat.")
 
 
 def dask_setup(worker) -> None:
     """Preload hook of the embedded cluster's workers (dask calls it at worker start,
     on its event loop, before it registers with the scheduler)."""
-    logging.getLogger("distributed.worker.state_machine").addFilter(_ClosingNoise())
+    for name in ("distributed.worker.state_machine", "distributed.worker"):
+        logging.getLogger(name).addFilter(_ClosingNoise())
     _stop_http(worker)  # also in a worker the nanny restarts
 
 

@@ -114,3 +114,18 @@ def test_interrupt_during_a_shutdown_is_held_until_it_ends(default_sigint):
     assert signal.getsignal(signal.SIGINT) is signal.default_int_handler
     with interrupts_deferred():  # nothing caught, nothing raised
         pass
+
+
+def test_an_embedded_workers_closing_noise_is_dropped_and_nothing_else():
+    import logging
+
+    from workers.cluster import _ClosingNoise
+
+    def record(msg):
+        return logging.LogRecord("distributed.worker", logging.ERROR, __file__, 1, msg, None, None)
+
+    noise = _ClosingNoise()
+    assert not noise.filter(record("Failed to communicate with scheduler during heartbeat."))
+    assert not noise.filter(record("Async instruction for <Task 'x' executing> ended with CancelledError"))
+    assert noise.filter(record("Unexpected exception during heartbeat. Closing worker."))
+    assert noise.filter(record("Compute Failed"))
