@@ -78,8 +78,14 @@ def _add_posts(ch: Chunk, plan: Plan, rng, xs, ys, height, radius, *, wires, y: 
 
 def _add_stakes(ch: Chunk, plan: Plan) -> None:
     """The stake beside every young tree (:func:`simulator.young.stakes`), as points of kind post."""
-    a, b, r = stakes(plan)
-    rng = np.random.default_rng([plan.params.seed, 7])
+    _add_pipes(ch, plan, *stakes(plan), stream=7)
+
+
+def _add_pipes(ch: Chunk, plan: Plan, a: np.ndarray, b: np.ndarray, r: np.ndarray, stream: int) -> None:
+    """Upright cylinders from bottom ends ``a`` (k, 3) to top ends ``b`` (k, 3) of radii
+    ``r`` (k,) [m], scanned from the passes within a row spacing, as points of kind post
+    above the ground; drawn from their own random stream ([seed, ``stream``])."""
+    rng = np.random.default_rng([plan.params.seed, stream])
     for k in range(len(plan.pass_y)):
         near = np.abs(a[:, 1] - plan.pass_y[k]) <= plan.params.row_spacing
         if near.any():
@@ -123,14 +129,7 @@ def risers(plan) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
 
 def _add_risers(ch: Chunk, plan: Plan) -> None:
     """The irrigation risers of :func:`risers`, as points of kind post."""
-    a, b, r = risers(plan)
-    rng = np.random.default_rng([plan.params.seed, 11])
-    for k in range(len(plan.pass_y)):
-        near = np.abs(a[:, 1] - plan.pass_y[k]) <= plan.params.row_spacing
-        if near.any():
-            pts, _, _ = sample_cylinders(rng, plan, k, a[near], b[near], r[near], r[near])
-            pts = pts[pts[:, 2] >= plan.ground.z(pts[:, 0], pts[:, 1])]
-            ch.add(plan, rng, k, pts, 0, False, POST)
+    _add_pipes(ch, plan, *risers(plan), stream=11)
 
 
 def _add_debris(ch: Chunk, plan: Plan) -> None:

@@ -25,6 +25,15 @@ def _run(o):
     return origin, process_points(o.xyz - origin, params=PipelineParams())
 
 
+def _scored(o):
+    """:func:`_run` with the block's true trunks in the run's frame and its scores."""
+    origin, r = _run(o)
+    truth = o.trunks[:, :2] - origin[:2]
+    s = score_labels(true_tree_id=o.tree_id, true_is_wood=o.is_wood, true_trunks=truth,
+                     pred_tree_id=r.tree_id, pred_is_wood=r.is_wood, found_trunks=r.trunks[:, :2])
+    return origin, r, truth, s
+
+
 def test_young_dormant_block_with_defaults():
     o = simulate_orchard(SimulationParams(seed=3, **YOUNG))
     assert not (o.kind == KIND.index("leaf")).any()  # dormant
@@ -43,10 +52,7 @@ def test_irrigation_risers_among_young_trees_are_no_trees(options):
     # gaps: every tree found where it stands, no riser taken for one
     p = SimulationParams(seed=0, risers=0.3, **options)
     o = simulate_orchard(p)
-    origin, r = _run(o)
-    truth = o.trunks[:, :2] - origin[:2]
-    s = score_labels(true_tree_id=o.tree_id, true_is_wood=o.is_wood, true_trunks=truth,
-                     pred_tree_id=r.tree_id, pred_is_wood=r.is_wood, found_trunks=r.trunks[:, :2])
+    origin, r, truth, s = _scored(o)
     assert s["trunk_f1"] == 1.0, s
     assert s["v_measure"] >= 0.95, s
     # one trunk by each tree (F1 matches within 1 m, more than a slot here): no riser
@@ -65,10 +71,7 @@ def test_irrigation_risers_among_young_trees_are_no_trees(options):
 def test_irrigation_risers_among_grown_trees_are_no_trees():
     p = SimulationParams(form="vase", rows=2, trees_per_row=6, seed=1, risers=0.3)
     o = simulate_orchard(p)
-    origin, r = _run(o)
-    truth = o.trunks[:, :2] - origin[:2]
-    s = score_labels(true_tree_id=o.tree_id, true_is_wood=o.is_wood, true_trunks=truth,
-                     pred_tree_id=r.tree_id, pred_is_wood=r.is_wood, found_trunks=r.trunks[:, :2])
+    origin, r, truth, s = _scored(o)
     assert s["trunk_f1"] == 1.0, s
     assert s["v_measure"] >= 0.95, s
 
