@@ -12,6 +12,7 @@ from __future__ import annotations
 import numpy as np
 from scipy.ndimage import gaussian_filter1d
 
+from pipeline.voxels import cell_index
 
 #: side of a canopy cell [m]: fine enough to resolve a 1 m hedgerow wall
 CELL = 0.25
@@ -60,16 +61,9 @@ def canopy_cells(xy: np.ndarray, height: np.ndarray, *, cell: float = CELL, min_
     idx = np.flatnonzero(keep)
     if not idx.size:
         return np.zeros((0, 2), np.int64)
-    off = None if offset is None else np.asarray(offset, dtype=np.float64)[:2]
-    ij = []
-    for d in (0, 1):
-        v = xy[idx, d]
-        if off is not None:
-            v += off[d]
-        np.divide(v, cell, out=v)
-        np.floor(v, out=v)
-        ij.append(v.astype(np.int64))
-    return _unique_cells(*ij)
+    # x + off is x - (-off) to the bit: the cells of floor((xy + offset) / cell)
+    shift = np.zeros(2) if offset is None else -np.asarray(offset, dtype=np.float64)[:2]
+    return _unique_cells(*(cell_index(xy[idx, d], shift[d], cell) for d in (0, 1)))
 
 
 def unique_cells(cells: np.ndarray) -> np.ndarray:

@@ -15,6 +15,7 @@ from dataclasses import dataclass
 import numpy as np
 from scipy import ndimage
 
+from pipeline.voxels import cell_index
 
 #: Side of a coverage cell [m]; whole metres, so cells follow from the block's origin exactly.
 CELL = 1
@@ -67,7 +68,7 @@ def stem_cells(xy: np.ndarray, height: np.ndarray, among: np.ndarray, origin_xy)
     if not pick.size:
         return np.zeros((0, 3), np.int64)
     xy, origin = np.asarray(xy, np.float64), np.asarray(origin_xy[:2], np.float64)
-    i, j = (np.floor((xy[pick, d] + origin[d]) / STEM_CELL).astype(np.int64) for d in (0, 1))  # column by column
+    i, j = (cell_index(xy[pick, d], -origin[d], STEM_CELL) for d in (0, 1))  # x + o is x - (-o) to the bit
     # one int64 key a cell, in the (i, j) order np.unique(axis=0) sorts rows in: a count
     # of the keys where they are dense, else a sort of int64 (not of rows viewed as bytes)
     lo = np.array([i.min(), j.min()])

@@ -10,7 +10,7 @@ from scipy.spatial import cKDTree
 
 from pipeline.errors import InputError
 from pipeline.params import GroundParams
-from pipeline.voxels import column_max, column_min
+from pipeline.voxels import cell_index, column_max, column_min
 
 # Fixed tuning of the ground model (lengths in metres, slopes in m/m, sizes in cells of
 # GroundParams.cell_size).
@@ -250,7 +250,7 @@ def raw_ground_model(
     go = np.asarray(grid_origin[:2], dtype=np.float64)
     if xyz.shape[0] == 0:
         return GroundModel((np.zeros((1, 1)),), go[None].copy(), c, 0.0)
-    ix, iy = (_cell_index(xyz[:, d], go[d], c) for d in (0, 1))
+    ix, iy = (cell_index(xyz[:, d], go[d], c) for d in (0, 1))
     lo = np.array([ix.min(), iy.min()])
     span = np.array([ix.max(), iy.max()]) - lo + 1
     part = part_xy = part_of = None
@@ -274,14 +274,6 @@ def raw_ground_model(
         dtms.append(_part_dtm(xyz[sel, 2], part_ij[:, 0] * ny + part_ij[:, 1], (nx, ny), params, corner=lo))
         origins.append(go + lo * c)
     return GroundModel(tuple(dtms), np.array(origins), c, 0.0, part_xy, part_of)
-
-
-def _cell_index(v: np.ndarray, origin: float, cell: float) -> np.ndarray:
-    """``floor((v - origin) / cell)`` as int64 (n,), with one float temporary."""
-    t = np.subtract(v, origin)
-    np.divide(t, cell, out=t)
-    np.floor(t, out=t)
-    return t.astype(np.int64)
 
 
 def ground_residuals(model: GroundModel, xyz: np.ndarray) -> np.ndarray:

@@ -53,6 +53,15 @@ def _column_reduce(a: np.ndarray, reduce) -> np.ndarray:
     return reduce(np.array(parts, dtype=a.dtype), axis=0)
 
 
+def cell_index(v: np.ndarray, origin: float, cell: float) -> np.ndarray:
+    """``floor((v - origin) / cell)`` of one coordinate column ``v`` (n,) as int64, with
+    one float temporary (no (n, 2) or (n, 3) arrays: a grid's cells a column at a time)."""
+    t = np.subtract(v, origin)
+    np.divide(t, cell, out=t)
+    np.floor(t, out=t)
+    return t.astype(np.int64)
+
+
 def rows_by_column(xyz: np.ndarray, rows: np.ndarray) -> np.ndarray:
     """``xyz[rows]`` of an (n, 3) array, in column-major order: :func:`voxelize` reads it
     a column at a time, and numpy's passes down contiguous columns are several times
