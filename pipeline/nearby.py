@@ -9,7 +9,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from pipeline.passes import CACHE_POINTS
+from pipeline.passes import CACHE_POINTS, indices_where
 from pipeline.voxels import column_max, column_min
 
 #: most grid cells of :func:`near_centres` (centres spread wider take the bounding box)
@@ -25,8 +25,7 @@ def near_centres(xy: np.ndarray, centres: np.ndarray, reach: float) -> np.ndarra
     hi = centres.max(axis=0) + reach
     shape = (np.floor((hi - lo) / reach).astype(np.int64) + 1)
     if shape[0] * shape[1] > MAX_NEAR_CELLS:  # candidates spread over a huge extent: the box alone
-        return np.concatenate([a + _in_box(xy[a : a + CACHE_POINTS], lo, hi) for a in range(0, xy.shape[0], CACHE_POINTS)]
-                              + [np.zeros(0, np.int64)])
+        return indices_where(xy.shape[0], lambda s: _box_mask(xy[s], lo, hi))
     grid = np.zeros(shape, bool)
     cell = np.floor((centres - lo) / reach).astype(np.int64)
     for dx in (-1, 0, 1):
@@ -36,17 +35,17 @@ def near_centres(xy: np.ndarray, centres: np.ndarray, reach: float) -> np.ndarra
     found = [np.zeros(0, np.int64)]
     for a in range(0, xy.shape[0], CACHE_POINTS):
         part = xy[a : a + CACHE_POINTS]
-        inside = _in_box(part, lo, hi)
+        inside = np.flatnonzero(_box_mask(part, lo, hi))
         # (x - lo) / reach >= 0 inside the box: truncation is the floor, without a pass of its own
         ix, iy = (np.minimum(((part[inside, d] - lo[d]) / reach).astype(np.int64), shape[d] - 1) for d in (0, 1))
         found.append(a + inside[grid[ix, iy]])
     return np.concatenate(found)
 
 
-def _in_box(xy: np.ndarray, lo: np.ndarray, hi: np.ndarray) -> np.ndarray:
-    """Indices of the points ``xy`` (n, 2) in the box from ``lo`` to ``hi`` (2,), edges included."""
+def _box_mask(xy: np.ndarray, lo: np.ndarray, hi: np.ndarray) -> np.ndarray:
+    """Whether each point of ``xy`` (n, 2) lies in the box from ``lo`` to ``hi`` (2,), edges included."""
     x, y = xy[:, 0], xy[:, 1]
-    return np.flatnonzero((x >= lo[0]) & (x <= hi[0]) & (y >= lo[1]) & (y <= hi[1]))
+    return (x >= lo[0]) & (x <= hi[0]) & (y >= lo[1]) & (y <= hi[1])
 
 
 class CellIndex:

@@ -100,3 +100,16 @@ def test_many_points_in_several_cache_sized_passes():
     index = CellIndex(xy, 0.8)
     for c in centres:
         np.testing.assert_array_equal(index.ball(c), _kdtree_ball(xy, c, 0.8))
+
+
+def test_centres_spread_over_a_huge_extent_take_the_box_alone():
+    from pipeline.nearby import MAX_NEAR_CELLS
+    from pipeline.passes import CACHE_POINTS
+
+    rng = np.random.default_rng(1)
+    xy = rng.uniform(-5e4, 5e4, (3 * CACHE_POINTS + 7, 2))
+    centres = np.array([[-4e4, -4e4], [4e4, 4e4]])  # (8e4 / 1 m)² cells > MAX_NEAR_CELLS
+    assert (8e4 / 1.0) ** 2 > MAX_NEAR_CELLS
+    lo, hi = centres.min(axis=0) - 1.0 * (1 + 1e-6), centres.max(axis=0) + 1.0 * (1 + 1e-6)
+    box = np.flatnonzero((xy[:, 0] >= lo[0]) & (xy[:, 0] <= hi[0]) & (xy[:, 1] >= lo[1]) & (xy[:, 1] <= hi[1]))
+    assert np.array_equal(near_centres(xy, centres, 1.0), box)
