@@ -12,7 +12,7 @@ from __future__ import annotations
 import numpy as np
 from scipy.ndimage import gaussian_filter1d
 
-from pipeline.voxels import cell_index
+from pipeline.voxels import cell_index, keyed_cells
 
 #: side of a canopy cell [m]: fine enough to resolve a 1 m hedgerow wall
 CELL = 0.25
@@ -63,7 +63,7 @@ def canopy_cells(xy: np.ndarray, height: np.ndarray, *, cell: float = CELL, min_
         return np.zeros((0, 2), np.int64)
     # x + off is x - (-off) to the bit: the cells of floor((xy + offset) / cell)
     shift = np.zeros(2) if offset is None else -np.asarray(offset, dtype=np.float64)[:2]
-    return _unique_cells(*(cell_index(xy[idx, d], shift[d], cell) for d in (0, 1)))
+    return keyed_cells(*(cell_index(xy[idx, d], shift[d], cell) for d in (0, 1)))
 
 
 def unique_cells(cells: np.ndarray) -> np.ndarray:
@@ -78,25 +78,7 @@ def unique_cells(cells: np.ndarray) -> np.ndarray:
     cells = np.asarray(cells, dtype=np.int64).reshape(-1, 2)
     if cells.shape[0] == 0:
         return cells.copy()
-    return _unique_cells(cells[:, 0], cells[:, 1])
-
-
-def _unique_cells(i: np.ndarray, j: np.ndarray) -> np.ndarray:
-    """:func:`unique_cells` of the cells with columns ``i`` and ``j`` (c,) int64, c > 0."""
-    lo = np.array([i.min(), j.min()])
-    span = np.array([i.max(), j.max()]) - lo + 1
-    if int(span[0]) * int(span[1]) >= 2**62:  # the key would overflow: far-apart cells
-        return np.unique(np.column_stack([i, j]), axis=0)
-    # x-major key: its order is the rows' lexicographic order
-    key = (i - lo[0]) * span[1] + (j - lo[1])
-    n_keys = int(span[0]) * int(span[1])
-    if n_keys <= 8 * i.shape[0]:  # a dense grid: mark the occupied cells, no sort
-        occupied = np.zeros(n_keys, bool)
-        occupied[key] = True
-        key = np.flatnonzero(occupied)
-    else:
-        key = np.unique(key)
-    return np.column_stack([key // span[1] + lo[0], key % span[1] + lo[1]])
+    return keyed_cells(cells[:, 0], cells[:, 1])
 
 
 def cell_centres(cells: np.ndarray, *, cell: float = CELL, origin=(0.0, 0.0)) -> np.ndarray:

@@ -15,7 +15,7 @@ from dataclasses import dataclass
 import numpy as np
 from scipy import ndimage
 
-from pipeline.voxels import cell_index
+from pipeline.voxels import cell_index, keyed_cells
 
 #: Side of a coverage cell [m]; whole metres, so cells follow from the block's origin exactly.
 CELL = 1
@@ -69,20 +69,8 @@ def stem_cells(xy: np.ndarray, height: np.ndarray, among: np.ndarray, origin_xy)
         return np.zeros((0, 3), np.int64)
     xy, origin = np.asarray(xy, np.float64), np.asarray(origin_xy[:2], np.float64)
     i, j = (cell_index(xy[pick, d], -origin[d], STEM_CELL) for d in (0, 1))  # x + o is x - (-o) to the bit
-    # one int64 key a cell, in the (i, j) order np.unique(axis=0) sorts rows in: a count
-    # of the keys where they are dense, else a sort of int64 (not of rows viewed as bytes)
-    lo = np.array([i.min(), j.min()])
-    span = int(j.max() - lo[1]) + 1
-    key = (i - lo[0]) * span + (j - lo[1])
-    n_keys = (int(i.max() - lo[0]) + 1) * span
-    if n_keys <= 8 * key.size:
-        counts = np.bincount(key, minlength=n_keys)
-        keys = np.flatnonzero(counts)
-        counts = counts[keys]
-    else:
-        keys, counts = np.unique(key, return_counts=True)
-    i, j = np.divmod(keys, span)
-    return np.c_[i + lo[0], j + lo[1], counts]
+    cells, counts = keyed_cells(i, j, counts=True)
+    return np.c_[cells, counts]
 
 
 def stems_of(parts: list[np.ndarray]) -> np.ndarray:

@@ -62,6 +62,42 @@ def cell_index(v: np.ndarray, origin: float, cell: float) -> np.ndarray:
     return t.astype(np.int64)
 
 
+def keyed_cells(i: np.ndarray, j: np.ndarray, *, counts: bool = False):
+    """The distinct cells of columns ``i`` and ``j`` (c,) int64 (c > 0), sorted by i then
+    j (``np.unique(np.c_[i, j], axis=0)``), with how many times each occurs if ``counts``.
+
+    One int64 key a cell, marked or counted where the keys are dense, else a sort of int64
+    keys: several times faster than a sort of rows viewed as bytes.
+
+    Returns
+    -------
+    (u, 2) int64, or ((u, 2) int64, (u,) int64) with ``counts``
+    """
+    lo = np.array([i.min(), j.min()])
+    span = np.array([i.max(), j.max()]) - lo + 1
+    if int(span[0]) * int(span[1]) >= 2**62:  # the key would overflow: far-apart cells
+        return np.unique(np.column_stack([i, j]), axis=0, return_counts=counts)
+    # x-major key: its order is the rows' lexicographic order
+    key = (i - lo[0]) * span[1] + (j - lo[1])
+    n_keys = int(span[0]) * int(span[1])
+    tally = None
+    if n_keys <= 8 * i.shape[0]:  # a dense grid: no sort
+        if counts:
+            tally = np.bincount(key, minlength=n_keys)
+            key = np.flatnonzero(tally)
+            tally = tally[key]
+        else:
+            occupied = np.zeros(n_keys, bool)
+            occupied[key] = True
+            key = np.flatnonzero(occupied)
+    elif counts:
+        key, tally = np.unique(key, return_counts=True)
+    else:
+        key = np.unique(key)
+    cells = np.column_stack([key // span[1] + lo[0], key % span[1] + lo[1]])
+    return (cells, tally) if counts else cells
+
+
 def rows_by_column(xyz: np.ndarray, rows: np.ndarray) -> np.ndarray:
     """``xyz[rows]`` of an (n, 3) array, in column-major order: :func:`voxelize` reads it
     a column at a time, and numpy's passes down contiguous columns are several times

@@ -1,4 +1,4 @@
-"""pipeline.canopy.unique_cells: np.unique(cells, axis=0) by one int64 key per cell."""
+"""pipeline.voxels.keyed_cells (canopy.unique_cells, the stem cells): np.unique(cells, axis=0) by one int64 key per cell."""
 
 from __future__ import annotations
 
@@ -51,3 +51,20 @@ def test_canopy_cells_of_many_points_in_several_passes():
     keep = (height >= 1.0) & among
     want = np.unique(np.floor((xy[keep] + offset) / 0.25).astype(np.int64), axis=0)
     np.testing.assert_array_equal(canopy_cells(xy, height, offset=offset, among=among), want)
+
+
+@settings(max_examples=150, deadline=None)
+@given(
+    n=st.integers(1, 400),
+    span=st.sampled_from([1, 3, 50, 10**4, 10**9, 2**40]),
+    seed=st.integers(0, 2**32 - 1),
+)
+def test_keyed_cells_counts_equal_numpy_unique_by_rows(n, span, seed):
+    """The counted cells (stem cells) on dense, sparse and overflowing keys alike."""
+    from pipeline.voxels import keyed_cells
+
+    cells = np.random.default_rng(seed).integers(-span, span + 1, (n, 2))
+    want, want_counts = np.unique(cells, axis=0, return_counts=True)
+    got, counts = keyed_cells(cells[:, 0], cells[:, 1], counts=True)
+    np.testing.assert_array_equal(got, want)
+    np.testing.assert_array_equal(counts, want_counts)
