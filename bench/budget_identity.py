@@ -13,12 +13,11 @@ workers, and records the SHA-256 of every file it writes.
 
 from __future__ import annotations
 
-import argparse
 import hashlib
 import shutil
 from pathlib import Path
 
-from bench.identity import BLOCKS, measure, write_or_compare
+from bench.identity import BLOCKS, manifest_arguments, measure, write_or_compare
 
 #: a budget [GB] per block that tiles it (the smallest tile still fits)
 BUDGETS = {"vase": 0.48, "spindle": 0.45, "hedge": 0.45}
@@ -46,12 +45,8 @@ def run(work: Path) -> dict[str, dict[str, str]]:
 
 
 def main(argv: list[str] | None = None) -> int:
-    p = argparse.ArgumentParser(prog="python -m bench.budget_identity", description=__doc__.splitlines()[0])
-    g = p.add_mutually_exclusive_group(required=True)
-    g.add_argument("--write", type=Path, metavar="MANIFEST", help="write the hashes to this JSON file")
-    g.add_argument("--compare", type=Path, metavar="MANIFEST", help="compare with the hashes in this JSON file")
-    p.add_argument("--work", type=Path, default=Path("/tmp/orchard-budget-identity-out"), help="folder for the outputs")
-    args = p.parse_args(argv)
+    args = manifest_arguments(argv, prog="python -m bench.budget_identity", description=__doc__.splitlines()[0],
+                              work="/tmp/orchard-budget-identity-out")
     if not all((BLOCKS / f"{scene}.laz").exists() for scene in BUDGETS):
         measure(args.work / "identity")  # makes the blocks (and runs bench.identity's runs once)
     return write_or_compare(args, run(args.work), "entries")

@@ -85,13 +85,20 @@ def differences(before: dict, after: dict) -> list[str]:
     return out
 
 
-def main(argv: list[str] | None = None) -> int:
-    p = argparse.ArgumentParser(prog="python -m bench.identity", description=__doc__.splitlines()[0])
+def manifest_arguments(argv: list[str] | None, *, prog: str, description: str, work: str) -> argparse.Namespace:
+    """The options of a manifest bench: ``--write`` or ``--compare`` MANIFEST, and ``--work``
+    (default ``work``) for the outputs."""
+    p = argparse.ArgumentParser(prog=prog, description=description)
     g = p.add_mutually_exclusive_group(required=True)
     g.add_argument("--write", type=Path, metavar="MANIFEST", help="write the hashes to this JSON file")
     g.add_argument("--compare", type=Path, metavar="MANIFEST", help="compare with the hashes in this JSON file")
-    p.add_argument("--work", type=Path, default=Path("/tmp/orchard-identity-out"), help="folder for the outputs")
-    args = p.parse_args(argv)
+    p.add_argument("--work", type=Path, default=Path(work), help="folder for the outputs")
+    return p.parse_args(argv)
+
+
+def main(argv: list[str] | None = None) -> int:
+    args = manifest_arguments(argv, prog="python -m bench.identity", description=__doc__.splitlines()[0],
+                              work="/tmp/orchard-identity-out")
     return write_or_compare(args, measure(args.work), "files")
 
 
