@@ -1,7 +1,7 @@
 """Edge weightings of the segmentation graph that make contacts cost more than continuations.
 
     python -m bench.edges [--seeds 0,1] [--alphas 0.5,1,2,4] [--weightings axis,...]
-                          [--settings "paper setting,...,real"] [--auc]
+                          [--settings "paper setting,...,leafless hedge,real young,real"] [--auc]
 
 Issue 61. ``bench.contested`` found the wrong points in runs of twigs and leaves that
 their own trunk reaches inside their own tree by a path only 1.05-1.16 times the
@@ -16,7 +16,10 @@ also labels trunk feet and post foliage), per setting and seed, for each weighti
 each ``alpha``. Tune on seeds 1000.., evaluate on 0, 1. ``--auc`` prints instead how
 well each factor tells contacts (edges joining two true trees) from the edges inside
 one tree beside them (ROC AUC, :func:`contact_auc`). Settings: names (or parts of
-names) of ``bench.segmentation.SETTINGS``, and ``real`` for the row of AdTree trees.
+names) of ``bench.segmentation.SETTINGS`` and of ``LEAFLESS`` (``bench.young``'s grown
+blocks scanned leafless: ``leafless vase``, ``leafless tall spindle``, ``leafless
+hedge``), ``real`` for the row of AdTree trees and ``real young`` for the young block of
+real trees (``bench.real_data.young_row``).
 """
 
 from __future__ import annotations
