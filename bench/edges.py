@@ -1,7 +1,7 @@
 """Edge weightings of the segmentation graph that make contacts cost more than continuations.
 
     python -m bench.edges [--seeds 0,1] [--alphas 0.5,1,2,4] [--weightings axis,...]
-                          [--settings "paper setting,...,real"] [--auc]
+                          [--settings "paper setting,...,leafless hedge,real young,real"] [--auc]
 
 Issue 61. ``bench.contested`` found the wrong points in runs of twigs and leaves that
 their own trunk reaches inside their own tree by a path only 1.05-1.16 times the
@@ -16,7 +16,10 @@ also labels trunk feet and post foliage), per setting and seed, for each weighti
 each ``alpha``. Tune on seeds 1000.., evaluate on 0, 1. ``--auc`` prints instead how
 well each factor tells contacts (edges joining two true trees) from the edges inside
 one tree beside them (ROC AUC, :func:`contact_auc`). Settings: names (or parts of
-names) of ``bench.segmentation.SETTINGS``, and ``real`` for the row of AdTree trees.
+names) of ``bench.segmentation.SETTINGS`` and of ``LEAFLESS`` (``bench.young``'s grown
+blocks scanned leafless: ``leafless vase``, ``leafless tall spindle``, ``leafless
+hedge``), ``real`` for the row of AdTree trees and ``real young`` for the young block of
+real trees (``bench.real_data.young_row``).
 """
 
 from __future__ import annotations
@@ -30,6 +33,7 @@ from scipy.stats import rankdata
 
 import pipeline.process
 from bench.segmentation import SETTINGS
+from bench.young import DORMANT
 from pipeline.enrichment import symmetric_eigen3
 from pipeline.params import PipelineParams
 from pipeline.process import analyse_nodes
@@ -37,8 +41,10 @@ from simulator.scoring.scores import v_measure
 from simulator.simparams import SimulationParams
 from simulator.simulate import simulate_orchard
 
-WEIGHTINGS = ("axis", "axis linear", "density", "scattering", "shared", "enriched", "oracle")
+WEIGHTINGS = ("axis", "axis linear", "density", "scattering", "shared", "enriched", "turn", "oracle")
 """Edge factors of :func:`edge_factors` ("oracle": the truth's contacts, a bound, not a rule)."""
+#: the ``turn`` factor reads a path's direction over this many of its last edges
+TURN_HOPS = 2
 
 
 def principal_axes(nodes: np.ndarray, adjacency: sparse.csr_matrix) -> np.ndarray:
@@ -57,7 +63,7 @@ def edge_factors(kind: str, a: np.ndarray, b: np.ndarray, *, nodes: np.ndarray, 
                  axis: np.ndarray | None = None, linearity: np.ndarray | None = None,
                  density: np.ndarray | None = None, scattering: np.ndarray | None = None,
                  shared: np.ndarray | None = None, features: np.ndarray | None = None,
-                 truth: np.ndarray | None = None) -> np.ndarray:
+                 pred: np.ndarray | None = None, truth: np.ndarray | None = None) -> np.ndarray:
     """(e,) factor >= 1 on the length of each edge (a[i], b[i]).
 
     ``axis``: 1 + alpha (1 - mean |cos|) of the edge's direction and its two nodes'
@@ -66,7 +72,11 @@ def edge_factors(kind: str, a: np.ndarray, b: np.ndarray, *, nodes: np.ndarray, 
     point density; ``scattering``: 1 + alpha |s_a - s_b|; ``shared``: 1 + alpha (1 - the
     share of the two nodes' neighbours they share); ``enriched``: 1 + alpha (1 - cosine
     similarity of the nodes' feature vectors) (alpha 1: the paper's weighting);
-    ``oracle``: 1 + alpha on the edges joining nodes of two true trees (``truth``: each
+    ``turn``: 1 + alpha (1 - cos) / 2 of the turn from the direction of the shortest
+    path to a node over its last TURN_HOPS edges (``pred``: the shortest-path forest of a
+    first search, -1 at roots) into the edge, the smaller of its two ends (a path
+    continuing a branch goes straight on; one that crosses to another tree's branch at
+    a contact turns); ``oracle``: 1 + alpha on the edges joining nodes of two true trees (``truth``: each
     node's majority tree), the most an edge classification could give.
     """
     if kind in ("axis", "axis linear"):
@@ -86,6 +96,20 @@ def edge_factors(kind: str, a: np.ndarray, b: np.ndarray, *, nodes: np.ndarray, 
     if kind == "enriched":
         f = features / (np.linalg.norm(features, axis=1, keepdims=True) + 1e-12)
         return 1.0 + alpha * (1.0 - np.clip((f[a] * f[b]).sum(1), -1.0, 1.0))
+    if kind == "turn":
+        top = np.arange(pred.size)
+        for _ in range(TURN_HOPS):
+            top = np.where(pred[top] >= 0, pred[top], top)
+        u = nodes - nodes[top]
+        norm = np.linalg.norm(u, axis=1)
+        u /= np.maximum(norm, 1e-12)[:, None]
+        d = nodes[b] - nodes[a]
+        d /= np.maximum(np.linalg.norm(d, axis=1, keepdims=True), 1e-12)
+        # an end no path leads to (a root, an unreached node) gives no direction
+        turn_a = np.where(norm[a] > 0, 1.0 - (u[a] * d).sum(1), np.inf)
+        turn_b = np.where(norm[b] > 0, 1.0 + (u[b] * d).sum(1), np.inf)
+        turn = np.minimum(turn_a, turn_b)
+        return 1.0 + alpha * 0.5 * np.where(np.isfinite(turn), turn, 0.0)
     if kind == "oracle":
         return 1.0 + alpha * ((truth[a] != truth[b]) & (truth[a] > 0) & (truth[b] > 0))
     raise ValueError(f"unknown weighting {kind!r}; known: {', '.join(WEIGHTINGS)}")
@@ -143,6 +167,7 @@ class Recorded:
             nodes=self.nodes, axis=principal_axes(self.nodes, an.adjacency), linearity=f.linearity,
             density=np.maximum(an.vox.counts, 1) / vs**3, scattering=f.scattering,
             shared=shared_neighbours(self.graph, self.a, self.b), features=f.matrix(),
+            pred=pipeline.process.segment_nodes(self.nodes, self.graph, **self.kw).paths.pred,
             truth=sparse.csr_matrix((np.ones(self.point_node.size), (self.point_node, self.point_true)),
                                     shape=(len(self.nodes), int(tree_id.max()) + 1)).toarray().argmax(1),
         )
@@ -160,8 +185,12 @@ class Recorded:
         return pipeline.process.segment_nodes(self.nodes, g, **self.kw).node_tree
 
 
+#: grown blocks scanned leafless, as ``bench.young`` has them (every point wood or twig)
+LEAFLESS = {f"leafless {k.split(',')[0]}": v for k, v in ((name, o) for name, o in DORMANT if o.get("leafless"))}
+
+
 def generated(setting: str, seed: int) -> Recorded:
-    sim = next(v for k, v in SETTINGS.items() if setting in k)
+    sim = next(v for k, v in {**SETTINGS, **LEAFLESS}.items() if setting in k)
     o = simulate_orchard(SimulationParams(seed=seed, **sim))
     return Recorded(o.xyz - np.floor(o.xyz.min(axis=0)), o.tree_id)
 
@@ -186,10 +215,10 @@ def main(argv: list[str] | None = None) -> None:
         print("|---" * (3 + len(kinds) * len(alphas)) + "|", flush=True)
     for setting in args.settings.split(","):
         for seed in seeds:
-            if setting == "real":
-                from bench.real_data import adtree_row
+            if setting in ("real", "real young"):
+                from bench.real_data import adtree_row, young_row
 
-                xyz, tid, _ = adtree_row(seed=seed)
+                xyz, tid, _ = (adtree_row if setting == "real" else young_row)(seed=seed)
                 r = Recorded(xyz - np.floor(xyz.min(axis=0)), tid)
             else:
                 r = generated(setting, seed)

@@ -12,7 +12,7 @@ def _pair(**kw) -> dict:
     nodes = np.array([[0.0, 0.0, 1.0], [0.1, 0.0, 1.0]])
     base = dict(nodes=nodes, axis=np.array([[1.0, 0, 0], [0, 0, 1.0]]), linearity=np.array([1.0, 0.5]),
                 density=np.array([100.0, 100.0 * np.e]), scattering=np.array([0.1, 0.4]), shared=np.array([0.25]),
-                features=np.array([[1.0, 0.0], [0.0, 1.0]]), truth=np.array([1, 2]))
+                features=np.array([[1.0, 0.0], [0.0, 1.0]]), pred=np.array([-1, -1]), truth=np.array([1, 2]))
     base.update(kw)
     return base
 
@@ -26,6 +26,7 @@ def _pair(**kw) -> dict:
         ("scattering", 1 + 2 * 0.3),
         ("shared", 1 + 2 * 0.75),
         ("enriched", 1 + 2 * 1.0),  # orthogonal features
+        ("turn", 1.0),  # no path leads to either node: no turn
         ("oracle", 1 + 2),  # two true trees
     ],
 )
@@ -70,3 +71,13 @@ def test_contact_auc_on_a_path_of_two_trees():
     assert contact_auc(np.array([2.0, 1.0, 2.0, 0.0]), a, b, truth) == pytest.approx(0.0)
     assert contact_auc(np.array([2.0, 2.0, 1.0, 0.0]), a, b, truth) == pytest.approx(0.75)
     assert np.isnan(contact_auc(np.ones(4), a, b, np.array([1, 1, 1, 1, 0])))
+
+
+def test_turn_costs_a_path_that_turns_at_a_contact():
+    # a path 0-1-2 along x; from node 2 the edge (2, 3) goes on along x, the edge (2, 4)
+    # turns up a right angle, the edge (2, 5) turns back
+    nodes = np.array([[0.0, 0, 1], [0.1, 0, 1], [0.2, 0, 1], [0.3, 0, 1], [0.2, 0, 1.1], [0.1, 0.01, 1]])
+    pred = np.array([-1, 0, 1, -1, -1, -1])
+    kw = _pair(nodes=nodes, pred=pred)
+    a, b = np.array([2, 4, 2]), np.array([3, 2, 5])
+    assert edge_factors("turn", a, b, alpha=2.0, **kw) == pytest.approx([1.0, 2.0, 1.0 + 2 * 0.5 * 1.995], abs=1e-3)
