@@ -19,6 +19,7 @@ from scipy.spatial import ConvexHull, QhullError
 from pipeline.circles import fit_circle, trunk_circle
 from pipeline.params import MetricsParams
 from pipeline.passes import indices_where
+from pipeline.stemslice import stem_points
 from pipeline.voxels import rows_by_column
 
 TREE_COLUMNS = (
@@ -398,7 +399,8 @@ def trunk_circles(
     dz = pts[:, 2] - trunks[ids - 1, 2]
     in_slice = np.abs(dz - params.trunk_height) <= params.trunk_slice / 2
     d2 = ((pts[:, :2] - trunks[ids - 1, :2]) ** 2).sum(1)
-    sel = in_slice & (d2 <= max_radius**2)
+    sel = np.flatnonzero(in_slice & (d2 <= max_radius**2))
+    sel = sel[stem_points(pts[sel, :2], ids[sel])]  # no riser or stake beside the stem
     c, r = tree_circles(pts[sel, :2], ids[sel], k, fit=partial(trunk_circle, solid=solid))
     ok = np.isfinite(r) & (r > MIN_TRUNK_RADIUS) & (r <= max_radius)
     out[ok] = 2 * r[ok]

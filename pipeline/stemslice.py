@@ -1,0 +1,88 @@
+"""Which points of a trunk's slice are its stem: the pieces a stem circle is fitted to.
+
+A slice 0.3 m above a young tree's base also holds an irrigation riser or a stake
+0.15-0.4 m from the stem when the segmentation gave it to the tree; a circle through
+both spans them (0.35-0.52 m for stems of 0.06-0.09 m) and pulls the trunk's position
+toward the riser. A stem's surface is one piece, or arcs about a diameter apart where
+the scan saw it from two sides; a pipe beside it lies farther from the stem than the
+stem is wide.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+from scipy.sparse import coo_matrix
+from scipy.sparse.csgraph import connected_components
+from scipy.spatial import cKDTree
+
+from pipeline.circles import fit_circle
+
+#: points of one surface lie closer than this [m], or than LINK_SPACINGS times the
+#: slice's median point spacing where the scan is sparser
+MIN_LINK = 0.03
+LINK_SPACINGS = 3.0
+#: a piece of fewer points gives no circle to tell the stem by
+MIN_PIECE = 6
+#: a slice of more pieces, the largest holding a smaller share of its points, is a
+#: sparse scan's ring in fragments (a stem, a riser, a stake and twigs are a few)
+MIN_SHARE = 0.5
+MAX_PIECES = 6
+
+
+def stem_points(xy: np.ndarray, tree: np.ndarray) -> np.ndarray:
+    """(n,) bool: the points of each tree's slice that are its stem.
+
+    Each tree's slice is split into pieces (points linked closer than its link length);
+    the stem is the piece with the most points and every piece with a point on or inside
+    that piece's circle (:func:`pipeline.circles.fit_circle`, widened by the larger of the
+    link length and half its radius) or within the piece's extent (bounding-box diagonal):
+    the other side of a stem seen from two alleys lies on that circle, a riser or stake
+    beside the stem outside it. A slice of one piece, or whose largest piece holds fewer
+    than :data:`MIN_PIECE` points, or which is in more than :data:`MAX_PIECES` pieces
+    none holding :data:`MIN_SHARE` of its points, is kept whole.
+
+    Parameters
+    ----------
+    xy : (n, 2) float64 — the slices' points [m]
+    tree : (n,) int64 — the tree (trunk) of each point
+    """
+    n = xy.shape[0]
+    keep = np.ones(n, bool)
+    if n < 3:
+        return keep
+    kd = cKDTree(xy, balanced_tree=False, compact_nodes=False)
+    nearest = kd.query(xy, k=2)[0][:, 1]
+    trees, inv = np.unique(tree, return_inverse=True)
+    spacing = np.array([np.median(nearest[inv == t]) for t in range(trees.size)])
+    link = np.maximum(MIN_LINK, LINK_SPACINGS * spacing)
+    pairs = kd.query_pairs(float(link.max()), output_type="ndarray")
+    if pairs.size:
+        same = inv[pairs[:, 0]] == inv[pairs[:, 1]]
+        pairs = pairs[same]
+        d = np.hypot(*(xy[pairs[:, 0]] - xy[pairs[:, 1]]).T)
+        pairs = pairs[d <= link[inv[pairs[:, 0]]]]
+    graph = coo_matrix((np.ones(len(pairs)), (pairs[:, 0], pairs[:, 1])), shape=(n, n))
+    _, piece = connected_components(graph, directed=False)
+    # pieces are numbered within trees' points in any order: one tree may own several
+    pieces_of_tree = np.bincount(inv[np.unique(piece, return_index=True)[1]], minlength=trees.size)
+    for t in np.flatnonzero(pieces_of_tree > 1):
+        own = np.flatnonzero(inv == t)
+        keep[own] = _grown_stem(xy[own], piece[own], link[t])
+    return keep
+
+
+def _grown_stem(xy: np.ndarray, piece: np.ndarray, link: float) -> np.ndarray:
+    """(m,) bool: one tree's stem among its slice's pieces (see :func:`stem_points`)."""
+    labels, sizes = np.unique(piece, return_counts=True)
+    main = piece == labels[np.argmax(sizes)]
+    centre, radius = fit_circle(xy[main], solid=True)
+    fragments = sizes.max() < MIN_SHARE * piece.shape[0] and labels.size > MAX_PIECES
+    if sizes.max() < MIN_PIECE or fragments or not np.isfinite(radius):
+        return np.ones(piece.shape[0], bool)  # too few points to say what the stem is
+    # a piece with a point on or inside the main piece's circle is more of that stem, and
+    # so is one within the main piece's own extent (a short arc's circle is uncertain)
+    inner = xy[main]
+    reach = max(float(np.hypot(*(inner.max(axis=0) - inner.min(axis=0)))), link)
+    near = cKDTree(inner).query(xy, distance_upper_bound=reach)[0] <= reach
+    inside = near | (np.hypot(*(xy - centre).T) <= radius + max(link, 0.5 * radius))
+    return np.isin(piece, np.unique(piece[inside]))
