@@ -16,6 +16,7 @@ from scipy.sparse.csgraph import connected_components
 from scipy.spatial import cKDTree
 
 from pipeline.circles import fit_circle
+from pipeline.floors import group_percentile
 
 #: points of one surface lie closer than this [m], or than LINK_SPACINGS times the
 #: slice's median point spacing where the scan is sparser
@@ -53,7 +54,7 @@ def stem_points(xy: np.ndarray, tree: np.ndarray) -> np.ndarray:
     kd = cKDTree(xy, balanced_tree=False, compact_nodes=False)
     nearest = kd.query(xy, k=2)[0][:, 1]
     trees, inv = np.unique(tree, return_inverse=True)
-    spacing = np.array([np.median(nearest[inv == t]) for t in range(trees.size)])
+    spacing = group_percentile(nearest, inv, trees.size, 50.0)
     link = np.maximum(MIN_LINK, LINK_SPACINGS * spacing)
     pairs = kd.query_pairs(float(link.max()), output_type="ndarray")
     if pairs.size:
