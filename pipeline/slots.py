@@ -65,8 +65,8 @@ MIN_LATTICE_TREES = 4
 #: such a row, where each step between its trees is a whole number of the long rows'
 #: spacing, within SLOT_REACH of it (a mature row a third replanted keeps three trees of six)
 MIN_SHORT_LATTICE_TREES = 3
-#: ... and a row of two trees a whole number of at least two such spacings apart: an
-#: empty slot between two trees on the block's lattice (a row half replanted keeps two)
+#: ... and a row of two trees a whole number of at least this many such spacings apart
+#: (a row half replanted keeps two, one slot apart as often as more)
 MIN_GAPPED_LATTICE_SLOTS = 1
 #: in a block without a row of MIN_LATTICE_TREES, this many rows of MIN_SHORT_LATTICE_TREES
 #: trees on one lattice are its evidence (two rows of six slots half replanted keep three
