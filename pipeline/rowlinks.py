@@ -231,14 +231,15 @@ def _band_fit(xy: np.ndarray, u: np.ndarray, width: float) -> tuple[int, float, 
     return int(label.max()) + 1, float(((c - mean[label]) ** 2).sum()), label
 
 
-def banded_direction(xy: np.ndarray, width: float, neighbours: int = 12) -> tuple[np.ndarray, int, float]:
+def banded_direction(xy: np.ndarray, width: float, neighbours: int = 12,
+                     candidates: int = 64) -> tuple[np.ndarray, int, float]:
     """The direction along which the trees ``xy`` (k, 2) [m] stand in the fewest lines
     ``width`` [m] wide, that number of lines, and the median distance [m] between
     neighbouring lines of two or more trees (NaN without two).
 
     Strategy: the candidates are the directions (to 0.5 degrees) from each tree to its
     nearest ``neighbours`` trees (a row's trees lie one, two or three slots apart, so one
-    of these runs along it); each is scored by the bands its across offsets make
+    of these runs along it), the ``candidates`` most frequent of them; each is scored by the bands its across offsets make
     (:func:`bands`): fewest, then tightest. The winner's angle is refined as the common
     direction of its bands of two or more trees (their pooled principal axis)."""
     k = len(xy)
@@ -246,7 +247,9 @@ def banded_direction(xy: np.ndarray, width: float, neighbours: int = 12) -> tupl
     near = cKDTree(xy).query(xy, k=m)[1].reshape(k, m)
     vec = (xy[near[:, 1:]] - xy[:, None, :]).reshape(-1, 2)
     vec = vec[np.hypot(vec[:, 0], vec[:, 1]) > 0]
-    ang = np.unique(np.round(2.0 * (np.degrees(np.arctan2(vec[:, 1], vec[:, 0])) % 180.0)) / 2.0)
+    ang, count = np.unique(np.round(2.0 * (np.degrees(np.arctan2(vec[:, 1], vec[:, 0])) % 180.0)) / 2.0,
+                           return_counts=True)
+    ang = ang[np.sort(np.argsort(-count, kind="stable")[:candidates])]  # a lattice's directions recur
     best = None
     for a in ang:
         u = np.array([np.cos(np.radians(a)), np.sin(np.radians(a))])
