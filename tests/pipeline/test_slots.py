@@ -229,7 +229,7 @@ def test_rows_half_replanted_are_read_along_their_straight_lines_and_every_repla
     assert sorted(map(tuple, got[:, :2].tolist())) == sorted(map(tuple, replants))
 
 
-@settings(max_examples=30, deadline=None)
+@settings(max_examples=15, deadline=None)
 @given(seed=st.integers(0, 10_000), angle=st.floats(0.0, 360.0))
 def test_rows_half_replanted_do_not_depend_on_rotation_or_the_order_of_the_trees(seed, angle):
     # a block of two rows of six slots, three grown trees left in each (the slots drawn),
