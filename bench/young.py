@@ -22,6 +22,7 @@ SETTINGS = ((1.0, 3.5), (1.5, 3.5), (2.0, 4.0))
 #: and young trees among trellis posts taller than they are
 MIXED = (
     ("vase, 5 m × 6 m, 2 × 6 slots, 30 % replants", dict(form="vase", rows=2, trees_per_row=6, replants=0.3)),
+    ("vase, 5 m × 6 m, 2 × 6 slots, 50 % replants", dict(form="vase", rows=2, trees_per_row=6, replants=0.5)),
     ("tall spindle, 1.0 m × 3.5 m, 2 × 12 slots, 30 % replants",
      dict(form="spindle", rows=2, trees_per_row=12, spacing=1.0, row_spacing=3.5, replants=0.3)),
     ("hedge, 1.5 m × 4 m, 2 × 10 slots, 30 % replants",

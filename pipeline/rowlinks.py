@@ -163,6 +163,28 @@ def chains_of(succ: np.ndarray, pred: np.ndarray) -> list[np.ndarray]:
     return chains
 
 
+def nearest_along(xy: np.ndarray, u: np.ndarray, max_angle: float = 30.0) -> float:
+    """Share of the trees ``xy`` (k, 2) [m] whose nearest tree lies within ``max_angle``
+    degrees of the direction ``u``."""
+    if len(xy) < 2:
+        return 1.0
+    near = cKDTree(xy).query(xy, k=2)[1][:, 1]
+    vec = xy[near] - xy
+    cos = np.abs(vec @ u) / np.maximum(np.hypot(vec[:, 0], vec[:, 1]), 1e-12)
+    return float((cos >= np.cos(np.radians(max_angle))).mean())
+
+
+def chain_spacing(xy: np.ndarray, chains: list[np.ndarray], u: np.ndarray, min_gap: float) -> float:
+    """Median distance [m] across ``u`` between neighbouring lines of the ``chains`` of two
+    or more trees (member indices into ``xy``), counting only lines more than ``min_gap``
+    [m] apart (fragments of one row are one line); NaN without two such lines."""
+    v = np.array([-u[1], u[0]])
+    offs = np.sort([float(np.median(xy[ch] @ v)) for ch in chains if len(ch) >= 2])
+    gaps = np.diff(offs)
+    gaps = gaps[gaps > min_gap]
+    return float(np.median(gaps)) if len(gaps) else float("nan")
+
+
 def measured_row_spacing(xy: np.ndarray, direction: np.ndarray, tree: cKDTree) -> float:
     """Median distance [m] from a tree to the nearest tree of a neighbouring row (one
     lying more than 60° off its row direction), or NaN for a block of one row."""
@@ -177,3 +199,75 @@ def measured_row_spacing(xy: np.ndarray, direction: np.ndarray, tree: cKDTree) -
     lateral = np.where(off, across, np.inf).min(axis=1)
     lateral = lateral[np.isfinite(lateral)]
     return float(np.median(lateral)) if len(lateral) >= max(3, 0.2 * k) else float("nan")
+
+
+def bands(across: np.ndarray, width: float) -> np.ndarray:
+    """(n,) int64 band of each across offset [m]: the fewest bands ``width`` [m] wide
+    that hold them all (greedy from the lowest offset, which is optimal on a line)."""
+    order = np.argsort(across, kind="stable")
+    c = across[order]
+    label = np.zeros(len(c), dtype=np.int64)
+    i, band = 0, 0
+    while i < len(c):  # one step per band
+        j = int(np.searchsorted(c, c[i] + width, side="right"))
+        label[i:j] = band
+        i, band = j, band + 1
+    out = np.empty(len(c), dtype=np.int64)
+    out[order] = label
+    return out
+
+
+def band_count(xy: np.ndarray, u: np.ndarray, width: float) -> int:
+    """Lines ``width`` [m] wide along ``u`` needed to hold all trees ``xy`` (:func:`bands`)."""
+    return _band_fit(xy, u, width)[0]
+
+
+def _band_fit(xy: np.ndarray, u: np.ndarray, width: float) -> tuple[int, float, np.ndarray]:
+    """Bands (:func:`bands`) of the trees ``xy`` across direction ``u``: their number, the
+    trees' squared offsets from their bands' means [m²], and each tree's band."""
+    c = xy @ np.array([-u[1], u[0]])
+    label = bands(c, width)
+    mean = np.bincount(label, weights=c) / np.bincount(label)
+    return int(label.max()) + 1, float(((c - mean[label]) ** 2).sum()), label
+
+
+def banded_direction(xy: np.ndarray, width: float, neighbours: int = 12,
+                     candidates: int = 64) -> tuple[np.ndarray, int, float]:
+    """The direction along which the trees ``xy`` (k, 2) [m] stand in the fewest lines
+    ``width`` [m] wide, that number of lines, and the median distance [m] between
+    neighbouring lines of two or more trees (NaN without two).
+
+    Strategy: the candidates are the directions (to 0.5 degrees) from each tree to its
+    nearest ``neighbours`` trees (a row's trees lie one, two or three slots apart, so one
+    of these runs along it), the ``candidates`` most frequent of them; each is scored by the bands its across offsets make
+    (:func:`bands`): fewest, then tightest. The winner's angle is refined as the common
+    direction of its bands of two or more trees (their pooled principal axis)."""
+    k = len(xy)
+    m = min(k, neighbours + 1)
+    near = cKDTree(xy).query(xy, k=m)[1].reshape(k, m)
+    vec = (xy[near[:, 1:]] - xy[:, None, :]).reshape(-1, 2)
+    vec = vec[np.hypot(vec[:, 0], vec[:, 1]) > 0]
+    ang, count = np.unique(np.round(2.0 * (np.degrees(np.arctan2(vec[:, 1], vec[:, 0])) % 180.0)) / 2.0,
+                           return_counts=True)
+    ang = ang[np.sort(np.argsort(-count, kind="stable")[:candidates])]  # a lattice's directions recur
+    best = None
+    for a in ang:
+        u = np.array([np.cos(np.radians(a)), np.sin(np.radians(a))])
+        n, spread, label = _band_fit(xy, u, width)
+        if best is None or (n, spread) < best[:2]:
+            best = (n, spread, label, u)
+    n, _, label, u = best
+    sizes = np.bincount(label)
+    lined = sizes[label] >= 2
+    if lined.sum() >= 3:
+        means = np.c_[np.bincount(label, weights=xy[:, 0]), np.bincount(label, weights=xy[:, 1])] / sizes[:, None]
+        d = (xy - means[label])[lined]
+        vecs = np.linalg.eigh(d.T @ d)[1]
+        if _band_fit(xy, vecs[:, 1], width)[0] <= n:
+            u = vecs[:, 1]
+    u = u / np.hypot(*u)
+    n, _, label = _band_fit(xy, u, width)
+    c = xy @ np.array([-u[1], u[0]])
+    sizes = np.bincount(label)
+    lines = np.sort((np.bincount(label, weights=c) / sizes)[sizes >= 2])
+    return u, n, float(np.median(np.diff(lines))) if len(lines) >= 2 else float("nan")

@@ -28,11 +28,15 @@ from scipy.spatial import cKDTree
 from pipeline.canopy import canopy_rows
 from pipeline.params import RowParams
 from pipeline.rowlinks import (
+    band_count,
+    banded_direction,
+    chain_spacing,
     chains_of,
     link_trees,
     linked_directions,
     local_directions,
     measured_row_spacing,
+    nearest_along,
     row_sections,
     section_direction,
 )
@@ -49,11 +53,21 @@ _OUTLIER_SIGMAS = 3.0
 _MAD_SIGMA = 1.4826
 #: rounds of reading the row directions off the links found (:func:`_along_links`)
 _LINK_ROUNDS = 2
+#: a row's trees lie within a band this fraction of the typical distance to a tree's
+#: nearest tree wide (:func:`_straight_rows`) ...
+_BAND_WIDTH = 0.2
+#: ... and the rows are read again along the fewest such bands unless at least this share
+#: of a section's trees have their nearest tree along the rows read (a block whose rows
+#: keep most of their trees: the nearest tree decides)
+_NEAREST_ALONG = 0.8
 #: steps between a row's trees are whole numbers of its planting distance within this
 #: fraction of it (a tree hand-planted off its slot)...
 _WHOLE_SLOTS = 0.25
 #: the median step is the planting distance where this share of the steps are whole numbers of it ...
 _MEDIAN_WHOLE_SHARE = 0.5
+#: ... and it is at most this many times the typical distance to a tree's nearest tree (one
+#: slot, within _WHOLE_SLOTS) ...
+_MEDIAN_NEAREST = 1.25
 #: ... else the largest step of which this share are
 _WHOLE_SHARE = 0.9
 #: the planting distance is looked for among this many quantiles of the steps (and their halves and thirds)
@@ -145,7 +159,7 @@ def _section_rows(local, direction, members, u, v, spacing, params, canopy=None,
     chains = chains_of(succ, pred)
     steps = [_steps(p[c], direction[members][c]) for c in chains if len(c) > 1]
     if steps:
-        spacing = _planting_distance(np.concatenate(steps))
+        spacing = _planting_distance(np.concatenate(steps), spacing)
     a, c = p @ u, p @ v
     long = [ch for ch in chains if len(ch) >= 3]
     bow = _Bow.fit(a, c, long)
@@ -164,18 +178,23 @@ def _section_rows(local, direction, members, u, v, spacing, params, canopy=None,
     return rows, members[~on], members[~on & inside], spacing
 
 
-def _planting_distance(steps: np.ndarray) -> float:
+def _planting_distance(steps: np.ndarray, nearest: float = float("inf")) -> float:
     """The planting distance [m] of rows whose steps between neighbouring trees are
     ``steps`` [m]: their median, unless most steps are not whole numbers of it
-    (:func:`_whole`); then the largest step of which nearly all are (a step, a half or a
-    third of one), read again as the median of the steps divided by their slots.
+    (:func:`_whole`) or it is far longer than ``nearest``, the typical distance from a
+    tree to its nearest tree [m]; then the largest step of which nearly all are (a step,
+    a half or a third of one), read again as the median of the steps divided by their
+    slots.
 
     A row that keeps four trees of six steps one and two slots in about equal
     numbers, and the median of such steps is no slot at all (7.5 m in 5 m rows). A
     median most steps are whole numbers of stands: false trunks half a slot from a
-    tree (a trellis post) must not halve the planting distance."""
+    tree (a trellis post) must not halve the planting distance. In rows half replanted
+    most steps can be two slots (5 m rows keeping trees 10 m apart, and a tree 6 m
+    across): a median :data:`_MEDIAN_NEAREST` times the nearest tree's distance is no
+    planting distance."""
     spacing = float(np.median(steps))
-    if _whole(steps, spacing).mean() >= _MEDIAN_WHOLE_SHARE:
+    if _whole(steps, spacing).mean() >= _MEDIAN_WHOLE_SHARE and spacing <= _MEDIAN_NEAREST * nearest:
         return spacing
     quantiles = np.quantile(steps, np.linspace(0.0, 1.0, _SPACING_CANDIDATES))
     for cand in np.sort(np.concatenate([quantiles / n for n in (1, 2, 3)]))[::-1]:
@@ -192,13 +211,22 @@ def _whole(steps: np.ndarray, spacing: float) -> np.ndarray:
     return np.abs(ratio - np.maximum(1.0, np.rint(ratio))) <= _WHOLE_SLOTS
 
 
-def _links(local, direction, members, u, spacing, params) -> tuple[np.ndarray, np.ndarray, float, float]:
+def _links(local, direction, members, u, spacing, params, across=None) -> tuple[np.ndarray, np.ndarray, float, float]:
     """Each member's successor and predecessor along its row (:func:`pipeline.rowlinks.link_trees`),
-    the distance between rows [m] (NaN: one row) and the lateral tolerance of a link [m]."""
+    the distance between rows [m] (NaN: one row; measured unless given) and the lateral
+    tolerance of a link [m]."""
     p = local[members]
-    across = measured_row_spacing(p, direction[members], cKDTree(p))
+    if across is None or not np.isfinite(across):
+        across = measured_row_spacing(p, direction[members], cKDTree(p))
     tol = params.lateral_tolerance * across if np.isfinite(across) else max(spacing, 0.5)
     succ, pred = link_trees(local, direction, u, members, spacing, tol, params.max_gap_slots)
+    if not np.isfinite(across):
+        # no tree has a tree straight across the row (a row half replanted keeps its trees in
+        # other slots than the next row): the distance between the lines of the chains found
+        across = chain_spacing(p, chains_of(succ, pred), u, _BAND_WIDTH * spacing)
+        if np.isfinite(across):
+            tol = params.lateral_tolerance * across
+            succ, pred = link_trees(local, direction, u, members, spacing, tol, params.max_gap_slots)
     return succ, pred, across, tol
 
 
@@ -220,6 +248,35 @@ def _along_links(local, direction, near, members, spacing, params) -> tuple[np.n
             break
         direction, links = again, more
     return direction, links
+
+
+def _straight_rows(local, direction, members, spacing, params, links) -> tuple[np.ndarray, tuple]:
+    """``direction`` and ``links`` (:func:`_along_links`), or the section read along the
+    direction in which its trees stand in the fewest straight lines
+    (:func:`pipeline.rowlinks.banded_direction`) where that gives fewer lines and the
+    nearest trees do not decide.
+
+    On a block half replanted the grown trees stand one to three slots apart in their
+    rows, and a tree's nearest tree lies as often across the rows as along them: the
+    directions read off them (and off the links they give) can point anywhere (a vase
+    block of two rows of six slots, three grown trees left in each). Rows are straight
+    lines of trees: the fewest lines ``_BAND_WIDTH`` of ``spacing`` (the typical
+    distance to a tree's nearest tree) wide that hold all trees run along the rows
+    where the rows hold more trees than any line across them. Where most trees'
+    nearest tree lies along the rows read (:data:`_NEAREST_ALONG`), those are the rows
+    (a block of more rows than trees in a row has more trees in a line across).
+    """
+    p = local[members]
+    now = section_direction(direction[members])
+    if nearest_along(p, now) >= _NEAREST_ALONG:
+        return direction, links
+    width = _BAND_WIDTH * spacing
+    u, n, across = banded_direction(p, width)
+    if n >= band_count(p, now, width):
+        return direction, links
+    along = direction.copy()
+    along[members] = u
+    return along, _links(local, along, members, section_direction(along[members]), spacing, params, across)
 
 
 @dataclass(frozen=True)
@@ -496,6 +553,8 @@ def _found_rows(xy: np.ndarray, params: RowParams, canopy: np.ndarray | None) ->
         if len(members) > 2:
             direction, links = _along_links(local, direction, near.reshape(k, m), members,
                                             float(np.median(nn_dist[members])), params)
+            direction, links = _straight_rows(local, direction, members, float(np.median(nn_dist[members])),
+                                              params, links)
         u = section_direction(direction[members]) if len(members) > 1 else np.array([1.0, 0.0])
         v = np.array([u[1], -u[0]]) if abs(u[1]) > abs(u[0]) else np.array([-u[1], u[0]])  # numbering: east or north
         sec_canopy = can_local[can_section == sec] if canopy is not None and len(canopy) else None

@@ -50,7 +50,7 @@ MIN_FAR_FULL_SHARE = 0.4
 #: a replant drains at least this share (a shoot or weed in the grass drains less)
 MIN_REPLANT_SHARE = 0.1
 #: trees let in at a row's end open the slot beyond them: rounds of letting in, at most
-SLOT_ROUNDS = 3
+SLOT_ROUNDS = 5
 #: contact nodes within this distance [m] of a tree let in seed it in segmentation
 SOURCE_RADIUS = 0.2
 #: a tile's contact group is the block's group a tree was let in as when their centres
@@ -65,9 +65,13 @@ MIN_LATTICE_TREES = 4
 #: such a row, where each step between its trees is a whole number of the long rows'
 #: spacing, within SLOT_REACH of it (a mature row a third replanted keeps three trees of six)
 MIN_SHORT_LATTICE_TREES = 3
-#: ... and a row of two trees a whole number of at least two such spacings apart: an
-#: empty slot between two trees on the block's lattice (a row half replanted keeps two)
-MIN_GAPPED_LATTICE_SLOTS = 2
+#: ... and a row of two trees a whole number of at least this many such spacings apart
+#: (a row half replanted keeps two, one slot apart as often as more)
+MIN_GAPPED_LATTICE_SLOTS = 1
+#: in a block without a row of MIN_LATTICE_TREES, this many rows of MIN_SHORT_LATTICE_TREES
+#: trees on one lattice are its evidence (two rows of six slots half replanted keep three
+#: grown trees each)
+MIN_SHORT_LATTICE_ROWS = 2
 
 
 def open_slots(layout: RowLayout) -> np.ndarray:
@@ -80,19 +84,33 @@ def open_slots(layout: RowLayout) -> np.ndarray:
 
 def _lattice_rows(layout: RowLayout) -> np.ndarray:
     """(r,) bool: the rows that are evidence of a planting lattice (:data:`MIN_LATTICE_TREES`,
-    :data:`MIN_SHORT_LATTICE_TREES`, :data:`MIN_GAPPED_LATTICE_SLOTS`)."""
+    :data:`MIN_SHORT_LATTICE_TREES`, :data:`MIN_GAPPED_LATTICE_SLOTS`, :data:`MIN_SHORT_LATTICE_ROWS`)."""
     n = layout.rows["n_trees"]
     long = n >= MIN_LATTICE_TREES
     spacing = layout.rows["spacing_m"][long]
     spacing = spacing[np.isfinite(spacing)]
     if not spacing.size:
-        return long
+        # no row of four: rows of three on one lattice (a block half replanted)
+        short = (n >= MIN_SHORT_LATTICE_TREES) & np.isfinite(layout.rows["spacing_m"])
+        if short.sum() < MIN_SHORT_LATTICE_ROWS:
+            return long
+        s = float(np.median(layout.rows["spacing_m"][short]))
+        lattice = np.array([bool(short[r]) and _on_lattice(layout.lines[r], s, 1) for r in range(len(n))])
+        if lattice.sum() < MIN_SHORT_LATTICE_ROWS:
+            return long
+        long, spacing = lattice, np.array([s])
     s = float(np.median(spacing))
     for r in np.flatnonzero(~long & (n >= 2)):
-        steps = np.hypot(*np.diff(layout.lines[r], axis=0).T) / s  # the line runs through its trees in slot order
         least = 1 if n[r] >= MIN_SHORT_LATTICE_TREES else MIN_GAPPED_LATTICE_SLOTS
-        long[r] = bool(np.all((np.rint(steps) >= least) & (np.abs(steps - np.rint(steps)) <= SLOT_REACH)))
+        long[r] = _on_lattice(layout.lines[r], s, least)
     return long
+
+
+def _on_lattice(line: np.ndarray, spacing: float, least: int) -> bool:
+    """Whether every step between the trees of a row's ``line`` (in slot order) [m] is a
+    whole number of at least ``least`` ``spacing`` [m], within :data:`SLOT_REACH` of it."""
+    steps = np.hypot(*np.diff(line, axis=0).T) / spacing
+    return bool(np.all((np.rint(steps) >= least) & (np.abs(steps - np.rint(steps)) <= SLOT_REACH)))
 
 
 def _open_slots(layout: RowLayout) -> tuple[np.ndarray, np.ndarray]:

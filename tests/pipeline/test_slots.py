@@ -4,6 +4,8 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
+from hypothesis import given, settings
+from hypothesis import strategies as st
 
 from pipeline.params import PipelineParams
 from pipeline.rows import find_rows
@@ -192,3 +194,56 @@ def test_rows_a_third_replanted_are_read_along_the_planting_and_their_slots_open
     assert np.allclose(layout.rows["spacing_m"], 5.0, atol=0.2)
     slot = on_open_slot(np.asarray(trunks), np.asarray(replants), reach=FAR_REACH)
     assert (slot >= 0).all() and len(set(slot.tolist())) == 4
+
+
+#: trunks as found on vase blocks half replanted (5 m x 6 m, 2 x 6 slots, tuning seeds 302
+#: and 308: six grown trees), and the slots of their six replants
+HALF_REPLANTED = {
+    302: ([[7.77, 8.06], [13.04, 8.02], [18.11, 13.97], [22.9, 13.65], [28.0, 13.84], [33.18, 14.01]],
+          [[17.64, 7.72], [22.84, 8.11], [27.98, 7.88], [32.78, 7.78], [7.69, 13.98], [12.97, 13.87]]),
+    308: ([[8.06, 13.76], [12.95, 8.12], [23.07, 8.01], [23.13, 13.93], [27.97, 7.97], [32.73, 14.08]],
+          [[7.85, 7.79], [17.76, 7.92], [32.89, 8.04], [12.7, 13.96], [17.75, 14.03], [28.17, 13.98]]),
+}
+
+
+@pytest.mark.parametrize("seed", sorted(HALF_REPLANTED))
+def test_rows_half_replanted_are_read_along_their_straight_lines_and_every_replant_is_let_in(seed):
+    # seed 302: two and four grown trees; the nearest trees' direction (77 degrees) made one
+    # row zigzagging through both. Seed 308: three and three, 5 or 10 m apart in their rows
+    # and 6 m across; read 139 degrees, four rows. Along the rows the six trees stand in
+    # two lines; across them in five or more
+    trunks, replants = HALF_REPLANTED[seed]
+    layout = find_rows(np.asarray(trunks))
+    assert len(layout.rows["row"]) == 2 and not layout.off_row.any()
+    assert np.allclose(layout.rows["azimuth_deg"], 90.0, atol=5.0)
+    assert np.allclose(layout.rows["spacing_m"], 5.0, atol=0.2)
+    row_of = dict(zip(map(tuple, trunks), layout.row.tolist()))
+    assert len({row_of[tuple(t)] for t in trunks if t[1] < 11.0}) == 1  # the southern row's trees in one row
+    # positions count 5 m slots from each row's western tree: a slot between two of its trees stays empty
+    x = np.asarray(trunks)[:, 0]
+    for r in np.unique(layout.row):
+        on = layout.row == r
+        assert (layout.position[on] - 1 == np.rint((x[on] - x[on].min()) / 5.0)).all()
+    # the replants are let in round by round, from the rows' slots between and beyond their ends
+    got = trees_on_slots(_evidence(trunks, replants), params=PipelineParams().rows)
+    assert sorted(map(tuple, got[:, :2].tolist())) == sorted(map(tuple, replants))
+
+
+@settings(max_examples=15, deadline=None)
+@given(seed=st.integers(0, 10_000), angle=st.floats(0.0, 360.0))
+def test_rows_half_replanted_do_not_depend_on_rotation_or_the_order_of_the_trees(seed, angle):
+    # a block of two rows of six slots, three grown trees left in each (the slots drawn),
+    # 0.1 m of scatter: its rows are the same trees at any rotation and in any order
+    rng = np.random.default_rng(seed)
+    keep = np.array([(r, s) for r in range(2) for s in np.sort(rng.choice(6, 3, replace=False))])
+    xy = np.c_[keep[:, 1] * 5.0, keep[:, 0] * 6.0] + rng.normal(0.0, 0.07, (6, 2))
+    a = np.radians(angle)
+    turned = xy @ np.array([[np.cos(a), np.sin(a)], [-np.sin(a), np.cos(a)]]) + [500_000.0, 6_950_000.0]
+    perm = rng.permutation(6)
+
+    def rows_of(layout, order):
+        return sorted(sorted(order[layout.row == r].tolist()) for r in np.unique(layout.row))
+
+    plain = rows_of(find_rows(xy), np.arange(6))
+    assert rows_of(find_rows(turned), np.arange(6)) == plain
+    assert rows_of(find_rows(turned[perm]), perm) == plain
