@@ -55,7 +55,8 @@ def test_worker_killed_mid_job_and_relative_paths_mean_the_same_on_workers_in_ot
     assert Path(os.getcwd()).resolve() != here.resolve()
     out, work = here / "out", here / "work"
     proc = subprocess.Popen(
-        _orchard("block.laz", "--out", "out", "--tile-size", 10, "--scheduler", loopback_cluster.address, "--work", "work"),
+        _orchard("block.laz", "--out", "out", "--tile-size", 10, "--scheduler", loopback_cluster.address,
+                 "--work", "work"),
         cwd=here,
         stdout=subprocess.PIPE,
         stderr=subprocess.PIPE,
