@@ -16,8 +16,10 @@ from simulator.truth import write_simulation
 @pytest.fixture(scope="module")
 def block(tmp_path_factory):
     folder = tmp_path_factory.mktemp("bench-budget")
-    path = folder / "small.laz"
-    write_simulation(SimulationParams(rows=2, trees_per_row=4, density=0.2, seed=1), str(path), str(folder / "t.parquet"))
+    path = folder / "sparse.laz"
+    # the rows are counts and peaks of whatever tiles there are: half the points of
+    # the workers' small block (same extent, so the same 10 m tiles) do
+    write_simulation(SimulationParams(rows=2, trees_per_row=4, density=0.1, seed=1), str(path), str(folder / "t.parquet"))
     return str(path)
 
 

@@ -31,6 +31,14 @@ def test_no_server_errors(api_server, server_tokens, server_client_a, small_las,
         f'job_id = "{job["id"]}"\n'
         f'schedule_id = "{sched["id"]}"\n'
         f'orchard_block_id = "{orchard["id"]}"\n'
+        # the boundary cases of a schedule's body (1,459 of 3,528 requests, seed 2) ended
+        # at 422 but 4: the valid ones carry an inbox "" (no folder) or a cron "", so they
+        # never reached the store, and their job parameters' bounds are those of POST
+        # /v1/jobs and of a capture, whose boundary cases do; both are still fuzzed and
+        # run in sequences
+        "\n[[operations]]\n"
+        'include-name = ["POST /v1/schedules", "PATCH /v1/schedules/{schedule_id}"]\n'
+        "phases.coverage.enabled = false\n"
     )
     cmd = [
         sys.executable, "-c", "from schemathesis.cli import schemathesis; schemathesis()",

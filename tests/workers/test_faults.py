@@ -1,7 +1,8 @@
 """Faults on a real cluster: ``dask scheduler`` + two ``dask worker`` processes on loopback.
 
-A worker killed with SIGKILL mid-job → identical output; a tile that raises is retried,
-then the job stops with an error naming it (never hangs); the failed tile re-runs alone.
+A worker killed with SIGKILL mid-job → identical output, from relative paths given in a
+folder that is not the workers'; a tile that raises is retried, then the job stops with
+an error naming it (never hangs); the failed tile re-runs alone.
 """
 
 from __future__ import annotations
@@ -41,10 +42,22 @@ def _same_outputs(a: Path, b: Path) -> None:
     assert pq.read_table(a / "trees.parquet").equals(pq.read_table(b / "trees.parquet"))
 
 
-def test_worker_killed_mid_job(small_block, reference, loopback_cluster, tmp_path):
-    out, work = tmp_path / "out", tmp_path / "work"
+def test_worker_killed_mid_job_and_relative_paths_mean_the_same_on_workers_in_other_folders(
+        small_block, reference, loopback_cluster, tmp_path):
+    # the workers run in a folder of their own: relative --out / --work / input paths
+    # named files there (FileNotFoundError on .../tiles/index.json), so every local
+    # path is made absolute before a task is sent
+    import shutil
+
+    here = tmp_path / "client"
+    here.mkdir()
+    shutil.copy(small_block, here / "block.laz")
+    assert Path(os.getcwd()).resolve() != here.resolve()
+    out, work = here / "out", here / "work"
     proc = subprocess.Popen(
-        _orchard(small_block, "--out", out, "--tile-size", 10, "--scheduler", loopback_cluster.address, "--work", work),
+        _orchard("block.laz", "--out", "out", "--tile-size", 10, "--scheduler", loopback_cluster.address,
+                 "--work", "work"),
+        cwd=here,
         stdout=subprocess.PIPE,
         stderr=subprocess.PIPE,
     )
@@ -124,22 +137,3 @@ def test_later_tile_failing_gives_partial_result_then_rerun_alone(small_block, r
     assert rerun.returncode == 0, rerun.stderr.decode()
     _same_outputs(out, reference)
     assert not work.exists()
-
-
-def test_relative_paths_mean_the_same_on_workers_in_other_folders(small_block, reference, loopback_cluster, tmp_path):
-    # the workers run in a folder of their own: relative --out / --work / input paths
-    # named files there (FileNotFoundError on .../tiles/index.json), so every local
-    # path is made absolute before a task is sent
-    import shutil
-
-    here = tmp_path / "client"
-    here.mkdir()
-    shutil.copy(small_block, here / "block.laz")
-    assert Path(os.getcwd()).resolve() != here.resolve()
-    loopback_cluster.ensure_workers(2)
-    run = subprocess.run(
-        _orchard("block.laz", "--out", "out", "--tile-size", 10, "--scheduler", loopback_cluster.address),
-        cwd=here, capture_output=True, text=True, timeout=TIMEOUT, check=False,
-    )
-    assert run.returncode == 0, run.stderr
-    _same_outputs(here / "out", reference)

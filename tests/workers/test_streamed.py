@@ -155,8 +155,8 @@ def test_the_hierarchys_density_sample_never_misses_a_cell_holding_points():
     assert (copc.nodes <= copc.counts).all()
 
 
-@pytest.mark.slow
-def test_a_lying_copc_header_on_the_command_line_is_one_line_and_exit_2(tmp_path, capsys):
+def test_a_lying_copc_header_on_the_command_line_is_one_line_and_exit_2(tmp_path, capsys, dask_cluster):
+    # on the tests' cluster: its workers log here, so a worker's traceback would be seen
     from service.cli import main
 
     info = read_info(COPC)
@@ -164,7 +164,8 @@ def test_a_lying_copc_header_on_the_command_line_is_one_line_and_exit_2(tmp_path
         (tmp_path / str(n)).mkdir()
         path = _lying(tmp_path / str(n), **kw)
         out = tmp_path / f"out{n}"
-        code = main(["process", str(path), "--out", str(out), "--tile-size", "10", "--workers", "1", "--no-dashboard"])
+        code = main(["process", str(path), "--out", str(out), "--tile-size", "10",
+                     "--scheduler", dask_cluster.scheduler_address])
         err = capsys.readouterr().err
         assert code == 2, err
         lines = [line for line in err.strip().splitlines() if not line.startswith("dask dashboard:")]
