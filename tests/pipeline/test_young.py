@@ -273,3 +273,11 @@ def test_a_grown_block_with_replants_keeps_the_mature_floors():
     # trellis posts with their wires drain more than young trees, but far less than a crown
     top, support = np.array([1.5, 1.6, 1.7, 2.9, 2.9]), np.array([100.0, 110.0, 120.0, 300.0, 320.0])
     assert block_floors(top, support, np.ones(5, bool)) == (0.85, 30)
+
+
+def test_young_trees_among_trellis_posts_with_end_posts():
+    """Posts every two gaps and one past each row's end (a gap from the last gap's post):
+    a trellis among young trees, not tall spindles' leaders; the posts are cut out."""
+    o = simulate_orchard(SimulationParams(seed=0, trellis=2, **YOUNG))
+    _, r, _, s = _scored(o)
+    assert s["trunk_f1"] >= 0.9, s  # 8 of 16 trees while the end posts kept every post in
