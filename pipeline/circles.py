@@ -123,9 +123,15 @@ def _best_circle(xy: np.ndarray, ux: np.ndarray, uy: np.ndarray, r: np.ndarray, 
     return _least_squares_circle(xy[keep])
 
 
+def _mean_rows(p: np.ndarray) -> np.ndarray:
+    """``p.mean(axis=0)`` of (m, 2) points, bit for bit (the same sum, divided by m),
+    without its generic machinery: a fit takes a few means of a few dozen points."""
+    return np.add.reduce(p, axis=0) / p.shape[0]
+
+
 def _least_squares_circle(p: np.ndarray) -> tuple[np.ndarray, float]:
     """The algebraic least-squares circle through points ``p`` (m, 2): centre, radius."""
-    mu = p.mean(axis=0)
+    mu = _mean_rows(p)
     q = p - mu
     sol, *_ = np.linalg.lstsq(np.column_stack([2 * q, np.ones(len(q))]), (q**2).sum(1), rcond=None)
     centre = sol[:2] + mu
@@ -152,7 +158,7 @@ def circle_support(xy: np.ndarray, ux: np.ndarray, uy: np.ndarray, r: np.ndarray
     n, t = xy.shape[0], ux.shape[0]
     if n == 0 or t == 0 or not np.isfinite(xy).all():
         return _support_pointwise(xy, ux, uy, r, inlier, inside_depth=inside_depth)
-    mean = xy.mean(axis=0)  # centred, the squares stay small and so does their rounding
+    mean = _mean_rows(xy)  # centred, the squares stay small and so does their rounding
     p = xy - mean
     vx, vy = ux - mean[0], uy - mean[1]
     points = np.empty((4, n))
@@ -177,7 +183,8 @@ def circle_support(xy: np.ndarray, ux: np.ndarray, uy: np.ndarray, r: np.ndarray
                 np.divide(col, w, out=rows[j])
             rel = _BAND_ROUNDING * np.finfo(np.float64).eps * (bound + hh + c) / w
         unsure = ~((rel < _MAX_BAND_MARGIN) & np.isfinite(rows).all(axis=0))
-        rows[:, unsure] = 0.0
+        if unsure.any():
+            rows[:, unsure] = 0.0
         return rows, unsure
 
     rows, unsure = band(r - inlier, r + inlier)

@@ -218,3 +218,12 @@ def test_a_post_section_fit_is_the_search_again_in_the_noise_band(n, sigma, clut
     got, want = trunk_circle(xy, trials=1024, solid=False), _trunk_circle_by_steps(xy, 1024)
     np.testing.assert_array_equal(got[0], want[0])
     assert got[1] == want[1] or (np.isnan(got[1]) and np.isnan(want[1]))
+
+
+@settings(max_examples=100, deadline=None)
+@given(n=st.integers(1, 300), scale=st.sampled_from([0.01, 1.0, 1e5]), seed=st.integers(0, 2**32 - 1))
+def test_mean_of_points_is_numpys(n, scale, seed):
+    from pipeline.circles import _mean_rows
+
+    p = np.random.default_rng(seed).normal(0, scale, (n, 2)) + scale
+    np.testing.assert_array_equal(_mean_rows(p), p.mean(axis=0))
