@@ -9,6 +9,8 @@ test (:mod:`pipeline.posts`).
 
 from __future__ import annotations
 
+import functools
+
 import numpy as np
 
 # Fixed tuning of the circle fits (lengths in metres).
@@ -20,6 +22,9 @@ _FIT_CHUNK = 1 << 16  # residuals computed per block of trials (elements; cache-
 #: :func:`circle_support`'s product and in the definition's own distance (4 terms, each
 #: within a few ulps; the definition's sqrt and hypot within 3 ulps of each other)
 _BAND_ROUNDING = 64
+#: below this many points :func:`circle_support` lays its products out points x circles
+#: (counts as column sums), from it circles x points (row sums): the faster on one core
+_COLUMN_SUM_POINTS = 128
 #: a circle whose rounding bound is this share of its band or more is counted point by point
 _MAX_BAND_MARGIN = 1e-9
 #: fewest points (and inliers) a circle is fitted to
@@ -84,10 +89,9 @@ def _circle_trials(xy: np.ndarray, trials: int) -> tuple[np.ndarray, ...]:
     if n > MAX_FIT_POINTS:  # a cross-section scanned at sub-millimetre spacing: every k-th point
         xy = xy[:: -(-n // MAX_FIT_POINTS)]
         n = len(xy)
-    rng = np.random.default_rng(0)
-    tri = rng.integers(0, n, (trials, 3))  # a triple repeating a point is degenerate: d = 0 below
+    tri = _triples(n, trials)  # a triple repeating a point is degenerate: d = 0 below
     x, y = xy[:, 0], xy[:, 1]
-    (ax, bx, cx), (ay, by, cy) = (x[tri[:, k]] for k in range(3)), (y[tri[:, k]] for k in range(3))
+    (ax, bx, cx), (ay, by, cy) = (x[k] for k in tri), (y[k] for k in tri)
     d = 2 * (ax * (by - cy) + bx * (cy - ay) + cx * (ay - by))
     ok = np.abs(d) > 1e-12
     a2, b2, c2 = ax * ax + ay * ay, bx * bx + by * by, cx * cx + cy * cy
@@ -96,6 +100,16 @@ def _circle_trials(xy: np.ndarray, trials: int) -> tuple[np.ndarray, ...]:
     uy = (a2 * (cx - bx) + b2 * (ax - cx) + c2 * (bx - ax)) / d
     r = np.hypot(ax - ux, ay - uy)
     return xy, ux, uy, r, ok
+
+
+@functools.lru_cache(maxsize=256)
+def _triples(n: int, trials: int) -> np.ndarray:
+    """The point indices of :func:`_circle_trials`' triples among ``n`` points, (3, trials)
+    int64 (row k the k-th point of each), read-only: the draw of a fixed seed, kept as
+    a block's post sections and stems draw it again and again for the same few counts."""
+    tri = np.ascontiguousarray(np.random.default_rng(0).integers(0, n, (trials, 3)).T)
+    tri.flags.writeable = False
+    return tri
 
 
 def _best_circle(xy: np.ndarray, ux: np.ndarray, uy: np.ndarray, r: np.ndarray, ok: np.ndarray,
@@ -109,9 +123,15 @@ def _best_circle(xy: np.ndarray, ux: np.ndarray, uy: np.ndarray, r: np.ndarray, 
     return _least_squares_circle(xy[keep])
 
 
+def _mean_rows(p: np.ndarray) -> np.ndarray:
+    """``p.mean(axis=0)`` of (m, 2) points, bit for bit (the same sum, divided by m),
+    without its generic machinery: a fit takes a few means of a few dozen points."""
+    return np.add.reduce(p, axis=0) / p.shape[0]
+
+
 def _least_squares_circle(p: np.ndarray) -> tuple[np.ndarray, float]:
     """The algebraic least-squares circle through points ``p`` (m, 2): centre, radius."""
-    mu = p.mean(axis=0)
+    mu = _mean_rows(p)
     q = p - mu
     sol, *_ = np.linalg.lstsq(np.column_stack([2 * q, np.ones(len(q))]), (q**2).sum(1), rcond=None)
     centre = sol[:2] + mu
@@ -133,12 +153,12 @@ def circle_support(xy: np.ndarray, ux: np.ndarray, uy: np.ndarray, r: np.ndarray
     """
     # Strategy: a few circles at a time, small enough to stay in cache (a whole trials x n
     # matrix would take gigabytes on a densely scanned trunk); per block of circles one
-    # product, one abs and two comparisons with two row sums, instead of the dozen passes
+    # product, one abs and two comparisons with two sums, instead of the dozen passes
     # of a point-by-point residual.
     n, t = xy.shape[0], ux.shape[0]
     if n == 0 or t == 0 or not np.isfinite(xy).all():
         return _support_pointwise(xy, ux, uy, r, inlier, inside_depth=inside_depth)
-    mean = xy.mean(axis=0)  # centred, the squares stay small and so does their rounding
+    mean = _mean_rows(xy)  # centred, the squares stay small and so does their rounding
     p = xy - mean
     vx, vy = ux - mean[0], uy - mean[1]
     points = np.empty((4, n))
@@ -157,16 +177,14 @@ def circle_support(xy: np.ndarray, ux: np.ndarray, uy: np.ndarray, r: np.ndarray
         hh, ll = hi * hi, lo * lo
         c = np.where(wide, (hh + ll) / 2, 0.0)
         w = np.where(wide, (hh - ll) / 2, hh)
-        rows = np.empty((t, 4))  # column by column: a narrow array's row reductions are slow
+        rows = np.empty((4, t))  # a circle a column: whole rows reduced at a time
         with np.errstate(divide="ignore", invalid="ignore", over="ignore"):
             for j, col in enumerate((m2vx, m2vy, 1.0, u2 - c)):
-                np.divide(col, w, out=rows[:, j])
+                np.divide(col, w, out=rows[j])
             rel = _BAND_ROUNDING * np.finfo(np.float64).eps * (bound + hh + c) / w
-        sure = rel < _MAX_BAND_MARGIN
-        for j in range(4):
-            sure &= np.isfinite(rows[:, j])
-        unsure = ~sure
-        rows[unsure] = 0.0
+        unsure = ~((rel < _MAX_BAND_MARGIN) & np.isfinite(rows).all(axis=0))
+        if unsure.any():
+            rows[:, unsure] = 0.0
         return rows, unsure
 
     rows, unsure = band(r - inlier, r + inlier)
@@ -176,25 +194,35 @@ def circle_support(xy: np.ndarray, ux: np.ndarray, uy: np.ndarray, r: np.ndarray
         can_be_inside = r - inside_depth > 0
     out = np.zeros(t, np.int64)
     step = min(t, max(1, _FIT_CHUNK // n))
-    e, hits = np.empty((step, n)), np.empty((step, n), np.uint8)
+    e_all, hits_all = np.empty(step * n), np.empty(step * n, np.uint8)
     count = np.uint16 if n < 1 << 16 else np.int64  # row sums of bytes: a narrow sum is several times faster
     narrow, widened = 1.0 - _MAX_BAND_MARGIN, 1.0 + _MAX_BAND_MARGIN
 
+    # few points: points x circles, the counts column sums adding whole rows at a time (row
+    # sums of a few points per circle pay a loop per circle); many: circles x points
+    by_column = n < _COLUMN_SUM_POINTS
+    point_rows = np.ascontiguousarray(points.T) if by_column else None
+
     def in_band(block_rows: np.ndarray, k: int) -> tuple[np.ndarray, np.ndarray]:
-        np.matmul(block_rows, points, out=e[:k])
-        np.abs(e[:k], out=e[:k])
-        np.less(e[:k], narrow, out=hits[:k])
-        surely = hits[:k].sum(axis=1, dtype=count).astype(np.int64)
-        np.less_equal(e[:k], widened, out=hits[:k])
-        return surely, hits[:k].sum(axis=1, dtype=count).astype(np.int64) != surely
+        shape, axis = ((n, k), 0) if by_column else ((k, n), 1)
+        e, hits = e_all[: n * k].reshape(shape), hits_all[: n * k].reshape(shape)
+        if by_column:
+            np.matmul(point_rows, block_rows, out=e)
+        else:
+            np.matmul(block_rows.T, points, out=e)
+        np.abs(e, out=e)
+        np.less(e, narrow, out=hits)
+        surely = hits.sum(axis=axis, dtype=count).astype(np.int64)
+        np.less_equal(e, widened, out=hits)
+        return surely, hits.sum(axis=axis, dtype=count).astype(np.int64) != surely
 
     for s0 in range(0, t, step):
         s1 = min(t, s0 + step)
         if inside_depth is not None:
-            deep, undecided = in_band(deep_rows[s0:s1], s1 - s0)
+            deep, undecided = in_band(deep_rows[:, s0:s1], s1 - s0)
             out[s0:s1] = -np.where(can_be_inside[s0:s1], deep, 0)
             unsure[s0:s1] |= undecided & can_be_inside[s0:s1]
-        got, undecided = in_band(rows[s0:s1], s1 - s0)
+        got, undecided = in_band(rows[:, s0:s1], s1 - s0)
         out[s0:s1] += got
         unsure[s0:s1] |= undecided
     if unsure.any():
@@ -279,12 +307,28 @@ def trunk_circle(xy: np.ndarray, *, inlier: float = FIT_INLIER, trials: int = FI
         return centre, r
     res = np.hypot(xy[:, 0] - centre[0], xy[:, 1] - centre[1]) - r
     res = res[np.abs(res) < NOISE_WINDOW]
-    sigma = 1.4826 * float(np.median(np.abs(res - np.median(res))))  # a normal sigma per MAD
+    sigma = 1.4826 * _median(np.abs(res - _median(res)))  # a normal sigma per MAD
     band = max(inlier, NOISE_INLIER_SIGMAS * sigma)
-    c2, r2 = _refit_in_band(xy, centre, r, band) if solid else _fit_tried(tried, band)
+    if solid:
+        c2, r2 = _refit_in_band(xy, centre, r, band)
+    else:  # the same band searches the same circles again: the same circle
+        c2, r2 = (centre, r) if band == inlier else _fit_tried(tried, band)
     if not np.isfinite(r2):
         return centre, r
     return c2, float(np.sqrt(max(r2 * r2 - 2.0 * sigma * sigma, 0.25 * r2 * r2)))
+
+
+def _median(a: np.ndarray) -> float:
+    """``np.median`` of the finite (m,) float64 values ``a`` (NaN when empty), without its
+    generic machinery: the middle value, or the mean of the two middle ones."""
+    m = a.size
+    if m == 0:
+        return float("nan")
+    k = m // 2
+    if m % 2:
+        return float(np.partition(a, k)[k])
+    part = np.partition(a, (k - 1, k))
+    return float((part[k - 1] + part[k]) / 2)
 
 
 def _refit_in_band(xy: np.ndarray, centre: np.ndarray, r: float, band: float) -> tuple[np.ndarray, float]:

@@ -180,3 +180,50 @@ def test_points_within_rounding_of_the_edges_are_counted_as_hypot_says():
                 xy.append(np.c_[(cx + d[:, None] * np.cos(a)).ravel(), (cy + d[:, None] * np.sin(a)).ravel()])
         xy = np.concatenate(xy)
         np.testing.assert_array_equal(circle_support(xy, ux, uy, r, inlier), _by_definition(xy, ux, uy, r, inlier))
+
+
+@settings(max_examples=200, deadline=None)
+@given(values=st.lists(st.floats(-1e3, 1e3, allow_nan=False), min_size=1, max_size=40))
+def test_median_is_numpys(values):
+    from pipeline.circles import _median
+
+    a = np.asarray(values)
+    assert _median(a) == float(np.median(a))
+
+
+def _trunk_circle_by_steps(xy, trials):
+    """trunk_circle(solid=False) step by step: the search, the noise from numpy's medians,
+    the search again in the noise band."""
+    centre, r = fit_circle(xy, trials=trials)
+    if not np.isfinite(r):
+        return centre, r
+    res = np.hypot(xy[:, 0] - centre[0], xy[:, 1] - centre[1]) - r
+    res = res[np.abs(res) < 0.15]
+    sigma = 1.4826 * float(np.median(np.abs(res - np.median(res))))
+    c2, r2 = fit_circle(xy, inlier=max(0.02, 2.5 * sigma), trials=trials)
+    if not np.isfinite(r2):
+        return centre, r
+    return c2, float(np.sqrt(max(r2 * r2 - 2.0 * sigma * sigma, 0.25 * r2 * r2)))
+
+
+@settings(max_examples=60, deadline=None)
+@given(n=st.integers(5, 200), sigma=st.sampled_from([0.0, 0.002, 0.01, 0.03]), clutter=st.integers(0, 30),
+       seed=st.integers(0, 2**32 - 1))
+def test_a_post_section_fit_is_the_search_again_in_the_noise_band(n, sigma, clutter, seed):
+    # clean sections keep the 2 cm band: the second search is the first one's circle
+    rng = np.random.default_rng(seed)
+    angle = rng.uniform(0, 2 * np.pi, n)
+    xy = np.c_[np.cos(angle), np.sin(angle)] * rng.uniform(0.02, 0.1) + rng.normal(0, sigma, (n, 2))
+    xy = np.r_[xy, rng.uniform(-0.2, 0.2, (clutter, 2))] + rng.uniform(-100, 100, 2)
+    got, want = trunk_circle(xy, trials=1024, solid=False), _trunk_circle_by_steps(xy, 1024)
+    np.testing.assert_array_equal(got[0], want[0])
+    assert got[1] == want[1] or (np.isnan(got[1]) and np.isnan(want[1]))
+
+
+@settings(max_examples=100, deadline=None)
+@given(n=st.integers(1, 300), scale=st.sampled_from([0.01, 1.0, 1e5]), seed=st.integers(0, 2**32 - 1))
+def test_mean_of_points_is_numpys(n, scale, seed):
+    from pipeline.circles import _mean_rows
+
+    p = np.random.default_rng(seed).normal(0, scale, (n, 2)) + scale
+    np.testing.assert_array_equal(_mean_rows(p), p.mean(axis=0))

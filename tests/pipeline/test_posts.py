@@ -257,3 +257,41 @@ def test_bare_tall_spindles_are_no_trellis():
                                           row_spacing=3.5, leafless=True))
     _, s, _ = _run(o, None)
     assert s["trunk_f1"] >= 0.97, s
+
+
+def test_medians_bounded_by_the_sections_known_rule_a_post_out_by_hand():
+    on_axis = [(0.0, 0.0)] * len(POST_HEIGHTS)
+    # 0.027 and 0.051 fit one median (0.04) alone, but with four radii known the median of
+    # five lies within 0.046..0.049, too far from 0.027
+    radii = [0.027, 0.046, 0.049, 0.051]
+    assert _radius_range_fits(0.027, 0.051, 0.08)
+    assert not _ruled_out(_circles(on_axis[:3], radii[:3]), 0.08)
+    assert _ruled_out(_circles(on_axis[:4], radii), 0.08)
+    assert not _ruled_out(_circles(on_axis[:4], [0.035, 0.046, 0.049, 0.051]), 0.08)
+    # x of 0.0, 0.06, 0.09, 0.095: within 0.1 of each other, but the median x lies within
+    # 0.06..0.09 and none there is within 0.05 of both 0 and 0.095
+    centres = [(0.0, 0.0), (0.06, 0.0), (0.09, 0.0), (0.095, 0.0)]
+    assert not _ruled_out(_circles(centres[:3], [0.05] * 3), 0.08)
+    assert _ruled_out(_circles(centres, [0.05] * 4), 0.08)
+    assert not _ruled_out(_circles([(0.0, 0.0), (0.045, 0.0), (0.09, 0.0), (0.085, 0.0)], [0.05] * 4), 0.08)
+
+
+@settings(max_examples=300, deadline=None)
+@given(seed=st.integers(0, 2**32 - 1), shift=st.sampled_from([0.02, 0.05, 0.07]),
+       spread=st.sampled_from([0.005, 0.015, 0.024, 0.04]), radius=st.floats(0.005, 0.1))
+def test_four_sections_that_rule_a_post_out_leave_no_axis_whatever_the_fifth(seed, shift, spread, radius):
+    # the median bounds rule out a post only where no fifth circle gives one: tried at
+    # each known circle, between them, at their medians and at random
+    rng = np.random.default_rng(seed)
+    centre = rng.uniform(-5, 5, 2)
+    known = [(centre + rng.uniform(-shift, shift, 2) / np.sqrt(2), radius + rng.uniform(-spread, spread))
+             for _ in POST_HEIGHTS[1:]]
+    if not _ruled_out(known, 0.08):
+        return
+    cs, rs = np.array([c for c, _ in known]), np.array([r for _, r in known])
+    fifth = [(c, r) for c, r in known]
+    fifth += [(np.median(cs, axis=0), float(np.median(rs))), (cs.mean(0), float(rs.mean()))]
+    fifth += [(centre + rng.uniform(-shift, shift, 2), radius + rng.uniform(-spread, spread)) for _ in range(20)]
+    for c, r in fifth:
+        for at in range(len(POST_HEIGHTS)):
+            assert _one_axis(known[:at] + [(c, r)] + known[at:], 0.08) is None
