@@ -71,7 +71,7 @@ def node_table(seed: int, sim: dict, params: PipelineParams, *, with_noise: bool
     keep = (a.segmentation.node_tree > 0) & (n_tree > 0)
     if with_noise:
         sp = a.segmentation.paths
-        extra = woodleaf.noise_features(p, a.segmentation.node_tree, sp.pred, sp.dist, a.vox.counts)
+        extra = woodleaf.noise_features(p, a.segmentation.node_tree, sp.pred, sp.dist, a.vox.counts, a.adjacency)
         return np.column_stack([x, extra])[keep], n_wood[keep], n_tree[keep], a.ground.noise
     return x[keep], n_wood[keep], n_tree[keep]
 
@@ -152,8 +152,8 @@ def main(argv: list[str] | None = None) -> int:
         x = np.concatenate([c * (woodleaf.noise_term(r[3]) * woodleaf.noise_gate(r[0]))[:, None] for c, r in zip(cols, rows)])
         nw = np.concatenate([r[1] for r in rows])
         na = np.concatenate([r[2] for r in rows])
-        # lightly regularised: at 1e-3 the wider columns stayed near zero (tuning seeds'
-        # node-level mean 0.791 against 0.799 at 1e-5)
+        # lightly regularised: at 1e-3 the path columns stay near zero (docs/accuracy.md,
+        # "the paths' topology, cheaply")
         beta = fit(x, nw, na, l2=1e-5, offset=base @ woodleaf.COMBINED_WEIGHTS[:nf])
         print("NOISE_WEIGHTS:", np.array2string(beta, precision=3, separator=", ", max_line_width=110))
         target = PipelineParams().matter.effective_threshold()

@@ -49,8 +49,9 @@ FEATURES = (
 NODE_FEATURES = len(FEATURES) - 2
 #: names of the columns of :func:`noise_features`, read by the noise correction only:
 #: the node's path length over its tree's longest, its longest path onwards over its
-#: tree's longest, and the path score of points (not nodes)
-NOISE_FEATURES = ("path_depth", "reach", "point_flow")
+#: tree's longest, the path score of points (not nodes), and over two steps of the
+#: neighbourhood (about 0.5 m) the score of the summed path counts and the largest path score
+NOISE_FEATURES = ("path_depth", "reach", "point_flow", "wide_flow", "wide_path_max")
 
 # Logistic model of the "combined" score, one weight per FEATURES column, fitted by
 # `python -m bench.fit_matter --seeds 4` on generated orchards never used for evaluation
@@ -63,11 +64,11 @@ COMBINED_WEIGHTS = np.array([-4.523, 1.337, 3.206, 5.642, 1.075, -1.547, 0.281, 
 #: noise and :func:`noise_gate` (``python -m bench.fit_matter --seeds 2 --models noisy``:
 #: vase blocks at sigma 0-0.1 m and spacings 3-8 m, seeds 1000+, fitted with
 #: COMBINED_WEIGHTS held): range noise blurs branches into scattered shells, so the
-#: local shape weighs differently and the paths' topology and a wider neighbourhood tell
-#: more
+#: local shape weighs differently and the paths' topology tells more (regularised at
+#: 1e-5: at 1e-3 the path columns stayed near zero)
 NOISE_WEIGHTS = np.array([
-    -3.391, -3.256, 2.645, 0.505, 1.133, -5.546, 0.19, -0.061, 0.314, -3.048, 2.896,
-    -6.779, 4.787, -1.708,
+    -7.22, -3.218, 0.741, -4.554, 0.888, -5.947, 0.163, -0.049, 1.076, -2.47, 2.029,
+    -5.287, 4.253, -1.438, 9.407, 3.751,
 ])
 #: estimated ground noise [m] below which the correction is off: clean scans' estimates
 #: (terrain roughness) stay under it, and the wide model was fitted there
@@ -320,6 +321,7 @@ def noise_features(
     pred: np.ndarray,
     dist: np.ndarray,
     points_per_node: np.ndarray,
+    adjacency: sparse.csr_matrix,
 ) -> np.ndarray:
     """Columns of the noise correction beyond the node features, named in NOISE_FEATURES.
 
@@ -330,6 +332,7 @@ def noise_features(
     pred : (m,) int64 — the segmentation's shortest-path forest, -1 at roots
     dist : (m,) float64 — path length from the trunk [m], inf if unreached
     points_per_node : (m,) int64
+    adjacency : (m, m) neighbourhood matrix with diagonal (of :func:`wood_features`)
 
     Returns
     -------
@@ -337,7 +340,10 @@ def noise_features(
     """
     # Strategy: the path topology holds under noise. One depth-first order of the
     # forest lays every subtree out as a run, so the points a node's paths carry are a
-    # difference of running sums and its reach one run maximum each.
+    # difference of running sums and its reach one run maximum each. A branch blurred
+    # into a shell splits its paths among parallel nodes: summed over two steps of the
+    # neighbourhood (two sparse products, not a wider neighbour search) they come
+    # together again.
     order = preorder(pred)
     pos = np.empty_like(order)
     pos[order] = np.arange(order.size)
@@ -351,6 +357,8 @@ def noise_features(
             d / np.maximum(_per_tree_max(d, node_tree), 1e-9),
             reach / np.maximum(_per_tree_max(reach, node_tree), 1e-9),
             log_score(flow, node_tree),
+            log_score(adjacency @ (adjacency @ counts), node_tree),
+            neighbourhood_max(neighbourhood_max(log_score(counts, node_tree), adjacency), adjacency),
         ]
     )
 

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import numpy as np
+from scipy import sparse
 import pytest
 
 from pipeline import woodleaf
@@ -98,9 +99,14 @@ def test_noise_features_of_a_line_and_a_leaf():
     pred = np.r_[-1, np.arange(n - 1), 15]
     dist = np.r_[np.arange(n) * 0.1, 1.5 + 0.1]
     tree = np.ones(n + 1, np.int64)
-    f = woodleaf.noise_features(woodleaf.path_counts(pred), tree, pred, dist, np.full(n + 1, 3))
+    # neighbours: the branch's next nodes either side, and the leaf with node 15
+    pairs = np.r_[np.c_[np.arange(n - 1), np.arange(1, n)], [[15, n]]]
+    adj = sparse.coo_matrix((np.ones(len(pairs)), tuple(pairs.T)), shape=(n + 1, n + 1))
+    adj = (adj + adj.T + sparse.eye(n + 1)).tocsr()
+    f = woodleaf.noise_features(woodleaf.path_counts(pred), tree, pred, dist, np.full(n + 1, 3), adj)
     assert f.shape == (n + 1, len(woodleaf.NOISE_FEATURES))
-    depth, reach, flow = (f[:, woodleaf.NOISE_FEATURES.index(k)] for k in ("path_depth", "reach", "point_flow"))
+    depth, reach, flow, wide = (f[:, woodleaf.NOISE_FEATURES.index(k)]
+                                for k in ("path_depth", "reach", "point_flow", "wide_flow"))
     # the deepest node is the branch's end, 2.9 m; the leaf lies 1.6 m down its paths
     assert depth[0] == 0.0 and depth[n - 1] == pytest.approx(1.0) and depth[n] == pytest.approx(1.6 / 2.9)
     # from node 15 (1.5 m) the branch goes on 1.4 m, of the root's 2.9 m
@@ -109,6 +115,14 @@ def test_noise_features_of_a_line_and_a_leaf():
     # points, not nodes: node 15 carries its own 3, the 14 nodes past it and the leaf, 48 of 93
     assert flow[0] == pytest.approx(1.0) and flow[n] == pytest.approx(np.log(3) / np.log(3 * (n + 1)))
     assert flow[15] == pytest.approx(np.log(48) / np.log(93))
+    # path counts 31, 30, 29, ... from the root, 2, 1 at the end: summed over two steps
+    # the end reads 6 + 3 = 9, and node 2 the most, 90 + 87 + 84 = 261
+    assert wide.argmax() == 2 and wide[n - 1] == pytest.approx(np.log(9) / np.log(261))
+    # the largest path score two steps away: the root's own at nodes 0-2, the leaf's
+    # neighbours 15 and 14 (count 17) at the leaf
+    top = f[:, woodleaf.NOISE_FEATURES.index("wide_path_max")]
+    np.testing.assert_allclose(top[:3], 1.0)
+    assert top[n] == pytest.approx(np.log(17) / np.log(31)) and top[n - 1] == pytest.approx(np.log(3) / np.log(31))
 
 
 def test_path_columns_match_a_walk_up_every_path():
@@ -137,7 +151,7 @@ def test_path_columns_match_a_walk_up_every_path():
     counts = woodleaf.path_counts(pred)
     np.testing.assert_allclose(woodleaf.path_reach(pred, dist, counts), far - d, atol=1e-12)
     tree = np.ones(m, np.int64)
-    f = woodleaf.noise_features(counts, tree, pred, dist, points)
+    f = woodleaf.noise_features(counts, tree, pred, dist, points, sparse.eye(m, format="csr"))
     np.testing.assert_allclose(f[:, woodleaf.NOISE_FEATURES.index("point_flow")], woodleaf.log_score(flow, tree))
 
 
