@@ -154,7 +154,7 @@ def main(argv: list[str] | None = None) -> int:
         na = np.concatenate([r[2] for r in rows])
         # lightly regularised: at 1e-3 the path columns stay near zero (docs/accuracy.md,
         # "the paths' topology, cheaply")
-        beta = fit(x, nw, na, l2=1e-5, offset=base @ woodleaf.COMBINED_WEIGHTS[:nf])
+        beta = fit(x, nw, na, l2=1e-6, offset=base @ woodleaf.COMBINED_WEIGHTS[:nf])
         print("NOISE_WEIGHTS:", np.array2string(beta, precision=3, separator=", ", max_line_width=110))
         target = PipelineParams().matter.effective_threshold()
         for (noise, spacing), (xi, nwi, nai, est) in zip(NOISY_TRAINING * args.seeds, rows):

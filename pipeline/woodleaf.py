@@ -65,10 +65,10 @@ COMBINED_WEIGHTS = np.array([-4.523, 1.337, 3.206, 5.642, 1.075, -1.547, 0.281, 
 #: vase blocks at sigma 0-0.1 m and spacings 3-8 m, seeds 1000+, fitted with
 #: COMBINED_WEIGHTS held): range noise blurs branches into scattered shells, so the
 #: local shape weighs differently and the paths' topology tells more (regularised at
-#: 1e-5: at 1e-3 the path columns stayed near zero)
+#: 1e-6: at 1e-3 the path columns stay near zero)
 NOISE_WEIGHTS = np.array([
-    -7.22, -3.218, 0.741, -4.554, 0.888, -5.947, 0.163, -0.049, 1.076, -2.47, 2.029,
-    -5.287, 4.253, -1.438, 9.407, 3.751,
+    -12.56, -3.831, -0.924, -7.968, 2.114, -6.762, 0.133, -0.126, 2.184, -1.848, 1.906,
+    -5.529, 5.293, -1.561, 20.884, 2.535,
 ])
 #: estimated ground noise [m] below which the correction is off: clean scans' estimates
 #: (terrain roughness) stay under it, and the wide model was fitted there
