@@ -149,7 +149,8 @@ def main(argv: list[str] | None = None) -> int:
         nx = len(woodleaf.FEATURES)
         base = np.concatenate([r[0][:, :nf] for r in rows])
         cols = [np.column_stack([r[0][:, :nf], r[0][:, nx:]]) for r in rows]
-        x = np.concatenate([c * (woodleaf.noise_term(r[3]) * woodleaf.noise_gate(r[0]))[:, None] for c, r in zip(cols, rows)])
+        share = [woodleaf.noise_term(r[3]) * woodleaf.noise_gate(r[0]) for r in rows]
+        x = np.concatenate([c * g[:, None] for c, g in zip(cols, share)])
         nw = np.concatenate([r[1] for r in rows])
         na = np.concatenate([r[2] for r in rows])
         # lightly regularised: at 1e-3 the path columns stay near zero (docs/accuracy.md,
