@@ -15,7 +15,8 @@ cannot serve both: their nodes are scored by a second logistic model, fitted on 
 forms, and the two scores are blended by the tree's width; the narrowest (tall
 spindles) by a third, fitted on spindles alone. Range noise blurs branches into
 scattered shells, so the wide model is corrected by a second set of weights grown with
-the block's estimated ground noise.
+the block's estimated ground noise, over the node features and the shortest paths'
+topology (depth, reach and point flow, read off one depth-first order of the forest).
 """
 
 from __future__ import annotations
