@@ -14,7 +14,8 @@ so that its best threshold falls on the wide model's; the tall spindles' own mod
 range noise (``NOISE_WEIGHTS``) is fitted on vase blocks over the noise x spacing grid
 (``NOISY_TRAINING``) with the wide model's weights held, on the node features times
 :func:`pipeline.woodleaf.noise_term` of each block's estimated ground noise and
-:func:`pipeline.woodleaf.noise_gate` of each node's tree.
+:func:`pipeline.woodleaf.noise_gate` of each node's tree, with the columns of
+:func:`pipeline.woodleaf.noise_features` beside them.
 """
 
 from __future__ import annotations
@@ -69,7 +70,9 @@ def node_table(seed: int, sim: dict, params: PipelineParams, *, with_noise: bool
     )
     keep = (a.segmentation.node_tree > 0) & (n_tree > 0)
     if with_noise:
-        return x[keep], n_wood[keep], n_tree[keep], a.ground.noise
+        sp = a.segmentation.paths
+        extra = woodleaf.noise_features(p, a.segmentation.node_tree, sp.pred, sp.dist, a.vox.counts, a.adjacency)
+        return np.column_stack([x, extra])[keep], n_wood[keep], n_tree[keep], a.ground.noise
     return x[keep], n_wood[keep], n_tree[keep]
 
 
@@ -143,16 +146,24 @@ def main(argv: list[str] | None = None) -> int:
             for i, (noise, spacing) in enumerate(NOISY_TRAINING):
                 sim = accuracy_params(noise, spacing, 1000 + 20 * k + i).model_dump(exclude={"seed"})
                 rows.append(node_table(1000 + 20 * k + i, sim, params, with_noise=True))
+        nx = len(woodleaf.FEATURES)
         base = np.concatenate([r[0][:, :nf] for r in rows])
-        x = np.concatenate([r[0][:, :nf] * (woodleaf.noise_term(r[3]) * woodleaf.noise_gate(r[0]))[:, None] for r in rows])
+        cols = [np.column_stack([r[0][:, :nf], r[0][:, nx:]]) for r in rows]
+        share = [woodleaf.noise_term(r[3]) * woodleaf.noise_gate(r[0]) for r in rows]
+        x = np.concatenate([c * g[:, None] for c, g in zip(cols, share)])
         nw = np.concatenate([r[1] for r in rows])
         na = np.concatenate([r[2] for r in rows])
-        beta = fit(x, nw, na, offset=base @ woodleaf.COMBINED_WEIGHTS[:nf])
+        # lightly regularised: at 1e-3 the path columns stay near zero (docs/accuracy.md,
+        # "the paths' topology, cheaply")
+        beta = fit(x, nw, na, l2=1e-6, offset=base @ woodleaf.COMBINED_WEIGHTS[:nf])
         print("NOISE_WEIGHTS:", np.array2string(beta, precision=3, separator=", ", max_line_width=110))
         target = PipelineParams().matter.effective_threshold()
         for (noise, spacing), (xi, nwi, nai, est) in zip(NOISY_TRAINING * args.seeds, rows):
+            xi, extra = xi[:, :nx], xi[:, nx:]
             before = woodleaf.combined_score(xi, narrow_weights=np.zeros(2 * nf))
-            after = woodleaf.combined_score(xi, narrow_weights=np.zeros(2 * nf), noise=est, noise_weights=beta)
+            after = woodleaf.combined_score(
+                xi, narrow_weights=np.zeros(2 * nf), noise=est, noise_weights=beta, noise_columns=extra
+            )
             print(f"  sigma {noise:g} spacing {spacing:g} (estimated noise {est:.3f}): training wood F1 "
                   f"{_f1(before, nwi, nai, target):.3f} -> {_f1(after, nwi, nai, target):.3f}")
     return 0

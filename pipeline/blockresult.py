@@ -132,7 +132,11 @@ def node_wood_score(a: NodeAnalysis, *, params: PipelineParams) -> np.ndarray:
         a.features,
         a.adjacency,
     )
-    return woodleaf.combined_score(x, noise=a.ground.noise)
+    extra = None
+    if woodleaf.noise_term(a.ground.noise) > 0:
+        sp = a.segmentation.paths
+        extra = woodleaf.noise_features(p, a.segmentation.node_tree, sp.pred, sp.dist, a.vox.counts, a.adjacency)
+    return woodleaf.combined_score(x, noise=a.ground.noise, noise_columns=extra)
 
 
 def block_result(xyz: np.ndarray, a: NodeAnalysis, *, params: PipelineParams) -> BlockResult:

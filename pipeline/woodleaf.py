@@ -15,13 +15,15 @@ cannot serve both: their nodes are scored by a second logistic model, fitted on 
 forms, and the two scores are blended by the tree's width; the narrowest (tall
 spindles) by a third, fitted on spindles alone. Range noise blurs branches into
 scattered shells, so the wide model is corrected by a second set of weights grown with
-the block's estimated ground noise.
+the block's estimated ground noise, over the node features and the shortest paths'
+topology (depth, reach and point flow, read off one depth-first order of the forest).
 """
 
 from __future__ import annotations
 
 import numpy as np
 from scipy import sparse
+from scipy.sparse import csgraph
 
 from pipeline.enrichment import ShapeFeatures
 from pipeline.graph import subtree_sizes
@@ -46,6 +48,11 @@ FEATURES = (
 )
 #: the node features; the last two columns describe the node's tree
 NODE_FEATURES = len(FEATURES) - 2
+#: names of the columns of :func:`noise_features`, read by the noise correction only:
+#: the node's path length over its tree's longest, its longest path onwards over its
+#: tree's longest, the path score of points (not nodes), and over two steps of the
+#: neighbourhood (about 0.5 m) the score of the summed path counts and the largest path score
+NOISE_FEATURES = ("path_depth", "reach", "point_flow", "wide_flow", "wide_path_max")
 
 # Logistic model of the "combined" score, one weight per FEATURES column, fitted by
 # `python -m bench.fit_matter --seeds 4` on generated orchards never used for evaluation
@@ -53,13 +60,17 @@ NODE_FEATURES = len(FEATURES) - 2
 # params.COMBINED_THRESHOLD. The neighbours column plays no part in it nor in the
 # narrow and spindle models (all fitted before it came in for the noise correction).
 COMBINED_WEIGHTS = np.array([-4.523, 1.337, 3.206, 5.642, 1.075, -1.547, 0.281, 0.045, -0.813, -2.692, 0.0, 0.0, 0.0])
-#: the wide trees' model's correction for range noise, one weight per node feature, times
-#: :func:`noise_term` of the block's estimated ground noise and :func:`noise_gate`
-#: (``python -m bench.fit_matter --seeds 2 --models noisy``: vase blocks at sigma 0-0.1 m
-#: and spacings 3-8 m, seeds 1000+, fitted with COMBINED_WEIGHTS held): range noise
-#: blurs branches into scattered shells, so linearity, the smoothed path score and the
-#: node's neighbour count weigh differently
-NOISE_WEIGHTS = np.array([-0.12, -0.529, 0.368, 1.081, 0.245, -0.491, 0.202, 0.054, -0.878, -1.669, 0.496])
+#: the wide trees' model's correction for range noise, one weight per node feature and
+#: per NOISE_FEATURES column, times :func:`noise_term` of the block's estimated ground
+#: noise and :func:`noise_gate` (``python -m bench.fit_matter --seeds 2 --models noisy``:
+#: vase blocks at sigma 0-0.1 m and spacings 3-8 m, seeds 1000+, fitted with
+#: COMBINED_WEIGHTS held): range noise blurs branches into scattered shells, so the
+#: local shape weighs differently and the paths' topology tells more (regularised at
+#: 1e-6: at 1e-3 the path columns stay near zero)
+NOISE_WEIGHTS = np.array([
+    -12.56, -3.831, -0.924, -7.968, 2.114, -6.762, 0.133, -0.126, 2.184, -1.848, 1.906,
+    -5.529, 5.293, -1.561, 20.884, 2.535,
+])
 #: estimated ground noise [m] below which the correction is off: clean scans' estimates
 #: (terrain roughness) stay under it, and the wide model was fitted there
 NOISE_FLOOR = 0.02
@@ -228,6 +239,131 @@ def wood_features(
     )
 
 
+def _per_tree_max(values: np.ndarray, node_tree: np.ndarray) -> np.ndarray:
+    top = np.zeros(int(node_tree.max()) + 1 if node_tree.size else 1)
+    np.maximum.at(top, node_tree, values)
+    return top[node_tree]
+
+
+def preorder(pred: np.ndarray) -> np.ndarray:
+    """Depth-first order of the forest given by ``pred``, (m,) int64: each node's
+    subtree is the run of its subtree size (:func:`path_counts`) from its position.
+
+    Parameters
+    ----------
+    pred : (m,) int64, -1 at roots (and unreached nodes)
+
+    Returns
+    -------
+    (m,) int64 — a permutation of the nodes
+    """
+    # Strategy: one csgraph depth-first search over the forest's child edges. The roots
+    # hang off a chain of virtual nodes rather than one virtual root: csgraph rescans a
+    # node's children each time it returns to it, quadratic in a root of thousands.
+    m = pred.shape[0]
+    child = np.flatnonzero(pred >= 0)
+    roots = np.flatnonzero(pred < 0)
+    k = roots.size
+    if m == 0:
+        return np.zeros(0, np.int64)
+    chain = m + np.arange(k)
+    rows = np.r_[pred[child], chain, chain[:-1]]
+    cols = np.r_[child, roots, chain[1:]]
+    g = sparse.csr_matrix((np.ones(rows.size), (rows, cols)), shape=(m + k, m + k))
+    order = csgraph.depth_first_order(g, m, directed=True, return_predecessors=False)
+    return order[order < m].astype(np.int64)
+
+
+def _run_max(values: np.ndarray, start: np.ndarray, length: np.ndarray) -> np.ndarray:
+    """Maximum of ``values[start : start + length]`` for each run (length >= 1), (r,) float64.
+
+    A sparse table built one level at a time (level j: the maximum over 2**j values from
+    each position), each run answered at the level of its length's highest power of two
+    by two overlapping windows: O(m log m) whole-array work, whatever the runs' lengths.
+    """
+    out = values[start].astype(np.float64)
+    if start.size == 0:
+        return out
+    level_of = np.floor(np.log2(length)).astype(np.int64)
+    level = values.astype(np.float64)
+    for j in range(1, int(level_of.max()) + 1):
+        span = 1 << (j - 1)
+        level = np.maximum(level[:-span], level[span:])
+        at = np.flatnonzero(level_of == j)
+        out[at] = np.maximum(level[start[at]], level[start[at] + length[at] - (1 << j)])
+    return out
+
+
+def path_reach(pred: np.ndarray, dist: np.ndarray, counts: np.ndarray, order: np.ndarray | None = None) -> np.ndarray:
+    """Longest path onwards from each node in the shortest-path forest [m], (m,) float64.
+
+    Parameters
+    ----------
+    pred : (m,) int64 — the forest, -1 at roots
+    dist : (m,) float64 — path length from the root [m], inf if unreached
+    counts : (m,) float64 — subtree sizes of ``pred`` (:func:`path_counts`)
+    order : (m,) int64, optional — :func:`preorder` of ``pred``
+
+    Returns
+    -------
+    (m,) float64 — the farthest node of the node's subtree less the node's own path length
+    """
+    # a branch carries paths that go on for metres, a leaf's end at once
+    order = preorder(pred) if order is None else order
+    d = np.where(np.isfinite(dist), dist, 0.0)
+    pos = np.empty_like(order)
+    pos[order] = np.arange(order.size)
+    return _run_max(d[order], pos, counts.astype(np.int64)) - d
+
+
+def noise_features(
+    counts: np.ndarray,
+    node_tree: np.ndarray,
+    pred: np.ndarray,
+    dist: np.ndarray,
+    points_per_node: np.ndarray,
+    adjacency: sparse.csr_matrix,
+) -> np.ndarray:
+    """Columns of the noise correction beyond the node features, named in NOISE_FEATURES.
+
+    Parameters
+    ----------
+    counts : (m,) float64 — shortest-path counts (subtree sizes of ``pred``)
+    node_tree : (m,) int64 — 0 = no tree
+    pred : (m,) int64 — the segmentation's shortest-path forest, -1 at roots
+    dist : (m,) float64 — path length from the trunk [m], inf if unreached
+    points_per_node : (m,) int64
+    adjacency : (m, m) neighbourhood matrix with diagonal (of :func:`wood_features`)
+
+    Returns
+    -------
+    (m, len(NOISE_FEATURES)) float64
+    """
+    # Strategy: the path topology holds under noise. One depth-first order of the
+    # forest lays every subtree out as a run, so the points a node's paths carry are a
+    # difference of running sums and its reach one run maximum each. A branch blurred
+    # into a shell splits its paths among parallel nodes: summed over two steps of the
+    # neighbourhood (two sparse products, not a wider neighbour search) they come
+    # together again.
+    order = preorder(pred)
+    pos = np.empty_like(order)
+    pos[order] = np.arange(order.size)
+    size = counts.astype(np.int64)
+    run_points = np.r_[0, np.cumsum(points_per_node[order].astype(np.int64))]
+    flow = (run_points[pos + size] - run_points[pos]).astype(np.float64)
+    d = np.where(np.isfinite(dist), dist, 0.0)
+    reach = path_reach(pred, dist, counts, order)
+    return np.column_stack(
+        [
+            d / np.maximum(_per_tree_max(d, node_tree), 1e-9),
+            reach / np.maximum(_per_tree_max(reach, node_tree), 1e-9),
+            log_score(flow, node_tree),
+            log_score(adjacency @ (adjacency @ counts), node_tree),
+            neighbourhood_max(neighbourhood_max(log_score(counts, node_tree), adjacency), adjacency),
+        ]
+    )
+
+
 def _logistic(z: np.ndarray) -> np.ndarray:
     return 1.0 / (1.0 + np.exp(-np.clip(z, -50, 50)))  # clipped: no overflow in exp
 
@@ -269,11 +405,14 @@ def combined_score(
     spindle_weights: np.ndarray | None = None,
     noise: float = 0.0,
     noise_weights: np.ndarray = NOISE_WEIGHTS,
+    noise_columns: np.ndarray | None = None,
 ) -> np.ndarray:
     """Wood probability per node from :func:`wood_features`, (m,) float64 in [0, 1].
 
     ``weights`` score wide trees, corrected by ``noise_weights`` for the block's
-    estimated ground ``noise`` [m] (:func:`noise_term`, :func:`noise_gate`); ``narrow_weights`` (default
+    estimated ground ``noise`` [m] (:func:`noise_term`, :func:`noise_gate`) over the
+    node features and ``noise_columns`` (:func:`noise_features`; required when the
+    correction acts); ``narrow_weights`` (default
     NARROW_WEIGHTS; all zeros: the wide trees' model everywhere) score narrow ones,
     blended by :func:`narrowness`; among those, ``spindle_weights`` (default
     SPINDLE_WEIGHTS; all zeros: the narrow model for every narrow tree) score the
@@ -282,7 +421,10 @@ def combined_score(
     z = features @ weights
     k = noise_term(noise)
     if k > 0:
-        z = z + k * noise_gate(features) * (features[:, :NODE_FEATURES] @ noise_weights)
+        if noise_columns is None:
+            raise ValueError("noise_columns (noise_features) are needed where noise_term(noise) > 0")
+        cols = np.column_stack([features[:, :NODE_FEATURES], noise_columns])
+        z = z + k * noise_gate(features) * (cols @ noise_weights)
     wide = _logistic(z)
     nw = NARROW_WEIGHTS if narrow_weights is None else narrow_weights
     if not nw.any():
