@@ -396,8 +396,7 @@ def _find_trunks(xyz: np.ndarray, g: _NodeGraph, f: _Faces, *, params: PipelineP
             wide = again.spacing is not None and again.spacing >= AUTO_POST_MIN_SPACING
             # a trellis among young trees has end posts a gap from the last gap's post, and
             # its young whips are no tall spindles' leaders
-            gaps_ok = _young_block(again, params) or _one_post_per_gap(posts.xy, again.spacing)
-            if auto and not (wide and gaps_ok):
+            if auto and not (wide and (_young_block(again, params) or _one_post_per_gap(posts.xy, again.spacing))):
                 # close rows, or "posts" closer than a trellis sets them: tall spindles' straight leaders
                 posts, on_post = None, np.zeros(g.vox.n, bool)
             else:
