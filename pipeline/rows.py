@@ -40,6 +40,7 @@ from pipeline.rowlinks import (
     row_sections,
     section_direction,
 )
+from pipeline.rowslots import row_slots, row_steps, slot_centres
 
 #: neighbours whose smoothed direction defines a tree's local row direction: enough to
 #: outvote the few trees whose nearest neighbour lies across the row
@@ -72,16 +73,6 @@ _MEDIAN_NEAREST = 1.25
 _WHOLE_SHARE = 0.9
 #: the planting distance is looked for among this many quantiles of the steps (and their halves and thirds)
 _SPACING_CANDIDATES = 41
-#: a row's planting distance differs from the block's by at most this fraction ...
-_SPACING_SLACK = 0.1
-#: ... and is looked for in this many steps (0.1 % of the spacing)
-_SPACING_STEPS = 201
-#: an empty slot's centre is fitted by a quadratic (a gently curved row) to the row's
-#: trees within this many slots of it, so each tree's own offset from its slot averages out
-GAP_FIT_SLOTS = 8
-#: the slot beyond a row's end lies a planting distance on along the line through the
-#: trees within this many slots of it (a quadratic would swing out beyond the end)
-END_FIT_SLOTS = 3
 
 
 @dataclass(frozen=True)
@@ -102,7 +93,7 @@ class RowLayout:
         Each row's line through its trees' positions, in position order [m].
     gaps : dict of str → ndarray
         One entry per empty slot between two trees of a row: ``row``, ``position``
-        (int32), ``x``, ``y`` (float64, the slot's centre, :func:`slot_centres`) [m].
+        (int32), ``x``, ``y`` (float64, the slot's centre, :func:`pipeline.rowslots.slot_centres`) [m].
     off_row : (k,) bool
         Trees off every row line, or a second tree in an occupied slot; each is a row of
         its own, numbered after the rows.
@@ -120,15 +111,6 @@ class RowLayout:
     gaps: dict
     off_row: np.ndarray
     between_rows: np.ndarray
-
-
-def _steps(p: np.ndarray, d: np.ndarray) -> np.ndarray:
-    """Distances [m] between consecutive trees of a row along its local direction: a
-    zigzag of trees planted a little off the line would otherwise lengthen the row by a
-    slot every few dozen trees."""
-    mid = d[:-1] * np.sign(np.einsum("ij,ij->i", d[:-1], d[1:]))[:, None] + d[1:]
-    mid /= np.hypot(mid[:, 0], mid[:, 1])[:, None]
-    return np.abs(np.einsum("ij,ij->i", np.diff(p, axis=0), mid))
 
 
 def _section_rows(local, direction, members, u, v, spacing, params, canopy=None, links=None):
@@ -157,7 +139,7 @@ def _section_rows(local, direction, members, u, v, spacing, params, canopy=None,
     p = local[members]
     succ, pred, across, tol = links or _links(local, direction, members, u, spacing, params)
     chains = chains_of(succ, pred)
-    steps = [_steps(p[c], direction[members][c]) for c in chains if len(c) > 1]
+    steps = [row_steps(p[c], direction[members][c]) for c in chains if len(c) > 1]
     if steps:
         spacing = _planting_distance(np.concatenate(steps), spacing)
     a, c = p @ u, p @ v
@@ -366,86 +348,6 @@ def _between_rows(flat, centres, dist, on, a, across: float, spacing: float, par
     return inside
 
 
-def _slots(p: np.ndarray, d: np.ndarray, spacing: float) -> tuple[np.ndarray, float, np.ndarray]:
-    """Planting slot (0-based) of each tree of a row, in order along the row, the row's
-    spacing [m], and which trees keep their slot. ``p`` are the trees' positions, ``d``
-    their local row directions, ``spacing`` the block's typical step between
-    neighbours [m].
-
-    Strategy: the trees' distances along the row line from the first tree are fitted by
-    a lattice of slots (spacing within 10 % of the block's, and offset) that most trees
-    lie close to, the peak of their periodogram; every tree goes to its nearest slot, so
-    one tree far off its slot does not shift the trees after it. Of two trees in one
-    slot the one nearer its centre keeps it.
-    """
-    keep = np.ones(len(p), dtype=bool)
-    if len(p) == 1:
-        return np.zeros(1, dtype=np.int64), float("nan"), keep
-    step = _steps(p, d)
-    arc = np.r_[0.0, np.cumsum(step)]
-    if len(p) < 3:
-        slot = np.r_[0, np.cumsum(np.maximum(1, np.rint(step / spacing)))].astype(np.int64)
-        return slot, spacing, keep
-    cand = spacing * (1.0 + np.linspace(-_SPACING_SLACK, _SPACING_SLACK, _SPACING_STEPS))
-    phase = np.exp(2j * np.pi * arc[None, :] / cand[:, None])
-    best = int(np.argmax(np.abs(phase.mean(axis=1))))
-    s = float(cand[best])
-    a0 = s * float(np.angle(phase[best].mean())) / (2 * np.pi)
-    slot = np.rint((arc - a0) / s).astype(np.int64)
-    off = np.abs(arc - a0 - slot * s)
-    for value in np.unique(slot[np.r_[False, np.diff(slot) == 0]]):
-        same = np.flatnonzero(slot == value)
-        keep[same[same != same[np.argmin(off[same])]]] = False
-    return slot, s, keep
-
-
-def slot_centres(slots: np.ndarray, line: np.ndarray, query, spacing: float = float("nan")) -> np.ndarray:
-    """Centres [m] of planting slots of one row, fitted to its trees so that one tree's
-    own offset from its slot does not move them.
-
-    - A slot between the trees: least squares of x and y against the slot number, a
-      quadratic through the trees within :data:`GAP_FIT_SLOTS` slots (at least four;
-      else the straight line between its two neighbours).
-    - A slot beyond either end: the least-squares line through the trees within
-      :data:`END_FIT_SLOTS` slots gives the direction, and the centre steps ``spacing``
-      per slot along it from the trees' mean.
-
-    Parameters
-    ----------
-    slots : (m,) int — the trees' slots, increasing (at least two)
-    line : (m, 2) float64 — the trees' positions [m], in that order
-    query : (q,) int — slots whose centres are wanted
-    spacing : float — the row's planting distance [m]; NaN: the fitted line's own step
-
-    Returns
-    -------
-    (q, 2) float64
-    """
-    slots = np.asarray(slots, np.float64)
-    query = np.atleast_1d(np.asarray(query, np.float64))
-    out = np.empty((len(query), 2))
-    for i, q in enumerate(query):
-        d = np.abs(slots - q)
-        if slots[0] < q < slots[-1]:
-            near = np.flatnonzero(d <= GAP_FIT_SLOTS)
-            if len(near) < 4:
-                out[i] = [np.interp(q, slots, line[:, 0]), np.interp(q, slots, line[:, 1])]
-                continue
-            k = slots[near] - q
-            out[i] = np.linalg.lstsq(np.vander(k, 3, increasing=True), line[near], rcond=None)[0][0]
-            continue
-        near = np.flatnonzero(d <= END_FIT_SLOTS)
-        if len(near) < 2:
-            near = np.argsort(d, kind="stable")[:2]
-        k = slots[near] - q
-        p = line[near]
-        step = np.linalg.lstsq(np.c_[np.ones(len(near)), k], p, rcond=None)[0][1]  # per slot [m]
-        if np.isfinite(spacing) and np.hypot(*step) > 0:
-            step = step * (spacing / np.hypot(*step))
-        out[i] = (p - k[:, None] * step).mean(axis=0)
-    return out
-
-
 def _young(height: np.ndarray, chains: list[np.ndarray], ratio: float) -> np.ndarray:
     young = np.zeros(len(height), dtype=bool)
     for chain in chains:
@@ -566,7 +468,7 @@ def _found_rows(xy: np.ndarray, params: RowParams, canopy: np.ndarray | None) ->
             if line is not None:  # trunks hidden: the canopy's line
                 found.append((sec_key, offset, g, np.zeros(0, np.int64), float("nan"), line + centre))
                 continue
-            slots, s, keep = _slots(local[g], direction[g], spacing)
+            slots, s, keep = row_slots(local[g], direction[g], spacing)
             off_row[g[~keep]] = True  # a second tree in an occupied slot
             found.append((sec_key, offset, g[keep], slots[keep], s, None))
     for i in np.flatnonzero(off_row):  # off every row line: one row each, after the rows

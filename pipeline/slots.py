@@ -31,7 +31,8 @@ import numpy as np
 from scipy.spatial import cKDTree
 
 from pipeline.params import PipelineParams, RowParams
-from pipeline.rows import RowLayout, find_rows, slot_centres
+from pipeline.rows import RowLayout, find_rows
+from pipeline.rowslots import slot_centres
 from pipeline.trunks import TrunkDetection
 
 #: a nursery tree planted into a gap stands at least this tall [m]; grass and weeds stay lower
@@ -78,7 +79,7 @@ def open_slots(layout: RowLayout) -> np.ndarray:
     """(o, 2) float64 centres [m] of the slots a tree could still stand in, in rows of at
     least :data:`MIN_LATTICE_TREES` trees (or of fewer on the block's lattice,
     :func:`_lattice_rows`): the empty slots between two trees of the row,
-    and the slot beyond each of its ends (:func:`pipeline.rows.slot_centres`)."""
+    and the slot beyond each of its ends (:func:`pipeline.rowslots.slot_centres`)."""
     return _open_slots(layout)[0]
 
 
