@@ -128,6 +128,14 @@ def path_counts(pred: np.ndarray) -> np.ndarray:
     return subtree_sizes(pred)
 
 
+def _group_max(values: np.ndarray, group: np.ndarray) -> np.ndarray:
+    """The largest of ``values`` (m,) in each group id of ``group`` (m,), and at least 0:
+    (max id + 1,) float64 indexed by the id (0 for an id with no value)."""
+    top = np.zeros(int(group.max()) + 1 if group.size else 1)
+    np.maximum.at(top, group, values)
+    return top
+
+
 def log_score(counts: np.ndarray, group: np.ndarray | None = None) -> np.ndarray:
     """S = log(p) / log(p_max), with p_max over the whole array or per ``group``.
 
@@ -144,9 +152,7 @@ def log_score(counts: np.ndarray, group: np.ndarray | None = None) -> np.ndarray
     if group is None:
         top = lp.max() if lp.size else 1.0
         return lp / top if top > 0 else np.zeros_like(lp)
-    top = np.zeros(int(group.max()) + 1 if group.size else 1)
-    np.maximum.at(top, group, lp)
-    denom = top[group]
+    denom = _group_max(lp, group)[group]
     return np.where(denom > 0, lp / np.where(denom > 0, denom, 1.0), 0.0)
 
 
@@ -212,10 +218,8 @@ def wood_features(
     radial = np.zeros(m)
     if trunk_xy.shape[0]:
         radial = np.where(has_tree, np.hypot(*(nodes[:, :2] - trunk_xy[t]).T), 0.0)
-    top_h = np.zeros(int(node_tree.max()) + 1 if m else 1)
-    np.maximum.at(top_h, node_tree, node_height)
-    top_r = np.zeros_like(top_h)
-    np.maximum.at(top_r, node_tree, radial)
+    top_h = _group_max(node_height, node_tree)
+    top_r = _group_max(radial, node_tree)
     med_c = _per_group(points_per_node.astype(np.float64), node_tree, np.median) if m else np.ones(1)
     # the crown's reach by its 90th percentile: a few stray nodes do not widen a tree
     reach = _per_group(radial, node_tree, lambda v: np.percentile(v, 90)) if m else np.zeros(1)
@@ -237,12 +241,6 @@ def wood_features(
             top_h[node_tree],
         ]
     )
-
-
-def _per_tree_max(values: np.ndarray, node_tree: np.ndarray) -> np.ndarray:
-    top = np.zeros(int(node_tree.max()) + 1 if node_tree.size else 1)
-    np.maximum.at(top, node_tree, values)
-    return top[node_tree]
 
 
 def preorder(pred: np.ndarray) -> np.ndarray:
@@ -355,8 +353,8 @@ def noise_features(
     reach = path_reach(pred, dist, counts, order)
     return np.column_stack(
         [
-            d / np.maximum(_per_tree_max(d, node_tree), 1e-9),
-            reach / np.maximum(_per_tree_max(reach, node_tree), 1e-9),
+            d / np.maximum(_group_max(d, node_tree)[node_tree], 1e-9),
+            reach / np.maximum(_group_max(reach, node_tree)[node_tree], 1e-9),
             log_score(flow, node_tree),
             log_score(adjacency @ (adjacency @ counts), node_tree),
             neighbourhood_max(neighbourhood_max(log_score(counts, node_tree), adjacency), adjacency),
