@@ -75,14 +75,15 @@ def stem_points(xy: np.ndarray, tree: np.ndarray) -> np.ndarray:
 def _grown_stem(xy: np.ndarray, piece: np.ndarray, link: float) -> np.ndarray:
     """(m,) bool: one tree's stem among its slice's pieces (see :func:`stem_points`)."""
     labels, sizes = np.unique(piece, return_counts=True)
-    main = piece == labels[np.argmax(sizes)]
-    centre, radius = fit_circle(xy[main], solid=True)
     fragments = sizes.max() < MIN_SHARE * piece.shape[0] and labels.size > MAX_PIECES
-    if sizes.max() < MIN_PIECE or fragments or not np.isfinite(radius):
+    if sizes.max() < MIN_PIECE or fragments:
         return np.ones(piece.shape[0], bool)  # too few points to say what the stem is
+    inner = xy[piece == labels[np.argmax(sizes)]]
+    centre, radius = fit_circle(inner, solid=True)
+    if not np.isfinite(radius):
+        return np.ones(piece.shape[0], bool)
     # a piece with a point on or inside the main piece's circle is more of that stem, and
     # so is one within the main piece's own extent (a short arc's circle is uncertain)
-    inner = xy[main]
     reach = max(float(np.hypot(*(inner.max(axis=0) - inner.min(axis=0)))), link)
     near = cKDTree(inner).query(xy, distance_upper_bound=reach)[0] <= reach
     inside = near | (np.hypot(*(xy - centre).T) <= radius + max(link, 0.5 * radius))
