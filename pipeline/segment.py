@@ -35,14 +35,6 @@ FRAGMENT_SPREAD = 2.0
 #: search reached little more than its trunk (a sparse scan) still takes the fragments of
 #: its crown
 MIN_REACHED_RADIUS = 1.0
-#: the node spacing of a crown, for ``fragment_spacings``, is the mean distance of a tree
-#: node to this many nearest other tree nodes
-SPACING_NEIGHBOURS = 4
-#: a lone fragment's reach never grows beyond this [m], however sparse the crown beside
-#: it (the graph's default ``max_gap``, across which floating fragments are bridged)
-MAX_FRAGMENT_REACH = 1.0
-#: searches for a fragment's nearest tree node run to its bound rounded up to this [m]
-SEARCH_STEP = 0.1
 #: a trunk's circle for its foot is fitted to its points in a slice this thick [m] just
 #: above the ground layer
 FOOT_SLICE = 0.25
@@ -89,7 +81,9 @@ def segment_nodes(
     separate object (fence post, vehicle, grass) and only its nodes within
     ``unreached_radius`` of a tree join it, and so does a floating fragment that
     touched an excluded node (what is left of a vehicle or a bin once its faces are cut
-    out: its roof, its edges). Either way within the tree's reach, and within
+    out: its roof, its edges). A floating fragment of at least ``min_fragment`` nodes
+    then goes whole to the tree most of its nodes took, where within that tree's reach.
+    Either way within the tree's reach, and within
     ``FRAGMENT_SPREAD`` times the radius of the tree's reached crown of its trunk (a
     fence wire beside a row's end tree is no part of it).
     Fragments smaller than ``min_fragment`` nodes are outliers and stay unlabelled,
@@ -181,50 +175,24 @@ def _within_reach(nodes, node_tree, reached, trunk_xy, reach: np.ndarray) -> tup
 
 
 def _join_nearest(nodes, node_tree, trunk_xy, cand: np.ndarray, lab: np.ndarray, bound, reach: float,
-                  crown_reach: np.ndarray, tree_of: cKDTree | None = None, lab_bound: np.ndarray | None = None,
-                  carry: np.ndarray | None = None) -> np.ndarray:
+                  crown_reach: np.ndarray) -> np.ndarray:
     """Give each node of ``cand`` the tree of its nearest node of ``lab`` where that lies
-    within ``bound`` [m] (scalar or per node; searched up to ``reach``), and within
-    ``lab_bound`` [m] (per node of ``lab``) if given, and the node lies within its tree's
-    ``crown_reach`` (per tree) of its trunk; labels ``node_tree`` in place and returns
-    the nodes that joined. ``tree_of``: a cKDTree of ``nodes[lab]``, if already built;
-    ``carry`` (m,): each joining node takes its nearest node's value, in place."""
-    tree_of = cKDTree(nodes[lab]) if tree_of is None else tree_of
+    within ``bound`` [m] (scalar or per node; searched up to ``reach``) and the node lies
+    within its tree's ``crown_reach`` (per tree) of its trunk; labels ``node_tree`` in
+    place and returns the nodes that joined."""
+    tree_of = cKDTree(nodes[lab])
     bound = np.broadcast_to(np.minimum(bound, reach), cand.shape)
     d, j = np.full(cand.shape, np.inf), np.zeros(cand.shape, np.int64)
-    # one search per distinct bound, rounded up to SEARCH_STEP: a node far from every
-    # tree is given up on near its own bound, not at the widest one (the same nearest
-    # node wherever one is in reach)
-    search = np.minimum(np.ceil(bound / SEARCH_STEP) * SEARCH_STEP, max(reach, 0.0))
-    for b in np.unique(search[bound >= 0]):
-        sel = np.flatnonzero((search == b) & (bound >= 0))
+    # one search per distinct bound: a node far from every tree is given up on at its
+    # own bound, not at the widest one (the same nearest node wherever one is in reach)
+    for b in np.unique(bound[bound >= 0]):
+        sel = np.flatnonzero(bound == b)
         d[sel], j[sel] = tree_of.query(nodes[cand[sel]], distance_upper_bound=b * (1 + 1e-9) + 1e-12)
     hit = np.isfinite(d) & (d <= bound)
-    if lab_bound is not None:
-        hit[hit] = d[hit] <= lab_bound[j[hit]]
     tree = node_tree[lab[j[hit]]]
     ok = _within_crown(nodes, cand[hit], tree, trunk_xy, crown_reach)  # the fallback must also respect the crown reach
     node_tree[cand[hit][ok]] = tree[ok]
-    if carry is not None:
-        carry[cand[hit][ok]] = carry[lab[j[hit][ok]]]
     return cand[hit][ok]
-
-
-def _crown_reach(nodes: np.ndarray, cand: np.ndarray, tree_of: cKDTree, *, floor: float, spacings: float) -> np.ndarray:
-    """How near [m] a lone fragment must lie to each tree node (``tree_of``, a cKDTree of
-    the tree nodes) to join it, (l,) float64: ``floor``, or ``spacings`` times the
-    crown's node spacing there where that is more, up to MAX_FRAGMENT_REACH; measured
-    only at the nearest tree node of each node of ``cand`` (the rest keep ``floor``).
-    A sparse scan's rim leaves lie as far apart as its crown's nodes; a dense scan's
-    stray points beside its crown are outliers."""
-    out = np.full(tree_of.n, floor)
-    if spacings <= 0 or not 0 < floor < MAX_FRAGMENT_REACH or cand.size == 0 or tree_of.n <= SPACING_NEIGHBOURS:
-        return out
-    _, j = tree_of.query(nodes[cand], distance_upper_bound=MAX_FRAGMENT_REACH)
-    near = np.unique(j[j < tree_of.n])  # j == n: farther from every tree node than any reach
-    d, _ = tree_of.query(tree_of.data[near], k=SPACING_NEIGHBOURS + 1)
-    out[near] = np.clip(spacings * d[:, 1:].mean(axis=1), floor, MAX_FRAGMENT_REACH)  # d[:, 0]: the node itself
-    return out
 
 
 def _fragment_majority(nodes, node_tree, joined: np.ndarray, comp: np.ndarray, vote: np.ndarray, trunk_xy,
@@ -237,8 +205,7 @@ def _fragment_majority(nodes, node_tree, joined: np.ndarray, comp: np.ndarray, v
         return
     pairs, count = np.unique(np.c_[comp[idx], node_tree[idx]], axis=0, return_counts=True)
     # most nodes first, then the lower tree: one winner per fragment, the same in any tile
-    order = np.lexsort((pairs[:, 1], -count, pairs[:, 0]))
-    pairs = pairs[order]
+    pairs = pairs[np.lexsort((pairs[:, 1], -count, pairs[:, 0]))]
     first = np.r_[True, pairs[1:, 0] != pairs[:-1, 0]]
     winner = np.zeros(comp.max(initial=-1) + 1, np.int64)
     winner[pairs[first, 0]] = pairs[first, 1]
@@ -301,39 +268,29 @@ def _label_unreached(nodes, graph, node_tree, trunk_xy, node_height, reach: np.n
     big = np.bincount(comp)[comp] >= params.min_fragment
     # a small fragment is an outlier unless it floats right beside a tree (a lone leaf at the rim)
     bound = np.where(big, bound, np.where(floating, params.fragment_reach, -1.0))
-    lone = np.flatnonzero(~big & floating)
-    bound[lone] = -1.0  # joined below, each within the reach of its nearest tree node
-    lab = np.flatnonzero(labelled)
-    tree_of = cKDTree(nodes[lab])
     spread = FRAGMENT_SPREAD * _reached_radius(nodes, node_tree, trunk_xy)
-    joined = _join_nearest(nodes, node_tree, trunk_xy, todo, lab, bound, max(widest, params.unreached_radius), reach,
-                           tree_of)
-    # a lone leaf's reach follows the sampling of the crown beside it, and a leaf that
-    # joins passes its reach on along the rim (joined fragments add no sampling of their own)
-    node_reach = np.full(node_tree.size, params.fragment_reach)
-    node_reach[lab] = _crown_reach(nodes, todo[lone], tree_of, floor=params.fragment_reach,
-                                   spacings=params.fragment_spacings)
-    rim_search = float(node_reach[lab].max(initial=0.0))
-    joined = np.r_[joined, _join_nearest(nodes, node_tree, trunk_xy, todo[lone], lab, rim_search, rim_search, reach,
-                                         tree_of, lab_bound=node_reach[lab], carry=node_reach)]
+    joined = _join_nearest(nodes, node_tree, trunk_xy, todo, np.flatnonzero(labelled), bound,
+                           max(widest, params.unreached_radius), reach)
     fragment = np.full(node_tree.size, -1, np.int64)  # each unreached node's fragment
     fragment[todo] = comp
+    # a floating fragment is one piece of canopy (a sparsely scanned limb): it goes whole
+    # to the tree most of its nodes are nearest, not split where it passes into a
+    # neighbour's crown
     vote = np.zeros(node_tree.size, bool)
     vote[todo[big & floating]] = True
     _fragment_majority(nodes, node_tree, joined, fragment, vote, trunk_xy, reach)
     joined = _drop_far_fragments(nodes, node_tree, joined, fragment, trunk_xy, spread)
     # small floating fragments also join through fragments that have just joined (a
     # sparsely scanned crown's rim: a chain of lone leaves). The nodes labelled before
-    # a round are all beyond their reach of the rest, so each round only searches the
-    # nodes that joined in the round before.
-    rim = todo[lone]
+    # a round are all beyond fragment_reach of the rest, so each round only searches
+    # the nodes that joined in the round before.
+    rim = todo[~big & floating]
     for _ in range(RIM_ROUNDS):
         rim = rim[node_tree[rim] == 0]
         if rim.size == 0 or joined.size == 0:
             break
-        rim_search = float(node_reach[joined].max())
-        joined = _join_nearest(nodes, node_tree, trunk_xy, rim, joined, rim_search, rim_search, reach,
-                               lab_bound=node_reach[joined], carry=node_reach)
+        joined = _join_nearest(nodes, node_tree, trunk_xy, rim, joined, params.fragment_reach, params.fragment_reach,
+                               reach)
     return node_tree
 
 
