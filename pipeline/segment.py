@@ -81,11 +81,12 @@ def segment_nodes(
     separate object (fence post, vehicle, grass) and only its nodes within
     ``unreached_radius`` of a tree join it, and so does a floating fragment that
     touched an excluded node (what is left of a vehicle or a bin once its faces are cut
-    out: its roof, its edges). A floating fragment of at least ``min_fragment`` nodes
-    then goes whole to the tree most of its nodes took, where within that tree's reach.
-    Either way within the tree's reach, and within
+    out: its roof, its edges). Either way within the tree's reach, and within
     ``FRAGMENT_SPREAD`` times the radius of the tree's reached crown of its trunk (a
-    fence wire beside a row's end tree is no part of it).
+    fence wire beside a row's end tree is no part of it). A floating fragment of at
+    least ``min_fragment`` nodes goes whole to the tree most of its nodes took (a
+    sparsely scanned limb is not split where it passes into a neighbour's crown), but
+    for nodes beyond that tree's reach.
     Fragments smaller than ``min_fragment`` nodes are outliers and stay unlabelled,
     unless they float within ``fragment_reach`` of a labelled node (sparse leaves at the
     crown's rim, which the scanner saw only once), or of such a fragment that has joined
@@ -204,7 +205,7 @@ def _fragment_majority(nodes, node_tree, joined: np.ndarray, comp: np.ndarray, v
     if idx.size == 0:
         return
     pairs, count = np.unique(np.c_[comp[idx], node_tree[idx]], axis=0, return_counts=True)
-    # most nodes first, then the lower tree: one winner per fragment, the same in any tile
+    # most nodes first, then the lower tree: one winner per fragment, whatever the nodes' order
     pairs = pairs[np.lexsort((pairs[:, 1], -count, pairs[:, 0]))]
     first = np.r_[True, pairs[1:, 0] != pairs[:-1, 0]]
     winner = np.zeros(comp.max(initial=-1) + 1, np.int64)
