@@ -83,7 +83,10 @@ def segment_nodes(
     touched an excluded node (what is left of a vehicle or a bin once its faces are cut
     out: its roof, its edges). Either way within the tree's reach, and within
     ``FRAGMENT_SPREAD`` times the radius of the tree's reached crown of its trunk (a
-    fence wire beside a row's end tree is no part of it).
+    fence wire beside a row's end tree is no part of it). A floating fragment of at
+    least ``min_fragment`` nodes goes whole to the tree most of its nodes took (a
+    sparsely scanned limb is not split where it passes into a neighbour's crown), but
+    for nodes beyond that tree's reach.
     Fragments smaller than ``min_fragment`` nodes are outliers and stay unlabelled,
     unless they float within ``fragment_reach`` of a labelled node (sparse leaves at the
     crown's rim, which the scanner saw only once), or of such a fragment that has joined
@@ -193,6 +196,25 @@ def _join_nearest(nodes, node_tree, trunk_xy, cand: np.ndarray, lab: np.ndarray,
     return cand[hit][ok]
 
 
+def _fragment_majority(nodes, node_tree, joined: np.ndarray, comp: np.ndarray, vote: np.ndarray, trunk_xy,
+                       crown_reach: np.ndarray) -> None:
+    """Give the ``joined`` nodes of each fragment (``comp`` of each node) that may
+    ``vote`` the tree most of them joined, where they lie within its ``crown_reach``
+    (per tree) of its trunk; relabels ``node_tree`` in place."""
+    idx = joined[vote[joined]]
+    if idx.size == 0:
+        return
+    pairs, count = np.unique(np.c_[comp[idx], node_tree[idx]], axis=0, return_counts=True)
+    # most nodes first, then the lower tree: one winner per fragment, whatever the nodes' order
+    pairs = pairs[np.lexsort((pairs[:, 1], -count, pairs[:, 0]))]
+    first = np.r_[True, pairs[1:, 0] != pairs[:-1, 0]]
+    winner = np.zeros(comp.max(initial=-1) + 1, np.int64)
+    winner[pairs[first, 0]] = pairs[first, 1]
+    tree = winner[comp[idx]]
+    ok = (tree != node_tree[idx]) & _within_crown(nodes, idx, tree, trunk_xy, crown_reach)
+    node_tree[idx[ok]] = tree[ok]
+
+
 def _reached_radius(nodes: np.ndarray, node_tree: np.ndarray, trunk_xy: np.ndarray) -> np.ndarray:
     """Farthest labelled node of each tree from its trunk, horizontally [m], at least
     MIN_REACHED_RADIUS, (k,) float64."""
@@ -252,6 +274,12 @@ def _label_unreached(nodes, graph, node_tree, trunk_xy, node_height, reach: np.n
                            max(widest, params.unreached_radius), reach)
     fragment = np.full(node_tree.size, -1, np.int64)  # each unreached node's fragment
     fragment[todo] = comp
+    # a floating fragment is one piece of canopy (a sparsely scanned limb): it goes whole
+    # to the tree most of its nodes are nearest, not split where it passes into a
+    # neighbour's crown
+    vote = np.zeros(node_tree.size, bool)
+    vote[todo[big & floating]] = True
+    _fragment_majority(nodes, node_tree, joined, fragment, vote, trunk_xy, reach)
     joined = _drop_far_fragments(nodes, node_tree, joined, fragment, trunk_xy, spread)
     # small floating fragments also join through fragments that have just joined (a
     # sparsely scanned crown's rim: a chain of lone leaves). The nodes labelled before

@@ -200,6 +200,28 @@ def test_a_chain_of_lone_leaves_joins_link_by_link_but_not_across_a_gap():
     assert (tree[20:24] == 1).all() and (tree[24:26] == 0).all()  # never past the crown radius
 
 
+def test_a_floating_fragment_goes_whole_to_the_tree_most_of_its_nodes_are_nearest():
+    def tree_at(x0, sign):
+        trunk = np.column_stack([np.full(21, x0), np.zeros(21), np.linspace(0.0, 2.0, 21)])
+        limb = np.column_stack([x0 + sign * np.arange(1, 10) * 0.1, np.zeros(9), np.full(9, 2.0)])  # tip 0.9 m out
+        return np.vstack([trunk, limb])
+
+    # a floating piece of limb between the tips (0.9 and 2.1): four nodes nearer tree 1, three nearer tree 2
+    piece = np.column_stack([1.15 + np.arange(7) * 0.1, np.zeros(7), np.full(7, 2.0)])
+    # and an isolated cluster of three nodes 4 m off the row, floating as high
+    far = np.column_stack([1.4 + np.arange(3) * 0.1, np.full(3, 4.0), np.full(3, 2.0)])
+    nodes = np.vstack([tree_at(0.0, 1), tree_at(3.0, -1), piece, far])
+    graph = build_graph(nodes, radius=0.15)
+    assert csgraph.connected_components(graph, directed=False)[0] == 4  # the piece is reached by no search
+    kw = dict(source_nodes=np.array([0, 30]), source_trunk=np.array([0, 1]), trunk_xy=np.array([[0.0, 0.0], [3.0, 0.0]]),
+              node_height=nodes[:, 2], params=SegmentParams())
+    seg = segment_nodes(nodes, graph, **kw)
+    assert (seg.node_tree[:30] == 1).all() and (seg.node_tree[30:60] == 2).all()
+    assert not seg.reached[60:].any()
+    assert (seg.node_tree[60:67] == 1).all()  # not split at the midpoint between the tips
+    assert (seg.node_tree[67:] == 0).all()  # the far cluster joins no tree
+
+
 def _hedge_tree_and_wire(arm: float):
     """A trunk (0-1.9 m) with four limbs ``arm`` m long at 1.5 m; a fence wire (1.0 m high,
     1.5 m long, 15 nodes, touching nothing) 3 m to one side, along the row; and a tuft of
