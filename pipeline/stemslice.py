@@ -11,6 +11,7 @@ stem is wide.
 from __future__ import annotations
 
 import numpy as np
+from scipy.cluster.vq import kmeans2
 from scipy.sparse import coo_matrix
 from scipy.sparse.csgraph import connected_components
 from scipy.spatial import cKDTree
@@ -28,6 +29,12 @@ MIN_PIECE = 6
 #: sparse scan's ring in fragments (a stem, a riser, a stake and twigs are a few)
 MIN_SHARE = 0.5
 MAX_PIECES = 6
+#: two parts of one piece are two things side by side where their centres lie this many
+#: times the parts' spread (RMS along the line through them, summed) apart: one blob
+#: split at its mean gives 1.33 (a normal), a stem and a stake 6-12 cm apart 1.6-3
+SPLIT_SEPARATION = 1.6
+#: side by side means the two parts' circles are apart by their radii and this [m]
+SPLIT_GAP = 0.0
 
 
 def stem_points(xy: np.ndarray, tree: np.ndarray) -> np.ndarray:
@@ -69,6 +76,10 @@ def stem_points(xy: np.ndarray, tree: np.ndarray) -> np.ndarray:
     for t in np.flatnonzero(pieces_of_tree > 1):
         own = np.flatnonzero(inv == t)
         keep[own] = _grown_stem(xy[own], piece[own], link[t])
+    for t in range(trees.size):
+        own = np.flatnonzero((inv == t) & keep)
+        if own.size >= 2 * MIN_PIECE:
+            keep[own] = _beside_stake(xy[own])
     return keep
 
 
@@ -88,3 +99,27 @@ def _grown_stem(xy: np.ndarray, piece: np.ndarray, link: float) -> np.ndarray:
     near = cKDTree(inner).query(xy, distance_upper_bound=reach)[0] <= reach
     inside = near | (np.hypot(*(xy - centre).T) <= radius + max(link, 0.5 * radius))
     return np.isin(piece, np.unique(piece[inside]))
+
+
+def _beside_stake(xy: np.ndarray) -> np.ndarray:
+    """(m,) bool: the stem of a slice that may hold a stake touching it (see :func:`stem_points`)."""
+    keep = np.ones(xy.shape[0], bool)
+    _, part = kmeans2(xy - xy.mean(axis=0), 2, seed=0, minit="++")
+    sizes = np.bincount(part, minlength=2)
+    if sizes.min() < MIN_PIECE:
+        return keep
+    a, b = xy[part == 0], xy[part == 1]
+    ca, cb = a.mean(axis=0), b.mean(axis=0)
+    gap = float(np.hypot(*(cb - ca)))
+    if gap == 0.0:
+        return keep
+    axis = (cb - ca) / gap
+    spread = np.sqrt(np.mean(((a - ca) @ axis) ** 2)) + np.sqrt(np.mean(((b - cb) @ axis) ** 2))
+    if gap < SPLIT_SEPARATION * spread:
+        return keep
+    (oa, ra), (ob, rb) = fit_circle(a, solid=True), fit_circle(b, solid=True)
+    if not (np.isfinite(ra) and np.isfinite(rb)) or np.hypot(*(ob - oa)) <= ra + rb + SPLIT_GAP:
+        return keep  # one circle's arcs, or parts of one blob
+    # a stake holds the young stem up: as thick as the stem or thicker, and its section
+    # gives the scan at least as many points
+    return part == int(np.argmin(sizes))
