@@ -17,7 +17,7 @@ from pipeline.metrics import trunk_circles
 from pipeline.params import PipelineParams
 from pipeline.posts import Posts, on_posts
 from pipeline.segment import Segmentation, trunk_feet
-from pipeline.trunks import TrunkDetection
+from pipeline.trunks import TrunkDetection, young_block
 from pipeline.voxels import Voxels
 
 # Fixed tuning of the box, bark, post and spacing tests, set on generated orchards (the
@@ -233,7 +233,8 @@ def _measured_trunks(xyz: np.ndarray, tree_id: np.ndarray, a: NodeAnalysis, *,
     trunks = np.zeros((k, 3))
     trunks[:, :2] = a.trunks.xy
     trunks[:, 2] = a.ground.height_at(a.trunks.xy) if k else np.zeros(0)
-    centres, diameter = trunk_circles(xyz, tree_id, trunks, params=params.metrics, height=a.height)
+    centres, diameter = trunk_circles(xyz, tree_id, trunks, params=params.metrics, height=a.height,
+                                      stakes=young_block(a.trunks, params.trunks))
     # where the stem's circle was measured, its centre is the trunk's position (the
     # detection's flow-weighted centroid of voxels sits off the stem by a few cm)
     shift = np.hypot(*(centres - trunks[:, :2]).T) if k else np.zeros(0)

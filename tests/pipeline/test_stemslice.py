@@ -78,9 +78,20 @@ def test_a_stake_touching_a_young_stem_is_left_out(offset, seed):
     stem = _blurred_section((0.0, 0.0), 0.015, 30, rng, 0.01)
     stake = _blurred_section(at, 0.015, 45, rng, 0.01)
     xy = np.vstack([stem, stake]) + np.array([3.0, 4.0])
-    keep = stem_points(xy, np.full(len(xy), 2, np.int64))
+    keep = stem_points(xy, np.full(len(xy), 2, np.int64), stakes=True)
     centre, radius = trunk_circle(xy[keep])
     assert np.hypot(*(centre - (3.0, 4.0))) < 0.02
     assert radius < 0.03
     whole_centre, whole_radius = trunk_circle(xy)
     assert whole_radius > 0.03 or np.hypot(*(whole_centre - (3.0, 4.0))) > 0.02  # the test can fail
+
+
+def test_without_stakes_two_sections_side_by_side_stay_whole():
+    """On a grown block (no stakes) a slice is split only into its pieces: a grown stem of
+    4-6 cm radius under 2 cm of noise looks like two thin sections side by side."""
+    rng = np.random.default_rng(4)
+    stem = _blurred_section((0.0, 0.0), 0.015, 30, rng, 0.01)
+    stake = _blurred_section((0.08, 0.0), 0.015, 45, rng, 0.01)
+    xy = np.vstack([stem, stake])
+    assert stem_points(xy, np.zeros(len(xy), np.int64)).all()
+    assert not stem_points(xy, np.zeros(len(xy), np.int64), stakes=True).all()
