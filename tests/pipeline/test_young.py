@@ -275,6 +275,20 @@ def test_a_grown_block_with_replants_keeps_the_mature_floors():
     assert block_floors(top, support, np.ones(5, bool)) == (0.85, 30)
 
 
+def test_young_trees_as_tall_as_the_height_floor_with_risers_keep_the_young_floors():
+    """Each floor passed alone at the median, but by different groups (the tall ones drain
+    little, the ones with a riser's column drain more): the mature floors would drop two
+    thirds of them (young, 1 m x 3.5 m, a riser by every tree: tuning seed 107, 1 of 16)."""
+    top = np.array([1.5, 1.6, 2.05, 2.1, 2.2, 2.3])
+    support = np.array([300.0, 250.0, 100.0, 120.0, 130.0, 200.0])
+    assert np.median(top) >= MATURE_FLOORS["min_tree_height"]
+    assert np.median(support) >= MATURE_FLOORS["min_canopy_voxels"]
+    assert block_floors(top, support, np.ones(6, bool)) == (1.0375, 41)
+    # half of them passing both floors is a grown block
+    support[2:4] = 400.0
+    assert block_floors(top, support, np.ones(6, bool)) == (None, None)
+
+
 def test_young_trees_among_trellis_posts_with_end_posts():
     """Posts every two gaps and one past each row's end (a gap from the last gap's post):
     a trellis among young trees, not tall spindles' leaders; the posts are cut out."""
