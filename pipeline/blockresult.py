@@ -233,8 +233,7 @@ def _measured_trunks(xyz: np.ndarray, tree_id: np.ndarray, a: NodeAnalysis, *,
     trunks = np.zeros((k, 3))
     trunks[:, :2] = a.trunks.xy
     trunks[:, 2] = a.ground.height_at(a.trunks.xy) if k else np.zeros(0)
-    centres, diameter = trunk_circles(xyz, tree_id, trunks, params=params.metrics, height=a.height,
-                                      stakes=young_block(a.trunks, params.trunks))
+    centres, diameter = trunk_circles(xyz, tree_id, trunks, params=params.metrics, height=a.height)
     # where the stem's circle was measured, its centre is the trunk's position (the
     # detection's flow-weighted centroid of voxels sits off the stem by a few cm)
     shift = np.hypot(*(centres - trunks[:, :2]).T) if k else np.zeros(0)
@@ -242,4 +241,9 @@ def _measured_trunks(xyz: np.ndarray, tree_id: np.ndarray, a: NodeAnalysis, *,
     if moved.any():
         trunks[moved, :2] = centres[moved]
         trunks[moved, 2] = a.ground.height_at(centres[moved])
+    if young_block(a.trunks, params.trunks):
+        # a young stem's stake, as thick as the stem, widens its circle: the diameter is
+        # that of one of the two sections, the position stays between them, as neither
+        # the slice nor the flow tells which is the stem (pipeline.stemslice)
+        diameter = trunk_circles(xyz, tree_id, trunks, params=params.metrics, height=a.height, stakes=True)[1]
     return trunks, diameter
