@@ -9,7 +9,7 @@ import numpy as np
 import pytest
 
 from bench.real_data import REAL, young_row
-from simulator.scoring.scores import score_labels
+from simulator.scoring.scores import diameter_errors, score_labels
 from pipeline.params import MATURE_FLOORS, PipelineParams, TrunkParams
 from pipeline.process import process_points
 from simulator.orchard import KIND
@@ -43,6 +43,10 @@ def test_young_dormant_block_with_defaults():
                      pred_tree_id=r.tree_id, pred_is_wood=r.is_wood, found_trunks=r.trunks[:, :2])
     assert s["trunk_f1"] >= 0.97, s
     assert s["v_measure"] >= 0.95, s
+    # a stake as thick as the stem 6-12 cm beside each: the diameter is one section's
+    # (not a circle through both, 0.07 m too wide)
+    d = diameter_errors(o.trunks[:, :2] - origin[:2], 2.0 * o.trunk_radius, r.trunks[:, :2], r.trunk_diameter)
+    assert d["trunk_diameter_n"] >= 14 and d["trunk_diameter_mae"] < 0.05, d
 
 
 @pytest.mark.parametrize("options", [YOUNG, pytest.param(dict(form="young", rows=2, trees_per_row=10, spacing=2.0,
