@@ -17,7 +17,7 @@ from pipeline.metrics import trunk_circles
 from pipeline.params import PipelineParams
 from pipeline.posts import Posts, on_posts
 from pipeline.segment import Segmentation, trunk_feet
-from pipeline.trunks import TrunkDetection
+from pipeline.trunks import TrunkDetection, young_block
 from pipeline.voxels import Voxels
 
 # Fixed tuning of the box, bark, post and spacing tests, set on generated orchards (the
@@ -241,4 +241,9 @@ def _measured_trunks(xyz: np.ndarray, tree_id: np.ndarray, a: NodeAnalysis, *,
     if moved.any():
         trunks[moved, :2] = centres[moved]
         trunks[moved, 2] = a.ground.height_at(centres[moved])
+    if young_block(a.trunks, params.trunks):
+        # a young stem's stake, as thick as the stem, widens its circle: the diameter is
+        # that of one of the two sections, the position stays between them, as neither
+        # the slice nor the flow tells which is the stem (pipeline.stemslice)
+        diameter = trunk_circles(xyz, tree_id, trunks, params=params.metrics, height=a.height, stakes=True)[1]
     return trunks, diameter

@@ -110,8 +110,8 @@ def block_floors(top: np.ndarray, support: np.ndarray, ok: np.ndarray,
     branch and pass every test of their own at the lowest floors: FLOOR_HEIGHT_SHARE of
     their median ``top`` [m] and FLOOR_SIZE_SHARE of their median ``support`` [voxels],
     each between its least value and the mature trees' floor (MATURE_FLOORS). (None,
-    None) without such a group, where their median height and median catchment are
-    both at the mature trees' floors or more (a block of grown trees), where weighted by
+    None) without such a group, where at least half of them reach both of the mature
+    trees' floors (a block of grown trees), where weighted by
     the catchment their median height is and their median catchment is BRANCH_MAX_SIZE
     times the mature floor (a grown block with replants), or where the median of their
     flow cross-sections ``width`` [m] is over YOUNG_MAX_WIDTH (no stems: a cloud of
@@ -119,7 +119,10 @@ def block_floors(top: np.ndarray, support: np.ndarray, ok: np.ndarray,
     if not ok.any():
         return None, None
     height, size = MATURE_FLOORS["min_tree_height"], MATURE_FLOORS["min_canopy_voxels"]
-    if np.median(top[ok]) >= height and np.median(support[ok]) >= size:
+    # the median group passes the mature trees' test, both floors at once: young trees
+    # as tall as the height floor, their stakes and risers draining into them, pass each
+    # floor alone at the median, and the mature floors would then drop half of them
+    if np.median((top[ok] >= height) & (support[ok] >= size)):
         return None, None
     # or where most of the material drains into groups larger than any young tree: a grown
     # block with replants, whose many crown fragments and replants drain little (trellis

@@ -365,13 +365,15 @@ def trunk_circles(
     params: MetricsParams,
     height: np.ndarray | None = None,
     solid: bool = True,
+    stakes: bool = False,
 ) -> tuple[np.ndarray, np.ndarray]:
     """The stem of each tree at ``params.trunk_height`` above its base: centre and diameter.
 
     Fits a circle (:func:`trunk_circle`, corrected for noise; ``solid``: see there) to
     the tree's points in a horizontal slice of thickness ``params.trunk_slice`` within
     ``params.max_trunk_radius`` of the trunk. ``height`` (n,), the points' height above
-    ground [m], only speeds up the selection.
+    ground [m], only speeds up the selection. ``stakes``: young trees, a stake touching
+    each stem (:func:`pipeline.stemslice.stem_points`).
 
     Returns
     -------
@@ -400,7 +402,7 @@ def trunk_circles(
     in_slice = np.abs(dz - params.trunk_height) <= params.trunk_slice / 2
     d2 = ((pts[:, :2] - trunks[ids - 1, :2]) ** 2).sum(1)
     sel = np.flatnonzero(in_slice & (d2 <= max_radius**2))
-    sel = sel[stem_points(pts[sel, :2], ids[sel])]  # no riser or stake beside the stem
+    sel = sel[stem_points(pts[sel, :2], ids[sel], stakes=stakes)]  # no riser or stake beside the stem
     c, r = tree_circles(pts[sel, :2], ids[sel], k, fit=partial(trunk_circle, solid=solid))
     ok = np.isfinite(r) & (r > MIN_TRUNK_RADIUS) & (r <= max_radius)
     out[ok] = 2 * r[ok]

@@ -38,6 +38,7 @@ from pipeline.trunks import (
     detect_trunks,
     drop_trunks,
     low_trees,
+    young_block,
 )
 from pipeline.voxels import Voxels, voxelize
 
@@ -132,8 +133,7 @@ def _floors(det: TrunkDetection, params: PipelineParams) -> TrunkParams:
 def _young_block(det: TrunkDetection, params: PipelineParams) -> bool:
     """Whether ``det`` read the block as one of young trees: its height floor, left unset,
     below the mature trees'."""
-    return params.trunks.min_tree_height is None and \
-        _floors(det, params).min_tree_height < params.trunks.at_floors().min_tree_height
+    return young_block(det, params.trunks)
 
 
 def _low_floor(det: TrunkDetection, params: PipelineParams) -> TrunkParams:

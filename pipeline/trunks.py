@@ -105,6 +105,13 @@ class TrunkDetection:
         return int(self.xy.shape[0])
 
 
+def young_block(det: TrunkDetection, params: TrunkParams) -> bool:
+    """Whether ``det`` read the block as one of young trees: its height floor, left unset
+    in ``params``, below the mature trees'."""
+    return params.min_tree_height is None and det.floors is not None and \
+        det.floors[0] < MATURE_FLOORS["min_tree_height"]
+
+
 def _suppress(xy: np.ndarray, score: np.ndarray, radius: float) -> np.ndarray:
     """Greedy non-maximum suppression: label of the strongest point within ``radius``.
 

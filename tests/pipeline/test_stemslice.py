@@ -3,9 +3,11 @@
 from __future__ import annotations
 
 import numpy as np
+import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
+from pipeline.circles import trunk_circle
 from pipeline.stemslice import stem_points
 
 
@@ -56,3 +58,40 @@ def test_a_ring_is_never_cut(n, radius, seed):
     """Sparse (8 points) or dense, thin or thick: one stem's section stays whole."""
     xy = _scanned_ring((5.0, -3.0), radius, n, np.random.default_rng(seed))
     assert stem_points(xy, np.full(n, 7, np.int64)).all()
+
+
+def _blurred_section(centre, radius, n, rng, noise):
+    """A thin section under range noise: points on the circle, scattered by ``noise``."""
+    a = rng.uniform(0, 2 * np.pi, n)
+    return np.c_[centre[0] + radius * np.cos(a), centre[1] + radius * np.sin(a)] + rng.normal(0, noise, (n, 2))
+
+
+@pytest.mark.parametrize("offset", [0.06, 0.08, 0.1, 0.12])
+@pytest.mark.parametrize("seed", [0, 1, 2])
+def test_a_stake_touching_a_young_stem_is_left_out(offset, seed):
+    """A stake of the stem's radius 6-12 cm beside it, both blurred into one piece by the
+    scan's noise: the circle fitted to the points kept is the stem's, not one through both.
+    The stake gives more points (it is seen whole: nothing on it grows into the slice)."""
+    rng = np.random.default_rng(seed)
+    angle = rng.uniform(0, 2 * np.pi)
+    at = offset * np.array([np.cos(angle), np.sin(angle)])
+    stem = _blurred_section((0.0, 0.0), 0.015, 30, rng, 0.01)
+    stake = _blurred_section(at, 0.015, 45, rng, 0.01)
+    xy = np.vstack([stem, stake]) + np.array([3.0, 4.0])
+    keep = stem_points(xy, np.full(len(xy), 2, np.int64), stakes=True)
+    centre, radius = trunk_circle(xy[keep])
+    assert np.hypot(*(centre - (3.0, 4.0))) < 0.02
+    assert radius < 0.03
+    whole_centre, whole_radius = trunk_circle(xy)
+    assert whole_radius > 0.03 or np.hypot(*(whole_centre - (3.0, 4.0))) > 0.02  # the test can fail
+
+
+def test_without_stakes_two_sections_side_by_side_stay_whole():
+    """On a grown block (no stakes) a slice is split only into its pieces: a grown stem of
+    4-6 cm radius under 2 cm of noise looks like two thin sections side by side."""
+    rng = np.random.default_rng(4)
+    stem = _blurred_section((0.0, 0.0), 0.015, 30, rng, 0.01)
+    stake = _blurred_section((0.08, 0.0), 0.015, 45, rng, 0.01)
+    xy = np.vstack([stem, stake])
+    assert stem_points(xy, np.zeros(len(xy), np.int64)).all()
+    assert not stem_points(xy, np.zeros(len(xy), np.int64), stakes=True).all()

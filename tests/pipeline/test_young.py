@@ -9,7 +9,7 @@ import numpy as np
 import pytest
 
 from bench.real_data import REAL, young_row
-from simulator.scoring.scores import score_labels
+from simulator.scoring.scores import diameter_errors, score_labels
 from pipeline.params import MATURE_FLOORS, PipelineParams, TrunkParams
 from pipeline.process import process_points
 from simulator.orchard import KIND
@@ -43,6 +43,10 @@ def test_young_dormant_block_with_defaults():
                      pred_tree_id=r.tree_id, pred_is_wood=r.is_wood, found_trunks=r.trunks[:, :2])
     assert s["trunk_f1"] >= 0.97, s
     assert s["v_measure"] >= 0.95, s
+    # a stake as thick as the stem 6-12 cm beside each: the diameter is one section's
+    # (not a circle through both, 0.07 m too wide)
+    d = diameter_errors(o.trunks[:, :2] - origin[:2], 2.0 * o.trunk_radius, r.trunks[:, :2], r.trunk_diameter)
+    assert d["trunk_diameter_n"] >= 14 and d["trunk_diameter_mae"] < 0.05, d
 
 
 @pytest.mark.parametrize("options", [YOUNG, pytest.param(dict(form="young", rows=2, trees_per_row=10, spacing=2.0,
@@ -273,6 +277,20 @@ def test_a_grown_block_with_replants_keeps_the_mature_floors():
     # trellis posts with their wires drain more than young trees, but far less than a crown
     top, support = np.array([1.5, 1.6, 1.7, 2.9, 2.9]), np.array([100.0, 110.0, 120.0, 300.0, 320.0])
     assert block_floors(top, support, np.ones(5, bool)) == (0.85, 30)
+
+
+def test_young_trees_as_tall_as_the_height_floor_with_risers_keep_the_young_floors():
+    """Each floor passed alone at the median, but by different groups (the tall ones drain
+    little, the ones with a riser's column drain more): the mature floors would drop two
+    thirds of them (young, 1 m x 3.5 m, a riser by every tree: tuning seed 107, 1 of 16)."""
+    top = np.array([1.5, 1.6, 2.05, 2.1, 2.2, 2.3])
+    support = np.array([300.0, 250.0, 100.0, 120.0, 130.0, 200.0])
+    assert np.median(top) >= MATURE_FLOORS["min_tree_height"]
+    assert np.median(support) >= MATURE_FLOORS["min_canopy_voxels"]
+    assert block_floors(top, support, np.ones(6, bool)) == (1.0375, 41)
+    # half of them passing both floors is a grown block
+    support[2:4] = 400.0
+    assert block_floors(top, support, np.ones(6, bool)) == (None, None)
 
 
 def test_young_trees_among_trellis_posts_with_end_posts():
