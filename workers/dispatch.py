@@ -136,7 +136,7 @@ def _run_on_cluster(task, by_id: dict[int, dict], state: TileState, *, store: Wo
     No more tiles are submitted than the cluster has threads, the next one as one
     finishes, in :func:`run_order`: all at once, dask would queue some behind a long tile
     on one worker, and another worker that ran out of tiles would wait for dask's work
-    stealing to take one over (0.3–1 s each time in the service bench)."""
+    stealing to take one over (0.26–1.72 s in the service bench's block, docs/performance.md)."""
     token = uuid.uuid4().hex[:8]
     todo = deque(run_order(state, by_id))
     futures = {}
