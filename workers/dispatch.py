@@ -10,6 +10,7 @@ job's tile stages use it: :func:`block_ground_stats`, :func:`process_tiles` and
 from __future__ import annotations
 
 import contextlib
+import itertools
 import threading
 import time
 import uuid
@@ -299,7 +300,13 @@ def _completed(client, futures: dict, cancel, store: WorkStore | None, queued: S
     from distributed import wait
 
     pending = set(futures)
-    finished = set()
+    known = len(futures)
+
+    def added() -> list:  # the futures the caller added since (the last ones of the dict)
+        nonlocal known
+        new, known = list(itertools.islice(reversed(futures), len(futures) - known)), len(futures)
+        return new
+
     last_worker_seen = time.monotonic()
     last_check = 0.0
     try:
@@ -324,10 +331,9 @@ def _completed(client, futures: dict, cancel, store: WorkStore | None, queued: S
                 continue
             for fut in res.done:
                 pending.discard(fut)
-                finished.add(fut)
                 yield futures[fut], fut
-                pending.update(futures.keys() - finished)  # submitted meanwhile (the next tiles)
+                pending.update(added())
     finally:
-        left = futures.keys() - finished
-        if left:
-            client.cancel(list(left))
+        pending.update(added())
+        if pending:
+            client.cancel(list(pending))
