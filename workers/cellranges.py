@@ -352,12 +352,16 @@ def gather_tile(store: WorkStore, frame: dict, tile_id: int) -> np.ndarray:
             keep[edge] = in_buffered(xy, grid, tile_id, core=np.full(len(edge), -1))
         sel = np.flatnonzero(keep)
         sel = sel[_file_order(rec["at"][sel], int(r["count"]))]
-        core = np.repeat(core, per_cell)[sel]
-        rec = rec[sel]  # one gather of whole records, then each field in order
-        out = np.empty(len(sel), dtype=TILE_DTYPE)
-        out["X"], out["Y"], out["Z"] = rec["X"], rec["Y"], rec["Z"]
-        out["index"] = rec["at"]
-        out["index"] += np.uint64(r["start"])
-        out["core"] = core
-        parts.append(out)
-    return np.concatenate(parts) if parts else np.zeros(0, dtype=TILE_DTYPE)
+        # one gather of whole records; the tile's records are filled once all ranges are
+        parts.append((rec[sel], np.repeat(core, per_cell)[sel], np.uint64(r["start"])))
+        del rec, sel, keep
+    out = np.empty(sum(len(p[0]) for p in parts), dtype=TILE_DTYPE)
+    at = 0
+    for rec, core, start in parts:
+        part = out[at : at + len(rec)]
+        part["X"], part["Y"], part["Z"] = rec["X"], rec["Y"], rec["Z"]
+        part["index"] = rec["at"]
+        part["index"] += start
+        part["core"] = core
+        at += len(rec)
+    return out

@@ -10,10 +10,12 @@ job's tile stages use it: :func:`block_ground_stats`, :func:`process_tiles` and
 from __future__ import annotations
 
 import contextlib
+import itertools
 import threading
 import time
 import uuid
-from collections.abc import Callable
+from collections import deque
+from collections.abc import Callable, Sized
 
 import numpy as np
 
@@ -130,15 +132,27 @@ def _run_here(task, by_id: dict[int, dict], state: TileState, *, store: WorkStor
 
 def _run_on_cluster(task, by_id: dict[int, dict], state: TileState, *, store: WorkStore, client, cancel, key: str,
                     args, accept, act) -> None:
-    """`dispatch` on a cluster: one dask task per tile (retried by dask), taken as they finish."""
+    """`dispatch` on a cluster: one dask task per tile (retried by dask), taken as they finish.
+
+    No more tiles are submitted than the cluster has threads, the next one as one
+    finishes, in :func:`run_order`: all at once, dask would queue some behind a long tile
+    on one worker, and another worker that ran out of tiles would wait for dask's work
+    stealing to take one over (0.26–1.72 s in the service bench's block, docs/performance.md)."""
     token = uuid.uuid4().hex[:8]
+    todo = deque(run_order(state, by_id))
     futures = {}
-    for tid in state.tiles:
-        fut = client.submit(task, store.url, tid, *args(tid), key=f"{key}-{tid}-{token}",
-                            retries=state.retries, pure=False, priority=state.priority(tid))
-        futures[fut] = tid
-    with contextlib.closing(_completed(client, futures, cancel, store)) as done:
-        for tid, fut in done:
+
+    def submit(running: int) -> None:
+        for _ in range(min(len(todo), cluster_threads(client) - running)):
+            tid = todo.popleft()
+            fut = client.submit(task, store.url, tid, *args(tid), key=f"{key}-{tid}-{token}",
+                                retries=state.retries, pure=False, priority=state.priority(tid))
+            futures[fut] = tid
+
+    submit(0)
+    with contextlib.closing(_completed(client, futures, cancel, store, todo)) as done:
+        for n_done, (tid, fut) in enumerate(done, start=1):
+            submit(len(futures) - n_done)
             if fut.status == "finished":
                 act(tid, state.tile_succeeded(tid, accept(by_id[tid], fut.result())))
                 continue
@@ -146,6 +160,18 @@ def _run_on_cluster(task, by_id: dict[int, dict], state: TileState, *, store: Wo
             if isinstance(exc, OrchardError):
                 raise exc
             act(tid, state.tile_failed(tid, error_line(exc), attempts=state.retries + 1))
+
+
+def run_order(state: TileState, by_id: dict[int, dict]) -> list[int]:
+    """The order tiles are handed to a cluster: the canary first, then the largest
+    (most buffered points) first, so that no long tile starts last."""
+    return sorted(state.tiles, key=lambda t: (-state.priority(t), -int(by_id[t].get("n_buffered", 0)), t))
+
+
+def cluster_threads(client) -> int:
+    """The threads of the cluster's workers now (at least 1: a cluster without workers
+    gets one tile, and :func:`_completed` waits for workers to come)."""
+    return max(1, sum(client.nthreads().values()))
 
 
 def block_ground_stats(store: WorkStore, tiles: list[dict], spec: JobSpec, client, cancel, n_points: int) -> list[float]:
@@ -262,8 +288,10 @@ def gather(client, futures: list, cancel, store: WorkStore | None,
     return results
 
 
-def _completed(client, futures: dict, cancel, store: WorkStore | None):
-    """Yield ``(futures[f], f)`` for each dask future ``f`` as it finishes.
+def _completed(client, futures: dict, cancel, store: WorkStore | None, queued: Sized = ()):
+    """Yield ``(futures[f], f)`` for each dask future ``f`` as it finishes, and then for
+    the futures the caller added to ``futures`` meanwhile (``queued``: what it has still
+    to add, for the count of what is left).
 
     Raises JobCancelled when ``cancel`` is set, and ClusterLost after NO_WORKER_TIMEOUT
     seconds without any worker; the futures still pending when it stops (or is closed)
@@ -272,6 +300,13 @@ def _completed(client, futures: dict, cancel, store: WorkStore | None):
     from distributed import wait
 
     pending = set(futures)
+    known = len(futures)
+
+    def added() -> list:  # the futures the caller added since (the last ones of the dict)
+        nonlocal known
+        new, known = list(itertools.islice(reversed(futures), len(futures) - known)), len(futures)
+        return new
+
     last_worker_seen = time.monotonic()
     last_check = 0.0
     try:
@@ -289,7 +324,7 @@ def _completed(client, futures: dict, cancel, store: WorkStore | None):
                         # before the job has a work store there is nothing to resume from
                         raise ClusterLost(
                             f"no dask worker for {NO_WORKER_TIMEOUT:.0f} s (they died or left; their logs say why) "
-                            f"with {len(pending)} {'tasks' if store is None else 'tiles'} to go",
+                            f"with {len(pending) + len(queued)} {'tasks' if store is None else 'tiles'} to go",
                             hint="; start workers and submit the job again" if store is None
                             else f"; start workers and resume with {{job.work_dir}} {store.url} {{job.resume}}",
                         ) from None
@@ -297,6 +332,8 @@ def _completed(client, futures: dict, cancel, store: WorkStore | None):
             for fut in res.done:
                 pending.discard(fut)
                 yield futures[fut], fut
+                pending.update(added())
     finally:
+        pending.update(added())
         if pending:
             client.cancel(list(pending))

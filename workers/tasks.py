@@ -45,6 +45,13 @@ def raw_ground_key(tile_id: int) -> str:
     return f"{tile_key(tile_id)}/raw_ground.pkl"
 
 
+def records_key(tile_id: int) -> str:
+    """Where the ground pass keeps the records it gathered of a streamed tile (from the
+    ranges sorted by cell, or decoded from the input), for the tile's own task: gathered
+    once, not once a pass. Beside the tile's ground model, removed with the tiles."""
+    return f"{tile_key(tile_id)}/records.npy"
+
+
 def _frame(index: dict) -> SimpleNamespace:
     return SimpleNamespace(scales=tuple(index["scales"]), offsets=tuple(index["offsets"]), origin=tuple(index["origin"]))
 
@@ -126,16 +133,20 @@ def process(xyz: np.ndarray, params: PipelineParams, where: str, ground: tuple[f
         raise exc.prefixed(f"{where}: ") from None
 
 
-def _tile_points(store: WorkStore, tile_id: int, frame: dict) -> tuple[dict, np.ndarray]:
+def _tile_points(store: WorkStore, tile_id: int, frame: dict, *, keep: bool = False) -> tuple[dict, np.ndarray]:
     """A buffered tile's record array and its points in the block's local frame
     (``frame``: the tile index, or its frame from :func:`workers.tiler.read_frame`),
-    read from the work store, or from the input for a streamed block."""
-    if frame.get("engine") == CELLS_ENGINE:
-        rec = gather_tile(store, frame, tile_id)
+    read from the work store, or from the input for a streamed block. ``keep``: keep a
+    streamed tile's records in the store (:func:`records_key`), where the next read takes them."""
+    if not streamed(frame):
+        rec = read_tile(store, tile_id)
+    elif store.exists(records_key(tile_id)):
+        rec = store.get_array(records_key(tile_id))
     else:
-        rec = source_tile(frame, tile_id) if streamed(frame) else read_tile(store, tile_id)
-    ints = np.column_stack([rec["X"], rec["Y"], rec["Z"]])
-    return rec, to_local(ints, _frame(frame))
+        rec = gather_tile(store, frame, tile_id) if frame.get("engine") == CELLS_ENGINE else source_tile(frame, tile_id)
+        if keep:
+            store.put_array(records_key(tile_id), rec)
+    return rec, to_local((rec["X"], rec["Y"], rec["Z"]), _frame(frame))
 
 
 def ground_sample(work_url: str, tile_id: int, params_json: str, stride: int) -> np.ndarray:
@@ -146,12 +157,13 @@ def ground_sample(work_url: str, tile_id: int, params_json: str, stride: int) ->
     (every ``stride``-th point of the file), measured against the same terrain, so the
     block's statistics (and with them every tile's ground) come out as untiled.
     The tile's raw model is kept in the work store (:func:`raw_ground_key`), where
-    :func:`process_tile` takes it instead of fitting it again.
+    :func:`process_tile` takes it instead of fitting it again, and so are a streamed
+    tile's records (:func:`records_key`), which it takes instead of gathering them again.
     """
     store = WorkStore(work_url)
     frame = read_frame(store)
     params = PipelineParams.model_validate_json(params_json)
-    rec, xyz = _tile_points(store, tile_id, frame)
+    rec, xyz = _tile_points(store, tile_id, frame, keep=True)
     if not rec["core"].any():  # a streamed tile whose estimate was wrong: it holds no core point
         return np.zeros(0)
     pick = rec["core"].astype(bool) & (rec["index"] % np.uint64(stride) == 0)

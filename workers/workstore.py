@@ -94,14 +94,15 @@ class WorkStore:
         """Filesystem path of a key when the store is a local folder, else None."""
         return self.path(key) if self.local else None
 
-    def _put(self, key: str, data: bytes) -> None:
+    def _put(self, key: str, data: bytes | None, write=None) -> None:
+        """Write ``data``, or on a local folder what ``write(file)`` writes (None: ``data``)."""
         path = self.path(key)
         parent = path.rsplit("/", 1)[0]
         self.fs.makedirs(parent, exist_ok=True)
         if self.local:
             tmp = f"{parent}/.{path.rsplit('/', 1)[1]}.{uuid.uuid4().hex[:8]}.tmp"
             with open(tmp, "wb") as f:
-                f.write(data)
+                write(f) if write is not None else f.write(data)
             os.replace(tmp, path)
         else:
             self.fs.pipe_file(path, data)
@@ -110,11 +111,17 @@ class WorkStore:
         return self.fs.cat_file(self.path(key))
 
     def put_array(self, key: str, arr: np.ndarray) -> None:
+        arr = np.ascontiguousarray(arr)
+        if self.local:  # straight to the file: a tile's records are hundreds of MB, not copied twice first
+            self._put(key, None, lambda f: np.save(f, arr, allow_pickle=False))
+            return
         buf = io.BytesIO()
-        np.save(buf, np.ascontiguousarray(arr), allow_pickle=False)
+        np.save(buf, arr, allow_pickle=False)
         self._put(key, buf.getvalue())
 
     def get_array(self, key: str) -> np.ndarray:
+        if self.local:  # read into the array itself, not through two copies
+            return np.load(self.path(key), allow_pickle=False)
         return np.load(io.BytesIO(self._get(key)), allow_pickle=False)
 
     def open_array(self, key: str) -> StoredArray:

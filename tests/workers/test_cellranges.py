@@ -81,7 +81,9 @@ def test_a_job_split_while_counting_writes_no_tile_and_gives_the_outputs_of_coun
     new, new_out, written, _ = split_run
     monkeypatch.setattr(counting, "CHUNK_POINTS", RUN)
     monkeypatch.setattr(cellranges, "CHUNK_POINTS", RUN)
-    assert written and not [k for k in written if k.startswith("tiles/0")]  # no buffered tile written
+    # no buffered tile written by the split; each tile's records once, by its ground pass, for its own task
+    tiles = [k for k in written if k.startswith("tiles/0")]
+    assert written and tiles and all(k.endswith("/records.npy") for k in tiles) and len(set(tiles)) == len(tiles)
     assert len({k for k in written if k.endswith("/points.npy")}) == math.ceil(block.n_points / RUN)
     assert new.n_tiles > 1 and new.n_points == block.n_points and new.n_trees > 0
 
@@ -212,3 +214,38 @@ def test_a_failed_tile_of_a_split_block_runs_again_alone_from_the_ranges(block, 
     again = finish_job(str(work))
     assert not again.partial and not work.exists()
     assert _files(out) == _files(ref_out)
+
+
+def test_a_tile_is_gathered_once_its_task_takes_the_records_its_ground_pass_kept(block, monkeypatch, tmp_path):
+    import workers.tasks as tasks
+    from pipeline.ground import stats_stride
+    from workers.job import _job_record
+    from workers.jobspec import grid_origin
+    from workers.workstore import JOB_KEY
+
+    monkeypatch.setattr(cellranges, "CHUNK_POINTS", RUN)
+    spec = _spec(block, tmp_path / "out")
+    store = WorkStore(str(tmp_path / "work"))
+    store.claim()
+    _, cells, parts = split_block(block, grid_origin(spec.tiling, block), store, voxel_size=0.1)
+    grid = plan_grid(block.mins, block.maxs, tile_size=10.0, buffer=3.0, grid_origin=cells.origin, max_tiles=100)
+    index = index_from_cells(block, grid, cells, parts, store)
+    store.put_json(JOB_KEY, _job_record(spec, block, grid, store.url))
+    gathered = []
+    monkeypatch.setattr(tasks, "gather_tile", lambda *a: gathered.append(a[2]) or gather_tile(*a))
+    tid = max(index["tiles"], key=lambda t: t["n_core"])["id"]
+    params = spec.params.model_dump_json()
+    tasks.ground_sample(store.url, tid, params, stats_stride(block.n_points))
+    assert gathered == [tid] and np.array_equal(store.get_array(tasks.records_key(tid)), gather_tile(store, index, tid))
+
+    def labels():
+        summary = tasks.process_tile(store.url, tid, params)
+        return summary, {k: store.get_array(f"{tasks.result_key(tid)}/{k}.npy")
+                         for k in ("index", "tree_id", "is_ground", "is_wood", "wood_score")}
+
+    kept_summary, kept = labels()
+    assert gathered == [tid]  # the tile's task gathered nothing: it took the kept records
+    store.remove(tasks.records_key(tid))  # as a store written before the records were kept
+    summary, again = labels()
+    assert gathered == [tid, tid] and summary["n_buffered"] == kept_summary["n_buffered"] > kept_summary["n_core"] > 0
+    assert all(np.array_equal(kept[k], again[k]) for k in kept)
