@@ -156,7 +156,7 @@ def bilinear(grid: np.ndarray, xy: np.ndarray, origin: np.ndarray, cell: float) 
     table = None
     if n >= BILINEAR_TABLE_POINTS * grid.size:
         p = np.pad(grid, 1, mode="edge")  # p[i + 1, j + 1] = grid[clip(i), clip(j)]
-        table = np.stack([p[:-1, :-1], p[:-1, 1:], p[1:, :-1], p[1:, 1:]], axis=-1).reshape(-1, 4)
+        table = np.stack([p[:-1, :-1], p[:-1, 1:], p[1:, :-1], p[1:, 1:]]).reshape(4, -1)  # a corner a row
     flat = grid.ravel()
     with np.errstate(invalid="ignore"):  # NaN coordinates: any index, NaN weights and value
         for s in range(0, n, BILINEAR_CHUNK):
@@ -168,9 +168,9 @@ def bilinear(grid: np.ndarray, xy: np.ndarray, origin: np.ndarray, cell: float) 
                 x0 *= ny + 1
                 x0 += y0
                 x0 += ny + 2  # the padded table's row of cell (-1, -1) is row 0
-                v = table.take(x0, axis=0)
-                corners = ((v[:, 1], wx0, wy1), (v[:, 2], wx1, wy0), (v[:, 3], wx1, wy1))
-                np.multiply(v[:, 0], wx0, out=t)
+                v = table.take(x0, axis=1)  # (4, m): each corner's values contiguous
+                corners = ((v[1], wx0, wy1), (v[2], wx1, wy0), (v[3], wx1, wy1))
+                np.multiply(v[0], wx0, out=t)
             else:
                 x0, x1, wx0, wx1 = _axis_weights(xy[s:e, 0], origin[0], cell, nx)
                 y0, y1, wy0, wy1 = _axis_weights(xy[s:e, 1], origin[1], cell, ny)
@@ -181,7 +181,7 @@ def bilinear(grid: np.ndarray, xy: np.ndarray, origin: np.ndarray, cell: float) 
             t *= wy0
             t += 0.0
             for v, wx, wy in corners:
-                v = v * wx
+                v *= wx  # a gathered copy
                 v *= wy
                 t += v
     return out
