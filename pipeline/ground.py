@@ -147,9 +147,9 @@ def bilinear(grid: np.ndarray, xy: np.ndarray, origin: np.ndarray, cell: float) 
     generic filter.
     """
     # Strategy: with many points a cell, the grid padded by its edge values gives each
-    # cell's four corners as one row of a table (a cell index clipped to one past the
-    # edges picks the clipped corners), so a point's four values are one gather of one
-    # index; with few, each corner is gathered from the grid by its clipped indices.
+    # cell's four corners as one column of a table (a cell index clipped to one past
+    # the edges picks the clipped corners), so a point's four values are one gather of
+    # one index; with few, each corner is gathered from the grid by its clipped indices.
     nx, ny = grid.shape
     n = xy.shape[0]
     out = np.empty(n)
