@@ -110,7 +110,6 @@ class Labels:
         out["wood_score"][not_tree] = 0.0
         return filled, out
 
-
     def _whole(self, a: int, b: int) -> dict[str, np.ndarray] | None:
         """The window a..b-1 of a block processed in one piece (one part in memory whose
         rows a..b-1 are points a..b-1): its arrays' rows as they are, copied only where a
