@@ -10,7 +10,8 @@ from scipy.spatial import cKDTree
 
 from pipeline.errors import InputError
 from pipeline.params import GroundParams
-from pipeline.voxels import cell_index, column_max, column_min
+from pipeline.passes import CACHE_POINTS
+from pipeline.voxels import column_max, column_min
 
 # Fixed tuning of the ground model (lengths in metres, slopes in m/m, sizes in cells of
 # GroundParams.cell_size).
@@ -128,6 +129,10 @@ class GroundModel:
 
 #: points interpolated at a time by :func:`bilinear` (its temporaries stay in cache)
 BILINEAR_CHUNK = 1 << 14
+#: :func:`bilinear` gathers a point's four values from a table of each cell's corners
+#: when it has at least this many points per cell of the grid (fewer: the table would
+#: cost more than the gathers it saves)
+BILINEAR_TABLE_POINTS = 0.25
 
 
 def bilinear(grid: np.ndarray, xy: np.ndarray, origin: np.ndarray, cell: float) -> np.ndarray:
@@ -141,31 +146,50 @@ def bilinear(grid: np.ndarray, xy: np.ndarray, origin: np.ndarray, cell: float) 
     ((v * wx) * wy, corner by corner, from 0.0), without its per-point loop over a
     generic filter.
     """
+    # Strategy: with many points a cell, the grid padded by its edge values gives each
+    # cell's four corners as one column of a table (a cell index clipped to one past
+    # the edges picks the clipped corners), so a point's four values are one gather of
+    # one index; with few, each corner is gathered from the grid by its clipped indices.
     nx, ny = grid.shape
-    flat = grid.ravel()
     n = xy.shape[0]
     out = np.empty(n)
+    table = None
+    if n >= BILINEAR_TABLE_POINTS * grid.size:
+        p = np.pad(grid, 1, mode="edge")  # p[i + 1, j + 1] = grid[clip(i), clip(j)]
+        table = np.stack([p[:-1, :-1], p[:-1, 1:], p[1:, :-1], p[1:, 1:]]).reshape(4, -1)  # a corner a row
+    flat = grid.ravel()
     with np.errstate(invalid="ignore"):  # NaN coordinates: any index, NaN weights and value
         for s in range(0, n, BILINEAR_CHUNK):
             e = min(n, s + BILINEAR_CHUNK)
-            x0, x1, wx0, wx1 = _axis_weights(xy[s:e, 0], origin[0], cell, nx)
-            y0, y1, wy0, wy1 = _axis_weights(xy[s:e, 1], origin[1], cell, ny)
-            x0 *= ny
-            x1 *= ny
             t = out[s:e]
-            np.multiply(flat[x0 + y0], wx0, out=t)
+            if table is not None:
+                x0, wx0, wx1 = _axis_cell(xy[s:e, 0], origin[0], cell, nx)
+                y0, wy0, wy1 = _axis_cell(xy[s:e, 1], origin[1], cell, ny)
+                x0 *= ny + 1
+                x0 += y0
+                x0 += ny + 2  # the padded table's row of cell (-1, -1) is row 0
+                v = table.take(x0, axis=1)  # (4, m): each corner's values contiguous
+                corners = ((v[1], wx0, wy1), (v[2], wx1, wy0), (v[3], wx1, wy1))
+                np.multiply(v[0], wx0, out=t)
+            else:
+                x0, x1, wx0, wx1 = _axis_weights(xy[s:e, 0], origin[0], cell, nx)
+                y0, y1, wy0, wy1 = _axis_weights(xy[s:e, 1], origin[1], cell, ny)
+                x0 *= ny
+                x1 *= ny
+                corners = ((flat[x0 + y1], wx0, wy1), (flat[x1 + y0], wx1, wy0), (flat[x1 + y1], wx1, wy1))
+                np.multiply(flat[x0 + y0], wx0, out=t)
             t *= wy0
             t += 0.0
-            for xi, wx, yi, wy in ((x0, wx0, y1, wy1), (x1, wx1, y0, wy0), (x1, wx1, y1, wy1)):
-                v = flat[xi + yi]
-                v *= wx
+            for v, wx, wy in corners:
+                v *= wx  # a gathered copy
                 v *= wy
                 t += v
     return out
 
 
-def _axis_weights(v: np.ndarray, origin: float, cell: float, size: int) -> tuple[np.ndarray, ...]:
-    """Along one axis of :func:`bilinear`: the two cells' indices (m,) intp and weights (m,)."""
+def _axis_fraction(v: np.ndarray, origin: float, cell: float) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Along one axis of :func:`bilinear`: the grid coordinate's floor (m,) intp and the
+    two cells' weights (m,) float64."""
     c = np.subtract(v, origin)
     np.divide(c, cell, out=c)
     np.subtract(c, 0.5, out=c)
@@ -173,11 +197,25 @@ def _axis_weights(v: np.ndarray, origin: float, cell: float, size: int) -> tuple
     w0 = np.subtract(c, f, out=c)
     np.subtract(1.0, w0, out=w0)
     w1 = 1.0 - w0
-    i0 = f.astype(np.intp)
+    return f.astype(np.intp), w0, w1
+
+
+def _axis_weights(v: np.ndarray, origin: float, cell: float, size: int) -> tuple[np.ndarray, ...]:
+    """Along one axis of :func:`bilinear`: the two cells' indices (m,) intp and weights (m,)."""
+    i0, w0, w1 = _axis_fraction(v, origin, cell)
     i1 = i0 + 1
     np.clip(i1, 0, size - 1, out=i1)
     np.clip(i0, 0, size - 1, out=i0)
     return i0, i1, w0, w1
+
+
+def _axis_cell(v: np.ndarray, origin: float, cell: float, size: int) -> tuple[np.ndarray, ...]:
+    """Along one axis of :func:`bilinear`'s corner table: the first cell's index clipped to
+    -1..size-1 (m,) intp (below and above the grid, both corners are the edge cell) and
+    the weights (m,)."""
+    i0, w0, w1 = _axis_fraction(v, origin, cell)
+    np.clip(i0, -1, size - 1, out=i0)
+    return i0, w0, w1
 
 
 def _disk(radius_cells: float) -> np.ndarray:
@@ -250,7 +288,7 @@ def raw_ground_model(
     go = np.asarray(grid_origin[:2], dtype=np.float64)
     if xyz.shape[0] == 0:
         return GroundModel((np.zeros((1, 1)),), go[None].copy(), c, 0.0)
-    ix, iy = (cell_index(xyz[:, d], go[d], c) for d in (0, 1))
+    ix, iy = _cell_columns(xyz, go, c)
     lo = np.array([ix.min(), iy.min()])
     span = np.array([ix.max(), iy.max()]) - lo + 1
     part = part_xy = part_of = None
@@ -274,6 +312,24 @@ def raw_ground_model(
         dtms.append(_part_dtm(xyz[sel, 2], part_ij[:, 0] * ny + part_ij[:, 1], (nx, ny), params, corner=lo))
         origins.append(go + lo * c)
     return GroundModel(tuple(dtms), np.array(origins), c, 0.0, part_xy, part_of)
+
+
+def _cell_columns(xyz: np.ndarray, grid_origin: np.ndarray, cell: float) -> tuple[np.ndarray, np.ndarray]:
+    """:func:`pipeline.voxels.cell_index` of the x and of the y column of ``xyz`` (n, 3),
+    (n,) int64 each, a cache-sized pass at a time: one float temporary in cache, not one
+    of every point per column (whose fresh pages the kernel must zero)."""
+    n = xyz.shape[0]
+    out = np.empty(n, np.int64), np.empty(n, np.int64)
+    t = np.empty(min(n, CACHE_POINTS))
+    for a in range(0, n, CACHE_POINTS):
+        b = min(n, a + CACHE_POINTS)
+        tb = t[: b - a]
+        for d in (0, 1):  # the steps of cell_index
+            np.subtract(xyz[a:b, d], grid_origin[d], out=tb)
+            np.divide(tb, cell, out=tb)
+            np.floor(tb, out=tb)
+            out[d][a:b] = tb
+    return out
 
 
 def ground_residuals(model: GroundModel, xyz: np.ndarray) -> np.ndarray:
@@ -537,7 +593,14 @@ def classify_ground(
     is_ground : (n,) bool — within the tolerance above (or a little below) the surface;
         the tolerance grows to NOISE_WIDTHS times the estimated ground noise on noisy scans.
     """
-    height = xyz[:, 2] - model.height_at(xyz)
+    height = model.height_at(xyz)
+    np.subtract(xyz[:, 2], height, out=height)
     tol = model.tolerance(params)
-    is_ground = (height <= tol) & (height >= -max(params.outlier_depth, NOISE_WIDTHS * model.noise))
+    below = -max(params.outlier_depth, NOISE_WIDTHS * model.noise)
+    is_ground = np.empty(height.shape[0], bool)
+    low = np.empty(min(height.shape[0], CACHE_POINTS), bool)
+    for a in range(0, height.shape[0], CACHE_POINTS):  # the masks' temporaries stay in cache
+        h = height[a : a + CACHE_POINTS]
+        np.less_equal(h, tol, out=is_ground[a : a + CACHE_POINTS])
+        is_ground[a : a + CACHE_POINTS] &= np.greater_equal(h, below, out=low[: h.shape[0]])
     return height, is_ground

@@ -3,6 +3,7 @@ metadata), streamed per-point labels and truth, and reading them back."""
 
 from __future__ import annotations
 
+import functools
 import json
 import os
 import struct
@@ -68,15 +69,19 @@ def wkb_linestrings(lines: list[np.ndarray]) -> pa.Array:
 
 def geo_metadata(crs_wkt: str | None, bbox: list[float] | None, geometry_type: str = "Point") -> dict:
     """GeoParquet 1.1 ``geo`` metadata for a WKB column named ``geometry``."""
-    crs = None
-    if crs_wkt:
-        import pyproj
-
-        crs = pyproj.CRS.from_wkt(crs_wkt).to_json_dict()
-    column = {"encoding": "WKB", "geometry_types": [geometry_type], "crs": crs}
+    column = {"encoding": "WKB", "geometry_types": [geometry_type], "crs": _projjson(crs_wkt) if crs_wkt else None}
     if bbox is not None:
         column["bbox"] = bbox
     return {"version": "1.1.0", "primary_column": "geometry", "columns": {"geometry": column}}
+
+
+@functools.lru_cache(maxsize=8)
+def _projjson(crs_wkt: str) -> dict:
+    """The PROJJSON of a CRS's WKT, parsed once for the trees, rows and gaps of a job
+    (a millisecond each). Read-only: callers serialise it, never change it."""
+    import pyproj
+
+    return pyproj.CRS.from_wkt(crs_wkt).to_json_dict()
 
 
 def write_trees_parquet(path, columns: dict[str, np.ndarray], *, crs_wkt: str | None, metadata: dict | None = None) -> None:

@@ -99,14 +99,13 @@ def keyed_cells(i: np.ndarray, j: np.ndarray, *, counts: bool = False):
 
 
 def rows_by_column(xyz: np.ndarray, rows: np.ndarray) -> np.ndarray:
-    """``xyz[rows]`` of an (n, 3) array, in column-major order: :func:`voxelize` reads it
-    a column at a time, and numpy's passes down contiguous columns are several times
+    """``xyz[rows]`` of an (n, 3) array, in column-major order: its readers take it a
+    column at a time, and numpy's passes down contiguous columns are several times
     faster than down the strided ones of a row-major copy (the same values).
     ``rows``: indices in ``[0, n)``, not checked."""
-    out = np.empty((rows.shape[0], xyz.shape[1]), dtype=xyz.dtype, order="F")
-    for d in range(xyz.shape[1]):
-        np.take(xyz[:, d], rows, out=out[:, d], mode="clip")  # "raise" would gather through a buffer
-    return out
+    # whole rows gathered, then transposed: a gather down each strided column reads a
+    # cache line for every value (twice the time on 0.9 M rows of a mobile block's crowns)
+    return np.asfortranarray(np.take(xyz, rows, axis=0, mode="clip"))
 
 
 def voxelize(

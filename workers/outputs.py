@@ -72,7 +72,11 @@ class Labels:
         return cls([part], n)
 
     def window(self, a: int, b: int) -> tuple[np.ndarray, dict[str, np.ndarray]]:
-        """Labels of points a..b-1: (filled mask, dict of arrays)."""
+        """Labels of points a..b-1: (filled mask, dict of arrays; read-only: they may be
+        views of a part's arrays)."""
+        whole = self._whole(a, b)
+        if whole is not None:
+            return np.ones(b - a, bool), whole
         m = b - a
         out = {
             "tree_id": np.zeros(m, np.int64),
@@ -105,6 +109,30 @@ class Labels:
         out["is_wood"][not_tree] = False
         out["wood_score"][not_tree] = 0.0
         return filled, out
+
+    def _whole(self, a: int, b: int) -> dict[str, np.ndarray] | None:
+        """The window a..b-1 of a block processed in one piece (one part in memory whose
+        rows a..b-1 are points a..b-1): its arrays' rows as they are, copied only where a
+        point of no tree has wood to clear; None for any other window."""
+        if len(self.parts) != 1:
+            return None
+        p = self.parts[0]
+        index = p["index"]
+        if not (isinstance(index, np.ndarray) and len(index) >= b > a and int(index[a]) == a and int(index[b - 1]) == b - 1):
+            return None  # the indices are sorted and distinct: a..b-1 at rows a..b-1 means all of them
+        types = {"tree_id": np.int64, "is_ground": np.bool_, "is_wood": np.bool_, "wood_score": np.float32}
+        if not all(isinstance(p[f], np.ndarray) and p[f].dtype == t for f, t in types.items()):
+            return None
+        tree = p["tree_id"][a:b] if p.get("map") is None else p["map"][p["tree_id"][a:b]]
+        if tree.dtype != np.int64:
+            return None
+        not_tree = tree == 0  # e.g. of a tree a failed tile owned, in a partial result
+        is_wood, score = p["is_wood"][a:b], p["wood_score"][a:b]
+        if np.any(is_wood & not_tree):
+            is_wood = is_wood & ~not_tree
+        if np.any(score.view(np.int32)[not_tree]):  # any bits set, -0.0 included: window() writes 0.0
+            score = np.where(not_tree, np.float32(0.0), score)
+        return {"tree_id": tree, "is_ground": p["is_ground"][a:b], "is_wood": is_wood, "wood_score": score}
 
 
 #: Rows of a part between two index values :class:`Labels` keeps to find a window's rows.

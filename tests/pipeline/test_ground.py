@@ -285,9 +285,12 @@ def test_a_raw_model_fitted_beforehand_is_taken_as_it_is():
     assert all(np.array_equal(a, b + 1.0) for a, b in zip(lifted_by_one.dtms, raw.dtms))
 
 
+@pytest.mark.parametrize("table", [True, False])  # corners from the padded table, or gathered one by one
 @pytest.mark.parametrize("shape", [(1, 1), (1, 5), (2, 3), (7, 9), (106, 66)])
-def test_bilinear_is_map_coordinates_bit_for_bit(shape):
+def test_bilinear_is_map_coordinates_bit_for_bit(shape, table, monkeypatch):
     from scipy import ndimage
+
+    monkeypatch.setattr(ground, "BILINEAR_TABLE_POINTS", 0.0 if table else np.inf)
 
     rng = np.random.default_rng(sum(shape))
     grid = rng.normal(0, 3, shape)
@@ -300,3 +303,37 @@ def test_bilinear_is_map_coordinates_bit_for_bit(shape):
     want = ndimage.map_coordinates(grid, (xy.T - origin[:, None]) / cell - 0.5, order=1, mode="nearest")
     got = ground.bilinear(grid, xy, origin, cell)
     assert got.tobytes() == want.tobytes()
+
+
+@pytest.mark.parametrize("n", [0, 1, 5, 3 * ground.CACHE_POINTS + 17])
+def test_classify_ground_is_the_whole_array_formula(n):
+    # reference: the whole-array expression classify_ground computed before its masks ran
+    # a cache-sized pass at a time
+    rng = np.random.default_rng(n)
+    g = _terrain(rng, n=max(n, 2000), slope=0.1)
+    g[:, 2] += rng.normal(0.0, 0.05, len(g))
+    model = ground_model(g, params=GroundParams())
+    pts = np.c_[rng.uniform(-5, 45, (n, 2)), rng.uniform(-1, 3, n)]
+    pts[: n // 50, 2] = model.height_at(pts[: n // 50]) + GroundParams().tolerance  # on the edge of the band
+    p = GroundParams()
+    height, is_ground = classify_ground(pts, model, params=p)
+    want = pts[:, 2] - model.height_at(pts)
+    tol = model.tolerance(p)
+    want_ground = (want <= tol) & (want >= -max(p.outlier_depth, ground.NOISE_WIDTHS * model.noise))
+    assert height.tobytes() == want.tobytes()
+    assert np.array_equal(is_ground, want_ground)
+
+
+def test_cell_columns_are_cell_index_of_each_column():
+    # reference: pipeline.voxels.cell_index of each column, as raw_ground_model took them
+    from pipeline.voxels import cell_index
+
+    rng = np.random.default_rng(3)
+    n = 2 * ground.CACHE_POINTS + 5
+    xyz = np.c_[rng.uniform(-40, 60, (n, 2)), rng.normal(0, 1, n)]
+    xyz[:100, :2] = np.round(xyz[:100, :2] / 0.25) * 0.25  # on cell edges
+    origin = np.array([0.1, -3.0])
+    ix, iy = ground._cell_columns(xyz, origin, 0.25)
+    assert ix.dtype == iy.dtype == np.int64
+    assert np.array_equal(ix, cell_index(xyz[:, 0], origin[0], 0.25))
+    assert np.array_equal(iy, cell_index(xyz[:, 1], origin[1], 0.25))

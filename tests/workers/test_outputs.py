@@ -113,3 +113,32 @@ def test_a_window_is_as_the_writers_ask():
     assert filled.all()
     assert np.array_equal(lab["tree_id"], np.array([0, 7, 8, 9])[np.arange(WINDOW_POINTS - 5, n) % 4])
     assert not lab["is_wood"][lab["tree_id"] == 0].any()
+
+
+@settings(max_examples=25, deadline=None)
+@given(st.integers(1, 3 * FENCE), st.integers(0, 2**31 - 1), st.integers(1, 2 * FENCE))
+def test_a_whole_block_s_windows_are_the_parts_windows(n, seed, step):
+    # a block processed in one piece (Labels.single) takes its windows' rows as they are;
+    # reference: the same labels dealt to two parts, read by the general path (copies)
+    rng = np.random.default_rng(seed)
+    result = type("Result", (), {})()
+    result.tree_id = rng.integers(0, 6, n)
+    result.is_ground = rng.random(n) < 0.3
+    result.is_wood = rng.random(n) < 0.4  # also on points of no tree and of dropped trees
+    result.wood_score = rng.choice(np.array([0.0, -0.0, 0.25, 1.0], np.float32), n)
+    id_map = np.array([0, 3, 0, 1, 2, 0])  # trees 2 and 5 dropped
+    single = Labels.single(result, id_map)
+    half = n // 2
+    parts = [{"index": np.arange(lo, hi, dtype=np.uint64), "tree_id": result.tree_id[lo:hi], "map": id_map,
+              **{f: getattr(result, f)[lo:hi] for f in ("is_ground", "is_wood", "wood_score")}}
+             for lo, hi in ((0, half), (half, n))]
+    split = Labels([p for p in parts if len(p["index"])], n)
+    before = {f: getattr(result, f).copy() for f in ("tree_id", "is_ground", "is_wood", "wood_score")}
+    bounds = np.unique(np.r_[0, np.arange(0, n, step), rng.integers(0, n, 3), n])
+    for a, b in zip(bounds[:-1], bounds[1:]):
+        (f1, got), (f2, want) = single.window(int(a), int(b)), split.window(int(a), int(b))
+        assert f1.all() and f2.all()
+        for k in want:
+            assert got[k].dtype == want[k].dtype and got[k].tobytes() == want[k].tobytes(), k
+    for f, v in before.items():  # the result's own arrays are left as they were
+        assert getattr(result, f).tobytes() == v.tobytes()
