@@ -20,6 +20,9 @@ import numpy as np
 from pipeline.blockinfo import one_line
 from pipeline.formats.source import MAX_HEADER_LINES, MAX_WHOLE_BYTES, PointSource, ascii_rows, bad, read_line, xyz_columns
 
+#: values a point may have over all its fields (PCL's widest descriptors have a few hundred)
+MAX_VALUES = 4096
+
 
 def _header(path):
     """pypcd4's MetaData of the file's header, and the offset of the body."""
@@ -45,11 +48,20 @@ def _header(path):
         body = fh.tell()
     try:
         meta = MetaData.parse_header(lines)
-        dtype = meta.build_dtype()
     except (ValidationError, ValueError, KeyError, TypeError, IndexError) as exc:
         raise bad(path, f"not a valid PCD header ({one_line(exc)})") from None
     if not (len(meta.fields) == len(meta.size) == len(meta.type) == len(meta.count)):
         raise bad(path, "the PCD header's FIELDS, SIZE, TYPE and COUNT lines differ in length")
+    # pypcd4 names every value of a field (a COUNT of 10^8 is 10^8 Python strings): the
+    # claim is checked before it builds them
+    values = sum(int(c) for c in meta.count)
+    if values > MAX_VALUES:
+        raise bad(path, f"the PCD header's COUNT line claims {values} values a point (more than {MAX_VALUES}; "
+                        "a corrupt header)")
+    try:
+        dtype = meta.build_dtype()
+    except (ValueError, KeyError, TypeError, IndexError) as exc:
+        raise bad(path, f"not a valid PCD header ({one_line(exc)})") from None
     return meta, dtype, body
 
 

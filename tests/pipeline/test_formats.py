@@ -112,6 +112,8 @@ HOSTILE = {
     "pcd-lzf-lie": (b"VERSION 0.7\nFIELDS x y z\nSIZE 4 4 4\nTYPE F F F\nCOUNT 1 1 1\nWIDTH 2\nHEIGHT 1\n"
                     b"POINTS 2\nDATA binary_compressed\n" + (5000).to_bytes(4, "little") + (24).to_bytes(4, "little")
                     + bytes(16), "does not match"),
+    "pcd-field-count": (b"VERSION 0.7\nFIELDS x y z i\nSIZE 4 4 4 4\nTYPE F F F F\nCOUNT 1 1 1 177777777\nWIDTH 1\n"
+                        b"HEIGHT 1\nPOINTS 1\nDATA binary\n" + bytes(16), "claims 177777780 values a point"),
     "pcd-bad-type": (b"VERSION 0.7\nFIELDS x y z\nSIZE 4 4 4\nTYPE F F Q\nCOUNT 1 1 1\nWIDTH 1\nHEIGHT 1\n"
                      b"POINTS 1\nDATA binary\n" + bytes(12), "not a valid PCD header"),
     "e57-truncated": (None, "E57"),
