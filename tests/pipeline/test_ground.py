@@ -3,6 +3,7 @@
 import numpy as np
 import pytest
 
+from pipeline import bilinear as bilinear_module
 from pipeline import ground
 from pipeline.errors import InputError
 from pipeline.ground import MAX_PART_CELLS, PART_GAP, classify_ground, ground_model
@@ -290,18 +291,18 @@ def test_a_raw_model_fitted_beforehand_is_taken_as_it_is():
 def test_bilinear_is_map_coordinates_bit_for_bit(shape, table, monkeypatch):
     from scipy import ndimage
 
-    monkeypatch.setattr(ground, "BILINEAR_TABLE_POINTS", 0.0 if table else np.inf)
+    monkeypatch.setattr(bilinear_module, "BILINEAR_TABLE_POINTS", 0.0 if table else np.inf)
 
     rng = np.random.default_rng(sum(shape))
     grid = rng.normal(0, 3, shape)
     origin, cell = np.array([-2.5, 10.0]), 0.25
-    g = rng.uniform(-3, max(shape) + 3, (2, 3 * ground.BILINEAR_CHUNK + 17))  # grid coordinates, past the edges
+    g = rng.uniform(-3, max(shape) + 3, (2, 3 * bilinear_module.BILINEAR_CHUNK + 17))  # grid coordinates, past the edges
     g[:, :2000] = np.round(g[:, :2000])  # on cell centres and edges
     special = np.array([np.nan, np.inf, -np.inf, -0.0, 0.0, shape[0] - 1.0, 1e300, -1e300, 1e-300])
     g = np.concatenate([g, np.array(np.meshgrid(special, special)).reshape(2, -1)], axis=1)
     xy = (g.T + 0.5) * cell + origin
     want = ndimage.map_coordinates(grid, (xy.T - origin[:, None]) / cell - 0.5, order=1, mode="nearest")
-    got = ground.bilinear(grid, xy, origin, cell)
+    got = bilinear_module.bilinear(grid, xy, origin, cell)
     assert got.tobytes() == want.tobytes()
 
 
