@@ -4,6 +4,8 @@ bounded memory."""
 
 from __future__ import annotations
 
+import contextlib
+import resource
 import tracemalloc
 from pathlib import Path
 
@@ -184,7 +186,8 @@ def test_mutated_files_are_read_or_refused_with_one_line(small_files, tmp_path, 
     tracemalloc.start()
     try:
         try:
-            to_laz(src, dst)
+            with _address_space_capped(1 << 30):
+                to_laz(src, dst)
         except InputError as exc:
             assert "\n" not in str(exc) and str(exc).startswith(src.name)
             assert not dst.exists()
@@ -192,6 +195,23 @@ def test_mutated_files_are_read_or_refused_with_one_line(small_files, tmp_path, 
     finally:
         tracemalloc.stop()
     assert peak < 64 << 20, peak
+
+
+@contextlib.contextmanager
+def _address_space_capped(more: int):
+    """This process may map at most ``more`` bytes beyond what it maps now: a reader that
+    allocates by a corrupt claim raises MemoryError here (the test fails with its
+    example) instead of the kernel's OOM killer ending the test process (a COUNT of
+    10^8 once took 23 GB)."""
+    with open("/proc/self/status") as fh:
+        now = next(int(line.split()[1]) * 1024 for line in fh if line.startswith("VmSize:"))
+    soft, hard = resource.getrlimit(resource.RLIMIT_AS)
+    cap = now + more if hard == resource.RLIM_INFINITY else min(now + more, hard)
+    resource.setrlimit(resource.RLIMIT_AS, (cap, hard))
+    try:
+        yield
+    finally:
+        resource.setrlimit(resource.RLIMIT_AS, (soft, hard))
 
 
 def _pdal():
