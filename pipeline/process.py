@@ -130,12 +130,6 @@ def _floors(det: TrunkDetection, params: PipelineParams) -> TrunkParams:
     return params.trunks.at_floors(*(det.floors or (None, None)))
 
 
-def _young_block(det: TrunkDetection, params: PipelineParams) -> bool:
-    """Whether ``det`` read the block as one of young trees: its height floor, left unset,
-    below the mature trees'."""
-    return young_block(det, params.trunks)
-
-
 def _low_floor(det: TrunkDetection, params: PipelineParams) -> TrunkParams:
     """The trunk parameters for the height test of segmented trees: the height floor
     ``det`` used, but on a block of young trees (its floors, left unset, below the
@@ -143,7 +137,7 @@ def _low_floor(det: TrunkDetection, params: PipelineParams) -> TrunkParams:
     block's floor, and segmentation can trim its top; the vehicles this test is for are
     turned down before on such blocks (:func:`pipeline.trunks.detect_trunks`)."""
     tp = _floors(det, params)
-    return tp.model_copy(update={"min_tree_height": MIN_FLOOR_HEIGHT}) if _young_block(det, params) else tp
+    return tp.model_copy(update={"min_tree_height": MIN_FLOOR_HEIGHT}) if young_block(det, params.trunks) else tp
 
 
 def grass_nodes(nodes: np.ndarray, node_height: np.ndarray, trunk_xy: np.ndarray, *, params) -> np.ndarray:
@@ -396,7 +390,7 @@ def _find_trunks(xyz: np.ndarray, g: _NodeGraph, f: _Faces, *, params: PipelineP
             wide = again.spacing is not None and again.spacing >= AUTO_POST_MIN_SPACING
             # a trellis among young trees has end posts a gap from the last gap's post, and
             # its young whips are no tall spindles' leaders
-            if auto and not (wide and (_young_block(again, params) or _one_post_per_gap(posts.xy, again.spacing))):
+            if auto and not (wide and (young_block(again, params.trunks) or _one_post_per_gap(posts.xy, again.spacing))):
                 # close rows, or "posts" closer than a trellis sets them: tall spindles' straight leaders
                 posts, on_post = None, np.zeros(g.vox.n, bool)
             else:
