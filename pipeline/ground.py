@@ -12,7 +12,7 @@ from pipeline.bilinear import bilinear
 from pipeline.errors import InputError
 from pipeline.params import GroundParams
 from pipeline.passes import CACHE_POINTS
-from pipeline.voxels import column_max, column_min
+from pipeline.voxels import cell_index, column_max, column_min
 
 # Fixed tuning of the ground model (lengths in metres, slopes in m/m, sizes in cells of
 # GroundParams.cell_size).
@@ -198,7 +198,7 @@ def raw_ground_model(
     go = np.asarray(grid_origin[:2], dtype=np.float64)
     if xyz.shape[0] == 0:
         return GroundModel((np.zeros((1, 1)),), go[None].copy(), c, 0.0)
-    ix, iy = _cell_columns(xyz, go, c)
+    ix, iy = (cell_index(xyz[:, d], go[d], c) for d in (0, 1))
     lo = np.array([ix.min(), iy.min()])
     span = np.array([ix.max(), iy.max()]) - lo + 1
     part = part_xy = part_of = None
@@ -222,24 +222,6 @@ def raw_ground_model(
         dtms.append(_part_dtm(xyz[sel, 2], part_ij[:, 0] * ny + part_ij[:, 1], (nx, ny), params, corner=lo))
         origins.append(go + lo * c)
     return GroundModel(tuple(dtms), np.array(origins), c, 0.0, part_xy, part_of)
-
-
-def _cell_columns(xyz: np.ndarray, grid_origin: np.ndarray, cell: float) -> tuple[np.ndarray, np.ndarray]:
-    """:func:`pipeline.voxels.cell_index` of the x and of the y column of ``xyz`` (n, 3),
-    (n,) int64 each, a cache-sized pass at a time: one float temporary in cache, not one
-    of every point per column (whose fresh pages the kernel must zero)."""
-    n = xyz.shape[0]
-    out = np.empty(n, np.int64), np.empty(n, np.int64)
-    t = np.empty(min(n, CACHE_POINTS))
-    for a in range(0, n, CACHE_POINTS):
-        b = min(n, a + CACHE_POINTS)
-        tb = t[: b - a]
-        for d in (0, 1):  # the steps of cell_index
-            np.subtract(xyz[a:b, d], grid_origin[d], out=tb)
-            np.divide(tb, cell, out=tb)
-            np.floor(tb, out=tb)
-            out[d][a:b] = tb
-    return out
 
 
 def ground_residuals(model: GroundModel, xyz: np.ndarray) -> np.ndarray:

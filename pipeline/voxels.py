@@ -54,12 +54,19 @@ def _column_reduce(a: np.ndarray, reduce) -> np.ndarray:
 
 
 def cell_index(v: np.ndarray, origin: float, cell: float) -> np.ndarray:
-    """``floor((v - origin) / cell)`` of one coordinate column ``v`` (n,) as int64, with
-    one float temporary (no (n, 2) or (n, 3) arrays: a grid's cells a column at a time)."""
-    t = np.subtract(v, origin)
-    np.divide(t, cell, out=t)
-    np.floor(t, out=t)
-    return t.astype(np.int64)
+    """``floor((v - origin) / cell)`` of one coordinate column ``v`` (n,) as int64, a
+    cache-sized pass at a time: one float temporary in cache, not one of every point
+    (whose fresh pages the kernel must zero), and no (n, 2) or (n, 3) arrays."""
+    n = v.shape[0]
+    out = np.empty(n, np.int64)
+    t = np.empty(min(n, CACHE_POINTS), np.result_type(v, origin))  # the dtype np.subtract(v, origin) gives
+    for a in range(0, n, CACHE_POINTS):
+        tb = t[: min(n, a + CACHE_POINTS) - a]
+        np.subtract(v[a : a + CACHE_POINTS], origin, out=tb)
+        np.divide(tb, cell, out=tb)
+        np.floor(tb, out=tb)
+        out[a : a + tb.shape[0]] = tb
+    return out
 
 
 def keyed_cells(i: np.ndarray, j: np.ndarray, *, counts: bool = False):

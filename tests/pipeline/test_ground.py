@@ -323,18 +323,3 @@ def test_classify_ground_is_the_whole_array_formula(n):
     want_ground = (want <= tol) & (want >= -max(p.outlier_depth, ground.NOISE_WIDTHS * model.noise))
     assert height.tobytes() == want.tobytes()
     assert np.array_equal(is_ground, want_ground)
-
-
-def test_cell_columns_are_cell_index_of_each_column():
-    # reference: pipeline.voxels.cell_index of each column, as raw_ground_model took them
-    from pipeline.voxels import cell_index
-
-    rng = np.random.default_rng(3)
-    n = 2 * ground.CACHE_POINTS + 5
-    xyz = np.c_[rng.uniform(-40, 60, (n, 2)), rng.normal(0, 1, n)]
-    xyz[:100, :2] = np.round(xyz[:100, :2] / 0.25) * 0.25  # on cell edges
-    origin = np.array([0.1, -3.0])
-    ix, iy = ground._cell_columns(xyz, origin, 0.25)
-    assert ix.dtype == iy.dtype == np.int64
-    assert np.array_equal(ix, cell_index(xyz[:, 0], origin[0], 0.25))
-    assert np.array_equal(iy, cell_index(xyz[:, 1], origin[1], 0.25))

@@ -101,3 +101,22 @@ def test_rows_by_column_are_the_rows_and_voxelize_alike():
     a, b = voxelize(got, voxel_size=0.1), voxelize(xyz[rows], voxel_size=0.1)
     for f in ("point_voxel", "keys", "centroids", "counts"):
         assert getattr(a, f).tobytes() == getattr(b, f).tobytes()
+
+
+def test_cell_index_is_the_whole_column_formula():
+    # reference: floor((v - origin) / cell) over the whole column, as cell_index was before
+    # it went a cache-sized pass at a time
+    from pipeline.passes import CACHE_POINTS
+    from pipeline.voxels import cell_index
+
+    rng = np.random.default_rng(3)
+    n = 2 * CACHE_POINTS + 5
+    v = rng.uniform(-40, 60, n)
+    v[:100] = np.round(v[:100] / 0.25) * 0.25  # on cell edges
+    for col, origin in ((v, np.float64(0.1)), (v, -3.0), (v.astype(np.float32), 0.1), (v[:7], 2.5)):
+        t = np.subtract(col, origin)
+        np.divide(t, 0.25, out=t)
+        np.floor(t, out=t)
+        got = cell_index(col, origin, 0.25)
+        assert got.dtype == np.int64 and np.array_equal(got, t.astype(np.int64))
+    assert cell_index(np.zeros(0), 0.0, 0.25).shape == (0,)
