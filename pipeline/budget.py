@@ -1,6 +1,6 @@
 """The memory budget of one worker: whether a block fits it whole, and otherwise the
 largest tile core whose buffered tiles each fit it (and the core that cuts the block into
-as many tiles, each as full as any other: :func:`balanced_tile_size`).
+as many tiles with the fullest holding the fewest points: :func:`balanced_tile_size`).
 
 A process's memory follows the points it holds and the nodes of its voxel graph (the
 occupied voxels): :func:`bytes_needed`. Whether the block surely fits whole needs its
