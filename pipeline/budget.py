@@ -1,5 +1,6 @@
 """The memory budget of one worker: whether a block fits it whole, and otherwise the
-largest tile core whose buffered tiles each fit it.
+largest tile core whose buffered tiles each fit it (and the core that cuts the block into
+as many tiles with the fullest holding the fewest points: :func:`balanced_tile_size`).
 
 A process's memory follows the points it holds and the nodes of its voxel graph (the
 occupied voxels): :func:`bytes_needed`. Whether the block surely fits whole needs its
@@ -283,3 +284,49 @@ def tile_size_for_sample(sample: DensitySample, mins, maxs, *, budget: float, bu
     worst = np.unravel_index(int(np.argmax(need)), need.shape)
     points = float(sampled_tile_points(sample, smallest, buffer, mins, maxs, (gx, gy))[worst])
     raise BudgetError(budget, points / (smallest + 2.0 * buffer) ** 2, smallest, buffer, float(need[worst]))
+
+
+def balanced_tile_size(sample: DensitySample, size: float, mins, maxs, *, budget: float, buffer: float,
+                       grid_origin) -> float:
+    """The tile core that cuts the block into as many tiles along each axis as ``size``
+    does, with its fullest buffered tile as small as the sample tells.
+
+    ``size``, the largest core that keeps the budget (:func:`tile_size_for_sample`),
+    leaves the block's remainder to the last tile of each axis: a 45 m block in 30 m
+    tiles is a 30 m tile and a 15 m one, and the larger holds most of the block's points
+    (its worker's time is the job's). The whole metres from ``size`` down to the least
+    that still gives that many tiles are tried: of those whose every tile keeps
+    ``budget``, the one whose fullest buffered tile is estimated to hold the fewest
+    points (:func:`sampled_tile_points`; ties: the larger).
+
+    Parameters
+    ----------
+    sample : DensitySample
+    size : float
+        Whole metres, at least :func:`smallest_tile`: the largest core that keeps the budget.
+    mins, maxs : (2,) or (3,) float
+        The block's bounds [m].
+    budget : float
+        Bytes one worker process may use.
+    buffer : float
+        Tile buffer [m].
+    grid_origin : (2,) float
+        The grid's corner [m].
+
+    Returns
+    -------
+    float
+        Whole metres, at most ``size`` and at least :func:`smallest_tile`.
+    """
+    g = (float(grid_origin[0]), float(grid_origin[1]))
+    points = sampled_tile_points(sample, float(size), buffer, mins, maxs, g)
+    shape, best, fullest = points.shape, float(size), float(points.max())
+    # n tiles of s metres along an axis cover its extent only when n * s exceeds it
+    least = max(smallest_tile(buffer), *(math.floor((float(maxs[d]) - float(mins[d])) / shape[1 - d]) for d in range(2)))
+    for s in range(int(size) - 1, int(least) - 1, -1):
+        points = sampled_tile_points(sample, float(s), buffer, mins, maxs, g)
+        if points.shape != shape or float(points.max()) >= fullest:
+            continue
+        if sampled_tile_bytes(sample, float(s), buffer, mins, maxs, g).max() <= budget:
+            best, fullest = float(s), float(points.max())
+    return best

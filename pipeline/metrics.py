@@ -185,6 +185,7 @@ def tree_partials(
     trunk_z: np.ndarray,
     *,
     params: MetricsParams,
+    among: np.ndarray | None = None,
 ) -> TreePartials:
     """Aggregate the points of every tree.
 
@@ -197,6 +198,9 @@ def tree_partials(
         Trunk base height of each tree [m], same frame as ``xyz``.
     params : MetricsParams
         ``crown_base`` decides which points are crown.
+    among : (n,) bool, optional
+        The points to aggregate (default all): the same partials as of
+        ``xyz[among]``, ``tree_id[among]``, ``is_wood[among]``, without those copies.
 
     Returns
     -------
@@ -204,7 +208,10 @@ def tree_partials(
     """
     # Strategy: sort the tree points by id once, then reduce each contiguous run. Only
     # heights are gathered for every tree point; whole points only for the crowns.
-    idx = indices_where(tree_id.shape[0], lambda s: tree_id[s] > 0)
+    if among is None:
+        idx = indices_where(tree_id.shape[0], lambda s: tree_id[s] > 0)
+    else:  # the picked points in their order: the same runs and crowns as of the copies
+        idx = indices_where(tree_id.shape[0], lambda s: (tree_id[s] > 0) & among[s])
     order, uniq, start, counts = group_runs(tree_id[idx])
     idx = idx[order]
     if uniq.size == 0:

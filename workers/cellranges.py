@@ -82,10 +82,14 @@ def _split(info: BlockInfo, cells: TileGrid, store: WorkStore, start: int, ints:
     store.put_array(f"{SAMPLE_KEY}/part-{start:012d}.npy", local[first_sampled(start, stride) :: stride, :2])
     del local
     cell = core_tile(absolute_xy(ints, info), cells)
-    order = np.argsort(cell, kind="stable")
+    # ids of at most 65536 cells sorted as uint16, which numpy sorts by radix: the same
+    # stable order in half the time of int64's
+    order = np.argsort(cell.astype(np.uint16) if cells.n_tiles <= 1 << 16 else cell, kind="stable")
     cell = cell[order]
     rec = np.empty(len(ints), dtype=RANGE_DTYPE)
-    rec["X"], rec["Y"], rec["Z"] = ints[order, 0], ints[order, 1], ints[order, 2]
+    moved = np.take(ints, order, axis=0)  # whole rows at a time: a gather down each strided column costs more
+    rec["X"], rec["Y"], rec["Z"] = moved[:, 0], moved[:, 1], moved[:, 2]
+    del moved
     rec["at"] = order
     del ints, order
     first = np.flatnonzero(np.r_[True, cell[1:] != cell[:-1]]) if len(cell) else np.zeros(0, np.int64)

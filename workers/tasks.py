@@ -21,6 +21,7 @@ from pipeline.errors import InputError
 from pipeline.ground import GroundModel, ground_residuals, raw_ground_model
 from pipeline.metrics import tree_partials
 from pipeline.params import PipelineParams
+from pipeline.passes import indices_where
 from pipeline.process import process_points
 from pipeline.reading import to_local
 from pipeline.tiling import TileGrid, core_tile
@@ -84,9 +85,12 @@ def summarise(tile_id, xyz, core, result, grid: TileGrid | None, origin, params:
             return core_tile(np.asarray(xy).reshape(-1, 2) + np.asarray(origin[:2]), grid) == tile_id
         t_in, c_in = in_core(evidence["trunks"]), in_core(evidence["xy"])
         evidence = {k: v[t_in] if k.startswith("trunk") else v[c_in] for k, v in evidence.items()}
-    sel = slice(None) if core.all() else core  # a whole block: no copies
+    # the core's points picked by masks, not copied out: copies of a large tile's core
+    # cost more than the passes that read them
+    whole = bool(core.all())
+    above = ~result.is_ground if whole else core & ~result.is_ground  # the core's points above the ground
     partials = tree_partials(
-        xyz[sel], result.tree_id[sel], result.is_wood[sel], trunks[:, 2], params=params.metrics
+        xyz, result.tree_id, result.is_wood, trunks[:, 2], params=params.metrics, among=None if whole else core
     )
     return {
         "tile_id": int(tile_id),
@@ -100,11 +104,11 @@ def summarise(tile_id, xyz, core, result, grid: TileGrid | None, origin, params:
         "partials": partials,
         "n_core": int(core.sum()),
         # the canopy of the core, for rows whose trunks are hidden (cells in the input CRS)
-        "canopy": canopy_cells(xyz[sel, :2], result.height[sel], offset=origin[:2], among=~result.is_ground[sel]),
+        "canopy": canopy_cells(xyz[:, :2], result.height, offset=origin[:2], among=above),
         "slot_evidence": evidence,
         # the 1 m cells the core saw: the part of the block this capture covered (input CRS)
         "coverage": occupied_cells(_coverage_points(xyz, core, index), origin[:2]),
-        "stems": stem_cells(xyz[sel, :2], result.height[sel], ~result.is_ground[sel], origin[:2]),
+        "stems": stem_cells(xyz[:, :2], result.height, above, origin[:2]),
         SLOT_KEY: np.zeros((0, 3)) if result.slot_trees is None else np.asarray(result.slot_trees, np.float64).reshape(-1, 3),
     }
 
@@ -117,7 +121,8 @@ COVERAGE_STRIDE = 16
 def _coverage_points(xyz, core, index) -> np.ndarray:
     if index is None:
         return xyz[::COVERAGE_STRIDE, :2]  # a view: no copy of the block
-    return xyz[core & (index % np.uint64(COVERAGE_STRIDE) == 0), :2]
+    stride = np.uint64(COVERAGE_STRIDE)
+    return xyz[indices_where(len(index), lambda s: core[s] & (index[s] % stride == 0)), :2]
 
 
 def process(xyz: np.ndarray, params: PipelineParams, where: str, ground: tuple[float, float] | None = None,

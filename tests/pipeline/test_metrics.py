@@ -224,3 +224,23 @@ def test_hull_candidates_by_hand():
     # a long, thin crown would need a grid of many cells a point: it goes to qhull whole
     thin = np.column_stack([rng.random(5_000) * 50.0, rng.random(5_000) * 0.05, rng.random(5_000)])
     assert _hull_candidates(thin) is thin
+
+
+@pytest.mark.parametrize("seed", [0, 1])
+def test_partials_among_some_points_equal_partials_of_their_copies(seed):
+    # a tile's core is picked by a mask (workers.tasks.summarise): the same partials, to
+    # the bit, as of the core's points copied out
+    rng = np.random.default_rng(seed)
+    xyz = np.concatenate([_cone_tree(rng, 0, 0), _cone_tree(rng, 3, 0.5), rng.uniform(-2, 5, (500, 3))])
+    tid = np.r_[np.repeat([1, 2], 3000), np.zeros(500, np.int64)]
+    wood = rng.uniform(size=len(xyz)) < 0.2
+    among = xyz[:, 0] < 2.5  # cuts the second tree
+    p, trunk_z = MetricsParams(), np.array([0.0, 0.1])
+    a = tree_partials(xyz[among], tid[among], wood[among], trunk_z, params=p)
+    b = tree_partials(xyz, tid, wood, trunk_z, params=p, among=among)
+    for name in ("tree_id", "n_points", "n_wood", "z_max"):
+        assert np.array_equal(getattr(a, name), getattr(b, name)), name
+    for name in ("crown_xy", "crown_xyz"):
+        assert len(getattr(a, name)) == len(getattr(b, name)) == 2
+        for u, v in zip(getattr(a, name), getattr(b, name)):
+            assert np.array_equal(u, v), name
