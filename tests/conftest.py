@@ -5,6 +5,27 @@ import pytest
 _ALLOCATOR_KEYS = ("MALLOC_TRIM_THRESHOLD_", "MALLOC_MMAP_THRESHOLD_")
 
 
+def pytest_configure(config):
+    # `-n 2 --dist loadfile` hands out whole files, by default those with the most tests
+    # first: files of one or two slow end-to-end tests came last, and one worker ran them
+    # while the other sat idle. Out in collection order instead, which puts them first
+    # (pytest_collection_modifyitems).
+    if config.getoption("dist", "no") == "loadfile":
+        config.option.loadscopereorder = False
+
+
+@pytest.hookimpl(trylast=True)  # after `-m` has deselected
+def pytest_collection_modifyitems(config, items):
+    """Files with the most slow tests first, then those with the most tests (a file's own
+    tests keep their order): under loadfile the two workers then end close together."""
+    by_file: dict[str, list] = {}
+    for item in items:
+        by_file.setdefault(item.nodeid.split("::")[0], []).append(item)
+    order = sorted(by_file.values(),
+                   key=lambda tests: (-sum(t.get_closest_marker("slow") is not None for t in tests), -len(tests)))
+    items[:] = [t for tests in order for t in tests]
+
+
 @pytest.fixture(autouse=True)
 def _allocator_environment_restored():
     """dask's nanny writes its pre-spawn settings into this process's environment, where

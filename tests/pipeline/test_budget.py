@@ -238,11 +238,23 @@ def _stored_local(info) -> np.ndarray:
     return ints * np.asarray(info.scales) + (np.asarray(info.offsets) - np.asarray(info.origin))
 
 
+_CENTRES: dict = {}
+
+
+def _stored_voxel_centres(info, voxel_size: float) -> np.ndarray:
+    """`_voxel_centres` of the block's stored points (`_stored_local`), worked out once per
+    block and voxel size: the examples below only read them."""
+    key = (info.path, voxel_size)
+    if key not in _CENTRES:
+        _CENTRES[key] = _voxel_centres(_stored_local(info), voxel_size)
+        _CENTRES[key].setflags(write=False)
+    return _CENTRES[key]
+
+
 def test_one_run_counts_every_cells_distinct_voxels(blocks):
     info, _ = blocks[0.0]
-    local = _stored_local(info)
     sample = sample_density(info.path, info=info, voxel_size=0.1, chunk_points=info.n_points)
-    centres = _voxel_centres(local, 0.1)
+    centres = _stored_voxel_centres(info, 0.1)
     assert np.array_equal(sample.counts, sample_density(info.path, info=info).counts)
     assert np.array_equal(sample.nodes, count_cells(centres[:, 0], centres[:, 1], origin=(0, 0), cell=0.25,
                                                     shape=sample.counts.shape))
@@ -257,9 +269,8 @@ def test_counted_nodes_bound_every_tiles_voxels(blocks, rotation, size, run, vox
     # counts twice, so no buffered tile's voxels (by centre) are undercounted, and on a
     # block written tree by tree the overcount stays small
     info, _ = blocks[rotation]
-    local = _stored_local(info)
     sample = sample_density(info.path, info=info, voxel_size=voxel, chunk_points=run)
-    centres = _voxel_centres(local, voxel) + np.asarray(info.origin[:2])
+    centres = _stored_voxel_centres(info, voxel) + np.asarray(info.origin[:2])
     grid = plan_grid(info.mins, info.maxs, tile_size=float(size), buffer=4.15, grid_origin=info.origin[:2])
     inside = np.zeros(grid.n_tiles, dtype=np.int64)
     for t in grid.tiles():

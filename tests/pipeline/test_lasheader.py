@@ -403,4 +403,4 @@ def test_fuzz_every_header_field(bases, tmp_path):
 
 @pytest.mark.slow
 def test_fuzz_every_header_field_at_length(bases, tmp_path):
-    _fuzz(bases, tmp_path, 3000)
+    _fuzz(bases, tmp_path, 1000)

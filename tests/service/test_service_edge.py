@@ -5,6 +5,7 @@ uploads stopped. Timings live in bench/edge.py; these tests assert outcomes only
 from __future__ import annotations
 
 import json
+import select
 import socket
 import threading
 import time
@@ -173,6 +174,18 @@ def _hold(server, source: str) -> socket.socket:
     return s
 
 
+def _trickle(s: socket.socket, byte: bytes, *, every: float, times: int) -> None:
+    """Send ``byte`` every ``every`` s, at most ``times`` times, until the server answers
+    or closes (the socket turns readable): no byte goes sooner, none after its answer."""
+    for _ in range(times):
+        if select.select([s], [], [], every)[0]:
+            return
+        try:
+            s.sendall(byte)
+        except OSError:
+            return
+
+
 def _reply(s: socket.socket) -> bytes:
     data = b""
     while True:
@@ -238,12 +251,7 @@ def test_connections_past_the_cap_in_all_get_503(edge_server):
 def test_a_json_body_that_trickles_is_cut_off(edge_server):
     with _connect(edge_server) as s:
         s.sendall(b"POST /v1/jobs HTTP/1.1\r\nHost: x\r\nContent-Type: application/json\r\nContent-Length: 100\r\n\r\n{")
-        for _ in range(8):  # one byte a second: past the 3 s body deadline the server closes it
-            time.sleep(1)
-            try:
-                s.sendall(b" ")
-            except OSError:
-                break
+        _trickle(s, b" ", every=1, times=8)  # one byte a second: past the 3 s body deadline the server closes it
         assert b"200 OK" not in _reply(s)
     assert "its body did not arrive within 3 s" in edge_server.log_text()
 
@@ -254,21 +262,7 @@ def test_an_upload_below_the_minimum_rate_gets_408(edge_server):
     with _connect(edge_server) as s:
         s.sendall((f"POST /v1/blocks HTTP/1.1\r\nHost: x\r\nAuthorization: Bearer {token}\r\n"
                    f"Content-Type: multipart/form-data; boundary=b0\r\nContent-Length: 1000000\r\n\r\n").encode() + head)
-        for _ in range(15):  # a byte a second (the idle limit is 3 s, so never idle): below 8 kB/s from 3 s on
-            time.sleep(1)
-            try:
-                s.sendall(b"x")
-            except OSError:
-                break
-            s.setblocking(False)
-            try:
-                peek = s.recv(1, socket.MSG_PEEK)
-            except (BlockingIOError, ConnectionResetError):
-                peek = b""
-            s.setblocking(True)
-            if peek:
-                break
-        s.settimeout(30)
+        _trickle(s, b"x", every=1, times=15)  # a byte a second (the idle limit is 3 s, so never idle): below 8 kB/s from 3 s on
         reply = _reply(s)
     assert reply.startswith(b"HTTP/1.1 408") and b"below the minimum of 8 kB/s" in reply, reply[:300]
 
@@ -296,12 +290,7 @@ def test_an_upload_of_a_byte_every_4_s_hits_the_overall_deadline(tmp_path):
         with _connect(server) as s:
             s.sendall((f"POST /v1/blocks HTTP/1.1\r\nHost: x\r\nAuthorization: Bearer {token}\r\n"
                        f"Content-Type: multipart/form-data; boundary=b0\r\nContent-Length: 1000000\r\n\r\n").encode() + head)
-            for _ in range(4):  # a byte every 4 s: never idle for 12 s, and no minimum rate here
-                time.sleep(4)
-                try:
-                    s.sendall(b"x")
-                except OSError:
-                    break
+            _trickle(s, b"x", every=4, times=4)  # a byte every 4 s: never idle for 12 s, and no minimum rate here
             reply = _reply(s)
         assert reply.startswith(b"HTTP/1.1 408") and b"did not arrive within 6 s" in reply, reply[:300]
         assert not list((server.data_dir / "tmp").rglob("upload-*"))
