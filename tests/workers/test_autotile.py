@@ -44,6 +44,18 @@ def _uniform(n_points: int, width: int, depth: int) -> DensitySample:
     return DensitySample(counts=counts, origin=(0.0, 0.0), cell=1.0, sampled=int(counts.sum()), n_points=int(counts.sum()))
 
 
+def _random(width: int, depth: int, seed: int, nodes_per_point: float | None = None) -> tuple[DensitySample, tuple, tuple]:
+    """A block of 1 m cells with random counts (three in ten empty), and its bounds;
+    with ``nodes_per_point``, nodes per cell around that share of its points (cells
+    differ: rows against alleys)."""
+    rng = np.random.default_rng(seed)
+    counts = rng.integers(0, 20_000, size=(depth, width)) * (rng.random((depth, width)) < 0.7)
+    n = int(counts.sum())
+    nodes = None if nodes_per_point is None else np.round(counts * nodes_per_point * rng.uniform(0.2, 1.8, counts.shape)).astype(np.int64)
+    sample = DensitySample(counts=counts, origin=(0.0, 0.0), cell=1.0, sampled=n, n_points=n, nodes=nodes)
+    return sample, (0.0, 0.0), (float(width), float(depth))
+
+
 def test_a_small_dense_block_over_the_budget_stays_whole():
     # 11 M points on 15 m x 15 m: the smallest tile with its buffer (7 + 2 x 6.25 m) holds all of it
     sample = _uniform(11_000_000, 15, 15)
@@ -81,13 +93,8 @@ def test_a_budget_below_the_smallest_tile_is_refused_with_its_figures():
 )
 def test_the_chosen_tile_keeps_the_budget_and_is_the_largest_that_does(width, depth, seed, buffer, budget, origin,
                                                                        nodes_per_point):
-    rng = np.random.default_rng(seed)
-    counts = rng.integers(0, 20_000, size=(depth, width)) * (rng.random((depth, width)) < 0.7)
-    n = int(counts.sum())
-    # nodes per cell around the given share of its points (cells differ: rows against alleys)
-    nodes = None if nodes_per_point is None else np.round(counts * nodes_per_point * rng.uniform(0.2, 1.8, counts.shape)).astype(np.int64)
-    sample = DensitySample(counts=counts, origin=(0.0, 0.0), cell=1.0, sampled=n, n_points=n, nodes=nodes)
-    mins, maxs = (0.0, 0.0), (float(width), float(depth))
+    sample, mins, maxs = _random(width, depth, seed, nodes_per_point)
+    nodes = sample.nodes
     try:
         size = tile_size_for_sample(sample, mins, maxs, budget=budget, buffer=buffer, grid_origin=origin)
     except BudgetError as e:
@@ -132,11 +139,7 @@ def test_a_block_a_little_wider_than_one_tile_is_cut_in_halves_not_in_a_tile_and
 )
 def test_the_balanced_tile_keeps_the_budget_and_the_tiles_and_holds_the_fewest_points(width, depth, seed, buffer,
                                                                                         budget, origin):
-    rng = np.random.default_rng(seed)
-    counts = rng.integers(0, 20_000, size=(depth, width)) * (rng.random((depth, width)) < 0.7)
-    n = int(counts.sum())
-    sample = DensitySample(counts=counts, origin=(0.0, 0.0), cell=1.0, sampled=n, n_points=n)
-    mins, maxs = (0.0, 0.0), (float(width), float(depth))
+    sample, mins, maxs = _random(width, depth, seed)
     try:
         largest = tile_size_for_sample(sample, mins, maxs, budget=budget, buffer=buffer, grid_origin=origin)
     except BudgetError:
