@@ -44,6 +44,17 @@ def _uniform(n_points: int, width: int, depth: int) -> DensitySample:
     return DensitySample(counts=counts, origin=(0.0, 0.0), cell=1.0, sampled=int(counts.sum()), n_points=int(counts.sum()))
 
 
+#: hypothesis strategies of :func:`_random`'s block and a budget: width, depth [m], seed,
+#: buffer [m], budget [B], grid origin [m]
+RANDOM_BLOCK = (
+    st.integers(5, 120),
+    st.integers(5, 120),
+    st.integers(0, 2**32 - 1),
+    st.floats(0.0, 10.0),
+    st.floats(3.1e8, 3e9),
+    st.tuples(st.floats(-3.0, 0.0), st.floats(-3.0, 0.0)),
+)
+
 def _random(width: int, depth: int, seed: int, nodes_per_point: float | None = None) -> tuple[DensitySample, tuple, tuple]:
     """A block of 1 m cells with random counts (three in ten empty), and its bounds;
     with ``nodes_per_point``, nodes per cell around that share of its points (cells
@@ -82,15 +93,7 @@ def test_a_budget_below_the_smallest_tile_is_refused_with_its_figures():
 
 
 @settings(max_examples=150, deadline=None)
-@given(
-    st.integers(5, 120),
-    st.integers(5, 120),
-    st.integers(0, 2**32 - 1),
-    st.floats(0.0, 10.0),
-    st.floats(3.1e8, 3e9),
-    st.tuples(st.floats(-3.0, 0.0), st.floats(-3.0, 0.0)),
-    st.sampled_from([None, 0.05, 0.3, 1.0]),
-)
+@given(*RANDOM_BLOCK, st.sampled_from([None, 0.05, 0.3, 1.0]))
 def test_the_chosen_tile_keeps_the_budget_and_is_the_largest_that_does(width, depth, seed, buffer, budget, origin,
                                                                        nodes_per_point):
     sample, mins, maxs = _random(width, depth, seed, nodes_per_point)
@@ -129,14 +132,7 @@ def test_a_block_a_little_wider_than_one_tile_is_cut_in_halves_not_in_a_tile_and
 
 
 @settings(max_examples=100, deadline=None)
-@given(
-    st.integers(5, 120),
-    st.integers(5, 120),
-    st.integers(0, 2**32 - 1),
-    st.floats(0.0, 10.0),
-    st.floats(3.1e8, 3e9),
-    st.tuples(st.floats(-3.0, 0.0), st.floats(-3.0, 0.0)),
-)
+@given(*RANDOM_BLOCK)
 def test_the_balanced_tile_keeps_the_budget_and_the_tiles_and_holds_the_fewest_points(width, depth, seed, buffer,
                                                                                         budget, origin):
     sample, mins, maxs = _random(width, depth, seed)
