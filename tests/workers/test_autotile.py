@@ -55,6 +55,7 @@ RANDOM_BLOCK = (
     st.tuples(st.floats(-3.0, 0.0), st.floats(-3.0, 0.0)),
 )
 
+
 def _random(width: int, depth: int, seed: int, nodes_per_point: float | None = None) -> tuple[DensitySample, tuple, tuple]:
     """A block of 1 m cells with random counts (three in ten empty), and its bounds;
     with ``nodes_per_point``, nodes per cell around that share of its points (cells
