@@ -28,7 +28,7 @@ from pathlib import Path
 import numpy as np
 
 from pipeline.blockinfo import read_info
-from pipeline.budget import balanced_tile_size, tile_size_for_sample
+from pipeline.budget import job_tile_size
 from pipeline.chunks import CHUNK_POINTS
 from pipeline.jobparams import JobParams
 from pipeline.reading import sample_density
@@ -63,9 +63,8 @@ def main(argv=None) -> int:
     old, new = WorkStore(str(args.work / "old")), WorkStore(str(args.work / "new"))
 
     def size_of(sample):  # as workers.jobspec.auto_tiled chooses it
-        where = dict(budget=args.worker_memory * 1e9, buffer=job.buffer(), grid_origin=origin)
-        size = tile_size_for_sample(sample, info.mins, info.maxs, **where)
-        return size and balanced_tile_size(sample, size, info.mins, info.maxs, **where)
+        return job_tile_size(sample, info.mins, info.maxs, budget=args.worker_memory * 1e9, buffer=job.buffer(),
+                             grid_origin=origin)
 
     sample, c_count, w_count = _timed(lambda: sample_density(info.path, info=info, voxel_size=voxel,
                                                              chunk_points=CHUNK_POINTS))

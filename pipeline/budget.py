@@ -330,3 +330,13 @@ def balanced_tile_size(sample: DensitySample, size: float, mins, maxs, *, budget
         if sampled_tile_bytes(sample, float(s), buffer, mins, maxs, g).max() <= budget:
             best, fullest = float(s), float(points.max())
     return best
+
+
+def job_tile_size(sample: DensitySample, mins, maxs, *, budget: float, buffer: float, grid_origin) -> float | None:
+    """The tile core a job takes for this block: None when it fits whole, else the
+    largest core that keeps the budget (:func:`tile_size_for_sample`) cut evenly
+    (:func:`balanced_tile_size`). Raises what :func:`tile_size_for_sample` raises."""
+    where = dict(budget=budget, buffer=buffer, grid_origin=grid_origin)
+    size = tile_size_for_sample(sample, mins, maxs, **where)
+    # as many tiles, their points shared evenly: no tile's worker holds up the job
+    return None if size is None else balanced_tile_size(sample, size, mins, maxs, **where)

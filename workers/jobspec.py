@@ -13,7 +13,7 @@ from pathlib import Path
 import numpy as np
 
 from pipeline.blockinfo import BlockInfo, read_info
-from pipeline.budget import balanced_tile_size, fits_whole, tile_size_for_sample
+from pipeline.budget import fits_whole, job_tile_size
 from pipeline.errors import ParameterError
 from pipeline.jobparams import JobParams, TilingParams
 from pipeline.params import PipelineParams
@@ -188,9 +188,8 @@ def auto_tiled(spec: JobSpec, info: BlockInfo | None = None, *, count: Callable 
 
     The size comes from the block's points and voxel-graph nodes counted per square cell
     (:func:`pipeline.reading.sample_density`, read only for a block that does not surely
-    fit whole) and the job's actual grid: the largest core that keeps the budget
-    (:func:`pipeline.budget.tile_size_for_sample`), then the one that cuts the block into
-    as many tiles, each holding about as many points (:func:`pipeline.budget.balanced_tile_size`).
+    fit whole) and the job's actual grid (:func:`pipeline.budget.job_tile_size`: the largest
+    core that keeps the budget, cut into as many tiles each holding about as many points).
     ``info``: the block's header, read from ``spec.input_path`` when not given.
     ``count(info, voxel_size)`` → the density sample: how to count (default: in this
     process; :func:`workers.counting.count_block` with a client counts on the cluster).
@@ -205,13 +204,9 @@ def auto_tiled(spec: JobSpec, info: BlockInfo | None = None, *, count: Callable 
         return spec
     voxel_size = spec.params.graph.voxel_size
     sample = count(info, voxel_size) if count else sample_density(info.path, info=info, voxel_size=voxel_size)
-    where = dict(budget=budget, buffer=spec.job.buffer(), grid_origin=grid_origin(spec.tiling, info))
-    size = tile_size_for_sample(sample, info.mins, info.maxs, **where)
-    if size is None:
-        return spec
-    # as many tiles, their points shared evenly: no tile's worker holds up the job
-    size = balanced_tile_size(sample, size, info.mins, info.maxs, **where)
-    return dataclasses.replace(spec, job=spec.job.with_tile_size(size))
+    size = job_tile_size(sample, info.mins, info.maxs, budget=budget, buffer=spec.job.buffer(),
+                         grid_origin=grid_origin(spec.tiling, info))
+    return spec if size is None else dataclasses.replace(spec, job=spec.job.with_tile_size(size))
 
 
 def budgeted(spec: JobSpec, info: BlockInfo | None = None) -> tuple[JobSpec, np.ndarray | None]:
