@@ -191,10 +191,14 @@ def test_walk_through_sign_in_blocks_job_sign_out_and_docs(browser, served):
 
         # sign out: the pages and the API want a session again
         page.goto(srv.url + "/blocks")
+        before = len(watch.errors)
         page.click("#signout")
         # the sign-out's own redirect, or a refresh of the page (blocks, inboxes) that met
         # the ended session first and came with ?next=/blocks: either is the sign-in page
         page.wait_for_url(lambda url: urlsplit(url).path == "/signin")
+        # a refresh already in flight when the form was sent is answered 401, which the
+        # browser logs (the page sends no new one once signing out: orchard.js, O.leaving)
+        watch.errors[before:] = [e for e in watch.errors[before:] if "status of 401" not in e]
         page.goto(srv.url + "/blocks")
         assert urlsplit(page.url).path == "/signin"
         assert page.request.get(srv.url + "/v1/jobs").status == 401
