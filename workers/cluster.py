@@ -443,7 +443,7 @@ def _workers_signals_blocked():
     each of which then printed a KeyboardInterrupt traceback while this process was
     already shutting them down; a SIGTERM to the whole group (systemd stopping the
     service) killed every worker at once, and their nannies started new ones while the
-    service was stopping (about 8 s more). The cluster's event-loop thread, created in
+    service was stopping. The cluster's event-loop thread, created in
     here, inherits the blocked signals, and so do the worker processes it spawns (now
     and when a worker is restarted): they are stopped by this process, never by Ctrl-C
     or a signal to the group (:func:`_stop_term_from_parent_only`). This thread's own
