@@ -223,6 +223,7 @@ def start_topology(kind: str, folder: Path) -> tuple[str, dict[str, int], list[s
         for i in range(2):
             w = _start([sys.executable, "-m", "dask", "worker", address, "--host", "127.0.0.1", "--nworkers", "1",
                         "--nthreads", "1", "--memory-limit", "2GiB", "--no-dashboard", "--name", f"bench-worker-{i}",
+                        "--preload", "workers.preload",  # as docs/cluster.md tells an operator
                         "--local-directory", str(folder / f"worker-{i}")], folder / f"worker-{i}.log", env)
             roots[f"worker {i}"] = w.pid
             workers.append(w)

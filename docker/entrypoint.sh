@@ -46,7 +46,10 @@ case "$role" in
         # settings instead (workers.cluster.WORKER_MALLOC_ENV), dask's others kept
         worker_environ="{'MALLOC_MMAP_THRESHOLD_': '16777216', 'MALLOC_TRIM_THRESHOLD_': '33554432', 'OMP_NUM_THREADS': 1, 'MKL_NUM_THREADS': 1, 'OPENBLAS_NUM_THREADS': 1}"
         export DASK_DISTRIBUTED__NANNY__PRE_SPAWN_ENVIRON="${DASK_DISTRIBUTED__NANNY__PRE_SPAWN_ENVIRON:-$worker_environ}"
+        # --preload: the modules of orchard's tasks imported as the worker starts, not in
+        # its first tasks (workers/preload.py)
         exec dask worker "$ORCHARD_SCHEDULER" \
+            --preload workers.preload \
             --nworkers 1 \
             --nthreads "${ORCHARD_WORKER_THREADS:-1}" \
             --memory-limit "${ORCHARD_WORKER_MEMORY:-2GiB}" \

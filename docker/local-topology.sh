@@ -138,7 +138,7 @@ for (( i=1; i<=n_workers; i++ )); do
     # env -u: like a container's clean environment; the nanny lets an inherited
     # MALLOC_* value override its pre-spawn setting
     start "worker-$i" env -u MALLOC_TRIM_THRESHOLD_ -u MALLOC_MMAP_THRESHOLD_ dask worker "$scheduler" --host "$host" --name "local-worker-$i" \
-        --nworkers 1 --nthreads "${ORCHARD_WORKER_THREADS:-1}" \
+        --preload workers.preload --nworkers 1 --nthreads "${ORCHARD_WORKER_THREADS:-1}" \
         --memory-limit "${ORCHARD_WORKER_MEMORY:-2GiB}" \
         --dashboard-address "$host:0" --local-directory "$data_dir/dask-worker-$i"
 done

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import logging
+import os
 import re
 import signal
 import socket
@@ -32,6 +33,14 @@ LOOPBACK = "127.0.0.1"
 WORKER_MALLOC_ENV = {"MALLOC_MMAP_THRESHOLD_": str(16 << 20), "MALLOC_TRIM_THRESHOLD_": str(32 << 20)}
 #: Workers of an external cluster named in a :class:`WorkersUnfit` message (the rest are counted).
 MAX_NAMED_WORKERS = 3
+#: Signals the embedded cluster's worker processes start with blocked: Ctrl-C in a terminal
+#: and a stop of the whole process group (systemd's default KillMode=control-group,
+#: ``kill -- -PGID``) reach every process of the group, and the workers are this process's
+#: to stop (:func:`_workers_signals_blocked`).
+WORKER_BLOCKED_SIGNALS = frozenset({signal.SIGINT, signal.SIGTERM})
+#: The preloads of the embedded cluster's workers: this module's :func:`dask_setup`, then
+#: the modules a job's tasks import (:mod:`workers.preload`).
+EMBEDDED_PRELOADS = (__name__, "workers.preload")
 
 
 class WorkersUnfit(ParameterError):
@@ -183,7 +192,7 @@ def _embedded_client(
     # worker processes talk to the scheduler over TLS with certificates made here, for this
     # cluster alone: a client without them (another local account) is refused
     security = _temporary_security() if processes else None
-    with _workers_ignore_interrupt(), worker_allocator():
+    with _workers_signals_blocked(), worker_allocator():
         cluster = LocalCluster(
             n_workers=int(n_workers),
             threads_per_worker=int(threads_per_worker),
@@ -197,7 +206,7 @@ def _embedded_client(
             scheduler_kwargs={"dashboard": dashboard},
             memory_limit=memory_limit,
             silence_logs=logging.CRITICAL if quiet else logging.WARNING,
-            preload=[__name__] if processes else None,  # dask_setup below, in each worker
+            preload=list(EMBEDDED_PRELOADS) if processes else None,  # dask_setup below and the task modules
         )
     # distributed starts an HTTP server (metrics, health, task and worker details) in the
     # scheduler even without a dashboard, and one in each worker: none is needed here
@@ -392,28 +401,59 @@ class _ClosingNoise(logging.Filter):
 def dask_setup(worker) -> None:
     """Preload hook of the embedded cluster's workers (dask calls it at worker start,
     on its event loop, before it registers with the scheduler)."""
+    _stop_term_from_parent_only()
     for name in ("distributed.worker.state_machine", "distributed.worker"):
         logging.getLogger(name).addFilter(_ClosingNoise())
     _stop_http(worker)  # also in a worker the nanny restarts
 
 
+def _stop_term_from_parent_only() -> None:
+    """In a worker process started with SIGTERM blocked (:func:`_workers_signals_blocked`),
+    a thread that takes every SIGTERM: one from the parent process (its nanny's
+    ``terminate``, at a start that failed or above the memory limit; multiprocessing's
+    at the parent's exit) ends the process as SIGTERM does; one from anyone else (a stop
+    sent to the whole process group) is dropped, as the service is stopping and stops
+    its workers itself. A worker never outlives its parent: distributed's child process
+    exits when its parent's pipe closes. Elsewhere (SIGTERM not blocked: a ``dask
+    worker`` of an external cluster, with handlers of its own) it does nothing."""
+    if signal.SIGTERM not in signal.pthread_sigmask(signal.SIG_BLOCK, set()):
+        return
+    parent = os.getppid()
+
+    def take() -> None:
+        while True:
+            sender = signal.sigwaitinfo({signal.SIGTERM}).si_pid
+            if sender == parent or os.getppid() != parent:
+                # what SIGTERM does (the nanny sees "killed by signal 15"): sent to this
+                # thread, the only one that no longer blocks it
+                signal.pthread_sigmask(signal.SIG_UNBLOCK, {signal.SIGTERM})
+                signal.pthread_kill(threading.get_ident(), signal.SIGTERM)
+                return
+            log.debug("SIGTERM from process %d dropped: the service stops its own workers", sender)
+
+    threading.Thread(target=take, name="orchard-sigterm", daemon=True).start()
+
+
 @contextmanager
-def _workers_ignore_interrupt():
-    """Start an embedded cluster with SIGINT blocked in the starting thread.
+def _workers_signals_blocked():
+    """Start an embedded cluster with :data:`WORKER_BLOCKED_SIGNALS` blocked in the
+    starting thread.
 
     A terminal's Ctrl-C goes to its whole process group, worker processes included,
     each of which then printed a KeyboardInterrupt traceback while this process was
-    already shutting them down. The cluster's event-loop thread, created in here,
-    inherits the blocked signal, and so do the worker processes it spawns (now and
-    when a worker is restarted): they are stopped by this process, never by Ctrl-C.
-    This thread's own mask is restored on the way out, so an interrupt that arrived
-    meanwhile is delivered then.
+    already shutting them down; a SIGTERM to the whole group (systemd stopping the
+    service) killed every worker at once, and their nannies started new ones while the
+    service was stopping. The cluster's event-loop thread, created in
+    here, inherits the blocked signals, and so do the worker processes it spawns (now
+    and when a worker is restarted): they are stopped by this process, never by Ctrl-C
+    or a signal to the group (:func:`_stop_term_from_parent_only`). This thread's own
+    mask is restored on the way out, so a signal that arrived meanwhile is delivered then.
     """
     # multiprocessing's resource tracker, when it first starts (here: at the first worker's
-    # queue), unblocks SIGINT in the thread that starts it; start it beforehand
+    # queue), unblocks SIGINT and SIGTERM in the thread that starts it; start it beforehand
     resource_tracker.ensure_running()
     try:
-        old = signal.pthread_sigmask(signal.SIG_BLOCK, {signal.SIGINT})
+        old = signal.pthread_sigmask(signal.SIG_BLOCK, WORKER_BLOCKED_SIGNALS)
     except (AttributeError, OSError, ValueError):  # no POSIX signal masks
         yield
         return

@@ -8,6 +8,7 @@ import errno
 import logging
 import os
 import resource
+import signal
 import socket
 
 from pipeline.errors import ParameterError
@@ -164,8 +165,15 @@ def run(args: argparse.Namespace) -> int:
                             http=protocol, log_config=None,  # uvicorn's records go through service.logs
                             timeout_keep_alive=5, backlog=listen_backlog())
     server = Server(config)
-    with contextlib.suppress(KeyboardInterrupt):
-        server.run(sockets=[sock])
+    # uvicorn hands a SIGTERM on to the previous handler once it has shut down, which ended
+    # the process killed by it (status 143): the stop it asked for is done, so `orchard
+    # serve` ends with 0. One that comes before uvicorn listens for it stops the server too.
+    previous = signal.signal(signal.SIGTERM, lambda signum, frame: setattr(server, "should_exit", True))
+    try:
+        with contextlib.suppress(KeyboardInterrupt):
+            server.run(sockets=[sock])
+    finally:
+        signal.signal(signal.SIGTERM, previous)
     if not server.started:  # the app did not start (its log says why): a failed run, not "no trees" (3)
         return 1
     return 0

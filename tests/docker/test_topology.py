@@ -14,6 +14,7 @@ import os
 import shutil
 import signal
 import subprocess
+import sys
 import time
 from pathlib import Path
 
@@ -21,6 +22,7 @@ import numpy as np
 import pytest
 
 from workers.cluster import WORKER_MALLOC_ENV
+from workers.preload import TASK_MODULES
 
 ROOT = Path(__file__).resolve().parents[2]
 SCRIPT = ROOT / "docker" / "local-topology.sh"
@@ -158,6 +160,9 @@ def test_job_end_to_end_through_separate_processes(topology, tmp_path):
         # the workers run with the embedded cluster's allocator settings, not dask's trim
         environ = client.run(lambda: {k: os.environ.get(k) for k in WORKER_MALLOC_ENV})
         assert list(environ.values()) == [WORKER_MALLOC_ENV] * 2, environ
+        # and with orchard's task modules imported as they started (--preload workers.preload)
+        preloaded = client.run(lambda: all(m in sys.modules for m in TASK_MODULES))
+        assert list(preloaded.values()) == [True, True], preloaded
 
         # A token, the same way an operator gets one.
         tok = subprocess.run(
