@@ -16,6 +16,8 @@ from scipy import sparse
 from scipy.sparse import csgraph
 from scipy.spatial import cKDTree
 
+from pipeline.passes import CACHE_POINTS
+
 INT32_MAX = np.iinfo(np.int32).max
 #: shortest edge weight [m]: csgraph treats explicit zeros as missing edges
 MIN_EDGE_WEIGHT = 1e-6
@@ -106,14 +108,24 @@ def node_pairs(
 def pair_lengths(points: np.ndarray, pairs: np.ndarray) -> np.ndarray:
     """(p,) float64 distance [m] between the two points of each pair, (p, 2) int."""
     # one coordinate at a time: gathering whole (p, 3) rows and summing across them is
-    # 2-3 times slower on the hundreds of thousands of pairs of a block (same values)
-    a, b = pairs[:, 0], pairs[:, 1]
-    total = np.zeros(pairs.shape[0])
-    for d in range(points.shape[1]):
-        col = points[:, d]
-        step = col[a] - col[b]
-        step *= step
-        total += step
+    # 2-3 times slower on the hundreds of thousands of pairs of a block (same values);
+    # a cache-sized pass of pairs at a time in two reused buffers: whole-array
+    # temporaries of millions of pairs each cost fresh pages the kernel must zero
+    n = pairs.shape[0]
+    total = np.empty(n)
+    cols = [np.ascontiguousarray(points[:, d]) for d in range(points.shape[1])]
+    step, other = np.empty(min(n, CACHE_POINTS)), np.empty(min(n, CACHE_POINTS))
+    for s in range(0, n, CACHE_POINTS):
+        e = min(n, s + CACHE_POINTS)
+        a, b, t = pairs[s:e, 0], pairs[s:e, 1], total[s:e]
+        one, two = step[: e - s], other[: e - s]
+        t[:] = 0.0
+        for col in cols:
+            np.take(col, a, out=one)
+            np.take(col, b, out=two)
+            one -= two
+            one *= one
+            t += one
     return np.sqrt(total, out=total)
 
 

@@ -21,6 +21,7 @@ from pipeline.graph import (
     subtree_sizes,
     symmetric_csr,
 )
+from pipeline.passes import CACHE_POINTS
 from pipeline.voxels import voxelize
 
 
@@ -238,6 +239,18 @@ def test_pair_lengths_equal_the_definition_bit_for_bit(m, p, dims, seed):
     np.testing.assert_array_equal(pair_lengths(pts, pairs), np.sqrt(want))
     strided = np.repeat(pairs, 2, axis=1)[:, ::2]  # the same pairs, columns 16 bytes apart
     np.testing.assert_array_equal(pair_lengths(np.asfortranarray(pts), strided), np.sqrt(want))
+
+
+def test_pair_lengths_across_passes_equal_the_definition_bit_for_bit():
+    """More pairs than one cache-sized pass holds: each pass's lengths are the whole's."""
+    rng = np.random.default_rng(3)
+    pts = rng.normal(size=(1000, 3)) * 30.0
+    pairs = rng.integers(0, 1000, (2 * CACHE_POINTS + 7, 2)).astype(np.int32)
+    step = (pts[pairs[:, 0]] - pts[pairs[:, 1]]) ** 2
+    want = np.zeros(pairs.shape[0])
+    for d in range(3):
+        want += step[:, d]
+    np.testing.assert_array_equal(pair_lengths(pts, pairs), np.sqrt(want))
 
 
 def test_reweight_keeps_the_structure_and_scales_each_edge():
