@@ -40,7 +40,7 @@ from pipeline.trunks import (
     low_trees,
     young_block,
 )
-from pipeline.voxels import Voxels, voxelize
+from pipeline.voxels import Voxels, rows_by_column, voxelize
 
 # Fixed tuning of the box, bark, post and spacing tests, set on generated orchards (the
 # evidence: docs/method.md, "Fixed constants"). Lengths in metres; eigenvalues λ1 >= λ2 >= λ3.
@@ -242,7 +242,8 @@ def _node_graph(xyz: np.ndarray, *, params: PipelineParams, grid_origin, ground_
     height, is_ground = classify_ground(xyz, gm, params=params.ground)
     vegetation = ~is_ground & (height > 0)
     veg_idx = np.flatnonzero(vegetation)
-    vox = voxelize(xyz[veg_idx], voxel_size=params.graph.voxel_size, grid_origin=grid_origin)
+    # column-major: voxelize's passes and sums run down each column (the same voxels)
+    vox = voxelize(rows_by_column(xyz, veg_idx), voxel_size=params.graph.voxel_size, grid_origin=grid_origin)
     nodes = vox.centroids
     node_height = np.bincount(vox.point_voxel, weights=height[veg_idx], minlength=vox.n) / np.maximum(vox.counts, 1)
     radius = params.matter.smoothing_radius
