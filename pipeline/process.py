@@ -18,6 +18,7 @@ from pipeline.enrichment import ShapeFeatures, neighbourhood_matrix, shape_featu
 from pipeline.graph import bridge_floating, build_graph, node_pairs, reweight, without_nodes
 from pipeline.ground import GroundModel, classify_ground, ground_model
 from pipeline.params import PipelineParams, TrunkParams
+from pipeline.passes import indices_where
 from pipeline.posts import Posts, find_posts, on_posts
 from pipeline.slots import let_in, slot_evidence, trees_on_slots
 from pipeline.segment import (
@@ -197,9 +198,15 @@ def _stem_points(xyz, height, is_ground, ground_top: float, *, on: bool) -> dict
     their slice, for :func:`pipeline.trunks.stem_contrast` (empty dict when off)."""
     if not on:
         return {}
-    rel = height - ground_top
-    sel = np.flatnonzero(~is_ground & (rel >= 0) & (rel < STEM_SLICES * STEM_SLICE_HEIGHT))
-    return {"stem_xy": xyz[sel, :2], "stem_slice": (rel[sel] // STEM_SLICE_HEIGHT).astype(np.int64)}
+    top = STEM_SLICES * STEM_SLICE_HEIGHT
+
+    def test(s: slice) -> np.ndarray:
+        rel = height[s] - ground_top
+        return ~is_ground[s] & (rel >= 0) & (rel < top)
+
+    sel = indices_where(height.shape[0], test)
+    rel = height[sel] - ground_top
+    return {"stem_xy": xyz[sel, :2], "stem_slice": (rel // STEM_SLICE_HEIGHT).astype(np.int64)}
 
 
 @dataclass(frozen=True)
@@ -349,7 +356,10 @@ def _find_trunks(xyz: np.ndarray, g: _NodeGraph, f: _Faces, *, params: PipelineP
     drainage = reweight(g.graph, 1.0 + params.trunks.leaf_cost * g.leafiness)
     ground_top = gm.tolerance(params.ground)
     stem_points = _stem_points(xyz, g.height, g.is_ground, ground_top, on=params.trunks.stem_ratio > 0)
-    foot_xy = xyz[g.is_ground & (g.height > FOOT_LAYER_SHARE * ground_top), :2] if params.trunks.min_foot_ratio > 0 else None
+    foot_xy = None
+    if params.trunks.min_foot_ratio > 0:
+        foot_top = FOOT_LAYER_SHARE * ground_top
+        foot_xy = xyz[indices_where(xyz.shape[0], lambda s: g.is_ground[s] & (g.height[s] > foot_top)), :2]
 
     # radii left unset follow the spacing only where it can be measured
     measure_spacing = gm.noise < SPACING_MAX_NOISE

@@ -51,6 +51,7 @@ def rival_distance(graph: sparse.csr_matrix, node_tree: np.ndarray, dist: np.nda
     same = ta == tb
     cross = labelled & ~same
     inside = labelled & same
+    del labelled, same, tb  # every edge's arrays go as soon as they are done with
     rival_dist = np.full(m, np.inf)
     rival = np.zeros(m, np.int64)
     if not cross.any():
@@ -60,12 +61,17 @@ def rival_distance(graph: sparse.csr_matrix, node_tree: np.ndarray, dist: np.nda
     order = np.lexsort((off, b[cross]))
     ent, first = np.unique(b[cross][order], return_index=True)
     ent_off, ent_tree = off[order][first], ta[cross][order][first]
-    # one virtual source per entered node, joined to it by its offset
+    del ta, cross, off, order
+    # one virtual source per entered node, joined to it by its offset; indices in the
+    # type scipy would convert them to (int32 below 2**31 nodes), not int64 first
     e = ent.size
-    rows = np.r_[a[inside], m + np.arange(e)]
-    cols = np.r_[b[inside], ent]
+    index = np.int32 if m + e < np.iinfo(np.int32).max else np.int64
+    rows = np.r_[a[inside].astype(index, copy=False), np.arange(m, m + e, dtype=index)]
+    cols = np.r_[b[inside].astype(index, copy=False), ent.astype(index, copy=False)]
     data = np.r_[w[inside], np.maximum(ent_off, MIN_EDGE_WEIGHT)]
+    del g, a, b, w, inside
     aug = sparse.csr_matrix((data, (rows, cols)), shape=(m + e, m + e))
+    del rows, cols, data
     d, _, src = csgraph.dijkstra(aug, directed=True, indices=m + np.arange(e), min_only=True, return_predecessors=True)
     d = d[:m]
     src = src[:m]
