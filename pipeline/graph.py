@@ -327,8 +327,9 @@ def symmetric_csr(
     groups = pairs.groups if isinstance(pairs, NodePairs) else None
     p = pairs.pairs if isinstance(pairs, NodePairs) else pairs
     # scipy would copy int64 indices into its int32 index type; hand it int32 at once
+    # (columns of int32 pairs as they are: the concatenations below copy them anyway)
     index = np.int32 if m < INT32_MAX else np.int64
-    a, b = p[:, 0].astype(index), p[:, 1].astype(index)
+    a, b = p[:, 0].astype(index, copy=False), p[:, 1].astype(index, copy=False)
     if groups is None:
         rows, cols, data = [a, b], [b, a], [weight, weight]
     else:
