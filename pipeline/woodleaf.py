@@ -366,7 +366,10 @@ def narrow_features(features: np.ndarray) -> np.ndarray:
     """The narrow trees' model's columns from :func:`wood_features`: the node's
     features and the same times the tree's width, (m, 2 * NODE_FEATURES)."""
     base, width = features[:, :NODE_FEATURES], features[:, NODE_FEATURES : NODE_FEATURES + 1]
-    return np.column_stack([base, base * width])
+    out = np.empty((features.shape[0], 2 * NODE_FEATURES))
+    out[:, :NODE_FEATURES] = base
+    np.multiply(base, width, out=out[:, NODE_FEATURES:])  # no (m, NODE_FEATURES) temporary
+    return out
 
 
 def _shorter_than(height: np.ndarray, limit: float) -> np.ndarray:
@@ -419,6 +422,7 @@ def combined_score(
             raise ValueError("noise_columns (noise_features) are needed where noise_term(noise) > 0")
         cols = np.column_stack([features[:, :NODE_FEATURES], noise_columns])
         z = z + k * noise_gate(features) * (cols @ noise_weights)
+        del cols  # gone before the narrow model's columns are built
     wide = _logistic(z)
     nw = NARROW_WEIGHTS if narrow_weights is None else narrow_weights
     if not nw.any():
