@@ -16,7 +16,7 @@ from scipy import sparse
 from scipy.sparse import csgraph
 from scipy.spatial import cKDTree
 
-from pipeline.passes import CACHE_POINTS
+from pipeline.passes import CACHE_POINTS, row_blocks
 
 INT32_MAX = np.iinfo(np.int32).max
 #: shortest edge weight [m]: csgraph treats explicit zeros as missing edges
@@ -367,9 +367,16 @@ def reweight(graph: sparse.csr_matrix, node_cost: np.ndarray) -> sparse.csr_matr
     if not graph.has_canonical_format:
         graph = graph.copy()
         graph.sum_duplicates()
-    row = np.repeat(np.arange(graph.shape[0]), np.diff(graph.indptr))
-    w = graph.data * 0.5 * (node_cost[row] + node_cost[graph.indices])
-    return sparse.csr_matrix((w, graph.indices.copy(), graph.indptr.copy()), shape=graph.shape)
+    # a block of rows at a time: every edge's row, costs and sum would be fresh temporaries
+    indptr, indices = graph.indptr, graph.indices
+    w = np.empty(graph.data.shape[0])
+    for start, stop in row_blocks(indptr):
+        lo, hi = indptr[start], indptr[stop]
+        row = np.repeat(np.arange(start, stop), np.diff(indptr[start : stop + 1]))
+        t = w[lo:hi]
+        np.multiply(graph.data[lo:hi], 0.5, out=t)
+        t *= node_cost[row] + node_cost[indices[lo:hi]]
+    return sparse.csr_matrix((w, indices.copy(), indptr.copy()), shape=graph.shape)
 
 
 def bridge_floating(

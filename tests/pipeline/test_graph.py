@@ -263,6 +263,21 @@ def test_reweight_keeps_the_structure_and_scales_each_edge():
     assert (reweight(messy, np.array([1.0, 3.0, 5.0])) != reweight(messy.sorted_indices(), np.array([1.0, 3.0, 5.0]))).nnz == 0
 
 
+def test_reweight_a_few_rows_at_a_time_equals_the_whole_formula_bit_for_bit():
+    from unittest.mock import patch
+
+    from pipeline import passes
+
+    rng = np.random.default_rng(8)
+    g = build_graph(rng.uniform(0, 2, (400, 3)), radius=0.3)
+    cost = 1.0 + rng.uniform(0, 3, 400)
+    row = np.repeat(np.arange(400), np.diff(g.indptr))
+    want = g.data * 0.5 * (cost[row] + cost[g.indices])
+    with patch.object(passes.row_blocks, "__defaults__", (7,)):  # passes of about 7 edges
+        got = reweight(g, cost)
+    assert np.array_equal(got.data, want) and np.array_equal(got.indices, g.indices) and np.array_equal(got.indptr, g.indptr)
+
+
 def _blocks(seed: int, n: int = 4000) -> np.ndarray:
     """Points of a small generated stand: trunks (vertical lines), crowns (noisy balls),
     grass (a noisy plane) and scattered outliers, over 6 x 4 x 4 m."""
