@@ -162,7 +162,7 @@ def block_result(xyz: np.ndarray, a: NodeAnalysis, *, params: PipelineParams) ->
     # each point's node (a node past the last for points in none, labelled 0): one
     # scatter, then one gather a label, instead of a gather and a scatter each
     m = node_tree.shape[0]
-    point_node = np.full(xyz.shape[0], m, np.intp)
+    point_node = np.full(xyz.shape[0], m, np.int32 if m < np.iinfo(np.int32).max else np.intp)
     point_node[a.veg_idx] = a.vox.point_voxel
     tree_id, is_wood, wood_score = (
         np.concatenate([v.astype(t, copy=False), np.zeros(1, t)])[point_node]

@@ -12,6 +12,7 @@ import numpy as np
 from scipy import sparse
 
 from pipeline.graph import NodePairs, node_pairs, symmetric_csr
+from pipeline.passes import sparse_product
 
 #: fewest nodes (the node included) whose spread gives shape features: fewer leave the
 #: covariance degenerate, and such nodes count as fully scattered
@@ -77,7 +78,7 @@ def shape_features(nodes: np.ndarray, *, radius: float, adjacency: sparse.csr_ma
     c = nodes - nodes.mean(axis=0) if m else nodes
     x, y, z = c[:, 0], c[:, 1], c[:, 2]
     cols = np.column_stack([np.ones(m), x, y, z, x * x, y * y, z * z, x * y, x * z, y * z])
-    s = a @ cols
+    s = sparse_product(a, cols)
     n = s[:, 0]
     mu = s[:, 1:4] / n[:, None]
     cov = (

@@ -16,6 +16,8 @@ from scipy import sparse
 from scipy.sparse import csgraph
 from scipy.spatial import cKDTree
 
+from pipeline.passes import CACHE_POINTS, row_blocks
+
 INT32_MAX = np.iinfo(np.int32).max
 #: shortest edge weight [m]: csgraph treats explicit zeros as missing edges
 MIN_EDGE_WEIGHT = 1e-6
@@ -106,14 +108,24 @@ def node_pairs(
 def pair_lengths(points: np.ndarray, pairs: np.ndarray) -> np.ndarray:
     """(p,) float64 distance [m] between the two points of each pair, (p, 2) int."""
     # one coordinate at a time: gathering whole (p, 3) rows and summing across them is
-    # 2-3 times slower on the hundreds of thousands of pairs of a block (same values)
-    a, b = pairs[:, 0], pairs[:, 1]
-    total = np.zeros(pairs.shape[0])
-    for d in range(points.shape[1]):
-        col = points[:, d]
-        step = col[a] - col[b]
-        step *= step
-        total += step
+    # 2-3 times slower on the hundreds of thousands of pairs of a block (same values);
+    # a cache-sized pass of pairs at a time in two reused buffers: whole-array
+    # temporaries of millions of pairs each cost fresh pages the kernel must zero
+    n = pairs.shape[0]
+    total = np.empty(n)
+    cols = [np.ascontiguousarray(points[:, d]) for d in range(points.shape[1])]
+    step, other = np.empty(min(n, CACHE_POINTS)), np.empty(min(n, CACHE_POINTS))
+    for s in range(0, n, CACHE_POINTS):
+        e = min(n, s + CACHE_POINTS)
+        a, b, t = pairs[s:e, 0], pairs[s:e, 1], total[s:e]
+        one, two = step[: e - s], other[: e - s]
+        t[:] = 0.0
+        for col in cols:
+            np.take(col, a, out=one)
+            np.take(col, b, out=two)
+            one -= two
+            one *= one
+            t += one
     return np.sqrt(total, out=total)
 
 
@@ -315,8 +327,9 @@ def symmetric_csr(
     groups = pairs.groups if isinstance(pairs, NodePairs) else None
     p = pairs.pairs if isinstance(pairs, NodePairs) else pairs
     # scipy would copy int64 indices into its int32 index type; hand it int32 at once
+    # (columns of int32 pairs as they are: the concatenations below copy them anyway)
     index = np.int32 if m < INT32_MAX else np.int64
-    a, b = p[:, 0].astype(index), p[:, 1].astype(index)
+    a, b = p[:, 0].astype(index, copy=False), p[:, 1].astype(index, copy=False)
     if groups is None:
         rows, cols, data = [a, b], [b, a], [weight, weight]
     else:
@@ -354,9 +367,16 @@ def reweight(graph: sparse.csr_matrix, node_cost: np.ndarray) -> sparse.csr_matr
     if not graph.has_canonical_format:
         graph = graph.copy()
         graph.sum_duplicates()
-    row = np.repeat(np.arange(graph.shape[0]), np.diff(graph.indptr))
-    w = graph.data * 0.5 * (node_cost[row] + node_cost[graph.indices])
-    return sparse.csr_matrix((w, graph.indices.copy(), graph.indptr.copy()), shape=graph.shape)
+    # a block of rows at a time: every edge's row, costs and sum would be fresh temporaries
+    indptr, indices = graph.indptr, graph.indices
+    w = np.empty(graph.data.shape[0])
+    for start, stop in row_blocks(indptr):
+        lo, hi = indptr[start], indptr[stop]
+        row = np.repeat(np.arange(start, stop), np.diff(indptr[start : stop + 1]))
+        t = w[lo:hi]
+        np.multiply(graph.data[lo:hi], 0.5, out=t)
+        t *= node_cost[row] + node_cost[indices[lo:hi]]
+    return sparse.csr_matrix((w, indices.copy(), indptr.copy()), shape=graph.shape)
 
 
 def bridge_floating(

@@ -18,6 +18,7 @@ from pipeline.enrichment import ShapeFeatures, neighbourhood_matrix, shape_featu
 from pipeline.graph import bridge_floating, build_graph, node_pairs, reweight, without_nodes
 from pipeline.ground import GroundModel, classify_ground, ground_model
 from pipeline.params import PipelineParams, TrunkParams
+from pipeline.passes import indices_where, row_blocks
 from pipeline.posts import Posts, find_posts, on_posts
 from pipeline.slots import let_in, slot_evidence, trees_on_slots
 from pipeline.segment import (
@@ -40,7 +41,7 @@ from pipeline.trunks import (
     low_trees,
     young_block,
 )
-from pipeline.voxels import Voxels, voxelize
+from pipeline.voxels import Voxels, rows_by_column, voxelize
 
 # Fixed tuning of the box, bark, post and spacing tests, set on generated orchards (the
 # evidence: docs/method.md, "Fixed constants"). Lengths in metres; eigenvalues λ1 >= λ2 >= λ3.
@@ -160,9 +161,23 @@ def _without_edges_within(graph: sparse.csr_matrix, mask: np.ndarray) -> sparse.
     may end in such a node but not run on through it."""
     if not mask.any():
         return graph
-    g = graph.tocoo()
-    keep = ~(mask[g.row] & mask[g.col])
-    return sparse.csr_matrix((g.data[keep], (g.row[keep], g.col[keep])), shape=graph.shape)
+    # the edges kept found a block of rows at a time, and the rows' runs of them taken
+    # as they lie: the matrix scipy builds from their coordinates, without every edge's
+    # coordinates and masks as fresh temporaries
+    g = graph.tocsr()
+    indptr, indices = g.indptr, g.indices
+    keep = np.empty(indices.shape[0], bool)
+    kept = np.zeros(indptr.shape[0], np.int64)  # edges kept before each row
+    for start, stop in row_blocks(indptr):
+        lo = indptr[start]
+        k = keep[lo : indptr[stop]]
+        np.logical_and(np.repeat(mask[start:stop], np.diff(indptr[start : stop + 1])), mask[indices[lo : indptr[stop]]], out=k)
+        np.logical_not(k, out=k)
+        kept[start + 1 : stop + 1] = kept[start] + np.r_[0, np.cumsum(k)][indptr[start + 1 : stop + 1] - lo]
+    index = np.int32 if max(int(kept[-1]), graph.shape[1]) <= np.iinfo(np.int32).max else np.int64
+    out = sparse.csr_matrix((g.data[keep], indices[keep].astype(index, copy=False), kept.astype(index)), shape=graph.shape)
+    out.sum_duplicates()  # as scipy leaves a matrix built from coordinates: canonical
+    return out
 
 
 def _beside(xy: np.ndarray, other: np.ndarray, reach: float) -> np.ndarray:
@@ -197,9 +212,15 @@ def _stem_points(xyz, height, is_ground, ground_top: float, *, on: bool) -> dict
     their slice, for :func:`pipeline.trunks.stem_contrast` (empty dict when off)."""
     if not on:
         return {}
-    rel = height - ground_top
-    sel = np.flatnonzero(~is_ground & (rel >= 0) & (rel < STEM_SLICES * STEM_SLICE_HEIGHT))
-    return {"stem_xy": xyz[sel, :2], "stem_slice": (rel[sel] // STEM_SLICE_HEIGHT).astype(np.int64)}
+    top = STEM_SLICES * STEM_SLICE_HEIGHT
+
+    def test(s: slice) -> np.ndarray:
+        rel = height[s] - ground_top
+        return ~is_ground[s] & (rel >= 0) & (rel < top)
+
+    sel = indices_where(height.shape[0], test)
+    rel = height[sel] - ground_top
+    return {"stem_xy": xyz[sel, :2], "stem_slice": (rel // STEM_SLICE_HEIGHT).astype(np.int64)}
 
 
 @dataclass(frozen=True)
@@ -242,7 +263,8 @@ def _node_graph(xyz: np.ndarray, *, params: PipelineParams, grid_origin, ground_
     height, is_ground = classify_ground(xyz, gm, params=params.ground)
     vegetation = ~is_ground & (height > 0)
     veg_idx = np.flatnonzero(vegetation)
-    vox = voxelize(xyz[veg_idx], voxel_size=params.graph.voxel_size, grid_origin=grid_origin)
+    # column-major: voxelize's passes and sums run down each column (the same voxels)
+    vox = voxelize(rows_by_column(xyz, veg_idx), voxel_size=params.graph.voxel_size, grid_origin=grid_origin)
     nodes = vox.centroids
     node_height = np.bincount(vox.point_voxel, weights=height[veg_idx], minlength=vox.n) / np.maximum(vox.counts, 1)
     radius = params.matter.smoothing_radius
@@ -348,7 +370,10 @@ def _find_trunks(xyz: np.ndarray, g: _NodeGraph, f: _Faces, *, params: PipelineP
     drainage = reweight(g.graph, 1.0 + params.trunks.leaf_cost * g.leafiness)
     ground_top = gm.tolerance(params.ground)
     stem_points = _stem_points(xyz, g.height, g.is_ground, ground_top, on=params.trunks.stem_ratio > 0)
-    foot_xy = xyz[g.is_ground & (g.height > FOOT_LAYER_SHARE * ground_top), :2] if params.trunks.min_foot_ratio > 0 else None
+    foot_xy = None
+    if params.trunks.min_foot_ratio > 0:
+        foot_top = FOOT_LAYER_SHARE * ground_top
+        foot_xy = xyz[indices_where(xyz.shape[0], lambda s: g.is_ground[s] & (g.height[s] > foot_top)), :2]
 
     # radii left unset follow the spacing only where it can be measured
     measure_spacing = gm.noise < SPACING_MAX_NOISE

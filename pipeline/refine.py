@@ -17,6 +17,7 @@ from scipy.sparse import csgraph
 from scipy.sparse.linalg import splu
 
 from pipeline.graph import MIN_EDGE_WEIGHT
+from pipeline.passes import row_blocks
 
 #: at most this many trees' probabilities are solved for at once (columns of one dense
 #: right-hand side; memory is contested nodes × this × 8 bytes)
@@ -51,6 +52,7 @@ def rival_distance(graph: sparse.csr_matrix, node_tree: np.ndarray, dist: np.nda
     same = ta == tb
     cross = labelled & ~same
     inside = labelled & same
+    del labelled, same, tb  # every edge's arrays go as soon as they are done with
     rival_dist = np.full(m, np.inf)
     rival = np.zeros(m, np.int64)
     if not cross.any():
@@ -60,12 +62,17 @@ def rival_distance(graph: sparse.csr_matrix, node_tree: np.ndarray, dist: np.nda
     order = np.lexsort((off, b[cross]))
     ent, first = np.unique(b[cross][order], return_index=True)
     ent_off, ent_tree = off[order][first], ta[cross][order][first]
-    # one virtual source per entered node, joined to it by its offset
+    del ta, cross, off, order
+    # one virtual source per entered node, joined to it by its offset; indices in the
+    # type scipy would convert them to (int32 below 2**31 nodes), not int64 first
     e = ent.size
-    rows = np.r_[a[inside], m + np.arange(e)]
-    cols = np.r_[b[inside], ent]
+    index = np.int32 if m + e < np.iinfo(np.int32).max else np.int64
+    rows = np.r_[a[inside].astype(index, copy=False), np.arange(m, m + e, dtype=index)]
+    cols = np.r_[b[inside].astype(index, copy=False), ent.astype(index, copy=False)]
     data = np.r_[w[inside], np.maximum(ent_off, MIN_EDGE_WEIGHT)]
+    del g, a, b, w, inside
     aug = sparse.csr_matrix((data, (rows, cols)), shape=(m + e, m + e))
+    del rows, cols, data
     d, _, src = csgraph.dijkstra(aug, directed=True, indices=m + np.arange(e), min_only=True, return_predecessors=True)
     d = d[:m]
     src = src[:m]
@@ -108,11 +115,8 @@ def random_walk(graph: sparse.csr_matrix, node_tree: np.ndarray, free: np.ndarra
     if u.size == 0:
         return out
     # the walk runs over tree nodes only: the rest is neither seed nor path
-    g = graph.tocsr().copy()
-    g.data = 1.0 / np.maximum(g.data, MIN_EDGE_WEIGHT)
     tree = node_tree > 0
-    keep = sparse.diags(tree.astype(np.float64))
-    g = (keep @ g @ keep).tocsr()
+    g = _conductance_among(graph.tocsr(), tree)
     g = g.maximum(g.T)
     seeds = np.flatnonzero(tree & ~free)
     w_uu = g[u][:, u]
@@ -150,6 +154,34 @@ def random_walk(graph: sparse.csr_matrix, node_tree: np.ndarray, free: np.ndarra
         best_t[better] = chunk[used][j[better]]
     out[u] = best_t
     return out
+
+
+def _conductance_among(graph: sparse.csr_matrix, on: np.ndarray) -> sparse.csr_matrix:
+    """``K @ C @ K`` for the conductances ``C`` (1 / length) of ``graph`` and ``K`` the
+    diagonal of ``on`` (m,) bool: the edges between two ``on`` nodes, (m, m).
+
+    On a canonical matrix (rows sorted, no duplicates) the edges are taken a block of rows
+    at a time, in their order: the very arrays scipy's two products give (they keep each
+    row's order, and drop the zero conductances of infinite lengths), without a copy of
+    the graph and of its product with ``K`` first.
+    """
+    if not graph.has_canonical_format:  # the products sum duplicates and reorder rows
+        g = graph.copy()
+        g.data = 1.0 / np.maximum(g.data, MIN_EDGE_WEIGHT)
+        keep = sparse.diags(on.astype(np.float64))
+        return (keep @ g @ keep).tocsr()
+    indptr, indices, length = graph.indptr, graph.indices, graph.data
+    keep = np.empty(indices.shape[0], bool)
+    kept = np.zeros(indptr.shape[0], np.int64)  # edges kept before each row
+    for start, stop in row_blocks(indptr):
+        lo, hi = indptr[start], indptr[stop]
+        k = keep[lo:hi]
+        np.logical_and(np.repeat(on[start:stop], np.diff(indptr[start : stop + 1])), on[indices[lo:hi]], out=k)
+        k &= length[lo:hi] != np.inf
+        kept[start + 1 : stop + 1] = kept[start] + np.r_[0, np.cumsum(k)][indptr[start + 1 : stop + 1] - lo]
+    index = np.int32 if max(int(kept[-1]), graph.shape[0]) <= np.iinfo(np.int32).max else np.int64
+    data = 1.0 / np.maximum(length[keep], MIN_EDGE_WEIGHT)
+    return sparse.csr_matrix((data, indices[keep].astype(index, copy=False), kept.astype(index)), shape=graph.shape)
 
 
 def refine_contested(graph: sparse.csr_matrix, node_tree: np.ndarray, dist: np.ndarray, *, margin: float) -> np.ndarray:

@@ -29,6 +29,7 @@ from pipeline.enrichment import ShapeFeatures
 from pipeline.graph import subtree_sizes
 from pipeline.metrics import group_runs
 from pipeline.params import MatterParams
+from pipeline.passes import row_max, row_sums, sparse_product
 
 #: names of the columns of :func:`wood_features`
 FEATURES = (
@@ -158,8 +159,8 @@ def log_score(counts: np.ndarray, group: np.ndarray | None = None) -> np.ndarray
 
 def smooth(values: np.ndarray, adjacency: sparse.csr_matrix) -> np.ndarray:
     """Mean of ``values`` over each node's neighbourhood (adjacency with diagonal)."""
-    deg = np.asarray(adjacency.sum(axis=1)).ravel()
-    return (adjacency @ values) / np.maximum(deg, 1.0)
+    deg = row_sums(adjacency)
+    return sparse_product(adjacency, values) / np.maximum(deg, 1.0)
 
 
 def neighbourhood_max(values: np.ndarray, adjacency: sparse.csr_matrix) -> np.ndarray:
@@ -168,12 +169,7 @@ def neighbourhood_max(values: np.ndarray, adjacency: sparse.csr_matrix) -> np.nd
     # one reduction over each row's run of neighbours: scipy's row max of a copy of the
     # matrix holding the values took twice the time and three times the memory (the same
     # maxima: the implicit zeros it counts in never exceed non-negative values)
-    a = adjacency.tocsr()
-    out = np.zeros(a.shape[0])
-    rows = np.flatnonzero(np.diff(a.indptr))
-    if rows.size:
-        out[rows] = np.maximum.reduceat(values[a.indices], a.indptr[rows])
-    return out
+    return row_max(adjacency, values)
 
 
 def _per_group(values: np.ndarray, group: np.ndarray, fn) -> np.ndarray:
@@ -356,7 +352,7 @@ def noise_features(
             d / np.maximum(_group_max(d, node_tree)[node_tree], 1e-9),
             reach / np.maximum(_group_max(reach, node_tree)[node_tree], 1e-9),
             log_score(flow, node_tree),
-            log_score(adjacency @ (adjacency @ counts), node_tree),
+            log_score(sparse_product(adjacency, sparse_product(adjacency, counts)), node_tree),
             neighbourhood_max(neighbourhood_max(log_score(counts, node_tree), adjacency), adjacency),
         ]
     )
@@ -370,7 +366,10 @@ def narrow_features(features: np.ndarray) -> np.ndarray:
     """The narrow trees' model's columns from :func:`wood_features`: the node's
     features and the same times the tree's width, (m, 2 * NODE_FEATURES)."""
     base, width = features[:, :NODE_FEATURES], features[:, NODE_FEATURES : NODE_FEATURES + 1]
-    return np.column_stack([base, base * width])
+    out = np.empty((features.shape[0], 2 * NODE_FEATURES))
+    out[:, :NODE_FEATURES] = base
+    np.multiply(base, width, out=out[:, NODE_FEATURES:])  # no (m, NODE_FEATURES) temporary
+    return out
 
 
 def _shorter_than(height: np.ndarray, limit: float) -> np.ndarray:
@@ -423,6 +422,7 @@ def combined_score(
             raise ValueError("noise_columns (noise_features) are needed where noise_term(noise) > 0")
         cols = np.column_stack([features[:, :NODE_FEATURES], noise_columns])
         z = z + k * noise_gate(features) * (cols @ noise_weights)
+        del cols  # gone before the narrow model's columns are built
     wide = _logistic(z)
     nw = NARROW_WEIGHTS if narrow_weights is None else narrow_weights
     if not nw.any():

@@ -204,24 +204,29 @@ def process_tile(work_url: str, tile_id: int, params_json: str, fail: bool = Fal
     given = record.get(SLOT_KEY)
     slot_trees = None if given is None else trees_in_tile(given, {"buffered": grid.tile(int(tile_id)).buffered}, frame["origin"])
     rec, xyz = _tile_points(store, tile_id, frame)
+    n_buffered = len(rec)
     core = rec["core"].astype(bool)
     if not core.any():  # a streamed tile whose estimate was wrong (workers.settling.settle_index drops it)
-        return {"tile_id": int(tile_id), "n_core": 0, "n_buffered": len(rec)}
+        return {"tile_id": int(tile_id), "n_core": 0, "n_buffered": n_buffered}
+    # the records' coordinates are in xyz now: through the analysis only their indices
+    # are held (a field is a view that would keep every record's bytes)
+    index = rec["index"].copy()
+    del rec
     if frame.get("engine") == SOURCE_ENGINE:  # the ranges of a block split by cell keep theirs
-        put_tile_sample(store, tile_id, xyz[core, :2], rec["index"][core], int(frame["n_points"]))
+        put_tile_sample(store, tile_id, xyz[core, :2], index[core], int(frame["n_points"]))
     raw = store.get_object(raw_ground_key(tile_id)) if store.exists(raw_ground_key(tile_id)) else None
     result = process(xyz, params, f"tile {tile_id}", tuple(stats) if stats else None, slot_trees, raw)
     key = result_key(tile_id)
     if not store.exists(JOB_KEY):  # the job was cancelled (its store deleted) while this tile ran
         return _abandon(store, tile_id)
-    store.put_array(f"{key}/index.npy", rec["index"][core])
+    store.put_array(f"{key}/index.npy", index[core])
     store.put_array(f"{key}/tree_id.npy", np.asarray(result.tree_id[core], dtype=np.int64))
     store.put_array(f"{key}/is_ground.npy", np.asarray(result.is_ground[core], dtype=bool))
     store.put_array(f"{key}/is_wood.npy", np.asarray(result.is_wood[core], dtype=bool))
     store.put_array(f"{key}/wood_score.npy", np.asarray(result.wood_score[core], dtype=np.float32))
-    summary = summarise(tile_id, xyz, core, result, grid, frame["origin"], params, index=rec["index"])
+    summary = summarise(tile_id, xyz, core, result, grid, frame["origin"], params, index=index)
     if streamed(frame):  # its count is known only now (workers.settling.settle_index)
-        summary["n_buffered"] = len(rec)
+        summary["n_buffered"] = n_buffered
     store.put_object(f"{key}/summary.pkl", summary)
     if not store.exists(JOB_KEY):  # deleted while these were written: take them back
         return _abandon(store, tile_id)

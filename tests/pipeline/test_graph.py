@@ -21,6 +21,7 @@ from pipeline.graph import (
     subtree_sizes,
     symmetric_csr,
 )
+from pipeline.passes import CACHE_POINTS
 from pipeline.voxels import voxelize
 
 
@@ -240,6 +241,18 @@ def test_pair_lengths_equal_the_definition_bit_for_bit(m, p, dims, seed):
     np.testing.assert_array_equal(pair_lengths(np.asfortranarray(pts), strided), np.sqrt(want))
 
 
+def test_pair_lengths_across_passes_equal_the_definition_bit_for_bit():
+    """More pairs than one cache-sized pass holds: each pass's lengths are the whole's."""
+    rng = np.random.default_rng(3)
+    pts = rng.normal(size=(1000, 3)) * 30.0
+    pairs = rng.integers(0, 1000, (2 * CACHE_POINTS + 7, 2)).astype(np.int32)
+    step = (pts[pairs[:, 0]] - pts[pairs[:, 1]]) ** 2
+    want = np.zeros(pairs.shape[0])
+    for d in range(3):
+        want += step[:, d]
+    np.testing.assert_array_equal(pair_lengths(pts, pairs), np.sqrt(want))
+
+
 def test_reweight_keeps_the_structure_and_scales_each_edge():
     g = build_graph(np.array([[0.0, 0, 0], [0.1, 0, 0], [0.2, 0, 0]]), radius=0.15)
     r = reweight(g, np.array([1.0, 3.0, 5.0]))
@@ -248,6 +261,21 @@ def test_reweight_keeps_the_structure_and_scales_each_edge():
     messy = sparse.csr_matrix((g.data[::-1].copy(), g.indices[::-1].copy(), g.indptr.copy()), shape=g.shape)
     messy.has_sorted_indices = False
     assert (reweight(messy, np.array([1.0, 3.0, 5.0])) != reweight(messy.sorted_indices(), np.array([1.0, 3.0, 5.0]))).nnz == 0
+
+
+def test_reweight_a_few_rows_at_a_time_equals_the_whole_formula_bit_for_bit():
+    from unittest.mock import patch
+
+    from pipeline import passes
+
+    rng = np.random.default_rng(8)
+    g = build_graph(rng.uniform(0, 2, (400, 3)), radius=0.3)
+    cost = 1.0 + rng.uniform(0, 3, 400)
+    row = np.repeat(np.arange(400), np.diff(g.indptr))
+    want = g.data * 0.5 * (cost[row] + cost[g.indices])
+    with patch.object(passes.row_blocks, "__defaults__", (7,)):  # passes of about 7 edges
+        got = reweight(g, cost)
+    assert np.array_equal(got.data, want) and np.array_equal(got.indices, g.indices) and np.array_equal(got.indptr, g.indptr)
 
 
 def _blocks(seed: int, n: int = 4000) -> np.ndarray:

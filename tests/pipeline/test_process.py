@@ -216,3 +216,31 @@ def test_a_vehicle_stays_out_of_trees_at_any_noise(noise, seed):
     share, trees = _vehicle_in_trees(noise, seed)
     assert trees == 4
     assert share <= 0.05  # measured 0.004-0.034; before 0.23 at 0.03 m, 0.92-0.96 at 0.08 m
+
+
+def test_without_edges_within_equals_scipys_matrix_from_the_kept_coordinates():
+    """Rows of any order, a block of rows at a time: the very matrix scipy builds from the
+    kept edges' coordinates (the segmentation's shortest paths run on it)."""
+    from unittest.mock import patch
+
+    from scipy import sparse
+
+    from pipeline import passes
+    from pipeline.graph import build_graph
+    from pipeline.process import _without_edges_within
+
+    rng = np.random.default_rng(4)
+    for case in range(30):
+        n = int(rng.integers(1, 200))
+        g = build_graph(rng.uniform(0, 2, (n, 3)), radius=float(rng.uniform(0.1, 0.6)))
+        if case % 3 == 0:  # rows out of order
+            g = sparse.csr_matrix((g.data[::-1].copy(), g.indices[::-1].copy(), g.indptr.copy()), shape=g.shape)
+        mask = rng.random(n) < rng.random()
+        c = g.tocoo()
+        keep = ~(mask[c.row] & mask[c.col])
+        want = sparse.csr_matrix((c.data[keep], (c.row[keep], c.col[keep])), shape=g.shape) if mask.any() else g
+        with patch.object(passes.row_blocks, "__defaults__", (int(rng.integers(1, 50)),)):
+            got = _without_edges_within(g, mask)
+        for f in ("indptr", "indices", "data"):
+            a, b = getattr(got, f), getattr(want, f)
+            assert a.dtype == b.dtype and np.array_equal(a, b), (case, f)

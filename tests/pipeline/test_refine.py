@@ -123,3 +123,34 @@ def test_what_is_left_of_a_cut_out_object_does_not_join_a_crown():
     assert (tree[part <= 1] == 1).all()
     assert (tree[part == 2] == 0).all() and (tree[part == 3] == 0).all()
     assert (tree[part == 4] == 1).all()
+
+
+def test_conductance_among_equals_scipys_products_array_for_array():
+    """The walk's graph, a block of rows at a time: the very arrays of ``K @ C @ K``
+    (rows in order, infinite lengths' zero conductances dropped), canonical input or not."""
+    from unittest.mock import patch
+
+    from scipy import sparse
+
+    from pipeline import passes
+    from pipeline.graph import MIN_EDGE_WEIGHT, build_graph
+    from pipeline.refine import _conductance_among
+
+    rng = np.random.default_rng(2)
+    for case in range(40):
+        n = int(rng.integers(1, 150))
+        g = build_graph(rng.uniform(0, 2, (n, 3)), radius=float(rng.uniform(0.1, 0.6)))
+        if case % 5 == 0 and g.nnz:
+            g.data[rng.integers(0, g.nnz, 3)] = np.inf
+        if case % 4 == 1:  # rows out of order: the products' own path
+            g = sparse.csr_matrix((g.data[::-1].copy(), g.indices[::-1].copy(), g.indptr.copy()), shape=g.shape)
+        on = rng.random(n) < rng.random()
+        c = g.copy()
+        c.data = 1.0 / np.maximum(c.data, MIN_EDGE_WEIGHT)
+        keep = sparse.diags(on.astype(np.float64))
+        want = (keep @ c @ keep).tocsr()
+        with patch.object(passes.row_blocks, "__defaults__", (int(rng.integers(1, 40)),)):
+            got = _conductance_among(g, on)
+        for f in ("indptr", "indices", "data"):
+            a, b = getattr(got, f), getattr(want, f)
+            assert a.dtype == b.dtype and np.array_equal(a, b), (case, f)
