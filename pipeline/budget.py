@@ -24,13 +24,13 @@ from pipeline.errors import ParameterError
 from pipeline.tilelimits import min_tile_size
 
 #: peak memory of processing points in one piece, per point [bytes]: reading, per-point
-#: labels and writing the outputs; with the two below, every measured tile's peak times
-#: 1.13 or more (docs/performance.md, "The budget refitted")
+#: labels and writing the outputs, with headroom over the measured (docs/performance.md,
+#: "The budget refitted")
 BYTES_PER_POINT = 95
 
 #: peak memory per node of the voxel graph [bytes]: its edges, their analysis and the
-#: segmentation (a sparse scan's tiles, 0.38 nodes a point, need 1.15-1.24 times the
-#: 550 B of 27 November's fit: docs/performance.md)
+#: segmentation, with headroom over the measured; a sparse scan's tiles, with most nodes
+#: a point, set it (docs/performance.md)
 BYTES_PER_NODE = 850
 
 #: memory of a worker process whatever it processes [bytes]: the interpreter, dask and
