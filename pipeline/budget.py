@@ -24,12 +24,14 @@ from pipeline.errors import ParameterError
 from pipeline.tilelimits import min_tile_size
 
 #: peak memory of processing points in one piece, per point [bytes]: reading, per-point
-#: labels and writing the outputs, with headroom over the measured (docs/performance.md)
-BYTES_PER_POINT = 120
+#: labels and writing the outputs, with headroom over the measured (docs/performance.md,
+#: "The budget refitted")
+BYTES_PER_POINT = 95
 
 #: peak memory per node of the voxel graph [bytes]: its edges, their analysis and the
-#: segmentation, with headroom over the measured (docs/performance.md)
-BYTES_PER_NODE = 550
+#: segmentation, with headroom over the measured; a sparse scan's tiles, with most nodes
+#: a point, set it (docs/performance.md)
+BYTES_PER_NODE = 850
 
 #: memory of a worker process whatever it processes [bytes]: the interpreter, dask and
 #: the libraries, and what the heap keeps between tiles (docs/performance.md)

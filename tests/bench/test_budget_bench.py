@@ -52,3 +52,23 @@ def test_per_tile_needs_a_tile_size(capsys):
     with pytest.raises(SystemExit) as exit_:
         budget.main(["x.laz", "--per-tile"])
     assert exit_.value.code == 2 and "--per-tile needs --tile-size" in capsys.readouterr().err
+
+
+def test_the_fit_recovers_known_constants_from_the_tiles_that_raised_the_peak(tmp_path, capsys):
+    from bench import budget_fit
+
+    # peaks of exactly 200 MB + 80 B a point + 700 B a voxel, but the third tile starts on
+    # the heap the first left: its peak is that heap's, above the line, and not fitted
+    line = lambda p, v: 200e6 + 80 * p + 700 * v  # noqa: E731
+    rows = [(0, 4_000_000, 400_000), (1, 2_000_000, 900_000), (2, 100_000, 10_000), (3, 8_000_000, 500_000)]
+    peaks = [line(p, v) for _, p, v in rows]
+    peaks[2] = peaks[0] - 1
+    path = tmp_path / "block.jsonl"
+    path.write_text("\n".join(json.dumps({"tile": t, "points": p, "voxels": v, "rss_before": 1, "peak": y})
+                              for (t, p, v), y in zip(rows, peaks)) + '\n{"task_peaks": {}}\n')
+    tiles = budget_fit.read_tiles([str(path)])
+    assert [t["raised"] for t in tiles] == [True, True, False, True]
+    coef, res = budget_fit.fit([t for t in tiles if t["raised"]])
+    assert coef == pytest.approx([200e6, 80, 700], rel=1e-6) and abs(res).max() < 1.0
+    assert budget_fit.main([str(path), "--constants", "200e6,80,700"]) == 0
+    assert "estimate ÷ peak at least 1.00 (tiles that raised the peak)" in capsys.readouterr().out

@@ -70,17 +70,18 @@ def test_nodes_per_point_set_the_tile_by_hand():
     # 100 points a metre everywhere; as a sparse scan every point is its own voxel-graph
     # node, as a dense one 10 points share a node. A budget of 100 * 70^2 points' worth at
     # one node a point allows 70 m buffered tiles (a 60 m core) on the sparse block, and on
-    # the dense one (120 + 550) / (120 + 55) times the area: sqrt(18,760) = 136.97 m, a 126 m core
-    assert (BYTES_PER_POINT, BYTES_PER_NODE) == (120, 550)  # the figures below
+    # the dense one (95 + 850) / (95 + 85) times the area: sqrt(25,725) = 160.4 m, so a 155 m
+    # core (its first tile's buffer begins outside the block: 160 cells)
+    assert (BYTES_PER_POINT, BYTES_PER_NODE) == (95, 850)  # the figures below
     points = np.full((300, 300), 100)
     sparse = DensitySample(counts=points, origin=(0.0, 0.0), cell=1.0, sampled=9_000_000, n_points=9_000_000,
                            nodes=points.copy())
     dense = dataclasses.replace(sparse, nodes=points // 10)
     budget = bytes_needed(100 * 70**2)
-    assert budget == FIXED_BYTES + 670 * 100 * 70**2
+    assert budget == FIXED_BYTES + 945 * 100 * 70**2
     assert tile_size_for_sample(sparse, (0, 0), (300, 300), budget=budget, buffer=5.0, grid_origin=(0, 0)) == 60.0
-    assert tile_size_for_sample(dense, (0, 0), (300, 300), budget=budget, buffer=5.0, grid_origin=(0, 0)) == 126.0
-    assert sampled_tile_bytes(dense, 126.0, 5.0, (0, 0), (300, 300), (0, 0)).max() == FIXED_BYTES + 175 * 100 * 136**2
+    assert tile_size_for_sample(dense, (0, 0), (300, 300), budget=budget, buffer=5.0, grid_origin=(0, 0)) == 155.0
+    assert sampled_tile_bytes(dense, 155.0, 5.0, (0, 0), (300, 300), (0, 0)).max() == FIXED_BYTES + 180 * 100 * 160**2
     # no node counts: every point its own node, as the sparse block
     unknown = dataclasses.replace(sparse, nodes=None)
     assert tile_size_for_sample(unknown, (0, 0), (300, 300), budget=budget, buffer=5.0, grid_origin=(0, 0)) == 60.0
