@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import gc
 import logging
 import os
 import re
@@ -151,23 +152,37 @@ def make_client(
                             memory_limit=memory_limit, quiet=quiet, host=host)
 
 
+def collect_failed_clients() -> None:
+    """Finalise now the clients whose start failed (call it once their exception is gone).
+
+    Such a client closes itself in ``__del__``, which takes distributed's ``LoopRunner``
+    lock, one for the whole process and not re-entrant. Left to the garbage collector it
+    can be finalised inside the next client's start, which holds that lock: the process
+    hung there (seen in a test of the TLS refusal)."""
+    gc.collect()
+
+
 def _external_client(scheduler: str, timeout: str) -> Client:
     """A client of the running cluster at ``scheduler``, once it answers and its workers
     can run this process's tasks (:func:`make_client`'s errors)."""
+    failure = None
     try:
         _check_answers(scheduler, parse_timedelta(timeout))
         client = Client(scheduler, timeout=timeout)
     except TimeoutError:
-        raise ParameterError(
+        failure = ParameterError(
             f"no dask scheduler answered at {scheduler} within {parse_timedelta(timeout):g} s (TimeoutError); "
             "start one with `dask scheduler`, or fix {job.scheduler} (its port, 8786 by default, not the "
             "dashboard's 8787)", param="job.scheduler", value=scheduler,
-        ) from None
+        )
     except (OSError, ValueError) as exc:
-        raise ParameterError(
+        failure = ParameterError(
             f"cannot reach the dask scheduler at {scheduler} ({type(exc).__name__}); "
             "start one with `dask scheduler` or fix {job.scheduler}", param="job.scheduler", value=scheduler,
-        ) from None
+        )
+    if failure is not None:
+        collect_failed_clients()
+        raise failure
     try:
         check_workers(client, scheduler=scheduler, seconds=parse_timedelta(timeout))
     except BaseException:
