@@ -12,7 +12,7 @@ import numpy as np
 from scipy import sparse
 
 from pipeline.graph import NodePairs, node_pairs, symmetric_csr
-from pipeline.passes import sparse_product
+from pipeline.rowpasses import sparse_product
 
 #: fewest nodes (the node included) whose spread gives shape features: fewer leave the
 #: covariance degenerate, and such nodes count as fully scattered

@@ -16,7 +16,8 @@ from scipy import sparse
 from scipy.sparse import csgraph
 from scipy.spatial import cKDTree
 
-from pipeline.passes import CACHE_POINTS, row_blocks
+from pipeline.passes import CACHE_POINTS
+from pipeline.rowpasses import row_blocks
 
 INT32_MAX = np.iinfo(np.int32).max
 #: shortest edge weight [m]: csgraph treats explicit zeros as missing edges

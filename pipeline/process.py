@@ -18,7 +18,8 @@ from pipeline.enrichment import ShapeFeatures, neighbourhood_matrix, shape_featu
 from pipeline.graph import bridge_floating, build_graph, node_pairs, reweight, without_nodes
 from pipeline.ground import GroundModel, classify_ground, ground_model
 from pipeline.params import PipelineParams, TrunkParams
-from pipeline.passes import indices_where, row_blocks
+from pipeline.passes import indices_where
+from pipeline.rowpasses import row_blocks
 from pipeline.posts import Posts, find_posts, on_posts
 from pipeline.slots import let_in, slot_evidence, trees_on_slots
 from pipeline.segment import (

@@ -17,7 +17,7 @@ from scipy.sparse import csgraph
 from scipy.sparse.linalg import splu
 
 from pipeline.graph import MIN_EDGE_WEIGHT
-from pipeline.passes import row_blocks
+from pipeline.rowpasses import row_blocks
 
 #: at most this many trees' probabilities are solved for at once (columns of one dense
 #: right-hand side; memory is contested nodes × this × 8 bytes)

@@ -29,7 +29,7 @@ from pipeline.enrichment import ShapeFeatures
 from pipeline.graph import subtree_sizes
 from pipeline.metrics import group_runs
 from pipeline.params import MatterParams
-from pipeline.passes import row_max, row_sums, sparse_product
+from pipeline.rowpasses import row_max, row_sums, sparse_product
 
 #: names of the columns of :func:`wood_features`
 FEATURES = (

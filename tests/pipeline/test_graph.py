@@ -266,14 +266,14 @@ def test_reweight_keeps_the_structure_and_scales_each_edge():
 def test_reweight_a_few_rows_at_a_time_equals_the_whole_formula_bit_for_bit():
     from unittest.mock import patch
 
-    from pipeline import passes
+    from pipeline import rowpasses
 
     rng = np.random.default_rng(8)
     g = build_graph(rng.uniform(0, 2, (400, 3)), radius=0.3)
     cost = 1.0 + rng.uniform(0, 3, 400)
     row = np.repeat(np.arange(400), np.diff(g.indptr))
     want = g.data * 0.5 * (cost[row] + cost[g.indices])
-    with patch.object(passes.row_blocks, "__defaults__", (7,)):  # passes of about 7 edges
+    with patch.object(rowpasses.row_blocks, "__defaults__", (7,)):  # passes of about 7 edges
         got = reweight(g, cost)
     assert np.array_equal(got.data, want) and np.array_equal(got.indices, g.indices) and np.array_equal(got.indptr, g.indptr)
 

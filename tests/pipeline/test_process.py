@@ -225,7 +225,7 @@ def test_without_edges_within_equals_scipys_matrix_from_the_kept_coordinates():
 
     from scipy import sparse
 
-    from pipeline import passes
+    from pipeline import rowpasses
     from pipeline.graph import build_graph
     from pipeline.process import _without_edges_within
 
@@ -239,7 +239,7 @@ def test_without_edges_within_equals_scipys_matrix_from_the_kept_coordinates():
         c = g.tocoo()
         keep = ~(mask[c.row] & mask[c.col])
         want = sparse.csr_matrix((c.data[keep], (c.row[keep], c.col[keep])), shape=g.shape) if mask.any() else g
-        with patch.object(passes.row_blocks, "__defaults__", (int(rng.integers(1, 50)),)):
+        with patch.object(rowpasses.row_blocks, "__defaults__", (int(rng.integers(1, 50)),)):
             got = _without_edges_within(g, mask)
         for f in ("indptr", "indices", "data"):
             a, b = getattr(got, f), getattr(want, f)

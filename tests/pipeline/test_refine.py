@@ -132,7 +132,7 @@ def test_conductance_among_equals_scipys_products_array_for_array():
 
     from scipy import sparse
 
-    from pipeline import passes
+    from pipeline import rowpasses
     from pipeline.graph import MIN_EDGE_WEIGHT, build_graph
     from pipeline.refine import _conductance_among
 
@@ -149,7 +149,7 @@ def test_conductance_among_equals_scipys_products_array_for_array():
         c.data = 1.0 / np.maximum(c.data, MIN_EDGE_WEIGHT)
         keep = sparse.diags(on.astype(np.float64))
         want = (keep @ c @ keep).tocsr()
-        with patch.object(passes.row_blocks, "__defaults__", (int(rng.integers(1, 40)),)):
+        with patch.object(rowpasses.row_blocks, "__defaults__", (int(rng.integers(1, 40)),)):
             got = _conductance_among(g, on)
         for f in ("indptr", "indices", "data"):
             a, b = getattr(got, f), getattr(want, f)
