@@ -207,8 +207,11 @@ def auto_tiled(spec: JobSpec, info: BlockInfo | None = None, *, count: Callable 
         return spec
     voxel_size = spec.params.graph.voxel_size
     sample = count(info, voxel_size) if count else sample_density(info.path, info=info, voxel_size=voxel_size)
+    # no client yet (orchard process counts before its cluster starts): the embedded
+    # cluster's workers, which will run the tiles (2 unless --workers or the service says)
+    workers = n_workers or spec.run.workers
     size = job_tile_size(sample, info.mins, info.maxs, budget=budget, buffer=spec.job.buffer(),
-                         grid_origin=grid_origin(spec.tiling, info), n_workers=n_workers or spec.run.workers)
+                         grid_origin=grid_origin(spec.tiling, info), n_workers=workers)
     return spec if size is None else dataclasses.replace(spec, job=spec.job.with_tile_size(size))
 
 
