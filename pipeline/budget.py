@@ -350,16 +350,16 @@ def balanced_tile_size(sample: DensitySample, size: float, mins, maxs, *, budget
     """
     g = (float(grid_origin[0]), float(grid_origin[1]))
     points = sampled_tile_points(sample, float(size), buffer, mins, maxs, g)
-    shape, best, least_time = points.shape, float(size), makespan(points, n_workers)
+    shape, best, soonest = points.shape, float(size), makespan(points, n_workers)
     # n tiles of s metres along an axis cover its extent only when n * s exceeds it
     least = max(smallest_tile(buffer), *(math.floor((float(maxs[d]) - float(mins[d])) / shape[1 - d]) for d in range(2)))
     for s in range(int(size) - 1, int(least) - 1, -1):
         points = sampled_tile_points(sample, float(s), buffer, mins, maxs, g)
         if points.shape != shape:
             continue
-        time = makespan(points, n_workers)
-        if time < least_time and sampled_tile_bytes(sample, float(s), buffer, mins, maxs, g).max() <= budget:
-            best, least_time = float(s), time
+        span = makespan(points, n_workers)
+        if span < soonest and sampled_tile_bytes(sample, float(s), buffer, mins, maxs, g).max() <= budget:
+            best, soonest = float(s), span
     return best
 
 

@@ -373,7 +373,6 @@ def _run_job(spec, args: argparse.Namespace, *, tiled: bool, count_on_cluster: b
             fused = count_on_cluster and splits_while_counting(spec, info)
             if count_on_cluster and not fused:
                 from workers.counting import count_block
-
                 from workers.dispatch import cluster_threads
 
                 spec, _ = _budget_tiles(spec, count=partial(count_block, client=client,
