@@ -1,4 +1,4 @@
-"""``python -m bench.split_pass BLOCK [--worker-memory 2] [--work DIR] [--check]``: the
+"""``python -m bench.split_pass BLOCK [--worker-memory 2] [--workers 2] [--work DIR] [--check]``: the
 pass over a plain LAS/LAZ block before its first tile, as a budgeted job makes it,
 counted and then tiled (before) against split by cell once (:mod:`workers.cellranges`).
 
@@ -34,6 +34,7 @@ from pipeline.jobparams import JobParams
 from pipeline.reading import sample_density
 from workers.cellranges import gather_tile, index_from_cells, split_block
 from workers.jobspec import grid_origin, plan_tiles
+from workers.runoptions import WORKERS
 from workers.tiler import read_tile, tile_block
 from workers.workstore import WorkStore
 
@@ -54,6 +55,7 @@ def main(argv=None) -> int:
     p.add_argument("--worker-memory", type=float, default=2.0, help="memory budget of a worker [GB] (the service's default 2)")
     p.add_argument("--work", type=Path, default=Path("/tmp/orchard-split-pass"))
     p.add_argument("--check", action="store_true", help="compare every gathered tile with the written one")
+    p.add_argument("--workers", type=int, default=WORKERS, help="workers the tiles are cut for (the embedded cluster's default)")
     args = p.parse_args(argv)
     info = read_info(args.block)
     job = JobParams()
@@ -64,7 +66,7 @@ def main(argv=None) -> int:
 
     def size_of(sample):  # as workers.jobspec.auto_tiled chooses it
         return job_tile_size(sample, info.mins, info.maxs, budget=args.worker_memory * 1e9, buffer=job.buffer(),
-                             grid_origin=origin)
+                             grid_origin=origin, n_workers=args.workers)
 
     sample, c_count, w_count = _timed(lambda: sample_density(info.path, info=info, voxel_size=voxel,
                                                              chunk_points=CHUNK_POINTS))

@@ -1,6 +1,6 @@
 """The memory budget of one worker: whether a block fits it whole, and otherwise the
 largest tile core whose buffered tiles each fit it (and the core that cuts the block into
-as many tiles with the fullest holding the fewest points: :func:`balanced_tile_size`).
+as many tiles that the job's workers finish soonest: :func:`balanced_tile_size`).
 
 A process's memory follows the points it holds and the nodes of its voxel graph (the
 occupied voxels): :func:`bytes_needed`. Whether the block surely fits whole needs its
@@ -288,18 +288,44 @@ def tile_size_for_sample(sample: DensitySample, mins, maxs, *, budget: float, bu
     raise BudgetError(budget, points / (smallest + 2.0 * buffer) ** 2, smallest, buffer, float(need[worst]))
 
 
+def makespan(work, n_workers: int) -> float:
+    """The time [units of ``work``] until ``n_workers`` workers finish every task of
+    ``work`` when the largest is handed out first and each worker takes the next when it
+    is free (:func:`workers.dispatch.run_order`'s order; LPT scheduling).
+
+    Parameters
+    ----------
+    work : array_like of float
+        Each task's work (a tile's buffered points).
+    n_workers : int
+        At least 1.
+
+    Returns
+    -------
+    float
+        The busiest worker's summed work: the total on 1 worker, the largest task on as
+        many workers as tasks.
+    """
+    loads = np.zeros(max(1, int(n_workers)))
+    for w in np.sort(np.asarray(work, dtype=np.float64).ravel())[::-1]:
+        loads[int(np.argmin(loads))] += w  # the least loaded worker is the first free
+    return float(loads.max())
+
+
 def balanced_tile_size(sample: DensitySample, size: float, mins, maxs, *, budget: float, buffer: float,
-                       grid_origin) -> float:
+                       grid_origin, n_workers: int) -> float:
     """The tile core that cuts the block into as many tiles along each axis as ``size``
-    does, with its fullest buffered tile as small as the sample tells.
+    does and that ``n_workers`` workers finish soonest, as the sample tells.
 
     ``size``, the largest core that keeps the budget (:func:`tile_size_for_sample`),
     leaves the block's remainder to the last tile of each axis: a 45 m block in 30 m
-    tiles is a 30 m tile and a 15 m one, and the larger holds most of the block's points
-    (its worker's time is the job's). The whole metres from ``size`` down to the least
-    that still gives that many tiles are tried: of those whose every tile keeps
-    ``budget``, the one whose fullest buffered tile is estimated to hold the fewest
-    points (:func:`sampled_tile_points`; ties: the larger).
+    tiles is a 30 m tile and a 15 m one, and the larger holds most of the block's points.
+    A tile's time follows its buffered points, so the whole metres from ``size`` down to
+    the least that still gives that many tiles are tried: of those whose every tile
+    keeps ``budget``, the one with the least :func:`makespan` of its buffered tiles'
+    estimated points (:func:`sampled_tile_points`) on ``n_workers`` (ties: the larger).
+    On 1 worker that is the least total; on as many workers as tiles, the fullest tile
+    the least.
 
     Parameters
     ----------
@@ -314,6 +340,8 @@ def balanced_tile_size(sample: DensitySample, size: float, mins, maxs, *, budget
         Tile buffer [m].
     grid_origin : (2,) float
         The grid's corner [m].
+    n_workers : int
+        Workers that run the job's tiles at once (at least 1).
 
     Returns
     -------
@@ -322,23 +350,25 @@ def balanced_tile_size(sample: DensitySample, size: float, mins, maxs, *, budget
     """
     g = (float(grid_origin[0]), float(grid_origin[1]))
     points = sampled_tile_points(sample, float(size), buffer, mins, maxs, g)
-    shape, best, fullest = points.shape, float(size), float(points.max())
+    shape, best, soonest = points.shape, float(size), makespan(points, n_workers)
     # n tiles of s metres along an axis cover its extent only when n * s exceeds it
     least = max(smallest_tile(buffer), *(math.floor((float(maxs[d]) - float(mins[d])) / shape[1 - d]) for d in range(2)))
     for s in range(int(size) - 1, int(least) - 1, -1):
         points = sampled_tile_points(sample, float(s), buffer, mins, maxs, g)
-        if points.shape != shape or float(points.max()) >= fullest:
+        if points.shape != shape:
             continue
-        if sampled_tile_bytes(sample, float(s), buffer, mins, maxs, g).max() <= budget:
-            best, fullest = float(s), float(points.max())
+        span = makespan(points, n_workers)
+        if span < soonest and sampled_tile_bytes(sample, float(s), buffer, mins, maxs, g).max() <= budget:
+            best, soonest = float(s), span
     return best
 
 
-def job_tile_size(sample: DensitySample, mins, maxs, *, budget: float, buffer: float, grid_origin) -> float | None:
+def job_tile_size(sample: DensitySample, mins, maxs, *, budget: float, buffer: float, grid_origin,
+                  n_workers: int) -> float | None:
     """The tile core a job takes for this block: None when it fits whole, else the
-    largest core that keeps the budget (:func:`tile_size_for_sample`) cut evenly
-    (:func:`balanced_tile_size`). Raises what :func:`tile_size_for_sample` raises."""
+    largest core that keeps the budget (:func:`tile_size_for_sample`) cut so that its
+    ``n_workers`` workers finish soonest (:func:`balanced_tile_size`). Raises what
+    :func:`tile_size_for_sample` raises."""
     where = dict(budget=budget, buffer=buffer, grid_origin=grid_origin)
     size = tile_size_for_sample(sample, mins, maxs, **where)
-    # as many tiles, their points shared evenly: no tile's worker holds up the job
-    return None if size is None else balanced_tile_size(sample, size, mins, maxs, **where)
+    return None if size is None else balanced_tile_size(sample, size, mins, maxs, **where, n_workers=n_workers)

@@ -36,7 +36,15 @@ from pipeline.reading import read_points
 from pipeline.tiling import TileGrid
 from workers.cellranges import aligned, index_from_cells, split_block
 from workers.counting import count_block
-from workers.dispatch import block_ground_stats, check_cancel, gather, process_tiles, run_task, settle_slot_trees
+from workers.dispatch import (
+    block_ground_stats,
+    check_cancel,
+    cluster_threads,
+    gather,
+    process_tiles,
+    run_task,
+    settle_slot_trees,
+)
 from workers.jobspec import (
     ClusterLost,
     JobCancelled,
@@ -98,7 +106,8 @@ def run_job(
         if splits_while_counting(spec, info):  # and split it by cell in the same pass
             return _run_tiled(spec, info, client, t0, progress, cancel, split=True, on_tiles=on_tiles,
                               counting=counting)
-        spec = auto_tiled(spec, info, count=partial(count_block, client=client, cancel=cancel))
+        spec = auto_tiled(spec, info, count=partial(count_block, client=client, cancel=cancel),
+                          n_workers=cluster_threads(client))
     elif points is None:  # counted here: a block that stays whole is then decoded once, not twice
         spec, points = budgeted(spec, info)
     # given points, the caller's budget kept the block whole: it is not budgeted again
@@ -249,7 +258,7 @@ def _run_tiled_locked(spec, info, client, t0, progress, cancel, grid, store, tim
             sample, cells, parts = split_block(info, grid_origin(spec.tiling, info), store,
                                                voxel_size=spec.params.graph.voxel_size, client=client,
                                                gather=wait, progress=counting)
-            spec = auto_tiled(spec, info, count=lambda info, voxel_size: sample)
+            spec = auto_tiled(spec, info, count=lambda info, voxel_size: sample, n_workers=cluster_threads(client))
             if on_tiles:
                 on_tiles(spec)
             grid = plan_tiles(spec.job, info)

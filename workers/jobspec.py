@@ -182,17 +182,20 @@ def check_out_dir(out_dir) -> None:
         raise ParameterError(f"cannot write to output folder {out}: {parent} is not writable")
 
 
-def auto_tiled(spec: JobSpec, info: BlockInfo | None = None, *, count: Callable | None = None) -> JobSpec:
+def auto_tiled(spec: JobSpec, info: BlockInfo | None = None, *, count: Callable | None = None,
+               n_workers: int | None = None) -> JobSpec:
     """``spec`` with a tile size chosen for its memory budget when it has none and the
     whole block would not fit the budget (else ``spec``).
 
     The size comes from the block's points and voxel-graph nodes counted per square cell
     (:func:`pipeline.reading.sample_density`, read only for a block that does not surely
     fit whole) and the job's actual grid (:func:`pipeline.budget.job_tile_size`: the largest
-    core that keeps the budget, cut into as many tiles each holding about as many points).
+    core that keeps the budget, cut into as many tiles that ``n_workers`` finish soonest).
     ``info``: the block's header, read from ``spec.input_path`` when not given.
     ``count(info, voxel_size)`` → the density sample: how to count (default: in this
     process; :func:`workers.counting.count_block` with a client counts on the cluster).
+    ``n_workers``: the workers that will run its tiles (default ``spec.run.workers``, the
+    embedded cluster's).
     Raises ParameterError (a :class:`pipeline.budget.BudgetError` when no tile fits),
     InputError (truncated or corrupt point data met while counting).
     """
@@ -204,8 +207,11 @@ def auto_tiled(spec: JobSpec, info: BlockInfo | None = None, *, count: Callable 
         return spec
     voxel_size = spec.params.graph.voxel_size
     sample = count(info, voxel_size) if count else sample_density(info.path, info=info, voxel_size=voxel_size)
+    # no client yet (orchard process counts before its cluster starts): the embedded
+    # cluster's workers, which will run the tiles (2 unless --workers or the service says)
+    workers = n_workers or spec.run.workers
     size = job_tile_size(sample, info.mins, info.maxs, budget=budget, buffer=spec.job.buffer(),
-                         grid_origin=grid_origin(spec.tiling, info))
+                         grid_origin=grid_origin(spec.tiling, info), n_workers=workers)
     return spec if size is None else dataclasses.replace(spec, job=spec.job.with_tile_size(size))
 
 

@@ -1,7 +1,9 @@
 """How a job runs, beside what it computes (:class:`pipeline.jobparams.JobParams`): the
 tiler's engine, the embedded cluster's workers, a worker's memory budget and the points
-read at a time. None of them changes a job's outputs, so none is stored with a job: the
-command line takes them as options, the service from its settings."""
+read at a time. None of them changes a job's outputs but through the tile size a memory
+budget chooses for a block without one (the budget and the workers that will run its tiles,
+:func:`workers.jobspec.auto_tiled`), and that size is stored with the job; so none is
+stored with a job: the command line takes them as options, the service from its settings."""
 
 from __future__ import annotations
 

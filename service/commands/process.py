@@ -373,10 +373,12 @@ def _run_job(spec, args: argparse.Namespace, *, tiled: bool, count_on_cluster: b
             fused = count_on_cluster and splits_while_counting(spec, info)
             if count_on_cluster and not fused:
                 from workers.counting import count_block
+                from workers.dispatch import cluster_threads
 
                 spec, _ = _budget_tiles(spec, count=partial(count_block, client=client,
                                                             cancel=getattr(args, "interrupted", None),
-                                                            progress=_Bar(what="counting")))
+                                                            progress=_Bar(what="counting")),
+                                        n_workers=cluster_threads(client))
             dashboard_line = f"dask dashboard: {dashboard_address(client) or 'none'}"
 
             def tiles_chosen(spec):
@@ -398,10 +400,11 @@ def _run_job(spec, args: argparse.Namespace, *, tiled: bool, count_on_cluster: b
             close_client(client)
 
 
-def _budget_tiles(spec, count=None):
-    """``spec`` with the tiles its memory budget needs (:func:`workers.jobspec.auto_tiled`),
-    said on stderr when there are any, and the block's points when it stays whole and
-    they were read here (:func:`workers.jobspec.budgeted`; ``count`` None)."""
+def _budget_tiles(spec, count=None, n_workers=None):
+    """``spec`` with the tiles its memory budget needs (:func:`workers.jobspec.auto_tiled`,
+    for ``n_workers``: default the embedded cluster's ``spec.run.workers``), said on stderr
+    when there are any, and the block's points when it stays whole and they were read
+    here (:func:`workers.jobspec.budgeted`; ``count`` None)."""
     # here, not at the top: `orchard --help` imports every command module (see service.commands)
     from workers.jobspec import auto_tiled, budgeted
 
@@ -410,7 +413,7 @@ def _budget_tiles(spec, count=None):
         if count is None:
             spec, points = budgeted(spec)
         else:
-            spec = auto_tiled(spec, count=count)
+            spec = auto_tiled(spec, count=count, n_workers=n_workers)
     _say_tiles(spec)
     return spec, points
 

@@ -20,9 +20,11 @@ from pipeline.budget import (
     SAMPLE_MARGIN,
     BudgetError,
     DensitySample,
+    balanced_tile_size,
     bytes_needed,
     count_cells,
     fits_whole,
+    makespan,
     sampled_tile_bytes,
     sampled_tile_nodes,
     sampled_tile_points,
@@ -93,6 +95,39 @@ def test_nodes_per_point_set_the_tile_by_hand():
     whole = bytes_needed(9_000_000, 900_000)
     assert tile_size_for_sample(dense, (0, 0), (300, 300), budget=whole, buffer=5.0, grid_origin=(0, 0)) is None
     assert tile_size_for_sample(unknown, (0, 0), (300, 300), budget=whole, buffer=5.0, grid_origin=(0, 0)) is not None
+
+
+def test_the_makespan_of_tiles_handed_out_largest_first_by_hand():
+    assert makespan([5.0, 3.0, 2.0], 1) == 10.0  # one worker: the total
+    assert makespan([[2.0, 5.0], [3.0, 0.0]], 5) == 5.0  # a worker a tile: the largest
+    # 7 | 5 | 4 -> 7 | 5+3 | 4+3 -> 7+2 | 8 | 7
+    assert makespan([3.0, 7.0, 2.0, 4.0, 5.0, 3.0], 3) == 9.0
+    assert makespan([4.0, 4.0, 3.0, 3.0, 2.0], 2) == 9.0  # LPT's, not the best split (8: 4+4 | 3+3+2)
+    assert makespan([], 2) == 0.0
+
+
+def _strip_and_line() -> DensitySample:
+    """A 45 m x 10 m block of 100 points per m^2 and 1000 more in its column of 1 m cells
+    at x in [24, 25)."""
+    counts = np.full((10, 45), 100, dtype=np.int64)
+    counts[:, 24] += 100
+    n = int(counts.sum())
+    return DensitySample(counts=counts, origin=(0.0, 0.0), cell=1.0, sampled=n, n_points=n)
+
+
+def test_one_worker_takes_the_least_total_two_the_balanced_tiles():
+    # 5 m buffers, two tiles along x (cores 23-30 m), one row: a core s holds x in
+    # [-5, s+5) and [s-5, 50) of the block, 45 + 10 m of columns (1000 points each)
+    # whatever s, and the line in both (23-29 m) or in the first only (30 m).
+    # 1 worker, the total: 30 m's 36,000 + 20,000 against 57,000 at 23-29 m.
+    # 2 workers, the fuller tile: 23 m's 29,000 (+ 28,000); 24 m and up hold more
+    sample, where = _strip_and_line(), dict(budget=1e12, buffer=5.0, grid_origin=(0.0, 0.0))
+    mins, maxs = (0.0, 0.0), (45.0, 10.0)
+    for size, tiles in ((30.0, [36_000.0, 20_000.0]), (29.0, [35_000.0, 22_000.0]), (23.0, [29_000.0, 28_000.0])):
+        assert sorted(sampled_tile_points(sample, size, 5.0, mins, maxs, (0.0, 0.0)).ravel(), reverse=True) == tiles
+    assert balanced_tile_size(sample, 30.0, mins, maxs, **where, n_workers=1) == 30.0
+    assert balanced_tile_size(sample, 30.0, mins, maxs, **where, n_workers=2) == 23.0
+    assert balanced_tile_size(sample, 30.0, mins, maxs, **where, n_workers=8) == 23.0
 
 
 def test_a_grid_origin_between_cell_edges_counts_every_cell_a_tile_touches():

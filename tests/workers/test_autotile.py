@@ -25,6 +25,7 @@ from pipeline.budget import (
     block_bytes,
     bytes_needed,
     fits_whole,
+    makespan,
     sampled_tile_bytes,
     sampled_tile_nodes,
     sampled_tile_points,
@@ -127,15 +128,18 @@ def test_a_block_a_little_wider_than_one_tile_is_cut_in_halves_not_in_a_tile_and
     budget = float(sampled_tile_bytes(sample, 30.0, 5.0, (0, 0), (45, 45), (0, 0)).max())
     size = tile_size_for_sample(sample, (0, 0), (45, 45), budget=budget, buffer=5.0, grid_origin=(0, 0))
     assert size == 30.0
-    assert balanced_tile_size(sample, size, (0, 0), (45, 45), budget=budget, buffer=5.0, grid_origin=(0, 0)) == 23.0
+    where = dict(budget=budget, buffer=5.0, grid_origin=(0, 0))
+    assert balanced_tile_size(sample, size, (0, 0), (45, 45), **where, n_workers=2) == 23.0
+    # one worker: every 2 x 2 grid holds the same 55 x 55 m of buffered tiles (ties: the larger)
+    assert balanced_tile_size(sample, size, (0, 0), (45, 45), **where, n_workers=1) == 30.0
     points = sampled_tile_points(sample, 23.0, 5.0, (0, 0), (45, 45), (0, 0))
     assert points.shape == (2, 2) and points.max() <= 1.1 * points.min()
 
 
 @settings(max_examples=100, deadline=None)
-@given(*RANDOM_BLOCK)
-def test_the_balanced_tile_keeps_the_budget_and_the_tiles_and_holds_the_fewest_points(width, depth, seed, buffer,
-                                                                                        budget, origin):
+@given(*RANDOM_BLOCK, st.integers(1, 6))
+def test_the_balanced_tile_keeps_the_budget_and_the_tiles_and_its_workers_finish_soonest(width, depth, seed, buffer,
+                                                                                           budget, origin, n_workers):
     sample, mins, maxs = _random(width, depth, seed)
     try:
         largest = tile_size_for_sample(sample, mins, maxs, budget=budget, buffer=buffer, grid_origin=origin)
@@ -143,18 +147,26 @@ def test_the_balanced_tile_keeps_the_budget_and_the_tiles_and_holds_the_fewest_p
         return
     if largest is None:
         return
-    size = balanced_tile_size(sample, largest, mins, maxs, budget=budget, buffer=buffer, grid_origin=origin)
+    size = balanced_tile_size(sample, largest, mins, maxs, budget=budget, buffer=buffer, grid_origin=origin,
+                              n_workers=n_workers)
     assert size == int(size) and smallest_tile(buffer) <= size <= largest
     shape = sampled_tile_points(sample, largest, buffer, mins, maxs, origin).shape
-    fullest = sampled_tile_points(sample, size, buffer, mins, maxs, origin).max()
     assert sampled_tile_points(sample, size, buffer, mins, maxs, origin).shape == shape
     assert sampled_tile_bytes(sample, size, buffer, mins, maxs, origin).max() <= budget
-    assert fullest <= sampled_tile_points(sample, largest, buffer, mins, maxs, origin).max()
-    for other in range(int(smallest_tile(buffer)), int(largest) + 1):  # none better, larger ones no worse
+
+    def lpt(points):  # the tiles largest first, each to the worker free first
+        loads = [0.0] * n_workers
+        for p in sorted(points.ravel().tolist(), reverse=True):
+            loads[loads.index(min(loads))] += p
+        return max(loads)
+
+    time = lpt(sampled_tile_points(sample, size, buffer, mins, maxs, origin))
+    assert time == makespan(sampled_tile_points(sample, size, buffer, mins, maxs, origin), n_workers)
+    for other in range(int(smallest_tile(buffer)), int(largest) + 1):  # none sooner, larger ones later
         points = sampled_tile_points(sample, float(other), buffer, mins, maxs, origin)
         if points.shape == shape and sampled_tile_bytes(sample, float(other), buffer, mins, maxs, origin).max() <= budget:
-            assert points.max() >= fullest
-            assert other <= size or points.max() > fullest
+            assert lpt(points) >= time
+            assert other <= size or lpt(points) > time
 
 
 # ---------------------------------------------------------------- on a generated block
