@@ -17,7 +17,7 @@ from scipy.sparse import csgraph
 from scipy.spatial import cKDTree
 
 from pipeline.passes import CACHE_POINTS
-from pipeline.rowpasses import row_blocks
+from pipeline.rowpasses import block_rows, row_blocks
 
 INT32_MAX = np.iinfo(np.int32).max
 #: shortest edge weight [m]: csgraph treats explicit zeros as missing edges
@@ -373,7 +373,7 @@ def reweight(graph: sparse.csr_matrix, node_cost: np.ndarray) -> sparse.csr_matr
     w = np.empty(graph.data.shape[0])
     for start, stop in row_blocks(indptr):
         lo, hi = indptr[start], indptr[stop]
-        row = np.repeat(np.arange(start, stop), np.diff(indptr[start : stop + 1]))
+        row = block_rows(indptr, start, stop)
         t = w[lo:hi]
         np.multiply(graph.data[lo:hi], 0.5, out=t)
         t *= node_cost[row] + node_cost[indices[lo:hi]]

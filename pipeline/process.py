@@ -19,7 +19,7 @@ from pipeline.graph import bridge_floating, build_graph, node_pairs, reweight, w
 from pipeline.ground import GroundModel, classify_ground, ground_model
 from pipeline.params import PipelineParams, TrunkParams
 from pipeline.passes import indices_where
-from pipeline.rowpasses import row_blocks
+from pipeline.rowpasses import kept_entries
 from pipeline.posts import Posts, find_posts, on_posts
 from pipeline.slots import let_in, slot_evidence, trees_on_slots
 from pipeline.segment import (
@@ -162,21 +162,9 @@ def _without_edges_within(graph: sparse.csr_matrix, mask: np.ndarray) -> sparse.
     may end in such a node but not run on through it."""
     if not mask.any():
         return graph
-    # the edges kept found a block of rows at a time, and the rows' runs of them taken
-    # as they lie: the matrix scipy builds from their coordinates, without every edge's
-    # coordinates and masks as fresh temporaries
     g = graph.tocsr()
-    indptr, indices = g.indptr, g.indices
-    keep = np.empty(indices.shape[0], bool)
-    kept = np.zeros(indptr.shape[0], np.int64)  # edges kept before each row
-    for start, stop in row_blocks(indptr):
-        lo = indptr[start]
-        k = keep[lo : indptr[stop]]
-        np.logical_and(np.repeat(mask[start:stop], np.diff(indptr[start : stop + 1])), mask[indices[lo : indptr[stop]]], out=k)
-        np.logical_not(k, out=k)
-        kept[start + 1 : stop + 1] = kept[start] + np.r_[0, np.cumsum(k)][indptr[start + 1 : stop + 1] - lo]
-    index = np.int32 if max(int(kept[-1]), graph.shape[1]) <= np.iinfo(np.int32).max else np.int64
-    out = sparse.csr_matrix((g.data[keep], indices[keep].astype(index, copy=False), kept.astype(index)), shape=graph.shape)
+    indices = g.indices
+    out = kept_entries(g, lambda rows, lo, hi: ~(mask[rows] & mask[indices[lo:hi]]))
     out.sum_duplicates()  # as scipy leaves a matrix built from coordinates: canonical
     return out
 

@@ -17,7 +17,7 @@ from scipy.sparse import csgraph
 from scipy.sparse.linalg import splu
 
 from pipeline.graph import MIN_EDGE_WEIGHT
-from pipeline.rowpasses import row_blocks
+from pipeline.rowpasses import kept_entries
 
 #: at most this many trees' probabilities are solved for at once (columns of one dense
 #: right-hand side; memory is contested nodes × this × 8 bytes)
@@ -170,18 +170,9 @@ def _conductance_among(graph: sparse.csr_matrix, on: np.ndarray) -> sparse.csr_m
         g.data = 1.0 / np.maximum(g.data, MIN_EDGE_WEIGHT)
         keep = sparse.diags(on.astype(np.float64))
         return (keep @ g @ keep).tocsr()
-    indptr, indices, length = graph.indptr, graph.indices, graph.data
-    keep = np.empty(indices.shape[0], bool)
-    kept = np.zeros(indptr.shape[0], np.int64)  # edges kept before each row
-    for start, stop in row_blocks(indptr):
-        lo, hi = indptr[start], indptr[stop]
-        k = keep[lo:hi]
-        np.logical_and(np.repeat(on[start:stop], np.diff(indptr[start : stop + 1])), on[indices[lo:hi]], out=k)
-        k &= length[lo:hi] != np.inf
-        kept[start + 1 : stop + 1] = kept[start] + np.r_[0, np.cumsum(k)][indptr[start + 1 : stop + 1] - lo]
-    index = np.int32 if max(int(kept[-1]), graph.shape[0]) <= np.iinfo(np.int32).max else np.int64
-    data = 1.0 / np.maximum(length[keep], MIN_EDGE_WEIGHT)
-    return sparse.csr_matrix((data, indices[keep].astype(index, copy=False), kept.astype(index)), shape=graph.shape)
+    indices, length = graph.indices, graph.data
+    return kept_entries(graph, lambda rows, lo, hi: on[rows] & on[indices[lo:hi]] & (length[lo:hi] != np.inf),
+                        data=lambda keep: 1.0 / np.maximum(length[keep], MIN_EDGE_WEIGHT))
 
 
 def refine_contested(graph: sparse.csr_matrix, node_tree: np.ndarray, dist: np.ndarray, *, margin: float) -> np.ndarray:

@@ -10,7 +10,7 @@ import scipy.
 
 from __future__ import annotations
 
-from collections.abc import Iterator
+from collections.abc import Callable, Iterator
 
 import numpy as np
 from scipy import sparse
@@ -91,3 +91,29 @@ def row_max(a: sparse.csr_matrix, values: np.ndarray) -> np.ndarray:
         if rows.size:
             out[rows] = np.maximum.reduceat(values[a.indices[lo : a.indptr[stop]]], a.indptr[rows] - lo)
     return out
+
+
+def block_rows(indptr: np.ndarray, start: int, stop: int) -> np.ndarray:
+    """The row of each stored entry of rows ``start:stop`` of a CSR ``indptr``, in order."""
+    return np.repeat(np.arange(start, stop), np.diff(indptr[start : stop + 1]))
+
+
+def kept_entries(a: sparse.csr_matrix, test: Callable[[np.ndarray, int, int], np.ndarray],
+                 data: Callable[[np.ndarray], np.ndarray] | None = None) -> sparse.csr_matrix:
+    """The CSR matrix of the stored entries of ``a`` that ``test`` keeps, in their order:
+    what scipy builds from their coordinates, without every entry's coordinates and tests
+    as fresh temporaries. ``test(rows, lo, hi)`` maps entries ``lo:hi`` (a block of whole
+    rows; ``rows`` their rows) to their (hi - lo,) bool; ``data(keep)`` gives the kept
+    entries' values (default ``a.data[keep]``). Indices are int32 where they fit, as
+    scipy's."""
+    indptr = a.indptr
+    keep = np.empty(a.indices.shape[0], bool)
+    kept = np.zeros(indptr.shape[0], np.int64)  # entries kept before each row
+    for start, stop in row_blocks(indptr):
+        lo, hi = int(indptr[start]), int(indptr[stop])
+        k = keep[lo:hi]
+        k[:] = test(block_rows(indptr, start, stop), lo, hi)
+        kept[start + 1 : stop + 1] = kept[start] + np.r_[0, np.cumsum(k)][indptr[start + 1 : stop + 1] - lo]
+    index = np.int32 if max(int(kept[-1]), *a.shape) <= np.iinfo(np.int32).max else np.int64
+    values = a.data[keep] if data is None else data(keep)
+    return sparse.csr_matrix((values, a.indices[keep].astype(index, copy=False), kept.astype(index)), shape=a.shape)

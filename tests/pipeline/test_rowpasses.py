@@ -55,3 +55,17 @@ def test_sparse_product_of_int8_ones_gives_floats_and_other_layouts_go_to_scipy(
     assert rowpasses.row_sums(a).tolist() == [2, 0, 3]
     assert rowpasses.sparse_product(a.tocsc(), x).tolist() == [4.5, 0.0, 6.5]
     assert rowpasses.row_sums(a.tocsc()).tolist() == [2, 0, 3]
+
+
+def test_kept_entries_is_scipys_matrix_of_the_kept_coordinates():
+    rng = np.random.default_rng(3)
+    a = _matrix(rng, 200, 200, 0.05, np.float64)
+    on = rng.random(200) < 0.5
+    with patch.object(rowpasses.row_blocks, "__defaults__", (7,)):  # many blocks
+        got = rowpasses.kept_entries(a, lambda rows, lo, hi: on[rows] | on[a.indices[lo:hi]])
+    c = a.tocoo()
+    k = on[c.row] | on[c.col]
+    want = sparse.csr_matrix((c.data[k], (c.row[k], c.col[k])), shape=a.shape)
+    assert got.indices.dtype == np.int32 and got.nnz == int(k.sum())
+    assert np.array_equal(got.indptr, want.indptr) and np.array_equal(got.indices, want.indices)
+    assert np.array_equal(got.data, want.data)
