@@ -207,6 +207,7 @@ def _embedded_client(
     # worker processes talk to the scheduler over TLS with certificates made here, for this
     # cluster alone: a client without them (another local account) is refused
     security = _temporary_security() if processes else None
+    logging.getLogger("distributed.batched").addFilter(_CLIENT_GONE)  # the scheduler runs in this process
     with _workers_signals_blocked(), worker_allocator():
         cluster = LocalCluster(
             n_workers=int(n_workers),
@@ -411,6 +412,17 @@ class _ClosingNoise(logging.Filter):
         msg = str(record.msg)
         return not (msg.endswith("ended with CancelledError")
                     or msg == "Failed to communicate with scheduler during heartbeat.")
+
+
+class _ClientGone(logging.Filter):
+    """Drops the traceback the embedded scheduler logs (at INFO) when a client's stream
+    closes while it still sends to it: a job's client closing as the service stops."""
+
+    def filter(self, record: logging.LogRecord) -> bool:
+        return not str(record.msg).startswith("Batched Comm Closed")
+
+
+_CLIENT_GONE = _ClientGone()
 
 
 def dask_setup(worker) -> None:
